@@ -1,0 +1,67 @@
+"""The command line: `vdo evaluate CONFIG --out DIR` and `vdo demo`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .backend import BackendError
+from .errors import ConfigError
+
+BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+
+
+def _print_summary(summary: dict) -> None:
+    print(f"{'region':<22}{'area m2':>9}{'>=1':>7}{'>=2':>7}{'>=3':>7}")
+    for name, r in summary["regions"].items():
+        print(f"{name:<22}{r['area_m2']:>9.3f}" + "".join(
+            f"{100 * r[f'seen_by_{m}_or_more']:>6.0f}%" for m in (1, 2, 3)))
+
+
+def _evaluate(config_path, out, overwrite, quiet):
+    from .config import load
+    from .evaluate import evaluate
+
+    exp = load(config_path)
+    summary = evaluate(exp, Path(out), overwrite=overwrite, quiet=quiet)
+    if not quiet:
+        _print_summary(summary)
+        print(f"wrote {Path(out).resolve()}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
+    sub = parser.add_subparsers(dest="command", required=True)
+    ev = sub.add_parser("evaluate", help="coverage of the regions of interest by the cameras")
+    ev.add_argument("config", help="experiment TOML file")
+    ev.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ev.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    ev.add_argument("--quiet", action="store_true")
+    demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
+    demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
+    args = parser.parse_args(argv)
+    started = time.perf_counter()
+    try:
+        if args.command == "evaluate":
+            _evaluate(args.config, args.out, args.overwrite, args.quiet)
+        elif args.command == "demo":
+            if not BUILTIN.is_file():
+                raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
+                                               "from a checkout of the vdo repository")
+            out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+            _evaluate(BUILTIN, out, False, False)
+            print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
+                  f"{Path(out).resolve() / 'maps' / 'coverage.png'} and samples.vtp in ParaView")
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except BackendError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,409 @@
+"""The experiment file: TOML schema, validation, units and defaults.
+
+One TOML file describes one experiment. Lengths are metres unless a field's name says otherwise
+(``_mm``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are read with
+the unit they declare. Relative paths are relative to the TOML file.
+
+Everything is validated before any work starts. A user mistake raises `ConfigError` naming the file,
+the field (``camera "cam3".focal_mm``) and what is expected. See docs/config.md for the schema.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera, look_at_angles
+from .errors import ConfigError
+from .rail import Rail
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+ROLES = ("specimen", "obstacle")
+_REQUIRED = object()
+
+
+# --------------------------------------------------------------------------------------------
+# Validated pieces
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MeshSpec:
+    name: str
+    path: Path
+    unit: str
+    role: str
+
+    @property
+    def scale(self) -> float:
+        """Metres per mesh unit."""
+        return UNITS[self.unit]
+
+
+@dataclass(frozen=True, eq=False)
+class RegionSpec:
+    """A region of interest: the faces of `mesh` whose normal is within `normal_tolerance` of
+    `normal` and whose centroid lies in the box [box_min, box_max] (metres)."""
+
+    name: str
+    mesh: str
+    normal: np.ndarray
+    box_min: np.ndarray
+    box_max: np.ndarray
+    importance: float = 1.0
+    normal_tolerance: float = math.radians(5.0)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraSpec:
+    """A camera as written in the file; `Experiment.cameras()` resolves its pose."""
+
+    name: str
+    sensor_width: float          # m
+    pixels: tuple[int, int]
+    focal_length: float          # m
+    rail: str | None = None
+    u: float | None = None
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    position: np.ndarray | None = None
+    target: np.ndarray | None = None
+    pan: float | None = None     # rad
+    tilt: float | None = None    # rad
+    roll: float = 0.0            # rad
+    principal_offset_px: tuple[float, float] = (0.0, 0.0)
+    body: bool = True
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    sample_spacing: float = 0.01                      # m between surface samples
+    incidence_limit: float = math.radians(75.0)       # rad, from the surface normal
+
+
+@dataclass(frozen=True, eq=False)
+class Experiment:
+    """A validated experiment. `path` is the TOML file it came from."""
+
+    path: Path
+    name: str
+    meshes: tuple[MeshSpec, ...]
+    regions: tuple[RegionSpec, ...]
+    rails: tuple[Rail, ...]
+    camera_specs: tuple[CameraSpec, ...]
+    evaluation: Evaluation
+    description: str = ""
+
+    def rail(self, name: str) -> Rail:
+        return next(r for r in self.rails if r.name == name)
+
+    def cameras(self) -> list[Camera]:
+        """The configured cameras with poses resolved from rails, positions and targets."""
+        return [_resolve_camera(self, spec) for spec in self.camera_specs]
+
+    def with_cameras(self, specs) -> "Experiment":
+        return replace(self, camera_specs=tuple(specs))
+
+    def to_dict(self) -> dict:
+        """The resolved experiment as a TOML-ready dict (absolute mesh paths, defaults filled)."""
+        out = {"experiment": {"name": self.name, "description": self.description},
+               "evaluation": {"sample_spacing_mm": self.evaluation.sample_spacing * 1e3,
+                              "incidence_limit_deg": math.degrees(self.evaluation.incidence_limit)},
+               "mesh": [{"name": m.name, "file": str(m.path), "unit": m.unit, "role": m.role}
+                        for m in self.meshes],
+               "region": [{"name": r.name, "mesh": r.mesh, "normal": r.normal.tolist(),
+                           "box_min_m": r.box_min.tolist(), "box_max_m": r.box_max.tolist(),
+                           "importance": r.importance,
+                           "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
+                          for r in self.regions],
+               "rail": [{"name": r.name, "control_points_m": r.control_points.tolist(),
+                         "degree": r.degree, "weights": r.weights.tolist()} for r in self.rails],
+               "camera": [_camera_to_dict(c) for c in self.camera_specs]}
+        return out
+
+
+def _camera_to_dict(c: CameraSpec) -> dict:
+    d = {"name": c.name, "sensor_width_mm": c.sensor_width * 1e3, "pixels": list(c.pixels),
+         "focal_mm": c.focal_length * 1e3}
+    if c.rail is not None:
+        d |= {"rail": c.rail, "u": c.u, "offset_m": c.offset.tolist()}
+    else:
+        d["position_m"] = c.position.tolist()
+    if c.target is not None:
+        d["target_m"] = c.target.tolist()
+    else:
+        d |= {"pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt)}
+    d |= {"roll_deg": math.degrees(c.roll), "principal_offset_px": list(c.principal_offset_px),
+          "body": c.body}
+    return d
+
+
+def _resolve_camera(exp: Experiment, spec: CameraSpec) -> Camera:
+    if spec.rail is not None:
+        position = np.asarray(exp.rail(spec.rail).position(spec.u)) + spec.offset
+    else:
+        position = spec.position
+    if spec.target is not None:
+        pan, tilt = look_at_angles(position, spec.target)
+    else:
+        pan, tilt = spec.pan, spec.tilt
+    width, height = spec.pixels
+    return Camera(name=spec.name, width=width, height=height,
+                  pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
+                  position=np.asarray(position, dtype=float), pan=pan, tilt=tilt, roll=spec.roll,
+                  principal_offset_px=spec.principal_offset_px)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading with clear errors
+# --------------------------------------------------------------------------------------------
+class _Table:
+    """One TOML table being read: every key must be known, every value checked."""
+
+    def __init__(self, data, where: str, file: Path, allowed: tuple[str, ...]):
+        self.file, self.where = file, where
+        if not isinstance(data, dict):
+            raise ConfigError(file, where, "must be a table")
+        for key in data:
+            if key not in allowed:
+                close = difflib.get_close_matches(key, allowed, n=1)
+                hint = f"did you mean {close[0]!r}?" if close else f"known fields: {', '.join(allowed)}"
+                raise ConfigError(file, self._field(key), f"unknown field; {hint}")
+        self.data = data
+
+    def _field(self, key):
+        return f"{self.where}.{key}" if self.where else key
+
+    def error(self, key, message):
+        return ConfigError(self.file, self._field(key), message)
+
+    def has(self, key):
+        return key in self.data
+
+    def raw(self, key, default=_REQUIRED):
+        if key not in self.data:
+            if default is _REQUIRED:
+                raise self.error(key, "is required")
+            return default
+        return self.data[key]
+
+    def string(self, key, default=_REQUIRED, choices=None):
+        value = self.raw(key, default)
+        if value is None:
+            return None
+        if not isinstance(value, str) or not value:
+            raise self.error(key, f"must be a non-empty string (got {value!r})")
+        if choices is not None and value not in choices:
+            raise self.error(key, f"must be one of {', '.join(choices)} (got {value!r})")
+        return value
+
+    def boolean(self, key, default=_REQUIRED):
+        value = self.raw(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f"must be true or false (got {value!r})")
+        return value
+
+    def number(self, key, default=_REQUIRED, low=None, high=None, positive=False):
+        value = self.raw(key, default)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise self.error(key, f"must be a finite number (got {value!r})")
+        if positive and value <= 0:
+            raise self.error(key, f"must be positive (got {value!r})")
+        if (low is not None and value < low) or (high is not None and value > high):
+            raise self.error(key, f"must lie in [{low}, {high}] (got {value!r})")
+        return float(value)
+
+    def integer(self, key, default=_REQUIRED, low=None):
+        value = self.raw(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or (low is not None and value < low):
+            raise self.error(key, f"must be an integer >= {low} (got {value!r})")
+        return value
+
+    def vector(self, key, length, default=_REQUIRED, positive=False):
+        if key not in self.data and default is not _REQUIRED:
+            return default
+        value = self.raw(key)
+        arr = _numbers(value)
+        if arr is None or arr.shape != (length,):
+            raise self.error(key, f"must be a list of {length} finite numbers (got {value!r})")
+        if positive and np.any(arr <= 0):
+            raise self.error(key, f"must be positive (got {value!r})")
+        return arr
+
+    def points(self, key, minimum=2):
+        value = self.raw(key)
+        arr = _numbers(value)
+        if arr is None or arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < minimum:
+            raise self.error(key, f"must be a list of at least {minimum} [x, y, z] points in metres")
+        return arr
+
+
+def _numbers(value):
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if arr.dtype == object or not np.all(np.isfinite(arr)):
+        return None
+    return arr
+
+
+def _entries(top: _Table, key: str, file: Path, allowed, required=True):
+    items = top.raw(key, [] if not required else _REQUIRED)
+    if not isinstance(items, list) or (required and not items):
+        raise ConfigError(file, key, f"needs at least one [[{key}]] table")
+    tables, names = [], set()
+    for i, item in enumerate(items):
+        name = item.get("name") if isinstance(item, dict) else None
+        where = f'{key} "{name}"' if isinstance(name, str) else f"{key}[{i}]"
+        table = _Table(item, where, file, allowed)
+        table.string("name")
+        if name in names:
+            raise ConfigError(file, where, "name is used twice; names must be unique")
+        names.add(name)
+        tables.append(table)
+    return tables
+
+
+def load(path) -> Experiment:
+    """Read and validate an experiment file. Raises ConfigError on any user mistake."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(path, "", "file not found") from None
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
+    return parse(data, path)
+
+
+def parse(data: dict, path: Path) -> Experiment:
+    """Validate an already-parsed TOML document that came from `path`."""
+    path = Path(path).resolve()
+    top = _Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera"))
+    exp = _Table(top.raw("experiment"), "experiment", path, ("name", "description"))
+    ev = _Table(top.raw("evaluation", {}), "evaluation", path,
+                ("sample_spacing_mm", "incidence_limit_deg"))
+    evaluation = Evaluation(
+        sample_spacing=ev.number("sample_spacing_mm", 10.0, positive=True) * 1e-3,
+        incidence_limit=math.radians(ev.number("incidence_limit_deg", 75.0, low=1.0, high=89.9)))
+
+    meshes = tuple(_mesh(t, path) for t in _entries(top, "mesh", path,
+                                                      ("name", "file", "unit", "role")))
+    mesh_roles = {m.name: m.role for m in meshes}
+    if "specimen" not in mesh_roles.values():
+        raise ConfigError(path, "mesh", 'needs at least one mesh with role = "specimen"')
+    regions = tuple(_region(t, mesh_roles) for t in _entries(
+        top, "region", path, ("name", "mesh", "normal", "box_min_m", "box_max_m", "importance",
+                              "normal_tolerance_deg")))
+    rails = tuple(_rail(t) for t in _entries(top, "rail", path,
+                                             ("name", "control_points_m", "degree", "weights"),
+                                             required=False))
+    rail_names = {r.name for r in rails}
+    cameras = tuple(_camera(t, rail_names) for t in _entries(
+        top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
+                              "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
+                              "roll_deg", "principal_offset_px", "body")))
+    return Experiment(path=path, name=exp.string("name"),
+                      description=exp.raw("description", "") or "", meshes=meshes,
+                      regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation)
+
+
+def _mesh(t: _Table, config_path: Path) -> MeshSpec:
+    file = t.string("file")
+    mesh_path = (config_path.parent / file).resolve()
+    if not mesh_path.is_file():
+        raise t.error("file", f"mesh file {str(mesh_path)!r} does not exist; give a path to an "
+                              "STL, OBJ or PLY file, relative to the config file")
+    if not os.access(mesh_path, os.R_OK):
+        raise t.error("file", f"mesh file {str(mesh_path)!r} is not readable")
+    if mesh_path.suffix.lower() not in (".stl", ".obj", ".ply"):
+        raise t.error("file", f"{mesh_path.name!r} is not an STL, OBJ or PLY file")
+    return MeshSpec(name=t.string("name"), path=mesh_path,
+                    unit=t.string("unit", "m", choices=tuple(UNITS)),
+                    role=t.string("role", "obstacle", choices=ROLES))
+
+
+def _region(t: _Table, mesh_roles: dict) -> RegionSpec:
+    mesh = t.string("mesh")
+    if mesh_roles.get(mesh) != "specimen":
+        raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {mesh!r}; "
+                              f"specimen meshes: {', '.join(n for n, r in mesh_roles.items() if r == 'specimen')})")
+    normal = t.vector("normal", 3)
+    if np.linalg.norm(normal) < 1e-9:
+        raise t.error("normal", "must be a non-zero vector")
+    box_min = t.vector("box_min_m", 3, np.full(3, -np.inf))
+    box_max = t.vector("box_max_m", 3, np.full(3, np.inf))
+    if np.any(box_min >= box_max):
+        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
+    return RegionSpec(name=t.string("name"), mesh=mesh, normal=normal / np.linalg.norm(normal),
+                      box_min=box_min, box_max=box_max,
+                      importance=t.number("importance", 1.0, positive=True),
+                      normal_tolerance=math.radians(t.number("normal_tolerance_deg", 5.0,
+                                                             low=0.0, high=89.0)))
+
+
+def _rail(t: _Table) -> Rail:
+    points = t.points("control_points_m")
+    degree = t.integer("degree", 1, low=1)
+    if degree >= len(points):
+        raise t.error("degree", f"must be less than the number of control points ({len(points)})")
+    weights = t.vector("weights", len(points), None, positive=True)
+    return Rail(name=t.string("name"), control_points=points, degree=degree, weights=weights)
+
+
+def _camera(t: _Table, rails: set) -> CameraSpec:
+    name = t.string("name")
+    if t.has("sensor_mm") == t.has("sensor_width_mm"):
+        raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
+                                   "sensor_width_mm")
+    pixels = t.vector("pixels", 2, positive=True)
+    if np.any(pixels != np.round(pixels)):
+        raise t.error("pixels", f"must be two whole numbers [width, height] (got {pixels.tolist()})")
+    width_px, height_px = int(pixels[0]), int(pixels[1])
+    if t.has("sensor_mm"):
+        sensor = t.vector("sensor_mm", 2, positive=True)
+        pitch_w, pitch_h = sensor[0] / width_px, sensor[1] / height_px
+        if abs(pitch_w - pitch_h) > 0.01 * pitch_w:
+            raise t.error("sensor_mm", f"gives non-square pixels ({pitch_w * 1e3:.3f} x "
+                                       f"{pitch_h * 1e3:.3f} um); vdo models square pixels: check "
+                                       "the sensor size and pixel counts")
+        width_mm = float(sensor[0])
+    else:
+        width_mm = t.number("sensor_width_mm", positive=True)
+
+    spec = dict(name=name, sensor_width=width_mm * 1e-3, pixels=(width_px, height_px),
+                focal_length=t.number("focal_mm", positive=True) * 1e-3,
+                roll=math.radians(t.number("roll_deg", 0.0)),
+                principal_offset_px=tuple(t.vector("principal_offset_px", 2, np.zeros(2))),
+                body=t.boolean("body", True))
+    if t.has("rail") == t.has("position_m"):
+        raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
+    if t.has("rail"):
+        rail = t.string("rail")
+        if rail not in rails:
+            raise t.error("rail", f"no [[rail]] named {rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
+        u = t.number("u")
+        if not 0.0 <= u <= 1.0:
+            raise t.error("u", f"= {u} is off rail {rail!r}: the rail parameter runs from 0 to 1")
+        spec |= dict(rail=rail, u=u, offset=t.vector("offset_m", 3, np.zeros(3)))
+    else:
+        for key in ("u", "offset_m"):
+            if t.has(key):
+                raise t.error(key, "only applies to a camera on a rail")
+        spec["position"] = t.vector("position_m", 3)
+    if t.has("target_m") == (t.has("pan_deg") or t.has("tilt_deg")):
+        raise t.error("target_m", "aim the camera with either target_m or pan_deg + tilt_deg")
+    if t.has("target_m"):
+        spec["target"] = t.vector("target_m", 3)
+    else:
+        spec |= dict(pan=math.radians(t.number("pan_deg")), tilt=math.radians(t.number("tilt_deg")))
+    return CameraSpec(**spec)

@@ -1,0 +1,83 @@
+"""Camera rails: NURBS curves in world space, evaluated in JAX so that d(position)/du exists.
+
+A rail is a clamped B-spline of degree p >= 1 with control points P_i (metres) and weights w_i
+(all 1 for a plain B-spline, i.e. a polyline when p = 1). Its knot vector is clamped and uniform on
+[0, 1], so u = 0 is the first control point and u = 1 the last:
+
+    C(u) = sum_i N_{i,p}(u) w_i P_i / sum_i N_{i,p}(u) w_i
+
+evaluated with de Boor's algorithm on homogeneous points (w P, w).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+jax.config.update("jax_enable_x64", True)
+
+
+@dataclass(frozen=True, eq=False)
+class Rail:
+    """A NURBS rail. `control_points` (n, 3) in metres, `weights` (n,), `degree` p with 1 <= p < n."""
+
+    name: str
+    control_points: np.ndarray
+    degree: int = 1
+    weights: np.ndarray | None = None
+
+    def __post_init__(self):
+        pts = np.asarray(self.control_points, dtype=float)
+        n = len(pts)
+        if pts.ndim != 2 or pts.shape[1] != 3 or n < 2:
+            raise ValueError("control_points must be an (n >= 2, 3) array")
+        if not 1 <= self.degree < n:
+            raise ValueError(f"degree must be in [1, {n - 1}] for {n} control points")
+        w = np.ones(n) if self.weights is None else np.asarray(self.weights, dtype=float)
+        if w.shape != (n,) or np.any(w <= 0):
+            raise ValueError("weights must be n positive numbers")
+        object.__setattr__(self, "control_points", pts)
+        object.__setattr__(self, "weights", w)
+
+    @property
+    def knots(self) -> np.ndarray:
+        """Clamped uniform knot vector on [0, 1] (n + p + 1 values)."""
+        n, p = len(self.control_points), self.degree
+        interior = np.arange(1, n - p) / (n - p)
+        return np.concatenate([np.zeros(p + 1), interior, np.ones(p + 1)])
+
+    def position(self, u):
+        """C(u) in metres, for scalar or array u in [0, 1] (shape u.shape + (3,)). JAX-traceable."""
+        u = jnp.asarray(u, dtype=jnp.float64)
+        return jnp.vectorize(self._point, signature="()->(3)")(u)
+
+    def tangent(self, u):
+        """dC/du in metres per unit of u (forward-mode derivative of `position`)."""
+        u = jnp.asarray(u, dtype=jnp.float64)
+        return jnp.vectorize(lambda s: jax.jvp(self._point, (s,), (jnp.ones_like(s),))[1],
+                             signature="()->(3)")(u)
+
+    def _point(self, u):
+        p = self.degree
+        knots = jnp.asarray(self.knots)
+        n = len(self.control_points)
+        homogeneous = jnp.asarray(np.hstack([self.control_points * self.weights[:, None],
+                                             self.weights[:, None]]))
+        span = jnp.clip(jnp.searchsorted(knots, u, side="right") - 1, p, n - 1)
+        d = [homogeneous[span - p + j] for j in range(p + 1)]
+        for r in range(1, p + 1):
+            for j in range(p, r - 1, -1):
+                lo = knots[span - p + j]
+                hi = knots[span + 1 + j - r]
+                alpha = (u - lo) / jnp.where(hi > lo, hi - lo, 1.0)
+                d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
+        return d[p][:3] / d[p][3]
+
+    def arc_length(self, u: float, samples: int = 2001) -> float:
+        """Length along the rail from u = 0 to u, in metres (trapezoidal rule on |dC/du|)."""
+        grid = np.linspace(0.0, float(u), samples)
+        speed = np.linalg.norm(np.asarray(self.tangent(grid)), axis=-1)
+        return float(np.trapezoid(speed, grid))

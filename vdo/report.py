@@ -1,0 +1,60 @@
+"""Tables written into a run folder: the camera layout and the per-region summary."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from .camera import Camera
+from .config import Experiment
+from .scene import SurfaceSamples
+from .visibility import Visibility
+
+
+def layout(cameras: list[Camera]) -> dict:
+    """Per camera: name, width, height, K, R, t with x ~ K (R X + t) (OpenCV convention, metres),
+    plus the pose in words (optical centre, pan/tilt/roll in degrees, focal length in mm)."""
+    return {"convention": "OpenCV: x ~ K (R X + t); camera x right, y down, z forward; pixel (0,0) "
+                          "is the centre of the top-left pixel; world z up; metres",
+            "cameras": [{"name": c.name, "width": c.width, "height": c.height,
+                         "K": c.K.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+                         "position_m": np.asarray(c.position).tolist(),
+                         "pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt),
+                         "roll_deg": math.degrees(c.roll), "focal_mm": c.focal_length * 1e3,
+                         "pixel_um": c.pixel_size * 1e6} for c in cameras]}
+
+
+def coverage_summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility) -> dict:
+    """Per region: area (m^2) and the area fractions seen by >= 1, 2, 3 cameras, and which
+    cameras see it (fraction of its area)."""
+    coverage = vis.coverage
+    regions = {}
+    for k, name in enumerate(samples.region_names):
+        mask = samples.region == k
+        area = samples.area[mask]
+        total = float(area.sum())
+        regions[name] = {
+            "area_m2": total,
+            "importance": float(samples.region_importance[k]),
+            "n_samples": int(mask.sum()),
+            **{f"seen_by_{m}_or_more": float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)},
+            "cameras": {cam: round(float(area[vis.visible[i, mask]].sum() / total), 4)
+                        for i, cam in enumerate(vis.camera_names) if vis.visible[i, mask].any()},
+        }
+    return {"experiment": exp.name, "config": str(exp.path),
+            "settings": {"incidence_limit_deg": math.degrees(exp.evaluation.incidence_limit),
+                         "sample_spacing_mm": exp.evaluation.sample_spacing * 1e3,
+                         "n_samples": len(samples), "n_cameras": len(vis.camera_names)},
+            "regions": regions}
+
+
+def write_json(path: Path, data: dict) -> None:
+    Path(path).write_text(json.dumps(data, indent=2) + "\n")
+
+
+def write_config(path: Path, exp: Experiment) -> None:
+    Path(path).write_text(tomli_w.dumps(exp.to_dict()))

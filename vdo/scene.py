@@ -1,0 +1,202 @@
+"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies,
+and the Mitsuba scene built from them.
+
+Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory, so a
+user's CAD export and the built-in example take the same path.
+
+Regions of interest are planar faces of a specimen mesh (the paper's elementary surfaces). Each is
+sampled on a regular grid of spacing h in its own parametric frame (t_u, t_v): a sample at
+X = O + u t_u + v t_v carries the area h^2, the face normal n = t_u x t_v, and (u, v) in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from .backend import mitsuba
+from .camera import Camera
+from .config import Experiment, RegionSpec
+from .errors import ConfigError
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMesh:
+    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera"."""
+
+    name: str
+    role: str
+    vertices: np.ndarray   # (n, 3) float64, m
+    faces: np.ndarray      # (m, 3) int
+
+    @property
+    def trimesh(self) -> trimesh.Trimesh:
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def load_meshes(exp: Experiment) -> list[SceneMesh]:
+    """Read every [[mesh]] of the experiment, scaled to metres."""
+    meshes = []
+    for spec in exp.meshes:
+        field = f'mesh "{spec.name}".file'
+        try:
+            loaded = trimesh.load(spec.path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for malformed files
+            raise ConfigError(exp.path, field, f"cannot read {spec.path.name!r} as a mesh ({exc})") from None
+        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+            raise ConfigError(exp.path, field, f"{spec.path.name!r} holds no triangles")
+        vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
+        if not np.all(np.isfinite(vertices)):
+            raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
+        meshes.append(SceneMesh(spec.name, spec.role, vertices, np.asarray(loaded.faces, dtype=np.int64)))
+    return meshes
+
+
+# --------------------------------------------------------------------------------------------
+# Surface samples on the regions of interest
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class SurfaceSamples:
+    """Area-uniform samples on the regions of interest (N of them). Lengths in metres."""
+
+    points: np.ndarray       # (N, 3)
+    normals: np.ndarray      # (N, 3) outward unit normals
+    tangent_u: np.ndarray    # (N, 3) unit, with tangent_v: the face's parametric frame
+    tangent_v: np.ndarray    # (N, 3)
+    uv: np.ndarray           # (N, 2) parametric coordinates on the face, m
+    area: np.ndarray         # (N,) m^2 carried by each sample
+    region: np.ndarray       # (N,) index into region_names
+    region_names: tuple[str, ...]
+    region_importance: np.ndarray  # (R,)
+
+    def __len__(self):
+        return len(self.points)
+
+
+def _face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t_u, t_v) with t_u x t_v = normal; t_v follows world z on vertical faces, else world y."""
+    up = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    t_v = up - normal * (up @ normal)
+    t_v /= np.linalg.norm(t_v)
+    return np.cross(t_v, normal), t_v
+
+
+def _select_faces(mesh: trimesh.Trimesh, region: RegionSpec) -> np.ndarray:
+    cos_tol = np.cos(region.normal_tolerance)
+    centroids = mesh.triangles_center
+    inside = np.all((centroids >= region.box_min) & (centroids <= region.box_max), axis=1)
+    facing = mesh.face_normals @ region.normal >= cos_tol
+    return np.flatnonzero(inside & facing & (mesh.area_faces > 0))
+
+
+def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple) -> dict:
+    """Grid samples of spacing `spacing` (m) on the faces that `region` selects."""
+    tm = mesh.trimesh
+    faces = _select_faces(tm, region)
+    if len(faces) == 0:
+        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check normal, "
+                                  "box_min_m and box_max_m (metres, world frame)")
+    normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])
+    normal /= np.linalg.norm(normal)
+    t_u, t_v = _face_frame(normal)
+    tri = tm.triangles[faces]                                   # (T, 3, 3)
+    depth = tri.reshape(-1, 3) @ normal
+    if np.ptp(depth) > max(0.25 * spacing, 1e-4):
+        raise ConfigError(*where, f"selects faces that are not coplanar (depth spread "
+                                  f"{np.ptp(depth) * 1e3:.1f} mm): a region must be one planar "
+                                  "face; narrow its box or normal_tolerance_deg")
+    uv_tri = np.stack([tri @ t_u, tri @ t_v], axis=-1)          # (T, 3, 2)
+    origin = uv_tri.reshape(-1, 2).min(axis=0)
+    uv_tri = uv_tri - origin
+    keys, points = [], []
+    for corners, corners3d in zip(uv_tri, tri):
+        lo = np.floor(corners.min(axis=0) / spacing - 0.5).astype(int)
+        hi = np.ceil(corners.max(axis=0) / spacing - 0.5).astype(int)
+        ii, jj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
+        ij = np.stack([ii.ravel(), jj.ravel()], axis=1)
+        q = (ij + 0.5) * spacing
+        a, b, c = corners
+        m = np.array([b - a, c - a]).T
+        if abs(np.linalg.det(m)) < 1e-18:
+            continue
+        lam = np.linalg.solve(m, (q - a).T).T                  # barycentric (l1, l2)
+        inside = (lam[:, 0] >= 0) & (lam[:, 1] >= 0) & (lam.sum(axis=1) < 1)
+        l1, l2 = lam[inside, 0:1], lam[inside, 1:2]
+        keys.append(ij[inside])
+        points.append((1 - l1 - l2) * corners3d[0] + l1 * corners3d[1] + l2 * corners3d[2])
+    ij = np.concatenate(keys)
+    _, first = np.unique(ij, axis=0, return_index=True)        # points on shared edges once
+    ij, pts = ij[first], np.concatenate(points)[first]
+    if len(pts) == 0:
+        raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
+    n = len(pts)
+    return dict(points=pts, normals=np.tile(normal, (n, 1)), tangent_u=np.tile(t_u, (n, 1)),
+                tangent_v=np.tile(t_v, (n, 1)), uv=(ij + 0.5) * spacing,
+                area=np.full(n, spacing**2))
+
+
+def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None) -> SurfaceSamples:
+    """Samples on every region of the experiment, at `spacing` (m; default from the config)."""
+    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+    by_name = {m.name: m for m in meshes}
+    parts = []
+    for index, region in enumerate(exp.regions):
+        part = sample_region(by_name[region.mesh], region, spacing,
+                             (exp.path, f'region "{region.name}"'))
+        part["region"] = np.full(len(part["points"]), index)
+        parts.append(part)
+    merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return SurfaceSamples(**merged, region_names=tuple(r.name for r in exp.regions),
+                          region_importance=np.array([r.importance for r in exp.regions]))
+
+
+# --------------------------------------------------------------------------------------------
+# Camera bodies as obstacles
+# --------------------------------------------------------------------------------------------
+BODY_SIZE = (0.14, 0.10, 0.08)   # width, height, depth of a DSLR body, m
+LENS_DIAMETER = 0.075            # m
+
+
+def camera_body(camera: Camera) -> SceneMesh:
+    """A DSLR-sized box and a lens barrel, all behind the optical centre (the lens front), so a
+    ray that reaches the camera's own optical centre from its field of view never crosses them."""
+    lens_length = float(np.clip(camera.focal_length * 1.2, 0.04, 0.15))
+    lens = trimesh.creation.cylinder(radius=LENS_DIAMETER / 2, height=lens_length, sections=24)
+    lens.apply_translation([0, 0, -lens_length / 2])
+    body = trimesh.creation.box(extents=BODY_SIZE)
+    body.apply_translation([0, 0, -lens_length - BODY_SIZE[2] / 2])
+    local = trimesh.util.concatenate([lens, body])
+    cam_to_world = np.eye(4)
+    cam_to_world[:3, :3] = camera.R.T
+    cam_to_world[:3, 3] = camera.position
+    local.apply_transform(cam_to_world)
+    return SceneMesh(f"camera:{camera.name}", "camera", np.asarray(local.vertices),
+                     np.asarray(local.faces))
+
+
+# --------------------------------------------------------------------------------------------
+# Mitsuba
+# --------------------------------------------------------------------------------------------
+def mitsuba_mesh(mesh: SceneMesh, bsdf: dict | None = None):
+    """An in-memory `mi.Mesh` with the same vertices and faces."""
+    mi = mitsuba()
+    props = mi.Properties()
+    if bsdf is not None:
+        props["bsdf"] = mi.load_dict(bsdf)
+    out = mi.Mesh(mesh.name, len(mesh.vertices), len(mesh.faces), props=props)
+    params = mi.traverse(out)
+    params["vertex_positions"] = np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel()
+    params["faces"] = np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel()
+    params.update()
+    return out
+
+
+def build_scene(meshes: list[SceneMesh]):
+    """A Mitsuba scene holding the meshes as shapes, for ray casting."""
+    mi = mitsuba()
+    scene = {"type": "scene"}
+    for i, mesh in enumerate(meshes):
+        scene[f"shape_{i:03d}"] = mitsuba_mesh(mesh)
+    return mi.load_dict(scene)
