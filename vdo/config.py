@@ -114,15 +114,20 @@ class Experiment:
                               "incidence_limit_deg": math.degrees(self.evaluation.incidence_limit)},
                "mesh": [{"name": m.name, "file": str(m.path), "unit": m.unit, "role": m.role}
                         for m in self.meshes],
-               "region": [{"name": r.name, "mesh": r.mesh, "normal": r.normal.tolist(),
-                           "box_min_m": r.box_min.tolist(), "box_max_m": r.box_max.tolist(),
-                           "importance": r.importance,
-                           "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
-                          for r in self.regions],
+               "region": [_region_to_dict(r) for r in self.regions],
                "rail": [{"name": r.name, "control_points_m": r.control_points.tolist(),
                          "degree": r.degree, "weights": r.weights.tolist()} for r in self.rails],
                "camera": [_camera_to_dict(c) for c in self.camera_specs]}
         return out
+
+
+def _region_to_dict(r: RegionSpec) -> dict:
+    d = {"name": r.name, "mesh": r.mesh, "normal": r.normal.tolist(), "importance": r.importance,
+         "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
+    for key, box in (("box_min_m", r.box_min), ("box_max_m", r.box_max)):
+        if np.all(np.isfinite(box)):
+            d[key] = box.tolist()
+    return d
 
 
 def _camera_to_dict(c: CameraSpec) -> dict:

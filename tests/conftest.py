@@ -1,0 +1,77 @@
+"""Shared fixtures: small experiments written to disk the way a user would write them."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+
+def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
+    """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""
+    box = trimesh.creation.box(extents=np.asarray(extents, dtype=float) * unit_scale)
+    box.apply_translation(np.asarray(center, dtype=float) * unit_scale)
+    box.export(path)
+    return path
+
+
+PLATE_TOML = """
+[experiment]
+name = "plate under one camera"
+
+[evaluation]
+sample_spacing_mm = {spacing}
+incidence_limit_deg = {limit}
+
+[[mesh]]
+name = "plate"
+file = "plate.stl"
+unit = "mm"
+role = "specimen"
+
+{extra_meshes}
+
+[[region]]
+name = "top"
+mesh = "plate"
+normal = [0, 0, 1]
+
+[[rail]]
+name = "overhead"
+control_points_m = [[-1.0, 0.0, {height}], [1.0, 0.0, {height}]]
+
+{cameras}
+"""
+
+DOWN_CAMERA = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = {focal}
+rail = "overhead"
+u = {u}
+pan_deg = 0
+tilt_deg = -90
+"""
+
+
+@pytest.fixture
+def plate_experiment(tmp_path):
+    """Factory: a 1 m x 1 m plate (top face at z = 0) seen from above; returns the TOML path."""
+
+    def make(spacing=10, limit=75, height=1.5, cameras=None, extra_meshes="", files=()):
+        write_box(tmp_path / "plate.stl", [1000, 1000, 10], center=[0, 0, -5])
+        for name, extents, center in files:
+            write_box(tmp_path / name, extents, center)
+        cams = cameras if cameras is not None else DOWN_CAMERA.format(name="down", focal=24, u=0.5)
+        text = PLATE_TOML.format(spacing=spacing, limit=limit, height=height, cameras=cams,
+                                 extra_meshes=extra_meshes)
+        path = tmp_path / "plate.toml"
+        path.write_text(textwrap.dedent(text))
+        return path
+
+    return make

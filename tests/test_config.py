@@ -1,0 +1,97 @@
+"""Every class of bad input gives one clear error naming the file, the field and the fix."""
+
+import math
+
+import pytest
+import trimesh
+
+from vdo import config
+from vdo.cli import main
+from vdo.errors import ConfigError
+from vdo.scene import load_meshes, sample_regions
+
+
+def broken(plate_experiment, old, new):
+    path = plate_experiment()
+    text = path.read_text()
+    assert old in text, old
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
+CASES = [
+    # (replace this, with this, field named in the error, words in the message)
+    ('focal_mm = 24', 'focal_length = 24', 'camera "down".focal_length', "did you mean 'focal_mm'"),
+    ('file = "plate.stl"', 'file = "missing.stl"', 'mesh "plate".file', "does not exist"),
+    ('unit = "mm"', 'unit = "millimetre"', 'mesh "plate".unit', "must be one of m, cm, mm, in, ft"),
+    ('u = 0.5', 'u = 1.3', 'camera "down".u', "off rail 'overhead'"),
+    ('rail = "overhead"\nu', 'rail = "overhed"\nu', 'camera "down".rail', "no [[rail]] named 'overhed'"),
+    ('focal_mm = 24', 'focal_mm = nan', 'camera "down".focal_mm', "finite number"),
+    ('focal_mm = 24', 'focal_mm = -24', 'camera "down".focal_mm', "must be positive"),
+    ('sensor_mm = [22.2, 14.8]', 'sensor_mm = [22.2, -14.8]', 'camera "down".sensor_mm', "positive"),
+    ('sensor_mm = [22.2, 14.8]', 'sensor_mm = [22.2, 18.0]', 'camera "down".sensor_mm', "non-square pixels"),
+    ('pixels = [600, 400]', 'pixels = [600.5, 400]', 'camera "down".pixels', "whole numbers"),
+    ('sample_spacing_mm = 10', 'sample_spacing_mm = 0', 'evaluation.sample_spacing_mm', "positive"),
+    ('incidence_limit_deg = 75', 'incidence_limit_deg = 95', 'evaluation.incidence_limit_deg', "[1.0, 89.9]"),
+    ('normal = [0, 0, 1]', 'normal = [0, 0]', 'region "top".normal', "list of 3"),
+    ('role = "specimen"', 'role = "obstacle"', 'mesh', 'needs at least one mesh with role = "specimen"'),
+    ('mesh = "plate"', 'mesh = "plates"', 'region "top".mesh', 'must name a mesh with role "specimen"'),
+    ('name = "down"', 'name = "down"\nposition_m = [0, 0, 1]', 'camera "down".rail', "either rail"),
+    ('pan_deg = 0', 'target_m = [0, 0, 0]\npan_deg = 0', 'camera "down".target_m', "either target_m"),
+    ('control_points_m = [[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]]', 'control_points_m = [[0, 0, 1]]',
+     'rail "overhead".control_points_m', "at least 2"),
+    ('normal = [0, 0, 1]', 'normal = [1, 0, 0]\nbox_min_m = [0.6, -1, -1]\nbox_max_m = [0.7, 1, 1]',
+     'region "top"', "selects no face"),
+]
+
+
+@pytest.mark.parametrize("old,new,field,words", CASES, ids=[c[2] + ":" + c[3] for c in CASES])
+def test_bad_input_names_file_field_and_fix(plate_experiment, capsys, tmp_path, old, new, field, words):
+    path = broken(plate_experiment, old, new)
+    out = tmp_path / "out"
+    assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err
+    assert err.startswith(f"error: {path}: {field}: ") or err.startswith(f"error: {path}: {field} ")
+    assert words in err
+    assert not out.exists()
+    assert not list(tmp_path.glob(".out.partial*"))
+
+
+def test_invalid_toml_and_missing_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[experiment\nname = 'x'")
+    with pytest.raises(ConfigError, match="is not valid TOML"):
+        config.load(bad)
+    with pytest.raises(ConfigError, match="file not found"):
+        config.load(tmp_path / "nope.toml")
+
+
+def test_unreadable_mesh_content(plate_experiment):
+    path = plate_experiment()
+    (path.parent / "plate.stl").write_bytes(b"solid junk\n this is not an stl\n")
+    exp = config.load(path)
+    with pytest.raises(ConfigError, match=r'mesh "plate"\.file: .*(cannot read|holds no triangles)'):
+        load_meshes(exp)
+
+
+def test_non_planar_region_is_refused(plate_experiment):
+    path = broken(plate_experiment, 'normal = [0, 0, 1]', 'normal = [0, 0, 1]\nnormal_tolerance_deg = 89')
+    # a stepped specimen: two top faces 50 mm apart selected by one region
+    a = trimesh.creation.box(extents=[500, 1000, 10])
+    a.apply_translation([-250, 0, -5])
+    b = trimesh.creation.box(extents=[500, 1000, 60])
+    b.apply_translation([250, 0, 25])
+    trimesh.util.concatenate([a, b]).export(path.parent / "plate.stl")
+    exp = config.load(path)
+    with pytest.raises(ConfigError, match=r'region "top": selects faces that are not coplanar'):
+        sample_regions(exp, load_meshes(exp))
+
+
+def test_defaults_and_units_are_resolved(plate_experiment):
+    exp = config.load(plate_experiment())
+    assert exp.meshes[0].scale == 0.001
+    assert exp.evaluation.incidence_limit == pytest.approx(math.radians(75))
+    cam = exp.cameras()[0]
+    assert cam.pixel_size == pytest.approx(22.2e-3 / 600)
+    assert cam.position.tolist() == pytest.approx([0.0, 0.0, 1.5])

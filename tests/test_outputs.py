@@ -1,0 +1,121 @@
+"""`vdo evaluate` writes a complete run folder that other tools read back."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from vtk import vtkXMLPolyDataReader
+from vtk.util.numpy_support import vtk_to_numpy
+
+from conftest import DOWN_CAMERA
+from vdo import config
+from vdo.cli import main
+from vdo.maps import unfold
+from vdo.runfolder import run_folder
+from vdo.scene import SurfaceSamples
+
+
+@pytest.fixture
+def run(plate_experiment, tmp_path):
+    cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
+    path = plate_experiment(cameras=cams)
+    out = tmp_path / "run"
+    assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 0
+    return path, out
+
+
+def read_vtp(path):
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    data = reader.GetOutput()
+    pd = data.GetPointData()
+    arrays = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)) for i in range(pd.GetNumberOfArrays())}
+    return vtk_to_numpy(data.GetPoints().GetData()), data.GetNumberOfVerts(), arrays
+
+
+def test_run_folder_contents(run):
+    _, out = run
+    names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert names == ["config.toml", "layout.json", "maps/coverage.png", "samples.vtp", "summary.json"]
+
+
+def test_samples_vtp_reads_in_vtk_and_agrees_with_summary(run):
+    _, out = run
+    points, n_verts, arrays = read_vtp(out / "samples.vtp")
+    assert n_verts == len(points) == 10_000
+    assert {"normal", "region", "area", "coverage", "visible_a", "visible_b"} <= set(arrays)
+    np.testing.assert_array_equal(arrays["coverage"], arrays["visible_a"] + arrays["visible_b"])
+    summary = json.loads((out / "summary.json").read_text())
+    top = summary["regions"]["top"]
+    area = arrays["area"]
+    assert top["area_m2"] == pytest.approx(area.sum())
+    assert top["seen_by_2_or_more"] == pytest.approx(area[arrays["coverage"] >= 2].sum() / area.sum())
+    assert summary["settings"]["incidence_limit_deg"] == 75
+
+
+def test_layout_reprojects_visible_samples_with_opencv(run):
+    """Points a camera sees project inside its image through layout.json's K, R, t (OpenCV)."""
+    _, out = run
+    points, _, arrays = read_vtp(out / "samples.vtp")
+    layout = json.loads((out / "layout.json").read_text())
+    for cam in layout["cameras"]:
+        K, R, t = (np.array(cam[k], dtype=float) for k in ("K", "R", "t"))
+        seen = arrays[f"visible_{cam['name']}"].astype(bool)
+        uv, _ = cv2.projectPoints(points[seen], cv2.Rodrigues(R)[0], t, K, np.zeros(5))
+        uv = uv[:, 0]
+        assert seen.sum() > 1000
+        assert (uv[:, 0] >= -0.5).all() and (uv[:, 0] <= cam["width"] - 0.5).all()
+        assert (uv[:, 1] >= -0.5).all() and (uv[:, 1] <= cam["height"] - 0.5).all()
+
+
+def test_resolved_config_reloads_to_the_same_cameras(run):
+    path, out = run
+    original, resolved = config.load(path), config.load(out / "config.toml")
+    for a, b in zip(original.cameras(), resolved.cameras()):
+        np.testing.assert_allclose(a.K, b.K)
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.t, b.t, atol=1e-12)
+
+
+def test_existing_output_folder_is_not_overwritten(run, capsys):
+    path, out = run
+    assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+
+
+def test_failed_run_leaves_nothing(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(RuntimeError):
+        with run_folder(out) as tmp:
+            (tmp / "half.json").write_text("{")
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_first_angle_unfolding_of_a_box():
+    """Each face of a box lands in its view, views do not overlap, and the top view sits below
+    the front view (first-angle projection)."""
+    box = trimesh.creation.box(extents=[2.0, 1.0, 0.5])
+    pts, face = trimesh.sample.sample_surface(box, 3000, seed=1)
+    normals = box.face_normals[face]
+    samples = SurfaceSamples(points=pts, normals=normals, tangent_u=normals, tangent_v=normals,
+                             uv=pts[:, :2], area=np.full(len(pts), 1e-3), region=np.zeros(len(pts), int),
+                             region_names=("box",), region_importance=np.ones(1))
+    sheet, view, panels, _ = unfold(samples)
+    names = [p.name for p in panels]
+    assert sorted(names) == sorted(["front", "top", "bottom", "left", "right", "back"])
+    for k, p in enumerate(panels):
+        mine = sheet[view == ["front", "top", "bottom", "left", "right", "back"].index(p.name)]
+        assert (mine[:, 0] >= p.x0 - 1e-9).all() and (mine[:, 0] <= p.x0 + p.width + 1e-9).all()
+        assert (mine[:, 1] >= p.y0 - 1e-9).all() and (mine[:, 1] <= p.y0 + p.height + 1e-9).all()
+        for q in panels[k + 1:]:
+            overlap_x = min(p.x0 + p.width, q.x0 + q.width) - max(p.x0, q.x0)
+            overlap_y = min(p.y0 + p.height, q.y0 + q.height) - max(p.y0, q.y0)
+            assert min(overlap_x, overlap_y) <= 0
+    by = {p.name: p for p in panels}
+    assert by["top"].y0 + by["top"].height < by["front"].y0         # plan view below the elevation
+    assert by["left"].x0 > by["front"].x0 + by["front"].width       # left view to the right
+    assert by["front"].width == pytest.approx(2.0) and by["top"].height == pytest.approx(1.0)
