@@ -24,6 +24,7 @@ configured camera for the rest of the program.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import jax
 import jax.numpy as jnp
@@ -162,16 +163,16 @@ class Camera:
         return ((self.width - 1) / 2 + self.principal_offset_px[0],
                 (self.height - 1) / 2 + self.principal_offset_px[1])
 
-    @property
+    @cached_property
     def K(self) -> np.ndarray:
         cx, cy = self.principal_point
         return np.asarray(intrinsic_matrix(jnp.float64(self.focal_px), jnp.float64(cx), jnp.float64(cy)))
 
-    @property
+    @cached_property
     def R(self) -> np.ndarray:
         return np.asarray(rotation(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
 
-    @property
+    @cached_property
     def t(self) -> np.ndarray:
         return -self.R @ np.asarray(self.position, dtype=float)
 

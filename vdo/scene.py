@@ -122,7 +122,8 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
         if abs(np.linalg.det(m)) < 1e-18:
             continue
         lam = np.linalg.solve(m, (q - a).T).T                  # barycentric (l1, l2)
-        inside = (lam[:, 0] >= 0) & (lam[:, 1] >= 0) & (lam.sum(axis=1) < 1)
+        tol = 1e-9  # grid points on an edge shared by two triangles must not be lost to rounding
+        inside = (lam[:, 0] >= -tol) & (lam[:, 1] >= -tol) & (lam.sum(axis=1) <= 1 + tol)
         l1, l2 = lam[inside, 0:1], lam[inside, 1:2]
         keys.append(ij[inside])
         points.append((1 - l1 - l2) * corners3d[0] + l1 * corners3d[1] + l2 * corners3d[2])

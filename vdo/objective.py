@@ -1,0 +1,486 @@
+"""Mean-field DIC uncertainty of a multi-camera layout, and the scalar score the optimizer minimises.
+
+Pure `jax.numpy` (float64), differentiable with respect to every camera parameter. DESIGN.md sec. 4-5
+and the paper's sec. 5.3-5.4 give the model; this module implements it with the paper's loose
+notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
+t_u x t_v = n, surface coordinates xi in metres along them):
+
+sensitivity   s_i = dx_i/dX = (f / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R_i    (2x3, pixel/m)
+footprint     A_i = s_i [t_u t_v]                                               (2x2, pixel/m)
+              A A^T = sum_k a_k^2 v_k v_k^T, v_k in the image; a_k = pixels per metre of surface
+              along e_k; the pixel blur (Gaussian, std kappa pixels) is std l_k = kappa / a_k (m)
+              on the surface along e_k.
+gradient      T_i = c_i^2 sum_k G(l_k, l_other) / a_k^2 v_k v_k^T                (gray^2/pixel^2)
+tensor        G(l_par, l_perp) = <(d_e (G_blur * f_hat))^2> (1/m^2) is the directional gradient
+              energy of the normalised speckle f_hat under an anisotropic Gaussian blur (std l_par
+              along e, l_perp across), G(l, l) = g_f(l) (`vdo.speckle`).
+information   C_i = (1/sigma_i)^2 s_i^T T_i s_i                         (3x3, 1/m^2 per pixel)
+per sample    C = Omega sum_i w_i |det A_i| C_i                                       (1/m^2)
+              |det A_i| = a_1 a_2 is the pixel density (pixel/m^2), Omega the DIC patch area (m^2),
+              w_i in [0, 1] the camera's soft usable weight (below).
+covariance    Sigma = C^-1 (m^2): the Cramer-Rao bound for ONE noisy image against a perfect
+              reference. When both images are noisy the measured variance is about 2x (sigma x sqrt 2);
+              spline correlation on sampled images loses a further 10-15 %.
+sensitivity   S_k = sqrt(sum_i w_i |s_i[:, k]|^2) (pixel/m) per world axis k (paper sec. 5.2).
+(global)
+
+Numerical care (all derivatives stay finite):
+
+* T as a matrix function of M = A A^T, with no SVD/eigh. With m = tr M / 2, h = (M00 - M11)/2,
+  the eigenvalues are m +- gap, gap = sqrt(h^2 + M01^2). We use
+  gap_eps = sqrt(h^2 + M01^2 + (eps m)^2), lam1 = m + gap_eps, lam2 = det M / lam1 and
+  T/c^2 = (phi1 + phi2)/2 I + (phi1 - phi2)/(lam1 - lam2) (M - m I),  phi_k = G(l_k, l_other)/lam_k.
+  This is the exact spectral formula with the gap floored: both coefficients are even functions of
+  the gap, so the floor changes T by O(eps^2) (eps = 1e-4 -> 1e-8 relative), the difference
+  quotient never divides by zero (a fronto-parallel view, a_1 = a_2 exactly, is fine) and the sqrt
+  is never evaluated at 0.
+* lam_max(Sigma) for the score uses the trace p-norm sqrt((tr Sigma^p)^(1/p)) with p = 2^k
+  (`Settings.eigen_squarings` = k, default p = 8): smooth everywhere, and between lam_max and
+  3^(1/p) lam_max (at most +7 % in sigma for p = 8, only when Sigma is isotropic; +0.05 % for a
+  stereo pair whose out-of-plane variance is twice the in-plane one). The report (`fields`) uses the
+  exact eigenvalues.
+* Rank deficiency: with fewer than two usable views C has rank <= 2 and the out-of-plane variance is
+  infinite. `fields` reports +inf in every sigma field where C has rank < 3 (smallest eigenvalue
+  <= `rank_rtol` x largest, or C = 0) and flags `measured = False`. The score instead regularises:
+  C_reg = C + I / prior_sigma^2, a Gaussian prior of std `prior_sigma` (default 1 mm) on each
+  displacement component, so an unmeasured sample costs sigma ~ prior_sigma, finite and smooth.
+
+Soft weights, w_i = occlusion x in_front x w_incidence x w_image, with the C^2 quintic smoothstep
+S(t) = 6t^5 - 15t^4 + 10t^3 on [0, 1] (0 below, 1 above): exactly 0 where the view is unusable,
+exactly 1 well inside, and a finite gradient everywhere (S' = 0 at both ends).
+
+* w_incidence = S((cos theta - cos theta_lim) / (cos(theta_lim - ramp) - cos theta_lim)), with
+  cos theta = n . (P - X)/|P - X|: 0 at the incidence limit, 1 at `ramp` radians inside it. Written in
+  cos theta, not theta, because d acos / dx is infinite at normal incidence.
+* w_image = S((u + 1/2)/m) S((W - 1/2 - u)/m) S((v + 1/2)/m) S((H - 1/2 - v)/m): 0 at the image
+  edge, 1 at `image_margin_px` = m pixels inside it (pixel centres are integers, the image spans
+  [-1/2, W - 1/2]).
+* in_front: Z_c > `near` (a hard gate; beyond it the projection is safe-guarded, and near it the
+  image weight is already 0 because the projection leaves the image).
+* occlusion: the ray cast's 0/1 (or fractional) visibility, a constant.
+
+Score (dimensionless, in units of `sigma_unit`, default micrometres):
+
+    score = Sbar / sigma_unit + coverage_weight * P
+    Sbar  = ( sum_n omega_n sigma_n^q / sum_n omega_n )^(1/q)          (m; weighted power mean)
+    P     = sum_n omega_n max(0, k_region(n) - sum_i w_i)^2 / sum_n omega_n   (cameras^2)
+
+with sigma_n the smooth sqrt(lam_max) of the regularised Sigma, omega_n = area_n x
+importance[region_n], q = `score_power` (default 8: a smooth maximum, between the mean and the
+max; 1 % of the area at sigma_max alone gives 0.56 sigma_max) and k the per-region minimum camera
+count (2 by default, 3 on the joint). With the default coverage_weight = 1000 a sample one camera
+short costs as much as an unmeasured one (prior_sigma / sigma_unit = 1000).
+
+Inputs are pytrees (equinox Modules) of arrays: `CameraParams` (C cameras), `Samples` (N samples,
+R regions), `Photometry` ((C, N) constants), an `energy` G (a `vdo.speckle.GradientEnergyTable`,
+or any jax-traceable callable G(l_par, l_perp) -> 1/m^2, e.g. `GaussianFieldEnergy`) and `Settings`
+(static). Everything is jit-compiled with `equinox.filter_jit`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from vdo.camera import rotation
+from vdo.speckle import GradientEnergyTable, g_aniso_lookup
+
+jax.config.update("jax_enable_x64", True)
+
+__all__ = [
+    "CameraParams",
+    "Samples",
+    "Photometry",
+    "Settings",
+    "TableEnergy",
+    "GaussianFieldEnergy",
+    "Geometry",
+    "Fields",
+    "geometry",
+    "gradient_tensor",
+    "camera_information",
+    "information",
+    "score",
+    "score_and_grad",
+    "fields",
+    "smoothstep",
+]
+
+KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (DESIGN.md sec. 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs
+# --------------------------------------------------------------------------------------------
+class CameraParams(eqx.Module):
+    """C cameras as arrays. position (C, 3) m; pan, tilt, roll (C,) rad (`vdo.camera` convention);
+    focal_px, cx, cy (C,) pixels; width, height (C,) pixel counts (floats)."""
+
+    position: jax.Array
+    pan: jax.Array
+    tilt: jax.Array
+    roll: jax.Array
+    focal_px: jax.Array
+    cx: jax.Array
+    cy: jax.Array
+    width: jax.Array
+    height: jax.Array
+
+    @classmethod
+    def from_cameras(cls, cameras) -> "CameraParams":
+        """Stack `vdo.camera.Camera` objects."""
+        f = lambda get: jnp.asarray(np.array([get(c) for c in cameras], dtype=np.float64))
+        return cls(position=f(lambda c: np.asarray(c.position, dtype=float)),
+                   pan=f(lambda c: c.pan), tilt=f(lambda c: c.tilt), roll=f(lambda c: c.roll),
+                   focal_px=f(lambda c: c.focal_px), cx=f(lambda c: c.principal_point[0]),
+                   cy=f(lambda c: c.principal_point[1]), width=f(lambda c: c.width),
+                   height=f(lambda c: c.height))
+
+
+class Samples(eqx.Module):
+    """N surface samples. points, normals, tangent_u, tangent_v (N, 3) (unit, t_u x t_v = n);
+    area (N,) m^2; region (N,) int in [0, R); per region: importance (R,) (weight in the score) and
+    min_cameras (R,) (coverage requirement, e.g. 2, or 3 on the joint)."""
+
+    points: jax.Array
+    normals: jax.Array
+    tangent_u: jax.Array
+    tangent_v: jax.Array
+    area: jax.Array
+    region: jax.Array
+    importance: jax.Array
+    min_cameras: jax.Array
+
+
+class Photometry(eqx.Module):
+    """Per (camera, sample) constants, (C, N): occlusion in {0, 1} from the ray cast (1 = seen),
+    contrast c in DN (image = b + c f_hat), noise sigma in DN rms per pixel."""
+
+    occlusion: jax.Array
+    contrast: jax.Array
+    noise: jax.Array
+
+
+class Settings(eqx.Module):
+    """Static settings (all hashable; changing one recompiles).
+
+    kappa              pixel blur std in pixels (1/sqrt 12: box pixel)
+    patch_area         Omega, the DIC patch (subset/element) area, m^2
+    incidence_limit    theta_lim, rad: weight 0 at and beyond it
+    incidence_ramp     rad: weight reaches 1 at theta_lim - ramp
+    image_margin_px    px: weight 0 at the image edge, 1 this far inside
+    near               m: in front means Z_c > near
+    prior_sigma        m: regularising prior std for the score (C + I/prior_sigma^2)
+    sigma_unit         m: unit of the score's uncertainty term (1e-6: micrometres)
+    score_power        q of the weighted power mean over samples
+    eigen_squarings    k, p = 2^k in the trace p-norm for lam_max
+    coverage_weight    weight of the coverage penalty (per camera^2 of deficit, area fraction)
+    gap_eps            relative floor of the eigenvalue gap of A A^T (error O(gap_eps^2))
+    rank_rtol          `fields`: eigenvalue ratio below which C counts as rank deficient
+    """
+
+    kappa: float = eqx.field(static=True, default=KAPPA_BOX)
+    patch_area: float = eqx.field(static=True, default=1e-4)
+    incidence_limit: float = eqx.field(static=True, default=math.radians(70.0))
+    incidence_ramp: float = eqx.field(static=True, default=math.radians(10.0))
+    image_margin_px: float = eqx.field(static=True, default=10.0)
+    near: float = eqx.field(static=True, default=1e-3)
+    prior_sigma: float = eqx.field(static=True, default=1e-3)
+    sigma_unit: float = eqx.field(static=True, default=1e-6)
+    score_power: float = eqx.field(static=True, default=8.0)
+    eigen_squarings: int = eqx.field(static=True, default=3)
+    coverage_weight: float = eqx.field(static=True, default=1e3)
+    gap_eps: float = eqx.field(static=True, default=1e-4)
+    rank_rtol: float = eqx.field(static=True, default=1e-10)
+
+
+class TableEnergy(eqx.Module):
+    """G(l_par, l_perp) from a `vdo.speckle.GradientEnergyTable` (bilinear in log-log), 1/m^2."""
+
+    table: GradientEnergyTable
+
+    def __call__(self, l_par, l_perp):
+        return g_aniso_lookup(self.table, l_par, l_perp)
+
+
+class GaussianFieldEnergy(eqx.Module):
+    """Closed-form G for a Gaussian random field: white noise smoothed by a Gaussian of std
+    `correlation_length` = s (m), normalised to unit variance (autocorrelation exp(-r^2 / 4 s^2)).
+    Blurring adds covariances, so
+
+        G(l_par, l_perp) = s^2 / (2 (s^2 + l_par^2)^(3/2) (s^2 + l_perp^2)^(1/2))     (1/m^2),
+
+    G(0, 0) = 1/(2 s^2). Smooth in both arguments: a reference for tests and derivations."""
+
+    correlation_length: float
+
+    def __call__(self, l_par, l_perp):
+        s2 = self.correlation_length ** 2
+        a, b = s2 + l_par * l_par, s2 + l_perp * l_perp
+        return s2 / (2.0 * a * jnp.sqrt(a * b))
+
+
+def _energy(energy) -> Callable:
+    return TableEnergy(energy) if isinstance(energy, GradientEnergyTable) else energy
+
+
+# --------------------------------------------------------------------------------------------
+# Component helpers: 3-vectors as tuples of broadcastable arrays, so XLA fuses everything
+# --------------------------------------------------------------------------------------------
+def smoothstep(t):
+    """C^2 step: 0 for t <= 0, 6t^5 - 15t^4 + 10t^3 on [0, 1], 1 for t >= 1."""
+    t = jnp.clip(t, 0.0, 1.0)
+    return t * t * t * (t * (6.0 * t - 15.0) + 10.0)
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _cols(x, axis_front):
+    """(K, 3) array -> 3 arrays of shape (K, 1) if axis_front else (1, K)."""
+    return tuple(x[:, k][:, None] if axis_front else x[:, k][None, :] for k in range(3))
+
+
+def _pairs(cam: CameraParams, smp: Samples, st: Settings):
+    """Per (camera, sample) geometry as (C, N) components: sensitivity rows s0, s1 (3-tuples),
+    footprint A00, A01, A10, A11, pixel u, v, and the soft weight w (occlusion not included)."""
+    R = rotation(cam.pan, cam.tilt, cam.roll)  # (C, 3, 3), rows x_c, y_c, z_c
+    Rr = [tuple(R[:, a, b][:, None] for b in range(3)) for a in range(3)]
+    P = _cols(cam.position, True)
+    X = _cols(smp.points, False)
+    d = tuple(X[k] - P[k] for k in range(3))  # camera centre -> point, (C, N)
+    p = tuple(_dot(Rr[a], d) for a in range(3))
+    front = p[2] > st.near
+    z = jnp.where(front, p[2], 1.0)  # safe depth: the weight is 0 where not in front
+    f = cam.focal_px[:, None]
+    xn, yn = p[0] / z, p[1] / z
+    u = f * xn + cam.cx[:, None]
+    v = f * yn + cam.cy[:, None]
+    g = f / z
+    s0 = tuple(g * (Rr[0][b] - xn * Rr[2][b]) for b in range(3))
+    s1 = tuple(g * (Rr[1][b] - yn * Rr[2][b]) for b in range(3))
+    tu, tv = _cols(smp.tangent_u, False), _cols(smp.tangent_v, False)
+    A = (_dot(s0, tu), _dot(s0, tv), _dot(s1, tu), _dot(s1, tv))
+
+    dist = jnp.sqrt(jnp.maximum(_dot(d, d), 1e-300))
+    cos_inc = -_dot(_cols(smp.normals, False), d) / dist
+    c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
+    w_inc = smoothstep((cos_inc - c_lim) / (c_full - c_lim))
+    m = st.image_margin_px
+    W, H = cam.width[:, None], cam.height[:, None]
+    w_img = (smoothstep((u + 0.5) / m) * smoothstep((W - 0.5 - u) / m)
+             * smoothstep((v + 0.5) / m) * smoothstep((H - 0.5 - v) / m))
+    w = jnp.where(front, w_inc * w_img, 0.0)
+    return s0, s1, A, u, v, w
+
+
+def _tensor(A, energy, kappa, gap_eps):
+    """T / c^2 = sum_k G(l_k, l_other)/a_k^2 v_k v_k^T as (T00, T01, T11) (1/pixel^2), and |det A|,
+    by the floored-gap spectral formula (module docstring). A = (A00, A01, A10, A11)."""
+    A00, A01, A10, A11 = A
+    M00 = A00 * A00 + A01 * A01
+    M11 = A10 * A10 + A11 * A11
+    M01 = A00 * A10 + A01 * A11
+    det = A00 * A11 - A01 * A10
+    m = jnp.maximum(0.5 * (M00 + M11), 1e-300)
+    h = 0.5 * (M00 - M11)
+    gap = jnp.sqrt(h * h + M01 * M01 + (gap_eps * m) ** 2)
+    lam1 = m + gap
+    lam2 = jnp.maximum(det * det / lam1, 1e-12 * lam1)  # stable small eigenvalue; edge-on floor
+    l1 = kappa / jnp.sqrt(lam1)
+    l2 = kappa / jnp.sqrt(lam2)
+    phi1 = energy(l1, l2) / lam1
+    phi2 = energy(l2, l1) / lam2
+    alpha = 0.5 * (phi1 + phi2)
+    beta = (phi1 - phi2) / (lam1 - lam2)
+    return (alpha + beta * h, beta * M01, alpha - beta * h), jnp.abs(det)
+
+
+_SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # order of the 6 unique entries
+
+
+def _camera_information(cam, smp, pho, energy, st):
+    """Per (camera, sample) contributions Omega w |det A| C_i as 6 (C, N) entries in _SYM order,
+    plus the weights w (with occlusion) and the sensitivity rows."""
+    s0, s1, A, u, v, w = _pairs(cam, smp, st)
+    (T00, T01, T11), absdet = _tensor(A, _energy(energy), st.kappa, st.gap_eps)
+    w = w * pho.occlusion
+    k = st.patch_area * w * absdet * (pho.contrast / pho.noise) ** 2
+    k00, k01, k11 = k * T00, k * T01, k * T11
+    ent = tuple(k00 * s0[a] * s0[b] + k11 * s1[a] * s1[b] + k01 * (s0[a] * s1[b] + s1[a] * s0[b])
+                for a, b in _SYM)
+    return ent, w, s0, s1
+
+
+def _sym_full(e):
+    """6 entries (_SYM order) -> (..., 3, 3)."""
+    c00, c11, c22, c01, c02, c12 = e
+    return jnp.stack([jnp.stack([c00, c01, c02], -1), jnp.stack([c01, c11, c12], -1),
+                      jnp.stack([c02, c12, c22], -1)], -2)
+
+
+def _sym_inv(e):
+    """Inverse of a symmetric 3x3 from its 6 entries, by cofactors."""
+    c00, c11, c22, c01, c02, c12 = e
+    i00 = c11 * c22 - c12 * c12
+    i11 = c00 * c22 - c02 * c02
+    i22 = c00 * c11 - c01 * c01
+    i01 = c02 * c12 - c01 * c22
+    i02 = c01 * c12 - c02 * c11
+    i12 = c01 * c02 - c00 * c12
+    det = c00 * i00 + c01 * i01 + c02 * i02
+    return tuple(x / det for x in (i00, i11, i22, i01, i02, i12))
+
+
+def _sym_square(e):
+    """B @ B for a symmetric 3x3 B (the result is symmetric)."""
+    b00, b11, b22, b01, b02, b12 = e
+    return (b00 * b00 + b01 * b01 + b02 * b02, b01 * b01 + b11 * b11 + b12 * b12,
+            b02 * b02 + b12 * b12 + b22 * b22, b00 * b01 + b01 * b11 + b02 * b12,
+            b00 * b02 + b01 * b12 + b02 * b22, b01 * b02 + b11 * b12 + b12 * b22)
+
+
+def _smooth_sigma_max(ent, st: Settings):
+    """sqrt of the trace p-norm of Sigma_reg = (C + I/prior^2)^-1, p = 2^eigen_squarings (m).
+    Scaled by traces first so that nothing under- or overflows."""
+    prior = 1.0 / st.prior_sigma ** 2
+    c = (ent[0] + prior, ent[1] + prior, ent[2] + prior) + tuple(ent[3:])
+    tc = c[0] + c[1] + c[2]
+    sig = _sym_inv(tuple(x / tc for x in c))  # Sigma * tc
+    ts = sig[0] + sig[1] + sig[2]
+    b = tuple(x / ts for x in sig)  # eigenvalues in (0, 1], sum 1
+    for _ in range(st.eigen_squarings - 1):
+        b = _sym_square(b)
+    # tr(B^(2p')) = ||B^p'||_F^2 with p' = 2^(k-1)
+    fro = b[0] ** 2 + b[1] ** 2 + b[2] ** 2 + 2.0 * (b[3] ** 2 + b[4] ** 2 + b[5] ** 2)
+    p = 2.0 ** st.eigen_squarings
+    lam = fro ** (1.0 / p) * ts / tc
+    return jnp.sqrt(lam)
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+# --------------------------------------------------------------------------------------------
+class Geometry(eqx.Module):
+    """Per (camera, sample) geometry: pixel (C, N, 2), sensitivity s (C, N, 2, 3) pixel/m,
+    footprint A (C, N, 2, 2) pixel/m, weight w (C, N) (occlusion not applied)."""
+
+    pixel: jax.Array
+    sensitivity: jax.Array
+    footprint: jax.Array
+    weight: jax.Array
+
+
+@eqx.filter_jit
+def geometry(cameras: CameraParams, samples: Samples, settings: Settings = Settings()) -> Geometry:
+    """Projection, sensitivity s = dx/dX, footprint A = s [t_u t_v] and soft weight per pair."""
+    s0, s1, A, u, v, w = _pairs(cameras, samples, settings)
+    s = jnp.stack([jnp.stack(s0, -1), jnp.stack(s1, -1)], -2)
+    A = jnp.stack([jnp.stack(A[:2], -1), jnp.stack(A[2:], -1)], -2)
+    return Geometry(jnp.stack([u, v], -1), s, A, w)
+
+
+@eqx.filter_jit
+def gradient_tensor(footprint, energy, kappa: float = KAPPA_BOX, gap_eps: float = 1e-4):
+    """T / c^2 = sum_k G(kappa/a_k, kappa/a_other)/a_k^2 v_k v_k^T (..., 2, 2) in 1/pixel^2 for
+    footprints A (..., 2, 2) in pixel/m; differentiable also where a_1 = a_2."""
+    A = (footprint[..., 0, 0], footprint[..., 0, 1], footprint[..., 1, 0], footprint[..., 1, 1])
+    (t00, t01, t11), _ = _tensor(A, _energy(energy), kappa, gap_eps)
+    return jnp.stack([jnp.stack([t00, t01], -1), jnp.stack([t01, t11], -1)], -2)
+
+
+@eqx.filter_jit
+def camera_information(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+                       settings: Settings = Settings()):
+    """Each camera's contribution Omega w_i |det A_i| C_i to the sample information, (C, N, 3, 3)
+    in 1/m^2 (C_i = sigma_i^-2 s_i^T T_i s_i per pixel; rank 2, null vector along the ray)."""
+    ent, _, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+    return _sym_full(ent)
+
+
+@eqx.filter_jit
+def information(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+                settings: Settings = Settings()):
+    """C = Omega sum_i w_i |det A_i| C_i per sample, (N, 3, 3) in 1/m^2 (no regularisation)."""
+    ent, _, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+    return _sym_full(tuple(e.sum(0) for e in ent))
+
+
+def _score(cameras, samples, photometry, energy, settings):
+    ent, w, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+    ent = tuple(e.sum(0) for e in ent)
+    sigma = _smooth_sigma_max(ent, settings) / settings.sigma_unit
+    omega = samples.area * samples.importance[samples.region]
+    omega = omega / omega.sum()
+    q = settings.score_power
+    top = jax.lax.stop_gradient(jnp.max(sigma))  # exact homogeneity: value and gradient unchanged
+    agg = top * jnp.sum(omega * (sigma / top) ** q) ** (1.0 / q)
+    short = jnp.maximum(samples.min_cameras[samples.region] - w.sum(0), 0.0)
+    penalty = jnp.sum(omega * short * short)
+    return agg + settings.coverage_weight * penalty
+
+
+@eqx.filter_jit
+def score(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+          settings: Settings = Settings()):
+    """Scalar score to minimise (dimensionless; uncertainty in units of settings.sigma_unit):
+    weighted power mean of the smooth sigma_max plus the coverage penalty (module docstring)."""
+    return _score(cameras, samples, photometry, energy, settings)
+
+
+@eqx.filter_jit
+def score_and_grad(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+                   settings: Settings = Settings()):
+    """(score, d score / d cameras) with the gradient a `CameraParams` of the same shapes."""
+    return jax.value_and_grad(_score)(cameras, samples, photometry, energy, settings)
+
+
+class Fields(eqx.Module):
+    """Per-sample report fields (N leading axis). Sigmas in m, one noisy image (x sqrt 2 for two).
+
+    sensitivity       (N, 3) global sensitivity per world axis, pixel/m (x 1e-3: mpixel/um)
+    sigma_max         (N,) sqrt(lam_max(Sigma)), +inf where not measured
+    sigma_xyz         (N, 3) sqrt(diag Sigma), +inf where not measured
+    sigma_max_smooth  (N,) the regularised smooth value the score uses (finite)
+    coverage          (N,) sum_i w_i, the smooth count of usable cameras
+    measured          (N,) C has full rank (>= 2 usable, non-parallel views)
+    weights           (C, N) w_i including occlusion
+    information       (N, 3, 3) C in 1/m^2
+    """
+
+    sensitivity: jax.Array
+    sigma_max: jax.Array
+    sigma_xyz: jax.Array
+    sigma_max_smooth: jax.Array
+    coverage: jax.Array
+    measured: jax.Array
+    weights: jax.Array
+    information: jax.Array
+
+
+@eqx.filter_jit
+def fields(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+           settings: Settings = Settings()) -> Fields:
+    """All report fields (exact eigenvalues, not for differentiation)."""
+    ent, w, s0, s1 = _camera_information(cameras, samples, photometry, energy, settings)
+    ent = tuple(e.sum(0) for e in ent)
+    sens = jnp.stack([jnp.sqrt(jnp.sum(w * (s0[k] ** 2 + s1[k] ** 2), 0)) for k in range(3)], -1)
+    C = _sym_full(ent)
+    tc = jnp.trace(C, axis1=-2, axis2=-1)
+    scale = jnp.where(tc > 0, tc, 1.0)
+    lam, V = jnp.linalg.eigh(C / scale[:, None, None])
+    measured = (tc > 0) & (lam[:, 0] > settings.rank_rtol * lam[:, 2])
+    lam_safe = jnp.where(measured[:, None], lam, 1.0)
+    var_axis = jnp.einsum("nkj,nj->nk", V * V, 1.0 / lam_safe) / scale[:, None]
+    inf = jnp.inf
+    sigma_max = jnp.where(measured, jnp.sqrt(1.0 / (lam_safe[:, 0] * scale)), inf)
+    sigma_xyz = jnp.where(measured[:, None], jnp.sqrt(var_axis), inf)
+    return Fields(sensitivity=sens, sigma_max=sigma_max, sigma_xyz=sigma_xyz,
+                  sigma_max_smooth=_smooth_sigma_max(ent, settings), coverage=w.sum(0),
+                  measured=measured, weights=w, information=C)
