@@ -10,6 +10,7 @@ the field (``camera "cam3".focal_mm``) and what is expected. See docs/config.md 
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import os
@@ -22,6 +23,7 @@ import numpy as np
 from .camera import Camera, look_at_angles
 from .errors import ConfigError
 from .rail import Rail
+from .sensor import SensorModel
 
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 ROLES = ("specimen", "obstacle")
@@ -33,10 +35,14 @@ _REQUIRED = object()
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class MeshSpec:
+    """A mesh file and how it looks: diffuse paint of `albedo`, or bare metal when `metal`."""
+
     name: str
     path: Path
     unit: str
     role: str
+    albedo: float = 0.5
+    metal: bool = False
 
     @property
     def scale(self) -> float:
@@ -56,6 +62,7 @@ class RegionSpec:
     box_max: np.ndarray
     importance: float = 1.0
     normal_tolerance: float = math.radians(5.0)
+    min_cameras: int | None = None     # coverage requirement; None: the experiment's default
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,12 +83,54 @@ class CameraSpec:
     roll: float = 0.0            # rad
     principal_offset_px: tuple[float, float] = (0.0, 0.0)
     body: bool = True
+    f_number: float | None = None    # with focus_distance: thin lens with depth of field
+    focus_distance: float | None = None  # m
 
 
 @dataclass(frozen=True)
 class Evaluation:
     sample_spacing: float = 0.01                      # m between surface samples
     incidence_limit: float = math.radians(75.0)       # rad, from the surface normal
+    patch_size: float = 0.01                          # m, side of the DIC patch (Omega = side^2)
+    min_cameras: int = 2                              # default coverage requirement per point
+
+
+@dataclass(frozen=True, eq=False)
+class LightSpec:
+    """A rectangular LED panel: a one-sided diffuse area emitter of `radiance` (W sr^-1 m^-2,
+    any consistent unit: the sensor's photons_per_unit maps it to electrons) centred at `position`
+    and facing `target`, `size` (width, height) in metres."""
+
+    name: str
+    position: np.ndarray
+    target: np.ndarray
+    size: tuple[float, float]
+    radiance: float
+
+
+@dataclass(frozen=True)
+class SpeckleSpec:
+    """The paint on the regions of interest: generated dots + strokes, or a user image."""
+
+    dot_diameter: float = 2e-3       # m
+    coverage: float = 0.5            # black area fraction
+    strokes: int = 10                # brush strokes per tile
+    texel: float = 0.25e-3           # m per texel of the pattern
+    tile_texels: int = 1024          # the tile repeats every tile_texels * texel metres
+    seed: int = 1
+    image: Path | None = None        # a photo of a real pattern, at `texel` m per pixel
+    white_albedo: float = 0.8
+    black_albedo: float = 0.05
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    spp: int = 16                    # samples per pixel
+    scale: float = 1.0               # image size relative to the sensor's pixel counts
+    seed: int = 0
+    ambient_radiance: float = 0.0    # uniform environment light, same unit as LightSpec.radiance
+    image_format: str = "png"        # png | tiff (16-bit above 8-bit depth)
+    exr: bool = False                # also write the linear float image
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,6 +145,10 @@ class Experiment:
     camera_specs: tuple[CameraSpec, ...]
     evaluation: Evaluation
     description: str = ""
+    lights: tuple[LightSpec, ...] = ()
+    speckle: SpeckleSpec = SpeckleSpec()
+    sensor: SensorModel = SensorModel()
+    render: RenderSpec = RenderSpec()
 
     def rail(self, name: str) -> Rail:
         return next(r for r in self.rails if r.name == name)
@@ -109,21 +162,37 @@ class Experiment:
 
     def to_dict(self) -> dict:
         """The resolved experiment as a TOML-ready dict (absolute mesh paths, defaults filled)."""
+        ev, sp, rd = self.evaluation, self.speckle, self.render
         out = {"experiment": {"name": self.name, "description": self.description},
-               "evaluation": {"sample_spacing_mm": self.evaluation.sample_spacing * 1e3,
-                              "incidence_limit_deg": math.degrees(self.evaluation.incidence_limit)},
-               "mesh": [{"name": m.name, "file": str(m.path), "unit": m.unit, "role": m.role}
-                        for m in self.meshes],
+               "evaluation": {"sample_spacing_mm": ev.sample_spacing * 1e3,
+                              "incidence_limit_deg": math.degrees(ev.incidence_limit),
+                              "patch_mm": ev.patch_size * 1e3, "min_cameras": ev.min_cameras},
+               "mesh": [{"name": m.name, "file": str(m.path), "unit": m.unit, "role": m.role,
+                         "albedo": m.albedo, "metal": m.metal} for m in self.meshes],
                "region": [_region_to_dict(r) for r in self.regions],
                "rail": [{"name": r.name, "control_points_m": r.control_points.tolist(),
                          "degree": r.degree, "weights": r.weights.tolist()} for r in self.rails],
-               "camera": [_camera_to_dict(c) for c in self.camera_specs]}
-        return out
+               "camera": [_camera_to_dict(c) for c in self.camera_specs],
+               "light": [{"name": lt.name, "position_m": lt.position.tolist(),
+                          "target_m": lt.target.tolist(), "size_m": list(lt.size),
+                          "radiance": lt.radiance} for lt in self.lights],
+               "speckle": {"dot_diameter_mm": sp.dot_diameter * 1e3, "coverage": sp.coverage,
+                           "strokes": sp.strokes, "texel_mm": sp.texel * 1e3,
+                           "tile_texels": sp.tile_texels, "seed": sp.seed,
+                           "white_albedo": sp.white_albedo, "black_albedo": sp.black_albedo}
+               | ({"image": str(sp.image)} if sp.image else {}),
+               "sensor": {k: v for k, v in dataclasses.asdict(self.sensor).items() if v is not None},
+               "render": {"spp": rd.spp, "scale": rd.scale, "seed": rd.seed,
+                          "ambient_radiance": rd.ambient_radiance, "image_format": rd.image_format,
+                          "exr": rd.exr}}
+        return {k: v for k, v in out.items() if v != []}
 
 
 def _region_to_dict(r: RegionSpec) -> dict:
     d = {"name": r.name, "mesh": r.mesh, "normal": r.normal.tolist(), "importance": r.importance,
          "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
+    if r.min_cameras is not None:
+        d["min_cameras"] = r.min_cameras
     for key, box in (("box_min_m", r.box_min), ("box_max_m", r.box_max)):
         if np.all(np.isfinite(box)):
             d[key] = box.tolist()
@@ -143,6 +212,8 @@ def _camera_to_dict(c: CameraSpec) -> dict:
         d |= {"pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt)}
     d |= {"roll_deg": math.degrees(c.roll), "principal_offset_px": list(c.principal_offset_px),
           "body": c.body}
+    if c.f_number is not None:
+        d |= {"f_number": c.f_number, "focus_m": c.focus_distance}
     return d
 
 
@@ -293,22 +364,25 @@ def load(path) -> Experiment:
 def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
-    top = _Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera"))
+    top = _Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
+                                  "light", "speckle", "sensor", "render"))
     exp = _Table(top.raw("experiment"), "experiment", path, ("name", "description"))
     ev = _Table(top.raw("evaluation", {}), "evaluation", path,
-                ("sample_spacing_mm", "incidence_limit_deg"))
+                ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
     evaluation = Evaluation(
         sample_spacing=ev.number("sample_spacing_mm", 10.0, positive=True) * 1e-3,
-        incidence_limit=math.radians(ev.number("incidence_limit_deg", 75.0, low=1.0, high=89.9)))
+        incidence_limit=math.radians(ev.number("incidence_limit_deg", 75.0, low=1.0, high=89.9)),
+        patch_size=ev.number("patch_mm", 10.0, positive=True) * 1e-3,
+        min_cameras=ev.integer("min_cameras", 2, low=1))
 
-    meshes = tuple(_mesh(t, path) for t in _entries(top, "mesh", path,
-                                                      ("name", "file", "unit", "role")))
+    meshes = tuple(_mesh(t, path) for t in _entries(
+        top, "mesh", path, ("name", "file", "unit", "role", "albedo", "metal")))
     mesh_roles = {m.name: m.role for m in meshes}
     if "specimen" not in mesh_roles.values():
         raise ConfigError(path, "mesh", 'needs at least one mesh with role = "specimen"')
     regions = tuple(_region(t, mesh_roles) for t in _entries(
         top, "region", path, ("name", "mesh", "normal", "box_min_m", "box_max_m", "importance",
-                              "normal_tolerance_deg")))
+                              "normal_tolerance_deg", "min_cameras")))
     rails = tuple(_rail(t) for t in _entries(top, "rail", path,
                                              ("name", "control_points_m", "degree", "weights"),
                                              required=False))
@@ -316,10 +390,75 @@ def parse(data: dict, path: Path) -> Experiment:
     cameras = tuple(_camera(t, rail_names) for t in _entries(
         top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
                               "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
-                              "roll_deg", "principal_offset_px", "body")))
-    return Experiment(path=path, name=exp.string("name"),
-                      description=exp.raw("description", "") or "", meshes=meshes,
-                      regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation)
+                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m")))
+    lights = tuple(_light(t) for t in _entries(
+        top, "light", path, ("name", "position_m", "target_m", "size_m", "radiance"), required=False))
+    result = Experiment(path=path, name=exp.string("name"),
+                        description=exp.raw("description", "") or "", meshes=meshes,
+                        regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation,
+                        lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
+                        render=_render(top, path))
+    for spec, camera in zip(cameras, result.cameras()):
+        if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
+            raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
+    return result
+
+
+def _light(t: _Table) -> LightSpec:
+    position, target = t.vector("position_m", 3), t.vector("target_m", 3)
+    if np.linalg.norm(target - position) < 1e-6:
+        raise t.error("target_m", "must differ from position_m (the panel faces the target)")
+    return LightSpec(name=t.string("name"), position=position, target=target,
+                     size=tuple(t.vector("size_m", 2, positive=True)),
+                     radiance=t.number("radiance", positive=True))
+
+
+def _speckle(top: _Table, path: Path) -> SpeckleSpec:
+    t = _Table(top.raw("speckle", {}), "speckle", path,
+               ("dot_diameter_mm", "coverage", "strokes", "texel_mm", "tile_texels", "seed", "image",
+                "white_albedo", "black_albedo"))
+    image = t.string("image", None)
+    if image is not None:
+        image = (path.parent / image).resolve()
+        if not image.is_file():
+            raise t.error("image", f"pattern image {str(image)!r} does not exist")
+    spec = SpeckleSpec(dot_diameter=t.number("dot_diameter_mm", 2.0, positive=True) * 1e-3,
+                       coverage=t.number("coverage", 0.5, low=0.01, high=0.95),
+                       strokes=t.integer("strokes", 10, low=0),
+                       texel=t.number("texel_mm", 0.25, positive=True) * 1e-3,
+                       tile_texels=t.integer("tile_texels", 1024, low=64), seed=t.integer("seed", 1, low=0),
+                       image=image, white_albedo=t.number("white_albedo", 0.8, low=0.0, high=1.0),
+                       black_albedo=t.number("black_albedo", 0.05, low=0.0, high=1.0))
+    if spec.black_albedo >= spec.white_albedo:
+        raise t.error("black_albedo", "must be less than white_albedo")
+    if image is None and spec.dot_diameter < 3 * spec.texel:
+        raise t.error("texel_mm", f"must be at most a third of the dot diameter "
+                                  f"({spec.dot_diameter * 1e3:g} mm) to draw round dots")
+    return spec
+
+
+def _sensor(top: _Table, path: Path) -> SensorModel:
+    fields = {"quantum_efficiency": "quantum_efficiency", "full_well_e": "full_well_e",
+              "read_noise_e": "read_noise_e", "bit_depth": "bit_depth",
+              "gain_dn_per_e": "gain_dn_per_e", "offset_dn": "offset_dn",
+              "photons_per_unit": "photons_per_unit"}
+    t = _Table(top.raw("sensor", {}), "sensor", path, tuple(fields))
+    values = {k: t.raw(k) for k in fields if t.has(k)}
+    try:
+        return SensorModel(**values)
+    except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
+        field, _, message = str(exc).partition(": ")
+        raise t.error(field.removeprefix("SensorModel."), message) from None
+
+
+def _render(top: _Table, path: Path) -> RenderSpec:
+    t = _Table(top.raw("render", {}), "render", path,
+               ("spp", "scale", "seed", "ambient_radiance", "image_format", "exr"))
+    return RenderSpec(spp=t.integer("spp", 16, low=1), scale=t.number("scale", 1.0, positive=True, high=4.0),
+                      seed=t.integer("seed", 0, low=0),
+                      ambient_radiance=t.number("ambient_radiance", 0.0, low=0.0),
+                      image_format=t.string("image_format", "png", choices=("png", "tiff")),
+                      exr=t.boolean("exr", False))
 
 
 def _mesh(t: _Table, config_path: Path) -> MeshSpec:
@@ -334,7 +473,8 @@ def _mesh(t: _Table, config_path: Path) -> MeshSpec:
         raise t.error("file", f"{mesh_path.name!r} is not an STL, OBJ or PLY file")
     return MeshSpec(name=t.string("name"), path=mesh_path,
                     unit=t.string("unit", "m", choices=tuple(UNITS)),
-                    role=t.string("role", "obstacle", choices=ROLES))
+                    role=t.string("role", "obstacle", choices=ROLES),
+                    albedo=t.number("albedo", 0.5, low=0.0, high=1.0), metal=t.boolean("metal", False))
 
 
 def _region(t: _Table, mesh_roles: dict) -> RegionSpec:
@@ -353,7 +493,8 @@ def _region(t: _Table, mesh_roles: dict) -> RegionSpec:
                       box_min=box_min, box_max=box_max,
                       importance=t.number("importance", 1.0, positive=True),
                       normal_tolerance=math.radians(t.number("normal_tolerance_deg", 5.0,
-                                                             low=0.0, high=89.0)))
+                                                             low=0.0, high=89.0)),
+                      min_cameras=t.integer("min_cameras", None, low=1) if t.has("min_cameras") else None)
 
 
 def _rail(t: _Table) -> Rail:
@@ -390,6 +531,11 @@ def _camera(t: _Table, rails: set) -> CameraSpec:
                 roll=math.radians(t.number("roll_deg", 0.0)),
                 principal_offset_px=tuple(t.vector("principal_offset_px", 2, np.zeros(2))),
                 body=t.boolean("body", True))
+    if t.has("f_number") != t.has("focus_m"):
+        raise t.error("f_number", "depth of field needs both f_number and focus_m")
+    if t.has("f_number"):
+        spec |= dict(f_number=t.number("f_number", positive=True),
+                     focus_distance=t.number("focus_m", positive=True))
     if t.has("rail") == t.has("position_m"):
         raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
     if t.has("rail"):
