@@ -39,14 +39,16 @@ def read_vtp(path):
 def test_run_folder_contents(run):
     _, out = run
     names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
-    assert names == ["config.toml", "layout.json", "maps/coverage.png", "samples.vtp", "summary.json"]
+    assert names == ["config.toml", "layout.json", "maps/coverage.png", "maps/sensitivity_x.png",
+                     "maps/sensitivity_y.png", "maps/sensitivity_z.png", "samples.vtp", "summary.json"]
 
 
 def test_samples_vtp_reads_in_vtk_and_agrees_with_summary(run):
     _, out = run
     points, n_verts, arrays = read_vtp(out / "samples.vtp")
     assert n_verts == len(points) == 10_000
-    assert {"normal", "region", "area", "coverage", "visible_a", "visible_b"} <= set(arrays)
+    assert {"normal", "region", "area", "coverage", "visible_a", "visible_b", "sensitivity_x",
+            "sensitivity_y", "sensitivity_z", "sigma_max", "sigma_x", "sigma_y", "sigma_z"} <= set(arrays)
     np.testing.assert_array_equal(arrays["coverage"], arrays["visible_a"] + arrays["visible_b"])
     summary = json.loads((out / "summary.json").read_text())
     top = summary["regions"]["top"]

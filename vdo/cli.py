@@ -1,4 +1,4 @@
-"""The command line: `vdo evaluate CONFIG --out DIR` and `vdo demo`."""
+"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR` and `vdo demo`."""
 
 from __future__ import annotations
 
@@ -14,10 +14,14 @@ BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
 
 def _print_summary(summary: dict) -> None:
-    print(f"{'region':<22}{'area m2':>9}{'>=1':>7}{'>=2':>7}{'>=3':>7}")
+    print(f"{'region':<22}{'area m2':>8}{'>=1':>6}{'>=2':>6}{'>=3':>6}"
+          f"{'sens x/y/z mpx/um':>21}{'sigma p50/p95 um':>19}")
     for name, r in summary["regions"].items():
-        print(f"{name:<22}{r['area_m2']:>9.3f}" + "".join(
-            f"{100 * r[f'seen_by_{m}_or_more']:>6.0f}%" for m in (1, 2, 3)))
+        sens = "/".join(f"{r['sensitivity_mpx_per_um'][a]:.1f}" for a in "xyz")
+        sig = r["sigma_max_um"]
+        sig = "-" if sig["p50"] is None else f"{sig['p50']:.2f}/{sig['p95']:.2f}"
+        print(f"{name:<22}{r['area_m2']:>8.3f}" + "".join(
+            f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}")
 
 
 def _evaluate(config_path, out, overwrite, quiet):
@@ -31,6 +35,18 @@ def _evaluate(config_path, out, overwrite, quiet):
         print(f"wrote {Path(out).resolve()}")
 
 
+def _render(args):
+    from .config import load
+    from .render import render_experiment
+
+    exp = load(args.config)
+    summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
+                                overwrite=args.overwrite, quiet=args.quiet)
+    if not args.quiet:
+        print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
+              f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -39,6 +55,15 @@ def main(argv=None) -> int:
     ev.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     ev.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     ev.add_argument("--quiet", action="store_true")
+    rd = sub.add_parser("render", help="photo-realistic noisy images of every camera")
+    rd.add_argument("config", help="experiment TOML file")
+    rd.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
+                                                              "(default: [render] scale)")
+    rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
+    rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
+    rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    rd.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -46,6 +71,8 @@ def main(argv=None) -> int:
     try:
         if args.command == "evaluate":
             _evaluate(args.config, args.out, args.overwrite, args.quiet)
+        elif args.command == "render":
+            _render(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

@@ -34,8 +34,8 @@ Numerical care (all derivatives stay finite):
   the gap, so the floor changes T by O(eps^2) (eps = 1e-4 -> 1e-8 relative), the difference
   quotient never divides by zero (a fronto-parallel view, a_1 = a_2 exactly, is fine) and the sqrt
   is never evaluated at 0.
-* lam_max(Sigma) for the score uses the trace p-norm sqrt((tr Sigma^p)^(1/p)) with p = 2^k
-  (`Settings.eigen_squarings` = k, default p = 8): smooth everywhere, and between lam_max and
+* lam_max(Sigma) for the score uses the trace p-norm (tr Sigma^p)^(1/p) (`Settings.eigen_power`
+  p, default 8), computed from the invariants of C by Newton's identities: smooth everywhere, and between lam_max and
   3^(1/p) lam_max (at most +7 % in sigma for p = 8, only when Sigma is isotropic; +0.05 % for a
   stereo pair whose out-of-plane variance is twice the in-plane one). The report (`fields`) uses the
   exact eigenvalues.
@@ -72,7 +72,7 @@ count (2 by default, 3 on the joint). With the default coverage_weight = 1000 a 
 short costs as much as an unmeasured one (prior_sigma / sigma_unit = 1000).
 
 Inputs are pytrees (equinox Modules) of arrays: `CameraParams` (C cameras), `Samples` (N samples,
-R regions), `Photometry` ((C, N) constants), an `energy` G (a `vdo.speckle.GradientEnergyTable`,
+R regions), `ViewData` ((C, N) constants), an `energy` G (a `vdo.speckle.GradientEnergyTable`,
 or any jax-traceable callable G(l_par, l_perp) -> 1/m^2, e.g. `GaussianFieldEnergy`) and `Settings`
 (static). Everything is jit-compiled with `equinox.filter_jit`.
 """
@@ -95,7 +95,7 @@ jax.config.update("jax_enable_x64", True)
 __all__ = [
     "CameraParams",
     "Samples",
-    "Photometry",
+    "ViewData",
     "Settings",
     "TableEnergy",
     "GaussianFieldEnergy",
@@ -157,7 +157,7 @@ class Samples(eqx.Module):
     min_cameras: jax.Array
 
 
-class Photometry(eqx.Module):
+class ViewData(eqx.Module):
     """Per (camera, sample) constants, (C, N): occlusion in {0, 1} from the ray cast (1 = seen),
     contrast c in DN (image = b + c f_hat), noise sigma in DN rms per pixel."""
 
@@ -178,7 +178,7 @@ class Settings(eqx.Module):
     prior_sigma        m: regularising prior std for the score (C + I/prior_sigma^2)
     sigma_unit         m: unit of the score's uncertainty term (1e-6: micrometres)
     score_power        q of the weighted power mean over samples
-    eigen_squarings    k, p = 2^k in the trace p-norm for lam_max
+    eigen_power        p >= 2 of the trace p-norm that smooths lam_max(Sigma)
     coverage_weight    weight of the coverage penalty (per camera^2 of deficit, area fraction)
     gap_eps            relative floor of the eigenvalue gap of A A^T (error O(gap_eps^2))
     rank_rtol          `fields`: eigenvalue ratio below which C counts as rank deficient
@@ -193,7 +193,7 @@ class Settings(eqx.Module):
     prior_sigma: float = eqx.field(static=True, default=1e-3)
     sigma_unit: float = eqx.field(static=True, default=1e-6)
     score_power: float = eqx.field(static=True, default=8.0)
-    eigen_squarings: int = eqx.field(static=True, default=3)
+    eigen_power: int = eqx.field(static=True, default=8)
     coverage_weight: float = eqx.field(static=True, default=1e3)
     gap_eps: float = eqx.field(static=True, default=1e-4)
     rank_rtol: float = eqx.field(static=True, default=1e-10)
@@ -268,7 +268,8 @@ def _pairs(cam: CameraParams, smp: Samples, st: Settings):
     tu, tv = _cols(smp.tangent_u, False), _cols(smp.tangent_v, False)
     A = (_dot(s0, tu), _dot(s0, tv), _dot(s1, tu), _dot(s1, tv))
 
-    dist = jnp.sqrt(jnp.maximum(_dot(d, d), 1e-300))
+    dd = _dot(d, d)
+    dist = jnp.sqrt(jnp.maximum(dd, jnp.finfo(dd.dtype).tiny))
     cos_inc = -_dot(_cols(smp.normals, False), d) / dist
     c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
     w_inc = smoothstep((cos_inc - c_lim) / (c_full - c_lim))
@@ -288,7 +289,7 @@ def _tensor(A, energy, kappa, gap_eps):
     M11 = A10 * A10 + A11 * A11
     M01 = A00 * A10 + A01 * A11
     det = A00 * A11 - A01 * A10
-    m = jnp.maximum(0.5 * (M00 + M11), 1e-300)
+    m = jnp.maximum(0.5 * (M00 + M11), jnp.finfo(M00.dtype).tiny)
     h = 0.5 * (M00 - M11)
     gap = jnp.sqrt(h * h + M01 * M01 + (gap_eps * m) ** 2)
     lam1 = m + gap
@@ -325,42 +326,31 @@ def _sym_full(e):
                       jnp.stack([c02, c12, c22], -1)], -2)
 
 
-def _sym_inv(e):
-    """Inverse of a symmetric 3x3 from its 6 entries, by cofactors."""
-    c00, c11, c22, c01, c02, c12 = e
-    i00 = c11 * c22 - c12 * c12
-    i11 = c00 * c22 - c02 * c02
-    i22 = c00 * c11 - c01 * c01
-    i01 = c02 * c12 - c01 * c22
-    i02 = c01 * c12 - c02 * c11
-    i12 = c01 * c02 - c00 * c12
-    det = c00 * i00 + c01 * i01 + c02 * i02
-    return tuple(x / det for x in (i00, i11, i22, i01, i02, i12))
-
-
-def _sym_square(e):
-    """B @ B for a symmetric 3x3 B (the result is symmetric)."""
-    b00, b11, b22, b01, b02, b12 = e
-    return (b00 * b00 + b01 * b01 + b02 * b02, b01 * b01 + b11 * b11 + b12 * b12,
-            b02 * b02 + b12 * b12 + b22 * b22, b00 * b01 + b01 * b11 + b02 * b12,
-            b00 * b02 + b01 * b12 + b02 * b22, b01 * b02 + b11 * b12 + b12 * b22)
-
-
 def _smooth_sigma_max(ent, st: Settings):
-    """sqrt of the trace p-norm of Sigma_reg = (C + I/prior^2)^-1, p = 2^eigen_squarings (m).
-    Scaled by traces first so that nothing under- or overflows."""
+    """sqrt of the trace p-norm (tr Sigma^p)^(1/p) of Sigma_reg = (C + I/prior^2)^-1 (m), from the
+    invariants of C alone (no inverse, no eigen-decomposition): with e1, e2, e3 the elementary
+    symmetric functions of C's eigenvalues nu, Sigma's eigenvalues mu = 1/nu have
+    E1 = e2/e3, E2 = e1/e3, E3 = 1/e3; scaled to sum 1 (mu' = mu/E1) their power sums follow
+    Newton's identities p_k = p_(k-1) - E2' p_(k-2) + E3' p_(k-3) with E2' = e1 e3/e2^2,
+    E3' = e3^2/e2^3 (all in [0, 1/3]), and (tr Sigma^p)^(1/p) = E1 p_p^(1/p). C is first scaled
+    by its trace so that nothing under- or overflows."""
     prior = 1.0 / st.prior_sigma ** 2
-    c = (ent[0] + prior, ent[1] + prior, ent[2] + prior) + tuple(ent[3:])
-    tc = c[0] + c[1] + c[2]
-    sig = _sym_inv(tuple(x / tc for x in c))  # Sigma * tc
-    ts = sig[0] + sig[1] + sig[2]
-    b = tuple(x / ts for x in sig)  # eigenvalues in (0, 1], sum 1
-    for _ in range(st.eigen_squarings - 1):
-        b = _sym_square(b)
-    # tr(B^(2p')) = ||B^p'||_F^2 with p' = 2^(k-1)
-    fro = b[0] ** 2 + b[1] ** 2 + b[2] ** 2 + 2.0 * (b[3] ** 2 + b[4] ** 2 + b[5] ** 2)
-    p = 2.0 ** st.eigen_squarings
-    lam = fro ** (1.0 / p) * ts / tc
+    c00, c11, c22 = ent[0] + prior, ent[1] + prior, ent[2] + prior
+    c01, c02, c12 = ent[3:]
+    tc = c00 + c11 + c22
+    c00, c11, c22, c01, c02, c12 = (x / tc for x in (c00, c11, c22, c01, c02, c12))
+    m00 = c11 * c22 - c12 * c12
+    m11 = c00 * c22 - c02 * c02
+    m22 = c00 * c11 - c01 * c01
+    e2 = m00 + m11 + m22
+    e3 = c00 * m00 + c01 * (c02 * c12 - c01 * c22) + c02 * (c01 * c12 - c02 * c11)
+    E2 = e3 / (e2 * e2)  # e1 = 1 after scaling
+    E3 = e3 * e3 / (e2 * e2 * e2)
+    p = [1.0, 1.0, 1.0 - 2.0 * E2]  # p_0 is unused (index shift), p_1, p_2
+    p.append(p[2] - E2 + 3.0 * E3)  # p_3
+    for k in range(4, st.eigen_power + 1):
+        p.append(p[k - 1] - E2 * p[k - 2] + E3 * p[k - 3])
+    lam = (e2 / e3) * p[st.eigen_power] ** (1.0 / st.eigen_power) / tc
     return jnp.sqrt(lam)
 
 
@@ -396,24 +386,24 @@ def gradient_tensor(footprint, energy, kappa: float = KAPPA_BOX, gap_eps: float 
 
 
 @eqx.filter_jit
-def camera_information(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+def camera_information(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                        settings: Settings = Settings()):
     """Each camera's contribution Omega w_i |det A_i| C_i to the sample information, (C, N, 3, 3)
     in 1/m^2 (C_i = sigma_i^-2 s_i^T T_i s_i per pixel; rank 2, null vector along the ray)."""
-    ent, _, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+    ent, _, _, _ = _camera_information(cameras, samples, views, energy, settings)
     return _sym_full(ent)
 
 
 @eqx.filter_jit
-def information(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+def information(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                 settings: Settings = Settings()):
     """C = Omega sum_i w_i |det A_i| C_i per sample, (N, 3, 3) in 1/m^2 (no regularisation)."""
-    ent, _, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+    ent, _, _, _ = _camera_information(cameras, samples, views, energy, settings)
     return _sym_full(tuple(e.sum(0) for e in ent))
 
 
-def _score(cameras, samples, photometry, energy, settings):
-    ent, w, _, _ = _camera_information(cameras, samples, photometry, energy, settings)
+def _score(cameras, samples, views, energy, settings):
+    ent, w, _, _ = _camera_information(cameras, samples, views, energy, settings)
     ent = tuple(e.sum(0) for e in ent)
     sigma = _smooth_sigma_max(ent, settings) / settings.sigma_unit
     omega = samples.area * samples.importance[samples.region]
@@ -427,18 +417,18 @@ def _score(cameras, samples, photometry, energy, settings):
 
 
 @eqx.filter_jit
-def score(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+def score(cameras: CameraParams, samples: Samples, views: ViewData, energy,
           settings: Settings = Settings()):
     """Scalar score to minimise (dimensionless; uncertainty in units of settings.sigma_unit):
     weighted power mean of the smooth sigma_max plus the coverage penalty (module docstring)."""
-    return _score(cameras, samples, photometry, energy, settings)
+    return _score(cameras, samples, views, energy, settings)
 
 
 @eqx.filter_jit
-def score_and_grad(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+def score_and_grad(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                    settings: Settings = Settings()):
     """(score, d score / d cameras) with the gradient a `CameraParams` of the same shapes."""
-    return jax.value_and_grad(_score)(cameras, samples, photometry, energy, settings)
+    return jax.value_and_grad(_score)(cameras, samples, views, energy, settings)
 
 
 class Fields(eqx.Module):
@@ -465,10 +455,10 @@ class Fields(eqx.Module):
 
 
 @eqx.filter_jit
-def fields(cameras: CameraParams, samples: Samples, photometry: Photometry, energy,
+def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
            settings: Settings = Settings()) -> Fields:
     """All report fields (exact eigenvalues, not for differentiation)."""
-    ent, w, s0, s1 = _camera_information(cameras, samples, photometry, energy, settings)
+    ent, w, s0, s1 = _camera_information(cameras, samples, views, energy, settings)
     ent = tuple(e.sum(0) for e in ent)
     sens = jnp.stack([jnp.sqrt(jnp.sum(w * (s0[k] ** 2 + s1[k] ** 2), 0)) for k in range(3)], -1)
     C = _sym_full(ent)

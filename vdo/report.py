@@ -11,6 +11,7 @@ import tomli_w
 
 from .camera import Camera
 from .config import Experiment
+from .predict import Prediction
 from .scene import SurfaceSamples
 from .visibility import Visibility
 
@@ -28,15 +29,30 @@ def layout(cameras: list[Camera]) -> dict:
                          "pixel_um": c.pixel_size * 1e6} for c in cameras]}
 
 
-def coverage_summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility) -> dict:
-    """Per region: area (m^2) and the area fractions seen by >= 1, 2, 3 cameras, and which
-    cameras see it (fraction of its area)."""
+SIGMA_MEANING = ("Cramér-Rao bound of the 3D displacement for one noisy image against a noise-free "
+                 "reference, over a patch of patch_mm x patch_mm (multiply by sqrt(2) when the "
+                 "reference image is noisy too); percentiles over the measured points")
+
+
+def _percentiles(values_um: np.ndarray) -> dict:
+    finite = values_um[np.isfinite(values_um)]
+    if finite.size == 0:
+        return {"p50": None, "p95": None, "max": None}
+    return {"p50": float(np.percentile(finite, 50)), "p95": float(np.percentile(finite, 95)),
+            "max": float(finite.max())}
+
+
+def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction) -> dict:
+    """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 cameras, which cameras see
+    it (fraction of its area), sigma_max p50/p95/max (um), the unmeasured area fraction, and the
+    mean global sensitivity per axis (mpixel/um)."""
     coverage = vis.coverage
     regions = {}
     for k, name in enumerate(samples.region_names):
         mask = samples.region == k
         area = samples.area[mask]
         total = float(area.sum())
+        sens = pred.sensitivity[mask] * 1e-3
         regions[name] = {
             "area_m2": total,
             "importance": float(samples.region_importance[k]),
@@ -44,11 +60,17 @@ def coverage_summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility) 
             **{f"seen_by_{m}_or_more": float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)},
             "cameras": {cam: round(float(area[vis.visible[i, mask]].sum() / total), 4)
                         for i, cam in enumerate(vis.camera_names) if vis.visible[i, mask].any()},
+            "sigma_max_um": _percentiles(pred.sigma_max[mask] * 1e6),
+            "unmeasured_fraction": float(area[~pred.measured[mask]].sum() / total),
+            "sensitivity_mpx_per_um": {a: float(np.average(sens[:, j], weights=area))
+                                       for j, a in enumerate("xyz")},
         }
+    ev = exp.evaluation
     return {"experiment": exp.name, "config": str(exp.path),
-            "settings": {"incidence_limit_deg": math.degrees(exp.evaluation.incidence_limit),
-                         "sample_spacing_mm": exp.evaluation.sample_spacing * 1e3,
-                         "n_samples": len(samples), "n_cameras": len(vis.camera_names)},
+            "settings": {"incidence_limit_deg": math.degrees(ev.incidence_limit),
+                         "sample_spacing_mm": ev.sample_spacing * 1e3, "patch_mm": ev.patch_size * 1e3,
+                         "n_samples": len(samples), "n_cameras": len(vis.camera_names),
+                         "sigma": SIGMA_MEANING},
             "regions": regions}
 
 

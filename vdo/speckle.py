@@ -420,3 +420,12 @@ def g_aniso_lookup(table: GradientEnergyTable, l_par, l_perp):
     value = ((1.0 - s) * (1.0 - t) * log_g[i, j] + s * (1.0 - t) * log_g[i + 1, j]
              + (1.0 - s) * t * log_g[i, j + 1] + s * t * log_g[i + 1, j + 1])
     return jnp.exp(value)
+
+
+def pattern_for(spec) -> np.ndarray:
+    """The [0, 1] pattern tile of a `vdo.config.SpeckleSpec`: the user's image when it names one,
+    else a generated tile of `tile_texels` texels of `texel` metres."""
+    if spec.image is not None:
+        return load_pattern(spec.image)
+    return generate_pattern(spec.tile_texels, spec.texel, spec.dot_diameter, spec.coverage,
+                            spec.strokes, spec.seed)
