@@ -133,6 +133,23 @@ class RenderSpec:
     exr: bool = False                # also write the linear float image
 
 
+@dataclass(frozen=True)
+class OptimizeSpec:
+    """What `vdo optimize` may move and the practical constraints it enforces."""
+
+    free: tuple[str, ...] = ("u", "pan", "tilt")   # per camera: rail parameter, pan, tilt
+    cameras: tuple[str, ...] | None = None         # cameras that move (None: all)
+    min_axis_angle: float | None = None            # rad; None: the stereo rule of thumb per lens
+    clearance: float = 0.05                        # m between camera bodies and everything else
+    max_obscuration: float = 0.01                  # fraction of an assigned region's image
+    assign_fraction: float = 0.5                   # a camera is assigned the regions it sees this much of
+    starts: int = 3                                # multi-start: the hand layout + perturbed copies
+    rounds: int = 3                                # visibility refreshes (outer penalty rounds)
+    max_steps: int = 40                            # BFGS steps per round
+    lenses: tuple[float, ...] = ()                 # m; a catalogue for the discrete lens choice
+    seed: int = 0
+
+
 @dataclass(frozen=True, eq=False)
 class Experiment:
     """A validated experiment. `path` is the TOML file it came from."""
@@ -149,6 +166,7 @@ class Experiment:
     speckle: SpeckleSpec = SpeckleSpec()
     sensor: SensorModel = SensorModel()
     render: RenderSpec = RenderSpec()
+    optimize: OptimizeSpec = OptimizeSpec()
 
     def rail(self, name: str) -> Rail:
         return next(r for r in self.rails if r.name == name)
@@ -365,7 +383,7 @@ def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
     top = _Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
-                                  "light", "speckle", "sensor", "render"))
+                                  "light", "speckle", "sensor", "render", "optimize"))
     exp = _Table(top.raw("experiment"), "experiment", path, ("name", "description"))
     ev = _Table(top.raw("evaluation", {}), "evaluation", path,
                 ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
@@ -397,7 +415,8 @@ def parse(data: dict, path: Path) -> Experiment:
                         description=exp.raw("description", "") or "", meshes=meshes,
                         regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation,
                         lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
-                        render=_render(top, path))
+                        render=_render(top, path),
+                        optimize=_optimize(top, path, {c.name for c in cameras}))
     for spec, camera in zip(cameras, result.cameras()):
         if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
             raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
@@ -449,6 +468,35 @@ def _sensor(top: _Table, path: Path) -> SensorModel:
     except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
         field, _, message = str(exc).partition(": ")
         raise t.error(field.removeprefix("SensorModel."), message) from None
+
+
+def _optimize(top: _Table, path: Path, cameras: set) -> OptimizeSpec:
+    t = _Table(top.raw("optimize", {}), "optimize", path,
+               ("free", "cameras", "min_axis_angle_deg", "clearance_m", "max_obscuration",
+                "assign_fraction", "starts", "rounds", "max_steps", "lenses_mm", "seed"))
+    free = t.raw("free", ["u", "pan", "tilt"])
+    if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll"} or not free:
+        raise t.error("free", f"must list some of u, pan, tilt, roll (got {free!r})")
+    moving = t.raw("cameras", None)
+    if moving is not None:
+        if not isinstance(moving, list) or not all(isinstance(c, str) for c in moving):
+            raise t.error("cameras", "must be a list of camera names")
+        unknown = sorted(set(moving) - cameras)
+        if unknown:
+            raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
+    angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
+    lenses = t.raw("lenses_mm", [])
+    arr = _numbers(lenses)
+    if arr is None or arr.ndim != 1 or np.any(arr <= 0):
+        raise t.error("lenses_mm", f"must be a list of positive focal lengths in mm (got {lenses!r})")
+    return OptimizeSpec(free=tuple(free), cameras=None if moving is None else tuple(moving),
+                        min_axis_angle=None if angle is None else math.radians(angle),
+                        clearance=t.number("clearance_m", 0.05, low=0.0),
+                        max_obscuration=t.number("max_obscuration", 0.01, low=0.0, high=1.0),
+                        assign_fraction=t.number("assign_fraction", 0.5, low=0.01, high=1.0),
+                        starts=t.integer("starts", 3, low=1), rounds=t.integer("rounds", 3, low=1),
+                        max_steps=t.integer("max_steps", 40, low=1),
+                        lenses=tuple(float(f) * 1e-3 for f in arr), seed=t.integer("seed", 0, low=0))
 
 
 def _render(top: _Table, path: Path) -> RenderSpec:

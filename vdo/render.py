@@ -1,14 +1,51 @@
-"""Images with Mitsuba: the sensor for a vdo camera, and renders of the scene.
+"""Images with Mitsuba: the sensor for a vdo camera, the render scene, and `vdo render`.
 
 `sensor_dict` is the only place a vdo `Camera` becomes a Mitsuba sensor; the frame conversion
 itself lives in `Camera.mitsuba_to_world` / `mitsuba_principal_offset`.
+
+The render scene (`build_render_scene`):
+
+* each region of interest is its own mesh, textured with the speckle albedo
+  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `speckle_pattern`), mapped at physical scale: a
+  point with face coordinates (u, v) in metres (`vdo.scene.RegionFaces.uv`, the samples' uv) has
+  texture coordinates (u / T_u, v / T_v), T = texel x pattern size, wrap mode repeat. Mitsuba's
+  bitmap has v = 0 on its top row, so the pattern's row i covers v in [i, i+1) texels
+  (`pattern_value` reads it the same way);
+* the rest of the specimen is white paint (ρ_w); obstacles are diffuse of their `albedo`, or a rough
+  conductor (aluminium, α = 0.2) when `metal`; camera bodies are dark (ρ = 0.05);
+* each [[light]] is a one-sided rectangle area emitter of its radiance, facing its target (the
+  frame of `vdo.lighting.panel_frame`); [render] ambient_radiance is a constant environment;
+* the integrator is `direct` (direct illumination only, no interreflection), so the renders and the
+  photometric model of `vdo.lighting` describe the same light transport: they agree up to Monte
+  Carlo noise, the panel quadrature and ambient occlusion (which the model ignores).
+
+Each camera is rendered with a box filter into a linear float luminance film (bit-identical for a
+seed), then `SensorModel.expose` adds shot and read noise and quantises, with the generator
+`numpy.random.default_rng([seed, camera_index])`. Mitsuba's own seed for camera i is
+seed * 1009 + i.
+
+Scale. `scale` s < 1 renders round(s W) x round(s H) pixels of the same view (`scaled_camera`: same
+field of view; pixel pitch and K scaled by s' = round(s W) / W). The linear value stays the
+radiance, *not* multiplied by 1/s'^2: the small image stands for the same sensor (same full well,
+same exposure level per pixel), so brightness, contrast and noise in DN are those `vdo.lighting`
+predicts for the full-size camera, at any scale; only the sampling of the surface changes. (Scaling
+by 1/s'^2, "bigger pixels collect more light", would saturate a 1/8-scale preview 64 times over.)
 """
 
 from __future__ import annotations
 
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
 import numpy as np
 
 from .camera import Camera
+
+BODY_ALBEDO = 0.05
 
 
 def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool = True,
@@ -37,3 +74,399 @@ def _transform(matrix: np.ndarray):
     from .backend import mitsuba
 
     return mitsuba().ScalarTransform4f(np.asarray(matrix, dtype=float))
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras at a render scale
+# --------------------------------------------------------------------------------------------
+def scaled_camera(camera: Camera, scale: float) -> Camera:
+    """The camera that `sensor_dict(camera, scale=scale)` renders: round(s W) x round(s H) pixels,
+    the same horizontal field of view, pixel pitch x W / W', principal offset x W' / W. Its K is the
+    full-size K with f and c scaled by s' = W' / W (c = (W' - 1)/2 + s' offset)."""
+    width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    s = width / camera.width
+    return replace(camera, width=width, height=height, pixel_size=camera.pixel_size / s,
+                   principal_offset_px=(camera.principal_offset_px[0] * s,
+                                        camera.principal_offset_px[1] * s))
+
+
+def camera_sensor(camera: Camera, spec, spp: int) -> dict:
+    """`sensor_dict` for an already scaled camera and its CameraSpec (thin lens when the spec has
+    f_number: aperture radius f / (2N), focused at focus_distance)."""
+    if spec is not None and spec.f_number is not None:
+        return sensor_dict(camera, spp=spp, aperture_radius=camera.focal_length / (2 * spec.f_number),
+                           focus_distance=spec.focus_distance)
+    return sensor_dict(camera, spp=spp)
+
+
+# --------------------------------------------------------------------------------------------
+# Speckle texture
+# --------------------------------------------------------------------------------------------
+def speckle_pattern(speckle) -> np.ndarray:
+    """The [0, 1] pattern tile of a SpeckleSpec: its image, or a generated seamless tile."""
+    from .speckle import generate_pattern, load_pattern
+
+    if speckle.image is not None:
+        return load_pattern(speckle.image)
+    return generate_pattern(speckle.tile_texels, speckle.texel, speckle.dot_diameter,
+                            coverage=speckle.coverage, strokes=speckle.strokes, seed=speckle.seed)
+
+
+def pattern_value(pattern: np.ndarray, texel: float, uv: np.ndarray) -> np.ndarray:
+    """f at face coordinates uv (..., 2) in metres, nearest texel, as the render maps it:
+    column = floor(u / texel) mod width, row = floor(v / texel) mod height."""
+    uv = np.asarray(uv, dtype=float)
+    col = np.floor(uv[..., 0] / texel).astype(np.int64) % pattern.shape[1]
+    row = np.floor(uv[..., 1] / texel).astype(np.int64) % pattern.shape[0]
+    return np.asarray(pattern)[row, col]
+
+
+# --------------------------------------------------------------------------------------------
+# The render scene
+# --------------------------------------------------------------------------------------------
+def _mi_mesh(name, vertices, faces, bsdf, uv=None):
+    from .backend import mitsuba
+
+    mi = mitsuba()
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    mesh = mi.Mesh(name, len(vertices), len(faces), props=props, has_vertex_texcoords=uv is not None)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = np.ascontiguousarray(vertices, dtype=np.float32).ravel()
+    params["faces"] = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
+    if uv is not None:
+        params["vertex_texcoords"] = np.ascontiguousarray(uv, dtype=np.float32).ravel()
+    params.update()
+    return mesh
+
+
+def _submesh(vertices, faces):
+    used, inverse = np.unique(faces.ravel(), return_inverse=True)
+    return vertices[used], inverse.reshape(faces.shape)
+
+
+def _diffuse(albedo):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(albedo)}}
+
+
+def light_emitter(light) -> dict:
+    """A one-sided rectangle area emitter of the light's radiance, facing its target."""
+    from .lighting import panel_frame
+
+    n, e1, e2 = panel_frame(light)
+    w, h = light.size
+    M = np.eye(4)
+    M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = e1 * w / 2, e2 * h / 2, n, light.position
+    return {"type": "rectangle", "to_world": _transform(M),
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": float(light.radiance)}}}
+
+
+_PANEL_INTEGRATOR = "vdo_panels"
+
+
+def _register_integrator() -> str:
+    """Register (once) `vdo_panels`, a direct-illumination integrator that samples every light.
+
+    Mitsuba's `direct` integrator picks one emitter at random per sample, so with 4 panels and a sky
+    a point lit by one panel gets the right mean from a 1-in-5 lottery: 50 % Monte Carlo noise per
+    pixel at 4 spp, 10 % at 64 spp, far above the sensor noise. This one, for each camera ray's
+    first hit: (1) adds the radiance of an emitter or the sky seen directly; (2) for *each* light,
+    one point P uniform on its rectangle (stratified over the pixel's samples) and a shadow ray:
+    f(ω_i, ω_o) cosθ_s L cosθ_l A / r^2 when P is visible (f from the hit's BSDF, so textures and
+    the rough conductor work); (3) with an ambient sky, one BSDF-sampled direction and a shadow
+    ray: weight x L_amb when it escapes. This is the estimator of exactly the integral in
+    `vdo.lighting` (direct light only, no interreflection), with the noise of the cosθ/r^2
+    variation over one panel (about 1 % per sample) instead of the emitter lottery."""
+    from .backend import mitsuba
+
+    mi = mitsuba()
+    if _PANEL_INTEGRATOR in getattr(_register_integrator, "done", set()):
+        return _PANEL_INTEGRATOR
+    import drjit as dr
+
+    class PanelDirect(mi.SamplingIntegrator):
+        def __init__(self, props):
+            super().__init__(props)
+            self.lights = []
+            for k in range(props.get("light_count", 0)):
+                self.lights.append([props.get(f"light{k}_{c}") for c in "cuvnLA"])
+            self.ambient = props.get("ambient", 0.0)
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            si = scene.ray_intersect(mi.Ray3f(ray), active)
+            valid = mi.Bool(active) & si.is_valid()
+            result = mi.Spectrum(0.0)
+            result += si.emitter(scene, mi.Bool(active)).eval(si, mi.Bool(active))
+            ctx = mi.BSDFContext()
+            bsdf = si.bsdf(ray)
+            for c, u, v, n, radiance, area in self.lights:
+                s = sampler.next_2d(valid)
+                P = mi.Point3f(c) + (s.x - 0.5) * mi.Vector3f(u) + (s.y - 0.5) * mi.Vector3f(v)
+                d = P - si.p
+                dist2 = dr.squared_norm(d)
+                d = d * dr.rsqrt(dist2)
+                cos_l = -dr.dot(d, mi.Vector3f(n))
+                ok = valid & (cos_l > 0) & (dr.dot(d, si.n) > 0)
+                ok &= ~scene.ray_test(si.spawn_ray_to(P), ok)
+                f = bsdf.eval(ctx, si, si.to_local(d), ok)
+                result += dr.select(ok, f * (radiance * area) * cos_l / dist2, 0.0)
+            if self.ambient > 0:
+                bs, weight = bsdf.sample(ctx, si, sampler.next_1d(valid), sampler.next_2d(valid), valid)
+                ok = valid & (bs.pdf > 0)
+                ok &= ~scene.ray_test(si.spawn_ray(si.to_world(bs.wo)), ok)
+                result += dr.select(ok, weight * self.ambient, 0.0)
+            return result, mi.Bool(True), []
+
+    mi.register_integrator(_PANEL_INTEGRATOR, lambda props: PanelDirect(props))
+    _register_integrator.done = {_PANEL_INTEGRATOR}
+    return _PANEL_INTEGRATOR
+
+
+def _integrator_dict(lights, ambient: float) -> dict:
+    from .lighting import panel_frame
+
+    out = {"type": _register_integrator(), "light_count": len(lights), "ambient": float(ambient)}
+    for k, light in enumerate(lights):
+        n, e1, e2 = panel_frame(light)
+        w, h = light.size
+        for key, value in (("c", light.position), ("u", e1 * w), ("v", e2 * h), ("n", n)):
+            out[f"light{k}_{key}"] = [float(x) for x in value]
+        out[f"light{k}_L"] = float(light.radiance)
+        out[f"light{k}_A"] = float(w * h)
+    return out
+
+
+def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None):
+    """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
+    experiment's SceneMeshes (vdo.scene.load_meshes), `region_faces` one RegionFaces per region,
+    `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
+    `speckle_pattern(exp.speckle)`)."""
+    from .backend import mitsuba
+
+    mi = mitsuba()
+    sp = exp.speckle
+    pattern = speckle_pattern(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
+    albedo = (sp.black_albedo + (sp.white_albedo - sp.black_albedo) * pattern).astype(np.float32)
+    tile = np.array([pattern.shape[1], pattern.shape[0]]) * sp.texel       # (T_u, T_v) metres
+    speckled = mi.load_dict({"type": "diffuse", "reflectance": {
+        "type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
+        "wrap_mode": "repeat", "filter_type": "bilinear"}})
+    white = mi.load_dict(_diffuse(sp.white_albedo))
+    spec_of = {m.name: m for m in exp.meshes}
+    shapes = {}
+    for mesh in meshes:
+        spec = spec_of.get(mesh.name)
+        faces = np.asarray(mesh.faces)
+        if mesh.role == "specimen":
+            taken = np.zeros(len(faces), dtype=bool)
+            for region, rf in zip(exp.regions, region_faces):
+                if region.mesh != mesh.name:
+                    continue
+                sel = rf.faces[~taken[rf.faces]]
+                taken[sel] = True
+                if len(sel) == 0:
+                    continue
+                v, f = _submesh(mesh.vertices, faces[sel])
+                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}", v, f, speckled,
+                                                           uv=rf.uv(v) / tile)
+            rest = faces[~taken]
+            if len(rest):
+                v, f = _submesh(mesh.vertices, rest)
+                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", v, f, white)
+        else:
+            if spec is not None and spec.metal:
+                bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}
+            else:
+                bsdf = _diffuse(spec.albedo if spec is not None else 0.5)
+            shapes[mesh.name] = _mi_mesh(mesh.name, mesh.vertices, faces, mi.load_dict(bsdf))
+    dark = mi.load_dict(_diffuse(BODY_ALBEDO))
+    for body in bodies:
+        shapes[body.name] = _mi_mesh(body.name, body.vertices, body.faces, dark)
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    for i, (name, shape) in enumerate(shapes.items()):
+        scene[f"shape_{i:04d}"] = shape
+    for i, light in enumerate(exp.lights):
+        scene[f"light_{i:03d}"] = light_emitter(light)
+    if exp.render.ambient_radiance > 0:
+        scene["ambient"] = {"type": "constant",
+                            "radiance": {"type": "rgb", "value": float(exp.render.ambient_radiance)}}
+    return mi.load_dict(scene)
+
+
+def render_linear(scene, sensor: dict, seed: int) -> np.ndarray:
+    """One render of `scene` through the sensor dict: (H, W) float32 linear radiance."""
+    from .backend import mitsuba
+
+    mi = mitsuba()
+    image = mi.render(scene, sensor=mi.load_dict(sensor), seed=int(seed) & 0xFFFFFFFF)
+    return np.array(image, dtype=np.float32).reshape(image.shape[0], image.shape[1])
+
+
+def render_seed(seed: int, camera_index: int) -> int:
+    """Mitsuba's seed for camera `camera_index` of a render with `seed`."""
+    return (int(seed) * 1009 + int(camera_index)) & 0xFFFFFFFF
+
+
+def expose(linear: np.ndarray, sensor, seed: int, camera_index: int) -> np.ndarray:
+    """`sensor.expose` with the generator numpy.random.default_rng([seed, camera_index])."""
+    return sensor.expose(linear, np.random.default_rng([int(seed), int(camera_index)]))
+
+
+def noise_free_dn(linear: np.ndarray, sensor) -> np.ndarray:
+    """The expected DN of a linear image (no noise, no rounding), clipped to [0, max DN]."""
+    return np.clip(sensor.mean_dn(np.asarray(linear, dtype=np.float64)), 0.0, sensor.max_dn)
+
+
+# --------------------------------------------------------------------------------------------
+# vdo render
+# --------------------------------------------------------------------------------------------
+def _say(message: str, quiet: bool) -> None:
+    if not quiet:
+        print(message, flush=True)
+
+
+def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
+    """All cameras' DN images in a grid, each titled with its camera name; PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(images)
+    cols = min(n, 5 if n > 6 else 3 if n > 2 else n)
+    rows = math.ceil(n / cols)
+    first = next(iter(images.values()))
+    aspect = first.shape[0] / first.shape[1]
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * aspect * rows + 0.6),
+                             squeeze=False, layout="constrained")
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (name, image) in zip(axes.ravel(), images.items()):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=max_dn, interpolation="antialiased")
+        ax.set_title(f"{name}  ({image.shape[1]}x{image.shape[0]})", fontsize=9)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _region_photometry(cameras, vis, samples, pho, clean_dn) -> list[dict]:
+    rows = []
+    for i, cam in enumerate(cameras):
+        uv = cam.project(samples.points)
+        for k, region in enumerate(samples.region_names):
+            mask = vis.visible[i] & (samples.region == k)
+            row = {"camera": cam.name, "region": region, "n_samples": int(mask.sum())}
+            if mask.any():
+                col = np.clip(np.rint(uv[mask, 0]).astype(int), 0, cam.width - 1)
+                r = np.clip(np.rint(uv[mask, 1]).astype(int), 0, cam.height - 1)
+                values = clean_dn[cam.name][r, col]
+                row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
+                        "c_render_dn": values.std(), "c_predicted_dn": pho.contrast[i, mask].mean(),
+                        "noise_predicted_dn": pho.noise[i, mask].mean()}
+            rows.append(row)
+    return rows
+
+
+def render_experiment(exp, out, scale: float | None = None, spp: int | None = None,
+                      seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
+    """Render every camera of `exp` and write the run folder `out` (atomically, vdo.runfolder):
+
+    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth), [render] image_format
+    images/<camera>.exr        linear float radiance, when [render] exr = true
+    layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
+    contact_sheet.png          all cameras in a grid with their names
+    photometry.csv             per camera and region: brightness b and contrast c of the noise-free
+                               render at the projected visible samples (mean and std of DN; c is
+                               after the pixel's blur), next to vdo.lighting's prediction (b, c of
+                               the unblurred paint, noise σ)
+    shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
+    maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
+    config.toml, render.json   the resolved config; settings and time per camera
+
+    `scale`, `spp`, `seed` default to the config's [render] section. Returns the render.json dict.
+    """
+    from tqdm import tqdm
+
+    from . import maps, report, vtp
+    from .errors import ConfigError
+    from .lighting import illuminate, pattern_stats, photometry
+    from .runfolder import run_folder
+    from .scene import all_region_faces, build_scene, camera_body, load_meshes, sample_regions
+    from .sensor import save_image
+    from .visibility import compute_visibility
+
+    rs = exp.render
+    scale = rs.scale if scale is None else float(scale)
+    spp = rs.spp if spp is None else int(spp)
+    seed = rs.seed if seed is None else int(seed)
+    if not (0 < scale <= 4):
+        raise ConfigError(exp.path, "--scale", f"must lie in (0, 4] (got {scale})")
+    if spp < 1:
+        raise ConfigError(exp.path, "--spp", f"must be at least 1 (got {spp})")
+    if seed < 0:
+        raise ConfigError(exp.path, "--seed", f"must be >= 0 (got {seed})")
+    started = time.perf_counter()
+    meshes = load_meshes(exp)
+    region_faces = all_region_faces(exp, meshes)
+    samples = sample_regions(exp, meshes)
+    full = exp.cameras()
+    cameras = [scaled_camera(c, scale) for c in full]
+    for spec, cam in zip(exp.camera_specs, cameras):
+        if spec.f_number is not None and cam.principal_offset_px != (0.0, 0.0):
+            raise ConfigError(exp.path, f'camera "{spec.name}".f_number',
+                              "a thin lens (depth of field) cannot have a principal_offset_px")
+    bodies = [camera_body(c) for c, spec in zip(full, exp.camera_specs) if spec.body]
+    pattern = speckle_pattern(exp.speckle)
+    scene = build_render_scene(exp, meshes, region_faces, bodies, pattern)
+    blockers = build_scene(meshes + bodies)
+    illum = illuminate(blockers, exp.lights, samples, rs.ambient_radiance)
+    pho = photometry(illum, exp.speckle, exp.sensor, *pattern_stats(pattern), len(cameras))
+    vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit,
+                             progress=False)
+    _say(f"rendering {len(cameras)} cameras at scale {scale:g}, {spp} spp, seed {seed}", quiet)
+
+    suffix = {"png": ".png", "tiff": ".tif"}[rs.image_format]
+    dn_images, clean, timings = {}, {}, {}
+    with run_folder(out, overwrite) as tmp:
+        (tmp / "images").mkdir()
+        (tmp / "maps").mkdir()
+        for i, (cam, spec) in enumerate(tqdm(list(zip(cameras, exp.camera_specs)), desc="render",
+                                             unit="camera", disable=quiet)):
+            t0 = time.perf_counter()
+            linear = render_linear(scene, camera_sensor(cam, spec, spp), render_seed(seed, i))
+            dn = expose(linear, exp.sensor, seed, i)
+            timings[cam.name] = time.perf_counter() - t0
+            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
+            if rs.exr:
+                from .backend import mitsuba
+
+                mitsuba().Bitmap(linear[..., None]).write(str(tmp / "images" / f"{cam.name}.exr"))
+            dn_images[cam.name] = dn
+            clean[cam.name] = noise_free_dn(linear, exp.sensor)
+        report.write_json(tmp / "layout.json", report.layout(cameras))
+        report.write_config(tmp / "config.toml", exp)
+        contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
+                      f"{exp.name}: scale {scale:g}, {spp} spp")
+        rows = _region_photometry(cameras, vis, samples, pho, clean)
+        fields = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
+                  "c_predicted_dn", "noise_predicted_dn"]
+        with open(tmp / "photometry.csv", "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=fields, restval="")
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in row.items()})
+        arrays = {f"lit_{name}": illum.lit[k] for k, name in enumerate(illum.light_names)}
+        arrays |= {"irradiance": illum.irradiance, "lights": illum.lights_reaching.astype(np.int32),
+                   "region": samples.region.astype(np.int32), "normal": samples.normals}
+        vtp.write_points(tmp / "shadows.vtp", samples.points, arrays)
+        maps.plot_unfolded(samples, illum.lights_reaching, tmp / "maps" / "shadows.png",
+                           f"{exp.name}: number of lights reaching each point", "lights",
+                           discrete=True)
+        summary = {"experiment": exp.name, "config": str(exp.path), "scale": scale, "spp": spp,
+                   "seed": seed, "integrator": "direct", "lights": list(illum.light_names),
+                   "cameras": {c.name: {"width": c.width, "height": c.height,
+                                        "seconds": round(timings[c.name], 3)} for c in cameras},
+                   "total_seconds": round(time.perf_counter() - started, 3)}
+        (tmp / "render.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary

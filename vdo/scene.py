@@ -91,9 +91,32 @@ def _select_faces(mesh: trimesh.Trimesh, region: RegionSpec) -> np.ndarray:
     return np.flatnonzero(inside & facing & (mesh.area_faces > 0))
 
 
-def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple) -> dict:
-    """Grid samples of spacing `spacing` (m) on the faces that `region` selects."""
-    tm = mesh.trimesh
+@dataclass(frozen=True, eq=False)
+class RegionFaces:
+    """The faces of one region of interest and its planar frame (metres).
+
+    A point X of the face has parametric coordinates uv = ((X - origin) . t_u, (X - origin) . t_v),
+    the same (u, v) that `sample_region` gives its samples (so a texture mapped with these uv
+    lines up with the samples). t_u x t_v = normal (outward): seen from outside the face, u runs
+    right and v up."""
+
+    faces: np.ndarray      # (T,) indices into the mesh's faces
+    normal: np.ndarray     # (3,)
+    t_u: np.ndarray        # (3,)
+    t_v: np.ndarray        # (3,)
+    origin: np.ndarray     # (3,) a point of the face's plane with uv = (0, 0)
+
+    def uv(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) parametric coordinates of points (..., 3) on the face, m."""
+        rel = np.asarray(points, dtype=float) - self.origin
+        return np.stack([rel @ self.t_u, rel @ self.t_v], axis=-1)
+
+
+def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                 tm: trimesh.Trimesh | None = None) -> RegionFaces:
+    """The faces that `region` selects on `mesh` and their frame; ConfigError (at `where`) when
+    none is selected or they are not coplanar (tolerance max(spacing / 4, 0.1 mm))."""
+    tm = mesh.trimesh if tm is None else tm
     faces = _select_faces(tm, region)
     if len(faces) == 0:
         raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check normal, "
@@ -107,9 +130,19 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
         raise ConfigError(*where, f"selects faces that are not coplanar (depth spread "
                                   f"{np.ptp(depth) * 1e3:.1f} mm): a region must be one planar "
                                   "face; narrow its box or normal_tolerance_deg")
-    uv_tri = np.stack([tri @ t_u, tri @ t_v], axis=-1)          # (T, 3, 2)
-    origin = uv_tri.reshape(-1, 2).min(axis=0)
-    uv_tri = uv_tri - origin
+    flat = tri.reshape(-1, 3)
+    ou, ov = (flat @ t_u).min(), (flat @ t_v).min()
+    origin = ou * t_u + ov * t_v + depth.mean() * normal
+    return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=origin)
+
+
+def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple) -> dict:
+    """Grid samples of spacing `spacing` (m) on the faces that `region` selects."""
+    tm = mesh.trimesh
+    rf = region_faces(mesh, region, spacing, where, tm)
+    normal, t_u, t_v = rf.normal, rf.t_u, rf.t_v
+    tri = tm.triangles[rf.faces]                                # (T, 3, 3)
+    uv_tri = rf.uv(tri)                                         # (T, 3, 2)
     keys, points = [], []
     for corners, corners3d in zip(uv_tri, tri):
         lo = np.floor(corners.min(axis=0) / spacing - 0.5).astype(int)
@@ -138,6 +171,15 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
                 area=np.full(n, spacing**2))
 
 
+def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
+                     spacing: float | None = None) -> list[RegionFaces]:
+    """`region_faces` for every region of the experiment, in config order."""
+    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+    by_name = {m.name: m for m in meshes}
+    return [region_faces(by_name[r.mesh], r, spacing, (exp.path, f'region "{r.name}"'))
+            for r in exp.regions]
+
+
 def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None) -> SurfaceSamples:
     """Samples on every region of the experiment, at `spacing` (m; default from the config)."""
     spacing = exp.evaluation.sample_spacing if spacing is None else spacing
@@ -160,15 +202,40 @@ BODY_SIZE = (0.14, 0.10, 0.08)   # width, height, depth of a DSLR body, m
 LENS_DIAMETER = 0.075            # m
 
 
-def camera_body(camera: Camera) -> SceneMesh:
-    """A DSLR-sized box and a lens barrel, all behind the optical centre (the lens front), so a
-    ray that reaches the camera's own optical centre from its field of view never crosses them."""
-    lens_length = float(np.clip(camera.focal_length * 1.2, 0.04, 0.15))
-    lens = trimesh.creation.cylinder(radius=LENS_DIAMETER / 2, height=lens_length, sections=24)
-    lens.apply_translation([0, 0, -lens_length / 2])
+def lens_length(focal_length: float) -> float:
+    """Length of the lens barrel (m): 1.2 x the focal length, within [4, 15] cm."""
+    return float(np.clip(focal_length * 1.2, 0.04, 0.15))
+
+
+def camera_body_local(focal_length: float) -> trimesh.Trimesh:
+    """The body in the camera's own OpenCV frame (z forward): a lens barrel over z in [-L, 0] and
+    a DSLR-sized box behind it. Everything lies behind the optical centre (the lens front), so a
+    ray that reaches the camera's own optical centre from its field of view never crosses it."""
+    length = lens_length(focal_length)
+    lens = trimesh.creation.cylinder(radius=LENS_DIAMETER / 2, height=length, sections=24)
+    lens.apply_translation([0, 0, -length / 2])
     body = trimesh.creation.box(extents=BODY_SIZE)
-    body.apply_translation([0, 0, -lens_length - BODY_SIZE[2] / 2])
-    local = trimesh.util.concatenate([lens, body])
+    body.apply_translation([0, 0, -length - BODY_SIZE[2] / 2])
+    return trimesh.util.concatenate([lens, body])
+
+
+def camera_body_points(focal_length: float) -> np.ndarray:
+    """(B, 3) points on the body's outline in the camera frame, for clearance: the rims of the
+    lens barrel and the corners and face centres of the box."""
+    length = lens_length(focal_length)
+    a = np.linspace(0, 2 * np.pi, 8, endpoint=False)
+    ring = np.c_[np.cos(a), np.sin(a), np.zeros(8)] * (LENS_DIAMETER / 2)
+    w, h, d = BODY_SIZE
+    corners = np.array([[x, y, z] for x in (-w / 2, w / 2) for y in (-h / 2, h / 2)
+                        for z in (-length, -length - d)])
+    faces = np.array([[0, 0, -length - d], [w / 2, 0, -length - d / 2], [-w / 2, 0, -length - d / 2],
+                      [0, h / 2, -length - d / 2], [0, -h / 2, -length - d / 2]])
+    return np.vstack([ring, ring - [0, 0, length], corners, faces])
+
+
+def camera_body(camera: Camera) -> SceneMesh:
+    """`camera_body_local` placed at the camera's pose, as an obstacle for the other cameras."""
+    local = camera_body_local(camera.focal_length)
     cam_to_world = np.eye(4)
     cam_to_world[:3, :3] = camera.R.T
     cam_to_world[:3, 3] = camera.position

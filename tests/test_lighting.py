@@ -1,0 +1,98 @@
+"""The light model against closed forms: irradiance under a square panel (the configuration factor
+of a rectangle, a textbook result), the inverse-square law far away, shadows, and the photometry
+formulas against the sensor model."""
+
+import math
+
+import numpy as np
+import pytest
+
+from vdo import lighting, scene
+from vdo.config import LightSpec, SpeckleSpec
+from vdo.scene import SceneMesh, SurfaceSamples
+from vdo.sensor import SensorModel
+
+
+def samples_at(points, normal=(0, 0, 1)):
+    points = np.atleast_2d(np.asarray(points, float))
+    n = len(points)
+    nrm = np.tile(np.asarray(normal, float), (n, 1))
+    return SurfaceSamples(points=points, normals=nrm, tangent_u=np.tile([1.0, 0, 0], (n, 1)),
+                          tangent_v=np.tile([0, 1.0, 0], (n, 1)), uv=points[:, :2],
+                          area=np.full(n, 1e-4), region=np.zeros(n, int), region_names=("r",),
+                          region_importance=np.ones(1))
+
+
+def box_mesh(name, lo, hi):
+    import trimesh
+
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    m = trimesh.creation.box(extents=hi - lo)
+    m.apply_translation((lo + hi) / 2)
+    return SceneMesh(name, "obstacle", np.asarray(m.vertices), np.asarray(m.faces))
+
+
+def far_away_scene():
+    return scene.build_scene([box_mesh("far", [50, 50, 50], [51, 51, 51])])
+
+
+def corner_factor(a, b, c):
+    """View factor from a differential area to a parallel a x b rectangle at distance c with one
+    corner on the area's normal (Howell, catalogue of radiation configuration factors, B-3)."""
+    A, B = a / c, b / c
+    return (A / math.sqrt(1 + A * A) * math.atan(B / math.sqrt(1 + A * A))
+            + B / math.sqrt(1 + B * B) * math.atan(A / math.sqrt(1 + B * B))) / (2 * math.pi)
+
+
+def test_irradiance_under_a_square_panel_matches_the_view_factor():
+    half, height, L = 0.15, 0.4, 10.0
+    light = LightSpec("p", np.array([0, 0, height]), np.array([0, 0, 0.0]), (2 * half, 2 * half), L)
+    il = lighting.illuminate(far_away_scene(), [light], samples_at([[0, 0, 0]]), grid=16)
+    expected = math.pi * L * 4 * corner_factor(half, half, height)      # E = π L F
+    assert il.direct[0, 0] == pytest.approx(expected, rel=2e-3)
+    assert il.lit[0, 0] == 1.0
+
+
+def test_far_panel_follows_the_inverse_square_law_with_both_cosines():
+    """A small panel far away is a point source: E = L A cos θ_s cos θ_l / r²."""
+    L, size = 3.0, (0.05, 0.02)
+    pos = np.array([2.0, 1.0, 3.0])
+    target = np.array([0.5, 0.0, 0.0])                        # not aimed at the sample
+    light = LightSpec("p", pos, target, size, L)
+    X = np.array([0.0, 0.0, 0.0])
+    il = lighting.illuminate(far_away_scene(), [light], samples_at([X]), ambient_radiance=0.2)
+    d = pos - X
+    r = np.linalg.norm(d)
+    n_l = (target - pos) / np.linalg.norm(target - pos)
+    expected = L * size[0] * size[1] * (d[2] / r) * (-(n_l @ d) / r) / r**2
+    assert il.direct[0, 0] == pytest.approx(expected, rel=1e-3)
+    assert il.irradiance[0] == pytest.approx(expected + math.pi * 0.2, rel=1e-3)
+
+
+def test_back_side_and_occluded_panels_give_no_light():
+    light = LightSpec("p", np.array([0, 0, 1.0]), np.array([0, 0, 0.0]), (0.2, 0.2), 1.0)
+    behind = LightSpec("q", np.array([0, 0, 1.0]), np.array([0, 0, 2.0]), (0.2, 0.2), 1.0)  # faces away
+    pts = [[0, 0, 0], [2.0, 0, 0]]
+    blocker = scene.build_scene([box_mesh("slab", [-0.5, -0.5, 0.4], [0.5, 0.5, 0.45])])
+    il = lighting.illuminate(blocker, [light, behind], samples_at(pts))
+    assert il.lit[0, 0] == 0 and il.direct[0, 0] == 0          # under the slab
+    assert il.lit[0, 1] > 0.99 and il.direct[0, 1] > 0          # beside it
+    assert np.all(il.lit[1] == 0) and np.all(il.direct[1] == 0)
+    np.testing.assert_array_equal(il.lights_reaching, [0, 1])
+
+
+def test_photometry_formulas_follow_the_sensor_model():
+    sensor = SensorModel()
+    sp = SpeckleSpec(white_albedo=0.8, black_albedo=0.1)
+    E = np.array([0.0, 1.0, 2.5])
+    il = lighting.Illumination(("a",), lit=np.ones((1, 3)), direct=E[None], ambient=0.0)
+    pho = lighting.photometry(il, sp, sensor, pattern_mean=0.6, pattern_std=0.45, n_cameras=2)
+    mean_rho = 0.1 + 0.7 * 0.6
+    assert pho.contrast.shape == pho.noise.shape == pho.brightness.shape == (2, 3)
+    lin = mean_rho * E / np.pi
+    np.testing.assert_allclose(pho.brightness[1], sensor.mean_dn(lin))
+    np.testing.assert_allclose(pho.noise[0], np.sqrt(sensor.variance_dn(sensor.mean_dn(lin))))
+    # contrast = DN per unit linear x (ρ_w - ρ_b) std(f) E / π; a white-minus-black step halves it
+    dn_per_unit = sensor.mean_dn(1.0) - sensor.mean_dn(0.0)
+    np.testing.assert_allclose(pho.contrast[0], dn_per_unit * 0.7 * 0.45 * E / np.pi)
+    assert pho.noise[0, 0] > 0 and pho.contrast[0, 0] == 0

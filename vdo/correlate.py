@@ -1,0 +1,664 @@
+"""Global multi-view correlation (paper sec. 4): one set of 3D displacement unknowns, all cameras at once.
+
+Used to check the predicted uncertainty (`vdo.objective`) against correlation on rendered images.
+
+Formulation
+-----------
+The surface is a planar patch X(ξ) = origin + ξ1 t_u + ξ2 t_v, ξ in [0, size] (metres), the same face
+coordinates (u, v) as `vdo.scene.RegionFaces.uv`. Cameras are known `vdo.camera.Camera` objects
+(OpenCV frame, pixel (u, v) = (column, row), pixel centres at integer coordinates). The displacement
+U(ξ) is expressed in the world (specimen) frame and is either a rigid translation (`"translation"`,
+3 unknowns) or a bilinear Q4 finite-element field on an nx × ny mesh of the patch (`"q4"`, 3 dof per
+node, dof index 3 * node + component, node = j * (nx + 1) + i with i along t_u).
+
+For integration points ξ_p and cameras i the residual is
+
+    r_ip = f_i^def(P_i(X(ξ_p) + U(ξ_p))) - (b_i + c_i g_i(ξ_p))
+
+with g_i the reference seen by camera i:
+
+* ``reference="images"``: g_i(ξ) = f_i^ref(P_i(X(ξ))), each camera against its own reference image
+  (the classic choice). Both images are noisy, so the residual noise variance is σ_def² + c_i² σ_ref²,
+  i.e. **twice the single-image (Cramér–Rao) bound** when σ_ref = σ_def and c ≈ 1: the covariance of
+  U is ≈ 2σ² H⁻¹, not σ² H⁻¹.
+* ``reference="average"``: the paper's eq. 3, g(ξ) = mean_j k_j (f_j^ref(P_j X(ξ)) - m_j), each
+  reference normalised to zero mean / unit variance over the integration points, shared by all cameras.
+* ``reference="texture"``: the true texture f̂(ξ) (a callable of ξ (..., 2) in metres, or a pattern
+  array + texel size mapped as `vdo.render` maps it: texel (row i, column j) has its centre at
+  ξ = ((j + ½) h, (i + ½) h), bilinear, periodic) blurred by the camera's pixel: the box pixel is
+  transported to the surface through the local Jacobian A_i = ∂x_i/∂ξ and averaged over
+  `supersample`² sub-pixel points (``pixel_filter="box"``), or a Gaussian of std `pixel_sigma` px
+  (``pixel_filter="gaussian"``, Gauss–Hermite points). Only the deformed image is noisy: σ² H⁻¹.
+
+Brightness / contrast (b_i, c_i) per camera are **unknowns solved alongside U** in the same
+Gauss–Newton system (columns -1 and -g_i of the Jacobian), initialised by a linear least-squares fit
+at the starting U. Their coupling to U is therefore in H, and `hessian_U` (the Schur complement, b
+and c eliminated) is the Hessian whose inverse is the covariance of U.
+
+The functional is Σ_i Σ_p w_ip r_ip² with w_ip = |det A_i(ξ_p)| × (surface area per integration
+point): the number of camera-i pixels an integration point stands for, so that the sum approximates
+the paper's sum over image pixels whatever the integration density (``weights="pixel"``; or
+``"uniform"``, w = 1). With this weighting H = Σ w JᵀJ is on the pixel-noise scale and σ² H⁻¹ is
+the covariance for white pixel noise of variance σ² (in the continuum limit; spline interpolation of
+the noise makes the true value a few percent off, see tests/test_correlate.py).
+
+Gauss–Newton on gray levels: J_ip = ∇f(x) · s_i(X) · N(ξ_p) with s_i = ∂x/∂X (`Camera.sensitivity`)
+and N the shape functions. Images are interpolated by cubic B-splines (`scipy.ndimage.spline_filter`
+once per image, `map_coordinates(order=3, prefilter=False)`); the gradient is the spline's exact
+derivative (cubic weights and their derivatives on the 4 × 4 support). ∇f is taken from
+* the reference image at its own pixel centres (``gradient="reference"``, default for "images"):
+  a modified Gauss–Newton, J = c_i ∇f_i^ref(x) s_i(X) N, fixed but for c_i. At pixel centres the
+  noise gradient is uncorrelated with the noise itself, so this has no noise-induced bias;
+* the deformed image at the current position (``gradient="deformed"``, default for "texture" and
+  "average"): exact Gauss–Newton, J = ∇f_i^def(P_i(X + U)) s_i(X + U) N. Off the pixel grid the
+  variance of spline-interpolated noise depends on the sub-pixel phase, E[∇n n] ≠ 0, and the mean
+  estimate drifts by ~σ²-proportional amounts (measured ~0.002 px at σ = 0.02 of a 0.8 contrast;
+  see tests/test_correlate.py). (With reference="texture" and the texture's own gradient, the sharp
+  speckle's spline misfit biased noise-free results by ~0.05 px, so that is not the default.)
+
+Integration: by default ("pixels") each camera is integrated over its own reference pixel centres
+on the patch (weight 1 each: the paper's sum over image pixels exactly, and the reference image
+is read at its samples, not interpolated). A shared ξ grid ("grid") makes every reference image
+be interpolated off its pixel grid, which for sharp box-pixel speckle gives an interpolation bias
+of ~0.015-0.03 px at 0.3 px shifts (measured), against ~0.003 px with "pixels".
+
+Rank deficiency: the normal equations are solved by an eigen-decomposition, scaled so that the U dofs
+(all metres) share one scale and b, c each have their own; directions with scaled eigenvalue
+< `rcond` × the largest are dropped (pseudo-inverse: those
+combinations keep their starting value), reported by `rank`, `rank_deficient` and
+`null_directions`. A translation seen by one camera is determined along the viewing direction only
+through perspective: H is not singular but badly conditioned; `uncertainty_ratio` (sqrt of the
+eigenvalue ratio of `hessian_U`, in metres for every dof) and `weakest_direction` say so, and a
+caller can pass a larger `rcond` to drop it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["Patch", "SplineImage", "TextureSampler", "CorrelationResult", "integration_points", "pixel_points",
+           "q4_shape_functions", "correlate"]
+
+
+# --------------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Patch:
+    """Planar rectangle X(ξ) = origin + ξ1 t_u + ξ2 t_v, ξ in [0, size[0]] × [0, size[1]] (metres).
+    t_u and t_v are orthonormal (checked)."""
+
+    origin: np.ndarray
+    t_u: np.ndarray
+    t_v: np.ndarray
+    size: np.ndarray
+
+    def __post_init__(self):
+        for name in ("origin", "t_u", "t_v"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != (3,) or not np.all(np.isfinite(a)):
+                raise ValueError(f"Patch.{name}: expected 3 finite numbers, got {a!r}")
+            object.__setattr__(self, name, a)
+        s = np.asarray(self.size, dtype=float)
+        if s.shape != (2,) or not np.all(s > 0):
+            raise ValueError(f"Patch.size: expected 2 positive lengths, got {s!r}")
+        object.__setattr__(self, "size", s)
+        if abs(np.linalg.norm(self.t_u) - 1) > 1e-9 or abs(np.linalg.norm(self.t_v) - 1) > 1e-9 \
+                or abs(self.t_u @ self.t_v) > 1e-9:
+            raise ValueError("Patch: t_u and t_v must be orthonormal")
+
+    @property
+    def normal(self) -> np.ndarray:
+        return np.cross(self.t_u, self.t_v)
+
+    @property
+    def tangents(self) -> np.ndarray:
+        """[t_u t_v] as a (3, 2) matrix: dX = tangents @ dξ."""
+        return np.stack([self.t_u, self.t_v], axis=1)
+
+    def points(self, xi) -> np.ndarray:
+        xi = np.asarray(xi, dtype=float)
+        return self.origin + xi[..., :1] * self.t_u + xi[..., 1:2] * self.t_v
+
+
+def _project(cam, X) -> np.ndarray:
+    """`Camera.project` evaluated with the camera's own K, R, t in NumPy (no JAX dispatch per call):
+    x ~ K (R X + t), pixel (u, v)."""
+    p = X @ (cam.K @ cam.R).T + cam.K @ cam.t
+    return p[:, :2] / p[:, 2:3]
+
+
+def _footprint(camera, patch: Patch, X) -> np.ndarray:
+    """A = ∂x/∂ξ (..., 2, 2) pixel/m."""
+    return camera.sensitivity(X) @ patch.tangents
+
+
+def integration_points(patch: Patch, cameras: Sequence, spacing: float | None = None,
+                       density: float = 1.0, margin_px: float = 3.0, min_cos: float = 0.05):
+    """Cell-centred grid ξ (N, 2) on the patch and its cell area, keeping the points that every
+    camera sees in front of it, not at grazing incidence (|cos| >= min_cos), and at least
+    `margin_px` inside its image. The default spacing is 1 / (density × the best camera's largest
+    linear pixel density sqrt|det A| over a 9 × 9 probe of the patch): about one point per pixel
+    of the best camera at density 1. Returns (xi, cell_area)."""
+    if spacing is None:
+        g = (np.arange(9) + 0.5) / 9
+        probe = np.stack(np.meshgrid(g * patch.size[0], g * patch.size[1], indexing="xy"), -1)
+        probe = probe.reshape(-1, 2)
+        Xp = patch.points(probe)
+        best = 0.0
+        for cam in cameras:
+            ok = _visible(cam, patch, Xp, margin_px, min_cos)
+            if ok.any():
+                best = max(best, float(np.sqrt(np.abs(np.linalg.det(_footprint(cam, patch, Xp[ok])))).max()))
+        if best == 0.0:
+            raise ValueError("integration_points: no camera sees the patch")
+        spacing = 1.0 / (density * best)
+    n = np.maximum(1, np.ceil(patch.size / spacing).astype(int))
+    h = patch.size / n
+    xi = np.stack(np.meshgrid((np.arange(n[0]) + 0.5) * h[0], (np.arange(n[1]) + 0.5) * h[1],
+                              indexing="xy"), -1).reshape(-1, 2)
+    X = patch.points(xi)
+    keep = np.ones(len(xi), dtype=bool)
+    for cam in cameras:
+        keep &= _visible(cam, patch, X, margin_px, min_cos)
+    return xi[keep], float(h[0] * h[1])
+
+
+def _visible(cam, patch, X, margin_px, min_cos):
+    pc = X @ cam.R.T + cam.t
+    ray = X - np.asarray(cam.position, dtype=float)
+    cos = np.abs(ray @ patch.normal) / np.linalg.norm(ray, axis=-1)
+    ok = (pc[:, 2] > 0) & (cos >= min_cos)
+    x = _project(cam, X)
+    ok &= (x[:, 0] >= margin_px) & (x[:, 0] <= cam.width - 1 - margin_px)
+    ok &= (x[:, 1] >= margin_px) & (x[:, 1] <= cam.height - 1 - margin_px)
+    return ok
+
+
+# --------------------------------------------------------------------------------------------
+# Interpolation
+# --------------------------------------------------------------------------------------------
+class SplineImage:
+    """Cubic B-spline interpolant of a gray image (coefficients computed once), evaluated at vdo
+    pixel coordinates x = (u, v) = (column, row), pixel centres at integers."""
+
+    def __init__(self, image):
+        img = np.asarray(image, dtype=np.float64)
+        if img.ndim != 2:
+            raise ValueError(f"image: expected a 2-D gray image, got shape {img.shape}")
+        self.shape = img.shape
+        self.coeffs = ndimage.spline_filter(img, order=3, mode="mirror")
+        # Coefficients padded by mirroring (the extension `spline_filter(mode="mirror")` assumes)
+        # so that the 4 x 4 support of any point within 1 px outside the image is addressable.
+        self._pad = 3
+        self._cp = np.pad(self.coeffs, self._pad, mode="reflect")
+
+    def __call__(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return ndimage.map_coordinates(self.coeffs, [x[..., 1], x[..., 0]], order=3,
+                                       prefilter=False, mode="mirror")
+
+    @staticmethod
+    def _weights(t):
+        """Cubic B-spline weights of the 4 coefficients floor(x) - 1 .. floor(x) + 2 and their
+        derivatives, for t = x - floor(x)."""
+        t2, t3, s = t * t, t * t * t, 1.0 - t
+        w = np.stack([s ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6,
+                      t3 / 6], -1)
+        dw = np.stack([-(s ** 2) / 2, (3 * t2 - 4 * t) / 2, (-3 * t2 + 2 * t + 1) / 2, t2 / 2], -1)
+        return w, dw
+
+    def value_and_gradient(self, x):
+        """Spline value f (...) and its exact gradient (∂f/∂u, ∂f/∂v) (..., 2) in gray level per
+        pixel at x = (u, v) (..., 2); valid up to 1 px outside the image."""
+        x = np.asarray(x, dtype=float)
+        shape = x.shape[:-1]
+        u = x.reshape(-1, 2)[:, 0]
+        v = x.reshape(-1, 2)[:, 1]
+        if np.any((u < -1) | (v < -1) | (u > self.shape[1]) | (v > self.shape[0])):
+            raise ValueError("SplineImage: points more than 1 px outside the image")
+        fu, fv = np.floor(u), np.floor(v)
+        wu, dwu = self._weights(u - fu)
+        wv, dwv = self._weights(v - fv)
+        cols = fu.astype(np.int64)[:, None] - 1 + self._pad + np.arange(4)
+        rows = fv.astype(np.int64)[:, None] - 1 + self._pad + np.arange(4)
+        C = self._cp[rows[:, :, None], cols[:, None, :]]          # (N, 4 rows, 4 cols)
+        Cu = np.einsum("nrc,nc->nr", C, wu)
+        Cdu = np.einsum("nrc,nc->nr", C, dwu)
+        f = np.einsum("nr,nr->n", Cu, wv)
+        gu = np.einsum("nr,nr->n", Cdu, wv)
+        gv = np.einsum("nr,nr->n", Cu, dwv)
+        return f.reshape(shape), np.stack([gu, gv], -1).reshape(shape + (2,))
+
+    def gradient(self, x) -> np.ndarray:
+        return self.value_and_gradient(x)[1]
+
+
+class TextureSampler:
+    """A pattern array on the patch, mapped as `vdo.render` maps it: texel (row i, column j) centred at
+    ξ = ((j + ½) h, (i + ½) h), bilinear between texel centres, periodic."""
+
+    def __init__(self, pattern, texel: float):
+        self.pattern = np.asarray(pattern, dtype=np.float64)
+        if self.pattern.ndim != 2:
+            raise ValueError("pattern: expected a 2-D array")
+        if not texel > 0:
+            raise ValueError("texel: expected > 0")
+        self.texel = float(texel)
+
+    def __call__(self, xi) -> np.ndarray:
+        xi = np.asarray(xi, dtype=float)
+        col = xi[..., 0] / self.texel - 0.5
+        row = xi[..., 1] / self.texel - 0.5
+        return ndimage.map_coordinates(self.pattern, [row, col], order=1, mode="grid-wrap")
+
+
+def q4_shape_functions(xi, size, nx: int, ny: int):
+    """Bilinear shape functions of an nx × ny mesh of [0, size]: a (N, nodes) CSR matrix; node index
+    j * (nx + 1) + i with i along ξ1. Points outside are extrapolated from the nearest element."""
+    from scipy import sparse
+
+    xi = np.asarray(xi, dtype=float)
+    ex, ey = size[0] / nx, size[1] / ny
+    ie = np.clip(np.floor(xi[:, 0] / ex).astype(int), 0, nx - 1)
+    je = np.clip(np.floor(xi[:, 1] / ey).astype(int), 0, ny - 1)
+    a = xi[:, 0] / ex - ie
+    b = xi[:, 1] / ey - je
+    n0 = je * (nx + 1) + ie
+    cols = np.stack([n0, n0 + 1, n0 + nx + 1, n0 + nx + 2], 1)
+    vals = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], 1)
+    rows = np.repeat(np.arange(len(xi)), 4)
+    return sparse.csr_matrix((vals.ravel(), (rows, cols.ravel())),
+                             shape=(len(xi), (nx + 1) * (ny + 1)))
+
+
+# --------------------------------------------------------------------------------------------
+# Result
+# --------------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class CorrelationResult:
+    """U: (3,) for "translation", (nodes, 3) for "q4" (metres, world frame). b, c: (n_cameras,).
+    hessian: the full Gauss–Newton Hessian Σ w JᵀJ (U dofs first, then b_0, c_0, b_1, c_1, ...), at
+    the solution; hessian_U: its Schur complement on the U dofs (b, c eliminated)."""
+
+    U: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    iterations: int
+    residual_rms: float
+    converged: bool
+    hessian: np.ndarray
+    hessian_U: np.ndarray
+    rank: int
+    rank_deficient: bool
+    null_directions: np.ndarray      # (k, n_dofs) unit vectors in dof space that were dropped
+    uncertainty_ratio: float         # sqrt(λ_max / λ_min) of hessian_U
+    weakest_direction: np.ndarray    # eigenvector of hessian_U with the smallest eigenvalue
+    xi: list                         # integration points per camera, each (N_i, 2)
+    residual_rms_per_camera: np.ndarray
+    reference: str
+    model: str
+    _camera_hessians: list = field(default_factory=list, repr=False)
+    _reference_noise: np.ndarray | None = field(default=None, repr=False)
+    _solve_inverse: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_u(self) -> int:
+        return self.U.size
+
+    def covariance(self, sigma, sigma_ref=None) -> np.ndarray:
+        """Noise-propagated covariance of the U dofs (n_u × n_u, m²) for white Gaussian pixel noise of
+        std `sigma` in the deformed images and `sigma_ref` in the reference images (default: the
+        same; ignored for reference="texture"); each a scalar or one value per camera, in the gray
+        levels of the images. Linear propagation H⁺ (Σ_i σ_i² H_i + σ_ref² M_ref) H⁺ with b, c
+        solved alongside; for reference="images", σ_ref = σ and c = 1 this is 2σ² hessian_U⁻¹."""
+        n = len(self._camera_hessians)
+        s = np.broadcast_to(np.asarray(sigma, dtype=float), (n,))
+        M = sum(si ** 2 * Hi for si, Hi in zip(s, self._camera_hessians))
+        if self._reference_noise is not None:
+            sr = s if sigma_ref is None else np.broadcast_to(np.asarray(sigma_ref, dtype=float), (n,))
+            M = M + sum(sr[i] ** 2 * self._reference_noise[i] for i in range(n))
+        P = self._solve_inverse
+        cov = P @ M @ P
+        return cov[: self.n_u, : self.n_u]
+
+
+# --------------------------------------------------------------------------------------------
+# Solver
+# --------------------------------------------------------------------------------------------
+def _pinv_solve(H, rcond, nu):
+    """Scaled eigen pseudo-inverse of symmetric H; returns (H⁺, rank, null directions).
+
+    The U dofs (all in metres) share one scale, sqrt of the mean of their diagonal, so that a weak
+    *physical* direction (e.g. along a single camera's viewing ray) shows as a small eigenvalue; each
+    b, c dof gets its own (Jacobi) scale. Eigenvalues below rcond × the largest are dropped."""
+    diag = np.clip(np.diag(H), 0, None)
+    d = np.sqrt(diag)
+    d[:nu] = np.sqrt(diag[:nu].mean()) if nu else 1.0
+    d = np.where(d > 0, d, 1.0)
+    Hs = H / d[:, None] / d[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
+    keep = lam > rcond * lam.max()
+    inv = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    Hp = inv / d[:, None] / d[None, :]
+    null = (V[:, ~keep] / d[:, None]).T
+    if len(null):
+        null = null / np.linalg.norm(null, axis=1, keepdims=True)
+    return Hp, int(keep.sum()), null
+
+
+def _box_offsets(supersample):
+    o = (np.arange(supersample) + 0.5) / supersample - 0.5
+    du, dv = np.meshgrid(o, o, indexing="xy")
+    return np.stack([du.ravel(), dv.ravel()], 1), np.full(du.size, 1.0 / du.size)
+
+
+def _gauss_offsets(sigma_px, order=5):
+    t, w = np.polynomial.hermite_e.hermegauss(order)
+    w = w / w.sum()
+    du, dv = np.meshgrid(t * sigma_px, t * sigma_px, indexing="xy")
+    return np.stack([du.ravel(), dv.ravel()], 1), np.outer(w, w).ravel()
+
+
+def _texture_reference(texture, cam, patch, xi, offsets, weights, step_px=1e-3):
+    """Texture blurred by the camera pixel, ĝ(ξ) = Σ_k w_k f̂(ξ + A⁻¹ δ_k) (A at each point), and its
+    image gradient ∇_x ĝ = A⁻ᵀ ∇_ξ ĝ (central differences of step `step_px` pixels, footprint
+    held fixed). Returns (ĝ (N,), ∇_x ĝ (N, 2))."""
+    A = _footprint(cam, patch, patch.points(xi))                 # (N, 2, 2)
+    Ainv = np.linalg.inv(A)
+    dxi = np.einsum("nij,kj->nki", Ainv, offsets)                # (N, K, 2)
+
+    def at(x):
+        return texture(x[:, None, :] + dxi) @ weights
+
+    grad = np.zeros((len(xi), 2))
+    for a in range(2):      # derivative along image axis a: ξ moves by A⁻¹ e_a
+        h = step_px * Ainv[:, :, a]
+        grad[:, a] = (at(xi + h) - at(xi - h)) / (2 * step_px)
+    return at(xi), grad
+
+
+def pixel_points(patch: Patch, cameras: Sequence, index: int, margin_px: float = 3.0,
+                 min_cos: float = 0.05):
+    """Integration points at the pixel centres of camera `index`: the face coordinates ξ (N, 2) where
+    the rays of its pixels meet the patch, keeping those inside the patch and seen by every camera
+    (as in `integration_points`). Each stands for exactly one pixel of that camera."""
+    cam = cameras[index]
+    u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float),
+                       indexing="xy")
+    f, (cx, cy) = cam.focal_px, cam.principal_point
+    d = np.stack([(u - cx) / f, (v - cy) / f, np.ones_like(u)], -1).reshape(-1, 3) @ cam.R
+    C = np.asarray(cam.position, dtype=float)
+    n = patch.normal
+    dn = d @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = ((patch.origin - C) @ n) / dn
+    ok = np.isfinite(lam) & (lam > 0)
+    rel = C + np.where(ok, lam, 0.0)[:, None] * d - patch.origin
+    xi = np.stack([rel @ patch.t_u, rel @ patch.t_v], -1)
+    ok &= np.all((xi >= 0) & (xi <= patch.size), axis=1)
+    xi = xi[ok]
+    X = patch.points(xi)
+    keep = np.ones(len(xi), dtype=bool)
+    for other in cameras:
+        keep &= _visible(other, patch, X, margin_px, min_cos)
+    return xi[keep]
+
+
+def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference: str = "images",
+              reference_images: Sequence | None = None,
+              texture: Callable | np.ndarray | None = None, texel: float | None = None,
+              pixel_filter: str = "box", supersample: int = 4, pixel_sigma: float = 0.5,
+              model: str = "translation", mesh: tuple[int, int] = (1, 1),
+              integration: str = "auto", xi: np.ndarray | None = None,
+              cell_area: float | None = None, spacing: float | None = None, density: float = 1.0,
+              margin_px: float = 3.0, weights: str = "pixel", gradient: str = "auto", U0=None,
+              tol: float = 1e-6, max_iter: int = 30, rcond: float = 1e-10) -> CorrelationResult:
+    """Global multi-view Gauss–Newton correlation of `deformed` images (one per camera, gray levels,
+    (height, width)) on `patch`; see the module docstring for the formulation.
+
+    reference: "images" (each camera against its own `reference_images[i]`), "average" (paper eq. 3
+    from `reference_images`), or "texture" (`texture` callable of ξ (..., 2) -> values, or a pattern
+    array with `texel` metres, blurred by the pixel: `pixel_filter` "box" with `supersample`² points
+    or "gaussian" of std `pixel_sigma` px).
+    model: "translation" (U (3,)) or "q4" (mesh = (nx, ny) elements, U (nodes, 3)).
+    integration: "pixels" (each camera's own reference pixel centres on the patch, weight 1; the
+    default for "images" and "texture"), "grid" (one grid ξ shared by all cameras, from
+    `integration_points(patch, cameras, spacing, density, margin_px)` or the given `xi` with its
+    `cell_area`; the default for "average", which needs a shared ξ). Either way only points that
+    every camera sees at least `margin_px` inside its image are kept. `xi` may also be a list of
+    per-camera pixel points (e.g. `result.xi` of a previous call), to skip recomputing them.
+    weights (grid only): "pixel" (each point weighted by the camera pixels it stands for,
+    |det A_i| × cell area) or "uniform".
+    gradient: "reference" (J from the reference: c_i ∇g_i(x) · s_i(X) N, modified Gauss–Newton; the
+    default for "images" and "texture") or "deformed" (∇f_i^def at the current position; the
+    default, and only choice, for "average").
+    Stops when max |ΔU| < tol (metres) or after max_iter iterations.
+    """
+    cameras = list(cameras)
+    nc = len(cameras)
+    if nc == 0 or len(deformed) != nc:
+        raise ValueError("correlate: expected one deformed image per camera")
+    if reference not in ("images", "average", "texture"):
+        raise ValueError(f"reference: expected 'images', 'average' or 'texture', got {reference!r}")
+    if model not in ("translation", "q4"):
+        raise ValueError(f"model: expected 'translation' or 'q4', got {model!r}")
+    if weights not in ("pixel", "uniform"):
+        raise ValueError(f"weights: expected 'pixel' or 'uniform', got {weights!r}")
+    per_camera_xi = isinstance(xi, (list, tuple))
+    if integration == "auto":
+        integration = "pixels" if per_camera_xi or (xi is None and reference != "average") \
+            else "grid"
+    if integration not in ("pixels", "grid"):
+        raise ValueError(f"integration: expected 'auto', 'pixels' or 'grid', got {integration!r}")
+    if reference == "average" and integration != "grid":
+        raise ValueError("reference='average' needs integration='grid' (one ξ shared by all cameras)")
+
+    # Integration points and weights, per camera.
+    if integration == "grid":
+        if per_camera_xi:
+            raise ValueError("integration='grid' needs one `xi` array shared by all cameras")
+        if xi is None:
+            xi, cell_area = integration_points(patch, cameras, spacing, density, margin_px)
+        else:
+            xi = np.asarray(xi, dtype=float).reshape(-1, 2)
+            if cell_area is None and weights == "pixel":
+                raise ValueError("correlate: given `xi` with weights='pixel' needs `cell_area`")
+        xis = [xi] * nc
+        ws = [np.abs(np.linalg.det(_footprint(cam, patch, patch.points(xi)))) * cell_area
+              if weights == "pixel" else np.ones(len(xi)) for cam in cameras]
+    else:
+        if per_camera_xi:           # e.g. `result.xi` of an earlier run on the same images
+            if len(xi) != nc:
+                raise ValueError("correlate: `xi` as a list needs one array per camera")
+            xis = [np.asarray(x, dtype=float).reshape(-1, 2) for x in xi]
+        else:
+            xis = [pixel_points(patch, cameras, i, margin_px) for i in range(nc)]
+        ws = [np.ones(len(x)) for x in xis]
+    for i, x in enumerate(xis):
+        if len(x) < 4:
+            raise ValueError(f"correlate: only {len(x)} integration points for camera "
+                             f"{cameras[i].name!r} are seen by every camera")
+    Xs = [patch.points(x) for x in xis]
+
+    # Kinematics: N (points × nodes) per camera, sparse.
+    from scipy import sparse
+    if model == "translation":
+        Ns = [sparse.csr_matrix(np.ones((len(x), 1))) for x in xis]
+    else:
+        nx, ny = int(mesh[0]), int(mesh[1])
+        if nx < 1 or ny < 1:
+            raise ValueError(f"mesh: expected (nx, ny) >= 1, got {mesh!r}")
+        Ns = [q4_shape_functions(x, patch.size, nx, ny) for x in xis]
+    nn = Ns[0].shape[1]
+    nu = 3 * nn
+    ndof = nu + 2 * nc
+
+    # Reference gray levels g_i at camera i's points.
+    k = np.ones(nc)
+    if reference == "images":
+        if reference_images is None or len(reference_images) != nc:
+            raise ValueError("reference='images': expected one reference image per camera")
+        g = []
+        for cam, im, X in zip(cameras, reference_images, Xs):
+            im = np.asarray(im, dtype=float)
+            if integration == "pixels":      # the rays of pixel centres: read the samples directly
+                x = np.rint(_project(cam, X)).astype(int)
+                g.append(im[x[:, 1], x[:, 0]])
+            else:
+                g.append(SplineImage(im)(_project(cam, X)))
+    elif reference == "average":
+        if reference_images is None or len(reference_images) != nc:
+            raise ValueError("reference='average': expected one reference image per camera")
+        g = [SplineImage(im)(_project(cam, Xs[0])) for cam, im in zip(cameras, reference_images)]
+        mean = np.array([gi.mean() for gi in g])
+        k = 1.0 / np.array([gi.std() for gi in g])
+        avg = sum(k[i] * (g[i] - mean[i]) for i in range(nc)) / nc
+        g = [avg] * nc
+    else:
+        if texture is None:
+            raise ValueError("reference='texture': expected `texture` (callable or pattern array)")
+        if not callable(texture):
+            if texel is None:
+                raise ValueError("reference='texture' with a pattern array: expected `texel`")
+            texture = TextureSampler(texture, texel)
+        if pixel_filter == "box":
+            offs, ow = _box_offsets(int(supersample))
+        elif pixel_filter == "gaussian":
+            offs, ow = _gauss_offsets(float(pixel_sigma))
+        else:
+            raise ValueError(f"pixel_filter: expected 'box' or 'gaussian', got {pixel_filter!r}")
+        g, ref_grad = zip(*[_texture_reference(texture, cam, patch, x, offs, ow)
+                            for cam, x in zip(cameras, xis)])
+        g = list(g)
+
+    if gradient == "auto":
+        gradient = "reference" if reference == "images" else "deformed"
+    if gradient not in ("reference", "deformed"):
+        raise ValueError(f"gradient: expected 'auto', 'reference' or 'deformed', got {gradient!r}")
+    if gradient == "reference" and reference == "average":
+        raise ValueError("gradient='reference' is not available with reference='average'")
+    if gradient == "reference":
+        # G0_i = ∇_x g_i · s_i(X) (points, 3), fixed; the U columns of J are c_i G0_i.
+        if reference == "images":
+            ref_grad = [SplineImage(im).gradient(_project(cam, X))
+                        for cam, im, X in zip(cameras, reference_images, Xs)]
+        G0 = [np.einsum("nj,nja->na", gr, cam.sensitivity(X))
+              for gr, cam, X in zip(ref_grad, cameras, Xs)]
+
+    splines = [SplineImage(im) for im in deformed]
+
+    p = np.zeros(ndof)
+    if U0 is not None:
+        U0 = np.asarray(U0, dtype=float)
+        p[:nu] = np.broadcast_to(U0, (nn, 3)).ravel() if model == "q4" else U0.reshape(3)
+
+    def evaluate(p):
+        """Per camera: residual r, U-gradient rows G (points, 3) = ∇f · s, image values f."""
+        Un = p[:nu].reshape(nn, 3)
+        out = []
+        for i, (cam, sp) in enumerate(zip(cameras, splines)):
+            Xd = Xs[i] + Ns[i] @ Un
+            if gradient == "reference":
+                f = sp(_project(cam, Xd))
+                G = p[nu + 2 * i + 1] * G0[i]
+            else:
+                f, grad = sp.value_and_gradient(_project(cam, Xd))
+                G = np.einsum("nj,nja->na", grad, cam.sensitivity(Xd))
+            r = f - p[nu + 2 * i] - p[nu + 2 * i + 1] * g[i]
+            out.append((r, G, f))
+        return out
+
+    # Initial b, c by linear least squares at the starting U.
+    for i, (r, G, f) in enumerate(evaluate(p)):
+        sw = np.sqrt(ws[i])
+        Aab = np.stack([np.ones(len(f)), g[i]], 1) * sw[:, None]
+        p[nu + 2 * i: nu + 2 * i + 2] = np.linalg.lstsq(Aab, f * sw, rcond=None)[0]
+
+    def jacobian(i, G):
+        """Dense (points, ndof) Jacobian of camera i's residuals."""
+        N = Ns[i]
+        J = np.zeros((N.shape[0], ndof))
+        J[:, :nu] = np.stack([N.multiply(G[:, [a]]).toarray() for a in range(3)], 2).reshape(-1, nu)
+        J[:, nu + 2 * i] = -1.0
+        J[:, nu + 2 * i + 1] = -g[i]
+        return J
+
+    def assemble(ev):
+        H = np.zeros((ndof, ndof))
+        rhs = np.zeros(ndof)
+        Hcams = []
+        for i, (r, G, f) in enumerate(ev):
+            N, wi = Ns[i], ws[i]
+            NT = N.T.tocsr()
+            Hi = np.zeros((ndof, ndof))
+            blocks = np.zeros((nn, 3, nn, 3))
+            for a in range(3):             # H[(n,a),(m,b)] = Σ_p w G_a G_b N_n N_m
+                for bb in range(a, 3):
+                    Mab = (NT @ N.multiply((wi * G[:, a] * G[:, bb])[:, None])).toarray()
+                    blocks[:, a, :, bb] = Mab
+                    blocks[:, bb, :, a] = Mab
+            Hi[:nu, :nu] = blocks.reshape(nu, nu)
+            jc = -g[i]
+            ib, ic = nu + 2 * i, nu + 2 * i + 1
+            Hi[:nu, ib] = Hi[ib, :nu] = -(NT @ (wi[:, None] * G)).reshape(nu)
+            Hi[:nu, ic] = Hi[ic, :nu] = (NT @ (wi[:, None] * G * jc[:, None])).reshape(nu)
+            Hi[ib, ib] = np.sum(wi)
+            Hi[ic, ic] = np.sum(wi * jc * jc)
+            Hi[ib, ic] = Hi[ic, ib] = -np.sum(wi * jc)
+            rhs[:nu] -= (NT @ (wi[:, None] * G * r[:, None])).reshape(nu)
+            rhs[ib] += np.sum(wi * r)
+            rhs[ic] -= np.sum(wi * jc * r)
+            H += Hi
+            Hcams.append(Hi)
+        return H, rhs, Hcams
+
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        H, rhs, _ = assemble(evaluate(p))
+        Hp, rank, null = _pinv_solve(H, rcond, nu)
+        dp = Hp @ rhs
+        p += dp
+        if np.max(np.abs(dp[:nu])) < tol:
+            converged = True
+            break
+
+    # Final state: residuals and Hessian at the solution.
+    ev = evaluate(p)
+    H, rhs, Hcams = assemble(ev)
+    Hp, rank, null = _pinv_solve(H, rcond, nu)
+    sq = np.array([np.sum(ws[i] * ev[i][0] ** 2) for i in range(nc)])
+    wsum = np.array([np.sum(wi) for wi in ws])
+    rms_cam = np.sqrt(sq / wsum)
+    rms = float(np.sqrt(sq.sum() / wsum.sum()))
+
+    # Schur complement on U (b, c eliminated).
+    HU = H[:nu, :nu] - H[:nu, nu:] @ np.linalg.pinv(H[nu:, nu:]) @ H[nu:, :nu]
+    HU = 0.5 * (HU + HU.T)
+    lam, V = np.linalg.eigh(HU)
+    ratio = float(np.sqrt(lam[-1] / lam[0])) if lam[0] > 0 else float("inf")
+
+    # Reference-noise matrices (unit σ_ref per camera), for `covariance`.
+    ref_noise = None
+    if reference == "images":
+        ref_noise = [p[nu + 2 * i + 1] ** 2 * Hcams[i] for i in range(nc)]
+    elif reference == "average":
+        # Noise n_j of reference j enters every residual through g = Σ_j k_j n_j / nc; its
+        # contribution to the gradient is a_jp n_j(x_jp) with a_jp = (k_j / nc) Σ_i c_i w_ip J_ip.
+        # Pixel-sampled white noise summed over camera j's pixels: Var = σ² Σ_p a_jp a_jpᵀ / w_jp.
+        S = sum(p[nu + 2 * i + 1] * ws[i][:, None] * jacobian(i, ev[i][1]) for i in range(nc))
+        ref_noise = [((k[j] / nc) ** 2) * (S / ws[j][:, None]).T @ S for j in range(nc)]
+
+    U = p[:nu].reshape(nn, 3)
+    return CorrelationResult(
+        U=U[0].copy() if model == "translation" else U.copy(),
+        b=p[nu::2].copy(), c=p[nu + 1::2].copy(), iterations=it, residual_rms=rms,
+        converged=converged, hessian=H, hessian_U=HU, rank=rank, rank_deficient=rank < ndof,
+        null_directions=null, uncertainty_ratio=ratio, weakest_direction=V[:, 0].copy(),
+        xi=xis, residual_rms_per_camera=rms_cam, reference=reference, model=model,
+        _camera_hessians=Hcams, _reference_noise=ref_noise, _solve_inverse=Hp)
