@@ -18,7 +18,8 @@ os.environ.setdefault("VDO_VARIANT", "llvm_ad_rgb")
 
 from vdo import config, scene  # noqa: E402
 from vdo.render import (build_render_scene, camera_sensor, expose, render_linear,  # noqa: E402
-                        render_seed, scaled_camera, speckle_pattern)
+                        render_seed, scaled_camera)
+from vdo.speckle import pattern_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,7 +39,7 @@ def main():
     full = exp.cameras()
     bodies = [scene.camera_body(c) for c, s in zip(full, exp.camera_specs) if s.body]
     sc = build_render_scene(exp, meshes, scene.all_region_faces(exp, meshes), bodies,
-                            speckle_pattern(exp.speckle))
+                            pattern_for(exp.speckle))
     t_scene = time.perf_counter() - t0
     index = [c.name for c in full].index(args.camera)
     cam, spec = scaled_camera(full[index], args.scale), exp.camera_specs[index]

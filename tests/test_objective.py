@@ -47,7 +47,7 @@ def make_cameras(positions, targets, focal_px=3000.0, width=2000, height=1400, r
 
 
 def views(c, n, contrast=800.0, noise=5.0):
-    return ob.ViewData(jnp.ones((c, n)), jnp.full((c, n), contrast), jnp.full((c, n), noise))
+    return ob.ViewData.from_dense(np.ones((c, n)), contrast, noise)
 
 
 def two_plane_scene(n=300, seed=0):

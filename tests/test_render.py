@@ -16,7 +16,8 @@ from scipy.spatial import cKDTree
 from vdo import config, lighting, scene, visibility
 from vdo.cli import main
 from vdo.render import (build_render_scene, camera_sensor, expose, render_experiment,
-                        render_linear, scaled_camera, speckle_pattern)
+                        render_linear, scaled_camera)
+from vdo.speckle import pattern_for
 from vdo.scene import SurfaceSamples
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -155,7 +156,7 @@ def test_photometry_predicts_the_render(plate_experiment):
     meshes, sc = setup(exp)
     cam = exp.cameras()[0]
     linear = render_linear(sc, camera_sensor(cam, exp.camera_specs[0], 16), 0)
-    pattern = speckle_pattern(exp.speckle)
+    pattern = pattern_for(exp.speckle)
     pts = plane_samples(pixel_points(cam))
     illum = lighting.illuminate(scene.build_scene(meshes), exp.lights, pts, grid=16)
     pho = lighting.photometry(illum, exp.speckle, exp.sensor, *lighting.pattern_stats(pattern), 1)

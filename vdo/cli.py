@@ -47,6 +47,20 @@ def _render(args):
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
 
 
+def _validate(args):
+    from .validate import load, print_table, validate
+
+    spec = load(args.config)
+    summary = validate(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite,
+                       quiet=args.quiet)
+    if not args.quiet:
+        print_table(summary["rows"])
+        print(f"{'all ratios in [0.8, 1.25]' if summary['passed'] else 'SOME RATIOS OUTSIDE [0.8, 1.25]'}"
+              f"; noise-free check {'passed' if summary['noise_free_passed'] else 'FAILED'}; "
+              f"{summary['wall_seconds']:.0f} s; wrote {Path(args.out).resolve()}")
+    return 0 if summary["passed"] and summary["noise_free_passed"] else 1
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -64,6 +78,13 @@ def main(argv=None) -> int:
     rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
+    va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
+    va.add_argument("config", help="validation TOML file (e.g. experiments/validation.toml)")
+    va.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    va.add_argument("--seeds", type=int, default=None,
+                    help="noise seeds per case (default: [validation] seeds)")
+    va.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    va.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -73,6 +94,8 @@ def main(argv=None) -> int:
             _evaluate(args.config, args.out, args.overwrite, args.quiet)
         elif args.command == "render":
             _render(args)
+        elif args.command == "validate":
+            return _validate(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

@@ -254,7 +254,7 @@ def _resolve_camera(exp: Experiment, spec: CameraSpec) -> Camera:
 # --------------------------------------------------------------------------------------------
 # Reading with clear errors
 # --------------------------------------------------------------------------------------------
-class _Table:
+class Table:
     """One TOML table being read: every key must be known, every value checked."""
 
     def __init__(self, data, where: str, file: Path, allowed: tuple[str, ...]):
@@ -322,7 +322,7 @@ class _Table:
         if key not in self.data and default is not _REQUIRED:
             return default
         value = self.raw(key)
-        arr = _numbers(value)
+        arr = as_numbers(value)
         if arr is None or arr.shape != (length,):
             raise self.error(key, f"must be a list of {length} finite numbers (got {value!r})")
         if positive and np.any(arr <= 0):
@@ -331,13 +331,13 @@ class _Table:
 
     def points(self, key, minimum=2):
         value = self.raw(key)
-        arr = _numbers(value)
+        arr = as_numbers(value)
         if arr is None or arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < minimum:
             raise self.error(key, f"must be a list of at least {minimum} [x, y, z] points in metres")
         return arr
 
 
-def _numbers(value):
+def as_numbers(value):
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -347,7 +347,7 @@ def _numbers(value):
     return arr
 
 
-def _entries(top: _Table, key: str, file: Path, allowed, required=True):
+def _entries(top: Table, key: str, file: Path, allowed, required=True):
     items = top.raw(key, [] if not required else _REQUIRED)
     if not isinstance(items, list) or (required and not items):
         raise ConfigError(file, key, f"needs at least one [[{key}]] table")
@@ -355,7 +355,7 @@ def _entries(top: _Table, key: str, file: Path, allowed, required=True):
     for i, item in enumerate(items):
         name = item.get("name") if isinstance(item, dict) else None
         where = f'{key} "{name}"' if isinstance(name, str) else f"{key}[{i}]"
-        table = _Table(item, where, file, allowed)
+        table = Table(item, where, file, allowed)
         table.string("name")
         if name in names:
             raise ConfigError(file, where, "name is used twice; names must be unique")
@@ -382,10 +382,10 @@ def load(path) -> Experiment:
 def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
-    top = _Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
+    top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
                                   "light", "speckle", "sensor", "render", "optimize"))
-    exp = _Table(top.raw("experiment"), "experiment", path, ("name", "description"))
-    ev = _Table(top.raw("evaluation", {}), "evaluation", path,
+    exp = Table(top.raw("experiment"), "experiment", path, ("name", "description"))
+    ev = Table(top.raw("evaluation", {}), "evaluation", path,
                 ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
     evaluation = Evaluation(
         sample_spacing=ev.number("sample_spacing_mm", 10.0, positive=True) * 1e-3,
@@ -423,7 +423,7 @@ def parse(data: dict, path: Path) -> Experiment:
     return result
 
 
-def _light(t: _Table) -> LightSpec:
+def _light(t: Table) -> LightSpec:
     position, target = t.vector("position_m", 3), t.vector("target_m", 3)
     if np.linalg.norm(target - position) < 1e-6:
         raise t.error("target_m", "must differ from position_m (the panel faces the target)")
@@ -432,8 +432,8 @@ def _light(t: _Table) -> LightSpec:
                      radiance=t.number("radiance", positive=True))
 
 
-def _speckle(top: _Table, path: Path) -> SpeckleSpec:
-    t = _Table(top.raw("speckle", {}), "speckle", path,
+def _speckle(top: Table, path: Path) -> SpeckleSpec:
+    t = Table(top.raw("speckle", {}), "speckle", path,
                ("dot_diameter_mm", "coverage", "strokes", "texel_mm", "tile_texels", "seed", "image",
                 "white_albedo", "black_albedo"))
     image = t.string("image", None)
@@ -456,12 +456,12 @@ def _speckle(top: _Table, path: Path) -> SpeckleSpec:
     return spec
 
 
-def _sensor(top: _Table, path: Path) -> SensorModel:
+def _sensor(top: Table, path: Path) -> SensorModel:
     fields = {"quantum_efficiency": "quantum_efficiency", "full_well_e": "full_well_e",
               "read_noise_e": "read_noise_e", "bit_depth": "bit_depth",
               "gain_dn_per_e": "gain_dn_per_e", "offset_dn": "offset_dn",
               "photons_per_unit": "photons_per_unit"}
-    t = _Table(top.raw("sensor", {}), "sensor", path, tuple(fields))
+    t = Table(top.raw("sensor", {}), "sensor", path, tuple(fields))
     values = {k: t.raw(k) for k in fields if t.has(k)}
     try:
         return SensorModel(**values)
@@ -470,8 +470,8 @@ def _sensor(top: _Table, path: Path) -> SensorModel:
         raise t.error(field.removeprefix("SensorModel."), message) from None
 
 
-def _optimize(top: _Table, path: Path, cameras: set) -> OptimizeSpec:
-    t = _Table(top.raw("optimize", {}), "optimize", path,
+def _optimize(top: Table, path: Path, cameras: set) -> OptimizeSpec:
+    t = Table(top.raw("optimize", {}), "optimize", path,
                ("free", "cameras", "min_axis_angle_deg", "clearance_m", "max_obscuration",
                 "assign_fraction", "starts", "rounds", "max_steps", "lenses_mm", "seed"))
     free = t.raw("free", ["u", "pan", "tilt"])
@@ -486,7 +486,7 @@ def _optimize(top: _Table, path: Path, cameras: set) -> OptimizeSpec:
             raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
     angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
     lenses = t.raw("lenses_mm", [])
-    arr = _numbers(lenses)
+    arr = as_numbers(lenses)
     if arr is None or arr.ndim != 1 or np.any(arr <= 0):
         raise t.error("lenses_mm", f"must be a list of positive focal lengths in mm (got {lenses!r})")
     return OptimizeSpec(free=tuple(free), cameras=None if moving is None else tuple(moving),
@@ -499,8 +499,8 @@ def _optimize(top: _Table, path: Path, cameras: set) -> OptimizeSpec:
                         lenses=tuple(float(f) * 1e-3 for f in arr), seed=t.integer("seed", 0, low=0))
 
 
-def _render(top: _Table, path: Path) -> RenderSpec:
-    t = _Table(top.raw("render", {}), "render", path,
+def _render(top: Table, path: Path) -> RenderSpec:
+    t = Table(top.raw("render", {}), "render", path,
                ("spp", "scale", "seed", "ambient_radiance", "image_format", "exr"))
     return RenderSpec(spp=t.integer("spp", 16, low=1), scale=t.number("scale", 1.0, positive=True, high=4.0),
                       seed=t.integer("seed", 0, low=0),
@@ -509,7 +509,7 @@ def _render(top: _Table, path: Path) -> RenderSpec:
                       exr=t.boolean("exr", False))
 
 
-def _mesh(t: _Table, config_path: Path) -> MeshSpec:
+def _mesh(t: Table, config_path: Path) -> MeshSpec:
     file = t.string("file")
     mesh_path = (config_path.parent / file).resolve()
     if not mesh_path.is_file():
@@ -525,7 +525,7 @@ def _mesh(t: _Table, config_path: Path) -> MeshSpec:
                     albedo=t.number("albedo", 0.5, low=0.0, high=1.0), metal=t.boolean("metal", False))
 
 
-def _region(t: _Table, mesh_roles: dict) -> RegionSpec:
+def _region(t: Table, mesh_roles: dict) -> RegionSpec:
     mesh = t.string("mesh")
     if mesh_roles.get(mesh) != "specimen":
         raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {mesh!r}; "
@@ -545,7 +545,7 @@ def _region(t: _Table, mesh_roles: dict) -> RegionSpec:
                       min_cameras=t.integer("min_cameras", None, low=1) if t.has("min_cameras") else None)
 
 
-def _rail(t: _Table) -> Rail:
+def _rail(t: Table) -> Rail:
     points = t.points("control_points_m")
     degree = t.integer("degree", 1, low=1)
     if degree >= len(points):
@@ -554,7 +554,7 @@ def _rail(t: _Table) -> Rail:
     return Rail(name=t.string("name"), control_points=points, degree=degree, weights=weights)
 
 
-def _camera(t: _Table, rails: set) -> CameraSpec:
+def _camera(t: Table, rails: set) -> CameraSpec:
     name = t.string("name")
     if t.has("sensor_mm") == t.has("sensor_width_mm"):
         raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "

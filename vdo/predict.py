@@ -54,11 +54,14 @@ def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective
 
 def view_data(exp: Experiment, vis: Visibility, illumination: Illumination,
               speckle: SpeckleModel) -> objective.ViewData:
-    """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models."""
+    """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
+    the sparse pair list of `objective.ViewData`: the pairs the ray cast found unoccluded (it
+    marks pairs that failed a geometric test, behind, outside the image or facing away, as
+    occluded), exact for these cameras."""
     pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
-    return objective.ViewData(jnp.asarray(vis.unoccluded, dtype=float), jnp.asarray(pho.contrast),
-                              jnp.asarray(pho.noise))
+    return objective.ViewData.from_dense(np.asarray(vis.unoccluded, dtype=float),
+                                         np.asarray(pho.contrast), np.asarray(pho.noise))
 
 
 @dataclass(frozen=True, eq=False)

@@ -6,7 +6,7 @@ itself lives in `Camera.mitsuba_to_world` / `mitsuba_principal_offset`.
 The render scene (`build_render_scene`):
 
 * each region of interest is its own mesh, textured with the speckle albedo
-  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `speckle_pattern`), mapped at physical scale: a
+  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `vdo.speckle.pattern_for`), mapped at physical scale: a
   point with face coordinates (u, v) in metres (`vdo.scene.RegionFaces.uv`, the samples' uv) has
   texture coordinates (u / T_u, v / T_v), T = texel x pattern size, wrap mode repeat. Mitsuba's
   bitmap has v = 0 on its top row, so the pattern's row i covers v in [i, i+1) texels
@@ -15,9 +15,11 @@ The render scene (`build_render_scene`):
   conductor (aluminium, α = 0.2) when `metal`; camera bodies are dark (ρ = 0.05);
 * each [[light]] is a one-sided rectangle area emitter of its radiance, facing its target (the
   frame of `vdo.lighting.panel_frame`); [render] ambient_radiance is a constant environment;
-* the integrator is `direct` (direct illumination only, no interreflection), so the renders and the
-  photometric model of `vdo.lighting` describe the same light transport: they agree up to Monte
-  Carlo noise, the panel quadrature and ambient occlusion (which the model ignores).
+* the integrator is `vdo_panels` (`_register_integrator`): direct illumination only, no
+  interreflection, with one sample on *every* panel per camera sample (Mitsuba's `direct` picks one
+  emitter at random: 10 % pixel noise at 64 spp with 4 panels). So the renders and the photometric
+  model of `vdo.lighting` describe the same light transport: they agree up to Monte Carlo noise,
+  the panel quadrature and ambient occlusion (which the model ignores).
 
 Each camera is rendered with a box filter into a linear float luminance film (bit-identical for a
 seed), then `SensorModel.expose` adds shot and read noise and quantises, with the generator
@@ -44,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera
+from .speckle import pattern_for
 
 BODY_ALBEDO = 0.05
 
@@ -102,16 +105,6 @@ def camera_sensor(camera: Camera, spec, spp: int) -> dict:
 # --------------------------------------------------------------------------------------------
 # Speckle texture
 # --------------------------------------------------------------------------------------------
-def speckle_pattern(speckle) -> np.ndarray:
-    """The [0, 1] pattern tile of a SpeckleSpec: its image, or a generated seamless tile."""
-    from .speckle import generate_pattern, load_pattern
-
-    if speckle.image is not None:
-        return load_pattern(speckle.image)
-    return generate_pattern(speckle.tile_texels, speckle.texel, speckle.dot_diameter,
-                            coverage=speckle.coverage, strokes=speckle.strokes, seed=speckle.seed)
-
-
 def pattern_value(pattern: np.ndarray, texel: float, uv: np.ndarray) -> np.ndarray:
     """f at face coordinates uv (..., 2) in metres, nearest texel, as the render maps it:
     column = floor(u / texel) mod width, row = floor(v / texel) mod height."""
@@ -125,19 +118,9 @@ def pattern_value(pattern: np.ndarray, texel: float, uv: np.ndarray) -> np.ndarr
 # The render scene
 # --------------------------------------------------------------------------------------------
 def _mi_mesh(name, vertices, faces, bsdf, uv=None):
-    from .backend import mitsuba
+    from .scene import SceneMesh, mitsuba_mesh
 
-    mi = mitsuba()
-    props = mi.Properties()
-    props["bsdf"] = bsdf
-    mesh = mi.Mesh(name, len(vertices), len(faces), props=props, has_vertex_texcoords=uv is not None)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = np.ascontiguousarray(vertices, dtype=np.float32).ravel()
-    params["faces"] = np.ascontiguousarray(faces, dtype=np.uint32).ravel()
-    if uv is not None:
-        params["vertex_texcoords"] = np.ascontiguousarray(uv, dtype=np.float32).ravel()
-    params.update()
-    return mesh
+    return mitsuba_mesh(SceneMesh(name, "render", vertices, faces), bsdf, uv)
 
 
 def _submesh(vertices, faces):
@@ -240,12 +223,12 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None):
     """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
     experiment's SceneMeshes (vdo.scene.load_meshes), `region_faces` one RegionFaces per region,
     `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
-    `speckle_pattern(exp.speckle)`)."""
+    `vdo.speckle.pattern_for(exp.speckle)`)."""
     from .backend import mitsuba
 
     mi = mitsuba()
     sp = exp.speckle
-    pattern = speckle_pattern(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
+    pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
     albedo = (sp.black_albedo + (sp.white_albedo - sp.black_albedo) * pattern).astype(np.float32)
     tile = np.array([pattern.shape[1], pattern.shape[0]]) * sp.texel       # (T_u, T_v) metres
     speckled = mi.load_dict({"type": "diffuse", "reflectance": {
@@ -417,7 +400,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             raise ConfigError(exp.path, f'camera "{spec.name}".f_number',
                               "a thin lens (depth of field) cannot have a principal_offset_px")
     bodies = [camera_body(c) for c, spec in zip(full, exp.camera_specs) if spec.body]
-    pattern = speckle_pattern(exp.speckle)
+    pattern = pattern_for(exp.speckle)
     scene = build_render_scene(exp, meshes, region_faces, bodies, pattern)
     blockers = build_scene(meshes + bodies)
     illum = illuminate(blockers, exp.lights, samples, rs.ambient_radiance)

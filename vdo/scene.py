@@ -75,7 +75,7 @@ class SurfaceSamples:
         return len(self.points)
 
 
-def _face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(t_u, t_v) with t_u x t_v = normal; t_v follows world z on vertical faces, else world y."""
     up = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
     t_v = up - normal * (up @ normal)
@@ -123,7 +123,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
                                   "box_min_m and box_max_m (metres, world frame)")
     normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])
     normal /= np.linalg.norm(normal)
-    t_u, t_v = _face_frame(normal)
+    t_u, t_v = face_frame(normal)
     tri = tm.triangles[faces]                                   # (T, 3, 3)
     depth = tri.reshape(-1, 3) @ normal
     if np.ptp(depth) > max(0.25 * spacing, 1e-4):
@@ -247,16 +247,20 @@ def camera_body(camera: Camera) -> SceneMesh:
 # --------------------------------------------------------------------------------------------
 # Mitsuba
 # --------------------------------------------------------------------------------------------
-def mitsuba_mesh(mesh: SceneMesh, bsdf: dict | None = None):
-    """An in-memory `mi.Mesh` with the same vertices and faces."""
+def mitsuba_mesh(mesh: SceneMesh, bsdf=None, uv: np.ndarray | None = None):
+    """An in-memory `mi.Mesh` with the same vertices and faces, an optional BSDF (a loaded
+    Mitsuba BSDF or a dict) and optional per-vertex texture coordinates uv (n, 2)."""
     mi = mitsuba()
     props = mi.Properties()
     if bsdf is not None:
-        props["bsdf"] = mi.load_dict(bsdf)
-    out = mi.Mesh(mesh.name, len(mesh.vertices), len(mesh.faces), props=props)
+        props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
+    out = mi.Mesh(mesh.name, len(mesh.vertices), len(mesh.faces), props=props,
+                  has_vertex_texcoords=uv is not None)
     params = mi.traverse(out)
     params["vertex_positions"] = np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel()
     params["faces"] = np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel()
+    if uv is not None:
+        params["vertex_texcoords"] = np.ascontiguousarray(uv, dtype=np.float32).ravel()
     params.update()
     return out
 

@@ -1,0 +1,137 @@
+"""`vdo validate`, reduced: the predicted uncertainty (vdo.predict) against correlation on renders.
+
+Two small cases (a stereo pair 25 deg apart on a frontal plate, and three cameras around a plate
+tilted 30 deg), 120 x 90 images, 160 noise seeds each, deterministic. Statistics, stated so that
+the checks are honest: the measured sigma of one axis from n seeds has a relative sampling error
+1/sqrt(2(n - 1)) = 5.6 % at n = 160, so a per-axis ratio whose true value is ~1.05 (what the full run
+measures, docs/validation.md) lies in [0.8, 1.25] with > 3 sampling sigmas of margin; the pooled
+ratio (rms over the 6 axes) has a smaller error still and is held to [0.85, 1.18]. The noise-free
+check: correlation of the noise-free renders recovers the imposed displacement within 0.01 px in
+every camera.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import textwrap
+
+import numpy as np
+import pytest
+
+from vdo import validate as V
+from vdo.errors import ConfigError
+
+SEEDS = 160
+
+TOML = """
+[validation]
+name = "test"
+seeds = 4
+
+[defaults]
+patch_mm = [6, 5]
+plate_margin_mm = 4
+dot_mm = 0.35
+texel_mm = 0.0125
+tile_texels = 1024
+edge_blur_mm = 0.06
+focal_mm = 25
+pixel_um = 5
+pixels = [120, 90]
+distance_mm = 500
+spp = 64
+displacement_um = [31, -23, 37]
+
+[[case]]
+name = "stereo"
+cameras = [{name = "left", polar_deg = 12.5, azimuth_deg = 180}, {name = "right", polar_deg = 12.5, azimuth_deg = 0}]
+seed = 11
+
+[[case]]
+name = "three_tilted"
+tilt_deg = 30
+cameras = [{polar_deg = 15, azimuth_deg = 90}, {polar_deg = 20, azimuth_deg = 200}, {polar_deg = 25, azimuth_deg = 330}]
+sensor = {photons_per_unit = 3000, read_noise_e = 40}
+seed = 12
+"""
+
+
+@pytest.fixture(scope="module")
+def spec(tmp_path_factory):
+    path = tmp_path_factory.mktemp("validate") / "validation.toml"
+    path.write_text(textwrap.dedent(TOML))
+    return V.load(path)
+
+
+@pytest.fixture(scope="module")
+def results(spec):
+    return {case.name: V.run_case(case, spec.path, SEEDS) for case in spec.cases}
+
+
+def test_noise_free_renders_recover_the_displacement(results):
+    for name, result in results.items():
+        for camera, err in result["info"]["noise_free_error_px"].items():
+            assert np.all(np.abs(err) < 0.01), (name, camera, err)
+
+
+def test_measured_scatter_matches_sqrt2_times_prediction(results):
+    rows = [r for result in results.values() for r in result["rows"]]
+    assert len(rows) == 6
+    assert all(r["n_seeds"] == SEEDS for r in rows)
+    sampling = 1 / math.sqrt(2 * (SEEDS - 1))
+    assert sampling < 0.06
+    for r in rows:
+        assert 0.8 <= r["ratio"] <= 1.25, r
+        assert math.isclose(r["sigma_expected_um"], math.sqrt(2) * r["sigma_predicted_um"])
+    pooled = math.sqrt(np.mean([r["ratio"] ** 2 for r in rows]))
+    assert 0.85 <= pooled <= 1.18, pooled
+    # the correlation's own linear noise propagation agrees with what it measures
+    for r in rows:
+        assert 0.8 <= r["sigma_measured_um"] / r["sigma_linear_um"] <= 1.25, r
+
+
+def test_one_camera_reports_in_plane_axes_only(spec, tmp_path):
+    text = textwrap.dedent(TOML).replace(
+        'cameras = [{name = "left", polar_deg = 12.5, azimuth_deg = 180}, {name = "right", '
+        'polar_deg = 12.5, azimuth_deg = 0}]', "cameras = [{polar_deg = 0}]")
+    path = tmp_path / "mono.toml"
+    path.write_text(text)
+    mono = V.load(path).cases[0]
+    assert V.axes_reported(mono) == [0, 1]
+    setup = V.build_setup(mono, path)
+    sigma = V.predict_sigma(setup)
+    assert np.isnan(sigma[2]) and np.all(np.isfinite(sigma[:2]))
+    stereo = V.build_setup(spec.cases[0], spec.path)
+    # two cameras at 12.5 deg carry about twice the in-plane information of one frontal camera
+    assert sigma[0] / V.predict_sigma(stereo)[0] == pytest.approx(math.sqrt(2), rel=0.05)
+
+
+def test_validate_writes_the_run_folder(spec, tmp_path):
+    summary = V.validate(spec, tmp_path / "run", seeds=3, quiet=True, cases=["stereo"])
+    out = tmp_path / "run"
+    for name in ("validation.csv", "validation.png", "summary.json", "estimates.csv",
+                 "validation.toml", "images/stereo.png"):
+        assert (out / name).is_file(), name
+    lines = (out / "validation.csv").read_text().splitlines()
+    assert lines[0].startswith("# ") and "sqrt(2)" in lines[0]
+    rows = list(csv.DictReader(lines[1:]))
+    assert [r["axis"] for r in rows] == ["x", "y", "z"]
+    assert list(rows[0])[:6] == ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio",
+                                 "n_seeds"]
+    assert summary["seeds"] == 3 and summary["noise_free_passed"]
+
+
+@pytest.mark.parametrize("edit, field", [
+    (("dot_mm = 0.35", "dot_mm = -1"), 'case "stereo".dot_mm'),
+    (("seed = 11", "seed = 11\nfocal = 3"), 'case "stereo".focal'),
+    (("pixels = [120, 90]", "pixels = [40, 30]"), 'case "stereo".cameras[0]'),
+    (("displacement_um = [31, -23, 37]", "displacement_um = [310, -23, 37]"),
+     'case "stereo".displacement_um'),
+])
+def test_config_errors_name_the_field(tmp_path, edit, field):
+    path = tmp_path / "bad.toml"
+    path.write_text(textwrap.dedent(TOML).replace(*edit, 1))
+    with pytest.raises(ConfigError) as info:
+        V.load(path)
+    assert info.value.field == field
