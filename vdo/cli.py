@@ -61,6 +61,21 @@ def _validate(args):
     return 0 if summary["passed"] and summary["noise_free_passed"] else 1
 
 
+def _optimize(args) -> None:
+    from .config import load
+    from .optimize import optimize
+
+    result = optimize(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    if not args.quiet:
+        before, after = result["joint_p95_um"]
+        if before is not None and after is not None:
+            print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
+        for entry in result["violated"]:
+            print(f"violated: {entry['constraint']} {entry.get('cameras', '')} "
+                  f"{entry.get('region', '')}: {entry['value']:.4g} (limit {entry['limit']})")
+        print(f"wrote {Path(args.out).resolve()}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -85,6 +100,11 @@ def main(argv=None) -> int:
                     help="noise seeds per case (default: [validation] seeds)")
     va.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     va.add_argument("--quiet", action="store_true")
+    op = sub.add_parser("optimize", help="move the cameras along their rails under the constraints")
+    op.add_argument("config", help="experiment TOML file (its [optimize] table says what moves)")
+    op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    op.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -96,6 +116,8 @@ def main(argv=None) -> int:
             _render(args)
         elif args.command == "validate":
             return _validate(args)
+        elif args.command == "optimize":
+            _optimize(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

@@ -139,6 +139,7 @@ class OptimizeSpec:
 
     free: tuple[str, ...] = ("u", "pan", "tilt")   # per camera: rail parameter, pan, tilt
     cameras: tuple[str, ...] | None = None         # cameras that move (None: all)
+    regions: tuple[str, ...] | None = None         # regions whose uncertainty is scored (None: all)
     min_axis_angle: float | None = None            # rad; None: the stereo rule of thumb per lens
     clearance: float = 0.05                        # m between camera bodies and everything else
     max_obscuration: float = 0.01                  # fraction of an assigned region's image
@@ -416,7 +417,8 @@ def parse(data: dict, path: Path) -> Experiment:
                         regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation,
                         lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
                         render=_render(top, path),
-                        optimize=_optimize(top, path, {c.name for c in cameras}))
+                        optimize=_optimize(top, path, {c.name for c in cameras},
+                                           {r.name for r in regions}))
     for spec, camera in zip(cameras, result.cameras()):
         if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
             raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
@@ -470,9 +472,9 @@ def _sensor(top: Table, path: Path) -> SensorModel:
         raise t.error(field.removeprefix("SensorModel."), message) from None
 
 
-def _optimize(top: Table, path: Path, cameras: set) -> OptimizeSpec:
+def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpec:
     t = Table(top.raw("optimize", {}), "optimize", path,
-               ("free", "cameras", "min_axis_angle_deg", "clearance_m", "max_obscuration",
+               ("free", "cameras", "regions", "min_axis_angle_deg", "clearance_m", "max_obscuration",
                 "assign_fraction", "starts", "rounds", "max_steps", "lenses_mm", "seed"))
     free = t.raw("free", ["u", "pan", "tilt"])
     if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll"} or not free:
@@ -484,12 +486,20 @@ def _optimize(top: Table, path: Path, cameras: set) -> OptimizeSpec:
         unknown = sorted(set(moving) - cameras)
         if unknown:
             raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
+    scored = t.raw("regions", None)
+    if scored is not None:
+        if not isinstance(scored, list) or not scored or not all(isinstance(r, str) for r in scored):
+            raise t.error("regions", "must be a non-empty list of region names")
+        unknown = sorted(set(scored) - regions)
+        if unknown:
+            raise t.error("regions", f"no [[region]] named {', '.join(map(repr, unknown))}")
     angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
     lenses = t.raw("lenses_mm", [])
     arr = as_numbers(lenses)
     if arr is None or arr.ndim != 1 or np.any(arr <= 0):
         raise t.error("lenses_mm", f"must be a list of positive focal lengths in mm (got {lenses!r})")
     return OptimizeSpec(free=tuple(free), cameras=None if moving is None else tuple(moving),
+                        regions=None if scored is None else tuple(scored),
                         min_axis_angle=None if angle is None else math.radians(angle),
                         clearance=t.number("clearance_m", 0.05, low=0.0),
                         max_obscuration=t.number("max_obscuration", 0.01, low=0.0, high=1.0),

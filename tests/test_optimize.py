@@ -1,0 +1,102 @@
+"""`vdo optimize` on small scenes: it clears a view masked by a bar, opens a stereo pair that is
+too narrow, and writes a complete run folder whose layout loads again."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from conftest import PLATE_TOML, write_box
+from vdo import config
+from vdo.constraints import stereo_min_angle
+from vdo.optimize import optimize
+
+CAMERA = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+rail = "overhead"
+u = {u}
+offset_m = [0.0, 0.0, 0.0]
+target_m = [0.0, 0.0, 0.0]
+"""
+SETTINGS = """
+[render]
+ambient_radiance = 1.0
+
+[optimize]
+cameras = {moving}
+starts = 1
+rounds = 2
+max_steps = 25
+"""
+
+
+def experiment(tmp_path, cameras, moving, extra_meshes="", files=()):
+    write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
+    for name, extents, center in files:
+        write_box(tmp_path / name, extents, center)
+    text = PLATE_TOML.format(spacing=20, limit=75, height=1.2, extra_meshes=extra_meshes,
+                             cameras=cameras + SETTINGS.format(moving=json.dumps(moving)))
+    path = tmp_path / "exp.toml"
+    path.write_text(text)
+    return config.load(path)
+
+
+def constraint(result_dir, name, **match):
+    entries = json.loads((result_dir / "constraints.json").read_text())["after"]
+    return [e for e in entries if e["constraint"] == name
+            and all(e.get(k) == v for k, v in match.items())]
+
+
+def test_camera_behind_a_bar_ends_with_a_clear_view(tmp_path):
+    """Camera `a` starts with a bar across its view of the plate; it must slide or turn until
+    nothing masks the plate, and end with no constraint violated."""
+    bar = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\n'
+    cams = CAMERA.format(name="a", u=0.65) + CAMERA.format(name="b", u=0.2)
+    exp = experiment(tmp_path, cams, ["a"], extra_meshes=bar,
+                     files=[("bar.stl", [40, 1200, 40], [180, 0, 600])])
+    out = tmp_path / "run"
+    before_checks = None
+    result = optimize(exp, out, quiet=True)
+    before_checks = json.loads((out / "constraints.json").read_text())["before"]
+    start = [e for e in before_checks if e["constraint"] == "obscuration" and e["cameras"] == ["a"]]
+    assert start and start[0]["value"] > 0.05                     # really masked at the start
+    after = constraint(out, "obscuration", cameras=["a"])
+    assert after[0]["value"] <= exp.optimize.max_obscuration
+    assert result["violations"] == 0, result["violated"]
+
+
+def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
+    """Two 24 mm cameras 8 cm apart (axes ~4 deg apart) must open to the rule-of-thumb angle."""
+    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    out = tmp_path / "run"
+    result = optimize(exp, out, quiet=True)
+    limit = math.degrees(stereo_min_angle(0.024))
+    angle = constraint(out, "axis_angle")[0]
+    before = json.loads((out / "constraints.json").read_text())["before"]
+    assert [e for e in before if e["constraint"] == "axis_angle"][0]["value"] < 5
+    assert angle["limit"] == pytest.approx(limit)
+    assert angle["value"] >= limit - 1e-6 and angle["met"]
+    assert result["violations"] == 0, result["violated"]
+
+    # the run folder: files, moves along the rail in mm, and a layout that loads again
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["constraints.json", "convergence.png", "history.csv", "layout.json",
+                     "moves.csv", "optimized.toml", "summary_after.json", "summary_before.json"]
+    moves = list(csv.DictReader((out / "moves.csv").open()))
+    rail_length_mm = 2000.0
+    for row, u0 in zip(moves, (0.48, 0.52)):
+        assert float(row["rail_position_mm_before"]) == pytest.approx(u0 * rail_length_mm, abs=0.1)
+    reloaded = config.load(out / "optimized.toml")
+    layout = json.loads((out / "layout.json").read_text())["cameras"]
+    for cam, saved in zip(reloaded.cameras(), layout):
+        np.testing.assert_allclose(cam.R, saved["R"], atol=1e-9)
+        np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
+    history = list(csv.DictReader((out / "history.csv").open()))
+    assert len(history) > 5

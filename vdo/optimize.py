@@ -1,0 +1,514 @@
+"""`vdo optimize`: move the cameras along their rails to minimise the predicted uncertainty under
+the practical constraints of `vdo.constraints`.
+
+Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u with
+u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
+0 = horizontal, unless freed). The objective, a JAX function of the parameter vector θ, is
+
+    J(θ) = score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration](θ)
+
+with `vdo.objective.score` (smooth high percentile of σ_max in µm plus the coverage shortfall) and
+the penalties of `vdo.constraints`; P_obscuration = Σ (o / max_obscuration)^2 over the assigned
+(camera, region) pairs that an obstacle masked at the last refresh, o differentiated through
+Mitsuba (`vdo.obscuration`). A round is one BFGS solve (optimistix) with the ray-cast occlusion and
+the lighting frozen; between rounds they are recomputed at the new layout and μ grows x10 (penalty
+continuation). Several starts: the hand layout and randomly perturbed copies. The final layout of
+each start is checked exactly (`constraints.check`); the best one that meets every constraint
+wins, else the one with the fewest violations, and the report names them.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+import trimesh  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+
+from . import constraints, objective, report  # noqa: E402
+from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
+from .config import Experiment  # noqa: E402
+from .lighting import illuminate  # noqa: E402
+from .obscuration import ObscurationRenderer  # noqa: E402
+from .predict import predict, samples_for_objective, settings, speckle_model, view_data  # noqa: E402
+from .runfolder import run_folder  # noqa: E402
+from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # noqa: E402
+                    camera_body_points, load_meshes, sample_regions)
+from .visibility import compute_visibility  # noqa: E402
+
+MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
+ANGLE_SCALE = math.radians(3.0)   # rad: the solver's unit for pan, tilt, roll (0.5 for logit u)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameterisation
+# --------------------------------------------------------------------------------------------
+class Parameterization:
+    """θ <-> camera poses. `index[c]` maps 'u', 'pan', 'tilt', 'roll' to positions in θ for the
+    free parameters of camera c."""
+
+    def __init__(self, exp: Experiment, cameras: list[Camera]):
+        self.exp, self.cameras = exp, cameras
+        moving = set(exp.optimize.cameras or [c.name for c in cameras])
+        free = exp.optimize.free
+        self.index, theta = [], []
+        for cam, spec in zip(cameras, exp.camera_specs):
+            idx = {}
+            if cam.name in moving:
+                for name in ("u", "pan", "tilt", "roll"):
+                    if name not in free or (name == "u" and spec.rail is None):
+                        continue
+                    idx[name] = len(theta)
+                    if name == "u":
+                        u = float(np.clip(spec.u, 1e-4, 1 - 1e-4))
+                        theta.append(math.log(u / (1 - u)))
+                    else:
+                        theta.append(getattr(cam, name))
+            self.index.append(idx)
+        self.theta0 = np.array(theta, dtype=float)
+        # natural scale of each parameter: the solver works in units of these
+        self.scale = np.array([0.0] * len(theta))
+        for idx in self.index:
+            for name, k in idx.items():
+                self.scale[k] = 0.5 if name == "u" else ANGLE_SCALE
+        self.rails = [exp.rail(s.rail) if s.rail else None for s in exp.camera_specs]
+
+    def poses(self, theta):
+        """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays."""
+        pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
+        for cam, spec, rail, idx in zip(self.cameras, self.exp.camera_specs, self.rails, self.index):
+            if "u" in idx:
+                pos.append(rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset)
+            else:
+                pos.append(jnp.asarray(cam.position, dtype=float))
+            for k in angles:
+                angles[k].append(theta[idx[k]] if k in idx else jnp.asarray(getattr(cam, k), dtype=float))
+        return jnp.stack(pos), *(jnp.stack(angles[k]) for k in ("pan", "tilt", "roll"))
+
+    def u(self, theta) -> list:
+        theta = np.asarray(theta)
+        return [1 / (1 + math.exp(-theta[idx["u"]])) if "u" in idx else spec.u
+                for spec, idx in zip(self.exp.camera_specs, self.index)]
+
+    def cameras_at(self, theta) -> list[Camera]:
+        pos, pan, tilt, roll = (np.asarray(a) for a in self.poses(jnp.asarray(theta)))
+        return [c.with_pose(pos[i], pan[i], tilt[i], roll[i]) for i, c in enumerate(self.cameras)]
+
+    def specs_at(self, theta) -> list:
+        """Camera specs with the optimized rail parameter and aim (pan/tilt replace a target)."""
+        cams, us = self.cameras_at(theta), self.u(theta)
+        return [dataclasses.replace(spec, u=us[i] if spec.rail else None, target=None,
+                                    pan=cams[i].pan, tilt=cams[i].tilt, roll=cams[i].roll)
+                for i, spec in enumerate(self.exp.camera_specs)]
+
+
+# --------------------------------------------------------------------------------------------
+# Obscuration: one JAX function whose set of renderers changes between rounds
+# --------------------------------------------------------------------------------------------
+class ObscurationTerm:
+    """P_obscuration(poses) = Σ_k (o_k / m)^2 over the tracked (camera, region) pairs, with its
+    gradient w.r.t. each camera's (x, y, z, pan, tilt) from Mitsuba; poses is (C, 5)."""
+
+    def __init__(self, n_cameras: int, limit: float):
+        self.n, self.limit = n_cameras, max(limit, 1e-3)
+        self.tracked: list[tuple[int, ObscurationRenderer]] = []
+        self._cache = (None, None)
+
+        def host(poses):
+            poses = np.asarray(poses, dtype=float)
+            key = poses.tobytes()
+            if self._cache[0] != key:
+                value, grad = 0.0, np.zeros((self.n, 5))
+                for c, renderer in self.tracked:
+                    o, do = renderer.value_and_grad(poses[c])
+                    value += (o / self.limit) ** 2
+                    grad[c] += 2 * o / self.limit ** 2 * do
+                self._cache = (key, (np.float64(value), grad))
+            return self._cache[1]
+
+        shapes = (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((n_cameras, 5), jnp.float64))
+
+        @jax.custom_jvp
+        def penalty(poses):
+            return jax.pure_callback(host, shapes, poses)[0]
+
+        @penalty.defjvp
+        def penalty_jvp(primals, tangents):
+            value, grad = jax.pure_callback(host, shapes, primals[0])
+            return value, jnp.sum(grad * tangents[0])
+
+        self.penalty = penalty
+
+
+# --------------------------------------------------------------------------------------------
+# The problem: everything an objective evaluation needs, built once
+# --------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class State:
+    """A layout, ray-cast and lit: what a round freezes and what the report needs."""
+
+    theta: np.ndarray
+    cameras: list
+    vis: object
+    vis_obstacles: object
+    illumination: object
+    views: objective.ViewData
+
+
+class Problem:
+    def __init__(self, exp: Experiment, quiet: bool = True):
+        self.exp, self.quiet = exp, quiet
+        self.meshes = load_meshes(exp)
+        self.samples = sample_regions(exp, self.meshes)
+        self.faces = all_region_faces(exp, self.meshes)
+        self.speckle = speckle_model(exp)
+        self.settings = settings(exp)
+        self.obj_samples = samples_for_objective(exp, self.samples)
+        if exp.optimize.regions is not None:   # only the named regions enter the score
+            keep = np.array([r.name in exp.optimize.regions for r in exp.regions])
+            self.obj_samples = dataclasses.replace(
+                self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
+        self.param = Parameterization(exp, exp.cameras())
+        self.cams0 = self.param.cameras
+        opt = exp.optimize
+        self.scene_points = _surface_points(self.meshes, spacing=0.015)
+        self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
+        self.near_points = jnp.asarray(constraints.near_points(
+            self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
+            + opt.clearance))
+        self.start = self.refresh(self.param.theta0)
+        self.assigned = constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
+        self.pairs = constraints.shared_pairs(self.assigned)
+        self.min_angles = np.array([opt.min_axis_angle if opt.min_axis_angle is not None else
+                                    constraints.stereo_min_angle(min(self.cams0[i].focal_length,
+                                                                     self.cams0[j].focal_length))
+                                    for i, j in self.pairs])
+        self.fov_points, self.fov_mask = self._fov_points(self.start)
+        self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
+        self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
+        self.history: list[dict] = []
+        self._t0 = time.perf_counter()
+        self._label = (0, 0)
+        K = np.stack([c.K for c in self.cams0])
+        self.K, self.size = jnp.asarray(K), jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
+        self.total = jax.jit(self._total)
+        self.value_and_grad = jax.jit(jax.value_and_grad(self._total))
+
+    def _paths(self) -> list[np.ndarray]:
+        """Where each optical centre can go: its rail (+ offset) sampled every ~2 cm, if u is
+        free, else its position."""
+        out = []
+        for cam, spec, rail, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
+                                        self.param.index):
+            if "u" in idx:
+                n = max(2, int(rail.arc_length(1.0) / 0.02))
+                out.append(np.asarray(rail.position(np.linspace(0, 1, n))) + spec.offset)
+            else:
+                out.append(np.asarray(cam.position)[None])
+        return out
+
+    # -- the frozen state of a round ------------------------------------------------------
+    def refresh(self, theta) -> State:
+        cams = self.param.cameras_at(theta)
+        bodies = [camera_body(c) for c, s in zip(cams, self.exp.camera_specs) if s.body]
+        scene = build_scene(self.meshes + bodies)
+        obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies)
+        limit = self.exp.evaluation.incidence_limit
+        vis = compute_visibility(scene, cams, self.samples, limit, progress=False)
+        vis_obstacles = compute_visibility(obstacles, cams, self.samples, limit, progress=False)
+        illum = illuminate(scene, self.exp.lights, self.samples, self.exp.render.ambient_radiance)
+        return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
+                     view_data(self.exp, vis, illum, self.speckle))
+
+    def _fov_points(self, state: State, per_region: int = 48):
+        """Up to `per_region` samples of each assigned region that the camera has in its image."""
+        rng = np.random.default_rng(0)
+        n_cam = len(self.cams0)
+        chosen = [[] for _ in range(n_cam)]
+        for c in range(n_cam):
+            for r in np.flatnonzero(self.assigned[c]):
+                idx = np.flatnonzero((self.samples.region == r) & state.vis.in_image[c] & state.vis.facing[c])
+                chosen[c].extend(rng.choice(idx, min(per_region, idx.size), replace=False))
+        m = max(1, max(len(ch) for ch in chosen))
+        points, mask = np.zeros((n_cam, m, 3)), np.zeros((n_cam, m), dtype=bool)
+        for c, ch in enumerate(chosen):
+            points[c, :len(ch)] = self.samples.points[ch]
+            mask[c, :len(ch)] = True
+        return jnp.asarray(points), jnp.asarray(mask)
+
+    def track_obscured(self, state: State) -> None:
+        """Render-differentiated obscuration for every assigned (camera, region) pair that an
+        obstacle has masked at this or any earlier refresh of the start (a pair that was cleared
+        stays tracked, or the next round could walk the camera back behind the obstacle)."""
+        by_name = {c.name: i for i, c in enumerate(self.cams0)}
+        for entry in self.check(state):
+            if entry["constraint"] == "obscuration" and entry["value"] > 0:
+                self.masked.add((by_name[entry["cameras"][0]], self.samples.region_names.index(entry["region"])))
+        self.obscuration.tracked = []
+        for c, r in sorted(self.masked):
+            others = [camera_body(o) for k, o in enumerate(state.cameras) if k != c]
+            obstacles = [m for m in self.meshes if m.role != "specimen"] + others
+            self.obscuration.tracked.append(
+                (c, ObscurationRenderer(state.cameras[c], self._region_mesh(r), obstacles, width=96, spp=16)))
+        self.obscuration._cache = (None, None)
+
+    def _region_mesh(self, r: int) -> SceneMesh:
+        spec = self.exp.regions[r]
+        mesh = next(m for m in self.meshes if m.name == spec.mesh)
+        faces = mesh.faces[self.faces[r].faces]
+        used, inverse = np.unique(faces, return_inverse=True)
+        return SceneMesh(spec.name, "specimen", mesh.vertices[used], inverse.reshape(-1, 3))
+
+    # -- the objective -------------------------------------------------------------------
+    def _total(self, theta, views, mu):
+        pos, pan, tilt, roll = self.param.poses(theta)
+        c0 = self.cams0
+        f = jnp.asarray([c.focal_px for c in c0])
+        cx, cy = (jnp.asarray([c.principal_point[k] for c in c0]) for k in (0, 1))
+        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, self.size[:, 0], self.size[:, 1])
+        score = objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings)
+        R = rotation(pan, tilt, roll)
+        t = -jnp.einsum("cij,cj->ci", R, pos)
+        K = intrinsic_matrix(f, cx, cy)
+        opt = self.exp.optimize
+        pen_angle = constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles)
+        pen_fov = constraints.fov_penalty(K, R, t, self.size[:, 0], self.size[:, 1], self.fov_points,
+                                          self.fov_mask)
+        pen_clear = constraints.clearance_penalty(
+            constraints.body_points_world(self.body_local, R, pos), self.near_points, opt.clearance)
+        pen_obs = self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
+        penalty = pen_angle + pen_fov + pen_clear + pen_obs
+        jax.debug.callback(self._record, score, penalty)
+        return score + mu * penalty
+
+    def _record(self, score, penalty):
+        self.history.append(dict(start=self._label[0], round=self._label[1],
+                                 wall_s=time.perf_counter() - self._t0, score=float(score),
+                                 penalty=float(penalty)))
+
+    # -- exact checks ---------------------------------------------------------------------
+    def check(self, state: State) -> list[dict]:
+        opt = self.exp.optimize
+        clear = _clearances(state.cameras, self.exp, self.scene_points_tree)
+        lost = _light_lost(self, state)
+        entries = constraints.check(state.cameras, state.vis_obstacles, self.samples, self.assigned,
+                                    self.pairs, self.min_angles, clear, opt.clearance,
+                                    opt.max_obscuration, lost, self.param.u(state.theta),
+                                    roll_free="roll" in opt.free)
+        # the field of view may not fall below what the hand layout had (minus one percent)
+        start = {(e["cameras"][0], e["region"]): e["value"] for e in getattr(self, "_fov_start", [])}
+        for e in entries:
+            if e["constraint"] == "field_of_view":
+                key = (e["cameras"][0], e["region"])
+                if key in start:
+                    e["limit"] = min(e["limit"], start[key] - 0.01)
+                e["met"] = bool(e["value"] >= e["limit"])
+        return entries
+
+    @property
+    def scene_points_tree(self):
+        if not hasattr(self, "_tree"):
+            self._tree = cKDTree(self.scene_points)
+        return self._tree
+
+    def exact_score(self, state: State) -> float:
+        f = objective.CameraParams.from_cameras(state.cameras)
+        return float(objective.score(f, self.obj_samples, state.views, self.speckle.table, self.settings))
+
+
+def _surface_points(meshes, spacing: float) -> np.ndarray:
+    """Points on every mesh surface about `spacing` apart (plus the vertices), for clearance."""
+    pts = []
+    for m in meshes:
+        tm = m.trimesh
+        count = int(min(max(tm.area / spacing**2, 100), 200_000))
+        sampled, _ = trimesh.sample.sample_surface_even(tm, count, seed=0)
+        pts += [sampled, m.vertices]
+    return np.vstack(pts)
+
+
+def _clearances(cameras, exp, tree) -> np.ndarray:
+    """Distance (m) from each camera body to the nearest mesh point and to the other bodies."""
+    bodies = [camera_body(c) for c in cameras]
+    dense = [trimesh.sample.sample_surface_even(b.trimesh, 400, seed=0)[0] for b in bodies]
+    out = np.array([tree.query(d)[0].min() for d in dense])
+    for i, di in enumerate(dense):
+        for j, dj in enumerate(dense):
+            if i != j:
+                out[i] = min(out[i], cKDTree(dj).query(di)[0].min())
+    return out
+
+
+def _light_lost(problem: Problem, state: State) -> np.ndarray:
+    """Per region, the area fraction where the camera bodies hide more than 1 % of a light."""
+    if not problem.exp.lights:
+        return np.zeros(len(problem.samples.region_names))
+    bare = build_scene(problem.meshes)
+    lit_bare = illuminate(bare, problem.exp.lights, problem.samples).lit
+    lost = ((lit_bare - state.illumination.lit) > 0.01).any(axis=0)
+    s = problem.samples
+    return np.array([(s.area[(s.region == r) & lost]).sum() / s.area[s.region == r].sum()
+                     for r in range(len(s.region_names))])
+
+
+# --------------------------------------------------------------------------------------------
+# The solver loop
+# --------------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class Result:
+    theta: np.ndarray
+    state: State
+    score: float
+    checks: list
+    violations: int
+    start: int
+
+
+def solve(problem: Problem, progress: bool = False) -> list[Result]:
+    """Every start, every round; returns the results sorted best first."""
+    opt = problem.exp.optimize
+    rng = np.random.default_rng(opt.seed)
+    problem._fov_start = [e for e in problem.check(problem.start) if e["constraint"] == "field_of_view"]
+    results = []
+    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    for start in range(opt.starts):
+        theta = problem.param.theta0.copy()
+        if start > 0:
+            theta = theta + _perturbation(problem.param, rng)
+        state = problem.refresh(theta)
+        problem.masked = set()
+        for rnd in range(opt.rounds):
+            problem._label = (start, rnd)
+            problem.track_obscured(state)
+            mu = MU0 * 10.0 ** rnd
+            theta = _round(problem, solver, theta, state.views, mu, opt.max_steps)
+            state = problem.refresh(theta)
+            if progress:
+                print(f"  start {start + 1}/{opt.starts} round {rnd + 1}/{opt.rounds}: "
+                      f"score {problem.exact_score(state):.4g}", flush=True)
+        checks = problem.check(state)
+        results.append(Result(theta, state, problem.exact_score(state), checks,
+                              sum(not e["met"] for e in checks), start))
+    return sorted(results, key=lambda r: (r.violations, r.score))
+
+
+def _round(problem: Problem, solver, theta, views, mu, max_steps) -> np.ndarray:
+    """One BFGS solve in scaled variables y = (θ - θ_start) / scale, with the objective divided by
+    the largest scaled gradient component at the start, so the first quasi-Newton step moves about
+    one natural unit (3 deg, or 0.5 in logit u) along the steepest parameter."""
+    origin = jnp.asarray(theta)
+    scale = jnp.asarray(problem.param.scale)
+    _, g = problem.value_and_grad(origin, views, mu)
+    norm = float(jnp.max(jnp.abs(g * scale)))
+    if not np.isfinite(norm) or norm == 0:
+        return np.asarray(theta)
+    sol = optx.minimise(lambda y, args: problem.total(origin + scale * y, *args) / norm, solver,
+                        jnp.zeros_like(origin), args=(views, mu), max_steps=max_steps, throw=False)
+    y = sol.value if np.all(np.isfinite(np.asarray(sol.value))) else jnp.zeros_like(origin)
+    return np.asarray(origin + scale * y)
+
+
+def _perturbation(param: Parameterization, rng) -> np.ndarray:
+    d = np.zeros_like(param.theta0)
+    for idx in param.index:
+        for name, k in idx.items():
+            d[k] = rng.normal(0, 0.4) if name == "u" else rng.normal(0, math.radians(3))
+    return d
+
+
+# --------------------------------------------------------------------------------------------
+# The command
+# --------------------------------------------------------------------------------------------
+def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
+    """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
+    constraints.json, history.csv, convergence.png and moves.csv into `out`."""
+    say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
+    problem = Problem(exp)
+    say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
+        f"{len(problem.pairs)} camera pairs sharing a region")
+    results = solve(problem, progress=not quiet)
+    best = results[0]
+    before = _summary(problem, problem.start)
+    after = _summary(problem, best.state)
+    checks_before = problem.check(problem.start)
+    joint = _joint_p95(before), _joint_p95(after)
+    say(f"best: start {best.start + 1}, score {problem.exact_score(problem.start):.4g} -> {best.score:.4g}, "
+        f"{best.violations} constraint violation(s)")
+    with run_folder(out, overwrite) as tmp:
+        optimized = exp.with_cameras(problem.param.specs_at(best.theta))
+        report.write_config(tmp / "optimized.toml", optimized)
+        report.write_json(tmp / "layout.json", report.layout(best.state.cameras))
+        report.write_json(tmp / "summary_before.json", before)
+        report.write_json(tmp / "summary_after.json", after)
+        report.write_json(tmp / "constraints.json", {
+            "violations": best.violations,
+            "violated": [e for e in best.checks if not e["met"]],
+            "after": best.checks, "before": checks_before})
+        _write_history(tmp / "history.csv", problem.history)
+        _plot_history(tmp / "convergence.png", problem.history, exp.name)
+        _write_moves(tmp / "moves.csv", problem, best)
+    return {"score_before": problem.exact_score(problem.start), "score_after": best.score,
+            "violations": best.violations, "joint_p95_um": joint,
+            "violated": [e for e in best.checks if not e["met"]]}
+
+
+def _summary(problem: Problem, state: State) -> dict:
+    pred = predict(problem.exp, state.cameras, problem.samples, state.vis, state.illumination,
+                   problem.speckle)
+    return report.summary(problem.exp, problem.samples, state.vis, pred)
+
+
+def _joint_p95(summary: dict):
+    values = [r["sigma_max_um"]["p95"] for name, r in summary["regions"].items()
+              if name.startswith("joint") and r["sigma_max_um"]["p95"] is not None]
+    return max(values) if values else None
+
+
+def _write_history(path, history):
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", "penalty"])
+        writer.writeheader()
+        for i, row in enumerate(history):
+            writer.writerow({"evaluation": i, **row})
+
+
+def _plot_history(path, history, name):
+    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
+    starts = sorted({h["start"] for h in history})
+    for s in starts:
+        rows = [h for h in history if h["start"] == s]
+        ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=1, label=f"start {s + 1}")
+    ax.set_xlabel("wall time (s)")
+    ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
+    ax.set_yscale("log")
+    ax.set_title(f"{name}: convergence (every objective evaluation)")
+    ax.legend()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _write_moves(path, problem: Problem, best: Result):
+    u0, u1 = problem.param.u(problem.param.theta0), problem.param.u(best.theta)
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(["camera", "rail", "rail_position_mm_before", "rail_position_mm_after",
+                         "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
+                         "focal_mm"])
+        for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
+            rail = problem.param.rails[i]
+            along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
+            writer.writerow([a.name, rail.name if rail else "", *along,
+                             f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
+                             f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
+                             f"{b.focal_length * 1e3:g}"])
