@@ -147,7 +147,6 @@ class OptimizeSpec:
     starts: int = 3                                # multi-start: the hand layout + perturbed copies
     rounds: int = 3                                # visibility refreshes (outer penalty rounds)
     max_steps: int = 40                            # BFGS steps per round
-    lenses: tuple[float, ...] = ()                 # m; a catalogue for the discrete lens choice
     seed: int = 0
 
 
@@ -475,7 +474,7 @@ def _sensor(top: Table, path: Path) -> SensorModel:
 def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpec:
     t = Table(top.raw("optimize", {}), "optimize", path,
                ("free", "cameras", "regions", "min_axis_angle_deg", "clearance_m", "max_obscuration",
-                "assign_fraction", "starts", "rounds", "max_steps", "lenses_mm", "seed"))
+                "assign_fraction", "starts", "rounds", "max_steps", "seed"))
     free = t.raw("free", ["u", "pan", "tilt"])
     if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll"} or not free:
         raise t.error("free", f"must list some of u, pan, tilt, roll (got {free!r})")
@@ -494,10 +493,6 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
         if unknown:
             raise t.error("regions", f"no [[region]] named {', '.join(map(repr, unknown))}")
     angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
-    lenses = t.raw("lenses_mm", [])
-    arr = as_numbers(lenses)
-    if arr is None or arr.ndim != 1 or np.any(arr <= 0):
-        raise t.error("lenses_mm", f"must be a list of positive focal lengths in mm (got {lenses!r})")
     return OptimizeSpec(free=tuple(free), cameras=None if moving is None else tuple(moving),
                         regions=None if scored is None else tuple(scored),
                         min_axis_angle=None if angle is None else math.radians(angle),
@@ -506,7 +501,7 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
                         assign_fraction=t.number("assign_fraction", 0.5, low=0.01, high=1.0),
                         starts=t.integer("starts", 3, low=1), rounds=t.integer("rounds", 3, low=1),
                         max_steps=t.integer("max_steps", 40, low=1),
-                        lenses=tuple(float(f) * 1e-3 for f in arr), seed=t.integer("seed", 0, low=0))
+                        seed=t.integer("seed", 0, low=0))
 
 
 def _render(top: Table, path: Path) -> RenderSpec:
