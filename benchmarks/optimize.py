@@ -56,9 +56,16 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--config", default=ROOT / "experiments/beam_column/ten_cameras.toml")
     parser.add_argument("--budget", type=float, default=1.5, help="baseline time / vdo time")
+    parser.add_argument("--rounds", type=int, default=None, help="override [optimize] rounds")
+    parser.add_argument("--max-steps", type=int, default=None, help="override [optimize] max_steps")
     args = parser.parse_args()
     exp = config.load(args.config)
-    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, starts=1))
+    opt = dataclasses.replace(exp.optimize, starts=1)
+    if args.rounds:
+        opt = dataclasses.replace(opt, rounds=args.rounds)
+    if args.max_steps:
+        opt = dataclasses.replace(opt, max_steps=args.max_steps)
+    exp = dataclasses.replace(exp, optimize=opt)
     problem = Problem(exp)
     score0, v0 = feasible_score(problem, problem.param.theta0)
 
