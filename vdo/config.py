@@ -364,19 +364,23 @@ def _entries(top: Table, key: str, file: Path, allowed, required=True):
     return tables
 
 
-def load(path) -> Experiment:
-    """Read and validate an experiment file. Raises ConfigError on any user mistake."""
+def read_toml(path) -> dict:
+    """The parsed TOML document at `path`; ConfigError when it is missing, unreadable or invalid."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(path, "", "file not found") from None
     except OSError as exc:
         raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
-    return parse(data, path)
+
+
+def load(path) -> Experiment:
+    """Read and validate an experiment file. Raises ConfigError on any user mistake."""
+    return parse(read_toml(path), Path(path))
 
 
 def parse(data: dict, path: Path) -> Experiment:

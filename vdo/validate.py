@@ -34,7 +34,6 @@ import json
 import math
 import shutil
 import time
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -42,7 +41,7 @@ import numpy as np
 
 from .camera import Camera, look_at_angles
 from .config import (Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec, SpeckleSpec, Table,
-                     as_numbers)
+                     as_numbers, read_toml)
 from .correlate import Patch, correlate
 from .errors import ConfigError
 from .lighting import illuminate, pattern_stats
@@ -128,17 +127,7 @@ _SENSOR_FIELDS = ("quantum_efficiency", "full_well_e", "read_noise_e", "bit_dept
 
 def load(path) -> ValidationSpec:
     """Read and validate a validation file; ConfigError (file, field, message) on any mistake."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(path, "", "file not found") from None
-    except OSError as exc:
-        raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
-    return parse(data, path)
+    return parse(read_toml(path), Path(path))
 
 
 def parse(data: dict, path) -> ValidationSpec:
