@@ -36,9 +36,10 @@ def feasible_score(problem, theta):
 def baseline(problem, seconds, seed=0):
     rng = np.random.default_rng(seed)
     theta = problem.param.theta0.copy()
-    best, violations = feasible_score(problem, theta)
+    score, violations = feasible_score(problem, theta)
+    best = score if violations == 0 else np.inf     # only layouts meeting every constraint count
     start = time.perf_counter()
-    trace = [(0.0, best if violations == 0 else np.inf)]
+    trace = [(0.0, best)]
     step = 1.0
     while time.perf_counter() - start < seconds:
         candidate = theta + step * problem.param.scale * rng.standard_normal(theta.size)

@@ -249,12 +249,14 @@ class Problem:
 
     def track_obscured(self, state: State) -> None:
         """Render-differentiated obscuration for every assigned (camera, region) pair that an
-        obstacle has masked by more than half the limit at this or any earlier refresh of the
-        start (a pair that was cleared stays tracked, or the next round could walk the camera back
-        behind the obstacle). Each tracked pair costs two Mitsuba renders and a backward pass per
-        evaluation, so pairs well inside the limit are left to the exact check."""
+        obstacle has masked beyond the limit at this or any earlier refresh of the start (a pair
+        that was cleared stays tracked, or the next round could walk the camera back behind the
+        obstacle). Pairs within the limit are left to the exact check: each tracked pair costs two
+        Mitsuba renders and a backward pass per evaluation, and its Monte Carlo noise (spp 16)
+        stalls BFGS's line search when the pair has nothing to gain (measured on the built-in
+        experiment: no accepted step with two such pairs, 5 % lower score without them)."""
         by_name = {c.name: i for i, c in enumerate(self.cams0)}
-        threshold = 0.5 * self.exp.optimize.max_obscuration
+        threshold = self.exp.optimize.max_obscuration
         for entry in self.check(state):
             if entry["constraint"] == "obscuration" and entry["value"] > threshold:
                 self.masked.add((by_name[entry["cameras"][0]], self.samples.region_names.index(entry["region"])))
