@@ -84,11 +84,14 @@ def main():
 
     trace = baseline(problem, args.budget * vdo_time)
     base_final = trace[-1][1]
-    reach = next((t for t, s in trace if s <= vdo_score), None)
+    reach = next((t for t, s in trace if np.isfinite(s) and s <= vdo_score), None)
     print(f"(1+1)-ES baseline   score {base_final:.5g} after {trace[-1][0]:.1f} s, {len(trace) - 1} layouts")
     print(f"baseline reaches vdo's score: {'never' if reach is None else f'after {reach:.1f} s'}")
-    print(f"vdo reaches the baseline's final score: {'yes' if vdo_score <= base_final else 'no'}, "
-          f"in {vdo_time:.1f} s vs {trace[-1][0]:.1f} s")
+    if not (np.isfinite(vdo_score) or np.isfinite(base_final)):
+        print("neither method found a layout that meets every constraint")
+    else:
+        print(f"vdo reaches the baseline's final score: {'yes' if vdo_score <= base_final else 'no'}, "
+              f"in {vdo_time:.1f} s vs {trace[-1][0]:.1f} s")
     print("time_s  baseline_best")
     for t, s in trace[:: max(1, len(trace) // 12)]:
         print(f"{t:6.1f}  {s:.5g}")
