@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from vdo import config, scene, visibility
+from conftest import raycast
 
 HERE = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
@@ -41,13 +41,7 @@ def test_specimen_is_the_papers_t():
 
 @pytest.mark.parametrize("name,joint_min", [("ten_cameras.toml", 3), ("three_cameras.toml", 3)])
 def test_joint_faces_are_covered(name, joint_min):
-    exp = config.load(HERE / name)
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
-    cams = exp.cameras()
-    sc = scene.build_scene(meshes + [scene.camera_body(c) for c in cams])
-    vis = visibility.compute_visibility(sc, cams, samples, exp.evaluation.incidence_limit,
-                                        progress=False)
+    _, samples, _, _, vis = raycast(HERE / name)
     for k, region in enumerate(samples.region_names):
         if region.startswith("joint") and (name.startswith("ten") or region == "joint_top"):
             assert vis.coverage[samples.region == k].min() >= joint_min, region

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vdo.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project,
-                        rotation, rotation_derivatives, sensitivity)
+                        rotation, rotation_derivatives)
 
 RNG = np.random.default_rng(7)
 

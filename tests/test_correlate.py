@@ -11,7 +11,6 @@ speckle dots 0.45 mm = 4.5 px.
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest

@@ -341,7 +341,6 @@ def test_weights_fall_smoothly_to_zero_at_the_incidence_limit():
     limit, ramp = math.radians(70.0), math.radians(10.0)
     st = ob.Settings(incidence_limit=limit, incidence_ramp=ramp)
     smp = make_samples([[0.0, 0.0, 0.0]], [[0, 0, 1.0]], [[1.0, 0, 0]])
-    pho = views(1, 1)
 
     def cam_at(theta):
         pos = jnp.stack([jnp.sin(theta), 0.0 * theta, jnp.cos(theta)])[None]

@@ -1,14 +1,13 @@
 """The predicted fields through the whole pipeline (config -> ray cast -> lights -> objective),
 against closed forms and the paper's orders of magnitude."""
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import DOWN_CAMERA
-from vdo import config, lighting, scene, visibility
+from conftest import DOWN_CAMERA, raycast
+from vdo import lighting
 from vdo.predict import predict, speckle_model
 
 LIGHT = """
@@ -23,13 +22,7 @@ BAR = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\
 
 
 def run(path):
-    exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
-    cams = exp.cameras()
-    sc = scene.build_scene(meshes + [scene.camera_body(c) for c in cams])
-    vis = visibility.compute_visibility(sc, cams, samples, exp.evaluation.incidence_limit,
-                                        progress=False)
+    exp, samples, cams, sc, vis = raycast(path)
     illum = lighting.illuminate(sc, exp.lights, samples, exp.render.ambient_radiance)
     return exp, samples, cams, vis, illum, predict(exp, cams, samples, vis, illum, speckle_model(exp))
 

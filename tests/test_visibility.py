@@ -4,21 +4,15 @@ circle, the shadow of a bar, and camera bodies as obstacles."""
 import numpy as np
 import pytest
 
-from conftest import DOWN_CAMERA
-from vdo import config, scene, visibility
+from conftest import DOWN_CAMERA, raycast
+from vdo import visibility
 
 H = 1.5          # camera height above the plate (m)
 CELL = 0.01      # sample spacing (m)
 
 
 def run(path):
-    exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
-    cams = exp.cameras()
-    bodies = [scene.camera_body(c) for c in cams]
-    vis = visibility.compute_visibility(scene.build_scene(meshes + bodies), cams, samples,
-                                        exp.evaluation.incidence_limit, progress=False)
+    exp, samples, _, _, vis = raycast(path)
     return exp, samples, vis
 
 

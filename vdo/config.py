@@ -25,6 +25,7 @@ from .errors import ConfigError
 from .rail import Rail
 from .sensor import SensorModel
 
+SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 ROLES = ("specimen", "obstacle")
 _REQUIRED = object()
@@ -462,12 +463,8 @@ def _speckle(top: Table, path: Path) -> SpeckleSpec:
 
 
 def _sensor(top: Table, path: Path) -> SensorModel:
-    fields = {"quantum_efficiency": "quantum_efficiency", "full_well_e": "full_well_e",
-              "read_noise_e": "read_noise_e", "bit_depth": "bit_depth",
-              "gain_dn_per_e": "gain_dn_per_e", "offset_dn": "offset_dn",
-              "photons_per_unit": "photons_per_unit"}
-    t = Table(top.raw("sensor", {}), "sensor", path, tuple(fields))
-    values = {k: t.raw(k) for k in fields if t.has(k)}
+    t = Table(top.raw("sensor", {}), "sensor", path, SENSOR_FIELDS)
+    values = {k: t.raw(k) for k in SENSOR_FIELDS if t.has(k)}
     try:
         return SensorModel(**values)
     except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."

@@ -195,6 +195,13 @@ class Problem:
                                                                      self.cams0[j].focal_length))
                                     for i, j in self.pairs])
         self.fov_points, self.fov_mask = self._fov_points(self.start)
+        self.scene_tree = cKDTree(self.scene_points)
+        # lights reaching each sample with no camera in the scene, to see what the bodies hide
+        self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
+                                    if exp.lights else None)
+        self.fov_start: dict = {}   # (camera, region) -> in-image fraction of the hand layout
+        self.fov_start = {(e["cameras"][0], e["region"]): e["value"] for e in self.check(self.start)
+                          if e["constraint"] == "field_of_view"}
         self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
         self.history: list[dict] = []
@@ -305,27 +312,20 @@ class Problem:
     # -- exact checks ---------------------------------------------------------------------
     def check(self, state: State) -> list[dict]:
         opt = self.exp.optimize
-        clear = _clearances(state.cameras, self.exp, self.scene_points_tree)
+        clear = _clearances(state.cameras, self.scene_tree)
         lost = _light_lost(self, state)
         entries = constraints.check(state.cameras, state.vis_obstacles, self.samples, self.assigned,
                                     self.pairs, self.min_angles, clear, opt.clearance,
                                     opt.max_obscuration, lost, self.param.u(state.theta),
                                     roll_free="roll" in opt.free)
         # the field of view may not fall below what the hand layout had (minus one percent)
-        start = {(e["cameras"][0], e["region"]): e["value"] for e in getattr(self, "_fov_start", [])}
         for e in entries:
             if e["constraint"] == "field_of_view":
                 key = (e["cameras"][0], e["region"])
-                if key in start:
-                    e["limit"] = min(e["limit"], start[key] - 0.01)
+                if key in self.fov_start:
+                    e["limit"] = min(e["limit"], self.fov_start[key] - 0.01)
                 e["met"] = bool(e["value"] >= e["limit"])
         return entries
-
-    @property
-    def scene_points_tree(self):
-        if not hasattr(self, "_tree"):
-            self._tree = cKDTree(self.scene_points)
-        return self._tree
 
     def exact_score(self, state: State) -> float:
         f = objective.CameraParams.from_cameras(state.cameras)
@@ -343,7 +343,7 @@ def _surface_points(meshes, spacing: float) -> np.ndarray:
     return np.vstack(pts)
 
 
-def _clearances(cameras, exp, tree) -> np.ndarray:
+def _clearances(cameras, tree) -> np.ndarray:
     """Distance (m) from each camera body to the nearest mesh point and to the other bodies."""
     bodies = [camera_body(c) for c in cameras]
     dense = [trimesh.sample.sample_surface_even(b.trimesh, 400, seed=0)[0] for b in bodies]
@@ -357,11 +357,9 @@ def _clearances(cameras, exp, tree) -> np.ndarray:
 
 def _light_lost(problem: Problem, state: State) -> np.ndarray:
     """Per region, the area fraction where the camera bodies hide more than 1 % of a light."""
-    if not problem.exp.lights:
+    if problem.lit_without_cameras is None:
         return np.zeros(len(problem.samples.region_names))
-    bare = build_scene(problem.meshes)
-    lit_bare = illuminate(bare, problem.exp.lights, problem.samples).lit
-    lost = ((lit_bare - state.illumination.lit) > 0.01).any(axis=0)
+    lost = ((problem.lit_without_cameras - state.illumination.lit) > 0.01).any(axis=0)
     s = problem.samples
     return np.array([(s.area[(s.region == r) & lost]).sum() / s.area[s.region == r].sum()
                      for r in range(len(s.region_names))])
@@ -384,7 +382,6 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
     """Every start, every round; returns the results sorted best first."""
     opt = problem.exp.optimize
     rng = np.random.default_rng(opt.seed)
-    problem._fov_start = [e for e in problem.check(problem.start) if e["constraint"] == "field_of_view"]
     results = []
     solver = optx.BFGS(rtol=1e-6, atol=1e-6)
     for start in range(opt.starts):

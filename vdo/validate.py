@@ -40,8 +40,8 @@ from pathlib import Path
 import numpy as np
 
 from .camera import Camera, look_at_angles
-from .config import (Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec, SpeckleSpec, Table,
-                     as_numbers, read_toml)
+from .config import (SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
+                     SpeckleSpec, Table, as_numbers, read_toml)
 from .correlate import Patch, correlate
 from .errors import ConfigError
 from .lighting import illuminate, pattern_stats
@@ -121,8 +121,6 @@ _CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg"
                 "ambient_radiance", "spp", "sensor", "displacement_um", "seed")
 _CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
                   "pixels")
-_SENSOR_FIELDS = ("quantum_efficiency", "full_well_e", "read_noise_e", "bit_depth",
-                  "gain_dn_per_e", "offset_dn", "photons_per_unit")
 
 
 def load(path) -> ValidationSpec:
@@ -197,9 +195,9 @@ def _case(t: Table, path: Path, where: str) -> Case:
                           seed=t.integer("speckle_seed", 1, low=0), white_albedo=white,
                           black_albedo=black)
 
-    sensor_table = Table(t.raw("sensor", {}), f"{where}.sensor", path, _SENSOR_FIELDS)
+    sensor_table = Table(t.raw("sensor", {}), f"{where}.sensor", path, SENSOR_FIELDS)
     try:
-        sensor = SensorModel(**{k: sensor_table.raw(k) for k in _SENSOR_FIELDS if sensor_table.has(k)})
+        sensor = SensorModel(**{k: sensor_table.raw(k) for k in SENSOR_FIELDS if sensor_table.has(k)})
     except ValueError as exc:
         fld, _, message = str(exc).partition(": ")
         raise sensor_table.error(fld.removeprefix("SensorModel."), message) from None
