@@ -4,6 +4,7 @@ too narrow, and writes a complete run folder whose layout loads again."""
 import csv
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,9 @@ import pytest
 from conftest import PLATE_TOML, write_box
 from vdo import config
 from vdo.constraints import stereo_min_angle
-from vdo.optimize import optimize
+from vdo.optimize import Parameterization, optimize
+
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
 CAMERA = """
 [[camera]]
@@ -100,3 +103,26 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
         np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
     history = list(csv.DictReader((out / "history.csv").open()))
     assert len(history) > 5
+
+
+def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
+    """θ0 reproduces the hand layout; sliding a camera along its rail with zero angle offsets
+    keeps its aim point on the optical axis, and an offset turns the axis by exactly that angle."""
+    exp = config.load(EXPERIMENTS / "ten_cameras.toml")
+    cams = exp.cameras()
+    param = Parameterization(exp, cams, np.zeros(3))
+    for hand, rebuilt in zip(cams, param.cameras_at(param.theta0)):
+        np.testing.assert_allclose(rebuilt.position, hand.position, atol=1e-12)
+        np.testing.assert_allclose(rebuilt.R, hand.R, atol=1e-12)
+    theta = param.theta0.copy()
+    for idx in param.index:
+        theta[idx["u"]] += 0.3
+    for cam, aim in zip(param.cameras_at(theta), param.aims):
+        off_axis = (aim - cam.position) - ((aim - cam.position) @ cam.optical_axis) * cam.optical_axis
+        assert np.linalg.norm(off_axis) < 1e-9
+    k = param.index[0]["pan"]
+    turned = theta.copy()
+    turned[k] += 0.05
+    a, b = param.cameras_at(theta)[0], param.cameras_at(turned)[0]
+    assert b.pan - a.pan == pytest.approx(0.05, abs=1e-12)
+    np.testing.assert_allclose(b.position, a.position, atol=1e-12)

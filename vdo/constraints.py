@@ -24,7 +24,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .camera import project
+from .camera import to_camera
+from .objective import smoothstep
 from .scene import SurfaceSamples
 from .visibility import Visibility
 
@@ -67,16 +68,31 @@ def axis_angle_penalty(axes, pairs, min_angles):
     return jnp.sum((jnp.maximum(cos_a - cos_m, 0.0) / (1.0 - cos_m)) ** 2)
 
 
-def fov_penalty(K, R, t, width, height, points, mask):
-    """Σ over cameras of the mean squared distance, in hundredths of the image width, by which
-    the assigned region points (C, M, 3) with `mask` (C, M) fall outside the image."""
-    uv = project(K[:, None], R[:, None], t[:, None], points)
-    u, v = uv[..., 0], uv[..., 1]
-    w, h = width[:, None], height[:, None]
-    out = (jnp.maximum(-0.5 - u, 0) + jnp.maximum(u - (w - 0.5), 0)
-           + jnp.maximum(-0.5 - v, 0) + jnp.maximum(v - (h - 0.5), 0)) / (0.01 * w)
-    count = jnp.maximum(mask.sum(axis=1), 1)
-    return jnp.sum(jnp.sum(jnp.where(mask, out ** 2, 0.0), axis=1) / count)
+def in_image_fraction(K, R, t, width, height, camera, points, area, ramp):
+    """(G,) smooth fraction of each group's area that projects inside its camera's image.
+
+    Group g holds the points (G, M, 3) with areas (G, M) (0 for padding) of one region as seen
+    by camera `camera[g]`. A point counts with S((d + r_g) / (2 r_g)) for each image edge, d its
+    signed distance inside that edge in pixels, r_g = ramp[g] pixels (about the sample spacing in
+    the image, so that the fraction varies smoothly as the edge sweeps over the samples) and S the
+    C^2 smoothstep: 1/2 on the edge itself, so that on a region that the edge crosses the smooth
+    fraction equals the exact one to O(r^2); points behind the camera count 0."""
+    c = jnp.asarray(camera)
+    p = to_camera(R[c][:, None], t[c][:, None], points)
+    z = p[..., 2]
+    front = z > 1e-3
+    uvw = jnp.einsum("gij,gmj->gmi", K[c], jnp.where(front[..., None], p, jnp.array([0.0, 0.0, 1.0])))
+    u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    w, h = width[c][:, None], height[c][:, None]
+    r = jnp.asarray(ramp)[:, None]
+    edge = lambda d: smoothstep((d + r) / (2 * r))
+    inside = edge(u + 0.5) * edge(w - 0.5 - u) * edge(v + 0.5) * edge(h - 0.5 - v)
+    return jnp.sum(area * jnp.where(front, inside, 0.0), -1) / jnp.maximum(jnp.sum(area, -1), 1e-30)
+
+
+def fov_penalty(fraction, limit, margin: float):
+    """Σ_g (max(0, limit_g + margin - fraction_g) / 0.01)^2: shortfall in percent of the region."""
+    return jnp.sum((jnp.maximum(jnp.asarray(limit) + margin - fraction, 0.0) / 0.01) ** 2)
 
 
 def body_points_world(local_points, R, position):
@@ -85,20 +101,27 @@ def body_points_world(local_points, R, position):
 
 
 def clearance_penalty(body_world, near_points, clearance: float):
-    """Σ (max(0, clearance - d) / clearance)^2 over body points, d the distance to the nearest
-    mesh point of that camera's neighbourhood (`near_points` (C, Q, 3), padded with far points),
-    and over pairs of cameras, d the closest distance between their body points."""
+    """Σ (max(0, clearance - d) / clearance)^2 over every (body point, mesh point) pair of a
+    camera's neighbourhood (`near_points` (C, Q, 3), padded with far points) and over every pair
+    of body points of two different cameras (each pair once), d their distance (m).
+
+    Summing the hinge over all point pairs, not taking the nearest one, makes the penalty C^1 in
+    the poses (a minimum over points has a kink wherever the nearest point changes, where BFGS
+    stalls), and it is 0 exactly when every distance is at least `clearance` (1e-12 m^2 under
+    the root keeps the gradient finite where two points coincide)."""
     if clearance <= 0:
         return 0.0
-    d2 = jnp.sum((body_world[:, :, None, :] - near_points[:, None, :, :]) ** 2, -1)
-    d_scene = jnp.sqrt(jnp.min(d2, -1) + 1e-12)
-    total = jnp.sum((jnp.maximum(clearance - d_scene, 0.0) / clearance) ** 2)
+
+    def hinge(d2):
+        d = jnp.sqrt(d2 + 1e-12)
+        return (jnp.maximum(clearance - d, 0.0) / clearance) ** 2
+
+    total = jnp.sum(hinge(jnp.sum((body_world[:, :, None, :] - near_points[:, None, :, :]) ** 2, -1)))
     n = body_world.shape[0]
     if n > 1:
         diff = body_world[:, None, :, None, :] - body_world[None, :, None, :, :]
-        d_cam = jnp.sqrt(jnp.min(jnp.sum(diff ** 2, -1), axis=(-2, -1)) + 1e-12)
-        off = ~jnp.eye(n, dtype=bool)
-        total = total + 0.5 * jnp.sum(jnp.where(off, (jnp.maximum(clearance - d_cam, 0.0) / clearance) ** 2, 0.0))
+        per_pair = jnp.sum(hinge(jnp.sum(diff ** 2, -1)), axis=(-2, -1))
+        total = total + 0.5 * jnp.sum(jnp.where(~jnp.eye(n, dtype=bool), per_pair, 0.0))
     return total
 
 
@@ -123,45 +146,63 @@ def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> np
 # --------------------------------------------------------------------------------------------
 # Exact checks for the report
 # --------------------------------------------------------------------------------------------
+def _entry(constraint: str, value: float, limit, unit: str, kind: str, **about) -> dict:
+    """A check entry. kind 'min' (value >= limit), 'max' (value <= limit), 'zero' (|value| <= limit
+    within 1e-9) or 'range' (limit = [low, high]). `excess` is by how much the value is beyond
+    its limit, relative to the limit's scale (max(|limit|, 1) for 'zero' and 'range', else |limit|),
+    0 when met: a common measure of how far a layout is from feasible."""
+    if kind == "range":
+        low, high = limit
+        gap = max(low - value, value - high, 0.0) / max(high - low, 1.0)
+    elif kind == "zero":
+        gap = max(abs(value) - limit - 1e-9, 0.0) / max(abs(limit), 1.0)
+    else:
+        tol = 1e-6 * max(abs(limit), 1e-30)  # angles are compared in degrees to 1e-6
+        beyond = (limit - value) if kind == "min" else (value - limit)
+        gap = max(beyond - tol, 0.0) / max(abs(limit), 1e-30)
+    return dict(constraint=constraint, **about, value=value, limit=limit, unit=unit,
+                met=bool(gap == 0.0), excess=float(gap))
+
+
 def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarray,
           pairs: np.ndarray, min_angles: np.ndarray, clearances: np.ndarray, clearance: float,
           max_obscuration: float, lost_light: np.ndarray, rails_u: list,
-          roll_free: bool = False) -> list[dict]:
-    """One entry per constraint instance: name, what it concerns, value, limit, met.
+          roll_free: bool = False, fov_limits: np.ndarray | None = None) -> list[dict]:
+    """One entry per constraint instance: name, what it concerns, value, limit, met and excess
+    (`_entry`).
 
     `clearances` (C,) is the measured distance from each body to everything else (m),
-    `lost_light` (R,) the fraction of each region's area where camera bodies block light."""
+    `lost_light` (R,) the fraction of each region's area where camera bodies block light, and
+    `fov_limits` (C, R) the least in-image fraction of each assigned region (default
+    1 - max_obscuration)."""
     out = []
     for (i, j), limit in zip(pairs, min_angles):
         angle = math.degrees(math.acos(np.clip(cameras[i].optical_axis @ cameras[j].optical_axis, -1, 1)))
-        out.append(dict(constraint="axis_angle", cameras=[cameras[i].name, cameras[j].name],
-                        value=angle, limit=math.degrees(limit), unit="deg", met=bool(angle >= math.degrees(limit) - 1e-6)))
+        out.append(_entry("axis_angle", angle, math.degrees(limit), "deg", "min",
+                          cameras=[cameras[i].name, cameras[j].name]))
     geometric = vis.in_front & vis.in_image & vis.facing
     facing = vis.in_front & vis.facing
     for c, cam in enumerate(cameras):
         for r in np.flatnonzero(assigned[c]):
             mask = samples.region == r
             area = samples.area[mask]
-            region = samples.region_names[r]
+            about = dict(cameras=[cam.name], region=samples.region_names[r])
             in_view = geometric[c, mask]
             blocked = float((area * (in_view & ~vis.unoccluded[c, mask])).sum() / max((area * in_view).sum(), 1e-30))
-            out.append(dict(constraint="obscuration", cameras=[cam.name], region=region, value=blocked,
-                            limit=max_obscuration, unit="fraction of the region's image", met=blocked <= max_obscuration))
+            out.append(_entry("obscuration", blocked, max_obscuration, "fraction of the region's image",
+                              "max", **about))
             faces = facing[c, mask]
             inside = float((area * (faces & vis.in_image[c, mask])).sum() / max((area * faces).sum(), 1e-30))
-            out.append(dict(constraint="field_of_view", cameras=[cam.name], region=region, value=inside,
-                            limit=1 - max_obscuration, unit="fraction of the region in the image",
-                            met=inside >= 1 - max_obscuration))
-        out.append(dict(constraint="clearance", cameras=[cam.name], value=float(clearances[c]),
-                        limit=clearance, unit="m", met=bool(clearances[c] >= clearance)))
+            limit = 1 - max_obscuration if fov_limits is None else float(fov_limits[c, r])
+            out.append(_entry("field_of_view", inside, limit, "fraction of the region in the image",
+                              "min", **about))
+        out.append(_entry("clearance", float(clearances[c]), clearance, "m", "min", cameras=[cam.name]))
         if not roll_free:
-            out.append(dict(constraint="horizontal", cameras=[cam.name], value=math.degrees(cam.roll),
-                            limit=0.0, unit="deg roll", met=abs(cam.roll) < 1e-9))
+            out.append(_entry("horizontal", math.degrees(cam.roll), 0.0, "deg roll", "zero",
+                              cameras=[cam.name]))
         if rails_u[c] is not None:
-            out.append(dict(constraint="on_rail", cameras=[cam.name], value=float(rails_u[c]),
-                            limit=[0.0, 1.0], unit="u", met=0.0 <= rails_u[c] <= 1.0))
+            out.append(_entry("on_rail", float(rails_u[c]), [0.0, 1.0], "u", "range", cameras=[cam.name]))
     for r, lost in enumerate(lost_light):
-        out.append(dict(constraint="no_shadow_from_cameras", region=samples.region_names[r],
-                        value=float(lost), limit=0.0, unit="fraction of the region losing light",
-                        met=bool(lost <= 1e-3)))
+        out.append(_entry("no_shadow_from_cameras", float(lost), 1e-3, "fraction of the region losing light",
+                          "max", region=samples.region_names[r]))
     return out

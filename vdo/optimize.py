@@ -5,16 +5,25 @@ Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u
 u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
 0 = horizontal, unless freed). The objective, a JAX function of the parameter vector θ, is
 
-    J(θ) = score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration](θ)
+    J(θ) = a_k score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration](θ)
 
 with `vdo.objective.score` (smooth high percentile of σ_max in µm plus the coverage shortfall) and
-the penalties of `vdo.constraints`; P_obscuration = Σ (o / max_obscuration)^2 over the assigned
-(camera, region) pairs that an obstacle masked at the last refresh, o differentiated through
-Mitsuba (`vdo.obscuration`). A round is one BFGS solve (optimistix) with the ray-cast occlusion and
-the lighting frozen; between rounds they are recomputed at the new layout and μ grows x10 (penalty
-continuation). Several starts: the hand layout and randomly perturbed copies. The final layout of
-each start is checked exactly (`constraints.check`); the best one that meets every constraint
-wins, else the one with the fewest violations, and the report names them.
+the penalties of `vdo.constraints` (`Problem.terms`), each C^1 and 0 exactly where its
+constraint holds with a back-off margin (`ANGLE_MARGIN`, `CLEARANCE_MARGIN`, `FOV_MARGIN`): a
+quadratic penalty's minimiser always lies a little beyond what the penalty aims at, so aiming
+inside the limit puts it on the feasible side. P_fov keeps a smooth in-image area fraction of
+each assigned region at least what the hand layout had (minus 1 %, at most 1 - max_obscuration);
+P_obscuration = Σ (o / max_obscuration)^2 over the assigned (camera, region) pairs that an
+obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`).
+
+A round is one BFGS solve (optimistix) with the ray-cast occlusion and the lighting frozen;
+between rounds they are recomputed at the new layout. From a start that violates a constraint,
+round 0 restores feasibility: the penalties alone (a = 0, μ = 1), so that the score never trades
+against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
+(penalty continuation). Several starts: the hand layout and randomly perturbed copies. Each
+round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
+start the best one wins (`Result.rank`: feasible first, by score), and the report names any
+violation that remains.
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import math
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -48,7 +58,13 @@ from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # no
 from .visibility import compute_visibility  # noqa: E402
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
+FEASIBILITY_STEPS = 100   # BFGS steps of the feasibility round (penalties only)
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's unit for pan, tilt, roll (0.5 for logit u)
+# Back-off: the penalties aim this far inside each limit, so that the penalty solution, which
+# always lies a little beyond what it aims at, meets the exact limit.
+ANGLE_MARGIN = math.radians(1.0)   # rad added to each minimum axis angle
+CLEARANCE_MARGIN = 0.005           # m added to the clearance
+FOV_MARGIN = 0.005                 # added to each least in-image fraction of a region
 
 
 # --------------------------------------------------------------------------------------------
@@ -56,13 +72,20 @@ ANGLE_SCALE = math.radians(3.0)   # rad: the solver's unit for pan, tilt, roll (
 # --------------------------------------------------------------------------------------------
 class Parameterization:
     """θ <-> camera poses. `index[c]` maps 'u', 'pan', 'tilt', 'roll' to positions in θ for the
-    free parameters of camera c."""
+    free parameters of camera c.
 
-    def __init__(self, exp: Experiment, cameras: list[Camera]):
+    A camera whose rail position u is free is aimed relative to its *aim point* a_c, the point of
+    its hand-layout optical axis at the depth of `centre` (the regions' centroid): its free pan
+    and tilt are offsets from the direction a_c - P(u), so that sliding along the rail keeps the
+    same point in the middle of the image (without this, u and the angles are strongly coupled
+    and BFGS creeps along a narrow valley). Otherwise pan, tilt and roll are absolute. θ = 0
+    offsets reproduce the hand layout; a held angle keeps its configured value."""
+
+    def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
         free = exp.optimize.free
-        self.index, theta = [], []
+        self.index, theta, scale, aims = [], [], [], []
         for cam, spec in zip(cameras, exp.camera_specs):
             idx = {}
             if cam.name in moving:
@@ -73,27 +96,40 @@ class Parameterization:
                     if name == "u":
                         u = float(np.clip(spec.u, 1e-4, 1 - 1e-4))
                         theta.append(math.log(u / (1 - u)))
+                        scale.append(0.5)
                     else:
-                        theta.append(getattr(cam, name))
+                        relative = "u" in idx and name != "roll"
+                        theta.append(0.0 if relative else getattr(cam, name))
+                        # a few degrees, less for a long lens: an eighth of its horizontal field
+                        scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
+            depth = max(float((np.asarray(centre) - cam.position) @ cam.optical_axis), 0.1)
+            aims.append(cam.position + depth * cam.optical_axis)
         self.theta0 = np.array(theta, dtype=float)
-        # natural scale of each parameter: the solver works in units of these
-        self.scale = np.array([0.0] * len(theta))
-        for idx in self.index:
-            for name, k in idx.items():
-                self.scale[k] = 0.5 if name == "u" else ANGLE_SCALE
+        self.scale = np.array(scale, dtype=float)   # the solver works in units of these
+        self.aims = np.array(aims)
         self.rails = [exp.rail(s.rail) if s.rail else None for s in exp.camera_specs]
 
     def poses(self, theta):
         """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays."""
         pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
-        for cam, spec, rail, idx in zip(self.cameras, self.exp.camera_specs, self.rails, self.index):
+        for cam, spec, rail, idx, aim in zip(self.cameras, self.exp.camera_specs, self.rails,
+                                             self.index, self.aims):
             if "u" in idx:
-                pos.append(rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset)
+                p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
+                d = jnp.asarray(aim) - p
+                base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])),
+                            roll=jnp.asarray(0.0))
+                relative = {"pan", "tilt"}
             else:
-                pos.append(jnp.asarray(cam.position, dtype=float))
+                p = jnp.asarray(cam.position, dtype=float)
+                base, relative = {k: jnp.asarray(0.0) for k in angles}, set()
+            pos.append(p)
             for k in angles:
-                angles[k].append(theta[idx[k]] if k in idx else jnp.asarray(getattr(cam, k), dtype=float))
+                if k in idx:
+                    angles[k].append(base[k] + theta[idx[k]] if k in relative else theta[idx[k]])
+                else:
+                    angles[k].append(jnp.asarray(getattr(cam, k), dtype=float))
         return jnp.stack(pos), *(jnp.stack(angles[k]) for k in ("pan", "tilt", "roll"))
 
     def u(self, theta) -> list:
@@ -179,14 +215,14 @@ class Problem:
             keep = np.array([r.name in exp.optimize.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
-        self.param = Parameterization(exp, exp.cameras())
+        self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
         self.cams0 = self.param.cameras
         opt = exp.optimize
         self.scene_points = _surface_points(self.meshes, spacing=0.015)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
         self.near_points = jnp.asarray(constraints.near_points(
             self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
-            + opt.clearance))
+            + opt.clearance + CLEARANCE_MARGIN))
         self.start = self.refresh(self.param.theta0)
         self.assigned = constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
         self.pairs = constraints.shared_pairs(self.assigned)
@@ -194,23 +230,27 @@ class Problem:
                                     constraints.stereo_min_angle(min(self.cams0[i].focal_length,
                                                                      self.cams0[j].focal_length))
                                     for i, j in self.pairs])
-        self.fov_points, self.fov_mask = self._fov_points(self.start)
         self.scene_tree = cKDTree(self.scene_points)
         # lights reaching each sample with no camera in the scene, to see what the bodies hide
         self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
                                     if exp.lights else None)
-        self.fov_start: dict = {}   # (camera, region) -> in-image fraction of the hand layout
-        self.fov_start = {(e["cameras"][0], e["region"]): e["value"] for e in self.check(self.start)
-                          if e["constraint"] == "field_of_view"}
+        self.fov_limits = None   # the hand layout's in-image fractions bound the optimized ones
+        self.fov_limits = self._fov_limits(self.check(self.start))
+        self.fov = self._fov_groups(self.start)
         self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
-        self.history: list[dict] = []
+        self.history: list[dict] = []    # every objective evaluation
+        self.verdicts: list[dict] = []   # every exact judgement (`judge`)
         self._t0 = time.perf_counter()
         self._label = (0, 0)
         K = np.stack([c.K for c in self.cams0])
         self.K, self.size = jnp.asarray(K), jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
-        self.total = jax.jit(self._total)
         self.value_and_grad = jax.jit(jax.value_and_grad(self._total))
+        solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+        # one compiled solve per pair-list size and step count, reused by every round and start
+        self.minimise = eqx.filter_jit(lambda args, max_steps: optx.minimise(
+            self._scaled, solver, jnp.zeros_like(args[0]), args=args, max_steps=max_steps,
+            throw=False).value)
 
     def _paths(self) -> list[np.ndarray]:
         """Where each optical centre can go: its rail (+ offset) sampled every ~2 cm, if u is
@@ -238,21 +278,26 @@ class Problem:
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
                      view_data(self.exp, vis, illum, self.speckle))
 
-    def _fov_points(self, state: State, per_region: int = 48):
-        """Up to `per_region` samples of each assigned region that the camera has in its image."""
-        rng = np.random.default_rng(0)
-        n_cam = len(self.cams0)
-        chosen = [[] for _ in range(n_cam)]
-        for c in range(n_cam):
-            for r in np.flatnonzero(self.assigned[c]):
-                idx = np.flatnonzero((self.samples.region == r) & state.vis.in_image[c] & state.vis.facing[c])
-                chosen[c].extend(rng.choice(idx, min(per_region, idx.size), replace=False))
-        m = max(1, max(len(ch) for ch in chosen))
-        points, mask = np.zeros((n_cam, m, 3)), np.zeros((n_cam, m), dtype=bool)
-        for c, ch in enumerate(chosen):
-            points[c, :len(ch)] = self.samples.points[ch]
-            mask[c, :len(ch)] = True
-        return jnp.asarray(points), jnp.asarray(mask)
+    def _fov_groups(self, state: State) -> dict:
+        """The field-of-view constraint's data, one group per assigned (camera, region): the
+        region's samples facing the camera in `state` (points, areas, padded to a common size),
+        the camera, the least in-image fraction (`fov_limits`) and the smoothing ramp: the
+        sample spacing in that camera's image, sqrt(median sample area) x f / median depth (px)."""
+        groups = [(c, r) for c in range(len(self.cams0)) for r in np.flatnonzero(self.assigned[c])]
+        facing = state.vis.in_front & state.vis.facing
+        members = [np.flatnonzero((self.samples.region == r) & facing[c]) for c, r in groups]
+        m = max([1] + [idx.size for idx in members])
+        points, area = np.zeros((len(groups), m, 3)), np.zeros((len(groups), m))
+        ramp = np.ones(len(groups))
+        for g, ((c, r), idx) in enumerate(zip(groups, members)):
+            points[g, :idx.size], area[g, :idx.size] = self.samples.points[idx], self.samples.area[idx]
+            if idx.size:
+                cam = state.cameras[c]
+                depth = np.median((self.samples.points[idx] - cam.position) @ cam.optical_axis)
+                ramp[g] = max(np.sqrt(np.median(self.samples.area[idx])) * cam.focal_px / depth, 1.0)
+        return dict(camera=np.array([c for c, _ in groups], dtype=int).reshape(-1),
+                    points=jnp.asarray(points), area=jnp.asarray(area), ramp=jnp.asarray(ramp),
+                    limit=jnp.asarray([self.fov_limits[c, r] for c, r in groups]))
 
     def track_obscured(self, state: State) -> None:
         """Render-differentiated obscuration for every assigned (camera, region) pair that an
@@ -283,49 +328,63 @@ class Problem:
         return SceneMesh(spec.name, "specimen", mesh.vertices[used], inverse.reshape(-1, 3))
 
     # -- the objective -------------------------------------------------------------------
-    def _total(self, theta, views, mu):
+    def terms(self, theta, views) -> dict:
+        """The score and each penalty at θ (JAX scalars): score, angle, fov, clearance, obscuration."""
         pos, pan, tilt, roll = self.param.poses(theta)
         c0 = self.cams0
         f = jnp.asarray([c.focal_px for c in c0])
         cx, cy = (jnp.asarray([c.principal_point[k] for c in c0]) for k in (0, 1))
         cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, self.size[:, 0], self.size[:, 1])
-        score = objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings)
         R = rotation(pan, tilt, roll)
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
-        opt = self.exp.optimize
-        pen_angle = constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles)
-        pen_fov = constraints.fov_penalty(K, R, t, self.size[:, 0], self.size[:, 1], self.fov_points,
-                                          self.fov_mask)
-        pen_clear = constraints.clearance_penalty(
-            constraints.body_points_world(self.body_local, R, pos), self.near_points, opt.clearance)
-        pen_obs = self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
-        penalty = pen_angle + pen_fov + pen_clear + pen_obs
-        jax.debug.callback(self._record, score, penalty)
-        return score + mu * penalty
+        clearance = self.exp.optimize.clearance
+        return dict(
+            score=objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings),
+            angle=constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles + ANGLE_MARGIN),
+            fov=constraints.fov_penalty(constraints.in_image_fraction(
+                K, R, t, self.size[:, 0], self.size[:, 1], self.fov["camera"], self.fov["points"],
+                self.fov["area"], self.fov["ramp"]), self.fov["limit"], FOV_MARGIN),
+            clearance=constraints.clearance_penalty(
+                constraints.body_points_world(self.body_local, R, pos), self.near_points,
+                clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
+            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)))
 
-    def _record(self, score, penalty):
+    def _total(self, theta, views, weights):
+        """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
+        terms = self.terms(theta, views)
+        jax.debug.callback(self._record, terms)
+        return weights[0] * terms["score"] + weights[1] * sum(v for k, v in terms.items() if k != "score")
+
+    def _scaled(self, y, args):
+        """J at θ = origin + scale y, divided by `norm` (`_round`)."""
+        origin, scale, norm, views, weights = args
+        return self._total(origin + scale * y, views, weights) / norm
+
+    def _record(self, terms):
         self.history.append(dict(start=self._label[0], round=self._label[1],
-                                 wall_s=time.perf_counter() - self._t0, score=float(score),
-                                 penalty=float(penalty)))
+                                 wall_s=time.perf_counter() - self._t0,
+                                 **{k: float(v) for k, v in terms.items()}))
 
     # -- exact checks ---------------------------------------------------------------------
     def check(self, state: State) -> list[dict]:
         opt = self.exp.optimize
-        clear = _clearances(state.cameras, self.scene_tree)
-        lost = _light_lost(self, state)
-        entries = constraints.check(state.cameras, state.vis_obstacles, self.samples, self.assigned,
-                                    self.pairs, self.min_angles, clear, opt.clearance,
-                                    opt.max_obscuration, lost, self.param.u(state.theta),
-                                    roll_free="roll" in opt.free)
-        # the field of view may not fall below what the hand layout had (minus one percent)
+        return constraints.check(state.cameras, state.vis_obstacles, self.samples, self.assigned,
+                                 self.pairs, self.min_angles, _clearances(state.cameras, self.scene_tree),
+                                 opt.clearance, opt.max_obscuration, _light_lost(self, state),
+                                 self.param.u(state.theta), roll_free="roll" in opt.free,
+                                 fov_limits=self.fov_limits)
+
+    def _fov_limits(self, entries) -> np.ndarray:
+        """(C, R) least in-image fraction of each assigned region: 1 - max_obscuration, or what
+        the hand layout had minus one percent where that is less."""
+        limits = np.full(self.assigned.shape, 1.0 - self.exp.optimize.max_obscuration)
+        cams = [c.name for c in self.cams0]
         for e in entries:
             if e["constraint"] == "field_of_view":
-                key = (e["cameras"][0], e["region"])
-                if key in self.fov_start:
-                    e["limit"] = min(e["limit"], self.fov_start[key] - 0.01)
-                e["met"] = bool(e["value"] >= e["limit"])
-        return entries
+                c, r = cams.index(e["cameras"][0]), self.samples.region_names.index(e["region"])
+                limits[c, r] = min(limits[c, r], e["value"] - 0.01)
+        return limits
 
     def exact_score(self, state: State) -> float:
         f = objective.CameraParams.from_cameras(state.cameras)
@@ -377,47 +436,73 @@ class Result:
     violations: int
     start: int
 
+    @property
+    def rank(self):
+        """Feasible first, by score; else fewest violations, then least total excess."""
+        return (self.violations, sum(e["excess"] for e in self.checks), self.score)
+
+
+def judge(problem: Problem, theta, state: State, start: int) -> Result:
+    """The exact verdict on a refreshed layout: score and every constraint checked."""
+    checks = problem.check(state)
+    result = Result(np.asarray(theta, float), state, problem.exact_score(state), checks,
+                    sum(not e["met"] for e in checks), start)
+    problem.verdicts.append(dict(start=start, wall_s=time.perf_counter() - problem._t0,
+                                 score=result.score, violations=result.violations))
+    return result
+
+
+def _violated(result: Result) -> str:
+    """The violated constraints in a few words, e.g. 'axis_angle cam1/cam9; clearance cam2'."""
+    return "; ".join(f"{e['constraint']} {'/'.join(e.get('cameras', []))}"
+                     + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
+
 
 def solve(problem: Problem, progress: bool = False) -> list[Result]:
-    """Every start, every round; returns the results sorted best first."""
+    """Every start, every round; per start the best layout met at the end of a round (or the
+    start itself), judged exactly (`Result.rank`); returns them sorted best first."""
     opt = problem.exp.optimize
     rng = np.random.default_rng(opt.seed)
     results = []
-    solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+    problem._t0 = time.perf_counter()   # history and verdicts count wall time from here
     for start in range(opt.starts):
         theta = problem.param.theta0.copy()
         if start > 0:
             theta = theta + _perturbation(problem.param, rng)
         state = problem.refresh(theta)
+        best = result = judge(problem, theta, state, start)
         problem.masked = set()
-        for rnd in range(opt.rounds):
+        # round 0, only from a layout that violates a constraint: the penalties alone
+        schedule = ([(0.0, 1.0, FEASIBILITY_STEPS)] if result.violations else []) + [
+            (1.0, MU0 * 10.0 ** k, opt.max_steps) for k in range(opt.rounds)]
+        for rnd, (w_score, mu, steps) in enumerate(schedule):
             problem._label = (start, rnd)
             problem.track_obscured(state)
-            mu = MU0 * 10.0 ** rnd
-            theta = _round(problem, solver, theta, state.views, mu, opt.max_steps)
+            theta = _round(problem, theta, state.views, (w_score, mu), steps)
             state = problem.refresh(theta)
+            result = judge(problem, theta, state, start)
+            best = min(best, result, key=lambda r: r.rank)
             if progress:
-                print(f"  start {start + 1}/{opt.starts} round {rnd + 1}/{opt.rounds}: "
-                      f"score {problem.exact_score(state):.4g}", flush=True)
-        checks = problem.check(state)
-        results.append(Result(theta, state, problem.exact_score(state), checks,
-                              sum(not e["met"] for e in checks), start))
-    return sorted(results, key=lambda r: (r.violations, r.score))
+                print(f"  start {start + 1}/{opt.starts} round {rnd + 1}/{len(schedule)}"
+                      f"{' (feasibility)' if w_score == 0 else ''}: score {result.score:.4g}, "
+                      f"{result.violations} violation(s) {_violated(result)}", flush=True)
+        results.append(best)
+    return sorted(results, key=lambda r: r.rank)
 
 
-def _round(problem: Problem, solver, theta, views, mu, max_steps) -> np.ndarray:
-    """One BFGS solve in scaled variables y = (θ - θ_start) / scale, with the objective divided by
-    the largest scaled gradient component at the start, so the first quasi-Newton step moves about
-    one natural unit (3 deg, or 0.5 in logit u) along the steepest parameter."""
+def _round(problem: Problem, theta, views, weights, max_steps) -> np.ndarray:
+    """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
+    divided by the largest scaled gradient component at the start, so that the first quasi-Newton
+    step moves about one natural unit (3 deg, or 0.5 in logit u) along the steepest parameter."""
     origin = jnp.asarray(theta)
     scale = jnp.asarray(problem.param.scale)
-    _, g = problem.value_and_grad(origin, views, mu)
+    weights = jnp.asarray(weights, dtype=float)
+    _, g = problem.value_and_grad(origin, views, weights)
     norm = float(jnp.max(jnp.abs(g * scale)))
     if not np.isfinite(norm) or norm == 0:
         return np.asarray(theta)
-    sol = optx.minimise(lambda y, args: problem.total(origin + scale * y, *args) / norm, solver,
-                        jnp.zeros_like(origin), args=(views, mu), max_steps=max_steps, throw=False)
-    y = sol.value if np.all(np.isfinite(np.asarray(sol.value))) else jnp.zeros_like(origin)
+    y = problem.minimise((origin, scale, jnp.asarray(norm), views, weights), max_steps)
+    y = y if np.all(np.isfinite(np.asarray(y))) else jnp.zeros_like(origin)
     return np.asarray(origin + scale * y)
 
 
@@ -479,7 +564,8 @@ def _joint_p95(summary: dict):
 
 def _write_history(path, history):
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", "penalty"])
+        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", "angle", "fov",
+                                     "clearance", "obscuration"])
         writer.writeheader()
         for i, row in enumerate(history):
             writer.writerow({"evaluation": i, **row})

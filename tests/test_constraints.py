@@ -1,0 +1,103 @@
+"""The constraint penalties against closed forms and finite differences, and the exact checks'
+verdicts at and around their limits."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from vdo import constraints
+from vdo.camera import intrinsic_matrix, rotation
+
+
+def test_clearance_penalty_is_the_sum_of_hinges_over_point_pairs():
+    """One body point 3 cm from one mesh point and 6 cm from another, clearance 5 cm: only the
+    first pair counts, ((5 - 3) / 5)^2; two cameras' body points 1 cm apart count once."""
+    body = jnp.asarray([[[0.0, 0.0, 0.0]]])
+    near = jnp.asarray([[[0.03, 0.0, 0.0], [0.0, -0.06, 0.0]]])
+    assert float(constraints.clearance_penalty(body, near, 0.05)) == pytest.approx((2 / 5) ** 2, rel=1e-8)
+    two = jnp.asarray([[[0.0, 0.0, 0.0]], [[0.0, 0.0, 0.01]]])
+    far = jnp.full((2, 1, 3), 1e3)
+    assert float(constraints.clearance_penalty(two, far, 0.05)) == pytest.approx((4 / 5) ** 2, rel=1e-8)
+    assert float(constraints.clearance_penalty(body, near * 2, 0.05)) == 0.0   # 6 and 12 cm: clear
+
+
+def test_clearance_penalty_gradient_matches_finite_differences_where_the_nearest_point_switches():
+    """A body point between two mesh points at equal distance: a nearest-point penalty has a
+    kink there; the summed one is smooth and its gradient matches central differences."""
+    near = jnp.asarray([[[0.02, 0.0, 0.0], [-0.02, 0.0, 0.0], [0.0, 0.03, 0.01]]])
+
+    def f(x):
+        return constraints.clearance_penalty(x.reshape(1, 1, 3), near, 0.05)
+
+    x0 = jnp.asarray([0.0, 0.004, -0.002])
+    g = np.asarray(jax.grad(f)(x0))
+    h = 1e-6
+    fd = np.array([(f(x0 + h * e) - f(x0 - h * e)) / (2 * h) for e in np.eye(3)])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+
+
+def test_axis_angle_penalty_is_zero_at_the_limit_and_quadratic_below():
+    limit = math.radians(20.0)
+    for angle, expected in [(25.0, 0.0), (20.0, 0.0),
+                            (10.0, ((math.cos(math.radians(10)) - math.cos(limit)) / (1 - math.cos(limit))) ** 2)]:
+        a = math.radians(angle)
+        axes = jnp.asarray([[0.0, 0.0, 1.0], [math.sin(a), 0.0, math.cos(a)]])
+        value = float(constraints.axis_angle_penalty(axes, np.array([[0, 1]]), [limit]))
+        assert value == pytest.approx(expected, abs=1e-15)
+
+
+def _strip_in_front_of_a_camera(u_range, W=1000.0, H=800.0, f=1000.0, n=400):
+    """A camera at the origin and a flat strip of points at 1 m depth whose pixel u runs over
+    u_range (v = H/2): camera arrays (1 camera) and the strip (1 group)."""
+    K = intrinsic_matrix(jnp.asarray([f]), jnp.asarray([(W - 1) / 2]), jnp.asarray([(H - 1) / 2]))
+    R = rotation(jnp.asarray([0.3]), jnp.asarray([-0.2]), jnp.asarray([0.0]))
+    u = np.linspace(*u_range, n)
+    x_cam = np.c_[(u - (W - 1) / 2) / f, np.zeros(n), np.ones(n)]
+    X = x_cam @ np.asarray(R[0])           # world points: R^T x_cam, camera at the origin
+    cams = (K, R, jnp.zeros((1, 3)), jnp.asarray([W]), jnp.asarray([H]))
+    return cams, jnp.asarray(X)[None], jnp.ones((1, n)), (u[1] - u[0])
+
+
+def test_in_image_fraction_matches_the_exact_fraction_where_the_edge_crosses_a_region():
+    """A strip from u = 100 to 1300 px in a 1000 px wide image: (999.5 - 100) / 1200 inside."""
+    cams, pts, area, spacing = _strip_in_front_of_a_camera((100.0, 1300.0))
+    frac = constraints.in_image_fraction(*cams, np.array([0]), pts, area, jnp.asarray([spacing]))
+    assert float(frac[0]) == pytest.approx((999.5 - 100.0) / 1200.0, abs=2e-3)
+    cams, pts, area, spacing = _strip_in_front_of_a_camera((100.0, 900.0))
+    whole = constraints.in_image_fraction(*cams, np.array([0]), pts, area, jnp.asarray([spacing]))
+    assert float(whole[0]) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_fov_penalty_is_the_squared_shortfall_in_percent():
+    assert float(constraints.fov_penalty(jnp.asarray([0.995]), [0.98], 0.01)) == 0.0
+    assert float(constraints.fov_penalty(jnp.asarray([0.95]), [0.98], 0.01)) == pytest.approx(16.0)
+
+
+def test_in_image_fraction_gradient_matches_finite_differences():
+    """d fraction / d camera translation, the strip half outside: central differences."""
+    cams, pts, area, spacing = _strip_in_front_of_a_camera((100.0, 1300.0))
+    K, R, t, W, H = cams
+
+    def f(shift):
+        return constraints.in_image_fraction(K, R, t + shift[None], W, H, np.array([0]), pts, area,
+                                             jnp.asarray([3 * spacing]))[0]
+
+    s0 = jnp.asarray([0.01, 0.0, 0.0])
+    g = np.asarray(jax.grad(f)(s0))
+    h = 1e-6
+    fd = np.array([(f(s0 + h * e) - f(s0 - h * e)) / (2 * h) for e in np.eye(3)])
+    assert abs(g[0]) > 0.1          # moving the camera sideways moves the strip across the edge
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("kind, value, limit, met, excess", [
+    ("min", 21.1, 21.1, True, 0.0), ("min", 20.0, 25.0, False, 0.2), ("max", 0.06, 0.05, False, 0.2),
+    ("max", 0.05, 0.05, True, 0.0), ("range", 1.2, [0.0, 1.0], False, 0.2), ("zero", 0.0, 0.0, True, 0.0),
+])
+def test_check_entries_report_met_and_relative_excess(kind, value, limit, met, excess):
+    e = constraints._entry("c", value, limit, "unit", kind)
+    assert e["met"] is met
+    assert e["excess"] == pytest.approx(excess, rel=1e-4, abs=1e-12)
