@@ -382,13 +382,14 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
     cam, smp, vd = two_plane_scene(300)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
-    ctab, sq, occ, kc = ob._pair_inputs(cam, smp, vd, st, jnp.float64)
+    ctab, sq, occ, kc, one = ob._pair_inputs(cam, smp, vd, st, jnp.float64)
     rng = np.random.default_rng(3)
     c_ent = tuple(jnp.asarray(rng.normal(size=occ.shape)) for _ in range(6))
     c_w = jnp.asarray(rng.normal(size=occ.shape))
 
     def forward(ctab):
-        ent, w, _ = ob._block_forward(ob._block_columns(ctab, sq[0].dtype), sq, occ, kc, energy, st)
+        ent, w, _ = ob._block_forward(ob._block_columns(ctab, sq[0].dtype), sq, occ, kc, one,
+                                      energy, st)
         return ent, w
 
     (ent, w), vjp = jax.vjp(forward, ctab)
