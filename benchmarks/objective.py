@@ -5,8 +5,10 @@ compilation (median of the 2nd..nth calls, `block_until_ready`) beside a plain v
 evaluation of the same value on the dense (C, N) inputs, measured in the same run. The JAX score
 runs over a sparse pair list (`ViewData`): once with every pair whose occlusion is > 0 (what the
 dense path computed, exact for any camera parameters) and once with the pairs the geometric
-selection keeps at these cameras (`ViewData.from_dense(..., cameras, samples)`). Checks that the
-values agree with NumPy and that both pair lists give the same gradient.
+selection keeps at these cameras (`ViewData.from_dense(..., cameras, samples)`), in float64 and
+with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.predict.settings` and so
+the optimizer use). Checks that the values agree with NumPy, that both pair lists give the same
+gradient and how far the float32 gradient is from the float64 one.
 Run: .venv/bin/python benchmarks/objective.py [--samples N] [--repeat K]
 """
 
@@ -180,33 +182,37 @@ def main():
           f"{culled.n_pairs} kept by the geometric selection (padded to {culled.camera.size}, "
           f"built in {1e3 * t_cull:.0f} ms)")
 
+    st32 = ob.Settings(pair_dtype="float32")
     rows = []
-    for label, vd in (("all occlusion>0 pairs", all_pairs), ("selected pairs", culled)):
+    for label, vd, sv in (("all occlusion>0 pairs", all_pairs, st), ("selected pairs", culled, st),
+                          ("selected pairs, f32", culled, st32)):
         t0 = time.perf_counter()
-        jax.block_until_ready(ob.score(cam, smp, vd, table, st))
+        jax.block_until_ready(ob.score(cam, smp, vd, table, sv))
         compile_v = time.perf_counter() - t0
         t0 = time.perf_counter()
-        value, grad = jax.block_until_ready(ob.score_and_grad(cam, smp, vd, table, st))
+        value, grad = jax.block_until_ready(ob.score_and_grad(cam, smp, vd, table, sv))
         compile_g = time.perf_counter() - t0
-        tv = timed(lambda: ob.score(cam, smp, vd, table, st), args.repeat)
-        tg = timed(lambda: ob.score_and_grad(cam, smp, vd, table, st), args.repeat)
+        tv = timed(lambda: ob.score(cam, smp, vd, table, sv), args.repeat)
+        tg = timed(lambda: ob.score_and_grad(cam, smp, vd, table, sv), args.repeat)
         rows.append((label, compile_v, compile_g, tv, tg, float(value), grad))
 
     t_np = timed(lambda: numpy_score(cam, smp, dense, table, st), max(3, args.repeat // 3))
     v_np = numpy_score(cam, smp, dense, table, st)
 
-    print(f"{'path':<34}{'compile s':>10}{'median ms':>11}{'vs numpy':>10}{'score':>16}")
-    print(f"{'numpy value (dense, float64)':<34}{'-':>10}{1e3 * t_np:>11.1f}{1.0:>9.2f}x{v_np:>16.10g}")
+    print(f"{'path':<38}{'compile s':>10}{'median ms':>11}{'vs numpy':>10}{'score':>16}")
+    print(f"{'numpy value (dense, float64)':<38}{'-':>10}{1e3 * t_np:>11.1f}{1.0:>9.2f}x{v_np:>16.10g}")
     for label, cv, cg, tv, tg, value, _ in rows:
-        print(f"{'jax value, ' + label:<34}{cv:>10.2f}{1e3 * tv:>11.1f}{t_np / tv:>9.2f}x"
+        print(f"{'jax value, ' + label:<38}{cv:>10.2f}{1e3 * tv:>11.1f}{t_np / tv:>9.2f}x"
               f"{value:>16.10g}")
-        print(f"{'jax value+grad, ' + label:<34}{cg:>10.2f}{1e3 * tg:>11.1f}{t_np / tg:>9.2f}x"
+        print(f"{'jax value+grad, ' + label:<38}{cg:>10.2f}{1e3 * tg:>11.1f}{t_np / tg:>9.2f}x"
               f"{'':>16}")
     for label, *_, value, _ in rows:
         print(f"relative difference of the values, jax ({label}) vs numpy: {abs(value / v_np - 1):.2e}")
-    g_all, g_cull = (jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(r[6])]) for r in rows)
-    print(f"gradient, selected vs all pairs: max |diff| / max |g| = "
-          f"{float(jnp.max(jnp.abs(g_cull - g_all)) / jnp.max(jnp.abs(g_all))):.2e}")
+    g_all, g_cull, g_32 = (jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(r[6])])
+                           for r in rows)
+    rel = lambda a, b: float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
+    print(f"gradient, selected vs all pairs: max |diff| / max |g| = {rel(g_cull, g_all):.2e}")
+    print(f"gradient, f32 vs f64 pairs (selected): max |diff| / max |g| = {rel(g_32, g_cull):.2e}")
     print("target: value+grad <= 50 ms on 2 CPU cores")
 
 

@@ -1,6 +1,7 @@
 """Mean-field DIC uncertainty of a multi-camera layout, and the scalar score the optimizer minimises.
 
-Pure `jax.numpy` (float64), differentiable with respect to every camera parameter. DESIGN.md sec. 4-5
+Pure `jax.numpy` (float64, or float32 per pair: "Precision" below), differentiable with respect to
+every camera parameter. DESIGN.md sec. 4-5
 and the paper's sec. 5.3-5.4 give the model; this module implements it with the paper's loose
 notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
 t_u x t_v = n, surface coordinates xi in metres along them):
@@ -86,6 +87,35 @@ w = 0 and a zero gradient there, so value and gradient stay exact as long as no 
 that a dropped pair crosses into its image or incidence range: refresh the selection when the
 cameras move by more than the margins (the optimizer does so between inner solves, with visibility).
 
+Reverse pass (`_block_vjp`). The score's gradient with respect to the cameras is written out by
+hand for the per-pair block: for per-pair cotangents Q (the symmetric 3x3 of the 6 entries, off-
+diagonals halved) and c_w, L = k tr(T Y) + c_w w with Y = S Q S^T, so dL/dk = tr(T Y),
+dL/dT = k Y, dL/dS = 2 k T S Q, then back through T = alpha I + beta (M - m I), the floored-gap
+eigenvalues, the footprint, the soft weights and the projection to the 17 camera-table columns
+(R, position, f, cx, cy, W, H), summed over each camera-major block. The forward stores only the
+table lookup's Jacobian d phi_i / d lam_j and the reverse pass recomputes the rest. Autodiff of
+the same chain ran ~2000 XLA:CPU elementwise operations per pair, as XLA recomputes shared
+intermediates in every consumer fusion. Only the cameras are differentiated: samples, view data
+and the energy are constants (zero cotangents). Measured (10 cameras x 100k samples, same
+process): about as fast as autodiff in float64; what pays is float32 (below), ~1.8x on value +
+gradient. The value alone materialises s, A, w, T and |det A| once (`_keep`), which the
+value + gradient path does without (it measured ~10 % slower with it). XLA:CPU facts behind
+these choices: a variadic `lax.reduce` over the 17 camera columns compiles to scalar code (~7x
+slower than the same chain elementwise); gathers inside the per-pair chain (a sample-major
+layout that gathers camera rows per pair) stop vectorisation (~4x slower forward).
+
+Precision (`Settings.pair_dtype`). The per-pair work (projection, footprint, spectrum, table
+lookup, weights and their reverse) can run in float32: f32 exp/log are ~5x faster than f64 on
+XLA:CPU and AVX2 holds 8 f32 lanes against 4. The 6 entries k S^T T S (and their reverse,
+Y and dL/dS) are assembled in float64 from the rounded S in either case, so that each pair's
+matrix keeps the ray as its null vector to f64 precision: float32 rounding of the entries
+leaves ~1e-7 |C_i| along the ray, far above the prior 1/prior_sigma^2 that alone fixes that
+direction for a sample seen by one camera (it made sigma NaN there). Per-sample sums and the
+score are float64. Measured on 10 cameras x 100k samples: value within ~4e-8 and gradient
+within ~1e-5 (max |diff| / max |g|) of float64. The default stays float64 (the finite-
+difference tests need it); `vdo.predict.settings`, and so the optimizer, uses float32; the reports
+(`fields`, `information`, `camera_information`) always run float64.
+
 Inputs are pytrees (equinox Modules) of arrays: `CameraParams` (C cameras), `Samples` (N samples,
 R regions), `ViewData` (per-pair constants for the P selected pairs), an `energy` G (a `vdo.speckle.GradientEnergyTable`,
 or any jax-traceable callable G(l_par, l_perp) -> 1/m^2, e.g. `GaussianFieldEnergy`) and `Settings`
@@ -96,6 +126,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -217,11 +248,12 @@ class ViewData(eqx.Module):
             if samples is None:
                 raise ValueError("ViewData.from_dense: cameras given without samples")
             keep &= _candidates(cameras, samples, settings or Settings(), margin_px, margin_angle)
-        return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise, occ.shape[0], block)
+        return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise, block)
 
     @classmethod
-    def _from_pairs(cls, cam, smp, occ, contrast, noise, n_cameras, block):
+    def _from_pairs(cls, cam, smp, occ, contrast, noise, block):
         """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values."""
+        n_cameras, n_samples = occ.shape
         counts = np.bincount(cam, minlength=n_cameras)
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
@@ -281,6 +313,11 @@ class Settings(eqx.Module):
     coverage_weight    weight of the coverage penalty (per camera^2 of deficit, area fraction)
     gap_eps            relative floor of the eigenvalue gap of A A^T (error O(gap_eps^2))
     rank_rtol          `fields`: eigenvalue ratio below which C counts as rank deficient
+    pair_dtype         "float64" or "float32": dtype of the per-pair geometry, tensor and table
+                       lookup in `score` and `score_and_grad` (module docstring, "Precision");
+                       the assembly of each pair's 3x3, the per-sample sums and the score are
+                       float64 either way, and the reports (`fields`, `information`,
+                       `camera_information`) always run float64
     """
 
     kappa: float = eqx.field(static=True, default=KAPPA_BOX)
@@ -296,6 +333,7 @@ class Settings(eqx.Module):
     coverage_weight: float = eqx.field(static=True, default=1e3)
     gap_eps: float = eqx.field(static=True, default=1e-4)
     rank_rtol: float = eqx.field(static=True, default=1e-10)
+    pair_dtype: str = eqx.field(static=True, default="float64")
 
 
 class TableEnergy(eqx.Module):
@@ -359,10 +397,31 @@ def _split(table, shape_of):
     return [shape_of(table[:, k]) for k in range(table.shape[1])]
 
 
-def _pairs_from(cq, sq, st: Settings):
+class _Geo(NamedTuple):
+    """Per-pair geometry and its intermediates (broadcastable arrays; 3-vectors as tuples)."""
+
+    d: tuple      # X - P, m
+    p: tuple      # R d, camera frame, m
+    front: jax.Array
+    iz: jax.Array  # 1 / Z_c (1 where not in front), 1/m
+    xn: jax.Array  # X_c / Z_c
+    yn: jax.Array
+    u: jax.Array   # pixel
+    v: jax.Array
+    g: jax.Array   # f / Z_c, pixel/m
+    s0: tuple      # sensitivity rows, pixel/m
+    s1: tuple
+    A: tuple       # footprint A00, A01, A10, A11, pixel/m
+    rd: jax.Array  # 1 / |d|
+    cos_inc: jax.Array
+    t_inc: jax.Array  # smoothstep arguments: incidence, then the 4 image edges
+    t_img: tuple
+    w: jax.Array   # soft weight (occlusion not included)
+
+
+def _pairs_from(cq, sq, st: Settings) -> _Geo:
     """Per-pair geometry from broadcastable components: cq the 17 camera columns, sq the 12
-    sample columns. Returns sensitivity rows s0, s1 (3-tuples), footprint A00, A01, A10, A11,
-    pixel u, v, and the soft weight w (occlusion not included)."""
+    sample columns (module docstring for the formulas)."""
     R = [cq[3 * a:3 * a + 3] for a in range(3)]
     P, f, cx, cy, W, H = cq[9:12], cq[_F], cq[_CX], cq[_CY], cq[_W], cq[_H]
     X, nrm, tu, tv = sq[0:3], sq[3:6], sq[6:9], sq[9:12]
@@ -379,17 +438,18 @@ def _pairs_from(cq, sq, st: Settings):
     A = (_dot(s0, tu), _dot(s0, tv), _dot(s1, tu), _dot(s1, tv))
 
     dd = _dot(d, d)
-    cos_inc = -_dot(nrm, d) * jax.lax.rsqrt(jnp.maximum(dd, jnp.finfo(dd.dtype).tiny))
+    rd = jax.lax.rsqrt(jnp.maximum(dd, jnp.finfo(dd.dtype).tiny))
+    cos_inc = -_dot(nrm, d) * rd
     c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
-    w_inc = smoothstep((cos_inc - c_lim) * (1.0 / (c_full - c_lim)))
+    t_inc = (cos_inc - c_lim) * (1.0 / (c_full - c_lim))
     m = 1.0 / st.image_margin_px
-    w_img = (smoothstep((u + 0.5) * m) * smoothstep((W - 0.5 - u) * m)
-             * smoothstep((v + 0.5) * m) * smoothstep((H - 0.5 - v) * m))
-    w = jnp.where(front, w_inc * w_img, 0.0)
-    return s0, s1, A, u, v, w
+    t_img = ((u + 0.5) * m, (W - 0.5 - u) * m, (v + 0.5) * m, (H - 0.5 - v) * m)
+    w_img = smoothstep(t_img[0]) * smoothstep(t_img[1]) * smoothstep(t_img[2]) * smoothstep(t_img[3])
+    w = jnp.where(front, smoothstep(t_inc) * w_img, 0.0)
+    return _Geo(d, p, front, iz, xn, yn, u, v, g, s0, s1, A, rd, cos_inc, t_inc, t_img, w)
 
 
-def _pairs(cam: CameraParams, smp: Samples, st: Settings):
+def _pairs(cam: CameraParams, smp: Samples, st: Settings) -> _Geo:
     """Dense (C, N) geometry (every camera with every sample)."""
     cq = _split(_camera_table(cam), lambda x: x[:, None])
     sq = _split(_sample_table(smp), lambda x: x[None, :])
@@ -411,50 +471,95 @@ def _packed_table(table: GradientEnergyTable):
 
 
 def _phis(energy, lam1, lam2, kappa):
-    """phi_k = G(l_k, l_other) / lam_k with l_k = kappa / sqrt(lam_k)."""
+    """phi_k = G(l_k, l_other) / lam_k with l_k = kappa / sqrt(lam_k) (lam in pixel^2/m^2,
+    phi in 1/pixel^2), in the dtype of lam."""
     table = energy.table if isinstance(energy, TableEnergy) else energy
     if not isinstance(table, GradientEnergyTable):
         l1, l2 = kappa * jax.lax.rsqrt(lam1), kappa * jax.lax.rsqrt(lam2)
         return energy(l1, l2) / lam1, energy(l2, l1) / lam2
     # bilinear in (log l_par, log l_perp) on log G as `vdo.speckle.g_aniso_lookup` (same clamping)
+    dt = lam1.dtype
     grid = jnp.asarray(table.log_l)
     n = grid.shape[0]
     log_lo = jnp.log(grid[0])
     inv_step = (n - 1) / (jnp.log(grid[-1]) - log_lo)
     ll1, ll2 = jnp.log(lam1), jnp.log(lam2)
-    c0 = (math.log(kappa) - log_lo) * inv_step
-    u1 = jnp.clip(c0 - (0.5 * inv_step) * ll1, 0.0, n - 1.0)
-    u2 = jnp.clip(c0 - (0.5 * inv_step) * ll2, 0.0, n - 1.0)
+    c0 = ((math.log(kappa) - log_lo) * inv_step).astype(dt)
+    half = (0.5 * inv_step).astype(dt)
+    u1 = jnp.clip(c0 - half * ll1, 0.0, n - 1.0)
+    u2 = jnp.clip(c0 - half * ll2, 0.0, n - 1.0)
     i = jnp.clip(jnp.floor(u1), 0, n - 2)
     j = jnp.clip(jnp.floor(u2), 0, n - 2)
     s, t = u1 - i, u2 - j
     idx = (i * (n - 1) + j).astype(jnp.int32)
-    cf = jnp.take(_packed_table(table), idx.reshape(-1), axis=0, mode="clip")
+    cf = jnp.take(_packed_table(table).astype(dt), idx.reshape(-1), axis=0, mode="clip")
     cf = [cf[:, k].reshape(idx.shape) for k in range(8)]
     log_g12 = cf[0] + s * cf[1] + t * (cf[2] + s * cf[3])
     log_g21 = cf[4] + s * cf[5] + t * (cf[6] + s * cf[7])
     return jnp.exp(log_g12 - ll1), jnp.exp(log_g21 - ll2)
 
 
-def _tensor(A, energy, kappa, gap_eps):
-    """T / c^2 = sum_k G(l_k, l_other)/a_k^2 v_k v_k^T as (T00, T01, T11) (1/pixel^2), and |det A|,
-    by the floored-gap spectral formula (module docstring). A = (A00, A01, A10, A11)."""
+def _phis_and_jacobian(energy, lam1, lam2, kappa):
+    """(phi1, phi2) and their derivatives d phi_i / d lam_j as (j11, j12, j21, j22), by two
+    forward-mode passes (elementwise, fused with the values)."""
+    fun = lambda a, b: _phis(energy, a, b, kappa)
+    one, zero = jnp.ones_like(lam1), jnp.zeros_like(lam1)
+    phis, (j11, j21) = jax.jvp(fun, (lam1, lam2), (one, zero))
+    _, (j12, j22) = jax.jvp(fun, (lam1, lam2), (zero, one))
+    return phis, (j11, j12, j21, j22)
+
+
+class _Spectrum(NamedTuple):
+    """Eigenvalues of M = A A^T by the floored-gap formula (module docstring), with the
+    intermediates the hand-written reverse pass needs. Units: pixel^2/m^2."""
+
+    M01: jax.Array
+    det: jax.Array   # det A (pixel^2/m^2)
+    m_raw: jax.Array  # tr M / 2 before the tiny floor
+    m: jax.Array
+    h: jax.Array     # (M00 - M11) / 2
+    gap: jax.Array
+    lam1: jax.Array
+    q: jax.Array     # det^2 / lam1
+    lam2: jax.Array
+
+
+def _spectrum(A, gap_eps) -> _Spectrum:
     A00, A01, A10, A11 = A
     M00 = A00 * A00 + A01 * A01
     M11 = A10 * A10 + A11 * A11
     M01 = A00 * A10 + A01 * A11
     det = A00 * A11 - A01 * A10
-    m = jnp.maximum(0.5 * (M00 + M11), jnp.finfo(M00.dtype).tiny)
+    m_raw = 0.5 * (M00 + M11)
+    m = jnp.maximum(m_raw, jnp.finfo(M00.dtype).tiny)
     h = 0.5 * (M00 - M11)
     gap = jnp.sqrt(h * h + M01 * M01 + (gap_eps * m) ** 2)
     lam1 = m + gap
-    lam2 = jnp.maximum(det * det / lam1, 1e-12 * lam1)  # stable small eigenvalue; edge-on floor
-    phi1, phi2 = _phis(energy, lam1, lam2, kappa)
+    q = det * det / lam1
+    lam2 = jnp.maximum(q, 1e-12 * lam1)  # stable small eigenvalue; edge-on floor
+    return _Spectrum(M01, det, m_raw, m, h, gap, lam1, q, lam2)
+
+
+def _tensor_from(sp: _Spectrum, phi1, phi2):
+    """T / c^2 = (phi1 + phi2)/2 I + (phi1 - phi2)/(lam1 - lam2) (M - m I) as (T00, T01, T11)
+    (1/pixel^2), with alpha, beta and lam1 - lam2."""
     alpha = 0.5 * (phi1 + phi2)
-    beta = (phi1 - phi2) / (lam1 - lam2)
-    return (alpha + beta * h, beta * M01, alpha - beta * h), jnp.abs(det)
+    D = sp.lam1 - sp.lam2
+    beta = (phi1 - phi2) / D
+    return (alpha + beta * sp.h, beta * sp.M01, alpha - beta * sp.h), beta, D
 
 
+def _tensor(A, energy, kappa, gap_eps):
+    """T / c^2 = sum_k G(l_k, l_other)/a_k^2 v_k v_k^T as (T00, T01, T11) (1/pixel^2), and |det A|,
+    by the floored-gap spectral formula (module docstring). A = (A00, A01, A10, A11)."""
+    sp = _spectrum(A, gap_eps)
+    T, _, _ = _tensor_from(sp, *_phis(energy, sp.lam1, sp.lam2, kappa))
+    return T, jnp.abs(sp.det)
+
+
+# --------------------------------------------------------------------------------------------
+# The per-pair block: Omega w |det A| C_i (6 entries) and w, with a hand-written reverse pass
+# --------------------------------------------------------------------------------------------
 @jax.custom_jvp
 def _keep(x, one):
     """x, materialised: the identity x / one with `one` a per-element runtime 1.0 (an array, as
@@ -476,44 +581,211 @@ def _keep_jvp(primals, tangents):
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))  # order of the 6 unique entries
 
 
-def _pair_terms(cam, smp, vd: ViewData, energy, st):
-    """Per listed pair, as (B, block) arrays: the contribution Omega w |det A| C_i as 6 entries in
-    _SYM order, the weight w (with occlusion) and the sensitivity rows s0, s1."""
-    L = vd.block
-    B = vd.camera.shape[0] // L
-    bc = vd.camera.reshape(B, L)[:, 0]
-    cq = _split(_camera_table(cam)[bc], lambda x: x[:, None])
-    sq = _split(_sample_table(smp)[vd.sample], lambda x: x.reshape(B, L))
-    s0, s1, A, u, v, w = _pairs_from(cq, sq, st)
-    occ, cn, nz = (x.reshape(B, L) for x in (vd.occlusion, vd.contrast, vd.noise))
-    one = jax.lax.stop_gradient(nz / nz)  # 1.0 (noise > 0) per pair, unknown to XLA
-    w = w * occ
-    s0, s1, A, w = _keep((s0, s1, A, w), one)
-    (T00, T01, T11), absdet = _tensor(A, energy, st.kappa, st.gap_eps)
-    T00, T01, T11, absdet = _keep((T00, T01, T11, absdet), one)
+def _f64(x):
+    return jax.tree.map(lambda a: a.astype(jnp.float64), x)
+
+
+def _block_columns(ctab, dtype):
+    """(B, 17) camera rows -> 17 (B, 1) columns in the pair dtype."""
+    return [ctab[:, k].astype(dtype)[:, None] for k in range(ctab.shape[1])]
+
+
+def _block_forward(cq, sq, occ, kc, one, energy, st):
+    """Per pair, from broadcastable components (cq the 17 camera columns, sq the 12 sample
+    columns, occlusion, kc = Omega c^2 / sigma^2 in m^2, `one` a runtime 1.0 for `_keep`, or None
+    for no materialisation): ent,
+    the 6 entries of k S^T T S in _SYM order (1/m^2, float64), with
+    k = Omega w |det A| c^2/sigma^2 = kc w |det A|, and w (occlusion included); and the
+    intermediates (geometry, spectrum, phis, T, beta, lam1 - lam2, k)."""
+    keep = (lambda x: x) if one is None else (lambda x: _keep(x, one))
+    geo = _pairs_from(cq, sq, st)
+    w = geo.w * occ
+    s0, s1, A, w = keep((geo.s0, geo.s1, geo.A, w))
+    geo = geo._replace(s0=s0, s1=s1, A=A)
+    sp = _spectrum(geo.A, st.gap_eps)
+    phis = _phis(energy, sp.lam1, sp.lam2, st.kappa)
+    T, beta, D = _tensor_from(sp, *phis)
+    *T, absdet = keep(T + (jnp.abs(sp.det),))
     # rooted at a divide: XLA:CPU materialises k once instead of re-deriving the weight chain
-    # in every consumer fusion (it duplicates cheap elementwise producers, not divisions)
-    k = (st.patch_area * w * absdet * cn * cn) / (nz * nz)
+    # in every consumer fusion
+    k = kc * w * absdet if one is None else (kc * w * absdet) / one
+    # the assembly k S^T T S runs in float64 whatever the pair dtype: each pair's matrix then
+    # has the ray as its null vector to float64 precision (float32 rounding of the 6 entries
+    # would leave an error ~1e-7 |C_i| along the ray, far above the prior 1/prior_sigma^2 that
+    # alone measures that direction for a sample seen by one camera)
+    s0, s1, (T00, T01, T11), k = _f64((geo.s0, geo.s1, tuple(T), k))
     k00, k01, k11 = k * T00, k * T01, k * T11
     ent = tuple(k00 * s0[a] * s0[b] + k11 * s1[a] * s1[b] + k01 * (s0[a] * s1[b] + s1[a] * s0[b])
                 for a, b in _SYM)
-    return ent, w, s0, s1
+    return ent, w, (geo, sp, phis, tuple(T), beta, D, k)
+
+
+def _sums(cols, axis, dtype=jnp.float64):
+    """Sums over `axis` of the (broadcast) arrays `cols`, accumulated in `dtype`."""
+    shape = jnp.broadcast_shapes(*(c.shape for c in cols))
+    return tuple(jnp.broadcast_to(c, shape).astype(dtype).sum(axis) for c in cols)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(6,))
+def _pair_block(ctab, sq, occ, kc, one, energy, st):
+    """(ent, w) of `_block_forward` for the camera-major blocks: ctab (B, 17) the camera row of
+    each block, sq, occ, kc (B, block) per pair. Differentiable with respect to ctab only (the
+    other inputs are constants), by the hand-written `_block_vjp`."""
+    ent, w, _ = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, one, energy, st)
+    return ent, w
+
+
+def _pair_block_fwd(ctab, sq, occ, kc, one, energy, st):
+    # no `_keep` here: with the reverse pass to follow it measured slower (~10 %), value alone faster
+    ent, w, (_, sp, *_) = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, None,
+                                         energy, st)
+    # stored for the reverse pass: the table lookup's Jacobian (everything else is recomputed)
+    _, jac = _phis_and_jacobian(energy, sp.lam1, sp.lam2, st.kappa)
+    return (ent, w), (ctab, sq, occ, kc, energy, jac)
+
+
+def _pair_block_bwd(st, res, ct):
+    ctab, sq, occ, kc, energy, jac = res
+    c_ent, c_w = ct
+    return (_block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac),
+            None, None, None, None, None)
+
+
+_pair_block.defvjp(_pair_block_fwd, _pair_block_bwd)
+
+
+def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
+    """Cotangent of the (B, 17) block camera rows ctab for per-pair cotangents c_ent (6, float64)
+    of ent and c_w of w, written out by hand (autodiff of the same chain makes XLA:CPU
+    recompute shared intermediates in every consumer fusion, ~2000 operations per pair).
+
+    With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
+    Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
+    and dL/ds1 likewise; then back through the spectrum, the footprint, the weights and the
+    projection to the 17 camera columns, summed over each block (one camera per block). `jac`
+    is d phi_i / d lam_j (`_phis_and_jacobian`); the rest of the forward is recomputed."""
+    cq = _block_columns(ctab, sq[0].dtype)
+    _, w, (geo, sp, _, T, beta, D, k) = _block_forward(cq, sq, occ, kc, None, energy, st)
+    j11, j12, j21, j22 = jac
+    s0, s1, (T00, T01, T11), k = _f64((geo.s0, geo.s1, T, k))
+    c00, c11, c22, c01, c02, c12 = c_ent
+    Q = ((c00, 0.5 * c01, 0.5 * c02), (0.5 * c01, c11, 0.5 * c12), (0.5 * c02, 0.5 * c12, c22))
+    q0 = tuple(_dot(Q[a], s0) for a in range(3))
+    q1 = tuple(_dot(Q[a], s1) for a in range(3))
+    Y00, Y11, Y01 = _dot(s0, q0), _dot(s1, q1), _dot(s0, q1)
+    tau = T00 * Y00 + T11 * Y11 + 2.0 * T01 * Y01  # dL/dk
+    g_s0 = [2.0 * k * (T00 * q0[b] + T01 * q1[b]) for b in range(3)]
+    g_s1 = [2.0 * k * (T11 * q1[b] + T01 * q0[b]) for b in range(3)]
+    g_T00, g_T11, g_T01 = k * Y00, k * Y11, 2.0 * k * Y01
+    # from here on in the pair dtype
+    dt = sq[0].dtype
+    tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w = jax.tree.map(
+        lambda a: a.astype(dt), (tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w))
+    absdet = jnp.abs(sp.det)
+    g_w = c_w + tau * kc * absdet
+    g_absdet = tau * kc * w
+    # T = alpha I + beta (M - m I), alpha = (phi1 + phi2)/2, beta = (phi1 - phi2)/D
+    g_alpha = g_T00 + g_T11
+    g_beta = (g_T00 - g_T11) * sp.h + g_T01 * sp.M01
+    g_h = (g_T00 - g_T11) * beta
+    g_M01 = g_T01 * beta
+    g_phi1 = 0.5 * g_alpha + g_beta / D
+    g_phi2 = 0.5 * g_alpha - g_beta / D
+    g_D = -g_beta * beta / D
+    g_lam1 = g_D + g_phi1 * j11 + g_phi2 * j21
+    g_lam2 = -g_D + g_phi1 * j12 + g_phi2 * j22
+    # lam2 = max(det^2 / lam1, 1e-12 lam1), lam1 = m + gap, gap = sqrt(h^2 + M01^2 + (eps m)^2)
+    unfloored = sp.q > 1e-12 * sp.lam1
+    g_q = jnp.where(unfloored, g_lam2, 0.0)
+    g_lam1 = g_lam1 + jnp.where(unfloored, 0.0, 1e-12 * g_lam2) - g_q * sp.q / sp.lam1
+    g_det = g_q * 2.0 * sp.det / sp.lam1 + g_absdet * jnp.sign(sp.det)
+    g_gap = g_lam1 / sp.gap
+    g_h = g_h + g_gap * sp.h
+    g_M01 = g_M01 + g_gap * sp.M01
+    g_m = jnp.where(sp.m_raw > jnp.finfo(sp.m.dtype).tiny,
+                    g_lam1 + g_gap * (st.gap_eps ** 2) * sp.m, 0.0)
+    g_M00 = 0.5 * (g_m + g_h)
+    g_M11 = 0.5 * (g_m - g_h)
+    A00, A01, A10, A11 = geo.A
+    g_A = (2.0 * A00 * g_M00 + A10 * g_M01 + A11 * g_det,
+           2.0 * A01 * g_M00 + A11 * g_M01 - A10 * g_det,
+           2.0 * A10 * g_M11 + A00 * g_M01 - A01 * g_det,
+           2.0 * A11 * g_M11 + A01 * g_M01 + A00 * g_det)
+    tu, tv = sq[6:9], sq[9:12]
+    g_s0 = [g_s0[b] + g_A[0] * tu[b] + g_A[1] * tv[b] for b in range(3)]
+    g_s1 = [g_s1[b] + g_A[2] * tu[b] + g_A[3] * tv[b] for b in range(3)]
+    # weights: w = [front] S(t_inc) S(t_1) S(t_2) S(t_3) S(t_4) occ, S' = 30 t^2 (1 - t)^2
+    g_raw = jnp.where(geo.front, g_w * occ, 0.0)
+    S = [smoothstep(t) for t in (geo.t_inc,) + geo.t_img]
+    dS = [30.0 * (c * (1.0 - c)) ** 2 for c in (jnp.clip(t, 0.0, 1.0) for t in (geo.t_inc,) + geo.t_img)]
+    prod = lambda xs: functools.reduce(lambda a, b: a * b, xs)
+    g_t = [g_raw * dS[i] * prod(S[:i] + S[i + 1:]) for i in range(5)]
+    c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
+    g_cos = g_t[0] * (1.0 / (c_full - c_lim))
+    mg = 1.0 / st.image_margin_px
+    g_u, g_W = mg * (g_t[1] - g_t[2]), mg * g_t[2]
+    g_v, g_H = mg * (g_t[3] - g_t[4]), mg * g_t[4]
+    # projection: s0 = g (R0 - xn R2), s1 = g (R1 - yn R2), g = f iz, u = f xn + cx, v = f yn + cy
+    R = [cq[3 * a:3 * a + 3] for a in range(3)]
+    f = cq[_F]
+    g_e0 = [geo.g * x for x in g_s0]
+    g_e1 = [geo.g * x for x in g_s1]
+    g_g = (_dot(g_s0, [R[0][b] - geo.xn * R[2][b] for b in range(3)])
+           + _dot(g_s1, [R[1][b] - geo.yn * R[2][b] for b in range(3)]))
+    g_xn = f * g_u - _dot(g_e0, R[2])
+    g_yn = f * g_v - _dot(g_e1, R[2])
+    g_f = g_u * geo.xn + g_v * geo.yn + g_g * geo.iz
+    g_iz = g_g * f + g_xn * geo.p[0] + g_yn * geo.p[1]
+    g_p = (g_xn * geo.iz, g_yn * geo.iz, jnp.where(geo.front, -g_iz * geo.iz * geo.iz, 0.0))
+    # cos_inc = -n.d / |d|, p = R d, d = X - P
+    nrm = sq[3:6]
+    g_d = [g_cos * geo.rd * (-nrm[b] - geo.cos_inc * geo.rd * geo.d[b]) + _dot(g_p, [R[a][b] for a in range(3)])
+           for b in range(3)]
+    g_R = ([g_e0[b] + g_p[0] * geo.d[b] for b in range(3)]
+           + [g_e1[b] + g_p[1] * geo.d[b] for b in range(3)]
+           + [-(geo.xn * g_e0[b] + geo.yn * g_e1[b]) + g_p[2] * geo.d[b] for b in range(3)])
+    cols = g_R + [-x for x in g_d] + [g_f, g_u, g_v, g_W, g_H]
+    return jnp.stack(_sums(cols, 1, ctab.dtype), -1)
+
+
+def _pair_inputs(cam, smp, vd: ViewData, st, dt):
+    """The arguments of `_pair_block`: the camera row of each block (B, 17) and, per pair as
+    (B, block) arrays in dtype dt, the 12 sample columns, the occlusion, kc and a runtime 1."""
+    ctab, stab = _camera_table(cam), jax.lax.stop_gradient(_sample_table(smp))
+    L = vd.block
+    B = vd.camera.shape[0] // L
+    sq = _split(stab.astype(dt)[vd.sample], lambda x: x.reshape(B, L))
+    occ, cn, nz = (jax.lax.stop_gradient(x).reshape(B, L)
+                   for x in (vd.occlusion, vd.contrast, vd.noise))
+    kc = st.patch_area * cn * cn / (nz * nz)  # m^2
+    one = (nz / nz).astype(dt)  # 1.0 (noise > 0) per pair, unknown to XLA (`_keep`)
+    return ctab[vd.camera.reshape(B, L)[:, 0]], sq, occ.astype(dt), kc.astype(dt), one
+
+
+def _pair_terms(cam, smp, vd: ViewData, energy, st):
+    """Per listed pair, as (B, block) arrays of the camera-major list, for the reports (float64
+    whatever `st.pair_dtype`; not differentiated): ent, w and the geometry (`_block_forward`)."""
+    ctab, sq, occ, kc, one = _pair_inputs(cam, smp, vd, st, jnp.float64)
+    ent, w, (geo, *_) = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, one,
+                                       energy, st)
+    return ent, w, geo
 
 
 def _per_sample(x, vd: ViewData, n):
-    """Sum a (B, block) per-pair array over the pairs of each sample: (n,)."""
-    return jax.ops.segment_sum(x.reshape(-1), vd.sample, n)
+    """Sum a (B, block) per-pair array over the pairs of each sample, in float64: (n,)."""
+    return jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), vd.sample, n)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
 def _accumulate(vals, sample, eye, n):
-    """(K, P) per-pair values -> (K, n) per-sample sums (segment_sum over `sample`).
+    """K per-pair arrays (P,) -> (K, n) per-sample sums (segment_sum over `sample`).
 
-    The backward gathers the (K, n) cotangent to the pairs after a dot with `eye`, a runtime
-    (K, K) identity: the dot is a library call, so the per-sample backward (smooth sigma_max,
-    score) is evaluated once per sample instead of being fused into the gather and recomputed
-    once per pair and entry (measured: 2690 -> 2064 elementwise ops per pair for value + grad)."""
-    return jax.vmap(lambda v: jax.ops.segment_sum(v, sample, n))(vals)
+    Separate arrays, not one stacked (K, P) array: stacking makes XLA:CPU evaluate the per-pair
+    chain once per row. The backward gathers the (K, n) cotangent to the pairs after a dot with
+    `eye`, a runtime (K, K) identity: the dot is a library call, so the per-sample backward
+    (smooth sigma_max, score) is evaluated once per sample instead of being fused into the
+    gather and recomputed once per pair and entry."""
+    return jnp.stack([jax.ops.segment_sum(v, sample, n) for v in vals])
 
 
 def _accumulate_fwd(vals, sample, eye, n):
@@ -522,7 +794,8 @@ def _accumulate_fwd(vals, sample, eye, n):
 
 def _accumulate_bwd(n, res, ct):
     sample, eye = res
-    return jnp.take(jnp.dot(eye, ct), sample, axis=1), None, None
+    g = jnp.take(jnp.dot(eye, ct), sample, axis=1)
+    return tuple(g[k] for k in range(g.shape[0])), None, None
 
 
 _accumulate.defvjp(_accumulate_fwd, _accumulate_bwd)
@@ -530,7 +803,7 @@ _accumulate.defvjp(_accumulate_fwd, _accumulate_bwd)
 
 def _per_pair_dense(x, vd: ViewData, c, n):
     """Scatter a (B, block) per-pair array into (C, N) (zeros where not listed)."""
-    return jnp.zeros((c, n), x.dtype).at[vd.camera, vd.sample].add(x.reshape(-1))
+    return jnp.zeros((c, n)).at[vd.camera, vd.sample].add(x.reshape(-1).astype(jnp.float64))
 
 
 def _sym_full(e):
@@ -586,7 +859,8 @@ class Geometry(eqx.Module):
 def geometry(cameras: CameraParams, samples: Samples, settings: Settings = Settings()) -> Geometry:
     """Projection, sensitivity s = dx/dX, footprint A = s [t_u t_v] and soft weight per pair
     (dense: every camera with every sample)."""
-    s0, s1, A, u, v, w = _pairs(cameras, samples, settings)
+    geo = _pairs(cameras, samples, settings)
+    s0, s1, A, u, v, w = geo.s0, geo.s1, geo.A, geo.u, geo.v, geo.w
     s = jnp.stack([jnp.stack(s0, -1), jnp.stack(s1, -1)], -2)
     A = jnp.stack([jnp.stack(A[:2], -1), jnp.stack(A[2:], -1)], -2)
     return Geometry(jnp.stack([u, v], -1), s, A, w)
@@ -607,7 +881,7 @@ def camera_information(cameras: CameraParams, samples: Samples, views: ViewData,
     """Each camera's contribution Omega w_i |det A_i| C_i to the sample information, (C, N, 3, 3)
     in 1/m^2 (C_i = sigma_i^-2 s_i^T T_i s_i per pixel; rank 2, null vector along the ray); zero
     for pairs not listed in `views`."""
-    ent, _, _, _ = _pair_terms(cameras, samples, views, energy, settings)
+    ent, _, _ = _pair_terms(cameras, samples, views, energy, settings)
     c, n = cameras.position.shape[0], samples.points.shape[0]
     return _sym_full(tuple(_per_pair_dense(e, views, c, n) for e in ent))
 
@@ -616,17 +890,20 @@ def camera_information(cameras: CameraParams, samples: Samples, views: ViewData,
 def information(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                 settings: Settings = Settings()):
     """C = Omega sum_i w_i |det A_i| C_i per sample, (N, 3, 3) in 1/m^2 (no regularisation)."""
-    ent, _, _, _ = _pair_terms(cameras, samples, views, energy, settings)
+    ent, _, _ = _pair_terms(cameras, samples, views, energy, settings)
     n = samples.points.shape[0]
     return _sym_full(tuple(_per_sample(e, views, n) for e in ent))
 
 
 def _score(cameras, samples, views, energy, settings):
-    ent, w, _, _ = _pair_terms(cameras, samples, views, energy, settings)
+    ent, w = _pair_block(*_pair_inputs(cameras, samples, views, settings,
+                                       jnp.dtype(settings.pair_dtype)),
+                         jax.lax.stop_gradient(energy), settings)
     n = samples.points.shape[0]
     one = jax.lax.stop_gradient(views.noise[0] / views.noise[0])  # 1.0, unknown to XLA
-    eye = jnp.eye(7, dtype=w.dtype) * one
-    sums = _accumulate(jnp.stack([e.reshape(-1) for e in ent + (w,)]), views.sample, eye, n)
+    eye = jnp.eye(7) * one
+    sums = _accumulate(tuple(e.reshape(-1).astype(jnp.float64) for e in ent + (w,)),
+                       views.sample, eye, n)
     ent, cov = tuple(sums[:6]), sums[6]
     sigma = _smooth_sigma_max(ent, settings) / settings.sigma_unit
     omega = samples.area * samples.importance[samples.region]
@@ -681,7 +958,8 @@ class Fields(eqx.Module):
 def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
            settings: Settings = Settings()) -> Fields:
     """All report fields (exact eigenvalues, not for differentiation)."""
-    ent, w, s0, s1 = _pair_terms(cameras, samples, views, energy, settings)
+    ent, w, geo = _pair_terms(cameras, samples, views, energy, settings)
+    s0, s1 = geo.s0, geo.s1
     c, n = cameras.position.shape[0], samples.points.shape[0]
     ent = tuple(_per_sample(e, views, n) for e in ent)
     sens = jnp.stack([jnp.sqrt(_per_sample(w * (s0[k] ** 2 + s1[k] ** 2), views, n))
