@@ -101,3 +101,42 @@ def test_check_entries_report_met_and_relative_excess(kind, value, limit, met, e
     e = constraints._entry("c", value, limit, "unit", kind)
     assert e["met"] is met
     assert e["excess"] == pytest.approx(excess, rel=1e-4, abs=1e-12)
+
+
+def _panel_above(height=2.0, size=0.3):
+    """One sample at the origin lit by a square panel `height` above it, facing down."""
+    row = np.array([0, 0, height, 0, 0, -1.0, 1.0, 0, 0, size / 2, size / 2])
+    return jnp.zeros((1, 3)), jnp.asarray(row)[None]
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.01])
+def test_shadow_penalty_starts_where_the_sphere_begins_to_hide_the_panel(margin):
+    """A sphere (r = 5 cm) 1 m above the sample, offset d sideways: seen from the sample it
+    hides part of the 0.3 m panel 2 m up until atan(d) - atan(0.075) = (r + margin) / sqrt(1 + d^2)."""
+    from scipy.optimize import brentq
+
+    sample, panel = _panel_above()
+    r = 0.05
+    d_star = brentq(lambda d: math.atan(d) - math.atan(0.075) - (r + margin) / math.hypot(1, d), 0.08, 1.0)
+
+    def pen(d, z=1.0):
+        return float(constraints.shadow_penalty(jnp.asarray([[[d, 0.0, z]]]), jnp.asarray([[r]]),
+                                                sample, panel, margin))
+
+    assert pen(0.0) == pytest.approx((1 + margin / r) ** 2, rel=1e-6)   # straight under: beta = 0
+    assert pen(d_star - 2e-3) > 0 and pen(d_star + 2e-3) == 0.0
+    assert pen(0.0, z=-0.5) == 0.0 and pen(0.0, z=2.5) == 0.0           # behind the sample or the panel
+
+
+def test_shadow_penalty_gradient_matches_finite_differences():
+    sample, panel = _panel_above()
+
+    def f(c):
+        return constraints.shadow_penalty(c.reshape(1, 1, 3), jnp.asarray([[0.05]]), sample, panel, 0.01)
+
+    c0 = jnp.asarray([0.09, 0.02, 1.1])
+    g = np.asarray(jax.grad(f)(c0))
+    h = 1e-7
+    fd = np.array([(f(c0 + h * e) - f(c0 - h * e)) / (2 * h) for e in np.eye(3)])
+    assert float(f(c0)) > 0 and np.abs(g).max() > 1
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)

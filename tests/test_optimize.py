@@ -1,7 +1,8 @@
-"""`vdo optimize` on small scenes: it clears a view masked by a bar, opens a stereo pair that is
-too narrow, and writes a complete run folder whose layout loads again."""
+"""`vdo optimize` on small scenes (it clears a view masked by a bar, opens a stereo pair that is
+too narrow, writes a complete run folder whose layout loads again) and on the built-in experiment."""
 
 import csv
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -126,3 +127,18 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
     a, b = param.cameras_at(theta)[0], param.cameras_at(turned)[0]
     assert b.pan - a.pan == pytest.approx(0.05, abs=1e-12)
     np.testing.assert_allclose(b.position, a.position, atol=1e-12)
+
+
+def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_path):
+    """The hand layout of the built-in experiment breaks the stereo-angle rule (cam9 against
+    cam1 and cam2); one feasibility round and one penalty round must end with every constraint
+    met and a lower joint sigma_max p95 than the hand layout."""
+    exp = config.load(EXPERIMENTS / "ten_cameras.toml")
+    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1))
+    result = optimize(exp, tmp_path / "run", quiet=True)
+    before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
+    assert sum(not e["met"] for e in before) == 2
+    assert result["violations"] == 0, result["violated"]
+    p95_before, p95_after = result["joint_p95_um"]
+    assert p95_after < 0.98 * p95_before
+    assert result["score_after"] < result["score_before"]

@@ -10,8 +10,8 @@ JAX, and exact checks for the report.
 * field of view: an assigned region stays inside the image;
 * clearance:    camera bodies keep `clearance` metres from every mesh and from each other;
 * rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
-* shadows:      camera bodies do not shadow the regions from the lights (lights are not variables,
-                so this is checked, not optimized).
+* shadows:      camera bodies do not shadow the regions from the lights (lights are not variables:
+                the bodies keep off the rays from the lit samples to the panels).
 
 A camera is *assigned* the regions of which it sees at least `assign_fraction` of the area in the
 starting layout: what the person who placed it by hand meant it to watch.
@@ -123,6 +123,37 @@ def clearance_penalty(body_world, near_points, clearance: float):
         per_pair = jnp.sum(hinge(jnp.sum(diff ** 2, -1)), axis=(-2, -1))
         total = total + 0.5 * jnp.sum(jnp.where(~jnp.eye(n, dtype=bool), per_pair, 0.0))
     return total
+
+
+def shadow_penalty(centres, radii, samples, panels, margin: float):
+    """Σ (max(0, α + margin / D - β) / α)^2 over every body sphere (centres (C, K, 3), radii
+    (C, K), m) and lit sample X, in angles seen from X: the sphere (centre c at distance D)
+    covers a cone of half-angle α = r / D, and β is the angle between X -> c and X -> Y, Y the
+    point of the light's panel nearest (in the panel's plane) to where the ray X -> c meets that
+    plane. The sphere hides part of the panel from X when β < α. Only spheres between the sample
+    and the panel count (the ray meets the plane beyond c).
+
+    `samples` (S, 3) are lit samples, `panels` (S, 11) per sample its light's centre, normal
+    (emitting side), width direction and half-width, height direction and half-height (the
+    height direction is n x e_1). 0 when no body comes within `margin` (m, at the body) of
+    shadowing a sample; C^1 in the body poses away from the panel plane and the samples."""
+    centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
+                                          panels[:, 9:10], panels[:, 10:11])
+    e2 = jnp.cross(normal, e1)
+    ray = centres[:, :, None, :] - samples                    # (C, K, S, 3)  X -> c
+    along = jnp.sum(ray * normal, -1)                         # < 0 toward the emitting face
+    reach = jnp.sum((centre - samples) * normal, -1)          # (S,) < 0: X in front of the panel
+    toward = along < -1e-9
+    lam = jnp.where(toward, reach / jnp.where(toward, along, -1.0), 0.0)
+    q = samples + lam[..., None] * ray - centre               # in the panel plane, from its centre
+    y = (centre + jnp.clip(jnp.sum(q * e1, -1, keepdims=True), -half_w, half_w) * e1
+         + jnp.clip(jnp.sum(q * e2, -1, keepdims=True), -half_h, half_h) * e2 - samples)
+    dist = jnp.sqrt(jnp.sum(ray * ray, -1) + 1e-12)
+    sin_b = jnp.sqrt(jnp.sum(jnp.cross(ray, y) ** 2, -1) + 1e-18)
+    beta = jnp.arctan2(sin_b, jnp.sum(ray * y, -1))
+    alpha = radii[:, :, None] / dist
+    hit = toward & (lam > 1.0)
+    return jnp.sum(jnp.where(hit, (jnp.maximum(alpha + margin / dist - beta, 0.0) / alpha) ** 2, 0.0))
 
 
 def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> np.ndarray:

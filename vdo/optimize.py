@@ -5,7 +5,7 @@ Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u
 u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
 0 = horizontal, unless freed). The objective, a JAX function of the parameter vector θ, is
 
-    J(θ) = a_k score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration](θ)
+    J(θ) = a_k score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration + P_shadow](θ)
 
 with `vdo.objective.score` (smooth high percentile of σ_max in µm plus the coverage shortfall) and
 the penalties of `vdo.constraints` (`Problem.terms`), each C^1 and 0 exactly where its
@@ -14,7 +14,9 @@ quadratic penalty's minimiser always lies a little beyond what the penalty aims 
 inside the limit puts it on the feasible side. P_fov keeps a smooth in-image area fraction of
 each assigned region at least what the hand layout had (minus 1 %, at most 1 - max_obscuration);
 P_obscuration = Σ (o / max_obscuration)^2 over the assigned (camera, region) pairs that an
-obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`).
+obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`); P_shadow keeps the
+camera bodies (covered by spheres) from hiding any part of a light panel from the samples it
+lights.
 
 A round is one BFGS solve (optimistix) with the ray-cast occlusion and the lighting frozen;
 between rounds they are recomputed at the new layout. From a start that violates a constraint,
@@ -49,22 +51,24 @@ from scipy.spatial import cKDTree  # noqa: E402
 from . import constraints, objective, report  # noqa: E402
 from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
 from .config import Experiment  # noqa: E402
-from .lighting import illuminate  # noqa: E402
+from .lighting import illuminate, panel_frame  # noqa: E402
 from .obscuration import ObscurationRenderer  # noqa: E402
 from .predict import predict, samples_for_objective, settings, speckle_model, view_data  # noqa: E402
 from .runfolder import run_folder  # noqa: E402
 from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # noqa: E402
-                    camera_body_points, load_meshes, sample_regions)
+                    camera_body_points, camera_body_spheres, load_meshes, sample_regions)
 from .visibility import compute_visibility  # noqa: E402
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
 FEASIBILITY_STEPS = 100   # BFGS steps of the feasibility round (penalties only)
+PENALTIES = ("angle", "fov", "clearance", "obscuration", "shadow")   # the keys of `Problem.terms` besides score
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's unit for pan, tilt, roll (0.5 for logit u)
 # Back-off: the penalties aim this far inside each limit, so that the penalty solution, which
 # always lies a little beyond what it aims at, meets the exact limit.
-ANGLE_MARGIN = math.radians(1.0)   # rad added to each minimum axis angle
+ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
-FOV_MARGIN = 0.005                 # added to each least in-image fraction of a region
+FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
+SHADOW_MARGIN = 0.005              # m between a body's shadow and a light panel, on the panel
 
 
 # --------------------------------------------------------------------------------------------
@@ -234,6 +238,10 @@ class Problem:
         # lights reaching each sample with no camera in the scene, to see what the bodies hide
         self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
                                     if exp.lights else None)
+        spheres = [camera_body_spheres(c.focal_length) for c in self.cams0]
+        self.sphere_local = jnp.asarray(np.stack([c for c, _ in spheres]))
+        self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres]))
+        self.lit_samples = self._lit_samples()
         self.fov_limits = None   # the hand layout's in-image fractions bound the optimized ones
         self.fov_limits = self._fov_limits(self.check(self.start))
         self.fov = self._fov_groups(self.start)
@@ -277,6 +285,23 @@ class Problem:
         illum = illuminate(scene, self.exp.lights, self.samples, self.exp.render.ambient_radiance)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
                      view_data(self.exp, vis, illum, self.speckle))
+
+    def _lit_samples(self, per_light: int = 600):
+        """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
+        `per_light` of the samples it reaches with no camera in the scene (a regular subset),
+        each with its light's panel. None without lights."""
+        if self.lit_without_cameras is None:
+            return None
+        points, panels = [], []
+        for light, lit in zip(self.exp.lights, self.lit_without_cameras):
+            idx = np.flatnonzero(lit > 0.01)
+            idx = idx[np.linspace(0, idx.size - 1, min(per_light, idx.size)).astype(int)] if idx.size else idx
+            n, e1, _ = panel_frame(light)
+            row = np.concatenate([np.asarray(light.position, float), n, e1,
+                                  [light.size[0] / 2, light.size[1] / 2]])
+            points.append(self.samples.points[idx])
+            panels.append(np.tile(row, (idx.size, 1)))
+        return jnp.asarray(np.concatenate(points)), jnp.asarray(np.concatenate(panels))
 
     def _fov_groups(self, state: State) -> dict:
         """The field-of-view constraint's data, one group per assigned (camera, region): the
@@ -329,7 +354,7 @@ class Problem:
 
     # -- the objective -------------------------------------------------------------------
     def terms(self, theta, views) -> dict:
-        """The score and each penalty at θ (JAX scalars): score, angle, fov, clearance, obscuration."""
+        """The score and each penalty at θ (JAX scalars): score and the `PENALTIES`."""
         pos, pan, tilt, roll = self.param.poses(theta)
         c0 = self.cams0
         f = jnp.asarray([c.focal_px for c in c0])
@@ -348,13 +373,16 @@ class Problem:
             clearance=constraints.clearance_penalty(
                 constraints.body_points_world(self.body_local, R, pos), self.near_points,
                 clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
-            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)))
+            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)),
+            shadow=0.0 if self.lit_samples is None else constraints.shadow_penalty(
+                constraints.body_points_world(self.sphere_local, R, pos), self.sphere_radii,
+                *self.lit_samples, SHADOW_MARGIN))
 
     def _total(self, theta, views, weights):
         """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
         terms = self.terms(theta, views)
         jax.debug.callback(self._record, terms)
-        return weights[0] * terms["score"] + weights[1] * sum(v for k, v in terms.items() if k != "score")
+        return weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
 
     def _scaled(self, y, args):
         """J at θ = origin + scale y, divided by `norm` (`_round`)."""
@@ -448,7 +476,8 @@ def judge(problem: Problem, theta, state: State, start: int) -> Result:
     result = Result(np.asarray(theta, float), state, problem.exact_score(state), checks,
                     sum(not e["met"] for e in checks), start)
     problem.verdicts.append(dict(start=start, wall_s=time.perf_counter() - problem._t0,
-                                 score=result.score, violations=result.violations))
+                                 score=result.score, violations=result.violations,
+                                 theta=result.theta))
     return result
 
 
@@ -465,6 +494,7 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
     rng = np.random.default_rng(opt.seed)
     results = []
     problem._t0 = time.perf_counter()   # history and verdicts count wall time from here
+    problem.history, problem.verdicts = [], []
     for start in range(opt.starts):
         theta = problem.param.theta0.copy()
         if start > 0:
@@ -564,24 +594,29 @@ def _joint_p95(summary: dict):
 
 def _write_history(path, history):
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", "angle", "fov",
-                                     "clearance", "obscuration"])
+        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", *PENALTIES])
         writer.writeheader()
         for i, row in enumerate(history):
             writer.writerow({"evaluation": i, **row})
 
 
 def _plot_history(path, history, name):
+    """Score (left) and the sum of the penalties (right, log) at every objective evaluation."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
-    starts = sorted({h["start"] for h in history})
-    for s in starts:
+    right = ax.twinx()
+    for s in sorted({h["start"] for h in history}):
         rows = [h for h in history if h["start"] == s]
-        ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=1, label=f"start {s + 1}")
+        t = [h["wall_s"] for h in rows]
+        line, = ax.plot(t, [h["score"] for h in rows], lw=1, label=f"start {s + 1}: score")
+        right.plot(t, [max(sum(h[k] for k in PENALTIES), 1e-12) for h in rows], lw=0.8, ls=":",
+                   color=line.get_color(), label=f"start {s + 1}: penalties")
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_yscale("log")
+    right.set_ylabel("sum of the penalties (dotted)")
+    right.set_yscale("log")
     ax.set_title(f"{name}: convergence (every objective evaluation)")
-    ax.legend()
+    ax.legend(loc="upper right")
     fig.savefig(path, dpi=120)
     plt.close(fig)
 

@@ -233,6 +233,20 @@ def camera_body_points(focal_length: float) -> np.ndarray:
     return np.vstack([ring, ring - [0, 0, length], corners, faces])
 
 
+def camera_body_spheres(focal_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Spheres whose union covers the body (camera frame): centres (10, 3) and radii (10,) m;
+    two along the lens barrel and one around each eighth of the box (overshoot ~1.5 cm), a smooth
+    stand-in for the mesh in the shadow penalty."""
+    length = lens_length(focal_length)
+    w, h, d = BODY_SIZE
+    quarter = length / 4
+    lens = np.array([[0, 0, -quarter], [0, 0, -3 * quarter]])
+    box = np.array([[x * w / 4, y * h / 4, -length - d / 2 + z * d / 4]
+                    for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    radii = [float(np.hypot(LENS_DIAMETER / 2, quarter))] * 2 + [0.25 * float(np.sqrt(w * w + h * h + d * d))] * 8
+    return np.vstack([lens, box]), np.array(radii)
+
+
 def camera_body(camera: Camera) -> SceneMesh:
     """`camera_body_local` placed at the camera's pose, as an obstacle for the other cameras."""
     local = camera_body_local(camera.focal_length)
