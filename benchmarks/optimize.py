@@ -82,7 +82,8 @@ def main():
         opt = dataclasses.replace(opt, max_steps=args.max_steps)
     exp = dataclasses.replace(exp, optimize=opt)
     problem = Problem(exp)
-    # warm the JIT caches outside the timing (both methods reuse the compiled objective)
+    # compile the objective's value and gradient outside the timing (the BFGS loop itself,
+    # `Problem.minimise`, compiles inside vdo's timed run)
     problem.value_and_grad(problem.param.theta0, problem.start.views, jnp.ones(2))
     start_verdict = judge(problem, problem.param.theta0, problem.start, 0)
 
@@ -98,7 +99,7 @@ def main():
     feasible = next((v for v in problem.verdicts if v["violations"] == 0), None)
     starts = [("hand layout", problem.param.theta0)]
     if feasible is not None:
-        starts.append((f"vdo's first feasible layout (score {feasible['score']:.5g}, "
+        starts.append((f"first feasible layout of vdo (score {feasible['score']:.5g}, "
                        f"found at {feasible['wall_s']:.0f} s)", feasible["theta"]))
     print("best feasible score against wall time (s)")
     print("  vdo: " + "  ".join(f"{t:.0f}:{s:.5g}" for t, s in vdo_trace))

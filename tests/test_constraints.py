@@ -95,7 +95,8 @@ def test_in_image_fraction_gradient_matches_finite_differences():
 
 @pytest.mark.parametrize("kind, value, limit, met, excess", [
     ("min", 21.1, 21.1, True, 0.0), ("min", 20.0, 25.0, False, 0.2), ("max", 0.06, 0.05, False, 0.2),
-    ("max", 0.05, 0.05, True, 0.0), ("range", 1.2, [0.0, 1.0], False, 0.2), ("zero", 0.0, 0.0, True, 0.0),
+    ("max", 0.05, 0.05, True, 0.0), ("range", 1.2, [0.0, 1.0], False, 0.2), ("zero", 0.1, 0.0, False, 0.1),
+    ("max", 0.002, 0.0, False, 2.0),   # a zero limit: the excess is relative to 1e-3, not to 0
 ])
 def test_check_entries_report_met_and_relative_excess(kind, value, limit, met, excess):
     e = constraints._entry("c", value, limit, "unit", kind)

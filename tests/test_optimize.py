@@ -108,7 +108,8 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
 
 def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
     """θ0 reproduces the hand layout; sliding a camera along its rail with zero angle offsets
-    keeps its aim point on the optical axis, and an offset turns the axis by exactly that angle."""
+    keeps its aim point on the optical axis; a pan offset turns the heading by that angle; with
+    u held the angles are absolute."""
     exp = config.load(EXPERIMENTS / "ten_cameras.toml")
     cams = exp.cameras()
     param = Parameterization(exp, cams, np.zeros(3))
@@ -125,10 +126,18 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
     turned = theta.copy()
     turned[k] += 0.05
     a, b = param.cameras_at(theta)[0], param.cameras_at(turned)[0]
-    assert b.pan - a.pan == pytest.approx(0.05, abs=1e-12)
     np.testing.assert_allclose(b.position, a.position, atol=1e-12)
+    # a heading change d at tilt t turns the axis by 2 asin(cos t sin(d/2))
+    turn = math.acos(np.clip(a.optical_axis @ b.optical_axis, -1, 1))
+    assert turn == pytest.approx(2 * math.asin(math.cos(a.tilt) * math.sin(0.025)), rel=1e-9)
+    # with u held, pan and tilt are the absolute angles of the hand layout
+    held = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, free=("pan", "tilt")))
+    absolute = Parameterization(held, cams, np.zeros(3))
+    assert absolute.theta0[absolute.index[0]["pan"]] == pytest.approx(cams[0].pan)
+    np.testing.assert_allclose(absolute.cameras_at(absolute.theta0)[0].R, cams[0].R, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_path):
     """The hand layout of the built-in experiment breaks the stereo-angle rule (cam9 against
     cam1 and cam2); one feasibility round and one penalty round must end with every constraint
@@ -137,7 +146,7 @@ def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_pa
     exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1))
     result = optimize(exp, tmp_path / "run", quiet=True)
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
-    assert sum(not e["met"] for e in before) == 2
+    assert [e["cameras"] for e in before if not e["met"]] == [["cam1", "cam9"], ["cam2", "cam9"]]
     assert result["violations"] == 0, result["violated"]
     p95_before, p95_after = result["joint_p95_um"]
     assert p95_after < 0.98 * p95_before

@@ -7,7 +7,8 @@ JAX, and exact checks for the report.
 * obscuration:  no obstacle (bars, machine, lights, other camera bodies) masks more than
                 `max_obscuration` of an assigned region's image (`vdo.obscuration` differentiates
                 it through Mitsuba; the report counts blocked rays);
-* field of view: an assigned region stays inside the image;
+* field of view: an assigned region keeps in the image at least what the hand layout had of it
+                (minus 1 %, and at most 1 - max_obscuration is required);
 * clearance:    camera bodies keep `clearance` metres from every mesh and from each other;
 * rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
 * shadows:      camera bodies do not shadow the regions from the lights (lights are not variables:
@@ -136,7 +137,8 @@ def shadow_penalty(centres, radii, samples, panels, margin: float):
     `samples` (S, 3) are lit samples, `panels` (S, 11) per sample its light's centre, normal
     (emitting side), width direction and half-width, height direction and half-height (the
     height direction is n x e_1). 0 when no body comes within `margin` (m, at the body) of
-    shadowing a sample; C^1 in the body poses away from the panel plane and the samples."""
+    shadowing a sample; continuous in the body poses, C^1 except where the ray X -> c crosses
+    the panel's outline (where the slope of β changes) or the panel's plane."""
     centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
                                           panels[:, 9:10], panels[:, 10:11])
     e2 = jnp.cross(normal, e1)
@@ -180,17 +182,18 @@ def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> np
 def _entry(constraint: str, value: float, limit, unit: str, kind: str, **about) -> dict:
     """A check entry. kind 'min' (value >= limit), 'max' (value <= limit), 'zero' (|value| <= limit
     within 1e-9) or 'range' (limit = [low, high]). `excess` is by how much the value is beyond
-    its limit, relative to the limit's scale (max(|limit|, 1) for 'zero' and 'range', else |limit|),
-    0 when met: a common measure of how far a layout is from feasible."""
+    its limit, relative to the limit's scale (max(|limit|, 1) for 'zero' and 'range', else
+    max(|limit|, 1e-3)), 0 when met (within 1e-6 of the scale): a common measure of how far a
+    layout is from feasible."""
     if kind == "range":
         low, high = limit
         gap = max(low - value, value - high, 0.0) / max(high - low, 1.0)
     elif kind == "zero":
         gap = max(abs(value) - limit - 1e-9, 0.0) / max(abs(limit), 1.0)
     else:
-        tol = 1e-6 * max(abs(limit), 1e-30)  # angles are compared in degrees to 1e-6
+        scale = max(abs(limit), 1e-3)
         beyond = (limit - value) if kind == "min" else (value - limit)
-        gap = max(beyond - tol, 0.0) / max(abs(limit), 1e-30)
+        gap = max(beyond - 1e-6 * scale, 0.0) / scale   # met within 1e-6 of the scale
     return dict(constraint=constraint, **about, value=value, limit=limit, unit=unit,
                 met=bool(gap == 0.0), excess=float(gap))
 

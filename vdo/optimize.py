@@ -8,8 +8,9 @@ u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at it
     J(θ) = a_k score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration + P_shadow](θ)
 
 with `vdo.objective.score` (smooth high percentile of σ_max in µm plus the coverage shortfall) and
-the penalties of `vdo.constraints` (`Problem.terms`), each C^1 and 0 exactly where its
-constraint holds with a back-off margin (`ANGLE_MARGIN`, `CLEARANCE_MARGIN`, `FOV_MARGIN`): a
+the penalties of `vdo.constraints` (`Problem.terms`); each but P_obscuration is 0 exactly where
+its constraint holds with a back-off margin (`ANGLE_MARGIN`, `CLEARANCE_MARGIN`, `FOV_MARGIN`,
+`SHADOW_MARGIN`): a
 quadratic penalty's minimiser always lies a little beyond what the penalty aims at, so aiming
 inside the limit puts it on the feasible side. P_fov keeps a smooth in-image area fraction of
 each assigned region at least what the hand layout had (minus 1 %, at most 1 - max_obscuration);
@@ -20,7 +21,8 @@ lights.
 
 A round is one BFGS solve (optimistix) with the ray-cast occlusion and the lighting frozen;
 between rounds they are recomputed at the new layout. From a start that violates a constraint,
-round 0 restores feasibility: the penalties alone (a = 0, μ = 1), so that the score never trades
+feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at most
+`FEASIBILITY_ROUNDS`) until the layout meets every constraint, so that the score never trades
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
 (penalty continuation). Several starts: the hand layout and randomly perturbed copies. Each
 round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
@@ -47,6 +49,7 @@ import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
+from scipy.special import expit  # noqa: E402
 
 from . import constraints, objective, report  # noqa: E402
 from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
@@ -60,15 +63,15 @@ from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # no
 from .visibility import compute_visibility  # noqa: E402
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
-FEASIBILITY_STEPS = 100   # BFGS steps of the feasibility round (penalties only)
+FEASIBILITY_ROUNDS = 3    # at most this many feasibility rounds (penalties only) per start
 PENALTIES = ("angle", "fov", "clearance", "obscuration", "shadow")   # the keys of `Problem.terms` besides score
-ANGLE_SCALE = math.radians(3.0)   # rad: the solver's unit for pan, tilt, roll (0.5 for logit u)
+ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle (`Parameterization`)
 # Back-off: the penalties aim this far inside each limit, so that the penalty solution, which
 # always lies a little beyond what it aims at, meets the exact limit.
 ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
-SHADOW_MARGIN = 0.005              # m between a body's shadow and a light panel, on the panel
+SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 
 
 # --------------------------------------------------------------------------------------------
@@ -82,8 +85,11 @@ class Parameterization:
     its hand-layout optical axis at the depth of `centre` (the regions' centroid): its free pan
     and tilt are offsets from the direction a_c - P(u), so that sliding along the rail keeps the
     same point in the middle of the image (without this, u and the angles are strongly coupled
-    and BFGS creeps along a narrow valley). Otherwise pan, tilt and roll are absolute. θ = 0
-    offsets reproduce the hand layout; a held angle keeps its configured value."""
+    and BFGS creeps along a narrow valley). Otherwise (u held, or a vertical axis, whose heading
+    is undefined) pan, tilt and roll are absolute. θ = 0 offsets reproduce the hand layout; a
+    held angle keeps its configured value. Each parameter's natural scale (`scale`, the solver's
+    unit) is 0.5 in logit u, and for an angle `ANGLE_SCALE` or an eighth of the camera's
+    horizontal field of view, whichever is smaller."""
 
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
@@ -102,8 +108,7 @@ class Parameterization:
                         theta.append(math.log(u / (1 - u)))
                         scale.append(0.5)
                     else:
-                        relative = "u" in idx and name != "roll"
-                        theta.append(0.0 if relative else getattr(cam, name))
+                        theta.append(0.0 if self._aimed(idx, cam) and name != "roll" else getattr(cam, name))
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
@@ -114,20 +119,24 @@ class Parameterization:
         self.aims = np.array(aims)
         self.rails = [exp.rail(s.rail) if s.rail else None for s in exp.camera_specs]
 
+    @staticmethod
+    def _aimed(idx: dict, cam: Camera) -> bool:
+        """Aim-relative angles: u free and the axis not vertical (where the heading is undefined)."""
+        return "u" in idx and abs(math.cos(cam.tilt)) > 1e-3
+
     def poses(self, theta):
         """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays."""
         pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
         for cam, spec, rail, idx, aim in zip(self.cameras, self.exp.camera_specs, self.rails,
                                              self.index, self.aims):
-            if "u" in idx:
-                p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
+            p = (rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset if "u" in idx
+                 else jnp.asarray(cam.position, dtype=float))
+            if self._aimed(idx, cam):
                 d = jnp.asarray(aim) - p
-                base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])),
-                            roll=jnp.asarray(0.0))
+                base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])))
                 relative = {"pan", "tilt"}
             else:
-                p = jnp.asarray(cam.position, dtype=float)
-                base, relative = {k: jnp.asarray(0.0) for k in angles}, set()
+                base, relative = {}, set()
             pos.append(p)
             for k in angles:
                 if k in idx:
@@ -138,7 +147,7 @@ class Parameterization:
 
     def u(self, theta) -> list:
         theta = np.asarray(theta)
-        return [1 / (1 + math.exp(-theta[idx["u"]])) if "u" in idx else spec.u
+        return [float(expit(theta[idx["u"]])) if "u" in idx else spec.u
                 for spec, idx in zip(self.exp.camera_specs, self.index)]
 
     def cameras_at(self, theta) -> list[Camera]:
@@ -238,12 +247,14 @@ class Problem:
         # lights reaching each sample with no camera in the scene, to see what the bodies hide
         self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
                                     if exp.lights else None)
-        spheres = [camera_body_spheres(c.focal_length) for c in self.cams0]
-        self.sphere_local = jnp.asarray(np.stack([c for c, _ in spheres]))
-        self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres]))
+        # the cameras with a body (the ray cast and the lighting see only those)
+        self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
+        spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
+        self.sphere_local = jnp.asarray(np.stack([c for c, _ in spheres])) if spheres else None
+        self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres])) if spheres else None
         self.lit_samples = self._lit_samples()
-        self.fov_limits = None   # the hand layout's in-image fractions bound the optimized ones
-        self.fov_limits = self._fov_limits(self.check(self.start))
+        self.fov_limits = None   # None: 1 - max_obscuration, to judge the hand layout itself
+        self.fov_limits = self._fov_limits(self.check(self.start))   # then no worse than it
         self.fov = self._fov_groups(self.start)
         self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
@@ -251,8 +262,7 @@ class Problem:
         self.verdicts: list[dict] = []   # every exact judgement (`judge`)
         self._t0 = time.perf_counter()
         self._label = (0, 0)
-        K = np.stack([c.K for c in self.cams0])
-        self.K, self.size = jnp.asarray(K), jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
+        self.size = jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
         self.value_and_grad = jax.jit(jax.value_and_grad(self._total))
         solver = optx.BFGS(rtol=1e-6, atol=1e-6)
         # one compiled solve per pair-list size and step count, reused by every round and start
@@ -324,17 +334,18 @@ class Problem:
                     points=jnp.asarray(points), area=jnp.asarray(area), ramp=jnp.asarray(ramp),
                     limit=jnp.asarray([self.fov_limits[c, r] for c, r in groups]))
 
-    def track_obscured(self, state: State) -> None:
+    def track_obscured(self, state: State, checks: list[dict]) -> None:
         """Render-differentiated obscuration for every assigned (camera, region) pair that an
         obstacle has masked beyond the limit at this or any earlier refresh of the start (a pair
         that was cleared stays tracked, or the next round could walk the camera back behind the
         obstacle). Pairs within the limit are left to the exact check: each tracked pair costs two
         Mitsuba renders and a backward pass per evaluation, and its Monte Carlo noise (spp 16)
         stalls BFGS's line search when the pair has nothing to gain (measured on the built-in
-        experiment: no accepted step with two such pairs, 5 % lower score without them)."""
+        experiment: no accepted step with two such pairs, 5 % lower score without them).
+        `checks` is `check(state)`."""
         by_name = {c.name: i for i, c in enumerate(self.cams0)}
         threshold = self.exp.optimize.max_obscuration
-        for entry in self.check(state):
+        for entry in checks:
             if entry["constraint"] == "obscuration" and entry["value"] > threshold:
                 self.masked.add((by_name[entry["cameras"][0]], self.samples.region_names.index(entry["region"])))
         self.obscuration.tracked = []
@@ -374,9 +385,9 @@ class Problem:
                 constraints.body_points_world(self.body_local, R, pos), self.near_points,
                 clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)),
-            shadow=0.0 if self.lit_samples is None else constraints.shadow_penalty(
-                constraints.body_points_world(self.sphere_local, R, pos), self.sphere_radii,
-                *self.lit_samples, SHADOW_MARGIN))
+            shadow=0.0 if self.lit_samples is None or self.sphere_local is None else constraints.shadow_penalty(
+                constraints.body_points_world(self.sphere_local, R[self.bodied], pos[self.bodied]),
+                self.sphere_radii, *self.lit_samples, SHADOW_MARGIN))
 
     def _total(self, theta, views, weights):
         """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
@@ -502,20 +513,28 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
         state = problem.refresh(theta)
         best = result = judge(problem, theta, state, start)
         problem.masked = set()
-        # round 0, only from a layout that violates a constraint: the penalties alone
-        schedule = ([(0.0, 1.0, FEASIBILITY_STEPS)] if result.violations else []) + [
-            (1.0, MU0 * 10.0 ** k, opt.max_steps) for k in range(opt.rounds)]
-        for rnd, (w_score, mu, steps) in enumerate(schedule):
-            problem._label = (start, rnd)
-            problem.track_obscured(state)
-            theta = _round(problem, theta, state.views, (w_score, mu), steps)
+        label = 0
+
+        def run(w_score, mu, name):
+            nonlocal theta, state, result, best, label
+            problem._label = (start, label)
+            problem.track_obscured(state, result.checks)
+            theta = _round(problem, theta, state.views, (w_score, mu), opt.max_steps)
             state = problem.refresh(theta)
             result = judge(problem, theta, state, start)
             best = min(best, result, key=lambda r: r.rank)
+            label += 1
             if progress:
-                print(f"  start {start + 1}/{opt.starts} round {rnd + 1}/{len(schedule)}"
-                      f"{' (feasibility)' if w_score == 0 else ''}: score {result.score:.4g}, "
+                print(f"  start {start + 1}/{opt.starts} {name}: score {result.score:.4g}, "
                       f"{result.violations} violation(s) {_violated(result)}", flush=True)
+
+        # from a layout that violates a constraint: the penalties alone, until it meets them all
+        for k in range(FEASIBILITY_ROUNDS):
+            if result.violations == 0:
+                break
+            run(0.0, 1.0, f"feasibility round {k + 1}")
+        for k in range(opt.rounds):
+            run(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
         results.append(best)
     return sorted(results, key=lambda r: r.rank)
 
@@ -523,7 +542,7 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
 def _round(problem: Problem, theta, views, weights, max_steps) -> np.ndarray:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
-    step moves about one natural unit (3 deg, or 0.5 in logit u) along the steepest parameter."""
+    step moves about one natural unit (`Parameterization.scale`) along the steepest parameter."""
     origin = jnp.asarray(theta)
     scale = jnp.asarray(problem.param.scale)
     weights = jnp.asarray(weights, dtype=float)
@@ -573,7 +592,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "violated": [e for e in best.checks if not e["met"]],
             "after": best.checks, "before": checks_before})
         _write_history(tmp / "history.csv", problem.history)
-        _plot_history(tmp / "convergence.png", problem.history, exp.name)
+        _plot_history(tmp / "convergence.png", problem.history, problem.verdicts, exp.name)
         _write_moves(tmp / "moves.csv", problem, best)
     return {"score_before": problem.exact_score(problem.start), "score_after": best.score,
             "violations": best.violations, "joint_p95_um": joint,
@@ -600,23 +619,26 @@ def _write_history(path, history):
             writer.writerow({"evaluation": i, **row})
 
 
-def _plot_history(path, history, name):
-    """Score (left) and the sum of the penalties (right, log) at every objective evaluation."""
+def _plot_history(path, history, verdicts, name):
+    """Score at every objective evaluation (line-search trials included, thin) and the exact
+    score of each round's layout (markers: filled where it meets every constraint)."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
-    right = ax.twinx()
     for s in sorted({h["start"] for h in history}):
         rows = [h for h in history if h["start"] == s]
-        t = [h["wall_s"] for h in rows]
-        line, = ax.plot(t, [h["score"] for h in rows], lw=1, label=f"start {s + 1}: score")
-        right.plot(t, [max(sum(h[k] for k in PENALTIES), 1e-12) for h in rows], lw=0.8, ls=":",
-                   color=line.get_color(), label=f"start {s + 1}: penalties")
+        line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
+                        label=f"start {s + 1}: every evaluation")
+        for feasible in (True, False):
+            v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
+            ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
+                    color=line.get_color(), mfc=line.get_color() if feasible else "white",
+                    label=f"start {s + 1}: round's layout, {'feasible' if feasible else 'violates a constraint'}")
+    scores = [r["score"] for r in verdicts]
+    if scores:   # the trials of a line search can be far worse: keep the judged layouts in view
+        ax.set_ylim(0.97 * min(scores), 1.05 * max(scores))
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
-    ax.set_yscale("log")
-    right.set_ylabel("sum of the penalties (dotted)")
-    right.set_yscale("log")
-    ax.set_title(f"{name}: convergence (every objective evaluation)")
-    ax.legend(loc="upper right")
+    ax.set_title(f"{name}: convergence")
+    ax.legend(fontsize=8)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
