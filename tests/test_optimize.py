@@ -151,3 +151,51 @@ def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_pa
     p95_before, p95_after = result["joint_p95_um"]
     assert p95_after < 0.98 * p95_before
     assert result["score_after"] < result["score_before"]
+
+
+LENS_SETTINGS = """
+[render]
+ambient_radiance = 1.0
+
+[optimize]
+cameras = ["a"]
+free = ["u", "pan", "tilt", "lens"]
+lenses_mm = [{lenses}]
+starts = 1
+rounds = 1
+max_steps = 25
+"""
+
+
+def lens_experiment(tmp_path, lenses):
+    write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
+    cams = CAMERA.format(name="a", u=0.3) + CAMERA.format(name="b", u=0.7)
+    text = PLATE_TOML.format(spacing=20, limit=75, height=1.2, extra_meshes="",
+                             cameras=cams + LENS_SETTINGS.format(lenses=lenses))
+    (tmp_path / "exp.toml").write_text(text)
+    return config.load(tmp_path / "exp.toml")
+
+
+def test_lens_catalogue_keeps_the_longest_lens_that_still_holds_the_plate(tmp_path):
+    """Camera `a` (24 mm, 1.2 m above a 0.6 m plate, a 1.11 x 0.74 m field) may take 28 mm
+    (0.95 x 0.63 m: the plate still fits, more pixels per mm, lower sigma) or 50 mm (0.53 x 0.36 m:
+    the plate no longer fits, a field-of-view violation): the loop must end on 28 mm with every
+    constraint met and a lower score than the 24 mm optimum."""
+    exp = lens_experiment(tmp_path, "24, 28, 50")
+    assert exp.optimize.lenses == pytest.approx((0.024, 0.028, 0.050))
+    fixed = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, free=("u", "pan", "tilt")))
+    base = optimize(fixed, tmp_path / "fixed", quiet=True)
+    result = optimize(exp, tmp_path / "run", quiet=True)
+    moves = {row["camera"]: row for row in csv.DictReader((tmp_path / "run" / "moves.csv").open())}
+    assert (moves["a"]["focal_mm_before"], moves["a"]["focal_mm_after"]) == ("24", "28")
+    assert moves["b"]["focal_mm_after"] == "24"
+    assert result["violations"] == 0, result["violated"]
+    assert result["score_after"] < base["score_after"]
+    assert config.load(tmp_path / "run" / "optimized.toml").camera_specs[0].focal_length == pytest.approx(0.028)
+
+
+def test_lens_without_a_catalogue_is_a_config_error(tmp_path):
+    from vdo.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r'optimize.free: lists "lens" but no lenses_mm'):
+        lens_experiment(tmp_path, "").optimize

@@ -138,7 +138,8 @@ class RenderSpec:
 class OptimizeSpec:
     """What `vdo optimize` may move and the practical constraints it enforces."""
 
-    free: tuple[str, ...] = ("u", "pan", "tilt")   # per camera: rail parameter, pan, tilt
+    free: tuple[str, ...] = ("u", "pan", "tilt")   # per camera: rail parameter, pan, tilt (, roll, lens)
+    lenses: tuple[float, ...] = ()                 # m: focal lengths on the shelf, when "lens" is free
     cameras: tuple[str, ...] | None = None         # cameras that move (None: all)
     regions: tuple[str, ...] | None = None         # regions whose uncertainty is scored (None: all)
     min_axis_angle: float | None = None            # rad; None: the stereo rule of thumb per lens
@@ -475,10 +476,17 @@ def _sensor(top: Table, path: Path) -> SensorModel:
 def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpec:
     t = Table(top.raw("optimize", {}), "optimize", path,
                ("free", "cameras", "regions", "min_axis_angle_deg", "clearance_m", "max_obscuration",
-                "assign_fraction", "starts", "rounds", "max_steps", "seed"))
+                "assign_fraction", "starts", "rounds", "max_steps", "seed", "lenses_mm"))
     free = t.raw("free", ["u", "pan", "tilt"])
-    if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll"} or not free:
-        raise t.error("free", f"must list some of u, pan, tilt, roll (got {free!r})")
+    if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll", "lens"} or not free:
+        raise t.error("free", f"must list some of u, pan, tilt, roll, lens (got {free!r})")
+    lenses = t.raw("lenses_mm", [])
+    if not isinstance(lenses, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                               and math.isfinite(x) and x > 0 for x in lenses):
+        raise t.error("lenses_mm", f"must be a list of focal lengths in mm, each > 0 (got {lenses!r})")
+    if "lens" in free and not lenses:
+        raise t.error("free", 'lists "lens" but no lenses_mm catalogue is given: add e.g. '
+                              'lenses_mm = [24, 35, 50, 100]')
     moving = t.raw("cameras", None)
     if moving is not None:
         if not isinstance(moving, list) or not all(isinstance(c, str) for c in moving):
@@ -494,7 +502,8 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
         if unknown:
             raise t.error("regions", f"no [[region]] named {', '.join(map(repr, unknown))}")
     angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
-    return OptimizeSpec(free=tuple(free), cameras=None if moving is None else tuple(moving),
+    return OptimizeSpec(free=tuple(free), lenses=tuple(sorted(set(float(x) * 1e-3 for x in lenses))),
+                        cameras=None if moving is None else tuple(moving),
                         regions=None if scored is None else tuple(scored),
                         min_axis_angle=None if angle is None else math.radians(angle),
                         clearance=t.number("clearance_m", 0.05, low=0.0),

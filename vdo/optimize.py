@@ -216,45 +216,57 @@ class State:
 
 
 class Problem:
-    def __init__(self, exp: Experiment, quiet: bool = True):
+    def __init__(self, exp: Experiment, quiet: bool = True, reference: "Problem | None" = None):
+        """Everything an objective evaluation needs, for the layout of `exp`. With a `reference`
+        (the same experiment with other lenses, `choose_lenses`), its meshes, samples and lighting
+        are reused, and so is what the hand layout defined: the regions assigned to each camera
+        and the least in-image fraction of each."""
         self.exp, self.quiet = exp, quiet
-        self.meshes = load_meshes(exp)
-        self.samples = sample_regions(exp, self.meshes)
-        self.faces = all_region_faces(exp, self.meshes)
-        self.speckle = speckle_model(exp)
+        opt = exp.optimize
+        if reference is None:
+            self.meshes = load_meshes(exp)
+            self.samples = sample_regions(exp, self.meshes)
+            self.faces = all_region_faces(exp, self.meshes)
+            self.speckle = speckle_model(exp)
+            self.scene_points = _surface_points(self.meshes, spacing=0.015)
+            # lights reaching each sample with no camera in the scene, to see what the bodies hide
+            self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
+                                        if exp.lights else None)
+        else:
+            for name in ("meshes", "samples", "faces", "speckle", "scene_points", "lit_without_cameras"):
+                setattr(self, name, getattr(reference, name))
         self.settings = settings(exp)
         self.obj_samples = samples_for_objective(exp, self.samples)
-        if exp.optimize.regions is not None:   # only the named regions enter the score
-            keep = np.array([r.name in exp.optimize.regions for r in exp.regions])
+        if opt.regions is not None:   # only the named regions enter the score
+            keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
         self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
         self.cams0 = self.param.cameras
-        opt = exp.optimize
-        self.scene_points = _surface_points(self.meshes, spacing=0.015)
+        self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
         self.near_points = jnp.asarray(constraints.near_points(
             self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
             + opt.clearance + CLEARANCE_MARGIN))
         self.start = self.refresh(self.param.theta0)
-        self.assigned = constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
+        self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
+                         if reference is None else reference.assigned)
         self.pairs = constraints.shared_pairs(self.assigned)
         self.min_angles = np.array([opt.min_axis_angle if opt.min_axis_angle is not None else
                                     constraints.stereo_min_angle(min(self.cams0[i].focal_length,
                                                                      self.cams0[j].focal_length))
                                     for i, j in self.pairs])
-        self.scene_tree = cKDTree(self.scene_points)
-        # lights reaching each sample with no camera in the scene, to see what the bodies hide
-        self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
-                                    if exp.lights else None)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
         self.sphere_local = jnp.asarray(np.stack([c for c, _ in spheres])) if spheres else None
         self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres])) if spheres else None
         self.lit_samples = self._lit_samples()
-        self.fov_limits = None   # None: 1 - max_obscuration, to judge the hand layout itself
-        self.fov_limits = self._fov_limits(self.check(self.start))   # then no worse than it
+        if reference is None:
+            self.fov_limits = None   # None: 1 - max_obscuration, to judge the hand layout itself
+            self.fov_limits = self._fov_limits(self.check(self.start))   # then no worse than it
+        else:
+            self.fov_limits = reference.fov_limits
         self.fov = self._fov_groups(self.start)
         self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
@@ -539,6 +551,32 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
     return sorted(results, key=lambda r: r.rank)
 
 
+def choose_lenses(problem: Problem, best: Result, progress: bool = False) -> tuple[Problem, Result]:
+    """The discrete outer loop over `[optimize] lenses`: one greedy pass over the moving cameras;
+    for each, every other focal length of the catalogue is tried from the best layout so far
+    (its rail positions and aims), the layout is optimised again (`solve`) and the lens kept
+    when the result ranks better (`Result.rank`). Constraints keep the hand layout's meaning
+    (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
+    current = problem
+    moving = [i for i, idx in enumerate(problem.param.index) if idx]
+    for c in moving:
+        name = problem.cams0[c].name
+        for focal in problem.exp.optimize.lenses:
+            if math.isclose(focal, current.exp.camera_specs[c].focal_length, rel_tol=1e-9):
+                continue
+            specs = current.param.specs_at(best.theta)
+            specs[c] = dataclasses.replace(specs[c], focal_length=focal)
+            trial = Problem(current.exp.with_cameras(specs), reference=problem)
+            result = solve(trial)[0]
+            kept = result.rank < best.rank
+            if progress:
+                print(f"  lens {name} {focal * 1e3:g} mm: score {result.score:.4g}, "
+                      f"{result.violations} violation(s){' (kept)' if kept else ''}", flush=True)
+            if kept:
+                current, best = trial, result
+    return current, best
+
+
 def _round(problem: Problem, theta, views, weights, max_steps) -> np.ndarray:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
@@ -573,16 +611,20 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     problem = Problem(exp)
     say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
         f"{len(problem.pairs)} camera pairs sharing a region")
-    results = solve(problem, progress=not quiet)
-    best = results[0]
+    best = solve(problem, progress=not quiet)[0]
+    history, verdicts = problem.history, problem.verdicts
+    final = problem
+    if "lens" in exp.optimize.free:
+        say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in exp.optimize.lenses)} mm")
+        final, best = choose_lenses(problem, best, progress=not quiet)
     before = _summary(problem, problem.start)
-    after = _summary(problem, best.state)
+    after = _summary(final, best.state)
     checks_before = problem.check(problem.start)
     joint = _joint_p95(before), _joint_p95(after)
     say(f"best: start {best.start + 1}, score {problem.exact_score(problem.start):.4g} -> {best.score:.4g}, "
         f"{best.violations} constraint violation(s)")
     with run_folder(out, overwrite) as tmp:
-        optimized = exp.with_cameras(problem.param.specs_at(best.theta))
+        optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
         report.write_config(tmp / "optimized.toml", optimized)
         report.write_json(tmp / "layout.json", report.layout(best.state.cameras))
         report.write_json(tmp / "summary_before.json", before)
@@ -591,9 +633,9 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "violations": best.violations,
             "violated": [e for e in best.checks if not e["met"]],
             "after": best.checks, "before": checks_before})
-        _write_history(tmp / "history.csv", problem.history)
-        _plot_history(tmp / "convergence.png", problem.history, problem.verdicts, exp.name)
-        _write_moves(tmp / "moves.csv", problem, best)
+        _write_history(tmp / "history.csv", history)
+        _plot_history(tmp / "convergence.png", history, verdicts, exp.name)
+        _write_moves(tmp / "moves.csv", problem, final, best)
     return {"score_before": problem.exact_score(problem.start), "score_after": best.score,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}
@@ -643,17 +685,19 @@ def _plot_history(path, history, verdicts, name):
     plt.close(fig)
 
 
-def _write_moves(path, problem: Problem, best: Result):
-    u0, u1 = problem.param.u(problem.param.theta0), problem.param.u(best.theta)
+def _write_moves(path, problem: Problem, final: Problem, best: Result):
+    """Per camera: rail and rail position (mm along the bar), pan, tilt (deg) and focal length
+    (mm), before (`problem`, the hand layout) and after (`best`, a layout of `final`)."""
+    u0, u1 = problem.param.u(problem.param.theta0), final.param.u(best.theta)
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["camera", "rail", "rail_position_mm_before", "rail_position_mm_after",
                          "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
-                         "focal_mm"])
+                         "focal_mm_before", "focal_mm_after"])
         for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
             rail = problem.param.rails[i]
             along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
             writer.writerow([a.name, rail.name if rail else "", *along,
                              f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
                              f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
-                             f"{b.focal_length * 1e3:g}"])
+                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}"])
