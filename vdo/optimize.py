@@ -3,7 +3,9 @@ the practical constraints of `vdo.constraints`.
 
 Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u with
 u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
-0 = horizontal, unless freed). The objective, a JAX function of the parameter vector θ, is
+0 = horizontal, unless freed); and, with "lens" free, the focal length, a discrete choice from
+``[optimize] lenses_mm`` made in an outer loop (`choose_lenses`). The objective, a JAX function
+of the parameter vector θ, is
 
     J(θ) = a_k score(θ) + μ_k [P_angle + P_fov + P_clearance + P_obscuration + P_shadow](θ)
 
