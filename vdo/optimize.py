@@ -524,7 +524,7 @@ def solve(problem: Problem, progress: bool = False) -> list[Result]:
         theta = problem.param.theta0.copy()
         if start > 0:
             theta = theta + _perturbation(problem.param, rng)
-        state = problem.refresh(theta)
+        state = problem.start if start == 0 else problem.refresh(theta)   # the hand layout: cast once
         best = result = judge(problem, theta, state, start)
         problem.masked = set()
         label = 0
