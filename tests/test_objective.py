@@ -46,8 +46,8 @@ def make_cameras(positions, targets, focal_px=3000.0, width=2000, height=1400, r
                            full((width - 1) / 2), full((height - 1) / 2), full(width), full(height))
 
 
-def views(c, n, contrast=800.0, noise=5.0):
-    return ob.ViewData.from_dense(np.ones((c, n)), contrast, noise)
+def views(smp, c, contrast=800.0, noise=5.0):
+    return ob.ViewData.from_dense(np.ones((c, smp.points.shape[0])), contrast, noise, smp)
 
 
 def two_plane_scene(n=300, seed=0):
@@ -72,7 +72,7 @@ def two_plane_scene(n=300, seed=0):
               look_at_angles(pos[2], [0.15, 0, 0])]
     cam = make_cameras(pos, None, focal_px=np.array([2600.0, 2400.0, 2800.0]), width=1600,
                        height=1200, roll=[0.0, 0.1, -0.05], angles=angles)
-    return cam, smp, views(3, n)
+    return cam, smp, views(smp, 3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -208,7 +208,7 @@ def test_fronto_parallel_camera_matches_image_cramer_rao_bound():
     cam = make_cameras([[0.0, 0.0, Z]], None, focal_px=Z / p, width=256, height=256,
                        angles=[(0.0, -math.pi / 2)])
     smp = make_samples([[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]], area=omega)
-    pho = views(1, 1, c, sigma)
+    pho = views(smp, 1, c, sigma)
     C = np.asarray(ob.information(cam, smp, pho, table, ob.Settings(patch_area=omega)))[0]
     assert abs(C[2, 2]) < 1e-12 * C[0, 0]  # one camera: no out-of-plane information
     predicted = np.linalg.inv(C[:2, :2])
@@ -244,7 +244,7 @@ def test_tilted_camera_information_is_rank_two_with_the_ray_as_null_vector():
     smp = make_samples(pts, np.tile([0, 0, 1.0], (20, 1)), np.tile([1.0, 0, 0], (20, 1)))
     pos = np.array([0.7, -0.4, 0.8])
     cam = make_cameras([pos], [[0.01, 0.02, 0.0]], roll=[0.2])
-    Ci = np.asarray(ob.camera_information(cam, smp, views(1, 20), GAUSS))[0]
+    Ci = np.asarray(ob.camera_information(cam, smp, views(smp, 1), GAUSS))[0]
     for X, M in zip(pts, Ci):
         ray = (pos - X) / np.linalg.norm(pos - X)
         lam, V = np.linalg.eigh(M)
@@ -271,7 +271,7 @@ def test_symmetric_stereo_pair_closed_form(theta_deg):
     cam = make_cameras(pos, [[0, 0, 0]] * 2, focal_px=f, roll=[0.3, -0.7])
     smp = make_samples([[0.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]], [[0.6, 0.8, 0.0]])
     st = ob.Settings(patch_area=omega)
-    out = ob.fields(cam, smp, views(2, 1, c, sigma), GAUSS, st)
+    out = ob.fields(cam, smp, views(smp, 2, c, sigma), GAUSS, st)
     a = f / D
     lx, ly = ob.KAPPA_BOX / (a * math.cos(th)), ob.KAPPA_BOX / a
     phix = float(GAUSS(lx, ly)) / (a * math.cos(th)) ** 2
@@ -293,7 +293,7 @@ def test_symmetric_stereo_pair_closed_form(theta_deg):
 def test_single_view_is_reported_unmeasured_and_scored_finitely():
     cam = make_cameras([[0.0, 0.0, 1.0]], None, angles=[(0.0, -math.pi / 2)])
     smp = make_samples([[0.01, 0.0, 0.0]], [[0, 0, 1.0]], [[1.0, 0, 0]])
-    pho = views(1, 1)
+    pho = views(smp, 1)
     out = ob.fields(cam, smp, pho, GAUSS)
     assert not bool(out.measured[0])
     assert np.isinf(float(out.sigma_max[0])) and np.all(np.isinf(np.asarray(out.sigma_xyz)))
@@ -365,7 +365,7 @@ def test_weights_fall_smoothly_to_zero_at_the_incidence_limit():
         assert np.isfinite(g) and abs(g - fd) < 1e-5 * max(1.0, abs(fd))
     # the score's gradient is finite right at the limit (with a second, fixed camera)
     c2 = make_cameras([[0.0, 0.3, 1.0]], [[0, 0, 0]], focal_px=2000.0, width=200, height=200)
-    pho2 = views(2, 1)
+    pho2 = views(smp, 2)
 
     @jax.jit
     @jax.grad
@@ -399,16 +399,26 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
     (ent, w), vjp = jax.vjp(forward, ctab)
     assert np.sum((np.asarray(w) > 0) & (np.asarray(w) < 1)) >= 5  # soft weights take part
     auto = np.asarray(vjp((c_ent, c_w))[0])
-    jac = ob._phis_and_jacobian(energy, *_lams(ctab, sq, st), st.kappa)[1]
-    hand = np.asarray(ob._block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac))
+    hand = np.asarray(ob._block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st))
     scale = np.maximum(np.abs(auto).max(axis=0), 1e-12 * np.abs(auto).max())  # per column
     assert np.max(np.abs(hand - auto) / scale) < 1e-9
 
 
-def _lams(ctab, sq, st):
-    geo = ob._pairs_from(ob._block_columns(ctab, sq[0].dtype), sq, st)
-    sp = ob._spectrum(geo.A, st.gap_eps)
-    return sp.lam1, sp.lam2
+def test_block_and_chunk_sizes_do_not_change_value_or_gradient(small_table):
+    """The pair list's layout (pairs per block, blocks per chunk of the reverse pass) is a
+    performance choice only: many small chunks give the one-chunk value and gradient."""
+    cam, smp, _ = two_plane_scene(300)
+    occlusion = np.ones((3, 300))
+    occlusion[2, 100:] = 0.0  # cameras with different pair counts
+    st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
+    one = ob.ViewData.from_dense(occlusion, 800.0, 5.0, smp)
+    many = ob.ViewData.from_dense(occlusion, 800.0, 5.0, smp, block=16, chunk_pairs=32)
+    assert one.camera.size // (one.block * one.chunk) == 1
+    assert many.camera.size // (many.block * many.chunk) > 10
+    (v1, g1), (v2, g2) = (ob.score_and_grad(cam, smp, vd, small_table, st) for vd in (one, many))
+    assert abs(float(v2) / float(v1) - 1.0) < 1e-12
+    flat = [np.concatenate([np.ravel(x) for x in jax.tree.leaves(g)]) for g in (g1, g2)]
+    assert np.max(np.abs(flat[1] - flat[0])) < 1e-10 * np.max(np.abs(flat[0]))  # rounding only
 
 
 @pytest.mark.parametrize("energy_kind", ["gauss", "table"])
@@ -419,7 +429,7 @@ def test_float32_pairs_agree_with_float64(energy_kind, small_table):
     cam, smp, _ = two_plane_scene(300)
     occlusion = np.ones((3, 300))
     occlusion[1:, :40] = 0.0  # the first 40 samples seen by camera 0 alone
-    vd = ob.ViewData.from_dense(occlusion, 800.0, 5.0)
+    vd = ob.ViewData.from_dense(occlusion, 800.0, 5.0, smp)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st64 = ob.Settings(coverage_weight=1.0, image_margin_px=40.0, incidence_ramp=math.radians(20.0))
     st32 = ob.Settings(coverage_weight=1.0, image_margin_px=40.0, incidence_ramp=math.radians(20.0),

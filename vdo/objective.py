@@ -214,51 +214,61 @@ def _bucket(n: int) -> int:
 class ViewData(eqx.Module):
     """Per-pair constants for P selected (camera, sample) pairs (module docstring, "Sparse pairs"):
     camera, sample (P,) int32 indices; occlusion (P,) in [0, 1] from the ray cast (1 = seen);
-    contrast c in DN (image = b + c f_hat); noise sigma in DN rms per pixel.
+    contrast c in DN (image = b + c f_hat); noise sigma in DN rms per pixel; geometry (12, P)
+    the pair's sample point, normal, t_u and t_v (m, unit), copied from the `Samples` it was
+    built with (the per-pair work reads them contiguously instead of gathering them per call).
 
     Layout: P = B x `block`; the pairs of block b (P[b*block:(b+1)*block]) all belong to one camera
-    and are sorted by sample; padding pairs have occlusion 0 (and contrast 0, noise 1). Build it
-    with `from_dense`. Pairs not listed have weight 0."""
+    and are sorted by sample; padding pairs have occlusion 0 (and contrast 0, noise 1). The block
+    count B is a multiple of `chunk`, the blocks per chunk of the reverse pass. Build it with
+    `from_dense`, and score it with the same samples. Pairs not listed have weight 0."""
 
     camera: jax.Array
     sample: jax.Array
     occlusion: jax.Array
     contrast: jax.Array
     noise: jax.Array
+    geometry: jax.Array
     block: int = eqx.field(static=True, default=1)
+    chunk: int = eqx.field(static=True, default=1)
 
     @classmethod
-    def from_dense(cls, occlusion, contrast, noise, cameras: "CameraParams | None" = None,
-                   samples: "Samples | None" = None, settings: "Settings | None" = None, *,
+    def from_dense(cls, occlusion, contrast, noise, samples: "Samples",
+                   cameras: "CameraParams | None" = None, settings: "Settings | None" = None, *,
                    margin_px: float = 64.0, margin_angle: float = math.radians(3.0),
-                   block: int = 1024) -> "ViewData":
-        """Select the pairs that can have w > 0 from (C, N) arrays (contrast, noise broadcast).
+                   block: int = 1024, chunk_pairs: int = 32768) -> "ViewData":
+        """Select the pairs that can have w > 0 from (C, N) arrays (contrast, noise broadcast)
+        for the N `samples`.
 
-        Without `cameras` (and `samples`): every pair with occlusion > 0 (exact for any camera
-        parameters). With them: also in front (Z_c > near), inside the image grown by `margin_px`
-        on every side, and incidence below `settings.incidence_limit + margin_angle`: exact at these
-        cameras and while they move less than the margins (refresh after larger moves)."""
+        Without `cameras`: every pair with occlusion > 0 (exact for any camera parameters). With
+        them: also in front (Z_c > near), inside the image grown by `margin_px` on every side,
+        and incidence below `settings.incidence_limit + margin_angle`: exact at these cameras and
+        while they move less than the margins (refresh after larger moves). `block` is the
+        most pairs per block, `chunk_pairs` about the pairs per chunk of the reverse pass."""
         occ = np.asarray(occlusion, dtype=np.float64)
-        if occ.ndim != 2:
-            raise ValueError("ViewData.from_dense: occlusion must be (C, N)")
+        if occ.ndim != 2 or occ.shape[1] != samples.points.shape[0]:
+            raise ValueError(f"ViewData.from_dense: occlusion must be (C, N) with N = "
+                             f"{samples.points.shape[0]} samples, got {occ.shape}")
         contrast = np.broadcast_to(np.asarray(contrast, dtype=np.float64), occ.shape)
         noise = np.broadcast_to(np.asarray(noise, dtype=np.float64), occ.shape)
         keep = occ > 0
         if cameras is not None:
-            if samples is None:
-                raise ValueError("ViewData.from_dense: cameras given without samples")
             keep &= _candidates(cameras, samples, settings or Settings(), margin_px, margin_angle)
-        return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise, block)
+        return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise,
+                               np.asarray(_sample_table(samples)), block, chunk_pairs)
 
     @classmethod
-    def _from_pairs(cls, cam, smp, occ, contrast, noise, block):
-        """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values."""
+    def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs):
+        """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values;
+        table (N, 12) the sample columns (`_sample_table`)."""
         n_cameras, n_samples = occ.shape
         counts = np.bincount(cam, minlength=n_cameras)
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
         blocks = -(-counts // L)  # per camera
         n_blocks = _bucket(int(blocks.sum()))
+        chunk = max(1, min(chunk_pairs // L, n_blocks))
+        n_blocks = -(-n_blocks // chunk) * chunk
         block_cam = np.zeros(n_blocks, dtype=np.int32)
         block_cam[:blocks.sum()] = np.repeat(np.arange(n_cameras), blocks)
         first_pair = np.cumsum(counts) - counts
@@ -270,7 +280,7 @@ class ViewData(eqx.Module):
         out_s[dest] = smp
         out_o[dest], out_c[dest], out_n[dest] = occ[cam, smp], contrast[cam, smp], noise[cam, smp]
         return cls(jnp.asarray(np.repeat(block_cam, L)), jnp.asarray(out_s), jnp.asarray(out_o),
-                   jnp.asarray(out_c), jnp.asarray(out_n), L)
+                   jnp.asarray(out_c), jnp.asarray(out_n), jnp.asarray(table[out_s].T), L, chunk)
 
     @property
     def n_pairs(self) -> int:
@@ -590,20 +600,24 @@ def _block_columns(ctab, dtype):
     return [ctab[:, k].astype(dtype)[:, None] for k in range(ctab.shape[1])]
 
 
-def _block_forward(cq, sq, occ, kc, one, energy, st):
+def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
     """Per pair, from broadcastable components (cq the 17 camera columns, sq the 12 sample
     columns, occlusion, kc = Omega c^2 / sigma^2 in m^2, `one` a runtime 1.0 for `_keep`, or None
     for no materialisation): ent,
     the 6 entries of k S^T T S in _SYM order (1/m^2, float64), with
     k = Omega w |det A| c^2/sigma^2 = kc w |det A|, and w (occlusion included); and the
-    intermediates (geometry, spectrum, phis, T, beta, lam1 - lam2, k)."""
+    intermediates (geometry, spectrum, phis, T, beta, lam1 - lam2, k, and with `jacobian` the
+    table lookup's d phi_i / d lam_j, else None)."""
     keep = (lambda x: x) if one is None else (lambda x: _keep(x, one))
     geo = _pairs_from(cq, sq, st)
     w = geo.w * occ
     s0, s1, A, w = keep((geo.s0, geo.s1, geo.A, w))
     geo = geo._replace(s0=s0, s1=s1, A=A)
     sp = _spectrum(geo.A, st.gap_eps)
-    phis = _phis(energy, sp.lam1, sp.lam2, st.kappa)
+    if jacobian:
+        phis, jac = _phis_and_jacobian(energy, sp.lam1, sp.lam2, st.kappa)
+    else:
+        phis, jac = _phis(energy, sp.lam1, sp.lam2, st.kappa), None
     T, beta, D = _tensor_from(sp, *phis)
     *T, absdet = keep(T + (jnp.abs(sp.det),))
     # rooted at a divide: XLA:CPU materialises k once instead of re-deriving the weight chain
@@ -617,7 +631,7 @@ def _block_forward(cq, sq, occ, kc, one, energy, st):
     k00, k01, k11 = k * T00, k * T01, k * T11
     ent = tuple(k00 * s0[a] * s0[b] + k11 * s1[a] * s1[b] + k01 * (s0[a] * s1[b] + s1[a] * s0[b])
                 for a, b in _SYM)
-    return ent, w, (geo, sp, phis, tuple(T), beta, D, k)
+    return ent, w, (geo, sp, phis, tuple(T), beta, D, k, jac)
 
 
 def _sums(cols, axis, dtype=jnp.float64):
@@ -626,35 +640,37 @@ def _sums(cols, axis, dtype=jnp.float64):
     return tuple(jnp.broadcast_to(c, shape).astype(dtype).sum(axis) for c in cols)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(6,))
-def _pair_block(ctab, sq, occ, kc, one, energy, st):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(6, 7))
+def _pair_block(ctab, sq, occ, kc, one, energy, st, chunk):
     """(ent, w) of `_block_forward` for the camera-major blocks: ctab (B, 17) the camera row of
-    each block, sq, occ, kc (B, block) per pair. Differentiable with respect to ctab only (the
-    other inputs are constants), by the hand-written `_block_vjp`."""
+    each block, sq, occ, kc (B, block) per pair, B a multiple of `chunk`. Differentiable with
+    respect to ctab only (the other inputs are constants), by the hand-written `_block_vjp`."""
     ent, w, _ = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, one, energy, st)
     return ent, w
 
 
-def _pair_block_fwd(ctab, sq, occ, kc, one, energy, st):
-    # no `_keep` here: with the reverse pass to follow it measured slower (~10 %), value alone faster
-    ent, w, (_, sp, *_) = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, None,
-                                         energy, st)
-    # stored for the reverse pass: the table lookup's Jacobian (everything else is recomputed)
-    _, jac = _phis_and_jacobian(energy, sp.lam1, sp.lam2, st.kappa)
-    return (ent, w), (ctab, sq, occ, kc, energy, jac)
+def _pair_block_fwd(ctab, sq, occ, kc, one, energy, st, chunk):
+    # the inputs are the residuals: the reverse pass recomputes the forward, chunk by chunk
+    out = _pair_block(ctab, sq, occ, kc, one, energy, st, chunk)
+    return out, (ctab, sq, occ, kc, one, energy)
 
 
-def _pair_block_bwd(st, res, ct):
-    ctab, sq, occ, kc, energy, jac = res
+def _pair_block_bwd(st, chunk, res, ct):
+    """`_block_vjp` over chunks of `chunk` blocks (`lax.map`): the intermediates it materialises
+    then stay in cache (measured 1.2-1.4x faster than one pass over all blocks)."""
+    ctab, sq, occ, kc, one, energy = res
     c_ent, c_w = ct
-    return (_block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac),
-            None, None, None, None, None)
+    B = ctab.shape[0]
+    split = lambda x: x.reshape((B // chunk, chunk) + x.shape[1:])
+    g = jax.lax.map(lambda x: _block_vjp(*x, energy, st),
+                    jax.tree.map(split, (ctab, sq, occ, kc, one, c_ent, c_w)))
+    return g.reshape((B,) + g.shape[2:]), None, None, None, None, None
 
 
 _pair_block.defvjp(_pair_block_fwd, _pair_block_bwd)
 
 
-def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
+def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     """Cotangent of the (B, 17) block camera rows ctab for per-pair cotangents c_ent (6, float64)
     of ent and c_w of w, written out by hand (autodiff of the same chain makes XLA:CPU
     recompute shared intermediates in every consumer fusion, ~2000 operations per pair).
@@ -662,10 +678,21 @@ def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
     With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
     Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
     and dL/ds1 likewise; then back through the spectrum, the footprint, the weights and the
-    projection to the 17 camera columns, summed over each block (one camera per block). `jac`
-    is d phi_i / d lam_j (`_phis_and_jacobian`); the rest of the forward is recomputed."""
+    projection to the 17 camera columns, summed over each block (one camera per block). The
+    forward is recomputed, with the table lookup's Jacobian d phi_i / d lam_j.
+
+    Values used by several later steps are materialised (`_keep`): XLA:CPU would otherwise
+    re-derive them inside each of the ~20 loops that end in a camera column (5,000 operations
+    per pair, against 2,100 with them kept). Materialising costs memory traffic, which is why
+    `_pair_block_bwd` runs this on chunks that fit in cache."""
+    keep = lambda x: _keep(x, one)
     cq = _block_columns(ctab, sq[0].dtype)
-    _, w, (geo, sp, _, T, beta, D, k) = _block_forward(cq, sq, occ, kc, None, energy, st)
+    _, w, (geo, sp, _, T, beta, D, k, jac) = _block_forward(cq, sq, occ, kc, one, energy, st,
+                                                            jacobian=True)
+    xn, yn, iz, g, p, d, rd, cos_inc, t_inc, t_img = keep(
+        (geo.xn, geo.yn, geo.iz, geo.g, geo.p, geo.d, geo.rd, geo.cos_inc, geo.t_inc, geo.t_img))
+    geo = geo._replace(xn=xn, yn=yn, iz=iz, g=g, p=p, d=d, rd=rd, cos_inc=cos_inc, t_inc=t_inc,
+                       t_img=t_img)
     j11, j12, j21, j22 = jac
     s0, s1, (T00, T01, T11), k = _f64((geo.s0, geo.s1, T, k))
     c00, c11, c22, c01, c02, c12 = c_ent
@@ -679,8 +706,8 @@ def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
     g_T00, g_T11, g_T01 = k * Y00, k * Y11, 2.0 * k * Y01
     # from here on in the pair dtype
     dt = sq[0].dtype
-    tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w = jax.tree.map(
-        lambda a: a.astype(dt), (tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w))
+    tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w = keep(jax.tree.map(
+        lambda a: a.astype(dt), (tau, g_s0, g_s1, g_T00, g_T11, g_T01, c_w)))
     absdet = jnp.abs(sp.det)
     g_w = c_w + tau * kc * absdet
     g_absdet = tau * kc * w
@@ -712,14 +739,16 @@ def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
            2.0 * A10 * g_M11 + A00 * g_M01 - A01 * g_det,
            2.0 * A11 * g_M11 + A01 * g_M01 + A00 * g_det)
     tu, tv = sq[6:9], sq[9:12]
-    g_s0 = [g_s0[b] + g_A[0] * tu[b] + g_A[1] * tv[b] for b in range(3)]
-    g_s1 = [g_s1[b] + g_A[2] * tu[b] + g_A[3] * tv[b] for b in range(3)]
+    g_A = keep(g_A)
+    g_s0, g_s1 = keep(([g_s0[b] + g_A[0] * tu[b] + g_A[1] * tv[b] for b in range(3)],
+                       [g_s1[b] + g_A[2] * tu[b] + g_A[3] * tv[b] for b in range(3)]))
     # weights: w = [front] S(t_inc) S(t_1) S(t_2) S(t_3) S(t_4) occ, S' = 30 t^2 (1 - t)^2
     g_raw = jnp.where(geo.front, g_w * occ, 0.0)
-    S = [smoothstep(t) for t in (geo.t_inc,) + geo.t_img]
-    dS = [30.0 * (c * (1.0 - c)) ** 2 for c in (jnp.clip(t, 0.0, 1.0) for t in (geo.t_inc,) + geo.t_img)]
+    ts = (geo.t_inc,) + geo.t_img
+    S = keep([smoothstep(t) for t in ts])
+    dS = keep([30.0 * (c * (1.0 - c)) ** 2 for c in (jnp.clip(t, 0.0, 1.0) for t in ts)])
     prod = lambda xs: functools.reduce(lambda a, b: a * b, xs)
-    g_t = [g_raw * dS[i] * prod(S[:i] + S[i + 1:]) for i in range(5)]
+    g_t = keep([g_raw * dS[i] * prod(S[:i] + S[i + 1:]) for i in range(5)])
     c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
     g_cos = g_t[0] * (1.0 / (c_full - c_lim))
     mg = 1.0 / st.image_margin_px
@@ -736,7 +765,7 @@ def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
     g_yn = f * g_v - _dot(g_e1, R[2])
     g_f = g_u * geo.xn + g_v * geo.yn + g_g * geo.iz
     g_iz = g_g * f + g_xn * geo.p[0] + g_yn * geo.p[1]
-    g_p = (g_xn * geo.iz, g_yn * geo.iz, jnp.where(geo.front, -g_iz * geo.iz * geo.iz, 0.0))
+    g_p = keep((g_xn * geo.iz, g_yn * geo.iz, jnp.where(geo.front, -g_iz * geo.iz * geo.iz, 0.0)))
     # cos_inc = -n.d / |d|, p = R d, d = X - P
     nrm = sq[3:6]
     g_d = [g_cos * geo.rd * (-nrm[b] - geo.cos_inc * geo.rd * geo.d[b]) + _dot(g_p, [R[a][b] for a in range(3)])
@@ -751,10 +780,10 @@ def _block_vjp(ctab, sq, occ, kc, energy, st, c_ent, c_w, jac):
 def _pair_inputs(cam, smp, vd: ViewData, st, dt):
     """The arguments of `_pair_block`: the camera row of each block (B, 17) and, per pair as
     (B, block) arrays in dtype dt, the 12 sample columns, the occlusion, kc and a runtime 1."""
-    ctab, stab = _camera_table(cam), jax.lax.stop_gradient(_sample_table(smp))
+    ctab = _camera_table(cam)
     L = vd.block
     B = vd.camera.shape[0] // L
-    sq = _split(stab.astype(dt)[vd.sample], lambda x: x.reshape(B, L))
+    sq = [x.astype(dt).reshape(B, L) for x in jax.lax.stop_gradient(vd.geometry)]
     occ, cn, nz = (jax.lax.stop_gradient(x).reshape(B, L)
                    for x in (vd.occlusion, vd.contrast, vd.noise))
     kc = st.patch_area * cn * cn / (nz * nz)  # m^2
@@ -900,7 +929,7 @@ def information(cameras: CameraParams, samples: Samples, views: ViewData, energy
 def _score(cameras, samples, views, energy, settings):
     ent, w = _pair_block(*_pair_inputs(cameras, samples, views, settings,
                                        jnp.dtype(settings.pair_dtype)),
-                         jax.lax.stop_gradient(energy), settings)
+                         jax.lax.stop_gradient(energy), settings, views.chunk)
     n = samples.points.shape[0]
     one = jax.lax.stop_gradient(views.noise[0] / views.noise[0])  # 1.0, unknown to XLA
     eye = jnp.eye(7) * one

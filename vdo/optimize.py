@@ -308,7 +308,7 @@ class Problem:
         vis_obstacles = compute_visibility(obstacles, cams, self.samples, limit, progress=False)
         illum = illuminate(scene, self.exp.lights, self.samples, self.exp.render.ambient_radiance)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     view_data(self.exp, vis, illum, self.speckle))
+                     view_data(self.exp, self.obj_samples, vis, illum, self.speckle))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to

@@ -57,16 +57,16 @@ def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective
         jnp.asarray(minimum, dtype=float))
 
 
-def view_data(exp: Experiment, vis: Visibility, illumination: Illumination,
-              speckle: SpeckleModel) -> objective.ViewData:
+def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
+              illumination: Illumination, speckle: SpeckleModel) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
-    the sparse pair list of `objective.ViewData`: the pairs the ray cast found unoccluded (it
-    marks pairs that failed a geometric test, behind, outside the image or facing away, as
-    occluded), exact for these cameras."""
+    the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
+    unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
+    away, as occluded), exact for these cameras."""
     pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
     return objective.ViewData.from_dense(np.asarray(vis.unoccluded, dtype=float),
-                                         np.asarray(pho.contrast), np.asarray(pho.noise))
+                                         np.asarray(pho.contrast), np.asarray(pho.noise), samples)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,8 +83,9 @@ class Prediction:
 
 def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
             illumination: Illumination, speckle: SpeckleModel) -> Prediction:
-    f = objective.fields(objective.CameraParams.from_cameras(cameras),
-                         samples_for_objective(exp, samples),
-                         view_data(exp, vis, illumination, speckle), speckle.table, settings(exp))
+    smp = samples_for_objective(exp, samples)
+    f = objective.fields(objective.CameraParams.from_cameras(cameras), smp,
+                         view_data(exp, smp, vis, illumination, speckle), speckle.table,
+                         settings(exp))
     return Prediction(np.asarray(f.sensitivity), np.asarray(f.sigma_max), np.asarray(f.sigma_xyz),
                       np.asarray(f.measured))
