@@ -8,8 +8,11 @@ dense path computed, exact for any camera parameters) and once with the pairs th
 selection keeps at these cameras (`ViewData.from_dense(..., cameras, samples)`), in float64 and
 with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.predict.settings` and so
 the optimizer use). Checks that the values agree with NumPy, that both pair lists give the same
-gradient and how far the float32 gradient is from the float64 one.
-Run: .venv/bin/python benchmarks/objective.py [--samples N] [--repeat K]
+gradient and how far the float32 gradient is from the float64 one. Prints the kernel time and
+page faults per value + gradient call too: by default the script keeps freed memory in the heap
+(`vdo.memory.retain_freed_memory`, what the command line does); `--default-malloc` measures
+without it.
+Run: .venv/bin/python benchmarks/objective.py [--samples N] [--repeat K] [--default-malloc]
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import statistics
 import time
 from dataclasses import dataclass
@@ -27,6 +31,7 @@ import numpy as np
 
 from vdo import objective as ob
 from vdo.camera import look_at_angles, rotation
+from vdo.memory import retain_freed_memory
 from vdo.speckle import generate_pattern, gradient_energy_table, normalise
 
 
@@ -159,22 +164,35 @@ def timed(fn, repeat):
     return statistics.median(times)
 
 
+def kernel_time_and_faults(fn, repeat):
+    """Per call: system (kernel) CPU time in s and minor page faults, over `repeat` calls."""
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    for _ in range(repeat):
+        jax.block_until_ready(fn())
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return (r1.ru_stime - r0.ru_stime) / repeat, (r1.ru_minflt - r0.ru_minflt) / repeat
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", type=int, default=100_000)
     ap.add_argument("--cameras", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=10)
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="do not keep freed memory in the heap (vdo.memory)")
     args = ap.parse_args()
+    retained = False if args.default_malloc else retain_freed_memory()
     cam, smp, dense, table = build(args.samples, args.cameras)
     st = ob.Settings()
     print(f"vdo.objective benchmark: {args.cameras} cameras x {args.samples} samples, "
-          f"{os.cpu_count()} CPUs, jax {jax.__version__} on {jax.devices()[0].platform}")
+          f"{os.cpu_count()} CPUs, jax {jax.__version__} on {jax.devices()[0].platform}, "
+          f"freed memory {'kept in the heap' if retained else 'returned (default malloc)'}")
 
     t0 = time.perf_counter()
-    all_pairs = ob.ViewData.from_dense(dense.occlusion, dense.contrast, dense.noise)
+    all_pairs = ob.ViewData.from_dense(dense.occlusion, dense.contrast, dense.noise, smp)
     t_all = time.perf_counter() - t0
     t0 = time.perf_counter()
-    culled = ob.ViewData.from_dense(dense.occlusion, dense.contrast, dense.noise, cam, smp, st)
+    culled = ob.ViewData.from_dense(dense.occlusion, dense.contrast, dense.noise, smp, cam, st)
     t_cull = time.perf_counter() - t0
     n_dense = dense.occlusion.size
     print(f"pairs: {n_dense} dense (C x N); {all_pairs.n_pairs} with occlusion > 0 "
@@ -196,6 +214,8 @@ def main():
         tg = timed(lambda: ob.score_and_grad(cam, smp, vd, table, sv), args.repeat)
         rows.append((label, compile_v, compile_g, tv, tg, float(value), grad))
 
+    sys_s, faults = kernel_time_and_faults(lambda: ob.score_and_grad(cam, smp, culled, table, st32),
+                                           args.repeat)
     t_np = timed(lambda: numpy_score(cam, smp, dense, table, st), max(3, args.repeat // 3))
     v_np = numpy_score(cam, smp, dense, table, st)
 
@@ -213,6 +233,8 @@ def main():
     rel = lambda a, b: float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
     print(f"gradient, selected vs all pairs: max |diff| / max |g| = {rel(g_cull, g_all):.2e}")
     print(f"gradient, f32 vs f64 pairs (selected): max |diff| / max |g| = {rel(g_32, g_cull):.2e}")
+    print(f"value+grad, selected pairs, f32: {1e3 * sys_s:.1f} ms kernel time and {faults:.0f} "
+          f"page faults per call")
     print("target: value+grad <= 50 ms on 2 CPU cores")
 
 

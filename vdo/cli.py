@@ -9,6 +9,7 @@ from pathlib import Path
 
 from .backend import BackendError
 from .errors import ConfigError
+from .memory import retain_freed_memory
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 
@@ -108,6 +109,7 @@ def main(argv=None) -> int:
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
+    retain_freed_memory()  # before the first JAX computation (`vdo.memory`)
     started = time.perf_counter()
     try:
         if args.command == "evaluate":
