@@ -386,7 +386,7 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
     cam, smp, vd = two_plane_scene(300)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
-    ctab, sq, occ, kc, one = ob._pair_inputs(cam, smp, vd, st, jnp.float64)
+    ctab, sq, occ, kc, one = ob._pair_inputs(cam, vd, st, jnp.float64)
     rng = np.random.default_rng(3)
     c_ent = tuple(jnp.asarray(rng.normal(size=occ.shape)) for _ in range(6))
     c_w = jnp.asarray(rng.normal(size=occ.shape))
@@ -400,6 +400,12 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
     assert np.sum((np.asarray(w) > 0) & (np.asarray(w) < 1)) >= 5  # soft weights take part
     auto = np.asarray(vjp((c_ent, c_w))[0])
     hand = np.asarray(ob._block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st))
+    # R is a rotation: what counts of dL/dR is the skew part of dL/dR R^T (dR = W R, W skew)
+    Rb = np.asarray(ctab[:, :9]).reshape(-1, 3, 3)
+    skew = lambda g: (lambda m: m - np.swapaxes(m, 1, 2))(g[:, :9].reshape(-1, 3, 3) @ np.swapaxes(Rb, 1, 2))
+    auto = np.concatenate([skew(auto).reshape(-1, 9), auto[:, 9:15]], 1)
+    assert np.all(hand[:, 15:] == 0.0)  # width and height: constants
+    hand = np.concatenate([skew(hand).reshape(-1, 9), hand[:, 9:15]], 1)
     scale = np.maximum(np.abs(auto).max(axis=0), 1e-12 * np.abs(auto).max())  # per column
     assert np.max(np.abs(hand - auto) / scale) < 1e-9
 

@@ -165,7 +165,8 @@ KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (DESIGN.md se
 # --------------------------------------------------------------------------------------------
 class CameraParams(eqx.Module):
     """C cameras as arrays. position (C, 3) m; pan, tilt, roll (C,) rad (`vdo.camera` convention);
-    focal_px, cx, cy (C,) pixels; width, height (C,) pixel counts (floats)."""
+    focal_px, cx, cy (C,) pixels; width, height (C,) pixel counts (floats; constants: the score's
+    gradient with respect to them is 0)."""
 
     position: jax.Array
     pan: jax.Array
@@ -214,9 +215,10 @@ def _bucket(n: int) -> int:
 class ViewData(eqx.Module):
     """Per-pair constants for P selected (camera, sample) pairs (module docstring, "Sparse pairs"):
     camera, sample (P,) int32 indices; occlusion (P,) in [0, 1] from the ray cast (1 = seen);
-    contrast c in DN (image = b + c f_hat); noise sigma in DN rms per pixel; geometry (12, P)
-    the pair's sample point, normal, t_u and t_v (m, unit), copied from the `Samples` it was
-    built with (the per-pair work reads them contiguously instead of gathering them per call).
+    contrast c in DN (image = b + c f_hat); noise sigma in DN rms per pixel; geometry
+    (12, B, block) the pairs' sample point, normal, t_u and t_v (m, unit), copied from the
+    `Samples` it was built with (the per-pair work reads them contiguously instead of gathering
+    them per call).
 
     Layout: P = B x `block`; the pairs of block b (P[b*block:(b+1)*block]) all belong to one camera
     and are sorted by sample; padding pairs have occlusion 0 (and contrast 0, noise 1). The block
@@ -280,7 +282,8 @@ class ViewData(eqx.Module):
         out_s[dest] = smp
         out_o[dest], out_c[dest], out_n[dest] = occ[cam, smp], contrast[cam, smp], noise[cam, smp]
         return cls(jnp.asarray(np.repeat(block_cam, L)), jnp.asarray(out_s), jnp.asarray(out_o),
-                   jnp.asarray(out_c), jnp.asarray(out_n), jnp.asarray(table[out_s].T), L, chunk)
+                   jnp.asarray(out_c), jnp.asarray(out_n),
+                   jnp.asarray(table[out_s].T.reshape(12, n_blocks, L)), L, chunk)
 
     @property
     def n_pairs(self) -> int:
@@ -390,11 +393,13 @@ _R, _POS, _F, _CX, _CY, _W, _H = slice(0, 9), slice(9, 12), 12, 13, 14, 15, 16
 
 
 def _camera_table(cam: CameraParams):
-    """(C, 17): R = rotation (rows x_c, y_c, z_c) row-major, position, f, cx, cy, W, H."""
+    """(C, 17): R = rotation (rows x_c, y_c, z_c) row-major, position, f, cx, cy, W, H (the
+    pixel counts W, H not differentiated)."""
     R = rotation(cam.pan, cam.tilt, cam.roll)
     c = R.shape[0]
+    W, H = jax.lax.stop_gradient((cam.width, cam.height))
     return jnp.concatenate([R.reshape(c, 9), cam.position, jnp.stack(
-        [cam.focal_px, cam.cx, cam.cy, cam.width, cam.height], -1)], -1)
+        [cam.focal_px, cam.cx, cam.cy, W, H], -1)], -1)
 
 
 def _sample_table(smp: Samples):
@@ -634,40 +639,56 @@ def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
     return ent, w, (geo, sp, phis, tuple(T), beta, D, k, jac)
 
 
-def _sums(cols, axis, dtype=jnp.float64):
-    """Sums over `axis` of the (broadcast) arrays `cols`, accumulated in `dtype`."""
-    shape = jnp.broadcast_shapes(*(c.shape for c in cols))
-    return tuple(jnp.broadcast_to(c, shape).astype(dtype).sum(axis) for c in cols)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8, 9))
+def _sample_sums(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
+    """Per-sample sums over the listed pairs of ent (6 entries) and of w: 7 arrays (n,) (float64).
+
+    ctab (B, 17) is the camera row of each block (float64); geometry the 12 sample columns, occ,
+    kc, one and sample (B, block) per pair, in the pair dtype; B a multiple of `chunk`. The
+    per-pair work (`_block_forward`) runs over chunks of `chunk` blocks (`_chunked`).
+    Differentiable with respect to ctab only (the other inputs are constants), by the
+    hand-written `_block_vjp`, which recomputes the forward chunk by chunk."""
+    dt = occ.dtype
+
+    def forward(ctab, geometry, occ, kc, one):
+        ent, w, _ = _block_forward(_block_columns(ctab, dt), geometry, occ, kc, one, energy, st)
+        return ent, w
+
+    ent, w = _chunked(forward, (ctab, geometry, occ, kc, one), chunk)
+    return tuple(jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), sample.reshape(-1), n)
+                 for x in ent + (w,))
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(6, 7))
-def _pair_block(ctab, sq, occ, kc, one, energy, st, chunk):
-    """(ent, w) of `_block_forward` for the camera-major blocks: ctab (B, 17) the camera row of
-    each block, sq, occ, kc (B, block) per pair, B a multiple of `chunk`. Differentiable with
-    respect to ctab only (the other inputs are constants), by the hand-written `_block_vjp`."""
-    ent, w, _ = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, one, energy, st)
-    return ent, w
+def _sample_sums_fwd(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
+    sums = _sample_sums(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n)
+    return sums, (ctab, geometry, occ, kc, one, sample, energy)
 
 
-def _pair_block_fwd(ctab, sq, occ, kc, one, energy, st, chunk):
-    # the inputs are the residuals: the reverse pass recomputes the forward, chunk by chunk
-    out = _pair_block(ctab, sq, occ, kc, one, energy, st, chunk)
-    return out, (ctab, sq, occ, kc, one, energy)
+def _sample_sums_bwd(st, chunk, n, res, ct):
+    ctab, geometry, occ, kc, one, sample, energy = res
+    dt = occ.dtype
+    per_sample = jnp.stack(ct, -1)  # (n, 7): one row gather per pair
+
+    def reverse(ctab, geometry, occ, kc, one, sample):
+        c = jnp.take(per_sample, sample, axis=0)  # (blocks, block, 7)
+        return _block_vjp(ctab, geometry, occ, kc, one, tuple(c[..., k] for k in range(6)),
+                          c[..., 6].astype(dt), energy, st)
+
+    g = _chunked(reverse, (ctab, geometry, occ, kc, one, sample), chunk)
+    return g, None, None, None, None, None, None
 
 
-def _pair_block_bwd(st, chunk, res, ct):
-    """`_block_vjp` over chunks of `chunk` blocks (`lax.map`): the intermediates it materialises
-    then stay in cache (measured 1.2-1.4x faster than one pass over all blocks)."""
-    ctab, sq, occ, kc, one, energy = res
-    c_ent, c_w = ct
-    B = ctab.shape[0]
-    split = lambda x: x.reshape((B // chunk, chunk) + x.shape[1:])
-    g = jax.lax.map(lambda x: _block_vjp(*x, energy, st),
-                    jax.tree.map(split, (ctab, sq, occ, kc, one, c_ent, c_w)))
-    return g.reshape((B,) + g.shape[2:]), None, None, None, None, None
+_sample_sums.defvjp(_sample_sums_fwd, _sample_sums_bwd)
 
 
-_pair_block.defvjp(_pair_block_fwd, _pair_block_bwd)
+def _chunked(fun, args, chunk):
+    """fun(*args) for arrays whose leading axis is the B blocks, evaluated on chunks of `chunk`
+    blocks in sequence (`lax.map`): the intermediates it materialises then stay in cache
+    (measured 1.2-1.4x faster than one pass over all blocks)."""
+    B = jax.tree.leaves(args)[0].shape[0]
+    out = jax.lax.map(lambda x: fun(*x),
+                      jax.tree.map(lambda x: x.reshape((B // chunk, chunk) + x.shape[1:]), args))
+    return jax.tree.map(lambda x: x.reshape((B,) + x.shape[2:]), out)
 
 
 def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
@@ -678,13 +699,15 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
     Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
     and dL/ds1 likewise; then back through the spectrum, the footprint, the weights and the
-    projection to the 17 camera columns, summed over each block (one camera per block). The
+    projection to the camera columns, summed over each block (one camera per block): for R
+    (9 columns) its rotation part only, R's skew cotangent S R; position, f, cx, cy; width and
+    height are pixel counts, not differentiated (0). The
     forward is recomputed, with the table lookup's Jacobian d phi_i / d lam_j.
 
     Values used by several later steps are materialised (`_keep`): XLA:CPU would otherwise
     re-derive them inside each of the ~20 loops that end in a camera column (5,000 operations
     per pair, against 2,100 with them kept). Materialising costs memory traffic, which is why
-    `_pair_block_bwd` runs this on chunks that fit in cache."""
+    `_sample_sums` runs this on chunks that fit in cache."""
     keep = lambda x: _keep(x, one)
     cq = _block_columns(ctab, sq[0].dtype)
     _, w, (geo, sp, _, T, beta, D, k, jac) = _block_forward(cq, sq, occ, kc, one, energy, st,
@@ -752,8 +775,7 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
     g_cos = g_t[0] * (1.0 / (c_full - c_lim))
     mg = 1.0 / st.image_margin_px
-    g_u, g_W = mg * (g_t[1] - g_t[2]), mg * g_t[2]
-    g_v, g_H = mg * (g_t[3] - g_t[4]), mg * g_t[4]
+    g_u, g_v = mg * (g_t[1] - g_t[2]), mg * (g_t[3] - g_t[4])
     # projection: s0 = g (R0 - xn R2), s1 = g (R1 - yn R2), g = f iz, u = f xn + cx, v = f yn + cy
     R = [cq[3 * a:3 * a + 3] for a in range(3)]
     f = cq[_F]
@@ -761,8 +783,9 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     g_e1 = [geo.g * x for x in g_s1]
     g_g = (_dot(g_s0, [R[0][b] - geo.xn * R[2][b] for b in range(3)])
            + _dot(g_s1, [R[1][b] - geo.yn * R[2][b] for b in range(3)]))
-    g_xn = f * g_u - _dot(g_e0, R[2])
-    g_yn = f * g_v - _dot(g_e1, R[2])
+    h = [[_dot(g_e, R[c]) for c in range(3)] for g_e in (g_e0, g_e1)]  # camera-frame components
+    g_xn = f * g_u - h[0][2]
+    g_yn = f * g_v - h[1][2]
     g_f = g_u * geo.xn + g_v * geo.yn + g_g * geo.iz
     g_iz = g_g * f + g_xn * geo.p[0] + g_yn * geo.p[1]
     g_p = keep((g_xn * geo.iz, g_yn * geo.iz, jnp.where(geo.front, -g_iz * geo.iz * geo.iz, 0.0)))
@@ -770,32 +793,47 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     nrm = sq[3:6]
     g_d = [g_cos * geo.rd * (-nrm[b] - geo.cos_inc * geo.rd * geo.d[b]) + _dot(g_p, [R[a][b] for a in range(3)])
            for b in range(3)]
-    g_R = ([g_e0[b] + g_p[0] * geo.d[b] for b in range(3)]
-           + [g_e1[b] + g_p[1] * geo.d[b] for b in range(3)]
-           + [-(geo.xn * g_e0[b] + geo.yn * g_e1[b]) + g_p[2] * geo.d[b] for b in range(3)])
-    cols = g_R + [-x for x in g_d] + [g_f, g_u, g_v, g_W, g_H]
-    return jnp.stack(_sums(cols, 1, ctab.dtype), -1)
+    # rotation: R stays a rotation (dR = W R, W skew), so only the skew part of M = dL/dR R^T
+    # counts; M_ac = h_a[c] + g_p[a] p[c] with h_a the camera-frame components of the cotangent
+    # of row a of R (h_2 = -(xn h_0 + yn h_1)), and per pair we keep M_ac - M_ca
+    h.append([-(geo.xn * h[0][c] + geo.yn * h[1][c]) for c in range(3)])
+    M = lambda a, c: h[a][c] + g_p[a] * geo.p[c]
+    cols = [M(0, 1) - M(1, 0), M(0, 2) - M(2, 0), M(1, 2) - M(2, 1)] + [-x for x in g_d] + [
+        g_f, g_u, g_v]
+    # the block sums as one batched dot with ones (float64 accumulation): ~2x faster on XLA:CPU
+    # than separate row sums
+    cols = jnp.stack(jnp.broadcast_arrays(*cols), 1)  # (blocks, 9, block)
+    sums = jnp.einsum("gkl,l->gk", cols, jnp.ones(cols.shape[-1], cols.dtype),
+                      preferred_element_type=ctab.dtype)
+    # dL/dR of the block as S R, S = (M - M^T)/2 summed: the same dL for every rotation of R
+    u01, u02, u12 = sums[:, 0], sums[:, 1], sums[:, 2]
+    zero = jnp.zeros_like(u01)
+    S = 0.5 * jnp.stack([jnp.stack([zero, u01, u02], -1), jnp.stack([-u01, zero, u12], -1),
+                         jnp.stack([-u02, -u12, zero], -1)], -2)
+    g_R = jnp.einsum("gab,gbc->gac", S, ctab[:, _R].reshape(-1, 3, 3)).reshape(-1, 9)
+    return jnp.concatenate([g_R, sums[:, 3:], jnp.zeros_like(sums[:, :2])], -1)  # W, H: constants
 
 
-def _pair_inputs(cam, smp, vd: ViewData, st, dt):
-    """The arguments of `_pair_block`: the camera row of each block (B, 17) and, per pair as
-    (B, block) arrays in dtype dt, the 12 sample columns, the occlusion, kc and a runtime 1."""
-    ctab = _camera_table(cam)
+def _pair_inputs(cam, vd: ViewData, st, dt):
+    """The per-pair inputs: the camera row of each block (B, 17) (float64) and, as (B, block)
+    arrays in dtype dt, the 12 sample columns of the pairs' geometry, the occlusion,
+    kc = Omega c^2 / sigma^2 (m^2) and a runtime 1.0 (`_keep`)."""
     L = vd.block
     B = vd.camera.shape[0] // L
-    sq = [x.astype(dt).reshape(B, L) for x in jax.lax.stop_gradient(vd.geometry)]
     occ, cn, nz = (jax.lax.stop_gradient(x).reshape(B, L)
                    for x in (vd.occlusion, vd.contrast, vd.noise))
     kc = st.patch_area * cn * cn / (nz * nz)  # m^2
-    one = (nz / nz).astype(dt)  # 1.0 (noise > 0) per pair, unknown to XLA (`_keep`)
-    return ctab[vd.camera.reshape(B, L)[:, 0]], sq, occ.astype(dt), kc.astype(dt), one
+    one = (nz / nz).astype(dt)  # 1.0 (noise > 0) per pair, unknown to XLA
+    ctab = _camera_table(cam)[vd.camera.reshape(B, L)[:, 0]]
+    geometry = [x.astype(dt) for x in jax.lax.stop_gradient(vd.geometry)]
+    return ctab, geometry, occ.astype(dt), kc.astype(dt), one
 
 
-def _pair_terms(cam, smp, vd: ViewData, energy, st):
+def _pair_terms(cam, vd: ViewData, energy, st):
     """Per listed pair, as (B, block) arrays of the camera-major list, for the reports (float64
     whatever `st.pair_dtype`; not differentiated): ent, w and the geometry (`_block_forward`)."""
-    ctab, sq, occ, kc, one = _pair_inputs(cam, smp, vd, st, jnp.float64)
-    ent, w, (geo, *_) = _block_forward(_block_columns(ctab, sq[0].dtype), sq, occ, kc, one,
+    ctab, geometry, occ, kc, one = _pair_inputs(cam, vd, st, jnp.float64)
+    ent, w, (geo, *_) = _block_forward(_block_columns(ctab, jnp.float64), geometry, occ, kc, one,
                                        energy, st)
     return ent, w, geo
 
@@ -803,31 +841,6 @@ def _pair_terms(cam, smp, vd: ViewData, energy, st):
 def _per_sample(x, vd: ViewData, n):
     """Sum a (B, block) per-pair array over the pairs of each sample, in float64: (n,)."""
     return jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), vd.sample, n)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
-def _accumulate(vals, sample, eye, n):
-    """K per-pair arrays (P,) -> (K, n) per-sample sums (segment_sum over `sample`).
-
-    Separate arrays, not one stacked (K, P) array: stacking makes XLA:CPU evaluate the per-pair
-    chain once per row. The backward gathers the (K, n) cotangent to the pairs after a dot with
-    `eye`, a runtime (K, K) identity: the dot is a library call, so the per-sample backward
-    (smooth sigma_max, score) is evaluated once per sample instead of being fused into the
-    gather and recomputed once per pair and entry."""
-    return jnp.stack([jax.ops.segment_sum(v, sample, n) for v in vals])
-
-
-def _accumulate_fwd(vals, sample, eye, n):
-    return _accumulate(vals, sample, eye, n), (sample, eye)
-
-
-def _accumulate_bwd(n, res, ct):
-    sample, eye = res
-    g = jnp.take(jnp.dot(eye, ct), sample, axis=1)
-    return tuple(g[k] for k in range(g.shape[0])), None, None
-
-
-_accumulate.defvjp(_accumulate_fwd, _accumulate_bwd)
 
 
 def _per_pair_dense(x, vd: ViewData, c, n):
@@ -912,7 +925,7 @@ def camera_information(cameras: CameraParams, samples: Samples, views: ViewData,
     """Each camera's contribution Omega w_i |det A_i| C_i to the sample information, (C, N, 3, 3)
     in 1/m^2 (C_i = sigma_i^-2 s_i^T T_i s_i per pixel; rank 2, null vector along the ray); zero
     for pairs not listed in `views`."""
-    ent, _, _ = _pair_terms(cameras, samples, views, energy, settings)
+    ent, _, _ = _pair_terms(cameras, views, energy, settings)
     c, n = cameras.position.shape[0], samples.points.shape[0]
     return _sym_full(tuple(_per_pair_dense(e, views, c, n) for e in ent))
 
@@ -921,23 +934,24 @@ def camera_information(cameras: CameraParams, samples: Samples, views: ViewData,
 def information(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                 settings: Settings = Settings()):
     """C = Omega sum_i w_i |det A_i| C_i per sample, (N, 3, 3) in 1/m^2 (no regularisation)."""
-    ent, _, _ = _pair_terms(cameras, samples, views, energy, settings)
+    ent, _, _ = _pair_terms(cameras, views, energy, settings)
     n = samples.points.shape[0]
     return _sym_full(tuple(_per_sample(e, views, n) for e in ent))
 
 
 def _score(cameras, samples, views, energy, settings):
-    ent, w = _pair_block(*_pair_inputs(cameras, samples, views, settings,
-                                       jnp.dtype(settings.pair_dtype)),
-                         jax.lax.stop_gradient(energy), settings, views.chunk)
+    ctab, geometry, occ, kc, one = _pair_inputs(cameras, views, settings,
+                                                jnp.dtype(settings.pair_dtype))
     n = samples.points.shape[0]
-    one = jax.lax.stop_gradient(views.noise[0] / views.noise[0])  # 1.0, unknown to XLA
-    eye = jnp.eye(7) * one
-    sums = _accumulate(tuple(e.reshape(-1).astype(jnp.float64) for e in ent + (w,)),
-                       views.sample, eye, n)
-    ent, cov = tuple(sums[:6]), sums[6]
-    ones = jax.lax.stop_gradient(samples.area / samples.area)  # runtime 1.0 per sample (`_keep`)
-    sigma = _smooth_sigma_max(ent, settings, lambda x: _keep(x, ones)) / settings.sigma_unit
+    sample = views.sample.reshape(occ.shape)
+    sums = _sample_sums(ctab, geometry, occ, kc, one, sample, jax.lax.stop_gradient(energy),
+                        settings, views.chunk, n)
+    # materialised, so that the backward delivers each of the 7 per-sample cotangents once
+    # (XLA:CPU otherwise fuses them into one loop that re-derives the per-sample chain per row)
+    ones = jax.lax.stop_gradient(samples.area / samples.area)  # runtime 1.0 per sample
+    keep = lambda x: _keep(x, ones)
+    *ent, cov = keep(sums)
+    sigma = _smooth_sigma_max(ent, settings, keep) / settings.sigma_unit
     omega = samples.area * samples.importance[samples.region]
     omega = omega / omega.sum()
     q = settings.score_power
@@ -990,7 +1004,7 @@ class Fields(eqx.Module):
 def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
            settings: Settings = Settings()) -> Fields:
     """All report fields (exact eigenvalues, not for differentiation)."""
-    ent, w, geo = _pair_terms(cameras, samples, views, energy, settings)
+    ent, w, geo = _pair_terms(cameras, views, energy, settings)
     s0, s1 = geo.s0, geo.s1
     c, n = cameras.position.shape[0], samples.points.shape[0]
     ent = tuple(_per_sample(e, views, n) for e in ent)
