@@ -671,8 +671,10 @@ def _sample_sums_bwd(st, chunk, n, res, ct):
 
     def reverse(ctab, geometry, occ, kc, one, sample):
         c = jnp.take(per_sample, sample, axis=0)  # (blocks, block, 7)
-        return _block_vjp(ctab, geometry, occ, kc, one, tuple(c[..., k] for k in range(6)),
-                          c[..., 6].astype(dt), energy, st)
+        # materialised one entry at a time: read with stride 7 in every consumer, they would
+        # not vectorise
+        c = [_keep(c[..., k], one.astype(c.dtype)) for k in range(7)]
+        return _block_vjp(ctab, geometry, occ, kc, one, tuple(c[:6]), c[6].astype(dt), energy, st)
 
     g = _chunked(reverse, (ctab, geometry, occ, kc, one, sample), chunk)
     return g, None, None, None, None, None, None
