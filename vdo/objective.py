@@ -79,30 +79,41 @@ and is summed per sample with `jax.ops.segment_sum`. The list is laid out camera
 count padded to a bucket so that a changing P seldom recompiles): the camera parameters are then
 broadcast per block and their gradient is a row sum, not a scatter into C slots (which XLA:CPU
 serialises: 40 ms for 10 cameras x 317k pairs against < 1 ms). Padding pairs have occlusion 0,
-hence weight and gradient exactly 0. `ViewData.from_dense` builds the list from (C, N) arrays: with
-no geometry it keeps every pair with occlusion > 0 (exact for any camera parameters); given the
-cameras and samples it also drops the pairs that are behind the camera, outside the image extended
-by `margin_px`, or beyond the incidence limit plus `margin_angle` at those cameras. A dropped pair has
-w = 0 and a zero gradient there, so value and gradient stay exact as long as no camera moves so far
-that a dropped pair crosses into its image or incidence range: refresh the selection when the
-cameras move by more than the margins (the optimizer does so between inner solves, with visibility).
+hence weight and gradient exactly 0. The list carries its pairs' sample geometry (point, normal,
+t_u, t_v), copied once when it is built: gathering it from the samples on every call cost ~10 ms.
+`ViewData.from_dense` builds the list from (C, N) arrays: without cameras it keeps every pair
+with occlusion > 0 (exact for any camera parameters); given the cameras it also drops the pairs
+that are behind the camera, outside the image extended by `margin_px`, or beyond the incidence
+limit plus `margin_angle` at those cameras. A dropped pair has w = 0 and a zero gradient there, so
+value and gradient stay exact as long as no camera moves so far that a dropped pair crosses into
+its image or incidence range: refresh the selection when the cameras move by more than the margins
+(the optimizer does so between inner solves, with visibility).
 
 Reverse pass (`_block_vjp`). The score's gradient with respect to the cameras is written out by
 hand for the per-pair block: for per-pair cotangents Q (the symmetric 3x3 of the 6 entries, off-
 diagonals halved) and c_w, L = k tr(T Y) + c_w w with Y = S Q S^T, so dL/dk = tr(T Y),
 dL/dT = k Y, dL/dS = 2 k T S Q, then back through T = alpha I + beta (M - m I), the floored-gap
-eigenvalues, the footprint, the soft weights and the projection to the 17 camera-table columns
-(R, position, f, cx, cy, W, H), summed over each camera-major block. The forward stores only the
-table lookup's Jacobian d phi_i / d lam_j and the reverse pass recomputes the rest. Autodiff of
-the same chain ran ~2000 XLA:CPU elementwise operations per pair, as XLA recomputes shared
-intermediates in every consumer fusion. Only the cameras are differentiated: samples, view data
-and the energy are constants (zero cotangents). Measured (10 cameras x 100k samples, same
-process): about as fast as autodiff in float64; what pays is float32 (below), ~1.8x on value +
-gradient. The value alone materialises s, A, w, T and |det A| once (`_keep`), which the
-value + gradient path does without (it measured ~10 % slower with it). XLA:CPU facts behind
-these choices: a variadic `lax.reduce` over the 17 camera columns compiles to scalar code (~7x
-slower than the same chain elementwise); gathers inside the per-pair chain (a sample-major
-layout that gathers camera rows per pair) stop vectorisation (~4x slower forward).
+eigenvalues, the footprint, the soft weights and the projection to the camera, summed over each
+camera-major block. For the rotation only its skew part is summed: R stays a rotation (dR = W R,
+W skew), so dL/dR counts through the 3 entries of M - M^T, M = dL/dR R^T, and the block's dL/dR
+is returned as S R with S = (M - M^T)/2 (the same derivative along every rotation, hence the same
+pan, tilt and roll gradients). Width and height are pixel counts, not differentiated. Only the
+cameras are differentiated: samples, view data and the energy are constants (zero cotangents).
+
+How it runs on XLA:CPU (`_sample_sums`, measured on 10 cameras x 100k samples, 2 cores;
+figures in `benchmarks/README.md`). Both passes go over the pair list in chunks of `ViewData.chunk`
+blocks (~32k pairs, `lax.map`), the reverse pass recomputing the forward. Within a chunk, values
+used by several later steps are materialised (`_keep`): XLA:CPU duplicates cheap elementwise
+producers into every consumer fusion, so without it each of the ~20 loops that end in a camera
+column re-derived the forward chain (5,000 operations per pair in the reverse pass, 2,100 with
+it). Materialising costs memory traffic, hence the chunks, which keep it in cache. Other facts
+behind the code: reading an array with a stride (columns of a gathered (pairs, 7) cotangent)
+stops vectorisation, so the columns are materialised first (1.2x on value + gradient); the block
+sums are one batched dot with ones (17 separate row sums were 2x slower); a variadic `lax.reduce`
+compiles to scalar code (~7x slower); gathers inside the per-pair chain (a sample-major layout)
+stop vectorisation (~4x slower forward). Each call's temporaries (~130 MB) come from malloc, and
+glibc maps and unmaps blocks that large on every call: `vdo.memory.retain_freed_memory` keeps
+them in the heap instead (77 -> 46 ms per value + gradient).
 
 Precision (`Settings.pair_dtype`). The per-pair work (projection, footprint, spectrum, table
 lookup, weights and their reverse) can run in float32: f32 exp/log are ~5x faster than f64 on
@@ -580,9 +591,9 @@ def _keep(x, one):
     """x, materialised: the identity x / one with `one` a per-element runtime 1.0 (an array, as
     XLA rewrites a division by a broadcast scalar into a multiplication). XLA:CPU duplicates cheap
     elementwise producers into every consumer fusion but not divisions, so this stores x once
-    (forward) and, by the JVP rule, its cotangent once (backward). `lax.optimization_barrier`
-    does not do this on CPU (it is removed before fusion). Measured on 10 cameras x 100k samples:
-    954 -> 661 elementwise ops per pair for the value, 3600 -> 2648 for value + grad."""
+    (forward) and, by the JVP rule, its cotangent once (backward); with a single consumer it is
+    fused all the same. `lax.optimization_barrier` does not do this on CPU (it is removed before
+    fusion). Where it pays: module docstring, "How it runs on XLA:CPU"."""
     return jax.tree.map(lambda a: a / one, x)
 
 
@@ -958,7 +969,9 @@ def _score(cameras, samples, views, energy, settings):
     omega = omega / omega.sum()
     q = settings.score_power
     top = jax.lax.stop_gradient(jnp.max(sigma))  # exact homogeneity: value and gradient unchanged
-    agg = top * jnp.sum(omega * (sigma / top) ** q) ** (1.0 / q)
+    ratio = sigma / top
+    power = jax.lax.integer_pow(ratio, int(q)) if float(q).is_integer() else ratio ** q
+    agg = top * jnp.sum(omega * power) ** (1.0 / q)
     short = jnp.maximum(samples.min_cameras[samples.region] - cov, 0.0)
     penalty = jnp.sum(omega * short * short)
     return agg + settings.coverage_weight * penalty
