@@ -678,13 +678,9 @@ def _sample_sums_fwd(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n)
 def _sample_sums_bwd(st, chunk, n, res, ct):
     ctab, geometry, occ, kc, one, sample, energy = res
     dt = occ.dtype
-    per_sample = jnp.stack(ct, -1)  # (n, 7): one row gather per pair
 
     def reverse(ctab, geometry, occ, kc, one, sample):
-        c = jnp.take(per_sample, sample, axis=0)  # (blocks, block, 7)
-        # materialised one entry at a time: read with stride 7 in every consumer, they would
-        # not vectorise
-        c = [_keep(c[..., k], one.astype(c.dtype)) for k in range(7)]
+        c = [jnp.take(x, sample, mode="clip") for x in ct]
         return _block_vjp(ctab, geometry, occ, kc, one, tuple(c[:6]), c[6].astype(dt), energy, st)
 
     g = _chunked(reverse, (ctab, geometry, occ, kc, one, sample), chunk)
