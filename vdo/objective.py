@@ -107,8 +107,9 @@ used by several later steps are materialised (`_keep`): XLA:CPU duplicates cheap
 producers into every consumer fusion, so without it each of the ~20 loops that end in a camera
 column re-derived the forward chain (5,000 operations per pair in the reverse pass, 2,100 with
 it). Materialising costs memory traffic, hence the chunks, which keep it in cache. Other facts
-behind the code: reading an array with a stride (columns of a gathered (pairs, 7) cotangent)
-stops vectorisation, so the columns are materialised first (1.2x on value + gradient); the block
+behind the code: reading an array with a stride (the columns of a (pairs, 7) gather of the
+per-sample cotangents) stops vectorisation, so each of the 7 is gathered on its own (1.2x on
+value + gradient); the block
 sums are one batched dot with ones (17 separate row sums were 2x slower); a variadic `lax.reduce`
 compiles to scalar code (~7x slower); gathers inside the per-pair chain (a sample-major layout)
 stop vectorisation (~4x slower forward). Each call's temporaries (~130 MB) come from malloc, and
