@@ -497,14 +497,23 @@ def _packed_table(table: GradientEnergyTable):
     return jnp.concatenate([coef(lg), coef(lg.T)], -1).reshape((n - 1) * (n - 1), 8)
 
 
-def _phis(energy, lam1, lam2, kappa):
+def _phis(energy, lam1, lam2, kappa, jacobian=False):
     """phi_k = G(l_k, l_other) / lam_k with l_k = kappa / sqrt(lam_k) (lam in pixel^2/m^2,
-    phi in 1/pixel^2), in the dtype of lam."""
+    phi in 1/pixel^2), in the dtype of lam; with `jacobian` also d phi_i / d lam_j as
+    (j11, j12, j21, j22) (1/pixel^2 per pixel^2/m^2), else None."""
     table = energy.table if isinstance(energy, TableEnergy) else energy
     if not isinstance(table, GradientEnergyTable):
-        l1, l2 = kappa * jax.lax.rsqrt(lam1), kappa * jax.lax.rsqrt(lam2)
-        return energy(l1, l2) / lam1, energy(l2, l1) / lam2
-    # bilinear in (log l_par, log l_perp) on log G as `vdo.speckle.g_aniso_lookup` (same clamping)
+        def fun(a, b):
+            la, lb = kappa * jax.lax.rsqrt(a), kappa * jax.lax.rsqrt(b)
+            return energy(la, lb) / a, energy(lb, la) / b
+        if not jacobian:
+            return fun(lam1, lam2), None
+        one, zero = jnp.ones_like(lam1), jnp.zeros_like(lam1)  # two forward-mode passes
+        phis, (j11, j21) = jax.jvp(fun, (lam1, lam2), (one, zero))
+        _, (j12, j22) = jax.jvp(fun, (lam1, lam2), (zero, one))
+        return phis, (j11, j12, j21, j22)
+    # bilinear in (log l_par, log l_perp) on log G as `vdo.speckle.g_aniso_lookup` (same clamping):
+    # u = c0 - log(lam)/2 per grid step, clamped to the grid; s, t the fractions in the cell
     dt = lam1.dtype
     grid = jnp.asarray(table.log_l)
     n = grid.shape[0]
@@ -513,8 +522,8 @@ def _phis(energy, lam1, lam2, kappa):
     ll1, ll2 = jnp.log(lam1), jnp.log(lam2)
     c0 = ((math.log(kappa) - log_lo) * inv_step).astype(dt)
     half = (0.5 * inv_step).astype(dt)
-    u1 = jnp.clip(c0 - half * ll1, 0.0, n - 1.0)
-    u2 = jnp.clip(c0 - half * ll2, 0.0, n - 1.0)
+    x1, x2 = c0 - half * ll1, c0 - half * ll2
+    u1, u2 = jnp.clip(x1, 0.0, n - 1.0), jnp.clip(x2, 0.0, n - 1.0)
     i = jnp.clip(jnp.floor(u1), 0, n - 2)
     j = jnp.clip(jnp.floor(u2), 0, n - 2)
     s, t = u1 - i, u2 - j
@@ -523,17 +532,18 @@ def _phis(energy, lam1, lam2, kappa):
     cf = [cf[:, k].reshape(idx.shape) for k in range(8)]
     log_g12 = cf[0] + s * cf[1] + t * (cf[2] + s * cf[3])
     log_g21 = cf[4] + s * cf[5] + t * (cf[6] + s * cf[7])
-    return jnp.exp(log_g12 - ll1), jnp.exp(log_g21 - ll2)
-
-
-def _phis_and_jacobian(energy, lam1, lam2, kappa):
-    """(phi1, phi2) and their derivatives d phi_i / d lam_j as (j11, j12, j21, j22), by two
-    forward-mode passes (elementwise, fused with the values)."""
-    fun = lambda a, b: _phis(energy, a, b, kappa)
-    one, zero = jnp.ones_like(lam1), jnp.zeros_like(lam1)
-    phis, (j11, j21) = jax.jvp(fun, (lam1, lam2), (one, zero))
-    _, (j12, j22) = jax.jvp(fun, (lam1, lam2), (zero, one))
-    return phis, (j11, j12, j21, j22)
+    phi1, phi2 = jnp.exp(log_g12 - ll1), jnp.exp(log_g21 - ll2)
+    if not jacobian:
+        return (phi1, phi2), None
+    # by hand (one table gather, not one per forward-mode pass): d s / d lam1 = -half / lam1
+    # inside the grid and 0 where clamped, likewise t and lam2
+    ds = jnp.where((x1 > 0.0) & (x1 < n - 1.0), -half / lam1, 0.0)
+    dt_ = jnp.where((x2 > 0.0) & (x2 < n - 1.0), -half / lam2, 0.0)
+    j11 = phi1 * ((cf[1] + t * cf[3]) * ds - 1.0 / lam1)
+    j12 = phi1 * (cf[2] + s * cf[3]) * dt_
+    j21 = phi2 * (cf[5] + t * cf[7]) * ds
+    j22 = phi2 * ((cf[6] + s * cf[7]) * dt_ - 1.0 / lam2)
+    return (phi1, phi2), (j11, j12, j21, j22)
 
 
 class _Spectrum(NamedTuple):
@@ -580,7 +590,7 @@ def _tensor(A, energy, kappa, gap_eps):
     """T / c^2 = sum_k G(l_k, l_other)/a_k^2 v_k v_k^T as (T00, T01, T11) (1/pixel^2), and |det A|,
     by the floored-gap spectral formula (module docstring). A = (A00, A01, A10, A11)."""
     sp = _spectrum(A, gap_eps)
-    T, _, _ = _tensor_from(sp, *_phis(energy, sp.lam1, sp.lam2, kappa))
+    T, _, _ = _tensor_from(sp, *_phis(energy, sp.lam1, sp.lam2, kappa)[0])
     return T, jnp.abs(sp.det)
 
 
@@ -631,10 +641,7 @@ def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
     s0, s1, A, w = keep((geo.s0, geo.s1, geo.A, w))
     geo = geo._replace(s0=s0, s1=s1, A=A)
     sp = _spectrum(geo.A, st.gap_eps)
-    if jacobian:
-        phis, jac = _phis_and_jacobian(energy, sp.lam1, sp.lam2, st.kappa)
-    else:
-        phis, jac = _phis(energy, sp.lam1, sp.lam2, st.kappa), None
+    phis, jac = _phis(energy, sp.lam1, sp.lam2, st.kappa, jacobian)
     T, beta, D = _tensor_from(sp, *phis)
     *T, absdet = keep(T + (jnp.abs(sp.det),))
     # rooted at a divide: XLA:CPU materialises k once instead of re-deriving the weight chain
