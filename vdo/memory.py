@@ -1,10 +1,11 @@
 """Keep freed memory in the process heap, so that repeated XLA:CPU calls do not fault pages in.
 
-XLA:CPU takes each call's temporary buffer from malloc: about 130 MB for the score's value and
-gradient on 10 cameras x 100k samples. glibc serves a request that large with a fresh `mmap` and
-returns it with `munmap` when it is freed, so every call faults in some 32,000 new pages. On the
-2-core CI machine that was ~100 ms of kernel time per call, as much as the computation itself
-(`benchmarks/README.md`, "Predicted uncertainty").
+XLA:CPU takes each call's temporary buffer from malloc: 57 MB for the score's value and gradient
+on 10 cameras x 100k samples (132 MB before the work ran in chunks). glibc serves a request that
+large with a fresh `mmap` and returns it with `munmap` when it is freed, so every call faults in
+its pages again: 14,000 per call, 49 ms of kernel time on the 2-core CI machine (32,000 and
+88 ms before the chunks), as much as the computation itself (`benchmarks/README.md`,
+"Predicted uncertainty").
 
 `retain_freed_memory` sets three glibc malloc options (`mallopt`): one arena for all threads
 (M_ARENA_MAX = 1; a thread arena cannot hold a block larger than 64 MB, so it would map it),
