@@ -402,7 +402,11 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
     hand = np.asarray(ob._block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st))
     # R is a rotation: what counts of dL/dR is the skew part of dL/dR R^T (dR = W R, W skew)
     Rb = np.asarray(ctab[:, :9]).reshape(-1, 3, 3)
-    skew = lambda g: (lambda m: m - np.swapaxes(m, 1, 2))(g[:, :9].reshape(-1, 3, 3) @ np.swapaxes(Rb, 1, 2))
+
+    def skew(g):
+        m = g[:, :9].reshape(-1, 3, 3) @ np.swapaxes(Rb, 1, 2)
+        return m - np.swapaxes(m, 1, 2)
+
     auto = np.concatenate([skew(auto).reshape(-1, 9), auto[:, 9:15]], 1)
     assert np.all(hand[:, 15:] == 0.0)  # width and height: constants
     hand = np.concatenate([skew(hand).reshape(-1, 9), hand[:, 9:15]], 1)

@@ -42,7 +42,7 @@ def speckle_model(exp: Experiment) -> SpeckleModel:
 def settings(exp: Experiment) -> objective.Settings:
     """The objective's settings for an experiment. The score's per-pair work in float32 (the
     per-sample sums, the score and the report fields in float64): value within ~1e-7 and
-    gradient within ~1e-5 of float64, ~1.7x faster value + gradient
+    gradient within ~1e-5 of float64, ~1.5x faster value + gradient
     (`vdo.objective.Settings.pair_dtype`)."""
     return objective.Settings(patch_area=exp.evaluation.patch_size ** 2,
                               incidence_limit=exp.evaluation.incidence_limit,
