@@ -5,7 +5,7 @@ compilation (median of the 2nd..nth calls, `block_until_ready`) beside a plain v
 evaluation of the same value on the dense (C, N) inputs, measured in the same run. The JAX score
 runs over a sparse pair list (`ViewData`): once with every pair whose occlusion is > 0 (what the
 dense path computed, exact for any camera parameters) and once with the pairs the geometric
-selection keeps at these cameras (`ViewData.from_dense(..., cameras, samples)`), in float64 and
+selection keeps at these cameras (`ViewData.from_dense(..., samples, cameras)`), in float64 and
 with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.predict.settings` and so
 the optimizer use). Checks that the values agree with NumPy, that both pair lists give the same
 gradient and how far the float32 gradient is from the float64 one. Prints the kernel time and

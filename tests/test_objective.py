@@ -415,7 +415,7 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
 
 
 def test_block_and_chunk_sizes_do_not_change_value_or_gradient(small_table):
-    """The pair list's layout (pairs per block, blocks per chunk of the reverse pass) is a
+    """The pair list's layout (pairs per block, blocks per chunk of both passes) is a
     performance choice only: many small chunks give the one-chunk value and gradient."""
     cam, smp, _ = two_plane_scene(300)
     occlusion = np.ones((3, 300))

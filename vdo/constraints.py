@@ -135,8 +135,8 @@ def shadow_penalty(centres, radii, samples, panels, margin: float):
     and the panel count (the ray meets the plane beyond c).
 
     `samples` (S, 3) are lit samples, `panels` (S, 11) per sample its light's centre, normal
-    (emitting side), width direction and half-width, height direction and half-height (the
-    height direction is n x e_1). 0 when no body comes within `margin` (m, at the body) of
+    (emitting side), width direction e_1, half-width and half-height (the height direction,
+    n x e_1, is derived). 0 when no body comes within `margin` (m, at the body) of
     shadowing a sample; continuous in the body poses, C^1 except where the ray X -> c crosses
     the panel's outline (where the slope of β changes) or the panel's plane."""
     centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
@@ -182,9 +182,9 @@ def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> np
 def _entry(constraint: str, value: float, limit, unit: str, kind: str, **about) -> dict:
     """A check entry. kind 'min' (value >= limit), 'max' (value <= limit), 'zero' (|value| <= limit
     within 1e-9) or 'range' (limit = [low, high]). `excess` is by how much the value is beyond
-    its limit, relative to the limit's scale (max(|limit|, 1) for 'zero' and 'range', else
-    max(|limit|, 1e-3)), 0 when met (within 1e-6 of the scale): a common measure of how far a
-    layout is from feasible."""
+    its limit, relative to the limit's scale (max(|limit|, 1) for 'zero', max(high - low, 1) for
+    'range', else max(|limit|, 1e-3), where the limit is met within 1e-6 of the scale), 0 when
+    met: a common measure of how far a layout is from feasible."""
     if kind == "range":
         low, high = limit
         gap = max(low - value, value - high, 0.0) / max(high - low, 1.0)

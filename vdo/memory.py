@@ -12,7 +12,8 @@ its pages again: 14,000 per call, 49 ms of kernel time on the 2-core CI machine 
 no `mmap` for large blocks (M_MMAP_MAX = 0) and no trimming of the heap's free top
 (M_TRIM_THRESHOLD maximal). The process then keeps its peak heap and reuses it. Call it before
 the first JAX computation: threads that allocated before keep their own arenas. The command line
-(`vdo.cli`) and the benchmarks call it; it is a no-op where the C library is not glibc.
+(`vdo.cli`) and `benchmarks/objective.py`, `benchmarks/optimize.py` call it; a no-op where the C
+library is not glibc.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Mean-field DIC uncertainty of a multi-camera layout, and the scalar score the optimizer minimises.
 
 Pure `jax.numpy` (float64, or float32 per pair: "Precision" below), differentiable with respect to
-every camera parameter. DESIGN.md sec. 4-5
+every camera parameter but the pixel counts (width, height). DESIGN.md sec. 4-5
 and the paper's sec. 5.3-5.4 give the model; this module implements it with the paper's loose
 notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
 t_u x t_v = n, surface coordinates xi in metres along them):
@@ -234,7 +234,7 @@ class ViewData(eqx.Module):
 
     Layout: P = B x `block`; the pairs of block b (P[b*block:(b+1)*block]) all belong to one camera
     and are sorted by sample; padding pairs have occlusion 0 (and contrast 0, noise 1). The block
-    count B is a multiple of `chunk`, the blocks per chunk of the reverse pass. Build it with
+    count B is a multiple of `chunk`, the blocks per chunk of both passes. Build it with
     `from_dense`, and score it with the same samples. Pairs not listed have weight 0."""
 
     camera: jax.Array
@@ -258,7 +258,7 @@ class ViewData(eqx.Module):
         them: also in front (Z_c > near), inside the image grown by `margin_px` on every side,
         and incidence below `settings.incidence_limit + margin_angle`: exact at these cameras and
         while they move less than the margins (refresh after larger moves). `block` is the
-        most pairs per block, `chunk_pairs` about the pairs per chunk of the reverse pass."""
+        most pairs per block, `chunk_pairs` about the pairs per chunk of both passes."""
         occ = np.asarray(occlusion, dtype=np.float64)
         if occ.ndim != 2 or occ.shape[1] != samples.points.shape[0]:
             raise ValueError(f"ViewData.from_dense: occlusion must be (C, N) with N = "
@@ -275,7 +275,7 @@ class ViewData(eqx.Module):
     def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs):
         """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values;
         table (N, 12) the sample columns (`_sample_table`)."""
-        n_cameras, n_samples = occ.shape
+        n_cameras = occ.shape[0]
         counts = np.bincount(cam, minlength=n_cameras)
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
@@ -396,6 +396,20 @@ def smoothstep(t):
     return t * t * t * (t * (6.0 * t - 15.0) + 10.0)
 
 
+def _smoothstep_grad(t):
+    """d smoothstep / dt = 30 t^2 (1 - t)^2 on [0, 1], 0 outside."""
+    t = jnp.clip(t, 0.0, 1.0)
+    return 30.0 * (t * (1.0 - t)) ** 2
+
+
+def _weight_scales(st):
+    """(cos theta_lim, 1 / (cos(theta_lim - ramp) - cos theta_lim), 1 / image_margin_px): the
+    smoothstep arguments of the soft weights are t_inc = (cos theta - cos theta_lim) x the
+    second and t_img = (distance to the image edge) x the third."""
+    c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
+    return c_lim, 1.0 / (c_full - c_lim), 1.0 / st.image_margin_px
+
+
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
@@ -467,9 +481,8 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
     dd = _dot(d, d)
     rd = jax.lax.rsqrt(jnp.maximum(dd, jnp.finfo(dd.dtype).tiny))
     cos_inc = -_dot(nrm, d) * rd
-    c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
-    t_inc = (cos_inc - c_lim) * (1.0 / (c_full - c_lim))
-    m = 1.0 / st.image_margin_px
+    c_lim, inc_scale, m = _weight_scales(st)
+    t_inc = (cos_inc - c_lim) * inc_scale
     t_img = ((u + 0.5) * m, (W - 0.5 - u) * m, (v + 0.5) * m, (H - 0.5 - v) * m)
     w_img = smoothstep(t_img[0]) * smoothstep(t_img[1]) * smoothstep(t_img[2]) * smoothstep(t_img[3])
     w = jnp.where(front, smoothstep(t_inc) * w_img, 0.0)
@@ -629,13 +642,12 @@ def _block_columns(ctab, dtype):
 
 def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
     """Per pair, from broadcastable components (cq the 17 camera columns, sq the 12 sample
-    columns, occlusion, kc = Omega c^2 / sigma^2 in m^2, `one` a runtime 1.0 for `_keep`, or None
-    for no materialisation): ent,
+    columns, occlusion, kc = Omega c^2 / sigma^2 in m^2, `one` a runtime 1.0 for `_keep`): ent,
     the 6 entries of k S^T T S in _SYM order (1/m^2, float64), with
     k = Omega w |det A| c^2/sigma^2 = kc w |det A|, and w (occlusion included); and the
     intermediates (geometry, spectrum, phis, T, beta, lam1 - lam2, k, and with `jacobian` the
     table lookup's d phi_i / d lam_j, else None)."""
-    keep = (lambda x: x) if one is None else (lambda x: _keep(x, one))
+    keep = lambda x: _keep(x, one)
     geo = _pairs_from(cq, sq, st)
     w = geo.w * occ
     s0, s1, A, w = keep((geo.s0, geo.s1, geo.A, w))
@@ -646,7 +658,7 @@ def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
     *T, absdet = keep(T + (jnp.abs(sp.det),))
     # rooted at a divide: XLA:CPU materialises k once instead of re-deriving the weight chain
     # in every consumer fusion
-    k = kc * w * absdet if one is None else (kc * w * absdet) / one
+    k = keep(kc * w * absdet)
     # the assembly k S^T T S runs in float64 whatever the pair dtype: each pair's matrix then
     # has the ray as its null vector to float64 precision (float32 rounding of the 6 entries
     # would leave an error ~1e-7 |C_i| along the ray, far above the prior 1/prior_sigma^2 that
@@ -674,8 +686,7 @@ def _sample_sums(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
         return ent, w
 
     ent, w = _chunked(forward, (ctab, geometry, occ, kc, one), chunk)
-    return tuple(jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), sample.reshape(-1), n)
-                 for x in ent + (w,))
+    return tuple(_per_sample(x, sample, n) for x in ent + (w,))
 
 
 def _sample_sums_fwd(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
@@ -710,8 +721,7 @@ def _chunked(fun, args, chunk):
 
 def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     """Cotangent of the (B, 17) block camera rows ctab for per-pair cotangents c_ent (6, float64)
-    of ent and c_w of w, written out by hand (autodiff of the same chain makes XLA:CPU
-    recompute shared intermediates in every consumer fusion, ~2000 operations per pair).
+    of ent and c_w of w, written out by hand (module docstring, "Reverse pass").
 
     With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
     Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
@@ -721,10 +731,8 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     height are pixel counts, not differentiated (0). The
     forward is recomputed, with the table lookup's Jacobian d phi_i / d lam_j.
 
-    Values used by several later steps are materialised (`_keep`): XLA:CPU would otherwise
-    re-derive them inside each of the ~20 loops that end in a camera column (5,000 operations
-    per pair, against 2,100 with them kept). Materialising costs memory traffic, which is why
-    `_sample_sums` runs this on chunks that fit in cache."""
+    Values used by several later steps are materialised (`_keep`), and `_sample_sums` runs this
+    on chunks that fit in cache (module docstring, "How it runs on XLA:CPU")."""
     keep = lambda x: _keep(x, one)
     cq = _block_columns(ctab, sq[0].dtype)
     _, w, (geo, sp, _, T, beta, D, k, jac) = _block_forward(cq, sq, occ, kc, one, energy, st,
@@ -786,12 +794,11 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     g_raw = jnp.where(geo.front, g_w * occ, 0.0)
     ts = (geo.t_inc,) + geo.t_img
     S = keep([smoothstep(t) for t in ts])
-    dS = keep([30.0 * (c * (1.0 - c)) ** 2 for c in (jnp.clip(t, 0.0, 1.0) for t in ts)])
+    dS = keep([_smoothstep_grad(t) for t in ts])
     prod = lambda xs: functools.reduce(lambda a, b: a * b, xs)
     g_t = keep([g_raw * dS[i] * prod(S[:i] + S[i + 1:]) for i in range(5)])
-    c_lim, c_full = math.cos(st.incidence_limit), math.cos(st.incidence_limit - st.incidence_ramp)
-    g_cos = g_t[0] * (1.0 / (c_full - c_lim))
-    mg = 1.0 / st.image_margin_px
+    _, inc_scale, mg = _weight_scales(st)
+    g_cos = g_t[0] * inc_scale
     g_u, g_v = mg * (g_t[1] - g_t[2]), mg * (g_t[3] - g_t[4])
     # projection: s0 = g (R0 - xn R2), s1 = g (R1 - yn R2), g = f iz, u = f xn + cx, v = f yn + cy
     R = [cq[3 * a:3 * a + 3] for a in range(3)]
@@ -855,9 +862,10 @@ def _pair_terms(cam, vd: ViewData, energy, st):
     return ent, w, geo
 
 
-def _per_sample(x, vd: ViewData, n):
-    """Sum a (B, block) per-pair array over the pairs of each sample, in float64: (n,)."""
-    return jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), vd.sample, n)
+def _per_sample(x, sample, n):
+    """Sum a per-pair array over the pairs of each sample (`sample` its indices, same shape),
+    in float64: (n,)."""
+    return jax.ops.segment_sum(x.reshape(-1).astype(jnp.float64), sample.reshape(-1), n)
 
 
 def _per_pair_dense(x, vd: ViewData, c, n):
@@ -953,7 +961,7 @@ def information(cameras: CameraParams, samples: Samples, views: ViewData, energy
     """C = Omega sum_i w_i |det A_i| C_i per sample, (N, 3, 3) in 1/m^2 (no regularisation)."""
     ent, _, _ = _pair_terms(cameras, views, energy, settings)
     n = samples.points.shape[0]
-    return _sym_full(tuple(_per_sample(e, views, n) for e in ent))
+    return _sym_full(tuple(_per_sample(e, views.sample, n) for e in ent))
 
 
 def _score(cameras, samples, views, energy, settings):
@@ -1026,8 +1034,8 @@ def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
     ent, w, geo = _pair_terms(cameras, views, energy, settings)
     s0, s1 = geo.s0, geo.s1
     c, n = cameras.position.shape[0], samples.points.shape[0]
-    ent = tuple(_per_sample(e, views, n) for e in ent)
-    sens = jnp.stack([jnp.sqrt(_per_sample(w * (s0[k] ** 2 + s1[k] ** 2), views, n))
+    ent = tuple(_per_sample(e, views.sample, n) for e in ent)
+    sens = jnp.stack([jnp.sqrt(_per_sample(w * (s0[k] ** 2 + s1[k] ** 2), views.sample, n))
                       for k in range(3)], -1)
     C = _sym_full(ent)
     tc = jnp.trace(C, axis1=-2, axis2=-1)
@@ -1041,5 +1049,5 @@ def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
     sigma_xyz = jnp.where(measured[:, None], jnp.sqrt(var_axis), inf)
     return Fields(sensitivity=sens, sigma_max=sigma_max, sigma_xyz=sigma_xyz,
                   sigma_max_smooth=_smooth_sigma_max(ent, settings),
-                  coverage=_per_sample(w, views, n), measured=measured,
+                  coverage=_per_sample(w, views.sample, n), measured=measured,
                   weights=_per_pair_dense(w, views, c, n), information=C)

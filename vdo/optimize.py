@@ -93,6 +93,8 @@ class Parameterization:
     unit) is 0.5 in logit u, and for an angle `ANGLE_SCALE` or an eighth of the camera's
     horizontal field of view, whichever is smaller."""
 
+    RELATIVE = ("pan", "tilt")  # the angles an aimed camera holds as offsets
+
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
@@ -110,7 +112,8 @@ class Parameterization:
                         theta.append(math.log(u / (1 - u)))
                         scale.append(0.5)
                     else:
-                        theta.append(0.0 if self._aimed(idx, cam) and name != "roll" else getattr(cam, name))
+                        aimed = self._aimed(idx, cam) and name in self.RELATIVE
+                        theta.append(0.0 if aimed else getattr(cam, name))
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
@@ -136,9 +139,9 @@ class Parameterization:
             if self._aimed(idx, cam):
                 d = jnp.asarray(aim) - p
                 base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])))
-                relative = {"pan", "tilt"}
+                relative = self.RELATIVE
             else:
-                base, relative = {}, set()
+                base, relative = {}, ()
             pos.append(p)
             for k in angles:
                 if k in idx:
@@ -344,7 +347,7 @@ class Problem:
                 cam = state.cameras[c]
                 depth = np.median((self.samples.points[idx] - cam.position) @ cam.optical_axis)
                 ramp[g] = max(np.sqrt(np.median(self.samples.area[idx])) * cam.focal_px / depth, 1.0)
-        return dict(camera=np.array([c for c, _ in groups], dtype=int).reshape(-1),
+        return dict(camera=np.array([c for c, _ in groups], dtype=int),
                     points=jnp.asarray(points), area=jnp.asarray(area), ramp=jnp.asarray(ramp),
                     limit=jnp.asarray([self.fov_limits[c, r] for c, r in groups]))
 

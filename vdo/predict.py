@@ -41,9 +41,9 @@ def speckle_model(exp: Experiment) -> SpeckleModel:
 
 def settings(exp: Experiment) -> objective.Settings:
     """The objective's settings for an experiment. The score's per-pair work in float32 (the
-    per-sample sums, the score and the report fields in float64): value within ~1e-7 and
-    gradient within ~1e-5 of float64, ~1.5x faster value + gradient
-    (`vdo.objective.Settings.pair_dtype`)."""
+    per-sample sums, the score and the report fields in float64): on the 10-camera x 100k-sample
+    benchmark, value within 4e-8 and gradient within 8e-6 of float64 and value + gradient ~1.5x
+    faster (`vdo.objective.Settings.pair_dtype`, `benchmarks/README.md`)."""
     return objective.Settings(patch_area=exp.evaluation.patch_size ** 2,
                               incidence_limit=exp.evaluation.incidence_limit,
                               pair_dtype="float32")
