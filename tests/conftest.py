@@ -80,13 +80,10 @@ def plate_experiment(tmp_path):
 def raycast(path):
     """Load an experiment and ray-cast it as `vdo evaluate` does (every camera body an obstacle).
     Returns (experiment, samples, cameras, Mitsuba scene, visibility)."""
-    from vdo import config, scene, visibility
+    from vdo import config
+    from vdo.state import layout_state, prepare
 
     exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
-    cams = exp.cameras()
-    sc = scene.build_scene(meshes + [scene.camera_body(c) for c in cams])
-    vis = visibility.compute_visibility(sc, cams, samples, exp.evaluation.incidence_limit,
-                                        progress=False)
+    state = layout_state(prepare(exp), predict_fields=False)
+    samples, cams, sc, vis = state.samples, list(state.cameras), state.scene, state.visibility
     return exp, samples, cams, sc, vis

@@ -9,11 +9,8 @@ import numpy as np
 
 from . import maps, report, vtp
 from .config import Experiment
-from .lighting import illuminate
-from .predict import predict, speckle_model
 from .runfolder import run_folder
-from .scene import build_scene, camera_body, load_meshes, sample_regions
-from .visibility import compute_visibility
+from .state import LayoutState, layout_state, prepare
 
 UM = 1e6            # m -> um
 MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
@@ -28,23 +25,22 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis)."""
-    meshes = load_meshes(exp)
-    samples = sample_regions(exp, meshes)
+    geometry = prepare(exp)
+    samples = geometry.samples
     say(f"{len(samples):,} samples on {len(exp.regions)} regions "
         f"({exp.evaluation.sample_spacing * 1e3:g} mm spacing)", quiet)
-    cameras = exp.cameras()
-    bodies = [camera_body(c) for c, spec in zip(cameras, exp.camera_specs) if spec.body]
-    scene = build_scene(meshes + bodies)
-    vis = compute_visibility(scene, cameras, samples, exp.evaluation.incidence_limit,
-                             progress=not quiet)
-    illumination = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     if not exp.lights and exp.render.ambient_radiance == 0:
         say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
             "the uncertainty is not predicted (sigma = inf)", quiet)
-    say("predicting the uncertainty (compiles on first use)", quiet)
-    pred = predict(exp, cameras, samples, vis, illumination, speckle_model(exp))
-    summary = report.summary(exp, samples, vis, pred)
+    state = layout_state(geometry, progress=not quiet)
+    return write_evaluation(state, out, overwrite)
 
+
+def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> dict:
+    """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary."""
+    exp, samples, cameras = state.experiment, state.samples, state.cameras
+    vis, illumination, pred = state.visibility, state.illumination, state.prediction
+    summary = report.summary(exp, samples, vis, pred)
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", summary)

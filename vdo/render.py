@@ -372,11 +372,11 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
 
     from . import maps, report, vtp
     from .errors import ConfigError
-    from .lighting import illuminate, pattern_stats, photometry
+    from .lighting import photometry
     from .runfolder import run_folder
-    from .scene import all_region_faces, build_scene, camera_body, load_meshes, sample_regions
+    from .scene import all_region_faces
     from .sensor import save_image
-    from .visibility import compute_visibility
+    from .state import bodies, layout_state, prepare
 
     rs = exp.render
     scale = rs.scale if scale is None else float(scale)
@@ -389,23 +389,21 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     if seed < 0:
         raise ConfigError(exp.path, "--seed", f"must be >= 0 (got {seed})")
     started = time.perf_counter()
-    meshes = load_meshes(exp)
+    geometry = prepare(exp)
+    meshes, samples = list(geometry.meshes), geometry.samples
     region_faces = all_region_faces(exp, meshes)
-    samples = sample_regions(exp, meshes)
-    full = exp.cameras()
-    cameras = [scaled_camera(c, scale) for c in full]
+    cameras = [scaled_camera(c, scale) for c in exp.cameras()]
     for spec, cam in zip(exp.camera_specs, cameras):
         if spec.f_number is not None and cam.principal_offset_px != (0.0, 0.0):
             raise ConfigError(exp.path, f'camera "{spec.name}".f_number',
                               "a thin lens (depth of field) cannot have a principal_offset_px")
-    bodies = [camera_body(c) for c, spec in zip(full, exp.camera_specs) if spec.body]
-    pattern = pattern_for(exp.speckle)
-    scene = build_render_scene(exp, meshes, region_faces, bodies, pattern)
-    blockers = build_scene(meshes + bodies)
-    illum = illuminate(blockers, exp.lights, samples, rs.ambient_radiance)
-    pho = photometry(illum, exp.speckle, exp.sensor, *pattern_stats(pattern), len(cameras))
-    vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit,
-                             progress=False)
+    # The scaled cameras have the full-size cameras' poses and lenses, hence the same bodies.
+    state = layout_state(geometry, cameras, predict_fields=False)
+    vis, illum = state.visibility, state.illumination
+    pattern = geometry.speckle.pattern
+    scene = build_render_scene(exp, meshes, region_faces, bodies(exp, cameras), pattern)
+    pho = photometry(illum, exp.speckle, exp.sensor, geometry.speckle.mean, geometry.speckle.std,
+                     len(cameras))
     _say(f"rendering {len(cameras)} cameras at scale {scale:g}, {spp} spp, seed {seed}", quiet)
 
     suffix = {"png": ".png", "tiff": ".tif"}[rs.image_format]

@@ -44,15 +44,15 @@ from .config import (SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec
                      SpeckleSpec, Table, as_numbers, read_toml)
 from .correlate import Patch, correlate
 from .errors import ConfigError
-from .lighting import illuminate, pattern_stats
-from .predict import SpeckleModel, predict
+from .lighting import pattern_stats
+from .predict import SpeckleModel
 from .render import (build_render_scene, contact_sheet, expose, noise_free_dn, render_linear,
                      render_seed, sensor_dict)
 from .runfolder import run_folder
-from .scene import SceneMesh, SurfaceSamples, build_scene, face_frame, region_faces
+from .scene import SceneMesh, SurfaceSamples, face_frame, region_faces
 from .sensor import SensorModel
 from .speckle import gradient_energy_table, normalise, pattern_for
-from .visibility import compute_visibility
+from .state import Geometry, layout_state
 
 AXES = "xyz"
 UM = 1e6
@@ -435,10 +435,7 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     # centre (on the axis) is the in-plane marginal the weak-probe limit. There the in-plane bound
     # is that of the centred patch (first-order variations over the patch cancel).
     samples = _samples(setup, 5 if len(setup.case.cameras) > 1 else 1)
-    blockers = build_scene([setup.plate])
-    vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit, progress=False)
-    illum = illuminate(blockers, (), samples, exp.render.ambient_radiance)
-    pred = predict(exp, cameras, samples, vis, illum, speckle)
+    pred = layout_state(Geometry(exp, (setup.plate,), samples, speckle), cameras).prediction
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")

@@ -1,0 +1,86 @@
+"""The layout state: everything that follows from an experiment and its cameras' poses.
+
+Two pure steps, used by every command (`evaluate`, `render`, `optimize`, `validate`, sweeps) and
+by the tests, so that the chain camera bodies -> Mitsuba scene -> visibility -> lighting ->
+prediction is written once:
+
+* `prepare(exp)` -> `Geometry`: what does not depend on the cameras (the meshes in metres, the
+  surface samples of the regions of interest, the speckle model). Build it once per experiment
+  (and per keyframe of a moving test) and reuse it for every camera layout.
+* `layout_state(geometry, cameras)` -> `LayoutState`: the scene with the camera bodies as
+  obstacles, the ray-cast visibility of every (camera, sample) pair, the light reaching every
+  sample, and (unless `predict=False`) the predicted fields.
+
+Both results are immutable. A camera whose `[[camera]]` entry says `body = false`, or that the
+experiment does not list (a probe camera), is not an obstacle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .camera import Camera
+from .config import Experiment
+from .lighting import Illumination, illuminate
+from .predict import Prediction, SpeckleModel, predict, speckle_model
+from .scene import SceneMesh, SurfaceSamples, build_scene, camera_body, load_meshes, sample_regions
+from .visibility import Visibility, compute_visibility
+
+
+@dataclass(frozen=True, eq=False)
+class Geometry:
+    """The camera-independent part of an experiment: meshes (metres), samples, speckle."""
+
+    experiment: Experiment
+    meshes: tuple[SceneMesh, ...]
+    samples: SurfaceSamples
+    speckle: SpeckleModel
+
+
+@dataclass(frozen=True, eq=False)
+class LayoutState:
+    """One camera layout judged on one geometry. `scene` is the Mitsuba scene of the meshes and
+    the camera bodies (for further ray casts); `prediction` is None when not asked for."""
+
+    geometry: Geometry
+    cameras: tuple[Camera, ...]
+    scene: object
+    visibility: Visibility
+    illumination: Illumination
+    prediction: Prediction | None
+
+    @property
+    def experiment(self) -> Experiment:
+        return self.geometry.experiment
+
+    @property
+    def samples(self) -> SurfaceSamples:
+        return self.geometry.samples
+
+
+def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
+    """Read the meshes (unless given), sample the regions and build the speckle model."""
+    meshes = load_meshes(exp) if meshes is None else meshes
+    return Geometry(exp, tuple(meshes), sample_regions(exp, meshes), speckle_model(exp))
+
+
+def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
+    """The camera bodies that act as obstacles: those of cameras the experiment lists with
+    `body = true` (the default)."""
+    with_body = {spec.name for spec in exp.camera_specs if spec.body}
+    return [camera_body(c) for c in cameras if c.name in with_body]
+
+
+def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
+                 progress: bool = False) -> LayoutState:
+    """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
+    with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`)."""
+    exp = geometry.experiment
+    cameras = tuple(exp.cameras() if cameras is None else cameras)
+    scene = build_scene(list(geometry.meshes) + bodies(exp, cameras))
+    vis = compute_visibility(scene, list(cameras), geometry.samples,
+                             exp.evaluation.incidence_limit, progress=progress)
+    illumination = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
+    prediction = (predict(exp, list(cameras), geometry.samples, vis, illumination, geometry.speckle)
+                  if predict_fields else None)
+    return LayoutState(geometry, cameras, scene, vis, illumination, prediction)
