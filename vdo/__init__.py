@@ -1,0 +1,58 @@
+"""vdo: virtual design of multi-camera digital-image-correlation experiments.
+
+The public API (names are imported on first use, so `import vdo` stays light)::
+
+    import vdo
+    vdo.configure()                           # x64, caches, memory, logging: once per process
+    exp = vdo.load("experiment.toml")         # Experiment (validated; ConfigError on mistakes)
+    geometry = vdo.prepare(exp)               # meshes, surface samples, speckle model
+    state = vdo.layout_state(geometry)        # visibility, lighting, predicted fields
+    summary = vdo.summary(state)              # the per-region table of `vdo evaluate`
+    vdo.write_evaluation(state, "runs/eval")  # the run folder of `vdo evaluate`
+
+`vdo.render`, `vdo.optimize` and `vdo.validate` are the library functions behind the commands
+of the same names. See docs/api.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+_EXPORTS = {
+    "load": ("vdo.config", "load"),
+    "parse": ("vdo.config", "parse"),
+    "Experiment": ("vdo.config", "Experiment"),
+    "ConfigError": ("vdo.errors", "ConfigError"),
+    "Camera": ("vdo.camera", "Camera"),
+    "prepare": ("vdo.state", "prepare"),
+    "layout_state": ("vdo.state", "layout_state"),
+    "Geometry": ("vdo.state", "Geometry"),
+    "LayoutState": ("vdo.state", "LayoutState"),
+    "Prediction": ("vdo.predict", "Prediction"),
+    "Visibility": ("vdo.visibility", "Visibility"),
+    "summary": ("vdo.report", "state_summary"),
+    "evaluate": ("vdo.evaluate", "evaluate"),
+    "write_evaluation": ("vdo.evaluate", "write_evaluation"),
+    "render": ("vdo.render", "render_experiment"),
+    "optimize": ("vdo.optimize", "optimize"),
+    "validate": ("vdo.validate", "validate"),
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    try:
+        module, attribute = _EXPORTS[name]
+    except KeyError:
+        raise AttributeError(f"module 'vdo' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(module), attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

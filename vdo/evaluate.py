@@ -40,7 +40,7 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
     """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
-    summary = report.summary(exp, samples, vis, pred)
+    summary = report.state_summary(state)
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", summary)

@@ -1,7 +1,7 @@
 """Mean-field DIC uncertainty of a multi-camera layout, and the scalar score the optimizer minimises.
 
 Pure `jax.numpy` (float64, or float32 per pair: "Precision" below), differentiable with respect to
-every camera parameter but the pixel counts (width, height). DESIGN.md sec. 4-5
+every camera parameter but the pixel counts (width, height). docs/theory.md
 and the paper's sec. 5.3-5.4 give the model; this module implements it with the paper's loose
 notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
 t_u x t_v = n, surface coordinates xi in metres along them):
@@ -169,7 +169,7 @@ __all__ = [
     "smoothstep",
 ]
 
-KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (DESIGN.md sec. 4)
+KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (docs/theory.md)
 
 
 # --------------------------------------------------------------------------------------------

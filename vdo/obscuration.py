@@ -37,8 +37,8 @@ Monte Carlo estimate at `spp` samples per pixel, i.e. piecewise constant in θ o
 1/sqrt(spp) pixel; the gradient is that of its expectation (a smooth function).
 
 `ObscurationRenderer.value_and_grad` returns (o, do/dθ) with numpy; `jax_function` wraps it as a
-`jax.custom_jvp` whose primal and tangent call Dr.Jit through `jax.pure_callback` (see
-STACK-NOTES: a custom_vjp bridge breaks forward-mode solvers).
+`jax.custom_jvp` whose primal and tangent call Dr.Jit through `jax.pure_callback` (a
+custom_vjp bridge would break solvers that use forward mode, such as Levenberg-Marquardt).
 """
 
 from __future__ import annotations

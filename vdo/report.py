@@ -13,6 +13,7 @@ from .camera import Camera
 from .config import Experiment
 from .predict import Prediction
 from .scene import SurfaceSamples
+from .state import LayoutState
 from .visibility import Visibility
 
 
@@ -40,6 +41,11 @@ def _percentiles(values_um: np.ndarray) -> dict:
         return {"p50": None, "p95": None, "max": None}
     return {"p50": float(np.percentile(finite, 50)), "p95": float(np.percentile(finite, 95)),
             "max": float(finite.max())}
+
+
+def state_summary(state: LayoutState) -> dict:
+    """The per-region table of a judged layout (`summary` of its pieces)."""
+    return summary(state.experiment, state.samples, state.visibility, state.prediction)
 
 
 def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction) -> dict:

@@ -23,7 +23,8 @@ from .camera import Camera
 from .config import Experiment
 from .lighting import Illumination, illuminate
 from .predict import Prediction, SpeckleModel, predict, speckle_model
-from .scene import SceneMesh, SurfaceSamples, build_scene, camera_body, load_meshes, sample_regions
+from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
+                    load_meshes, sample_regions)
 from .visibility import Visibility, compute_visibility
 
 
@@ -35,6 +36,7 @@ class Geometry:
     meshes: tuple[SceneMesh, ...]
     samples: SurfaceSamples
     speckle: SpeckleModel
+    region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,7 +63,8 @@ class LayoutState:
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     """Read the meshes (unless given), sample the regions and build the speckle model."""
     meshes = load_meshes(exp) if meshes is None else meshes
-    return Geometry(exp, tuple(meshes), sample_regions(exp, meshes), speckle_model(exp))
+    return Geometry(exp, tuple(meshes), sample_regions(exp, meshes), speckle_model(exp),
+                    tuple(all_region_faces(exp, meshes)))
 
 
 def bodies(exp: Experiment, cameras) -> list[SceneMesh]:

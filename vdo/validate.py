@@ -435,7 +435,7 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     # centre (on the axis) is the in-plane marginal the weak-probe limit. There the in-plane bound
     # is that of the centred patch (first-order variations over the patch cancel).
     samples = _samples(setup, 5 if len(setup.case.cameras) > 1 else 1)
-    pred = layout_state(Geometry(exp, (setup.plate,), samples, speckle), cameras).prediction
+    pred = layout_state(Geometry(exp, (setup.plate,), samples, speckle, (setup.region,)), cameras).prediction
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")

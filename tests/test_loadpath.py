@@ -1,0 +1,121 @@
+"""Keyframes and the load path: poses against scipy's rotations, displaced samples against a
+closed-form field, and a camera that loses its region at a step known from the geometry."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from conftest import write_box
+from vdo.errors import ConfigError
+from vdo.keyframes import LoadPath, Pose, at_step, read_displacements, read_poses, rotation_xyz
+
+SHUTTER = """
+[[mesh]]
+name = "shutter"
+file = "shutter.stl"
+unit = "mm"
+role = "obstacle"
+"""
+
+
+@pytest.mark.parametrize("angles", [(10.0, 0.0, 0.0), (0.0, -22.0, 5.0), (30.0, 40.0, -50.0)])
+def test_rotation_order_matches_scipy_extrinsic_xyz(angles):
+    expected = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()   # extrinsic x, y, z
+    np.testing.assert_allclose(rotation_xyz(*np.radians(angles)), expected, atol=1e-14)
+
+
+def test_pose_turns_about_its_pivot():
+    pose = Pose(rotation_xyz(0, 0, math.pi / 2), np.array([0.0, 0.0, 0.1]), np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(pose.move(np.array([[2.0, 0.0, 0.0], [1.0, 0.0, 0.0]])),
+                               [[1.0, 1.0, 0.1], [1.0, 0.0, 0.1]], atol=1e-14)
+
+
+def write_csv(path, text):
+    path.write_text(text.strip() + "\n")
+    return path
+
+
+def test_pose_file_units_and_pivot(tmp_path):
+    f = write_csv(tmp_path / "poses.csv", """
+step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg
+1,top,10,0,0,0,0,90
+2,top,0,0,0,0,0,0
+""")
+    poses = read_poses(f, {"top": ("a",)}, {"top": np.zeros(3)})
+    np.testing.assert_allclose(poses[(1, "top")].move(np.array([1.0, 0, 0])), [0.01, 1.0, 0], atol=1e-12)
+    np.testing.assert_allclose(poses[(2, "top")].rotation, np.eye(3))
+
+
+@pytest.mark.parametrize("text, where, words", [
+    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,platform,0,0,0,0,0,0", "row 2", "not a [[load_path.group]]"),
+    ("step,group,x_mm,y_mm,rx_deg,ry_deg,rz_deg\n1,top,0,0,0,0,0", "column z", "z_<unit>"),
+    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,top,0,abc,0,0,0,0", "row 2", "expected a number"),
+    ("step,group,x_mm,y_mm,z_mm,rx_rad,ry_rad,rz_rad\n1,top,0,0,0,0,0,20", "row 2", "in degrees"),
+    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1.5,top,0,0,0,0,0,0", "row 2", "whole number"),
+    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,top,0,0,0,0,0,0\n1,top,0,0,0,0,0,0", "row 3", "second pose"),
+])
+def test_bad_pose_files_name_the_row_and_the_fix(tmp_path, text, where, words):
+    f = write_csv(tmp_path / "poses.csv", text)
+    with pytest.raises(ConfigError) as info:
+        read_poses(f, {"top": ("a",)}, {"top": np.zeros(3)})
+    assert str(f) in str(info.value) and where in str(info.value) and words in str(info.value)
+
+
+def test_radians_in_degree_columns_are_warned(tmp_path, caplog):
+    f = write_csv(tmp_path / "poses.csv", "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
+                                          "1,top,0,0,0,0.05,0,0\n2,top,0,0,0,0.1,0,-0.12")
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        read_poses(f, {"top": ("a",)}, {"top": np.zeros(3)})
+    assert "rx_rad" in caplog.text
+
+
+def test_deformed_plate_samples_follow_a_linear_field(plate_experiment, tmp_path):
+    from vdo import config
+    from vdo.state import prepare
+
+    geometry = prepare(config.load(plate_experiment(spacing=100)))
+    plate = geometry.meshes[0]
+    a = 0.02                                                      # uz = a x (a tilt)
+    rows = ["step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm"]
+    rows += [f"3,{float(x)!r},{float(y)!r},{float(z)!r},0,0,{float(a * x * 1e3)!r}" for x, y, z in plate.vertices]
+    f = write_csv(tmp_path / "disp.csv", "\n".join(rows))
+    u = read_displacements(f, plate.vertices, "plate")
+    lp = LoadPath(steps=(3,), groups={}, poses={}, deformed_mesh="plate", displacements=u)
+    moved = at_step(geometry, lp, 3)
+    rest = geometry.samples.points
+    np.testing.assert_allclose(moved.samples.points[:, 2] - rest[:, 2], a * rest[:, 0], atol=1e-12)
+    np.testing.assert_allclose(moved.meshes[0].vertices[:, 2] - plate.vertices[:, 2],
+                               a * plate.vertices[:, 0], atol=1e-12)
+
+    bad = write_csv(tmp_path / "bad.csv", "step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm\n1,0.2,0.2,0,0,0,1")
+    with pytest.raises(ConfigError, match=r"row 2.*nearest vertex of mesh 'plate'"):
+        read_displacements(bad, plate.vertices, "plate")
+
+
+def test_camera_loses_the_region_at_the_step_the_geometry_says(plate_experiment, tmp_path):
+    """A 1.2 m shutter at z = 0.75 slides in -x by 0.5 m per step from x = 3 m. The camera at
+    (0, 0, 1.5) looks down at the 1 m plate: its rays cross z = 0.75 at x/2, |x/2| <= 0.25. The
+    shutter's near edge is at 2.4 - 0.5 k: at step 4 (0.4) it hides nothing; at step 5 (-0.1) it
+    hides every plate point with x > -0.2, 70 % of the plate: the camera loses it at step 5."""
+    from vdo import config
+    from vdo.loadpath import evaluate_load_path
+    from vdo.state import prepare
+
+    write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
+    exp = config.load(plate_experiment(spacing=50, extra_meshes=SHUTTER))
+    geometry = prepare(exp)
+    steps = tuple(range(1, 8))
+    poses = {(k, "slide"): Pose(np.eye(3), np.array([-0.5 * k, 0.0, 0.0]), np.zeros(3)) for k in steps}
+    lp = LoadPath(steps=steps, groups={"slide": ("shutter",)}, poses=poses)
+    result = evaluate_load_path(geometry, lp)
+    assert [(x["camera"], x["region"], x["step"]) for x in result.losses] == [("down", "top", 5)]
+    seen = result.seen_fraction[:, 0, 0]
+    assert seen[0] >= 0.85 and np.all(seen[1:5] == seen[0])         # rest and steps 1-4 unchanged
+    # Step 5: the shutter hides x > -0.2; the camera's footprint already cut y to +-0.46 m.
+    assert seen[5] == pytest.approx(seen[0] * 0.3, abs=0.05)
+    assert np.all(result.worst_coverage[geometry.samples.points[:, 0] > 0] == 0)
