@@ -190,20 +190,34 @@ def supports() -> trimesh.Trimesh:
     return trimesh.util.concatenate(parts)
 
 
-def hexapod() -> trimesh.Trimesh:
-    centre = np.array([0.0, 1.5, 0.0])
-    base_z, plat_z = 0.03, 0.70
-    parts = [disc(centre + [0, 0, base_z], 0.6, 0.06),                  # base plate on the floor
-             disc(centre + [0, 0, plat_z], 0.4, 0.05)]                  # moving platform
-    for k in range(3):                                                 # six actuators, in crossing pairs
-        for side in (-1.0, 1.0):
-            a_b = np.radians(120 * k + 90 + side * 12)
-            a_p = np.radians(120 * k + 90 + side * 48)
-            p_b = centre + [0.5 * np.cos(a_b), 0.5 * np.sin(a_b), base_z + 0.08]
-            p_p = centre + [0.33 * np.cos(a_p), 0.33 * np.sin(a_p), plat_z - 0.05]
-            parts.append(rod(p_b, p_p, 0.04))
-            parts.append(disc(p_b - [0, 0, 0.04], 0.06, 0.05))            # lower joint
-            parts.append(disc(p_p + [0, 0, 0.02], 0.05, 0.04))            # upper joint
+HEXAPOD_CENTRE = np.array([0.0, 1.5, 0.0])
+HEXAPOD_BASE_Z, HEXAPOD_PLATFORM_Z = 0.03, 0.70
+
+
+def hexapod_base() -> trimesh.Trimesh:
+    """The part that stays on the floor: base plate and the actuators' lower joints."""
+    centre, base_z = HEXAPOD_CENTRE, HEXAPOD_BASE_Z
+    parts = [disc(centre + [0, 0, base_z], 0.6, 0.06)]
+    for k, side in ((k, side) for k in range(3) for side in (-1.0, 1.0)):
+        a_b = np.radians(120 * k + 90 + side * 12)
+        p_b = centre + [0.5 * np.cos(a_b), 0.5 * np.sin(a_b), base_z + 0.08]
+        parts.append(disc(p_b - [0, 0, 0.04], 0.06, 0.05))                # lower joint
+    return trimesh.util.concatenate(parts)
+
+
+def hexapod_top() -> trimesh.Trimesh:
+    """The part that the load path moves: platform, end-effector, load cell and the beam's
+    helmet, with the six actuators (in the test each actuator's lower end stays on its joint;
+    moving it with the platform is within the load path's +-15 mm)."""
+    centre, base_z, plat_z = HEXAPOD_CENTRE, HEXAPOD_BASE_Z, HEXAPOD_PLATFORM_Z
+    parts = [disc(centre + [0, 0, plat_z], 0.4, 0.05)]                  # moving platform
+    for k, side in ((k, side) for k in range(3) for side in (-1.0, 1.0)):   # crossing pairs
+        a_b = np.radians(120 * k + 90 + side * 12)
+        a_p = np.radians(120 * k + 90 + side * 48)
+        p_b = centre + [0.5 * np.cos(a_b), 0.5 * np.sin(a_b), base_z + 0.08]
+        p_p = centre + [0.33 * np.cos(a_p), 0.33 * np.sin(a_p), plat_z - 0.05]
+        parts.append(rod(p_b, p_p, 0.04))
+        parts.append(disc(p_p + [0, 0, 0.02], 0.05, 0.04))                # upper joint
     # end-effector column from the platform up to the load cell, which holds the beam's helmet
     parts.append(box((-0.09, 1.22, plat_z + 0.025), (0.09, 1.40, Z0 + 0.12)))
     parts.append(rod((0.0, BEAM_END + 0.02, Z0), (0.0, 1.22, Z0), 0.09))          # load cell
@@ -219,10 +233,44 @@ def leds() -> trimesh.Trimesh:
     return trimesh.util.concatenate([panel(c, t) for c, t in LEDS])
 
 
-PARTS = {"specimen": specimen, "supports": supports, "hexapod": hexapod, "frame": frame, "leds": leds}
+PARTS = {"specimen": specimen, "supports": supports, "hexapod_base": hexapod_base,
+         "hexapod_top": hexapod_top, "frame": frame, "leds": leds}
+
+
+# --------------------------------------------------------------------------------------------
+# Load path (the [load_path] of ten_cameras.toml): the hexapod drives the beam end
+# --------------------------------------------------------------------------------------------
+def load_history() -> list[tuple[float, float]]:
+    """(x, z) translations of the beam end in metres, one per step: three cycles of growing
+    amplitude (5, 10, 15 mm), each a horizontal (x) then a vertical (z) push and pull, as in the
+    paper's multi-axial histories."""
+    steps = []
+    for amplitude in (0.005, 0.010, 0.015):
+        for axis in (0, 1):
+            for value in (amplitude, 0.0, -amplitude, 0.0):
+                steps.append((value, 0.0) if axis == 0 else (0.0, value))
+    return steps
+
+
+def write_load_path() -> None:
+    """load_path_platform.csv: the platform group's pose per step; load_path_specimen.csv: the
+    specimen's beam-end vertices (y >= BEAM_HELMET) follow the platform; the beam's other
+    vertices are at the joint (y = HALF) and stay at rest, so the beam's faces tilt linearly."""
+    mesh = specimen()
+    moving = np.unique(np.round(mesh.vertices[mesh.vertices[:, 1] >= BEAM_HELMET - 1e-9], 9), axis=0)
+    platform = ["# the hexapod platform's pose per step (vdo.keyframes); written by make_meshes.py",
+                "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
+    nodes = ["# specimen vertices that move with the beam end (vdo.keyframes); written by make_meshes.py",
+             "step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm"]
+    for k, (dx, dz) in enumerate(load_history(), start=1):
+        platform.append(f"{k},platform,{dx * MM:g},0,{dz * MM:g},0,0,0")
+        nodes += [f"{k},{x:.6f},{y:.6f},{z:.6f},{dx * MM:g},0,{dz * MM:g}" for x, y, z in moving]
+    (HERE / "load_path_platform.csv").write_text("\n".join(platform) + "\n")
+    (HERE / "load_path_specimen.csv").write_text("\n".join(nodes) + "\n")
 
 
 def main() -> None:
+    write_load_path()
     OUT.mkdir(exist_ok=True)
     total = 0
     for name, build in PARTS.items():
