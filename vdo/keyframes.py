@@ -255,3 +255,21 @@ def at_step(geometry, load_path: LoadPath, step: int):
         meshes.append(mesh if vertices is mesh.vertices else SceneMesh(mesh.name, mesh.role, vertices, mesh.faces))
     moved = replace(samples, points=points, normals=normals, tangent_u=t_u, tangent_v=t_v)
     return replace(geometry, meshes=tuple(meshes), samples=moved)
+
+
+def load_path_of(exp, meshes) -> LoadPath | None:
+    """The experiment's `[load_path]` read from its CSV files (None when it has none): the
+    groups and pivots from the config, the poses and the specimen's displacements from the files
+    (their rows are checked here, before any ray is cast)."""
+    spec = exp.load_path
+    if spec is None:
+        return None
+    groups = {g.name: tuple(g.meshes) for g in spec.groups}
+    pivots = {g.name: np.asarray(g.pivot, dtype=float) for g in spec.groups}
+    poses = read_poses(spec.poses, groups, pivots) if spec.poses is not None else {}
+    displacements = None
+    if spec.displacements is not None:
+        mesh = next(m for m in meshes if m.name == spec.deformed_mesh)
+        displacements = read_displacements(spec.displacements, mesh.vertices, mesh.name)
+    steps = sorted({step for step, _ in poses} | set(displacements or {}))
+    return LoadPath(tuple(steps), groups, poses, spec.deformed_mesh, displacements)
