@@ -1,0 +1,126 @@
+"""Lens distortion (Brown-Conrady, OpenCV's order k1, k2, p1, p2, k3) in the camera model: the
+projection against OpenCV, the Jacobians against finite differences, the inverse mapping, the
+[[camera]] distortion field."""
+
+import cv2
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from vdo import config
+from vdo.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project, rotation,
+                        sensitivity)
+from vdo.errors import ConfigError
+
+RNG = np.random.default_rng(11)
+LENSES = [(-0.25, 0.08, 0.0, 0.0, -0.01),            # barrel, radial only
+          (0.12, -0.03, 0.0015, -0.001, 0.02),       # pincushion with tangential terms
+          (-0.08, 0.0, -0.002, 0.0025, 0.0)]
+
+
+def camera(distortion, i=0):
+    position = RNG.uniform(-2, 2, 3) + np.array([0, 0, 2])
+    pan, tilt = look_at_angles(position, RNG.uniform(-0.2, 0.2, 3))
+    return Camera(f"c{i}", width=800, height=600, pixel_size=5e-6, focal_length=0.012,
+                  position=position, pan=pan, tilt=tilt, roll=RNG.uniform(-0.5, 0.5),
+                  principal_offset_px=tuple(RNG.uniform(-30, 30, 2)), distortion=distortion)
+
+
+CAMERAS = [camera(d, i) for i, d in enumerate(LENSES)]
+
+
+def points_in_view(cam, n=300):
+    """World points whose undistorted image lies within the frame (depth 0.5 to 3 m)."""
+    z = RNG.uniform(0.5, 3, n)
+    half_w, half_h = cam.width / (2 * cam.focal_px), cam.height / (2 * cam.focal_px)
+    p_cam = np.column_stack([RNG.uniform(-half_w, half_w, n) * z, RNG.uniform(-half_h, half_h, n) * z, z])
+    return (p_cam - cam.t) @ cam.R
+
+
+@pytest.mark.parametrize("cam", CAMERAS, ids=lambda c: c.name)
+def test_distorted_projection_matches_opencv(cam):
+    X = points_in_view(cam)
+    rvec, _ = cv2.Rodrigues(cam.R)
+    expected, _ = cv2.projectPoints(X, rvec, cam.t, cam.K, np.array(cam.distortion))
+    got = cam.project(X)
+    assert np.abs(got - expected[:, 0]).max() < 1e-6
+    pinhole = Camera(cam.name, cam.width, cam.height, cam.pixel_size, cam.focal_length,
+                     cam.position, cam.pan, cam.tilt, cam.roll, cam.principal_offset_px)
+    assert np.abs(got - pinhole.project(X)).max() > 1.0     # the distortion really moves points
+
+
+@pytest.mark.parametrize("cam", CAMERAS, ids=lambda c: c.name)
+def test_sensitivity_with_distortion_matches_finite_differences(cam):
+    X = points_in_view(cam, 20)
+    S = cam.sensitivity(X)
+    h = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (cam.project(X + e) - cam.project(X - e)) / (2 * h)
+        np.testing.assert_allclose(S[:, :, k], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+
+
+@pytest.mark.parametrize("cam", CAMERAS, ids=lambda c: c.name)
+def test_parameter_jacobian_with_distortion_matches_finite_differences(cam):
+    cx, cy = cam.principal_point
+    d = jnp.asarray(cam.distortion)
+    params = np.concatenate([cam.position, [cam.pan, cam.tilt, cam.roll, cam.focal_px]])
+
+    def pixels(p, X):
+        K = jnp.array([[p[6], 0, cx], [0, p[6], cy], [0, 0, 1.0]])
+        R = rotation(p[3], p[4], p[5])
+        return np.asarray(project(K, R, -R @ p[:3], X, d))
+
+    for X in points_in_view(cam, 4):
+        J = np.asarray(parameter_jacobian(cam.focal_px, cx, cy, cam.position, cam.pan, cam.tilt,
+                                          cam.roll, X, d))
+        assert J.shape == (2, len(PARAMETERS))
+        for k, h in enumerate([1e-6] * 3 + [1e-7] * 3 + [1e-3]):
+            e = np.zeros(7)
+            e[k] = h
+            fd = (pixels(params + e, X) - pixels(params - e, X)) / (2 * h)
+            np.testing.assert_allclose(J[:, k], fd, rtol=2e-6, atol=1e-5 * np.abs(fd).max() + 1e-6)
+
+
+def test_sensitivity_function_without_distortion_is_the_pinhole_formula():
+    """s = (f / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R when the distortion is None."""
+    cam = CAMERAS[0]
+    X = points_in_view(cam, 10)
+    p = X @ cam.R.T + cam.t
+    f = cam.focal_px
+    expected = np.stack([np.stack([f / p[:, 2], 0 * p[:, 0], -f * p[:, 0] / p[:, 2] ** 2], -1),
+                         np.stack([0 * p[:, 0], f / p[:, 2], -f * p[:, 1] / p[:, 2] ** 2], -1)], -2) @ cam.R
+    np.testing.assert_allclose(np.asarray(sensitivity(cam.K, cam.R, cam.t, X)), expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize("cam", CAMERAS, ids=lambda c: c.name)
+def test_undistorted_pixels_invert_the_distortion(cam):
+    """Against OpenCV's own inverse (cv2.undistortPoints with P = K) on the image's pixel grid."""
+    u, v = np.meshgrid(np.arange(0, cam.width, 37.0), np.arange(0, cam.height, 29.0))
+    uv = np.stack([u.ravel(), v.ravel()], -1)
+    got = cam.undistorted_pixels(uv)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    ref = cv2.undistortPoints(uv[:, None], cam.K, np.array(cam.distortion), R=None, P=cam.K,
+                              criteria=crit)
+    np.testing.assert_allclose(got, ref[:, 0], atol=1e-6)
+
+
+def test_config_distortion_field(plate_experiment):
+    cams = """
+[[camera]]
+name = "down"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+rail = "overhead"
+u = 0.5
+pan_deg = 0
+tilt_deg = -90
+distortion = [-0.1, 0.02, 0.001, -0.002, 0.003]
+"""
+    exp = config.load(plate_experiment(cameras=cams))
+    assert exp.cameras()[0].distortion == (-0.1, 0.02, 0.001, -0.002, 0.003)
+    assert exp.to_dict()["camera"][0]["distortion"] == [-0.1, 0.02, 0.001, -0.002, 0.003]
+    with pytest.raises(ConfigError, match="distortion"):
+        config.load(plate_experiment(cameras=cams.replace("0.003]", "0.003, 0.1]")))
