@@ -1,4 +1,5 @@
-"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR` and `vdo demo`."""
+"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR`,
+`vdo export CONFIG_OR_RUN --format F --out DIR` and `vdo demo`."""
 
 from __future__ import annotations
 
@@ -77,6 +78,14 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _export(args) -> None:
+    from .formats.export import export
+
+    pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
+    for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
+        print(f"wrote {path}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -106,6 +115,13 @@ def main(argv=None) -> int:
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     op.add_argument("--quiet", action="store_true")
+    ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
+    ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
+    ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
+    ex.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ex.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs (default: every pair that shares a field of view)")
+    ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -120,6 +136,8 @@ def main(argv=None) -> int:
             return _validate(args)
         elif args.command == "optimize":
             _optimize(args)
+        elif args.command == "export":
+            _export(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
