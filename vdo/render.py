@@ -55,7 +55,8 @@ def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool 
     """Mitsuba sensor dict for `camera`: linear float luminance film, box filter (bit-identical
     renders for a seed, see STACK-NOTES), stratified sampler. `scale` < 1 renders a smaller image
     of the same view (pixel pitch / scale). With `aperture_radius` (m) a thin lens focused at
-    `focus_distance` (m) gives depth of field (Mitsuba's thinlens has no principal-point offset)."""
+    `focus_distance` (m) gives depth of field (Mitsuba's thinlens has no principal-point offset).
+    The sensor is the camera's pinhole part: `render_camera` adds its lens distortion."""
     width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
     ox, oy = camera.mitsuba_principal_offset()
     film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
@@ -90,6 +91,57 @@ def scaled_camera(camera: Camera, scale: float) -> Camera:
     return replace(camera, width=width, height=height, pixel_size=camera.pixel_size / s,
                    principal_offset_px=(camera.principal_offset_px[0] * s,
                                         camera.principal_offset_px[1] * s))
+
+
+# --------------------------------------------------------------------------------------------
+# Lens distortion: render a wider pinhole image, resample it onto the distorted pixels
+# --------------------------------------------------------------------------------------------
+DISTORTION_MARGIN_PX = 3   # pinhole pixels kept beyond the distorted image's footprint (cubic spline)
+
+
+def undistorted_canvas(camera: Camera, rows_per_chunk: int = 256) -> tuple[Camera, np.ndarray]:
+    """Mitsuba has no lens distortion. For a camera with distortion: the pinhole camera to render
+    instead (same pose and focal length, distortion zero, W + 2 m_x by H + 2 m_y pixels with the
+    principal point moved by (m_x, m_y), so the principal offset and a thin lens stay valid) and,
+    for every pixel (u, v) of the distorted image, where it lies in that render:
+    (u', v') = `Camera.undistorted_pixels`(u, v) + (m_x, m_y), an (H, W, 2) array. The margins
+    m cover the furthest undistorted pixel plus `DISTORTION_MARGIN_PX`."""
+    where = np.empty((camera.height, camera.width, 2))
+    u = np.arange(camera.width, dtype=float)
+    for r0 in range(0, camera.height, rows_per_chunk):
+        rows = np.arange(r0, min(r0 + rows_per_chunk, camera.height), dtype=float)
+        grid = np.stack(np.broadcast_arrays(u[None, :], rows[:, None]), axis=-1)
+        where[r0:r0 + len(rows)] = camera.undistorted_pixels(grid)
+    if not np.all(np.isfinite(where)):
+        raise ValueError(f"camera {camera.name!r}: the lens distortion cannot be inverted over the "
+                         "image (it folds): check its coefficients")
+    over = [max(0.0, -where[..., k].min(), where[..., k].max() - (n - 1))
+            for k, n in ((0, camera.width), (1, camera.height))]
+    mx, my = (math.ceil(o) + DISTORTION_MARGIN_PX for o in over)
+    wide = replace(camera, width=camera.width + 2 * mx, height=camera.height + 2 * my,
+                   distortion=(0.0,) * 5)
+    return wide, where + np.array([mx, my], dtype=float)
+
+
+def resample(linear: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """The pinhole render `linear` (H', W') read at `where` (H, W, 2) pixel coordinates (u', v'),
+    by cubic B-spline interpolation (the inverse mapping of each output pixel), clipped at 0
+    (radiance). float32 (H, W)."""
+    from scipy import ndimage
+
+    out = ndimage.map_coordinates(np.asarray(linear, dtype=np.float64),
+                                  [where[..., 1], where[..., 0]], order=3, mode="nearest")
+    return np.maximum(out, 0.0).astype(np.float32)
+
+
+def render_camera(scene, camera: Camera, spec, spp: int, seed: int) -> np.ndarray:
+    """One camera's (H, W) float32 linear image: `render_linear` through `camera_sensor`, and for a
+    camera with lens distortion the wider pinhole render resampled onto the distorted pixels
+    (`undistorted_canvas`, `resample`)."""
+    if not camera.distorted:
+        return render_linear(scene, camera_sensor(camera, spec, spp), seed)
+    wide, where = undistorted_canvas(camera)
+    return resample(render_linear(scene, camera_sensor(wide, spec, spp), seed), where)
 
 
 def camera_sensor(camera: Camera, spec, spp: int) -> dict:
@@ -416,7 +468,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         for i, (cam, spec) in enumerate(tqdm(list(zip(cameras, exp.camera_specs)), desc="render",
                                              unit="camera", disable=quiet)):
             t0 = time.perf_counter()
-            linear = render_linear(scene, camera_sensor(cam, spec, spp), render_seed(seed, i))
+            linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
             save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
