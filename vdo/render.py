@@ -409,6 +409,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth), [render] image_format
     images/<camera>.exr        linear float radiance, when [render] exr = true
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
+    calibration/<format>/      the same cameras for DIC software (`vdo.formats.export.write_all`)
     contact_sheet.png          all cameras in a grid with their names
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
                                render at the projected visible samples (mean and std of DN; c is
@@ -424,6 +425,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
 
     from . import maps, report, vtp
     from .errors import ConfigError
+    from .formats.export import write_all
     from .lighting import illuminate, pattern_stats, photometry
     from .runfolder import run_folder
     from .scene import all_region_faces, build_scene, camera_body, load_meshes, sample_regions
@@ -480,6 +482,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
+        write_all(cameras, samples.points, tmp / "calibration", exp.path)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
         rows = _region_photometry(cameras, vis, samples, pho, clean)

@@ -10,6 +10,7 @@ its config.toml.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -20,7 +21,30 @@ from ..errors import ConfigError
 from . import dice, matchid, opencv, vic3d
 from .calibration import stereo_pairs
 
+log = logging.getLogger(__name__)
 FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write, "vic3d": vic3d.write}
+
+
+def write_all(cameras, points, folder: Path, source) -> dict[str, list[Path]]:
+    """Every format into folder/<format>/ (as `vdo render` writes them beside its images), for
+    the pairs that share a field of view on `points`. A format that cannot hold these cameras
+    (VIC-3D with tangential distortion, the pair formats without a pair) is skipped with a
+    warning. Returns the written paths per format."""
+    pairs = stereo_pairs(cameras, points, None, source)
+    written = {}
+    for fmt, write in FORMATS.items():
+        if fmt in ("matchid", "vic3d") and not pairs:
+            log.warning("%s: no two cameras share a field of view; no stereo calibration written", fmt)
+            continue
+        (Path(folder) / fmt).mkdir(parents=True)
+        try:
+            written[fmt] = write(cameras, pairs, Path(folder) / fmt, source)
+        except ConfigError as exc:
+            if fmt != "vic3d":
+                raise
+            log.warning("vic3d calibration not written: %s", exc.message)
+            (Path(folder) / fmt).rmdir()
+    return written
 
 
 def camera_from_layout(entry: dict, path) -> Camera:
