@@ -42,6 +42,15 @@ def _render(args):
     from .render import render_experiment
 
     exp = load(args.config)
+    if args.series is not None:
+        from .series import render_series
+
+        summary = render_series(exp, args.series, Path(args.out), scale=args.scale, spp=args.spp,
+                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
+        if not args.quiet:
+            print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
+                  f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
+        return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
                                 overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
@@ -101,6 +110,9 @@ def main(argv=None) -> int:
                                                               "(default: [render] scale)")
     rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
     rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
+    rd.add_argument("--series", default=None, metavar="MOTIONS.csv",
+                    help="render a reference and deformed image series from rigid motions per "
+                         "mesh per step (see vdo.series)")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
