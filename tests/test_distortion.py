@@ -160,3 +160,38 @@ def test_rendered_marker_lands_on_distorted_projection(position, roll, offset, d
     rows, cols = np.mgrid[:240, :320]
     centroid = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
     assert np.linalg.norm(centroid - expected) < 0.05
+
+
+def test_visibility_uses_the_distorted_image(plate_experiment):
+    """Barrel distortion pulls the plate's far points into the frame: the ray cast's in-image test
+    agrees with `Camera.project` (float32 there: points within 0.01 px of an edge may differ)."""
+    from vdo import scene, visibility
+
+    cams = """
+[[camera]]
+name = "wide"
+sensor_mm = [22.2, 14.8]
+pixels = [300, 200]
+focal_mm = 20
+position_m = [0.0, 0.0, 0.5]
+pan_deg = 0
+tilt_deg = -90
+body = false
+distortion = [-0.2, 0.02, 0.0, 0.0, 0.0]   # monotone: no fold anywhere
+"""
+    exp = config.load(plate_experiment(cameras=cams))
+    meshes = scene.load_meshes(exp)
+    samples = scene.sample_regions(exp, meshes)
+    cam = exp.cameras()[0]
+    vis = visibility.compute_visibility(scene.build_scene(meshes), [cam], samples,
+                                        exp.evaluation.incidence_limit, progress=False)
+    uv = cam.project(samples.points)
+    margin = np.minimum.reduce([uv[:, 0] + 0.5, cam.width - 0.5 - uv[:, 0],
+                                uv[:, 1] + 0.5, cam.height - 0.5 - uv[:, 1]])
+    clear = np.abs(margin) > 0.01
+    np.testing.assert_array_equal(vis.in_image[0][clear], margin[clear] > 0)
+    pinhole = Camera(cam.name, cam.width, cam.height, cam.pixel_size, cam.focal_length,
+                     cam.position, cam.pan, cam.tilt).project(samples.points)
+    inside_pinhole = ((pinhole[:, 0] >= -0.5) & (pinhole[:, 0] <= cam.width - 0.5)
+                      & (pinhole[:, 1] >= -0.5) & (pinhole[:, 1] <= cam.height - 0.5))
+    assert vis.in_image[0].sum() > inside_pinhole.sum() + 50     # the distortion matters here

@@ -98,13 +98,20 @@ def to_camera(R, t, X):
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")   # OpenCV's order of the coefficients
 
 
+def _coefficients(distortion):
+    """(k1, k2, p1, p2, k3) from a (..., 5) array or a tuple of five."""
+    if isinstance(distortion, (tuple, list)):
+        return tuple(distortion)
+    return tuple(distortion[..., i] for i in range(5))
+
+
 def distort(x, y, distortion):
     """Brown-Conrady distortion of normalised coordinates (x, y) (module docstring) -> (x_d, y_d).
-    `distortion` (..., 5) in `DISTORTION` order, or None for none. Plain arithmetic, so NumPy and
-    JAX arrays both work."""
+    `distortion` (..., 5) in `DISTORTION` order (or a tuple of the 5), None for none. Plain
+    arithmetic, so NumPy, JAX and Dr.Jit arrays all work."""
     if distortion is None:
         return x, y
-    k1, k2, p1, p2, k3 = (distortion[..., i] for i in range(5))
+    k1, k2, p1, p2, k3 = _coefficients(distortion)
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
@@ -116,7 +123,7 @@ def distortion_jacobian(x, y, distortion):
     dx_d/dx = L + 2 x^2 L' + 2 p1 y + 6 p2 x, dx_d/dy = 2 x y L' + 2 p1 x + 2 p2 y,
     dy_d/dx = 2 x y L' + 2 p1 x + 2 p2 y, dy_d/dy = L + 2 y^2 L' + 6 p1 y + 2 p2 x, with
     L = 1 + k1 r^2 + k2 r^4 + k3 r^6 and L' = dL/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4."""
-    k1, k2, p1, p2, k3 = (distortion[..., i] for i in range(5))
+    k1, k2, p1, p2, k3 = _coefficients(distortion)
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     slope = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
