@@ -436,7 +436,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
 
     from . import maps, report, vtp
     from .errors import ConfigError
-    from .formats.export import write_all
+    from .formats.export import default_pairs, write_all
     from .lighting import illuminate, pattern_stats, photometry
     from .runfolder import run_folder
     from .scene import all_region_faces, build_scene, camera_body, load_meshes, sample_regions
@@ -493,7 +493,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, samples.points, tmp / "calibration", exp.path)
+        write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
         rows = _region_photometry(cameras, vis, samples, pho, clean)

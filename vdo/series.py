@@ -102,10 +102,10 @@ def render_series(exp, motions_path, out, scale: float | None = None, spp: int |
 
     from . import report
     from .formats.calibration import file_stem
-    from .formats.export import write_all
+    from .formats.export import default_pairs, raycast, write_all
     from .render import build_render_scene, render_camera, render_seed, scaled_camera
     from .runfolder import run_folder
-    from .scene import all_region_faces, camera_body, load_meshes, sample_regions
+    from .scene import all_region_faces, camera_body, load_meshes
     from .sensor import save_image
     from .speckle import pattern_for
 
@@ -139,7 +139,8 @@ def render_series(exp, motions_path, out, scale: float | None = None, spp: int |
         bar.close()
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, sample_regions(exp, meshes).points, tmp / "calibration", exp.path)
+        vis, samples = raycast(exp, cameras, meshes)
+        write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
         shutil.copyfile(motions_path, tmp / "motions.csv")
         summary = {"experiment": exp.name, "config": str(exp.path), "motions": str(motions_path),
                    "scale": scale, "spp": spp, "seed": seed, "steps": steps,

@@ -67,38 +67,31 @@ def euler_xyz_deg(R: np.ndarray) -> tuple[float, float, float]:
     return math.degrees(a), math.degrees(b), math.degrees(c)
 
 
-def in_image(camera: Camera, X: np.ndarray) -> np.ndarray:
-    """(N,) True where the point lies in front of the camera and its (distorted) image falls
-    inside the pixel area [-0.5, W - 0.5] x [-0.5, H - 0.5]."""
-    front = (np.asarray(X) @ camera.R[2] + camera.t[2]) > 0
-    uv = camera.project(X)
-    inside = ((uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
-              & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5))
-    return front & inside
+def stereo_pairs(cameras: list[Camera], visible: np.ndarray, assigned: np.ndarray, requested,
+                 source) -> list[StereoPair]:
+    """The stereo pairs to export. `visible` (C, N): which camera sees which surface sample (the
+    ray cast, `vdo.visibility`); `assigned` (C, R): the regions each camera is assigned
+    (`vdo.constraints.assignments`). None requested: the pairs i < j, in the cameras' order,
+    assigned a common region (`vdo.constraints.shared_pairs`, the pairs whose stereo angle the
+    optimizer constrains). `requested`: (first, second) name tuples, each checked: known names,
+    two different cameras that both see at least one sample, else a ConfigError naming them."""
+    from ..constraints import shared_pairs
 
-
-def stereo_pairs(cameras: list[Camera], points: np.ndarray, requested, source) -> list[StereoPair]:
-    """The stereo pairs to export. Two cameras share a field of view when at least one of
-    `points` (the regions' surface samples, m) lies in both images (`in_image`; occlusion not
-    considered). `requested`: (first, second) name tuples, each checked (known names, two
-    different cameras, a shared field of view, else a ConfigError naming them); None: every pair
-    i < j in the cameras' order that shares a field of view."""
-    by_name = {c.name: c for c in cameras}
-    seen = {c.name: in_image(c, points) for c in cameras}
     if requested is None:
-        return [StereoPair(a, b) for i, a in enumerate(cameras) for b in cameras[i + 1:]
-                if (seen[a.name] & seen[b.name]).any()]
+        return [StereoPair(cameras[i], cameras[j]) for i, j in shared_pairs(assigned)]
+    index = {c.name: i for i, c in enumerate(cameras)}
     pairs = []
     for first, second in requested:
         for name in (first, second):
-            if name not in by_name:
+            if name not in index:
                 raise ConfigError(source, "--pairs", f"no camera named {name!r} (cameras: "
-                                                     f"{', '.join(by_name)})")
+                                                     f"{', '.join(index)})")
         if first == second:
             raise ConfigError(source, "--pairs", f"{first}:{second} pairs a camera with itself")
-        if not (seen[first] & seen[second]).any():
+        i, j = index[first], index[second]
+        if not (visible[i] & visible[j]).any():
             raise ConfigError(source, "--pairs", f"cameras {first!r} and {second!r} share no field "
-                                                 "of view (no region point lies in both images); "
-                                                 "pair cameras that look at a common region")
-        pairs.append(StereoPair(by_name[first], by_name[second]))
+                                                 "of view (no region point is seen by both); pair "
+                                                 "cameras that look at a common region")
+        pairs.append(StereoPair(cameras[i], cameras[j]))
     return pairs

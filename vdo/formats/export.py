@@ -2,9 +2,9 @@
 calibration files for DIC software.
 
 SOURCE is an experiment TOML (its cameras resolved as `vdo evaluate` does) or a run folder with
-layout.json (cameras at that run's pose and image scale). The stereo pairs share a field of view
-on the experiment's regions (`calibration.stereo_pairs`); for a run folder the regions come from
-its config.toml.
+layout.json (cameras at that run's pose and image scale). The stereo pairs are the cameras
+assigned a common region (`calibration.stereo_pairs`); for a run folder the scene comes from its
+config.toml. Which camera sees which sample comes from the ray cast (`vdo.visibility`).
 """
 
 from __future__ import annotations
@@ -25,16 +25,38 @@ log = logging.getLogger(__name__)
 FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write, "vic3d": vic3d.write}
 
 
-def write_all(cameras, points, folder: Path, source) -> dict[str, list[Path]]:
-    """Every format into folder/<format>/ (as `vdo render` writes them beside its images), for
-    the pairs that share a field of view on `points`. A format that cannot hold these cameras
-    (VIC-3D with tangential distortion, the pair formats without a pair) is skipped with a
-    warning. Returns the written paths per format."""
-    pairs = stereo_pairs(cameras, points, None, source)
+def default_pairs(exp, cameras, vis, samples) -> list:
+    """The stereo pairs of a layout: cameras assigned a common region (`stereo_pairs`)."""
+    from ..constraints import assignments
+
+    return stereo_pairs(cameras, vis.visible,
+                        assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
+
+
+def raycast(exp, cameras, meshes=None):
+    """(Visibility, SurfaceSamples) of `cameras` in `exp`'s scene, camera bodies included as
+    `vdo evaluate` has them."""
+    from ..scene import build_scene, camera_body, load_meshes, sample_regions
+    from ..visibility import compute_visibility
+
+    meshes = load_meshes(exp) if meshes is None else meshes
+    samples = sample_regions(exp, meshes)
+    bodied = {s.name for s in exp.camera_specs if s.body}
+    blockers = build_scene(meshes + [camera_body(c) for c in cameras if c.name in bodied])
+    vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit,
+                             progress=False)
+    return vis, samples
+
+
+def write_all(cameras, pairs, folder: Path, source) -> dict[str, list[Path]]:
+    """Every format into folder/<format>/ (as `vdo render` writes them beside its images). A
+    format that cannot hold these cameras (VIC-3D with tangential distortion, the pair formats
+    without a pair) is skipped with a warning. Returns the written paths per format."""
     written = {}
     for fmt, write in FORMATS.items():
         if fmt in ("matchid", "vic3d") and not pairs:
-            log.warning("%s: no two cameras share a field of view; no stereo calibration written", fmt)
+            log.warning("%s: no stereo pair (no two cameras assigned a common region); "
+                        "no stereo calibration written", fmt)
             continue
         (Path(folder) / fmt).mkdir(parents=True)
         try:
@@ -76,9 +98,9 @@ def camera_from_layout(entry: dict, path) -> Camera:
 
 
 def _sources(source: Path):
-    """(cameras, region points (N, 3) m, the file to name in errors)."""
+    """(experiment, cameras, the file to name in errors): the cameras of an experiment TOML, or
+    of a run folder's layout.json with the experiment of its config.toml."""
     from .. import config
-    from ..scene import load_meshes, sample_regions
 
     if source.is_dir():
         layout = source / "layout.json"
@@ -93,32 +115,33 @@ def _sources(source: Path):
         if not (source / "config.toml").is_file():
             raise ConfigError(source, "config.toml", "missing: the run's experiment is needed to "
                                                      "find which cameras share a field of view")
-        exp = config.load(source / "config.toml")
-        errors_in = layout
-    elif source.is_file():
+        return config.load(source / "config.toml"), cameras, layout
+    if source.is_file():
         exp = config.load(source)
-        cameras = exp.cameras()
-        errors_in = source
-    else:
-        raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
-    return cameras, sample_regions(exp, load_meshes(exp)).points, errors_in
+        return exp, exp.cameras(), source
+    raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
 
 
 def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[Path]:
     """Write the `fmt` calibration files of `source`'s cameras into the run folder `out`
-    (atomically, `vdo.runfolder`). `pairs`: (first, second) camera names, or None for every pair
-    that shares a field of view. Returns the written paths (inside `out`)."""
+    (atomically, `vdo.runfolder`). `pairs`: (first, second) camera names, or None for the pairs
+    assigned a common region (`default_pairs`). Returns the written paths (inside `out`)."""
     from ..runfolder import run_folder
 
     source = Path(source)
     if fmt not in FORMATS:
         raise ConfigError(source, "--format", f"unknown format {fmt!r}; choose one of "
                                               f"{', '.join(FORMATS)}")
-    cameras, points, errors_in = _sources(source)
-    chosen = stereo_pairs(cameras, points, pairs, errors_in)
+    exp, cameras, errors_in = _sources(source)
+    vis, samples = raycast(exp, cameras)
+    if pairs is None:
+        chosen = default_pairs(exp, cameras, vis, samples)
+    else:
+        chosen = stereo_pairs(cameras, vis.visible, None, pairs, errors_in)
     if not chosen and fmt in ("matchid", "vic3d"):
         raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and no two "
-                                                 "cameras share a field of view")
+                                                 "cameras are assigned a common region: name the "
+                                                 "pairs with --pairs")
     with run_folder(out, overwrite) as tmp:
         names = [p.name for p in FORMATS[fmt](cameras, chosen, tmp, errors_in)]
     return [Path(out).resolve() / n for n in names]
