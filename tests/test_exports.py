@@ -97,7 +97,8 @@ def test_opencv_yaml_reprojects_with_cv2(experiment, tmp_path):
     for name, cam in cams.items():
         fs = cv2.FileStorage(str(tmp_path / "out" / f"{name}.yml"), cv2.FILE_STORAGE_READ)
         assert read_node(fs, "camera_name") == name
-        assert (int(read_node(fs, "image_width")), int(read_node(fs, "image_height"))) == (cam.width, cam.height)
+        size = int(read_node(fs, "image_width")), int(read_node(fs, "image_height"))
+        assert size == (cam.width, cam.height)
         assert read_node(fs, "units") == "mm"
         rvec, _ = cv2.Rodrigues(read_node(fs, "R"))
         uv, _ = cv2.projectPoints(X * MM, rvec, read_node(fs, "t"), read_node(fs, "camera_matrix"),
@@ -288,3 +289,17 @@ def test_unsafe_camera_name_is_refused(plate_experiment, tmp_path):
     path = plate_experiment(cameras=CAMERAS.replace('name = "away"', 'name = "../away"'))
     with pytest.raises(ConfigError, match="cannot name an export file"):
         export(path, "opencv", tmp_path / "out")
+
+
+def test_write_all_skips_what_a_format_cannot_hold(experiment, tmp_path, caplog):
+    """`vdo render`'s calibration folder: VIC-3D is left out (with a warning) when a paired camera
+    has tangential distortion; the other formats are written."""
+    from vdo.formats.calibration import StereoPair
+    from vdo.formats.export import write_all
+
+    path, cams = experiment
+    written = write_all(list(cams.values()), [StereoPair(cams["left"], cams["right"])],
+                        tmp_path / "calibration", path)
+    assert set(written) == {"opencv", "matchid", "dice"}
+    assert sorted(p.name for p in (tmp_path / "calibration").iterdir()) == ["dice", "matchid", "opencv"]
+    assert "vic3d calibration not written" in caplog.text and "tangential" in caplog.text

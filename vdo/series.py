@@ -82,7 +82,8 @@ def load_motions(path, exp) -> dict[int, dict[str, np.ndarray]]:
                 raise ConfigError(path, where, f"{', '.join(bad)} not finite (NaN or inf)")
             mesh = (row["mesh"] or "").strip()
             if mesh not in meshes:
-                raise ConfigError(path, where, f"no [[mesh]] named {mesh!r} (meshes: {', '.join(sorted(meshes))})")
+                raise ConfigError(path, where, f"no [[mesh]] named {mesh!r} "
+                                               f"(meshes: {', '.join(sorted(meshes))})")
             step = int(step)
             if mesh in motions.setdefault(step, {}):
                 raise ConfigError(path, where, f"mesh {mesh!r} moves twice at step {step}")

@@ -44,7 +44,8 @@ def _camera(i: int, c) -> list[str]:
         lines.append("    " + _param(key, "double", value))
     lines.append('    <ParameterList name="rotation_3x3_matrix">')
     for r, row in enumerate(c.R):
-        lines.append("      " + _param(f"ROW {r}", "string", "{ " + ", ".join(f"{v:.17g}" for v in row) + " }"))
+        values = ", ".join(f"{v:.17g}" for v in row)
+        lines.append("      " + _param(f"ROW {r}", "string", f"{{ {values} }}"))
     lines += ["    </ParameterList>", "  </ParameterList>"]
     return lines
 

@@ -53,14 +53,15 @@ def pair_xml(pair: StereoPair) -> str:
 
 
 def write(cameras, pairs: list[StereoPair], folder: Path, source) -> list[Path]:
-    """Write <first>_<second>.xml per stereo pair into `folder`; returns the paths."""
+    """Write <first>_<second>.xml per stereo pair into `folder` (nothing when a camera of a pair
+    has tangential distortion: ConfigError); returns the paths."""
+    for c in (c for pair in pairs for c in (pair.first, pair.second)):
+        if c.distortion[2] != 0.0 or c.distortion[3] != 0.0:
+            raise ConfigError(source, f'camera "{c.name}".distortion',
+                              "VIC-3D's calibration holds no tangential terms: set p1 = p2 = 0 "
+                              "or export another format (opencv, dice, matchid)")
     written = []
     for pair in pairs:
-        for c in (pair.first, pair.second):
-            if c.distortion[2] != 0.0 or c.distortion[3] != 0.0:
-                raise ConfigError(source, f'camera "{c.name}".distortion',
-                                  "VIC-3D's calibration holds no tangential terms: set p1 = p2 = 0 "
-                                  "or export another format (opencv, dice, matchid)")
         path = Path(folder) / (f"{file_stem(pair.first.name, source)}_"
                                f"{file_stem(pair.second.name, source)}.xml")
         path.write_text(pair_xml(pair))
