@@ -44,7 +44,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, image_point
 from .speckle import pattern_for
 
 BODY_ALBEDO = 0.05
@@ -112,9 +112,14 @@ def undistorted_canvas(camera: Camera, rows_per_chunk: int = 256) -> tuple[Camer
         rows = np.arange(r0, min(r0 + rows_per_chunk, camera.height), dtype=float)
         grid = np.stack(np.broadcast_arrays(u[None, :], rows[:, None]), axis=-1)
         where[r0:r0 + len(rows)] = camera.undistorted_pixels(grid)
-    if not np.all(np.isfinite(where)):
-        raise ValueError(f"camera {camera.name!r}: the lens distortion cannot be inverted over the "
-                         "image (it folds): check its coefficients")
+    pinhole = replace(camera, distortion=(0.0,) * 5)
+    ray = np.linalg.solve(pinhole.K, np.stack([where[..., 0], where[..., 1], np.ones(where.shape[:2])],
+                                              axis=-1).reshape(-1, 3).T)
+    back = np.stack(image_point(camera.K, ray[0], ray[1], camera.distortion_array), -1)
+    grid = np.stack(np.meshgrid(u, np.arange(camera.height, dtype=float)), -1).reshape(-1, 2)
+    if not np.all(np.abs(back - grid) < 1e-6):     # NaN or not converged: the distortion folds
+        raise ValueError(f"camera {camera.name!r}: the lens distortion {camera.distortion} cannot be "
+                         "inverted over the image (it folds the image): check its coefficients")
     over = [max(0.0, -where[..., k].min(), where[..., k].max() - (n - 1))
             for k, n in ((0, camera.width), (1, camera.height))]
     mx, my = (math.ceil(o) + DISTORTION_MARGIN_PX for o in over)
