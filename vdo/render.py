@@ -112,9 +112,8 @@ def undistorted_canvas(camera: Camera, rows_per_chunk: int = 256) -> tuple[Camer
         rows = np.arange(r0, min(r0 + rows_per_chunk, camera.height), dtype=float)
         grid = np.stack(np.broadcast_arrays(u[None, :], rows[:, None]), axis=-1)
         where[r0:r0 + len(rows)] = camera.undistorted_pixels(grid)
-    pinhole = replace(camera, distortion=(0.0,) * 5)
-    ray = np.linalg.solve(pinhole.K, np.stack([where[..., 0], where[..., 1], np.ones(where.shape[:2])],
-                                              axis=-1).reshape(-1, 3).T)
+    ray = np.linalg.solve(camera.K, np.stack([where[..., 0], where[..., 1], np.ones(where.shape[:2])],
+                                             axis=-1).reshape(-1, 3).T)     # same K without distortion
     back = np.stack(image_point(camera.K, ray[0], ray[1], camera.distortion_array), -1)
     grid = np.stack(np.meshgrid(u, np.arange(camera.height, dtype=float)), -1).reshape(-1, 2)
     if not np.all(np.abs(back - grid) < 1e-6):     # NaN or not converged: the distortion folds
@@ -321,7 +320,8 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, motio
             rest = faces[~taken]
             if len(rest):
                 v, f = _submesh(mesh.vertices, rest)
-                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, v), f, white)
+                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, v), f,
+                                                        white)
         else:
             if spec is not None and spec.metal:
                 bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}
