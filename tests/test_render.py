@@ -7,6 +7,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -217,7 +218,11 @@ def test_builtin_experiment_renders_a_complete_run_folder(tmp_path):
     out = tmp_path / "run"
     summary = render_experiment(exp, out, scale=0.05, spp=2, quiet=True)
     names = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
+    calibration = {n for n in names if n.startswith("calibration/")}
+    names -= calibration
     cams = [c.name for c in exp.camera_specs]
+    assert {f"calibration/opencv/{c}.yml" for c in cams} <= calibration
+    assert {n.split("/")[1] for n in calibration} == {"opencv", "matchid", "dice", "vic3d"}
     assert {f"images/{c}.png" for c in cams} | {"layout.json", "contact_sheet.png", "photometry.csv",
                                                  "shadows.vtp", "maps/shadows.png", "config.toml",
                                                  "render.json"} == names
@@ -228,6 +233,8 @@ def test_builtin_experiment_renders_a_complete_run_folder(tmp_path):
         assert (entry["width"], entry["height"]) == (small.width, small.height) == (
             round(cam.width * 0.05), round(cam.height * 0.05))
         assert entry["K"][0][0] == pytest.approx(cam.focal_px * small.width / cam.width)
+        fs = cv2.FileStorage(str(out / "calibration" / "opencv" / f"{cam.name}.yml"), cv2.FILE_STORAGE_READ)
+        np.testing.assert_array_equal(fs.getNode("camera_matrix").mat(), entry["K"])   # the images' K
         with Image.open(out / "images" / f"{cam.name}.png") as im:
             assert im.size == (small.width, small.height) and im.mode.startswith("I")
             assert np.asarray(im).std() > 50           # speckled, lit, not flat

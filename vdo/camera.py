@@ -7,6 +7,11 @@ Conventions (stated once, tested in tests/test_camera.py):
 * Pixels: (u, v) = (column, row); pixel (0, 0) is the *centre* of the top-left pixel.
 * Projection: x ~ K (R X + t), K = [[f, 0, cx], [0, f, cy], [0, 0, 1]] with f = focal length / pixel
   pitch in pixels; R (world -> camera) and t = -R C for optical centre C.
+* Lens distortion: Brown-Conrady as OpenCV models it, coefficients in OpenCV's order
+  (k1, k2, p1, p2, k3) acting on the normalised coordinates (x, y) = (X_c/Z_c, Y_c/Z_c):
+  r^2 = x^2 + y^2, x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2),
+  y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y, then (u, v) = K (x_d, y_d, 1).
+  Zero by default (a pinhole).
 * Orientation from (pan, tilt, roll), radians: the optical axis is
   z_c = (cos tilt cos pan, cos tilt sin pan, sin tilt), i.e. pan is the azimuth from world +x toward
   +y and tilt the elevation (negative looks down). With roll = 0 the image x axis is horizontal,
@@ -90,47 +95,118 @@ def to_camera(R, t, X):
     return jnp.einsum("...ij,...j->...i", R, X) + t
 
 
-def project(K, R, t, X):
-    """Pixel coordinates (u, v) of world points X (..., 3) -> (..., 2)."""
+DISTORTION = ("k1", "k2", "p1", "p2", "k3")   # OpenCV's order of the coefficients
+
+
+def _coefficients(distortion):
+    """(k1, k2, p1, p2, k3) from a (..., 5) array or a tuple of five."""
+    if isinstance(distortion, (tuple, list)):
+        return tuple(distortion)
+    return tuple(distortion[..., i] for i in range(5))
+
+
+def distort(x, y, distortion):
+    """Brown-Conrady distortion of normalised coordinates (x, y) (module docstring) -> (x_d, y_d).
+    `distortion` (..., 5) in `DISTORTION` order (or a tuple of the 5), None for none. Plain
+    arithmetic, so NumPy, JAX and Dr.Jit arrays all work."""
+    if distortion is None:
+        return x, y
+    k1, k2, p1, p2, k3 = _coefficients(distortion)
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+
+
+def distortion_jacobian(x, y, distortion):
+    """d(x_d, y_d)/d(x, y) as the four entries (dxx, dxy, dyx, dyy), dxy = dx_d/dy:
+    dx_d/dx = L + 2 x^2 L' + 2 p1 y + 6 p2 x, dx_d/dy = 2 x y L' + 2 p1 x + 2 p2 y,
+    dy_d/dx = 2 x y L' + 2 p1 x + 2 p2 y, dy_d/dy = L + 2 y^2 L' + 6 p1 y + 2 p2 x, with
+    L = 1 + k1 r^2 + k2 r^4 + k3 r^6 and L' = dL/d(r^2) = k1 + 2 k2 r^2 + 3 k3 r^4."""
+    k1, k2, p1, p2, k3 = _coefficients(distortion)
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    slope = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
+    cross = 2.0 * x * y * slope + 2.0 * p1 * x + 2.0 * p2 * y
+    return (radial + 2.0 * x * x * slope + 2.0 * p1 * y + 6.0 * p2 * x, cross, cross,
+            radial + 2.0 * y * y * slope + 6.0 * p1 * y + 2.0 * p2 * x)
+
+
+def image_point(K, x, y, distortion=None):
+    """Pixel (u, v) of the normalised point (x, y): distortion, then K (u = f_x x_d + s y_d + c_x,
+    v = f_y y_d + c_y). The one step from the camera frame to pixels: `project`, its Jacobians and
+    `vdo.correlate` all go through here. Plain arithmetic (NumPy or JAX)."""
+    xd, yd = distort(x, y, distortion)
+    return (K[..., 0, 0] * xd + K[..., 0, 1] * yd + K[..., 0, 2],
+            K[..., 1, 1] * yd + K[..., 1, 2])
+
+
+def project(K, R, t, X, distortion=None):
+    """Pixel coordinates (u, v) of world points X (..., 3) -> (..., 2), with the lens distortion
+    (..., 5) in `DISTORTION` order (None: a pinhole)."""
     p = to_camera(R, t, X)
-    uvw = jnp.einsum("...ij,...j->...i", K, p)
-    return uvw[..., :2] / uvw[..., 2:3]
+    return jnp.stack(image_point(K, p[..., 0] / p[..., 2], p[..., 1] / p[..., 2], distortion), axis=-1)
 
 
-def _d_pixel_d_camera(K, p):
-    """d(u, v)/d(camera-frame point), (..., 2, 3), pixels per metre."""
-    fx, fy = K[..., 0, 0], K[..., 1, 1]
+def _d_pixel_d_camera(K, p, distortion=None):
+    """d(u, v)/d(camera-frame point), (..., 2, 3), pixels per metre: the chain
+    [[f_x, s], [0, f_y]] . d(x_d, y_d)/d(x, y) . (1/Z_c) [[1, 0, -x], [0, 1, -y]]."""
     zinv = 1.0 / p[..., 2]
-    xz, yz = p[..., 0] * zinv, p[..., 1] * zinv
+    x, y = p[..., 0] * zinv, p[..., 1] * zinv
     zero = jnp.zeros_like(zinv)
-    return jnp.stack([jnp.stack([fx * zinv, zero, -fx * xz * zinv], -1),
-                      jnp.stack([zero, fy * zinv, -fy * yz * zinv], -1)], -2)
+    dn = jnp.stack([jnp.stack([zinv, zero, -x * zinv], -1),
+                    jnp.stack([zero, zinv, -y * zinv], -1)], -2)         # d(x, y)/dp
+    fx, s, fy = K[..., 0, 0], K[..., 0, 1], K[..., 1, 1]
+    if distortion is None:
+        a, b, c, d = fx, s, zero, fy
+    else:
+        dxx, dxy, dyx, dyy = distortion_jacobian(x, y, distortion)
+        a, b = fx * dxx + s * dyx, fx * dxy + s * dyy
+        c, d = fy * dyx, fy * dyy
+    M = jnp.stack([jnp.stack([a + zero, b + zero], -1), jnp.stack([c + zero, d + zero], -1)], -2)
+    return M @ dn
 
 
-def sensitivity(K, R, t, X):
-    """s = dx/dX (..., 2, 3) in pixel/m (paper eq. 4):
-    s = (f / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R."""
-    return _d_pixel_d_camera(K, to_camera(R, t, X)) @ R
+def sensitivity(K, R, t, X, distortion=None):
+    """s = dx/dX (..., 2, 3) in pixel/m (paper eq. 4, with the distortion's Jacobian D):
+    s = [[f_x, s], [0, f_y]] D (1 / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R."""
+    return _d_pixel_d_camera(K, to_camera(R, t, X), distortion) @ R
+
+
+def undistort(x_d, y_d, distortion, iterations: int = 20):
+    """The normalised (x, y) whose distortion is (x_d, y_d): Newton's method on `distort` with
+    `distortion_jacobian`, from (x_d, y_d) (NumPy arrays), a fixed number of steps (it converges
+    quadratically where the distortion does not fold the image; checked against
+    cv2.undistortPoints to 1e-6 px in tests/test_distortion.py)."""
+    x, y = np.array(x_d, dtype=float), np.array(y_d, dtype=float)
+    for _ in range(iterations):
+        fx, fy = distort(x, y, distortion)
+        rx, ry = fx - x_d, fy - y_d
+        a, b, c, d = distortion_jacobian(x, y, distortion)
+        det = a * d - b * c
+        x, y = x - (d * rx - b * ry) / det, y - (a * ry - c * rx) / det
+    return x, y
 
 
 PARAMETERS = ("x", "y", "z", "pan", "tilt", "roll", "focal_px")
 
 
-def parameter_jacobian(focal_px, cx, cy, position, pan, tilt, roll, X):
+def parameter_jacobian(focal_px, cx, cy, position, pan, tilt, roll, X, distortion=None):
     """dx/d(camera parameters) at world points X, (..., 2, 7), columns in `PARAMETERS` order:
     optical centre (pixel/m), pan/tilt/roll (pixel/rad), focal length in pixels (pixel/pixel).
 
-    With p = R (X - C): dx/dC = -J R, dx/dθ = J (dR/dθ)(X - C), du/df = X_c/Z_c, dv/df = Y_c/Z_c,
-    where J = d(u, v)/dp."""
+    With p = R (X - C): dx/dC = -J R, dx/dθ = J (dR/dθ)(X - C), du/df = x_d, dv/df = y_d (the
+    distorted normalised coordinates), where J = d(u, v)/dp (`_d_pixel_d_camera`)."""
     R = rotation(pan, tilt, roll)
     K = intrinsic_matrix(focal_px, cx, cy)
     rel = X - position
     p = jnp.einsum("...ij,...j->...i", R, rel)
-    J = _d_pixel_d_camera(K, p)
+    J = _d_pixel_d_camera(K, p, distortion)
     columns = [-(J @ R)]
     for dR in rotation_derivatives(pan, tilt, roll):
         columns.append((J @ jnp.einsum("...ij,...j->...i", dR, rel))[..., None])
-    columns.append((p[..., :2] / p[..., 2:3])[..., None])
+    columns.append(jnp.stack(distort(p[..., 0] / p[..., 2], p[..., 1] / p[..., 2], distortion),
+                             -1)[..., None])
     return jnp.concatenate(columns, axis=-1)
 
 
@@ -141,7 +217,9 @@ def parameter_jacobian(focal_px, cx, cy, position, pan, tilt, roll, X):
 class Camera:
     """A camera: sensor, lens and pose. Lengths in metres, angles in radians.
 
-    `principal_offset_px` shifts the principal point from the image centre ((W-1)/2, (H-1)/2)."""
+    `principal_offset_px` shifts the principal point from the image centre ((W-1)/2, (H-1)/2).
+    `distortion` holds the lens distortion (k1, k2, p1, p2, k3) in OpenCV's order (module
+    docstring); all zero is a pinhole."""
 
     name: str
     width: int
@@ -153,6 +231,11 @@ class Camera:
     tilt: float
     roll: float = 0.0
     principal_offset_px: tuple[float, float] = (0.0, 0.0)
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def distorted(self) -> bool:
+        return any(c != 0.0 for c in self.distortion)
 
     @property
     def focal_px(self) -> float:
@@ -180,11 +263,27 @@ class Camera:
     def optical_axis(self) -> np.ndarray:
         return self.R[2]
 
+    @property
+    def distortion_array(self) -> np.ndarray | None:
+        """The distortion as a (5,) array, or None for a pinhole (the projection's argument)."""
+        return np.asarray(self.distortion, dtype=float) if self.distorted else None
+
     def project(self, X) -> np.ndarray:
-        return np.asarray(project(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64)))
+        return np.asarray(project(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64),
+                                  self.distortion_array))
 
     def sensitivity(self, X) -> np.ndarray:
-        return np.asarray(sensitivity(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64)))
+        return np.asarray(sensitivity(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64),
+                                      self.distortion_array))
+
+    def undistorted_pixels(self, uv) -> np.ndarray:
+        """Where the pixels uv (..., 2) of this camera's (distorted) image lie in the image of the
+        same camera without distortion (same K): K (undistort(K^-1 uv)), pixels."""
+        uv = np.asarray(uv, dtype=float)
+        (fx, s, cx), (_, fy, cy) = self.K[0], self.K[1]
+        yd = (uv[..., 1] - cy) / fy
+        x, y = undistort((uv[..., 0] - cx - s * yd) / fx, yd, np.asarray(self.distortion, dtype=float))
+        return np.stack(image_point(self.K, x, y), axis=-1)
 
     def with_pose(self, position, pan, tilt, roll=None) -> "Camera":
         return replace(self, position=np.asarray(position, dtype=float), pan=float(pan),

@@ -1,4 +1,5 @@
-"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR` and `vdo demo`."""
+"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR`,
+`vdo export CONFIG_OR_RUN --format F --out DIR` and `vdo demo`."""
 
 from __future__ import annotations
 
@@ -41,6 +42,15 @@ def _render(args):
     from .render import render_experiment
 
     exp = load(args.config)
+    if args.series is not None:
+        from .series import render_series
+
+        summary = render_series(exp, args.series, Path(args.out), scale=args.scale, spp=args.spp,
+                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
+        if not args.quiet:
+            print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
+                  f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
+        return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
                                 overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
@@ -77,6 +87,14 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _export(args) -> None:
+    from .formats.export import export
+
+    pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
+    for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
+        print(f"wrote {path}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -92,6 +110,9 @@ def main(argv=None) -> int:
                                                               "(default: [render] scale)")
     rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
     rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
+    rd.add_argument("--series", default=None, metavar="MOTIONS.csv",
+                    help="render a reference and deformed image series from rigid motions per "
+                         "mesh per step (see vdo.series)")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
@@ -106,6 +127,13 @@ def main(argv=None) -> int:
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     op.add_argument("--quiet", action="store_true")
+    ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
+    ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
+    ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
+    ex.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ex.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs (default: every pair that shares a field of view)")
+    ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -120,6 +148,8 @@ def main(argv=None) -> int:
             return _validate(args)
         elif args.command == "optimize":
             _optimize(args)
+        elif args.command == "export":
+            _export(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

@@ -86,6 +86,7 @@ class CameraSpec:
     body: bool = True
     f_number: float | None = None    # with focus_distance: thin lens with depth of field
     focus_distance: float | None = None  # m
+    distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)  # lens: k1, k2, p1, p2, k3 (OpenCV order)
 
 
 @dataclass(frozen=True)
@@ -232,6 +233,8 @@ def _camera_to_dict(c: CameraSpec) -> dict:
         d |= {"pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt)}
     d |= {"roll_deg": math.degrees(c.roll), "principal_offset_px": list(c.principal_offset_px),
           "body": c.body}
+    if any(c.distortion):
+        d["distortion"] = list(c.distortion)
     if c.f_number is not None:
         d |= {"f_number": c.f_number, "focus_m": c.focus_distance}
     return d
@@ -250,7 +253,7 @@ def _resolve_camera(exp: Experiment, spec: CameraSpec) -> Camera:
     return Camera(name=spec.name, width=width, height=height,
                   pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
                   position=np.asarray(position, dtype=float), pan=pan, tilt=tilt, roll=spec.roll,
-                  principal_offset_px=spec.principal_offset_px)
+                  principal_offset_px=spec.principal_offset_px, distortion=spec.distortion)
 
 
 # --------------------------------------------------------------------------------------------
@@ -414,7 +417,8 @@ def parse(data: dict, path: Path) -> Experiment:
     cameras = tuple(_camera(t, rail_names) for t in _entries(
         top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
                               "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
-                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m")))
+                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m",
+                              "distortion")))
     lights = tuple(_light(t) for t in _entries(
         top, "light", path, ("name", "position_m", "target_m", "size_m", "radiance"), required=False))
     result = Experiment(path=path, name=exp.string("name"),
@@ -593,7 +597,8 @@ def _camera(t: Table, rails: set) -> CameraSpec:
                 focal_length=t.number("focal_mm", positive=True) * 1e-3,
                 roll=math.radians(t.number("roll_deg", 0.0)),
                 principal_offset_px=tuple(t.vector("principal_offset_px", 2, np.zeros(2))),
-                body=t.boolean("body", True))
+                body=t.boolean("body", True),
+                distortion=tuple(float(k) for k in t.vector("distortion", 5, np.zeros(5))))
     if t.has("f_number") != t.has("focus_m"):
         raise t.error("f_number", "depth of field needs both f_number and focus_m")
     if t.has("f_number"):

@@ -80,6 +80,8 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import ndimage
 
+from .camera import image_point
+
 __all__ = ["Patch", "SplineImage", "TextureSampler", "CorrelationResult", "integration_points", "pixel_points",
            "q4_shape_functions", "correlate"]
 
@@ -126,10 +128,11 @@ class Patch:
 
 
 def _project(cam, X) -> np.ndarray:
-    """`Camera.project` evaluated with the camera's own K, R, t in NumPy (no JAX dispatch per call):
-    x ~ K (R X + t), pixel (u, v)."""
-    p = X @ (cam.K @ cam.R).T + cam.K @ cam.t
-    return p[:, :2] / p[:, 2:3]
+    """`Camera.project` evaluated with the camera's own K, R, t and distortion in NumPy (no JAX
+    dispatch per call): `vdo.camera.image_point` of (X_c/Z_c, Y_c/Z_c), p = R X + t."""
+    p = X @ cam.R.T + cam.t
+    return np.stack(image_point(cam.K, p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], cam.distortion_array),
+                    axis=1)
 
 
 def _footprint(camera, patch: Patch, X) -> np.ndarray:

@@ -44,7 +44,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, image_point
 from .speckle import pattern_for
 
 BODY_ALBEDO = 0.05
@@ -56,7 +56,8 @@ def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool 
     renders for a seed; a Gaussian filter with several threads differs by ~4e-7 from the order
     of atomic adds), stratified sampler. `scale` < 1 renders a smaller image
     of the same view (pixel pitch / scale). With `aperture_radius` (m) a thin lens focused at
-    `focus_distance` (m) gives depth of field (Mitsuba's thinlens has no principal-point offset)."""
+    `focus_distance` (m) gives depth of field (Mitsuba's thinlens has no principal-point offset).
+    The sensor is the camera's pinhole part: `render_camera` adds its lens distortion."""
     width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
     ox, oy = camera.mitsuba_principal_offset()
     film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
@@ -91,6 +92,61 @@ def scaled_camera(camera: Camera, scale: float) -> Camera:
     return replace(camera, width=width, height=height, pixel_size=camera.pixel_size / s,
                    principal_offset_px=(camera.principal_offset_px[0] * s,
                                         camera.principal_offset_px[1] * s))
+
+
+# --------------------------------------------------------------------------------------------
+# Lens distortion: render a wider pinhole image, resample it onto the distorted pixels
+# --------------------------------------------------------------------------------------------
+DISTORTION_MARGIN_PX = 3   # pinhole pixels kept beyond the distorted image's footprint (cubic spline)
+
+
+def undistorted_canvas(camera: Camera, rows_per_chunk: int = 256) -> tuple[Camera, np.ndarray]:
+    """Mitsuba has no lens distortion. For a camera with distortion: the pinhole camera to render
+    instead (same pose and focal length, distortion zero, W + 2 m_x by H + 2 m_y pixels with the
+    principal point moved by (m_x, m_y), so the principal offset and a thin lens stay valid) and,
+    for every pixel (u, v) of the distorted image, where it lies in that render:
+    (u', v') = `Camera.undistorted_pixels`(u, v) + (m_x, m_y), an (H, W, 2) array. The margins
+    m cover the furthest undistorted pixel plus `DISTORTION_MARGIN_PX`."""
+    where = np.empty((camera.height, camera.width, 2))
+    u = np.arange(camera.width, dtype=float)
+    for r0 in range(0, camera.height, rows_per_chunk):
+        rows = np.arange(r0, min(r0 + rows_per_chunk, camera.height), dtype=float)
+        grid = np.stack(np.broadcast_arrays(u[None, :], rows[:, None]), axis=-1)
+        where[r0:r0 + len(rows)] = camera.undistorted_pixels(grid)
+    ray = np.linalg.solve(camera.K, np.stack([where[..., 0], where[..., 1], np.ones(where.shape[:2])],
+                                             axis=-1).reshape(-1, 3).T)     # same K without distortion
+    back = np.stack(image_point(camera.K, ray[0], ray[1], camera.distortion_array), -1)
+    grid = np.stack(np.meshgrid(u, np.arange(camera.height, dtype=float)), -1).reshape(-1, 2)
+    if not np.all(np.abs(back - grid) < 1e-6):     # NaN or not converged: the distortion folds
+        raise ValueError(f"camera {camera.name!r}: the lens distortion {camera.distortion} cannot be "
+                         "inverted over the image (it folds the image): check its coefficients")
+    over = [max(0.0, -where[..., k].min(), where[..., k].max() - (n - 1))
+            for k, n in ((0, camera.width), (1, camera.height))]
+    mx, my = (math.ceil(o) + DISTORTION_MARGIN_PX for o in over)
+    wide = replace(camera, width=camera.width + 2 * mx, height=camera.height + 2 * my,
+                   distortion=(0.0,) * 5)
+    return wide, where + np.array([mx, my], dtype=float)
+
+
+def resample(linear: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """The pinhole render `linear` (H', W') read at `where` (H, W, 2) pixel coordinates (u', v'),
+    by cubic B-spline interpolation (the inverse mapping of each output pixel), clipped at 0
+    (radiance). float32 (H, W)."""
+    from scipy import ndimage
+
+    out = ndimage.map_coordinates(np.asarray(linear, dtype=np.float64),
+                                  [where[..., 1], where[..., 0]], order=3, mode="nearest")
+    return np.maximum(out, 0.0).astype(np.float32)
+
+
+def render_camera(scene, camera: Camera, spec, spp: int, seed: int) -> np.ndarray:
+    """One camera's (H, W) float32 linear image: `render_linear` through `camera_sensor`, and for a
+    camera with lens distortion the wider pinhole render resampled onto the distorted pixels
+    (`undistorted_canvas`, `resample`)."""
+    if not camera.distorted:
+        return render_linear(scene, camera_sensor(camera, spec, spp), seed)
+    wide, where = undistorted_canvas(camera)
+    return resample(render_linear(scene, camera_sensor(wide, spec, spp), seed), where)
 
 
 def camera_sensor(camera: Camera, spec, spp: int) -> dict:
@@ -219,11 +275,21 @@ def _integrator_dict(lights, ambient: float) -> dict:
     return out
 
 
-def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None):
+def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, motions=None):
     """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
     experiment's SceneMeshes (vdo.scene.load_meshes), `region_faces` one RegionFaces per region,
     `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
-    `vdo.speckle.pattern_for(exp.speckle)`)."""
+    `vdo.speckle.pattern_for(exp.speckle)`). `motions` maps mesh names to 4x4 rigid motions
+    (world metres) applied after the texture coordinates are taken from the reference vertices,
+    so the speckle moves with the surface (`vdo.series`)."""
+    motions = motions or {}
+
+    def moved(name, v):
+        if name not in motions:
+            return v
+        M = np.asarray(motions[name], dtype=float)
+        return v @ M[:3, :3].T + M[:3, 3]
+
     from .backend import mitsuba
 
     mi = mitsuba()
@@ -250,18 +316,20 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None):
                 if len(sel) == 0:
                     continue
                 v, f = _submesh(mesh.vertices, faces[sel])
-                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}", v, f, speckled,
-                                                           uv=rf.uv(v) / tile)
+                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}", moved(mesh.name, v),
+                                                           f, speckled, uv=rf.uv(v) / tile)
             rest = faces[~taken]
             if len(rest):
                 v, f = _submesh(mesh.vertices, rest)
-                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", v, f, white)
+                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, v), f,
+                                                        white)
         else:
             if spec is not None and spec.metal:
                 bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}
             else:
                 bsdf = _diffuse(spec.albedo if spec is not None else 0.5)
-            shapes[mesh.name] = _mi_mesh(mesh.name, mesh.vertices, faces, mi.load_dict(bsdf))
+            shapes[mesh.name] = _mi_mesh(mesh.name, moved(mesh.name, mesh.vertices), faces,
+                                         mi.load_dict(bsdf))
     dark = mi.load_dict(_diffuse(BODY_ALBEDO))
     for body in bodies:
         shapes[body.name] = _mi_mesh(body.name, body.vertices, body.faces, dark)
@@ -358,6 +426,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth), [render] image_format
     images/<camera>.exr        linear float radiance, when [render] exr = true
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
+    calibration/<format>/      the same cameras for DIC software (`vdo.formats.export.write_all`)
     contact_sheet.png          all cameras in a grid with their names
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
                                render at the projected visible samples (mean and std of DN; c is
@@ -373,6 +442,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
 
     from . import maps, report, vtp
     from .errors import ConfigError
+    from .formats.export import default_pairs, write_all
     from .lighting import photometry
     from .runfolder import run_folder
     from .sensor import save_image
@@ -414,7 +484,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         for i, (cam, spec) in enumerate(tqdm(list(zip(cameras, exp.camera_specs)), desc="render",
                                              unit="camera", disable=quiet)):
             t0 = time.perf_counter()
-            linear = render_linear(scene, camera_sensor(cam, spec, spp), render_seed(seed, i))
+            linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
             save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
@@ -426,6 +496,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
+        write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
         rows = _region_photometry(cameras, vis, samples, pho, clean)

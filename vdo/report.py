@@ -19,11 +19,14 @@ from .visibility import Visibility
 
 def layout(cameras: list[Camera]) -> dict:
     """Per camera: name, width, height, K, R, t with x ~ K (R X + t) (OpenCV convention, metres),
+    the lens distortion (k1, k2, p1, p2, k3) in OpenCV's order,
     plus the pose in words (optical centre, pan/tilt/roll in degrees, focal length in mm)."""
-    return {"convention": "OpenCV: x ~ K (R X + t); camera x right, y down, z forward; pixel (0,0) "
+    return {"convention": "OpenCV: x ~ K (R X + t) with distortion (k1, k2, p1, p2, k3) as "
+                          "cv2.projectPoints; camera x right, y down, z forward; pixel (0,0) "
                           "is the centre of the top-left pixel; world z up; metres",
             "cameras": [{"name": c.name, "width": c.width, "height": c.height,
                          "K": c.K.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+                         "distortion": list(c.distortion),
                          "position_m": np.asarray(c.position).tolist(),
                          "pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt),
                          "roll_deg": math.degrees(c.roll), "focal_mm": c.focal_length * 1e3,

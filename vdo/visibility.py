@@ -3,7 +3,8 @@
 A camera i sees a sample X (normal n) when all of these hold:
 
 * in front:    Z_c = (R X + t)_z > 0;
-* in image:    its pixel (u, v) lies on the sensor, -0.5 <= u <= W - 0.5 and -0.5 <= v <= H - 0.5;
+* in image:    its pixel (u, v) (lens distortion included) lies on the sensor, -0.5 <= u <= W - 0.5
+               and -0.5 <= v <= H - 0.5;
 * facing:      the incidence angle between n and C - X is below the experiment's limit,
                i.e. n . (C - X) > cos(limit) |C - X|;
 * unoccluded:  the segment from X (lifted by `EPSILON` along n) to the optical centre C hits no
@@ -22,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .backend import mitsuba
-from .camera import Camera
+from .camera import Camera, distort
 from .scene import SurfaceSamples
 
 EPSILON = 1e-4   # m: ray origins are lifted off the surface by this, and stop this short of C
@@ -56,9 +57,10 @@ def incidence_angles(camera: Camera, samples: SurfaceSamples) -> np.ndarray:
 
 
 def _camera_table(cameras: list[Camera]) -> np.ndarray:
-    """One row per camera: R (9), t (3), f, cx, cy, W, H, C (3)."""
+    """One row per camera: R (9), t (3), f, cx, cy, W, H, C (3), distortion (5)."""
     return np.array([np.concatenate([c.R.ravel(), c.t, [c.focal_px, *c.principal_point, c.width,
-                                                        c.height], c.position]) for c in cameras])
+                                                        c.height], c.position, c.distortion])
+                     for c in cameras])
 
 
 def compute_visibility(scene, cameras: list[Camera], samples: SurfaceSamples,
@@ -93,7 +95,8 @@ def compute_visibility(scene, cameras: list[Camera], samples: SurfaceSamples,
         centre = mi.Point3f(*col[17:20])
         in_front = p.z > 1e-6
         z = dr.select(in_front, p.z, 1.0)
-        u, v = f * p.x / z + cx, f * p.y / z + cy
+        xd, yd = distort(p.x / z, p.y / z, tuple(col[20:25]))
+        u, v = f * xd + cx, f * yd + cy
         in_image = in_front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
         origin = X + EPSILON * nrm
         to_cam = centre - origin
