@@ -11,7 +11,8 @@ from PIL import Image
 from vdo import cli, config
 from vdo.errors import ConfigError
 from vdo.render import scaled_camera
-from vdo.series import load_motions, rigid_motion, render_series
+from vdo.keyframes import load_path_of
+from vdo.series import render_series
 
 CAMERA = """
 [[camera]]
@@ -34,9 +35,9 @@ spp = 4
 ambient_radiance = 1.0
 """
 # 0.5 mm per pixel at 1 m: step 1 a translation, step 2 a 1 deg turn about z plus a translation
-MOTIONS = """step,mesh,tx_mm,ty_mm,rz_deg
-1,plate,1.2,-0.7,
-2,plate,0,0.8,1.0
+MOTIONS = """step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg
+1,plate,1.2,-0.7,0,0,0,0
+2,plate,0,0.8,0,0,0,1.0
 """
 
 
@@ -56,7 +57,7 @@ def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_pat
     (tmp_path / "motions.csv").write_text(MOTIONS)
     exp = config.load(path)
     out = tmp_path / "series"
-    summary = render_series(exp, tmp_path / "motions.csv", out, quiet=True)
+    summary = render_series(exp, out, tmp_path / "motions.csv", quiet=True)
     assert summary["steps"] == [0, 1, 2]
     images = []
     for step in range(3):
@@ -65,40 +66,37 @@ def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_pat
             images.append(np.asarray(im))
     assert images[0].std() > 100                              # speckled and lit
     cam = scaled_camera(exp.cameras()[0], 1.0)
-    motions = load_motions(tmp_path / "motions.csv", exp)
+    poses = load_path_of(exp, [], tmp_path / "motions.csv").poses
     for step, centres in ((1, [(100, 75), (60, 50)]), (2, [(60, 45), (140, 105)])):
-        M = motions[step]["plate"]
+        pose = poses[(step, "plate")]
         for centre in centres:
             # the plate point seen at `centre`, and where the motion takes it
             ray = np.linalg.solve(cam.K, [*centre, 1.0]) @ cam.R
             X = cam.position + ray * (0.0 - cam.position[2]) / ray[2]
-            expected = cam.project((M[:3, :3] @ X + M[:3, 3])[None])[0] - np.asarray(centre, float)
+            expected = cam.project(pose.move(X[None]))[0] - np.asarray(centre, float)
             assert np.linalg.norm(expected) > 1.0
             np.testing.assert_allclose(shift(images[0], images[step], centre), expected, atol=0.05)
     layout = json.loads((out / "layout.json").read_text())
     fs = cv2.FileStorage(str(out / "calibration" / "opencv" / "down.yml"), cv2.FILE_STORAGE_READ)
     np.testing.assert_array_equal(fs.getNode("camera_matrix").mat(), layout["cameras"][0]["K"])
-    assert (out / "motions.csv").read_text() == MOTIONS
+    assert (out / "poses.csv").read_text() == MOTIONS
 
 
-def test_rigid_motion_is_rotation_about_the_pivot():
-    M = rigid_motion([1, 2, 3], [0, 0, 90], [100, 0, 0])
-    np.testing.assert_allclose(M[:3, :3] @ [0.1, 0, 0] + M[:3, 3], [0.101, 0.002, 0.003], atol=1e-15)
-    np.testing.assert_allclose(M[:3, :3] @ [0.2, 0, 0] + M[:3, 3], [0.101, 0.102, 0.003], atol=1e-15)
+HEADER = "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
 
 
 @pytest.mark.parametrize("text,message", [
-    ("step,mesh,tx_mm\n1,plate,nan\n", "line 2: tx_mm not finite"),
-    ("step,mesh,tx_mm\n1,beam,1\n", "line 2: no [[mesh]] named 'beam'"),
-    ("step,mesh,ux_mm\n1,plate,1\n", "header: needs columns step, mesh"),
-    ("step,mesh,tx_mm\n0,plate,1\n", "line 2: step must be a whole number >= 1"),
-    ("step,mesh,tx_mm\n1,plate,1\n1,plate,2\n", "line 3: mesh 'plate' moves twice at step 1"),
+    (HEADER + "1,plate,nan,0,0,0,0,0\n", "row 2: column x_mm: nan is not finite"),
+    (HEADER + "1,beam,1,0,0,0,0,0\n", "row 2: group 'beam' is not a [[load_path.group]]"),
+    ("step,group,ux_mm\n1,plate,1\n", "column x: needs exactly one column x_<unit>"),
+    (HEADER + "0,plate,1,0,0,0,0,0\n", "row 2: step must be a whole number >= 1"),
+    (HEADER + "1,plate,1,0,0,0,0,0\n1,plate,2,0,0,0,0,0\n", "row 3: a second pose for group 'plate'"),
 ])
 def test_bad_motion_files_are_one_clear_line(plate_experiment, tmp_path, capsys, text, message):
     path = plate_experiment(cameras=CAMERA)
     (tmp_path / "m.csv").write_text(text)
     with pytest.raises(ConfigError):
-        load_motions(tmp_path / "m.csv", config.load(path))
+        load_path_of(config.load(path), [], tmp_path / "m.csv")
     code = cli.main(["render", str(path), "--series", str(tmp_path / "m.csv"), "--out",
                      str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()

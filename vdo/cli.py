@@ -45,7 +45,8 @@ def _render(args):
     if args.series is not None:
         from .series import render_series
 
-        summary = render_series(exp, args.series, Path(args.out), scale=args.scale, spp=args.spp,
+        poses = None if args.series == "load_path" else args.series
+        summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,
                                 seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
         if not args.quiet:
             print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
@@ -110,9 +111,10 @@ def main(argv=None) -> int:
                                                               "(default: [render] scale)")
     rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
     rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
-    rd.add_argument("--series", default=None, metavar="MOTIONS.csv",
-                    help="render a reference and deformed image series from rigid motions per "
-                         "mesh per step (see vdo.series)")
+    rd.add_argument("--series", nargs="?", const="load_path", default=None, metavar="POSES.csv",
+                    help="render a reference and deformed image series over the load path: the "
+                         "experiment's [load_path], or the poses per step and group (or mesh) of "
+                         "POSES.csv (see vdo.keyframes)")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")

@@ -85,9 +85,11 @@ class LoadPath:
     displacements: dict | None = None   # step -> (n_vertices, 3) m
 
     def mesh_pose(self, step: int, mesh: str) -> Pose | None:
+        """The pose of `mesh` at `step` (None: at rest). A mesh in a declared group and also
+        posed under its own name is refused when the file is read (`read_poses`)."""
         for group, meshes in self.groups.items():
-            if mesh in meshes:
-                return self.poses.get((step, group))
+            if mesh in meshes and (step, group) in self.poses:
+                return self.poses[(step, group)]
         return None
 
 
@@ -133,8 +135,9 @@ def _number(row, index, file, line, name) -> float:
 
 def _step(row, index, file, line) -> int:
     value = _number(row, index, file, line, "step")
-    if value != int(value) or value < 0:
-        raise ConfigError(file, f"row {line}", f"step must be a whole number >= 0 (got {row[index]!r})")
+    if value != int(value) or value < 1:
+        raise ConfigError(file, f"row {line}", f"step must be a whole number >= 1 (got {row[index]!r}; "
+                                               "step 0 is the rest state)")
     return int(value)
 
 
@@ -146,7 +149,7 @@ def read_poses(file: Path, groups: dict, pivots: dict) -> dict:
     i_step, i_group = header.index("step"), header.index("group")
     lin = _columns(header, ("x", "y", "z"), ("m", "mm"), file)
     rot = _columns(header, ("rx", "ry", "rz"), ("deg", "rad"), file)
-    poses, angles = {}, []
+    poses, angles, posed = {}, [], {}
     for line, row in enumerate(rows, start=2):
         step = _step(row, i_step, file, line)
         group = row[i_group].strip() if i_group < len(row) else ""
@@ -155,6 +158,11 @@ def read_poses(file: Path, groups: dict, pivots: dict) -> dict:
                                                    f"(groups: {', '.join(sorted(groups))})")
         if (step, group) in poses:
             raise ConfigError(file, f"row {line}", f"a second pose for group {group!r} at step {step}")
+        twice = [m for m in groups[group] if m in posed.setdefault(step, set())]
+        if twice:
+            raise ConfigError(file, f"row {line}", f"mesh {twice[0]!r} is already posed at step {step} "
+                                                   "(by another group that holds it)")
+        posed[step] |= set(groups[group])
         t = np.array([_number(row, lin[a][0], file, line, f"{a}_{lin[a][2]}") * lin[a][1] for a in "xyz"])
         r = [_number(row, rot[a][0], file, line, f"{a}_{rot[a][2]}") for a in ("rx", "ry", "rz")]
         unit = rot["rx"][2]
@@ -257,19 +265,25 @@ def at_step(geometry, load_path: LoadPath, step: int):
     return replace(geometry, meshes=tuple(meshes), samples=moved)
 
 
-def load_path_of(exp, meshes) -> LoadPath | None:
-    """The experiment's `[load_path]` read from its CSV files (None when it has none): the
-    groups and pivots from the config, the poses and the specimen's displacements from the files
-    (their rows are checked here, before any ray is cast)."""
+def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
+    """The experiment's `[load_path]` read from its CSV files, or None when it has none and no
+    `poses` file is given. `poses` replaces the `[load_path]`'s pose file (`vdo render --series`).
+    Every mesh is also a group of its own name (pivot at the origin), so a pose file may move
+    single meshes without declaring groups. Rows are checked here, before any ray is cast."""
     spec = exp.load_path
-    if spec is None:
+    if spec is None and poses is None:
         return None
-    groups = {g.name: tuple(g.meshes) for g in spec.groups}
-    pivots = {g.name: np.asarray(g.pivot, dtype=float) for g in spec.groups}
-    poses = read_poses(spec.poses, groups, pivots) if spec.poses is not None else {}
+    groups = {m.name: (m.name,) for m in exp.meshes}
+    pivots = {name: np.zeros(3) for name in groups}
+    for g in (spec.groups if spec is not None else ()):
+        groups[g.name] = tuple(g.meshes)
+        pivots[g.name] = np.asarray(g.pivot, dtype=float)
+    poses = poses if poses is not None else spec.poses
     displacements = None
-    if spec.displacements is not None:
+    if spec is not None and spec.displacements is not None:
         mesh = next(m for m in meshes if m.name == spec.deformed_mesh)
         displacements = read_displacements(spec.displacements, mesh.vertices, mesh.name)
-    steps = sorted({step for step, _ in poses} | set(displacements or {}))
-    return LoadPath(tuple(steps), groups, poses, spec.deformed_mesh, displacements)
+    table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
+    steps = sorted({step for step, _ in table} | set(displacements or {}))
+    return LoadPath(tuple(steps), groups, table, None if spec is None else spec.deformed_mesh,
+                    displacements)

@@ -275,20 +275,18 @@ def _integrator_dict(lights, ambient: float) -> dict:
     return out
 
 
-def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, motions=None):
+def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=None):
     """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
-    experiment's SceneMeshes (vdo.scene.load_meshes), `region_faces` one RegionFaces per region,
-    `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
-    `vdo.speckle.pattern_for(exp.speckle)`). `motions` maps mesh names to 4x4 rigid motions
-    (world metres) applied after the texture coordinates are taken from the reference vertices,
-    so the speckle moves with the surface (`vdo.series`)."""
-    motions = motions or {}
+    experiment's SceneMeshes at rest (vdo.scene.load_meshes), `region_faces` one RegionFaces per
+    region, `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
+    `vdo.speckle.pattern_for(exp.speckle)`). `posed` are the same meshes at a step of the load
+    path (`vdo.keyframes.at_step`): their vertices are rendered, while the texture coordinates
+    come from the rest vertices, so the speckle moves with the surface (`vdo.series`)."""
+    at = {m.name: m.vertices for m in (posed or meshes)}
 
-    def moved(name, v):
-        if name not in motions:
-            return v
-        M = np.asarray(motions[name], dtype=float)
-        return v @ M[:3, :3].T + M[:3, 3]
+    def moved(name, faces):
+        """The vertices of `faces` of mesh `name` at the step (the order `_submesh` gives)."""
+        return _submesh(at[name], faces)[0]
 
     from .backend import mitsuba
 
@@ -316,20 +314,20 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, motio
                 if len(sel) == 0:
                     continue
                 v, f = _submesh(mesh.vertices, faces[sel])
-                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}", moved(mesh.name, v),
-                                                           f, speckled, uv=rf.uv(v) / tile)
+                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}",
+                                                           moved(mesh.name, faces[sel]), f, speckled,
+                                                           uv=rf.uv(v) / tile)
             rest = faces[~taken]
             if len(rest):
-                v, f = _submesh(mesh.vertices, rest)
-                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, v), f,
-                                                        white)
+                _, f = _submesh(mesh.vertices, rest)
+                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, rest),
+                                                        f, white)
         else:
             if spec is not None and spec.metal:
                 bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}
             else:
                 bsdf = _diffuse(spec.albedo if spec is not None else 0.5)
-            shapes[mesh.name] = _mi_mesh(mesh.name, moved(mesh.name, mesh.vertices), faces,
-                                         mi.load_dict(bsdf))
+            shapes[mesh.name] = _mi_mesh(mesh.name, at[mesh.name], faces, mi.load_dict(bsdf))
     dark = mi.load_dict(_diffuse(BODY_ALBEDO))
     for body in bodies:
         shapes[body.name] = _mi_mesh(body.name, body.vertices, body.faces, dark)

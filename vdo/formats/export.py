@@ -33,21 +33,6 @@ def default_pairs(exp, cameras, vis, samples) -> list:
                         assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
 
 
-def raycast(exp, cameras, meshes=None):
-    """(Visibility, SurfaceSamples) of `cameras` in `exp`'s scene, camera bodies included as
-    `vdo evaluate` has them."""
-    from ..scene import build_scene, camera_body, load_meshes, sample_regions
-    from ..visibility import compute_visibility
-
-    meshes = load_meshes(exp) if meshes is None else meshes
-    samples = sample_regions(exp, meshes)
-    bodied = {s.name for s in exp.camera_specs if s.body}
-    blockers = build_scene(meshes + [camera_body(c) for c in cameras if c.name in bodied])
-    vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit,
-                             progress=False)
-    return vis, samples
-
-
 def write_all(cameras, pairs, folder: Path, source) -> dict[str, list[Path]]:
     """Every format into folder/<format>/ (as `vdo render` writes them beside its images). A
     format that cannot hold these cameras (VIC-3D with tangential distortion, the pair formats
@@ -132,8 +117,11 @@ def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[P
     if fmt not in FORMATS:
         raise ConfigError(source, "--format", f"unknown format {fmt!r}; choose one of "
                                               f"{', '.join(FORMATS)}")
+    from ..state import layout_state, prepare
+
     exp, cameras, errors_in = _sources(source)
-    vis, samples = raycast(exp, cameras)
+    state = layout_state(prepare(exp), cameras, predict_fields=False)
+    vis, samples = state.visibility, state.samples
     if pairs is None:
         chosen = default_pairs(exp, cameras, vis, samples)
     else:
