@@ -40,7 +40,8 @@ def test_run_folder_contents(run):
     _, out = run
     names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
     assert names == ["config.toml", "layout.json", "maps/coverage.png", "maps/sensitivity_x.png",
-                     "maps/sensitivity_y.png", "maps/sensitivity_z.png", "samples.vtp", "summary.json"]
+                     "maps/sensitivity_y.png", "maps/sensitivity_z.png", "maps/view3d_coverage.png",
+                     "report.html", "samples.vtp", "summary.json"]
 
 
 def test_samples_vtp_reads_in_vtk_and_agrees_with_summary(run):

@@ -106,6 +106,8 @@ def main(argv=None) -> int:
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     op.add_argument("--quiet", action="store_true")
+    rp = sub.add_parser("report", help="write RUN_DIR/report.html (3D view, tables, figures)")
+    rp.add_argument("run_dir", help="a run folder written by vdo")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -120,6 +122,12 @@ def main(argv=None) -> int:
             return _validate(args)
         elif args.command == "optimize":
             _optimize(args)
+        elif args.command == "report":
+            from .html_report import write_report
+
+            if not Path(args.run_dir).is_dir():
+                raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
+            print(f"wrote {write_report(args.run_dir).resolve()}")
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

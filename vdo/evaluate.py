@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import maps, report, vtp
+from . import html_report, maps, report, vtp
 from .config import Experiment
 from .lighting import illuminate
 from .predict import predict, speckle_model
@@ -76,4 +76,5 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
                 maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
                                    f"{exp.name}: displacement uncertainty along {a.upper()}",
                                    "σ (µm)", cmap="magma_r")
+        html_report.write_report(tmp)
     return summary

@@ -251,10 +251,11 @@ def plot_static(sc: Scene3D, fld: Field, path, title: str, elev: float = 22.0,
     plt.close(fig)
 
 
-def write_static(run_dir, keys=("coverage", "sigma_max")) -> list[Path]:
-    """maps/view3d_<field>.png for each of `keys` present in the run folder's samples.vtp."""
+def write_static(run_dir, sc: Scene3D | None = None, keys=("coverage", "sigma_max")) -> list[Path]:
+    """maps/view3d_<field>.png for each of `keys` present in the run folder's samples.vtp
+    (`sc`: the folder already read by `load`)."""
     run_dir = Path(run_dir)
-    sc = load(run_dir)
+    sc = load(run_dir) if sc is None else sc
     if sc.samples is None:
         return []
     (run_dir / "maps").mkdir(exist_ok=True)
@@ -267,7 +268,7 @@ def write_static(run_dir, keys=("coverage", "sigma_max")) -> list[Path]:
             pass
     written = []
     for fld in sc.fields:
-        if fld.key in keys:
+        if fld.key in keys and np.isfinite(fld.values.astype(float)).any():
             path = run_dir / "maps" / f"view3d_{fld.key}.png"
             plot_static(sc, fld, path, f"{name}: {fld.label}" if name else fld.label)
             written.append(path)

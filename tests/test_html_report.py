@@ -1,0 +1,130 @@
+"""report.html: opens in headless Chromium without console errors, draws a non-blank 3D view,
+switches fields; the 3D geometry it reads back agrees with OpenCV and VTK; an interrupted run
+folder gives a report that lists what is missing."""
+
+import json
+import shutil
+import subprocess
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from conftest import DOWN_CAMERA
+from vdo import view3d, vtp
+from vdo.cli import main
+from vdo.html_report import write_report
+
+CHROMIUM = shutil.which("chromium")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A two-camera plate evaluated at 25 mm spacing (1,600 samples); evaluate writes the report."""
+    from conftest import PLATE_TOML, write_box
+    import textwrap
+
+    folder = tmp_path_factory.mktemp("report")
+    write_box(folder / "plate.stl", [1000, 1000, 10], center=[0, 0, -5])
+    cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
+    (folder / "plate.toml").write_text(textwrap.dedent(PLATE_TOML.format(
+        spacing=25, limit=75, height=1.5, cameras=cams, extra_meshes="")))
+    out = folder / "run"
+    assert main(["evaluate", str(folder / "plate.toml"), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def chromium(url: str, tmp_path, name: str, dom: bool = False):
+    """Run headless Chromium on `url`: (console lines, screenshot as RGB array or DOM text)."""
+    shot = tmp_path / f"{name}.png"
+    args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+            "--enable-logging=stderr", "--v=0", "--hide-scrollbars", "--window-size=1200,1000",
+            "--virtual-time-budget=8000", "--dump-dom" if dom else f"--screenshot={shot}", url]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    console = [line for line in proc.stderr.splitlines() if "CONSOLE" in line]
+    if dom:
+        return console, proc.stdout
+    return console, np.asarray(Image.open(shot).convert("RGB")).astype(float)
+
+
+def test_report_is_self_contained(run):
+    page = (run / "report.html").read_text()
+    assert "<script src=" not in page and 'src="http' not in page     # nothing fetched
+    assert "Plotly.newPlot" in page and "Missing from this run folder" not in page
+    assert "<td>top</td>" in page                                       # the region table
+    assert (run / "maps" / "view3d_coverage.png").is_file()
+
+
+def test_interrupted_run_says_what_is_missing(run, tmp_path):
+    cut = tmp_path / "cut"
+    shutil.copytree(run, cut)
+    (cut / "report.html").unlink()
+    (cut / "layout.json").unlink()
+    data = (cut / "samples.vtp").read_bytes()
+    (cut / "samples.vtp").write_bytes(data[: len(data) // 2])         # cut short
+    page = write_report(cut).read_text()
+    assert "Missing from this run folder" in page
+    assert "layout.json (no camera is drawn)" in page and "samples.vtp unreadable" in page
+    (cut / "summary.json").unlink()
+    (cut / "samples.vtp").unlink()
+    page = write_report(cut).read_text()
+    assert "summary.json (no region table)" in page and "samples.vtp (no field is drawn)" in page
+
+
+def test_frustum_corners_project_to_the_image_corners_in_opencv(run):
+    layout = json.loads((run / "layout.json").read_text())
+    for cam in layout["cameras"]:
+        K, R, t = (np.array(cam[k], dtype=float) for k in ("K", "R", "t"))
+        centre, corners = view3d.frustum(K, R, t, cam["width"], cam["height"], 0.7)
+        px, _ = cv2.projectPoints(corners, cv2.Rodrigues(R)[0], t, K, None)
+        w, h = cam["width"], cam["height"]
+        expected = [[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]
+        np.testing.assert_allclose(px[:, 0], expected, atol=1e-6)
+        np.testing.assert_allclose((R @ corners.T).T[:, 2] + t[2], 0.7, atol=1e-9)   # depth
+        np.testing.assert_allclose(R @ centre + t, 0, atol=1e-9)
+
+
+def test_vtp_read_back_equals_vtk(run):
+    from vtk import vtkXMLPolyDataReader
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(run / "samples.vtp"))
+    reader.Update()
+    pd = reader.GetOutput().GetPointData()
+    ref = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)) for i in range(pd.GetNumberOfArrays())}
+    points, arrays = vtp.read_points(run / "samples.vtp")
+    np.testing.assert_array_equal(points, vtk_to_numpy(reader.GetOutput().GetPoints().GetData()))
+    assert set(arrays) == set(ref)
+    for name, values in ref.items():
+        np.testing.assert_array_equal(arrays[name], values)
+
+
+def test_decimate_keeps_the_shape():
+    sphere = trimesh.creation.icosphere(subdivisions=5)                 # 20,480 faces
+    v, f = view3d.decimate(sphere.vertices, sphere.faces, 3000)
+    assert 500 < len(f) <= 3000
+    radius = np.linalg.norm(v, axis=1)
+    assert np.abs(radius - 1).max() < 0.05
+    np.testing.assert_allclose(np.ptp(v, axis=0), 2.0, rtol=0.05)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (as root: apt-get install -y "
+                                             "chromium, or run scripts/setup.sh)")
+def test_report_in_headless_chromium(run, tmp_path):
+    url = (run / "report.html").as_uri()
+    console, dom = chromium(url + "#field=sensitivity_x", tmp_path, "dom", dom=True)
+    errors = [c for c in console if any(w in c.lower() for w in ("error", "uncaught", "exception",
+                                                                  "failed"))]
+    assert errors == []
+    assert 'data-field="sensitivity_x"' in dom               # the page's script ran to the end
+    _, cov = chromium(url + "#field=coverage", tmp_path, "coverage")
+    _, sens = chromium(url + "#field=sensitivity_x", tmp_path, "sens")
+    plot = (slice(200, 880), slice(100, 900))                # the 3D view's canvas, left of the bar
+    area = cov[plot]
+    background = np.all(area >= 245, axis=-1)
+    assert area.std() > 20 and (~background).mean() > 0.05   # not blank
+    diff = np.abs(cov[plot] - sens[plot]).max(axis=-1) > 30
+    assert diff.mean() > 0.01                                # the field changed the colours
