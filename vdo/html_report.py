@@ -132,7 +132,7 @@ def figure(sc: view3d.Scene3D) -> tuple[go.Figure, dict]:
                                "colorscale": _colorscale(fld, lo, hi), "label": fld.label,
                                "cells_trace": cells_trace, "bar_trace": bar_trace}
     fig.update_layout(scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
-                                 zaxis_title="z (m)", camera=dict(eye=dict(x=0.7, y=-1.1, z=0.6))),
+                                 zaxis_title="z (m)", camera=dict(eye=dict(x=1.1, y=-1.6, z=0.9))),
                       height=720, margin=dict(l=0, r=0, t=10, b=0), legend=dict(x=0, y=1))
     return fig, fields
 
