@@ -36,17 +36,16 @@ def run(tmp_path_factory):
     return out
 
 
-def chromium(url: str, tmp_path, name: str, dom: bool = False):
-    """Run headless Chromium on `url`: (console lines, screenshot as RGB array or DOM text)."""
+def chromium(url: str, tmp_path, name: str):
+    """Open `url` in headless Chromium: (console lines, the DOM after the scripts ran, a
+    1200 x 1000 screenshot as an RGB float array)."""
     shot = tmp_path / f"{name}.png"
     args = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
             "--enable-logging=stderr", "--v=0", "--hide-scrollbars", "--window-size=1200,1000",
-            "--virtual-time-budget=8000", "--dump-dom" if dom else f"--screenshot={shot}", url]
-    proc = subprocess.run(args, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+            "--virtual-time-budget=8000", "--dump-dom", f"--screenshot={shot}", url]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=90, cwd=tmp_path)
     console = [line for line in proc.stderr.splitlines() if "CONSOLE" in line]
-    if dom:
-        return console, proc.stdout
-    return console, np.asarray(Image.open(shot).convert("RGB")).astype(float)
+    return console, proc.stdout, np.asarray(Image.open(shot).convert("RGB")).astype(float)
 
 
 def test_report_is_self_contained(run):
@@ -115,16 +114,16 @@ def test_decimate_keeps_the_shape():
                                              "chromium, or run scripts/setup.sh)")
 def test_report_in_headless_chromium(run, tmp_path):
     url = (run / "report.html").as_uri()
-    console, dom = chromium(url + "#field=sensitivity_x", tmp_path, "dom", dom=True)
-    errors = [c for c in console if any(w in c.lower() for w in ("error", "uncaught", "exception",
-                                                                  "failed"))]
-    assert errors == []
-    assert 'data-field="sensitivity_x"' in dom               # the page's script ran to the end
-    _, cov = chromium(url + "#field=coverage", tmp_path, "coverage")
-    _, sens = chromium(url + "#field=sensitivity_x", tmp_path, "sens")
-    plot = (slice(200, 880), slice(100, 900))                # the 3D view's canvas, left of the bar
-    area = cov[plot]
+    shots = {}
+    for field in ("coverage", "sensitivity_x"):
+        console, dom, shots[field] = chromium(f"{url}#field={field}", tmp_path, field)
+        errors = [c for c in console if any(w in c.lower() for w in ("error", "uncaught",
+                                                                      "exception", "failed"))]
+        assert errors == []
+        assert f'data-field="{field}"' in dom                   # the page's script ran to the end
+    plot = (slice(200, 880), slice(100, 900))                   # the 3D view, left of the bar
+    area = shots["coverage"][plot]
     background = np.all(area >= 245, axis=-1)
-    assert area.std() > 20 and (~background).mean() > 0.05   # not blank
-    diff = np.abs(cov[plot] - sens[plot]).max(axis=-1) > 30
-    assert diff.mean() > 0.01                                # the field changed the colours
+    assert area.std() > 20 and (~background).mean() > 0.05      # not blank
+    diff = np.abs(shots["coverage"][plot] - shots["sensitivity_x"][plot]).max(axis=-1) > 30
+    assert diff.mean() > 0.01                                   # the field changed the colours

@@ -46,12 +46,18 @@ _SCRIPT = """
   var select = document.getElementById('field');
   function show(key) {
     var f = fields[key]; if (!f || !gd) return;
-    var faces = [];
-    for (var i = 0; i < f.colors.length; i++) { faces.push(f.colors[i], f.colors[i]); }
+    var bin = atob(f.index), bytes = new Uint8Array(bin.length), faces = [];
+    for (var i = 0; i < bin.length; i++) { bytes[i] = bin.charCodeAt(i); }
+    var index = new Uint16Array(bytes.buffer);
+    for (var k = 0; k < index.length; k++) {
+      var c = f.palette[index[k]]; faces.push(c, c);         // two triangles per sample
+    }
     Plotly.restyle(gd, {facecolor: [faces]}, [f.cells_trace]);
     Plotly.restyle(gd, {'marker.colorscale': [f.colorscale], 'marker.cmin': f.cmin,
                         'marker.cmax': f.cmax, 'marker.colorbar.title.text': f.title},
                    [f.bar_trace]);
+    Plotly.restyle(gd, {'marker.colorbar.tickmode': f.ticks ? 'array' : 'auto',
+                        'marker.colorbar.tickvals': [f.ticks || []]}, [f.bar_trace]);
     select.value = key;
     document.body.setAttribute('data-field', key);
   }
@@ -128,7 +134,10 @@ def figure(sc: view3d.Scene3D) -> tuple[go.Figure, dict]:
         for fld in sc.fields:
             rgba, lo, hi, how = fld.colours()
             title = f"{fld.label}<br>{how if fld.discrete else f'{lo:.4g} – {hi:.4g} ({how})'}"
-            fields[fld.key] = {"colors": _hex(rgba), "cmin": lo, "cmax": hi, "title": title,
+            palette, index = np.unique(_hex(rgba), return_inverse=True)
+            fields[fld.key] = {"palette": palette.tolist(), "cmin": lo, "cmax": hi, "title": title,
+                               "index": base64.b64encode(index.astype("<u2").tobytes()).decode(),
+                               "ticks": list(range(int(hi + 0.5))) if fld.discrete else None,
                                "colorscale": _colorscale(fld, lo, hi), "label": fld.label,
                                "cells_trace": cells_trace, "bar_trace": bar_trace}
     fig.update_layout(scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
