@@ -51,7 +51,7 @@ def chromium(url: str, tmp_path, name: str):
 def test_report_is_self_contained(run):
     page = (run / "report.html").read_text()
     assert "<script src=" not in page and 'src="http' not in page     # nothing fetched
-    assert "Plotly.newPlot" in page and "Missing from this run folder" not in page
+    assert "Plotly.newPlot" in page and 'class="missing"' not in page
     assert "<td>top</td>" in page                                       # the region table
     assert (run / "maps" / "view3d_coverage.png").is_file()
 
@@ -64,12 +64,52 @@ def test_interrupted_run_says_what_is_missing(run, tmp_path):
     data = (cut / "samples.vtp").read_bytes()
     (cut / "samples.vtp").write_bytes(data[: len(data) // 2])         # cut short
     page = write_report(cut).read_text()
-    assert "Missing from this run folder" in page
+    assert "Missing from this evaluate run folder" in page
     assert "layout.json (no camera is drawn)" in page and "samples.vtp unreadable" in page
     (cut / "summary.json").unlink()
     (cut / "samples.vtp").unlink()
     page = write_report(cut).read_text()
     assert "summary.json (no region table)" in page and "samples.vtp (no field is drawn)" in page
+
+
+def _png(path):
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(2, 2))
+    ax.plot([0, 1], [1, 0])
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def test_optimize_and_sweep_folders(run, tmp_path):
+    opt = tmp_path / "opt"
+    opt.mkdir()
+    shutil.copy(run / "config.toml", opt / "optimized.toml")
+    shutil.copy(run / "layout.json", opt / "layout.json")
+    before = json.loads((run / "summary.json").read_text())
+    after = json.loads((run / "summary.json").read_text())
+    after["regions"]["top"]["seen_by_2_or_more"] = 0.987654
+    (opt / "summary_before.json").write_text(json.dumps(before))
+    (opt / "summary_after.json").write_text(json.dumps(after))
+    (opt / "constraints.json").write_text(json.dumps({"violations": 0, "violated": [],
+                                                      "after": [{"constraint": "axis_angle",
+                                                                 "value": 31.5, "met": True}]}))
+    _png(opt / "convergence.png")
+    page = write_report(opt).read_text()
+    assert 'class="missing"' not in page and "Before and after optimizing" in page
+    assert "0.9877" in page and "axis_angle" in page
+    assert page.count("<img alt=") == 1 and 'alt="convergence.png"' in page
+    assert "<td>a</td>" not in page and '"a"' in page                  # cameras drawn in 3D
+    (opt / "convergence.png").unlink()
+    assert "convergence.png (no convergence figure)" in write_report(opt).read_text()
+
+    sweep = tmp_path / "sweep"
+    (sweep / "figures").mkdir(parents=True)
+    (sweep / "results.csv").write_text("variant,focal_mm,joint_p95_um\nv1,24,0.31\nv2,35,0.27\n")
+    _png(sweep / "figures" / "p95_vs_focal.png")
+    page = write_report(sweep).read_text()
+    assert "results.csv (2 rows)" in page and "<td>v2</td>" in page and "<td>0.27</td>" in page
+    assert 'alt="figures/p95_vs_focal.png"' in page and 'class="missing"' not in page
 
 
 def test_frustum_corners_project_to_the_image_corners_in_opencv(run):

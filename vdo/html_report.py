@@ -25,7 +25,22 @@ from . import view3d
 
 log = logging.getLogger(__name__)
 
-EXPECTED = ("config.toml", "layout.json", "samples.vtp", "summary.json")   # an evaluate run
+# What each command's run folder holds, the command recognised by the first file of its marker
+# list that is present (an evaluate folder when none is).
+KINDS = (("optimize", ("optimized.toml", "summary_before.json", "summary_after.json")),
+         ("sweep", ("results.csv",)),
+         ("validate", ("validation.csv", "validation.png")),
+         ("render", ("render.json", "contact_sheet.png")))
+EXPECTED = {"evaluate": ("config.toml", "layout.json", "samples.vtp", "summary.json"),
+            "optimize": ("optimized.toml", "layout.json", "summary_before.json",
+                         "summary_after.json", "constraints.json", "convergence.png"),
+            "sweep": ("results.csv",),
+            "validate": ("validation.csv", "validation.png"),
+            "render": ("config.toml", "layout.json", "render.json", "contact_sheet.png")}
+WHY = {"config.toml": "meshes and lights are not drawn", "optimized.toml": "meshes and lights are "
+       "not drawn", "layout.json": "no camera is drawn", "samples.vtp": "no field is drawn",
+       "summary.json": "no region table", "summary_before.json": "no table before optimizing",
+       "summary_after.json": "no table after optimizing", "convergence.png": "no convergence figure"}
 MAX_TABLE_ROWS = 500
 
 _STYLE = """
@@ -180,6 +195,27 @@ def _regions_table(summary: dict) -> str:
     return _table(rows)
 
 
+COMPARED = (("sigma_max_um", "p95", "σ_max p95 (µm)"), ("sigma_max_um", "max", "σ_max max (µm)"),
+            ("seen_by_2_or_more", None, "seen by ≥ 2"), ("unmeasured_fraction", None, "unmeasured"))
+
+
+def _compare_table(before: dict, after: dict) -> str:
+    """Per region: σ_max p95 and max, the fraction seen by >= 2 cameras and the unmeasured
+    fraction, before -> after."""
+    rows = []
+    for name, b in before.get("regions", {}).items():
+        a = after.get("regions", {}).get(name, {})
+        row = {"region": name}
+        for key, sub, label in COMPARED:
+            vb, va = b.get(key), a.get(key)
+            if sub is not None:
+                vb = vb.get(sub) if isinstance(vb, dict) else None
+                va = va.get(sub) if isinstance(va, dict) else None
+            row[f"{label} before"], row[f"{label} after"] = vb, va
+        rows.append(row)
+    return _table(rows)
+
+
 def _json_section(title: str, data) -> str:
     """A JSON document as tables: its scalars as one key/value table, each list of dicts and each
     dict of dicts as a table of its own."""
@@ -218,6 +254,14 @@ def _read_json(path: Path, missing: list[str]):
         return None
 
 
+def kind_of(run_dir: Path) -> str:
+    """Which command wrote the folder: optimize, sweep, validate, render or evaluate."""
+    for kind, markers in KINDS:
+        if any((run_dir / m).exists() for m in markers):
+            return kind
+    return "evaluate"
+
+
 def write_report(run_dir, static_figures: bool = True) -> Path:
     """Write run_dir/report.html from what the folder holds and return its path; first, with
     `static_figures`, the static 3D figures maps/view3d_*.png (`view3d.write_static`) when the
@@ -226,21 +270,21 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
     sc = view3d.load(run_dir)
     if static_figures and sc.samples is not None and not list(run_dir.glob("maps/view3d_*.png")):
         view3d.write_static(run_dir, sc)
-    missing = list(sc.missing)
-    kind = ("optimize" if (run_dir / "summary_after.json").exists() or
-            (run_dir / "summary_before.json").exists() else
-            "sweep" if (run_dir / "results.csv").exists() else "evaluate")
-    if kind == "evaluate" and not (run_dir / "summary.json").is_file():
-        missing.append("summary.json (no region table)")
-    summary = _read_json(run_dir / "summary.json", missing) if (run_dir / "summary.json").is_file() \
-        else None
-    name = (summary or {}).get("experiment") or run_dir.name
+    kind = kind_of(run_dir)
+    missing = [f"{f} ({WHY[f]})" if f in WHY else f for f in EXPECTED[kind]
+               if not (run_dir / f).exists()] + sc.unreadable
+    summaries = {f: _read_json(run_dir / f, missing) for f in
+                 ("summary.json", "summary_before.json", "summary_after.json")
+                 if (run_dir / f).is_file()}
+    summary = summaries.get("summary.json")
+    name = next((d.get("experiment") for d in summaries.values() if isinstance(d, dict)
+                 and d.get("experiment")), run_dir.name)
     body = [f"<h1>{html.escape(str(name))}</h1>"]
     if summary is not None and summary.get("config"):
         body.append(f"<p>Experiment file <code>{html.escape(str(summary['config']))}</code>.</p>")
     if missing:
-        body.append('<div class="missing"><b>Missing from this run folder</b> (an interrupted '
-                    "run?):<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in missing)
+        body.append(f'<div class="missing"><b>Missing from this {kind} run folder</b> (an '
+                    "interrupted run?):<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in missing)
                     + "</ul></div>")
 
     fig, fields = figure(sc)
@@ -262,21 +306,26 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
     if summary is not None:
         body.append("<h2>Regions</h2>" + _regions_table(summary))
         body.append(_json_section("summary.json", summary))
+    before, after = summaries.get("summary_before.json"), summaries.get("summary_after.json")
+    if isinstance(before, dict) and isinstance(after, dict):
+        body.append("<h2>Before and after optimizing</h2>" + _compare_table(before, after))
     for extra in ("summary_before.json", "summary_after.json", "constraints.json"):
         path = run_dir / extra
-        if path.is_file():
-            data = _read_json(path, missing)
-            if data is not None:
-                body.append(f"<h2>{extra}</h2>"
-                            + (_regions_table(data) if "regions" in data else "")
-                            + _json_section(extra, data))
-    if kind == "optimize" and not (run_dir / "convergence.png").is_file():
-        body.append('<p class="missing">convergence.png is missing.</p>')
-    results = run_dir / "results.csv"
-    if results.is_file():
-        with results.open(newline="") as fh:
-            rows = list(csv.DictReader(fh))
-        body.append(f"<h2>results.csv ({len(rows)} rows)</h2>" + _table(rows))
+        data = summaries.get(extra) if extra in summaries else (
+            _read_json(path, missing) if path.is_file() else None)
+        if isinstance(data, dict):
+            body.append(f"<h2>{extra}</h2>" + (_regions_table(data) if "regions" in data else "")
+                        + _json_section(extra, data))
+    for path in sorted(run_dir.glob("*.csv"), key=lambda p: (p.name != "results.csv", p.name)):
+        try:
+            with path.open(newline="") as fh:
+                rows = list(csv.DictReader(fh))
+        except (OSError, csv.Error, UnicodeDecodeError) as exc:
+            body.append(f'<p class="missing">{html.escape(path.name)} unreadable ({exc})</p>')
+            continue
+        shown_rows = "" if len(rows) <= MAX_TABLE_ROWS else f", first {MAX_TABLE_ROWS} shown"
+        body.append(f"<h2>{html.escape(path.name)} ({len(rows)} rows{shown_rows})</h2>"
+                    + _table(rows))
 
     shown = set()
     for title, paths in (("Contact sheet", [run_dir / "contact_sheet.png"]),

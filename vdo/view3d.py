@@ -58,14 +58,16 @@ class Field:
 
 @dataclass
 class Scene3D:
-    """What a run folder holds for a 3D view; `missing` says what could not be read, and why."""
+    """What a run folder holds for a 3D view; `unreadable` says which files could not be read,
+    and why (absent files are the caller's to report: what a folder should hold depends on the
+    command that wrote it)."""
 
     meshes: list = field(default_factory=list)     # (name, role, vertices (V, 3), faces (F, 3))
     cameras: list = field(default_factory=list)    # (name, centre (3,), corners (4, 3))
     lights: list = field(default_factory=list)     # (name, corners (4, 3))
     samples: SurfaceSamples | None = None
     fields: list[Field] = field(default_factory=list)
-    missing: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
 
     def extent(self) -> float:
         """The size of the scene (m): the diagonal of the specimen's (or else everything's) box."""
@@ -140,18 +142,18 @@ def _samples_from_vtp(points: np.ndarray, arrays: dict) -> SurfaceSamples:
 
 
 def load(run_dir) -> Scene3D:
-    """Read config.toml (meshes, lights), layout.json (cameras) and samples.vtp (fields) from a
-    run folder. A missing or unreadable file is noted in `missing`, never raised."""
+    """Read config.toml or optimized.toml (meshes, lights), layout.json (cameras) and samples.vtp
+    (fields) from a run folder, each when present. An unreadable file is noted in `unreadable`,
+    never raised."""
     from .config import load as load_config
     from .lighting import panel_frame
     from .scene import load_meshes
 
     run_dir = Path(run_dir)
     sc = Scene3D()
-    cfg = run_dir / "config.toml"
-    if not cfg.is_file():
-        sc.missing.append("config.toml (meshes and lights are not drawn)")
-    else:
+    cfg = next((p for p in (run_dir / "config.toml", run_dir / "optimized.toml") if p.is_file()),
+               None)
+    if cfg is not None:
         try:
             exp = load_config(cfg)
             for m in load_meshes(exp):
@@ -167,22 +169,18 @@ def load(run_dir) -> Scene3D:
                 sc.lights.append((lt.name, np.array([c + sa * w / 2 * e1 + sb * h / 2 * e2 for sa, sb
                                                      in ((-1, -1), (1, -1), (1, 1), (-1, 1))])))
         except (ConfigError, OSError, ValueError) as exc:
-            sc.missing.append(f"config.toml unreadable or its meshes missing ({exc})")
+            sc.unreadable.append(f"{cfg.name} unreadable or its meshes missing ({exc})")
     points = arrays = None
     vtp_path = run_dir / "samples.vtp"
-    if not vtp_path.is_file():
-        sc.missing.append("samples.vtp (no field is drawn)")
-    else:
+    if vtp_path.is_file():
         try:
             points, arrays = vtp.read_points(vtp_path)
             sc.samples = _samples_from_vtp(points, arrays)
             sc.fields = _fields(arrays)
         except (ValueError, KeyError, OSError) as exc:
-            sc.missing.append(f"samples.vtp unreadable ({exc})")
+            sc.unreadable.append(f"samples.vtp unreadable ({exc})")
     lay = run_dir / "layout.json"
-    if not lay.is_file():
-        sc.missing.append("layout.json (no camera is drawn)")
-    else:
+    if lay.is_file():
         try:
             cams = json.loads(lay.read_text())["cameras"]
             depth = 0.12 * sc.extent()
@@ -190,7 +188,7 @@ def load(run_dir) -> Scene3D:
                 centre, corners = frustum(c["K"], c["R"], c["t"], c["width"], c["height"], depth)
                 sc.cameras.append((str(c["name"]), centre, corners))
         except (ValueError, KeyError, TypeError, np.linalg.LinAlgError) as exc:
-            sc.missing.append(f"layout.json unreadable ({exc})")
+            sc.unreadable.append(f"layout.json unreadable ({exc})")
     return sc
 
 
