@@ -5,6 +5,7 @@ folder gives a report that lists what is missing."""
 import json
 import shutil
 import subprocess
+import textwrap
 
 import cv2
 import numpy as np
@@ -12,7 +13,7 @@ import pytest
 import trimesh
 from PIL import Image
 
-from conftest import DOWN_CAMERA
+from conftest import DOWN_CAMERA, PLATE_TOML, write_box
 from vdo import view3d, vtp
 from vdo.cli import main
 from vdo.html_report import write_report
@@ -23,9 +24,6 @@ CHROMIUM = shutil.which("chromium")
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A two-camera plate evaluated at 25 mm spacing (1,600 samples); evaluate writes the report."""
-    from conftest import PLATE_TOML, write_box
-    import textwrap
-
     folder = tmp_path_factory.mktemp("report")
     write_box(folder / "plate.stl", [1000, 1000, 10], center=[0, 0, -5])
     cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
