@@ -123,6 +123,22 @@ def test_frustum_corners_project_to_the_image_corners_in_opencv(run):
         np.testing.assert_allclose(R @ centre + t, 0, atol=1e-9)
 
 
+def test_cells_from_the_run_folder_are_the_samplers(run):
+    """The 3D view rebuilds each sample's cell from samples.vtp: it matches the cell of the sample
+    as vdo's sampler made it, up to the lift off the face; the static figure shows it."""
+    from vdo import config, maps, scene
+
+    sc = view3d.load(run)
+    exp = config.load(run / "config.toml")
+    samples = scene.sample_regions(exp, scene.load_meshes(exp))
+    lift = 0.1 * np.sqrt(samples.area)[:, None, None] * samples.normals[:, None, :]
+    np.testing.assert_allclose(view3d.cells(sc), maps.cell_corners(samples) + lift, atol=1e-12)
+    assert [c[0] for c in sc.cameras] == ["a", "b"] and sc.unreadable == []
+    rgb = np.asarray(Image.open(run / "maps" / "view3d_coverage.png").convert("RGB")).astype(int)
+    coloured = (rgb.max(axis=-1) - rgb.min(axis=-1)) > 60        # viridis, not grey axes
+    assert coloured.mean() > 0.02
+
+
 def test_vtp_read_back_equals_vtk(run):
     from vtk import vtkXMLPolyDataReader
     from vtk.util.numpy_support import vtk_to_numpy

@@ -73,6 +73,8 @@ def test_every_sample_of_a_regular_grid_is_drawn(plate_samples, tmp_path, discre
     path = tmp_path / "map.png"
     boxes = maps.plot_unfolded(s, values, path, "plate " * 30, "cameras", discrete=discrete)
     rgb = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    band = rgb[: rgb.shape[0] // 6]                 # the title (wrapped): clear of both edges
+    assert (band < 200).any() and (band[:, :3] >= 250).all() and (band[:, -3:] >= 250).all()
     for name in ("gauge_face", "side_face"):
         inner, ring = _inside_and_ring(boxes, name, rgb.shape)
         cells = rgb[inner]

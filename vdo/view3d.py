@@ -129,14 +129,18 @@ def _fields(arrays: dict) -> list[Field]:
 
 
 def _samples_from_vtp(points: np.ndarray, arrays: dict) -> SurfaceSamples:
+    """Samples from samples.vtp: its tangent frames when written, else `face_frame` of each
+    normal (the frame the sampler uses)."""
     normals = np.asarray(arrays["normal"], dtype=float)
-    uniq, inverse = np.unique(np.round(normals, 9), axis=0, return_inverse=True)
-    frames = np.array([face_frame(n / np.linalg.norm(n)) for n in uniq])      # (U, 2, 3)
-    inverse = inverse.reshape(-1)
     n = len(points)
-    return SurfaceSamples(points=np.asarray(points, float), normals=normals,
-                          tangent_u=frames[inverse, 0], tangent_v=frames[inverse, 1],
-                          uv=np.zeros((n, 2)), area=np.asarray(arrays["area"], float),
+    if "tangent_u" in arrays and "tangent_v" in arrays:
+        t_u, t_v = np.asarray(arrays["tangent_u"], float), np.asarray(arrays["tangent_v"], float)
+    else:
+        uniq, inverse = np.unique(np.round(normals, 9), axis=0, return_inverse=True)
+        frames = np.array([face_frame(u / np.linalg.norm(u)) for u in uniq])    # (U, 2, 3)
+        t_u, t_v = frames[inverse.reshape(-1), 0], frames[inverse.reshape(-1), 1]
+    return SurfaceSamples(points=np.asarray(points, float), normals=normals, tangent_u=t_u,
+                          tangent_v=t_v, uv=np.zeros((n, 2)), area=np.asarray(arrays["area"], float),
                           region=np.asarray(arrays.get("region", np.zeros(n, int))),
                           region_names=(), region_importance=np.ones(1))
 
