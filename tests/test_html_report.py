@@ -64,6 +64,9 @@ def test_interrupted_run_says_what_is_missing(run, tmp_path):
     page = write_report(cut).read_text()
     assert "Missing from this evaluate run folder" in page
     assert "layout.json (no camera is drawn)" in page and "samples.vtp unreadable" in page
+    (cut / "extra.json").write_text("{not json")
+    assert "extra.json unreadable" in write_report(cut).read_text()
+    (cut / "extra.json").unlink()
     (cut / "summary.json").unlink()
     (cut / "samples.vtp").unlink()
     page = write_report(cut).read_text()
@@ -95,9 +98,9 @@ def test_optimize_and_sweep_folders(run, tmp_path):
     _png(opt / "convergence.png")
     page = write_report(opt).read_text()
     assert 'class="missing"' not in page and "Before and after optimizing" in page
-    assert "0.9877" in page and "axis_angle" in page
+    assert "0.9877" in page and "axis_angle" in page and "<h2>Cameras</h2>" in page
     assert page.count("<img alt=") == 1 and 'alt="convergence.png"' in page
-    assert "<td>a</td>" not in page and '"a"' in page                  # cameras drawn in 3D
+    assert '"text":["a","b"]' in page and "<td>a</td>" in page       # cameras: 3D and table
     (opt / "convergence.png").unlink()
     assert "convergence.png (no convergence figure)" in write_report(opt).read_text()
 

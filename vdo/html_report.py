@@ -195,6 +195,8 @@ def _regions_table(summary: dict) -> str:
     return _table(rows)
 
 
+SHOWN_JSON = ("summary.json", "summary_before.json", "summary_after.json", "constraints.json",
+              "layout.json")
 COMPARED = (("sigma_max_um", "p95", "σ_max p95 (µm)"), ("sigma_max_um", "max", "σ_max max (µm)"),
             ("seen_by_2_or_more", None, "seen by ≥ 2"), ("unmeasured_fraction", None, "unmeasured"))
 
@@ -278,15 +280,11 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
                  if (run_dir / f).is_file()}
     summary = summaries.get("summary.json")
     name = next((d.get("experiment") for d in summaries.values() if isinstance(d, dict)
-                 and d.get("experiment")), run_dir.name)
+                 and d.get("experiment")), sc.name or run_dir.name)
     body = [f"<h1>{html.escape(str(name))}</h1>"]
     if summary is not None and summary.get("config"):
         body.append(f"<p>Experiment file <code>{html.escape(str(summary['config']))}</code>.</p>")
-    if missing:
-        body.append(f'<div class="missing"><b>Missing from this {kind} run folder</b> (an '
-                    "interrupted run?):<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in missing)
-                    + "</ul></div>")
-
+    top = len(body)                       # the list of missing files goes here, once complete
     fig, fields = figure(sc)
     if fig.data:
         options = "".join(f'<option value="{k}">{html.escape(f["label"])}</option>'
@@ -306,6 +304,12 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
     if summary is not None:
         body.append("<h2>Regions</h2>" + _regions_table(summary))
         body.append(_json_section("summary.json", summary))
+    layout = run_dir / "layout.json"
+    cams = _read_json(layout, []) if layout.is_file() else None
+    if isinstance(cams, dict) and isinstance(cams.get("cameras"), list):
+        body.append("<h2>Cameras</h2>" + _table([{k: v for k, v in c.items() if k not in ("K", "R", "t")}
+                                                 for c in cams["cameras"] if isinstance(c, dict)],
+                                                str(cams.get("convention", ""))))
     before, after = summaries.get("summary_before.json"), summaries.get("summary_after.json")
     if isinstance(before, dict) and isinstance(after, dict):
         body.append("<h2>Before and after optimizing</h2>" + _compare_table(before, after))
@@ -316,6 +320,11 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
         if isinstance(data, dict):
             body.append(f"<h2>{extra}</h2>" + (_regions_table(data) if "regions" in data else "")
                         + _json_section(extra, data))
+    for path in sorted(run_dir.glob("*.json")):
+        if path.name not in SHOWN_JSON:
+            data = _read_json(path, missing)
+            if data is not None:
+                body.append(f"<h2>{html.escape(path.name)}</h2>" + _json_section(path.name, data))
     for path in sorted(run_dir.glob("*.csv"), key=lambda p: (p.name != "results.csv", p.name)):
         try:
             with path.open(newline="") as fh:
@@ -337,6 +346,10 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
             body.append(f"<h2>{title}</h2>" + "".join(_image(p, p.relative_to(run_dir).as_posix())
                                                      for p in imgs))
             shown.update(imgs)
+    if missing:
+        body.insert(top, f'<div class="missing"><b>Missing from this {kind} run folder</b> (an '
+                    "interrupted run?):<ul>" + "".join(f"<li>{html.escape(m)}</li>" for m in missing)
+                    + "</ul></div>")
     page = ("<!DOCTYPE html><html><head><meta charset=\"utf-8\">"
             f"<title>vdo report: {html.escape(str(name))}</title><style>{_STYLE}</style></head>"
             f"<body>{''.join(body)}</body></html>")

@@ -62,6 +62,7 @@ class Scene3D:
     and why (absent files are the caller's to report: what a folder should hold depends on the
     command that wrote it)."""
 
+    name: str = ""                                 # the experiment's name, from its config
     meshes: list = field(default_factory=list)     # (name, role, vertices (V, 3), faces (F, 3))
     cameras: list = field(default_factory=list)    # (name, centre (3,), corners (4, 3))
     lights: list = field(default_factory=list)     # (name, corners (4, 3))
@@ -160,6 +161,7 @@ def load(run_dir) -> Scene3D:
     if cfg is not None:
         try:
             exp = load_config(cfg)
+            sc.name = exp.name
             for m in load_meshes(exp):
                 v, f = m.vertices, m.faces
                 if m.role != "specimen" and len(f) > MAX_OBSTACLE_FACES:
