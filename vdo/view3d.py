@@ -112,7 +112,8 @@ def decimate(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[n
 
 def _fields(arrays: dict) -> list[Field]:
     """The fields of samples.vtp worth colouring by, in a fixed order: coverage, σ_max, σ per axis,
-    sensitivity per axis, then any strain σ (names with 'strain' or 'eps')."""
+    sensitivity per axis, any strain σ (names with 'strain' or 'eps'), then what each camera sees
+    (visible_<camera>)."""
     out = []
     if "coverage" in arrays:
         out.append(Field("coverage", "cameras that see the point", arrays["coverage"], "viridis", True))
@@ -126,6 +127,10 @@ def _fields(arrays: dict) -> list[Field]:
         out.append(Field(n, f"{n} (mpixel/µm)", arrays[n], "viridis"))
     for n in strain:
         out.append(Field(n, f"{n} (µε)", arrays[n], "magma_r"))
+    for n in names:
+        if n.startswith("visible_"):
+            out.append(Field(n, f"seen by {n[len('visible_'):]} (1: yes)",
+                             arrays[n].astype(np.int32), "cividis", True))
     return [f for f in out if f.values.ndim == 1]
 
 
