@@ -69,7 +69,9 @@ def test_interrupted_run_says_what_is_missing(run, tmp_path):
     (cut / "extra.json").unlink()
     (cut / "summary.json").unlink()
     (cut / "samples.vtp").unlink()
-    page = write_report(cut).read_text()
+    assert main(["report", str(cut)]) == 0
+    assert main(["report", str(tmp_path / "nowhere")]) == 2
+    page = (cut / "report.html").read_text()
     assert "summary.json (no region table)" in page and "samples.vtp (no field is drawn)" in page
 
 

@@ -29,7 +29,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
-from scipy.spatial import ConvexHull  # noqa: E402
+from scipy.spatial import ConvexHull, QhullError  # noqa: E402
 
 from .scene import SurfaceSamples  # noqa: E402
 
@@ -197,7 +197,7 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
         corners = cells[mask].reshape(-1, 2)
         try:
             ring = corners[ConvexHull(corners).vertices]
-        except Exception:                                  # degenerate (a line of samples)
+        except QhullError:                                 # degenerate (a line of samples)
             ring = corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]]
         hulls[name] = ring
         axes.add_patch(plt.Polygon(ring, closed=True, fill=False, lw=0.6, ec="0.15", ls="--"))
