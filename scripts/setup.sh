@@ -44,6 +44,17 @@ if ! have_llvm; then
   fi
 fi
 
+# --- Chromium for the report test ------------------------------------------------------
+# tests/test_html_report.py opens report.html in headless Chromium (skipped without it).
+if ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "vdo setup: installing chromium (the report test opens report.html in it)"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium
+  else
+    echo "vdo setup: no chromium; the report test will be skipped (as root: apt-get install -y chromium)" >&2
+  fi
+fi
+
 # --- virtual environment -----------------------------------------------------------------
 if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv

@@ -136,6 +136,8 @@ def main(argv=None) -> int:
     ex.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
                     help="stereo pairs (default: every pair that shares a field of view)")
     ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    rp = sub.add_parser("report", help="write RUN_DIR/report.html (3D view, tables, figures)")
+    rp.add_argument("run_dir", help="a run folder written by vdo")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -152,6 +154,12 @@ def main(argv=None) -> int:
             _optimize(args)
         elif args.command == "export":
             _export(args)
+        elif args.command == "report":
+            from .html_report import write_report
+
+            if not Path(args.run_dir).is_dir():
+                raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
+            print(f"wrote {write_report(args.run_dir).resolve()}")
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "

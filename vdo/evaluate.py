@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import maps, report, vtp
+from . import html_report, maps, report, vtp
 from .config import Experiment
 from .runfolder import run_folder
 from .state import LayoutState, layout_state, prepare
@@ -60,19 +60,17 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
         maps.plot_unfolded(samples, vis.coverage, tmp / "maps" / "coverage.png",
                            f"{exp.name}: number of cameras that see each point", "cameras",
                            discrete=True)
-        top = np.nanpercentile(sens, 99) if np.isfinite(sens).any() else 1.0
         for k, a in enumerate("xyz"):
             maps.plot_unfolded(samples, sens[:, k], tmp / "maps" / f"sensitivity_{a}.png",
                                f"{exp.name}: global sensitivity along {a.upper()}",
-                               "mpixel/µm", vmin=0, vmax=top)
+                               "mpixel/µm")
         if np.isfinite(sigma_um).any():
-            hi = np.nanpercentile(sigma_um, 98)
             maps.plot_unfolded(samples, sigma_um, tmp / "maps" / "sigma_max.png",
                                f"{exp.name}: displacement uncertainty, worst direction "
-                               "(white: < 2 usable views)", "σ_max (µm)", cmap="magma_r",
-                               vmin=0, vmax=hi)
+                               "(grey: < 2 usable views)", "σ_max (µm)", cmap="magma_r")
             for k, a in enumerate("xyz"):
                 maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
                                    f"{exp.name}: displacement uncertainty along {a.upper()}",
-                                   "σ (µm)", cmap="magma_r", vmin=0, vmax=hi)
+                                   "σ (µm)", cmap="magma_r")
+        html_report.write_report(tmp)
     return summary

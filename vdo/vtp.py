@@ -71,3 +71,42 @@ def write_points(path, points: np.ndarray, arrays: dict[str, np.ndarray]) -> Non
         for block in blocks:
             fh.write(block)
         fh.write(b"\n</AppendedData>\n</VTKFile>\n")
+
+
+_NUMPY_TYPES = {v: k for k, v in _VTK_TYPES.items()}
+
+
+def read_points(path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read a .vtp file written by `write_points`: points (N, 3) and the point arrays by name.
+    Raises ValueError when the file is not such a file (e.g. cut short by an interrupted run)."""
+    import re
+
+    data = Path(path).read_bytes()
+    head, sep, body = data.partition(b'<AppendedData encoding="raw">\n_')
+    if not sep:
+        raise ValueError(f"{Path(path).name}: no appended raw data block")
+    tags = re.findall(rb"<DataArray ([^>]*)/>", head)
+
+    def block(offset: int, dtype: np.dtype) -> np.ndarray:
+        if offset + 4 > len(body):
+            raise ValueError(f"{Path(path).name}: truncated")
+        (size,) = struct.unpack_from("<I", body, offset)
+        if offset + 4 + size > len(body):
+            raise ValueError(f"{Path(path).name}: truncated")
+        return np.frombuffer(body, dtype=dtype.newbyteorder("<"), count=size // dtype.itemsize,
+                             offset=offset + 4)
+
+    points, arrays = None, {}
+    for tag in tags:
+        attrs = dict(re.findall(r'(\w+)="([^"]*)"', tag.decode()))
+        values = block(int(attrs["offset"]), _NUMPY_TYPES[attrs["type"]])
+        comps = int(attrs.get("NumberOfComponents", 1))
+        values = values.reshape(-1, comps) if comps > 1 else values
+        name = attrs.get("Name")
+        if name is None:
+            points = values
+        elif name not in ("connectivity", "offsets"):
+            arrays[name] = values
+    if points is None:
+        raise ValueError(f"{Path(path).name}: no points")
+    return points, arrays
