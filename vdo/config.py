@@ -288,6 +288,7 @@ class File(Kind):
 
     suffixes: tuple[str, ...]
     what: str
+    kinds: str
     magic: bool = False
     doc = "path"
 
@@ -297,11 +298,11 @@ class File(Kind):
         path = (base / value).resolve()
         if not path.is_file():
             raise _Bad(f"{self.what} file {str(path)!r} does not exist; give a path to "
-                       f"{_either(self.suffixes)} file, relative to the config file")
+                       f"{self.kinds} file, relative to the config file")
         if not os.access(path, os.R_OK):
             raise _Bad(f"{self.what} file {str(path)!r} is not readable")
         if path.suffix.lower() not in self.suffixes:
-            raise _Bad(f"{path.name!r} is not {_either(self.suffixes)} file")
+            raise _Bad(f"{path.name!r} is not {self.kinds} file (by its suffix)")
         if self.magic:
             with open(path, "rb") as fh:
                 head = fh.read(8)
@@ -312,11 +313,6 @@ class File(Kind):
 
     def write(self, value, scale):
         return str(value)
-
-
-def _either(suffixes) -> str:
-    names = [s.lstrip(".").upper() for s in suffixes]
-    return "an " + (", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1 else names[0])
 
 
 # --------------------------------------------------------------------------------------------
@@ -407,7 +403,7 @@ class MeshSpec:
     """A mesh file and how it looks: diffuse paint of `albedo`, or bare metal when `metal`."""
 
     name: str = row("name", Text(name=True), doc="unique")
-    path: Path = row("file", File((".stl", ".obj", ".ply"), "mesh"), doc="STL, OBJ or PLY")
+    path: Path = row("file", File((".stl", ".obj", ".ply"), "mesh", "an STL, OBJ or PLY"), doc="STL, OBJ or PLY")
     unit: str = row("unit", Text(choices=tuple(UNITS)), "m", doc="unit of the file's coordinates")
     role: str = row("role", Text(choices=ROLES), "obstacle",
                     doc="regions of interest lie on specimen meshes; every mesh occludes")
@@ -544,7 +540,7 @@ class SpeckleSpec:
                            doc="the pattern tile repeats seamlessly every tile_texels × texel_mm")
     seed: int = row("seed", Whole(low=0), 1, doc="random seed of the pattern")
     image: Path | None = row("image", File((".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"), "pattern",
-                                           magic=True), None, shown="none",
+                                           "an image (PNG, JPEG, TIFF or BMP)", magic=True), None, shown="none",
                              doc="a photo of a real pattern instead (at texel_mm per pixel)")
     white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
     black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,

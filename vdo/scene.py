@@ -51,6 +51,8 @@ def load_meshes(exp: Experiment) -> list[SceneMesh]:
         loaded = _read_mesh(spec.path, (exp.path, field))
         vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
         faces = np.asarray(loaded.faces, dtype=np.int64)
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
         if not np.all(np.isfinite(vertices)):
             raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
         _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
