@@ -109,7 +109,7 @@ class Text(Kind):
             raise _Bad(f"must be one of {', '.join(self.choices)} (got {_show(value)})")
         if self.name and not re.fullmatch(NAME_PATTERN, value):
             raise _Bad(f"{NAME_RULE} (got {_show(value)})")
-        if any(ord(c) < 32 or ord(c) == 127 for c in value):
+        if (self.name or self.title) and not value.isprintable():
             raise _Bad(f"must not contain control characters (got {_show(value)})")
         if self.title and (len(value) > 200 or "/" in value or "\\" in value):
             raise _Bad(f"must be a title of at most 200 characters without '/' or '\\' (got {_show(value)})")
