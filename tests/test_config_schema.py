@@ -50,7 +50,7 @@ def folder(tmp_path_factory):
     return path
 
 
-@settings(max_examples=150, deadline=None, derandomize=True,
+@settings(max_examples=100, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(doc=documents())
 def test_generated_experiments_round_trip(folder, doc):

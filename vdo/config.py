@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import os
 import re
@@ -379,12 +380,14 @@ def table(key, cls, *, array=False, required=False, check=None, extra=(), rows=N
                                                                   tuple(extra), rows, doc)})
 
 
+@functools.cache
 def rows_of(cls) -> tuple[Row, ...]:
     """The schema rows of a dataclass, in field order, with `attr` filled in."""
     return tuple(replace(f.metadata["vdo.row"], attr=f.name) for f in dataclasses.fields(cls)
                  if "vdo.row" in f.metadata)
 
 
+@functools.cache
 def sections() -> tuple[Section, ...]:
     """The tables of an experiment file (besides [experiment]), in `Experiment` field order."""
     out = []
