@@ -90,15 +90,15 @@ def mutated(draw):
         node, key = draw(st.sampled_from(places))
         action = draw(st.sampled_from(["junk", "near", "scale", "delete", "unknown"]))
         if action == "junk":
-            node[key] = draw(JUNK)
+            node[key] = copy.deepcopy(draw(JUNK))
         elif action == "near":
-            node[key] = draw(NEAR)
+            node[key] = copy.deepcopy(draw(NEAR))      # the constants must stay as they are
         elif action == "scale" and isinstance(node[key], (int, float)) and not isinstance(node[key], bool):
             node[key] = node[key] * draw(st.sampled_from([-1, 0, 1e-3, 1e3, 1e9, 0.5]))
         elif action == "delete":
             del node[key]
         elif action == "unknown" and isinstance(node[key], dict):
-            node[key][draw(st.text(min_size=1, max_size=12))] = draw(JUNK)
+            node[key][draw(st.text(min_size=1, max_size=12))] = copy.deepcopy(draw(JUNK))
     return doc
 
 

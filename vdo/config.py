@@ -1,7 +1,7 @@
 """The experiment file: one schema table drives reading, writing and docs/config.md.
 
 One TOML file describes one experiment. Lengths are metres unless a field's name says otherwise
-(``_mm``, ``_um``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are
+(``_mm``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are
 read with the unit they declare. Relative paths are relative to the TOML file.
 
 The schema is the table of `Row`s attached to the fields of the parsed dataclasses (`Experiment`,
@@ -41,12 +41,13 @@ ROLES = ("specimen", "obstacle")
 NAME_PATTERN = r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}"   # names that become parts of file names
 NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not starting with '.' or "
              "'-'; at most 64 characters), as it names output files")
-MAX_CAMERA_PIXELS = 100e6          # per camera: above this a render cannot fit in memory
+MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float image)
 FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
+MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
 COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
 IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
                b"MM\x00*": "TIFF", b"BM": "BMP"}
-_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "um": 1e-6, "deg": math.pi / 180.0}
+_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
 _SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
 
 
@@ -56,7 +57,6 @@ class _Required:
 
 
 REQUIRED = _Required()
-_REQUIRED = REQUIRED            # the legacy name used by `Table.raw`
 
 
 class _Bad(Exception):
@@ -207,6 +207,8 @@ class Vector(Kind):
         if not ok:
             raise _Bad(f"must be a list of {self.length} {'finite ' if self.finite else ''}numbers "
                        f"(got {_show(value)})")
+        if not self.whole and any(math.isfinite(x) and abs(x) > MAX_COORDINATE for x in value):
+            raise _Bad(f"has a value beyond ±{MAX_COORDINATE:g} (got {_show(value)})")
         if self.positive and any(x <= 0 for x in value):
             raise _Bad(f"must be positive (got {_show(value)})")
         if self.as_tuple:
@@ -228,10 +230,12 @@ class Points(Kind):
 
     def read(self, value, scale, base):
         ok = isinstance(value, list) and len(value) >= self.minimum and all(
-            isinstance(p, list) and len(p) == 3 and all(_is_number(x) and math.isfinite(x) for x in p)
+            isinstance(p, list) and len(p) == 3 and all(_is_number(x) and math.isfinite(x)
+                                                        and abs(x) <= MAX_COORDINATE for x in p)
             for p in value)
         if not ok:
-            raise _Bad(f"must be a list of at least {self.minimum} [x, y, z] points in metres")
+            raise _Bad(f"must be a list of at least {self.minimum} [x, y, z] points in metres "
+                       f"(each coordinate within ±{MAX_COORDINATE:g})")
         return np.array(value, dtype=float) * scale
 
     def write(self, value, scale):
@@ -276,6 +280,9 @@ class Words(Kind):
                 raise _Bad(f"must list some of {', '.join(self.choices)} (got {_show(value)})")
         elif not ok:
             raise _Bad(f"must be a {'non-empty ' if self.nonempty else ''}list of {self.what}")
+        twice = sorted({x for x in value if value.count(x) > 1})
+        if twice:
+            raise _Bad(f"lists {', '.join(map(repr, twice))} more than once")
         return tuple(value)
 
     def write(self, value, scale):
@@ -1015,7 +1022,7 @@ _DOC_HEAD = """\
 <!-- Generated from the schema in vdo/config.py by scripts/config_docs.py; do not edit by hand. -->
 
 One TOML file (UTF-8) describes one experiment. Lengths are **metres** unless the field's name says
-`_mm` or `_um`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
+`_mm`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
 Every field is checked before any work starts; an unknown field is an error (with the nearest
 known name). Names of meshes, regions, rails, cameras and lights become parts of file names: they
 must match `{pattern}` (letters, digits, `_`, `.`, `-`; at most 64 characters).
@@ -1043,7 +1050,7 @@ def _doc_table(title: str, rows, doc: str) -> str:
     for r in rows:
         default = r.shown or ("required" if r.default is REQUIRED else
                               "none" if r.default is None else _doc_value(r.default))
-        unit = {"deg": "°", "um": "µm"}.get(r.unit, r.unit)
+        unit = "°" if r.unit == "deg" else r.unit
         lines.append(f"| `{r.key}` | {r.kind.doc} | {unit} | {default} | {r.doc} |")
     return "\n".join(lines) + "\n"
 

@@ -120,11 +120,12 @@ def _check_extent(vertices: np.ndarray, spec, where) -> None:
                       + (f"; {hints[0]}" if hints else "; check the file's unit"))
 
 
-def _first_hits(origins: np.ndarray, directions: np.ndarray, triangles: np.ndarray,
-                chunk: int = 100_000) -> tuple[np.ndarray, np.ndarray]:
+def _first_hits(origins: np.ndarray, directions: np.ndarray,
+                triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance to the nearest triangle along each ray (inf: none) and whether that triangle's
     normal (right-hand winding) points along the ray (a back face seen from inside). Rays (R, 3),
-    triangles (T, 3, 3); Moller-Trumbore in NumPy, triangles in chunks."""
+    triangles (T, 3, 3); Moller-Trumbore in NumPy, triangles in chunks of ~2 M ray-triangle pairs."""
+    chunk = max(1000, 2_000_000 // len(origins))
     best = np.full(len(origins), np.inf)
     back = np.zeros(len(origins), dtype=bool)
     for start in range(0, len(triangles), chunk):
@@ -159,16 +160,15 @@ def _check_cameras_outside(exp: Experiment, meshes: list[SceneMesh]) -> None:
     dirs = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], dtype=float) - 1.0
     dirs = dirs[np.count_nonzero(dirs, axis=1) != 2]                   # 6 axes + 8 diagonals
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    origins = np.repeat(positions, len(dirs), axis=0)
-    rays = np.tile(dirs, (len(positions), 1))
     for mesh in meshes:
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-        near = np.all((positions >= lo) & (positions <= hi), axis=1)
-        if not near.any():
+        near = np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
+        if not len(near):
             continue
-        dist, back = _first_hits(origins, rays, mesh.vertices[mesh.faces])
-        inside = (np.isfinite(dist) & back).reshape(len(positions), len(dirs)).all(axis=1) & near
-        for i in np.flatnonzero(inside):
+        origins = np.repeat(positions[near], len(dirs), axis=0)
+        dist, back = _first_hits(origins, np.tile(dirs, (len(near), 1)), mesh.vertices[mesh.faces])
+        inside = (np.isfinite(dist) & back).reshape(len(near), len(dirs)).all(axis=1)
+        for i in near[inside]:
             spec = exp.camera_specs[i]
             raise ConfigError(exp.path, f'camera "{spec.name}"',
                               f"its optical centre {np.round(positions[i], 4).tolist()} m lies inside "
