@@ -120,57 +120,31 @@ def _check_extent(vertices: np.ndarray, spec, where) -> None:
                       + (f"; {hints[0]}" if hints else "; check the file's unit"))
 
 
-def _first_hits(origins: np.ndarray, directions: np.ndarray,
-                triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance to the nearest triangle along each ray (inf: none) and whether that triangle's
-    normal (right-hand winding) points along the ray (a back face seen from inside). Rays (R, 3),
-    triangles (T, 3, 3); Moller-Trumbore in NumPy, triangles in chunks of ~2 M ray-triangle pairs."""
-    chunk = max(1000, 2_000_000 // len(origins))
-    best = np.full(len(origins), np.inf)
-    back = np.zeros(len(origins), dtype=bool)
-    for start in range(0, len(triangles), chunk):
-        tri = triangles[start:start + chunk]
-        a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        p = np.cross(directions[:, None], e2[None])                     # (R, T, 3)
-        det = np.einsum("rtk,tk->rt", p, e1)
-        ok = np.abs(det) > 1e-18
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        s = origins[:, None] - a[None]
-        u = np.einsum("rtk,rtk->rt", s, p) * inv
-        q = np.cross(s, e1[None])
-        v = np.einsum("rk,rtk->rt", directions, q) * inv
-        t = np.einsum("tk,rtk->rt", e2, q) * inv
-        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 1e-9)
-        t = np.where(hit, t, np.inf)
-        j = np.argmin(t, axis=1)
-        tj = t[np.arange(len(t)), j]
-        closer = tj < best
-        normal = np.cross(e1[j], e2[j])
-        back = np.where(closer, np.einsum("rk,rk->r", normal, directions) > 0, back)
-        best = np.where(closer, tj, best)
-    return best, back
-
-
 def _check_cameras_outside(exp: Experiment, meshes: list[SceneMesh]) -> None:
-    """ConfigError when a camera's optical centre lies inside a mesh: every one of 14 rays from it
-    (axes and diagonals) first meets a mesh from behind (the inside of a closed surface)."""
+    """ConfigError when a camera's optical centre lies inside a mesh: each of 14 rays from it (axes
+    and diagonals) first meets the mesh from behind (geometric normal, by the faces' winding, along
+    the ray), as from inside a closed surface. Only meshes whose bounding box holds a camera are
+    ray-cast (Mitsuba)."""
     if not exp.camera_specs:
         return
     positions = np.array(camera_positions(exp))
-    dirs = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], dtype=float) - 1.0
-    dirs = dirs[np.count_nonzero(dirs, axis=1) != 2]                   # 6 axes + 8 diagonals
+    dirs = np.array(list(np.ndindex(3, 3, 3)), dtype=float) - 1.0
+    dirs = dirs[np.isin(np.count_nonzero(dirs, axis=1), (1, 3))]       # 6 axes + 8 diagonals
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     for mesh in meshes:
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
         near = np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
         if not len(near):
             continue
-        origins = np.repeat(positions[near], len(dirs), axis=0)
-        dist, back = _first_hits(origins, np.tile(dirs, (len(near), 1)), mesh.vertices[mesh.faces])
-        inside = (np.isfinite(dist) & back).reshape(len(near), len(dirs)).all(axis=1)
-        for i in near[inside]:
-            spec = exp.camera_specs[i]
-            raise ConfigError(exp.path, f'camera "{spec.name}"',
+        mi = mitsuba()
+        origins, directions = np.repeat(positions[near], len(dirs), axis=0), np.tile(dirs, (len(near), 1))
+        ray = mi.Ray3f(mi.Point3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in origins.T)),
+                       mi.Vector3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in directions.T)))
+        hit = build_scene([mesh]).ray_intersect(ray)
+        normal = np.stack([np.asarray(c, dtype=float) for c in (hit.n.x, hit.n.y, hit.n.z)], axis=1)
+        back = np.asarray(hit.is_valid(), dtype=bool) & (np.einsum("rk,rk->r", normal, directions) > 0)
+        for i in near[back.reshape(len(near), len(dirs)).all(axis=1)]:
+            raise ConfigError(exp.path, f'camera "{exp.camera_specs[i].name}"',
                               f"its optical centre {np.round(positions[i], 4).tolist()} m lies inside "
                               f"mesh {mesh.name!r}: move the camera out (position_m, or rail u / offset_m)")
 
