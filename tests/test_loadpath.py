@@ -52,7 +52,7 @@ step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg
 
 
 @pytest.mark.parametrize("text, where, words", [
-    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,platform,0,0,0,0,0,0", "row 2", "not a [[load_path.group]]"),
+    ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,platform,0,0,0,0,0,0", "row 2", "neither a [[group]] nor a [[mesh]]"),
     ("step,group,x_mm,y_mm,rx_deg,ry_deg,rz_deg\n1,top,0,0,0,0,0", "column z", "z_<unit>"),
     ("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n1,top,0,abc,0,0,0,0", "row 2", "expected a number"),
     ("step,group,x_mm,y_mm,z_mm,rx_rad,ry_rad,rz_rad\n1,top,0,0,0,0,0,20", "row 2", "in degrees"),

@@ -87,7 +87,7 @@ HEADER = "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
 
 @pytest.mark.parametrize("text,message", [
     (HEADER + "1,plate,nan,0,0,0,0,0\n", "row 2: column x_mm: nan is not finite"),
-    (HEADER + "1,beam,1,0,0,0,0,0\n", "row 2: group 'beam' is not a [[load_path.group]]"),
+    (HEADER + "1,beam,1,0,0,0,0,0\n", "row 2: group 'beam' is neither a [[group]] nor a [[mesh]]"),
     ("step,group,ux_mm\n1,plate,1\n", "column x: needs exactly one column x_<unit>"),
     (HEADER + "0,plate,1,0,0,0,0,0\n", "row 2: step must be a whole number >= 1"),
     (HEADER + "1,plate,1,0,0,0,0,0\n1,plate,2,0,0,0,0,0\n", "row 3: a second pose for group 'plate'"),

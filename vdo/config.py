@@ -1,49 +1,424 @@
-"""The experiment file: TOML schema, validation, units and defaults.
+"""The experiment file: one schema table drives reading, writing and docs/config.md.
 
 One TOML file describes one experiment. Lengths are metres unless a field's name says otherwise
-(``_mm``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are read with
-the unit they declare. Relative paths are relative to the TOML file.
+(``_mm``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are
+read with the unit they declare. Relative paths are relative to the TOML file.
+
+The schema is the table of `Row`s attached to the fields of the parsed dataclasses (`Experiment`,
+`CameraSpec`, ...): each row gives the TOML key, its type (a `Kind`: check + conversion), the unit
+in the file, the default and the documentation. The same rows read a file (`parse`), write one back
+(`Experiment.to_dict`, so ``parse(e.to_dict()) == e``) and generate docs/config.md (`markdown`).
+Defaults live in the rows only. Adding a field is one `row(...)` line in its dataclass; adding a table
+is one dataclass plus one `table(...)` line in `Experiment`; checks that involve several fields of a
+table go in the table's `check` function, checks across tables in `_check_references`.
 
 Everything is validated before any work starts. A user mistake raises `ConfigError` naming the file,
-the field (``camera "cam3".focal_mm``) and what is expected. See docs/config.md for the schema.
+the field (``camera "cam3".focal_mm``) and what is expected. This module imports only NumPy and the
+light `sensor` module, so a config error comes before any heavy import (JAX, Mitsuba).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
-from .camera import Camera, look_at_angles
 from .errors import ConfigError
-from .rail import Rail
 from .sensor import SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 ROLES = ("specimen", "obstacle")
-_REQUIRED = object()
+NAME_PATTERN = r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}"   # names that become parts of file names
+NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not starting with '.' or "
+             "'-'; at most 64 characters), as it names output files")
+MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float image)
+FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
+MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
+COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
+IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
+               b"MM\x00*": "TIFF", b"BM": "BMP"}
+_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
+_SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
+
+
+class _Required:
+    def __repr__(self):
+        return "required"
+
+
+REQUIRED = _Required()
+
+
+class _Bad(Exception):
+    """A value that does not fit its Kind; `Table` turns it into a ConfigError naming the field."""
 
 
 # --------------------------------------------------------------------------------------------
-# Validated pieces
+# Kinds: how one TOML value is checked, converted to the attribute value and written back.
+# `scale` converts file units to SI (mm -> m, deg -> rad); ranges are in file units.
+# --------------------------------------------------------------------------------------------
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _tidy(x: float) -> float:
+    return float(f"{x:.{_SIGNIFICANT}g}")
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+class Kind:
+    doc = ""
+
+    def read(self, value, scale: float, base: Path):
+        raise NotImplementedError
+
+    def write(self, value, scale: float):
+        return value
+
+
+@dataclass(frozen=True)
+class Text(Kind):
+    """A string: one of `choices`, a name (NAME_PATTERN) or free text without control characters."""
+
+    choices: tuple[str, ...] | None = None
+    name: bool = False
+    empty: bool = False
+    title: bool = False
+
+    @property
+    def doc(self):
+        return ", ".join(self.choices) if self.choices else ("name" if self.name else "string")
+
+    def read(self, value, scale, base):
+        if not isinstance(value, str) or not (value or self.empty):
+            raise _Bad(f"must be a{'' if self.empty else ' non-empty'} string (got {_show(value)})")
+        if self.choices is not None and value not in self.choices:
+            raise _Bad(f"must be one of {', '.join(self.choices)} (got {_show(value)})")
+        if self.name and not re.fullmatch(NAME_PATTERN, value):
+            raise _Bad(f"{NAME_RULE} (got {_show(value)})")
+        if (self.name or self.title) and not value.isprintable():
+            raise _Bad(f"must not contain control characters (got {_show(value)})")
+        if self.title and (len(value) > 200 or "/" in value or "\\" in value):
+            raise _Bad(f"must be a title of at most 200 characters without '/' or '\\' (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Flag(Kind):
+    doc = "true/false"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, bool):
+            raise _Bad(f"must be true or false (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Real(Kind):
+    """A finite number; `positive`, then [low, high] (file units; `why` explains the range)."""
+
+    low: float | None = None
+    high: float | None = None
+    positive: bool = False
+    why: str = ""
+
+    @property
+    def doc(self):
+        if self.low is not None and self.high is not None:
+            return f"{self.low:g} to {self.high:g}"
+        if self.low is not None:
+            return f"≥ {self.low:g}"
+        return "> 0" if self.positive else "number"
+
+    def read(self, value, scale, base):
+        if not _is_number(value) or not math.isfinite(value):
+            raise _Bad(f"must be a finite number (got {_show(value)})")
+        if self.positive and value <= 0:
+            raise _Bad(f"must be positive (got {_show(value)})")
+        if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+            raise _Bad(f"must lie in [{self.low}, {self.high}] (got {_show(value)})"
+                       + (f": {self.why}" if self.why else ""))
+        return float(value) * scale
+
+    def write(self, value, scale):
+        return _tidy(value / scale)
+
+
+@dataclass(frozen=True)
+class Whole(Kind):
+    """A TOML integer (not a float, not a boolean) in [low, high]."""
+
+    low: int | None = None
+    high: int | None = None
+
+    @property
+    def doc(self):
+        if self.high is not None:
+            return f"integer {self.low}–{self.high}"
+        return f"integer ≥ {self.low}" if self.low is not None else "integer"
+
+    def read(self, value, scale, base):
+        bad = isinstance(value, bool) or not isinstance(value, int)
+        if bad or (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+            bounds = f" >= {self.low}" if self.high is None else f" in {self.low}..{self.high}"
+            raise _Bad(f"must be an integer{bounds if self.low is not None else ''} (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Vector(Kind):
+    """A list of `length` numbers: an array in SI units, or a tuple when `as_tuple`. `whole`:
+    TOML integers; `finite=False` admits ±inf (never NaN)."""
+
+    length: int
+    positive: bool = False
+    whole: bool = False
+    finite: bool = True
+    as_tuple: bool = False
+    letters: str = ""
+
+    @property
+    def doc(self):
+        return f"[{', '.join(self.letters)}]" if self.letters else f"{self.length} numbers"
+
+    def read(self, value, scale, base):
+        if self.whole:
+            ok = isinstance(value, list) and len(value) == self.length and all(
+                isinstance(x, int) and not isinstance(x, bool) for x in value)
+            if not ok:
+                raise _Bad(f"must be {self.length} whole numbers [{', '.join(self.letters)}] "
+                           f"(got {_show(value)})")
+        ok = isinstance(value, list) and len(value) == self.length and all(
+            _is_number(x) and not math.isnan(x) and (math.isfinite(x) or not self.finite) for x in value)
+        if not ok:
+            raise _Bad(f"must be a list of {self.length} {'finite ' if self.finite else ''}numbers "
+                       f"(got {_show(value)})")
+        if not self.whole and any(math.isfinite(x) and abs(x) > MAX_COORDINATE for x in value):
+            raise _Bad(f"has a value beyond ±{MAX_COORDINATE:g} (got {_show(value)})")
+        if self.positive and any(x <= 0 for x in value):
+            raise _Bad(f"must be positive (got {_show(value)})")
+        if self.as_tuple:
+            return tuple(value) if self.whole else tuple(float(x) * scale for x in value)
+        return np.array(value, dtype=float) * scale
+
+    def write(self, value, scale):
+        if self.whole:
+            return list(value)
+        return [_tidy(float(x) / scale) for x in value]
+
+
+@dataclass(frozen=True)
+class Points(Kind):
+    """A list of at least `minimum` [x, y, z] points: an (n, 3) array."""
+
+    minimum: int = 2
+    doc = "[[x, y, z], …]"
+
+    def read(self, value, scale, base):
+        ok = isinstance(value, list) and len(value) >= self.minimum and all(
+            isinstance(p, list) and len(p) == 3 and all(_is_number(x) and math.isfinite(x)
+                                                        and abs(x) <= MAX_COORDINATE for x in p)
+            for p in value)
+        if not ok:
+            raise _Bad(f"must be a list of at least {self.minimum} [x, y, z] points in metres "
+                       f"(each coordinate within ±{MAX_COORDINATE:g})")
+        return np.array(value, dtype=float) * scale
+
+    def write(self, value, scale):
+        return [[_tidy(float(x) / scale) for x in p] for p in value]
+
+
+@dataclass(frozen=True)
+class Numbers(Kind):
+    """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
+
+    as_set: bool = False
+    what: str = "numbers"
+    doc = "list of numbers > 0"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, list) or not all(_is_number(x) and math.isfinite(x) and x > 0 for x in value):
+            raise _Bad(f"must be a list of {self.what}, each > 0 (got {_show(value)})")
+        out = [float(x) * scale for x in value]
+        return tuple(sorted(set(out))) if self.as_set else tuple(out)
+
+    def write(self, value, scale):
+        return [_tidy(x / scale) for x in value]
+
+
+@dataclass(frozen=True)
+class Words(Kind):
+    """A list of strings (a tuple): some of `choices`, or names of other tables (`what`)."""
+
+    choices: tuple[str, ...] | None = None
+    what: str = "names"
+    nonempty: bool = False
+
+    @property
+    def doc(self):
+        return f"list of {', '.join(self.choices)}" if self.choices else f"list of {self.what}"
+
+    def read(self, value, scale, base):
+        ok = isinstance(value, list) and all(isinstance(x, str) for x in value) \
+            and (value or not self.nonempty)
+        if self.choices is not None:
+            if not ok or not value or not set(value) <= set(self.choices):
+                raise _Bad(f"must list some of {', '.join(self.choices)} (got {_show(value)})")
+        elif not ok:
+            raise _Bad(f"must be a {'non-empty ' if self.nonempty else ''}list of {self.what}")
+        twice = sorted({x for x in value if value.count(x) > 1})
+        if twice:
+            raise _Bad(f"lists {', '.join(map(repr, twice))} more than once")
+        return tuple(value)
+
+    def write(self, value, scale):
+        return list(value)
+
+
+@dataclass(frozen=True)
+class File(Kind):
+    """A path to an existing, readable file with one of `suffixes`, relative to the config file;
+    `magic`: the first bytes must be one of these image formats."""
+
+    suffixes: tuple[str, ...]
+    what: str
+    kinds: str
+    magic: bool = False
+    doc = "path"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, str) or not value or "\x00" in value:
+            raise _Bad(f"must be a non-empty string (got {_show(value)})")
+        path = (base / value).resolve()
+        if not path.is_file():
+            raise _Bad(f"{self.what} file {str(path)!r} does not exist; give a path to "
+                       f"{self.kinds} file, relative to the config file")
+        if not os.access(path, os.R_OK):
+            raise _Bad(f"{self.what} file {str(path)!r} is not readable")
+        if path.suffix.lower() not in self.suffixes:
+            raise _Bad(f"{path.name!r} is not {self.kinds} file (by its suffix)")
+        if self.magic:
+            with open(path, "rb") as fh:
+                head = fh.read(8)
+            if not any(head.startswith(m) for m in IMAGE_MAGIC):
+                raise _Bad(f"{path.name!r} is not an image: its content is not "
+                           f"{', '.join(sorted(set(IMAGE_MAGIC.values())))}")
+        return path
+
+    def write(self, value, scale):
+        return str(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Rows and tables
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Row:
+    """One schema row: TOML `key` -> dataclass attribute `attr` (filled from the field's name).
+
+    `default` is in file units (REQUIRED, or None: absent). `either`: another key that may stand in
+    for a required one (checked by the table's check). `when`: an attribute that must be set for this
+    key to apply (written only then). `shown`: the default as the docs show it."""
+
+    key: str
+    kind: Kind
+    default: Any = REQUIRED
+    unit: str = ""
+    doc: str = ""
+    either: str = ""
+    when: str = ""
+    shown: str = ""
+    attr: str = ""
+
+    @property
+    def scale(self) -> float:
+        return _UNIT_SCALE[self.unit]
+
+
+@dataclass(frozen=True)
+class Section:
+    """A TOML table ([key]) or array of tables ([[key]], each with a unique name) read into `cls`.
+    `check(t, values)` checks several fields together and may complete `values` before `cls(**values)`;
+    `extra`: keys accepted in the file that are not attributes (read by `check`)."""
+
+    key: str
+    cls: type
+    array: bool = False
+    required: bool = False
+    check: Callable | None = None
+    extra: tuple[Row, ...] = ()
+    rows: tuple[Row, ...] | None = None
+    doc: str = ""
+    attr: str = ""
+
+
+def row(key, kind, default=REQUIRED, *, unit="", doc="", either="", when="", shown=""):
+    """A dataclass field described by a schema row; its default is the row's default in SI units."""
+    spec = Row(key, kind, default, unit, doc, either, when, shown)
+    meta = {"vdo.row": spec}
+    if default is REQUIRED:
+        return field(metadata=meta)
+    if default is None:
+        return field(default=None, metadata=meta)
+    value = kind.read(default, spec.scale, Path("."))
+    if isinstance(value, np.ndarray):
+        return field(default_factory=value.copy, metadata=meta)
+    return field(default=value, metadata=meta)
+
+
+def table(key, cls, *, array=False, required=False, check=None, extra=(), rows=None, doc="",
+          default=dataclasses.MISSING):
+    """A dataclass field holding a parsed table (`cls`) or a tuple of them (`array`)."""
+    return field(default=default, metadata={"vdo.table": Section(key, cls, array, required, check,
+                                                                  tuple(extra), rows, doc)})
+
+
+@functools.cache
+def rows_of(cls) -> tuple[Row, ...]:
+    """The schema rows of a dataclass, in field order, with `attr` filled in."""
+    return tuple(replace(f.metadata["vdo.row"], attr=f.name) for f in dataclasses.fields(cls)
+                 if "vdo.row" in f.metadata)
+
+
+@functools.cache
+def sections() -> tuple[Section, ...]:
+    """The tables of an experiment file (besides [experiment]), in `Experiment` field order."""
+    out = []
+    for f in dataclasses.fields(Experiment):
+        if "vdo.table" in f.metadata:
+            sec = f.metadata["vdo.table"]
+            out.append(replace(sec, attr=f.name, rows=sec.rows or rows_of(sec.cls)))
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------------------------
+# The tables
 # --------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class MeshSpec:
     """A mesh file and how it looks: diffuse paint of `albedo`, or bare metal when `metal`."""
 
-    name: str
-    path: Path
-    unit: str
-    role: str
-    albedo: float = 0.5
-    metal: bool = False
+    name: str = row("name", Text(name=True), doc="unique")
+    path: Path = row("file", File((".stl", ".obj", ".ply"), "mesh", "an STL, OBJ or PLY"), doc="STL, OBJ or PLY")
+    unit: str = row("unit", Text(choices=tuple(UNITS)), "m", doc="unit of the file's coordinates")
+    role: str = row("role", Text(choices=ROLES), "obstacle",
+                    doc="regions of interest lie on specimen meshes; every mesh occludes")
+    albedo: float = row("albedo", Real(0.0, 1.0), 0.5, doc="diffuse reflectance for renders")
+    metal: bool = row("metal", Flag(), False, doc="render as rough metal instead of paint")
 
     @property
     def scale(self) -> float:
@@ -54,47 +429,99 @@ class MeshSpec:
 @dataclass(frozen=True, eq=False)
 class RegionSpec:
     """A region of interest: the faces of `mesh` whose normal is within `normal_tolerance` of
-    `normal` and whose centroid lies in the box [box_min, box_max] (metres)."""
+    `normal` and which lie in the box [box_min, box_max] (metres; faces that cross the box are
+    split at it when the meshes are loaded)."""
 
-    name: str
-    mesh: str
-    normal: np.ndarray
-    box_min: np.ndarray
-    box_max: np.ndarray
-    importance: float = 1.0
-    normal_tolerance: float = math.radians(5.0)
-    min_cameras: int | None = None     # coverage requirement; None: the experiment's default
+    name: str = row("name", Text(name=True), doc="unique")
+    mesh: str = row("mesh", Text(name=True), doc="a specimen mesh")
+    normal: np.ndarray = row("normal", Vector(3, letters="xyz"),
+                             doc="outward normal of the face (world frame; normalised)")
+    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), [-math.inf] * 3,
+                              unit="m", shown="unbounded",
+                              doc="the region is the part of the selected faces inside this box "
+                                  "(faces crossing it are split at it; ±inf allowed)")
+    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), [math.inf] * 3,
+                              unit="m", shown="unbounded", doc="upper corner of the box")
+    importance: float = row("importance", Real(positive=True), 1.0,
+                            doc="weight in the score (the joint matters most)")
+    normal_tolerance: float = row("normal_tolerance_deg", Real(0.0, 89.0), 5.0, unit="deg",
+                                  doc="faces whose normal is within this of `normal`")
+    min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
+                                  doc="coverage requirement on this region")
+
+
+@dataclass(frozen=True, eq=False)
+class RailSpec:
+    """A bar cameras slide along: a clamped NURBS curve (see `vdo.rail.Rail`, built by
+    `Experiment.rail`). `control_points` (n, 3) in metres, `weights` (n,)."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    control_points: np.ndarray = row("control_points_m", Points(2), unit="m",
+                                     doc="at least 2, consecutive points distinct")
+    degree: int = row("degree", Whole(low=1), 1, doc="B-spline degree p < n (1 = polyline)")
+    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="all 1",
+                                     doc="NURBS weights, one per control point")
 
 
 @dataclass(frozen=True, eq=False)
 class CameraSpec:
     """A camera as written in the file; `Experiment.cameras()` resolves its pose."""
 
-    name: str
-    sensor_width: float          # m
-    pixels: tuple[int, int]
-    focal_length: float          # m
-    rail: str | None = None
-    u: float | None = None
-    offset: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    position: np.ndarray | None = None
-    target: np.ndarray | None = None
-    pan: float | None = None     # rad
-    tilt: float | None = None    # rad
-    roll: float = 0.0            # rad
-    principal_offset_px: tuple[float, float] = (0.0, 0.0)
-    body: bool = True
-    f_number: float | None = None    # with focus_distance: thin lens with depth of field
-    focus_distance: float | None = None  # m
-    distortion: tuple = (0.0, 0.0, 0.0, 0.0, 0.0)  # lens: k1, k2, p1, p2, k3 (OpenCV order)
+    name: str = row("name", Text(name=True), doc="unique; names the camera's output files")
+    sensor_width: float = row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
+                              shown="or sensor_mm", doc="sensor width")
+    pixels: tuple[int, int] = row("pixels", Vector(2, positive=True, whole=True, as_tuple=True,
+                                                   letters="WH"),
+                                  doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+    focal_length: float = row("focal_mm", Real(*FOCAL_RANGE_MM, positive=True,
+                                               why="the focal lengths of real lenses"), unit="mm",
+                              doc="lens focal length")
+    rail: str | None = row("rail", Text(name=True), None, shown="either rail + u",
+                           doc="the [[rail]] the camera sits on")
+    u: float | None = row("u", Real(), None, when="rail", doc="position on the rail, 0 to 1")
+    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
+                             when="rail", doc="from the rail point to the optical centre")
+    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
+                                      shown="or this", doc="optical centre")
+    target: np.ndarray | None = row("target_m", Vector(3, letters="xyz"), None, unit="m",
+                                    shown="either this", doc="aim the optical axis at a point")
+    pan: float | None = row("pan_deg", Real(), None, unit="deg", shown="or pan + tilt",
+                            doc="azimuth from +x toward +y")
+    tilt: float | None = row("tilt_deg", Real(), None, unit="deg", shown="or pan + tilt",
+                             doc="elevation (negative looks down)")
+    roll: float = row("roll_deg", Real(), 0.0, unit="deg", doc="0 keeps the image x axis horizontal")
+    principal_offset_px: tuple[float, float] = row(
+        "principal_offset_px", Vector(2, as_tuple=True, letters=("dx", "dy")), [0.0, 0.0],
+        doc="principal point offset from the image centre")
+    body: bool = row("body", Flag(), True, doc="the camera's body occludes the other cameras' views")
+    f_number: float | None = row("f_number", Real(positive=True), None, shown="none",
+                                 doc="with focus_m: thin lens with depth of field in renders")
+    focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
+                                       doc="focus distance, with f_number")
+    distortion: tuple[float, ...] = row(
+        "distortion", Vector(5, as_tuple=True, letters=("k1", "k2", "p1", "p2", "k3")),
+        [0.0, 0.0, 0.0, 0.0, 0.0], doc="Brown-Conrady lens distortion, OpenCV's order and units")
+
+
+def _sensor_mm_row() -> Row:
+    return Row("sensor_mm", Vector(2, positive=True, letters="wh"), None, "mm",
+               "sensor size (instead of sensor_width_mm); pixels must be square within 1 %",
+               shown="or sensor_width_mm")
 
 
 @dataclass(frozen=True)
 class Evaluation:
-    sample_spacing: float = 0.01                      # m between surface samples
-    incidence_limit: float = math.radians(75.0)       # rad, from the surface normal
-    patch_size: float = 0.01                          # m, side of the DIC patch (Omega = side^2)
-    min_cameras: int = 2                              # default coverage requirement per point
+    """[evaluation]: how the regions are sampled and what a camera sees."""
+
+    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 10.0, unit="mm",
+                                doc="grid spacing of the surface samples on each region")
+    incidence_limit: float = row("incidence_limit_deg", Real(1.0, 89.9), 75.0, unit="deg",
+                                 doc="a camera sees a point only when the angle between the normal "
+                                     "and the direction to the camera is below this")
+    patch_size: float = row("patch_mm", Real(positive=True), 10.0, unit="mm",
+                            doc="side of the DIC measurement patch (Ω = side²) used by the uncertainty")
+    min_cameras: int = row("min_cameras", Whole(low=1), 2,
+                           doc="coverage requirement per point (a region may override it)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,157 +530,316 @@ class LightSpec:
     any consistent unit: the sensor's photons_per_unit maps it to electrons) centred at `position`
     and facing `target`, `size` (width, height) in metres."""
 
-    name: str
-    position: np.ndarray
-    target: np.ndarray
-    size: tuple[float, float]
-    radiance: float
+    name: str = row("name", Text(name=True), doc="unique")
+    position: np.ndarray = row("position_m", Vector(3, letters="xyz"), unit="m", doc="panel centre")
+    target: np.ndarray = row("target_m", Vector(3, letters="xyz"), unit="m", doc="the panel faces it")
+    size: tuple[float, float] = row("size_m", Vector(2, positive=True, as_tuple=True, letters="wh"),
+                                    unit="m", doc="panel width and height")
+    radiance: float = row("radiance", Real(positive=True),
+                          doc="emitted radiance (any unit consistent with [sensor] photons_per_unit)")
 
 
 @dataclass(frozen=True)
 class SpeckleSpec:
     """The paint on the regions of interest: generated dots + strokes, or a user image."""
 
-    dot_diameter: float = 2e-3       # m
-    coverage: float = 0.5            # black area fraction
-    strokes: int = 10                # brush strokes per tile
-    texel: float = 0.25e-3           # m per texel of the pattern
-    tile_texels: int = 1024          # the tile repeats every tile_texels * texel metres
-    seed: int = 1
-    image: Path | None = None        # a photo of a real pattern, at `texel` m per pixel
-    white_albedo: float = 0.8
-    black_albedo: float = 0.05
+    dot_diameter: float = row("dot_diameter_mm", Real(positive=True), 2.0, unit="mm",
+                              doc="black dots on white paint")
+    coverage: float = row("coverage", Real(0.01, 0.95), 0.5, doc="black area fraction")
+    strokes: int = row("strokes", Whole(low=0), 10, doc="random brush strokes per tile")
+    texel: float = row("texel_mm", Real(positive=True), 0.25, unit="mm",
+                       doc="pattern resolution on the surface (at most a third of the dot diameter)")
+    tile_texels: int = row("tile_texels", Whole(low=64), 1024,
+                           doc="the pattern tile repeats seamlessly every tile_texels × texel_mm")
+    seed: int = row("seed", Whole(low=0), 1, doc="random seed of the pattern")
+    image: Path | None = row("image", File((".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"), "pattern",
+                                           "an image (PNG, JPEG, TIFF or BMP)", magic=True), None, shown="none",
+                             doc="a photo of a real pattern instead (at texel_mm per pixel)")
+    white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
+    black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,
+                              doc="reflectance of the black paint (below white_albedo)")
+
+
+def _sensor_rows() -> tuple[Row, ...]:
+    """[sensor]: `SensorModel`'s fields; it keeps the defaults and checks the ranges itself."""
+    defaults = {f.name: f.default for f in dataclasses.fields(SensorModel)}
+    kinds = {"bit_depth": Whole()}
+    docs = {"quantum_efficiency": ("0 < QE ≤ 1", ""), "full_well_e": ("electrons > 0", ""),
+            "read_noise_e": ("electrons rms ≥ 0", ""), "bit_depth": ("integer 8–16", ""),
+            "gain_dn_per_e": ("DN per e- > 0", "full well → top DN"),
+            "offset_dn": ("DN ≥ 0", "2^(bit_depth − 7)"),
+            "photons_per_unit": ("photons > 0", "a linear value of 1 fills 70 % of the full well")}
+    return tuple(Row(name, kinds.get(name, Real()), defaults[name], doc=docs[name][0],
+                     shown=docs[name][1], attr=name) for name in SENSOR_FIELDS)
 
 
 @dataclass(frozen=True)
 class RenderSpec:
-    spp: int = 16                    # samples per pixel
-    scale: float = 1.0               # image size relative to the sensor's pixel counts
-    seed: int = 0
-    ambient_radiance: float = 0.0    # uniform environment light, same unit as LightSpec.radiance
-    image_format: str = "png"        # png | tiff (16-bit above 8-bit depth)
-    exr: bool = False                # also write the linear float image
+    """[render]: settings of `vdo render`."""
+
+    spp: int = row("spp", Whole(low=1), 16, doc="samples per pixel")
+    scale: float = row("scale", Real(positive=True, high=4.0), 1.0,
+                       doc="image size relative to the sensor's pixel counts")
+    seed: int = row("seed", Whole(low=0), 0, doc="render noise seed")
+    ambient_radiance: float = row("ambient_radiance", Real(low=0.0), 0.0,
+                                  doc="uniform environment light, same unit as [[light]] radiance")
+    image_format: str = row("image_format", Text(choices=("png", "tiff")), "png",
+                            doc="tiff: 16-bit above 8-bit depth")
+    exr: bool = row("exr", Flag(), False, doc="also write the linear float images")
+
+
+@dataclass(frozen=True, eq=False)
+class GroupSpec:
+    """Meshes that move together along the load path (a hexapod's platform with its
+    end-effector, a crosshead). Every mesh is also a group of its own name."""
+
+    name: str = row("name", Text(name=True), doc="unique; not the name of a mesh")
+    meshes: tuple[str, ...] = row("meshes", Words(what="mesh names", nonempty=True),
+                                  doc="the [[mesh]] names that move together")
+    pivot: np.ndarray = row("pivot_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
+                            doc="the point the group's rotations turn about")
+
+
+@dataclass(frozen=True)
+class LoadPathSpec:
+    """The steps of a moving test (`vdo.keyframes`): rigid poses of groups per step, and
+    optionally nodal displacements of one specimen mesh per step."""
+
+    poses: Path | None = row("poses", File((".csv",), "pose", "a CSV"), None, shown="none",
+                             doc="CSV: step, group, x_mm, y_mm, z_mm, rx_deg, ry_deg, rz_deg")
+    displacements: Path | None = row("displacements", File((".csv",), "displacement", "a CSV"), None,
+                                     shown="none", doc="CSV: step, x_m, y_m, z_m, ux_mm, uy_mm, uz_mm")
+    deformed_mesh: str | None = row("deformed_mesh", Text(name=True), None, shown="none",
+                                    doc="the specimen mesh the displacements apply to")
+
+    @property
+    def active(self) -> bool:
+        return self.poses is not None or self.displacements is not None
+
+
+def _check_load_path(t: Table, v: dict) -> None:
+    if (v["displacements"] is None) != (v["deformed_mesh"] is None):
+        raise t.error("deformed_mesh", "give displacements and deformed_mesh together (the file's "
+                                       "nodes are that mesh's vertices)")
 
 
 @dataclass(frozen=True)
 class OptimizeSpec:
     """What `vdo optimize` may move and the practical constraints it enforces."""
 
-    free: tuple[str, ...] = ("u", "pan", "tilt")   # per camera: rail parameter, pan, tilt (, roll, lens)
-    lenses: tuple[float, ...] = ()                 # m: focal lengths on the shelf, when "lens" is free
-    cameras: tuple[str, ...] | None = None         # cameras that move (None: all)
-    regions: tuple[str, ...] | None = None         # regions whose uncertainty is scored (None: all)
-    min_axis_angle: float | None = None            # rad; None: the stereo rule of thumb per lens
-    clearance: float = 0.05                        # m between camera bodies and everything else
-    max_obscuration: float = 0.01                  # fraction of an assigned region's image
-    assign_fraction: float = 0.5                   # a camera is assigned the regions it sees this much of
-    starts: int = 3                                # multi-start: the hand layout + perturbed copies
-    rounds: int = 3                                # visibility refreshes (outer penalty rounds)
-    max_steps: int = 40                            # BFGS steps per round
-    seed: int = 0
+    free: tuple[str, ...] = row(
+        "free", Words(choices=("u", "pan", "tilt", "roll", "lens")), ["u", "pan", "tilt"],
+        doc='parameters that move per camera (add "roll" to free it, otherwise cameras stay '
+            'horizontal; add "lens" to choose each moving camera\'s lens from lenses_mm)')
+    lenses: tuple[float, ...] = row(
+        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm",
+        doc='the lens catalogue for "lens" in free: a greedy outer loop tries each other lens on each '
+            "moving camera and keeps it when the result is better (feasible first, then by score)")
+    cameras: tuple[str, ...] | None = row("cameras", Words(what="camera names"), None, shown="all",
+                                          doc="names of the cameras that move")
+    regions: tuple[str, ...] | None = row(
+        "regions", Words(what="region names", nonempty=True), None, shown="all",
+        doc="regions whose uncertainty and coverage enter the score (constraints apply everywhere)")
+    min_axis_angle: float | None = row(
+        "min_axis_angle_deg", Real(0.0, 90.0), None, unit="deg", shown="by lens",
+        doc="minimum angle between the optical axes of two cameras sharing a region; default 35° up "
+            "to 12 mm, 25° at 17 mm, 15° from 35 mm (the shorter lens of the pair)")
+    clearance: float = row("clearance_m", Real(low=0.0), 0.05, unit="m",
+                           doc="camera bodies keep this distance from every mesh and each other")
+    max_obscuration: float = row("max_obscuration", Real(0.0, 1.0), 0.01,
+                                 doc="largest fraction of an assigned region's image an obstacle may mask")
+    assign_fraction: float = row("assign_fraction", Real(0.01, 1.0), 0.5,
+                                 doc="a camera is assigned the regions it sees this much of in the "
+                                     "starting layout")
+    starts: int = row("starts", Whole(low=1), 3, doc="multi-start: the hand layout + perturbed copies")
+    rounds: int = row("rounds", Whole(low=1), 3,
+                      doc="penalty rounds, each ending with a visibility refresh")
+    max_steps: int = row("max_steps", Whole(low=1), 40, doc="BFGS steps per round")
+    seed: int = row("seed", Whole(low=0), 0, doc="perturbation of the extra starts")
 
 
+# --------------------------------------------------------------------------------------------
+# Checks across the fields of one table: check(t, values) raises t.error or completes values
+# --------------------------------------------------------------------------------------------
+def _check_camera(t: Table, v: dict) -> None:
+    if t.has("sensor_mm") == t.has("sensor_width_mm"):
+        raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
+                                   "sensor_width_mm")
+    width_px, height_px = v["pixels"]
+    if width_px * height_px > MAX_CAMERA_PIXELS:
+        raise t.error("pixels", f"{width_px} x {height_px} is {width_px * height_px / 1e6:.4g} Mpx; "
+                                f"at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx per camera")
+    if t.has("sensor_mm"):
+        sensor = t.get(_sensor_mm_row())
+        pitch_w, pitch_h = sensor[0] / width_px, sensor[1] / height_px
+        if abs(pitch_w - pitch_h) > 0.01 * pitch_w:
+            raise t.error("sensor_mm", f"gives non-square pixels ({pitch_w * 1e6:.3f} x "
+                                       f"{pitch_h * 1e6:.3f} um); vdo models square pixels: check "
+                                       "the sensor size and pixel counts")
+        v["sensor_width"] = float(sensor[0])
+    if t.has("f_number") != t.has("focus_m"):
+        raise t.error("f_number", "depth of field needs both f_number and focus_m")
+    if t.has("rail") == t.has("position_m"):
+        raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
+    if t.has("rail"):
+        if not t.has("u"):
+            raise t.error("u", "is required for a camera on a rail (0 to 1)")
+        if not 0.0 <= v["u"] <= 1.0:
+            raise t.error("u", f"= {v['u']} is off rail {v['rail']!r}: the rail parameter runs "
+                               "from 0 to 1")
+    if t.has("target_m") == (t.has("pan_deg") or t.has("tilt_deg")):
+        raise t.error("target_m", "aim the camera with either target_m or pan_deg + tilt_deg")
+    if t.has("pan_deg") != t.has("tilt_deg"):
+        raise t.error("pan_deg", "give both pan_deg and tilt_deg")
+
+
+def _check_region(t: Table, v: dict) -> None:
+    if np.linalg.norm(v["normal"]) < 1e-9:
+        raise t.error("normal", "must be a non-zero vector")
+    v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    if np.any(v["box_min"] >= v["box_max"]):
+        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
+
+
+def _check_rail(t: Table, v: dict) -> None:
+    points = v["control_points"]
+    if v["degree"] >= len(points):
+        raise t.error("degree", f"must be less than the number of control points ({len(points)})")
+    gaps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    if np.any(gaps < 1e-6):
+        i = int(np.argmax(gaps < 1e-6))
+        raise t.error("control_points_m", f"points {i} and {i + 1} coincide: a rail needs distinct "
+                                          "consecutive control points (remove the repeated one)")
+    if v["weights"] is None:
+        v["weights"] = np.ones(len(points))
+    elif len(v["weights"]) != len(points):
+        raise t.error("weights", f"must be a list of {len(points)} numbers > 0, one per control point")
+    else:
+        v["weights"] = np.asarray(v["weights"], dtype=float)
+
+
+def _check_light(t: Table, v: dict) -> None:
+    if np.linalg.norm(v["target"] - v["position"]) < 1e-6:
+        raise t.error("target_m", "must differ from position_m (the panel faces the target)")
+
+
+def _check_speckle(t: Table, v: dict) -> None:
+    if v["black_albedo"] >= v["white_albedo"]:
+        raise t.error("black_albedo", "must be less than white_albedo")
+    if v["image"] is None and v["dot_diameter"] < 3 * v["texel"]:
+        raise t.error("texel_mm", f"must be at most a third of the dot diameter "
+                                  f"({v['dot_diameter'] * 1e3:g} mm) to draw round dots")
+
+
+def _check_optimize(t: Table, v: dict) -> None:
+    if "lens" in v["free"] and not v["lenses"]:
+        raise t.error("free", 'lists "lens" but no lenses_mm catalogue is given: add e.g. '
+                              'lenses_mm = [24, 35, 50, 100]')
+
+
+# --------------------------------------------------------------------------------------------
+# The experiment
+# --------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class Experiment:
-    """A validated experiment. `path` is the TOML file it came from."""
+    """A validated experiment. `path` is the TOML file it came from; `name` and `description` are
+    the [experiment] table, the other fields one table each."""
 
     path: Path
-    name: str
-    meshes: tuple[MeshSpec, ...]
-    regions: tuple[RegionSpec, ...]
-    rails: tuple[Rail, ...]
-    camera_specs: tuple[CameraSpec, ...]
-    evaluation: Evaluation
-    description: str = ""
-    lights: tuple[LightSpec, ...] = ()
-    speckle: SpeckleSpec = SpeckleSpec()
-    sensor: SensorModel = SensorModel()
-    render: RenderSpec = RenderSpec()
-    optimize: OptimizeSpec = OptimizeSpec()
+    name: str = row("name", Text(title=True),
+                    doc="shown in figures and summaries; at most 200 characters, no `/`, `\\` or "
+                        "control characters")
+    meshes: tuple[MeshSpec, ...] = table("mesh", MeshSpec, array=True, required=True,
+                                         doc='At least one with `role = "specimen"`.')
+    regions: tuple[RegionSpec, ...] = table(
+        "region", RegionSpec, array=True, required=True, check=_check_region,
+        doc="A planar face of interest on a specimen mesh. The selected faces must be coplanar "
+            "(within a quarter of the sample spacing).")
+    rails: tuple[RailSpec, ...] = table(
+        "rail", RailSpec, array=True, check=_check_rail,
+        doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
+            "the first control point, `u = 1` the last.")
+    camera_specs: tuple[CameraSpec, ...] = table(
+        "camera", CameraSpec, array=True, required=True, check=_check_camera, extra=(_sensor_mm_row(),),
+        doc="Place a camera with `rail` + `u` (+ `offset_m`) or `position_m`; aim it with `target_m` "
+            "or `pan_deg` + `tilt_deg`. Two cameras may not share one optical centre.")
+    evaluation: Evaluation = table("evaluation", Evaluation)
+    description: str = row("description", Text(empty=True), "", doc="free text")
+    lights: tuple[LightSpec, ...] = table("light", LightSpec, array=True, check=_check_light,
+                                          doc="A rectangular LED panel.", default=())
+    speckle: SpeckleSpec = table("speckle", SpeckleSpec, check=_check_speckle, default=SpeckleSpec(),
+                                 doc="The paint on the regions of interest (`vdo render`).")
+    sensor: SensorModel = table("sensor", SensorModel, rows=_sensor_rows(), default=SensorModel(),
+                                doc="EMVA 1288 sensor model (`vdo.sensor.SensorModel`).")
+    render: RenderSpec = table("render", RenderSpec, default=RenderSpec())
+    optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=_check_optimize,
+                                   default=OptimizeSpec(), doc="What `vdo optimize` may move.")
+    groups: tuple[GroupSpec, ...] = table(
+        "group", GroupSpec, array=True, default=(),
+        doc="Meshes that move rigidly together along the load path.")
+    load_path: LoadPathSpec = table(
+        "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
+        doc="A moving test: `vdo evaluate` judges every step (`vdo.keyframes`, docs/load_path.md).")
 
-    def rail(self, name: str) -> Rail:
-        return next(r for r in self.rails if r.name == name)
+    def rail(self, name: str):
+        """The `vdo.rail.Rail` (JAX-evaluated NURBS) of the [[rail]] called `name`."""
+        from .rail import Rail
+        spec = next(r for r in self.rails if r.name == name)
+        return Rail(name=spec.name, control_points=spec.control_points, degree=spec.degree,
+                    weights=spec.weights)
 
-    def cameras(self) -> list[Camera]:
-        """The configured cameras with poses resolved from rails, positions and targets."""
-        return [_resolve_camera(self, spec) for spec in self.camera_specs]
+    def cameras(self) -> list:
+        """The configured cameras (`vdo.camera.Camera`) with poses resolved from rails, positions
+        and targets."""
+        from .camera import Camera, look_at_angles
+        positions = camera_positions(self)
+        out = []
+        for spec, position in zip(self.camera_specs, positions):
+            pan, tilt = look_at_angles(position, spec.target) if spec.target is not None \
+                else (spec.pan, spec.tilt)
+            width, height = spec.pixels
+            out.append(Camera(name=spec.name, width=width, height=height,
+                              pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
+                              position=position, pan=pan, tilt=tilt, roll=spec.roll,
+                              principal_offset_px=spec.principal_offset_px,
+                              distortion=spec.distortion))
+        return out
 
     def with_cameras(self, specs) -> "Experiment":
         return replace(self, camera_specs=tuple(specs))
 
     def to_dict(self) -> dict:
-        """The resolved experiment as a TOML-ready dict (absolute mesh paths, defaults filled)."""
-        ev, sp, rd = self.evaluation, self.speckle, self.render
-        out = {"experiment": {"name": self.name, "description": self.description},
-               "evaluation": {"sample_spacing_mm": ev.sample_spacing * 1e3,
-                              "incidence_limit_deg": math.degrees(ev.incidence_limit),
-                              "patch_mm": ev.patch_size * 1e3, "min_cameras": ev.min_cameras},
-               "mesh": [{"name": m.name, "file": str(m.path), "unit": m.unit, "role": m.role,
-                         "albedo": m.albedo, "metal": m.metal} for m in self.meshes],
-               "region": [_region_to_dict(r) for r in self.regions],
-               "rail": [{"name": r.name, "control_points_m": r.control_points.tolist(),
-                         "degree": r.degree, "weights": r.weights.tolist()} for r in self.rails],
-               "camera": [_camera_to_dict(c) for c in self.camera_specs],
-               "light": [{"name": lt.name, "position_m": lt.position.tolist(),
-                          "target_m": lt.target.tolist(), "size_m": list(lt.size),
-                          "radiance": lt.radiance} for lt in self.lights],
-               "speckle": {"dot_diameter_mm": sp.dot_diameter * 1e3, "coverage": sp.coverage,
-                           "strokes": sp.strokes, "texel_mm": sp.texel * 1e3,
-                           "tile_texels": sp.tile_texels, "seed": sp.seed,
-                           "white_albedo": sp.white_albedo, "black_albedo": sp.black_albedo}
-               | ({"image": str(sp.image)} if sp.image else {}),
-               "sensor": {k: v for k, v in dataclasses.asdict(self.sensor).items() if v is not None},
-               "render": {"spp": rd.spp, "scale": rd.scale, "seed": rd.seed,
-                          "ambient_radiance": rd.ambient_radiance, "image_format": rd.image_format,
-                          "exr": rd.exr}}
-        return {k: v for k, v in out.items() if v != []}
+        """The experiment as a TOML-ready dict: every table, defaults filled, absolute paths;
+        ``parse(e.to_dict(), e.path)`` gives back `e` (to 12 significant digits)."""
+        out = {"experiment": _write(self, rows_of(Experiment))}
+        for sec in sections():
+            value = getattr(self, sec.attr)
+            if sec.array:
+                if value:
+                    out[sec.key] = [_write(item, sec.rows) for item in value]
+            else:
+                out[sec.key] = _write(value, sec.rows)
+        return out
 
 
-def _region_to_dict(r: RegionSpec) -> dict:
-    d = {"name": r.name, "mesh": r.mesh, "normal": r.normal.tolist(), "importance": r.importance,
-         "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
-    if r.min_cameras is not None:
-        d["min_cameras"] = r.min_cameras
-    for key, box in (("box_min_m", r.box_min), ("box_max_m", r.box_max)):
-        if np.all(np.isfinite(box)):
-            d[key] = box.tolist()
-    return d
+def _write(obj, rows) -> dict:
+    out = {}
+    for r in rows:
+        value = getattr(obj, r.attr)
+        if value is not None and not (r.when and getattr(obj, r.when) is None):
+            out[r.key] = r.kind.write(value, r.scale)
+    return out
 
 
-def _camera_to_dict(c: CameraSpec) -> dict:
-    d = {"name": c.name, "sensor_width_mm": c.sensor_width * 1e3, "pixels": list(c.pixels),
-         "focal_mm": c.focal_length * 1e3}
-    if c.rail is not None:
-        d |= {"rail": c.rail, "u": c.u, "offset_m": c.offset.tolist()}
-    else:
-        d["position_m"] = c.position.tolist()
-    if c.target is not None:
-        d["target_m"] = c.target.tolist()
-    else:
-        d |= {"pan_deg": math.degrees(c.pan), "tilt_deg": math.degrees(c.tilt)}
-    d |= {"roll_deg": math.degrees(c.roll), "principal_offset_px": list(c.principal_offset_px),
-          "body": c.body}
-    if any(c.distortion):
-        d["distortion"] = list(c.distortion)
-    if c.f_number is not None:
-        d |= {"f_number": c.f_number, "focus_m": c.focus_distance}
-    return d
-
-
-def _resolve_camera(exp: Experiment, spec: CameraSpec) -> Camera:
-    if spec.rail is not None:
-        position = np.asarray(exp.rail(spec.rail).position(spec.u)) + spec.offset
-    else:
-        position = spec.position
-    if spec.target is not None:
-        pan, tilt = look_at_angles(position, spec.target)
-    else:
-        pan, tilt = spec.pan, spec.tilt
-    width, height = spec.pixels
-    return Camera(name=spec.name, width=width, height=height,
-                  pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
-                  position=np.asarray(position, dtype=float), pan=pan, tilt=tilt, roll=spec.roll,
-                  principal_offset_px=spec.principal_offset_px, distortion=spec.distortion)
+def camera_positions(exp: Experiment) -> list[np.ndarray]:
+    """The optical centre (m) of every camera spec: rail point + offset, or position_m."""
+    out = []
+    for spec in exp.camera_specs:
+        if spec.rail is not None:
+            out.append(np.asarray(exp.rail(spec.rail).position(spec.u), dtype=float) + spec.offset)
+        else:
+            out.append(np.asarray(spec.position, dtype=float))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -274,7 +860,8 @@ class Table:
         self.data = data
 
     def _field(self, key):
-        return f"{self.where}.{key}" if self.where else key
+        key = key if key.isprintable() else repr(key)
+        return f"{self.where}.{key}" if self.where and key else (key or self.where)
 
     def error(self, key, message):
         return ConfigError(self.file, self._field(key), message)
@@ -282,105 +869,92 @@ class Table:
     def has(self, key):
         return key in self.data
 
-    def raw(self, key, default=_REQUIRED):
+    def raw(self, key, default=REQUIRED):
         if key not in self.data:
-            if default is _REQUIRED:
+            if default is REQUIRED:
                 raise self.error(key, "is required")
             return default
         return self.data[key]
 
-    def string(self, key, default=_REQUIRED, choices=None):
-        value = self.raw(key, default)
-        if value is None:
-            return None
-        if not isinstance(value, str) or not value:
-            raise self.error(key, f"must be a non-empty string (got {value!r})")
-        if choices is not None and value not in choices:
-            raise self.error(key, f"must be one of {', '.join(choices)} (got {value!r})")
-        return value
+    def read(self, key, kind: Kind, scale: float = 1.0):
+        """The value at `key` (present) checked and converted by `kind`."""
+        try:
+            return kind.read(self.data[key], scale, self.file.parent)
+        except _Bad as exc:
+            raise self.error(key, str(exc)) from None
 
-    def boolean(self, key, default=_REQUIRED):
-        value = self.raw(key, default)
-        if not isinstance(value, bool):
-            raise self.error(key, f"must be true or false (got {value!r})")
-        return value
+    def get(self, r: Row, default=None):
+        """The attribute value of schema row `r`: read from the file, else `default` (the
+        dataclass default), else an error when the row is required."""
+        if r.key in self.data:
+            return self.read(r.key, r.kind, r.scale)
+        if r.default is REQUIRED and not (r.either and self.has(r.either)):
+            raise self.error(r.key, "is required")
+        return default
 
-    def number(self, key, default=_REQUIRED, low=None, high=None, positive=False):
-        value = self.raw(key, default)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise self.error(key, f"must be a finite number (got {value!r})")
-        if positive and value <= 0:
-            raise self.error(key, f"must be positive (got {value!r})")
-        if (low is not None and value < low) or (high is not None and value > high):
-            raise self.error(key, f"must lie in [{low}, {high}] (got {value!r})")
-        return float(value)
-
-    def integer(self, key, default=_REQUIRED, low=None):
-        value = self.raw(key, default)
-        if isinstance(value, bool) or not isinstance(value, int) or (low is not None and value < low):
-            raise self.error(key, f"must be an integer >= {low} (got {value!r})")
-        return value
-
-    def vector(self, key, length, default=_REQUIRED, positive=False):
-        if key not in self.data and default is not _REQUIRED:
+    # The helpers below read fields that have no schema row (validate.py's cases).
+    def _value(self, key, default, kind):
+        if key not in self.data:
+            if default is REQUIRED:
+                raise self.error(key, "is required")
             return default
-        value = self.raw(key)
-        arr = as_numbers(value)
-        if arr is None or arr.shape != (length,):
-            raise self.error(key, f"must be a list of {length} finite numbers (got {value!r})")
-        if positive and np.any(arr <= 0):
-            raise self.error(key, f"must be positive (got {value!r})")
-        return arr
+        return self.read(key, kind)
+
+    def string(self, key, default=REQUIRED, choices=None):
+        return self._value(key, default, Text(tuple(choices) if choices else None))
+
+    def boolean(self, key, default=REQUIRED):
+        return self._value(key, default, Flag())
+
+    def number(self, key, default=REQUIRED, low=None, high=None, positive=False):
+        return self._value(key, default, Real(low, high, positive))
+
+    def integer(self, key, default=REQUIRED, low=None):
+        return self._value(key, default, Whole(low))
+
+    def vector(self, key, length, default=REQUIRED, positive=False):
+        return self._value(key, default, Vector(length, positive))
 
     def points(self, key, minimum=2):
-        value = self.raw(key)
-        arr = as_numbers(value)
-        if arr is None or arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < minimum:
-            raise self.error(key, f"must be a list of at least {minimum} [x, y, z] points in metres")
-        return arr
+        return self._value(key, REQUIRED, Points(minimum))
 
 
 def as_numbers(value):
+    """`value` (a number or a rectangular list of lists of numbers) as a float array; None when it
+    holds anything else (strings, booleans, NaN or inf, ragged or too deep nesting)."""
     try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
+        arr = np.asarray(value, dtype=object)
+    except (ValueError, RecursionError):
         return None
-    if arr.dtype == object or not np.all(np.isfinite(arr)):
+    if not all(_is_number(x) and math.isfinite(x) for x in arr.flat):
         return None
-    return arr
-
-
-def _entries(top: Table, key: str, file: Path, allowed, required=True):
-    items = top.raw(key, [] if not required else _REQUIRED)
-    if not isinstance(items, list) or (required and not items):
-        raise ConfigError(file, key, f"needs at least one [[{key}]] table")
-    tables, names = [], set()
-    for i, item in enumerate(items):
-        name = item.get("name") if isinstance(item, dict) else None
-        where = f'{key} "{name}"' if isinstance(name, str) else f"{key}[{i}]"
-        table = Table(item, where, file, allowed)
-        table.string("name")
-        if name in names:
-            raise ConfigError(file, where, "name is used twice; names must be unique")
-        names.add(name)
-        tables.append(table)
-    return tables
+    return arr.astype(float)
 
 
 def read_toml(path) -> dict:
-    """The parsed TOML document at `path`; ConfigError when it is missing, unreadable or invalid."""
+    """The parsed TOML document at `path`; ConfigError when it is missing, unreadable, not UTF-8
+    text or invalid."""
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(path, "", "file not found") from None
     except OSError as exc:
         raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ConfigError(path, "", "is UTF-16 text; save it as UTF-8 (TOML files are UTF-8)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ConfigError(path, "", f"is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
+                                    "save it as UTF-8 (TOML files are UTF-8)") from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ConfigError(path, "", "is not valid TOML for vdo: arrays or tables nested too deep") from None
 
 
 def load(path) -> Experiment:
@@ -388,241 +962,168 @@ def load(path) -> Experiment:
     return parse(read_toml(path), Path(path))
 
 
+def _read_section(top: Table, sec: Section, path: Path):
+    """The value of one table (or the tuple of an array of tables) of the experiment file."""
+    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else
+                (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+                for f in dataclasses.fields(sec.cls)}
+    allowed = tuple(r.key for r in sec.rows + sec.extra)
+
+    def one(data, where):
+        t = Table(data, where, path, allowed)
+        values = {r.attr: t.get(r, defaults[r.attr]) for r in sec.rows}
+        for r in sec.rows:
+            if r.when and t.has(r.key) and values[r.when] is None:
+                other = next(o.key for o in sec.rows if o.attr == r.when)
+                raise t.error(r.key, f"only applies together with {other}")
+        if sec.check is not None:
+            sec.check(t, values)
+        try:
+            return sec.cls(**values), t
+        except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
+            name, _, message = str(exc).partition(": ")
+            raise t.error(name.rpartition(".")[2], message) from None
+
+    if not sec.array:
+        if not top.has(sec.key) and not sec.required:
+            return sec.cls(), ()
+        value, t = one(top.raw(sec.key), sec.key)
+        return value, (t,)
+    items = top.raw(sec.key, REQUIRED if sec.required else [])
+    if not isinstance(items, list) or (sec.required and not items):
+        raise ConfigError(path, sec.key, f"needs at least one [[{sec.key}]] table")
+    values, tables, names = [], [], set()
+    for i, item in enumerate(items):
+        name = item.get("name") if isinstance(item, dict) else None
+        ok = isinstance(name, str) and re.fullmatch(NAME_PATTERN, name)
+        where = f'{sec.key} "{name}"' if ok else f"{sec.key}[{i}]"
+        value, t = one(item, where)
+        if value.name in names:
+            raise ConfigError(path, where, "name is used twice; names must be unique")
+        names.add(value.name)
+        values.append(value)
+        tables.append(t)
+    return tuple(values), tuple(tables)
+
+
 def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
-    top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
-                                  "light", "speckle", "sensor", "render", "optimize"))
-    exp = Table(top.raw("experiment"), "experiment", path, ("name", "description"))
-    ev = Table(top.raw("evaluation", {}), "evaluation", path,
-                ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
-    evaluation = Evaluation(
-        sample_spacing=ev.number("sample_spacing_mm", 10.0, positive=True) * 1e-3,
-        incidence_limit=math.radians(ev.number("incidence_limit_deg", 75.0, low=1.0, high=89.9)),
-        patch_size=ev.number("patch_mm", 10.0, positive=True) * 1e-3,
-        min_cameras=ev.integer("min_cameras", 2, low=1))
+    secs = sections()
+    top = Table(data, "", path, ("experiment",) + tuple(s.key for s in secs))
+    head = Table(top.raw("experiment"), "experiment", path, tuple(r.key for r in rows_of(Experiment)))
+    values = {r.attr: head.get(r, r.default) for r in rows_of(Experiment)}
+    tables = {}
+    for sec in secs:
+        values[sec.attr], tables[sec.key] = _read_section(top, sec, path)
+    exp = Experiment(path=path, **values)
+    _check_references(exp, tables)
+    return exp
 
-    meshes = tuple(_mesh(t, path) for t in _entries(
-        top, "mesh", path, ("name", "file", "unit", "role", "albedo", "metal")))
-    mesh_roles = {m.name: m.role for m in meshes}
-    if "specimen" not in mesh_roles.values():
+
+def _check_references(exp: Experiment, tables: dict) -> None:
+    """Checks across tables: names that refer to other tables, and camera poses."""
+    path = exp.path
+    roles = {m.name: m.role for m in exp.meshes}
+    if "specimen" not in roles.values():
         raise ConfigError(path, "mesh", 'needs at least one mesh with role = "specimen"')
-    regions = tuple(_region(t, mesh_roles) for t in _entries(
-        top, "region", path, ("name", "mesh", "normal", "box_min_m", "box_max_m", "importance",
-                              "normal_tolerance_deg", "min_cameras")))
-    rails = tuple(_rail(t) for t in _entries(top, "rail", path,
-                                             ("name", "control_points_m", "degree", "weights"),
-                                             required=False))
-    rail_names = {r.name for r in rails}
-    cameras = tuple(_camera(t, rail_names) for t in _entries(
-        top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
-                              "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
-                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m",
-                              "distortion")))
-    lights = tuple(_light(t) for t in _entries(
-        top, "light", path, ("name", "position_m", "target_m", "size_m", "radiance"), required=False))
-    result = Experiment(path=path, name=exp.string("name"),
-                        description=exp.raw("description", "") or "", meshes=meshes,
-                        regions=regions, rails=rails, camera_specs=cameras, evaluation=evaluation,
-                        lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
-                        render=_render(top, path),
-                        optimize=_optimize(top, path, {c.name for c in cameras},
-                                           {r.name for r in regions}))
-    for spec, camera in zip(cameras, result.cameras()):
-        if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
-            raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
-    return result
-
-
-def _light(t: Table) -> LightSpec:
-    position, target = t.vector("position_m", 3), t.vector("target_m", 3)
-    if np.linalg.norm(target - position) < 1e-6:
-        raise t.error("target_m", "must differ from position_m (the panel faces the target)")
-    return LightSpec(name=t.string("name"), position=position, target=target,
-                     size=tuple(t.vector("size_m", 2, positive=True)),
-                     radiance=t.number("radiance", positive=True))
-
-
-def _speckle(top: Table, path: Path) -> SpeckleSpec:
-    t = Table(top.raw("speckle", {}), "speckle", path,
-               ("dot_diameter_mm", "coverage", "strokes", "texel_mm", "tile_texels", "seed", "image",
-                "white_albedo", "black_albedo"))
-    image = t.string("image", None)
-    if image is not None:
-        image = (path.parent / image).resolve()
-        if not image.is_file():
-            raise t.error("image", f"pattern image {str(image)!r} does not exist")
-    spec = SpeckleSpec(dot_diameter=t.number("dot_diameter_mm", 2.0, positive=True) * 1e-3,
-                       coverage=t.number("coverage", 0.5, low=0.01, high=0.95),
-                       strokes=t.integer("strokes", 10, low=0),
-                       texel=t.number("texel_mm", 0.25, positive=True) * 1e-3,
-                       tile_texels=t.integer("tile_texels", 1024, low=64), seed=t.integer("seed", 1, low=0),
-                       image=image, white_albedo=t.number("white_albedo", 0.8, low=0.0, high=1.0),
-                       black_albedo=t.number("black_albedo", 0.05, low=0.0, high=1.0))
-    if spec.black_albedo >= spec.white_albedo:
-        raise t.error("black_albedo", "must be less than white_albedo")
-    if image is None and spec.dot_diameter < 3 * spec.texel:
-        raise t.error("texel_mm", f"must be at most a third of the dot diameter "
-                                  f"({spec.dot_diameter * 1e3:g} mm) to draw round dots")
-    return spec
-
-
-def _sensor(top: Table, path: Path) -> SensorModel:
-    t = Table(top.raw("sensor", {}), "sensor", path, SENSOR_FIELDS)
-    values = {k: t.raw(k) for k in SENSOR_FIELDS if t.has(k)}
-    try:
-        return SensorModel(**values)
-    except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
-        field, _, message = str(exc).partition(": ")
-        raise t.error(field.removeprefix("SensorModel."), message) from None
-
-
-def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpec:
-    t = Table(top.raw("optimize", {}), "optimize", path,
-               ("free", "cameras", "regions", "min_axis_angle_deg", "clearance_m", "max_obscuration",
-                "assign_fraction", "starts", "rounds", "max_steps", "seed", "lenses_mm"))
-    free = t.raw("free", ["u", "pan", "tilt"])
-    if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll", "lens"} or not free:
-        raise t.error("free", f"must list some of u, pan, tilt, roll, lens (got {free!r})")
-    lenses = t.raw("lenses_mm", [])
-    if not isinstance(lenses, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                               and math.isfinite(x) and x > 0 for x in lenses):
-        raise t.error("lenses_mm", f"must be a list of focal lengths in mm, each > 0 (got {lenses!r})")
-    if "lens" in free and not lenses:
-        raise t.error("free", 'lists "lens" but no lenses_mm catalogue is given: add e.g. '
-                              'lenses_mm = [24, 35, 50, 100]')
-    moving = t.raw("cameras", None)
-    if moving is not None:
-        if not isinstance(moving, list) or not all(isinstance(c, str) for c in moving):
-            raise t.error("cameras", "must be a list of camera names")
-        unknown = sorted(set(moving) - cameras)
+    for region, t in zip(exp.regions, tables["region"]):
+        if roles.get(region.mesh) != "specimen":
+            raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {region.mesh!r}; "
+                                  f"specimen meshes: {', '.join(n for n, r in roles.items() if r == 'specimen')})")
+    rails = {r.name for r in exp.rails}
+    for cam, t in zip(exp.camera_specs, tables["camera"]):
+        if cam.rail is not None and cam.rail not in rails:
+            raise t.error("rail", f"no [[rail]] named {cam.rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
+    for key, names, kind in (("cameras", exp.optimize.cameras, "camera"),
+                             ("regions", exp.optimize.regions, "region")):
+        known = {x.name for x in (exp.camera_specs if kind == "camera" else exp.regions)}
+        unknown = sorted(set(names or ()) - known)
         if unknown:
-            raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
-    scored = t.raw("regions", None)
-    if scored is not None:
-        if not isinstance(scored, list) or not scored or not all(isinstance(r, str) for r in scored):
-            raise t.error("regions", "must be a non-empty list of region names")
-        unknown = sorted(set(scored) - regions)
-        if unknown:
-            raise t.error("regions", f"no [[region]] named {', '.join(map(repr, unknown))}")
-    angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
-    return OptimizeSpec(free=tuple(free), lenses=tuple(sorted(set(float(x) * 1e-3 for x in lenses))),
-                        cameras=None if moving is None else tuple(moving),
-                        regions=None if scored is None else tuple(scored),
-                        min_axis_angle=None if angle is None else math.radians(angle),
-                        clearance=t.number("clearance_m", 0.05, low=0.0),
-                        max_obscuration=t.number("max_obscuration", 0.01, low=0.0, high=1.0),
-                        assign_fraction=t.number("assign_fraction", 0.5, low=0.01, high=1.0),
-                        starts=t.integer("starts", 3, low=1), rounds=t.integer("rounds", 3, low=1),
-                        max_steps=t.integer("max_steps", 40, low=1),
-                        seed=t.integer("seed", 0, low=0))
+            raise ConfigError(path, f"optimize.{key}", f"no [[{kind}]] named {', '.join(map(repr, unknown))}")
+    meshes = set(roles)
+    grouped: dict[str, str] = {}
+    for group, t in zip(exp.groups, tables["group"]):
+        if group.name in meshes:
+            raise t.error("name", f"{group.name!r} is a mesh's name (every mesh is already a group "
+                                  "of its own name); choose another")
+        for mesh in group.meshes:
+            if mesh not in meshes:
+                raise t.error("meshes", f"no [[mesh]] named {mesh!r} (meshes: {', '.join(sorted(meshes))})")
+            if mesh in grouped:
+                raise t.error("meshes", f"mesh {mesh!r} is already in group {grouped[mesh]!r}")
+            grouped[mesh] = group.name
+    deformed = exp.load_path.deformed_mesh
+    if deformed is not None and roles.get(deformed) != "specimen":
+        raise ConfigError(path, "load_path.deformed_mesh", f"must name a specimen mesh (got {deformed!r})")
+    positions = camera_positions(exp)
+    for spec, position, t in zip(exp.camera_specs, positions, tables["camera"]):
+        if spec.target is not None and np.linalg.norm(spec.target - position) < 1e-6:
+            raise t.error("target_m", "is the camera's own position")
+    if len(positions) > 1:
+        p = np.array(positions)
+        gap = np.linalg.norm(p[:, None] - p[None], axis=-1)
+        np.fill_diagonal(gap, np.inf)
+        i, j = np.unravel_index(np.argmin(gap), gap.shape)
+        if gap[i, j] < COINCIDENT_M:
+            a, b = sorted((int(i), int(j)))
+            raise tables["camera"][b].error(
+                "", f"has its optical centre {gap[i, j] * 1e3:.3g} mm from camera "
+                    f"{exp.camera_specs[a].name!r}'s ({np.round(p[b], 4).tolist()} m): two cameras "
+                    "cannot share one pose; move or remove one")
 
 
-def _render(top: Table, path: Path) -> RenderSpec:
-    t = Table(top.raw("render", {}), "render", path,
-               ("spp", "scale", "seed", "ambient_radiance", "image_format", "exr"))
-    return RenderSpec(spp=t.integer("spp", 16, low=1), scale=t.number("scale", 1.0, positive=True, high=4.0),
-                      seed=t.integer("seed", 0, low=0),
-                      ambient_radiance=t.number("ambient_radiance", 0.0, low=0.0),
-                      image_format=t.string("image_format", "png", choices=("png", "tiff")),
-                      exr=t.boolean("exr", False))
+# --------------------------------------------------------------------------------------------
+# docs/config.md
+# --------------------------------------------------------------------------------------------
+_DOC_HEAD = """\
+# The experiment file
+
+<!-- Generated from the schema in vdo/config.py by scripts/config_docs.py; do not edit by hand. -->
+
+One TOML file (UTF-8) describes one experiment. Lengths are **metres** unless the field's name says
+`_mm`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
+Every field is checked before any work starts; an unknown field is an error (with the nearest
+known name). Names of meshes, regions, rails, cameras and lights become parts of file names: they
+must match `{pattern}` (letters, digits, `_`, `.`, `-`; at most 64 characters).
+`experiments/beam_column/ten_cameras.toml` is a complete example.
+"""
 
 
-def _mesh(t: Table, config_path: Path) -> MeshSpec:
-    file = t.string("file")
-    mesh_path = (config_path.parent / file).resolve()
-    if not mesh_path.is_file():
-        raise t.error("file", f"mesh file {str(mesh_path)!r} does not exist; give a path to an "
-                              "STL, OBJ or PLY file, relative to the config file")
-    if not os.access(mesh_path, os.R_OK):
-        raise t.error("file", f"mesh file {str(mesh_path)!r} is not readable")
-    if mesh_path.suffix.lower() not in (".stl", ".obj", ".ply"):
-        raise t.error("file", f"{mesh_path.name!r} is not an STL, OBJ or PLY file")
-    return MeshSpec(name=t.string("name"), path=mesh_path,
-                    unit=t.string("unit", "m", choices=tuple(UNITS)),
-                    role=t.string("role", "obstacle", choices=ROLES),
-                    albedo=t.number("albedo", 0.5, low=0.0, high=1.0), metal=t.boolean("metal", False))
+def _doc_value(value) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_doc_value(x) for x in value) + "]"
+    return str(value)
 
 
-def _region(t: Table, mesh_roles: dict) -> RegionSpec:
-    mesh = t.string("mesh")
-    if mesh_roles.get(mesh) != "specimen":
-        raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {mesh!r}; "
-                              f"specimen meshes: {', '.join(n for n, r in mesh_roles.items() if r == 'specimen')})")
-    normal = t.vector("normal", 3)
-    if np.linalg.norm(normal) < 1e-9:
-        raise t.error("normal", "must be a non-zero vector")
-    box_min = t.vector("box_min_m", 3, np.full(3, -np.inf))
-    box_max = t.vector("box_max_m", 3, np.full(3, np.inf))
-    if np.any(box_min >= box_max):
-        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
-    return RegionSpec(name=t.string("name"), mesh=mesh, normal=normal / np.linalg.norm(normal),
-                      box_min=box_min, box_max=box_max,
-                      importance=t.number("importance", 1.0, positive=True),
-                      normal_tolerance=math.radians(t.number("normal_tolerance_deg", 5.0,
-                                                             low=0.0, high=89.0)),
-                      min_cameras=t.integer("min_cameras", None, low=1) if t.has("min_cameras") else None)
+def _doc_table(title: str, rows, doc: str) -> str:
+    lines = [f"## {title}", ""]
+    if doc:
+        lines += [doc, ""]
+    lines += ["| field | type | unit | default | meaning |", "| --- | --- | --- | --- | --- |"]
+    for r in rows:
+        default = r.shown or ("required" if r.default is REQUIRED else
+                              "none" if r.default is None else _doc_value(r.default))
+        unit = "°" if r.unit == "deg" else r.unit
+        lines.append(f"| `{r.key}` | {r.kind.doc} | {unit} | {default} | {r.doc} |")
+    return "\n".join(lines) + "\n"
 
 
-def _rail(t: Table) -> Rail:
-    points = t.points("control_points_m")
-    degree = t.integer("degree", 1, low=1)
-    if degree >= len(points):
-        raise t.error("degree", f"must be less than the number of control points ({len(points)})")
-    weights = t.vector("weights", len(points), None, positive=True)
-    return Rail(name=t.string("name"), control_points=points, degree=degree, weights=weights)
-
-
-def _camera(t: Table, rails: set) -> CameraSpec:
-    name = t.string("name")
-    if t.has("sensor_mm") == t.has("sensor_width_mm"):
-        raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
-                                   "sensor_width_mm")
-    pixels = t.vector("pixels", 2, positive=True)
-    if np.any(pixels != np.round(pixels)):
-        raise t.error("pixels", f"must be two whole numbers [width, height] (got {pixels.tolist()})")
-    width_px, height_px = int(pixels[0]), int(pixels[1])
-    if t.has("sensor_mm"):
-        sensor = t.vector("sensor_mm", 2, positive=True)
-        pitch_w, pitch_h = sensor[0] / width_px, sensor[1] / height_px
-        if abs(pitch_w - pitch_h) > 0.01 * pitch_w:
-            raise t.error("sensor_mm", f"gives non-square pixels ({pitch_w * 1e3:.3f} x "
-                                       f"{pitch_h * 1e3:.3f} um); vdo models square pixels: check "
-                                       "the sensor size and pixel counts")
-        width_mm = float(sensor[0])
-    else:
-        width_mm = t.number("sensor_width_mm", positive=True)
-
-    spec = dict(name=name, sensor_width=width_mm * 1e-3, pixels=(width_px, height_px),
-                focal_length=t.number("focal_mm", positive=True) * 1e-3,
-                roll=math.radians(t.number("roll_deg", 0.0)),
-                principal_offset_px=tuple(t.vector("principal_offset_px", 2, np.zeros(2))),
-                body=t.boolean("body", True),
-                distortion=tuple(float(k) for k in t.vector("distortion", 5, np.zeros(5))))
-    if t.has("f_number") != t.has("focus_m"):
-        raise t.error("f_number", "depth of field needs both f_number and focus_m")
-    if t.has("f_number"):
-        spec |= dict(f_number=t.number("f_number", positive=True),
-                     focus_distance=t.number("focus_m", positive=True))
-    if t.has("rail") == t.has("position_m"):
-        raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
-    if t.has("rail"):
-        rail = t.string("rail")
-        if rail not in rails:
-            raise t.error("rail", f"no [[rail]] named {rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
-        u = t.number("u")
-        if not 0.0 <= u <= 1.0:
-            raise t.error("u", f"= {u} is off rail {rail!r}: the rail parameter runs from 0 to 1")
-        spec |= dict(rail=rail, u=u, offset=t.vector("offset_m", 3, np.zeros(3)))
-    else:
-        for key in ("u", "offset_m"):
-            if t.has(key):
-                raise t.error(key, "only applies to a camera on a rail")
-        spec["position"] = t.vector("position_m", 3)
-    if t.has("target_m") == (t.has("pan_deg") or t.has("tilt_deg")):
-        raise t.error("target_m", "aim the camera with either target_m or pan_deg + tilt_deg")
-    if t.has("target_m"):
-        spec["target"] = t.vector("target_m", 3)
-    else:
-        spec |= dict(pan=math.radians(t.number("pan_deg")), tilt=math.radians(t.number("tilt_deg")))
-    return CameraSpec(**spec)
+def markdown() -> str:
+    """docs/config.md: the schema as tables, generated from the rows."""
+    parts = [_DOC_HEAD.format(pattern=NAME_PATTERN),
+             _doc_table("`[experiment]`", rows_of(Experiment), "")]
+    for sec in sections():
+        title = f"`[[{sec.key}]]`" if sec.array else f"`[{sec.key}]`"
+        rows = []
+        for r in sec.rows:
+            rows += [x for x in sec.extra if x.key == r.either] + [r]
+        parts.append(_doc_table(title, rows, sec.doc + (" Optional." if not sec.required and sec.array
+                                                        else "")))
+    return "\n".join(parts)

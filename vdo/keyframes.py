@@ -154,7 +154,7 @@ def read_poses(file: Path, groups: dict, pivots: dict) -> dict:
         step = _step(row, i_step, file, line)
         group = row[i_group].strip() if i_group < len(row) else ""
         if group not in groups:
-            raise ConfigError(file, f"row {line}", f"group {group!r} is not a [[load_path.group]] "
+            raise ConfigError(file, f"row {line}", f"group {group!r} is neither a [[group]] nor a [[mesh]] "
                                                    f"(groups: {', '.join(sorted(groups))})")
         if (step, group) in poses:
             raise ConfigError(file, f"row {line}", f"a second pose for group {group!r} at step {step}")
@@ -268,22 +268,23 @@ def at_step(geometry, load_path: LoadPath, step: int):
 def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
     """The experiment's `[load_path]` read from its CSV files, or None when it has none and no
     `poses` file is given. `poses` replaces the `[load_path]`'s pose file (`vdo render --series`).
-    Every mesh is also a group of its own name (pivot at the origin), so a pose file may move
-    single meshes without declaring groups. Rows are checked here, before any ray is cast."""
+    Groups are the experiment's `[[group]]` tables, and every mesh is also a group of its own name
+    (pivot at the origin), so a pose file may move single meshes without declaring groups. Rows
+    are checked here, before any ray is cast. `meshes`: the experiment's SceneMeshes (needed for
+    the displacement nodes)."""
     spec = exp.load_path
-    if spec is None and poses is None:
+    if not spec.active and poses is None:
         return None
     groups = {m.name: (m.name,) for m in exp.meshes}
     pivots = {name: np.zeros(3) for name in groups}
-    for g in (spec.groups if spec is not None else ()):
+    for g in exp.groups:
         groups[g.name] = tuple(g.meshes)
         pivots[g.name] = np.asarray(g.pivot, dtype=float)
     poses = poses if poses is not None else spec.poses
     displacements = None
-    if spec is not None and spec.displacements is not None:
+    if spec.displacements is not None:
         mesh = next(m for m in meshes if m.name == spec.deformed_mesh)
         displacements = read_displacements(spec.displacements, mesh.vertices, mesh.name)
     table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
     steps = sorted({step for step, _ in table} | set(displacements or {}))
-    return LoadPath(tuple(steps), groups, table, None if spec is None else spec.deformed_mesh,
-                    displacements)
+    return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)

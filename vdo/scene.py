@@ -11,6 +11,8 @@ X = O + u t_u + v t_v carries the area h^2, the face normal n = t_u x t_v, and (
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,8 +20,10 @@ import trimesh
 
 from .backend import mitsuba
 from .camera import Camera
-from .config import Experiment, RegionSpec
+from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, camera_positions
 from .errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,21 +41,172 @@ class SceneMesh:
 
 
 def load_meshes(exp: Experiment) -> list[SceneMesh]:
-    """Read every [[mesh]] of the experiment, scaled to metres."""
+    """Read every [[mesh]] of the experiment, scaled to metres, and check it: readable content,
+    extents that fit the declared unit, no camera inside it. Specimen faces that cross a region's
+    box are split at the box (`split_at_boxes`), so a region's faces and area are exactly the part
+    inside its box."""
     meshes = []
     for spec in exp.meshes:
         field = f'mesh "{spec.name}".file'
-        try:
-            loaded = trimesh.load(spec.path, force="mesh", process=False)
-        except Exception as exc:  # trimesh raises many types for malformed files
-            raise ConfigError(exp.path, field, f"cannot read {spec.path.name!r} as a mesh ({exc})") from None
-        if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-            raise ConfigError(exp.path, field, f"{spec.path.name!r} holds no triangles")
+        loaded = _read_mesh(spec.path, (exp.path, field))
         vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
+        faces = np.asarray(loaded.faces, dtype=np.int64)
+        if faces.min() < 0 or faces.max() >= len(vertices):
+            raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
         if not np.all(np.isfinite(vertices)):
             raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
-        meshes.append(SceneMesh(spec.name, spec.role, vertices, np.asarray(loaded.faces, dtype=np.int64)))
+        _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
+        if spec.role == "specimen":
+            vertices, faces = split_at_boxes(vertices, faces,
+                                             [r for r in exp.regions if r.mesh == spec.name])
+        meshes.append(SceneMesh(spec.name, spec.role, vertices, faces))
+    _check_cameras_outside(exp, meshes)
     return meshes
+
+
+MAX_MESH_EXTENT = 100.0      # m: a test setup larger than this is a unit mistake
+NOT_MESHES = {**IMAGE_MAGIC, b"%PDF": "PDF", b"PK\x03\x04": "ZIP", b"\x1f\x8b": "gzip"}
+
+
+def _read_mesh(path, where) -> trimesh.Trimesh:
+    """The triangles of an STL, OBJ or PLY file; ConfigError saying what is wrong with the file."""
+    name, fmt = path.name, path.suffix.lstrip(".").upper()
+    data = path.read_bytes()
+    if not data:
+        raise ConfigError(*where, f"{name!r} is empty (0 bytes)")
+    for magic, kind in NOT_MESHES.items():
+        if data.startswith(magic):
+            raise ConfigError(*where, f"{name!r} is a {kind} file, not an {fmt} mesh")
+    if fmt == "STL":
+        count = int.from_bytes(data[80:84], "little") if len(data) >= 84 else 0
+        binary = len(data) >= 84 and len(data) == 84 + 50 * count
+        if not binary and not data.lstrip()[:5].lower() == b"solid":
+            if len(data) < 84:
+                raise ConfigError(*where, f"{name!r} is neither ASCII STL (which starts with 'solid') "
+                                          f"nor binary STL (84-byte header; the file has {len(data)} bytes)")
+            raise ConfigError(*where, f"{name!r} is not a valid binary STL: its header announces {count} "
+                                      f"triangles ({84 + 50 * count} bytes) but the file has {len(data)} "
+                                      "bytes (truncated or not an STL)")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except ModuleNotFoundError:       # trimesh's text fallback for content it cannot parse
+        raise ConfigError(*where, f"cannot read {name!r} as {fmt}: the content is not a valid "
+                                  f"{fmt} mesh") from None
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise ConfigError(*where, f"cannot read {name!r} as a mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ConfigError(*where, f"{name!r} holds no triangles")
+    return loaded
+
+
+def _check_extent(vertices: np.ndarray, spec, where) -> None:
+    """ConfigError when the mesh spans more than MAX_MESH_EXTENT metres, with the likely cause:
+    a stray vertex far from the others, or a length unit that is not the file's."""
+    extent = float(np.ptp(vertices, axis=0).max())
+    if extent <= MAX_MESH_EXTENT:
+        return
+    centre = np.median(vertices, axis=0)
+    far = np.linalg.norm(vertices - centre, axis=1)
+    core = float(np.ptp(vertices[far <= np.quantile(far, 0.99)], axis=0).max())
+    if core <= MAX_MESH_EXTENT:
+        worst = vertices[np.argmax(far)]
+        raise ConfigError(*where, f"a vertex of {spec.path.name!r} lies at {np.round(worst, 3).tolist()} m, "
+                                  f"far from the rest of the mesh (which spans {core:.3g} m): a corrupt "
+                                  "vertex? fix the file")
+    hints = [f'is the mesh in {unit}? set unit = "{unit}"' for unit in ("mm", "cm", "in")
+             if UNITS[unit] < spec.scale and extent * UNITS[unit] / spec.scale <= MAX_MESH_EXTENT]
+    raise ConfigError(*where, f"{spec.path.name!r} spans {extent:.4g} m with unit = \"{spec.unit}\" "
+                              f"(at most {MAX_MESH_EXTENT:g} m expected)"
+                      + (f"; {hints[0]}" if hints else "; check the file's unit"))
+
+
+def _check_cameras_outside(exp: Experiment, meshes: list[SceneMesh]) -> None:
+    """ConfigError when a camera's optical centre lies inside a mesh: each of 14 rays from it (axes
+    and diagonals) first meets the mesh from behind (geometric normal, by the faces' winding, along
+    the ray), as from inside a closed surface. Only meshes whose bounding box holds a camera are
+    ray-cast (Mitsuba)."""
+    if not exp.camera_specs:
+        return
+    positions = np.array(camera_positions(exp))
+    dirs = np.array(list(np.ndindex(3, 3, 3)), dtype=float) - 1.0
+    dirs = dirs[np.isin(np.count_nonzero(dirs, axis=1), (1, 3))]       # 6 axes + 8 diagonals
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for mesh in meshes:
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        near = np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
+        if not len(near):
+            continue
+        mi = mitsuba()
+        origins, directions = np.repeat(positions[near], len(dirs), axis=0), np.tile(dirs, (len(near), 1))
+        ray = mi.Ray3f(mi.Point3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in origins.T)),
+                       mi.Vector3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in directions.T)))
+        hit = build_scene([mesh]).ray_intersect(ray)
+        normal = np.stack([np.asarray(c, dtype=float) for c in (hit.n.x, hit.n.y, hit.n.z)], axis=1)
+        back = np.asarray(hit.is_valid(), dtype=bool) & (np.einsum("rk,rk->r", normal, directions) > 0)
+        for i in near[back.reshape(len(near), len(dirs)).all(axis=1)]:
+            raise ConfigError(exp.path, f'camera "{exp.camera_specs[i].name}"',
+                              f"its optical centre {np.round(positions[i], 4).tolist()} m lies inside "
+                              f"mesh {mesh.name!r}: move the camera out (position_m, or rail u / offset_m)")
+
+
+def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with every triangle that crosses a face plane of a region box split along it.
+
+    A plane x_k = c of a region's box is used only where it crosses a triangle that the region
+    could select (its normal within the tolerance, overlapping the box); it then splits every
+    triangle of the mesh that it crosses (one vertex alone on one side -> 3 triangles, a vertex on
+    the plane -> 2), with one new vertex per cut edge, so a closed mesh stays closed and the
+    surface is unchanged. Afterwards each triangle lies on one side of every such plane."""
+    for region in regions:
+        for k in range(3):
+            for c in (region.box_min[k], region.box_max[k]):
+                if not np.isfinite(c):
+                    continue
+                tri = vertices[faces]
+                eps = 1e-9 * max(1.0, float(np.abs(vertices).max()))
+                side = np.sign(np.where(np.abs(tri[..., k] - c) < eps, 0.0, tri[..., k] - c))
+                crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                length = np.linalg.norm(normals, axis=1)
+                facing = normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
+                box = np.all((tri.max(axis=1) >= region.box_min) & (tri.min(axis=1) <= region.box_max), axis=1)
+                if np.any(crossing & facing & box):
+                    log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
+                             int(crossing.sum()), "xyz"[k], c)
+                    vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
+    return vertices, faces
+
+
+def _split_plane(vertices, faces, side, crossing, k, c):
+    new_vertices, cache, out = [vertices], {}, [faces[~crossing]]
+    count = len(vertices)
+
+    def cut(a, b):
+        nonlocal count
+        key = (min(a, b), max(a, b))
+        if key not in cache:
+            p, q = vertices[key[0]], vertices[key[1]]
+            point = p + (q - p) * ((c - p[k]) / (q[k] - p[k]))
+            point[k] = c
+            new_vertices.append(point[None])
+            cache[key], count = count, count + 1
+        return cache[key]
+
+    pieces = []
+    for f, s in zip(faces[crossing], side[crossing]):
+        zero = np.flatnonzero(s == 0)
+        if len(zero):                                   # a vertex on the plane: 2 triangles
+            r = int(zero[0])
+            a, b, d = f[r], f[(r + 1) % 3], f[(r + 2) % 3]
+            p = cut(b, d)
+            pieces += [(a, b, p), (a, p, d)]
+        else:                                           # one vertex alone on its side: 3
+            r = next(i for i in range(3) if s[i] != s[(i + 1) % 3] and s[i] != s[(i + 2) % 3])
+            a, b, d = f[r], f[(r + 1) % 3], f[(r + 2) % 3]
+            p, q = cut(a, b), cut(a, d)
+            pieces += [(a, p, q), (p, b, d), (p, d, q)]
+    out.append(np.array(pieces, dtype=np.int64).reshape(-1, 3))
+    return np.concatenate(new_vertices), np.concatenate(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -119,8 +274,16 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     tm = mesh.trimesh if tm is None else tm
     faces = _select_faces(tm, region)
     if len(faces) == 0:
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        hint = ""
+        if np.any(region.box_min > hi) or np.any(region.box_max < lo):
+            hint = (f"; the box misses the mesh, which spans {np.round(lo, 3).tolist()} to "
+                    f"{np.round(hi, 3).tolist()} m")
+            size = np.where(np.isfinite(region.box_max - region.box_min), region.box_max - region.box_min, 0)
+            if np.ptp(mesh.vertices, axis=0).max() > 100 * max(size.max(), 1e-9):
+                hint += ": is the mesh's unit right (unit = \"mm\" for a CAD export in mm)?"
         raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check normal, "
-                                  "box_min_m and box_max_m (metres, world frame)")
+                                  f"box_min_m and box_max_m (metres, world frame){hint}")
     normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])
     normal /= np.linalg.norm(normal)
     t_u, t_v = face_frame(normal)
@@ -136,10 +299,12 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=origin)
 
 
-def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple) -> dict:
-    """Grid samples of spacing `spacing` (m) on the faces that `region` selects."""
+def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                  rf: RegionFaces | None = None) -> dict:
+    """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
+    found by `region_faces`)."""
     tm = mesh.trimesh
-    rf = region_faces(mesh, region, spacing, where, tm)
+    rf = region_faces(mesh, region, spacing, where, tm) if rf is None else rf
     normal, t_u, t_v = rf.normal, rf.t_u, rf.t_v
     tri = tm.triangles[rf.faces]                                # (T, 3, 3)
     uv_tri = rf.uv(tri)                                         # (T, 3, 2)
@@ -180,14 +345,33 @@ def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
             for r in exp.regions]
 
 
+MAX_SAMPLES = 2_000_000     # surface samples: ~1 GB of visibility and uncertainty arrays for 10 cameras
+
+
+def check_sample_count(exp: Experiment, meshes: list[SceneMesh], faces: list[RegionFaces],
+                       spacing: float) -> None:
+    """ConfigError before sampling when the regions' area A would give more than MAX_SAMPLES
+    samples at spacing h (N = A / h^2), with the smallest spacing that fits."""
+    area = sum(float(m.trimesh.area_faces[rf.faces].sum()) for m, rf in zip(meshes, faces))
+    count = area / spacing**2
+    if count > MAX_SAMPLES:
+        fits = math.ceil(math.sqrt(area / MAX_SAMPLES) * 1e4) / 10
+        raise ConfigError(exp.path, "evaluation.sample_spacing_mm",
+                          f"= {spacing * 1e3:g} mm gives about {count:,.0f} samples on the regions' "
+                          f"{area:.3g} m² (at most {MAX_SAMPLES:,}): raise sample_spacing_mm to "
+                          f"{fits:g} or more")
+
+
 def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None) -> SurfaceSamples:
     """Samples on every region of the experiment, at `spacing` (m; default from the config)."""
     spacing = exp.evaluation.sample_spacing if spacing is None else spacing
     by_name = {m.name: m for m in meshes}
+    faces = all_region_faces(exp, meshes, spacing)
+    check_sample_count(exp, [by_name[r.mesh] for r in exp.regions], faces, spacing)
     parts = []
-    for index, region in enumerate(exp.regions):
+    for index, (region, rf) in enumerate(zip(exp.regions, faces)):
         part = sample_region(by_name[region.mesh], region, spacing,
-                             (exp.path, f'region "{region.name}"'))
+                             (exp.path, f'region "{region.name}"'), rf)
         part["region"] = np.full(len(part["points"]), index)
         parts.append(part)
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
