@@ -169,6 +169,11 @@ class Experiment:
     sensor: SensorModel = SensorModel()
     render: RenderSpec = RenderSpec()
     optimize: OptimizeSpec = OptimizeSpec()
+    analysis: "Analysis" = None      # [analysis] (block at the end of this file); None: defaults
+
+    def __post_init__(self):
+        if self.analysis is None:
+            object.__setattr__(self, "analysis", Analysis(element=self.evaluation.patch_size))
 
     def rail(self, name: str) -> Rail:
         return next(r for r in self.rails if r.name == name)
@@ -204,7 +209,8 @@ class Experiment:
                "sensor": {k: v for k, v in dataclasses.asdict(self.sensor).items() if v is not None},
                "render": {"spp": rd.spp, "scale": rd.scale, "seed": rd.seed,
                           "ambient_radiance": rd.ambient_radiance, "image_format": rd.image_format,
-                          "exr": rd.exr}}
+                          "exr": rd.exr},
+               "analysis": analysis_to_dict(self.analysis)}
         return {k: v for k, v in out.items() if v != []}
 
 
@@ -389,7 +395,7 @@ def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
     top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
-                                  "light", "speckle", "sensor", "render", "optimize"))
+                                  "light", "speckle", "sensor", "render", "optimize", "analysis"))
     exp = Table(top.raw("experiment"), "experiment", path, ("name", "description"))
     ev = Table(top.raw("evaluation", {}), "evaluation", path,
                 ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
@@ -423,7 +429,8 @@ def parse(data: dict, path: Path) -> Experiment:
                         lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
                         render=_render(top, path),
                         optimize=_optimize(top, path, {c.name for c in cameras},
-                                           {r.name for r in regions}))
+                                           {r.name for r in regions}),
+                        analysis=_analysis(top, path, evaluation))
     for spec, camera in zip(cameras, result.cameras()):
         if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
             raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
@@ -621,3 +628,62 @@ def _camera(t: Table, rails: set) -> CameraSpec:
     else:
         spec |= dict(pan=math.radians(t.number("pan_deg")), tilt=math.radians(t.number("tilt_deg")))
     return CameraSpec(**spec)
+
+
+# --------------------------------------------------------------------------------------------
+# [analysis]: the DIC analysis the strain uncertainty is predicted for (vdo.strain)
+# --------------------------------------------------------------------------------------------
+ANALYSIS_FIELDS = ("method", "element_mm", "subset_px", "subset_mm", "step_px", "step_mm",
+                   "shape_function", "strain_window")
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Global DIC (Q4 elements of side `element`, m) or subset DIC (square subsets of side
+    `subset` m or `subset_px` pixels, on a grid of `step` m or `step_px` pixels, shape function
+    "zero" or "affine", strain from a plane fit over `strain_window` x `strain_window` subset
+    centres). Pixels are those of the finest camera at each sample (`vdo.strain.sizes`)."""
+
+    method: str = "global"
+    element: float = 0.01
+    subset: float | None = None
+    subset_px: float | None = 29.0
+    step: float | None = None
+    step_px: float | None = 7.0
+    shape_function: str = "affine"
+    strain_window: int = 15
+
+
+def _analysis(top: Table, path: Path, evaluation: Evaluation) -> Analysis:
+    t = Table(top.raw("analysis", {}), "analysis", path, ANALYSIS_FIELDS)
+    method = t.string("method", "global", choices=("global", "subset"))
+    values = {}
+    for key in ("element_mm", "subset_px", "subset_mm", "step_px", "step_mm"):
+        if t.has(key):
+            values[key] = t.number(key)
+            if values[key] <= 0:
+                raise t.error(key, f"must be positive (got {values[key]!r})")
+    for a, b in (("subset_px", "subset_mm"), ("step_px", "step_mm")):
+        if a in values and b in values:
+            raise t.error(a, f"give the size once: {a} or {b}")
+    subset_mm, step_mm = values.get("subset_mm"), values.get("step_mm")
+    window = t.integer("strain_window", 15)
+    if window < 2:
+        raise t.error("strain_window", f"must be at least 2 subset centres per side of the "
+                                       f"plane fit (got {window})")
+    return Analysis(method=method,
+                    element=values.get("element_mm", evaluation.patch_size * 1e3) * 1e-3,
+                    subset=subset_mm * 1e-3 if subset_mm else None,
+                    subset_px=None if subset_mm else values.get("subset_px", 29.0),
+                    step=step_mm * 1e-3 if step_mm else None,
+                    step_px=None if step_mm else values.get("step_px", 7.0),
+                    shape_function=t.string("shape_function", "affine", choices=("zero", "affine")),
+                    strain_window=window)
+
+
+def analysis_to_dict(a: Analysis) -> dict:
+    out = {"method": a.method, "element_mm": a.element * 1e3, "shape_function": a.shape_function,
+           "strain_window": a.strain_window}
+    out |= {"subset_mm": a.subset * 1e3} if a.subset else {"subset_px": a.subset_px}
+    out |= {"step_mm": a.step * 1e3} if a.step else {"step_px": a.step_px}
+    return out

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import maps, report, vtp
+from . import maps, report, strain, vtp
 from .config import Experiment
 from .lighting import illuminate
 from .predict import predict, speckle_model
@@ -37,13 +37,18 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     scene = build_scene(meshes + bodies)
     vis = compute_visibility(scene, cameras, samples, exp.evaluation.incidence_limit,
                              progress=not quiet)
+    density = strain.pixel_density(cameras, vis.visible, samples.points, samples.tangent_u,
+                                   samples.tangent_v)
+    strain.check_regions(exp.analysis, samples, density, exp.path)
     illumination = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     if not exp.lights and exp.render.ambient_radiance == 0:
         say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
             "the uncertainty is not predicted (sigma = inf)", quiet)
     say("predicting the uncertainty (compiles on first use)", quiet)
     pred = predict(exp, cameras, samples, vis, illumination, speckle_model(exp))
-    summary = report.summary(exp, samples, vis, pred)
+    eps, sigma_dic = strain.analysis_fields(exp.analysis, density, samples, pred.information,
+                                            pred.measured, exp.evaluation.patch_size ** 2)
+    summary = report.summary(exp, samples, vis, pred, (eps, sigma_dic))
 
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
@@ -58,6 +63,10 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
                   **{f"sensitivity_{a}": sens[:, k] for k, a in enumerate("xyz")},
                   "sigma_max": sigma_um,
                   **{f"sigma_{a}": sigma_xyz_um[:, k] for k, a in enumerate("xyz")}}
+        arrays |= {f"sigma_strain_{c}": np.where(np.isfinite(eps[:, k]), eps[:, k] * 1e6, np.nan)
+                   for k, c in enumerate(strain.STRAIN_COMPONENTS)}
+        arrays["sigma_dic_max"] = np.where(np.isfinite(sigma_dic), sigma_dic * UM, np.nan)
+        arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
