@@ -107,14 +107,18 @@ def covariance_per_area(information: np.ndarray, patch_area: float, measured: np
     return out
 
 
-def strain_sigma(sigma_u: np.ndarray, t_u: np.ndarray, t_v: np.ndarray, factor) -> np.ndarray:
+def strain_sigma(sigma_u: np.ndarray, t_u: np.ndarray, t_v: np.ndarray, factor,
+                 factor_v=None) -> np.ndarray:
     """(N, 3) σ of (ε_uu, ε_vv, ε_uv) (dimensionless; x 1e6 for µε) from Σ_u (N, 3, 3) m^4, the
-    face frame t_u, t_v (N, 3) and the gradient factor F (N,) or scalar, 1/m^4 (module
-    docstring); NaN where Σ_u is."""
-    F = np.asarray(factor, dtype=float)
+    face frame t_u, t_v (N, 3) and the gradient factors (1/m^4, scalars or (N,)): F_1 = `factor`
+    of ∂u/∂ξ1 and F_2 = `factor_v` of ∂u/∂ξ2 (default F_1: square elements/windows), the two
+    gradients uncorrelated: var ε_uu = F_1 t_uᵀΣt_u, var ε_vv = F_2 t_vᵀΣt_v,
+    var ε_uv = (F_2 t_uᵀΣt_u + F_1 t_vᵀΣt_v) / 4. NaN where Σ_u is."""
+    F1 = np.asarray(factor, dtype=float)
+    F2 = F1 if factor_v is None else np.asarray(factor_v, dtype=float)
     vu = np.einsum("ni,nij,nj->n", t_u, sigma_u, t_u)
     vv = np.einsum("ni,nij,nj->n", t_v, sigma_u, t_v)
-    return np.sqrt(np.stack([F * vu, F * vv, F * (vu + vv) / 4.0], axis=-1))
+    return np.sqrt(np.stack([F1 * vu, F2 * vv, (F2 * vu + F1 * vv) / 4.0], axis=-1))
 
 
 def pixel_density(cameras, weights: np.ndarray, points, t_u, t_v, usable: float = 0.5):

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import strain
 from .camera import Camera, look_at_angles
 from .config import (SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
@@ -55,12 +56,13 @@ from .speckle import gradient_energy_table, normalise, pattern_for
 from .visibility import compute_visibility
 
 AXES = "xyz"
+STRAIN_AXES = ("eps_uu", "eps_vv", "eps_uv")
 UM = 1e6
 SQRT2 = math.sqrt(2.0)
 BAND = (0.8, 1.25)
 CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
               "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
-              "sigma_linear_um"]
+              "sigma_linear_um", "unit"]
 CONVENTION = ("sigma_predicted_um: vdo.predict, the Cramer-Rao bound for ONE noisy image against a "
               "noise-free reference, for the correlated patch. sigma_measured_um: standard "
               "deviation over the seeds of the correlated displacement, reference and deformed "
@@ -105,6 +107,8 @@ class Case:
     ambient_radiance: float
     spp: int
     seed: int                           # base of the noise seeds
+    strain: np.ndarray | None = None    # (3,) imposed (eps_uu, eps_vv, eps_uv) in the face frame
+    q4_mesh: tuple[int, int] = (1, 1)   # strain cases: Q4 mesh of the patch, centre element read
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,8 @@ class ValidationSpec:
 _CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg", "dot_mm",
                 "texel_mm", "edge_blur_mm", "coverage", "strokes", "speckle_seed", "tile_texels", "white_albedo",
                 "black_albedo", "cameras", "focal_mm", "pixel_um", "pixels", "distance_mm",
-                "ambient_radiance", "spp", "sensor", "displacement_um", "seed")
+                "ambient_radiance", "spp", "sensor", "displacement_um", "seed",
+                "strain_microstrain", "q4_mesh")
 _CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
                   "pixels")
 
@@ -238,9 +243,29 @@ def _case(t: Table, path: Path, where: str) -> Case:
                 speckle=speckle, edge_blur=t.number("edge_blur_mm", 0.0, low=0.0, high=dot * 1e3 / 2) * 1e-3,
                 sensor=sensor,
                 ambient_radiance=t.number("ambient_radiance", 1.0, positive=True),
-                spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0))
+                spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0),
+                **_strain_fields(t, len(cameras)))
     _check_geometry(case, t, path, where)
     return case
+
+
+def _strain_fields(t: Table, n_cameras: int) -> dict:
+    """A strain case: `strain_microstrain` = [eps_uu, eps_vv, eps_uv] (tensor shear) imposed on the
+    plate in its face frame, correlated with a `q4_mesh` = [nx, ny] mesh (default [1, 1])."""
+    if not t.has("strain_microstrain"):
+        if t.has("q4_mesh"):
+            raise t.error("q4_mesh", "only applies to a strain case (strain_microstrain)")
+        return {}
+    if n_cameras < 2:
+        raise t.error("strain_microstrain", "a strain case needs at least two cameras")
+    strain = t.vector("strain_microstrain", 3) * 1e-6
+    if np.any(np.abs(strain) > 0.02):
+        raise t.error("strain_microstrain", "must be small strains (|eps| <= 20000 microstrain)")
+    mesh = as_numbers(t.raw("q4_mesh", [1, 1]))
+    if mesh is None or mesh.shape != (2,) or np.any(mesh != np.round(mesh)) or np.any(mesh < 1) \
+            or np.any(mesh > 9):
+        raise t.error("q4_mesh", f"must be two whole numbers [nx, ny] in 1..9 (got {t.raw('q4_mesh')!r})")
+    return {"strain": strain, "q4_mesh": (int(mesh[0]), int(mesh[1]))}
 
 
 def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
@@ -254,7 +279,7 @@ def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
         if incidence > 80:
             raise ConfigError(path, field_name, f"sees the plate at {incidence:.0f} deg incidence; "
                                                 "keep it below 80 deg")
-        corners = np.concatenate([g["corners"], g["corners"] + case.displacement])
+        corners = np.concatenate([g["corners"], deform(case, g["corners"])])
         x = cam.project(corners)
         if np.any(x < 4) or np.any(x[:, 0] > cam.width - 5) or np.any(x[:, 1] > cam.height - 5):
             raise ConfigError(path, field_name, f"does not see the whole patch with a 4-pixel "
@@ -270,6 +295,45 @@ def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
 # --------------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------------
+def strain_tensor(case: Case) -> np.ndarray:
+    """The imposed in-plane strain as a world 3x3 displacement gradient T E Tᵀ (T = [t_u t_v],
+    E the symmetric 2x2 of (eps_uu, eps_vv, eps_uv)); zeros for a translation case."""
+    if case.strain is None:
+        return np.zeros((3, 3))
+    g = plate_geometry(case)
+    T = np.stack([g["t_u"], g["t_v"]], axis=1)
+    e = case.strain
+    return T @ np.array([[e[0], e[2]], [e[2], e[1]]]) @ T.T
+
+
+def deform(case: Case, points) -> np.ndarray:
+    """Deformed positions X + U + F X (the patch centre is the world origin), metres."""
+    points = np.asarray(points, dtype=float)
+    return points + case.displacement + points @ strain_tensor(case).T
+
+
+def undeform(case: Case, points) -> np.ndarray:
+    """The reference position of deformed points (inverse of `deform`)."""
+    points = np.asarray(points, dtype=float)
+    return np.linalg.solve(np.eye(3) + strain_tensor(case), (points - case.displacement).T).T
+
+
+@dataclass(frozen=True, eq=False)
+class DeformedFaces:
+    """The plate region's faces after the deformation: every point keeps the uv of its reference
+    position, so the texture moves and strains with the plate (what `build_render_scene` reads)."""
+
+    base: object        # vdo.scene.RegionFaces of the reference plate
+    case: Case
+
+    @property
+    def faces(self):
+        return self.base.faces
+
+    def uv(self, points) -> np.ndarray:
+        return self.base.uv(undeform(self.case, points))
+
+
 def plate_geometry(case: Case) -> dict:
     """The plate's frame: normal n = (0, -sin tilt, cos tilt), the face frame (t_u, t_v) that
     vdo.scene gives such a face, the patch corners and the plate's 4 vertices (world, m)."""
@@ -375,13 +439,13 @@ def speckle_model_of(setup: Setup):
 # Renders
 # --------------------------------------------------------------------------------------------
 def render_case(setup: Setup) -> None:
-    """Noise-free linear renders of every camera: the plate as it is, and translated by U with
-    its texture (the face frame's origin moves with the vertices, so every point keeps its uv)."""
+    """Noise-free linear renders of every camera: the plate as it is, and deformed (translated
+    by U and, in a strain case, strained homogeneously) with its texture (`DeformedFaces`: every
+    point keeps its uv; the plate is flat, so the affine map of its vertices is exact)."""
 
     case, exp = setup.case, setup.experiment
-    U = case.displacement
-    moved = SceneMesh("plate", "specimen", setup.plate.vertices + U, setup.plate.faces)
-    moved_rf = replace(setup.region, origin=setup.region.origin + U)
+    moved = SceneMesh("plate", "specimen", deform(case, setup.plate.vertices), setup.plate.faces)
+    moved_rf = DeformedFaces(setup.region, case)
     scenes = [build_render_scene(exp, [setup.plate], [setup.region], (), setup.pattern),
               build_render_scene(exp, [moved], [moved_rf], (), setup.pattern)]
     setup.reference_linear, setup.deformed_linear = [], []
@@ -434,7 +498,14 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     # through the sample, which tilts away from the normal off the optical axis; only at the patch
     # centre (on the axis) is the in-plane marginal the weak-probe limit. There the in-plane bound
     # is that of the centred patch (first-order variations over the patch cancel).
-    samples = _samples(setup, 5 if len(setup.case.cameras) > 1 else 1)
+    pred = _prediction(setup, cameras, speckle, 5 if len(setup.case.cameras) > 1 else 1)
+    return 1.0 / np.sqrt(np.mean(1.0 / pred.sigma_xyz ** 2, axis=0))
+
+
+def _prediction(setup: Setup, cameras, speckle, n: int):
+    """vdo.predict at n x n samples of the correlated patch (each with Ω = the patch area)."""
+    exp = setup.experiment
+    samples = _samples(setup, n)
     blockers = build_scene([setup.plate])
     vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit, progress=False)
     illum = illuminate(blockers, (), samples, exp.render.ambient_radiance)
@@ -442,7 +513,42 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")
-    return 1.0 / np.sqrt(np.mean(1.0 / pred.sigma_xyz ** 2, axis=0))
+    return pred
+
+
+def centre_element(case: Case) -> tuple[int, int]:
+    """The Q4 element whose centre strain a strain case reads: the middle one."""
+    return case.q4_mesh[0] // 2, case.q4_mesh[1] // 2
+
+
+def predict_strain_sigma(setup: Setup) -> np.ndarray:
+    """(3,) predicted sigma of (eps_uu, eps_vv, eps_uv) at the centre of `centre_element` of the
+    case's Q4 mesh (single-image bound): vdo.strain with Σ_u = Ω (mean C over 5 x 5 samples)⁻¹
+    and the finite mesh's own factors (`vdo.strain.q4_centre_gradient_factors`)."""
+    case = setup.case
+    pred = _prediction(setup, setup.cameras, speckle_model_of(setup), 5)
+    area = case.patch[0] * case.patch[1]
+    sigma_u = strain.covariance_per_area(pred.information.mean(axis=0)[None], area, [True])
+    nx, ny = case.q4_mesh
+    F1, F2 = strain.q4_centre_gradient_factors(nx, ny, *centre_element(case),
+                                               case.patch[0] / nx, case.patch[1] / ny)
+    p = setup.patch
+    return strain.strain_sigma(sigma_u, p.t_u[None], p.t_v[None], F1, F2)[0]
+
+
+def measured_strain(setup: Setup, U_nodes: np.ndarray) -> np.ndarray:
+    """(eps_uu, eps_vv, eps_uv) at the centre of `centre_element` from Q4 nodal displacements
+    (nodes, 3) (world, m; node j * (nx + 1) + i): ∂U/∂ξ1 = (U_10 + U_11 - U_00 - U_01) / (2 h_x),
+    ∂U/∂ξ2 likewise, projected on the face frame."""
+    case, p = setup.case, setup.patch
+    nx, ny = case.q4_mesh
+    i, j = centre_element(case)
+    hx, hy = case.patch[0] / nx, case.patch[1] / ny
+    n00 = j * (nx + 1) + i
+    u00, u10, u01, u11 = (U_nodes[n] for n in (n00, n00 + 1, n00 + nx + 1, n00 + nx + 2))
+    d1 = (u10 + u11 - u00 - u01) / (2 * hx)
+    d2 = (u01 + u11 - u00 - u10) / (2 * hy)
+    return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
 
 
 def predict_sigma(setup: Setup) -> np.ndarray:
@@ -474,11 +580,27 @@ def noise_free_check(setup: Setup):
     measured U projected into each image, (n_cameras, 2) px)."""
 
     res = correlate(setup.cameras, noise_free_images(setup, True), setup.patch, reference="images",
-                    reference_images=noise_free_images(setup, False), model="translation")
-    err = res.U - setup.case.displacement
+                    reference_images=noise_free_images(setup, False), **_model(setup.case))
     centre = setup.patch.points(setup.patch.size / 2)
+    # the displacement at the patch centre (the mean of the nodes for a centred Q4 mesh's centre)
+    err = _centre_displacement(setup, res.U) - (deform(setup.case, centre) - centre)
     px = np.array([cam.sensitivity(centre) @ err for cam in setup.cameras])
     return res, px
+
+
+def _model(case: Case) -> dict:
+    return {"model": "translation"} if case.strain is None else {"model": "q4", "mesh": case.q4_mesh}
+
+
+def _centre_displacement(setup: Setup, U) -> np.ndarray:
+    """The measured displacement at the patch centre: U itself (translation), or the Q4 field
+    interpolated there."""
+    if setup.case.strain is None:
+        return U
+    from .correlate import q4_shape_functions
+    nx, ny = setup.case.q4_mesh
+    N = q4_shape_functions(setup.patch.size[None] / 2, setup.patch.size, nx, ny)
+    return np.asarray(N @ U)[0]
 
 
 def noise_sigma_dn(setup: Setup) -> float:
@@ -500,10 +622,10 @@ def correlate_seed(setup: Setup, k: int, xi) -> np.ndarray:
     defs = [expose(im, case.sensor, base + 1, i).astype(np.float64)
             for i, im in enumerate(setup.deformed_linear)]
     res = correlate(setup.cameras, defs, setup.patch, reference="images", reference_images=refs,
-                    model="translation", xi=xi)
+                    xi=xi, **_model(case))
     if not res.converged:
         raise RuntimeError(f"case {case.name!r}, seed {k}: correlation did not converge")
-    return res.U
+    return res.U if case.strain is None else measured_strain(setup, res.U)
 
 
 # --------------------------------------------------------------------------------------------
@@ -523,37 +645,48 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
     setup = build_setup(case, path)
     render_case(setup)
     t_render = time.perf_counter() - t0
-    sigma_pred = predict_sigma(setup)
     res0, px_err = noise_free_check(setup)
     sigma_dn = noise_sigma_dn(setup)
-    sigma_lin = np.sqrt(np.diag(res0.covariance(sigma_dn)))
+    cov = res0.covariance(sigma_dn)
+    if case.strain is None:
+        sigma_pred, truth, scale, unit, names = predict_sigma(setup), case.displacement, UM, "um", AXES
+        reported = axes_reported(case)
+        sigma_lin = np.sqrt(np.diag(cov))
+    else:
+        sigma_pred, truth, scale, unit = predict_strain_sigma(setup), case.strain, 1e6, "microstrain"
+        names, reported = STRAIN_AXES, [0, 1, 2]
+        G = np.array([measured_strain(setup, e.reshape(-1, 3)) for e in np.eye(len(cov))]).T
+        sigma_lin = np.sqrt(np.diag(G @ cov @ G.T))
     estimates = np.empty((seeds, 3))
     for k in range(seeds):
         estimates[k] = correlate_seed(setup, k, res0.xi)
         if progress is not None:
             progress(1)
-    err = estimates - case.displacement
+    err = estimates - truth
     sigma_meas = err.std(axis=0, ddof=1)
+    # the rows' *_um columns carry `unit`: micrometres, or microstrain for strain cases
     rows = []
-    for a in axes_reported(case):
+    for a in reported:
         expected = SQRT2 * sigma_pred[a]
         ratio = sigma_meas[a] / expected
         # chi-square interval of a standard deviation from n - 1 degrees of freedom
         from scipy.stats import chi2
         lo = sigma_meas[a] * math.sqrt((seeds - 1) / chi2.ppf(0.975, seeds - 1)) / expected
         hi = sigma_meas[a] * math.sqrt((seeds - 1) / chi2.ppf(0.025, seeds - 1)) / expected
-        rows.append({"case": case.name, "axis": AXES[a], "sigma_predicted_um": sigma_pred[a] * UM,
-                     "sigma_measured_um": sigma_meas[a] * UM, "ratio": ratio, "n_seeds": seeds,
-                     "sigma_expected_um": expected * UM, "ratio_ci95_low": lo, "ratio_ci95_high": hi,
-                     "bias_um": err[:, a].mean() * UM,
-                     "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * UM,
-                     "sigma_linear_um": sigma_lin[a] * UM})
+        rows.append({"case": case.name, "axis": names[a], "sigma_predicted_um": sigma_pred[a] * scale,
+                     "sigma_measured_um": sigma_meas[a] * scale, "ratio": ratio, "n_seeds": seeds,
+                     "sigma_expected_um": expected * scale, "ratio_ci95_low": lo, "ratio_ci95_high": hi,
+                     "bias_um": err[:, a].mean() * scale,
+                     "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * scale,
+                     "sigma_linear_um": sigma_lin[a] * scale, "unit": unit})
     centre = setup.patch.points(setup.patch.size / 2)
     return {"rows": rows, "estimates": estimates, "setup": setup,
             "info": {"case": case.name, "cameras": len(case.cameras),
                      "noise_dn": sigma_dn,
                      "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)},
                      "noise_free_ok": bool(np.all(np.abs(px_err) < 0.01)),
+                     **({} if case.strain is None else {"noise_free_strain_error_microstrain": (
+                         (measured_strain(setup, res0.U) - case.strain) * 1e6).tolist()}),
                      "pixels_per_camera": [int(len(x)) for x in res0.xi],
                      "speckle_px": [float(case.speckle.dot_diameter * np.sqrt(np.abs(np.linalg.det(
                          c.sensitivity(centre) @ setup.patch.tangents)))) for c in setup.cameras],
