@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import maps, report, strain, vtp
+from . import checks, maps, report, strain, vtp
 from .config import Experiment
 from .lighting import illuminate
 from .predict import predict, speckle_model
@@ -45,10 +45,13 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
             "the uncertainty is not predicted (sigma = inf)", quiet)
     say("predicting the uncertainty (compiles on first use)", quiet)
-    pred = predict(exp, cameras, samples, vis, illumination, speckle_model(exp))
+    speckle = speckle_model(exp)
+    pred = predict(exp, cameras, samples, vis, illumination, speckle)
     eps, sigma_dic = strain.analysis_fields(exp.analysis, density, samples, pred.information,
                                             pred.measured, exp.evaluation.patch_size ** 2)
     summary = report.summary(exp, samples, vis, pred, (eps, sigma_dic))
+    summary["design_checks"] = checks.design_checks(exp, cameras, samples, vis.visible,
+                                                    illumination.irradiance, speckle.pattern)
 
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
