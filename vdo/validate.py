@@ -25,6 +25,13 @@ With one camera only the in-plane axes are reported: the depth is seen through p
 The model's one-camera information is rank 2 (`predict` reports +inf), so its in-plane bound is the
 limit of adding a vanishingly weak second view: a probe camera 35x and 55x farther away, whose information
 is ~1e-7 of the first (`_predict_sigma`, checked to converge).
+
+Strain cases (`strain_microstrain` = [eps_uu, eps_vv, eps_uv] in the plate's face frame): the
+deformed plate is also strained homogeneously about the patch centre (X -> X + U + T E Tᵀ X, its
+texture strained with it: `DeformedFaces`), correlated with a Q4 mesh of the patch (`q4_mesh`),
+and the strain at the centre of the middle element (`measured_strain`) is compared with
+`vdo.strain` for that mesh (`predict_strain_sigma`: Σ_u = Ω C⁻¹ of the patch and the finite
+mesh's own gradient factors), with the same √2 and the same ratio.
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -72,7 +79,10 @@ CONVENTION = ("sigma_predicted_um: vdo.predict, the Cramer-Rao bound for ONE noi
               "ratio from the seed count alone. bias_um: mean error (measured - imposed). "
               "rms_error_um: rms error about the imposed displacement. sigma_linear_um: the "
               "correlation's own linear noise propagation (CorrelationResult.covariance) at the "
-              "modelled noise level, on the noise-free images.")
+              "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
+              "on the plate, Q4 correlation): axis eps_uu, eps_vv, eps_uv (tensor shear, face "
+              "frame) at the centre of the middle element, vdo.strain's prediction, and the *_um "
+              "columns in microstrain (unit column).")
 
 
 # --------------------------------------------------------------------------------------------
@@ -712,7 +722,8 @@ def plot(rows: list[dict], path, title: str = "") -> None:
     ax.plot(line, line, "k-", lw=1, label="measured = √2 predicted")
     cases = list(dict.fromkeys(r["case"] for r in rows))
     colors = plt.get_cmap("tab10")
-    markers = {"x": "o", "y": "s", "z": "^"}
+    markers = {"x": "o", "y": "s", "z": "^", "eps_uu": "D", "eps_vv": "v", "eps_uv": "<"}
+    unit = "µε" if rows[0].get("unit") == "microstrain" else "µm"
     for r in rows:
         ci = cases.index(r["case"])
         err = [[r["sigma_measured_um"] * (1 - r["ratio_ci95_low"] / r["ratio"])],
@@ -724,8 +735,8 @@ def plot(rows: list[dict], path, title: str = "") -> None:
     ax.set_yscale("log")
     ax.set_xlim(lo, hi)
     ax.set_ylim(lo, hi)
-    ax.set_xlabel("expected σ = √2 × predicted (µm)  [both images noisy]")
-    ax.set_ylabel("measured σ over seeds (µm)")
+    ax.set_xlabel(f"expected σ = √2 × predicted ({unit})  [both images noisy]")
+    ax.set_ylabel(f"measured σ over seeds ({unit})")
     ax.set_title(title or "vdo validate: predicted vs measured uncertainty", fontsize=10)
     ax.legend(fontsize=6, ncol=2, loc="upper left")
     ax.grid(True, which="both", alpha=0.3)
@@ -749,8 +760,10 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
 
     validation.csv     per case and axis: predicted, measured, ratio, n_seeds (+ diagnostics);
                        a '#' comment line states the convention
+                       (strain cases: the strain components, in microstrain, `unit` column)
     validation.png     measured against √2 x predicted sigma, log-log, the [0.8, 1.25] band
-    estimates.csv      every measured U (µm) per case and seed
+                       (validation_strain.png: the same for the strain cases)
+    estimates.csv      every measured U (µm) per case and seed (estimates_strain.csv: strains)
     summary.json       the convention, per-case diagnostics (noise-free errors, speckle and shift in
                        pixels, times), wall time, pass/fail
     images/<case>.png  the noise-free reference image of each camera
@@ -785,14 +798,28 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
                           tmp / "images" / f"{case.name}.png", f"{case.name}: noise-free reference")
         bar.close()
         wall = time.perf_counter() - started
+        strain_cases = [c.name for c in chosen if c.strain is not None]
         write_csv(rows, tmp / "validation.csv")
         with open(tmp / "estimates.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["case", "seed", "Ux_um", "Uy_um", "Uz_um"])
             for name, est in estimates.items():
+                if name in strain_cases:
+                    continue
                 for k, u in enumerate(est):
                     w.writerow([name, k, *(f"{v * UM:.6g}" for v in u)])
-        plot(rows, tmp / "validation.png", f"{spec.name}: {seeds} seeds per case")
+        if strain_cases:
+            with open(tmp / "estimates_strain.csv", "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["case", "seed", *(f"{a}_microstrain" for a in STRAIN_AXES)])
+                for name in strain_cases:
+                    for k, e in enumerate(estimates[name]):
+                        w.writerow([name, k, *(f"{v * 1e6:.6g}" for v in e)])
+        for suffix, kind in (("", "um"), ("_strain", "microstrain")):
+            chosen_rows = [r for r in rows if r["unit"] == kind]
+            if chosen_rows:
+                plot(chosen_rows, tmp / f"validation{suffix}.png",
+                     f"{spec.name}: {seeds} seeds per case" + (" (strain)" if suffix else ""))
         shutil.copyfile(spec.path, tmp / "validation.toml")
         passed = all(BAND[0] <= r["ratio"] <= BAND[1] for r in rows)
         summary = {"name": spec.name, "config": str(spec.path), "seeds": seeds,
