@@ -136,3 +136,37 @@ def test_subset_larger_than_the_region(plate_experiment):
     with pytest.raises(ConfigError) as err:
         strain.check_regions(config.Analysis(method="global", element=1.5), samples, density, path)
     assert err.value.field == "analysis.element_mm"
+
+
+def test_evaluate_writes_strain_sigma_and_design_checks(plate_experiment, tmp_path):
+    """samples.vtp carries the strain sigma; on the horizontal plate (t_u = x, t_v = y)
+    sigma_strain_uu = sqrt(F Ω) sigma_x with the interior-Q4 F (element 20 mm, patch 10 mm)."""
+    import json
+
+    from conftest import DOWN_CAMERA
+    from test_outputs import read_vtp
+    from vdo.cli import main
+
+    cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
+    path = plate_experiment(spacing=50, cameras=cams + "\n[render]\nambient_radiance = 1.0\n"
+                            "[analysis]\nelement_mm = 20\n")
+    out = tmp_path / "run"
+    assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 0
+    _, _, arrays = read_vtp(out / "samples.vtp")
+    ok = np.isfinite(arrays["sigma_x"])
+    assert ok.sum() > 50
+    F = strain.Q4_INTERIOR / 0.02 ** 4
+    np.testing.assert_allclose(arrays["sigma_strain_uu"][ok],
+                               np.sqrt(F * 1e-4) * arrays["sigma_x"][ok], rtol=1e-4)
+    np.testing.assert_allclose(arrays["sigma_strain_vv"][ok],
+                               np.sqrt(F * 1e-4) * arrays["sigma_y"][ok], rtol=1e-4)
+    summary = json.loads((out / "summary.json").read_text())
+    top = summary["regions"]["top"]
+    assert top["sigma_strain_microstrain"]["eps_uu"]["p50"] == pytest.approx(
+        np.median(arrays["sigma_strain_uu"][ok]), rel=1e-3)
+    assert top["sigma_axis_um"]["x"]["p95"] == pytest.approx(
+        np.percentile(arrays["sigma_x"][ok], 95), rel=1e-3)
+    assert summary["settings"]["analysis"]["element_mm"] == 20
+    assert [(r["camera"], r["region"]) for r in summary["design_checks"]] == [("a", "top"),
+                                                                             ("b", "top")]
+    assert (out / "maps" / "sigma_strain_uu.png").is_file()

@@ -116,14 +116,16 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
 
 def print_checks(rows: list[dict]) -> None:
     """The design-check table on the console (the CLI's)."""
-    print(f"{'camera':<12}{'region':<14}{'stand-off m':>12}{'mm/px':>8}{'dot px':>8}"
+    wc = max([6] + [len(r["camera"]) for r in rows]) + 2
+    wr = max([6] + [len(r["region"]) for r in rows]) + 2
+    print(f"{'camera':<{wc}}{'region':<{wr}}{'stand-off m':>12}{'mm/px':>8}{'dot px':>8}"
           f"{'DoF m':>14}{'FOV fill':>9}{'gray mean/p99':>15}{'sat':>6}  flags")
     for r in rows:
         d = r["depth_of_field"]
         dof = "-" if d is None else f"{d['near_m']:.2f}-" + (f"{d['far_m']:.2f}" if d["far_m"]
                                                             else "inf")
         e = r["exposure"]
-        print(f"{r['camera']:<12}{r['region']:<14}{r['standoff_m']:>12.3f}{r['mm_per_px']:>8.3f}"
+        print(f"{r['camera']:<{wc}}{r['region']:<{wr}}{r['standoff_m']:>12.3f}{r['mm_per_px']:>8.3f}"
               f"{r['speckle_px']:>8.2f}{dof:>14}{r['fov_fill']:>9.1%}"
               f"{e['mean_gray_fraction']:>8.0%}/{e['p99_gray_fraction']:<6.0%}"
               f"{e['saturated_fraction']:>6.1%}  {'; '.join(r['flags'])}")

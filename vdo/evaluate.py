@@ -27,7 +27,9 @@ def say(message: str, quiet: bool) -> None:
 def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
-    unfolded maps (coverage, sensitivity per axis, sigma_max and per axis)."""
+    unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
+    component for the [analysis] settings, `vdo.strain`); summary.json also holds the design
+    checks per camera and region (`vdo.checks`)."""
     meshes = load_meshes(exp)
     samples = sample_regions(exp, meshes)
     say(f"{len(samples):,} samples on {len(exp.regions)} regions "
@@ -91,4 +93,11 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
                 maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
                                    f"{exp.name}: displacement uncertainty along {a.upper()}",
                                    "σ (µm)", cmap="magma_r", vmin=0, vmax=hi)
+            eps_ue = np.where(np.isfinite(eps), eps * 1e6, np.nan)
+            top = np.nanpercentile(eps_ue[:, :2], 98)
+            for k, c in enumerate(strain.STRAIN_COMPONENTS):
+                maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
+                                   f"{exp.name}: strain uncertainty ε_{c} (face frame, "
+                                   f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r",
+                                   vmin=0, vmax=top)
     return summary
