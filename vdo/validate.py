@@ -119,6 +119,7 @@ class Case:
     seed: int                           # base of the noise seeds
     strain: np.ndarray | None = None    # (3,) imposed (eps_uu, eps_vv, eps_uv) in the face frame
     q4_mesh: tuple[int, int] = (1, 1)   # strain cases: Q4 mesh of the patch, centre element read
+    subsets: tuple[float, float, int] | None = None   # subset-DIC strain: (side m, step m, window n)
 
 
 @dataclass(frozen=True)
@@ -133,7 +134,7 @@ _CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg"
                 "texel_mm", "edge_blur_mm", "coverage", "strokes", "speckle_seed", "tile_texels", "white_albedo",
                 "black_albedo", "cameras", "focal_mm", "pixel_um", "pixels", "distance_mm",
                 "ambient_radiance", "spp", "sensor", "displacement_um", "seed",
-                "strain_microstrain", "q4_mesh")
+                "strain_microstrain", "q4_mesh", "subset_mm", "step_mm", "strain_window")
 _CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
                   "pixels")
 
@@ -261,11 +262,29 @@ def _case(t: Table, path: Path, where: str) -> Case:
 
 def _strain_fields(t: Table, n_cameras: int) -> dict:
     """A strain case: `strain_microstrain` = [eps_uu, eps_vv, eps_uv] (tensor shear) imposed on the
-    plate in its face frame, correlated with a `q4_mesh` = [nx, ny] mesh (default [1, 1])."""
+    plate in its face frame, correlated with a `q4_mesh` = [nx, ny] mesh (default [1, 1]), or by
+    subset DIC: `subset_mm`, `step_mm`, `strain_window` (n x n translation subsets centred in the
+    patch, strain from their plane fit)."""
+    subset_keys = ("subset_mm", "step_mm", "strain_window")
     if not t.has("strain_microstrain"):
-        if t.has("q4_mesh"):
-            raise t.error("q4_mesh", "only applies to a strain case (strain_microstrain)")
+        for key in ("q4_mesh",) + subset_keys:
+            if t.has(key):
+                raise t.error(key, "only applies to a strain case (strain_microstrain)")
         return {}
+    subsets = None
+    if any(t.has(k) for k in subset_keys):
+        if t.has("q4_mesh"):
+            raise t.error("q4_mesh", "give either q4_mesh (global DIC) or subset_mm, step_mm and "
+                                     "strain_window (subset DIC)")
+        side = t.number("subset_mm", positive=True) * 1e-3
+        step = t.number("step_mm", positive=True) * 1e-3
+        n = t.integer("strain_window", low=2)
+        patch = t.vector("patch_mm", 2) * 1e-3
+        if (n - 1) * step + side > min(patch) + 1e-9:
+            raise t.error("strain_window", f"the window ((n - 1) step + subset = "
+                                           f"{((n - 1) * step + side) * 1e3:g} mm) is larger than "
+                                           "the patch")
+        subsets = (side, step, n)
     if n_cameras < 2:
         raise t.error("strain_microstrain", "a strain case needs at least two cameras")
     strain = t.vector("strain_microstrain", 3) * 1e-6
@@ -275,7 +294,7 @@ def _strain_fields(t: Table, n_cameras: int) -> dict:
     if mesh is None or mesh.shape != (2,) or np.any(mesh != np.round(mesh)) or np.any(mesh < 1) \
             or np.any(mesh > 9):
         raise t.error("q4_mesh", f"must be two whole numbers [nx, ny] in 1..9 (got {t.raw('q4_mesh')!r})")
-    return {"strain": strain, "q4_mesh": (int(mesh[0]), int(mesh[1]))}
+    return {"strain": strain, "q4_mesh": (int(mesh[0]), int(mesh[1])), "subsets": subsets}
 
 
 def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
@@ -534,14 +553,18 @@ def centre_element(case: Case) -> tuple[int, int]:
 def predict_strain_sigma(setup: Setup) -> np.ndarray:
     """(3,) predicted sigma of (eps_uu, eps_vv, eps_uv) at the centre of `centre_element` of the
     case's Q4 mesh (single-image bound): vdo.strain with Σ_u = Ω (mean C over 5 x 5 samples)⁻¹
-    and the finite mesh's own factors (`vdo.strain.q4_centre_gradient_factors`)."""
+    and the finite mesh's own factors (`vdo.strain.q4_centre_gradient_factors`); or, for subset
+    DIC, the virtual strain gauge's factor (`vdo.strain.vsg_factor`)."""
     case = setup.case
     pred = _prediction(setup, setup.cameras, speckle_model_of(setup), 5)
     area = case.patch[0] * case.patch[1]
     sigma_u = strain.covariance_per_area(pred.information.mean(axis=0)[None], area, [True])
-    nx, ny = case.q4_mesh
-    F1, F2 = strain.q4_centre_gradient_factors(nx, ny, *centre_element(case),
-                                               case.patch[0] / nx, case.patch[1] / ny)
+    if case.subsets is not None:
+        F1 = F2 = float(strain.vsg_factor(*case.subsets))
+    else:
+        nx, ny = case.q4_mesh
+        F1, F2 = strain.q4_centre_gradient_factors(nx, ny, *centre_element(case),
+                                                   case.patch[0] / nx, case.patch[1] / ny)
     p = setup.patch
     return strain.strain_sigma(sigma_u, p.t_u[None], p.t_v[None], F1, F2)[0]
 
@@ -586,25 +609,72 @@ def noise_free_images(setup: Setup, deformed: bool) -> list:
 
 
 def noise_free_check(setup: Setup):
-    """Correlate the noise-free renders. Returns (CorrelationResult, per-camera error of the
-    measured U projected into each image, (n_cameras, 2) px)."""
+    """Correlate the noise-free renders. Returns (the CorrelationResults: one, or one per subset;
+    per-camera error of the measured displacement at the patch centre projected into each image,
+    (n_cameras, 2) px)."""
 
-    res = correlate(setup.cameras, noise_free_images(setup, True), setup.patch, reference="images",
-                    reference_images=noise_free_images(setup, False), **_model(setup.case))
+    results = _correlate(setup, noise_free_images(setup, True), noise_free_images(setup, False))
     centre = setup.patch.points(setup.patch.size / 2)
-    # the displacement at the patch centre (the mean of the nodes for a centred Q4 mesh's centre)
-    err = _centre_displacement(setup, res.U) - (deform(setup.case, centre) - centre)
+    err = _centre_displacement(setup, results) - (deform(setup.case, centre) - centre)
     px = np.array([cam.sensitivity(centre) @ err for cam in setup.cameras])
-    return res, px
+    return results, px
+
+
+def subset_patches(setup: Setup) -> list:
+    """The n x n subsets of a subset-DIC case, centred in the patch on a grid of `step`, as
+    `vdo.correlate.Patch`es; index k = j n + i, i along t_u."""
+    side, step, n = setup.case.subsets
+    p = setup.patch
+    offsets = (np.arange(n) - (n - 1) / 2) * step + p.size[0] / 2 - side / 2, \
+        (np.arange(n) - (n - 1) / 2) * step + p.size[1] / 2 - side / 2
+    return [Patch(origin=p.origin + offsets[0][i] * p.t_u + offsets[1][j] * p.t_v, t_u=p.t_u,
+                  t_v=p.t_v, size=np.array([side, side])) for j in range(n) for i in range(n)]
+
+
+def _correlate(setup: Setup, deformed, references, xi=None) -> list:
+    """The case's correlation(s) of `deformed` against `references`: one global correlation
+    (translation or Q4), or one translation per subset. `xi`: the points of an earlier call."""
+    case = setup.case
+    if case.subsets is None:
+        return [correlate(setup.cameras, deformed, setup.patch, reference="images",
+                          reference_images=references, xi=None if xi is None else xi[0],
+                          **_model(case))]
+    return [correlate(setup.cameras, deformed, p, reference="images", reference_images=references,
+                      model="translation", xi=None if xi is None else xi[k])
+            for k, p in enumerate(subset_patches(setup))]
+
+
+def _subset_fit(setup: Setup, results) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane through the subsets' displacements: (mean U, (∂U/∂ξ1, ∂U/∂ξ2))."""
+    side, step, n = setup.case.subsets
+    U = np.array([r.U for r in results]).reshape(n, n, 3)        # [j, i]
+    x = (np.arange(n) - (n - 1) / 2) * step
+    w = x / (n * (x @ x))
+    return U.mean(axis=(0, 1)), (np.einsum("i,jia->a", w, U), np.einsum("j,jia->a", w, U))
+
+
+def _estimate(setup: Setup, results) -> np.ndarray:
+    """U (translation) or the strain (eps_uu, eps_vv, eps_uv) from the correlation results."""
+    case = setup.case
+    if case.strain is None:
+        return results[0].U
+    if case.subsets is None:
+        return measured_strain(setup, results[0].U)
+    _, (d1, d2) = _subset_fit(setup, results)
+    p = setup.patch
+    return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
 
 
 def _model(case: Case) -> dict:
     return {"model": "translation"} if case.strain is None else {"model": "q4", "mesh": case.q4_mesh}
 
 
-def _centre_displacement(setup: Setup, U) -> np.ndarray:
-    """The measured displacement at the patch centre: U itself (translation), or the Q4 field
-    interpolated there."""
+def _centre_displacement(setup: Setup, results) -> np.ndarray:
+    """The measured displacement at the patch centre: U itself (translation), the Q4 field
+    interpolated there, or the subsets' plane fit's value there (their mean)."""
+    if setup.case.subsets is not None:
+        return _subset_fit(setup, results)[0]
+    U = results[0].U
     if setup.case.strain is None:
         return U
     from .correlate import q4_shape_functions
@@ -623,7 +693,8 @@ def noise_sigma_dn(setup: Setup) -> float:
 
 
 def correlate_seed(setup: Setup, k: int, xi) -> np.ndarray:
-    """U (3,) measured with seed k: independent noise in reference and deformed images."""
+    """U (3,) (or the strain, for a strain case) measured with seed k: independent noise in the
+    reference and deformed images. `xi`: one list of per-camera points per correlation."""
 
     case = setup.case
     base = (case.seed * 1_000_003 + 2 * k) & 0x7FFFFFFF
@@ -631,11 +702,10 @@ def correlate_seed(setup: Setup, k: int, xi) -> np.ndarray:
             for i, im in enumerate(setup.reference_linear)]
     defs = [expose(im, case.sensor, base + 1, i).astype(np.float64)
             for i, im in enumerate(setup.deformed_linear)]
-    res = correlate(setup.cameras, defs, setup.patch, reference="images", reference_images=refs,
-                    xi=xi, **_model(case))
-    if not res.converged:
+    results = _correlate(setup, defs, refs, xi)
+    if not all(r.converged for r in results):
         raise RuntimeError(f"case {case.name!r}, seed {k}: correlation did not converge")
-    return res.U if case.strain is None else measured_strain(setup, res.U)
+    return _estimate(setup, results)
 
 
 # --------------------------------------------------------------------------------------------
@@ -657,7 +727,7 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
     t_render = time.perf_counter() - t0
     res0, px_err = noise_free_check(setup)
     sigma_dn = noise_sigma_dn(setup)
-    cov = res0.covariance(sigma_dn)
+    cov = res0[0].covariance(sigma_dn)
     if case.strain is None:
         sigma_pred, truth, scale, unit, names = predict_sigma(setup), case.displacement, UM, "um", AXES
         reported = axes_reported(case)
@@ -665,11 +735,14 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
     else:
         sigma_pred, truth, scale, unit = predict_strain_sigma(setup), case.strain, 1e6, "microstrain"
         names, reported = STRAIN_AXES, [0, 1, 2]
-        G = np.array([measured_strain(setup, e.reshape(-1, 3)) for e in np.eye(len(cov))]).T
-        sigma_lin = np.sqrt(np.diag(G @ cov @ G.T))
+        if case.subsets is None:
+            G = np.array([measured_strain(setup, e.reshape(-1, 3)) for e in np.eye(len(cov))]).T
+            sigma_lin = np.sqrt(np.diag(G @ cov @ G.T))
+        else:       # the subsets' cross-covariances are not propagated by correlate
+            sigma_lin = np.full(3, np.nan)
     estimates = np.empty((seeds, 3))
     for k in range(seeds):
-        estimates[k] = correlate_seed(setup, k, res0.xi)
+        estimates[k] = correlate_seed(setup, k, [r.xi for r in res0])
         if progress is not None:
             progress(1)
     err = estimates - truth
@@ -696,8 +769,8 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
                      "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)},
                      "noise_free_ok": bool(np.all(np.abs(px_err) < 0.01)),
                      **({} if case.strain is None else {"noise_free_strain_error_microstrain": (
-                         (measured_strain(setup, res0.U) - case.strain) * 1e6).tolist()}),
-                     "pixels_per_camera": [int(len(x)) for x in res0.xi],
+                         (_estimate(setup, res0) - case.strain) * 1e6).tolist()}),
+                     "pixels_per_camera": [int(len(x)) for x in res0[0].xi],
                      "speckle_px": [float(case.speckle.dot_diameter * np.sqrt(np.abs(np.linalg.det(
                          c.sensitivity(centre) @ setup.patch.tangents)))) for c in setup.cameras],
                      "shift_px": [float(np.linalg.norm(c.sensitivity(centre) @ case.displacement))
