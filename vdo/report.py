@@ -11,9 +11,9 @@ import tomli_w
 
 from .camera import Camera
 from .config import Experiment, analysis_to_dict
-from .strain import STRAIN_COMPONENTS
 from .predict import Prediction
 from .scene import SurfaceSamples
+from .strain import STRAIN_COMPONENTS
 from .visibility import Visibility
 
 

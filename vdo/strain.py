@@ -121,14 +121,15 @@ def strain_sigma(sigma_u: np.ndarray, t_u: np.ndarray, t_v: np.ndarray, factor,
     return np.sqrt(np.stack([F1 * vu, F2 * vv, (F2 * vu + F1 * vv) / 4.0], axis=-1))
 
 
-def pixel_density(cameras, weights: np.ndarray, points, t_u, t_v, usable: float = 0.5):
-    """(N,) linear pixel density sqrt|det A| (pixel/m) of the finest usable camera at each
-    sample (A = s [t_u t_v], weight >= `usable`); 0 where none. The subset and step in pixels
-    are taken in this camera's image (the reference camera of subset DIC)."""
+def pixel_density(cameras, visible: np.ndarray, points, t_u, t_v) -> np.ndarray:
+    """(N,) linear pixel density sqrt|det A| (pixel/m) of the finest camera that sees each sample
+    (A = s [t_u t_v]; `visible` (C, N) bool, `vdo.visibility.Visibility.visible`); 0 where none.
+    The subset and step in pixels are taken in this camera's image (the reference camera of
+    subset DIC)."""
     best = np.zeros(len(points))
     T = np.stack([t_u, t_v], axis=-1)
     for i, cam in enumerate(cameras):
-        ok = np.asarray(weights[i]) >= usable
+        ok = np.asarray(visible[i], dtype=bool)
         if ok.any():
             A = cam.sensitivity(points[ok]) @ T[ok]
             best[ok] = np.maximum(best[ok], np.sqrt(np.abs(np.linalg.det(A))))

@@ -899,7 +899,8 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
                    "convention": CONVENTION, "band": list(BAND), "passed": passed,
                    "noise_free_passed": all(i["noise_free_ok"] for i in infos),
                    "wall_seconds": round(wall, 1), "cases": infos,
-                   "rows": [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in r.items()}
+                   "rows": [{k: ((round(v, 6) if math.isfinite(v) else None) if isinstance(v, float)
+                             else v) for k, v in r.items()}
                             for r in rows]}
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
