@@ -522,7 +522,6 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     patch area), combined as the patch's mean information, 1 / mean(1 / σ²) per axis (exact when
     the per-sample covariances differ by a scale only; over a small patch they differ by < 1 %)."""
 
-    exp = setup.experiment
     # One camera: the model's information is rank 2 at every sample, its null direction the ray
     # through the sample, which tilts away from the normal off the optical axis; only at the patch
     # centre (on the axis) is the in-plane marginal the weak-probe limit. There the in-plane bound
