@@ -34,6 +34,8 @@ def _evaluate(config_path, out, overwrite, quiet):
     summary = evaluate(exp, Path(out), overwrite=overwrite, quiet=quiet)
     if not quiet:
         _print_summary(summary)
+        from .checks import print_checks
+        print_checks(summary["design_checks"])
         print(f"wrote {Path(out).resolve()}")
 
 

@@ -588,6 +588,40 @@ class RenderSpec:
     exr: bool = row("exr", Flag(), False, doc="also write the linear float images")
 
 
+@dataclass(frozen=True)
+class Analysis:
+    """The DIC analysis the strain uncertainty is predicted for (`vdo.strain`): global DIC with Q4
+    elements of side `element` (m), or subset DIC with square subsets of side `subset` (m) or
+    `subset_px` pixels on a grid of `step` (m) or `step_px` pixels, shape function "zero" or
+    "affine", strain from a plane fit over `strain_window` x `strain_window` subset centres.
+    Pixels are those of the finest camera at each sample (`vdo.strain.sizes`)."""
+
+    method: str = row("method", Text(choices=("global", "subset")), "global",
+                      doc="global (finite-element) or subset (local) DIC")
+    element: float | None = row("element_mm", Real(positive=True), None, unit="mm",
+                                shown="[evaluation] patch_mm", doc="Q4 element side (global DIC)")
+    subset: float | None = row("subset_mm", Real(positive=True), None, unit="mm", shown="none",
+                               doc="subset side in mm (or subset_px)")
+    subset_px: float | None = row("subset_px", Real(positive=True), 29.0,
+                                  doc="subset side in pixels (unless subset_mm)")
+    step: float | None = row("step_mm", Real(positive=True), None, unit="mm", shown="none",
+                             doc="subset grid step in mm (or step_px)")
+    step_px: float | None = row("step_px", Real(positive=True), 7.0,
+                                doc="subset grid step in pixels (unless step_mm)")
+    shape_function: str = row("shape_function", Text(choices=("zero", "affine")), "affine",
+                              doc="subset shape function")
+    strain_window: int = row("strain_window", Whole(low=2), 15,
+                             doc="subset centres per side of the strain plane fit (virtual gauge)")
+
+
+def _check_analysis(t: Table, v: dict) -> None:
+    for mm, px in (("subset", "subset_px"), ("step", "step_px")):
+        if t.has(f"{mm}_mm") and t.has(px):
+            raise t.error(px, f"give the size once: {px} or {mm}_mm")
+        if v[mm] is not None:
+            v[px] = None
+
+
 @dataclass(frozen=True, eq=False)
 class GroupSpec:
     """Meshes that move together along the load path (a hexapod's platform with its
@@ -774,12 +808,20 @@ class Experiment:
     render: RenderSpec = table("render", RenderSpec, default=RenderSpec())
     optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=_check_optimize,
                                    default=OptimizeSpec(), doc="What `vdo optimize` may move.")
+    analysis: Analysis = table("analysis", Analysis, check=_check_analysis, default=Analysis(),
+                               doc="The DIC analysis strain uncertainties are predicted for "
+                                   "(docs/theory.md, strain).")
     groups: tuple[GroupSpec, ...] = table(
         "group", GroupSpec, array=True, default=(),
         doc="Meshes that move rigidly together along the load path.")
     load_path: LoadPathSpec = table(
         "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
         doc="A moving test: `vdo evaluate` judges every step (`vdo.keyframes`, docs/load_path.md).")
+
+    def __post_init__(self):
+        if self.analysis.element is None:      # a Q4 element defaults to the DIC patch
+            object.__setattr__(self, "analysis", replace(self.analysis,
+                                                         element=self.evaluation.patch_size))
 
     def rail(self, name: str):
         """The `vdo.rail.Rail` (JAX-evaluated NURBS) of the [[rail]] called `name`."""
@@ -820,6 +862,11 @@ class Experiment:
             else:
                 out[sec.key] = _write(value, sec.rows)
         return out
+
+
+def table_dict(obj) -> dict:
+    """One parsed table (e.g. `exp.analysis`) as its TOML dict, in file units."""
+    return _write(obj, rows_of(type(obj)))
 
 
 def _write(obj, rows) -> dict:

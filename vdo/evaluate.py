@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import html_report, maps, report, vtp
+from . import checks, html_report, maps, report, strain, vtp
 from .config import Experiment
 from .runfolder import run_folder
 from .state import LayoutState, layout_state, prepare
@@ -24,7 +24,9 @@ def say(message: str, quiet: bool) -> None:
 def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
-    unfolded maps (coverage, sensitivity per axis, sigma_max and per axis)."""
+    unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
+    component for the [analysis] settings, `vdo.strain`); summary.json also holds the design
+    checks per camera and region (`vdo.checks`)."""
     geometry = prepare(exp)
     samples = geometry.samples
     say(f"{len(samples):,} samples on {len(exp.regions)} regions "
@@ -40,7 +42,11 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
     """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
+    eps, sigma_dic = state.strain
     summary = report.state_summary(state)
+    summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
+                                                    illumination.irradiance,
+                                                    state.geometry.speckle.pattern)
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", summary)
@@ -54,6 +60,10 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
                   **{f"sensitivity_{a}": sens[:, k] for k, a in enumerate("xyz")},
                   "sigma_max": sigma_um,
                   **{f"sigma_{a}": sigma_xyz_um[:, k] for k, a in enumerate("xyz")}}
+        arrays |= {f"sigma_strain_{c}": np.where(np.isfinite(eps[:, k]), eps[:, k] * 1e6, np.nan)
+                   for k, c in enumerate(strain.STRAIN_COMPONENTS)}
+        arrays["sigma_dic_max"] = np.where(np.isfinite(sigma_dic), sigma_dic * UM, np.nan)
+        arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
@@ -72,5 +82,10 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
                 maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
                                    f"{exp.name}: displacement uncertainty along {a.upper()}",
                                    "σ (µm)", cmap="magma_r")
+            eps_ue = np.where(np.isfinite(eps), eps * 1e6, np.nan)
+            for k, c in enumerate(strain.STRAIN_COMPONENTS):
+                maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
+                                   f"{exp.name}: strain uncertainty ε_{c} (face frame, "
+                                   f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r")
         html_report.write_report(tmp)
     return summary

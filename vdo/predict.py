@@ -79,6 +79,7 @@ class Prediction:
     sigma_max: np.ndarray     # (N,) m
     sigma_xyz: np.ndarray     # (N, 3) m
     measured: np.ndarray      # (N,) bool
+    information: np.ndarray   # (N, 3, 3) 1/m^2, C for the patch area Omega (evaluation.patch_mm^2)
 
 
 def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
@@ -88,4 +89,4 @@ def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis
                          view_data(exp, smp, vis, illumination, speckle), speckle.table,
                          settings(exp))
     return Prediction(np.asarray(f.sensitivity), np.asarray(f.sigma_max), np.asarray(f.sigma_xyz),
-                      np.asarray(f.measured))
+                      np.asarray(f.measured), np.asarray(f.information))

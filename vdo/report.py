@@ -10,10 +10,11 @@ import numpy as np
 import tomli_w
 
 from .camera import Camera
-from .config import Experiment
+from .config import Experiment, table_dict
 from .predict import Prediction
 from .scene import SurfaceSamples
 from .state import LayoutState
+from .strain import STRAIN_COMPONENTS
 from .visibility import Visibility
 
 
@@ -38,6 +39,14 @@ SIGMA_MEANING = ("Cramér-Rao bound of the 3D displacement for one noisy image a
                  "reference image is noisy too); percentiles over the measured points")
 
 
+STRAIN_MEANING = ("sigma_strain_microstrain: Cramér-Rao bound of the in-plane strain (eps_uu, "
+                  "eps_vv, tensor shear eps_uv along each region's face frame t_u, t_v) for the "
+                  "[analysis] settings: global DIC, the centre of an interior Q4 element; subset "
+                  "DIC, a plane fit over strain_window x strain_window subsets (docs/strain.md). "
+                  "sigma_dic_max_um: the analysis' displacement sigma (an interior Q4 node, or one "
+                  "subset), worst direction. One noisy image, as sigma (x sqrt(2) for two).")
+
+
 def _percentiles(values_um: np.ndarray) -> dict:
     finite = values_um[np.isfinite(values_um)]
     if finite.size == 0:
@@ -48,13 +57,17 @@ def _percentiles(values_um: np.ndarray) -> dict:
 
 def state_summary(state: LayoutState) -> dict:
     """The per-region table of a judged layout (`summary` of its pieces)."""
-    return summary(state.experiment, state.samples, state.visibility, state.prediction)
+    return summary(state.experiment, state.samples, state.visibility, state.prediction,
+                   state.strain)
 
 
-def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction) -> dict:
+def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction,
+            strain=None) -> dict:
     """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 cameras, which cameras see
     it (fraction of its area), sigma_max p50/p95/max (um), the unmeasured area fraction, and the
-    mean global sensitivity per axis (mpixel/um)."""
+    mean global sensitivity per axis (mpixel/um). With `strain` = (sigma_strain (N, 3), sigma_dic
+    (N,) m) from `vdo.strain.analysis_fields`: per-axis sigma percentiles (um), strain sigma
+    percentiles per face-frame component (microstrain) and the analysis' displacement sigma."""
     coverage = vis.coverage
     regions = {}
     for k, name in enumerate(samples.region_names):
@@ -73,13 +86,22 @@ def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Pre
             "unmeasured_fraction": float(area[~pred.measured[mask]].sum() / total),
             "sensitivity_mpx_per_um": {a: float(np.average(sens[:, j], weights=area))
                                        for j, a in enumerate("xyz")},
+            "sigma_axis_um": {a: _percentiles(pred.sigma_xyz[mask, j] * 1e6)
+                              for j, a in enumerate("xyz")},
         }
+        if strain is not None:
+            eps, disp = strain
+            regions[name] |= {
+                "sigma_strain_microstrain": {f"eps_{c}": _percentiles(eps[mask, j] * 1e6)
+                                             for j, c in enumerate(STRAIN_COMPONENTS)},
+                "sigma_dic_max_um": _percentiles(disp[mask] * 1e6)}
     ev = exp.evaluation
     return {"experiment": exp.name, "config": str(exp.path),
             "settings": {"incidence_limit_deg": math.degrees(ev.incidence_limit),
                          "sample_spacing_mm": ev.sample_spacing * 1e3, "patch_mm": ev.patch_size * 1e3,
                          "n_samples": len(samples), "n_cameras": len(vis.camera_names),
-                         "sigma": SIGMA_MEANING},
+                         "sigma": SIGMA_MEANING, "analysis": table_dict(exp.analysis),
+                         "strain": STRAIN_MEANING},
             "regions": regions}
 
 

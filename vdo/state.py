@@ -9,7 +9,8 @@ prediction is written once:
   (and per keyframe of a moving test) and reuse it for every camera layout.
 * `layout_state(geometry, cameras)` -> `LayoutState`: the scene with the camera bodies as
   obstacles, the ray-cast visibility of every (camera, sample) pair, the light reaching every
-  sample, and (unless `predict=False`) the predicted fields.
+  sample, and (unless `predict_fields=False`) the predicted displacement fields (`vdo.predict`)
+  and the strain uncertainty for the experiment's `[analysis]` (`vdo.strain`).
 
 Both results are immutable. A camera whose `[[camera]]` entry says `body = false`, or that the
 experiment does not list (a probe camera), is not an obstacle.
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from . import strain
 from .camera import Camera
 from .config import Experiment
 from .lighting import Illumination, illuminate
@@ -50,6 +52,7 @@ class LayoutState:
     visibility: Visibility
     illumination: Illumination
     prediction: Prediction | None
+    strain: tuple | None = None    # (sigma of the strain (N, 3), of the analysis' displacement (N,))
 
     @property
     def experiment(self) -> Experiment:
@@ -83,7 +86,14 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
     scene = build_scene(list(geometry.meshes) + bodies(exp, cameras))
     vis = compute_visibility(scene, list(cameras), geometry.samples,
                              exp.evaluation.incidence_limit, progress=progress)
-    illumination = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
-    prediction = (predict(exp, list(cameras), geometry.samples, vis, illumination, geometry.speckle)
-                  if predict_fields else None)
-    return LayoutState(geometry, cameras, scene, vis, illumination, prediction)
+    samples = geometry.samples
+    illumination = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    if not predict_fields:
+        return LayoutState(geometry, cameras, scene, vis, illumination, None)
+    density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
+                                   samples.tangent_v)
+    strain.check_regions(exp.analysis, samples, density, exp.path)
+    prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle)
+    fields = strain.analysis_fields(exp.analysis, density, samples, prediction.information,
+                                    prediction.measured, exp.evaluation.patch_size ** 2)
+    return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields)

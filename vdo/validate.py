@@ -25,6 +25,13 @@ With one camera only the in-plane axes are reported: the depth is seen through p
 The model's one-camera information is rank 2 (`predict` reports +inf), so its in-plane bound is the
 limit of adding a vanishingly weak second view: a probe camera 35x and 55x farther away, whose information
 is ~1e-7 of the first (`_predict_sigma`, checked to converge).
+
+Strain cases (`strain_microstrain` = [eps_uu, eps_vv, eps_uv] in the plate's face frame): the
+deformed plate is also strained homogeneously about the patch centre (X -> X + U + T E Tᵀ X, its
+texture strained with it: `DeformedFaces`), correlated with a Q4 mesh of the patch (`q4_mesh`),
+and the strain at the centre of the middle element (`measured_strain`) is compared with
+`vdo.strain` for that mesh (`predict_strain_sigma`: Σ_u = Ω C⁻¹ of the patch and the finite
+mesh's own gradient factors), with the same √2 and the same ratio.
 """
 
 from __future__ import annotations
@@ -34,11 +41,12 @@ import json
 import math
 import shutil
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from . import strain
 from .camera import Camera, look_at_angles
 from .config import (SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
@@ -55,12 +63,13 @@ from .speckle import gradient_energy_table, normalise, pattern_for
 from .state import Geometry, layout_state
 
 AXES = "xyz"
+STRAIN_AXES = ("eps_uu", "eps_vv", "eps_uv")
 UM = 1e6
 SQRT2 = math.sqrt(2.0)
 BAND = (0.8, 1.25)
 CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
               "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
-              "sigma_linear_um"]
+              "sigma_linear_um", "unit"]
 CONVENTION = ("sigma_predicted_um: vdo.predict, the Cramer-Rao bound for ONE noisy image against a "
               "noise-free reference, for the correlated patch. sigma_measured_um: standard "
               "deviation over the seeds of the correlated displacement, reference and deformed "
@@ -70,7 +79,10 @@ CONVENTION = ("sigma_predicted_um: vdo.predict, the Cramer-Rao bound for ONE noi
               "ratio from the seed count alone. bias_um: mean error (measured - imposed). "
               "rms_error_um: rms error about the imposed displacement. sigma_linear_um: the "
               "correlation's own linear noise propagation (CorrelationResult.covariance) at the "
-              "modelled noise level, on the noise-free images.")
+              "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
+              "on the plate, Q4 correlation): axis eps_uu, eps_vv, eps_uv (tensor shear, face "
+              "frame) at the centre of the middle element, vdo.strain's prediction, and the *_um "
+              "columns in microstrain (unit column).")
 
 
 # --------------------------------------------------------------------------------------------
@@ -105,6 +117,9 @@ class Case:
     ambient_radiance: float
     spp: int
     seed: int                           # base of the noise seeds
+    strain: np.ndarray | None = None    # (3,) imposed (eps_uu, eps_vv, eps_uv) in the face frame
+    q4_mesh: tuple[int, int] = (1, 1)   # strain cases: Q4 mesh of the patch, centre element read
+    subsets: tuple[float, float, int] | None = None   # subset-DIC strain: (side m, step m, window n)
 
 
 @dataclass(frozen=True)
@@ -118,7 +133,8 @@ class ValidationSpec:
 _CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg", "dot_mm",
                 "texel_mm", "edge_blur_mm", "coverage", "strokes", "speckle_seed", "tile_texels", "white_albedo",
                 "black_albedo", "cameras", "focal_mm", "pixel_um", "pixels", "distance_mm",
-                "ambient_radiance", "spp", "sensor", "displacement_um", "seed")
+                "ambient_radiance", "spp", "sensor", "displacement_um", "seed",
+                "strain_microstrain", "q4_mesh", "subset_mm", "step_mm", "strain_window")
 _CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
                   "pixels")
 
@@ -238,9 +254,47 @@ def _case(t: Table, path: Path, where: str) -> Case:
                 speckle=speckle, edge_blur=t.number("edge_blur_mm", 0.0, low=0.0, high=dot * 1e3 / 2) * 1e-3,
                 sensor=sensor,
                 ambient_radiance=t.number("ambient_radiance", 1.0, positive=True),
-                spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0))
+                spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0),
+                **_strain_fields(t, len(cameras)))
     _check_geometry(case, t, path, where)
     return case
+
+
+def _strain_fields(t: Table, n_cameras: int) -> dict:
+    """A strain case: `strain_microstrain` = [eps_uu, eps_vv, eps_uv] (tensor shear) imposed on the
+    plate in its face frame, correlated with a `q4_mesh` = [nx, ny] mesh (default [1, 1]), or by
+    subset DIC: `subset_mm`, `step_mm`, `strain_window` (n x n translation subsets centred in the
+    patch, strain from their plane fit)."""
+    subset_keys = ("subset_mm", "step_mm", "strain_window")
+    if not t.has("strain_microstrain"):
+        for key in ("q4_mesh",) + subset_keys:
+            if t.has(key):
+                raise t.error(key, "only applies to a strain case (strain_microstrain)")
+        return {}
+    subsets = None
+    if any(t.has(k) for k in subset_keys):
+        if t.has("q4_mesh"):
+            raise t.error("q4_mesh", "give either q4_mesh (global DIC) or subset_mm, step_mm and "
+                                     "strain_window (subset DIC)")
+        side = t.number("subset_mm", positive=True) * 1e-3
+        step = t.number("step_mm", positive=True) * 1e-3
+        n = t.integer("strain_window", low=2)
+        patch = t.vector("patch_mm", 2) * 1e-3
+        if (n - 1) * step + side > min(patch) + 1e-9:
+            raise t.error("strain_window", f"the window ((n - 1) step + subset = "
+                                           f"{((n - 1) * step + side) * 1e3:g} mm) is larger than "
+                                           "the patch")
+        subsets = (side, step, n)
+    if n_cameras < 2:
+        raise t.error("strain_microstrain", "a strain case needs at least two cameras")
+    strain = t.vector("strain_microstrain", 3) * 1e-6
+    if np.any(np.abs(strain) > 0.02):
+        raise t.error("strain_microstrain", "must be small strains (|eps| <= 20000 microstrain)")
+    mesh = as_numbers(t.raw("q4_mesh", [1, 1]))
+    if mesh is None or mesh.shape != (2,) or np.any(mesh != np.round(mesh)) or np.any(mesh < 1) \
+            or np.any(mesh > 9):
+        raise t.error("q4_mesh", f"must be two whole numbers [nx, ny] in 1..9 (got {t.raw('q4_mesh')!r})")
+    return {"strain": strain, "q4_mesh": (int(mesh[0]), int(mesh[1])), "subsets": subsets}
 
 
 def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
@@ -254,7 +308,7 @@ def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
         if incidence > 80:
             raise ConfigError(path, field_name, f"sees the plate at {incidence:.0f} deg incidence; "
                                                 "keep it below 80 deg")
-        corners = np.concatenate([g["corners"], g["corners"] + case.displacement])
+        corners = np.concatenate([g["corners"], deform(case, g["corners"])])
         x = cam.project(corners)
         if np.any(x < 4) or np.any(x[:, 0] > cam.width - 5) or np.any(x[:, 1] > cam.height - 5):
             raise ConfigError(path, field_name, f"does not see the whole patch with a 4-pixel "
@@ -270,6 +324,45 @@ def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
 # --------------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------------
+def strain_tensor(case: Case) -> np.ndarray:
+    """The imposed in-plane strain as a world 3x3 displacement gradient T E Tᵀ (T = [t_u t_v],
+    E the symmetric 2x2 of (eps_uu, eps_vv, eps_uv)); zeros for a translation case."""
+    if case.strain is None:
+        return np.zeros((3, 3))
+    g = plate_geometry(case)
+    T = np.stack([g["t_u"], g["t_v"]], axis=1)
+    e = case.strain
+    return T @ np.array([[e[0], e[2]], [e[2], e[1]]]) @ T.T
+
+
+def deform(case: Case, points) -> np.ndarray:
+    """Deformed positions X + U + F X (the patch centre is the world origin), metres."""
+    points = np.asarray(points, dtype=float)
+    return points + case.displacement + points @ strain_tensor(case).T
+
+
+def undeform(case: Case, points) -> np.ndarray:
+    """The reference position of deformed points (inverse of `deform`)."""
+    points = np.asarray(points, dtype=float)
+    return np.linalg.solve(np.eye(3) + strain_tensor(case), (points - case.displacement).T).T
+
+
+@dataclass(frozen=True, eq=False)
+class DeformedFaces:
+    """The plate region's faces after the deformation: every point keeps the uv of its reference
+    position, so the texture moves and strains with the plate (what `build_render_scene` reads)."""
+
+    base: object        # vdo.scene.RegionFaces of the reference plate
+    case: Case
+
+    @property
+    def faces(self):
+        return self.base.faces
+
+    def uv(self, points) -> np.ndarray:
+        return self.base.uv(undeform(self.case, points))
+
+
 def plate_geometry(case: Case) -> dict:
     """The plate's frame: normal n = (0, -sin tilt, cos tilt), the face frame (t_u, t_v) that
     vdo.scene gives such a face, the patch corners and the plate's 4 vertices (world, m)."""
@@ -375,13 +468,13 @@ def speckle_model_of(setup: Setup):
 # Renders
 # --------------------------------------------------------------------------------------------
 def render_case(setup: Setup) -> None:
-    """Noise-free linear renders of every camera: the plate as it is, and translated by U with
-    its texture (the face frame's origin moves with the vertices, so every point keeps its uv)."""
+    """Noise-free linear renders of every camera: the plate as it is, and deformed (translated
+    by U and, in a strain case, strained homogeneously) with its texture (`DeformedFaces`: every
+    point keeps its uv; the plate is flat, so the affine map of its vertices is exact)."""
 
     case, exp = setup.case, setup.experiment
-    U = case.displacement
-    moved = SceneMesh("plate", "specimen", setup.plate.vertices + U, setup.plate.faces)
-    moved_rf = replace(setup.region, origin=setup.region.origin + U)
+    moved = SceneMesh("plate", "specimen", deform(case, setup.plate.vertices), setup.plate.faces)
+    moved_rf = DeformedFaces(setup.region, case)
     scenes = [build_render_scene(exp, [setup.plate], [setup.region], (), setup.pattern),
               build_render_scene(exp, [moved], [moved_rf], (), setup.pattern)]
     setup.reference_linear, setup.deformed_linear = [], []
@@ -429,17 +522,62 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     patch area), combined as the patch's mean information, 1 / mean(1 / σ²) per axis (exact when
     the per-sample covariances differ by a scale only; over a small patch they differ by < 1 %)."""
 
-    exp = setup.experiment
     # One camera: the model's information is rank 2 at every sample, its null direction the ray
     # through the sample, which tilts away from the normal off the optical axis; only at the patch
     # centre (on the axis) is the in-plane marginal the weak-probe limit. There the in-plane bound
     # is that of the centred patch (first-order variations over the patch cancel).
-    samples = _samples(setup, 5 if len(setup.case.cameras) > 1 else 1)
-    pred = layout_state(Geometry(exp, (setup.plate,), samples, speckle, (setup.region,)), cameras).prediction
+    pred = _prediction(setup, cameras, speckle, 5 if len(setup.case.cameras) > 1 else 1)
+    return 1.0 / np.sqrt(np.mean(1.0 / pred.sigma_xyz ** 2, axis=0))
+
+
+def _prediction(setup: Setup, cameras, speckle, n: int):
+    """vdo.predict at n x n samples of the correlated patch (each with Ω = the patch area)."""
+    samples = _samples(setup, n)
+    geometry = Geometry(setup.experiment, (setup.plate,), samples, speckle, (setup.region,))
+    pred = layout_state(geometry, cameras).prediction
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")
-    return 1.0 / np.sqrt(np.mean(1.0 / pred.sigma_xyz ** 2, axis=0))
+    return pred
+
+
+def centre_element(case: Case) -> tuple[int, int]:
+    """The Q4 element whose centre strain a strain case reads: the middle one."""
+    return case.q4_mesh[0] // 2, case.q4_mesh[1] // 2
+
+
+def predict_strain_sigma(setup: Setup) -> np.ndarray:
+    """(3,) predicted sigma of (eps_uu, eps_vv, eps_uv) at the centre of `centre_element` of the
+    case's Q4 mesh (single-image bound): vdo.strain with Σ_u = Ω (mean C over 5 x 5 samples)⁻¹
+    and the finite mesh's own factors (`vdo.strain.q4_centre_gradient_factors`); or, for subset
+    DIC, the virtual strain gauge's factor (`vdo.strain.vsg_factor`)."""
+    case = setup.case
+    pred = _prediction(setup, setup.cameras, speckle_model_of(setup), 5)
+    area = case.patch[0] * case.patch[1]
+    sigma_u = strain.covariance_per_area(pred.information.mean(axis=0)[None], area, [True])
+    if case.subsets is not None:
+        F1 = F2 = float(strain.vsg_factor(*case.subsets))
+    else:
+        nx, ny = case.q4_mesh
+        F1, F2 = strain.q4_centre_gradient_factors(nx, ny, *centre_element(case),
+                                                   case.patch[0] / nx, case.patch[1] / ny)
+    p = setup.patch
+    return strain.strain_sigma(sigma_u, p.t_u[None], p.t_v[None], F1, F2)[0]
+
+
+def measured_strain(setup: Setup, U_nodes: np.ndarray) -> np.ndarray:
+    """(eps_uu, eps_vv, eps_uv) at the centre of `centre_element` from Q4 nodal displacements
+    (nodes, 3) (world, m; node j * (nx + 1) + i): ∂U/∂ξ1 = (U_10 + U_11 - U_00 - U_01) / (2 h_x),
+    ∂U/∂ξ2 likewise, projected on the face frame."""
+    case, p = setup.case, setup.patch
+    nx, ny = case.q4_mesh
+    i, j = centre_element(case)
+    hx, hy = case.patch[0] / nx, case.patch[1] / ny
+    n00 = j * (nx + 1) + i
+    u00, u10, u01, u11 = (U_nodes[n] for n in (n00, n00 + 1, n00 + nx + 1, n00 + nx + 2))
+    d1 = (u10 + u11 - u00 - u01) / (2 * hx)
+    d2 = (u01 + u11 - u00 - u10) / (2 * hy)
+    return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
 
 
 def predict_sigma(setup: Setup) -> np.ndarray:
@@ -467,15 +605,78 @@ def noise_free_images(setup: Setup, deformed: bool) -> list:
 
 
 def noise_free_check(setup: Setup):
-    """Correlate the noise-free renders. Returns (CorrelationResult, per-camera error of the
-    measured U projected into each image, (n_cameras, 2) px)."""
+    """Correlate the noise-free renders. Returns (the CorrelationResults: one, or one per subset;
+    per-camera error of the measured displacement at the patch centre projected into each image,
+    (n_cameras, 2) px)."""
 
-    res = correlate(setup.cameras, noise_free_images(setup, True), setup.patch, reference="images",
-                    reference_images=noise_free_images(setup, False), model="translation")
-    err = res.U - setup.case.displacement
+    results = _correlate(setup, noise_free_images(setup, True), noise_free_images(setup, False))
     centre = setup.patch.points(setup.patch.size / 2)
+    err = _centre_displacement(setup, results) - (deform(setup.case, centre) - centre)
     px = np.array([cam.sensitivity(centre) @ err for cam in setup.cameras])
-    return res, px
+    return results, px
+
+
+def subset_patches(setup: Setup) -> list:
+    """The n x n subsets of a subset-DIC case, centred in the patch on a grid of `step`, as
+    `vdo.correlate.Patch`es; index k = j n + i, i along t_u."""
+    side, step, n = setup.case.subsets
+    p = setup.patch
+    offsets = (np.arange(n) - (n - 1) / 2) * step + p.size[0] / 2 - side / 2, \
+        (np.arange(n) - (n - 1) / 2) * step + p.size[1] / 2 - side / 2
+    return [Patch(origin=p.origin + offsets[0][i] * p.t_u + offsets[1][j] * p.t_v, t_u=p.t_u,
+                  t_v=p.t_v, size=np.array([side, side])) for j in range(n) for i in range(n)]
+
+
+def _correlate(setup: Setup, deformed, references, xi=None) -> list:
+    """The case's correlation(s) of `deformed` against `references`: one global correlation
+    (translation or Q4), or one translation per subset. `xi`: the points of an earlier call."""
+    case = setup.case
+    if case.subsets is None:
+        return [correlate(setup.cameras, deformed, setup.patch, reference="images",
+                          reference_images=references, xi=None if xi is None else xi[0],
+                          **_model(case))]
+    return [correlate(setup.cameras, deformed, p, reference="images", reference_images=references,
+                      model="translation", xi=None if xi is None else xi[k])
+            for k, p in enumerate(subset_patches(setup))]
+
+
+def _subset_fit(setup: Setup, results) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane through the subsets' displacements: (mean U, (∂U/∂ξ1, ∂U/∂ξ2))."""
+    side, step, n = setup.case.subsets
+    U = np.array([r.U for r in results]).reshape(n, n, 3)        # [j, i]
+    x = (np.arange(n) - (n - 1) / 2) * step
+    w = x / (n * (x @ x))
+    return U.mean(axis=(0, 1)), (np.einsum("i,jia->a", w, U), np.einsum("j,jia->a", w, U))
+
+
+def _estimate(setup: Setup, results) -> np.ndarray:
+    """U (translation) or the strain (eps_uu, eps_vv, eps_uv) from the correlation results."""
+    case = setup.case
+    if case.strain is None:
+        return results[0].U
+    if case.subsets is None:
+        return measured_strain(setup, results[0].U)
+    _, (d1, d2) = _subset_fit(setup, results)
+    p = setup.patch
+    return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
+
+
+def _model(case: Case) -> dict:
+    return {"model": "translation"} if case.strain is None else {"model": "q4", "mesh": case.q4_mesh}
+
+
+def _centre_displacement(setup: Setup, results) -> np.ndarray:
+    """The measured displacement at the patch centre: U itself (translation), the Q4 field
+    interpolated there, or the subsets' plane fit's value there (their mean)."""
+    if setup.case.subsets is not None:
+        return _subset_fit(setup, results)[0]
+    U = results[0].U
+    if setup.case.strain is None:
+        return U
+    from .correlate import q4_shape_functions
+    nx, ny = setup.case.q4_mesh
+    N = q4_shape_functions(setup.patch.size[None] / 2, setup.patch.size, nx, ny)
+    return np.asarray(N @ U)[0]
 
 
 def noise_sigma_dn(setup: Setup) -> float:
@@ -488,7 +689,8 @@ def noise_sigma_dn(setup: Setup) -> float:
 
 
 def correlate_seed(setup: Setup, k: int, xi) -> np.ndarray:
-    """U (3,) measured with seed k: independent noise in reference and deformed images."""
+    """U (3,) (or the strain, for a strain case) measured with seed k: independent noise in the
+    reference and deformed images. `xi`: one list of per-camera points per correlation."""
 
     case = setup.case
     base = (case.seed * 1_000_003 + 2 * k) & 0x7FFFFFFF
@@ -496,11 +698,10 @@ def correlate_seed(setup: Setup, k: int, xi) -> np.ndarray:
             for i, im in enumerate(setup.reference_linear)]
     defs = [expose(im, case.sensor, base + 1, i).astype(np.float64)
             for i, im in enumerate(setup.deformed_linear)]
-    res = correlate(setup.cameras, defs, setup.patch, reference="images", reference_images=refs,
-                    model="translation", xi=xi)
-    if not res.converged:
+    results = _correlate(setup, defs, refs, xi)
+    if not all(r.converged for r in results):
         raise RuntimeError(f"case {case.name!r}, seed {k}: correlation did not converge")
-    return res.U
+    return _estimate(setup, results)
 
 
 # --------------------------------------------------------------------------------------------
@@ -520,38 +721,52 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
     setup = build_setup(case, path)
     render_case(setup)
     t_render = time.perf_counter() - t0
-    sigma_pred = predict_sigma(setup)
     res0, px_err = noise_free_check(setup)
     sigma_dn = noise_sigma_dn(setup)
-    sigma_lin = np.sqrt(np.diag(res0.covariance(sigma_dn)))
+    cov = res0[0].covariance(sigma_dn)
+    if case.strain is None:
+        sigma_pred, truth, scale, unit, names = predict_sigma(setup), case.displacement, UM, "um", AXES
+        reported = axes_reported(case)
+        sigma_lin = np.sqrt(np.diag(cov))
+    else:
+        sigma_pred, truth, scale, unit = predict_strain_sigma(setup), case.strain, 1e6, "microstrain"
+        names, reported = STRAIN_AXES, [0, 1, 2]
+        if case.subsets is None:
+            G = np.array([measured_strain(setup, e.reshape(-1, 3)) for e in np.eye(len(cov))]).T
+            sigma_lin = np.sqrt(np.diag(G @ cov @ G.T))
+        else:       # the subsets' cross-covariances are not propagated by correlate
+            sigma_lin = np.full(3, np.nan)
     estimates = np.empty((seeds, 3))
     for k in range(seeds):
-        estimates[k] = correlate_seed(setup, k, res0.xi)
+        estimates[k] = correlate_seed(setup, k, [r.xi for r in res0])
         if progress is not None:
             progress(1)
-    err = estimates - case.displacement
+    err = estimates - truth
     sigma_meas = err.std(axis=0, ddof=1)
+    # the rows' *_um columns carry `unit`: micrometres, or microstrain for strain cases
     rows = []
-    for a in axes_reported(case):
+    for a in reported:
         expected = SQRT2 * sigma_pred[a]
         ratio = sigma_meas[a] / expected
         # chi-square interval of a standard deviation from n - 1 degrees of freedom
         from scipy.stats import chi2
         lo = sigma_meas[a] * math.sqrt((seeds - 1) / chi2.ppf(0.975, seeds - 1)) / expected
         hi = sigma_meas[a] * math.sqrt((seeds - 1) / chi2.ppf(0.025, seeds - 1)) / expected
-        rows.append({"case": case.name, "axis": AXES[a], "sigma_predicted_um": sigma_pred[a] * UM,
-                     "sigma_measured_um": sigma_meas[a] * UM, "ratio": ratio, "n_seeds": seeds,
-                     "sigma_expected_um": expected * UM, "ratio_ci95_low": lo, "ratio_ci95_high": hi,
-                     "bias_um": err[:, a].mean() * UM,
-                     "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * UM,
-                     "sigma_linear_um": sigma_lin[a] * UM})
+        rows.append({"case": case.name, "axis": names[a], "sigma_predicted_um": sigma_pred[a] * scale,
+                     "sigma_measured_um": sigma_meas[a] * scale, "ratio": ratio, "n_seeds": seeds,
+                     "sigma_expected_um": expected * scale, "ratio_ci95_low": lo, "ratio_ci95_high": hi,
+                     "bias_um": err[:, a].mean() * scale,
+                     "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * scale,
+                     "sigma_linear_um": sigma_lin[a] * scale, "unit": unit})
     centre = setup.patch.points(setup.patch.size / 2)
     return {"rows": rows, "estimates": estimates, "setup": setup,
             "info": {"case": case.name, "cameras": len(case.cameras),
                      "noise_dn": sigma_dn,
                      "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)},
                      "noise_free_ok": bool(np.all(np.abs(px_err) < 0.01)),
-                     "pixels_per_camera": [int(len(x)) for x in res0.xi],
+                     **({} if case.strain is None else {"noise_free_strain_error_microstrain": (
+                         (_estimate(setup, res0) - case.strain) * 1e6).tolist()}),
+                     "pixels_per_camera": [int(len(x)) for x in res0[0].xi],
                      "speckle_px": [float(case.speckle.dot_diameter * np.sqrt(np.abs(np.linalg.det(
                          c.sensitivity(centre) @ setup.patch.tangents)))) for c in setup.cameras],
                      "shift_px": [float(np.linalg.norm(c.sensitivity(centre) @ case.displacement))
@@ -576,7 +791,8 @@ def plot(rows: list[dict], path, title: str = "") -> None:
     ax.plot(line, line, "k-", lw=1, label="measured = √2 predicted")
     cases = list(dict.fromkeys(r["case"] for r in rows))
     colors = plt.get_cmap("tab10")
-    markers = {"x": "o", "y": "s", "z": "^"}
+    markers = {"x": "o", "y": "s", "z": "^", "eps_uu": "D", "eps_vv": "v", "eps_uv": "<"}
+    unit = "µε" if rows[0].get("unit") == "microstrain" else "µm"
     for r in rows:
         ci = cases.index(r["case"])
         err = [[r["sigma_measured_um"] * (1 - r["ratio_ci95_low"] / r["ratio"])],
@@ -588,8 +804,8 @@ def plot(rows: list[dict], path, title: str = "") -> None:
     ax.set_yscale("log")
     ax.set_xlim(lo, hi)
     ax.set_ylim(lo, hi)
-    ax.set_xlabel("expected σ = √2 × predicted (µm)  [both images noisy]")
-    ax.set_ylabel("measured σ over seeds (µm)")
+    ax.set_xlabel(f"expected σ = √2 × predicted ({unit})  [both images noisy]")
+    ax.set_ylabel(f"measured σ over seeds ({unit})")
     ax.set_title(title or "vdo validate: predicted vs measured uncertainty", fontsize=10)
     ax.legend(fontsize=6, ncol=2, loc="upper left")
     ax.grid(True, which="both", alpha=0.3)
@@ -613,8 +829,10 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
 
     validation.csv     per case and axis: predicted, measured, ratio, n_seeds (+ diagnostics);
                        a '#' comment line states the convention
+                       (strain cases: the strain components, in microstrain, `unit` column)
     validation.png     measured against √2 x predicted sigma, log-log, the [0.8, 1.25] band
-    estimates.csv      every measured U (µm) per case and seed
+                       (validation_strain.png: the same for the strain cases)
+    estimates.csv      every measured U (µm) per case and seed (estimates_strain.csv: strains)
     summary.json       the convention, per-case diagnostics (noise-free errors, speckle and shift in
                        pixels, times), wall time, pass/fail
     images/<case>.png  the noise-free reference image of each camera
@@ -649,21 +867,36 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
                           tmp / "images" / f"{case.name}.png", f"{case.name}: noise-free reference")
         bar.close()
         wall = time.perf_counter() - started
+        strain_cases = [c.name for c in chosen if c.strain is not None]
         write_csv(rows, tmp / "validation.csv")
         with open(tmp / "estimates.csv", "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["case", "seed", "Ux_um", "Uy_um", "Uz_um"])
             for name, est in estimates.items():
+                if name in strain_cases:
+                    continue
                 for k, u in enumerate(est):
                     w.writerow([name, k, *(f"{v * UM:.6g}" for v in u)])
-        plot(rows, tmp / "validation.png", f"{spec.name}: {seeds} seeds per case")
+        if strain_cases:
+            with open(tmp / "estimates_strain.csv", "w", newline="") as fh:
+                w = csv.writer(fh)
+                w.writerow(["case", "seed", *(f"{a}_microstrain" for a in STRAIN_AXES)])
+                for name in strain_cases:
+                    for k, e in enumerate(estimates[name]):
+                        w.writerow([name, k, *(f"{v * 1e6:.6g}" for v in e)])
+        for suffix, kind in (("", "um"), ("_strain", "microstrain")):
+            chosen_rows = [r for r in rows if r["unit"] == kind]
+            if chosen_rows:
+                plot(chosen_rows, tmp / f"validation{suffix}.png",
+                     f"{spec.name}: {seeds} seeds per case" + (" (strain)" if suffix else ""))
         shutil.copyfile(spec.path, tmp / "validation.toml")
         passed = all(BAND[0] <= r["ratio"] <= BAND[1] for r in rows)
         summary = {"name": spec.name, "config": str(spec.path), "seeds": seeds,
                    "convention": CONVENTION, "band": list(BAND), "passed": passed,
                    "noise_free_passed": all(i["noise_free_ok"] for i in infos),
                    "wall_seconds": round(wall, 1), "cases": infos,
-                   "rows": [{k: (round(v, 6) if isinstance(v, float) else v) for k, v in r.items()}
+                   "rows": [{k: ((round(v, 6) if math.isfinite(v) else None) if isinstance(v, float)
+                             else v) for k, v in r.items()}
                             for r in rows]}
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

@@ -1,0 +1,100 @@
+"""Design checks: each flag tripped by a config made to trip it, and the numbers against closed
+forms (footprint of a frontal pinhole, thin-lens depth of field, exposure from the sensor model)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vdo import checks
+from vdo.lighting import illuminate
+from vdo.speckle import pattern_for
+
+CAMERA = """
+[[camera]]
+name = "down"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+rail = "overhead"
+u = 0.5
+pan_deg = 0
+tilt_deg = -90
+{lens}
+
+[speckle]
+dot_diameter_mm = {dot}
+texel_mm = 1
+tile_texels = 256
+
+[render]
+ambient_radiance = {ambient}
+"""
+
+
+def _rows(plate_experiment, dot=9.0, ambient=1.0, lens=""):
+    from conftest import raycast
+    path = plate_experiment(spacing=50, cameras=CAMERA.format(dot=dot, ambient=ambient, lens=lens))
+    exp, samples, cams, scene, vis = raycast(path)
+    illum = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    rows = checks.design_checks(exp, cams, samples, vis.visible, illum.irradiance,
+                                pattern_for(exp.speckle))
+    assert [r["region"] for r in rows] == ["top"]
+    return rows[0], exp
+
+
+def test_a_good_design_has_no_flag_and_closed_form_numbers(plate_experiment):
+    row, exp = _rows(plate_experiment, lens="f_number = 8\nfocus_m = 1.5")
+    assert row["flags"] == []
+    pixel = 22.2e-3 / 600
+    assert row["mm_per_px"] == pytest.approx(1.5 * pixel / 24e-3 * 1e3, rel=0.02)  # frontal: Z p / f
+    assert row["speckle_px"] == pytest.approx(9e-3 / (1.5 * pixel / 24e-3), rel=0.02)
+    assert row["standoff_m"] == pytest.approx(1.5, rel=0.1)
+    # the plate (1 m) fills the image's width: 1 m / (W mm/px) columns of the 600 x 400 image
+    cols = 1.0 / (row["mm_per_px"] * 1e-3)
+    assert row["fov_fill"] == pytest.approx(min(cols, 600) * min(cols, 400) / (600 * 400), rel=0.1)
+    # exposure: white paint at E = pi L -> linear 0.8 -> 56 % of the full well, gain maps full
+    # well to the top DN: the brightest percentile is 0.56 of (max - offset) + offset
+    s = exp.sensor
+    assert row["exposure"]["p99_gray_fraction"] == pytest.approx(
+        s.mean_dn(0.8) / s.max_dn, rel=0.01)
+    near, far = row["depth_of_field"]["near_m"], row["depth_of_field"]["far_m"]
+    assert far is None and near < 1.5
+
+
+def test_speckle_flags(plate_experiment):
+    small, _ = _rows(plate_experiment, dot=3.0)
+    large, _ = _rows(plate_experiment, dot=20.0)
+    assert any("speckle dots" in f for f in small["flags"]) and small["speckle_px"] < 3
+    assert any("speckle dots" in f for f in large["flags"]) and large["speckle_px"] > 5
+
+
+def test_depth_of_field_flag(plate_experiment):
+    row, _ = _rows(plate_experiment, lens="f_number = 1.4\nfocus_m = 1.0")
+    assert any("out of focus" in f for f in row["flags"])
+    d = row["depth_of_field"]
+    # thin-lens closed form with c = 2 pixel pitches
+    c, f, N, s = 2 * 22.2e-3 / 600, 24e-3, 1.4, 1.0
+    assert d["far_m"] == pytest.approx(s * f * f / (f * f - N * c * (s - f)), rel=1e-9)
+    assert d["near_m"] == pytest.approx(s * f * f / (f * f + N * c * (s - f)), rel=1e-9)
+    assert row["depth_max_m"] > d["far_m"]
+
+
+def test_exposure_flags(plate_experiment):
+    dark, _ = _rows(plate_experiment, ambient=0.2)
+    bright, _ = _rows(plate_experiment, ambient=2.0)
+    assert any("under-exposed" in f for f in dark["flags"])
+    assert dark["exposure"]["p99_gray_fraction"] < 0.25
+    assert any("saturating" in f for f in bright["flags"])
+    assert bright["exposure"]["saturated_fraction"] > 0.3
+
+
+def test_depth_of_field_limits_bracket_the_focus():
+    near, far = checks.depth_of_field(0.05, 8.0, 2.0, 10e-6)
+    assert near < 2.0 < far
+    # beyond the hyperfocal distance H = f^2 / (N c) + f the far limit is infinite
+    H = 0.05 ** 2 / (8.0 * 10e-6) + 0.05
+    assert math.isinf(checks.depth_of_field(0.05, 8.0, 1.01 * H, 10e-6)[1])
+    assert np.isfinite(checks.depth_of_field(0.05, 8.0, 0.99 * H, 10e-6)[1])
