@@ -10,8 +10,9 @@ The public API (names are imported on first use, so `import vdo` stays light)::
     summary = vdo.summary(state)              # the per-region table of `vdo evaluate`
     vdo.write_evaluation(state, "runs/eval")  # the run folder of `vdo evaluate`
 
-`vdo.render`, `vdo.optimize` and `vdo.validate` are the library functions behind the commands
-of the same names. See docs/api.md.
+`vdo.evaluate_experiment`, `vdo.render_experiment`, `vdo.optimize_experiment` and
+`vdo.validate_cases` are the library functions behind the commands (`vdo.evaluate`, `vdo.render`,
+... are the modules). See docs/api.md.
 """
 
 from __future__ import annotations
@@ -34,12 +35,14 @@ _EXPORTS = {
     "Prediction": ("vdo.predict", "Prediction"),
     "Visibility": ("vdo.visibility", "Visibility"),
     "summary": ("vdo.report", "state_summary"),
-    "evaluate": ("vdo.evaluate", "evaluate"),
+    "configure": ("vdo.configure", "configure"),
+    "evaluate_experiment": ("vdo.evaluate", "evaluate"),
     "write_evaluation": ("vdo.evaluate", "write_evaluation"),
-    "render": ("vdo.render", "render_experiment"),
-    "optimize": ("vdo.optimize", "optimize"),
-    "validate": ("vdo.validate", "validate"),
+    "render_experiment": ("vdo.render", "render_experiment"),
+    "optimize_experiment": ("vdo.optimize", "optimize"),
+    "validate_cases": ("vdo.validate", "validate"),
 }
+# The command functions carry a suffix: `vdo.evaluate`, `vdo.render`, ... are the modules.
 
 __all__ = sorted(_EXPORTS)
 

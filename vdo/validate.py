@@ -48,7 +48,7 @@ import numpy as np
 
 from . import strain
 from .camera import Camera, look_at_angles
-from .config import (SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
+from .config import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
 from .correlate import Patch, correlate
 from .errors import ConfigError
@@ -415,7 +415,8 @@ class Setup:
 
 def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
     """An in-memory vdo Experiment for the case: one specimen plate, one region (the plate's
-    face), ambient light only, the DIC patch side sqrt(patch area) (Ω = the correlated area)."""
+    face), ambient light only, the DIC patch side sqrt(patch area) (Ω = the correlated area);
+    the strain analysis' element is the patch's shorter side (it must fit in the region)."""
     g = plate_geometry(case)
     region = RegionSpec(name="patch", mesh="plate", normal=g["normal"],
                         box_min=np.full(3, -np.inf), box_max=np.full(3, np.inf),
@@ -427,7 +428,8 @@ def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
                       evaluation=Evaluation(sample_spacing=min(w, h) / 4, incidence_limit=math.radians(85.0),
                                             patch_size=math.sqrt(w * h), min_cameras=1),
                       speckle=case.speckle, sensor=case.sensor,
-                      render=RenderSpec(spp=case.spp, ambient_radiance=case.ambient_radiance))
+                      render=RenderSpec(spp=case.spp, ambient_radiance=case.ambient_radiance),
+                      analysis=Analysis(element=min(w, h)))
 
 
 def build_setup(case: Case, path: Path) -> Setup:
