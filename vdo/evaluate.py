@@ -53,7 +53,9 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         sigma_xyz_um = np.where(pred.measured[:, None], pred.sigma_xyz * UM, np.nan)
         sens = pred.sensitivity * MPX_PER_UM
         arrays = {"normal": samples.normals, "region": samples.region.astype(np.int32),
-                  "area": samples.area, "coverage": vis.coverage.astype(np.int32),
+                  "area": samples.area, "coverage": pred.coverage,
+                  "patch_fraction": pred.patch_fraction, "edge_limited": pred.edge_limited,
+                  "outlier": pred.outlier,
                   "irradiance": illumination.irradiance,
                   **{f"sensitivity_{a}": sens[:, k] for k, a in enumerate("xyz")},
                   "sigma_max": sigma_um,
@@ -61,8 +63,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
-        maps.plot_unfolded(samples, vis.coverage, tmp / "maps" / "coverage.png",
-                           f"{exp.name}: number of cameras that see each point", "cameras",
+        maps.plot_unfolded(samples, pred.coverage, tmp / "maps" / "coverage.png",
+                           f"{exp.name}: number of usable views of each point", "cameras",
                            discrete=True)
         top = np.nanpercentile(sens, 99) if np.isfinite(sens).any() else 1.0
         for k, a in enumerate("xyz"):

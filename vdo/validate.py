@@ -438,7 +438,7 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
     blockers = build_scene([setup.plate])
     vis = compute_visibility(blockers, cameras, samples, exp.evaluation.incidence_limit, progress=False)
     illum = illuminate(blockers, (), samples, exp.render.ambient_radiance)
-    pred = predict(exp, cameras, samples, vis, illum, speckle)
+    pred = predict(exp, cameras, samples, vis, illum, speckle, clip_patch=False)
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")
