@@ -86,6 +86,7 @@ class CameraSpec:
     body: bool = True
     f_number: float | None = None    # with focus_distance: thin lens with depth of field
     focus_distance: float | None = None  # m
+    lenses: tuple[float, ...] = ()   # m: lenses this body takes (edges block below); () = [optimize]'s
 
 
 @dataclass(frozen=True)
@@ -132,6 +133,7 @@ class RenderSpec:
     ambient_radiance: float = 0.0    # uniform environment light, same unit as LightSpec.radiance
     image_format: str = "png"        # png | tiff (16-bit above 8-bit depth)
     exr: bool = False                # also write the linear float image
+    bit_alignment: str = "msb"       # 16-bit files: "msb" (counts << (16 - bit_depth)) | "raw"
 
 
 @dataclass(frozen=True)
@@ -143,6 +145,7 @@ class OptimizeSpec:
     cameras: tuple[str, ...] | None = None         # cameras that move (None: all)
     regions: tuple[str, ...] | None = None         # regions whose uncertainty is scored (None: all)
     min_axis_angle: float | None = None            # rad; None: the stereo rule of thumb per lens
+    max_axis_angle: float | None = None            # rad; None: no maximum (edges block below)
     clearance: float = 0.05                        # m between camera bodies and everything else
     max_obscuration: float = 0.01                  # fraction of an assigned region's image
     assign_fraction: float = 0.5                   # a camera is assigned the regions it sees this much of
@@ -169,6 +172,7 @@ class Experiment:
     sensor: SensorModel = SensorModel()
     render: RenderSpec = RenderSpec()
     optimize: OptimizeSpec = OptimizeSpec()
+    stereo_pairs: tuple["StereoPairSpec", ...] = ()
 
     def rail(self, name: str) -> Rail:
         return next(r for r in self.rails if r.name == name)
@@ -204,7 +208,8 @@ class Experiment:
                "sensor": {k: v for k, v in dataclasses.asdict(self.sensor).items() if v is not None},
                "render": {"spp": rd.spp, "scale": rd.scale, "seed": rd.seed,
                           "ambient_radiance": rd.ambient_radiance, "image_format": rd.image_format,
-                          "exr": rd.exr}}
+                          "exr": rd.exr, "bit_alignment": rd.bit_alignment},
+               "stereo_pair": [_stereo_pair_to_dict(p) for p in self.stereo_pairs]}
         return {k: v for k, v in out.items() if v != []}
 
 
@@ -234,6 +239,8 @@ def _camera_to_dict(c: CameraSpec) -> dict:
           "body": c.body}
     if c.f_number is not None:
         d |= {"f_number": c.f_number, "focus_m": c.focus_distance}
+    if c.lenses:
+        d["lenses_mm"] = [f * 1e3 for f in c.lenses]
     return d
 
 
@@ -389,7 +396,7 @@ def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
     top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
-                                  "light", "speckle", "sensor", "render", "optimize"))
+                                  "light", "speckle", "sensor", "render", "optimize", "stereo_pair"))
     exp = Table(top.raw("experiment"), "experiment", path, ("name", "description"))
     ev = Table(top.raw("evaluation", {}), "evaluation", path,
                 ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
@@ -414,7 +421,8 @@ def parse(data: dict, path: Path) -> Experiment:
     cameras = tuple(_camera(t, rail_names) for t in _entries(
         top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
                               "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
-                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m")))
+                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m",
+                              "lenses_mm")))
     lights = tuple(_light(t) for t in _entries(
         top, "light", path, ("name", "position_m", "target_m", "size_m", "radiance"), required=False))
     result = Experiment(path=path, name=exp.string("name"),
@@ -423,7 +431,8 @@ def parse(data: dict, path: Path) -> Experiment:
                         lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
                         render=_render(top, path),
                         optimize=_optimize(top, path, {c.name for c in cameras},
-                                           {r.name for r in regions}))
+                                           {r.name for r in regions}, cameras),
+                        stereo_pairs=_stereo_pairs(top, path, {c.name for c in cameras}))
     for spec, camera in zip(cameras, result.cameras()):
         if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
             raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
@@ -473,10 +482,12 @@ def _sensor(top: Table, path: Path) -> SensorModel:
         raise t.error(field.removeprefix("SensorModel."), message) from None
 
 
-def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpec:
+def _optimize(top: Table, path: Path, cameras: set, regions: set,
+              camera_specs: tuple = ()) -> OptimizeSpec:
     t = Table(top.raw("optimize", {}), "optimize", path,
-               ("free", "cameras", "regions", "min_axis_angle_deg", "clearance_m", "max_obscuration",
-                "assign_fraction", "starts", "rounds", "max_steps", "seed", "lenses_mm"))
+               ("free", "cameras", "regions", "min_axis_angle_deg", "max_axis_angle_deg",
+                "clearance_m", "max_obscuration", "assign_fraction", "starts", "rounds",
+                "max_steps", "seed", "lenses_mm"))
     free = t.raw("free", ["u", "pan", "tilt"])
     if not isinstance(free, list) or not set(free) <= {"u", "pan", "tilt", "roll", "lens"} or not free:
         raise t.error("free", f"must list some of u, pan, tilt, roll, lens (got {free!r})")
@@ -484,9 +495,9 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
     if not isinstance(lenses, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
                                                and math.isfinite(x) and x > 0 for x in lenses):
         raise t.error("lenses_mm", f"must be a list of focal lengths in mm, each > 0 (got {lenses!r})")
-    if "lens" in free and not lenses:
+    if "lens" in free and not lenses and not any(c.lenses for c in camera_specs):
         raise t.error("free", 'lists "lens" but no lenses_mm catalogue is given: add e.g. '
-                              'lenses_mm = [24, 35, 50, 100]')
+                              'lenses_mm = [24, 35, 50, 100] here or on a [[camera]]')
     moving = t.raw("cameras", None)
     if moving is not None:
         if not isinstance(moving, list) or not all(isinstance(c, str) for c in moving):
@@ -502,10 +513,12 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
         if unknown:
             raise t.error("regions", f"no [[region]] named {', '.join(map(repr, unknown))}")
     angle = t.number("min_axis_angle_deg", None, low=0.0, high=90.0) if t.has("min_axis_angle_deg") else None
+    top_angle = _max_angle(t, "max_axis_angle_deg", angle)
     return OptimizeSpec(free=tuple(free), lenses=tuple(sorted(set(float(x) * 1e-3 for x in lenses))),
                         cameras=None if moving is None else tuple(moving),
                         regions=None if scored is None else tuple(scored),
                         min_axis_angle=None if angle is None else math.radians(angle),
+                        max_axis_angle=None if top_angle is None else math.radians(top_angle),
                         clearance=t.number("clearance_m", 0.05, low=0.0),
                         max_obscuration=t.number("max_obscuration", 0.01, low=0.0, high=1.0),
                         assign_fraction=t.number("assign_fraction", 0.5, low=0.01, high=1.0),
@@ -516,12 +529,13 @@ def _optimize(top: Table, path: Path, cameras: set, regions: set) -> OptimizeSpe
 
 def _render(top: Table, path: Path) -> RenderSpec:
     t = Table(top.raw("render", {}), "render", path,
-               ("spp", "scale", "seed", "ambient_radiance", "image_format", "exr"))
+               ("spp", "scale", "seed", "ambient_radiance", "image_format", "exr", "bit_alignment"))
     return RenderSpec(spp=t.integer("spp", 16, low=1), scale=t.number("scale", 1.0, positive=True, high=4.0),
                       seed=t.integer("seed", 0, low=0),
                       ambient_radiance=t.number("ambient_radiance", 0.0, low=0.0),
                       image_format=t.string("image_format", "png", choices=("png", "tiff")),
-                      exr=t.boolean("exr", False))
+                      exr=t.boolean("exr", False),
+                      bit_alignment=t.string("bit_alignment", "msb", choices=BIT_ALIGNMENTS))
 
 
 def _mesh(t: Table, config_path: Path) -> MeshSpec:
@@ -599,6 +613,8 @@ def _camera(t: Table, rails: set) -> CameraSpec:
     if t.has("f_number"):
         spec |= dict(f_number=t.number("f_number", positive=True),
                      focus_distance=t.number("focus_m", positive=True))
+    if t.has("lenses_mm"):
+        spec["lenses"] = _lens_list(t)
     if t.has("rail") == t.has("position_m"):
         raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
     if t.has("rail"):
@@ -621,3 +637,78 @@ def _camera(t: Table, rails: set) -> CameraSpec:
     else:
         spec |= dict(pan=math.radians(t.number("pan_deg")), tilt=math.radians(t.number("tilt_deg")))
     return CameraSpec(**spec)
+
+
+# --------------------------------------------------------------------------------------------
+# Edges block: stereo pairs, maximum axis angle, per-camera lens catalogues, 16-bit alignment
+# (one separate block, to be ported into the field table as a whole)
+# --------------------------------------------------------------------------------------------
+BIT_ALIGNMENTS = ("msb", "raw")   # [render] bit_alignment: vdo.sensor.save_image
+STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
+
+
+@dataclass(frozen=True)
+class StereoPairSpec:
+    """A declared stereo pair: two cameras whose optical axes must make an angle in
+    [min_angle, max_angle] (rad). min_angle None: the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`); max_angle None: that minimum + STEREO_SPAN_DEG."""
+
+    cameras: tuple[str, str]
+    min_angle: float | None = None
+    max_angle: float | None = None
+
+
+def _max_angle(t: Table, key: str, minimum_deg: float | None) -> float | None:
+    """An optional maximum angle (deg) in (0, 180], not below `minimum_deg` when that is given."""
+    if not t.has(key):
+        return None
+    value = t.number(key, low=0.0, high=180.0)
+    if minimum_deg is not None and value < minimum_deg:
+        raise t.error(key, f"= {value:g} is below the minimum angle {minimum_deg:g} deg: the "
+                           "maximum must be at least the minimum")
+    return value
+
+
+def _stereo_pairs(top: Table, path: Path, cameras: set) -> tuple[StereoPairSpec, ...]:
+    items = top.raw("stereo_pair", [])
+    if not isinstance(items, list):
+        raise ConfigError(path, "stereo_pair", "must be an array of tables: [[stereo_pair]]")
+    out, seen = [], set()
+    for i, item in enumerate(items):
+        t = Table(item, f"stereo_pair[{i}]", path, ("cameras", "min_angle_deg", "max_angle_deg"))
+        names = t.raw("cameras")
+        if (not isinstance(names, list) or len(names) != 2 or not all(isinstance(n, str) for n in names)
+                or names[0] == names[1]):
+            raise t.error("cameras", f'must name two different cameras, e.g. ["left", "right"] (got {names!r})')
+        unknown = sorted(set(names) - cameras)
+        if unknown:
+            raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
+        if frozenset(names) in seen:
+            raise t.error("cameras", "this pair is declared twice")
+        seen.add(frozenset(names))
+        low = t.number("min_angle_deg", None, low=0.0, high=180.0) if t.has("min_angle_deg") else None
+        high = _max_angle(t, "max_angle_deg", low)
+        out.append(StereoPairSpec(cameras=(names[0], names[1]),
+                                  min_angle=None if low is None else math.radians(low),
+                                  max_angle=None if high is None else math.radians(high)))
+    return tuple(out)
+
+
+def _stereo_pair_to_dict(p: StereoPairSpec) -> dict:
+    d = {"cameras": list(p.cameras)}
+    if p.min_angle is not None:
+        d["min_angle_deg"] = math.degrees(p.min_angle)
+    if p.max_angle is not None:
+        d["max_angle_deg"] = math.degrees(p.max_angle)
+    return d
+
+
+def _lens_list(t: Table) -> tuple[float, ...]:
+    """A lenses_mm list: focal lengths in mm, each > 0; returned in metres, sorted, unique."""
+    lenses = t.raw("lenses_mm")
+    if not isinstance(lenses, list) or not lenses or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+            for x in lenses):
+        raise t.error("lenses_mm", f"must be a non-empty list of focal lengths in mm, each > 0 "
+                                   f"(got {lenses!r})")
+    return tuple(sorted(set(float(x) * 1e-3 for x in lenses)))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import maps, report, vtp
+from . import constraints, maps, report, vtp
 from .config import Experiment
 from .lighting import illuminate
 from .predict import predict, speckle_model
@@ -44,6 +44,12 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     say("predicting the uncertainty (compiles on first use)", quiet)
     pred = predict(exp, cameras, samples, vis, illumination, speckle_model(exp))
     summary = report.summary(exp, samples, vis, pred)
+    summary["axis_angles"] = constraints.angle_checks(exp, cameras, vis, samples)
+    for e in summary["axis_angles"]:
+        if not e["met"]:
+            bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
+            say(f"warning: cameras {e['cameras'][0]} and {e['cameras'][1]}: optical axes "
+                f"{e['value']:.1f} deg apart, {bound} of {e['limit']:.1f} deg", quiet)
 
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
@@ -61,6 +67,7 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
                   "sigma_max": sigma_um,
                   **{f"sigma_{a}": sigma_xyz_um[:, k] for k, a in enumerate("xyz")}}
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
+        arrays |= {f"usable_{name}": pred.usable[i] for i, name in enumerate(vis.camera_names)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
         maps.plot_unfolded(samples, pred.coverage, tmp / "maps" / "coverage.png",
