@@ -23,7 +23,7 @@ import numpy as np
 from .camera import Camera, look_at_angles
 from .errors import ConfigError
 from .rail import Rail
-from .sensor import SensorModel
+from .sensor import ALIGNMENTS, SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
@@ -535,7 +535,7 @@ def _render(top: Table, path: Path) -> RenderSpec:
                       ambient_radiance=t.number("ambient_radiance", 0.0, low=0.0),
                       image_format=t.string("image_format", "png", choices=("png", "tiff")),
                       exr=t.boolean("exr", False),
-                      bit_alignment=t.string("bit_alignment", "msb", choices=BIT_ALIGNMENTS))
+                      bit_alignment=t.string("bit_alignment", "msb", choices=ALIGNMENTS))
 
 
 def _mesh(t: Table, config_path: Path) -> MeshSpec:
@@ -643,7 +643,6 @@ def _camera(t: Table, rails: set) -> CameraSpec:
 # Edges block: stereo pairs, maximum axis angle, per-camera lens catalogues, 16-bit alignment
 # (one separate block, to be ported into the field table as a whole)
 # --------------------------------------------------------------------------------------------
-BIT_ALIGNMENTS = ("msb", "raw")   # [render] bit_alignment: vdo.sensor.save_image
 STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
 
 

@@ -354,7 +354,9 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
                       seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
     """Render every camera of `exp` and write the run folder `out` (atomically, vdo.runfolder):
 
-    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth), [render] image_format
+    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth, counts aligned to
+                               the most significant bits or raw: [render] bit_alignment),
+                               [render] image_format
     images/<camera>.exr        linear float radiance, when [render] exr = true
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
     contact_sheet.png          all cameras in a grid with their names
@@ -419,7 +421,8 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             linear = render_linear(scene, camera_sensor(cam, spec, spp), render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
-            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
+            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth,
+                       rs.bit_alignment)
             if rs.exr:
                 from .backend import mitsuba
 
