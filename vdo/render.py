@@ -45,7 +45,7 @@ from dataclasses import replace
 import numpy as np
 
 from .camera import Camera
-from .speckle import pattern_for
+from .speckle import normalise, pattern_for
 
 BODY_ALBEDO = 0.05
 
@@ -332,19 +332,46 @@ def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
     plt.close(fig)
 
 
-def _region_photometry(cameras, vis, samples, pho, clean_dn) -> list[dict]:
+PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
+PHOTOMETRY_FOOTPRINTS = 4  # samples per (camera, region) whose pixel footprint sets the pixel factor
+
+
+def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
+                       pattern_normalised, texel: float) -> list[dict]:
+    """One row per (camera, region) of photometry.csv (docs/photometry.md). Over the
+    `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
+    render: b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
+    mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
+    the irradiance's variation over the region does not count as contrast); c_pixel_predicted =
+    c_predicted x pixel_factor, pixel_factor = `vdo.speckle.pixel_averaged_std` at the pixel
+    footprints of `PHOTOMETRY_FOOTPRINTS` samples of the row (rms): the contrast the rendered box
+    pixels must show, c_predicted being that of the paint before the pixel averages it."""
+    from .speckle import pixel_averaged_std
+
     rows = []
+    half = PHOTOMETRY_WINDOW // 2
+    dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
+    tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
     for i, cam in enumerate(cameras):
         uv = cam.project(samples.points)
         for k, region in enumerate(samples.region_names):
             mask = vis.visible[i] & (samples.region == k)
             row = {"camera": cam.name, "region": region, "n_samples": int(mask.sum())}
             if mask.any():
-                col = np.clip(np.rint(uv[mask, 0]).astype(int), 0, cam.width - 1)
-                r = np.clip(np.rint(uv[mask, 1]).astype(int), 0, cam.height - 1)
-                values = clean_dn[cam.name][r, col]
+                col = np.clip(np.rint(uv[mask, 0]).astype(int)[:, None] + dx.ravel(), 0, cam.width - 1)
+                r = np.clip(np.rint(uv[mask, 1]).astype(int)[:, None] + dy.ravel(), 0, cam.height - 1)
+                values = clean_dn[cam.name][r, col]                         # (n, window^2)
+                level = pho.brightness[i, mask] - offset_dn
+                ratio = (values - offset_dn) / level[:, None]
+                idx = np.flatnonzero(mask)
+                chosen = idx[np.linspace(0, len(idx) - 1, min(PHOTOMETRY_FOOTPRINTS, len(idx))).astype(int)]
+                A = cam.sensitivity(samples.points[chosen]) @ tangents[chosen]   # (m, 2, 2) px/m
+                factor = float(np.sqrt(np.mean(pixel_averaged_std(
+                    pattern_normalised, texel, np.linalg.inv(A)) ** 2)))
+                c_pred = pho.contrast[i, mask].mean()
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
-                        "c_render_dn": values.std(), "c_predicted_dn": pho.contrast[i, mask].mean(),
+                        "c_render_dn": ratio.std() * level.mean(), "c_predicted_dn": c_pred,
+                        "pixel_factor": factor, "c_pixel_predicted_dn": c_pred * factor,
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
     return rows
@@ -361,9 +388,9 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
     contact_sheet.png          all cameras in a grid with their names
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
-                               render at the projected visible samples (mean and std of DN; c is
-                               after the pixel's blur), next to vdo.lighting's prediction (b, c of
-                               the unblurred paint, noise σ)
+                               render around the projected visible samples, next to vdo.lighting's
+                               prediction (b, c of the paint, noise σ) and the contrast predicted
+                               for the rendered box pixels, c x pixel_factor (docs/photometry.md)
     shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
     maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
     config.toml, render.json   the resolved config; settings and time per camera
@@ -433,9 +460,10 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         report.write_config(tmp / "config.toml", exp)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
-        rows = _region_photometry(cameras, vis, samples, pho, clean)
+        rows = _region_photometry(cameras, vis, samples, pho, clean, exp.sensor.offset,
+                                  normalise(pattern), exp.speckle.texel)
         fields = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
-                  "c_predicted_dn", "noise_predicted_dn"]
+                  "c_pixel_predicted_dn", "c_predicted_dn", "pixel_factor", "noise_predicted_dn"]
         with open(tmp / "photometry.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=fields, restval="")
             writer.writeheader()
