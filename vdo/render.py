@@ -332,20 +332,43 @@ def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
     plt.close(fig)
 
 
+def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.ndarray:
+    """(K,) std of the rendered pixel values of a unit-variance pattern f̂: each pixel is the
+    mean of `spp` samples, one uniform in each of the sqrt(spp) x sqrt(spp) strata of the pixel
+    (the stratified sampler with jitter), not the box average a camera pixel takes. With
+    s(P) = `vdo.speckle.pixel_averaged_std` over a parallelogram P (the pixel A^-1, a stratum
+    A^-1 / sqrt(spp)) and s_0 that of the texture alone (P = 0):
+
+        std^2 = s(A^-1)^2 + (s_0^2 - s(A^-1 / sqrt spp)^2) / spp
+
+    (law of total variance: the box average's variance, plus the mean variance of f within a
+    stratum, s_0^2 - s(stratum)^2 for a stationary pattern, over spp independent samples). The
+    second term is the render's Monte Carlo sampling of the speckle: small when a stratum is
+    small against a speckle, large for a reduced-scale render whose pixels span speckles."""
+    from .speckle import pixel_averaged_std
+
+    sides = np.asarray(pixel_sides, dtype=float).reshape(-1, 2, 2)
+    box = pixel_averaged_std(pattern_normalised, texel, sides)
+    stratum = pixel_averaged_std(pattern_normalised, texel, sides / math.sqrt(spp))
+    texture = pixel_averaged_std(pattern_normalised, texel, np.zeros((1, 2, 2)))[0]
+    return np.sqrt(box ** 2 + (texture ** 2 - stratum ** 2) / spp)
+
+
 PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
 PHOTOMETRY_FOOTPRINTS = 4  # samples per (camera, region) whose pixel footprint sets the pixel factor
 
 
 def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
-                       pattern_normalised, texel: float) -> list[dict]:
+                       pattern_normalised, texel: float, spp: int) -> list[dict]:
     """One row per (camera, region) of photometry.csv (docs/photometry.md). Over the
     `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
     render: b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
     mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
-    the irradiance's variation over the region does not count as contrast); c_pixel_predicted =
-    c_predicted x pixel_factor, pixel_factor = `vdo.speckle.pixel_averaged_std` at the pixel
-    footprints of `PHOTOMETRY_FOOTPRINTS` samples of the row (rms): the contrast the rendered box
-    pixels must show, c_predicted being that of the paint before the pixel averages it."""
+    the irradiance's variation over the region does not count as contrast). Predictions, each the
+    rms over the pixel footprints of `PHOTOMETRY_FOOTPRINTS` samples of the row:
+    c_pixel_predicted = c_predicted x pixel_factor (`vdo.speckle.pixel_averaged_std`), the
+    contrast of a camera's box pixels; c_render_predicted = c_predicted x render_factor
+    (`rendered_std`), that of the rendered pixels, each a mean of `spp` samples."""
     from .speckle import pixel_averaged_std
 
     rows = []
@@ -366,12 +389,16 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
                 idx = np.flatnonzero(mask)
                 chosen = idx[np.linspace(0, len(idx) - 1, min(PHOTOMETRY_FOOTPRINTS, len(idx))).astype(int)]
                 A = cam.sensitivity(samples.points[chosen]) @ tangents[chosen]   # (m, 2, 2) px/m
-                factor = float(np.sqrt(np.mean(pixel_averaged_std(
-                    pattern_normalised, texel, np.linalg.inv(A)) ** 2)))
+                sides = np.linalg.inv(A)
+                rms = lambda x: float(np.sqrt(np.mean(x ** 2)))
+                factor = rms(pixel_averaged_std(pattern_normalised, texel, sides))
+                render_factor = rms(rendered_std(pattern_normalised, texel, sides, spp))
                 c_pred = pho.contrast[i, mask].mean()
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
-                        "c_render_dn": ratio.std() * level.mean(), "c_predicted_dn": c_pred,
-                        "pixel_factor": factor, "c_pixel_predicted_dn": c_pred * factor,
+                        "c_render_dn": ratio.std() * level.mean(),
+                        "c_render_predicted_dn": c_pred * render_factor,
+                        "c_pixel_predicted_dn": c_pred * factor, "c_predicted_dn": c_pred,
+                        "pixel_factor": factor, "render_factor": render_factor,
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
     return rows
@@ -389,8 +416,9 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     contact_sheet.png          all cameras in a grid with their names
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
                                render around the projected visible samples, next to vdo.lighting's
-                               prediction (b, c of the paint, noise σ) and the contrast predicted
-                               for the rendered box pixels, c x pixel_factor (docs/photometry.md)
+                               prediction (b, c of the paint, noise σ) and the contrasts predicted
+                               for a camera's box pixels and for the rendered pixels
+                               (docs/photometry.md)
     shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
     maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
     config.toml, render.json   the resolved config; settings and time per camera
@@ -461,9 +489,10 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
         rows = _region_photometry(cameras, vis, samples, pho, clean, exp.sensor.offset,
-                                  normalise(pattern), exp.speckle.texel)
+                                  normalise(pattern), exp.speckle.texel, spp)
         fields = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
-                  "c_pixel_predicted_dn", "c_predicted_dn", "pixel_factor", "noise_predicted_dn"]
+                  "c_render_predicted_dn", "c_pixel_predicted_dn", "c_predicted_dn", "pixel_factor",
+                  "render_factor", "noise_predicted_dn"]
         with open(tmp / "photometry.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=fields, restval="")
             writer.writeheader()
