@@ -355,7 +355,6 @@ def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.
 
 
 PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
-PHOTOMETRY_FOOTPRINTS = 4  # samples per (camera, region) whose pixel footprint sets the pixel factor
 
 
 def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
@@ -364,14 +363,14 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
     `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
     render: b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
     mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
-    the irradiance's variation over the region does not count as contrast). Predictions, each the
-    rms over the pixel footprints of `PHOTOMETRY_FOOTPRINTS` samples of the row:
-    c_pixel_predicted = c_predicted x pixel_factor (`vdo.speckle.pixel_averaged_std`), the
-    contrast of a camera's box pixels; c_render_predicted = c_predicted x render_factor
-    (`rendered_std`), that of the rendered pixels, each a mean of `spp` samples."""
+    the irradiance's variation over the region does not count as contrast). Predictions at the
+    pixel footprint of the row's middle visible sample: c_pixel_predicted = c_predicted x
+    pixel_factor (`vdo.speckle.pixel_averaged_std`), the contrast of a camera's box pixels;
+    c_render_predicted = c_predicted x render_factor (`rendered_std`), that of the rendered
+    pixels, each a mean of `spp` samples."""
     from .speckle import pixel_averaged_std
 
-    rows = []
+    rows, sides = [], []
     half = PHOTOMETRY_WINDOW // 2
     dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
     tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
@@ -386,21 +385,21 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
                 values = clean_dn[cam.name][r, col]                         # (n, window^2)
                 level = pho.brightness[i, mask] - offset_dn
                 ratio = (values - offset_dn) / level[:, None]
-                idx = np.flatnonzero(mask)
-                chosen = idx[np.linspace(0, len(idx) - 1, min(PHOTOMETRY_FOOTPRINTS, len(idx))).astype(int)]
-                A = cam.sensitivity(samples.points[chosen]) @ tangents[chosen]   # (m, 2, 2) px/m
-                sides = np.linalg.inv(A)
-                rms = lambda x: float(np.sqrt(np.mean(x ** 2)))
-                factor = rms(pixel_averaged_std(pattern_normalised, texel, sides))
-                render_factor = rms(rendered_std(pattern_normalised, texel, sides, spp))
-                c_pred = pho.contrast[i, mask].mean()
+                middle = np.flatnonzero(mask)[mask.sum() // 2]
+                A = cam.sensitivity(samples.points[middle:middle + 1]) @ tangents[middle]  # px/m
+                sides.append(np.linalg.inv(A[0]))
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
                         "c_render_dn": ratio.std() * level.mean(),
-                        "c_render_predicted_dn": c_pred * render_factor,
-                        "c_pixel_predicted_dn": c_pred * factor, "c_predicted_dn": c_pred,
-                        "pixel_factor": factor, "render_factor": render_factor,
+                        "c_predicted_dn": pho.contrast[i, mask].mean(),
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
+    if sides:
+        box = pixel_averaged_std(pattern_normalised, texel, np.array(sides))
+        rendered = rendered_std(pattern_normalised, texel, np.array(sides), spp)
+        for row, factor, render_factor in zip((r for r in rows if r["n_samples"]), box, rendered):
+            row |= {"c_render_predicted_dn": row["c_predicted_dn"] * render_factor,
+                    "c_pixel_predicted_dn": row["c_predicted_dn"] * factor,
+                    "pixel_factor": factor, "render_factor": render_factor}
     return rows
 
 

@@ -330,18 +330,34 @@ def pixel_averaged_std(pattern_normalised, texel_m: float, pixel_sides) -> np.nd
     grid (k + m/h) are left out: bilinear interpolation keeps their weight below
     sinc⁴(1/2) = 16 % at the texel Nyquist frequency, and a pixel wider than a few texels
     suppresses them further. Used to predict the contrast of rendered pixels (the photometry
-    table of `vdo render`): pixel values vary by c std, not by c."""
+    table of `vdo render`): pixel values vary by c std, not by c.
+
+    For speed the spectrum is summed over blocks of b x b frequencies (b = side // 256, at least
+    1), each at its weight's centroid: the sinc factors vary little over a block (16 cycles/m for
+    a 1024-texel tile of 0.25 mm), and the centroid makes the error second order (2e-4 relative
+    against the full sum for footprints of 0.1-9 mm, `tests/test_photometry.py`)."""
     f = np.asarray(pattern_normalised, dtype=np.float64)
     ny, nx = f.shape
     spec = scipy.fft.rfft2(f, workers=os.cpu_count() or 1)
     power = (spec.real ** 2 + spec.imag ** 2) / float(nx * ny) ** 2
     power[:, 1:(nx + 1) // 2] *= 2.0
     power[0, 0] = 0.0
-    ku = (np.arange(power.shape[1]) / (nx * texel_m))[None, :]   # columns: u
-    kv = np.fft.fftfreq(ny, d=texel_m)[:, None]                  # rows: v
+    ku = np.broadcast_to((np.arange(power.shape[1]) / (nx * texel_m))[None, :], power.shape)
+    kv = np.broadcast_to(np.fft.fftfreq(ny, d=texel_m)[:, None], power.shape)   # rows: v
     weight = power * (np.sinc(ku * texel_m) * np.sinc(kv * texel_m)) ** 4
-    keep = weight > weight.max() * 1e-12
-    w, ku, kv = weight[keep], np.broadcast_to(ku, power.shape)[keep], np.broadcast_to(kv, power.shape)[keep]
+    b = max(1, min(ny, nx) // 256)
+    if b > 1 and ny % (2 * b) == 0:     # blocks never straddle the jump from +k to -k rows
+        cols = -(-weight.shape[1] // b) * b
+
+        def blocks(x):
+            x = np.pad(x, ((0, 0), (0, cols - x.shape[1])))
+            return x.reshape(ny // b, b, cols // b, b).sum(axis=(1, 3)).ravel()
+
+        w = blocks(weight)
+        ok = w > 0
+        ku, kv, w = blocks(weight * ku)[ok] / w[ok], blocks(weight * kv)[ok] / w[ok], w[ok]
+    else:
+        w, ku, kv = weight.ravel(), ku.ravel(), kv.ravel()
     sides = np.asarray(pixel_sides, dtype=np.float64).reshape(-1, 2, 2)
     out = np.empty(len(sides))
     for i, a in enumerate(sides):
