@@ -64,6 +64,7 @@ class RegionSpec:
     importance: float = 1.0
     normal_tolerance: float = math.radians(5.0)
     min_cameras: int | None = None     # coverage requirement; None: the experiment's default
+    max_axis_angle: float | None = None  # rad: for pairs of cameras sharing it (edges block below)
 
 
 @dataclass(frozen=True, eq=False)
@@ -218,6 +219,8 @@ def _region_to_dict(r: RegionSpec) -> dict:
          "normal_tolerance_deg": math.degrees(r.normal_tolerance)}
     if r.min_cameras is not None:
         d["min_cameras"] = r.min_cameras
+    if r.max_axis_angle is not None:
+        d["max_axis_angle_deg"] = math.degrees(r.max_axis_angle)
     for key, box in (("box_min_m", r.box_min), ("box_max_m", r.box_max)):
         if np.all(np.isfinite(box)):
             d[key] = box.tolist()
@@ -413,7 +416,7 @@ def parse(data: dict, path: Path) -> Experiment:
         raise ConfigError(path, "mesh", 'needs at least one mesh with role = "specimen"')
     regions = tuple(_region(t, mesh_roles) for t in _entries(
         top, "region", path, ("name", "mesh", "normal", "box_min_m", "box_max_m", "importance",
-                              "normal_tolerance_deg", "min_cameras")))
+                              "normal_tolerance_deg", "min_cameras", "max_axis_angle_deg")))
     rails = tuple(_rail(t) for t in _entries(top, "rail", path,
                                              ("name", "control_points_m", "degree", "weights"),
                                              required=False))
@@ -571,7 +574,8 @@ def _region(t: Table, mesh_roles: dict) -> RegionSpec:
                       importance=t.number("importance", 1.0, positive=True),
                       normal_tolerance=math.radians(t.number("normal_tolerance_deg", 5.0,
                                                              low=0.0, high=89.0)),
-                      min_cameras=t.integer("min_cameras", None, low=1) if t.has("min_cameras") else None)
+                      min_cameras=t.integer("min_cameras", None, low=1) if t.has("min_cameras") else None,
+                      max_axis_angle=_region_max_angle(t))
 
 
 def _rail(t: Table) -> Rail:
@@ -666,6 +670,12 @@ def _max_angle(t: Table, key: str, minimum_deg: float | None) -> float | None:
         raise t.error(key, f"= {value:g} is below the minimum angle {minimum_deg:g} deg: the "
                            "maximum must be at least the minimum")
     return value
+
+
+def _region_max_angle(t: Table) -> float | None:
+    """[[region]] max_axis_angle_deg (rad), for the pairs of cameras that share the region."""
+    value = _max_angle(t, "max_axis_angle_deg", None)
+    return None if value is None else math.radians(value)
 
 
 def _stereo_pairs(top: Table, path: Path, cameras: set) -> tuple[StereoPairSpec, ...]:

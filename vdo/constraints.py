@@ -5,8 +5,9 @@ JAX, and exact checks for the report.
                 angle apart; by default the stereo-DIC rule of thumb for the shorter lens of the
                 two: 35 deg up to 12 mm, 25 deg at 17 mm, 15 deg from 35 mm, linear in between;
                 and at most a maximum where one is set: `[optimize] max_axis_angle_deg` for every
-                such pair (default none: a global multi-view layout has no upper limit), and for
-                each declared `[[stereo_pair]]` its own [min_angle_deg, max_angle_deg] (default
+                such pair and a region's max_axis_angle_deg for the pairs sharing it (default none:
+                a global multi-view layout has no upper limit), and for each declared
+                `[[stereo_pair]]` its own [min_angle_deg, max_angle_deg] (default
                 max: the minimum + 20 deg, e.g. 15-35 deg for 35 mm lenses), `angle_limits`;
 * obscuration:  no obstacle (bars, machine, lights, other camera bodies) masks more than
                 `max_obscuration` of an assigned region's image (`vdo.obscuration` differentiates
@@ -82,21 +83,27 @@ def axis_angle_penalty(axes, pairs, min_angles, max_angles=None):
     return total + jnp.sum(over ** 2)
 
 
-def angle_limits(exp, cameras, shared: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs `shared` (cameras that
-    share a region, `shared_pairs`) with [optimize] min_axis_angle_deg (or the rule of thumb for
-    the shorter lens) and max_axis_angle_deg (or +inf), then the declared [[stereo_pair]]s, added
-    when not shared and overriding the limits when they are (min: the pair's, or the rule of
-    thumb; max: the pair's, or that minimum + STEREO_SPAN_DEG)."""
+def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs of cameras assigned a
+    common region (`assigned` (C, R), `shared_pairs`) with [optimize] min_axis_angle_deg (or the
+    rule of thumb for the shorter lens) and as maximum the least of [optimize]
+    max_axis_angle_deg and the max_axis_angle_deg of the regions they share (+inf when none is
+    set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
+    when they are (min: the pair's, or the rule of thumb; max: the pair's, or that minimum +
+    STEREO_SPAN_DEG)."""
     from .config import STEREO_SPAN_DEG
 
     opt = exp.optimize
     index = {c.name: i for i, c in enumerate(cameras)}
     rule = lambda i, j: stereo_min_angle(min(cameras[i].focal_length, cameras[j].focal_length))
+    region_max = np.array([math.inf if r.max_axis_angle is None else r.max_axis_angle
+                           for r in exp.regions])
+    top = math.inf if opt.max_axis_angle is None else opt.max_axis_angle
     limits = {}
-    for i, j in np.asarray(shared, dtype=int).reshape(-1, 2):
+    for i, j in shared_pairs(assigned):
+        common = np.asarray(assigned[i]) & np.asarray(assigned[j])
         limits[(int(i), int(j))] = (opt.min_axis_angle if opt.min_axis_angle is not None else rule(i, j),
-                                    opt.max_axis_angle if opt.max_axis_angle is not None else math.inf)
+                                    min(top, float(region_max[common].min(initial=math.inf))))
     for pair in exp.stereo_pairs:
         i, j = sorted(index[n] for n in pair.cameras)
         low = pair.min_angle if pair.min_angle is not None else rule(i, j)
@@ -112,8 +119,7 @@ def angle_checks(exp, cameras, vis: Visibility, samples: SurfaceSamples) -> list
     that share a region (each sees at least [optimize] assign_fraction of it) and the declared
     stereo pairs, each with an "axis_angle" entry (the minimum) and, where a maximum applies, an
     "axis_angle_max" entry (`check`'s entries: value, limit, met, excess)."""
-    shared = shared_pairs(assignments(vis, samples, exp.optimize.assign_fraction))
-    pairs, low, high = angle_limits(exp, cameras, shared)
+    pairs, low, high = angle_limits(exp, cameras, assignments(vis, samples, exp.optimize.assign_fraction))
     out = []
     for (i, j), lo, hi, angle in zip(pairs, low, high, axis_angles(cameras, pairs)):
         about = dict(cameras=[cameras[i].name, cameras[j].name])

@@ -257,7 +257,7 @@ class Problem:
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
         self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
-            exp, self.cams0, constraints.shared_pairs(self.assigned))
+            exp, self.cams0, self.assigned)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
