@@ -83,7 +83,7 @@ class Prediction:
     views make the 3D displacement unmeasurable. `usable` (C, N) is `vdo.usable.usable_views`;
     coverage, patch_fraction, edge_limited and outlier are `vdo.usable.flags`."""
 
-    sensitivity: np.ndarray   # (N, 3) pixel/m
+    sensitivity: np.ndarray   # (N, 3) pixel/m, every view by its soft weight (not only usable ones)
     sigma_max: np.ndarray     # (N,) m
     sigma_xyz: np.ndarray     # (N, 3) m
     measured: np.ndarray      # (N,) bool
