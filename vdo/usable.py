@@ -32,14 +32,16 @@ tile the sampled surface. phi_i(X) is the area of the square's overlap with the 
 region's samples that camera i sees usably, divided by L^2:
 
     phi_i(X) = sum_j o(X, j) [w_ij >= USABLE_WEIGHT] / L^2,
-    o(X, j)  = prod_{a = u, v} max(0, min(x_a + L/2, y_a + h/2) - max(x_a - L/2, y_a - h/2)),
+    o(X, j)  = prod_{a = u, v} clip((L + h)/2 - |x_a - y_a|, 0, min(L, h))
 
 the neighbours j found with a KD-tree (Chebyshev radius (L + h)/2) in the region's (u, v). The
 overlaps of all cells sum to L^2 away from edges, so phi = 1 there exactly. Error: an edge is
 resolved to the cells, i.e. to within h/2 of its true position, so phi is off by at most
 h/(2L) per edge crossing the square (a straight edge; a curved hole edge alternates signs along
-it, and averages better: `tests/test_edges.py` measures it against the exact area of a square
-clipped by a disc). When L <= h the patch is one cell and only a whole missing or hidden cell
+it, and averages better). Measured on the holed plate (1 mm cells, 10 mm patch, 30 mm hole)
+against the exact area of the square off the disc: sigma / (sigma_far / sqrt(phi_exact)) - 1
+has median +0.2 % and 95 % of the samples within 1.7 % (`experiments/holed_plate/
+edge_profile.py`; `tests/test_edges.py` holds it to 2.5 %). When L <= h the patch is one cell and only a whole missing or hidden cell
 clips it: sample more finely than the patch to see edges.
 
 Flags (per sample, from `flags`):
