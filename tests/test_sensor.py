@@ -187,7 +187,7 @@ def test_save_image_round_trip(tmp_path, name, bits, dtype, modes):
     rng = np.random.default_rng(5)
     dn = rng.integers(0, 2**bits, size=(37, 53)).astype(dtype)
     dn[0, 0], dn[-1, -1] = 0, 2**bits - 1
-    out = save_image(tmp_path / name, dn, bits)
+    out = save_image(tmp_path / name, dn, bits, alignment="raw")
     assert out == tmp_path / name
     mode, back = _read(out)
     assert mode in modes
@@ -201,7 +201,7 @@ def test_save_image_from_exposure_and_overwrite(tmp_path):
     dn = s.expose(np.full((32, 32), 0.5), np.random.default_rng(0))
     p = tmp_path / "cam0.png"
     save_image(p, np.zeros((32, 32), np.uint16), 12)
-    save_image(str(p), dn, s.bit_depth)  # replaces the earlier file
+    save_image(str(p), dn, s.bit_depth, alignment="raw")  # replaces the earlier file
     assert np.array_equal(_read(p)[1], dn)
 
 
@@ -218,6 +218,8 @@ def test_save_image_rejects_bad_input(tmp_path):
         save_image(tmp_path / "a.jpg", np.zeros((4, 4), np.uint8), 8)
     with pytest.raises(ValueError, match="bit_depth"):
         save_image(tmp_path / "a.png", np.zeros((4, 4), np.uint8), 7)
+    with pytest.raises(ValueError, match="alignment"):
+        save_image(tmp_path / "a.png", np.zeros((4, 4), np.uint16), 12, alignment="lsb")
     assert os.listdir(tmp_path) == []
 
 
@@ -257,3 +259,20 @@ def test_numpy_scalars_are_normalised():
     assert type(s.quantum_efficiency) is float and type(s.bit_depth) is int
     assert type(s.offset_dn) is float
     assert hash(s) == hash(SensorModel(quantum_efficiency=0.5, bit_depth=10, offset_dn=16))
+
+
+@pytest.mark.parametrize("name, bits", [("a.png", 12), ("a.tif", 10), ("b.png", 16), ("c.png", 8)])
+def test_save_image_msb_alignment_read_by_opencv(tmp_path, name, bits):
+    """The default "msb" alignment puts a 12-bit count in the top bits of the 16-bit file
+    (count x 16), as OpenCV reads it back; 16- and 8-bit images are stored as they are."""
+    import cv2
+
+    rng = np.random.default_rng(7)
+    dn = rng.integers(0, 2**bits, size=(21, 34)).astype(np.uint16 if bits > 8 else np.uint8)
+    dn[0, 0] = 2**bits - 1
+    back = cv2.imread(str(save_image(tmp_path / name, dn, bits)), cv2.IMREAD_UNCHANGED)
+    shift = 16 - bits if bits > 8 else 0
+    assert back.dtype == (np.uint16 if bits > 8 else np.uint8)
+    np.testing.assert_array_equal(back.astype(np.int64), dn.astype(np.int64) << shift)
+    if bits > 8:
+        assert back.max() == 65536 - 2**shift     # full scale: 65520 for 12-bit data

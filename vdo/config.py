@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ConfigError
-from .sensor import SensorModel
+from .sensor import ALIGNMENTS, SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
@@ -446,6 +446,9 @@ class RegionSpec:
                             doc="weight in the score (the joint matters most)")
     normal_tolerance: float = row("normal_tolerance_deg", Real(0.0, 89.0), 5.0, unit="deg",
                                   doc="faces whose normal is within this of `normal`")
+    max_axis_angle: float | None = row(
+        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
+        doc="largest angle between the optical axes of two cameras that share this region")
     min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
                                   doc="coverage requirement on this region")
 
@@ -498,6 +501,9 @@ class CameraSpec:
                                  doc="with focus_m: thin lens with depth of field in renders")
     focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
                                        doc="focus distance, with f_number")
+    lenses: tuple[float, ...] = row(
+        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm", shown="none",
+        doc="the lenses this body takes, for \"lens\" in [optimize] free (default: [optimize] lenses_mm)")
     distortion: tuple[float, ...] = row(
         "distortion", Vector(5, as_tuple=True, letters=("k1", "k2", "p1", "p2", "k3")),
         [0.0, 0.0, 0.0, 0.0, 0.0], doc="Brown-Conrady lens distortion, OpenCV's order and units")
@@ -586,6 +592,9 @@ class RenderSpec:
     image_format: str = row("image_format", Text(choices=("png", "tiff")), "png",
                             doc="tiff: 16-bit above 8-bit depth")
     exr: bool = row("exr", Flag(), False, doc="also write the linear float images")
+    bit_alignment: str = row("bit_alignment", Text(choices=ALIGNMENTS), "msb",
+                             doc="16-bit files: msb (counts shifted to the top bits, as most DIC "
+                                 "software expects) or raw (counts as they are)")
 
 
 @dataclass(frozen=True)
@@ -620,6 +629,36 @@ def _check_analysis(t: Table, v: dict) -> None:
             raise t.error(px, f"give the size once: {px} or {mm}_mm")
         if v[mm] is not None:
             v[px] = None
+
+
+STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
+
+
+@dataclass(frozen=True)
+class StereoPairSpec:
+    """A declared stereo pair: two cameras whose optical axes must make an angle in
+    [min_angle, max_angle] (rad). min_angle None: the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`); max_angle None: that minimum + STEREO_SPAN_DEG."""
+
+    cameras: tuple[str, ...] = row("cameras", Words(what="two camera names", nonempty=True),
+                                   doc='the two cameras, e.g. ["left", "right"]')
+    min_angle: float | None = row("min_angle_deg", Real(0.0, 180.0), None, unit="deg",
+                                  shown="by lens", doc="smallest angle between the optical axes")
+    max_angle: float | None = row("max_angle_deg", Real(0.0, 180.0), None, unit="deg",
+                                  shown=f"min + {STEREO_SPAN_DEG:g}", doc="largest angle between the optical axes")
+
+
+def _check_stereo_pair(t: Table, v: dict) -> None:
+    if len(v["cameras"]) != 2:
+        raise t.error("cameras", f'must name two different cameras, e.g. ["left", "right"] '
+                                 f"(got {list(v['cameras'])!r})")
+    _check_angles(t, v, "min_angle_deg", "max_angle_deg", "min_angle", "max_angle")
+
+
+def _check_angles(t: Table, v: dict, low_key, high_key, low, high) -> None:
+    if v[low] is not None and v[high] is not None and v[high] < v[low]:
+        raise t.error(high_key, f"= {math.degrees(v[high]):g} is below {low_key} = "
+                                f"{math.degrees(v[low]):g}: the maximum must be at least the minimum")
 
 
 @dataclass(frozen=True, eq=False)
@@ -678,6 +717,10 @@ class OptimizeSpec:
         "min_axis_angle_deg", Real(0.0, 90.0), None, unit="deg", shown="by lens",
         doc="minimum angle between the optical axes of two cameras sharing a region; default 35° up "
             "to 12 mm, 25° at 17 mm, 15° from 35 mm (the shorter lens of the pair)")
+    max_axis_angle: float | None = row(
+        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
+        doc="largest angle between the optical axes of two cameras sharing a region (off by default "
+            "for multi-view; declared stereo pairs have their own)")
     clearance: float = row("clearance_m", Real(low=0.0), 0.05, unit="m",
                            doc="camera bodies keep this distance from every mesh and each other")
     max_obscuration: float = row("max_obscuration", Real(0.0, 1.0), 0.01,
@@ -766,9 +809,7 @@ def _check_speckle(t: Table, v: dict) -> None:
 
 
 def _check_optimize(t: Table, v: dict) -> None:
-    if "lens" in v["free"] and not v["lenses"]:
-        raise t.error("free", 'lists "lens" but no lenses_mm catalogue is given: add e.g. '
-                              'lenses_mm = [24, 35, 50, 100]')
+    _check_angles(t, v, "min_axis_angle_deg", "max_axis_angle_deg", "min_axis_angle", "max_axis_angle")
 
 
 # --------------------------------------------------------------------------------------------
@@ -811,6 +852,9 @@ class Experiment:
     analysis: Analysis = table("analysis", Analysis, check=_check_analysis, default=Analysis(),
                                doc="The DIC analysis strain uncertainties are predicted for "
                                    "(docs/theory.md, strain).")
+    stereo_pairs: tuple[StereoPairSpec, ...] = table(
+        "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
+        doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
     groups: tuple[GroupSpec, ...] = table(
         "group", GroupSpec, array=True, default=(),
         doc="Meshes that move rigidly together along the load path.")
@@ -1045,9 +1089,10 @@ def _read_section(top: Table, sec: Section, path: Path):
         ok = isinstance(name, str) and re.fullmatch(NAME_PATTERN, name)
         where = f'{sec.key} "{name}"' if ok else f"{sec.key}[{i}]"
         value, t = one(item, where)
-        if value.name in names:
+        key = getattr(value, "name", None)      # unnamed tables (stereo pairs) are checked later
+        if key is not None and key in names:
             raise ConfigError(path, where, "name is used twice; names must be unique")
-        names.add(value.name)
+        names.add(key)
         values.append(value)
         tables.append(t)
     return tuple(values), tuple(tables)
@@ -1088,6 +1133,19 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         unknown = sorted(set(names or ()) - known)
         if unknown:
             raise ConfigError(path, f"optimize.{key}", f"no [[{kind}]] named {', '.join(map(repr, unknown))}")
+    if "lens" in exp.optimize.free and not exp.optimize.lenses and \
+            not any(c.lenses for c in exp.camera_specs):
+        raise ConfigError(path, "optimize.free", 'lists "lens" but no lenses_mm catalogue is given: '
+                                                 'add e.g. lenses_mm = [24, 35, 50, 100] here or on '
+                                                 'a [[camera]]')
+    cameras, pairs = {c.name for c in exp.camera_specs}, set()
+    for pair, t in zip(exp.stereo_pairs, tables["stereo_pair"]):
+        unknown = sorted(set(pair.cameras) - cameras)
+        if unknown:
+            raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
+        if frozenset(pair.cameras) in pairs:
+            raise t.error("cameras", "this pair is declared twice")
+        pairs.add(frozenset(pair.cameras))
     meshes = set(roles)
     grouped: dict[str, str] = {}
     for group, t in zip(exp.groups, tables["group"]):

@@ -4,6 +4,11 @@ JAX, and exact checks for the report.
 * axis angle:   two cameras assigned a common region keep their optical axes at least a minimum
                 angle apart; by default the stereo-DIC rule of thumb for the shorter lens of the
                 two: 35 deg up to 12 mm, 25 deg at 17 mm, 15 deg from 35 mm, linear in between;
+                and at most a maximum where one is set: `[optimize] max_axis_angle_deg` for every
+                such pair and a region's max_axis_angle_deg for the pairs sharing it (default none:
+                a global multi-view layout has no upper limit), and for each declared
+                `[[stereo_pair]]` its own [min_angle_deg, max_angle_deg] (default
+                max: the minimum + 20 deg, e.g. 15-35 deg for 35 mm lenses), `angle_limits`;
 * obscuration:  no obstacle (bars, machine, lights, other camera bodies) masks more than
                 `max_obscuration` of an assigned region's image (`vdo.obscuration` differentiates
                 it through Mitsuba; the report counts blocked rays);
@@ -59,14 +64,75 @@ def shared_pairs(assigned: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # Smooth penalties (JAX); each is 0 when the constraint holds, and grows quadratically
 # --------------------------------------------------------------------------------------------
-def axis_angle_penalty(axes, pairs, min_angles):
-    """Σ_k (max(0, cos a_k - cos m_k) / (1 - cos m_k))^2 over the pairs, a_k the angle between
-    the optical axes (unit rows of `axes`, (C, 3)) and m_k the minimum."""
+def axis_angle_penalty(axes, pairs, min_angles, max_angles=None):
+    """Σ_k (max(0, cos a_k - cos m_k) / (1 - cos m_k))^2 + (max(0, cos M_k - cos a_k) /
+    (1 - cos M_k))^2 over the pairs, a_k the angle between the optical axes (unit rows of
+    `axes`, (C, 3)), m_k the minimum and M_k the maximum (rad; +inf or None: no maximum, the
+    second term is then 0)."""
     if len(pairs) == 0:
         return 0.0
     cos_a = jnp.sum(axes[pairs[:, 0]] * axes[pairs[:, 1]], axis=-1)
     cos_m = jnp.cos(jnp.asarray(min_angles))
-    return jnp.sum((jnp.maximum(cos_a - cos_m, 0.0) / (1.0 - cos_m)) ** 2)
+    total = jnp.sum((jnp.maximum(cos_a - cos_m, 0.0) / (1.0 - cos_m)) ** 2)
+    if max_angles is None:
+        return total
+    top = np.asarray(max_angles, dtype=float)
+    bounded = np.isfinite(top)
+    cos_M = jnp.cos(jnp.asarray(np.where(bounded, np.minimum(top, np.pi), np.pi)))
+    over = jnp.where(jnp.asarray(bounded), jnp.maximum(cos_M - cos_a, 0.0) / (1.0 - cos_M), 0.0)
+    return total + jnp.sum(over ** 2)
+
+
+def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs of cameras assigned a
+    common region (`assigned` (C, R), `shared_pairs`) with [optimize] min_axis_angle_deg (or the
+    rule of thumb for the shorter lens) and as maximum the least of [optimize]
+    max_axis_angle_deg and the max_axis_angle_deg of the regions they share (+inf when none is
+    set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
+    when they are (min: the pair's, or the rule of thumb; max: the pair's, or that minimum +
+    STEREO_SPAN_DEG)."""
+    from .config import STEREO_SPAN_DEG
+
+    opt = exp.optimize
+    index = {c.name: i for i, c in enumerate(cameras)}
+    rule = lambda i, j: stereo_min_angle(min(cameras[i].focal_length, cameras[j].focal_length))
+    region_max = np.array([math.inf if r.max_axis_angle is None else r.max_axis_angle
+                           for r in exp.regions])
+    top = math.inf if opt.max_axis_angle is None else opt.max_axis_angle
+    limits = {}
+    for i, j in shared_pairs(assigned):
+        common = np.asarray(assigned[i]) & np.asarray(assigned[j])
+        limits[(int(i), int(j))] = (opt.min_axis_angle if opt.min_axis_angle is not None else rule(i, j),
+                                    min(top, float(region_max[common].min(initial=math.inf))))
+    for pair in exp.stereo_pairs:
+        i, j = sorted(index[n] for n in pair.cameras)
+        low = pair.min_angle if pair.min_angle is not None else rule(i, j)
+        high = pair.max_angle if pair.max_angle is not None else low + math.radians(STEREO_SPAN_DEG)
+        limits[(i, j)] = (low, high)
+    keys = sorted(limits)
+    return (np.array(keys, dtype=int).reshape(-1, 2), np.array([limits[k][0] for k in keys]),
+            np.array([limits[k][1] for k in keys]))
+
+
+def angle_checks(exp, cameras, vis: Visibility, samples: SurfaceSamples) -> list[dict]:
+    """The axis-angle checks of a layout as `vdo evaluate` reports them: the pairs of cameras
+    that share a region (each sees at least [optimize] assign_fraction of it) and the declared
+    stereo pairs, each with an "axis_angle" entry (the minimum) and, where a maximum applies, an
+    "axis_angle_max" entry (`check`'s entries: value, limit, met, excess)."""
+    pairs, low, high = angle_limits(exp, cameras, assignments(vis, samples, exp.optimize.assign_fraction))
+    out = []
+    for (i, j), lo, hi, angle in zip(pairs, low, high, axis_angles(cameras, pairs)):
+        about = dict(cameras=[cameras[i].name, cameras[j].name])
+        out.append(_entry("axis_angle", angle, math.degrees(lo), "deg", "min", **about))
+        if np.isfinite(hi):
+            out.append(_entry("axis_angle_max", angle, math.degrees(hi), "deg", "max", **about))
+    return out
+
+
+def axis_angles(cameras, pairs: np.ndarray) -> np.ndarray:
+    """(K,) angles (deg) between the optical axes of the camera pairs."""
+    return np.array([math.degrees(math.acos(np.clip(cameras[i].optical_axis @ cameras[j].optical_axis,
+                                                    -1.0, 1.0))) for i, j in pairs])
 
 
 def in_image_fraction(K, R, t, width, height, camera, points, area, ramp):
@@ -201,19 +267,24 @@ def _entry(constraint: str, value: float, limit, unit: str, kind: str, **about) 
 def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarray,
           pairs: np.ndarray, min_angles: np.ndarray, clearances: np.ndarray, clearance: float,
           max_obscuration: float, lost_light: np.ndarray, rails_u: list,
-          roll_free: bool = False, fov_limits: np.ndarray | None = None) -> list[dict]:
+          roll_free: bool = False, fov_limits: np.ndarray | None = None,
+          max_angles: np.ndarray | None = None) -> list[dict]:
     """One entry per constraint instance: name, what it concerns, value, limit, met and excess
-    (`_entry`).
+    (`_entry`); `max_angles` (K,) rad adds an "axis_angle_max" entry for each pair with a
+    finite maximum.
 
     `clearances` (C,) is the measured distance from each body to everything else (m),
     `lost_light` (R,) the fraction of each region's area where camera bodies block light, and
     `fov_limits` (C, R) the least in-image fraction of each assigned region (default
     1 - max_obscuration)."""
     out = []
-    for (i, j), limit in zip(pairs, min_angles):
-        angle = math.degrees(math.acos(np.clip(cameras[i].optical_axis @ cameras[j].optical_axis, -1, 1)))
+    tops = np.full(len(pairs), np.inf) if max_angles is None else np.asarray(max_angles, dtype=float)
+    for (i, j), limit, top, angle in zip(pairs, min_angles, tops, axis_angles(cameras, pairs)):
         out.append(_entry("axis_angle", angle, math.degrees(limit), "deg", "min",
                           cameras=[cameras[i].name, cameras[j].name]))
+        if np.isfinite(top):
+            out.append(_entry("axis_angle_max", angle, math.degrees(top), "deg", "max",
+                              cameras=[cameras[i].name, cameras[j].name]))
     geometric = vis.in_front & vis.in_image & vis.facing
     facing = vis.in_front & vis.facing
     for c, cam in enumerate(cameras):

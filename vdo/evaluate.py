@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import checks, html_report, maps, report, strain, vtp
+from . import checks, constraints, html_report, maps, report, strain, vtp
 from .config import Experiment
 from .runfolder import run_folder
 from .state import LayoutState, layout_state, prepare
@@ -35,7 +35,13 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
             "the uncertainty is not predicted (sigma = inf)", quiet)
     state = layout_state(geometry, progress=not quiet)
-    return write_evaluation(state, out, overwrite)
+    summary = write_evaluation(state, out, overwrite)
+    for e in summary["axis_angles"]:
+        if not e["met"]:
+            bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
+            say(f"warning: cameras {e['cameras'][0]} and {e['cameras'][1]}: optical axes "
+                f"{e['value']:.1f} deg apart, {bound} of {e['limit']:.1f} deg", quiet)
+    return summary
 
 
 def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> dict:
@@ -44,6 +50,7 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
     summary = report.state_summary(state)
+    summary["axis_angles"] = constraints.angle_checks(exp, list(cameras), vis, samples)
     summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
                                                     illumination.irradiance,
                                                     state.geometry.speckle.pattern)
@@ -55,7 +62,9 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
         sigma_xyz_um = np.where(pred.measured[:, None], pred.sigma_xyz * UM, np.nan)
         sens = pred.sensitivity * MPX_PER_UM
         arrays = {"normal": samples.normals, "region": samples.region.astype(np.int32),
-                  "area": samples.area, "coverage": vis.coverage.astype(np.int32),
+                  "area": samples.area, "coverage": pred.coverage,
+                  "patch_fraction": pred.patch_fraction, "edge_limited": pred.edge_limited,
+                  "outlier": pred.outlier,
                   "irradiance": illumination.irradiance,
                   **{f"sensitivity_{a}": sens[:, k] for k, a in enumerate("xyz")},
                   "sigma_max": sigma_um,
@@ -65,10 +74,11 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
         arrays["sigma_dic_max"] = np.where(np.isfinite(sigma_dic), sigma_dic * UM, np.nan)
         arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
+        arrays |= {f"usable_{name}": pred.usable[i] for i, name in enumerate(vis.camera_names)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
-        maps.plot_unfolded(samples, vis.coverage, tmp / "maps" / "coverage.png",
-                           f"{exp.name}: number of cameras that see each point", "cameras",
+        maps.plot_unfolded(samples, pred.coverage, tmp / "maps" / "coverage.png",
+                           f"{exp.name}: number of usable views of each point", "cameras",
                            discrete=True)
         for k, a in enumerate("xyz"):
             maps.plot_unfolded(samples, sens[:, k], tmp / "maps" / f"sensitivity_{a}.png",

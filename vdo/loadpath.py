@@ -58,8 +58,8 @@ class LoadPathResult:
 def _region_stats(state: LayoutState, minimum: np.ndarray):
     samples = state.samples
     area = samples.area
-    visible = state.visibility.visible
-    covered = state.visibility.coverage >= minimum[samples.region]
+    visible = state.prediction.usable           # usable views (`vdo.usable`), as everywhere
+    covered = state.prediction.coverage >= minimum[samples.region]
     sigma = np.where(state.prediction.measured, state.prediction.sigma_max, np.inf)
     n_regions = len(samples.region_names)
     seen = np.zeros((visible.shape[0], n_regions))
@@ -87,7 +87,7 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
         moved = geometry if step == "rest" else at_step(geometry, load_path, step)
         state = layout_state(moved, cameras)
         s, c, p, sig = _region_stats(state, minimum)
-        coverage.append(state.visibility.coverage)
+        coverage.append(state.prediction.coverage)
         sigma.append(sig)
         seen.append(s)
         covered.append(c)

@@ -256,11 +256,8 @@ class Problem:
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
-        self.pairs = constraints.shared_pairs(self.assigned)
-        self.min_angles = np.array([opt.min_axis_angle if opt.min_axis_angle is not None else
-                                    constraints.stereo_min_angle(min(self.cams0[i].focal_length,
-                                                                     self.cams0[j].focal_length))
-                                    for i, j in self.pairs])
+        self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
+            exp, self.cams0, self.assigned)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
@@ -394,7 +391,8 @@ class Problem:
         clearance = self.exp.optimize.clearance
         return dict(
             score=objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings),
-            angle=constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles + ANGLE_MARGIN),
+            angle=constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles + ANGLE_MARGIN,
+                                                 self.max_angles - ANGLE_MARGIN),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
                 K, R, t, self.size[:, 0], self.size[:, 1], self.fov["camera"], self.fov["points"],
                 self.fov["area"], self.fov["ramp"]), self.fov["limit"], FOV_MARGIN),
@@ -429,7 +427,7 @@ class Problem:
                                  self.pairs, self.min_angles, _clearances(state.cameras, self.scene_tree),
                                  opt.clearance, opt.max_obscuration, _light_lost(self, state),
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
-                                 fov_limits=self.fov_limits)
+                                 fov_limits=self.fov_limits, max_angles=self.max_angles)
 
     def _fov_limits(self, entries) -> np.ndarray:
         """(C, R) least in-image fraction of each assigned region: 1 - max_obscuration, or what
@@ -566,7 +564,7 @@ def choose_lenses(problem: Problem, best: Result, progress: bool = False) -> tup
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
     for c in moving:
         name = problem.cams0[c].name
-        for focal in problem.exp.optimize.lenses:
+        for focal in problem.exp.camera_specs[c].lenses or problem.exp.optimize.lenses:
             if math.isclose(focal, current.exp.camera_specs[c].focal_length, rel_tol=1e-9):
                 continue
             specs = current.param.specs_at(best.theta)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from . import objective
+from . import objective, usable
 from .camera import Camera
 from .config import Experiment
 from .lighting import Illumination, pattern_stats, photometry
@@ -58,35 +58,65 @@ def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective
 
 
 def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
-              illumination: Illumination, speckle: SpeckleModel) -> objective.ViewData:
+              illumination: Illumination, speckle: SpeckleModel,
+              patch_fraction: np.ndarray | None = None) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
     the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
     unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
-    away, as occluded), exact for these cameras."""
+    away, as occluded), exact for these cameras. With `patch_fraction` (C, N) (`vdo.usable`:
+    phi_i, the usable fraction of each camera's patch) the occlusion is multiplied by it, so
+    that the patch area becomes Omega phi_i."""
     pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
-    return objective.ViewData.from_dense(np.asarray(vis.unoccluded, dtype=float),
-                                         np.asarray(pho.contrast), np.asarray(pho.noise), samples)
+    occlusion = np.asarray(vis.unoccluded, dtype=float)
+    if patch_fraction is not None:
+        occlusion = occlusion * patch_fraction
+    return objective.ViewData.from_dense(occlusion, np.asarray(pho.contrast),
+                                         np.asarray(pho.noise), samples)
 
 
 @dataclass(frozen=True, eq=False)
 class Prediction:
     """Per-sample fields in SI units (numpy). Sigmas are the Cramér-Rao bound for one noisy image
-    against a noise-free reference (x sqrt(2) when both images are noisy); +inf where fewer than
-    two usable, non-parallel views make the 3D displacement unmeasurable."""
+    against a noise-free reference (x sqrt(2) when both images are noisy), over the DIC patch
+    clipped to the usable surface (`vdo.usable`); +inf where fewer than two usable, non-parallel
+    views make the 3D displacement unmeasurable. `usable` (C, N) is `vdo.usable.usable_views`;
+    coverage, patch_fraction, edge_limited and outlier are `vdo.usable.flags`."""
 
-    sensitivity: np.ndarray   # (N, 3) pixel/m
+    sensitivity: np.ndarray   # (N, 3) pixel/m, every view by its soft weight (not only usable ones)
     sigma_max: np.ndarray     # (N,) m
     sigma_xyz: np.ndarray     # (N, 3) m
     measured: np.ndarray      # (N,) bool
-    information: np.ndarray   # (N, 3, 3) 1/m^2, C for the patch area Omega (evaluation.patch_mm^2)
+    information: np.ndarray   # (N, 3, 3) 1/m^2, C for the (clipped) patch
+    usable: np.ndarray        # (C, N) bool
+    coverage: np.ndarray      # (N,) int: usable views
+    patch_fraction: np.ndarray  # (N,) fraction of the patch usable by >= 2 views
+    edge_limited: np.ndarray  # (N,) bool
+    outlier: np.ndarray       # (N,) bool
 
 
 def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
-            illumination: Illumination, speckle: SpeckleModel) -> Prediction:
+            illumination: Illumination, speckle: SpeckleModel,
+            clip_patch: bool = True) -> Prediction:
+    """The report fields with the usable-view definition and the clipped patch of `vdo.usable`:
+    a first pass gives the soft weights, hence the usable views and each camera's usable patch
+    fraction phi_i; the second pass weights each pair by phi_i (Omega_i = phi_i Omega). With
+    `clip_patch` False every usable view keeps the whole patch (phi_i = 1): for samples that each
+    stand for one whole correlated patch (`vdo.validate`), not for points of a sampled surface."""
     smp = samples_for_objective(exp, samples)
-    f = objective.fields(objective.CameraParams.from_cameras(cameras), smp,
-                         view_data(exp, smp, vis, illumination, speckle), speckle.table,
-                         settings(exp))
-    return Prediction(np.asarray(f.sensitivity), np.asarray(f.sigma_max), np.asarray(f.sigma_xyz),
-                      np.asarray(f.measured), np.asarray(f.information))
+    cams = objective.CameraParams.from_cameras(cameras)
+    st = settings(exp)
+    first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle),
+                             speckle.table, st)
+    use = usable.usable_views(np.asarray(first.weights))
+    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
+    f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi),
+                         speckle.table, st)
+    measured = np.asarray(f.measured) & (use.sum(axis=0) >= 2)
+    sigma_max = np.where(measured, np.asarray(f.sigma_max), np.inf)
+    sigma_xyz = np.where(measured[:, None], np.asarray(f.sigma_xyz), np.inf)
+    flag = usable.flags(overlap, use, sigma_max, measured, samples.region)
+    return Prediction(np.asarray(first.sensitivity), sigma_max, sigma_xyz, measured,
+                      np.asarray(f.information), use, flag["coverage"], flag["patch_fraction"],
+                      flag["edge_limited"], flag["outlier"])

@@ -45,7 +45,7 @@ from dataclasses import replace
 import numpy as np
 
 from .camera import Camera, image_point
-from .speckle import pattern_for
+from .speckle import normalise, pattern_for
 
 BODY_ALBEDO = 0.05
 
@@ -399,21 +399,74 @@ def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
     plt.close(fig)
 
 
-def _region_photometry(cameras, vis, samples, pho, clean_dn) -> list[dict]:
-    rows = []
+def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.ndarray:
+    """(K,) std of the rendered pixel values of a unit-variance pattern f̂: each pixel is the
+    mean of `spp` samples, one uniform in each of the sqrt(spp) x sqrt(spp) strata of the pixel
+    (the stratified sampler with jitter), not the box average a camera pixel takes. With
+    s(P) = `vdo.speckle.pixel_averaged_std` over a parallelogram P (the pixel A^-1, a stratum
+    A^-1 / sqrt(spp)) and s_0 that of the texture alone (P = 0):
+
+        std^2 = s(A^-1)^2 + (s_0^2 - s(A^-1 / sqrt spp)^2) / spp
+
+    (law of total variance: the box average's variance, plus the mean variance of f within a
+    stratum, s_0^2 - s(stratum)^2 for a stationary pattern, over spp independent samples). The
+    second term is the render's Monte Carlo sampling of the speckle: small when a stratum is
+    small against a speckle, large for a reduced-scale render whose pixels span speckles."""
+    from .speckle import pixel_averaged_std
+
+    sides = np.asarray(pixel_sides, dtype=float).reshape(-1, 2, 2)
+    box = pixel_averaged_std(pattern_normalised, texel, sides)
+    stratum = pixel_averaged_std(pattern_normalised, texel, sides / math.sqrt(spp))
+    texture = pixel_averaged_std(pattern_normalised, texel, np.zeros((1, 2, 2)))[0]
+    return np.sqrt(box ** 2 + (texture ** 2 - stratum ** 2) / spp)
+
+
+PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
+
+
+def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
+                       pattern_normalised, texel: float, spp: int) -> list[dict]:
+    """One row per (camera, region) of photometry.csv (docs/photometry.md). Over the
+    `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
+    render: b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
+    mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
+    the irradiance's variation over the region does not count as contrast). Predictions at the
+    pixel footprint of the row's middle visible sample: c_pixel_predicted = c_predicted x
+    pixel_factor (`vdo.speckle.pixel_averaged_std`), the contrast of a camera's box pixels;
+    c_render_predicted = c_predicted x render_factor (`rendered_std`), that of the rendered
+    pixels, each a mean of `spp` samples."""
+    from .speckle import pixel_averaged_std
+
+    rows, sides = [], []
+    half = PHOTOMETRY_WINDOW // 2
+    dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
+    tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
     for i, cam in enumerate(cameras):
         uv = cam.project(samples.points)
         for k, region in enumerate(samples.region_names):
             mask = vis.visible[i] & (samples.region == k)
             row = {"camera": cam.name, "region": region, "n_samples": int(mask.sum())}
             if mask.any():
-                col = np.clip(np.rint(uv[mask, 0]).astype(int), 0, cam.width - 1)
-                r = np.clip(np.rint(uv[mask, 1]).astype(int), 0, cam.height - 1)
-                values = clean_dn[cam.name][r, col]
+                col = np.clip(np.rint(uv[mask, 0]).astype(int)[:, None] + dx.ravel(), 0, cam.width - 1)
+                r = np.clip(np.rint(uv[mask, 1]).astype(int)[:, None] + dy.ravel(), 0, cam.height - 1)
+                values = clean_dn[cam.name][r, col]                         # (n, window^2)
+                level = pho.brightness[i, mask] - offset_dn
+                ratio = (values - offset_dn) / level[:, None]
+                middle = np.flatnonzero(mask)[mask.sum() // 2]
+                A = cam.sensitivity(samples.points[middle:middle + 1]) @ tangents[middle]  # px/m
+                sides.append(np.linalg.inv(A[0]))
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
-                        "c_render_dn": values.std(), "c_predicted_dn": pho.contrast[i, mask].mean(),
+                        "c_render_dn": ratio.std() * level.mean(),
+                        "c_predicted_dn": pho.contrast[i, mask].mean(),
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
+    if sides:
+        box = pixel_averaged_std(pattern_normalised, texel, np.array(sides))
+        rendered = rendered_std(pattern_normalised, texel, np.array(sides), spp)
+        for row, factor, render_factor in zip((r for r in rows if r["n_samples"]), box, rendered):
+            row |= {"c_render_predicted_dn": row["c_predicted_dn"] * render_factor,
+                    "c_pixel_predicted_dn": row["c_predicted_dn"] * factor,
+                    "pixel_factor": factor, "render_factor": render_factor}
     return rows
 
 
@@ -421,15 +474,18 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
                       seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
     """Render every camera of `exp` and write the run folder `out` (atomically, vdo.runfolder):
 
-    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth), [render] image_format
+    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth, counts aligned to
+                               the most significant bits or raw: [render] bit_alignment),
+                               [render] image_format
     images/<camera>.exr        linear float radiance, when [render] exr = true
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
     calibration/<format>/      the same cameras for DIC software (`vdo.formats.export.write_all`)
     contact_sheet.png          all cameras in a grid with their names
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
-                               render at the projected visible samples (mean and std of DN; c is
-                               after the pixel's blur), next to vdo.lighting's prediction (b, c of
-                               the unblurred paint, noise σ)
+                               render around the projected visible samples, next to vdo.lighting's
+                               prediction (b, c of the paint, noise σ) and the contrasts predicted
+                               for a camera's box pixels and for the rendered pixels
+                               (docs/photometry.md)
     shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
     maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
     config.toml, render.json   the resolved config; settings and time per camera
@@ -485,7 +541,8 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
-            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
+            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth,
+                       rs.bit_alignment)
             if rs.exr:
                 from .backend import mitsuba
 
@@ -497,9 +554,11 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
-        rows = _region_photometry(cameras, vis, samples, pho, clean)
+        rows = _region_photometry(cameras, vis, samples, pho, clean, exp.sensor.offset,
+                                  normalise(pattern), exp.speckle.texel, spp)
         fields = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
-                  "c_predicted_dn", "noise_predicted_dn"]
+                  "c_render_predicted_dn", "c_pixel_predicted_dn", "c_predicted_dn", "pixel_factor",
+                  "render_factor", "noise_predicted_dn"]
         with open(tmp / "photometry.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=fields, restval="")
             writer.writeheader()

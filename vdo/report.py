@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from . import usable
 from .camera import Camera
 from .config import Experiment, table_dict
 from .predict import Prediction
@@ -47,12 +48,24 @@ STRAIN_MEANING = ("sigma_strain_microstrain: Cramér-Rao bound of the in-plane s
                   "subset), worst direction. One noisy image, as sigma (x sqrt(2) for two).")
 
 
-def _percentiles(values_um: np.ndarray) -> dict:
-    finite = values_um[np.isfinite(values_um)]
-    if finite.size == 0:
-        return {"p50": None, "p95": None, "max": None}
-    return {"p50": float(np.percentile(finite, 50)), "p95": float(np.percentile(finite, 95)),
-            "max": float(finite.max())}
+USABLE_MEANING = ("a camera counts (coverage, seen_by_*, cameras) where its soft weight is >= "
+                  "usable_weight; sigma uses only those views, over the DIC patch clipped to the "
+                  "surface they see; n_edge_limited: samples with less than edge_fraction of their "
+                  "patch usable by >= 2 views; n_outliers: samples with sigma_max above "
+                  "outlier_factor x the region's median; max_unflagged leaves both out")
+
+
+def _percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> dict:
+    """p50, p95 and max over the measured (finite) values, and max_unflagged: the max over those
+    not flagged as outliers or edge-limited."""
+    finite = np.isfinite(values_um)
+    if not finite.any():
+        return {"p50": None, "p95": None, "max": None, "max_unflagged": None}
+    plain = values_um[finite] if flagged is None else values_um[finite & ~flagged]
+    return {"p50": float(np.percentile(values_um[finite], 50)),
+            "p95": float(np.percentile(values_um[finite], 95)),
+            "max": float(values_um[finite].max()),
+            "max_unflagged": float(plain.max()) if plain.size else None}
 
 
 def state_summary(state: LayoutState) -> dict:
@@ -63,12 +76,14 @@ def state_summary(state: LayoutState) -> dict:
 
 def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction,
             strain=None) -> dict:
-    """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 cameras, which cameras see
-    it (fraction of its area), sigma_max p50/p95/max (um), the unmeasured area fraction, and the
-    mean global sensitivity per axis (mpixel/um). With `strain` = (sigma_strain (N, 3), sigma_dic
-    (N,) m) from `vdo.strain.analysis_fields`: per-axis sigma percentiles (um), strain sigma
-    percentiles per face-frame component (microstrain) and the analysis' displacement sigma."""
-    coverage = vis.coverage
+    """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 usable views
+    (`vdo.usable`), which cameras are usable views of it (fraction of its area), sigma_max
+    p50/p95/max/max_unflagged (um, over the measured samples), the counts of outlier and
+    edge-limited samples, the unmeasured area fraction, and the mean global sensitivity per axis
+    (mpixel/um). With `strain` = (sigma_strain (N, 3), sigma_dic (N,) m) from
+    `vdo.strain.analysis_fields`: per-axis sigma percentiles (um), strain sigma percentiles per
+    face-frame component (microstrain) and the analysis' displacement sigma."""
+    coverage = pred.coverage
     regions = {}
     for k, name in enumerate(samples.region_names):
         mask = samples.region == k
@@ -80,9 +95,12 @@ def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Pre
             "importance": float(samples.region_importance[k]),
             "n_samples": int(mask.sum()),
             **{f"seen_by_{m}_or_more": float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)},
-            "cameras": {cam: round(float(area[vis.visible[i, mask]].sum() / total), 4)
-                        for i, cam in enumerate(vis.camera_names) if vis.visible[i, mask].any()},
-            "sigma_max_um": _percentiles(pred.sigma_max[mask] * 1e6),
+            "cameras": {cam: round(float(area[pred.usable[i, mask]].sum() / total), 4)
+                        for i, cam in enumerate(vis.camera_names) if pred.usable[i, mask].any()},
+            "sigma_max_um": _percentiles(pred.sigma_max[mask] * 1e6,
+                                         pred.outlier[mask] | pred.edge_limited[mask]),
+            "n_outliers": int(pred.outlier[mask].sum()),
+            "n_edge_limited": int(pred.edge_limited[mask].sum()),
             "unmeasured_fraction": float(area[~pred.measured[mask]].sum() / total),
             "sensitivity_mpx_per_um": {a: float(np.average(sens[:, j], weights=area))
                                        for j, a in enumerate("xyz")},
@@ -101,7 +119,10 @@ def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Pre
                          "sample_spacing_mm": ev.sample_spacing * 1e3, "patch_mm": ev.patch_size * 1e3,
                          "n_samples": len(samples), "n_cameras": len(vis.camera_names),
                          "sigma": SIGMA_MEANING, "analysis": table_dict(exp.analysis),
-                         "strain": STRAIN_MEANING},
+                         "strain": STRAIN_MEANING, "usable_weight": usable.USABLE_WEIGHT,
+                         "edge_fraction": usable.EDGE_FRACTION,
+                         "outlier_factor": usable.OUTLIER_FACTOR,
+                         "usable": USABLE_MEANING},
             "regions": regions}
 
 

@@ -19,7 +19,8 @@ with K = gain in DN per electron. The noise-free mean and the temporal variance 
 JAX tracers (inside `jax.jit` / `jax.grad`) alike; `noise_sigma_dn` is the per-pixel image noise
 used by the DIC uncertainty predictor.
 
-`save_image` writes DN arrays to 8/16-bit PNG or TIFF without rescaling (see its docstring).
+`save_image` writes DN arrays to 8/16-bit PNG or TIFF, the counts in the 16-bit files aligned to
+the most significant bits or raw (see its docstring).
 
 Units: electrons (e-), photons, digital numbers (DN, one count of the A/D converter). "Linear" is
 the renderer's dimensionless linear radiance value.
@@ -230,20 +231,34 @@ class SensorModel:
 _FORMATS = {".png": "PNG", ".tif": "TIFF", ".tiff": "TIFF"}
 
 
-def save_image(path, dn_array, bit_depth: int) -> Path:
+ALIGNMENTS = ("msb", "raw")
+
+
+def save_image(path, dn_array, bit_depth: int, alignment: str = "msb") -> Path:
     """Write a greyscale DN image to PNG or TIFF atomically; returns the path written.
 
     `dn_array` is a 2-D integer array with values in ``0 .. 2**bit_depth - 1``. For ``bit_depth
-    <= 8`` the file is 8-bit greyscale; for 9..16 bits it is 16-bit greyscale. The values are
-    stored as they are, not rescaled: a 12-bit image keeps 0..4095 inside the 16-bit file (no PNG
-    sBIT chunk, which would imply left-shifted data). That is what DIC software such as MatchID or
-    VIC-3D reads correctly when it is told the camera bit depth.
+    <= 8`` the file is 8-bit greyscale, the counts as they are; for 9..16 bits it is 16-bit
+    greyscale, and `alignment` says where the counts sit in the 16 bits:
+
+    ``"msb"`` (default)
+        most significant bits: value = DN x 2**(16 - bit_depth), a 12-bit count shifted left by
+        4 (0..4095 -> 0..65520, steps of 16). This is how machine-vision cameras deliver 12-bit
+        data in 16-bit containers (e.g. GenICam Mono12 unpacked by most drivers to MSB-aligned
+        Mono16), what most DIC software expects of a 16-bit file, and what an ordinary viewer
+        shows with its full brightness. Divide by 2**(16 - bit_depth) to get DN back.
+    ``"raw"``
+        the counts as they are (a 12-bit image keeps 0..4095 in the 16-bit file and looks black
+        in a viewer); for software that is told the camera's bit depth and reads raw counts.
 
     The format follows the suffix: ``.png``, ``.tif`` / ``.tiff``. The image is written to a
     temporary file in the same folder, flushed to disk, then renamed over `path`, so no
     half-written file is left under `path` if writing fails.
     """
     from PIL import Image
+
+    if alignment not in ALIGNMENTS:
+        raise ValueError(f"alignment: expected one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
 
     path = Path(path)
     fmt = _FORMATS.get(path.suffix.lower())
@@ -268,6 +283,8 @@ def save_image(path, dn_array, bit_depth: int) -> Path:
             f"dn_array: values {arr.min()}..{arr.max()} outside 0..{top} for {bit_depth}-bit"
         )
     dtype = np.uint8 if bit_depth <= 8 else np.uint16
+    if bit_depth > 8 and alignment == "msb":
+        arr = np.asarray(arr, dtype=np.uint32) << (16 - int(bit_depth))
     image = Image.fromarray(np.ascontiguousarray(arr, dtype=dtype))  # mode "L" or "I;16"
 
     folder = path.parent

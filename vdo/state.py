@@ -78,9 +78,10 @@ def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
-                 progress: bool = False) -> LayoutState:
+                 clip_patch: bool = True, progress: bool = False) -> LayoutState:
     """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
-    with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`)."""
+    with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`; `clip_patch`
+    False keeps every sample's whole DIC patch, for samples that each stand for a whole patch)."""
     exp = geometry.experiment
     cameras = tuple(exp.cameras() if cameras is None else cameras)
     scene = build_scene(list(geometry.meshes) + bodies(exp, cameras))
@@ -93,7 +94,8 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
     density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
                                    samples.tangent_v)
     strain.check_regions(exp.analysis, samples, density, exp.path)
-    prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle)
+    prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
+                         clip_patch=clip_patch)
     fields = strain.analysis_fields(exp.analysis, density, samples, prediction.information,
                                     prediction.measured, exp.evaluation.patch_size ** 2)
     return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields)

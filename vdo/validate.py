@@ -536,7 +536,7 @@ def _prediction(setup: Setup, cameras, speckle, n: int):
     """vdo.predict at n x n samples of the correlated patch (each with Ω = the patch area)."""
     samples = _samples(setup, n)
     geometry = Geometry(setup.experiment, (setup.plate,), samples, speckle, (setup.region,))
-    pred = layout_state(geometry, cameras).prediction
+    pred = layout_state(geometry, cameras, clip_patch=False).prediction
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
                            "unmeasured")
