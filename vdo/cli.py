@@ -77,6 +77,18 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _sweep(args) -> int:
+    from .sweep import load_sweep, sweep
+
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
+                   quiet=args.quiet)
+    for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
+        print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
+    print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "
+          f"{result['failed']} failed; wrote {result['results']}")
+    return 1 if result["failed"] else 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -106,6 +118,12 @@ def main(argv=None) -> int:
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     op.add_argument("--quiet", action="store_true")
+    sw = sub.add_parser("sweep", help="evaluate or optimize many variants of an experiment")
+    sw.add_argument("sweep", help="sweep TOML file (base experiments, axes, action)")
+    sw.add_argument("--out", required=True, help="sweep folder: new, or an earlier run's to resume")
+    sw.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    sw.add_argument("--dask", default=None, help="Dask scheduler address, or 'local' for a LocalCluster")
+    sw.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -120,6 +138,8 @@ def main(argv=None) -> int:
             return _validate(args)
         elif args.command == "optimize":
             _optimize(args)
+        elif args.command == "sweep":
+            return _sweep(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
