@@ -211,25 +211,28 @@ def done_files(folder: Path) -> dict:
 
 
 def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
+    """One uninterrupted run on a Dask LocalCluster; one run on the local pool killed midway
+    (SIGKILL) and resumed: the same table, no finished point recomputed."""
     spec = load_sweep(plate_sweep())
     n_valid = 6
 
-    # 1. uninterrupted, local pool
-    whole = sweep(spec, tmp_path / "whole", workers=1, quiet=True)
+    # 1. uninterrupted, on Dask
+    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local", quiet=True)
     assert (whole["points"], whole["done"], whole["failed"]) == (8, 6, 2)
-    table = read_table(tmp_path / "whole" / "results.csv")
+    table = read_table(tmp_path / "dask" / "results.csv")
     assert [r["status"] for r in table] == ["done"] * 6 + ["failed"] * 2
     assert 'camera "left".focal_mm: must be positive (got -5)' in table[-1]["error"]
-    assert (tmp_path / "whole" / "figures" / "axis_1.png").is_file()
+    assert (tmp_path / "dask" / "figures" / "axis_1.png").is_file()
+    assert not (tmp_path / "dask" / "dask-scratch").exists()
 
-    # 2. coverage columns against the footprints (sample spacing 25 mm: one row of samples)
+    # 2. coverage columns against the footprints (sample spacing 25 mm)
     for r in table[:6]:
         one, two = footprint_fractions(float(r["camera.*.focal_mm"]))
         assert float(r["top.seen_1"]) == pytest.approx(one, abs=0.03)
         assert float(r["top.seen_2"]) == pytest.approx(two, abs=0.03)
         assert float(r["top.sigma_p95_um"]) > float(r["top.sigma_p50_um"]) > 0
 
-    # 3. SIGKILL midway, then resume
+    # 3. the local pool, SIGKILLed once two points are stored
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.Popen([sys.executable, "-m", "vdo", "sweep", str(spec.path), "--out",
                              str(tmp_path / "killed"), "--workers", "1", "--quiet"],
@@ -255,15 +258,10 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     partial = read_table(tmp_path / "killed" / "results.csv")   # whole, never half-written
     assert len(partial) == 8 and sum(r["status"] == "done" for r in partial) >= len(before) - 1
 
+    # 4. resumed: only the missing points run, and the table is the uninterrupted one
     resumed = sweep(spec, tmp_path / "killed", workers=1, quiet=True)
     assert resumed["reused"] == len(before) and resumed["computed"] == n_valid - len(before)
     after = done_files(tmp_path / "killed")
     assert all(after[k] == v for k, v in before.items()), "a finished point was recomputed"
     assert len(after) == n_valid
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
-
-    # 4. the same sweep on a Dask LocalCluster
-    on_dask = sweep(spec, tmp_path / "dask", workers=1, dask="local", quiet=True)
-    assert (on_dask["done"], on_dask["failed"]) == (6, 2)
-    assert without_times(read_table(tmp_path / "dask" / "results.csv")) == without_times(table)
-    assert not (tmp_path / "dask" / "dask-scratch").exists()
