@@ -222,7 +222,8 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     table = read_table(tmp_path / "dask" / "results.csv")
     assert [r["status"] for r in table] == ["done"] * 6 + ["failed"] * 2
     assert 'camera "left".focal_mm: must be positive (got -5)' in table[-1]["error"]
-    assert (tmp_path / "dask" / "figures" / "axis_1.png").is_file()
+    assert sorted(f.name for f in (tmp_path / "dask" / "figures").iterdir()) == [
+        "axis1_camera.all.focal_mm.png", "axis2_speckle.dot_diameter_mm.png"]
     assert not (tmp_path / "dask" / "dask-scratch").exists()
 
     # 2. coverage columns against the footprints (sample spacing 25 mm)

@@ -35,6 +35,7 @@ import os
 import re
 import shutil
 import socket
+import textwrap
 import threading
 import time
 import traceback
@@ -542,7 +543,7 @@ def _run_local(points: list[Point], workers: int, threads: int | None):
             pool.shutdown(wait=True, cancel_futures=True)
 
 
-def connect_dask(address: str, workers: int, threads: int | None, timeout: float, scratch: Path):
+def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
     """A dask.distributed Client on `address` ("local": a LocalCluster of `workers` spawned
     processes with one task each); ConfigError when the scheduler cannot be reached."""
     from distributed import Client, LocalCluster
@@ -640,8 +641,10 @@ def write_table(path: Path, rows: list[dict]) -> None:
 # --------------------------------------------------------------------------------------------
 def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = None,
           quiet: bool = False, connect_timeout: float = 5.0) -> dict:
-    """Run every point of `spec` not yet stored in `out`; write results.csv and figures/.
-    Returns counts (points, done, failed, reused, computed), the rows and the output paths."""
+    """Run every point of `spec` not yet stored in `out` (on `workers` local processes, default
+    one per core, or on the Dask scheduler at `dask`, "local" for a LocalCluster of `workers`
+    processes); write results.csv and figures/. Returns the counts (points, done, failed,
+    reused: stored before, computed: run now), the rows and the output paths."""
     out = open_store(out)
     points = expand(spec, out)
     invalid = {p.key: check_point(p) for p in points}
@@ -649,22 +652,22 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
         first = next(iter(invalid.values()))
         raise ConfigError(spec.path, "axis", f"every point fails its experiment's checks; "
                                              f"the first: {first}")
-    stored = {p.key: load_record(out, p.key) for p in points}
-    todo = list({p.key: p for p in points
-                 if not (stored[p.key] and stored[p.key]["status"] == "done")}.values())
-    workers = max(1, workers or cores())
-    threads = max(1, cores() // workers)
+    records = {p.key: load_record(out, p.key) for p in points}
+    finished = {k for k, r in records.items() if r and r["status"] == "done"}
+    todo = list({p.key: p for p in points if p.key not in finished}.values())
+    runnable = [p for p in todo if not invalid[p.key]]
+    workers = max(1, min(workers or cores(), len(runnable) or 1))
+    threads = max(1, cores() // workers) if dask in (None, "local") else None
     several = len(spec.experiments) > 1
-    log.info("%d points, %d stored, %d to run", len(points), len(points) - len(todo), len(todo))
+    log.info("%d points, %d stored, %d to run", len(points), len(finished), len(todo))
 
     client = cluster = None
-    if dask and dask != "local" and todo:
-        client, cluster = connect_dask(dask, workers, threads, connect_timeout, out)
+    if dask and dask != "local" and runnable:      # before writing anything
+        client, cluster = connect_dask(dask, workers, connect_timeout, out)
     (out / "points").mkdir(parents=True, exist_ok=True)
     write_atomic(out / MARKER, json.dumps({"vdo_sweep": 1, "vdo": vdo_version(),
                                            "sweep": str(spec.path), "points": len(points)}, indent=2))
     write_atomic(out / "sweep.toml", spec.path.read_text())
-    records = dict(stored)
 
     def table():
         write_table(out / "results.csv", [row(p, records[p.key], several) for p in points])
@@ -677,22 +680,17 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
         table()
 
     table()
-    runnable = []
     for p in todo:
         if invalid[p.key]:
             store(p, _lost(invalid[p.key]))
-        else:
-            runnable.append(p)
-    failed = sum(1 for p in todo if invalid[p.key])
-    bar = tqdm(total=len(todo), initial=len(todo) - len(runnable), unit="point", desc="sweep",
+    failed = len(todo) - len(runnable)
+    bar = tqdm(total=len(todo), initial=failed, unit="point", desc="sweep",
                disable=quiet or not todo, dynamic_ncols=True)
     bar.set_postfix(failed=failed)
     try:
-        if runnable and dask:
-            if dask == "local":
-                scratch = out / "dask-scratch"
-                client, cluster = connect_dask("local", min(workers, len(runnable)), threads,
-                                               connect_timeout, scratch)
+        if runnable and dask == "local":
+            client, cluster = connect_dask("local", workers, connect_timeout, out / "dask-scratch")
+        if runnable and client is not None:
             results = _run_dask(runnable, client, threads)
         else:
             results = _run_local(runnable, workers, threads)
@@ -713,8 +711,8 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     figures = plot(spec, rows, records, out / "figures")
     status = Counter(r["status"] for r in rows)
     return {"points": len(points), "done": status["done"], "failed": status["failed"],
-            "computed": len(runnable), "reused": len(points) - len(todo), "rows": rows,
-            "results": out / "results.csv", "figures": figures, "out": out}
+            "computed": len(runnable), "reused": sum(p.key in finished for p in points),
+            "rows": rows, "results": out / "results.csv", "figures": figures, "out": out}
 
 
 # --------------------------------------------------------------------------------------------
@@ -754,10 +752,16 @@ def pareto_front(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.asarray(front, dtype=int)
 
 
+def _figure_name(n: int, column: str) -> str:
+    """A file name for an axis' figure: its position and its path, only [A-Za-z0-9_.-] kept."""
+    return f"axis{n}_" + re.sub(r"[^A-Za-z0-9_.-]", "_", column.replace("*", "all"))[:80] + ".png"
+
+
 def plot(spec: SweepSpec, rows: list[dict], records: dict, folder: Path) -> list[Path]:
-    """figures/axis_<n>.png: each metric (σ_max p50/p95/max, coverage ≥ 1/2/3) against each
-    axis, one line per region (median over the other axes' points); figures/pareto.png: the
-    Pareto plot of [sweep] pareto_y against pareto_x."""
+    """figures/axis<n>_<path>.png: each metric (σ_max p50/p95/max on a log scale, coverage
+    ≥ 1/2/3) against each axis with more than one value, one line per region (median over the
+    other axes' points); figures/pareto.png: [sweep] pareto_y against pareto_x (default: the
+    most important region's σ_max p95 against the camera count, when that varies)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -768,34 +772,10 @@ def plot(spec: SweepSpec, rows: list[dict], records: dict, folder: Path) -> list
         return []
     folder.mkdir(exist_ok=True)
     regions = list(spec.regions or _region_order(records, done))
-    colours = plt.get_cmap("tab20")(np.linspace(0, 1, 20))
-    written = []
     axes = [a.path for a in spec.axes] + (["experiment"] if len(spec.experiments) > 1 else [])
-    for n, name in enumerate(axes):
-        values = list(dict.fromkeys(r[name] for r in done))
-        numeric = _numeric(values)
-        if numeric:
-            values.sort()
-        fig, panels = plt.subplots(2, 3, figsize=(15, 7.5), constrained_layout=True)
-        for panel, (metric, label) in zip(panels.flat, METRICS):
-            for k, region in enumerate(regions):
-                ys = [_median([r.get(f"{region}.{metric}") for r in done if r[name] == v])
-                      for v in values]
-                xs = values if numeric else range(len(values))
-                panel.plot(xs, ys, "o-", color=colours[k % 20], label=region, ms=4)
-            panel.set_xlabel(name)
-            panel.set_ylabel(label)
-            if not numeric:
-                panel.set_xticks(range(len(values)), [str(v) for v in values], rotation=20)
-            panel.grid(alpha=0.3)
-        handles, labels = panels.flat[0].get_legend_handles_labels()
-        fig.legend(handles, labels, loc="outside right center", fontsize=8)
-        fig.suptitle(f"{spec.name}: metrics against {name} (median over the other axes)")
-        path = folder / f"axis_{n + 1}.png"
-        _save(fig, path)
-        plt.close(fig)
-        written.append(path)
-
+    varying = [name for name in axes if len({r[name] for r in done}) > 1]
+    written = [_plot_axis(plt, spec.name, done, name, regions, folder / _figure_name(axes.index(name) + 1, name))
+               for name in varying]
     x_name, y_name = spec.pareto
     if x_name is None and len({r["n_cameras"] for r in done}) > 1:
         x_name = "n_cameras"
@@ -803,29 +783,68 @@ def plot(spec: SweepSpec, rows: list[dict], records: dict, folder: Path) -> list
         summary = next(rec["summary"] for rec in records.values() if rec and rec.get("summary"))
         top = max(regions, key=lambda g: summary["regions"].get(g, {}).get("importance", 0))
         y_name = f"{top}.sigma_p95_um"
-    if x_name is None or y_name is None:
-        log.info("no Pareto plot: set [sweep] pareto_x to a column that varies (camera count, cost)")
+    usable = [r for r in done if _numeric([r.get(x_name), r.get(y_name)])]
+    if x_name is None or not usable:
+        log.info("no Pareto plot: set [sweep] pareto_x and pareto_y to numeric columns "
+                 "(camera count, cost) that the finished points have")
         return written
-    usable = [r for r in done if isinstance(r.get(x_name), (int, float))
-              and isinstance(r.get(y_name), (int, float))]
-    if not usable:
-        log.info("no Pareto plot: no point has both %s and %s", x_name, y_name)
-        return written
+    colour_by = next((name for name in varying if name != x_name), None)
+    return written + [_plot_pareto(plt, spec.name, usable, x_name, y_name, colour_by, varying,
+                                   folder / "pareto.png")]
+
+
+def _plot_axis(plt, title, done, name, regions, path) -> Path:
+    values = list(dict.fromkeys(r[name] for r in done))
+    numeric = _numeric(values)
+    if numeric:
+        values.sort()
+    colours = plt.get_cmap("tab20")(np.linspace(0, 1, 20))
+    fig, panels = plt.subplots(2, 3, figsize=(15, 7.5), constrained_layout=True)
+    for panel, (metric, label) in zip(panels.flat, METRICS):
+        for k, region in enumerate(regions):
+            ys = [_median([r.get(f"{region}.{metric}") for r in done if r[name] == v]) for v in values]
+            panel.plot(values if numeric else range(len(values)), ys, "o-",
+                       color=colours[k % 20], label=region, ms=4)
+        if metric.startswith("sigma"):
+            panel.set_yscale("log")
+        panel.set_xlabel(name)
+        panel.set_ylabel(label)
+        if not numeric:
+            panel.set_xticks(range(len(values)), [str(v) for v in values], rotation=15)
+        panel.grid(alpha=0.3, which="both")
+    handles, labels = panels.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right center", fontsize=8)
+    fig.suptitle(f"{title}\nmetrics against {name} (median over the other axes' points)")
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def _plot_pareto(plt, title, usable, x_name, y_name, colour_by, axes, path) -> Path:
     x = np.array([r[x_name] for r in usable], dtype=float)
     y = np.array([r[y_name] for r in usable], dtype=float)
     front = pareto_front(x, y)
-    fig, ax = plt.subplots(figsize=(7.5, 5), constrained_layout=True)
-    ax.scatter(x, y, s=22, color="0.6", label="points")
-    ax.step(x[front], y[front], "o-", where="post", color="C3", label="Pareto front")
+    fig, ax = plt.subplots(figsize=(8, 5.5), constrained_layout=True)
+    groups = list(dict.fromkeys(r[colour_by] for r in usable)) if colour_by else [None]
+    for k, g in enumerate(groups):
+        mask = np.array([colour_by is None or r[colour_by] == g for r in usable])
+        ax.scatter(x[mask], y[mask], s=24, color=f"C{k % 10}",
+                   label="points" if colour_by is None else f"{colour_by} = {g}")
+    ax.step(x[front], y[front], where="post", color="k", lw=1, label="Pareto front")
+    ax.scatter(x[front], y[front], s=90, facecolors="none", edgecolors="k")
+    lines = []
     for i in front:
         ax.annotate(f"#{usable[i]['index']}", (x[i], y[i]), textcoords="offset points",
-                    xytext=(5, 4), fontsize=8)
+                    xytext=(6, 4), fontsize=8)
+        lines.append(textwrap.fill(f"#{usable[i]['index']}: " + ", ".join(
+            f"{a} = {usable[i][a]}" for a in axes), 110, subsequent_indent="    "))
     ax.set_xlabel(x_name)
     ax.set_ylabel(y_name)
     ax.grid(alpha=0.3)
-    ax.legend()
-    ax.set_title(f"{spec.name}: {y_name} against {x_name} (lower is better)")
-    path = folder / "pareto.png"
+    ax.legend(fontsize=8)
+    ax.set_title(f"{title}\n{y_name} against {x_name} (both lower is better)", fontsize=10)
+    ax.text(0, -0.12, "Pareto front:\n" + "\n".join(lines[:4]), transform=ax.transAxes,
+            fontsize=7, ha="left", va="top")
     _save(fig, path)
     plt.close(fig)
-    return written + [path]
+    return path
