@@ -5,7 +5,8 @@ built-in 3-camera experiment at 20 mm sample spacing, run by `vdo.sweep.sweep` w
 spawned workers, beside the same evaluation called in this process (warm, median of 3).
 
 * start-up: from the start of the sweep to its first stored point, less that point's own time
-  (spawning the workers, importing vdo, the first compilation);
+  (expanding the points, spawning the workers, importing vdo); first point: that point's own
+  time (it compiles);
 * steady throughput: points stored per minute after the first stored point;
 * per-point overhead (1 worker): the interval between two consecutive stored points, less the
   second point's own time in its worker (hand-over, pickling, the point's JSON and results.csv);
@@ -77,12 +78,12 @@ def main():
         sw._evaluation_summary(first)
         here.append(time.perf_counter() - start)
     one = statistics.median(here[1:])
-    print(f"base experiment       {exp.name}, {len(exp.camera_specs)} cameras, "
+    print(f"base experiment       {exp.path.name} ({len(exp.camera_specs)} cameras), "
           f"{args.spacing_mm:g} mm spacing, {len(points)} points")
     print(f"cpu cores             {sw.cores()}")
     print(f"one evaluation here   {one:.2f} s warm (median of 3; first call {here[0]:.1f} s)")
-    print(f"{'workers':>7} {'wall s':>7} {'start-up s':>10} {'steady pts/min':>15} "
-          f"{'in-worker s':>11} {'overhead ms':>11}")
+    print(f"{'workers':>7} {'wall s':>7} {'start-up s':>10} {'first pt s':>10} "
+          f"{'steady pts/min':>15} {'in-worker s':>11} {'overhead ms':>11}")
     rates = {}
     for workers in (1, 2):
         folder = out / f"w{workers}"
@@ -98,8 +99,8 @@ def main():
         overhead = (statistics.median((t1 - t0) - s for (t0, _), (t1, s) in zip(times, times[1:]))
                     if workers == 1 else float("nan"))
         rates[workers] = steady
-        print(f"{workers:>7} {wall:>7.1f} {startup:>10.1f} {steady:>15.1f} {in_worker:>11.2f} "
-              f"{overhead * 1e3:>11.0f}")
+        print(f"{workers:>7} {wall:>7.1f} {startup:>10.1f} {times[0][1]:>10.1f} {steady:>15.1f} "
+              f"{in_worker:>11.2f} {overhead * 1e3:>11.0f}")
     print(f"steady speed-up, 2 workers against 1: {rates[2] / rates[1]:.2f}x")
 
 
