@@ -356,7 +356,6 @@ def _check_axis_paths(spec: SweepSpec, raw: dict, base: Path) -> None:
         probe = copy.deepcopy(raw)
         value = axis.values[0] if axis.values is not None else axis.draw[1]
         _assign(probe, axis.tokens, value, spec.path, axis.path)
-        _absolute_files(probe, base)
         try:
             parse(probe, base)
         except ConfigError as exc:
@@ -373,7 +372,11 @@ def expand(spec: SweepSpec, out: Path | None = None) -> list[Point]:
     points = []
     for label, base in spec.experiments:
         raw = read_toml(base)
-        parse(raw, base)                                  # the base itself must be valid
+        exp = parse(raw, base)                            # the base itself must be valid
+        unknown = sorted(set(spec.regions or ()) - {r.name for r in exp.regions})
+        if unknown:
+            raise ConfigError(spec.path, "sweep.regions", f"{base.name} has no region named "
+                                                          f"{', '.join(map(repr, unknown))}")
         _check_axis_paths(spec, raw, base)
         for combo in combos:
             config = copy.deepcopy(raw)
