@@ -11,7 +11,8 @@ spawned workers, beside the same evaluation called in this process (warm, median
 * per-point overhead (1 worker): the interval between two consecutive stored points, less the
   second point's own time in its worker (hand-over, pickling, the point's JSON and results.csv);
 * in-worker time against in-process time: what a point costs in a worker (parse included)
-  against one warm evaluation here.
+  against one warm evaluation here; CPU s: the worker process's CPU time for a point (all its
+  threads), the work a point needs whatever else runs on the machine.
 
 Run: .venv/bin/python benchmarks/sweep.py [--out runs/bench-sweep] [--spacing-mm 20]
 The out folder holds the generated sweep file and the two stores (w1/, w2/), replaced each run.
@@ -46,12 +47,13 @@ values = [1.5, 2.5]
 """
 
 
-def stored(folder: Path) -> list[tuple[float, float]]:
-    """(time the sweep stored it, seconds in its worker) per point, in storing order."""
+def stored(folder: Path) -> list[tuple[float, float, float]]:
+    """(time the sweep stored it, seconds in its worker, CPU seconds of its worker process) per
+    point, in storing order."""
     out = []
     for f in (folder / "points").glob("*.json"):
         record = json.loads(f.read_text())
-        out.append((f.stat().st_mtime, record["seconds"]))
+        out.append((f.stat().st_mtime, record["seconds"], record["cpu_seconds"]))
     return sorted(out)
 
 
@@ -72,18 +74,20 @@ def main():
     exp = load(BASE)
     first = parse(points[0].config, BASE)
     sw._configure_worker(None)
-    here = []
+    here, here_cpu = [], []
     for _ in range(4):                                   # the first call compiles
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         sw._evaluation_summary(first)
         here.append(time.perf_counter() - start)
+        here_cpu.append(time.process_time() - cpu)
     one = statistics.median(here[1:])
     print(f"base experiment       {exp.path.name} ({len(exp.camera_specs)} cameras), "
           f"{args.spacing_mm:g} mm spacing, {len(points)} points")
     print(f"cpu cores             {sw.cores()}")
-    print(f"one evaluation here   {one:.2f} s warm (median of 3; first call {here[0]:.1f} s)")
+    print(f"one evaluation here   {one:.2f} s warm, {statistics.median(here_cpu[1:]):.2f} CPU s "
+          f"(median of 3; first call {here[0]:.1f} s)")
     print(f"{'workers':>7} {'wall s':>7} {'start-up s':>10} {'first pt s':>10} "
-          f"{'steady pts/min':>15} {'in-worker s':>11} {'overhead ms':>11}")
+          f"{'steady pts/min':>15} {'in-worker s':>11} {'CPU s':>6} {'overhead ms':>11}")
     rates = {}
     for workers in (1, 2):
         folder = out / f"w{workers}"
@@ -95,12 +99,13 @@ def main():
         times = stored(folder)
         startup = times[0][0] - start - times[0][1]
         steady = (len(times) - 1) / (times[-1][0] - times[0][0]) * 60
-        in_worker = statistics.median(s for _, s in times[1:])
-        overhead = (statistics.median((t1 - t0) - s for (t0, _), (t1, s) in zip(times, times[1:]))
+        in_worker = statistics.median(s for _, s, _ in times[1:])
+        cpu = statistics.median(c for _, _, c in times[1:])
+        overhead = (statistics.median((t1 - t0) - s for (t0, _, _), (t1, s, _) in zip(times, times[1:]))
                     if workers == 1 else float("nan"))
         rates[workers] = steady
         print(f"{workers:>7} {wall:>7.1f} {startup:>10.1f} {times[0][1]:>10.1f} {steady:>15.1f} "
-              f"{in_worker:>11.2f} {overhead * 1e3:>11.0f}")
+              f"{in_worker:>11.2f} {cpu:>6.2f} {overhead * 1e3:>11.0f}")
     print(f"steady speed-up, 2 workers against 1: {rates[2] / rates[1]:.2f}x")
 
 

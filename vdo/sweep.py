@@ -479,7 +479,7 @@ def metrics(summary: dict) -> dict:
 def run_point(point: Point) -> dict:
     """Run the point's action; the record of what happened. Never raises for a failing point:
     status "failed" with the error (the ConfigError line for a user mistake)."""
-    started, t0 = time.time(), time.perf_counter()
+    started, t0, cpu0 = time.time(), time.perf_counter(), time.process_time()
     record = {"status": "done", "error": "", "metrics": {}, "summary": None}
     try:
         exp = parse(point.config, Path(point.base))
@@ -502,14 +502,15 @@ def run_point(point: Point) -> dict:
     except Exception as exc:  # a failing point is recorded; the sweep goes on
         record |= {"status": "failed", "error": f"{type(exc).__name__}: {exc}",
                    "traceback": traceback.format_exc()}
-    return record | {"seconds": time.perf_counter() - t0, "started": started,
+    return record | {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - cpu0,
+                     "started": started,
                      "finished": time.time(), "host": socket.gethostname(), "pid": os.getpid()}
 
 
 def _lost(message: str) -> dict:
     now = time.time()
     return {"status": "failed", "error": message, "metrics": {}, "summary": None, "seconds": 0.0,
-            "started": now, "finished": now, "host": socket.gethostname(), "pid": os.getpid()}
+            "cpu_seconds": 0.0, "started": now, "finished": now, "host": socket.gethostname(), "pid": os.getpid()}
 
 
 # --------------------------------------------------------------------------------------------
