@@ -559,10 +559,12 @@ def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
         return Client(cluster), cluster
     try:
         return Client(address, timeout=f"{timeout}s"), None
-    except (OSError, TimeoutError) as exc:
+    except Exception as exc:  # refused, timed out, or something else answering: one line each
+        why = (type(exc).__name__ if isinstance(exc, (OSError, TimeoutError))
+               else f"what answered is not a Dask scheduler: {type(exc).__name__}")
         raise ConfigError("--dask", "", f"cannot reach the Dask scheduler at {address!r} within "
-                                        f"{timeout:g} s ({type(exc).__name__}); check the "
-                                        "address (tcp://HOST:PORT) and that the scheduler runs") from None
+                                        f"{timeout:g} s ({why}); check the address "
+                                        "(tcp://HOST:PORT) and that the scheduler runs") from None
 
 
 def _run_dask(points: list[Point], client, threads: int | None):
