@@ -43,7 +43,7 @@ experiment = "plate.toml"
 
 [[axis]]
 path = "camera.*.focal_mm"
-values = [12, 16, 24, -5]
+values = [16, 24, -5]
 
 [[axis]]
 path = "speckle.dot_diameter_mm"
@@ -61,9 +61,9 @@ values = [20.0]
 
 @pytest.fixture
 def plate_sweep(plate_experiment, tmp_path):
-    def make(extra="", text=SWEEP):
+    def make(extra="", text=SWEEP, name="sweep.toml"):
         plate_experiment(spacing=25, height=HEIGHT, cameras=CAMERAS)
-        path = tmp_path / "sweep.toml"
+        path = tmp_path / name
         path.write_text(textwrap.dedent(text.format(extra=extra)))
         return path
 
@@ -211,23 +211,27 @@ def done_files(folder: Path) -> dict:
 
 
 def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
-    """One uninterrupted run on a Dask LocalCluster; one run on the local pool killed midway
-    (SIGKILL) and resumed: the same table, no finished point recomputed."""
+    """One uninterrupted run on a Dask LocalCluster, writing each point's `vdo evaluate` run
+    folder; one run on the local pool (summaries without run folders) killed midway (SIGKILL)
+    and resumed: the same table, no finished point recomputed."""
     spec = load_sweep(plate_sweep())
-    n_valid = 6
+    n_valid = 4
 
-    # 1. uninterrupted, on Dask
-    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local", quiet=True)
-    assert (whole["points"], whole["done"], whole["failed"]) == (8, 6, 2)
+    # 1. uninterrupted, on Dask, with run folders (the same points: run_folders is not in the key)
+    with_folders = load_sweep(plate_sweep(extra="run_folders = true", name="folders.toml"))
+    whole = sweep(with_folders, tmp_path / "dask", workers=1, dask="local", quiet=True)
+    for p in whole["rows"][:n_valid]:
+        assert (tmp_path / "dask" / "runs" / p["key"] / "summary.json").is_file()
+    assert (whole["points"], whole["done"], whole["failed"]) == (6, 4, 2)
     table = read_table(tmp_path / "dask" / "results.csv")
-    assert [r["status"] for r in table] == ["done"] * 6 + ["failed"] * 2
+    assert [r["status"] for r in table] == ["done"] * 4 + ["failed"] * 2
     assert 'camera "left".focal_mm: must be positive (got -5)' in table[-1]["error"]
     assert sorted(f.name for f in (tmp_path / "dask" / "figures").iterdir()) == [
         "axis1_camera.all.focal_mm.png", "axis2_speckle.dot_diameter_mm.png"]
     assert not (tmp_path / "dask" / "dask-scratch").exists()
 
     # 2. coverage columns against the footprints (sample spacing 25 mm)
-    for r in table[:6]:
+    for r in table[:4]:
         one, two = footprint_fractions(float(r["camera.*.focal_mm"]))
         assert float(r["top.seen_1"]) == pytest.approx(one, abs=0.03)
         assert float(r["top.seen_2"]) == pytest.approx(two, abs=0.03)
@@ -257,7 +261,7 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
             os.kill(pid, signal.SIGKILL)
             pytest.fail(f"worker {pid} outlived the killed sweep")
     partial = read_table(tmp_path / "killed" / "results.csv")   # whole, never half-written
-    assert len(partial) == 8 and sum(r["status"] == "done" for r in partial) >= len(before) - 1
+    assert len(partial) == 6 and sum(r["status"] == "done" for r in partial) >= len(before) - 1
 
     # 4. resumed: only the missing points run, and the table is the uninterrupted one
     resumed = sweep(spec, tmp_path / "killed", workers=1, quiet=True)
