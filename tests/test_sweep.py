@@ -10,13 +10,14 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from vdo.errors import ConfigError
-from vdo.sweep import combinations, expand, load_sweep, pareto_front, split_path, sweep
+from vdo.sweep import _run_local, combinations, expand, load_sweep, pareto_front, split_path, sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 HEIGHT = 1.5        # m, the rail above the plate's top face (z = 0)
@@ -153,7 +154,8 @@ def test_pareto_front():
 
 
 @pytest.mark.parametrize("path, expected", [
-    ("evaluation.patch_size", "names no field of plate.toml (evaluation.patch_size: unknown field; did you mean 'patch_mm'?)"),
+    ("evaluation.patch_size", "names no field of plate.toml (evaluation.patch_size: unknown field; "
+                              "did you mean 'patch_mm'?)"),
     ("camera.cam9.focal_mm", "no [[camera]] named 'cam9' (there are: left, right)"),
     ("camera.left.focus_distance", "names no field of plate.toml"),
     ("evaluation", "is not a field path"),
@@ -270,3 +272,30 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     assert all(after[k] == v for k, v in before.items()), "a finished point was recomputed"
     assert len(after) == n_valid
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
+
+
+def test_a_dead_worker_is_replaced(plate_sweep):
+    """Kill the pool's worker while it starts: its points run again in a fresh pool."""
+    points = expand(load_sweep(plate_sweep(text='[sweep]\nexperiment = "plate.toml"\n[[axis]]\n'
+                                                 'path = "evaluation.patch_mm"\nvalues = [-1, -2]\n')))
+    killed = []
+
+    def kill_first_worker():
+        deadline = time.time() + 60
+        while not killed and time.time() < deadline:
+            for pid in children(os.getpid()):
+                if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text():
+                    time.sleep(0.3)
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+                    break
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=kill_first_worker)
+    thread.start()
+    results = list(_run_local(points, workers=1, threads=1))
+    thread.join()
+    assert killed and len(results) == 2
+    for point, record in results:
+        assert record["pid"] != killed[0]
+        assert f"patch_mm: must be positive (got {point.axes['evaluation.patch_mm']})" in record["error"]

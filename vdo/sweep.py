@@ -150,7 +150,8 @@ def _axis(t: Table, samples: int | None) -> Axis:
                                 "random points), or list values for a grid")
         low, high = t.vector(kind, 2)
         if not low < high or (kind == "log_uniform" and low <= 0):
-            raise t.error(kind, f"needs [low, high] with low < high{' and low > 0' if kind == 'log_uniform' else ''}")
+            positive = " and low > 0" if kind == "log_uniform" else ""
+            raise t.error(kind, f"needs [low, high] with low < high{positive}")
         if kind == "integers" and not all(isinstance(v, int) for v in t.raw(kind)):
             raise t.error(kind, "needs two whole numbers [low, high] (both included)")
         draw = (kind, low, high)
@@ -510,7 +511,8 @@ def run_point(point: Point) -> dict:
 def _lost(message: str) -> dict:
     now = time.time()
     return {"status": "failed", "error": message, "metrics": {}, "summary": None, "seconds": 0.0,
-            "cpu_seconds": 0.0, "started": now, "finished": now, "host": socket.gethostname(), "pid": os.getpid()}
+            "cpu_seconds": 0.0, "started": now, "finished": now, "host": socket.gethostname(),
+            "pid": os.getpid()}
 
 
 # --------------------------------------------------------------------------------------------
@@ -780,8 +782,8 @@ def plot(spec: SweepSpec, rows: list[dict], records: dict, folder: Path) -> list
     regions = list(spec.regions or _region_order(records, done))
     axes = [a.path for a in spec.axes] + (["experiment"] if len(spec.experiments) > 1 else [])
     varying = [name for name in axes if len({r[name] for r in done}) > 1]
-    written = [_plot_axis(plt, spec.name, done, name, regions, folder / _figure_name(axes.index(name) + 1, name))
-               for name in varying]
+    written = [_plot_axis(plt, spec.name, done, name, regions,
+                          folder / _figure_name(axes.index(name) + 1, name)) for name in varying]
     x_name, y_name = spec.pareto
     if x_name is None and len({r["n_cameras"] for r in done}) > 1:
         x_name = "n_cameras"
