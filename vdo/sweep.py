@@ -196,9 +196,6 @@ def load_sweep(path) -> SweepSpec:
     for p, n in Counter(paths).items():
         if n > 1:
             raise ConfigError(path, "axis", f"path {p!r} is swept twice; zip or merge the axes")
-    if len(experiments) > 1 and "experiment" in paths:
-        raise ConfigError(path, "axis", "no axis may be called 'experiment' when several "
-                                        "experiments are swept")
     for group, members in itertools.groupby(sorted((a.zip, len(a.values)) for a in axes if a.zip),
                                             key=lambda m: m[0]):
         if len({n for _, n in members}) > 1:
@@ -303,23 +300,20 @@ def _assign(config: dict, axis_tokens, value, file: Path, path: str) -> None:
         table[axis_tokens[-1]] = copy.deepcopy(value)
 
 
-def _absolute_files(config: dict, base: Path) -> None:
-    """Mesh files and the speckle image, resolved against the base file's folder."""
-    for mesh in config.get("mesh", []) if isinstance(config.get("mesh"), list) else []:
-        if isinstance(mesh, dict) and isinstance(mesh.get("file"), str):
-            mesh["file"] = str((base.parent / mesh["file"]).resolve())
-    speckle = config.get("speckle")
-    if isinstance(speckle, dict) and isinstance(speckle.get("image"), str):
-        speckle["image"] = str((base.parent / speckle["image"]).resolve())
-
-
-def _files(config: dict) -> list[str]:
+def _file_fields(config: dict) -> list[tuple[dict, str]]:
+    """(table, key) of every file path the experiment reads: mesh files, the speckle image."""
     meshes = config.get("mesh") if isinstance(config.get("mesh"), list) else []
-    files = [m["file"] for m in meshes if isinstance(m, dict) and isinstance(m.get("file"), str)]
+    fields = [(m, "file") for m in meshes if isinstance(m, dict) and isinstance(m.get("file"), str)]
     speckle = config.get("speckle")
     if isinstance(speckle, dict) and isinstance(speckle.get("image"), str):
-        files.append(speckle["image"])
-    return files
+        fields.append((speckle, "image"))
+    return fields
+
+
+def _absolute_files(config: dict, base: Path) -> None:
+    """File paths resolved against the base file's folder, as `vdo.config.parse` reads them."""
+    for table, key in _file_fields(config):
+        table[key] = str((base.parent / table[key]).resolve())
 
 
 @functools.lru_cache(maxsize=256)
@@ -343,7 +337,8 @@ def file_digest(file: str) -> str | None:
 def point_key(config: dict, action: str) -> str:
     """Hash of the canonical JSON of the point: its TOML dict, the digests of the files it reads,
     the action and vdo's version. 20 hex digits (80 bits)."""
-    material = {"config": config, "files": {f: file_digest(f) for f in _files(config)},
+    material = {"config": config,
+                "files": {t[k]: file_digest(t[k]) for t, k in _file_fields(config)},
                 "action": action, "vdo": vdo_version()}
     text = json.dumps(material, sort_keys=True, separators=(",", ":"), default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:20]
