@@ -213,17 +213,15 @@ def done_files(folder: Path) -> dict:
 
 
 def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
-    """One uninterrupted run on a Dask LocalCluster, writing each point's `vdo evaluate` run
-    folder; one run on the local pool (summaries without run folders) killed midway (SIGKILL)
-    and resumed: the same table, no finished point recomputed."""
+    """One uninterrupted run on a Dask LocalCluster; one run on the local pool killed midway
+    (SIGKILL) and resumed: the same table, no finished point recomputed. The resumed run also
+    writes the run folders of the points it computes (`vdo evaluate`'s summary), the others
+    came from the summary without a run folder: the same numbers."""
     spec = load_sweep(plate_sweep())
     n_valid = 4
 
-    # 1. uninterrupted, on Dask, with run folders (the same points: run_folders is not in the key)
-    with_folders = load_sweep(plate_sweep(extra="run_folders = true", name="folders.toml"))
-    whole = sweep(with_folders, tmp_path / "dask", workers=1, dask="local", quiet=True)
-    for p in whole["rows"][:n_valid]:
-        assert (tmp_path / "dask" / "runs" / p["key"] / "summary.json").is_file()
+    # 1. uninterrupted, on Dask
+    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local", quiet=True)
     assert (whole["points"], whole["done"], whole["failed"]) == (6, 4, 2)
     table = read_table(tmp_path / "dask" / "results.csv")
     assert [r["status"] for r in table] == ["done"] * 4 + ["failed"] * 2
@@ -265,12 +263,17 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     partial = read_table(tmp_path / "killed" / "results.csv")   # whole, never half-written
     assert len(partial) == 6 and sum(r["status"] == "done" for r in partial) >= len(before) - 1
 
-    # 4. resumed: only the missing points run, and the table is the uninterrupted one
-    resumed = sweep(spec, tmp_path / "killed", workers=1, quiet=True)
+    # 4. resumed (with run folders: not part of a point's key): only the missing points run,
+    # and the table is the uninterrupted one
+    with_folders = load_sweep(plate_sweep(extra="run_folders = true", name="folders.toml"))
+    resumed = sweep(with_folders, tmp_path / "killed", workers=1, quiet=True)
     assert resumed["reused"] == len(before) and resumed["computed"] == n_valid - len(before)
     after = done_files(tmp_path / "killed")
     assert all(after[k] == v for k, v in before.items()), "a finished point was recomputed"
     assert len(after) == n_valid
+    folders = {f.name for f in (tmp_path / "killed" / "runs").iterdir()}
+    assert folders == set(after) - set(before)
+    assert all((tmp_path / "killed" / "runs" / k / "summary.json").is_file() for k in folders)
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
 
 
