@@ -281,12 +281,12 @@ def test_a_dead_worker_is_replaced(plate_sweep):
     """Kill the pool's worker while it starts: its points run again in a fresh pool."""
     points = expand(load_sweep(plate_sweep(text='[sweep]\nexperiment = "plate.toml"\n[[axis]]\n'
                                                  'path = "evaluation.patch_mm"\nvalues = [-1, -2]\n')))
-    killed = []
+    killed, earlier = [], set(children(os.getpid()))
 
     def kill_first_worker():
         deadline = time.time() + 60
         while not killed and time.time() < deadline:
-            for pid in children(os.getpid()):
+            for pid in set(children(os.getpid())) - earlier:
                 if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text():
                     time.sleep(0.3)
                     os.kill(pid, signal.SIGKILL)
