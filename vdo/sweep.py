@@ -499,11 +499,12 @@ def run_point(point: Point) -> dict:
         record |= {"status": "failed", "error": f"{type(exc).__name__}: {exc}",
                    "traceback": traceback.format_exc()}
     return record | {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - cpu0,
-                     "started": started,
-                     "finished": time.time(), "host": socket.gethostname(), "pid": os.getpid()}
+                     "started": started, "finished": time.time(), "host": socket.gethostname(),
+                     "pid": os.getpid()}
 
 
-def _lost(message: str) -> dict:
+def _failure(message: str) -> dict:
+    """The record of a point that failed outside `run_point` (its check, its worker's death)."""
     now = time.time()
     return {"status": "failed", "error": message, "metrics": {}, "summary": None, "seconds": 0.0,
             "cpu_seconds": 0.0, "started": now, "finished": now, "host": socket.gethostname(),
@@ -536,7 +537,7 @@ def _run_local(points: list[Point], workers: int, threads: int | None):
                 except BrokenProcessPool:
                     attempts[point.key] += 1
                     if attempts[point.key] >= MAX_ATTEMPTS:
-                        yield point, _lost(f"its worker process died {MAX_ATTEMPTS} times "
+                        yield point, _failure(f"its worker process died {MAX_ATTEMPTS} times "
                                            "(out of memory?)")
                     else:
                         pending.append(point)
@@ -582,7 +583,7 @@ def _run_dask(points: list[Point], client, threads: int | None):
         try:
             yield point, future.result()
         except Exception as exc:  # KilledWorker, a worker lost for good: the point failed
-            yield point, _lost(f"Dask: {type(exc).__name__}: {exc}")
+            yield point, _failure(f"Dask: {type(exc).__name__}: {exc}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -685,7 +686,7 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     table()
     for p in todo:
         if invalid[p.key]:
-            store(p, _lost(invalid[p.key]))
+            store(p, _failure(invalid[p.key]))
     failed = len(todo) - len(runnable)
     bar = tqdm(total=len(todo), initial=failed, unit="point", desc="sweep",
                disable=quiet or not todo, dynamic_ncols=True)
