@@ -96,6 +96,16 @@ def _export(args) -> None:
     pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
     for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
         print(f"wrote {path}")
+def _sweep(args) -> int:
+    from .sweep import load_sweep, sweep
+
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
+                   quiet=args.quiet)
+    for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
+        print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
+    print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "
+          f"{result['failed']} failed; wrote {result['results']}")
+    return 1 if result["failed"] else 0
 
 
 def main(argv=None) -> int:
@@ -140,6 +150,12 @@ def main(argv=None) -> int:
     ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rp = sub.add_parser("report", help="write RUN_DIR/report.html (3D view, tables, figures)")
     rp.add_argument("run_dir", help="a run folder written by vdo")
+    sw = sub.add_parser("sweep", help="evaluate or optimize many variants of an experiment")
+    sw.add_argument("sweep", help="sweep TOML file (base experiments, axes, action)")
+    sw.add_argument("--out", required=True, help="sweep folder: new, or an earlier run's to resume")
+    sw.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    sw.add_argument("--dask", default=None, help="Dask scheduler address, or 'local' for a LocalCluster")
+    sw.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     args = parser.parse_args(argv)
@@ -162,6 +178,8 @@ def main(argv=None) -> int:
             if not Path(args.run_dir).is_dir():
                 raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
             print(f"wrote {write_report(args.run_dir).resolve()}")
+        elif args.command == "sweep":
+            return _sweep(args)
         elif args.command == "demo":
             if not BUILTIN.is_file():
                 raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
