@@ -81,8 +81,13 @@ def without_times(rows):
 
 
 def footprint_fractions(focal_mm: float) -> tuple[float, float]:
-    """Plate area fractions inside >= 1 and both square footprints (closed form)."""
-    half = SENSOR / focal_mm * HEIGHT / 2
+    """Plate area fractions inside >= 1 and both usable square footprints (closed form). A view
+    is usable where its image-edge weight S((u + 1/2) / m) >= 1/2 (`vdo.usable`), i.e. m/2 pixels
+    inside each image edge: the footprint loses m of its 300 pixels per side."""
+    from vdo.objective import Settings
+
+    margin_px = Settings().image_margin_px
+    half = SENSOR / focal_mm * HEIGHT / 2 * (1 - margin_px / 300)
 
     def clip(lo, hi):
         return max(0.0, min(hi, 0.5) - max(lo, -0.5))
