@@ -119,3 +119,33 @@ def test_camera_loses_the_region_at_the_step_the_geometry_says(plate_experiment,
     # Step 5: the shutter hides x > -0.2; the camera's footprint already cut y to +-0.46 m.
     assert seen[5] == pytest.approx(seen[0] * 0.3, abs=0.05)
     assert np.all(result.worst_coverage[geometry.samples.points[:, 0] > 0] == 0)
+
+
+def test_evaluate_over_the_load_path_names_the_loss_and_writes_the_worst_case(plate_experiment,
+                                                                              tmp_path, capsys):
+    """`vdo evaluate` on the shutter scene with a [load_path]: the warning, summary.json's loss,
+    load_path.csv, the worst-case arrays and maps."""
+    import json
+
+    from vdo import cli
+    from vdo.vtp import read_points
+
+    write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
+    rows = ["step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
+    rows += [f"{k},slide,{-500 * k},0,0,0,0,0" for k in range(1, 8)]
+    write_csv(tmp_path / "poses.csv", "\n".join(rows))
+    extra = SHUTTER + '\n[[group]]\nname = "slide"\nmeshes = ["shutter"]\n\n[load_path]\nposes = "poses.csv"\n'
+    config = plate_experiment(spacing=100, extra_meshes=extra)
+    out = tmp_path / "run"
+    assert cli.main(["evaluate", str(config), "--out", str(out)]) == 0
+    assert "warning: camera down loses region top at step 5" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert [(x["camera"], x["step"]) for x in summary["load_path"]["losses"]] == [("down", 5)]
+    assert summary["load_path"]["steps"] == 7
+    table = (out / "load_path.csv").read_text().splitlines()
+    assert table[0] == "step,region,covered_fraction,sigma_max_p95_um" and len(table) == 1 + 8
+    points, arrays = read_points(out / "samples.vtp")
+    hidden = points[:, 0] > 0
+    assert np.all(arrays["coverage_worst"][hidden] == 0)
+    assert np.all(arrays["worst_step"][hidden] >= 0)
+    assert (out / "load_path.png").is_file() and (out / "maps" / "coverage_worst.png").is_file()

@@ -3,13 +3,16 @@ every region of interest, written into a run folder."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
 
-from . import checks, constraints, html_report, maps, report, strain, vtp
+from . import checks, constraints, html_report, loadpath, maps, report, strain, vtp
 from .config import Experiment
 from .runfolder import run_folder
+from .keyframes import load_path_of
+from .loadpath import LoadPathResult, evaluate_load_path
 from .state import LayoutState, layout_state, prepare
 
 UM = 1e6            # m -> um
@@ -34,8 +37,17 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     if not exp.lights and exp.render.ambient_radiance == 0:
         say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
             "the uncertainty is not predicted (sigma = inf)", quiet)
+    load_path = load_path_of(exp, geometry.meshes)     # its files are checked before any ray
     state = layout_state(geometry, progress=not quiet)
-    summary = write_evaluation(state, out, overwrite)
+    over_path = None
+    if load_path is not None:
+        say(f"load path: {len(load_path.steps)} steps", quiet)
+        over_path = evaluate_load_path(geometry, load_path, progress=not quiet, rest=state)
+        for loss in over_path.losses:
+            say(f"warning: camera {loss['camera']} loses region {loss['region']} at step "
+                f"{loss['step']} (sees {100 * loss['fraction']:.0f} % of it, "
+                f"{100 * loss['rest_fraction']:.0f} % at rest)", quiet)
+    summary = write_evaluation(state, out, overwrite, over_path)
     for e in summary["axis_angles"]:
         if not e["met"]:
             bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
@@ -44,8 +56,12 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     return summary
 
 
-def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> dict:
-    """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary."""
+def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
+                     over_path: LoadPathResult | None = None) -> dict:
+    """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary.
+    With `over_path` (`vdo.loadpath`) also the load path: load_path.csv, load_path.png, the worst
+    case over the steps in samples.vtp (coverage_worst, sigma_max_worst, worst_step) and in
+    maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path"."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
@@ -54,6 +70,8 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
     summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
                                                     illumination.irradiance,
                                                     state.geometry.speckle.pattern)
+    if over_path is not None:
+        summary["load_path"] = loadpath.summary(over_path)
     with run_folder(out, overwrite) as tmp:
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", summary)
@@ -75,6 +93,11 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
         arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
         arrays |= {f"usable_{name}": pred.usable[i] for i, name in enumerate(vis.camera_names)}
+        if over_path is not None:
+            worst_sigma = over_path.worst_sigma
+            arrays |= {"coverage_worst": over_path.worst_coverage.astype(np.int32),
+                       "sigma_max_worst": np.where(np.isfinite(worst_sigma), worst_sigma * UM, np.nan),
+                       "worst_step": over_path.worst_step_index.astype(np.int32)}
         vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
         (tmp / "maps").mkdir()
         maps.plot_unfolded(samples, pred.coverage, tmp / "maps" / "coverage.png",
@@ -97,5 +120,26 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False) -> 
                 maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
                                    f"{exp.name}: strain uncertainty ε_{c} (face frame, "
                                    f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r")
+        if over_path is not None:
+            _write_load_path(tmp, exp, samples, over_path)
         html_report.write_report(tmp)
     return summary
+
+
+def _write_load_path(tmp: Path, exp: Experiment, samples, result: LoadPathResult) -> None:
+    """The load-path files of `write_evaluation`."""
+    rows = loadpath.table(result)
+    with open(tmp / "load_path.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    loadpath.plot(result, tmp / "load_path.png",
+                  f"{exp.name}: coverage and σ_max p95 over the load path")
+    maps.plot_unfolded(samples, result.worst_coverage, tmp / "maps" / "coverage_worst.png",
+                       f"{exp.name}: fewest usable views of each point over the load path",
+                       "cameras", discrete=True)
+    worst = np.where(np.isfinite(result.worst_sigma), result.worst_sigma * UM, np.nan)
+    if np.isfinite(worst).any():
+        maps.plot_unfolded(samples, worst, tmp / "maps" / "sigma_max_worst.png",
+                           f"{exp.name}: largest σ_max of each point over the load path "
+                           "(grey: < 2 usable views at some step)", "σ_max (µm)", cmap="magma_r")

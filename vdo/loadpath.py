@@ -77,15 +77,19 @@ def _region_stats(state: LayoutState, minimum: np.ndarray):
 
 
 def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
-                       progress: bool = False) -> LoadPathResult:
-    """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`."""
+                       progress: bool = False, rest: LayoutState | None = None) -> LoadPathResult:
+    """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`.
+    `rest`: the state at rest when already computed (`layout_state(geometry, cameras)`)."""
     exp = geometry.experiment
     minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
     steps = ("rest",) + tuple(load_path.steps)
     coverage, sigma, seen, covered, p95 = [], [], [], [], []
     for step in tqdm(steps, desc="load path", unit="step", disable=not progress):
-        moved = geometry if step == "rest" else at_step(geometry, load_path, step)
-        state = layout_state(moved, cameras)
+        if step == "rest" and rest is not None:
+            state = rest
+        else:
+            moved = geometry if step == "rest" else at_step(geometry, load_path, step)
+            state = layout_state(moved, cameras)
         s, c, p, sig = _region_stats(state, minimum)
         coverage.append(state.prediction.coverage)
         sigma.append(sig)
@@ -109,6 +113,22 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
                                camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
     return LoadPathResult(steps, camera_names, geometry.samples.region_names, np.array(coverage),
                           np.array(sigma), seen_arr, np.array(covered), np.array(p95), tuple(losses))
+
+
+def summary(result: LoadPathResult) -> dict:
+    """For summary.json: the steps, the losses, and per region the worst step's covered area
+    fraction and σ_max p95 (µm) with the steps where they occur."""
+    regions = {}
+    for r, region in enumerate(result.region_names):
+        covered, p95 = result.region_covered[:, r], result.region_sigma_p95[:, r]
+        worst = int(np.nanargmax(p95)) if np.isfinite(p95).any() else None
+        regions[region] = {
+            "covered_fraction_min": float(covered.min()),
+            "covered_fraction_min_step": result.steps[int(covered.argmin())],
+            "sigma_max_p95_um_max": None if worst is None else float(p95[worst] * 1e6),
+            "sigma_max_p95_um_max_step": None if worst is None else result.steps[worst]}
+    return {"steps": len(result.steps) - 1, "seen_fraction": SEEN_FRACTION,
+            "losses": list(result.losses), "regions": regions}
 
 
 def table(result: LoadPathResult) -> list[dict]:
