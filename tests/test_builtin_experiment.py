@@ -28,6 +28,12 @@ def test_committed_meshes_are_what_the_script_builds():
         assert mesh.export(file_type="stl") == (HERE / "meshes" / f"{name}.stl").read_bytes(), name
 
 
+def test_committed_load_path_is_what_the_script_writes(tmp_path):
+    load_script().write_load_path(tmp_path)
+    for name in ("load_path_platform.csv", "load_path_specimen.csv"):
+        assert (tmp_path / name).read_text() == (HERE / name).read_text(), name
+
+
 def test_specimen_is_the_papers_t():
     """Watertight T of 120 mm sections: column 2.4 m, beam 1.0 m from the joint face (sec. 2.2)."""
     specimen = trimesh.load(HERE / "meshes" / "specimen.stl")

@@ -149,9 +149,11 @@ def plot(result: LoadPathResult, path, title: str = "") -> None:
 
     x = np.arange(len(result.steps))
     fig, (ax_c, ax_s) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
+    colours = plt.get_cmap("tab20")
     for r, region in enumerate(result.region_names):
-        ax_c.plot(x, 100 * result.region_covered[:, r], marker=".", label=region)
-        ax_s.plot(x, result.region_sigma_p95[:, r] * 1e6, marker=".", label=region)
+        style = dict(marker=".", label=region, color=colours(r % 20), ls="-" if r < 20 else "--")
+        ax_c.plot(x, 100 * result.region_covered[:, r], **style)
+        ax_s.plot(x, result.region_sigma_p95[:, r] * 1e6, **style)
     ax_c.set_ylabel("area seen by ≥ min. cameras (%)")
     ax_c.set_ylim(-5, 105)
     ax_s.set_ylabel("σ_max p95 (µm)")

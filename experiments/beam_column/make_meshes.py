@@ -252,7 +252,7 @@ def load_history() -> list[tuple[float, float]]:
     return steps
 
 
-def write_load_path() -> None:
+def write_load_path(folder: Path = HERE) -> None:
     """load_path_platform.csv: the platform group's pose per step; load_path_specimen.csv: the
     specimen's beam-end vertices (y >= BEAM_HELMET) follow the platform; the beam's other
     vertices are at the joint (y = HALF) and stay at rest, so the beam's faces tilt linearly."""
@@ -265,8 +265,8 @@ def write_load_path() -> None:
     for k, (dx, dz) in enumerate(load_history(), start=1):
         platform.append(f"{k},platform,{dx * MM:g},0,{dz * MM:g},0,0,0")
         nodes += [f"{k},{x:.6f},{y:.6f},{z:.6f},{dx * MM:g},0,{dz * MM:g}" for x, y, z in moving]
-    (HERE / "load_path_platform.csv").write_text("\n".join(platform) + "\n")
-    (HERE / "load_path_specimen.csv").write_text("\n".join(nodes) + "\n")
+    (folder / "load_path_platform.csv").write_text("\n".join(platform) + "\n")
+    (folder / "load_path_specimen.csv").write_text("\n".join(nodes) + "\n")
 
 
 def main() -> None:
