@@ -43,7 +43,7 @@ SIGMA_MEANING = ("Cramér-Rao bound of the 3D displacement for one noisy image a
 STRAIN_MEANING = ("sigma_strain_microstrain: Cramér-Rao bound of the in-plane strain (eps_uu, "
                   "eps_vv, tensor shear eps_uv along each region's face frame t_u, t_v) for the "
                   "[analysis] settings: global DIC, the centre of an interior Q4 element; subset "
-                  "DIC, a plane fit over strain_window x strain_window subsets (docs/strain.md). "
+                  "DIC, a plane fit over strain_window x strain_window subsets (docs/theory.md, sec. 8). "
                   "sigma_dic_max_um: the analysis' displacement sigma (an interior Q4 node, or one "
                   "subset), worst direction. One noisy image, as sigma (x sqrt(2) for two).")
 

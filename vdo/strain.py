@@ -1,5 +1,5 @@
 """Strain uncertainty from the mean-field information: global DIC (Q4 elements) and subset DIC
-(subsets + a virtual strain gauge), derivation in docs/strain.md.
+(subsets + a virtual strain gauge), derivation in docs/theory.md (sec. 8).
 
 Per sample the objective gives C = Ω C_d (1/m^2), the information of a 3D displacement
 measured over a patch of area Ω (`vdo.objective`), so C_d = C / Ω (1/m^4) is the information
