@@ -26,11 +26,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import cached_property
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-jax.config.update("jax_enable_x64", True)
+from .configure import require_x64
 
 
 # --------------------------------------------------------------------------------------------
@@ -153,6 +152,9 @@ class Camera:
     tilt: float
     roll: float = 0.0
     principal_offset_px: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self):
+        require_x64()  # K, R and the projections below are float64 JAX computations
 
     @property
     def focal_px(self) -> float:

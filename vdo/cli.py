@@ -1,15 +1,25 @@
-"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR` and `vdo demo`."""
+"""The command line: `vdo evaluate|render|validate|optimize CONFIG --out DIR` and `vdo demo`.
+
+Order of work, so that mistakes and interrupts cost nothing: SIGINT/SIGTERM handlers first
+(`vdo.interrupts`), then the arguments, the output folder (`vdo.runfolder.check_out`) and the
+config file, all before JAX, Mitsuba or matplotlib are imported (this module imports them only
+inside the commands); then `vdo.configure.configure()` and the work. Exit status: 0 done, 1 a
+check that failed (`validate`), 2 a user mistake (one line naming file and field), 3 Mitsuba
+could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from pathlib import Path
 
+from . import interrupts
 from .backend import BackendError
 from .errors import ConfigError
-from .memory import retain_freed_memory
+from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 
@@ -25,22 +35,27 @@ def _print_summary(summary: dict) -> None:
             f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}")
 
 
-def _evaluate(config_path, out, overwrite, quiet):
-    from .config import load
+def _load(args):
+    """The command's validated input (config or validation spec), before any heavy import."""
+    if args.command == "validate":
+        from .validate import load
+    else:
+        from .config import load
+    return load(args.config)
+
+
+def _evaluate(exp, out, overwrite, quiet):
     from .evaluate import evaluate
 
-    exp = load(config_path)
     summary = evaluate(exp, Path(out), overwrite=overwrite, quiet=quiet)
     if not quiet:
         _print_summary(summary)
         print(f"wrote {Path(out).resolve()}")
 
 
-def _render(args):
-    from .config import load
+def _render(exp, args):
     from .render import render_experiment
 
-    exp = load(args.config)
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
                                 overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
@@ -48,10 +63,9 @@ def _render(args):
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
 
 
-def _validate(args):
-    from .validate import load, print_table, validate
+def _validate(spec, args):
+    from .validate import print_table, validate
 
-    spec = load(args.config)
     summary = validate(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite,
                        quiet=args.quiet)
     if not args.quiet:
@@ -62,11 +76,10 @@ def _validate(args):
     return 0 if summary["passed"] and summary["noise_free_passed"] else 1
 
 
-def _optimize(args) -> None:
-    from .config import load
+def _optimize(exp, args) -> None:
     from .optimize import optimize
 
-    result = optimize(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
         before, after = result["joint_p95_um"]
         if before is not None and after is not None:
@@ -77,7 +90,7 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
     ev = sub.add_parser("evaluate", help="coverage of the regions of interest by the cameras")
@@ -108,33 +121,71 @@ def main(argv=None) -> int:
     op.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
-    args = parser.parse_args(argv)
-    retain_freed_memory()  # before the first JAX computation (`vdo.memory`)
+    return parser
+
+
+def _run(args) -> int:
     started = time.perf_counter()
-    try:
-        if args.command == "evaluate":
-            _evaluate(args.config, args.out, args.overwrite, args.quiet)
-        elif args.command == "render":
-            _render(args)
-        elif args.command == "validate":
-            return _validate(args)
-        elif args.command == "optimize":
-            _optimize(args)
-        elif args.command == "demo":
-            if not BUILTIN.is_file():
-                raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
-                                               "from a checkout of the vdo repository")
-            out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
-            _evaluate(BUILTIN, out, False, False)
-            print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
-                  f"{Path(out).resolve() / 'maps' / 'coverage.png'} and samples.vtp in ParaView")
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except BackendError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
+    if args.command == "demo":
+        if not BUILTIN.is_file():
+            raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
+                                           "from a checkout of the vdo repository")
+        args.config, args.overwrite, args.quiet = BUILTIN, False, False
+        args.out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+    check_out(args.out, args.overwrite)
+    loaded = _load(args)
+    from .configure import configure
+
+    configure()
+    if args.command in ("evaluate", "demo"):
+        _evaluate(loaded, args.out, args.overwrite, args.quiet)
+    elif args.command == "render":
+        _render(loaded, args)
+    elif args.command == "validate":
+        return _validate(loaded, args)
+    elif args.command == "optimize":
+        _optimize(loaded, args)
+    if args.command == "demo":
+        print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
+              f"{Path(args.out).resolve() / 'maps' / 'coverage.png'} and samples.vtp in ParaView")
     return 0
+
+
+def _log_to_stderr(quiet: bool) -> logging.Handler:
+    """Show the `vdo` logger's records on stderr: warnings with --quiet, information otherwise."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger = logging.getLogger("vdo")
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    return handler
+
+
+def main(argv=None) -> int:
+    """Run one command; returns the exit status (module docstring)."""
+    restore = interrupts.install()
+    handler = None
+    try:
+        args = _parser().parse_args(argv)
+        handler = _log_to_stderr(getattr(args, "quiet", False))
+        return _run(args)
+    except BaseException as exc:
+        stop = interrupts.interruption(exc)
+        if stop is not None:
+            interrupts.acknowledge()
+            print(stop.message, file=sys.stderr)
+            return stop.exit_code
+        if isinstance(exc, ConfigError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, BackendError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 3
+        raise
+    finally:
+        restore()
+        if handler is not None:
+            logging.getLogger("vdo").removeHandler(handler)
 
 
 if __name__ == "__main__":

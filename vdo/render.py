@@ -309,9 +309,6 @@ def _say(message: str, quiet: bool) -> None:
 
 def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
     """All cameras' DN images in a grid, each titled with its camera name; PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(images)

@@ -565,9 +565,6 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
 
 def plot(rows: list[dict], path, title: str = "") -> None:
     """Measured against expected (√2 x predicted) sigma, log-log, y = x and the [0.8, 1.25] band."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
