@@ -18,6 +18,8 @@ import glob
 import os
 import re
 
+from . import interrupts
+
 MIN_LLVM = 16
 _LLVM_GLOBS = (
     "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
@@ -91,16 +93,17 @@ def _load(variant: str):
                 "DRJIT_LIBLLVM_PATH to a libLLVM.so of version 16 or newer."
             )
         os.environ["DRJIT_LIBLLVM_PATH"] = libllvm  # Dr.Jit reads it when it starts its backend
-    import drjit as dr
-    import mitsuba as mi
+    with interrupts.held():  # no KeyboardInterrupt inside a native module's initialisation
+        import drjit as dr
+        import mitsuba as mi
 
-    try:
-        mi.set_variant(variant)
-    except (ImportError, AttributeError, RuntimeError) as exc:
-        raise BackendError(
-            f"Mitsuba variant {variant!r} could not start ({exc}). For the CPU variant install "
-            "`libllvm19` (sudo apt-get install -y libllvm19)."
-        ) from exc
+        try:
+            mi.set_variant(variant)
+        except (ImportError, AttributeError, RuntimeError) as exc:
+            raise BackendError(
+                f"Mitsuba variant {variant!r} could not start ({exc}). For the CPU variant install "
+                "`libllvm19` (sudo apt-get install -y libllvm19)."
+            ) from exc
     if variant.startswith("llvm"):
         # The pool counts CPUs by affinity, not by container quota.
         dr.set_thread_count(_chosen["threads"] or len(os.sched_getaffinity(0)))

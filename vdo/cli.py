@@ -11,7 +11,9 @@ could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -22,6 +24,8 @@ from .errors import ConfigError
 from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
+            "optimize": "optimize"}
 
 
 def _print_summary(summary: dict) -> None:
@@ -133,10 +137,14 @@ def _run(args) -> int:
         args.config, args.overwrite, args.quiet = BUILTIN, False, False
         args.out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
     check_out(args.out, args.overwrite)
-    loaded = _load(args)
-    from .configure import configure
+    if "jax" not in sys.modules:  # float64 from JAX's first import, should loading the config need it
+        os.environ["JAX_ENABLE_X64"] = "1"
+    with interrupts.held():  # heavy imports (`vdo.interrupts`)
+        loaded = _load(args)
+        from .configure import configure
 
-    configure()
+        configure()
+        importlib.import_module(f".{_MODULES[args.command]}", __package__)
     if args.command in ("evaluate", "demo"):
         _evaluate(loaded, args.out, args.overwrite, args.quiet)
     elif args.command == "render":
@@ -162,7 +170,9 @@ def _log_to_stderr(quiet: bool) -> logging.Handler:
 
 
 def main(argv=None) -> int:
-    """Run one command; returns the exit status (module docstring)."""
+    """Run one command; returns the exit status (module docstring). Called without `argv` it is
+    the program (``vdo ...``, ``python -m vdo``): after an interrupt it ends the process at once,
+    instead of waiting seconds for Dr.Jit's threads to finish the render they were given."""
     restore = interrupts.install()
     handler = None
     try:
@@ -174,6 +184,10 @@ def main(argv=None) -> int:
         if stop is not None:
             interrupts.acknowledge()
             print(stop.message, file=sys.stderr)
+            if argv is None:
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(stop.exit_code)
             return stop.exit_code
         if isinstance(exc, ConfigError):
             print(f"error: {exc}", file=sys.stderr)

@@ -6,8 +6,12 @@ through `vdo.runfolder.run_folder`, which removes its hidden partial folder (or,
 asked for it, writes an anytime result there and keeps it), and `vdo.cli.main` turns it into one
 line on stderr and the status 128 + signal number.
 
-Three things can keep the exception from arriving, and each is handled here:
+Four things can keep the exception from arriving, or make it harmful, and each is handled here:
 
+* An exception raised while a native module initialises (importing JAX or Mitsuba) can crash the
+  interpreter (a segmentation fault was seen with Ctrl-C during ``import jaxlib``). Heavy imports
+  therefore run inside `held()`: a signal that arrives there ends the process at once when no
+  output folder is open (nothing to remove or keep), else is raised when the block ends.
 * Python runs signal handlers between bytecodes, so an exception raised while a garbage-collector
   callback runs (JAX registers one, `_xla_gc_callback`) is printed as "Exception ignored" and
   dropped. `sys.unraisablehook` sees it; the signal is delivered again, to run at the next bytecode
@@ -23,14 +27,18 @@ Three things can keep the exception from arriving, and each is handled here:
 
 from __future__ import annotations
 
+import _thread
 import os
 import shutil
 import signal
 import sys
 import threading
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
-GRACE_S = 5.0
+GRACE_S = 2.0
+REDELIVER_S = 0.01
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
@@ -55,6 +63,8 @@ class Interrupted(KeyboardInterrupt):
 _lock = threading.Lock()
 _received: int | None = None
 _redelivering = False
+_holding = 0
+_pending = False
 _watchdog: threading.Timer | None = None
 _partials: set[Path] = set()
 
@@ -113,7 +123,7 @@ def _abort(signum: int) -> None:
 
 
 def _handler(signum, frame):
-    global _received, _redelivering, _watchdog
+    global _received, _redelivering, _watchdog, _pending
     if _redelivering:
         _redelivering = False
         raise Interrupted(signum)
@@ -124,7 +134,32 @@ def _handler(signum, frame):
         _watchdog = threading.Timer(GRACE_S, _abort, (signum,))
         _watchdog.daemon = True
         _watchdog.start()
+    if _holding:
+        if not _partials:  # nothing written yet, nothing to keep: end at once
+            _abort(signum)
+        _pending = True
+        return
     raise Interrupted(signum)
+
+
+@contextmanager
+def held():
+    """Run the block (heavy imports) without raising `Interrupted` inside it; a signal received
+    meanwhile is raised when the block ends (the watchdog still ends the process after `GRACE_S`)."""
+    global _holding, _pending
+    _holding += 1
+    try:
+        yield
+    finally:
+        _holding -= 1
+    if not _holding and _pending:
+        _pending = False
+        raise Interrupted(_received)
+
+
+def _redeliver(signum: int) -> None:
+    time.sleep(REDELIVER_S)
+    os.kill(os.getpid(), signum)
 
 
 def _unraisable(unraisable):
@@ -132,8 +167,8 @@ def _unraisable(unraisable):
     the signal again, so that the handler runs at the next bytecode of the main thread."""
     global _redelivering
     if isinstance(unraisable.exc_value, Interrupted) and _received is not None:
-        _redelivering = True
-        signal.raise_signal(_received)
+        _redelivering = True  # from another thread, started without waiting: not inside this hook
+        _thread.start_new_thread(_redeliver, (_received,))
         return
     _previous_unraisablehook(unraisable)
 
@@ -145,21 +180,21 @@ def install():
     """Route SIGINT and SIGTERM to `Interrupted` (main thread only). Returns a function that puts
     the previous handlers back (the command line calls it when it returns, so that calling
     `vdo.cli.main` in a test leaves the process as it was)."""
-    global _received, _redelivering, _previous_unraisablehook
+    global _received, _redelivering, _pending, _previous_unraisablehook
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
-    _received, _redelivering = None, False
+    _received, _redelivering, _pending = None, False, False
     previous = {s: signal.signal(s, _handler) for s in SIGNALS}
     previous_hook = sys.unraisablehook
     _previous_unraisablehook = previous_hook
     sys.unraisablehook = _unraisable
 
     def restore():
-        global _received, _redelivering
+        global _received, _redelivering, _pending
         acknowledge()
         for s, h in previous.items():
             signal.signal(s, h)
         sys.unraisablehook = previous_hook
-        _received, _redelivering = None, False
+        _received, _redelivering, _pending = None, False, False
 
     return restore

@@ -370,7 +370,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     from . import maps, report, vtp
     from .errors import ConfigError
     from .lighting import illuminate, pattern_stats, photometry
-    from .runfolder import run_folder
+    from .runfolder import inside, run_folder
     from .scene import all_region_faces, build_scene, camera_body, load_meshes, sample_regions
     from .sensor import save_image
     from .visibility import compute_visibility
@@ -416,11 +416,11 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             linear = render_linear(scene, camera_sensor(cam, spec, spp), render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
-            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth)
+            save_image(inside(tmp / "images", f"{cam.name}{suffix}"), dn, exp.sensor.bit_depth)
             if rs.exr:
                 from .backend import mitsuba
 
-                mitsuba().Bitmap(linear[..., None]).write(str(tmp / "images" / f"{cam.name}.exr"))
+                mitsuba().Bitmap(linear[..., None]).write(str(inside(tmp / "images", f"{cam.name}.exr")))
             dn_images[cam.name] = dn
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))

@@ -48,7 +48,7 @@ from .lighting import illuminate, pattern_stats
 from .predict import SpeckleModel, predict
 from .render import (build_render_scene, contact_sheet, expose, noise_free_dn, render_linear,
                      render_seed, sensor_dict)
-from .runfolder import run_folder
+from .runfolder import inside, run_folder
 from .scene import SceneMesh, SurfaceSamples, build_scene, face_frame, region_faces
 from .sensor import SensorModel
 from .speckle import gradient_energy_table, normalise, pattern_for
@@ -646,7 +646,7 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
             setup = result["setup"]
             contact_sheet({c.name: np.rint(im).astype(np.int64) for c, im in
                            zip(setup.cameras, noise_free_images(setup, False))}, case.sensor.max_dn,
-                          tmp / "images" / f"{case.name}.png", f"{case.name}: noise-free reference")
+                          inside(tmp / "images", f"{case.name}.png"), f"{case.name}: noise-free reference")
         bar.close()
         wall = time.perf_counter() - started
         write_csv(rows, tmp / "validation.csv")
