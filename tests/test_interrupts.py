@@ -145,3 +145,96 @@ def test_settings_live_only_in_configure():
     hits = [f"{p.relative_to(ROOT)}:{n}" for p in sorted((ROOT / "vdo").rglob("*.py"))
             for n, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
     assert hits and all(h.startswith(os.path.join("vdo", "configure.py")) for h in hits), hits
+
+
+SCRIPT = """
+import gc, sys, time
+from vdo import interrupts
+from vdo.runfolder import run_folder
+interrupts.install()
+try:
+    with run_folder(sys.argv[1]) as tmp:
+        (tmp / "half.json").write_text("{")
+{body}
+except BaseException as exc:
+    stop = interrupts.interruption(exc)
+    print(stop.message, file=sys.stderr)
+    sys.exit(stop.exit_code)
+"""
+
+
+def scripted(tmp_path, body: str):
+    """A process that opens a run folder, runs `body` inside it and says "ready" on stdout."""
+    parent = tmp_path / "runs"
+    parent.mkdir()
+    text = SCRIPT.replace("{body}", "\n".join("        " + line for line in body.strip().splitlines()))
+    child = subprocess.Popen([sys.executable, "-c", text, str(parent / "out")], cwd=ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "ready"
+    return child, parent
+
+
+def finish(child, signum, count=1, settle=0.3):
+    time.sleep(settle)  # into the loop that follows "ready"
+    sent = time.monotonic()
+    for _ in range(count):
+        child.send_signal(signum)
+        time.sleep(0.05)
+    _, err = child.communicate(timeout=30)
+    return time.monotonic() - sent, err
+
+
+def test_swallowed_interrupt_ends_by_the_watchdog(tmp_path):
+    """Code that catches the interrupt and carries on (as native code may) is ended after the
+    grace period, with the status of the signal and the partial folder removed."""
+    child, parent = scripted(tmp_path, """
+print("ready", flush=True)
+for _ in range(200):
+    try:
+        time.sleep(0.05)
+    except BaseException:
+        pass
+""")
+    elapsed, err = finish(child, signal.SIGTERM)
+    assert child.returncode == 143 and err.strip() == "vdo: interrupted by SIGTERM"
+    assert GRACE_S - 0.2 < elapsed < PROMPT_S
+    assert list(parent.iterdir()) == []
+
+
+def test_second_signal_ends_at_once(tmp_path):
+    child, parent = scripted(tmp_path, """
+print("ready", flush=True)
+for _ in range(200):
+    try:
+        time.sleep(0.05)
+    except BaseException:
+        pass
+""")
+    elapsed, err = finish(child, signal.SIGINT, count=2)
+    assert child.returncode == 130 and err.strip() == "vdo: interrupted by SIGINT"
+    assert elapsed < GRACE_S - 0.5
+    assert list(parent.iterdir()) == []
+
+
+def test_interrupt_inside_a_gc_callback_is_delivered(tmp_path):
+    """Python drops an exception raised in a gc callback ("Exception ignored in ..."; JAX's
+    `_xla_gc_callback` swallowed Ctrl-C this way): it is raised again outside, well before the
+    watchdog would end the process."""
+    child, parent = scripted(tmp_path, """
+slow = [True]
+def callback(phase, info):
+    if slow[0] and phase == "start":
+        slow[0] = False
+        print("ready", flush=True)
+        time.sleep(1.0)
+gc.callbacks.append(callback)
+junk = []
+for _ in range(10**9):
+    junk.append([[]])
+    if len(junk) > 10000:
+        junk.clear()
+""")
+    elapsed, err = finish(child, signal.SIGINT, settle=0.0)
+    assert child.returncode == 130 and err.strip() == "vdo: interrupted by SIGINT", err
+    assert elapsed < GRACE_S - 0.3
+    assert list(parent.iterdir()) == []
