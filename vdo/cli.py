@@ -16,6 +16,7 @@ import logging
 import os
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from . import interrupts
@@ -159,14 +160,21 @@ def _run(args) -> int:
     return 0
 
 
-def _log_to_stderr(quiet: bool) -> logging.Handler:
-    """Show the `vdo` logger's records on stderr: warnings with --quiet, information otherwise."""
+@contextmanager
+def _log_to_stderr(quiet: bool):
+    """Show the `vdo` logger's records on stderr while the command runs: warnings with --quiet,
+    information otherwise."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(message)s"))
     logger = logging.getLogger("vdo")
+    level = logger.level
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if quiet else logging.INFO)
-    return handler
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 def main(argv=None) -> int:
@@ -174,11 +182,10 @@ def main(argv=None) -> int:
     the program (``vdo ...``, ``python -m vdo``): after an interrupt it ends the process at once,
     instead of waiting seconds for Dr.Jit's threads to finish the render they were given."""
     restore = interrupts.install()
-    handler = None
     try:
         args = _parser().parse_args(argv)
-        handler = _log_to_stderr(getattr(args, "quiet", False))
-        return _run(args)
+        with _log_to_stderr(getattr(args, "quiet", False)):
+            return _run(args)
     except BaseException as exc:
         stop = interrupts.interruption(exc)
         if stop is not None:
@@ -198,8 +205,6 @@ def main(argv=None) -> int:
         raise
     finally:
         restore()
-        if handler is not None:
-            logging.getLogger("vdo").removeHandler(handler)
 
 
 if __name__ == "__main__":

@@ -60,7 +60,7 @@ class Interrupted(KeyboardInterrupt):
         return 128 + self.signum
 
 
-_lock = threading.Lock()
+_lock = threading.RLock()  # the handler may run while the main thread holds it
 _received: int | None = None
 _redelivering = False
 _holding = 0
