@@ -25,6 +25,7 @@ from .errors import ConfigError
 from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+# per command: the module whose import is heavy (done inside `interrupts.held`)
 _MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
             "optimize": "optimize"}
 
@@ -49,13 +50,13 @@ def _load(args):
     return load(args.config)
 
 
-def _evaluate(exp, out, overwrite, quiet):
+def _evaluate(exp, args):
     from .evaluate import evaluate
 
-    summary = evaluate(exp, Path(out), overwrite=overwrite, quiet=quiet)
-    if not quiet:
+    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    if not args.quiet:
         _print_summary(summary)
-        print(f"wrote {Path(out).resolve()}")
+        print(f"wrote {Path(args.out).resolve()}")
 
 
 def _render(exp, args):
@@ -137,27 +138,24 @@ def _run(args) -> int:
                                            "from a checkout of the vdo repository")
         args.config, args.overwrite, args.quiet = BUILTIN, False, False
         args.out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
-    check_out(args.out, args.overwrite)
+    if getattr(args, "out", None) is not None:
+        check_out(args.out, getattr(args, "overwrite", False))
     if "jax" not in sys.modules:  # float64 from JAX's first import, should loading the config need it
         os.environ["JAX_ENABLE_X64"] = "1"
     with interrupts.held():  # heavy imports (`vdo.interrupts`)
-        loaded = _load(args)
+        loaded = _load(args) if hasattr(args, "config") else None
         from .configure import configure
 
         configure()
-        importlib.import_module(f".{_MODULES[args.command]}", __package__)
-    if args.command in ("evaluate", "demo"):
-        _evaluate(loaded, args.out, args.overwrite, args.quiet)
-    elif args.command == "render":
-        _render(loaded, args)
-    elif args.command == "validate":
-        return _validate(loaded, args)
-    elif args.command == "optimize":
-        _optimize(loaded, args)
+        if args.command in _MODULES:
+            importlib.import_module(f".{_MODULES[args.command]}", __package__)
+    handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
+               "optimize": _optimize}[args.command]
+    status = handler(loaded, args) or 0
     if args.command == "demo":
         print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
               f"{Path(args.out).resolve() / 'maps' / 'coverage.png'} and samples.vtp in ParaView")
-    return 0
+    return status
 
 
 @contextmanager
