@@ -31,6 +31,7 @@ import numpy as np
 
 from vdo import objective as ob
 from vdo.camera import look_at_angles, rotation
+from vdo.configure import configure
 from vdo.memory import retain_freed_memory
 from vdo.speckle import generate_pattern, gradient_energy_table, normalise
 
@@ -184,6 +185,7 @@ def main():
                     help="do not keep freed memory in the heap (vdo.memory)")
     args = ap.parse_args()
     retained = False if args.default_malloc else retain_freed_memory()
+    configure(retain_memory=False, compilation_cache=False)  # x64; compile times measured cold
     cam, smp, dense, table = build(args.samples, args.cameras)
     st = ob.Settings()
     print(f"vdo.objective benchmark: {args.cameras} cameras x {args.samples} samples, "

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo import config
-from vdo.memory import retain_freed_memory
+from vdo.configure import configure
 from vdo.optimize import Problem, judge, solve
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -75,7 +75,7 @@ def main():
     parser.add_argument("--rounds", type=int, default=None, help="override [optimize] rounds")
     parser.add_argument("--max-steps", type=int, default=None, help="override [optimize] max_steps")
     args = parser.parse_args()
-    retain_freed_memory()  # as the command line does (`vdo.memory`)
+    configure(compilation_cache=False)  # as the command line does, compile times measured cold
     exp = config.load(args.config)
     opt = dataclasses.replace(exp.optimize, starts=1)
     if args.rounds:

@@ -17,6 +17,7 @@ from pathlib import Path
 os.environ.setdefault("VDO_VARIANT", "llvm_ad_rgb")
 
 from vdo import config, scene  # noqa: E402
+from vdo.configure import configure  # noqa: E402
 from vdo.render import (build_render_scene, camera_sensor, expose, render_linear,  # noqa: E402
                         render_seed, scaled_camera)
 from vdo.speckle import pattern_for  # noqa: E402
@@ -32,6 +33,7 @@ def main():
     parser.add_argument("--spp", type=int, default=16)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    configure()
 
     exp = config.load(args.config)
     t0 = time.perf_counter()

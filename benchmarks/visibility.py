@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo import config, scene, visibility
+from vdo.configure import configure
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -69,6 +70,7 @@ def main():
     parser.add_argument("--spacing-mm", type=float, default=3.5)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
+    configure()
 
     exp = config.load(args.config)
     meshes = scene.load_meshes(exp)

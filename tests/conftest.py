@@ -9,6 +9,14 @@ import numpy as np
 import pytest
 import trimesh
 
+from vdo.configure import configure
+
+
+def pytest_configure(config):
+    """The process-wide settings the command line applies (float64, the persistent compilation
+    cache, Agg, malloc options), once per test session."""
+    configure()
+
 
 def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""

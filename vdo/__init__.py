@@ -20,6 +20,8 @@ from __future__ import annotations
 import importlib
 import logging
 
+from .configure import configure   # a name, not the submodule: imported here on purpose
+
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 _EXPORTS = {
@@ -35,7 +37,6 @@ _EXPORTS = {
     "Prediction": ("vdo.predict", "Prediction"),
     "Visibility": ("vdo.visibility", "Visibility"),
     "summary": ("vdo.report", "state_summary"),
-    "configure": ("vdo.configure", "configure"),
     "evaluate_experiment": ("vdo.evaluate", "evaluate"),
     "write_evaluation": ("vdo.evaluate", "write_evaluation"),
     "render_experiment": ("vdo.render", "render_experiment"),
@@ -44,7 +45,7 @@ _EXPORTS = {
 }
 # The command functions carry a suffix: `vdo.evaluate`, `vdo.render`, ... are the modules.
 
-__all__ = sorted(_EXPORTS)
+__all__ = sorted(_EXPORTS) + ["configure"]
 
 
 def __getattr__(name: str):

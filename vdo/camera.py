@@ -31,11 +31,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import cached_property
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-jax.config.update("jax_enable_x64", True)
+from .configure import require_x64
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,6 +235,9 @@ class Camera:
     @property
     def distorted(self) -> bool:
         return any(c != 0.0 for c in self.distortion)
+
+    def __post_init__(self):
+        require_x64()  # K, R and the projections below are float64 JAX computations
 
     @property
     def focal_px(self) -> float:

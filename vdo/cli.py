@@ -1,18 +1,36 @@
-"""The command line: `vdo evaluate CONFIG --out DIR`, `vdo render CONFIG --out DIR`,
-`vdo export CONFIG_OR_RUN --format F --out DIR` and `vdo demo`."""
+"""The command line: `vdo evaluate|render|validate|optimize CONFIG --out DIR`, `vdo export`,
+`vdo sweep`, `vdo report` and `vdo demo`.
+
+Order of work, so that mistakes and interrupts cost nothing: SIGINT/SIGTERM handlers first
+(`vdo.interrupts`), then the arguments, the output folder (`vdo.runfolder.check_out`) and the
+config file, all before JAX, Mitsuba or matplotlib are imported (this module imports them only
+inside the commands); then `vdo.configure.configure()` and the work. Exit status: 0 done, 1 a
+check that failed (`validate`), 2 a user mistake (one line naming file and field), 3 Mitsuba
+could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import logging
+import os
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
+from . import interrupts
 from .backend import BackendError
 from .errors import ConfigError
-from .memory import retain_freed_memory
+from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+# per command: the module whose import is heavy (done inside `interrupts.held`)
+_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
+            "optimize": "optimize", "export": "formats.export", "sweep": "sweep",
+            "report": "html_report"}
+_OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
 def _print_summary(summary: dict) -> None:
@@ -26,24 +44,27 @@ def _print_summary(summary: dict) -> None:
             f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}")
 
 
-def _evaluate(config_path, out, overwrite, quiet):
-    from .config import load
+def _load(args):
+    """The command's validated input (config or validation spec), before any heavy import."""
+    if args.command == "validate":
+        from .validate import load
+    else:
+        from .config import load
+    return load(args.config)
+
+
+def _evaluate(exp, args):
     from .evaluate import evaluate
 
-    exp = load(config_path)
-    summary = evaluate(exp, Path(out), overwrite=overwrite, quiet=quiet)
-    if not quiet:
+    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    if not args.quiet:
         _print_summary(summary)
-        from .checks import print_checks
-        print_checks(summary["design_checks"])
-        print(f"wrote {Path(out).resolve()}")
+        print(f"wrote {Path(args.out).resolve()}")
 
 
-def _render(args):
-    from .config import load
+def _render(exp, args):
     from .render import render_experiment
 
-    exp = load(args.config)
     if args.series is not None:
         from .series import render_series
 
@@ -61,10 +82,9 @@ def _render(args):
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
 
 
-def _validate(args):
-    from .validate import load, print_table, validate
+def _validate(spec, args):
+    from .validate import print_table, validate
 
-    spec = load(args.config)
     summary = validate(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite,
                        quiet=args.quiet)
     if not args.quiet:
@@ -75,11 +95,10 @@ def _validate(args):
     return 0 if summary["passed"] and summary["noise_free_passed"] else 1
 
 
-def _optimize(args) -> None:
-    from .config import load
+def _optimize(exp, args) -> None:
     from .optimize import optimize
 
-    result = optimize(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
         before, after = result["joint_p95_um"]
         if before is not None and after is not None:
@@ -90,13 +109,23 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
-def _export(args) -> None:
+def _export(_, args) -> None:
     from .formats.export import export
 
     pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
     for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
         print(f"wrote {path}")
-def _sweep(args) -> int:
+
+
+def _report(_, args) -> None:
+    from .html_report import write_report
+
+    if not Path(args.run_dir).is_dir():
+        raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
+    print(f"wrote {write_report(args.run_dir).resolve()}")
+
+
+def _sweep(_, args) -> int:
     from .sweep import load_sweep, sweep
 
     result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
@@ -108,7 +137,7 @@ def _sweep(args) -> int:
     return 1 if result["failed"] else 0
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
     ev = sub.add_parser("evaluate", help="coverage of the regions of interest by the cameras")
@@ -158,43 +187,83 @@ def main(argv=None) -> int:
     sw.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
-    args = parser.parse_args(argv)
-    retain_freed_memory()  # before the first JAX computation (`vdo.memory`)
-    started = time.perf_counter()
-    try:
-        if args.command == "evaluate":
-            _evaluate(args.config, args.out, args.overwrite, args.quiet)
-        elif args.command == "render":
-            _render(args)
-        elif args.command == "validate":
-            return _validate(args)
-        elif args.command == "optimize":
-            _optimize(args)
-        elif args.command == "export":
-            _export(args)
-        elif args.command == "report":
-            from .html_report import write_report
+    return parser
 
-            if not Path(args.run_dir).is_dir():
-                raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
-            print(f"wrote {write_report(args.run_dir).resolve()}")
-        elif args.command == "sweep":
-            return _sweep(args)
-        elif args.command == "demo":
-            if not BUILTIN.is_file():
-                raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
-                                               "from a checkout of the vdo repository")
-            out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
-            _evaluate(BUILTIN, out, False, False)
-            print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
-                  f"{Path(out).resolve() / 'maps' / 'coverage.png'} and samples.vtp in ParaView")
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except BackendError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 3
-    return 0
+
+def _run(args) -> int:
+    started = time.perf_counter()
+    if args.command == "demo":
+        if not BUILTIN.is_file():
+            raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
+                                           "from a checkout of the vdo repository")
+        args.config, args.overwrite, args.quiet = BUILTIN, False, False
+        args.out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+    if getattr(args, "out", None) is not None and args.command not in _OWN_FOLDER:
+        check_out(args.out, getattr(args, "overwrite", False))
+    if "jax" not in sys.modules:  # float64 from JAX's first import, should loading the config need it
+        os.environ["JAX_ENABLE_X64"] = "1"
+    with interrupts.held():  # heavy imports (`vdo.interrupts`)
+        loaded = _load(args) if hasattr(args, "config") else None
+        from .configure import configure
+
+        configure()
+        if args.command in _MODULES:
+            importlib.import_module(f".{_MODULES[args.command]}", __package__)
+    handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
+               "optimize": _optimize, "export": _export, "report": _report,
+               "sweep": _sweep}[args.command]
+    status = handler(loaded, args) or 0
+    if args.command == "demo":
+        print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
+              f"{Path(args.out).resolve() / 'report.html'} in a browser")
+    return status
+
+
+@contextmanager
+def _log_to_stderr(quiet: bool):
+    """Show the `vdo` logger's records on stderr while the command runs: warnings with --quiet,
+    information otherwise."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger = logging.getLogger("vdo")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def main(argv=None) -> int:
+    """Run one command; returns the exit status (module docstring). Called without `argv` it is
+    the program (``vdo ...``, ``python -m vdo``): after an interrupt it ends the process at once,
+    instead of waiting seconds for Dr.Jit's threads to finish the render they were given."""
+    restore = interrupts.install()
+    try:
+        args = _parser().parse_args(argv)
+        with _log_to_stderr(getattr(args, "quiet", False)):
+            return _run(args)
+    except BaseException as exc:
+        stop = interrupts.interruption(exc)
+        if stop is not None:
+            interrupts.acknowledge()
+            print(stop.message, file=sys.stderr)
+            if argv is None:
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(stop.exit_code)
+            return stop.exit_code
+        if isinstance(exc, ConfigError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, BackendError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 3
+        raise
+    finally:
+        restore()
 
 
 if __name__ == "__main__":

@@ -11,8 +11,8 @@ its pages again: 14,000 per call, 49 ms of kernel time on the 2-core CI machine 
 (M_ARENA_MAX = 1; a thread arena cannot hold a block larger than 64 MB, so it would map it),
 no `mmap` for large blocks (M_MMAP_MAX = 0) and no trimming of the heap's free top
 (M_TRIM_THRESHOLD maximal). The process then keeps its peak heap and reuses it. Call it before
-the first JAX computation: threads that allocated before keep their own arenas. The command line
-(`vdo.cli`) and `benchmarks/objective.py`, `benchmarks/optimize.py` call it; a no-op where the C
+the first JAX computation: threads that allocated before keep their own arenas. `vdo.configure`
+calls it (so the command line, the tests and `benchmarks/` do); a no-op where the C
 library is not glibc.
 """
 

@@ -146,9 +146,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo.camera import rotation
+from vdo.configure import require_x64
 from vdo.speckle import GradientEnergyTable, g_aniso_lookup
-
-jax.config.update("jax_enable_x64", True)
 
 __all__ = [
     "CameraParams",
@@ -189,6 +188,9 @@ class CameraParams(eqx.Module):
     cy: jax.Array
     width: jax.Array
     height: jax.Array
+
+    def __check_init__(self):
+        require_x64()  # float64 inputs would silently become float32
 
     @classmethod
     def from_cameras(cls, cameras) -> "CameraParams":

@@ -376,9 +376,6 @@ def _say(message: str, quiet: bool) -> None:
 
 def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
     """All cameras' DN images in a grid, each titled with its camera name; PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     n = len(images)
@@ -498,7 +495,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     from .errors import ConfigError
     from .formats.export import default_pairs, write_all
     from .lighting import photometry
-    from .runfolder import run_folder
+    from .runfolder import inside, run_folder
     from .sensor import save_image
     from .state import bodies, layout_state, prepare
 
@@ -541,12 +538,12 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
             dn = expose(linear, exp.sensor, seed, i)
             timings[cam.name] = time.perf_counter() - t0
-            save_image(tmp / "images" / f"{cam.name}{suffix}", dn, exp.sensor.bit_depth,
+            save_image(inside(tmp / "images", f"{cam.name}{suffix}"), dn, exp.sensor.bit_depth,
                        rs.bit_alignment)
             if rs.exr:
                 from .backend import mitsuba
 
-                mitsuba().Bitmap(linear[..., None]).write(str(tmp / "images" / f"{cam.name}.exr"))
+                mitsuba().Bitmap(linear[..., None]).write(str(inside(tmp / "images", f"{cam.name}.exr")))
             dn_images[cam.name] = dn
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))

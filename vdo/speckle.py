@@ -45,8 +45,6 @@ import numpy as np
 import scipy.fft
 from scipy.special import i0e, i1e, j0
 
-jax.config.update("jax_enable_x64", True)
-
 __all__ = [
     "GradientEnergyTable",
     "generate_pattern",

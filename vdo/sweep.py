@@ -400,29 +400,16 @@ def check_point(point: Point) -> str | None:
 # One point (runs in a worker)
 # --------------------------------------------------------------------------------------------
 def _configure_worker(threads: int | None) -> None:
-    """Set up a worker process once, before its first point.
-
-    LEAD: replace the body by `vdo.configure.configure(threads=threads)` when that lands. Until
-    then: float64 in JAX, freed memory kept in the heap (`vdo.memory`), and `threads` CPU
-    threads for Dr.Jit (and one for XLA:CPU when `threads` is 1), so that the workers of one
-    machine share its cores instead of each taking all of them."""
+    """Set up a worker process once, before its first point (`vdo.configure`): float64 in JAX,
+    the compilation cache, freed memory kept in the heap, and `threads` CPU threads for Dr.Jit
+    (and one for XLA:CPU when `threads` is 1), so that the workers of one machine share its
+    cores instead of each taking all of them."""
     if threads == 1:
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                    + " --xla_cpu_multi_thread_eigen=false").strip()
-    import jax
+    from .configure import configure
 
-    from .memory import retain_freed_memory
-
-    jax.config.update("jax_enable_x64", True)
-    retain_freed_memory()
-    if threads:
-        import drjit as dr
-
-        from .backend import mitsuba
-
-        mitsuba()
-        if dr.has_backend(dr.JitBackend.LLVM):
-            dr.set_thread_count(threads)
+    configure(threads=threads)
 
 
 def _local_worker(threads: int | None) -> None:
@@ -757,9 +744,6 @@ def plot(spec: SweepSpec, rows: list[dict], records: dict, folder: Path) -> list
     ≥ 1/2/3) against each axis with more than one value, one line per region (median over the
     other axes' points); figures/pareto.png: [sweep] pareto_y against pareto_x (default: the
     most important region's σ_max p95 against the camera count, when that varies)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     done = [r for r in rows if r["status"] == "done"]

@@ -56,7 +56,7 @@ from .lighting import pattern_stats
 from .predict import SpeckleModel
 from .render import (build_render_scene, contact_sheet, expose, noise_free_dn, render_linear,
                      render_seed, sensor_dict)
-from .runfolder import run_folder
+from .runfolder import inside, run_folder
 from .scene import SceneMesh, SurfaceSamples, face_frame, region_faces
 from .sensor import SensorModel
 from .speckle import gradient_energy_table, normalise, pattern_for
@@ -779,9 +779,6 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
 
 def plot(rows: list[dict], path, title: str = "") -> None:
     """Measured against expected (√2 x predicted) sigma, log-log, y = x and the [0.8, 1.25] band."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
@@ -866,7 +863,7 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
             setup = result["setup"]
             contact_sheet({c.name: np.rint(im).astype(np.int64) for c, im in
                            zip(setup.cameras, noise_free_images(setup, False))}, case.sensor.max_dn,
-                          tmp / "images" / f"{case.name}.png", f"{case.name}: noise-free reference")
+                          inside(tmp / "images", f"{case.name}.png"), f"{case.name}: noise-free reference")
         bar.close()
         wall = time.perf_counter() - started
         strain_cases = [c.name for c in chosen if c.strain is not None]

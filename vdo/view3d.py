@@ -15,16 +15,13 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection  # noqa: E402
-
-from . import maps, vtp  # noqa: E402
-from .errors import ConfigError  # noqa: E402
-from .scene import SurfaceSamples, face_frame  # noqa: E402
+from . import maps, vtp
+from .errors import ConfigError
+from .scene import SurfaceSamples, face_frame
 
 log = logging.getLogger(__name__)
 
