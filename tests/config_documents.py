@@ -6,7 +6,6 @@ The documents refer to the mesh file "plate.stl" next to the config (see `plate_
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 import numpy as np
@@ -207,6 +206,3 @@ def same(a, b, path="e") -> None:
     else:
         assert type(a) is type(b) and a == b, (path, a, b)
 
-
-def is_finite_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)

@@ -852,17 +852,10 @@ class Table:
 
     # The helpers below read fields that have no schema row (validate.py's cases).
     def _value(self, key, default, kind):
-        if key not in self.data:
-            if default is REQUIRED:
-                raise self.error(key, "is required")
-            return default
-        return self.read(key, kind)
+        return self.read(key, kind) if key in self.data else self.raw(key, default)
 
     def string(self, key, default=REQUIRED, choices=None):
         return self._value(key, default, Text(tuple(choices) if choices else None))
-
-    def boolean(self, key, default=REQUIRED):
-        return self._value(key, default, Flag())
 
     def number(self, key, default=REQUIRED, low=None, high=None, positive=False):
         return self._value(key, default, Real(low, high, positive))
@@ -872,9 +865,6 @@ class Table:
 
     def vector(self, key, length, default=REQUIRED, positive=False):
         return self._value(key, default, Vector(length, positive))
-
-    def points(self, key, minimum=2):
-        return self._value(key, REQUIRED, Points(minimum))
 
 
 def as_numbers(value):
