@@ -6,12 +6,14 @@ The documents refer to the mesh file "plate.stl" next to the config (see `plate_
 from __future__ import annotations
 
 import dataclasses
-import math
 from pathlib import Path
 
 import numpy as np
 import trimesh
+from hypothesis import Phase
 from hypothesis import strategies as st
+
+NO_SHRINK = tuple(p for p in Phase if p != Phase.shrink)   # a failure is reported at once, unshrunk
 
 NAMES = st.from_regex(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,8}", fullmatch=True)
 REAL = st.floats(-100, 100, allow_nan=False, allow_infinity=False)
@@ -130,7 +132,7 @@ def documents(draw, rails=True):
     sp = {}
     texel = draw(st.floats(0.05, 0.6))
     optional(draw, sp, "texel_mm", st.just(texel))
-    optional(draw, sp, "dot_diameter_mm", st.floats(3 * max(texel, 0.25), 20))
+    optional(draw, sp, "dot_diameter_mm", st.floats(3.01 * max(texel, 0.25), 20))
     optional(draw, sp, "coverage", st.floats(0.01, 0.95))
     optional(draw, sp, "strokes", st.integers(0, 20))
     optional(draw, sp, "tile_texels", st.integers(64, 4096))
@@ -204,6 +206,3 @@ def same(a, b, path="e") -> None:
     else:
         assert type(a) is type(b) and a == b, (path, a, b)
 
-
-def is_finite_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)

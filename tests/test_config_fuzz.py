@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import tomli_w
 import trimesh
-from config_documents import JUNK, plate_file, same
+from config_documents import JUNK, NO_SHRINK, plate_file, same
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
@@ -26,6 +26,7 @@ SCALE = int(os.environ.get("VDO_FUZZ_SCALE", "1"))
 
 def fuzz(examples):
     return settings(max_examples=examples * SCALE, deadline=None, derandomize=True, database=None,
+                    phases=NO_SHRINK,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                            HealthCheck.function_scoped_fixture])
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tomli_w
-from config_documents import documents, plate_file, same
+from config_documents import NO_SHRINK, documents, plate_file, same
 from hypothesis import HealthCheck, given, settings
 
 from vdo import config
@@ -50,7 +50,7 @@ def folder(tmp_path_factory):
     return path
 
 
-@settings(max_examples=100, deadline=None, derandomize=True,
+@settings(max_examples=100, deadline=None, derandomize=True, phases=NO_SHRINK,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 @given(doc=documents())
 def test_generated_experiments_round_trip(folder, doc):

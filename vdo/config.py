@@ -570,11 +570,14 @@ def _sensor_rows() -> tuple[Row, ...]:
     """[sensor]: `SensorModel`'s fields; it keeps the defaults and checks the ranges itself."""
     defaults = {f.name: f.default for f in dataclasses.fields(SensorModel)}
     kinds = {"bit_depth": Whole()}
-    docs = {"quantum_efficiency": ("0 < QE ≤ 1", ""), "full_well_e": ("electrons > 0", ""),
-            "read_noise_e": ("electrons rms ≥ 0", ""), "bit_depth": ("integer 8–16", ""),
-            "gain_dn_per_e": ("DN per e- > 0", "full well → top DN"),
-            "offset_dn": ("DN ≥ 0", "2^(bit_depth − 7)"),
-            "photons_per_unit": ("photons > 0", "a linear value of 1 fills 70 % of the full well")}
+    docs = {"quantum_efficiency": ("fraction of photons converted to electrons, in (0, 1]", ""),
+            "full_well_e": ("full-well capacity, electrons > 0", ""),
+            "read_noise_e": ("read noise, electrons rms ≥ 0", ""),
+            "bit_depth": ("A/D converter resolution, 8 to 16 bits", ""),
+            "gain_dn_per_e": ("system gain, DN per electron > 0", "full well → top DN"),
+            "offset_dn": ("dark offset, DN in [0, 2^bit_depth − 1)", "2^(bit_depth − 7)"),
+            "photons_per_unit": ("photons per pixel per unit of the linear render value, > 0",
+                                 "a linear value of 1 fills 70 % of the full well")}
     return tuple(Row(name, kinds.get(name, Real()), defaults[name], doc=docs[name][0],
                      shown=docs[name][1], attr=name) for name in SENSOR_FIELDS)
 
@@ -985,17 +988,10 @@ class Table:
 
     # The helpers below read fields that have no schema row (validate.py's cases).
     def _value(self, key, default, kind):
-        if key not in self.data:
-            if default is REQUIRED:
-                raise self.error(key, "is required")
-            return default
-        return self.read(key, kind)
+        return self.read(key, kind) if key in self.data else self.raw(key, default)
 
     def string(self, key, default=REQUIRED, choices=None):
         return self._value(key, default, Text(tuple(choices) if choices else None))
-
-    def boolean(self, key, default=REQUIRED):
-        return self._value(key, default, Flag())
 
     def number(self, key, default=REQUIRED, low=None, high=None, positive=False):
         return self._value(key, default, Real(low, high, positive))
@@ -1005,9 +1001,6 @@ class Table:
 
     def vector(self, key, length, default=REQUIRED, positive=False):
         return self._value(key, default, Vector(length, positive))
-
-    def points(self, key, minimum=2):
-        return self._value(key, REQUIRED, Points(minimum))
 
 
 def as_numbers(value):
