@@ -91,7 +91,7 @@ def measured(tmp_path_factory):
     V.render_case(setup)
     res0, px_err = V.noise_free_check(setup)
     assert np.all(np.abs(px_err) < 0.02), px_err
-    est = np.array([V.correlate_seed(setup, k, res0.xi) for k in range(SEEDS)])
+    est = np.array([V.correlate_seed(setup, k, [r.xi for r in res0]) for k in range(SEEDS)])
     return setup, est.std(axis=0, ddof=1)
 
 

@@ -287,8 +287,23 @@ def test_bad_export_arguments(experiment, tmp_path, capsys, args, message):
 
 def test_unsafe_camera_name_is_refused(plate_experiment, tmp_path):
     path = plate_experiment(cameras=CAMERAS.replace('name = "away"', 'name = "../away"'))
-    with pytest.raises(ConfigError, match="cannot name an export file"):
+    with pytest.raises(ConfigError, match="names output files"):       # refused at load
         export(path, "opencv", tmp_path / "out")
+    # a run folder's layout.json is not checked by the config: the export refuses the name itself
+    import json
+
+    from vdo import config, report
+
+    run = tmp_path / "run"
+    run.mkdir()
+    exp = config.load(plate_experiment(cameras=CAMERAS))
+    report.write_config(run / "config.toml", exp)
+    layout = report.layout(exp.cameras())
+    layout["cameras"][0]["name"] = "../away"
+    (run / "layout.json").write_text(json.dumps(layout))
+    with pytest.raises(ConfigError, match="cannot name an export file"):
+        export(run, "opencv", tmp_path / "out2")
+    assert not (tmp_path / "away.yml").exists() and not (tmp_path / "out2").exists()
 
 
 def test_write_all_skips_what_a_format_cannot_hold(experiment, tmp_path, caplog):

@@ -986,7 +986,7 @@ class Table:
             raise self.error(r.key, "is required")
         return default
 
-    # The helpers below read fields that have no schema row (validate.py's cases).
+    # The helpers below read fields that have no schema row (validate.py's cases, sweep files).
     def _value(self, key, default, kind):
         return self.read(key, kind) if key in self.data else self.raw(key, default)
 
@@ -998,6 +998,9 @@ class Table:
 
     def integer(self, key, default=REQUIRED, low=None):
         return self._value(key, default, Whole(low))
+
+    def boolean(self, key, default=REQUIRED):
+        return self._value(key, default, Flag())
 
     def vector(self, key, length, default=REQUIRED, positive=False):
         return self._value(key, default, Vector(length, positive))

@@ -491,7 +491,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     """
     from tqdm import tqdm
 
-    from . import maps, report, vtp
+    from . import html_report, maps, report, vtp
     from .errors import ConfigError
     from .formats.export import default_pairs, write_all
     from .lighting import photometry
@@ -574,4 +574,5 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
                                         "seconds": round(timings[c.name], 3)} for c in cameras},
                    "total_seconds": round(time.perf_counter() - started, 3)}
         (tmp / "render.json").write_text(json.dumps(summary, indent=2) + "\n")
+        html_report.write_report(tmp)
     return summary

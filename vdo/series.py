@@ -36,7 +36,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     the series.json dict."""
     from tqdm import tqdm
 
-    from . import report
+    from . import html_report, report
     from .formats.calibration import file_stem
     from .formats.export import default_pairs, write_all
     from .keyframes import at_step, load_path_of
@@ -91,4 +91,5 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
                    "cameras": [c.name for c in cameras],
                    "total_seconds": round(time.perf_counter() - started, 3)}
         (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
+        html_report.write_report(tmp)
     return summary

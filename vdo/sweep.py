@@ -691,6 +691,9 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
 
     rows = [row(p, records[p.key], several) for p in points]
     figures = plot(spec, rows, records, out / "figures")
+    from .html_report import write_report
+
+    write_report(out)
     status = Counter(r["status"] for r in rows)
     return {"points": len(points), "done": status["done"], "failed": status["failed"],
             "computed": len(runnable), "reused": sum(p.key in finished for p in points),

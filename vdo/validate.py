@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import strain
+from . import html_report, strain
 from .camera import Camera, look_at_angles
 from .config import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
@@ -898,6 +898,7 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
                              else v) for k, v in r.items()}
                             for r in rows]}
         (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        html_report.write_report(tmp)
     return summary
 
 

@@ -16,10 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from ..config import NAME_PATTERN
 from ..errors import ConfigError
 
 MM = 1e3   # millimetres per metre: the exports' length unit
-_SAFE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")
+_SAFE = re.compile(NAME_PATTERN)     # the names the config accepts (`vdo.config`)
 
 
 def file_stem(name: str, source) -> str:
