@@ -92,7 +92,8 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     # the run folder: files, moves along the rail in mm, and a layout that loads again
     names = sorted(p.name for p in out.iterdir())
     assert names == ["constraints.json", "convergence.png", "history.csv", "layout.json",
-                     "moves.csv", "optimized.toml", "summary_after.json", "summary_before.json"]
+                     "moves.csv", "optimized.toml", "optimizer.json", "summary_after.json",
+                     "summary_before.json"]
     moves = list(csv.DictReader((out / "moves.csv").open()))
     rail_length_mm = 2000.0
     for row, u0 in zip(moves, (0.48, 0.52)):

@@ -34,9 +34,13 @@ violation that remains.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import logging
 import math
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -52,13 +56,16 @@ import optimistix as optx  # noqa: E402
 import trimesh  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from scipy.special import expit  # noqa: E402
+from tqdm import tqdm  # noqa: E402
 
 from . import constraints, objective, report  # noqa: E402
 from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
 from .config import Experiment  # noqa: E402
+from .errors import ConfigError  # noqa: E402
 from .lighting import illuminate, panel_frame  # noqa: E402
 from .obscuration import ObscurationRenderer  # noqa: E402
-from .predict import predict, samples_for_objective, settings, speckle_model, view_data  # noqa: E402
+from .objective import _bucket  # noqa: E402
+from .predict import Prediction, samples_for_objective, settings, speckle_model, view_data  # noqa: E402
 from .runfolder import run_folder  # noqa: E402
 from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # noqa: E402
                     camera_body_points, camera_body_spheres, load_meshes, sample_regions)
@@ -74,6 +81,9 @@ ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
+LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
+
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------------------------
@@ -129,15 +139,34 @@ class Parameterization:
         """Aim-relative angles: u free and the axis not vertical (where the heading is undefined)."""
         return "u" in idx and abs(math.cos(cam.tilt)) > 1e-3
 
-    def poses(self, theta):
-        """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays."""
+    @property
+    def held(self) -> dict:
+        """The layout the parameters are offsets from, as arrays (what `poses` reads besides θ):
+        optical centres (C, 3), pan, tilt, roll (C,) of the hand layout and the aim points (C, 3)."""
+        return dict(position=jnp.asarray(np.array([c.position for c in self.cameras], dtype=float)),
+                    **{k: jnp.asarray([float(getattr(c, k)) for c in self.cameras])
+                       for k in ("pan", "tilt", "roll")},
+                    aims=jnp.asarray(self.aims))
+
+    @property
+    def signature(self) -> tuple:
+        """What the traced `poses` depends on besides its array inputs (`held`): two
+        parameterisations with the same signature share compiled programs."""
+        return (tuple(tuple(sorted(idx.items())) for idx in self.index),
+                tuple(self._aimed(idx, c) for idx, c in zip(self.index, self.cameras)),
+                tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs))
+
+    def poses(self, theta, held: dict | None = None):
+        """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays; `held` (default
+        `self.held`) gives the held values and aim points."""
+        held = self.held if held is None else held
         pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
-        for cam, spec, rail, idx, aim in zip(self.cameras, self.exp.camera_specs, self.rails,
-                                             self.index, self.aims):
+        for c, (cam, spec, rail, idx) in enumerate(zip(self.cameras, self.exp.camera_specs, self.rails,
+                                                       self.index)):
             p = (rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset if "u" in idx
-                 else jnp.asarray(cam.position, dtype=float))
+                 else held["position"][c])
             if self._aimed(idx, cam):
-                d = jnp.asarray(aim) - p
+                d = held["aims"][c] - p
                 base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])))
                 relative = self.RELATIVE
             else:
@@ -147,7 +176,7 @@ class Parameterization:
                 if k in idx:
                     angles[k].append(base[k] + theta[idx[k]] if k in relative else theta[idx[k]])
                 else:
-                    angles[k].append(jnp.asarray(getattr(cam, k), dtype=float))
+                    angles[k].append(held[k][c])
         return jnp.stack(pos), *(jnp.stack(angles[k]) for k in ("pan", "tilt", "roll"))
 
     def u(self, theta) -> list:
@@ -248,11 +277,12 @@ class Problem:
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
         self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
         self.cams0 = self.param.cameras
+        self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
-        self.near_points = jnp.asarray(constraints.near_points(
+        self.near_points = jnp.asarray(_pad_axis(constraints.near_points(
             self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
-            + opt.clearance + CLEARANCE_MARGIN))
+            + opt.clearance + CLEARANCE_MARGIN), 1, 1e3))
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
@@ -273,19 +303,28 @@ class Problem:
         else:
             self.fov_limits = reference.fov_limits
         self.fov = self._fov_groups(self.start)
-        self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
-        self.history: list[dict] = []    # every objective evaluation
-        self.verdicts: list[dict] = []   # every exact judgement (`judge`)
-        self._t0 = time.perf_counter()
-        self._label = (0, 0)
-        self.size = jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
-        self.value_and_grad = jax.jit(jax.value_and_grad(self._total))
-        solver = optx.BFGS(rtol=1e-6, atol=1e-6)
-        # one compiled solve per pair-list size and step count, reused by every round and start
-        self.minimise = eqx.filter_jit(lambda args, max_steps: optx.minimise(
-            self._scaled, solver, jnp.zeros_like(args[0]), args=args, max_steps=max_steps,
-            throw=False).value)
+
+    @property
+    def obscuration(self) -> "ObscurationTerm":
+        return self.run.obscuration
+
+    @property
+    def data(self) -> dict:
+        """Every array the traced objective reads (`terms`): passed to the compiled programs as
+        an argument, so that another layout of the same structure (another start, a lens trial)
+        reuses them."""
+        c0 = self.cams0
+        return dict(
+            held=self.param.held, focal_px=jnp.asarray([c.focal_px for c in c0]),
+            cx=jnp.asarray([c.principal_point[0] for c in c0]),
+            cy=jnp.asarray([c.principal_point[1] for c in c0]),
+            size=jnp.asarray([[c.width, c.height] for c in c0], dtype=float),
+            samples=self.obj_samples, energy=self.speckle.table,
+            pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
+            fov=self.fov, body_local=self.body_local, near_points=self.near_points,
+            spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
+            lit=self.lit_samples)
 
     def _paths(self) -> list[np.ndarray]:
         """Where each optical centre can go: its rail (+ offset) sampled every ~2 cm, if u is
@@ -311,7 +350,7 @@ class Problem:
         vis_obstacles = compute_visibility(obstacles, cams, self.samples, limit, progress=False)
         illum = illuminate(scene, self.exp.lights, self.samples, self.exp.render.ambient_radiance)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     view_data(self.exp, self.obj_samples, vis, illum, self.speckle))
+                     self.run.padded(view_data(self.exp, self.obj_samples, vis, illum, self.speckle)))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
@@ -338,7 +377,7 @@ class Problem:
         groups = [(c, r) for c in range(len(self.cams0)) for r in np.flatnonzero(self.assigned[c])]
         facing = state.vis.in_front & state.vis.facing
         members = [np.flatnonzero((self.samples.region == r) & facing[c]) for c, r in groups]
-        m = max([1] + [idx.size for idx in members])
+        m = _bucket(max([1] + [idx.size for idx in members]))   # few sizes: few compilations
         points, area = np.zeros((len(groups), m, 3)), np.zeros((len(groups), m))
         ramp = np.ones(len(groups))
         for g, ((c, r), idx) in enumerate(zip(groups, members)):
@@ -380,47 +419,41 @@ class Problem:
         used, inverse = np.unique(faces, return_inverse=True)
         return SceneMesh(spec.name, "specimen", mesh.vertices[used], inverse.reshape(-1, 3))
 
-    # -- the objective -------------------------------------------------------------------
-    def terms(self, theta, views) -> dict:
+    # -- the objective (traced: reads only `data` and the static structure) ------------------
+    def terms(self, theta, views, data) -> dict:
         """The score and each penalty at θ (JAX scalars): score and the `PENALTIES`."""
-        pos, pan, tilt, roll = self.param.poses(theta)
-        c0 = self.cams0
-        f = jnp.asarray([c.focal_px for c in c0])
-        cx, cy = (jnp.asarray([c.principal_point[k] for c in c0]) for k in (0, 1))
-        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, self.size[:, 0], self.size[:, 1])
+        pos, pan, tilt, roll = self.param.poses(theta, data["held"])
+        f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
+        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1])
         R = rotation(pan, tilt, roll)
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
         clearance = self.exp.optimize.clearance
+        fov = data["fov"]
         return dict(
-            score=objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings),
-            angle=constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles + ANGLE_MARGIN),
+            score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
+            angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"]),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
-                K, R, t, self.size[:, 0], self.size[:, 1], self.fov["camera"], self.fov["points"],
-                self.fov["area"], self.fov["ramp"]), self.fov["limit"], FOV_MARGIN),
+                K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
+                fov["ramp"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
-                constraints.body_points_world(self.body_local, R, pos), self.near_points,
+                constraints.body_points_world(data["body_local"], R, pos), data["near_points"],
                 clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)),
-            shadow=0.0 if self.lit_samples is None or self.sphere_local is None else constraints.shadow_penalty(
-                constraints.body_points_world(self.sphere_local, R[self.bodied], pos[self.bodied]),
-                self.sphere_radii, *self.lit_samples, SHADOW_MARGIN))
+            shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
+                constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
+                data["spheres"][1], *data["lit"], SHADOW_MARGIN))
 
-    def _total(self, theta, views, weights):
+    def _total(self, theta, views, weights, data):
         """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
-        terms = self.terms(theta, views)
-        jax.debug.callback(self._record, terms)
+        terms = self.terms(theta, views, data)
+        jax.debug.callback(self.run.record, terms)
         return weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
 
     def _scaled(self, y, args):
         """J at θ = origin + scale y, divided by `norm` (`_round`)."""
-        origin, scale, norm, views, weights = args
-        return self._total(origin + scale * y, views, weights) / norm
-
-    def _record(self, terms):
-        self.history.append(dict(start=self._label[0], round=self._label[1],
-                                 wall_s=time.perf_counter() - self._t0,
-                                 **{k: float(v) for k, v in terms.items()}))
+        origin, scale, norm, views, weights, data = args
+        return self._total(origin + scale * y, views, weights, data) / norm
 
     # -- exact checks ---------------------------------------------------------------------
     def check(self, state: State) -> list[dict]:
@@ -480,17 +513,170 @@ def _light_lost(problem: Problem, state: State) -> np.ndarray:
                      for r in range(len(s.region_names))])
 
 
+def _pad_axis(a: np.ndarray, axis: int, value: float) -> np.ndarray:
+    """`a` padded with `value` along `axis` to a size of few distinct values (`objective._bucket`),
+    so that layouts of one run seldom change the compiled programs' shapes."""
+    n = a.shape[axis]
+    widths = [(0, 0)] * a.ndim
+    widths[axis] = (0, _bucket(n) - n)
+    return np.pad(a, widths, constant_values=value)
+
+
+# --------------------------------------------------------------------------------------------
+# Stopping early, and what a run shares
+# --------------------------------------------------------------------------------------------
+class Stop:
+    """A request to end the search early, checked between solver steps and between rounds (never
+    inside a JAX or Dr.Jit call): `request` sets it (a signal handler, a caller), and so does the
+    clock once `time_limit` seconds have passed since it was made. `reason` is None,
+    "time_limit" or "interrupted"."""
+
+    def __init__(self, time_limit: float = math.inf):
+        self.deadline = time.perf_counter() + time_limit
+        self.reason: str | None = None
+
+    def request(self, reason: str = "interrupted") -> None:
+        if self.reason is None:
+            self.reason = reason
+
+    def __call__(self) -> bool:
+        """True once a stop was requested or the time limit has passed."""
+        if self.reason is None and time.perf_counter() >= self.deadline:
+            self.reason = "time_limit"
+        return self.reason is not None
+
+    @property
+    def left(self) -> float:
+        """Seconds to the time limit (inf without one)."""
+        return max(self.deadline - time.perf_counter(), 0.0)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Stop):
+    """While inside: SIGINT (Ctrl-C) and SIGTERM request `stop` instead of raising; a second
+    SIGINT raises KeyboardInterrupt as usual. The previous handlers come back on exit. Outside the
+    main thread (where Python delivers no signals) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, frame):
+        if signum == signal.SIGINT and stop.reason == "interrupted":
+            raise KeyboardInterrupt
+        stop.request("interrupted")
+        log.warning("%s: stopping after the current step; the best layout so far will be written "
+                    "(Ctrl-C again to abort without writing)", signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+class _Run:
+    """What the starts and lens trials of one run share: the compiled solver programs (one pair
+    per structure, `Parameterization.signature`; the layout's arrays are their argument,
+    `Problem.data`, so another start or lens reuses them), the obscuration term, the record of
+    every evaluation (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
+    size of the pair lists, how each round ended, the stop request and the progress line."""
+
+    def __init__(self, n_cameras: int, max_obscuration: float):
+        self.obscuration = ObscurationTerm(n_cameras, max_obscuration)
+        self.history: list[dict] = []
+        self.verdicts: list[dict] = []
+        self.best: "Result | None" = None
+        self.t0 = time.perf_counter()
+        self.stop = Stop()
+        self.blocks = None   # (block, blocks, chunk) of every pair list
+        self.progress = _Progress(None)
+        self.rounds: list[str] = []
+        self.label = (0, 0)
+        self._programs: dict = {}
+
+    def programs(self, problem: "Problem"):
+        """(init, step): BFGS's init and one step on `problem._scaled`, jit-compiled once per
+        structure (the first problem of that structure defines the traced function; the others
+        differ from it only in `Problem.data`, passed in `args`)."""
+        key = problem.param.signature
+        if key not in self._programs:
+            solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+            fn = lambda y, args: (problem._scaled(y, args), None)
+            f_struct = jax.ShapeDtypeStruct((), jnp.float64)
+            self._programs[key] = (
+                eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, None, frozenset())),
+                eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2]))
+        return self._programs[key]
+
+    def record(self, terms):
+        self.history.append(dict(start=self.label[0], round=self.label[1],
+                                 wall_s=time.perf_counter() - self.t0,
+                                 **{k: float(v) for k, v in terms.items()}))
+
+    def padded(self, views: objective.ViewData) -> objective.ViewData:
+        """`views` with padding blocks (occlusion 0: weight and gradient exactly 0) up to the
+        run's fixed block count, so that every pair list of the run has the same shapes and the
+        programs compile once: the first list sets it with 25 % headroom, a longer one raises it."""
+        L = views.block
+        B = views.camera.shape[0] // L
+        if self.blocks is None or self.blocks[0] != L or self.blocks[1] < B:
+            chunk = views.chunk
+            self.blocks = (L, -(-int(1.25 * B) // chunk) * chunk, chunk)
+        _, target, chunk = self.blocks
+        extra = (target - B) * L
+        fill = lambda a, value: jnp.concatenate([a, jnp.full(extra, value, a.dtype)])
+        geometry = jnp.concatenate([views.geometry, jnp.broadcast_to(
+            views.geometry[:, :1, :1], (12, target - B, L))], axis=1)   # a real sample's: finite
+        return objective.ViewData(fill(views.camera, 0), fill(views.sample, 0),
+                                  fill(views.occlusion, 0.0), fill(views.contrast, 0.0),
+                                  fill(views.noise, 1.0), geometry, L, chunk)
+
+
+class _Progress:
+    """One progress line (tqdm) over the planned solver steps: start, round, step, the best
+    score so far (µm; feasible layouts first) and the time left, the least of the time limit
+    and the steps left at the mean time per step so far (refreshes and checks included)."""
+
+    def __init__(self, planned: int | None, stop: Stop | None = None, show: bool = False):
+        self.planned, self.stop, self.done = planned, stop, 0
+        self.t0 = time.perf_counter()
+        self.bar = tqdm(total=planned, desc="optimize", unit="step", disable=not show or planned is None,
+                        bar_format="{desc}: {n}/{total} steps {postfix}", dynamic_ncols=True)
+
+    def left(self) -> float:
+        rate = (time.perf_counter() - self.t0) / max(self.done, 1)
+        est = rate * max((self.planned or 0) - self.done, 0)
+        return min(est, self.stop.left) if self.stop is not None else est
+
+    def step(self, where: str, best: "Result | None") -> None:
+        self.done += 1
+        if best is None:
+            text = "no layout judged yet"
+        else:
+            text = f"best {best.score:.4g} µm" + ("" if best.violations == 0 else
+                                                  f" ({best.violations} violation(s))")
+        self.bar.set_postfix_str(f"{where}, {text}, ~{self.left():.0f} s left", refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 # --------------------------------------------------------------------------------------------
 # The solver loop
 # --------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class Result:
+    """A judged layout of `problem` (the lenses it was built with) at θ."""
+
     theta: np.ndarray
     state: State
     score: float
     checks: list
     violations: int
     start: int
+    problem: "Problem"
 
     @property
     def rank(self):
@@ -502,10 +688,12 @@ def judge(problem: Problem, theta, state: State, start: int) -> Result:
     """The exact verdict on a refreshed layout: score and every constraint checked."""
     checks = problem.check(state)
     result = Result(np.asarray(theta, float), state, problem.exact_score(state), checks,
-                    sum(not e["met"] for e in checks), start)
-    problem.verdicts.append(dict(start=start, wall_s=time.perf_counter() - problem._t0,
-                                 score=result.score, violations=result.violations,
-                                 theta=result.theta))
+                    sum(not e["met"] for e in checks), start, problem)
+    run = problem.run
+    run.verdicts.append(dict(start=start, wall_s=time.perf_counter() - run.t0,
+                             score=result.score, violations=result.violations, theta=result.theta))
+    if run.best is None or result.rank < run.best.rank:
+        run.best = result   # the best layout of the run so far, whatever stops it
     return result
 
 
@@ -515,87 +703,149 @@ def _violated(result: Result) -> str:
                      + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
 
 
-def solve(problem: Problem, progress: bool = False) -> list[Result]:
-    """Every start, every round; per start the best layout met at the end of a round (or the
-    start itself), judged exactly (`Result.rank`); returns them sorted best first."""
+def solve(problem: Problem, say=None, starts: int | None = None, first_label: int = 0) -> list[Result]:
+    """Every start, every round, until they end or `problem.run.stop`; per start the best layout
+    met at the end of a round (or the start itself), judged exactly (`Result.rank`); returns
+    them sorted best first. Start k > 0 perturbs the hand layout at random; starts are labelled
+    from `first_label` in the records."""
     opt = problem.exp.optimize
+    run = problem.run
+    say = say or (lambda m: None)
     rng = np.random.default_rng(opt.seed)
     results = []
-    problem._t0 = time.perf_counter()   # history and verdicts count wall time from here
-    problem.history, problem.verdicts = [], []
-    for start in range(opt.starts):
+    n_starts = opt.starts if starts is None else starts
+    for k_start in range(n_starts):
+        if results and run.stop():
+            break
+        start = first_label + k_start
         theta = problem.param.theta0.copy()
-        if start > 0:
+        if k_start > 0:
             theta = theta + _perturbation(problem.param, rng)
-        state = problem.start if start == 0 else problem.refresh(theta)   # the hand layout: cast once
+        state = problem.start if k_start == 0 else problem.refresh(theta)   # hand layout: cast once
         best = result = judge(problem, theta, state, start)
         problem.masked = set()
         label = 0
 
-        def run(w_score, mu, name):
+        def one_round(w_score, mu, name):
             nonlocal theta, state, result, best, label
-            problem._label = (start, label)
+            run.label = (start, label)
             problem.track_obscured(state, result.checks)
-            theta = _round(problem, theta, state.views, (w_score, mu), opt.max_steps)
+            where = f"start {start + 1} {name}"
+            moved, status = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where)
+            run.rounds.append(status)
+            label += 1
+            if np.array_equal(moved, theta):
+                return
+            theta = moved
             state = problem.refresh(theta)
             result = judge(problem, theta, state, start)
             best = min(best, result, key=lambda r: r.rank)
-            label += 1
-            if progress:
-                print(f"  start {start + 1}/{opt.starts} {name}: score {result.score:.4g}, "
-                      f"{result.violations} violation(s) {_violated(result)}", flush=True)
+            say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
+                f"{result.violations} violation(s) {_violated(result)}"
+                + ("" if status in ("converged", "max_steps") else f" (stopped: {status})"))
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
         for k in range(FEASIBILITY_ROUNDS):
-            if result.violations == 0:
+            if result.violations == 0 or run.stop():
                 break
-            run(0.0, 1.0, f"feasibility round {k + 1}")
+            one_round(0.0, 1.0, f"feasibility round {k + 1}")
         for k in range(opt.rounds):
-            run(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            if run.stop():
+                break
+            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
         results.append(best)
     return sorted(results, key=lambda r: r.rank)
 
 
-def choose_lenses(problem: Problem, best: Result, progress: bool = False) -> tuple[Problem, Result]:
-    """The discrete outer loop over `[optimize] lenses`: one greedy pass over the moving cameras;
-    for each, every other focal length of the catalogue is tried from the best layout so far
-    (its rail positions and aims), the layout is optimised again (`solve`) and the lens kept
-    when the result ranks better (`Result.rank`). Constraints keep the hand layout's meaning
+def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
+    """The discrete choice over `[optimize] lenses` by screening: every (moving camera, other
+    focal length) option is judged once at the best layout so far (its rail positions and aims;
+    one ray cast and the exact score and checks, no optimisation), the options are ranked
+    (`Result.rank`) and only the `LENS_TRIALS` best that rank better than the current layout
+    are optimised again (`solve`, one start), one camera at a time; an option is kept when its
+    optimised layout ranks better. Constraints keep the hand layout's meaning
     (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
-    current = problem
+    say = say or (lambda m: None)
+    run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
+
+    def trial(current: Result, c: int, focal: float) -> Problem:
+        specs = current.problem.param.specs_at(current.theta)
+        specs[c] = dataclasses.replace(specs[c], focal_length=focal)
+        return Problem(current.problem.exp.with_cameras(specs), reference=problem)
+
+    options = []
+    label = max(v["start"] for v in run.verdicts) + 1
     for c in moving:
-        name = problem.cams0[c].name
         for focal in problem.exp.optimize.lenses:
-            if math.isclose(focal, current.exp.camera_specs[c].focal_length, rel_tol=1e-9):
+            if run.stop():
+                break
+            if math.isclose(focal, best.problem.exp.camera_specs[c].focal_length, rel_tol=1e-9):
                 continue
-            specs = current.param.specs_at(best.theta)
-            specs[c] = dataclasses.replace(specs[c], focal_length=focal)
-            trial = Problem(current.exp.with_cameras(specs), reference=problem)
-            result = solve(trial)[0]
-            kept = result.rank < best.rank
-            if progress:
-                print(f"  lens {name} {focal * 1e3:g} mm: score {result.score:.4g}, "
-                      f"{result.violations} violation(s){' (kept)' if kept else ''}", flush=True)
-            if kept:
-                current, best = trial, result
-    return current, best
+            t = trial(best, c, focal)
+            screened = judge(t, t.param.theta0, t.start, label)
+            options.append((screened.rank, c, focal))
+            say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm at the current layout: score "
+                f"{screened.score:.4g} µm, {screened.violations} violation(s)")
+    promising = sorted(o for o in options if o[0] < best.rank)[:LENS_TRIALS]
+    changed = set()
+    for _, c, focal in promising:
+        if run.stop() or c in changed:
+            continue
+        label = max(v["start"] for v in run.verdicts) + 1
+        result = solve(trial(best, c, focal), say, starts=1, first_label=label)[0]
+        kept = result.rank < best.rank
+        say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm optimised: score {result.score:.4g} µm, "
+            f"{result.violations} violation(s){' (kept)' if kept else ''}")
+        if kept:
+            best = result
+            changed.add(c)
+    return best
 
 
-def _round(problem: Problem, theta, views, weights, max_steps) -> np.ndarray:
+def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) -> tuple[np.ndarray, str]:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
-    step moves about one natural unit (`Parameterization.scale`) along the steepest parameter."""
-    origin = jnp.asarray(theta)
-    scale = jnp.asarray(problem.param.scale)
-    weights = jnp.asarray(weights, dtype=float)
-    _, g = problem.value_and_grad(origin, views, weights)
-    norm = float(jnp.max(jnp.abs(g * scale)))
+    step moves about one natural unit (`Parameterization.scale`) along the steepest parameter.
+    The solver runs step by step (one compiled step per call, `_Run`), checking the stop
+    request between steps. Returns θ at the last accepted step and how the round ended:
+    "converged" (the solver's tolerance), "max_steps", "time_limit", "interrupted" or "failed"
+    (a non-finite step)."""
+    run = problem.run
+    origin = jnp.asarray(theta, dtype=jnp.float64)
+    scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
+    weights = jnp.asarray(weights, dtype=jnp.float64)
+    data = problem.data
+    y = jnp.zeros_like(origin)
+    args = lambda norm: (origin, scale, jnp.asarray(norm, dtype=jnp.float64), views, weights, data)
+    if run.stop():
+        return np.asarray(theta), run.stop.reason
+    # the first step of a solve accepts its start: there, its gradient is dJ/dy at norm 1
+    init, step = run.programs(problem)
+    _, probe = step(y, args(1.0), init(y, args(1.0)))
+    norm = float(jnp.max(jnp.abs(probe.f_info.grad)))
     if not np.isfinite(norm) or norm == 0:
-        return np.asarray(theta)
-    y = problem.minimise((origin, scale, jnp.asarray(norm), views, weights), max_steps)
-    y = y if np.all(np.isfinite(np.asarray(y))) else jnp.zeros_like(origin)
-    return np.asarray(origin + scale * y)
+        return np.asarray(theta), "converged"
+    solver_args = args(norm)
+    state = init(y, solver_args)
+    status = "max_steps"
+    for k in range(max_steps):
+        if run.stop():
+            status = run.stop.reason
+            break
+        y_new, state = step(y, solver_args, state)
+        run.progress.step(f"{where}, step {k + 1}/{max_steps}", run.best)
+        if not np.all(np.isfinite(np.asarray(y_new))):
+            status = "failed"
+            break
+        y = y_new
+        if bool(state.terminate):
+            status = "converged"
+            break
+        if not bool(state.result == optx.RESULTS.successful):
+            status = "failed"
+            break
+    return np.asarray(origin + scale * y), status
 
 
 def _perturbation(param: Parameterization, rng) -> np.ndarray:
@@ -609,25 +859,55 @@ def _perturbation(param: Parameterization, rng) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # The command
 # --------------------------------------------------------------------------------------------
-def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
+DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
+
+
+def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
+             time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None) -> dict:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
-    constraints.json, history.csv, convergence.png and moves.csv into `out`."""
+    constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
+
+    Anytime: the search ends when every round has run, after `time_limit` seconds (> 0), or on a
+    stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
+    it then owns); in every case the folder is written with the best layout judged so far
+    (feasible first, `Result.rank`), and optimizer.json says how the search ended."""
+    if not time_limit > 0:
+        raise ConfigError("command line", "--time-limit",
+                          f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
     say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
-    problem = Problem(exp)
-    say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
-        f"{len(problem.pairs)} camera pairs sharing a region")
-    best = solve(problem, progress=not quiet)[0]
-    history, verdicts = problem.history, problem.verdicts
-    final = problem
-    if "lens" in exp.optimize.free:
-        say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in exp.optimize.lenses)} mm")
-        final, best = choose_lenses(problem, best, progress=not quiet)
+    own = stop is None
+    stop = Stop(time_limit) if own else stop
+    stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
+    with (stop_on_signals(stop) if own else contextlib.nullcontext()):
+        problem = Problem(exp)
+        run = problem.run
+        run.stop = stop
+        opt = exp.optimize
+        planned = opt.starts * (opt.rounds + 1) * opt.max_steps
+        if "lens" in opt.free:
+            planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
+        run.progress = _Progress(planned, stop, show=not quiet)
+        say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
+            f"{len(problem.pairs)} camera pairs sharing a region; time limit {time_limit:g} s")
+        try:
+            solve(problem, say)
+            if "lens" in opt.free and not stop():
+                say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in opt.lenses)} mm")
+                choose_lenses(problem, run.best, say)
+        finally:
+            run.progress.close()
+    best = run.best
+    final = best.problem
+    status = stop.reason or ("converged" if all(r == "converged" for r in run.rounds) else "max_steps")
+    say(f"search ended: {status} after {time.perf_counter() - run.t0:.0f} s; writing {out}")
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     checks_before = problem.check(problem.start)
+    score_before = _score_parts(problem, problem.start)
+    score_after = _score_parts(final, best.state)
     joint = _joint_p95(before), _joint_p95(after)
-    say(f"best: start {best.start + 1}, score {problem.exact_score(problem.start):.4g} -> {best.score:.4g}, "
-        f"{best.violations} constraint violation(s)")
+    say(f"best: start {best.start + 1}, score {score_before['score_um']:.4g} -> "
+        f"{score_after['score_um']:.4g} µm, {best.violations} constraint violation(s)")
     with run_folder(out, overwrite) as tmp:
         optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
         report.write_config(tmp / "optimized.toml", optimized)
@@ -638,18 +918,57 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "violations": best.violations,
             "violated": [e for e in best.checks if not e["met"]],
             "after": best.checks, "before": checks_before})
-        _write_history(tmp / "history.csv", history)
-        _plot_history(tmp / "convergence.png", history, verdicts, exp.name)
-        _write_moves(tmp / "moves.csv", problem, final, best)
-    return {"score_before": problem.exact_score(problem.start), "score_after": best.score,
+        report.write_json(tmp / "optimizer.json", {
+            "status": status, "converged": status == "converged",
+            "time_limit_s": time_limit if math.isfinite(time_limit) else None,
+            "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0,
+            "rounds": run.rounds, "evaluations": len(run.history), "layouts_judged": len(run.verdicts),
+            "best_start": best.start, "score_before": score_before, "score_after": score_after})
+        _write_history(tmp / "history.csv", run.history)
+        _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
+        _write_moves(tmp / "moves.csv", problem, best)
+    return {"score_before": score_before["score_um"], "score_after": best.score,
+            "score_regions_um": score_after["regions"], "status": status,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}
 
 
+def _prediction(problem: Problem, state: State) -> Prediction:
+    """The report's fields (`vdo.predict.predict`) from the layout's own pair list (the run's
+    fixed shapes: one compilation for every layout)."""
+    f = objective.fields(objective.CameraParams.from_cameras(state.cameras), problem.obj_samples,
+                         state.views, problem.speckle.table, problem.settings)
+    return Prediction(np.asarray(f.sensitivity), np.asarray(f.sigma_max), np.asarray(f.sigma_xyz),
+                      np.asarray(f.measured))
+
+
 def _summary(problem: Problem, state: State) -> dict:
-    pred = predict(problem.exp, state.cameras, problem.samples, state.vis, state.illumination,
-                   problem.speckle)
-    return report.summary(problem.exp, problem.samples, state.vis, pred)
+    return report.summary(problem.exp, problem.samples, state.vis, _prediction(problem, state))
+
+
+def _score_parts(problem: Problem, state: State) -> dict:
+    """The score in physical units: overall (what the optimizer minimises, µm) and per region,
+    each the smooth percentile of σ_max it is (`vdo.objective`: the power mean
+    (Σ ω σ^q / Σ ω)^(1/q) of the smooth σ_max over the region's samples, ω = area, q =
+    `score_power`), plus the coverage term (µm; 0 when every sample has its minimum camera count)."""
+    st = problem.settings
+    f = objective.fields(objective.CameraParams.from_cameras(state.cameras), problem.obj_samples,
+                         state.views, problem.speckle.table, st)
+    sigma = np.asarray(f.sigma_max_smooth) / st.sigma_unit
+    smp = problem.obj_samples
+    region, area = np.asarray(smp.region), np.asarray(smp.area)
+    omega = area * np.asarray(smp.importance)[region]
+    q = st.score_power
+    mean = lambda w, x: float((np.sum(w * x ** q) / np.sum(w)) ** (1 / q)) if np.sum(w) > 0 else None
+    short = np.maximum(np.asarray(smp.min_cameras)[region] - np.asarray(f.coverage), 0.0)
+    regions = {name: dict(sigma_smooth_um=mean(area * (region == r), sigma),
+                          coverage_um=float(st.coverage_weight * np.sum(area * (region == r) * short ** 2)
+                                            / np.sum(area * (region == r))))
+               for r, name in enumerate(problem.samples.region_names)}
+    overall = mean(omega, sigma)
+    coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
+    return dict(score_um=overall + coverage, sigma_smooth_um=overall, coverage_um=coverage,
+                power=q, regions=regions)
 
 
 def _joint_p95(summary: dict):
@@ -690,10 +1009,10 @@ def _plot_history(path, history, verdicts, name):
     plt.close(fig)
 
 
-def _write_moves(path, problem: Problem, final: Problem, best: Result):
+def _write_moves(path, problem: Problem, best: Result):
     """Per camera: rail and rail position (mm along the bar), pan, tilt (deg) and focal length
-    (mm), before (`problem`, the hand layout) and after (`best`, a layout of `final`)."""
-    u0, u1 = problem.param.u(problem.param.theta0), final.param.u(best.theta)
+    (mm), before (`problem`, the hand layout) and after (`best`)."""
+    u0, u1 = problem.param.u(problem.param.theta0), best.problem.param.u(best.theta)
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["camera", "rail", "rail_position_mm_before", "rail_position_mm_after",
