@@ -200,3 +200,78 @@ def test_lens_without_a_catalogue_is_a_config_error(tmp_path):
 
     with pytest.raises(ConfigError, match=r'optimize.free: lists "lens" but no lenses_mm'):
         lens_experiment(tmp_path, "").optimize
+
+
+def _layout_reloads(out):
+    """optimized.toml loads again and gives the cameras of layout.json."""
+    reloaded = config.load(out / "optimized.toml")
+    layout = json.loads((out / "layout.json").read_text())["cameras"]
+    for cam, saved in zip(reloaded.cameras(), layout):
+        np.testing.assert_allclose(cam.R, saved["R"], atol=1e-9)
+        np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
+    return reloaded
+
+
+FOLDER = ["constraints.json", "convergence.png", "history.csv", "layout.json", "moves.csv",
+          "optimized.toml", "optimizer.json", "summary_after.json", "summary_before.json"]
+
+
+def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_path, monkeypatch):
+    """A real SIGINT sent to this process at the 3rd solver step: the search must end there (no
+    further step), and the folder must be complete, say "interrupted", and hold a layout that
+    reloads and ranks no worse than the hand layout."""
+    import os
+    import signal
+
+    from vdo import optimize as opt_module
+
+    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    steps = []
+    original = opt_module._Progress.step
+
+    def step(self, where, best):
+        steps.append(where)
+        if len(steps) == 3:
+            os.kill(os.getpid(), signal.SIGINT)   # delivered to this (main) thread at once
+        original(self, where, best)
+
+    monkeypatch.setattr(opt_module._Progress, "step", step)
+    out = tmp_path / "run"
+    result = optimize(exp, out, quiet=True)
+    assert len(steps) == 3
+    assert result["status"] == "interrupted"
+    summary = json.loads((out / "optimizer.json").read_text())
+    assert summary["status"] == "interrupted" and not summary["converged"]
+    assert summary["rounds"][-1] == "interrupted"
+    assert sorted(p.name for p in out.iterdir()) == FOLDER
+    _layout_reloads(out)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handler restored
+
+
+def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path):
+    """With a time limit shorter than one round the search stops on time: the folder is complete,
+    optimizer.json says "time_limit", and the layout (the best judged so far) reloads."""
+    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    out = tmp_path / "run"
+    result = optimize(exp, out, quiet=True, time_limit=1e-3)
+    assert result["status"] == "time_limit"
+    summary = json.loads((out / "optimizer.json").read_text())
+    assert summary["status"] == "time_limit" and summary["time_limit_s"] == 1e-3
+    assert sorted(p.name for p in out.iterdir()) == FOLDER
+    _layout_reloads(out)
+
+
+@pytest.mark.parametrize("limit", ["0", "-5"])
+def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit):
+    from vdo.cli import main
+
+    cams = CAMERA.format(name="a", u=0.48)
+    experiment(tmp_path, cams, ["a"])
+    code = main(["optimize", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "run"),
+                 "--time-limit", limit])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "--time-limit" in err[0] and "positive" in err[0]
+    assert not (tmp_path / "run").exists()

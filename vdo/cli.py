@@ -66,8 +66,15 @@ def _optimize(args) -> None:
     from .config import load
     from .optimize import optimize
 
-    result = optimize(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    result = optimize(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
+                      time_limit=args.time_limit)
     if not args.quiet:
+        print(f"search: {result['status']}; score (smooth sigma_max percentile) "
+              f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
+        for name, r in result["score_regions_um"].items():
+            if r["sigma_smooth_um"] is not None:
+                print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
+                      + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 0 else ""))
         before, after = result["joint_p95_um"]
         if before is not None and after is not None:
             print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
@@ -105,6 +112,8 @@ def main(argv=None) -> int:
     op.add_argument("config", help="experiment TOML file (its [optimize] table says what moves)")
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    op.add_argument("--time-limit", type=float, default=900.0, metavar="SECONDS",
+                    help="end the search after this long and write the best layout so far (default 900)")
     op.add_argument("--quiet", action="store_true")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")

@@ -86,6 +86,7 @@ class CameraSpec:
     body: bool = True
     f_number: float | None = None    # with focus_distance: thin lens with depth of field
     focus_distance: float | None = None  # m
+    mount: str | None = None     # a zone or fixed [[mount]] (rail mounts set `rail`)
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,10 @@ class Experiment:
     sensor: SensorModel = SensorModel()
     render: RenderSpec = RenderSpec()
     optimize: OptimizeSpec = OptimizeSpec()
+    mounts: tuple["MountSpec", ...] = ()   # zone and fixed mounts (rail mounts are in `rails`)
+
+    def mount(self, name: str) -> "MountSpec":
+        return next(m for m in self.mounts if m.name == name)
 
     def rail(self, name: str) -> Rail:
         return next(r for r in self.rails if r.name == name)
@@ -192,6 +197,7 @@ class Experiment:
                "region": [_region_to_dict(r) for r in self.regions],
                "rail": [{"name": r.name, "control_points_m": r.control_points.tolist(),
                          "degree": r.degree, "weights": r.weights.tolist()} for r in self.rails],
+               "mount": [_mount_to_dict(m) for m in self.mounts],
                "camera": [_camera_to_dict(c) for c in self.camera_specs],
                "light": [{"name": lt.name, "position_m": lt.position.tolist(),
                           "target_m": lt.target.tolist(), "size_m": list(lt.size),
@@ -224,6 +230,8 @@ def _camera_to_dict(c: CameraSpec) -> dict:
          "focal_mm": c.focal_length * 1e3}
     if c.rail is not None:
         d |= {"rail": c.rail, "u": c.u, "offset_m": c.offset.tolist()}
+    elif c.mount is not None:
+        d |= {"mount": c.mount, "position_m": c.position.tolist()}
     else:
         d["position_m"] = c.position.tolist()
     if c.target is not None:
@@ -388,8 +396,8 @@ def load(path) -> Experiment:
 def parse(data: dict, path: Path) -> Experiment:
     """Validate an already-parsed TOML document that came from `path`."""
     path = Path(path).resolve()
-    top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "camera",
-                                  "light", "speckle", "sensor", "render", "optimize"))
+    top = Table(data, "", path, ("experiment", "evaluation", "mesh", "region", "rail", "mount",
+                                  "camera", "light", "speckle", "sensor", "render", "optimize"))
     exp = Table(top.raw("experiment"), "experiment", path, ("name", "description"))
     ev = Table(top.raw("evaluation", {}), "evaluation", path,
                 ("sample_spacing_mm", "incidence_limit_deg", "patch_mm", "min_cameras"))
@@ -410,11 +418,14 @@ def parse(data: dict, path: Path) -> Experiment:
     rails = tuple(_rail(t) for t in _entries(top, "rail", path,
                                              ("name", "control_points_m", "degree", "weights"),
                                              required=False))
+    mount_rails, mounts = _mounts(top, path)
+    rails += mount_rails
     rail_names = {r.name for r in rails}
-    cameras = tuple(_camera(t, rail_names) for t in _entries(
+    cameras = tuple(_camera(t, rail_names, mounts) for t in _entries(
         top, "camera", path, ("name", "sensor_mm", "sensor_width_mm", "pixels", "focal_mm", "rail",
                               "u", "offset_m", "position_m", "target_m", "pan_deg", "tilt_deg",
-                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m")))
+                              "roll_deg", "principal_offset_px", "body", "f_number", "focus_m",
+                              "mount")))
     lights = tuple(_light(t) for t in _entries(
         top, "light", path, ("name", "position_m", "target_m", "size_m", "radiance"), required=False))
     result = Experiment(path=path, name=exp.string("name"),
@@ -423,7 +434,7 @@ def parse(data: dict, path: Path) -> Experiment:
                         lights=lights, speckle=_speckle(top, path), sensor=_sensor(top, path),
                         render=_render(top, path),
                         optimize=_optimize(top, path, {c.name for c in cameras},
-                                           {r.name for r in regions}))
+                                           {r.name for r in regions}), mounts=mounts)
     for spec, camera in zip(cameras, result.cameras()):
         if spec.target is not None and np.linalg.norm(spec.target - camera.position) < 1e-6:
             raise ConfigError(path, f'camera "{spec.name}".target_m', "is the camera's own position")
@@ -569,7 +580,7 @@ def _rail(t: Table) -> Rail:
     return Rail(name=t.string("name"), control_points=points, degree=degree, weights=weights)
 
 
-def _camera(t: Table, rails: set) -> CameraSpec:
+def _camera(t: Table, rails: set, mounts: tuple = ()) -> CameraSpec:
     name = t.string("name")
     if t.has("sensor_mm") == t.has("sensor_width_mm"):
         raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
@@ -599,9 +610,11 @@ def _camera(t: Table, rails: set) -> CameraSpec:
     if t.has("f_number"):
         spec |= dict(f_number=t.number("f_number", positive=True),
                      focus_distance=t.number("focus_m", positive=True))
-    if t.has("rail") == t.has("position_m"):
-        raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
-    if t.has("rail"):
+    if t.has("mount"):
+        spec |= _camera_mount(t, rails, mounts)
+    elif t.has("rail") == t.has("position_m"):
+        raise t.error("rail", "give either rail (with u), mount or position_m, not several or none")
+    elif t.has("rail"):
         rail = t.string("rail")
         if rail not in rails:
             raise t.error("rail", f"no [[rail]] named {rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
@@ -621,3 +634,96 @@ def _camera(t: Table, rails: set) -> CameraSpec:
     else:
         spec |= dict(pan=math.radians(t.number("pan_deg")), tilt=math.radians(t.number("tilt_deg")))
     return CameraSpec(**spec)
+
+
+# --------------------------------------------------------------------------------------------
+# Mounts (`[[mount]]`): where a camera can stand; `vdo.optimize` moves it within
+# --------------------------------------------------------------------------------------------
+MOUNT_FIELDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"), "fixed": ("position_m",)}
+MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
+                  "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
+                  "position_m": "position_m = [1.0, 0.0, 1.5]"}
+
+
+@dataclass(frozen=True, eq=False)
+class MountSpec:
+    """Where a camera stands. kind "zone": anywhere in the axis-aligned box [box_min, box_max]
+    (m), e.g. a tripod on a floor area (extent in x and y) with its height range in z (a zero
+    extent holds that axis); "fixed": at `position` (m). Rail mounts are `Rail`s."""
+
+    name: str
+    kind: str
+    box_min: np.ndarray | None = None
+    box_max: np.ndarray | None = None
+    position: np.ndarray | None = None
+
+
+def _mounts(top: Table, path: Path) -> tuple[tuple[Rail, ...], tuple[MountSpec, ...]]:
+    """The `[[mount]]` entries: rail mounts as `Rail`s, zone and fixed mounts as `MountSpec`s."""
+    rails, mounts = [], []
+    every = ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m")
+    for t in _entries(top, "mount", path, ("name", "kind") + every, required=False):
+        name = t.string("name")
+        kind = t.string("kind", choices=tuple(MOUNT_FIELDS))
+        allowed = MOUNT_FIELDS[kind] + (("degree", "weights") if kind == "rail" else ())
+        for key in every:
+            if t.has(key) and key not in allowed:
+                raise t.error(key, f"does not apply to a {kind} mount (it takes {', '.join(allowed)})")
+        for key in MOUNT_FIELDS[kind]:
+            if not t.has(key):
+                raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
+        if kind == "rail":
+            rails.append(_rail(t))
+        elif kind == "zone":
+            lo, hi = t.vector("box_min_m", 3), t.vector("box_max_m", 3)
+            if np.any(hi < lo):
+                raise t.error("box_max_m", f"must be >= box_min_m on every axis (got {hi.tolist()} "
+                                           f"against {lo.tolist()})")
+            if hi[0] <= lo[0] or hi[1] <= lo[1]:
+                raise t.error("box_max_m", "the zone has no floor area: give it an extent in both x "
+                                           "and y (box_min_m < box_max_m), or use a rail or fixed mount")
+            mounts.append(MountSpec(name, kind, box_min=lo, box_max=hi))
+        else:
+            mounts.append(MountSpec(name, kind, position=t.vector("position_m", 3)))
+    names = [r.name for r in rails] + [m.name for m in mounts]
+    if len(set(names)) < len(names):
+        raise ConfigError(path, "mount", "mount names must be unique")
+    return tuple(rails), tuple(mounts)
+
+
+def _camera_mount(t: Table, rails: set, mounts: tuple) -> dict:
+    """A camera's `mount = "name"`: on a rail mount as on a rail (u, offset_m); in a zone at
+    position_m (default: the zone's centre), which must lie inside it; on a fixed mount at the
+    mount's position."""
+    name = t.string("mount")
+    if t.has("rail"):
+        raise t.error("mount", "give either rail or mount, not both")
+    if name in rails:
+        u = t.number("u")
+        if not 0.0 <= u <= 1.0:
+            raise t.error("u", f"= {u} is off rail mount {name!r}: the rail parameter runs from 0 to 1")
+        return dict(rail=name, u=u, offset=t.vector("offset_m", 3, np.zeros(3)))
+    for key in ("u", "offset_m"):
+        if t.has(key):
+            raise t.error(key, "only applies to a camera on a rail")
+    mount = next((m for m in mounts if m.name == name), None)
+    if mount is None:
+        known = sorted(rails | {m.name for m in mounts})
+        raise t.error("mount", f"no [[mount]] or [[rail]] named {name!r} (known: {', '.join(known) or 'none'})")
+    if mount.kind == "fixed":
+        position = t.vector("position_m", 3, mount.position)
+        if np.linalg.norm(position - mount.position) > 1e-6:
+            raise t.error("position_m", f"differs from fixed mount {name!r} at {mount.position.tolist()}; "
+                                        "drop position_m")
+        return dict(mount=name, position=mount.position)
+    position = t.vector("position_m", 3, (mount.box_min + mount.box_max) / 2)
+    if np.any(position < mount.box_min - 1e-9) or np.any(position > mount.box_max + 1e-9):
+        raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
+                                    f"({mount.box_min.tolist()} to {mount.box_max.tolist()})")
+    return dict(mount=name, position=position)
+
+
+def _mount_to_dict(m: MountSpec) -> dict:
+    if m.kind == "zone":
+        return {"name": m.name, "kind": m.kind, "box_min_m": m.box_min.tolist(), "box_max_m": m.box_max.tolist()}
+    return {"name": m.name, "kind": m.kind, "position_m": m.position.tolist()}

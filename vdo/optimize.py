@@ -90,8 +90,13 @@ log = logging.getLogger(__name__)
 # Parameterisation
 # --------------------------------------------------------------------------------------------
 class Parameterization:
-    """θ <-> camera poses. `index[c]` maps 'u', 'pan', 'tilt', 'roll' to positions in θ for the
-    free parameters of camera c.
+    """θ <-> camera poses. `index[c]` maps 'u' (rail), 'x', 'y', 'z' (zone), 'pan', 'tilt',
+    'roll' to positions in θ for the free parameters of camera c.
+
+    Position ("u" in `[optimize] free`): on a rail, u = sigmoid(z_u) in (0, 1); in a zone mount
+    (a box [lo, hi]), each axis with an extent, p_k = lo_k + (hi_k - lo_k) sigmoid(z_k), so the
+    camera can never leave its zone and the map is smooth; an axis with no extent, and a
+    camera on a fixed mount, keeps its configured position.
 
     A camera whose rail position u is free is aimed relative to its *aim point* a_c, the point of
     its hand-layout optical axis at the depth of `centre` (the regions' centroid): its free pan
@@ -100,28 +105,41 @@ class Parameterization:
     and BFGS creeps along a narrow valley). Otherwise (u held, or a vertical axis, whose heading
     is undefined) pan, tilt and roll are absolute. θ = 0 offsets reproduce the hand layout; a
     held angle keeps its configured value. Each parameter's natural scale (`scale`, the solver's
-    unit) is 0.5 in logit u, and for an angle `ANGLE_SCALE` or an eighth of the camera's
+    unit) is 0.5 in logit u (or per zone axis), and for an angle `ANGLE_SCALE` or an eighth of the camera's
     horizontal field of view, whichever is smaller."""
 
     RELATIVE = ("pan", "tilt")  # the angles an aimed camera holds as offsets
+    AXES = ("x", "y", "z")      # a zone camera's position parameters
+    MOVES = ("u",) + AXES       # the parameters that move an optical centre
 
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
         free = exp.optimize.free
         self.index, theta, scale, aims = [], [], [], []
-        for cam, spec in zip(cameras, exp.camera_specs):
+        self.zones = [exp.mount(s.mount) if s.mount and exp.mount(s.mount).kind == "zone" else None
+                      for s in exp.camera_specs]
+        logit = lambda u: math.log(u / (1 - u))
+        for cam, spec, zone in zip(cameras, exp.camera_specs, self.zones):
             idx = {}
             if cam.name in moving:
                 for name in ("u", "pan", "tilt", "roll"):
-                    if name not in free or (name == "u" and spec.rail is None):
+                    if name not in free:
                         continue
-                    idx[name] = len(theta)
-                    if name == "u":
-                        u = float(np.clip(spec.u, 1e-4, 1 - 1e-4))
-                        theta.append(math.log(u / (1 - u)))
+                    if name == "u" and spec.rail is not None:
+                        idx[name] = len(theta)
+                        theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
-                    else:
+                    elif name == "u" and zone is not None:
+                        for k, axis in enumerate(self.AXES):
+                            extent = zone.box_max[k] - zone.box_min[k]
+                            if extent > 0:
+                                idx[axis] = len(theta)
+                                frac = (cam.position[k] - zone.box_min[k]) / extent
+                                theta.append(logit(float(np.clip(frac, 1e-4, 1 - 1e-4))))
+                                scale.append(0.5)
+                    elif name != "u":
+                        idx[name] = len(theta)
                         aimed = self._aimed(idx, cam) and name in self.RELATIVE
                         theta.append(0.0 if aimed else getattr(cam, name))
                         # a few degrees, less for a long lens: an eighth of its horizontal field
@@ -136,8 +154,9 @@ class Parameterization:
 
     @staticmethod
     def _aimed(idx: dict, cam: Camera) -> bool:
-        """Aim-relative angles: u free and the axis not vertical (where the heading is undefined)."""
-        return "u" in idx and abs(math.cos(cam.tilt)) > 1e-3
+        """Aim-relative angles: the position free and the axis not vertical (where the heading is
+        undefined)."""
+        return any(k in idx for k in Parameterization.MOVES) and abs(math.cos(cam.tilt)) > 1e-3
 
     @property
     def held(self) -> dict:
@@ -154,7 +173,8 @@ class Parameterization:
         parameterisations with the same signature share compiled programs."""
         return (tuple(tuple(sorted(idx.items())) for idx in self.index),
                 tuple(self._aimed(idx, c) for idx, c in zip(self.index, self.cameras)),
-                tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs))
+                tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs),
+                tuple(None if z is None else (tuple(z.box_min), tuple(z.box_max)) for z in self.zones))
 
     def poses(self, theta, held: dict | None = None):
         """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays; `held` (default
@@ -163,8 +183,12 @@ class Parameterization:
         pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
         for c, (cam, spec, rail, idx) in enumerate(zip(self.cameras, self.exp.camera_specs, self.rails,
                                                        self.index)):
-            p = (rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset if "u" in idx
-                 else held["position"][c])
+            if "u" in idx:
+                p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
+            elif any(a in idx for a in self.AXES):
+                p = self.zone_position(self.zones[c], theta, idx, held["position"][c])
+            else:
+                p = held["position"][c]
             if self._aimed(idx, cam):
                 d = held["aims"][c] - p
                 base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])))
@@ -179,19 +203,35 @@ class Parameterization:
                     angles[k].append(held[k][c])
         return jnp.stack(pos), *(jnp.stack(angles[k]) for k in ("pan", "tilt", "roll"))
 
+    @classmethod
+    def zone_position(cls, zone, theta, idx: dict, held):
+        """p_k = lo_k + (hi_k - lo_k) sigmoid(θ[idx[axis k]]) for the zone's free axes, else
+        held[k] (m): inside the box [lo, hi] for every θ (written as the convex combination
+        (1 - s) lo + s hi and clipped, so that rounding never puts it a hair outside)."""
+        def axis(k, a):
+            lo, hi = zone.box_min[k], zone.box_max[k]
+            s = jax.nn.sigmoid(theta[idx[a]])
+            return jnp.clip((1 - s) * lo + s * hi, lo, hi)
+        return jnp.stack([axis(k, a) if a in idx else held[k] for k, a in enumerate(cls.AXES)])
+
     def u(self, theta) -> list:
         theta = np.asarray(theta)
         return [float(expit(theta[idx["u"]])) if "u" in idx else spec.u
                 for spec, idx in zip(self.exp.camera_specs, self.index)]
 
     def cameras_at(self, theta) -> list[Camera]:
-        pos, pan, tilt, roll = (np.asarray(a) for a in self.poses(jnp.asarray(theta)))
+        if not hasattr(self, "_poses_jit"):   # one compiled program, not one per eager operation
+            self._poses_jit = jax.jit(self.poses)
+        pos, pan, tilt, roll = (np.asarray(a) for a in self._poses_jit(jnp.asarray(theta, dtype=float),
+                                                                       self.held))
         return [c.with_pose(pos[i], pan[i], tilt[i], roll[i]) for i, c in enumerate(self.cameras)]
 
     def specs_at(self, theta) -> list:
-        """Camera specs with the optimized rail parameter and aim (pan/tilt replace a target)."""
+        """Camera specs with the optimized rail parameter or zone position and aim (pan/tilt
+        replace a target)."""
         cams, us = self.cameras_at(theta), self.u(theta)
         return [dataclasses.replace(spec, u=us[i] if spec.rail else None, target=None,
+                                    position=np.asarray(cams[i].position) if spec.mount else spec.position,
                                     pan=cams[i].pan, tilt=cams[i].tilt, roll=cams[i].roll)
                 for i, spec in enumerate(self.exp.camera_specs)]
 
@@ -327,14 +367,20 @@ class Problem:
             lit=self.lit_samples)
 
     def _paths(self) -> list[np.ndarray]:
-        """Where each optical centre can go: its rail (+ offset) sampled every ~2 cm, if u is
-        free, else its position."""
+        """Where each optical centre can go: its rail (+ offset) sampled at most ~2 cm apart, or
+        its zone on a grid, if its position is free, else its position."""
         out = []
-        for cam, spec, rail, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
-                                        self.param.index):
+        sliding = [r for r, idx in zip(self.param.rails, self.param.index) if "u" in idx]
+        n = max([2] + [int(r.arc_length(1.0) / 0.02) for r in sliding])   # one shape: one compilation
+        for cam, spec, rail, zone, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
+                                              self.param.zones, self.param.index):
             if "u" in idx:
-                n = max(2, int(rail.arc_length(1.0) / 0.02))
                 out.append(np.asarray(rail.position(np.linspace(0, 1, n))) + spec.offset)
+            elif zone is not None and any(a in idx for a in Parameterization.AXES):
+                lo, hi = zone.box_min, zone.box_max   # a grid at most 5 cm apart
+                axes = [np.linspace(lo[k], hi[k], max(2, int(np.ceil((hi[k] - lo[k]) / 0.05)) + 1))
+                        for k in range(3)]
+                out.append(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3))
             else:
                 out.append(np.asarray(cam.position)[None])
         return out
@@ -420,8 +466,9 @@ class Problem:
         return SceneMesh(spec.name, "specimen", mesh.vertices[used], inverse.reshape(-1, 3))
 
     # -- the objective (traced: reads only `data` and the static structure) ------------------
-    def terms(self, theta, views, data) -> dict:
-        """The score and each penalty at θ (JAX scalars): score and the `PENALTIES`."""
+    def terms(self, theta, views, data, obscured: bool = True) -> dict:
+        """The score and each penalty at θ (float64 JAX scalars): score and the `PENALTIES`;
+        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise)."""
         pos, pan, tilt, roll = self.param.poses(theta, data["held"])
         f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
         cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1])
@@ -430,7 +477,7 @@ class Problem:
         K = intrinsic_matrix(f, cx, cy)
         clearance = self.exp.optimize.clearance
         fov = data["fov"]
-        return dict(
+        out = dict(
             score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
             angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"]),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
@@ -439,21 +486,20 @@ class Problem:
             clearance=constraints.clearance_penalty(
                 constraints.body_points_world(data["body_local"], R, pos), data["near_points"],
                 clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
-            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)),
+            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
+            if obscured else 0.0,
             shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
                 constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
                 data["spheres"][1], *data["lit"], SHADOW_MARGIN))
+        return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
-    def _total(self, theta, views, weights, data):
-        """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
-        terms = self.terms(theta, views, data)
-        jax.debug.callback(self.run.record, terms)
-        return weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
-
-    def _scaled(self, y, args):
-        """J at θ = origin + scale y, divided by `norm` (`_round`)."""
+    def _scaled(self, y, args, obscured: bool):
+        """(J / norm, the terms) at θ = origin + scale y, J = weights[0] score + weights[1] Σ
+        penalties (weights: a (2,) array; norm: `_round`)."""
         origin, scale, norm, views, weights, data = args
-        return self._total(origin + scale * y, views, weights, data) / norm
+        terms = self.terms(origin + scale * y, views, data, obscured)
+        total = weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
+        return total / norm, terms
 
     # -- exact checks ---------------------------------------------------------------------
     def check(self, state: State) -> list[dict]:
@@ -579,7 +625,7 @@ class _Run:
     """What the starts and lens trials of one run share: the compiled solver programs (one pair
     per structure, `Parameterization.signature`; the layout's arrays are their argument,
     `Problem.data`, so another start or lens reuses them), the obscuration term, the record of
-    every evaluation (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
+    accepted solver step (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
     size of the pair lists, how each round ended, the stop request and the progress line."""
 
     def __init__(self, n_cameras: int, max_obscuration: float):
@@ -597,19 +643,25 @@ class _Run:
 
     def programs(self, problem: "Problem"):
         """(init, step): BFGS's init and one step on `problem._scaled`, jit-compiled once per
-        structure (the first problem of that structure defines the traced function; the others
-        differ from it only in `Problem.data`, passed in `args`)."""
-        key = problem.param.signature
+        structure (`Parameterization.signature`) and per presence of tracked obscuration (the
+        first problem of a structure defines the traced function; the others differ from it only
+        in `Problem.data`, passed in `args`). Without obscuration the programs hold no host
+        callback, so the persistent compilation cache (JAX_COMPILATION_CACHE_DIR) can serve them
+        to the next run (JAX keys a program with a callback by the callback's address)."""
+        obscured = bool(self.obscuration.tracked)
+        key = (problem.param.signature, obscured)
         if key not in self._programs:
             solver = optx.BFGS(rtol=1e-6, atol=1e-6)
-            fn = lambda y, args: (problem._scaled(y, args), None)
+            fn = lambda y, args: problem._scaled(y, args, obscured)
             f_struct = jax.ShapeDtypeStruct((), jnp.float64)
+            aux_struct = {k: f_struct for k in ("score", *PENALTIES)}
             self._programs[key] = (
-                eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, None, frozenset())),
+                eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, aux_struct, frozenset())),
                 eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2]))
         return self._programs[key]
 
     def record(self, terms):
+        """Keep one evaluation's terms (`history`, with the start, round and wall time)."""
         self.history.append(dict(start=self.label[0], round=self.label[1],
                                  wall_s=time.perf_counter() - self.t0,
                                  **{k: float(v) for k, v in terms.items()}))
@@ -833,7 +885,10 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) 
         if run.stop():
             status = run.stop.reason
             break
+        accepted = int(state.num_accepted_steps)
         y_new, state = step(y, solver_args, state)
+        if int(state.num_accepted_steps) > accepted:
+            run.record(state.aux)   # the terms at the step just accepted
         run.progress.step(f"{where}, step {k + 1}/{max_steps}", run.best)
         if not np.all(np.isfinite(np.asarray(y_new))):
             status = "failed"
@@ -852,7 +907,7 @@ def _perturbation(param: Parameterization, rng) -> np.ndarray:
     d = np.zeros_like(param.theta0)
     for idx in param.index:
         for name, k in idx.items():
-            d[k] = rng.normal(0, 0.4) if name == "u" else rng.normal(0, math.radians(3))
+            d[k] = rng.normal(0, 0.4) if name in Parameterization.MOVES else rng.normal(0, math.radians(3))
     return d
 
 
@@ -979,20 +1034,20 @@ def _joint_p95(summary: dict):
 
 def _write_history(path, history):
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", *PENALTIES])
+        writer = csv.DictWriter(fh, ["step", "start", "round", "wall_s", "score", *PENALTIES])
         writer.writeheader()
         for i, row in enumerate(history):
-            writer.writerow({"evaluation": i, **row})
+            writer.writerow({"step": i, **row})
 
 
 def _plot_history(path, history, verdicts, name):
-    """Score at every objective evaluation (line-search trials included, thin) and the exact
+    """Score at every accepted solver step (thin) and the exact
     score of each round's layout (markers: filled where it meets every constraint)."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     for s in sorted({h["start"] for h in history}):
         rows = [h for h in history if h["start"] == s]
         line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
-                        label=f"start {s + 1}: every evaluation")
+                        label=f"start {s + 1}: accepted steps")
         for feasible in (True, False):
             v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
@@ -1010,18 +1065,18 @@ def _plot_history(path, history, verdicts, name):
 
 
 def _write_moves(path, problem: Problem, best: Result):
-    """Per camera: rail and rail position (mm along the bar), pan, tilt (deg) and focal length
-    (mm), before (`problem`, the hand layout) and after (`best`)."""
+    """Per camera: its mount (rail or zone), rail position (mm along the bar), pan, tilt (deg) and
+    focal length (mm), before (`problem`, the hand layout) and after (`best`)."""
     u0, u1 = problem.param.u(problem.param.theta0), best.problem.param.u(best.theta)
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["camera", "rail", "rail_position_mm_before", "rail_position_mm_after",
+        writer.writerow(["camera", "mount", "rail_position_mm_before", "rail_position_mm_after",
                          "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
                          "focal_mm_before", "focal_mm_after"])
         for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
             rail = problem.param.rails[i]
             along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
-            writer.writerow([a.name, rail.name if rail else "", *along,
+            writer.writerow([a.name, rail.name if rail else problem.exp.camera_specs[i].mount or "", *along,
                              f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
                              f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
                              f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}"])
