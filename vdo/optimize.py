@@ -58,7 +58,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from scipy.special import expit  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
-from . import constraints, objective, report  # noqa: E402
+from . import constraints, objective, reachability, report  # noqa: E402
 from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
 from .config import Experiment  # noqa: E402
 from .errors import ConfigError  # noqa: E402
@@ -944,6 +944,10 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         run.progress = _Progress(planned, stop, show=not quiet)
         say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
             f"{len(problem.pairs)} camera pairs sharing a region; time limit {time_limit:g} s")
+        reach = reachability.check(exp, problem.meshes, problem.samples)
+        for entry in reach:
+            if entry["short"]:
+                say(f"warning: {entry['message']}")
         try:
             solve(problem, say)
             if "lens" in opt.free and not stop():
@@ -978,12 +982,13 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "time_limit_s": time_limit if math.isfinite(time_limit) else None,
             "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0,
             "rounds": run.rounds, "evaluations": len(run.history), "layouts_judged": len(run.verdicts),
-            "best_start": best.start, "score_before": score_before, "score_after": score_after})
+            "best_start": best.start, "score_before": score_before, "score_after": score_after,
+            "reachability": reach})
         _write_history(tmp / "history.csv", run.history)
         _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
         _write_moves(tmp / "moves.csv", problem, best)
     return {"score_before": score_before["score_um"], "score_after": best.score,
-            "score_regions_um": score_after["regions"], "status": status,
+            "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}
 
