@@ -929,7 +929,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
-    say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
+    say = (lambda m: None) if quiet else tqdm.write   # lines above the progress line
     own = stop is None
     stop = Stop(time_limit) if own else stop
     stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
@@ -941,13 +941,13 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         planned = opt.starts * (opt.rounds + 1) * opt.max_steps
         if "lens" in opt.free:
             planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
-        run.progress = _Progress(planned, stop, show=not quiet)
         say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
             f"{len(problem.pairs)} camera pairs sharing a region; time limit {time_limit:g} s")
         reach = reachability.check(exp, problem.meshes, problem.samples)
         for entry in reach:
             if entry["short"]:
                 say(f"warning: {entry['message']}")
+        run.progress = _Progress(planned, stop, show=not quiet)
         try:
             solve(problem, say)
             if "lens" in opt.free and not stop():
@@ -1070,18 +1070,20 @@ def _plot_history(path, history, verdicts, name):
 
 
 def _write_moves(path, problem: Problem, best: Result):
-    """Per camera: its mount (rail or zone), rail position (mm along the bar), pan, tilt (deg) and
-    focal length (mm), before (`problem`, the hand layout) and after (`best`)."""
+    """Per camera: its mount (rail or zone), rail position (mm along the bar), pan, tilt (deg),
+    focal length (mm) and optical centre (m), before (`problem`, the hand layout) and after (`best`)."""
     u0, u1 = problem.param.u(problem.param.theta0), best.problem.param.u(best.theta)
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(["camera", "mount", "rail_position_mm_before", "rail_position_mm_after",
                          "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
-                         "focal_mm_before", "focal_mm_after"])
+                         "focal_mm_before", "focal_mm_after", "x_m_before", "y_m_before", "z_m_before",
+                         "x_m_after", "y_m_after", "z_m_after"])
         for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
             rail = problem.param.rails[i]
             along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
             writer.writerow([a.name, rail.name if rail else problem.exp.camera_specs[i].mount or "", *along,
                              f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
                              f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
-                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}"])
+                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}",
+                             *(f"{v:.4f}" for v in (*a.position, *b.position))])

@@ -64,14 +64,15 @@ def specimen() -> trimesh.Trimesh:
 
 
 def rig() -> trimesh.Trimesh:
-    """Support rollers on pedestals, loading rollers, spreader beam, actuator, crosshead, columns."""
+    """Support rollers on pedestals, loading rollers (both as wide as the beam), spreader beam,
+    actuator, crosshead, columns."""
     parts = []
     for s in (-1, 1):
         x = s * SUPPORT_X
-        parts += [rod([x, -0.08, Z_LO - ROLLER_R], [x, 0.08, Z_LO - ROLLER_R], ROLLER_R),
+        parts += [rod([x, -HALF_W, Z_LO - ROLLER_R], [x, HALF_W, Z_LO - ROLLER_R], ROLLER_R),
                   box([x - 0.05, -0.1, 0.0], [x + 0.05, 0.1, Z_LO - 2 * ROLLER_R])]
         x = s * LOAD_X
-        parts.append(rod([x, -0.08, Z_HI + ROLLER_R], [x, 0.08, Z_HI + ROLLER_R], ROLLER_R))
+        parts.append(rod([x, -HALF_W, Z_HI + ROLLER_R], [x, HALF_W, Z_HI + ROLLER_R], ROLLER_R))
         parts.append(rod([s * 0.9, 0.0, 0.0], [s * 0.9, 0.0, 1.75], 0.06))   # columns
     parts += [box([-0.3, -0.05, Z_HI + 2 * ROLLER_R], [0.3, 0.05, Z_HI + 2 * ROLLER_R + 0.08]),  # spreader
               rod([0, 0, Z_HI + 2 * ROLLER_R + 0.08], [0, 0, 1.6], 0.05),                         # actuator
