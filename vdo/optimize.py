@@ -811,19 +811,32 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
 
 def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
     """The discrete choice over `[optimize] lenses` by screening: every (moving camera, other
-    focal length) option is judged once at the best layout so far (its rail positions and aims;
-    one ray cast and the exact score and checks, no optimisation), the options are ranked
-    (`Result.rank`) and only the `LENS_TRIALS` best that rank better than the current layout
-    are optimised again (`solve`, one start), one camera at a time; an option is kept when its
-    optimised layout ranks better. Constraints keep the hand layout's meaning
+    focal length) option is judged once at the best layout so far (its positions and aims; a
+    camera in a zone steps along its axis by the ratio of the focal lengths, clipped to the zone
+    and aimed at the same point, so that the regions keep their image size; one ray cast and the exact score and checks, no
+    optimisation), the options are ranked by score
+    and only the `LENS_TRIALS` best that score lower than the current layout are optimised again
+    (`solve`, one start, feasibility rounds first if the option breaks a constraint), one
+    camera at a time; an option is kept when its optimised layout ranks better (`Result.rank`). Constraints keep the hand layout's meaning
     (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
     say = say or (lambda m: None)
     run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
 
+    centre = problem.samples.points.mean(axis=0)
+
     def trial(current: Result, c: int, focal: float) -> Problem:
         specs = current.problem.param.specs_at(current.theta)
         specs[c] = dataclasses.replace(specs[c], focal_length=focal)
+        zone = problem.param.zones[c]
+        if zone is not None and any(a in problem.param.index[c] for a in Parameterization.AXES):
+            # in a zone, step along the axis so that the regions keep their size in the image
+            cam = current.state.cameras[c]
+            depth = max(float((centre - cam.position) @ cam.optical_axis), 0.1)
+            ratio = focal / current.problem.exp.camera_specs[c].focal_length
+            aim = cam.position + depth * cam.optical_axis
+            moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.box_min, zone.box_max)
+            specs[c] = dataclasses.replace(specs[c], position=moved, target=aim)   # aimed again
         return Problem(current.problem.exp.with_cameras(specs), reference=problem)
 
     options = []
@@ -836,10 +849,10 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
                 continue
             t = trial(best, c, focal)
             screened = judge(t, t.param.theta0, t.start, label)
-            options.append((screened.rank, c, focal))
+            options.append((screened.score, c, focal))
             say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm at the current layout: score "
                 f"{screened.score:.4g} µm, {screened.violations} violation(s)")
-    promising = sorted(o for o in options if o[0] < best.rank)[:LENS_TRIALS]
+    promising = sorted(o for o in options if o[0] < best.score)[:LENS_TRIALS]
     changed = set()
     for _, c, focal in promising:
         if run.stop() or c in changed:
