@@ -26,7 +26,8 @@ between rounds they are recomputed at the new layout. From a start that violates
 feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at most
 `FEASIBILITY_ROUNDS`) until the layout meets every constraint, so that the score never trades
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
-(penalty continuation). Several starts: the hand layout and randomly perturbed copies. Each
+(penalty continuation), until a feasible round improves on the feasible round before it by
+less than `ROUND_TOL` of the score. Several starts: the hand layout and randomly perturbed copies. Each
 round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
 start the best one wins (`Result.rank`: feasible first, by score), and the report names any
 violation that remains.
@@ -82,6 +83,7 @@ CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
+ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
 
 log = logging.getLogger(__name__)
 
@@ -637,7 +639,8 @@ class _Run:
         self.stop = Stop()
         self.blocks = None   # (block, blocks, chunk) of every pair list
         self.progress = _Progress(None)
-        self.rounds: list[str] = []
+        self.rounds: list[str] = []   # how each round ended
+        self.ends: list[str] = []     # how each start ended (its last round)
         self.label = (0, 0)
         self._programs: dict = {}
 
@@ -777,6 +780,7 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
         best = result = judge(problem, theta, state, start)
         problem.masked = set()
         label = 0
+        rounds_before = len(run.rounds)
 
         def one_round(w_score, mu, name):
             nonlocal theta, state, result, best, label
@@ -804,8 +808,14 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
         for k in range(opt.rounds):
             if run.stop():
                 break
+            previous = result
             one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            if (k > 0 and previous.violations == 0 and result.violations == 0
+                    and previous.score - result.score < ROUND_TOL * previous.score):
+                run.rounds.append("converged")   # the penalty continuation has nothing left
+                break
         results.append(best)
+        run.ends.append(run.rounds[-1] if len(run.rounds) > rounds_before else "converged")
     return sorted(results, key=lambda r: r.rank)
 
 
@@ -815,9 +825,9 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
     camera in a zone steps along its axis by the ratio of the focal lengths, clipped to the zone
     and aimed at the same point, so that the regions keep their image size; one ray cast and the exact score and checks, no
     optimisation), the options are ranked by score
-    and only the `LENS_TRIALS` best that score lower than the current layout are optimised again
-    (`solve`, one start, feasibility rounds first if the option breaks a constraint), one
-    camera at a time; an option is kept when its optimised layout ranks better (`Result.rank`). Constraints keep the hand layout's meaning
+    and only the `LENS_TRIALS` best are optimised again (`solve`, one start, feasibility rounds
+    first if the option breaks a constraint; a camera on a rail cannot step back, so an option
+    that screens worse than the current layout may still win), one camera at a time; an option is kept when its optimised layout ranks better (`Result.rank`). Constraints keep the hand layout's meaning
     (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
     say = say or (lambda m: None)
     run = problem.run
@@ -852,7 +862,7 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
             options.append((screened.score, c, focal))
             say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm at the current layout: score "
                 f"{screened.score:.4g} µm, {screened.violations} violation(s)")
-    promising = sorted(o for o in options if o[0] < best.score)[:LENS_TRIALS]
+    promising = sorted(options)[:LENS_TRIALS]   # moving and aiming may recover what screening lost
     changed = set()
     for _, c, focal in promising:
         if run.stop() or c in changed:
@@ -970,7 +980,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             run.progress.close()
     best = run.best
     final = best.problem
-    status = stop.reason or ("converged" if all(r == "converged" for r in run.rounds) else "max_steps")
+    status = stop.reason or ("converged" if all(e == "converged" for e in run.ends) else "max_steps")
     say(f"search ended: {status} after {time.perf_counter() - run.t0:.0f} s; writing {out}")
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
@@ -994,7 +1004,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "status": status, "converged": status == "converged",
             "time_limit_s": time_limit if math.isfinite(time_limit) else None,
             "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0,
-            "rounds": run.rounds, "evaluations": len(run.history), "layouts_judged": len(run.verdicts),
+            "rounds": run.rounds, "starts": run.ends, "accepted_steps": len(run.history), "layouts_judged": len(run.verdicts),
             "best_start": best.start, "score_before": score_before, "score_after": score_after,
             "reachability": reach})
         _write_history(tmp / "history.csv", run.history)
