@@ -1,8 +1,9 @@
-"""`vdo optimize`: move the cameras along their rails to minimise the predicted uncertainty under
-the practical constraints of `vdo.constraints`.
+"""`vdo optimize`: move the cameras on their mounts (rails, zones) to minimise the predicted
+uncertainty under the practical constraints of `vdo.constraints`.
 
-Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u with
-u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
+Parameters, per moving camera, each only when listed in ``[optimize] free``: its position ("u":
+on a rail z_u with u = sigmoid(z_u), in a zone one sigmoid per axis of its box, so the camera
+cannot leave its mount; `Parameterization`), pan, tilt, roll (held at its configured value,
 0 = horizontal, unless freed); and, with "lens" free, the focal length, a discrete choice from
 ``[optimize] lenses_mm`` made in an outer loop (`choose_lenses`). The objective, a JAX function
 of the parameter vector θ, is
@@ -31,6 +32,14 @@ less than `ROUND_TOL` of the score. Several starts: the hand layout and randomly
 round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
 start the best one wins (`Result.rank`: feasible first, by score), and the report names any
 violation that remains.
+
+Anytime: the solver runs one BFGS step per call and checks a `Stop` (time limit, SIGINT/SIGTERM
+via `stop_on_signals`) between steps and rounds; the best judged layout of the run is kept
+(`_Run.best`) and written whatever ends the search. Compile once: the step is one jitted program
+per run and structure (`_Run.programs`) that takes every layout-dependent array as an argument
+(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and other arrays to few
+sizes (`_pad_axis`); without tracked obscuration it holds no host callback, so JAX's persistent
+compilation cache can serve it to the next run.
 """
 
 from __future__ import annotations
@@ -1087,7 +1096,8 @@ def _plot_history(path, history, verdicts, name):
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_title(f"{name}: convergence")
-    ax.legend(fontsize=8)
+    if history:
+        ax.legend(fontsize=8)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
