@@ -94,7 +94,7 @@ def main():
     vdo_trace = best_feasible_trace(problem.run.verdicts)
     best = results[0]
     print(f"start layout        score {start_verdict.score:.5g} µm  ({start_verdict.violations} violations)")
-    print(f"vdo (BFGS rounds)   {vdo_time:.1f} s, {len(problem.run.history)} objective evaluations: "
+    print(f"vdo (BFGS rounds)   {vdo_time:.1f} s, {len(problem.run.history)} accepted steps: "
           f"best score {best.score:.5g} µm with {best.violations} violations")
 
     feasible = next((v for v in problem.run.verdicts if v["violations"] == 0), None)

@@ -1078,10 +1078,12 @@ def _write_history(path, history):
 
 
 def _plot_history(path, history, verdicts, name):
-    """Score at every accepted solver step (thin) and the exact
-    score of each round's layout (markers: filled where it meets every constraint)."""
+    """Score (log scale) at every accepted solver step (thin line) and the exact score of each
+    round's layout (markers: filled where it meets every constraint), per start; layouts judged
+    without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
-    for s in sorted({h["start"] for h in history}):
+    solved = sorted({h["start"] for h in history})
+    for s in solved:
         rows = [h for h in history if h["start"] == s]
         line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
                         label=f"start {s + 1}: accepted steps")
@@ -1090,14 +1092,16 @@ def _plot_history(path, history, verdicts, name):
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
                     color=line.get_color(), mfc=line.get_color() if feasible else "white",
                     label=f"start {s + 1}: round's layout, {'feasible' if feasible else 'violates a constraint'}")
-    scores = [r["score"] for r in verdicts]
-    if scores:   # the trials of a line search can be far worse: keep the judged layouts in view
-        ax.set_ylim(0.97 * min(scores), 1.05 * max(scores))
+    screened = [r for r in verdicts if r["start"] not in solved]
+    if screened:
+        ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
+                label="lens options screened at the best layout")
+    ax.set_yscale("log")
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_title(f"{name}: convergence")
-    if history:
-        ax.legend(fontsize=8)
+    if verdicts:
+        ax.legend(fontsize=7)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
