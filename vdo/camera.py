@@ -51,6 +51,9 @@ def rotation(pan, tilt, roll):
     return jnp.stack([cr * x0 + sr * y0, -sr * x0 + cr * y0, z], axis=-2)
 
 
+_rotation_jit = jax.jit(rotation)
+
+
 def rotation_derivatives(pan, tilt, roll):
     """dR/dpan, dR/dtilt, dR/droll in closed form, each (..., 3, 3)."""
     cp, sp, ct, st = jnp.cos(pan), jnp.sin(pan), jnp.cos(tilt), jnp.sin(tilt)
@@ -170,7 +173,8 @@ class Camera:
 
     @cached_property
     def R(self) -> np.ndarray:
-        return np.asarray(rotation(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
+        # one compiled call: eager, the ~20 operations cost ~15 ms per camera under load
+        return np.asarray(_rotation_jit(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
 
     @cached_property
     def t(self) -> np.ndarray:

@@ -382,11 +382,15 @@ class Problem:
         its zone on a grid, if its position is free, else its position."""
         out = []
         sliding = [r for r, idx in zip(self.param.rails, self.param.index) if "u" in idx]
-        n = max([2] + [int(r.arc_length(1.0) / 0.02) for r in sliding])   # one shape: one compilation
+        # the control polygon is at least as long as the curve
+        n = max([2] + [int(np.linalg.norm(np.diff(r.control_points, axis=0), axis=1).sum() / 0.02) + 1
+                       for r in sliding])
+        grid = np.linspace(0, 1, n)
+        along = iter(jax.jit(lambda: [r.position(grid) for r in sliding])())   # one compiled call
         for cam, spec, rail, zone, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
                                               self.param.zones, self.param.index):
             if "u" in idx:
-                out.append(np.asarray(rail.position(np.linspace(0, 1, n))) + spec.offset)
+                out.append(np.asarray(next(along)) + spec.offset)
             elif zone is not None and any(a in idx for a in Parameterization.AXES):
                 lo, hi = zone.box_min, zone.box_max   # a grid at most 5 cm apart
                 axes = [np.linspace(lo[k], hi[k], max(2, int(np.ceil((hi[k] - lo[k]) / 0.05)) + 1))

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import jax
 import numpy as np
 
 from .camera import look_at_angles
@@ -35,7 +36,8 @@ def mount_positions(exp: Experiment, spec, camera, moving: bool, positions: int 
     """(mount label, (K, 3) optical centres in metres) the sweep tries for one camera."""
     if moving and spec.rail is not None:
         rail = exp.rail(spec.rail)
-        return f"rail {spec.rail}", np.asarray(rail.position(np.linspace(0, 1, positions))) + spec.offset
+        grid = np.linspace(0, 1, positions)
+        return f"rail {spec.rail}", np.asarray(jax.jit(lambda: rail.position(grid))()) + spec.offset
     if moving and spec.mount is not None and exp.mount(spec.mount).kind == "zone":
         zone = exp.mount(spec.mount)
         per_axis = max(2, round(positions ** (1 / 2)))
