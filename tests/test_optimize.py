@@ -105,6 +105,12 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
         np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
     history = list(csv.DictReader((out / "history.csv").open()))
     assert len(history) > 5
+    # the score in µm: the report's power mean of the fields' smooth sigma (numpy, float64 per
+    # pair) is the optimizer's score (JAX, float32 per pair); one region: it equals the overall
+    summary = json.loads((out / "optimizer.json").read_text())["score_after"]
+    assert summary["score_um"] == pytest.approx(result["score_after"], rel=1e-5)
+    assert summary["regions"]["top"]["sigma_smooth_um"] == pytest.approx(summary["sigma_smooth_um"], rel=1e-12)
+    assert 0.1 < summary["sigma_smooth_um"] < 100   # micrometres, not metres or pixels
 
 
 def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
