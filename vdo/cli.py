@@ -74,7 +74,9 @@ def _optimize(args) -> None:
         for name, r in result["score_regions_um"].items():
             if r["sigma_smooth_um"] is not None:
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
-                      + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 0 else ""))
+                      + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
+                         "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
+                      + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
         before, after = result["joint_p95_um"]
         if before is not None and after is not None:
             print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")

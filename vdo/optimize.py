@@ -1046,7 +1046,9 @@ def _score_parts(problem: Problem, state: State) -> dict:
     """The score in physical units: overall (what the optimizer minimises, µm) and per region,
     each the smooth percentile of σ_max it is (`vdo.objective`: the power mean
     (Σ ω σ^q / Σ ω)^(1/q) of the smooth σ_max over the region's samples, ω = area, q =
-    `score_power`), plus the coverage term (µm; 0 when every sample has its minimum camera count)."""
+    `score_power`), plus the coverage term (µm; 0 when every sample has its minimum camera count),
+    and the area fraction that is unmeasured (fewer than two usable views: its σ counts as the
+    prior, `Settings.prior_sigma`, 1 mm, so a few percent of it dominates the power mean)."""
     st = problem.settings
     f = objective.fields(objective.CameraParams.from_cameras(state.cameras), problem.obj_samples,
                          state.views, problem.speckle.table, st)
@@ -1057,9 +1059,12 @@ def _score_parts(problem: Problem, state: State) -> dict:
     q = st.score_power
     mean = lambda w, x: float((np.sum(w * x ** q) / np.sum(w)) ** (1 / q)) if np.sum(w) > 0 else None
     short = np.maximum(np.asarray(smp.min_cameras)[region] - np.asarray(f.coverage), 0.0)
+    unmeasured = ~np.asarray(f.measured)
     regions = {name: dict(sigma_smooth_um=mean(area * (region == r), sigma),
                           coverage_um=float(st.coverage_weight * np.sum(area * (region == r) * short ** 2)
-                                            / np.sum(area * (region == r))))
+                                            / np.sum(area * (region == r))),
+                          unmeasured_fraction=float(np.sum(area * (region == r) * unmeasured)
+                                                    / np.sum(area * (region == r))))
                for r, name in enumerate(problem.samples.region_names)}
     overall = mean(omega, sigma)
     coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
