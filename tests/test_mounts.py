@@ -162,3 +162,58 @@ def test_optimized_zone_camera_stays_in_its_zone_and_reloads(tmp_path):
     cam = again.cameras()[0]
     assert again.camera_specs[0].mount == "tripod"
     assert np.all(cam.position >= zone.box_min) and np.all(cam.position <= zone.box_max)
+
+
+FLOOR = """
+[[mount]]
+name = "corner"
+kind = "zone"
+floor_m = [[0.4, -0.6], [1.0, -0.5], [1.1, 0.2], [0.6, 0.5], [0.3, 0.0]]
+height_m = [0.9, 1.4]
+"""
+FLOOR_CAMERA = CAMERAS.replace('mount = "tripod"\nposition_m = [0.6, 0.1, 1.0]',
+                               'mount = "corner"\nposition_m = [0.7, -0.1, 1.1]')
+
+
+def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
+    """A pentagon floor zone: θ0 reproduces the configured position (mean value coordinates),
+    any θ stays over the polygon (half-plane test) and within the heights, and the derivative
+    matches finite differences."""
+    from vdo.config import inside_floor
+
+    exp = config.load(write(tmp_path, MOUNTS + FLOOR, FLOOR_CAMERA))
+    param = Parameterization(exp, exp.cameras(), np.zeros(3))
+    idx = param.index[0]
+    assert {"w1", "w2", "w3", "w4", "z"} <= set(idx)
+    np.testing.assert_allclose(param.cameras_at(param.theta0)[0].position, [0.7, -0.1, 1.1], atol=1e-6)
+    zone = exp.mount("corner")
+    rng = np.random.default_rng(1)
+    for spread in (1.0, 10.0, 60.0):
+        for _ in range(20):
+            p = param.cameras_at(param.theta0 + spread * rng.standard_normal(param.theta0.size))[0].position
+            assert inside_floor(zone.floor, p[:2]) and 0.9 <= p[2] <= 1.4
+    held = param.held
+    f = lambda th: jnp.ravel(param.poses(th, held)[0])
+    theta0 = jnp.asarray(param.theta0 + 0.2)
+    jac = np.asarray(jax.jacfwd(f)(theta0))
+    h = 1e-6
+    fd = np.stack([(np.asarray(f(theta0.at[k].add(h))) - np.asarray(f(theta0.at[k].add(-h)))) / (2 * h)
+                   for k in range(theta0.size)], axis=1)
+    np.testing.assert_allclose(jac, fd, atol=1e-7, rtol=1e-6)
+    report.write_config(tmp_path / "again.toml", exp)   # the polygon survives a round trip
+    np.testing.assert_allclose(config.load(tmp_path / "again.toml").mount("corner").floor, zone.floor)
+
+
+@pytest.mark.parametrize("floor, camera_pos, field, words", [
+    ("[[0.4, -0.6], [0.7, -0.3], [1.0, 0.0]]", "[0.7, -0.3, 1.1]", "floor_m", "no floor area"),
+    ("[[0.4, -0.6], [1.0, -0.5], [0.6, -0.3], [0.6, 0.5]]", "[0.6, 0.0, 1.1]", "floor_m", "convex"),
+    # in the bounding box, not over the floor
+    ("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2]]", "[0.5, 0.1, 1.1]", "position_m", "outside zone"),
+])
+def test_bad_floor_zone_is_one_config_error_line(tmp_path, floor, camera_pos, field, words):
+    mounts = MOUNTS + FLOOR.replace("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2], [0.6, 0.5], [0.3, 0.0]]", floor)
+    cams = CAMERAS.replace('mount = "tripod"\nposition_m = [0.6, 0.1, 1.0]',
+                           f'mount = "corner"\nposition_m = {camera_pos}')
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, mounts, cams))
+    assert "\n" not in str(err.value) and err.value.field.endswith(field) and words in str(err.value), str(err.value)

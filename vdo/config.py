@@ -640,40 +640,50 @@ def _camera(t: Table, rails: set, mounts: tuple = ()) -> CameraSpec:
 # Mounts (`[[mount]]`): where a camera can stand; `vdo.optimize` moves it within
 # --------------------------------------------------------------------------------------------
 MOUNT_FIELDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"), "fixed": ("position_m",)}
+ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a convex floor polygon
 MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
                   "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
-                  "position_m": "position_m = [1.0, 0.0, 1.5]"}
+                  "position_m": "position_m = [1.0, 0.0, 1.5]",
+                  "height_m": "height_m = [1.2, 1.8]"}
 
 
 @dataclass(frozen=True, eq=False)
 class MountSpec:
     """Where a camera stands. kind "zone": anywhere in the axis-aligned box [box_min, box_max]
     (m), e.g. a tripod on a floor area (extent in x and y) with its height range in z (a zero
-    extent holds that axis); "fixed": at `position` (m). Rail mounts are `Rail`s."""
+    extent holds that axis), or, with `floor` ((n, 2) m, a convex polygon, counter-clockwise),
+    anywhere above that polygon within the box's height range (the box is then the polygon's
+    bounding box); "fixed": at `position` (m). Rail mounts are `Rail`s."""
 
     name: str
     kind: str
     box_min: np.ndarray | None = None
     box_max: np.ndarray | None = None
     position: np.ndarray | None = None
+    floor: np.ndarray | None = None
 
 
 def _mounts(top: Table, path: Path) -> tuple[tuple[Rail, ...], tuple[MountSpec, ...]]:
     """The `[[mount]]` entries: rail mounts as `Rail`s, zone and fixed mounts as `MountSpec`s."""
     rails, mounts = [], []
-    every = ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m")
+    every = ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR
     for t in _entries(top, "mount", path, ("name", "kind") + every, required=False):
         name = t.string("name")
         kind = t.string("kind", choices=tuple(MOUNT_FIELDS))
-        allowed = MOUNT_FIELDS[kind] + (("degree", "weights") if kind == "rail" else ())
+        floor = kind == "zone" and t.has("floor_m")
+        needs = ZONE_FLOOR if floor else MOUNT_FIELDS[kind]
+        allowed = needs + (("degree", "weights") if kind == "rail" else ())
         for key in every:
             if t.has(key) and key not in allowed:
-                raise t.error(key, f"does not apply to a {kind} mount (it takes {', '.join(allowed)})")
-        for key in MOUNT_FIELDS[kind]:
+                raise t.error(key, f"does not apply to a {kind} mount{' with floor_m' if floor else ''} "
+                                   f"(it takes {', '.join(allowed)})")
+        for key in needs:
             if not t.has(key):
                 raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
         if kind == "rail":
             rails.append(_rail(t))
+        elif floor:
+            mounts.append(_floor_zone(t, name))
         elif kind == "zone":
             lo, hi = t.vector("box_min_m", 3), t.vector("box_max_m", 3)
             if np.any(hi < lo):
@@ -689,6 +699,38 @@ def _mounts(top: Table, path: Path) -> tuple[tuple[Rail, ...], tuple[MountSpec, 
     if len(set(names)) < len(names):
         raise ConfigError(path, "mount", "mount names must be unique")
     return tuple(rails), tuple(mounts)
+
+
+def _floor_zone(t: Table, name: str) -> MountSpec:
+    """A zone given as a convex floor polygon (`floor_m`, [[x, y], ...], m, either orientation)
+    and a height range (`height_m`, [low, high], m)."""
+    floor = as_numbers(t.raw("floor_m"))
+    if floor is None or floor.ndim != 2 or floor.shape[1] != 2 or len(floor) < 3:
+        raise t.error("floor_m", "must be a list of at least 3 [x, y] corners in metres, e.g. "
+                                 "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]")
+    x, y = floor[:, 0], floor[:, 1]
+    area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+    if abs(area) < 1e-6:
+        raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
+    if area < 0:
+        floor = floor[::-1]
+    edges = np.roll(floor, -1, axis=0) - floor
+    turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    if np.any(turn < -1e-12):
+        raise t.error("floor_m", "must be a convex polygon (split a concave floor area into several "
+                                 "zones, one per tripod)")
+    low, high = t.vector("height_m", 2)
+    if high < low:
+        raise t.error("height_m", f"must be [low, high] with low <= high (got {[low, high]})")
+    return MountSpec(name, "zone", box_min=np.array([*floor.min(0), low]),
+                     box_max=np.array([*floor.max(0), high]), floor=floor)
+
+
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether the point xy (m) lies in the convex, counter-clockwise polygon `floor`."""
+    edges = np.roll(floor, -1, axis=0) - floor
+    rel = np.asarray(xy)[None] - floor
+    return bool(np.all(edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0] >= -tol))
 
 
 def _camera_mount(t: Table, rails: set, mounts: tuple) -> dict:
@@ -716,14 +758,21 @@ def _camera_mount(t: Table, rails: set, mounts: tuple) -> dict:
             raise t.error("position_m", f"differs from fixed mount {name!r} at {mount.position.tolist()}; "
                                         "drop position_m")
         return dict(mount=name, position=mount.position)
-    position = t.vector("position_m", 3, (mount.box_min + mount.box_max) / 2)
-    if np.any(position < mount.box_min - 1e-9) or np.any(position > mount.box_max + 1e-9):
+    centre = (mount.box_min + mount.box_max) / 2
+    if mount.floor is not None:
+        centre[:2] = mount.floor.mean(axis=0)
+    position = t.vector("position_m", 3, centre)
+    if (np.any(position < mount.box_min - 1e-9) or np.any(position > mount.box_max + 1e-9)
+            or (mount.floor is not None and not inside_floor(mount.floor, position[:2]))):
         raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
                                     f"({mount.box_min.tolist()} to {mount.box_max.tolist()})")
     return dict(mount=name, position=position)
 
 
 def _mount_to_dict(m: MountSpec) -> dict:
+    if m.floor is not None:
+        return {"name": m.name, "kind": m.kind, "floor_m": m.floor.tolist(),
+                "height_m": [float(m.box_min[2]), float(m.box_max[2])]}
     if m.kind == "zone":
         return {"name": m.name, "kind": m.kind, "box_min_m": m.box_min.tolist(), "box_max_m": m.box_max.tolist()}
     return {"name": m.name, "kind": m.kind, "position_m": m.position.tolist()}

@@ -70,7 +70,7 @@ from tqdm import tqdm  # noqa: E402
 
 from . import constraints, objective, reachability, report  # noqa: E402
 from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
-from .config import Experiment  # noqa: E402
+from .config import Experiment, inside_floor  # noqa: E402
 from .errors import ConfigError  # noqa: E402
 from .lighting import illuminate, panel_frame  # noqa: E402
 from .obscuration import ObscurationRenderer  # noqa: E402
@@ -141,6 +141,17 @@ class Parameterization:
                         idx[name] = len(theta)
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
+                    elif name == "u" and zone is not None and zone.floor is not None:
+                        weights = mean_value_coordinates(zone.floor, cam.position[:2])
+                        for k in range(1, len(zone.floor)):   # softmax logits against corner 0
+                            idx[f"w{k}"] = len(theta)
+                            theta.append(math.log(weights[k] / weights[0]))
+                            scale.append(0.5)
+                        if zone.box_max[2] > zone.box_min[2]:
+                            idx["z"] = len(theta)
+                            frac = (cam.position[2] - zone.box_min[2]) / (zone.box_max[2] - zone.box_min[2])
+                            theta.append(logit(float(np.clip(frac, 1e-4, 1 - 1e-4))))
+                            scale.append(0.5)
                     elif name == "u" and zone is not None:
                         for k, axis in enumerate(self.AXES):
                             extent = zone.box_max[k] - zone.box_min[k]
@@ -167,7 +178,18 @@ class Parameterization:
     def _aimed(idx: dict, cam: Camera) -> bool:
         """Aim-relative angles: the position free and the axis not vertical (where the heading is
         undefined)."""
-        return any(k in idx for k in Parameterization.MOVES) and abs(math.cos(cam.tilt)) > 1e-3
+        return Parameterization.moves(idx) and abs(math.cos(cam.tilt)) > 1e-3
+
+    @classmethod
+    def moves(cls, idx: dict) -> bool:
+        """Whether these parameters move the optical centre."""
+        return any(cls.is_position(k) for k in idx)
+
+    @classmethod
+    def is_position(cls, name: str) -> bool:
+        """u (rail), x, y, z (zone box axes, or the height over a floor polygon), w1... (the
+        softmax logits of a floor polygon's corners)."""
+        return name in cls.MOVES or name[0] == "w"
 
     @property
     def held(self) -> dict:
@@ -185,7 +207,9 @@ class Parameterization:
         return (tuple(tuple(sorted(idx.items())) for idx in self.index),
                 tuple(self._aimed(idx, c) for idx, c in zip(self.index, self.cameras)),
                 tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs),
-                tuple(None if z is None else (tuple(z.box_min), tuple(z.box_max)) for z in self.zones))
+                tuple(None if z is None else (tuple(z.box_min), tuple(z.box_max),
+                                              None if z.floor is None else tuple(z.floor.ravel()))
+                      for z in self.zones))
 
     def poses(self, theta, held: dict | None = None):
         """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays; `held` (default
@@ -196,7 +220,7 @@ class Parameterization:
                                                        self.index)):
             if "u" in idx:
                 p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
-            elif any(a in idx for a in self.AXES):
+            elif self.moves(idx):
                 p = self.zone_position(self.zones[c], theta, idx, held["position"][c])
             else:
                 p = held["position"][c]
@@ -218,11 +242,17 @@ class Parameterization:
     def zone_position(cls, zone, theta, idx: dict, held):
         """p_k = lo_k + (hi_k - lo_k) sigmoid(θ[idx[axis k]]) for the zone's free axes, else
         held[k] (m): inside the box [lo, hi] for every θ (written as the convex combination
-        (1 - s) lo + s hi and clipped, so that rounding never puts it a hair outside)."""
+        (1 - s) lo + s hi and clipped, so that rounding never puts it a hair outside). Over a
+        floor polygon with corners v_k: (x, y) = Σ_k softmax(0, θ_w1, ...)_k v_k, inside the
+        (convex) polygon for every θ, and z as above."""
         def axis(k, a):
             lo, hi = zone.box_min[k], zone.box_max[k]
             s = jax.nn.sigmoid(theta[idx[a]])
             return jnp.clip((1 - s) * lo + s * hi, lo, hi)
+        if zone.floor is not None:   # a convex combination of the corners: inside the polygon
+            logits = jnp.stack([jnp.zeros(())] + [theta[idx[f"w{k}"]] for k in range(1, len(zone.floor))])
+            xy = jax.nn.softmax(logits) @ jnp.asarray(zone.floor)
+            return jnp.stack([xy[0], xy[1], axis(2, "z") if "z" in idx else held[2]])
         return jnp.stack([axis(k, a) if a in idx else held[k] for k, a in enumerate(cls.AXES)])
 
     def u(self, theta) -> list:
@@ -391,11 +421,16 @@ class Problem:
                                               self.param.zones, self.param.index):
             if "u" in idx:
                 out.append(np.asarray(next(along)) + spec.offset)
-            elif zone is not None and any(a in idx for a in Parameterization.AXES):
+            elif zone is not None and Parameterization.moves(idx):
                 lo, hi = zone.box_min, zone.box_max   # a grid at most 5 cm apart
                 axes = [np.linspace(lo[k], hi[k], max(2, int(np.ceil((hi[k] - lo[k]) / 0.05)) + 1))
                         for k in range(3)]
-                out.append(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3))
+                grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+                if zone.floor is not None:   # the grid points over the polygon, and its corners
+                    keep = [inside_floor(zone.floor, g[:2], tol=0.05) for g in grid]
+                    corners = [[*v, z] for v in zone.floor for z in (lo[2], hi[2])]
+                    grid = np.vstack([grid[keep], corners])
+                out.append(grid)
             else:
                 out.append(np.asarray(cam.position)[None])
         return out
@@ -572,6 +607,23 @@ def _light_lost(problem: Problem, state: State) -> np.ndarray:
     s = problem.samples
     return np.array([(s.area[(s.region == r) & lost]).sum() / s.area[s.region == r].sum()
                      for r in range(len(s.region_names))])
+
+
+def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:
+    """Positive weights w (n,), Σ w = 1, with Σ w_k v_k = point for a point inside the convex
+    polygon v (n, 2) (Floater's mean value coordinates: w_k ∝ (tan(α_(k-1)/2) + tan(α_k/2)) /
+    |v_k - p|, α_k the angle at p between v_k and v_(k+1)). A point on the outline is first moved
+    1e-6 of the way to the centroid (where the formula degenerates)."""
+    v = np.asarray(polygon, float)
+    p = np.asarray(point, float)
+    p = p + 1e-6 * (v.mean(axis=0) - p)
+    d = v - p
+    r = np.linalg.norm(d, axis=1)
+    nxt = np.roll(d, -1, axis=0)
+    alpha = np.arctan2(d[:, 0] * nxt[:, 1] - d[:, 1] * nxt[:, 0], np.sum(d * nxt, axis=1))
+    t = np.tan(alpha / 2)
+    w = (np.roll(t, 1) + t) / r
+    return w / w.sum()
 
 
 def _pad_axis(a: np.ndarray, axis: int, value: float) -> np.ndarray:
@@ -852,13 +904,15 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
         specs = current.problem.param.specs_at(current.theta)
         specs[c] = dataclasses.replace(specs[c], focal_length=focal)
         zone = problem.param.zones[c]
-        if zone is not None and any(a in problem.param.index[c] for a in Parameterization.AXES):
+        if zone is not None and Parameterization.moves(problem.param.index[c]):
             # in a zone, step along the axis so that the regions keep their size in the image
             cam = current.state.cameras[c]
             depth = max(float((centre - cam.position) @ cam.optical_axis), 0.1)
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
             aim = cam.position + depth * cam.optical_axis
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.box_min, zone.box_max)
+            if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
+                moved = cam.position   # not over the floor: screen it where it stands
             specs[c] = dataclasses.replace(specs[c], position=moved, target=aim)   # aimed again
         return Problem(current.problem.exp.with_cameras(specs), reference=problem)
 
@@ -943,7 +997,7 @@ def _perturbation(param: Parameterization, rng) -> np.ndarray:
     d = np.zeros_like(param.theta0)
     for idx in param.index:
         for name, k in idx.items():
-            d[k] = rng.normal(0, 0.4) if name in Parameterization.MOVES else rng.normal(0, math.radians(3))
+            d[k] = rng.normal(0, 0.4) if Parameterization.is_position(name) else rng.normal(0, math.radians(3))
     return d
 
 

@@ -2,7 +2,8 @@
 
 For each region of interest and each camera, a coarse sweep of the poses its mount allows: a
 rail at `positions` evenly spaced values of u, a zone at a grid of round(sqrt(positions))
-values along each axis with an extent (3 by default: faces, edges, corners and centre), a fixed mount (or a
+values along each axis with an extent (3 by default: faces, edges, corners and centre; over a
+floor polygon its corners and centroid at those heights), a fixed mount (or a
 camera that does not move) at its configured position; at every position the camera is aimed
 at the region's centre (its area-weighted centroid; roll 0) with its own lens. The ray cast
 (`vdo.visibility`: in front, in the image, below the incidence limit, not occluded by the
@@ -42,6 +43,10 @@ def mount_positions(exp: Experiment, spec, camera, moving: bool, positions: int 
         zone = exp.mount(spec.mount)
         per_axis = max(2, round(positions ** (1 / 2)))
         axes = [np.linspace(lo, hi, per_axis if hi > lo else 1) for lo, hi in zip(zone.box_min, zone.box_max)]
+        if zone.floor is not None:   # the corners (a hair inside) and the centroid, at each height
+            centre = zone.floor.mean(axis=0)
+            floor = np.vstack([zone.floor + 1e-3 * (centre - zone.floor), centre])
+            return f"zone {spec.mount}", np.array([[*xy, z] for xy in floor for z in axes[2]])
         return f"zone {spec.mount}", np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     label = f"fixed mount {spec.mount}" if spec.mount else "fixed position"
     return label, np.asarray(camera.position, dtype=float)[None]
