@@ -762,7 +762,7 @@ class _Progress:
         self.planned, self.stop, self.done = planned, stop, 0
         self.t0 = time.perf_counter()
         self.bar = tqdm(total=planned, desc="optimize", unit="step", disable=not show or planned is None,
-                        bar_format="{desc}: {n}/{total} steps {postfix}", dynamic_ncols=True)
+                        bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
 
     def left(self) -> float:
         rate = (time.perf_counter() - self.t0) / max(self.done, 1)
