@@ -71,8 +71,8 @@ def _optimize(args) -> None:
     if not args.quiet:
         print(f"search: {result['status']}; score (smooth sigma_max percentile) "
               f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
-        for name, r in result["score_regions_um"].items():
-            if r["sigma_smooth_um"] is not None:
+        for name, r in result["score_regions_um"].items():   # the regions the score counts
+            if r["scored"] and r["sigma_smooth_um"] is not None:
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
                       + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
                          "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")

@@ -1118,7 +1118,8 @@ def _score_parts(problem: Problem, state: State) -> dict:
                           coverage_um=float(st.coverage_weight * np.sum(area * (region == r) * short ** 2)
                                             / np.sum(area * (region == r))),
                           unmeasured_fraction=float(np.sum(area * (region == r) * unmeasured)
-                                                    / np.sum(area * (region == r))))
+                                                    / np.sum(area * (region == r))),
+                          scored=bool(np.asarray(smp.importance)[r] > 0))
                for r, name in enumerate(problem.samples.region_names)}
     overall = mean(omega, sigma)
     coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
