@@ -1142,7 +1142,7 @@ def _write_history(path, history):
 
 
 def _plot_history(path, history, verdicts, name):
-    """Score (log scale) at every accepted solver step (thin line) and the exact score of each
+    """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin line) and the exact score of each
     round's layout (markers: filled where it meets every constraint), per start; layouts judged
     without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
@@ -1160,7 +1160,9 @@ def _plot_history(path, history, verdicts, name):
     if screened:
         ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
                 label="lens options screened at the best layout")
-    ax.set_yscale("log")
+    scores = [r["score"] for r in verdicts] + [h["score"] for h in history]
+    if scores and max(scores) > 10 * min(scores):   # e.g. from unmeasured points to a few µm
+        ax.set_yscale("log")
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_title(f"{name}: convergence")
