@@ -419,6 +419,9 @@ def parse(data: dict, path: Path) -> Experiment:
                                              ("name", "control_points_m", "degree", "weights"),
                                              required=False))
     mount_rails, mounts = _mounts(top, path)
+    clash = {r.name for r in rails} & ({r.name for r in mount_rails} | {m.name for m in mounts})
+    if clash:
+        raise ConfigError(path, "mount", f"{sorted(clash)[0]!r} names both a [[rail]] and a [[mount]]; rename one")
     rails += mount_rails
     rail_names = {r.name for r in rails}
     cameras = tuple(_camera(t, rail_names, mounts) for t in _entries(
