@@ -92,7 +92,8 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     # the run folder: files, moves along the rail in mm, and a layout that loads again
     names = sorted(p.name for p in out.iterdir())
     assert names == ["constraints.json", "convergence.png", "history.csv", "layout.json",
-                     "moves.csv", "optimized.toml", "summary_after.json", "summary_before.json"]
+                     "moves.csv", "optimized.toml", "optimizer.json", "summary_after.json",
+                     "summary_before.json"]
     moves = list(csv.DictReader((out / "moves.csv").open()))
     rail_length_mm = 2000.0
     for row, u0 in zip(moves, (0.48, 0.52)):
@@ -104,6 +105,12 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
         np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
     history = list(csv.DictReader((out / "history.csv").open()))
     assert len(history) > 5
+    # the score in µm: the report's power mean of the fields' smooth sigma (numpy, float64 per
+    # pair) is the optimizer's score (JAX, float32 per pair); one region: it equals the overall
+    summary = json.loads((out / "optimizer.json").read_text())["score_after"]
+    assert summary["score_um"] == pytest.approx(result["score_after"], rel=1e-5)
+    assert summary["regions"]["top"]["sigma_smooth_um"] == pytest.approx(summary["sigma_smooth_um"], rel=1e-12)
+    assert 0.1 < summary["sigma_smooth_um"] < 100   # micrometres, not metres or pixels
 
 
 def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
@@ -140,10 +147,11 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
 @pytest.mark.slow
 def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_path):
     """The hand layout of the built-in experiment breaks the stereo-angle rule (cam9 against
-    cam1 and cam2); one feasibility round and one penalty round must end with every constraint
-    met and a lower joint sigma_max p95 than the hand layout."""
+    cam1 and cam2); one feasibility round and one penalty round of 15 steps each must end with
+    every constraint met and a lower joint sigma_max p95 than the hand layout."""
     exp = config.load(EXPERIMENTS / "ten_cameras.toml")
-    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1))
+    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1,
+                                                                max_steps=15))
     result = optimize(exp, tmp_path / "run", quiet=True)
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
     assert [e["cameras"] for e in before if not e["met"]] == [["cam1", "cam9"], ["cam2", "cam9"]]
@@ -199,3 +207,79 @@ def test_lens_without_a_catalogue_is_a_config_error(tmp_path):
 
     with pytest.raises(ConfigError, match=r'optimize.free: lists "lens" but no lenses_mm'):
         lens_experiment(tmp_path, "").optimize
+
+
+def _layout_reloads(out):
+    """optimized.toml loads again and gives the cameras of layout.json."""
+    reloaded = config.load(out / "optimized.toml")
+    layout = json.loads((out / "layout.json").read_text())["cameras"]
+    for cam, saved in zip(reloaded.cameras(), layout):
+        np.testing.assert_allclose(cam.R, saved["R"], atol=1e-9)
+        np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
+    return reloaded
+
+
+FOLDER = ["constraints.json", "convergence.png", "history.csv", "layout.json", "moves.csv",
+          "optimized.toml", "optimizer.json", "summary_after.json", "summary_before.json"]
+
+
+def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_path, monkeypatch):
+    """A real SIGINT sent to this process at the 2nd solver step: the search must end there (no
+    further step in any round), and the folder must be complete, say "interrupted", and hold a
+    layout that reloads."""
+    import os
+    import signal
+
+    from vdo import optimize as opt_module
+
+    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    steps = []
+    original = opt_module._Progress.step
+
+    def step(self, where, best):
+        steps.append(where)
+        if len(steps) == 2:
+            os.kill(os.getpid(), signal.SIGINT)   # delivered to this (main) thread at once
+        original(self, where, best)
+
+    monkeypatch.setattr(opt_module._Progress, "step", step)
+    out = tmp_path / "run"
+    result = optimize(exp, out, quiet=True)
+    assert len(steps) == 2
+    assert result["status"] == "interrupted"
+    summary = json.loads((out / "optimizer.json").read_text())
+    assert summary["status"] == "interrupted" and not summary["converged"]
+    # the round in progress ended on the signal (or had just converged at that very step)
+    assert summary["rounds"][-1] in ("interrupted", "converged") and len(summary["rounds"]) == 1
+    assert sorted(p.name for p in out.iterdir()) == FOLDER
+    _layout_reloads(out)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handler restored
+
+
+def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path):
+    """With a time limit shorter than one round the search stops on time: the folder is complete,
+    optimizer.json says "time_limit", and the layout (the best judged so far) reloads."""
+    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    out = tmp_path / "run"
+    result = optimize(exp, out, quiet=True, time_limit=1e-3)
+    assert result["status"] == "time_limit"
+    summary = json.loads((out / "optimizer.json").read_text())
+    assert summary["status"] == "time_limit" and summary["time_limit_s"] == 1e-3
+    assert sorted(p.name for p in out.iterdir()) == FOLDER
+    _layout_reloads(out)
+
+
+@pytest.mark.parametrize("limit", ["0", "-5"])
+def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit):
+    from vdo.cli import main
+
+    cams = CAMERA.format(name="a", u=0.48)
+    experiment(tmp_path, cams, ["a"])
+    code = main(["optimize", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "run"),
+                 "--time-limit", limit])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "--time-limit" in err[0] and "positive" in err[0]
+    assert not (tmp_path / "run").exists()

@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import cached_property
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -53,6 +54,9 @@ def rotation(pan, tilt, roll):
     """R (world -> camera), rows x_c, y_c, z_c as in the module docstring. Shape (..., 3, 3)."""
     x0, y0, z, cr, sr = _axes(pan, tilt, roll)
     return jnp.stack([cr * x0 + sr * y0, -sr * x0 + cr * y0, z], axis=-2)
+
+
+_rotation_jit = jax.jit(rotation)
 
 
 def rotation_derivatives(pan, tilt, roll):
@@ -255,7 +259,8 @@ class Camera:
 
     @cached_property
     def R(self) -> np.ndarray:
-        return np.asarray(rotation(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
+        # one compiled call: eager, the ~20 operations cost ~15 ms per camera under load
+        return np.asarray(_rotation_jit(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
 
     @cached_property
     def t(self) -> np.ndarray:

@@ -98,8 +98,17 @@ def _validate(spec, args):
 def _optimize(exp, args) -> None:
     from .optimize import optimize
 
-    result = optimize(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
+                      time_limit=args.time_limit)
     if not args.quiet:
+        print(f"search: {result['status']}; score (smooth sigma_max percentile) "
+              f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
+        for name, r in result["score_regions_um"].items():   # the regions the score counts
+            if r["scored"] and r["sigma_smooth_um"] is not None:
+                print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
+                      + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
+                         "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
+                      + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
         before, after = result["joint_p95_um"]
         if before is not None and after is not None:
             print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
@@ -169,6 +178,8 @@ def _parser() -> argparse.ArgumentParser:
     op.add_argument("config", help="experiment TOML file (its [optimize] table says what moves)")
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    op.add_argument("--time-limit", type=float, default=900.0, metavar="SECONDS",
+                    help="end the search after this long and write the best layout so far (default 900)")
     op.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")

@@ -223,18 +223,24 @@ class Vector(Kind):
 
 @dataclass(frozen=True)
 class Points(Kind):
-    """A list of at least `minimum` [x, y, z] points: an (n, 3) array."""
+    """A list of at least `minimum` points of `dims` coordinates ([x, y, z] or [x, y]): an
+    (n, dims) array."""
 
     minimum: int = 2
-    doc = "[[x, y, z], …]"
+    dims: int = 3
+
+    @property
+    def doc(self):
+        return "[[x, y, z], …]" if self.dims == 3 else "[[x, y], …]"
 
     def read(self, value, scale, base):
         ok = isinstance(value, list) and len(value) >= self.minimum and all(
-            isinstance(p, list) and len(p) == 3 and all(_is_number(x) and math.isfinite(x)
-                                                        and abs(x) <= MAX_COORDINATE for x in p)
+            isinstance(p, list) and len(p) == self.dims and all(
+                _is_number(x) and math.isfinite(x) and abs(x) <= MAX_COORDINATE for x in p)
             for p in value)
         if not ok:
-            raise _Bad(f"must be a list of at least {self.minimum} [x, y, z] points in metres "
+            axes = "[x, y, z]" if self.dims == 3 else "[x, y]"
+            raise _Bad(f"must be a list of at least {self.minimum} {axes} points in metres "
                        f"(each coordinate within ±{MAX_COORDINATE:g})")
         return np.array(value, dtype=float) * scale
 
@@ -331,8 +337,8 @@ class Row:
     """One schema row: TOML `key` -> dataclass attribute `attr` (filled from the field's name).
 
     `default` is in file units (REQUIRED, or None: absent). `either`: another key that may stand in
-    for a required one (checked by the table's check). `when`: an attribute that must be set for this
-    key to apply (written only then). `shown`: the default as the docs show it."""
+    for a required one (checked by the table's check). `when`: attributes (space-separated) one of
+    which must be set for this key to apply (written only then). `shown`: the default as the docs show it."""
 
     key: str
     kind: Kind
@@ -481,9 +487,12 @@ class CameraSpec:
                               doc="lens focal length")
     rail: str | None = row("rail", Text(name=True), None, shown="either rail + u",
                            doc="the [[rail]] the camera sits on")
-    u: float | None = row("u", Real(), None, when="rail", doc="position on the rail, 0 to 1")
+    mount: str | None = row("mount", Text(name=True), None, shown="or mount",
+                            doc="the [[mount]] the camera stands on (a rail mount takes u, a zone "
+                                "position_m, default its centre; a fixed mount nothing)")
+    u: float | None = row("u", Real(), None, when="rail mount", doc="position on the rail, 0 to 1")
     offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
-                             when="rail", doc="from the rail point to the optical centre")
+                             when="rail mount", doc="from the rail point to the optical centre")
     position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
                                       shown="or this", doc="optical centre")
     target: np.ndarray | None = row("target_m", Vector(3, letters="xyz"), None, unit="m",
@@ -634,6 +643,151 @@ def _check_analysis(t: Table, v: dict) -> None:
             v[px] = None
 
 
+MOUNT_NEEDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"),
+               "fixed": ("position_m",)}
+ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a convex floor polygon
+MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
+                  "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
+                  "position_m": "position_m = [1.0, 0.0, 1.5]", "height_m": "height_m = [1.2, 1.8]",
+                  "floor_m": "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]"}
+
+
+@dataclass(frozen=True, eq=False)
+class MountSpec:
+    """Where a camera stands. kind "rail": a NURBS curve (as a [[rail]]; read into `rails`);
+    "zone": anywhere in the axis-aligned box [box_min, box_max] (m), e.g. a tripod on a floor
+    area with its height range in z (a zero extent holds that axis), or anywhere above the convex
+    polygon `floor` ((n, 2) m, counter-clockwise) within `height` (m); "fixed": at `position` (m)."""
+
+    name: str = row("name", Text(name=True), doc="unique among mounts and rails")
+    kind: str = row("kind", Text(choices=tuple(MOUNT_NEEDS)), doc="rail, zone or fixed")
+    control_points: np.ndarray | None = row("control_points_m", Points(2), None, unit="m",
+                                            shown="rail", doc="a rail mount's control points")
+    degree: int | None = row("degree", Whole(low=1), None, shown="rail: 1", doc="a rail mount's degree")
+    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="rail: all 1",
+                                     doc="a rail mount's NURBS weights")
+    box_min: np.ndarray | None = row("box_min_m", Vector(3, letters="xyz"), None, unit="m",
+                                     shown="zone", doc="a box zone's lower corner")
+    box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
+                                     shown="zone", doc="a box zone's upper corner")
+    floor: np.ndarray | None = row("floor_m", Points(3, dims=2), None, unit="m", shown="zone",
+                                   doc="or a convex floor polygon (with height_m)")
+    height: tuple[float, float] | None = row("height_m", Vector(2, as_tuple=True, letters=("low", "high")),
+                                             None, unit="m", shown="zone", doc="the polygon zone's heights")
+    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
+                                      shown="fixed", doc="a fixed mount's optical centre")
+
+    @property
+    def low(self) -> np.ndarray:
+        """The zone's lower bounding corner (m)."""
+        return self.box_min if self.floor is None else np.array([*self.floor.min(0), self.height[0]])
+
+    @property
+    def high(self) -> np.ndarray:
+        """The zone's upper bounding corner (m)."""
+        return self.box_max if self.floor is None else np.array([*self.floor.max(0), self.height[1]])
+
+
+def _check_mount(t: Table, v: dict) -> None:
+    kind = v["kind"]
+    floor = kind == "zone" and t.has("floor_m")
+    needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
+    allowed = needs + (("degree", "weights") if kind == "rail" else ())
+    for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
+        if t.has(key) and key not in allowed:
+            raise t.error(key, f"does not apply to a {kind} mount{' with floor_m' if floor else ''} "
+                               f"(it takes {', '.join(allowed)})")
+    for key in needs:
+        if not t.has(key):
+            raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
+    if kind == "rail":
+        v["degree"] = v["degree"] or 1
+        _check_rail(t, v)
+    elif floor:
+        corners = v["floor"]
+        x, y = corners[:, 0], corners[:, 1]
+        area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        if abs(area) < 1e-6:
+            raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
+        corners = corners if area > 0 else corners[::-1]
+        edges = np.roll(corners, -1, axis=0) - corners
+        turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+        if np.any(turn < -1e-12):
+            raise t.error("floor_m", "must be a convex polygon (split a concave floor area into several "
+                                     "zones, one per tripod)")
+        if v["height"][1] < v["height"][0]:
+            raise t.error("height_m", f"must be [low, high] with low <= high (got {list(v['height'])})")
+        v["floor"] = corners
+    elif kind == "zone":
+        lo, hi = v["box_min"], v["box_max"]
+        if np.any(hi < lo):
+            raise t.error("box_max_m", f"must be >= box_min_m on every axis (got {hi.tolist()} "
+                                       f"against {lo.tolist()})")
+        if hi[0] <= lo[0] or hi[1] <= lo[1]:
+            raise t.error("box_max_m", "the zone has no floor area: give it an extent in both x "
+                                       "and y (box_min_m < box_max_m), or use a rail or fixed mount")
+
+
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether the point xy (m) lies in the convex, counter-clockwise polygon `floor`."""
+    edges = np.roll(floor, -1, axis=0) - floor
+    rel = np.asarray(xy)[None] - floor
+    return bool(np.all(edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0] >= -tol))
+
+
+def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
+    """Rail mounts become rails (a camera on one sits on that rail); a camera on a fixed mount
+    takes its position, one in a zone its position_m (default: the zone's centre), checked to be
+    inside. Runs before the Experiment is built, so the parsed experiment has one form."""
+    rails = {r.name for r in values["rails"]}
+    clash = rails & {m.name for m in values["mounts"]}
+    if clash:
+        raise ConfigError(path, "mount", f"{sorted(clash)[0]!r} names both a [[rail]] and a "
+                                         "[[mount]]; rename one")
+    as_rails = [m for m in values["mounts"] if m.kind == "rail"]
+    values["rails"] = values["rails"] + tuple(
+        RailSpec(name=m.name, control_points=m.control_points, degree=m.degree, weights=m.weights)
+        for m in as_rails)
+    mounts = {m.name: m for m in values["mounts"] if m.kind != "rail"}
+    values["mounts"] = tuple(mounts.values())
+    rail_names = rails | {m.name for m in as_rails}
+    specs = []
+    for spec, t in zip(values["camera_specs"], tables["camera"]):
+        name = spec.mount
+        if name is not None and name in rail_names:
+            if not t.has("u"):
+                raise t.error("u", "is required for a camera on a rail mount (0 to 1)")
+            if not 0.0 <= spec.u <= 1.0:
+                raise t.error("u", f"= {spec.u} is off rail mount {name!r}: the rail parameter runs "
+                                   "from 0 to 1")
+            spec = replace(spec, rail=name, mount=None)
+        elif name is not None:
+            mount = mounts.get(name)
+            if mount is None:
+                known = sorted(rail_names | set(mounts))
+                raise t.error("mount", f"no [[mount]] or [[rail]] named {name!r} (known: "
+                                       f"{', '.join(known) or 'none'})")
+            if t.has("u") or np.any(spec.offset != 0):
+                raise t.error("u" if t.has("u") else "offset_m", "only applies to a camera on a rail")
+            if mount.kind == "fixed":
+                if spec.position is not None and np.linalg.norm(spec.position - mount.position) > 1e-6:
+                    raise t.error("position_m", f"differs from fixed mount {name!r} at "
+                                                f"{mount.position.tolist()}; drop position_m")
+                spec = replace(spec, position=mount.position)
+            else:
+                centre = (mount.low + mount.high) / 2
+                if mount.floor is not None:
+                    centre[:2] = mount.floor.mean(axis=0)
+                position = centre if spec.position is None else spec.position
+                if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
+                        or (mount.floor is not None and not inside_floor(mount.floor, position[:2]))):
+                    raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
+                                                f"({mount.low.tolist()} to {mount.high.tolist()})")
+                spec = replace(spec, position=position)
+        specs.append(spec)
+    values["camera_specs"] = tuple(specs)
+
+
 STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
 
 
@@ -759,8 +913,11 @@ def _check_camera(t: Table, v: dict) -> None:
         v["sensor_width"] = float(sensor[0])
     if t.has("f_number") != t.has("focus_m"):
         raise t.error("f_number", "depth of field needs both f_number and focus_m")
-    if t.has("rail") == t.has("position_m"):
-        raise t.error("rail", "give either rail (with u) or position_m, not both or neither")
+    if t.has("mount"):
+        if t.has("rail"):
+            raise t.error("mount", "give either rail or mount, not both")
+    elif t.has("rail") == t.has("position_m"):
+        raise t.error("rail", "give either rail (with u), mount or position_m, not several or none")
     if t.has("rail"):
         if not t.has("u"):
             raise t.error("u", "is required for a camera on a rail (0 to 1)")
@@ -855,6 +1012,11 @@ class Experiment:
     analysis: Analysis = table("analysis", Analysis, check=_check_analysis, default=Analysis(),
                                doc="The DIC analysis strain uncertainties are predicted for "
                                    "(docs/theory.md, strain).")
+    mounts: tuple[MountSpec, ...] = table(
+        "mount", MountSpec, array=True, check=_check_mount, default=(),
+        doc="Where cameras can stand: a rail, a zone (a box, or a floor polygon with a height "
+            "range: a tripod) or a fixed point. Cameras name one with `mount`; rail mounts are "
+            "written back as [[rail]].")
     stereo_pairs: tuple[StereoPairSpec, ...] = table(
         "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
         doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
@@ -869,6 +1031,10 @@ class Experiment:
         if self.analysis.element is None:      # a Q4 element defaults to the DIC patch
             object.__setattr__(self, "analysis", replace(self.analysis,
                                                          element=self.evaluation.patch_size))
+
+    def mount(self, name: str) -> MountSpec:
+        """The zone or fixed [[mount]] called `name`."""
+        return next(m for m in self.mounts if m.name == name)
 
     def rail(self, name: str):
         """The `vdo.rail.Rail` (JAX-evaluated NURBS) of the [[rail]] called `name`."""
@@ -920,7 +1086,7 @@ def _write(obj, rows) -> dict:
     out = {}
     for r in rows:
         value = getattr(obj, r.attr)
-        if value is not None and not (r.when and getattr(obj, r.when) is None):
+        if value is not None and not (r.when and all(getattr(obj, w) is None for w in r.when.split())):
             out[r.key] = r.kind.write(value, r.scale)
     return out
 
@@ -1060,8 +1226,8 @@ def _read_section(top: Table, sec: Section, path: Path):
         t = Table(data, where, path, allowed)
         values = {r.attr: t.get(r, defaults[r.attr]) for r in sec.rows}
         for r in sec.rows:
-            if r.when and t.has(r.key) and values[r.when] is None:
-                other = next(o.key for o in sec.rows if o.attr == r.when)
+            if r.when and t.has(r.key) and all(values[w] is None for w in r.when.split()):
+                other = " or ".join(o.key for o in sec.rows if o.attr in r.when.split())
                 raise t.error(r.key, f"only applies together with {other}")
         if sec.check is not None:
             sec.check(t, values)
@@ -1104,6 +1270,7 @@ def parse(data: dict, path: Path) -> Experiment:
     tables = {}
     for sec in secs:
         values[sec.attr], tables[sec.key] = _read_section(top, sec, path)
+    _resolve_mounts(values, tables, path)
     exp = Experiment(path=path, **values)
     _check_references(exp, tables)
     return exp

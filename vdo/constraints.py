@@ -76,10 +76,9 @@ def axis_angle_penalty(axes, pairs, min_angles, max_angles=None):
     total = jnp.sum((jnp.maximum(cos_a - cos_m, 0.0) / (1.0 - cos_m)) ** 2)
     if max_angles is None:
         return total
-    top = np.asarray(max_angles, dtype=float)
-    bounded = np.isfinite(top)
-    cos_M = jnp.cos(jnp.asarray(np.where(bounded, np.minimum(top, np.pi), np.pi)))
-    over = jnp.where(jnp.asarray(bounded), jnp.maximum(cos_M - cos_a, 0.0) / (1.0 - cos_M), 0.0)
+    # M >= pi (or +inf) bounds nothing: cos M = -1 <= cos a, so that term is exactly 0 (traceable)
+    cos_M = jnp.cos(jnp.minimum(jnp.asarray(max_angles, dtype=float), jnp.pi))
+    over = jnp.maximum(cos_M - cos_a, 0.0) / (1.0 - cos_M)
     return total + jnp.sum(over ** 2)
 
 

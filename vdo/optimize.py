@@ -1,8 +1,9 @@
-"""`vdo optimize`: move the cameras along their rails to minimise the predicted uncertainty under
-the practical constraints of `vdo.constraints`.
+"""`vdo optimize`: move the cameras on their mounts (rails, zones) to minimise the predicted
+uncertainty under the practical constraints of `vdo.constraints`.
 
-Parameters, per moving camera, each only when listed in ``[optimize] free``: z_u with
-u = sigmoid(z_u) (the camera cannot leave its rail), pan, tilt, roll (held at its configured value,
+Parameters, per moving camera, each only when listed in ``[optimize] free``: its position ("u":
+on a rail z_u with u = sigmoid(z_u), in a zone one sigmoid per axis of its box, so the camera
+cannot leave its mount; `Parameterization`), pan, tilt, roll (held at its configured value,
 0 = horizontal, unless freed); and, with "lens" free, the focal length, a discrete choice from
 ``[optimize] lenses_mm`` made in an outer loop (`choose_lenses`). The objective, a JAX function
 of the parameter vector θ, is
@@ -26,40 +27,57 @@ between rounds they are recomputed at the new layout. From a start that violates
 feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at most
 `FEASIBILITY_ROUNDS`) until the layout meets every constraint, so that the score never trades
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
-(penalty continuation). Several starts: the hand layout and randomly perturbed copies. Each
+(penalty continuation), until a feasible round improves on the feasible round before it by
+less than `ROUND_TOL` of the score. Several starts: the hand layout and randomly perturbed copies. Each
 round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
 start the best one wins (`Result.rank`: feasible first, by score), and the report names any
 violation that remains.
+
+Anytime: the solver runs one BFGS step per call and checks a `Stop` (time limit, SIGINT/SIGTERM
+via `stop_on_signals`) between steps and rounds; the best judged layout of the run is kept
+(`_Run.best`) and written whatever ends the search. Compile once: the step is one jitted program
+per run and structure (`_Run.programs`) that takes every layout-dependent array as an argument
+(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and other arrays to few
+sizes (`_pad_axis`); without tracked obscuration it holds no host callback, so JAX's persistent
+compilation cache can serve it to the next run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
+import logging
 import math
+import signal
+import threading
 import time
 from pathlib import Path
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import optimistix as optx  # noqa: E402
-import trimesh  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-from scipy.special import expit  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import optimistix as optx
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.special import expit
+from tqdm import tqdm
 
-from . import constraints, objective, report  # noqa: E402
-from .camera import Camera, intrinsic_matrix, rotation  # noqa: E402
-from .config import Experiment  # noqa: E402
-from .lighting import illuminate, panel_frame  # noqa: E402
-from .obscuration import ObscurationRenderer  # noqa: E402
-from .predict import predict, samples_for_objective, settings, speckle_model, view_data  # noqa: E402
-from .runfolder import run_folder  # noqa: E402
-from .scene import (SceneMesh, all_region_faces, build_scene, camera_body,  # noqa: E402
-                    camera_body_points, camera_body_spheres, load_meshes, sample_regions)
-from .visibility import compute_visibility  # noqa: E402
+from . import constraints, objective, reachability, report
+from .camera import Camera, intrinsic_matrix, rotation
+from .config import Experiment, inside_floor
+from .errors import ConfigError
+from .lighting import illuminate, panel_frame
+from .obscuration import ObscurationRenderer
+from .objective import _bucket
+from .predict import predict, samples_for_objective, settings, view_data
+from .runfolder import run_folder
+from .state import bodies, layout_state, prepare
+from .scene import (SceneMesh, build_scene, camera_body, camera_body_points,
+                    camera_body_spheres)
+from .visibility import compute_visibility
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
 FEASIBILITY_ROUNDS = 3    # at most this many feasibility rounds (penalties only) per start
@@ -71,14 +89,23 @@ ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
+LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
+ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
+
+log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------------------------
 # Parameterisation
 # --------------------------------------------------------------------------------------------
 class Parameterization:
-    """θ <-> camera poses. `index[c]` maps 'u', 'pan', 'tilt', 'roll' to positions in θ for the
-    free parameters of camera c.
+    """θ <-> camera poses. `index[c]` maps 'u' (rail), 'x', 'y', 'z' (zone), 'pan', 'tilt',
+    'roll' to positions in θ for the free parameters of camera c.
+
+    Position ("u" in `[optimize] free`): on a rail, u = sigmoid(z_u) in (0, 1); in a zone mount
+    (a box [lo, hi]), each axis with an extent, p_k = lo_k + (hi_k - lo_k) sigmoid(z_k), so the
+    camera can never leave its zone and the map is smooth; an axis with no extent, and a
+    camera on a fixed mount, keeps its configured position.
 
     A camera whose rail position u is free is aimed relative to its *aim point* a_c, the point of
     its hand-layout optical axis at the depth of `centre` (the regions' centroid): its free pan
@@ -87,28 +114,52 @@ class Parameterization:
     and BFGS creeps along a narrow valley). Otherwise (u held, or a vertical axis, whose heading
     is undefined) pan, tilt and roll are absolute. θ = 0 offsets reproduce the hand layout; a
     held angle keeps its configured value. Each parameter's natural scale (`scale`, the solver's
-    unit) is 0.5 in logit u, and for an angle `ANGLE_SCALE` or an eighth of the camera's
+    unit) is 0.5 in logit u (or per zone axis), and for an angle `ANGLE_SCALE` or an eighth of the camera's
     horizontal field of view, whichever is smaller."""
 
     RELATIVE = ("pan", "tilt")  # the angles an aimed camera holds as offsets
+    AXES = ("x", "y", "z")      # a zone camera's position parameters
+    MOVES = ("u",) + AXES       # the parameters that move an optical centre
 
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
         free = exp.optimize.free
         self.index, theta, scale, aims = [], [], [], []
-        for cam, spec in zip(cameras, exp.camera_specs):
+        self.zones = [exp.mount(s.mount) if s.mount and exp.mount(s.mount).kind == "zone" else None
+                      for s in exp.camera_specs]
+        logit = lambda u: math.log(u / (1 - u))
+        for cam, spec, zone in zip(cameras, exp.camera_specs, self.zones):
             idx = {}
             if cam.name in moving:
                 for name in ("u", "pan", "tilt", "roll"):
-                    if name not in free or (name == "u" and spec.rail is None):
+                    if name not in free:
                         continue
-                    idx[name] = len(theta)
-                    if name == "u":
-                        u = float(np.clip(spec.u, 1e-4, 1 - 1e-4))
-                        theta.append(math.log(u / (1 - u)))
+                    if name == "u" and spec.rail is not None:
+                        idx[name] = len(theta)
+                        theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
-                    else:
+                    elif name == "u" and zone is not None and zone.floor is not None:
+                        weights = mean_value_coordinates(zone.floor, cam.position[:2])
+                        for k in range(1, len(zone.floor)):   # softmax logits against corner 0
+                            idx[f"w{k}"] = len(theta)
+                            theta.append(math.log(weights[k] / weights[0]))
+                            scale.append(0.5)
+                        if zone.high[2] > zone.low[2]:
+                            idx["z"] = len(theta)
+                            frac = (cam.position[2] - zone.low[2]) / (zone.high[2] - zone.low[2])
+                            theta.append(logit(float(np.clip(frac, 1e-4, 1 - 1e-4))))
+                            scale.append(0.5)
+                    elif name == "u" and zone is not None:
+                        for k, axis in enumerate(self.AXES):
+                            extent = zone.high[k] - zone.low[k]
+                            if extent > 0:
+                                idx[axis] = len(theta)
+                                frac = (cam.position[k] - zone.low[k]) / extent
+                                theta.append(logit(float(np.clip(frac, 1e-4, 1 - 1e-4))))
+                                scale.append(0.5)
+                    elif name != "u":
+                        idx[name] = len(theta)
                         aimed = self._aimed(idx, cam) and name in self.RELATIVE
                         theta.append(0.0 if aimed else getattr(cam, name))
                         # a few degrees, less for a long lens: an eighth of its horizontal field
@@ -123,18 +174,56 @@ class Parameterization:
 
     @staticmethod
     def _aimed(idx: dict, cam: Camera) -> bool:
-        """Aim-relative angles: u free and the axis not vertical (where the heading is undefined)."""
-        return "u" in idx and abs(math.cos(cam.tilt)) > 1e-3
+        """Aim-relative angles: the position free and the axis not vertical (where the heading is
+        undefined)."""
+        return Parameterization.moves(idx) and abs(math.cos(cam.tilt)) > 1e-3
 
-    def poses(self, theta):
-        """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays."""
+    @classmethod
+    def moves(cls, idx: dict) -> bool:
+        """Whether these parameters move the optical centre."""
+        return any(cls.is_position(k) for k in idx)
+
+    @classmethod
+    def is_position(cls, name: str) -> bool:
+        """u (rail), x, y, z (zone box axes, or the height over a floor polygon), w1... (the
+        softmax logits of a floor polygon's corners)."""
+        return name in cls.MOVES or name[0] == "w"
+
+    @property
+    def held(self) -> dict:
+        """The layout the parameters are offsets from, as arrays (what `poses` reads besides θ):
+        optical centres (C, 3), pan, tilt, roll (C,) of the hand layout and the aim points (C, 3)."""
+        return dict(position=jnp.asarray(np.array([c.position for c in self.cameras], dtype=float)),
+                    **{k: jnp.asarray([float(getattr(c, k)) for c in self.cameras])
+                       for k in ("pan", "tilt", "roll")},
+                    aims=jnp.asarray(self.aims))
+
+    @property
+    def signature(self) -> tuple:
+        """What the traced `poses` depends on besides its array inputs (`held`): two
+        parameterisations with the same signature share compiled programs."""
+        return (tuple(tuple(sorted(idx.items())) for idx in self.index),
+                tuple(self._aimed(idx, c) for idx, c in zip(self.index, self.cameras)),
+                tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs),
+                tuple(None if z is None else (tuple(z.low), tuple(z.high),
+                                              None if z.floor is None else tuple(z.floor.ravel()))
+                      for z in self.zones))
+
+    def poses(self, theta, held: dict | None = None):
+        """Optical centres (C, 3), pan, tilt, roll (C,) as JAX arrays; `held` (default
+        `self.held`) gives the held values and aim points."""
+        held = self.held if held is None else held
         pos, angles = [], {k: [] for k in ("pan", "tilt", "roll")}
-        for cam, spec, rail, idx, aim in zip(self.cameras, self.exp.camera_specs, self.rails,
-                                             self.index, self.aims):
-            p = (rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset if "u" in idx
-                 else jnp.asarray(cam.position, dtype=float))
+        for c, (cam, spec, rail, idx) in enumerate(zip(self.cameras, self.exp.camera_specs, self.rails,
+                                                       self.index)):
+            if "u" in idx:
+                p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
+            elif self.moves(idx):
+                p = self.zone_position(self.zones[c], theta, idx, held["position"][c])
+            else:
+                p = held["position"][c]
             if self._aimed(idx, cam):
-                d = jnp.asarray(aim) - p
+                d = held["aims"][c] - p
                 base = dict(pan=jnp.arctan2(d[1], d[0]), tilt=jnp.arctan2(d[2], jnp.hypot(d[0], d[1])))
                 relative = self.RELATIVE
             else:
@@ -144,8 +233,25 @@ class Parameterization:
                 if k in idx:
                     angles[k].append(base[k] + theta[idx[k]] if k in relative else theta[idx[k]])
                 else:
-                    angles[k].append(jnp.asarray(getattr(cam, k), dtype=float))
+                    angles[k].append(held[k][c])
         return jnp.stack(pos), *(jnp.stack(angles[k]) for k in ("pan", "tilt", "roll"))
+
+    @classmethod
+    def zone_position(cls, zone, theta, idx: dict, held):
+        """p_k = lo_k + (hi_k - lo_k) sigmoid(θ[idx[axis k]]) for the zone's free axes, else
+        held[k] (m): inside the box [lo, hi] for every θ (written as the convex combination
+        (1 - s) lo + s hi and clipped, so that rounding never puts it a hair outside). Over a
+        floor polygon with corners v_k: (x, y) = Σ_k softmax(0, θ_w1, ...)_k v_k, inside the
+        (convex) polygon for every θ, and z as above."""
+        def axis(k, a):
+            lo, hi = zone.low[k], zone.high[k]
+            s = jax.nn.sigmoid(theta[idx[a]])
+            return jnp.clip((1 - s) * lo + s * hi, lo, hi)
+        if zone.floor is not None:   # a convex combination of the corners: inside the polygon
+            logits = jnp.stack([jnp.zeros(())] + [theta[idx[f"w{k}"]] for k in range(1, len(zone.floor))])
+            xy = jax.nn.softmax(logits) @ jnp.asarray(zone.floor)
+            return jnp.stack([xy[0], xy[1], axis(2, "z") if "z" in idx else held[2]])
+        return jnp.stack([axis(k, a) if a in idx else held[k] for k, a in enumerate(cls.AXES)])
 
     def u(self, theta) -> list:
         theta = np.asarray(theta)
@@ -153,13 +259,18 @@ class Parameterization:
                 for spec, idx in zip(self.exp.camera_specs, self.index)]
 
     def cameras_at(self, theta) -> list[Camera]:
-        pos, pan, tilt, roll = (np.asarray(a) for a in self.poses(jnp.asarray(theta)))
+        if not hasattr(self, "_poses_jit"):   # one compiled program, not one per eager operation
+            self._poses_jit = jax.jit(self.poses)
+        pos, pan, tilt, roll = (np.asarray(a) for a in self._poses_jit(jnp.asarray(theta, dtype=float),
+                                                                       self.held))
         return [c.with_pose(pos[i], pan[i], tilt[i], roll[i]) for i, c in enumerate(self.cameras)]
 
     def specs_at(self, theta) -> list:
-        """Camera specs with the optimized rail parameter and aim (pan/tilt replace a target)."""
+        """Camera specs with the optimized rail parameter or zone position and aim (pan/tilt
+        replace a target)."""
         cams, us = self.cameras_at(theta), self.u(theta)
         return [dataclasses.replace(spec, u=us[i] if spec.rail else None, target=None,
+                                    position=np.asarray(cams[i].position) if spec.mount else spec.position,
                                     pan=cams[i].pan, tilt=cams[i].tilt, roll=cams[i].roll)
                 for i, spec in enumerate(self.exp.camera_specs)]
 
@@ -226,17 +337,16 @@ class Problem:
         self.exp, self.quiet = exp, quiet
         opt = exp.optimize
         if reference is None:
-            self.meshes = load_meshes(exp)
-            self.samples = sample_regions(exp, self.meshes)
-            self.faces = all_region_faces(exp, self.meshes)
-            self.speckle = speckle_model(exp)
-            self.scene_points = _surface_points(self.meshes, spacing=0.015)
+            self.geometry = prepare(exp)
+            self.scene_points = _surface_points(list(self.geometry.meshes), spacing=0.015)
             # lights reaching each sample with no camera in the scene, to see what the bodies hide
-            self.lit_without_cameras = (illuminate(build_scene(self.meshes), exp.lights, self.samples).lit
-                                        if exp.lights else None)
+            self.lit_without_cameras = (illuminate(build_scene(list(self.geometry.meshes)), exp.lights,
+                                                   self.geometry.samples).lit if exp.lights else None)
         else:
-            for name in ("meshes", "samples", "faces", "speckle", "scene_points", "lit_without_cameras"):
+            for name in ("geometry", "scene_points", "lit_without_cameras"):
                 setattr(self, name, getattr(reference, name))
+        self.meshes, self.samples = list(self.geometry.meshes), self.geometry.samples
+        self.faces, self.speckle = list(self.geometry.region_faces), self.geometry.speckle
         self.settings = settings(exp)
         self.obj_samples = samples_for_objective(exp, self.samples)
         if opt.regions is not None:   # only the named regions enter the score
@@ -245,11 +355,12 @@ class Problem:
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
         self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
         self.cams0 = self.param.cameras
+        self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
-        self.near_points = jnp.asarray(constraints.near_points(
+        self.near_points = jnp.asarray(_pad_axis(constraints.near_points(
             self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
-            + opt.clearance + CLEARANCE_MARGIN))
+            + opt.clearance + CLEARANCE_MARGIN), 1, 1e3))
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
@@ -267,29 +378,54 @@ class Problem:
         else:
             self.fov_limits = reference.fov_limits
         self.fov = self._fov_groups(self.start)
-        self.obscuration = ObscurationTerm(len(self.cams0), opt.max_obscuration)
         self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
-        self.history: list[dict] = []    # every objective evaluation
-        self.verdicts: list[dict] = []   # every exact judgement (`judge`)
-        self._t0 = time.perf_counter()
-        self._label = (0, 0)
-        self.size = jnp.asarray([[c.width, c.height] for c in self.cams0], dtype=float)
-        self.value_and_grad = jax.jit(jax.value_and_grad(self._total))
-        solver = optx.BFGS(rtol=1e-6, atol=1e-6)
-        # one compiled solve per pair-list size and step count, reused by every round and start
-        self.minimise = eqx.filter_jit(lambda args, max_steps: optx.minimise(
-            self._scaled, solver, jnp.zeros_like(args[0]), args=args, max_steps=max_steps,
-            throw=False).value)
+
+    @property
+    def obscuration(self) -> "ObscurationTerm":
+        return self.run.obscuration
+
+    @property
+    def data(self) -> dict:
+        """Every array the traced objective reads (`terms`): passed to the compiled programs as
+        an argument, so that another layout of the same structure (another start, a lens trial)
+        reuses them."""
+        c0 = self.cams0
+        return dict(
+            held=self.param.held, focal_px=jnp.asarray([c.focal_px for c in c0]),
+            cx=jnp.asarray([c.principal_point[0] for c in c0]),
+            cy=jnp.asarray([c.principal_point[1] for c in c0]),
+            size=jnp.asarray([[c.width, c.height] for c in c0], dtype=float),
+            samples=self.obj_samples, energy=self.speckle.table,
+            pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
+            max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
+            fov=self.fov, body_local=self.body_local, near_points=self.near_points,
+            spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
+            lit=self.lit_samples)
 
     def _paths(self) -> list[np.ndarray]:
-        """Where each optical centre can go: its rail (+ offset) sampled every ~2 cm, if u is
-        free, else its position."""
+        """Where each optical centre can go: its rail (+ offset) sampled at most ~2 cm apart, or
+        its zone on a grid, if its position is free, else its position."""
         out = []
-        for cam, spec, rail, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
-                                        self.param.index):
+        sliding = [r for r, idx in zip(self.param.rails, self.param.index) if "u" in idx]
+        # the control polygon is at least as long as the curve
+        n = max([2] + [int(np.linalg.norm(np.diff(r.control_points, axis=0), axis=1).sum() / 0.02) + 1
+                       for r in sliding])
+        grid = np.linspace(0, 1, n)
+        along = iter(jax.jit(lambda: [r.position(grid) for r in sliding])())   # one compiled call
+        for cam, spec, rail, zone, idx in zip(self.cams0, self.exp.camera_specs, self.param.rails,
+                                              self.param.zones, self.param.index):
             if "u" in idx:
-                n = max(2, int(rail.arc_length(1.0) / 0.02))
-                out.append(np.asarray(rail.position(np.linspace(0, 1, n))) + spec.offset)
+                out.append(np.asarray(next(along)) + spec.offset)
+            elif zone is not None and Parameterization.moves(idx):
+                lo, hi = zone.low, zone.high   # a grid at most 5 cm apart
+                axes = [np.linspace(lo[k], hi[k], max(2, int(np.ceil((hi[k] - lo[k]) / 0.05)) + 1))
+                        for k in range(3)]
+                grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+                if zone.floor is not None:   # the grid points over the polygon, and its corners
+                    keep = [inside_floor(zone.floor, g[:2], tol=0.05) for g in grid]
+                    corners = [[*v, z] for v in zone.floor for z in (lo[2], hi[2])]
+                    grid = np.vstack([grid[keep], corners])
+                out.append(grid)
             else:
                 out.append(np.asarray(cam.position)[None])
         return out
@@ -297,15 +433,14 @@ class Problem:
     # -- the frozen state of a round ------------------------------------------------------
     def refresh(self, theta) -> State:
         cams = self.param.cameras_at(theta)
-        bodies = [camera_body(c) for c, s in zip(cams, self.exp.camera_specs) if s.body]
-        scene = build_scene(self.meshes + bodies)
-        obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies)
-        limit = self.exp.evaluation.incidence_limit
-        vis = compute_visibility(scene, cams, self.samples, limit, progress=False)
-        vis_obstacles = compute_visibility(obstacles, cams, self.samples, limit, progress=False)
-        illum = illuminate(scene, self.exp.lights, self.samples, self.exp.render.ambient_radiance)
+        layout = layout_state(self.geometry, cams, predict_fields=False)
+        vis, illum = layout.visibility, layout.illumination
+        # the same cast against the obstacles alone: what hides a region that the specimen does not
+        obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies(self.exp, cams))
+        vis_obstacles = compute_visibility(obstacles, cams, self.samples,
+                                           self.exp.evaluation.incidence_limit, progress=False)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     view_data(self.exp, self.obj_samples, vis, illum, self.speckle))
+                     self.run.padded(view_data(self.exp, self.obj_samples, vis, illum, self.speckle)))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
@@ -332,7 +467,7 @@ class Problem:
         groups = [(c, r) for c in range(len(self.cams0)) for r in np.flatnonzero(self.assigned[c])]
         facing = state.vis.in_front & state.vis.facing
         members = [np.flatnonzero((self.samples.region == r) & facing[c]) for c, r in groups]
-        m = max([1] + [idx.size for idx in members])
+        m = _bucket(max([1] + [idx.size for idx in members]))   # few sizes: few compilations
         points, area = np.zeros((len(groups), m, 3)), np.zeros((len(groups), m))
         ramp = np.ones(len(groups))
         for g, ((c, r), idx) in enumerate(zip(groups, members)):
@@ -374,48 +509,42 @@ class Problem:
         used, inverse = np.unique(faces, return_inverse=True)
         return SceneMesh(spec.name, "specimen", mesh.vertices[used], inverse.reshape(-1, 3))
 
-    # -- the objective -------------------------------------------------------------------
-    def terms(self, theta, views) -> dict:
-        """The score and each penalty at θ (JAX scalars): score and the `PENALTIES`."""
-        pos, pan, tilt, roll = self.param.poses(theta)
-        c0 = self.cams0
-        f = jnp.asarray([c.focal_px for c in c0])
-        cx, cy = (jnp.asarray([c.principal_point[k] for c in c0]) for k in (0, 1))
-        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, self.size[:, 0], self.size[:, 1])
+    # -- the objective (traced: reads only `data` and the static structure) ------------------
+    def terms(self, theta, views, data, obscured: bool = True) -> dict:
+        """The score and each penalty at θ (float64 JAX scalars): score and the `PENALTIES`;
+        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise)."""
+        pos, pan, tilt, roll = self.param.poses(theta, data["held"])
+        f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
+        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1])
         R = rotation(pan, tilt, roll)
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
         clearance = self.exp.optimize.clearance
-        return dict(
-            score=objective.score(cams, self.obj_samples, views, self.speckle.table, self.settings),
-            angle=constraints.axis_angle_penalty(R[:, 2, :], self.pairs, self.min_angles + ANGLE_MARGIN,
-                                                 self.max_angles - ANGLE_MARGIN),
+        fov = data["fov"]
+        out = dict(
+            score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
+            angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"],
+                                                 data["max_angles"]),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
-                K, R, t, self.size[:, 0], self.size[:, 1], self.fov["camera"], self.fov["points"],
-                self.fov["area"], self.fov["ramp"]), self.fov["limit"], FOV_MARGIN),
+                K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
+                fov["ramp"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
-                constraints.body_points_world(self.body_local, R, pos), self.near_points,
+                constraints.body_points_world(data["body_local"], R, pos), data["near_points"],
                 clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
-            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1)),
-            shadow=0.0 if self.lit_samples is None or self.sphere_local is None else constraints.shadow_penalty(
-                constraints.body_points_world(self.sphere_local, R[self.bodied], pos[self.bodied]),
-                self.sphere_radii, *self.lit_samples, SHADOW_MARGIN))
+            obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
+            if obscured else 0.0,
+            shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
+                constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
+                data["spheres"][1], *data["lit"], SHADOW_MARGIN))
+        return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
-    def _total(self, theta, views, weights):
-        """J = weights[0] score + weights[1] Σ penalties (weights: a (2,) array)."""
-        terms = self.terms(theta, views)
-        jax.debug.callback(self._record, terms)
-        return weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
-
-    def _scaled(self, y, args):
-        """J at θ = origin + scale y, divided by `norm` (`_round`)."""
-        origin, scale, norm, views, weights = args
-        return self._total(origin + scale * y, views, weights) / norm
-
-    def _record(self, terms):
-        self.history.append(dict(start=self._label[0], round=self._label[1],
-                                 wall_s=time.perf_counter() - self._t0,
-                                 **{k: float(v) for k, v in terms.items()}))
+    def _scaled(self, y, args, obscured: bool):
+        """(J / norm, the terms) at θ = origin + scale y, J = weights[0] score + weights[1] Σ
+        penalties (weights: a (2,) array; norm: `_round`)."""
+        origin, scale, norm, views, weights, data = args
+        terms = self.terms(origin + scale * y, views, data, obscured)
+        total = weights[0] * terms["score"] + weights[1] * sum(terms[k] for k in PENALTIES)
+        return total / norm, terms
 
     # -- exact checks ---------------------------------------------------------------------
     def check(self, state: State) -> list[dict]:
@@ -475,17 +604,194 @@ def _light_lost(problem: Problem, state: State) -> np.ndarray:
                      for r in range(len(s.region_names))])
 
 
+def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:
+    """Positive weights w (n,), Σ w = 1, with Σ w_k v_k = point for a point inside the convex
+    polygon v (n, 2) (Floater's mean value coordinates: w_k ∝ (tan(α_(k-1)/2) + tan(α_k/2)) /
+    |v_k - p|, α_k the angle at p between v_k and v_(k+1)). A point on the outline is first moved
+    1e-6 of the way to the centroid (where the formula degenerates)."""
+    v = np.asarray(polygon, float)
+    p = np.asarray(point, float)
+    p = p + 1e-6 * (v.mean(axis=0) - p)
+    d = v - p
+    r = np.linalg.norm(d, axis=1)
+    nxt = np.roll(d, -1, axis=0)
+    alpha = np.arctan2(d[:, 0] * nxt[:, 1] - d[:, 1] * nxt[:, 0], np.sum(d * nxt, axis=1))
+    t = np.tan(alpha / 2)
+    w = (np.roll(t, 1) + t) / r
+    return w / w.sum()
+
+
+def _pad_axis(a: np.ndarray, axis: int, value: float) -> np.ndarray:
+    """`a` padded with `value` along `axis` to a size of few distinct values (`objective._bucket`),
+    so that layouts of one run seldom change the compiled programs' shapes."""
+    n = a.shape[axis]
+    widths = [(0, 0)] * a.ndim
+    widths[axis] = (0, _bucket(n) - n)
+    return np.pad(a, widths, constant_values=value)
+
+
+# --------------------------------------------------------------------------------------------
+# Stopping early, and what a run shares
+# --------------------------------------------------------------------------------------------
+class Stop:
+    """A request to end the search early, checked between solver steps and between rounds (never
+    inside a JAX or Dr.Jit call): `request` sets it (a signal handler, a caller), and so does the
+    clock once `time_limit` seconds have passed since it was made. `reason` is None,
+    "time_limit" or "interrupted"."""
+
+    def __init__(self, time_limit: float = math.inf):
+        self.deadline = time.perf_counter() + time_limit
+        self.reason: str | None = None
+
+    def request(self, reason: str = "interrupted") -> None:
+        if self.reason is None:
+            self.reason = reason
+
+    def __call__(self) -> bool:
+        """True once a stop was requested or the time limit has passed."""
+        if self.reason is None and time.perf_counter() >= self.deadline:
+            self.reason = "time_limit"
+        return self.reason is not None
+
+    @property
+    def left(self) -> float:
+        """Seconds to the time limit (inf without one)."""
+        return max(self.deadline - time.perf_counter(), 0.0)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Stop):
+    """While inside: SIGINT (Ctrl-C) and SIGTERM request `stop` instead of raising; a second
+    SIGINT raises KeyboardInterrupt as usual. The previous handlers come back on exit. Outside the
+    main thread (where Python delivers no signals) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, frame):
+        if signum == signal.SIGINT and stop.reason == "interrupted":
+            raise KeyboardInterrupt
+        stop.request("interrupted")
+        log.warning("%s: stopping after the current step; the best layout so far will be written "
+                    "(Ctrl-C again to abort without writing)", signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+class _Run:
+    """What the starts and lens trials of one run share: the compiled solver programs (one pair
+    per structure, `Parameterization.signature`; the layout's arrays are their argument,
+    `Problem.data`, so another start or lens reuses them), the obscuration term, the record of
+    accepted solver step (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
+    size of the pair lists, how each round ended, the stop request and the progress line."""
+
+    def __init__(self, n_cameras: int, max_obscuration: float):
+        self.obscuration = ObscurationTerm(n_cameras, max_obscuration)
+        self.history: list[dict] = []
+        self.verdicts: list[dict] = []
+        self.best: "Result | None" = None
+        self.t0 = time.perf_counter()
+        self.stop = Stop()
+        self.blocks = None   # (block, blocks, chunk) of every pair list
+        self.progress = _Progress(None)
+        self.rounds: list[str] = []   # how each round ended
+        self.ends: list[str] = []     # how each start ended (its last round)
+        self.label = (0, 0)
+        self._programs: dict = {}
+
+    def programs(self, problem: "Problem"):
+        """(init, step): BFGS's init and one step on `problem._scaled`, jit-compiled once per
+        structure (`Parameterization.signature`) and per presence of tracked obscuration (the
+        first problem of a structure defines the traced function; the others differ from it only
+        in `Problem.data`, passed in `args`). Without obscuration the programs hold no host
+        callback, so the persistent compilation cache (JAX_COMPILATION_CACHE_DIR) can serve them
+        to the next run (JAX keys a program with a callback by the callback's address)."""
+        obscured = bool(self.obscuration.tracked)
+        key = (problem.param.signature, obscured)
+        if key not in self._programs:
+            solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+            fn = lambda y, args: problem._scaled(y, args, obscured)
+            f_struct = jax.ShapeDtypeStruct((), jnp.float64)
+            aux_struct = {k: f_struct for k in ("score", *PENALTIES)}
+            self._programs[key] = (
+                eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, aux_struct, frozenset())),
+                eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2]))
+        return self._programs[key]
+
+    def record(self, terms):
+        """Keep one evaluation's terms (`history`, with the start, round and wall time)."""
+        self.history.append(dict(start=self.label[0], round=self.label[1],
+                                 wall_s=time.perf_counter() - self.t0,
+                                 **{k: float(v) for k, v in terms.items()}))
+
+    def padded(self, views: objective.ViewData) -> objective.ViewData:
+        """`views` with padding blocks (occlusion 0: weight and gradient exactly 0) up to the
+        run's fixed block count, so that every pair list of the run has the same shapes and the
+        programs compile once: the first list sets it with 25 % headroom, a longer one raises it."""
+        L = views.block
+        B = views.camera.shape[0] // L
+        if self.blocks is None or self.blocks[0] != L or self.blocks[1] < B:
+            chunk = views.chunk
+            self.blocks = (L, -(-int(1.25 * B) // chunk) * chunk, chunk)
+        _, target, chunk = self.blocks
+        extra = (target - B) * L
+        fill = lambda a, value: jnp.concatenate([a, jnp.full(extra, value, a.dtype)])
+        geometry = jnp.concatenate([views.geometry, jnp.broadcast_to(
+            views.geometry[:, :1, :1], (12, target - B, L))], axis=1)   # a real sample's: finite
+        return objective.ViewData(fill(views.camera, 0), fill(views.sample, 0),
+                                  fill(views.occlusion, 0.0), fill(views.contrast, 0.0),
+                                  fill(views.noise, 1.0), geometry, L, chunk)
+
+
+class _Progress:
+    """One progress line (tqdm) over the planned solver steps: start, round, step, the best
+    score so far (µm; feasible layouts first) and the time left, the least of the time limit
+    and the steps left at the mean time per step so far (refreshes and checks included)."""
+
+    def __init__(self, planned: int | None, stop: Stop | None = None, show: bool = False):
+        self.planned, self.stop, self.done = planned, stop, 0
+        self.t0 = time.perf_counter()
+        self.bar = tqdm(total=planned, desc="optimize", unit="step", disable=not show or planned is None,
+                        bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
+
+    def left(self) -> float:
+        rate = (time.perf_counter() - self.t0) / max(self.done, 1)
+        est = rate * max((self.planned or 0) - self.done, 0)
+        return min(est, self.stop.left) if self.stop is not None else est
+
+    def step(self, where: str, best: "Result | None") -> None:
+        self.done += 1
+        if best is None:
+            text = "no layout judged yet"
+        else:
+            text = f"best {best.score:.4g} µm" + ("" if best.violations == 0 else
+                                                  f" ({best.violations} violation(s))")
+        self.bar.set_postfix_str(f"{where}, {text}, ~{self.left():.0f} s left", refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 # --------------------------------------------------------------------------------------------
 # The solver loop
 # --------------------------------------------------------------------------------------------
 @dataclasses.dataclass
 class Result:
+    """A judged layout of `problem` (the lenses it was built with) at θ."""
+
     theta: np.ndarray
     state: State
     score: float
     checks: list
     violations: int
     start: int
+    problem: "Problem"
 
     @property
     def rank(self):
@@ -497,10 +803,12 @@ def judge(problem: Problem, theta, state: State, start: int) -> Result:
     """The exact verdict on a refreshed layout: score and every constraint checked."""
     checks = problem.check(state)
     result = Result(np.asarray(theta, float), state, problem.exact_score(state), checks,
-                    sum(not e["met"] for e in checks), start)
-    problem.verdicts.append(dict(start=start, wall_s=time.perf_counter() - problem._t0,
-                                 score=result.score, violations=result.violations,
-                                 theta=result.theta))
+                    sum(not e["met"] for e in checks), start, problem)
+    run = problem.run
+    run.verdicts.append(dict(start=start, wall_s=time.perf_counter() - run.t0,
+                             score=result.score, violations=result.violations, theta=result.theta))
+    if run.best is None or result.rank < run.best.rank:
+        run.best = result   # the best layout of the run so far, whatever stops it
     return result
 
 
@@ -510,119 +818,240 @@ def _violated(result: Result) -> str:
                      + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
 
 
-def solve(problem: Problem, progress: bool = False) -> list[Result]:
-    """Every start, every round; per start the best layout met at the end of a round (or the
-    start itself), judged exactly (`Result.rank`); returns them sorted best first."""
+def solve(problem: Problem, say=None, starts: int | None = None, first_label: int = 0) -> list[Result]:
+    """Every start, every round, until they end or `problem.run.stop`; per start the best layout
+    met at the end of a round (or the start itself), judged exactly (`Result.rank`); returns
+    them sorted best first. Start k > 0 perturbs the hand layout at random; starts are labelled
+    from `first_label` in the records."""
     opt = problem.exp.optimize
+    run = problem.run
+    say = say or (lambda m: None)
     rng = np.random.default_rng(opt.seed)
     results = []
-    problem._t0 = time.perf_counter()   # history and verdicts count wall time from here
-    problem.history, problem.verdicts = [], []
-    for start in range(opt.starts):
+    n_starts = opt.starts if starts is None else starts
+    for k_start in range(n_starts):
+        if results and run.stop():
+            break
+        start = first_label + k_start
         theta = problem.param.theta0.copy()
-        if start > 0:
+        if k_start > 0:
             theta = theta + _perturbation(problem.param, rng)
-        state = problem.start if start == 0 else problem.refresh(theta)   # the hand layout: cast once
+        state = problem.start if k_start == 0 else problem.refresh(theta)   # hand layout: cast once
         best = result = judge(problem, theta, state, start)
         problem.masked = set()
         label = 0
+        rounds_before = len(run.rounds)
 
-        def run(w_score, mu, name):
+        def one_round(w_score, mu, name):
             nonlocal theta, state, result, best, label
-            problem._label = (start, label)
+            run.label = (start, label)
             problem.track_obscured(state, result.checks)
-            theta = _round(problem, theta, state.views, (w_score, mu), opt.max_steps)
+            where = f"start {start + 1} {name}"
+            moved, status = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where)
+            run.rounds.append(status)
+            label += 1
+            if np.array_equal(moved, theta):
+                return
+            theta = moved
             state = problem.refresh(theta)
             result = judge(problem, theta, state, start)
             best = min(best, result, key=lambda r: r.rank)
-            label += 1
-            if progress:
-                print(f"  start {start + 1}/{opt.starts} {name}: score {result.score:.4g}, "
-                      f"{result.violations} violation(s) {_violated(result)}", flush=True)
+            say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
+                f"{result.violations} violation(s) {_violated(result)}"
+                + ("" if status in ("converged", "max_steps") else f" (stopped: {status})"))
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
         for k in range(FEASIBILITY_ROUNDS):
-            if result.violations == 0:
+            if result.violations == 0 or run.stop():
                 break
-            run(0.0, 1.0, f"feasibility round {k + 1}")
+            one_round(0.0, 1.0, f"feasibility round {k + 1}")
         for k in range(opt.rounds):
-            run(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            if run.stop():
+                break
+            previous = result
+            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            if (k > 0 and previous.violations == 0 and result.violations == 0
+                    and previous.score - result.score < ROUND_TOL * previous.score):
+                run.rounds.append("converged")   # the penalty continuation has nothing left
+                break
         results.append(best)
+        run.ends.append(run.rounds[-1] if len(run.rounds) > rounds_before else "converged")
     return sorted(results, key=lambda r: r.rank)
 
 
-def choose_lenses(problem: Problem, best: Result, progress: bool = False) -> tuple[Problem, Result]:
-    """The discrete outer loop over `[optimize] lenses`: one greedy pass over the moving cameras;
-    for each, every other focal length of the catalogue is tried from the best layout so far
-    (its rail positions and aims), the layout is optimised again (`solve`) and the lens kept
-    when the result ranks better (`Result.rank`). Constraints keep the hand layout's meaning
+def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
+    """The discrete choice over `[optimize] lenses` by screening: every (moving camera, other
+    focal length) option is judged once at the best layout so far (its positions and aims; a
+    camera in a zone steps along its axis by the ratio of the focal lengths, clipped to the zone
+    and aimed at the same point, so that the regions keep their image size; one ray cast and the exact score and checks, no
+    optimisation), the options are ranked by score
+    and only the `LENS_TRIALS` best are optimised again (`solve`, one start, feasibility rounds
+    first if the option breaks a constraint; a camera on a rail cannot step back, so an option
+    that screens worse than the current layout may still win), one camera at a time; an option is kept when its optimised layout ranks better (`Result.rank`). Constraints keep the hand layout's meaning
     (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
-    current = problem
+    say = say or (lambda m: None)
+    run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
+
+    centre = problem.samples.points.mean(axis=0)
+
+    def trial(current: Result, c: int, focal: float) -> Problem:
+        specs = current.problem.param.specs_at(current.theta)
+        specs[c] = dataclasses.replace(specs[c], focal_length=focal)
+        zone = problem.param.zones[c]
+        if zone is not None and Parameterization.moves(problem.param.index[c]):
+            # in a zone, step along the axis so that the regions keep their size in the image
+            cam = current.state.cameras[c]
+            depth = max(float((centre - cam.position) @ cam.optical_axis), 0.1)
+            ratio = focal / current.problem.exp.camera_specs[c].focal_length
+            aim = cam.position + depth * cam.optical_axis
+            moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
+            if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
+                moved = cam.position   # not over the floor: screen it where it stands
+            specs[c] = dataclasses.replace(specs[c], position=moved, target=aim)   # aimed again
+        return Problem(current.problem.exp.with_cameras(specs), reference=problem)
+
+    options = []
+    label = max(v["start"] for v in run.verdicts) + 1
     for c in moving:
-        name = problem.cams0[c].name
         for focal in problem.exp.camera_specs[c].lenses or problem.exp.optimize.lenses:
-            if math.isclose(focal, current.exp.camera_specs[c].focal_length, rel_tol=1e-9):
+            if run.stop():
+                break
+            if math.isclose(focal, best.problem.exp.camera_specs[c].focal_length, rel_tol=1e-9):
                 continue
-            specs = current.param.specs_at(best.theta)
-            specs[c] = dataclasses.replace(specs[c], focal_length=focal)
-            trial = Problem(current.exp.with_cameras(specs), reference=problem)
-            result = solve(trial)[0]
-            kept = result.rank < best.rank
-            if progress:
-                print(f"  lens {name} {focal * 1e3:g} mm: score {result.score:.4g}, "
-                      f"{result.violations} violation(s){' (kept)' if kept else ''}", flush=True)
-            if kept:
-                current, best = trial, result
-    return current, best
+            t = trial(best, c, focal)
+            screened = judge(t, t.param.theta0, t.start, label)
+            options.append((screened.score, c, focal))
+            say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm at the current layout: score "
+                f"{screened.score:.4g} µm, {screened.violations} violation(s)")
+    promising = sorted(options)[:LENS_TRIALS]   # moving and aiming may recover what screening lost
+    changed = set()
+    for _, c, focal in promising:
+        if run.stop() or c in changed:
+            continue
+        label = max(v["start"] for v in run.verdicts) + 1
+        result = solve(trial(best, c, focal), say, starts=1, first_label=label)[0]
+        kept = result.rank < best.rank
+        say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm optimised: score {result.score:.4g} µm, "
+            f"{result.violations} violation(s){' (kept)' if kept else ''}")
+        if kept:
+            best = result
+            changed.add(c)
+    return best
 
 
-def _round(problem: Problem, theta, views, weights, max_steps) -> np.ndarray:
+def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) -> tuple[np.ndarray, str]:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
-    step moves about one natural unit (`Parameterization.scale`) along the steepest parameter."""
-    origin = jnp.asarray(theta)
-    scale = jnp.asarray(problem.param.scale)
-    weights = jnp.asarray(weights, dtype=float)
-    _, g = problem.value_and_grad(origin, views, weights)
-    norm = float(jnp.max(jnp.abs(g * scale)))
+    step moves about one natural unit (`Parameterization.scale`) along the steepest parameter.
+    The solver runs step by step (one compiled step per call, `_Run`), checking the stop
+    request between steps. Returns θ at the last accepted step and how the round ended:
+    "converged" (the solver's tolerance), "max_steps", "time_limit", "interrupted" or "failed"
+    (a non-finite step)."""
+    run = problem.run
+    origin = jnp.asarray(theta, dtype=jnp.float64)
+    scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
+    weights = jnp.asarray(weights, dtype=jnp.float64)
+    data = problem.data
+    y = jnp.zeros_like(origin)
+    args = lambda norm: (origin, scale, jnp.asarray(norm, dtype=jnp.float64), views, weights, data)
+    if run.stop():
+        return np.asarray(theta), run.stop.reason
+    # the first step of a solve accepts its start: there, its gradient is dJ/dy at norm 1
+    init, step = run.programs(problem)
+    _, probe = step(y, args(1.0), init(y, args(1.0)))
+    norm = float(jnp.max(jnp.abs(probe.f_info.grad)))
     if not np.isfinite(norm) or norm == 0:
-        return np.asarray(theta)
-    y = problem.minimise((origin, scale, jnp.asarray(norm), views, weights), max_steps)
-    y = y if np.all(np.isfinite(np.asarray(y))) else jnp.zeros_like(origin)
-    return np.asarray(origin + scale * y)
+        return np.asarray(theta), "converged"
+    solver_args = args(norm)
+    state = init(y, solver_args)
+    status = "max_steps"
+    for k in range(max_steps):
+        if run.stop():
+            status = run.stop.reason
+            break
+        accepted = int(state.num_accepted_steps)
+        y_new, state = step(y, solver_args, state)
+        if int(state.num_accepted_steps) > accepted:
+            run.record(state.aux)   # the terms at the step just accepted
+        run.progress.step(f"{where}, step {k + 1}/{max_steps}", run.best)
+        if not np.all(np.isfinite(np.asarray(y_new))):
+            status = "failed"
+            break
+        y = y_new
+        if bool(state.terminate):
+            status = "converged"
+            break
+        if not bool(state.result == optx.RESULTS.successful):
+            status = "failed"
+            break
+    return np.asarray(origin + scale * y), status
 
 
 def _perturbation(param: Parameterization, rng) -> np.ndarray:
     d = np.zeros_like(param.theta0)
     for idx in param.index:
         for name, k in idx.items():
-            d[k] = rng.normal(0, 0.4) if name == "u" else rng.normal(0, math.radians(3))
+            d[k] = rng.normal(0, 0.4) if Parameterization.is_position(name) else rng.normal(0, math.radians(3))
     return d
 
 
 # --------------------------------------------------------------------------------------------
 # The command
 # --------------------------------------------------------------------------------------------
-def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
+DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
+
+
+def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
+             time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None) -> dict:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
-    constraints.json, history.csv, convergence.png and moves.csv into `out`."""
-    say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
-    problem = Problem(exp)
-    say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
-        f"{len(problem.pairs)} camera pairs sharing a region")
-    best = solve(problem, progress=not quiet)[0]
-    history, verdicts = problem.history, problem.verdicts
-    final = problem
-    if "lens" in exp.optimize.free:
-        say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in exp.optimize.lenses)} mm")
-        final, best = choose_lenses(problem, best, progress=not quiet)
+    constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
+
+    Anytime: the search ends when every round has run, after `time_limit` seconds (> 0), or on a
+    stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
+    it then owns); in every case the folder is written with the best layout judged so far
+    (feasible first, `Result.rank`), and optimizer.json says how the search ended."""
+    if not time_limit > 0:
+        raise ConfigError("command line", "--time-limit",
+                          f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
+    say = (lambda m: None) if quiet else tqdm.write   # lines above the progress line
+    own = stop is None
+    stop = Stop(time_limit) if own else stop
+    stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
+    with (stop_on_signals(stop) if own else contextlib.nullcontext()):
+        problem = Problem(exp)
+        run = problem.run
+        run.stop = stop
+        opt = exp.optimize
+        planned = opt.starts * (opt.rounds + 1) * opt.max_steps
+        if "lens" in opt.free:
+            planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
+        say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
+            f"{len(problem.pairs)} camera pairs sharing a region; time limit {time_limit:g} s")
+        reach = reachability.check(exp, problem.meshes, problem.samples)
+        for entry in reach:
+            if entry["short"]:
+                say(f"warning: {entry['message']}")
+        run.progress = _Progress(planned, stop, show=not quiet)
+        try:
+            solve(problem, say)
+            if "lens" in opt.free and not stop():
+                say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in opt.lenses)} mm")
+                choose_lenses(problem, run.best, say)
+        finally:
+            run.progress.close()
+    best = run.best
+    final = best.problem
+    status = stop.reason or ("converged" if all(e == "converged" for e in run.ends) else "max_steps")
+    say(f"search ended: {status} after {time.perf_counter() - run.t0:.0f} s; writing {out}")
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     checks_before = problem.check(problem.start)
+    score_before = _score_parts(problem, problem.start)
+    score_after = _score_parts(final, best.state)
     joint = _joint_p95(before), _joint_p95(after)
-    say(f"best: start {best.start + 1}, score {problem.exact_score(problem.start):.4g} -> {best.score:.4g}, "
-        f"{best.violations} constraint violation(s)")
+    say(f"best: start {best.start + 1}, score {score_before['score_um']:.4g} -> "
+        f"{score_after['score_um']:.4g} µm, {best.violations} constraint violation(s)")
     with run_folder(out, overwrite) as tmp:
         optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
         report.write_config(tmp / "optimized.toml", optimized)
@@ -633,18 +1062,59 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
             "violations": best.violations,
             "violated": [e for e in best.checks if not e["met"]],
             "after": best.checks, "before": checks_before})
-        _write_history(tmp / "history.csv", history)
-        _plot_history(tmp / "convergence.png", history, verdicts, exp.name)
-        _write_moves(tmp / "moves.csv", problem, final, best)
-    return {"score_before": problem.exact_score(problem.start), "score_after": best.score,
+        report.write_json(tmp / "optimizer.json", {
+            "status": status, "converged": status == "converged",
+            "time_limit_s": time_limit if math.isfinite(time_limit) else None,
+            "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0,
+            "rounds": run.rounds, "starts": run.ends, "accepted_steps": len(run.history), "layouts_judged": len(run.verdicts),
+            "best_start": best.start, "score_before": score_before, "score_after": score_after,
+            "reachability": reach})
+        _write_history(tmp / "history.csv", run.history)
+        _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
+        _write_moves(tmp / "moves.csv", problem, best)
+    return {"score_before": score_before["score_um"], "score_after": best.score,
+            "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}
 
 
 def _summary(problem: Problem, state: State) -> dict:
-    pred = predict(problem.exp, state.cameras, problem.samples, state.vis, state.illumination,
+    """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.predict` (usable
+    views, clipped patches) on the round's ray cast and lighting."""
+    pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
                    problem.speckle)
     return report.summary(problem.exp, problem.samples, state.vis, pred)
+
+
+def _score_parts(problem: Problem, state: State) -> dict:
+    """The score in physical units: overall (what the optimizer minimises, µm) and per region,
+    each the smooth percentile of σ_max it is (`vdo.objective`: the power mean
+    (Σ ω σ^q / Σ ω)^(1/q) of the smooth σ_max over the region's samples, ω = area, q =
+    `score_power`), plus the coverage term (µm; 0 when every sample has its minimum camera count),
+    and the area fraction that is unmeasured (fewer than two usable views: its σ counts as the
+    prior, `Settings.prior_sigma`, 1 mm, so a few percent of it dominates the power mean)."""
+    st = problem.settings
+    f = objective.fields(objective.CameraParams.from_cameras(state.cameras), problem.obj_samples,
+                         state.views, problem.speckle.table, st)
+    sigma = np.asarray(f.sigma_max_smooth) / st.sigma_unit
+    smp = problem.obj_samples
+    region, area = np.asarray(smp.region), np.asarray(smp.area)
+    omega = area * np.asarray(smp.importance)[region]
+    q = st.score_power
+    mean = lambda w, x: float((np.sum(w * x ** q) / np.sum(w)) ** (1 / q)) if np.sum(w) > 0 else None
+    short = np.maximum(np.asarray(smp.min_cameras)[region] - np.asarray(f.coverage), 0.0)
+    unmeasured = ~np.asarray(f.measured)
+    regions = {name: dict(sigma_smooth_um=mean(area * (region == r), sigma),
+                          coverage_um=float(st.coverage_weight * np.sum(area * (region == r) * short ** 2)
+                                            / np.sum(area * (region == r))),
+                          unmeasured_fraction=float(np.sum(area * (region == r) * unmeasured)
+                                                    / np.sum(area * (region == r))),
+                          scored=bool(np.asarray(smp.importance)[r] > 0))
+               for r, name in enumerate(problem.samples.region_names)}
+    overall = mean(omega, sigma)
+    coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
+    return dict(score_um=overall + coverage, sigma_smooth_um=overall, coverage_um=coverage,
+                power=q, regions=regions)
 
 
 def _joint_p95(summary: dict):
@@ -655,49 +1125,58 @@ def _joint_p95(summary: dict):
 
 def _write_history(path, history):
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, ["evaluation", "start", "round", "wall_s", "score", *PENALTIES])
+        writer = csv.DictWriter(fh, ["step", "start", "round", "wall_s", "score", *PENALTIES])
         writer.writeheader()
         for i, row in enumerate(history):
-            writer.writerow({"evaluation": i, **row})
+            writer.writerow({"step": i, **row})
 
 
 def _plot_history(path, history, verdicts, name):
-    """Score at every objective evaluation (line-search trials included, thin) and the exact
-    score of each round's layout (markers: filled where it meets every constraint)."""
+    """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin line) and the exact score of each
+    round's layout (markers: filled where it meets every constraint), per start; layouts judged
+    without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
-    for s in sorted({h["start"] for h in history}):
+    solved = sorted({h["start"] for h in history})
+    for s in solved:
         rows = [h for h in history if h["start"] == s]
         line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
-                        label=f"start {s + 1}: every evaluation")
+                        label=f"start {s + 1}: accepted steps")
         for feasible in (True, False):
             v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
                     color=line.get_color(), mfc=line.get_color() if feasible else "white",
                     label=f"start {s + 1}: round's layout, {'feasible' if feasible else 'violates a constraint'}")
-    scores = [r["score"] for r in verdicts]
-    if scores:   # the trials of a line search can be far worse: keep the judged layouts in view
-        ax.set_ylim(0.97 * min(scores), 1.05 * max(scores))
+    screened = [r for r in verdicts if r["start"] not in solved]
+    if screened:
+        ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
+                label="lens options screened at the best layout")
+    scores = [r["score"] for r in verdicts] + [h["score"] for h in history]
+    if scores and max(scores) > 10 * min(scores):   # e.g. from unmeasured points to a few µm
+        ax.set_yscale("log")
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_title(f"{name}: convergence")
-    ax.legend(fontsize=8)
+    if verdicts:
+        ax.legend(fontsize=7)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def _write_moves(path, problem: Problem, final: Problem, best: Result):
-    """Per camera: rail and rail position (mm along the bar), pan, tilt (deg) and focal length
-    (mm), before (`problem`, the hand layout) and after (`best`, a layout of `final`)."""
-    u0, u1 = problem.param.u(problem.param.theta0), final.param.u(best.theta)
+def _write_moves(path, problem: Problem, best: Result):
+    """Per camera: its mount (rail or zone), rail position (mm along the bar), pan, tilt (deg),
+    focal length (mm) and optical centre (m), before (`problem`, the hand layout) and after (`best`)."""
+    u0, u1 = problem.param.u(problem.param.theta0), best.problem.param.u(best.theta)
     with open(path, "w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(["camera", "rail", "rail_position_mm_before", "rail_position_mm_after",
+        writer.writerow(["camera", "mount", "rail_position_mm_before", "rail_position_mm_after",
                          "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
-                         "focal_mm_before", "focal_mm_after"])
+                         "focal_mm_before", "focal_mm_after", "x_m_before", "y_m_before", "z_m_before",
+                         "x_m_after", "y_m_after", "z_m_after"])
         for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
             rail = problem.param.rails[i]
             along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
-            writer.writerow([a.name, rail.name if rail else "", *along,
+            writer.writerow([a.name, rail.name if rail else problem.exp.camera_specs[i].mount or "", *along,
                              f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
                              f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
-                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}"])
+                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}",
+                             *(f"{v:.4f}" for v in (*a.position, *b.position))])

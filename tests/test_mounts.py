@@ -1,0 +1,219 @@
+"""Mounts beyond rails: a zone (a box a tripod can stand in) and a fixed mount. The zone map keeps
+the camera inside its box for every parameter value, its derivative matches finite differences,
+a rail mount behaves as a [[rail]], and bad mount input is one ConfigError line."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import PLATE_TOML, write_box
+from vdo import config, report
+from vdo.errors import ConfigError
+from vdo.optimize import Parameterization
+
+MOUNTS = """
+[[mount]]
+name = "tripod"
+kind = "zone"
+box_min_m = [0.3, -0.4, 0.9]
+box_max_m = [0.9, 0.4, 1.3]
+
+[[mount]]
+name = "wall"
+kind = "fixed"
+position_m = [-0.8, 0.0, 1.0]
+
+[[mount]]
+name = "beam"
+kind = "rail"
+control_points_m = [[-0.5, -0.8, 1.5], [0.5, -0.8, 1.5]]
+"""
+CAMERAS = """
+[[camera]]
+name = "t"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+mount = "tripod"
+position_m = [0.6, 0.1, 1.0]
+target_m = [0.0, 0.0, 0.0]
+
+[[camera]]
+name = "w"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+mount = "wall"
+target_m = [0.0, 0.0, 0.0]
+
+[[camera]]
+name = "b"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+mount = "beam"
+u = 0.5
+target_m = [0.0, 0.0, 0.0]
+"""
+
+
+def write(tmp_path, mounts=MOUNTS, cameras=CAMERAS, extra=""):
+    write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
+    text = PLATE_TOML.format(spacing=20, limit=75, height=1.2, extra_meshes=mounts,
+                             cameras=cameras + extra)
+    (tmp_path / "exp.toml").write_text(text)
+    return tmp_path / "exp.toml"
+
+
+def test_zone_fixed_and_rail_mounts_load_and_reload(tmp_path):
+    exp = config.load(write(tmp_path))
+    t, w, b = exp.cameras()
+    np.testing.assert_allclose(t.position, [0.6, 0.1, 1.0])
+    np.testing.assert_allclose(w.position, [-0.8, 0.0, 1.0])
+    np.testing.assert_allclose(b.position, [0.0, -0.8, 1.5])   # middle of the rail mount
+    assert exp.camera_specs[2].rail == "beam" and exp.camera_specs[0].mount == "tripod"
+    report.write_config(tmp_path / "again.toml", exp)
+    again = config.load(tmp_path / "again.toml")
+    for c0, c1 in zip(exp.cameras(), again.cameras()):
+        np.testing.assert_allclose(c1.position, c0.position, atol=1e-12)
+        np.testing.assert_allclose(c1.R, c0.R, atol=1e-12)
+    assert [m.name for m in again.mounts] == ["tripod", "wall"]
+
+
+def _param(tmp_path):
+    exp = config.load(write(tmp_path))
+    return exp, Parameterization(exp, exp.cameras(), np.zeros(3))
+
+
+def test_zone_map_stays_inside_the_zone_for_any_parameters(tmp_path):
+    exp, param = _param(tmp_path)
+    idx = param.index[0]
+    assert set(idx) >= {"x", "y", "z"} and not any(k in param.index[1] for k in Parameterization.MOVES)
+    # θ0 puts the camera where the file does
+    np.testing.assert_allclose(param.cameras_at(param.theta0)[0].position, [0.6, 0.1, 1.0], atol=1e-12)
+    zone = exp.mount("tripod")
+    rng = np.random.default_rng(0)
+    for spread in (1.0, 10.0, 60.0):
+        for _ in range(20):
+            theta = param.theta0 + spread * rng.standard_normal(param.theta0.size)
+            cams = param.cameras_at(theta)
+            assert np.all(cams[0].position >= zone.box_min) and np.all(cams[0].position <= zone.box_max)
+            np.testing.assert_allclose(cams[1].position, [-0.8, 0.0, 1.0], atol=1e-12)   # fixed
+
+
+def test_zone_position_derivative_matches_finite_differences(tmp_path):
+    _, param = _param(tmp_path)
+    held = param.held
+    theta0 = jnp.asarray(param.theta0 + 0.3)
+    f = lambda th: jnp.concatenate([jnp.ravel(a) for a in param.poses(th, held)])
+    jac = np.asarray(jax.jacfwd(f)(theta0))
+    h = 1e-6
+    fd = np.stack([(np.asarray(f(theta0.at[k].add(h))) - np.asarray(f(theta0.at[k].add(-h)))) / (2 * h)
+                   for k in range(theta0.size)], axis=1)
+    np.testing.assert_allclose(jac, fd, atol=1e-7, rtol=1e-6)
+    # d p_x / d θ_x = (hi - lo) s (1 - s), independent of our code's form
+    k = param.index[0]["x"]
+    s = 1 / (1 + np.exp(-float(theta0[k])))
+    assert jac[0, k] == pytest.approx(0.6 * s * (1 - s), rel=1e-9)
+
+
+@pytest.mark.parametrize("mounts, cameras, field, words", [
+    (MOUNTS.replace('box_max_m = [0.9, 0.4, 1.3]\n', ''), CAMERAS, 'mount "tripod".box_max_m',
+     "is required for a zone mount"),
+    (MOUNTS.replace("[0.9, 0.4, 1.3]", "[0.9, -0.4, 1.3]"), CAMERAS, 'mount "tripod".box_max_m',
+     "no floor area"),
+    (MOUNTS.replace('kind = "fixed"\nposition_m = [-0.8, 0.0, 1.0]', 'kind = "fixed"'), CAMERAS,
+     'mount "wall".position_m', "is required for a fixed mount"),
+    (MOUNTS.replace('kind = "zone"', 'kind = "crane"'), CAMERAS, 'mount "tripod".kind', "must be one of"),
+    (MOUNTS, CAMERAS.replace('mount = "wall"', 'mount = "shelf"'), 'camera "w".mount',
+     "no [[mount]] or [[rail]] named 'shelf'"),
+    (MOUNTS, CAMERAS.replace("[0.6, 0.1, 1.0]", "[0.6, 0.1, 2.0]"), 'camera "t".position_m',
+     "outside zone"),
+])
+def test_bad_mount_input_is_one_config_error_line(tmp_path, mounts, cameras, field, words):
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, mounts, cameras))
+    text = str(err.value)
+    assert "\n" not in text and err.value.field == field and words in text, text
+
+
+def test_non_positive_lens_in_the_catalogue_is_refused(tmp_path):
+    extra = '\n[optimize]\nfree = ["u", "pan", "tilt", "lens"]\nlenses_mm = [16, 0, 35]\n'
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, extra=extra))
+    assert err.value.field == "optimize.lenses_mm" and "each > 0" in str(err.value)
+
+
+def test_optimized_zone_camera_stays_in_its_zone_and_reloads(tmp_path):
+    """A short optimization of the tripod camera alone: it ends inside its zone, and the written
+    layout (mount + position) loads again with the same pose."""
+    from vdo.optimize import optimize
+
+    extra = '\n[render]\nambient_radiance = 1.0\n\n[optimize]\ncameras = ["t"]\nstarts = 1\nrounds = 1\nmax_steps = 6\n'
+    exp = config.load(write(tmp_path, extra=extra))
+    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, min_axis_angle=0.0))
+    out = tmp_path / "run"
+    optimize(exp, out, quiet=True)
+    again = config.load(out / "optimized.toml")
+    zone = again.mount("tripod")
+    cam = again.cameras()[0]
+    assert again.camera_specs[0].mount == "tripod"
+    assert np.all(cam.position >= zone.box_min) and np.all(cam.position <= zone.box_max)
+
+
+FLOOR = """
+[[mount]]
+name = "corner"
+kind = "zone"
+floor_m = [[0.4, -0.6], [1.0, -0.5], [1.1, 0.2], [0.6, 0.5], [0.3, 0.0]]
+height_m = [0.9, 1.4]
+"""
+FLOOR_CAMERA = CAMERAS.replace('mount = "tripod"\nposition_m = [0.6, 0.1, 1.0]',
+                               'mount = "corner"\nposition_m = [0.7, -0.1, 1.1]')
+
+
+def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
+    """A pentagon floor zone: θ0 reproduces the configured position (mean value coordinates),
+    any θ stays over the polygon (half-plane test) and within the heights, and the derivative
+    matches finite differences."""
+    from vdo.config import inside_floor
+
+    exp = config.load(write(tmp_path, MOUNTS + FLOOR, FLOOR_CAMERA))
+    param = Parameterization(exp, exp.cameras(), np.zeros(3))
+    idx = param.index[0]
+    assert {"w1", "w2", "w3", "w4", "z"} <= set(idx)
+    np.testing.assert_allclose(param.cameras_at(param.theta0)[0].position, [0.7, -0.1, 1.1], atol=1e-6)
+    zone = exp.mount("corner")
+    rng = np.random.default_rng(1)
+    for spread in (1.0, 10.0, 60.0):
+        for _ in range(20):
+            p = param.cameras_at(param.theta0 + spread * rng.standard_normal(param.theta0.size))[0].position
+            assert inside_floor(zone.floor, p[:2]) and 0.9 <= p[2] <= 1.4
+    held = param.held
+    f = lambda th: jnp.ravel(param.poses(th, held)[0])
+    theta0 = jnp.asarray(param.theta0 + 0.2)
+    jac = np.asarray(jax.jacfwd(f)(theta0))
+    h = 1e-6
+    fd = np.stack([(np.asarray(f(theta0.at[k].add(h))) - np.asarray(f(theta0.at[k].add(-h)))) / (2 * h)
+                   for k in range(theta0.size)], axis=1)
+    np.testing.assert_allclose(jac, fd, atol=1e-7, rtol=1e-6)
+    report.write_config(tmp_path / "again.toml", exp)   # the polygon survives a round trip
+    np.testing.assert_allclose(config.load(tmp_path / "again.toml").mount("corner").floor, zone.floor)
+
+
+@pytest.mark.parametrize("floor, camera_pos, field, words", [
+    ("[[0.4, -0.6], [0.7, -0.3], [1.0, 0.0]]", "[0.7, -0.3, 1.1]", "floor_m", "no floor area"),
+    ("[[0.4, -0.6], [1.0, -0.5], [0.6, -0.3], [0.6, 0.5]]", "[0.6, 0.0, 1.1]", "floor_m", "convex"),
+    # in the bounding box, not over the floor
+    ("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2]]", "[0.5, 0.1, 1.1]", "position_m", "outside zone"),
+])
+def test_bad_floor_zone_is_one_config_error_line(tmp_path, floor, camera_pos, field, words):
+    mounts = MOUNTS + FLOOR.replace("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2], [0.6, 0.5], [0.3, 0.0]]", floor)
+    cams = CAMERAS.replace('mount = "tripod"\nposition_m = [0.6, 0.1, 1.0]',
+                           f'mount = "corner"\nposition_m = {camera_pos}')
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, mounts, cams))
+    assert "\n" not in str(err.value) and err.value.field.endswith(field) and words in str(err.value), str(err.value)

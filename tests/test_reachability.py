@@ -1,0 +1,45 @@
+"""The reachability check: a region that no mount can show to two cameras is named in a warning
+before any optimization; a region both rail cameras see is not."""
+
+import logging
+
+from conftest import PLATE_TOML, write_box
+from vdo import config, reachability, scene
+
+CAMERA = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+rail = "overhead"
+u = {u}
+target_m = [0.0, 0.0, 0.0]
+"""
+BOTTOM = """
+[[region]]
+name = "bottom"
+mesh = "plate"
+normal = [0, 0, -1]
+"""
+
+
+def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplog):
+    write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
+    text = PLATE_TOML.format(spacing=40, limit=75, height=1.2, extra_meshes=BOTTOM,
+                             cameras=CAMERA.format(name="a", u=0.3) + CAMERA.format(name="b", u=0.7))
+    (tmp_path / "exp.toml").write_text(text)
+    exp = config.load(tmp_path / "exp.toml")
+    meshes = scene.load_meshes(exp)
+    samples = scene.sample_regions(exp, meshes)
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        entries = {e["region"]: e for e in reachability.check(exp, meshes, samples)}
+    # the top face faces both cameras from every rail position: all of it reachable by both
+    assert entries["top"]["best_coverage"] == 1.0 and not entries["top"]["short"]
+    assert entries["top"]["cameras"] == ["a", "b"]
+    # the bottom face looks at the floor: nothing above can see it
+    assert entries["bottom"]["best_coverage"] == 0.0 and entries["bottom"]["short"]
+    assert entries["bottom"]["cameras"] == []
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1
+    assert 'region "bottom"' in warnings[0] and "rail overhead" in warnings[0]
