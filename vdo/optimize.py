@@ -65,7 +65,7 @@ from scipy.spatial import cKDTree
 from scipy.special import expit
 from tqdm import tqdm
 
-from . import constraints, objective, reachability, report
+from . import constraints, html_report, objective, reachability, report
 from .camera import Camera, intrinsic_matrix, rotation
 from .config import Experiment, inside_floor
 from .errors import ConfigError
@@ -1072,6 +1072,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         _write_history(tmp / "history.csv", run.history)
         _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
         _write_moves(tmp / "moves.csv", problem, best)
+        html_report.write_report(tmp)
     return {"score_before": score_before["score_um"], "score_after": best.score,
             "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
             "violations": best.violations, "joint_p95_um": joint,
