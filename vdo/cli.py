@@ -90,6 +90,22 @@ def _optimize(args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _design(args) -> None:
+    from .config import load
+    from .design import design
+
+    result = design(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    for message in result["problems"]:
+        print(f"warning: {message}", file=sys.stderr)
+    if not args.quiet:
+        for c in result["curve"]:
+            p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
+            print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
+        if result["target_count"] is not None:
+            print(f"smallest count meeting the target: {result['target_count']}")
+        print(f"wrote {Path(args.out).resolve()} ({result['wall_s']:.0f} s)")
+
+
 def _export(args) -> None:
     from .formats.export import export
 
@@ -141,6 +157,11 @@ def main(argv=None) -> int:
     op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     op.add_argument("--quiet", action="store_true")
+    de = sub.add_parser("design", help="choose camera poses and lenses from scratch (docs/design.md)")
+    de.add_argument("config", help="experiment TOML file (its [design] table says what to choose from)")
+    de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    de.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
@@ -170,6 +191,8 @@ def main(argv=None) -> int:
             return _validate(args)
         elif args.command == "optimize":
             _optimize(args)
+        elif args.command == "design":
+            _design(args)
         elif args.command == "export":
             _export(args)
         elif args.command == "report":
