@@ -756,7 +756,7 @@ class DesignSpec:
     rail_positions: int = row("rail_positions", Whole(low=1), 12,
                               doc="candidate positions per rail, evenly spread in u")
     offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",
-                             doc="from the rail point to a candidate's optical centre")
+                             doc="from the rail point to a candidate's optical centre (also tried mirrored below the bar)")
     aim_offsets: tuple[float, ...] = row("aim_offsets_deg", Numbers(as_set=True, what="angles in deg"),
                                          [], unit="deg", shown="none",
                                          doc="extra aims: each region target's pan and tilt +- these")

@@ -2,7 +2,8 @@
 
 Candidates. Every [[rail]] carries `[design] rail_positions` positions evenly spread in u (plus
 `offset_m` from the bar to the optical centre), and every [[camera]] given by `position_m` is a
-fixed position. From each position a candidate aims at each *target*: the centres of the regions'
+fixed position. A rail position is tried with `offset_m` and with its mirror below the bar
+(z negated), each kept when it clears. From each position a candidate aims at each *target*: the centres of the regions'
 boxes (clipped to their samples), merged when closer than MERGE_TARGETS_M; with
 `aim_offsets_deg` also at pan and tilt +- each offset. Each pose carries each lens of the
 catalogue. A candidate is dropped when its body (`vdo.scene.camera_body_points`) comes closer than
@@ -14,7 +15,11 @@ One judgement of all candidates. The regions are sampled at `[design] sample_spa
 the samples (`vdo.lighting`), and then per candidate i and sample n the mean-field information
 C_i(n) = Omega w_i |det A_i| C_i (3x3, 1/m^2, `vdo.objective.camera_information`; unclipped patch)
 and the soft weight w_i(n) of the objective (incidence, image edge and occlusion). Stored as 6
-float32 entries + 1 weight per pair: candidates x samples x 28 bytes.
+float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
+3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
+vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
+above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a sample seen once
+(the regularised C turned indefinite and the score NaN).
 
 Score. The information of a set S of cameras adds: C_S(n) = sum_{i in S} C_i(n), coverage
 k_S(n) = sum_{i in S} w_i(n). The set is scored as `vdo.objective.score` scores a layout:
@@ -87,14 +92,16 @@ BATCH = 256             # candidates per batch of the information and the score
 
 @dataclass(frozen=True, eq=False)
 class Candidates:
-    """K candidate cameras judged on N samples. info (K, N, 6) float32 1/m^2 (entries c00, c11,
+    """K candidate cameras judged on N samples. info (K, N, 6) float64 1/m^2 (entries c00, c11,
     c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
     assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
-    rail (K,) names ("" for a fixed position), u (K,), target (K,) index into `targets`."""
+    rail (K,) names ("" for a fixed position), u (K,), offset (K, 3) m from the rail point,
+    target (K,) index into `targets`."""
 
     cameras: tuple[Camera, ...]
     rail: tuple[str, ...]
     u: np.ndarray
+    offset: np.ndarray
     target: np.ndarray
     targets: np.ndarray
     info: np.ndarray
@@ -166,23 +173,23 @@ def mesh_points(meshes, spacing: float = 0.01) -> np.ndarray:
     return np.vstack(out)
 
 
-def candidate_cameras(exp: Experiment, samples, meshes) -> tuple[list[Camera], list[str], np.ndarray,
-                                                                 np.ndarray, np.ndarray]:
+def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     """The candidate poses (module docstring) that keep their clearance: (cameras, rail names,
-    u, target index, targets)."""
+    u, offsets, target index, targets)."""
     d = exp.design
     width, (W, H) = body(exp)
     aims = targets(samples)
-    spots = [(r.name, float(u), np.asarray(exp.rail(r.name).position(u), dtype=float) + d.offset)
+    heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
+    spots = [(r.name, float(u), h, np.asarray(exp.rail(r.name).position(u), dtype=float) + h)
              for r in exp.rails for u in (np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1
-                                          else [0.5])]
-    spots += [("", math.nan, np.asarray(c.position, dtype=float)) for c in exp.camera_specs
-              if c.position is not None]
+                                          else [0.5]) for h in heads]
+    spots += [("", math.nan, np.zeros(3), np.asarray(c.position, dtype=float))
+              for c in exp.camera_specs if c.position is not None]
     offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in d.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
     tree = cKDTree(mesh_points(meshes))
-    cams, rails, us, tg = [], [], [], []
-    for rail, u, p in spots:
+    cams, rails, us, heads_of, tg = [], [], [], [], []
+    for rail, u, head, p in spots:
         for t, aim in enumerate(aims):
             if np.linalg.norm(aim - p) < 1e-6:
                 continue
@@ -197,16 +204,17 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple[list[Camera], l
                     cams.append(c)
                     rails.append(rail)
                     us.append(u)
+                    heads_of.append(head)
                     tg.append(t)
-    return cams, rails, np.array(us), np.array(tg, dtype=int), aims
+    return cams, rails, np.array(us), np.array(heads_of).reshape(-1, 3), np.array(tg, dtype=int), aims
 
 
 def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
     """Every candidate's information and weights on `geometry`'s samples (module docstring)."""
     samples = geometry.samples
-    cams, rails, u, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
+    cams, rails, u, heads, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
     if not cams:
-        return Candidates((), (), u, tg, aims, np.zeros((0, len(samples), 6), np.float32),
+        return Candidates((), (), u, heads, tg, aims, np.zeros((0, len(samples), 6)),
                           np.zeros((0, len(samples)), np.float32),
                           np.zeros((0, len(samples.region_names)), bool))
     scene = build_scene(list(geometry.meshes))
@@ -215,7 +223,7 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
     smp = samples_for_objective(exp, samples)
     st = replace(settings(exp), pair_dtype="float64")
     K, N = len(cams), len(samples)
-    info = np.zeros((K, N, 6), np.float32)
+    info = np.zeros((K, N, 6))
     weight = np.zeros((K, N), np.float32)
     batches = range(0, K, BATCH)
     for s in tqdm(batches, desc="candidates", unit="batch", disable=not progress, leave=False):
@@ -236,7 +244,7 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
         m = samples.region == r
         a = samples.area[m]
         assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
-    return Candidates(tuple(cams), tuple(rails), u, tg, aims, info, weight, assigned)
+    return Candidates(tuple(cams), tuple(rails), u, heads, tg, aims, info, weight, assigned)
 
 
 class Scorer:
@@ -269,15 +277,15 @@ class Scorer:
         """Scores of base + each candidate: base (N, 6), (N,); info (M, N, 6), weight (M, N)."""
         out = []
         for s in range(0, len(info), BATCH):
-            i = jnp.asarray(base_info[None] + info[s:s + BATCH].astype(np.float64))
-            c = jnp.asarray(base_cover[None] + weight[s:s + BATCH].astype(np.float64))
+            i = jnp.asarray(base_info[None] + info[s:s + BATCH])
+            c = jnp.asarray(base_cover[None] + weight[s:s + BATCH])
             out.append(np.asarray(self._batch(i, c)))
         return np.concatenate(out) if out else np.zeros(0)
 
     def of(self, cand: Candidates, chosen) -> float:
         chosen = list(chosen)
-        i = cand.info[chosen].astype(np.float64).sum(0)
-        c = cand.weight[chosen].astype(np.float64).sum(0)
+        i = cand.info[chosen].sum(0)
+        c = cand.weight[chosen].sum(0)
         return float(self._batch(jnp.asarray(i[None]), jnp.asarray(c[None]))[0])
 
 
@@ -321,8 +329,8 @@ def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
         ok = np.flatnonzero(feas.allowed(chosen))
         if ok.size == 0:
             break
-        base_i = cand.info[chosen].astype(np.float64).sum(0) if chosen else np.zeros((N, 6))
-        base_c = cand.weight[chosen].astype(np.float64).sum(0) if chosen else np.zeros(N)
+        base_i = cand.info[chosen].sum(0) if chosen else np.zeros((N, 6))
+        base_c = cand.weight[chosen].sum(0) if chosen else np.zeros(N)
         s = scorer.add(base_i, base_c, cand.info[ok], cand.weight[ok])
         best = int(np.argmin(s))
         chosen.append(int(ok[best]))
@@ -344,8 +352,8 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
             ok = ok[~np.isin(ok, chosen)]
             if ok.size == 0:
                 continue
-            s = scorer.add(cand.info[rest].astype(np.float64).sum(0),
-                           cand.weight[rest].astype(np.float64).sum(0), cand.info[ok], cand.weight[ok])
+            s = scorer.add(cand.info[rest].sum(0),
+                           cand.weight[rest].sum(0), cand.info[ok], cand.weight[ok])
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
                 chosen[slot], current, swaps, improved = int(ok[best]), float(s[best]), swaps + 1, True
@@ -364,7 +372,7 @@ def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
         out.append(CameraSpec(name=f"d{k + 1}", sensor_width=width, pixels=tuple(pixels),
                               focal_length=c.focal_length, rail=cand.rail[i] if on_rail else None,
                               u=float(cand.u[i]) if on_rail else None,
-                              offset=np.array(exp.design.offset if on_rail else np.zeros(3)),
+                              offset=np.array(cand.offset[i]),
                               position=None if on_rail else np.asarray(c.position),
                               pan=c.pan, tilt=c.tilt))
     return out
