@@ -81,22 +81,29 @@ def test_greedy_and_exchange_find_the_best_pair_which_is_symmetric(judged):
 
 
 def test_minimum_axis_angle_is_respected(plate_experiment):
+    """Candidates at x = -1, -0.75, ..., 1 m on a rail 1.5 m above the plate, all aimed at its
+    centre: the axes of x1 < x2 make atan(x2 / 1.5) - atan(x1 / 1.5). With a minimum angle
+    between the best free pair's and the widest pair's (x = +-1: 2 atan(1 / 1.5) = 67.4 deg),
+    only pairs wider than the free choice are allowed, and the selection keeps to them."""
     free = _experiment(plate_experiment)
     geometry = prepare(free)
     cand = design.judge(free, geometry)
     scorer = design.Scorer(free, geometry.samples)
-    chosen, _, _ = design.exchange(cand, scorer, design.Feasibility(free, cand),
-                                   design.greedy(cand, scorer, design.Feasibility(free, cand), 2)[0])
-    a = cand.axes
-    unconstrained = math.degrees(math.acos(np.clip(a[chosen[0]] @ a[chosen[1]], -1, 1)))
-    limit = unconstrained + 10.0
-    path = free.path
-    path.write_text(path.read_text() + f"\n[optimize]\nmin_axis_angle_deg = {limit}\n")
-    exp = config.load(path)
-    feas = design.Feasibility(exp, cand)
+    feas = design.Feasibility(free, cand)
     chosen, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
-    angle = math.degrees(math.acos(np.clip(a[chosen[0]] @ a[chosen[1]], -1, 1)))
-    assert angle >= limit - 1e-6
+    angle = lambda pair: abs(math.degrees(math.atan(cand.cameras[pair[0]].position[0] / 1.5)
+                                          - math.atan(cand.cameras[pair[1]].position[0] / 1.5)))
+    widest = 2 * math.degrees(math.atan(1 / 1.5))
+    assert angle(chosen) < widest - 1
+    limit = (angle(chosen) + widest) / 2
+    free.path.write_text(free.path.read_text() + f"\n[optimize]\nmin_axis_angle_deg = {limit}\n")
+    exp = config.load(free.path)
+    feas = design.Feasibility(exp, cand)
+    bound, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    assert len(bound) == 2 and angle(bound) >= limit
+    a = cand.axes
+    assert math.degrees(math.acos(np.clip(a[bound[0]] @ a[bound[1]], -1, 1))) == \
+        pytest.approx(angle(bound), abs=1e-6)
 
 
 UNDERSIDE = """

@@ -94,7 +94,8 @@ def _design(args) -> None:
     from .config import load
     from .design import design
 
-    result = design(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    result = design(load(args.config), Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
+                    refine=args.refine)
     for message in result["problems"]:
         print(f"warning: {message}", file=sys.stderr)
     if not args.quiet:
@@ -103,6 +104,10 @@ def _design(args) -> None:
             print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
         if result["target_count"] is not None:
             print(f"smallest count meeting the target: {result['target_count']}")
+        if result["refined"] is not None:
+            before, after = result["refined"]["joint_p95_um"]
+            print(f"refined: joint sigma_max p95 {before} -> {after} um, "
+                  f"{result['refined']['violations']} constraint violation(s)")
         print(f"wrote {Path(args.out).resolve()} ({result['wall_s']:.0f} s)")
 
 
@@ -162,6 +167,7 @@ def main(argv=None) -> int:
     de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     de.add_argument("--quiet", action="store_true")
+    de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")

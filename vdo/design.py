@@ -77,6 +77,7 @@ from .camera import Camera, look_at_angles  # noqa: E402
 from .config import CameraSpec, Experiment  # noqa: E402
 from .constraints import stereo_min_angle  # noqa: E402
 from .lighting import illuminate  # noqa: E402
+from .optimize import optimize  # noqa: E402
 from .predict import samples_for_objective, settings, view_data  # noqa: E402
 from .runfolder import run_folder  # noqa: E402
 from .scene import build_scene, camera_body_points  # noqa: E402
@@ -416,9 +417,12 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     return out
 
 
-def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
+def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
+           refine: bool = False) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
-    candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`."""
+    candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
+    `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
+    constraints.json "before" holds every constraint check of the designed layout)."""
     say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
     t0 = time.perf_counter()
     d = exp.design
@@ -474,7 +478,9 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
             "wall_s": wall})
         html_report.write_report(tmp)
+        refined = optimize(final, tmp / "refine", quiet=quiet) if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
+            "refined": refined,
             "curve": curve, "summary": summary, "wall_s": wall}
 
 
