@@ -70,7 +70,8 @@ def main() -> None:
                 best, best_score = pick, s
     print(f"{len(cand.cameras)} candidates x {cand.info.shape[1]} samples, judged in {t_judge:.0f} s; "
           f"selection {t_select:.0f} s; {draws} random draws in the same time")
-    print("| layout | score | joint σ_max p95 (µm) | joint area seen by ≥ 3 | area seen by min_cameras |")
+    print("| layout | score | joint σ_max p95 (µm) | joint area seen by ≥ 3 "
+          "| area seen by min_cameras |")
     print("|---|---|---|---|---|")
     for name, pick, s in (("vdo design (greedy + exchange)", chosen, score),
                           (f"best of {draws} random feasible", best, best_score)):

@@ -1,18 +1,19 @@
 """vdo design on a plate under a straight rail: the selection against exhaustive search over
-pairs scored as whole layouts, the mirror symmetry of the best pair's score, the minimum-angle rule, and the
-bad inputs (messages naming the region, the best layout still written)."""
+pairs scored as whole layouts, the mirror symmetry of the best pair's score, the minimum-angle
+rule, and the bad inputs (messages naming the region, the best layout still written)."""
 
 from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from vdo import config, design, objective
-from vdo.predict import samples_for_objective, settings, view_data
 from vdo.lighting import illuminate
+from vdo.predict import samples_for_objective, settings, view_data
 from vdo.scene import build_scene
 from vdo.state import prepare
 from vdo.visibility import compute_visibility
@@ -48,7 +49,6 @@ def _pair_score(exp, geometry, cams):
                              progress=False)
     light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
     views = view_data(exp, smp, vis, light, geometry.speckle)
-    from dataclasses import replace
     st = replace(settings(exp), pair_dtype="float64")
     return float(objective.score(objective.CameraParams.from_cameras(cams), smp, views,
                                  geometry.speckle.table, st))

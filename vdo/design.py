@@ -3,8 +3,8 @@
 Candidates. Every [[rail]] carries `[design] rail_positions` positions evenly spread in u (plus
 `offset_m` from the bar to the optical centre), and every [[camera]] given by `position_m` is a
 fixed position. A rail position is tried with `offset_m` and with its mirror below the bar
-(z negated), each kept when it clears. From each position a candidate aims at each *target*: the centres of the regions'
-boxes (clipped to their samples), merged when closer than MERGE_TARGETS_M; with
+(z negated), each kept when it clears. From each position a candidate aims at each *target*: the
+centres of the regions' boxes (clipped to their samples), merged when closer than MERGE_TARGETS_M; with
 `aim_offsets_deg` also at pan and tilt +- each offset. Each pose carries each lens of the
 catalogue. A candidate is dropped when its body (`vdo.scene.camera_body_points`) comes closer than
 `[optimize] clearance_m` to a mesh.
@@ -39,10 +39,14 @@ Selection. Greedy forward selection adds the feasible candidate with the lowest 
 exchange passes replace one selected camera by the best feasible candidate while that lowers the
 score. Feasible with the selected set:
 * one camera per spot: no two optical centres closer than SPOT_M (a body and its clearance);
-* minimum axis angle: two cameras that share a region (each sees at least `[optimize]
+* axis angles: two cameras that share a region (each sees at least `[optimize]
   assign_fraction` of its area with usable weight) keep their optical axes at least `[optimize]
-  min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens;
-* clearance from the meshes (above, per candidate).
+  min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens,
+  and at most `[optimize]` or that region's `max_axis_angle_deg` where set;
+* clearance from the meshes (above, per candidate);
+* obscuration: no obstacle hides more than `[optimize] max_obscuration` of a region the
+  candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
+  on the whole scene: a second ray cast).
 Obscuration by other camera bodies is not judged during selection; the designed layout is judged
 whole (bodies included) with `vdo.state.layout_state` at [evaluation]'s sample spacing.
 
@@ -97,7 +101,8 @@ class Candidates:
     c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
     assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
     rail (K,) names ("" for a fixed position), u (K,), offset (K, 3) m from the rail point,
-    target (K,) index into `targets`."""
+    target (K,) index into `targets`; masked (K, R) the area fraction of each region's samples
+    the candidate would see but an obstacle hides (its obscuration)."""
 
     cameras: tuple[Camera, ...]
     rail: tuple[str, ...]
@@ -108,6 +113,7 @@ class Candidates:
     info: np.ndarray
     weight: np.ndarray
     assigned: np.ndarray
+    masked: np.ndarray
 
     @property
     def positions(self) -> np.ndarray:
@@ -199,7 +205,7 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
                 for f in lenses(exp):
                     c = Camera(name=f"c{len(cams)}", width=W, height=H, pixel_size=width / W,
                                focal_length=f, position=p, pan=pan0 + dp, tilt=tilt0 + dt)
-                    pts = camera_body_points(f) @ c.R + p     # camera frame -> world (x_w = R^T x_c + C)
+                    pts = camera_body_points(f) @ c.R + p     # x_w = R^T x_c + C
                     if tree.query(pts)[0].min() < exp.optimize.clearance:
                         continue
                     cams.append(c)
@@ -207,7 +213,8 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
                     us.append(u)
                     heads_of.append(head)
                     tg.append(t)
-    return cams, rails, np.array(us), np.array(heads_of).reshape(-1, 3), np.array(tg, dtype=int), aims
+    return (cams, rails, np.array(us), np.array(heads_of).reshape(-1, 3), np.array(tg, dtype=int),
+            aims)
 
 
 def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
@@ -217,9 +224,13 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
     if not cams:
         return Candidates((), (), u, heads, tg, aims, np.zeros((0, len(samples), 6)),
                           np.zeros((0, len(samples)), np.float32),
-                          np.zeros((0, len(samples.region_names)), bool))
+                          np.zeros((0, len(samples.region_names)), bool),
+                          np.zeros((0, len(samples.region_names))))
     scene = build_scene(list(geometry.meshes))
     vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=progress)
+    bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
+                              samples, exp.evaluation.incidence_limit).visible
+    hidden = bare & ~vis.visible
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     smp = samples_for_objective(exp, samples)
     st = replace(settings(exp), pair_dtype="float64")
@@ -240,12 +251,14 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
         weight[s:s + len(part)] = w * np.asarray(pv.unoccluded, float)
     use = usable.usable_views(weight)
     R = len(samples.region_names)
-    assigned = np.zeros((K, R), bool)
+    assigned, masked = np.zeros((K, R), bool), np.zeros((K, R))
     for r in range(R):
         m = samples.region == r
         a = samples.area[m]
         assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
-    return Candidates(tuple(cams), tuple(rails), u, heads, tg, aims, info, weight, assigned)
+        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), 1e-30)
+    return Candidates(tuple(cams), tuple(rails), u, heads, tg, aims, info, weight, assigned,
+                      masked)
 
 
 class Scorer:
@@ -302,19 +315,30 @@ def min_angles(exp: Experiment, cand: Candidates) -> np.ndarray:
 
 
 class Feasibility:
-    """Which candidates may join a selected set: one per spot, the minimum axis angle between
-    cameras sharing a region (module docstring)."""
+    """Which candidates may join a selected set: no obstacle hides more than [optimize]
+    max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
+    between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
+    max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
+    pairs sharing that region)."""
 
     def __init__(self, exp: Experiment, cand: Candidates):
         p, a = cand.positions, cand.axes
         self.exclusive = np.linalg.norm(p[:, None] - p[None], axis=-1) < SPOT_M
         share = (cand.assigned.astype(int) @ cand.assigned.T.astype(int)) > 0
         angle = np.arccos(np.clip(a @ a.T, -1, 1))
-        self.conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - 1e-9))
+        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - 1e-9))
+        if exp.optimize.max_axis_angle is not None:
+            conflict |= share & (angle > exp.optimize.max_axis_angle + 1e-9)
+        for r, spec in enumerate(exp.regions):
+            if spec.max_axis_angle is not None:
+                on = cand.assigned[:, r]
+                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + 1e-9)
+        self.conflict = conflict
+        self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
 
     def allowed(self, chosen) -> np.ndarray:
         """(K,) True for the candidates compatible with every camera in `chosen`."""
-        ok = np.ones(len(self.conflict), bool)
+        ok = self.alone.copy()
         for j in chosen:
             ok &= ~self.conflict[j]
         return ok
@@ -357,7 +381,8 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
                            cand.weight[rest].sum(0), cand.info[ok], cand.weight[ok])
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
-                chosen[slot], current, swaps, improved = int(ok[best]), float(s[best]), swaps + 1, True
+                chosen[slot], current = int(ok[best]), float(s[best])
+                swaps, improved = swaps + 1, True
         if not improved:
             break
     return chosen, current, swaps
@@ -455,9 +480,9 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
               c["sigma_p95_um"] <= d.target_sigma_um and c["coverage"] >= 1 - 1e-9]
         target = ok[0]["cameras"] if ok else None
         if target is None:
+            reached = "unmeasured" if best["sigma_p95_um"] is None else f"{best['sigma_p95_um']:.4g} um"
             issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is not reached on the "
-                          f"scored regions with {n_max} cameras (best "
-                          f"{best['sigma_p95_um'] if best['sigma_p95_um'] is not None else 'unmeasured'} um)")
+                          f"scored regions with {n_max} cameras (best: {reached})")
             log.warning(issues[-1])
     final = designed(exp, cand, best["chosen"])
     state = layout_state(prepare(final))
