@@ -80,6 +80,7 @@ from . import html_report, objective, report, usable  # noqa: E402
 from .camera import Camera, look_at_angles  # noqa: E402
 from .config import CameraSpec, Experiment  # noqa: E402
 from .constraints import stereo_min_angle  # noqa: E402
+from .errors import ConfigError  # noqa: E402
 from .lighting import illuminate  # noqa: E402
 from .optimize import optimize  # noqa: E402
 from .predict import samples_for_objective, settings, view_data  # noqa: E402
@@ -461,7 +462,6 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
     for msg in issues:
         log.warning(msg)
     if K == 0:
-        from .errors import ConfigError
         raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add rails or "
                                               "fixed [[camera]] positions")
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
