@@ -131,3 +131,34 @@ def test_bad_inputs_name_the_region_and_still_write_the_layout(plate_experiment,
     designed = config.load(out / "designed.toml")
     assert len(designed.camera_specs) == 2
     assert (out / "pareto.csv").read_text().startswith("cameras,")
+
+
+SLAB = """
+[[mesh]]
+name = "slab"
+file = "slab.stl"
+unit = "m"
+role = "obstacle"
+"""
+
+
+def test_obscuration_by_an_obstacle_matches_the_shadow_geometry(plate_experiment):
+    """A slab at z = 0.75 m over x in [0.3, 1.0] m between the rail (z = 1.5 m) and the plate
+    (x in [-0.5, 0.5]): the ray from a camera at (c, 0, 1.5) to a plate point (p, y, 0) crosses
+    z = 0.75 at x = (c + p) / 2, so the slab hides the plate points with p >= 0.6 - c, a fraction
+    clip(c - 0.1, 0, 1) of the plate. Candidates hiding more than max_obscuration of a region
+    they are assigned are never selected."""
+    path = plate_experiment(spacing=25, extra_meshes=SLAB, files=[("slab.stl", [0.7, 2.0, 0.01],
+                                                                   [0.65, 0.0, 0.75])])
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="sample_spacing_mm = 25")
+                    .replace("sample_spacing_mm = 50\n", ""))
+    exp = config.load(path)
+    cand = design.judge(exp, prepare(exp))
+    for i, c in enumerate(cand.cameras):
+        expected = float(np.clip(c.position[0] - 0.1, 0.0, 1.0))
+        assert cand.masked[i, 0] == pytest.approx(expected, abs=0.05), c.position[0]
+    feas = design.Feasibility(exp, cand)
+    assert np.array_equal(feas.alone, ~(cand.assigned[:, 0] & (cand.masked[:, 0] > 0.01)))
+    scorer = design.Scorer(exp, prepare(exp).samples)
+    chosen, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    assert len(chosen) == 2 and all(cand.masked[i, 0] <= 0.01 for i in chosen)
