@@ -22,13 +22,14 @@ from pathlib import Path
 
 from . import interrupts
 from .backend import BackendError
+from .checks import print_checks
 from .errors import ConfigError
 from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 # per command: the module whose import is heavy (done inside `interrupts.held`)
 _MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
-            "optimize": "optimize", "export": "formats.export", "sweep": "sweep",
+            "optimize": "optimize", "design": "design", "export": "formats.export", "sweep": "sweep",
             "report": "html_report"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
@@ -59,6 +60,12 @@ def _evaluate(exp, args):
     summary = evaluate(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
     if not args.quiet:
         _print_summary(summary)
+        rows = summary["design_checks"]
+        flagged = [r for r in rows if r["flags"]]
+        print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged "
+              "(all of them in summary.json and report.html)")
+        if flagged:
+            print_checks(flagged)
         print(f"wrote {Path(args.out).resolve()}")
 
 
@@ -116,6 +123,26 @@ def _optimize(exp, args) -> None:
             print(f"violated: {entry['constraint']} {entry.get('cameras', '')} "
                   f"{entry.get('region', '')}: {entry['value']:.4g} (limit {entry['limit']})")
         print(f"wrote {Path(args.out).resolve()}")
+
+
+def _design(exp, args) -> None:
+    from .design import design
+
+    result = design(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
+                    refine=args.refine)
+    for message in result["problems"]:
+        print(f"warning: {message}", file=sys.stderr)
+    if not args.quiet:
+        for c in result["curve"]:
+            p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
+            print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
+        if result["target_count"] is not None:
+            print(f"smallest count meeting the target: {result['target_count']}")
+        if result["refined"] is not None:
+            before, after = result["refined"]["joint_p95_um"]
+            print(f"refined: joint sigma_max p95 {before} -> {after} um, "
+                  f"{result['refined']['violations']} constraint violation(s)")
+        print(f"wrote {Path(args.out).resolve()} ({result['wall_s']:.0f} s)")
 
 
 def _export(_, args) -> None:
@@ -181,6 +208,12 @@ def _parser() -> argparse.ArgumentParser:
     op.add_argument("--time-limit", type=float, default=900.0, metavar="SECONDS",
                     help="end the search after this long and write the best layout so far (default 900)")
     op.add_argument("--quiet", action="store_true")
+    de = sub.add_parser("design", help="choose camera poses and lenses from scratch (docs/design.md)")
+    de.add_argument("config", help="experiment TOML file (its [design] table says what to choose from)")
+    de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
+    de.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
@@ -221,7 +254,7 @@ def _run(args) -> int:
         if args.command in _MODULES:
             importlib.import_module(f".{_MODULES[args.command]}", __package__)
     handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
-               "optimize": _optimize, "export": _export, "report": _report,
+               "optimize": _optimize, "design": _design, "export": _export, "report": _report,
                "sweep": _sweep}[args.command]
     status = handler(loaded, args) or 0
     if args.command == "demo":

@@ -892,6 +892,35 @@ class OptimizeSpec:
     seed: int = row("seed", Whole(low=0), 0, doc="perturbation of the extra starts")
 
 
+@dataclass(frozen=True, eq=False)
+class DesignSpec:
+    """What `vdo design` may choose: how many camera bodies (all of one sensor), the lens
+    catalogue, where candidates stand on the rails and how they aim (`vdo.design`)."""
+
+    max_cameras: int | None = row("max_cameras", Whole(low=1), None, shown="the [[camera]] count",
+                                  doc="the inventory: camera bodies available")
+    min_cameras: int = row("min_cameras", Whole(low=1), 2, doc="fewest cameras on the Pareto curve")
+    sensor_width: float | None = row("sensor_width_mm", Real(positive=True), None, unit="mm",
+                                     shown="the first [[camera]]'s", doc="sensor width of the bodies")
+    pixels: tuple[int, int] | None = row(
+        "pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"), None,
+        shown="the first [[camera]]'s", doc="pixel counts of the bodies")
+    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
+                                    unit="mm", shown="the [[camera]] lenses", doc="the lens catalogue")
+    target_sigma_um: float | None = row("target_sigma_um", Real(positive=True), None, shown="none",
+                                        doc="sigma_max p95 (µm) to reach on the scored regions: the "
+                                            "smallest camera count that does is reported")
+    rail_positions: int = row("rail_positions", Whole(low=1), 12,
+                              doc="candidate positions per rail, evenly spread in u")
+    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",
+                             doc="from the rail point to a candidate's optical centre (also tried mirrored below the bar)")
+    aim_offsets: tuple[float, ...] = row("aim_offsets_deg", Numbers(as_set=True, what="angles in deg"),
+                                         [], unit="deg", shown="none",
+                                         doc="extra aims: each region target's pan and tilt +- these")
+    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 20.0, unit="mm",
+                                doc="sample spacing for the selection (the result is judged at [evaluation]'s)")
+
+
 # --------------------------------------------------------------------------------------------
 # Checks across the fields of one table: check(t, values) raises t.error or completes values
 # --------------------------------------------------------------------------------------------
@@ -972,6 +1001,14 @@ def _check_optimize(t: Table, v: dict) -> None:
     _check_angles(t, v, "min_axis_angle_deg", "max_axis_angle_deg", "min_axis_angle", "max_axis_angle")
 
 
+def _check_design(t: Table, v: dict) -> None:
+    if (v["sensor_width"] is None) != (v["pixels"] is None):
+        raise t.error("pixels", "give the bodies' sensor_width_mm and pixels together (or neither: "
+                                "the first [[camera]]'s)")
+    if v["max_cameras"] is not None and v["max_cameras"] < v["min_cameras"]:
+        raise t.error("max_cameras", f"= {v['max_cameras']} is below min_cameras = {v['min_cameras']}")
+
+
 # --------------------------------------------------------------------------------------------
 # The experiment
 # --------------------------------------------------------------------------------------------
@@ -1026,6 +1063,8 @@ class Experiment:
     load_path: LoadPathSpec = table(
         "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
         doc="A moving test: `vdo evaluate` judges every step (`vdo.keyframes`, docs/load_path.md).")
+    design: DesignSpec = table("design", DesignSpec, check=_check_design, default=DesignSpec(),
+                               doc="What `vdo design` chooses from (`vdo.design`).")
 
     def __post_init__(self):
         if self.analysis.element is None:      # a Q4 element defaults to the DIC patch

@@ -1,0 +1,553 @@
+"""Designing a layout from scratch: the selection of cameras from candidate poses (`vdo design`).
+
+Candidates. Every [[rail]] carries `[design] rail_positions` positions evenly spread in u (plus
+`offset_m` from the bar to the optical centre), and every [[camera]] given by `position_m` is a
+fixed position. A rail position is tried with `offset_m` and with its mirror below the bar
+(z negated), each kept when it clears. From each position a candidate aims at each *target*: the
+centres of the regions' boxes (clipped to their samples), merged when closer than MERGE_TARGETS_M; with
+`aim_offsets_deg` also at pan and tilt +- each offset. Each pose carries each lens of the
+catalogue. A candidate is dropped when its body (`vdo.scene.camera_body_points`) comes closer than
+`[optimize] clearance_m` to a mesh.
+
+One judgement of all candidates. The regions are sampled at `[design] sample_spacing_mm`
+(coarser than [evaluation]'s; 20 mm by default). One ray cast (`vdo.visibility`) over every
+(candidate, sample) pair on the scene of the meshes alone (no camera bodies), the light reaching
+the samples (`vdo.lighting`), and then per candidate i and sample n the mean-field information
+C_i(n) = Omega w_i |det A_i| C_i (3x3, 1/m^2, `vdo.objective.camera_information`; unclipped patch)
+and the soft weight w_i(n) of the objective (incidence, image edge and occlusion). Stored as 6
+float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
+3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
+vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
+above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a sample seen once
+(the regularised C turned indefinite and the score NaN).
+
+Score. The information of a set S of cameras adds: C_S(n) = sum_{i in S} C_i(n), coverage
+k_S(n) = sum_{i in S} w_i(n). The set is scored as `vdo.objective.score` scores a layout:
+
+    score(S) = ( sum_n omega_n sigma_n^q / sum_n omega_n )^(1/q) / 1 um + W P,
+    P = sum_n' a_n' max(0, k_region(n') - k_S(n'))^2 / sum_n' a_n'
+
+sigma_n the smooth sigma_max of the regularised C_S (`vdo.objective`), omega = area x importance
+over the scored regions ([optimize] regions, default all), q = 8, W = 1000, and the coverage
+penalty P over EVERY region (a design must see the whole specimen, not only the scored part).
+This is the optimizer's own score, so selection and refinement minimise the same thing. It is not
+submodular (one camera alone gains nothing in sigma; pairs do), so lazy evaluation's bound does not
+hold: every step evaluates every feasible candidate, which the sums make cheap (one vectorised
+pass over candidates x samples per step).
+
+Selection. Greedy forward selection adds the feasible candidate with the lowest score, then
+exchange passes replace one selected camera by the best feasible candidate while that lowers the
+score. Feasible with the selected set:
+* one camera per spot: no two optical centres closer than SPOT_M (a body and its clearance);
+* axis angles: two cameras that share a region (each sees at least `[optimize]
+  assign_fraction` of its area with usable weight) keep their optical axes at least `[optimize]
+  min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens,
+  and at most `[optimize]` or that region's `max_axis_angle_deg` where set;
+* clearance from the meshes (above, per candidate);
+* obscuration: no obstacle hides more than `[optimize] max_obscuration` of a region the
+  candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
+  on the whole scene: a second ray cast).
+Obscuration by other camera bodies is not judged during selection; the designed layout is judged
+whole (bodies included) with `vdo.state.layout_state` at [evaluation]'s sample spacing.
+
+How many cameras. The greedy order and exchange passes per count give the best layout for every
+count from `[design] min_cameras` to the inventory; `pareto.csv` holds, per count, sigma_max p95
+over the scored regions (the worst region's p95, at the selection spacing, camera bodies included)
+and the area fraction seen by its region's min_cameras. With `target_sigma_um` the smallest count
+that meets it with full coverage is reported.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from . import html_report, objective, report, usable  # noqa: E402
+from .camera import Camera, look_at_angles  # noqa: E402
+from .config import CameraSpec, Experiment  # noqa: E402
+from .constraints import stereo_min_angle  # noqa: E402
+from .errors import ConfigError  # noqa: E402
+from .lighting import illuminate  # noqa: E402
+from .optimize import optimize  # noqa: E402
+from .predict import samples_for_objective, settings, view_data  # noqa: E402
+from .runfolder import run_folder  # noqa: E402
+from .scene import build_scene, camera_body_points  # noqa: E402
+from .state import Geometry, layout_state, prepare  # noqa: E402
+from .visibility import compute_visibility  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+MERGE_TARGETS_M = 0.2   # region centres closer than this share one aim point
+SPOT_M = 0.2            # two optical centres closer than this are one physical spot
+BATCH = 256             # candidates per batch of the information and the score
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """K candidate cameras judged on N samples. info (K, N, 6) float64 1/m^2 (entries c00, c11,
+    c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
+    assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
+    rail (K,) names ("" for a fixed position), u (K,), offset (K, 3) m from the rail point,
+    target (K,) index into `targets`; masked (K, R) the area fraction of each region's samples
+    the candidate would see but an obstacle hides (its obscuration)."""
+
+    cameras: tuple[Camera, ...]
+    rail: tuple[str, ...]
+    u: np.ndarray
+    offset: np.ndarray
+    target: np.ndarray
+    targets: np.ndarray
+    info: np.ndarray
+    weight: np.ndarray
+    assigned: np.ndarray
+    masked: np.ndarray
+
+    @property
+    def positions(self) -> np.ndarray:
+        return np.array([c.position for c in self.cameras])
+
+    @property
+    def axes(self) -> np.ndarray:
+        return np.array([c.optical_axis for c in self.cameras])
+
+
+def body(exp: Experiment) -> tuple[float, tuple[int, int]]:
+    """(sensor width m, (W, H) pixels) of the camera bodies: [design]'s or the first [[camera]]'s."""
+    d = exp.design
+    if d.sensor_width is not None:
+        return d.sensor_width, d.pixels
+    spec = exp.camera_specs[0]
+    return spec.sensor_width, spec.pixels
+
+
+def lenses(exp: Experiment) -> tuple[float, ...]:
+    """The lens catalogue (m): [design] lenses_mm, or the focal lengths of the [[camera]]s."""
+    return exp.design.lenses or tuple(sorted({c.focal_length for c in exp.camera_specs}))
+
+
+def inventory(exp: Experiment) -> int:
+    return exp.design.max_cameras or len(exp.camera_specs)
+
+
+def targets(samples) -> np.ndarray:
+    """(T, 3) aim points: each region's sample centroid (area-weighted), merged greedily when
+    closer than MERGE_TARGETS_M (the merged point is the area-weighted mean)."""
+    out, weights = [], []
+    for r in range(len(samples.region_names)):
+        mask = samples.region == r
+        if not mask.any():
+            continue
+        a = samples.area[mask]
+        c = (samples.points[mask] * a[:, None]).sum(0) / a.sum()
+        for k, t in enumerate(out):
+            if np.linalg.norm(t - c) < MERGE_TARGETS_M:
+                out[k] = (t * weights[k] + c * a.sum()) / (weights[k] + a.sum())
+                weights[k] += a.sum()
+                break
+        else:
+            out.append(c)
+            weights.append(a.sum())
+    return np.array(out)
+
+
+def mesh_points(meshes, spacing: float = 0.01) -> np.ndarray:
+    """Points on every mesh surface, at most `spacing` apart along each triangle's edges
+    (vertices, and a barycentric grid per triangle), for clearance by nearest neighbour."""
+    out = []
+    for m in meshes:
+        tri = m.vertices[m.faces]                       # (F, 3, 3)
+        edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(axis=1)
+        for k in np.unique(np.ceil(edge / spacing).astype(int).clip(1, 400)):
+            sel = tri[np.ceil(edge / spacing).astype(int).clip(1, 400) == k]
+            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
+            keep = i + j <= k
+            b = np.c_[i[keep], j[keep]] / k
+            w = np.c_[1 - b.sum(1), b]                  # (G, 3)
+            out.append(np.einsum("gk,fkd->fgd", w, sel).reshape(-1, 3))
+    return np.vstack(out)
+
+
+def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
+    """The candidate poses (module docstring) that keep their clearance: (cameras, rail names,
+    u, offsets, target index, targets)."""
+    d = exp.design
+    width, (W, H) = body(exp)
+    aims = targets(samples)
+    heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
+    spots = [(r.name, float(u), h, np.asarray(exp.rail(r.name).position(u), dtype=float) + h)
+             for r in exp.rails for u in (np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1
+                                          else [0.5]) for h in heads]
+    spots += [("", math.nan, np.zeros(3), np.asarray(c.position, dtype=float))
+              for c in exp.camera_specs if c.position is not None]
+    offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in d.aim_offsets for s, t in
+                              ((1, 0), (-1, 0), (0, 1), (0, -1))]
+    tree = cKDTree(mesh_points(meshes))
+    cams, rails, us, heads_of, tg = [], [], [], [], []
+    for rail, u, head, p in spots:
+        for t, aim in enumerate(aims):
+            if np.linalg.norm(aim - p) < 1e-6:
+                continue
+            pan0, tilt0 = look_at_angles(p, aim)
+            for dp, dt in offsets:
+                for f in lenses(exp):
+                    c = Camera(name=f"c{len(cams)}", width=W, height=H, pixel_size=width / W,
+                               focal_length=f, position=p, pan=pan0 + dp, tilt=tilt0 + dt)
+                    pts = camera_body_points(f) @ c.R + p     # x_w = R^T x_c + C
+                    if tree.query(pts)[0].min() < exp.optimize.clearance:
+                        continue
+                    cams.append(c)
+                    rails.append(rail)
+                    us.append(u)
+                    heads_of.append(head)
+                    tg.append(t)
+    return (cams, rails, np.array(us), np.array(heads_of).reshape(-1, 3), np.array(tg, dtype=int),
+            aims)
+
+
+def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
+    """Every candidate's information and weights on `geometry`'s samples (module docstring)."""
+    samples = geometry.samples
+    cams, rails, u, heads, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
+    if not cams:
+        return Candidates((), (), u, heads, tg, aims, np.zeros((0, len(samples), 6)),
+                          np.zeros((0, len(samples)), np.float32),
+                          np.zeros((0, len(samples.region_names)), bool),
+                          np.zeros((0, len(samples.region_names))))
+    scene = build_scene(list(geometry.meshes))
+    vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=progress)
+    bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
+                              samples, exp.evaluation.incidence_limit).visible
+    hidden = bare & ~vis.visible
+    light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    smp = samples_for_objective(exp, samples)
+    st = replace(settings(exp), pair_dtype="float64")
+    K, N = len(cams), len(samples)
+    info = np.zeros((K, N, 6))
+    weight = np.zeros((K, N), np.float32)
+    batches = range(0, K, BATCH)
+    for s in tqdm(batches, desc="candidates", unit="batch", disable=not progress, leave=False):
+        part = cams[s:s + BATCH]
+        pv = replace(vis, camera_names=vis.camera_names[s:s + BATCH],
+                     **{k: getattr(vis, k)[s:s + BATCH] for k in
+                        ("in_front", "in_image", "facing", "unoccluded")})
+        cp = objective.CameraParams.from_cameras(part)
+        views = view_data(exp, smp, pv, light, geometry.speckle)
+        C = np.asarray(objective.camera_information(cp, smp, views, geometry.speckle.table, st))
+        info[s:s + len(part)] = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+        w = np.asarray(objective.geometry(cp, smp, st).weight)
+        weight[s:s + len(part)] = w * np.asarray(pv.unoccluded, float)
+    use = usable.usable_views(weight)
+    R = len(samples.region_names)
+    assigned, masked = np.zeros((K, R), bool), np.zeros((K, R))
+    for r in range(R):
+        m = samples.region == r
+        a = samples.area[m]
+        assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
+        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), 1e-30)
+    return Candidates(tuple(cams), tuple(rails), u, heads, tg, aims, info, weight, assigned,
+                      masked)
+
+
+class Scorer:
+    """score(S) of the module docstring for sums of candidates' information and weights."""
+
+    def __init__(self, exp: Experiment, samples):
+        st = settings(exp)
+        scored = np.ones(len(samples.region_names), bool) if exp.optimize.regions is None else \
+            np.isin(samples.region_names, exp.optimize.regions)
+        omega = samples.area * samples.region_importance[samples.region] * scored[samples.region]
+        area = samples.area / samples.area.sum()
+        minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
+        self.settings = st
+        self.omega = jnp.asarray(omega / omega.sum())
+        self.area = jnp.asarray(area)
+        self.minimum = jnp.asarray(minimum[samples.region], dtype=float)
+        self._batch = jax.jit(jax.vmap(self._one, in_axes=(0, 0)))
+
+    def _one(self, info, cover):
+        """info (N, 6) float64, cover (N,) -> score."""
+        st = self.settings
+        sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
+        q = st.score_power
+        top = jnp.max(sigma)
+        agg = top * jnp.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
+        short = jnp.maximum(self.minimum - cover, 0.0)
+        return agg + st.coverage_weight * jnp.sum(self.area * short * short)
+
+    def add(self, base_info, base_cover, info, weight) -> np.ndarray:
+        """Scores of base + each candidate: base (N, 6), (N,); info (M, N, 6), weight (M, N)."""
+        out = []
+        for s in range(0, len(info), BATCH):
+            i = jnp.asarray(base_info[None] + info[s:s + BATCH])
+            c = jnp.asarray(base_cover[None] + weight[s:s + BATCH])
+            out.append(np.asarray(self._batch(i, c)))
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def of(self, cand: Candidates, chosen) -> float:
+        chosen = list(chosen)
+        i = cand.info[chosen].sum(0)
+        c = cand.weight[chosen].sum(0)
+        return float(self._batch(jnp.asarray(i[None]), jnp.asarray(c[None]))[0])
+
+
+def min_angles(exp: Experiment, cand: Candidates) -> np.ndarray:
+    """(K, K) minimum axis angle (rad) of each pair: [optimize] min_axis_angle_deg or the stereo
+    rule of thumb for the shorter lens (`vdo.constraints.stereo_min_angle`)."""
+    f = np.array([c.focal_length for c in cand.cameras])
+    if exp.optimize.min_axis_angle is not None:
+        return np.full((len(f), len(f)), exp.optimize.min_axis_angle)
+    rule = {x: stereo_min_angle(x) for x in np.unique(f)}
+    lo = np.minimum(f[:, None], f[None])
+    return np.vectorize(rule.get)(lo)
+
+
+class Feasibility:
+    """Which candidates may join a selected set: no obstacle hides more than [optimize]
+    max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
+    between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
+    max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
+    pairs sharing that region)."""
+
+    def __init__(self, exp: Experiment, cand: Candidates):
+        p, a = cand.positions, cand.axes
+        self.exclusive = np.linalg.norm(p[:, None] - p[None], axis=-1) < SPOT_M
+        share = (cand.assigned.astype(int) @ cand.assigned.T.astype(int)) > 0
+        angle = np.arccos(np.clip(a @ a.T, -1, 1))
+        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - 1e-9))
+        if exp.optimize.max_axis_angle is not None:
+            conflict |= share & (angle > exp.optimize.max_axis_angle + 1e-9)
+        for r, spec in enumerate(exp.regions):
+            if spec.max_axis_angle is not None:
+                on = cand.assigned[:, r]
+                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + 1e-9)
+        self.conflict = conflict
+        self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
+
+    def allowed(self, chosen) -> np.ndarray:
+        """(K,) True for the candidates compatible with every camera in `chosen`."""
+        ok = self.alone.copy()
+        for j in chosen:
+            ok &= ~self.conflict[j]
+        return ok
+
+
+def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
+           start=(), progress: bool = False) -> tuple[list[int], list[float]]:
+    """Forward selection up to n cameras from `start`: the chosen indices and the score after
+    each addition (stops early when no feasible candidate is left)."""
+    chosen, scores = list(start), []
+    N = cand.info.shape[1]
+    for _ in tqdm(range(n - len(chosen)), desc="greedy", disable=not progress, leave=False):
+        ok = np.flatnonzero(feas.allowed(chosen))
+        if ok.size == 0:
+            break
+        base_i = cand.info[chosen].sum(0) if chosen else np.zeros((N, 6))
+        base_c = cand.weight[chosen].sum(0) if chosen else np.zeros(N)
+        s = scorer.add(base_i, base_c, cand.info[ok], cand.weight[ok])
+        best = int(np.argmin(s))
+        chosen.append(int(ok[best]))
+        scores.append(float(s[best]))
+    return chosen, scores
+
+
+def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_passes: int = 5,
+             rtol: float = 1e-6) -> tuple[list[int], float, int]:
+    """Swap passes: replace one selected camera by the best feasible candidate while the score
+    drops by more than rtol (relative). Returns (chosen, score, swaps made)."""
+    chosen = list(chosen)
+    current, swaps = scorer.of(cand, chosen), 0
+    for _ in range(max_passes):
+        improved = False
+        for slot in range(len(chosen)):
+            rest = chosen[:slot] + chosen[slot + 1:]
+            ok = np.flatnonzero(feas.allowed(rest))
+            ok = ok[~np.isin(ok, chosen)]
+            if ok.size == 0:
+                continue
+            s = scorer.add(cand.info[rest].sum(0),
+                           cand.weight[rest].sum(0), cand.info[ok], cand.weight[ok])
+            best = int(np.argmin(s))
+            if s[best] < current * (1 - rtol):
+                chosen[slot], current = int(ok[best]), float(s[best])
+                swaps, improved = swaps + 1, True
+        if not improved:
+            break
+    return chosen, current, swaps
+
+
+def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
+    """[[camera]] entries d1, d2, ... for the chosen candidates (rail + u + offset, or position)."""
+    width, pixels = body(exp)
+    out = []
+    for k, i in enumerate(chosen):
+        c = cand.cameras[i]
+        on_rail = cand.rail[i] != ""
+        out.append(CameraSpec(name=f"d{k + 1}", sensor_width=width, pixels=tuple(pixels),
+                              focal_length=c.focal_length, rail=cand.rail[i] if on_rail else None,
+                              u=float(cand.u[i]) if on_rail else None,
+                              offset=np.array(cand.offset[i]),
+                              position=None if on_rail else np.asarray(c.position),
+                              pan=c.pan, tilt=c.tilt))
+    return out
+
+
+def designed(exp: Experiment, cand: Candidates, chosen) -> Experiment:
+    """The experiment with the chosen cameras (stereo pairs and [optimize] cameras, which name the
+    hand layout's cameras, dropped)."""
+    return replace(exp.with_cameras(camera_specs(exp, cand, chosen)), stereo_pairs=(),
+                   optimize=replace(exp.optimize, cameras=None))
+
+
+def measures(state, exp: Experiment) -> dict:
+    """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
+    region is unmeasured) and the area fraction of all regions seen by their region's
+    min_cameras usable views."""
+    summary = report.state_summary(state)
+    scored = exp.optimize.regions or [r.name for r in exp.regions]
+    p95 = [summary["regions"][r]["sigma_max_um"]["p95"] for r in scored]
+    smp = state.samples
+    need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[smp.region]
+    seen = smp.area[state.prediction.coverage >= need].sum() / smp.area.sum()
+    return {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
+            "coverage": float(seen)}
+
+
+def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
+    """What no selection can fix, each naming the region: an inventory below a region's
+    min_cameras, no candidate that is a usable view of a region."""
+    out, n = [], inventory(exp)
+    use = usable.usable_views(cand.weight) if len(cand.cameras) else np.zeros((0, len(samples)), bool)
+    for r, spec in enumerate(exp.regions):
+        need = spec.min_cameras or exp.evaluation.min_cameras
+        if need > n:
+            out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
+                       f"has {n} ([design] max_cameras)")
+        m = samples.region == r
+        if not use[:, m].any():
+            out.append(f"region {spec.name!r}: no candidate pose sees it (add a [[rail]] or a fixed "
+                       "[[camera]] position in view of it, or more rail_positions/aim_offsets_deg)")
+    return out
+
+
+def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
+           refine: bool = False) -> dict:
+    """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
+    candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
+    `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
+    constraints.json "before" holds every constraint check of the designed layout)."""
+    say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
+    t0 = time.perf_counter()
+    d = exp.design
+    n_max = inventory(exp)
+    coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
+    cand = judge(exp, coarse, progress=not quiet)
+    K, N = cand.info.shape[:2]
+    say(f"{K:,} candidates x {N:,} samples ({d.sample_spacing * 1e3:g} mm) judged in "
+        f"{time.perf_counter() - t0:.0f} s")
+    issues = problems(exp, cand, coarse.samples)
+    for msg in issues:
+        log.warning(msg)
+    if K == 0:
+        raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add rails or "
+                                              "fixed [[camera]] positions")
+    scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
+    order, _ = greedy(cand, scorer, feas, n_max, progress=not quiet)
+    curve = []
+    for n in tqdm(range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
+                  disable=quiet, leave=False):
+        chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
+        state = layout_state(coarse, designed(exp, cand, chosen).cameras())
+        curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
+                      **measures(state, exp)})
+    best = curve[-1]
+    target = None
+    if d.target_sigma_um is not None:
+        ok = [c for c in curve if c["sigma_p95_um"] is not None and
+              c["sigma_p95_um"] <= d.target_sigma_um and c["coverage"] >= 1 - 1e-9]
+        target = ok[0]["cameras"] if ok else None
+        if target is None:
+            reached = "unmeasured" if best["sigma_p95_um"] is None else f"{best['sigma_p95_um']:.4g} um"
+            issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is not reached on the "
+                          f"scored regions with {n_max} cameras (best: {reached})")
+            log.warning(issues[-1])
+    final = designed(exp, cand, best["chosen"])
+    state = layout_state(prepare(final))
+    summary = report.state_summary(state)
+    wall = time.perf_counter() - t0
+    with run_folder(out, overwrite) as tmp:
+        report.write_config(tmp / "designed.toml", final)
+        report.write_json(tmp / "layout.json", report.layout(list(state.cameras)))
+        report.write_json(tmp / "summary.json", summary)
+        _write_candidates(tmp / "candidates.csv", cand, best["chosen"])
+        _write_curve(tmp / "pareto.csv", curve)
+        _plot_curve(tmp / "pareto.png", curve, d.target_sigma_um, exp.name)
+        report.write_json(tmp / "design.json", {
+            "candidates": K, "samples": N, "selection_spacing_mm": d.sample_spacing * 1e3,
+            "lenses_mm": [f * 1e3 for f in lenses(exp)], "inventory": n_max,
+            "targets_m": cand.targets.tolist(), "problems": issues,
+            "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
+            "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
+            "wall_s": wall})
+        html_report.write_report(tmp)
+        refined = optimize(final, tmp / "refine", quiet=quiet) if refine else None
+    return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
+            "refined": refined,
+            "curve": curve, "summary": summary, "wall_s": wall}
+
+
+def _write_candidates(path, cand: Candidates, chosen):
+    """One row per candidate: pose, lens, samples it sees usably, regions assigned, selected."""
+    use = usable.usable_views(cand.weight).sum(1)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["candidate", "rail", "u", "x_m", "y_m", "z_m", "pan_deg", "tilt_deg", "focal_mm",
+                    "target", "usable_samples", "regions_assigned", "selected"])
+        for i, c in enumerate(cand.cameras):
+            w.writerow([i, cand.rail[i], f"{cand.u[i]:.4f}", *(f"{x:.4f}" for x in c.position),
+                        f"{math.degrees(c.pan):.2f}", f"{math.degrees(c.tilt):.2f}",
+                        f"{c.focal_length * 1e3:g}", int(cand.target[i]), int(use[i]),
+                        int(cand.assigned[i].sum()), int(i in chosen)])
+
+
+def _write_curve(path, curve):
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps"])
+        for c in curve:
+            w.writerow([c["cameras"], f"{c['score']:.6g}",
+                        "" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.5g}",
+                        f"{c['coverage']:.4f}", c["swaps"]])
+
+
+def _plot_curve(path, curve, target, name):
+    fig, ax = plt.subplots(figsize=(6, 4), layout="constrained")
+    n = [c["cameras"] for c in curve]
+    s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
+    ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    if target is not None:
+        ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
+    ax.set_xlabel("cameras")
+    ax.set_ylabel("σ_max p95 (µm)")
+    ax2 = ax.twinx()
+    ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
+    ax2.set_ylabel("area seen by its min_cameras (%)")
+    ax2.set_ylim(0, 105)
+    ax.set_title(f"{name}: cameras needed")
+    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
