@@ -91,9 +91,7 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
 
     # the run folder: files, moves along the rail in mm, and a layout that loads again
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["constraints.json", "convergence.png", "history.csv", "layout.json",
-                     "moves.csv", "optimized.toml", "optimizer.json", "summary_after.json",
-                     "summary_before.json"]
+    assert names == FOLDER
     moves = list(csv.DictReader((out / "moves.csv").open()))
     rail_length_mm = 2000.0
     for row, u0 in zip(moves, (0.48, 0.52)):
@@ -220,7 +218,8 @@ def _layout_reloads(out):
 
 
 FOLDER = ["constraints.json", "convergence.png", "history.csv", "layout.json", "moves.csv",
-          "optimized.toml", "optimizer.json", "summary_after.json", "summary_before.json"]
+          "optimized.toml", "optimizer.json", "report.html", "summary_after.json",
+          "summary_before.json"]
 
 
 def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_path, monkeypatch):

@@ -225,7 +225,7 @@ def test_builtin_experiment_renders_a_complete_run_folder(tmp_path):
     assert {n.split("/")[1] for n in calibration} == {"opencv", "matchid", "dice", "vic3d"}
     assert {f"images/{c}.png" for c in cams} | {"layout.json", "contact_sheet.png", "photometry.csv",
                                                  "shadows.vtp", "maps/shadows.png", "config.toml",
-                                                 "render.json"} == names
+                                                 "render.json", "report.html"} == names
     layout = json.loads((out / "layout.json").read_text())
     full = exp.cameras()
     for entry, cam in zip(layout["cameras"], full):
