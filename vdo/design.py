@@ -68,26 +68,23 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from scipy.spatial import cKDTree
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.spatial import cKDTree  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from . import html_report, objective, report, usable  # noqa: E402
-from .camera import Camera, look_at_angles  # noqa: E402
-from .config import CameraSpec, Experiment  # noqa: E402
-from .constraints import stereo_min_angle  # noqa: E402
-from .errors import ConfigError  # noqa: E402
-from .lighting import illuminate  # noqa: E402
-from .optimize import optimize  # noqa: E402
-from .predict import samples_for_objective, settings, view_data  # noqa: E402
-from .runfolder import run_folder  # noqa: E402
-from .scene import build_scene, camera_body_points  # noqa: E402
-from .state import Geometry, layout_state, prepare  # noqa: E402
-from .visibility import compute_visibility  # noqa: E402
+from . import html_report, objective, report, usable
+from .camera import Camera, look_at_angles
+from .config import CameraSpec, Experiment
+from .constraints import stereo_min_angle
+from .errors import ConfigError
+from .lighting import illuminate
+from .optimize import optimize
+from .predict import samples_for_objective, settings, view_data
+from .runfolder import run_folder
+from .scene import build_scene, camera_body_points
+from .state import Geometry, layout_state, prepare
+from .visibility import compute_visibility
 
 log = logging.getLogger(__name__)
 
