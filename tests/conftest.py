@@ -54,6 +54,25 @@ control_points_m = [[-1.0, 0.0, {height}], [1.0, 0.0, {height}]]
 {cameras}
 """
 
+AIMED_CAMERA = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+rail = "overhead"
+u = {u}
+target_m = [0.0, 0.0, 0.0]
+{extra}
+"""
+
+
+def aimed_camera(name: str, u: float, extra: str = "") -> str:
+    """A 24 mm camera on PLATE_TOML's overhead rail at `u`, aimed at the plate's centre; `extra`:
+    more [[camera]] lines."""
+    return AIMED_CAMERA.format(name=name, u=u, extra=extra)
+
+
 DOWN_CAMERA = """
 [[camera]]
 name = "{name}"

@@ -10,24 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import PLATE_TOML, write_box
+from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo import config
 from vdo.constraints import stereo_min_angle
 from vdo.optimize import Parameterization, optimize
 
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
-CAMERA = """
-[[camera]]
-name = "{name}"
-sensor_mm = [22.2, 14.8]
-pixels = [600, 400]
-focal_mm = 24
-rail = "overhead"
-u = {u}
-offset_m = [0.0, 0.0, 0.0]
-target_m = [0.0, 0.0, 0.0]
-"""
 SETTINGS = """
 [render]
 ambient_radiance = 1.0
@@ -61,7 +50,7 @@ def test_camera_behind_a_bar_ends_with_a_clear_view(tmp_path):
     """Camera `a` starts with a bar across its view of the plate; it must slide or turn until
     nothing masks the plate, and end with no constraint violated."""
     bar = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\n'
-    cams = CAMERA.format(name="a", u=0.65) + CAMERA.format(name="b", u=0.2)
+    cams = aimed_camera("a", 0.65) + aimed_camera("b", 0.2)
     exp = experiment(tmp_path, cams, ["a"], extra_meshes=bar,
                      files=[("bar.stl", [40, 1200, 40], [180, 0, 600])])
     out = tmp_path / "run"
@@ -77,7 +66,7 @@ def test_camera_behind_a_bar_ends_with_a_clear_view(tmp_path):
 
 def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     """Two 24 mm cameras 8 cm apart (axes ~4 deg apart) must open to the rule-of-thumb angle."""
-    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     out = tmp_path / "run"
     result = optimize(exp, out, quiet=True)
@@ -175,7 +164,7 @@ max_steps = 25
 
 def lens_experiment(tmp_path, lenses):
     write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
-    cams = CAMERA.format(name="a", u=0.3) + CAMERA.format(name="b", u=0.7)
+    cams = aimed_camera("a", 0.3) + aimed_camera("b", 0.7)
     text = PLATE_TOML.format(spacing=20, limit=75, height=1.2, extra_meshes="",
                              cameras=cams + LENS_SETTINGS.format(lenses=lenses))
     (tmp_path / "exp.toml").write_text(text)
@@ -231,7 +220,7 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
 
     from vdo import optimize as opt_module
 
-    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     steps = []
     original = opt_module._Progress.step
@@ -259,7 +248,7 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
 def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path):
     """With a time limit shorter than one round the search stops on time: the folder is complete,
     optimizer.json says "time_limit", and the layout (the best judged so far) reloads."""
-    cams = CAMERA.format(name="a", u=0.48) + CAMERA.format(name="b", u=0.52)
+    cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     out = tmp_path / "run"
     result = optimize(exp, out, quiet=True, time_limit=1e-3)
@@ -274,7 +263,7 @@ def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path):
 def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit):
     from vdo.cli import main
 
-    cams = CAMERA.format(name="a", u=0.48)
+    cams = aimed_camera("a", 0.48)
     experiment(tmp_path, cams, ["a"])
     code = main(["optimize", str(tmp_path / "exp.toml"), "--out", str(tmp_path / "run"),
                  "--time-limit", limit])

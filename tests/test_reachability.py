@@ -3,19 +3,9 @@ before any optimization; a region both rail cameras see is not."""
 
 import logging
 
-from conftest import PLATE_TOML, write_box
+from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo import config, reachability, scene
 
-CAMERA = """
-[[camera]]
-name = "{name}"
-sensor_mm = [22.2, 14.8]
-pixels = [600, 400]
-focal_mm = 24
-rail = "overhead"
-u = {u}
-target_m = [0.0, 0.0, 0.0]
-"""
 BOTTOM = """
 [[region]]
 name = "bottom"
@@ -27,7 +17,7 @@ normal = [0, 0, -1]
 def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplog):
     write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
     text = PLATE_TOML.format(spacing=40, limit=75, height=1.2, extra_meshes=BOTTOM,
-                             cameras=CAMERA.format(name="a", u=0.3) + CAMERA.format(name="b", u=0.7))
+                             cameras=aimed_camera("a", 0.3) + aimed_camera("b", 0.7))
     (tmp_path / "exp.toml").write_text(text)
     exp = config.load(tmp_path / "exp.toml")
     meshes = scene.load_meshes(exp)

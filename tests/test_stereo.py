@@ -12,23 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import PLATE_TOML, write_box
+from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo import config, constraints
 from vdo.errors import ConfigError
 from vdo.evaluate import evaluate
 from vdo.optimize import optimize
 
-CAMERA = """
-[[camera]]
-name = "{name}"
-sensor_mm = [22.2, 14.8]
-pixels = [600, 400]
-focal_mm = 24
-rail = "overhead"
-u = {u}
-target_m = [0.0, 0.0, 0.0]
-{extra}
-"""
 TAIL = """
 [render]
 ambient_radiance = 1.0
@@ -46,7 +35,7 @@ max_steps = 25
 
 def write(tmp_path, u=(0.45, 0.55), pairs="", optimize_extra="", camera_extra=("", ""), render=""):
     write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
-    cams = "".join(CAMERA.format(name=n, u=x, extra=e) for n, x, e in zip("ab", u, camera_extra))
+    cams = "".join(aimed_camera(n, x, e) for n, x, e in zip("ab", u, camera_extra))
     text = PLATE_TOML.format(spacing=20, limit=75, height=1.2, extra_meshes="",
                              cameras=cams + TAIL.format(optimize=optimize_extra, pairs=pairs,
                                                               render=render))
