@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from vdo import config, design, objective
+from vdo.errors import ConfigError
+from vdo.keyframes import load_path_of
 from vdo.lighting import illuminate
 from vdo.predict import samples_for_objective, settings, view_data
 from vdo.scene import build_scene
@@ -28,8 +31,8 @@ sample_spacing_mm = 50
 """
 
 
-def _experiment(plate_experiment, n=2, extra="", regions="", spacing=50):
-    path = plate_experiment(spacing=spacing)
+def _experiment(plate_experiment, n=2, extra="", regions="", spacing=50, cameras=None):
+    path = plate_experiment(spacing=spacing, cameras=cameras)
     path.write_text(path.read_text() + regions + DESIGN.format(n=n, extra=extra))
     return config.load(path)
 
@@ -162,3 +165,145 @@ def test_obscuration_by_an_obstacle_matches_the_shadow_geometry(plate_experiment
     scorer = design.Scorer(exp, prepare(exp).samples)
     chosen, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
     assert len(chosen) == 2 and all(cand.masked[i, 0] <= 0.01 for i in chosen)
+
+
+ZONE = """
+[[mount]]
+name = "stand"
+kind = "zone"
+box_min_m = [-1.0, -0.3, 1.2]
+box_max_m = [1.0, 0.3, 1.6]
+"""
+
+ON_ZONE = """
+[[camera]]
+name = "reference"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 24
+mount = "stand"
+target_m = [0, 0, 0]
+"""
+
+
+def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment, tmp_path):
+    """A zone above the plate and no rail positions: the candidates stand on the zone's grid
+    (zone_points along x and y x zone_heights), designed.toml places the cameras in the zone, and a
+    floor polygon keeps the grid points inside it (and its centroid)."""
+    exp = _experiment(plate_experiment, n=2, cameras=ZONE + ON_ZONE,
+                      extra="zone_points = 3\nzone_heights = 2\nkeyframes = 0")
+    exp = replace(exp, rails=())
+    spots = design.spots(exp)
+    grid = np.array([p for *_, p in spots])
+    expected = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-0.3, 0, 0.3) for z in (1.2, 1.6)])
+    assert sorted(map(tuple, grid)) == sorted(map(tuple, expected))
+    assert {k for _, k, *_ in spots} == {"zone"}
+    out = tmp_path / "out"
+    result = design.design(exp, out, quiet=True)
+    again = config.load(out / "designed.toml")
+    assert [c.mount for c in again.camera_specs] == ["stand", "stand"]
+    for c in again.camera_specs:
+        assert any(np.allclose(c.position, p) for p in expected)
+    assert result["statistics"]["per_mount_kind"]["zone"] == len(design.judge(exp, prepare(exp)).cameras)
+    # a triangle floor: of the 3 x 3 grid on its bounding box, the points inside it, and its centroid
+    floor = replace(exp.mounts[0], floor=np.array([[-1.0, -0.3], [1.0, -0.3], [-1.0, 0.3]]),
+                    height=(1.2, 1.2))
+    pts = design.zone_grid(floor, 3, 2)
+    inside = [(-1, -0.3), (0, -0.3), (1, -0.3), (-1, 0), (0, 0), (-1, 0.3)]
+    assert sorted(map(tuple, np.round(pts[:, :2], 9))) == sorted(inside + [(round(-1 / 3, 9), -0.1)])
+    assert np.all(pts[:, 2] == 1.2)
+
+
+BODIES = """
+[[body]]
+name = "small"
+sensor_mm = [22.2, 14.8]
+pixels = [300, 200]
+count = {small}
+
+[[body]]
+name = "large"
+sensor_mm = [22.2, 14.8]
+pixels = [1200, 800]
+count = {large}
+"""
+
+
+def test_the_inventory_counts_are_respected(plate_experiment):
+    """Two body kinds of one sensor size, 300 x 200 and 1200 x 800 pixels, one of each: every
+    candidate carries one of them; once a kind is used its candidates are no longer allowed; the
+    selected pair is the best of all feasible mixed pairs (exhaustive), and its score from the
+    candidates equals `objective.score` of those two cameras ray cast anew."""
+    exp = _experiment(plate_experiment, n=2, regions=BODIES.format(small=1, large=1))
+    geometry = prepare(exp)
+    cand = design.judge(exp, geometry)
+    assert len(cand.cameras) == 9 * 2                  # 9 rail positions x 2 bodies x 1 lens
+    assert [(c.width, c.height) for c in cand.cameras] == [(300, 200), (1200, 800)] * 9
+    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+    assert not np.any(feas.allowed([0]) & (cand.body == 0))
+    assert not np.any(feas.allowed([1]) & (cand.body == 1))
+    pick, score, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    assert sorted(cand.body[pick]) == [0, 1]
+    mixed = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
+             if cand.body[p[0]] != cand.body[p[1]] and not feas.conflict[p]]
+    best = min(mixed, key=lambda p: scorer.of(cand, p))
+    assert sorted(pick) == sorted(best)
+    cams = [cand.cameras[i] for i in pick]
+    assert score == pytest.approx(_pair_score(exp, geometry, cams), rel=1e-4)
+
+
+@pytest.mark.parametrize("extra, field, message", [
+    ("[design]\nsensor_width_mm = 22.2\npixels = [600, 400]\n", "design.sensor_width_mm", "not both"),
+    ("[design]\nmax_cameras = 5\n", "design.max_cameras", "more than the 3 [[body]] bodies"),
+    ('[[body]]\nname = "x"\nsensor_mm = [22.2, 1]\npixels = [600, 400]\ncount = 1\n', "sensor_mm",
+     "non-square"),
+])
+def test_bad_inventories_are_refused(plate_experiment, extra, field, message):
+    path = plate_experiment()
+    path.write_text(path.read_text() + BODIES.format(small=1, large=2) + extra)
+    with pytest.raises(ConfigError, match=rf"{re.escape(field)}.*{re.escape(message)}"):
+        config.load(path)
+
+
+SHUTTER = """
+[[mesh]]
+name = "shutter"
+file = "shutter.stl"
+unit = "mm"
+role = "obstacle"
+
+[[group]]
+name = "slide"
+meshes = ["shutter"]
+
+[load_path]
+poses = "poses.csv"
+"""
+
+
+def test_candidates_lose_what_the_load_path_hides(plate_experiment):
+    """A 1.2 m shutter at z = 0.75 m slides in -x by 0.5 m per step (steps 1-7) from x = 3 m. One
+    keyframe: the step farthest from rest, 7, where it spans x in [-1.1, 0.1]. The ray from a
+    candidate at (c, 0, 1.5) to a plate point (p, y, 0) crosses z = 0.75 at x = (c + p) / 2, so the
+    candidate loses the samples with (c + p) / 2 < 0.1 and keeps the others (as at rest)."""
+    path = plate_experiment(spacing=50, extra_meshes=SHUTTER,
+                            files=[("shutter.stl", [1200, 1200, 10], [3000, 0, 750])])
+    rows = ["step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
+    (path.parent / "poses.csv").write_text(
+        "\n".join(rows + [f"{k},slide,{-500 * k},0,0,0,0,0" for k in range(1, 8)]) + "\n")
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="keyframes = 1"))
+    exp = config.load(path)
+    lp = load_path_of(exp, None)
+    assert design.keyframe_steps(lp, 1) == [7]
+    two = design.keyframe_steps(lp, 2)
+    assert 7 in two and set(two) - {7} <= {3, 4}     # then the step farthest from both: 3 or 4
+    geometry = prepare(exp)
+    moving = design.judge(exp, geometry)
+    still = design.judge(replace(exp, design=replace(exp.design, keyframes=0)), geometry)
+    x = geometry.samples.points[:, 0]
+    for i, c in enumerate(moving.cameras):
+        cross = (c.position[0] + x) / 2
+        hidden, clear = cross < 0.1 - 0.02, cross > 0.1 + 0.02
+        assert np.all(moving.weight[i, hidden] == 0) and np.all(moving.info[i, hidden] == 0)
+        np.testing.assert_array_equal(moving.weight[i, clear], still.weight[i, clear])
+    assert np.all(still.path_lost == 0) and moving.path_lost.max() > 0.5

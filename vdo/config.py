@@ -893,12 +893,29 @@ class OptimizeSpec:
 
 
 @dataclass(frozen=True, eq=False)
-class DesignSpec:
-    """What `vdo design` may choose: how many camera bodies (all of one sensor), the lens
-    catalogue, where candidates stand on the rails and how they aim (`vdo.design`)."""
+class BodySpec:
+    """A kind of camera body in `vdo design`'s inventory: its sensor and how many are available."""
 
-    max_cameras: int | None = row("max_cameras", Whole(low=1), None, shown="the [[camera]] count",
-                                  doc="the inventory: camera bodies available")
+    name: str = row("name", Text(name=True), doc="unique, e.g. \"5MP\"")
+    sensor_width: float = row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
+                              shown="or sensor_mm", doc="sensor width")
+    pixels: tuple[int, int] = row("pixels", Vector(2, positive=True, whole=True, as_tuple=True,
+                                                   letters="WH"),
+                                  doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+    count: int = row("count", Whole(low=1), doc="how many bodies of this kind are available")
+    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
+                                    unit="mm", shown="[design] lenses_mm",
+                                    doc="the lenses this body takes")
+
+
+@dataclass(frozen=True, eq=False)
+class DesignSpec:
+    """What `vdo design` may choose: the camera bodies ([[body]], or [design]'s one sensor), the
+    lens catalogue, where candidates stand on the mounts and how they aim (`vdo.design`)."""
+
+    max_cameras: int | None = row("max_cameras", Whole(low=1), None,
+                                  shown="the [[body]] counts, else the [[camera]] count",
+                                  doc="the most cameras to place (the inventory)")
     min_cameras: int = row("min_cameras", Whole(low=1), 2, doc="fewest cameras on the Pareto curve")
     sensor_width: float | None = row("sensor_width_mm", Real(positive=True), None, unit="mm",
                                      shown="the first [[camera]]'s", doc="sensor width of the bodies")
@@ -919,12 +936,23 @@ class DesignSpec:
                                          doc="extra aims: each region target's pan and tilt +- these")
     sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 20.0, unit="mm",
                                 doc="sample spacing for the selection (the result is judged at [evaluation]'s)")
+    zone_points: int = row("zone_points", Whole(low=1), 3,
+                           doc="candidate positions per horizontal axis of a zone [[mount]] (a grid; "
+                               "in a floor polygon, the grid points inside it)")
+    zone_heights: int = row("zone_heights", Whole(low=1), 3,
+                            doc="candidate heights per zone, evenly spread over its height range")
+    keyframes: int = row("keyframes", Whole(low=0), 3,
+                         doc="load-path steps (evenly spread) at which the candidates' occlusion is "
+                             "also judged; a candidate counts where it sees a sample at rest and at "
+                             "each (0: at rest only)")
 
 
 # --------------------------------------------------------------------------------------------
 # Checks across the fields of one table: check(t, values) raises t.error or completes values
 # --------------------------------------------------------------------------------------------
-def _check_camera(t: Table, v: dict) -> None:
+def _sensor_size(t: Table, v: dict) -> None:
+    """A camera's or body's sensor: sensor_mm or sensor_width_mm (once), square pixels, at most
+    MAX_CAMERA_PIXELS; sets v["sensor_width"] from sensor_mm."""
     if t.has("sensor_mm") == t.has("sensor_width_mm"):
         raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
                                    "sensor_width_mm")
@@ -940,6 +968,10 @@ def _check_camera(t: Table, v: dict) -> None:
                                        f"{pitch_h * 1e6:.3f} um); vdo models square pixels: check "
                                        "the sensor size and pixel counts")
         v["sensor_width"] = float(sensor[0])
+
+
+def _check_camera(t: Table, v: dict) -> None:
+    _sensor_size(t, v)
     if t.has("f_number") != t.has("focus_m"):
         raise t.error("f_number", "depth of field needs both f_number and focus_m")
     if t.has("mount"):
@@ -999,6 +1031,10 @@ def _check_speckle(t: Table, v: dict) -> None:
 
 def _check_optimize(t: Table, v: dict) -> None:
     _check_angles(t, v, "min_axis_angle_deg", "max_axis_angle_deg", "min_axis_angle", "max_axis_angle")
+
+
+def _check_body(t: Table, v: dict) -> None:
+    _sensor_size(t, v)
 
 
 def _check_design(t: Table, v: dict) -> None:
@@ -1065,6 +1101,11 @@ class Experiment:
         doc="A moving test: `vdo evaluate` judges every step (`vdo.keyframes`, docs/load_path.md).")
     design: DesignSpec = table("design", DesignSpec, check=_check_design, default=DesignSpec(),
                                doc="What `vdo design` chooses from (`vdo.design`).")
+    bodies: tuple[BodySpec, ...] = table(
+        "body", BodySpec, array=True, check=_check_body, extra=(_sensor_mm_row(),), default=(),
+        doc="`vdo design`'s inventory of camera bodies, e.g. 6 of a 5 MP sensor and 4 of a 12 MP "
+            "one; without any, [design] sensor_width_mm + pixels (or the first [[camera]]'s) and "
+            "max_cameras.")
 
     def __post_init__(self):
         if self.analysis.element is None:      # a Q4 element defaults to the DIC patch
@@ -1360,6 +1401,16 @@ def _check_references(exp: Experiment, tables: dict) -> None:
             if mesh in grouped:
                 raise t.error("meshes", f"mesh {mesh!r} is already in group {grouped[mesh]!r}")
             grouped[mesh] = group.name
+    if exp.bodies:
+        if exp.design.sensor_width is not None:
+            raise ConfigError(path, "design.sensor_width_mm", "give the camera bodies either as "
+                                                             "[[body]] tables or as [design] "
+                                                             "sensor_width_mm + pixels, not both")
+        total = sum(b.count for b in exp.bodies)
+        if exp.design.max_cameras is not None and exp.design.max_cameras > total:
+            raise ConfigError(path, "design.max_cameras", f"= {exp.design.max_cameras} is more than "
+                                                          f"the {total} [[body]] bodies; lower it or "
+                                                          "raise a body's count")
     deformed = exp.load_path.deformed_mesh
     if deformed is not None and roles.get(deformed) != "specimen":
         raise ConfigError(path, "load_path.deformed_mesh", f"must name a specimen mesh (got {deformed!r})")

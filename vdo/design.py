@@ -1,20 +1,26 @@
 """Designing a layout from scratch: the selection of cameras from candidate poses (`vdo design`).
 
-Candidates. Every [[rail]] carries `[design] rail_positions` positions evenly spread in u (plus
-`offset_m` from the bar to the optical centre), and every [[camera]] given by `position_m` is a
-fixed position. A rail position is tried with `offset_m` and with its mirror below the bar
-(z negated), each kept when it clears. From each position a candidate aims at each *target*: the
-centres of the regions' boxes (clipped to their samples), merged when closer than MERGE_TARGETS_M; with
-`aim_offsets_deg` also at pan and tilt +- each offset. Each pose carries each lens of the
-catalogue. A candidate is dropped when its body (`vdo.scene.camera_body_points`) comes closer than
-`[optimize] clearance_m` to a mesh.
+Candidates. Where a camera may stand (`spots`): every rail (a [[rail]] or a rail [[mount]]) at
+`[design] rail_positions` positions evenly spread in u (plus `offset_m` from the bar to the
+optical centre, and its mirror below the bar, z negated); every zone [[mount]] (a tripod's floor
+area and height range) at a grid of `zone_points` values along x and y times `zone_heights`
+heights (`zone_grid`); every fixed [[mount]]; and every [[camera]] given by `position_m` on no
+mount. From each spot a candidate aims at each *target*: the centres of the regions' boxes
+(clipped to their samples), merged when closer than MERGE_TARGETS_M; with `aim_offsets_deg` also
+at pan and tilt +- each offset. Each pose carries each body kind of the inventory ([[body]]: its
+sensor; or [design]'s one sensor) with each lens it takes. A candidate is dropped when its body
+(`vdo.scene.camera_body_points`) comes closer than `[optimize] clearance_m` to a mesh.
 
 One judgement of all candidates. The regions are sampled at `[design] sample_spacing_mm`
 (coarser than [evaluation]'s; 20 mm by default). One ray cast (`vdo.visibility`) over every
 (candidate, sample) pair on the scene of the meshes alone (no camera bodies), the light reaching
 the samples (`vdo.lighting`), and then per candidate i and sample n the mean-field information
 C_i(n) = Omega w_i |det A_i| C_i (3x3, 1/m^2, `vdo.objective.camera_information`; unclipped patch)
-and the soft weight w_i(n) of the objective (incidence, image edge and occlusion). Stored as 6
+and the soft weight w_i(n) of the objective (incidence, image edge and occlusion). Over a load
+path, the candidates are also ray cast at `[design] keyframes` of its steps (`keyframe_steps`:
+those farthest from rest and from each other), the samples and moving meshes posed by
+`vdo.keyframes.at_step`, and C_i(n) and w_i(n) are zeroed where candidate i loses sample n at
+any of them (`path_visibility`: the worst case over the keyframes). Stored as 6
 float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
 3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
 vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
@@ -38,6 +44,7 @@ pass over candidates x samples per step).
 Selection. Greedy forward selection adds the feasible candidate with the lowest score, then
 exchange passes replace one selected camera by the best feasible candidate while that lowers the
 score. Feasible with the selected set:
+* the inventory: no more cameras of a body kind than its count;
 * one camera per spot: no two optical centres closer than SPOT_M (a body and its clearance);
 * axis angles: two cameras that share a region (each sees at least `[optimize]
   assign_fraction` of its area with usable weight) keep their optical axes at least `[optimize]
@@ -48,13 +55,19 @@ score. Feasible with the selected set:
   candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
   on the whole scene: a second ray cast).
 Obscuration by other camera bodies is not judged during selection; the designed layout is judged
-whole (bodies included) with `vdo.state.layout_state` at [evaluation]'s sample spacing.
+whole (bodies included) with `vdo.state.layout_state` at [evaluation]'s sample spacing, and with
+every constraint check of `vdo optimize` (`constraint_checks`, constraints.json).
 
 How many cameras. The greedy order and exchange passes per count give the best layout for every
 count from `[design] min_cameras` to the inventory; `pareto.csv` holds, per count, sigma_max p95
 over the scored regions (the worst region's p95, at the selection spacing, camera bodies included)
 and the area fraction seen by its region's min_cameras. With `target_sigma_um` the smallest count
 that meets it with full coverage is reported.
+
+What no selection can fix is reported naming the region and what is missing (`problems`,
+`shortfalls`): an inventory below its min_cameras, no candidate that sees it (at rest or over the
+keyframes), fewer candidate spots seeing it than its min_cameras, a target sigma not reached, a
+region the design leaves short of its min_cameras; the best layout is written all the same.
 """
 
 from __future__ import annotations
@@ -75,11 +88,12 @@ from tqdm import tqdm
 
 from . import html_report, objective, report, usable
 from .camera import Camera, look_at_angles
-from .config import CameraSpec, Experiment
+from .config import BodySpec, CameraSpec, Experiment, inside_floor
 from .constraints import stereo_min_angle
 from .errors import ConfigError
+from .keyframes import at_step, load_path_of
 from .lighting import illuminate
-from .optimize import optimize
+from .optimize import Problem, optimize
 from .predict import samples_for_objective, settings, view_data
 from .runfolder import run_folder
 from .scene import build_scene, camera_body_points
@@ -98,20 +112,25 @@ class Candidates:
     """K candidate cameras judged on N samples. info (K, N, 6) float64 1/m^2 (entries c00, c11,
     c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
     assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
-    rail (K,) names ("" for a fixed position), u (K,), offset (K, 3) m from the rail point,
-    target (K,) index into `targets`; masked (K, R) the area fraction of each region's samples
-    the candidate would see but an obstacle hides (its obscuration)."""
+    mount (K,) names ("" for a [[camera]]'s own fixed position), kind (K,) "rail", "zone" or
+    "fixed", u (K,) (rail; NaN otherwise), offset (K, 3) m from the rail point, body (K,) index
+    into `bodies(exp)`, target (K,) index into `targets`; masked (K, R) the area fraction of each
+    region's samples the candidate would see but an obstacle hides (its obscuration); path_lost
+    (K,) the fraction of its usable samples at rest that the load path's keyframes take away."""
 
     cameras: tuple[Camera, ...]
-    rail: tuple[str, ...]
+    mount: tuple[str, ...]
+    kind: tuple[str, ...]
     u: np.ndarray
     offset: np.ndarray
+    body: np.ndarray
     target: np.ndarray
     targets: np.ndarray
     info: np.ndarray
     weight: np.ndarray
     assigned: np.ndarray
     masked: np.ndarray
+    path_lost: np.ndarray
 
     @property
     def positions(self) -> np.ndarray:
@@ -122,22 +141,31 @@ class Candidates:
         return np.array([c.optical_axis for c in self.cameras])
 
 
-def body(exp: Experiment) -> tuple[float, tuple[int, int]]:
-    """(sensor width m, (W, H) pixels) of the camera bodies: [design]'s or the first [[camera]]'s."""
+def bodies(exp: Experiment) -> tuple[BodySpec, ...]:
+    """The inventory's body kinds: the [[body]] tables, or one kind of [design]'s sensor (else
+    the first [[camera]]'s) counted `inventory(exp)` times."""
+    if exp.bodies:
+        return exp.bodies
     d = exp.design
-    if d.sensor_width is not None:
-        return d.sensor_width, d.pixels
-    spec = exp.camera_specs[0]
-    return spec.sensor_width, spec.pixels
+    width, pixels = ((d.sensor_width, d.pixels) if d.sensor_width is not None else
+                     (exp.camera_specs[0].sensor_width, exp.camera_specs[0].pixels))
+    return (BodySpec(name="body", sensor_width=width, pixels=tuple(pixels), count=inventory(exp),
+                     lenses=()),)
 
 
-def lenses(exp: Experiment) -> tuple[float, ...]:
-    """The lens catalogue (m): [design] lenses_mm, or the focal lengths of the [[camera]]s."""
-    return exp.design.lenses or tuple(sorted({c.focal_length for c in exp.camera_specs}))
+def lenses(exp: Experiment, body: BodySpec | None = None) -> tuple[float, ...]:
+    """The lens catalogue (m) of a body: its lenses_mm, else [design] lenses_mm, else the focal
+    lengths of the [[camera]]s; without a body, every lens of every body."""
+    if body is None:
+        return tuple(sorted({f for b in bodies(exp) for f in lenses(exp, b)}))
+    return body.lenses or exp.design.lenses or tuple(sorted({c.focal_length for c in exp.camera_specs}))
 
 
 def inventory(exp: Experiment) -> int:
-    return exp.design.max_cameras or len(exp.camera_specs)
+    """How many cameras may be placed: [design] max_cameras, else the [[body]] counts, else the
+    [[camera]] count."""
+    return exp.design.max_cameras or (sum(b.count for b in exp.bodies) if exp.bodies
+                                      else len(exp.camera_specs))
 
 
 def targets(samples) -> np.ndarray:
@@ -178,57 +206,138 @@ def mesh_points(meshes, spacing: float = 0.01) -> np.ndarray:
     return np.vstack(out)
 
 
-def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
-    """The candidate poses (module docstring) that keep their clearance: (cameras, rail names,
-    u, offsets, target index, targets)."""
+def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
+    """(P, 3) candidate optical centres (m) in a zone [[mount]]: `per_axis` evenly spaced values
+    along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
+    values over its height range; over a floor polygon, the points of that grid on its bounding box
+    that lie inside the polygon, and its centroid."""
+    lo, hi = zone.low, zone.high
+    axes = [np.linspace(lo[k], hi[k], per_axis) if hi[k] > lo[k] and per_axis > 1
+            else np.array([(lo[k] + hi[k]) / 2]) for k in range(2)]
+    axes.append(np.linspace(lo[2], hi[2], heights) if hi[2] > lo[2] and heights > 1
+                else np.array([(lo[2] + hi[2]) / 2]))
+    xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
+    if zone.floor is not None:
+        xy = np.vstack([[p for p in xy if inside_floor(zone.floor, p)] or np.zeros((0, 2)),
+                        zone.floor.mean(axis=0)])
+    return np.array([[x, y, z] for x, y in xy for z in axes[2]])
+
+
+def spots(exp: Experiment) -> list[tuple]:
+    """Where candidates stand: (mount name, kind, u, offset (3,), optical centre (3,)) for
+    `rail_positions` values of u on every rail (with `offset_m`, and its mirror below the bar),
+    the `zone_grid` of every zone mount, every fixed mount, and every [[camera]] given by
+    position_m on no mount."""
     d = exp.design
-    width, (W, H) = body(exp)
-    aims = targets(samples)
     heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
-    spots = [(r.name, float(u), h, np.asarray(exp.rail(r.name).position(u), dtype=float) + h)
-             for r in exp.rails for u in (np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1
-                                          else [0.5]) for h in heads]
-    spots += [("", math.nan, np.zeros(3), np.asarray(c.position, dtype=float))
-              for c in exp.camera_specs if c.position is not None]
-    offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in d.aim_offsets for s, t in
+    grid = np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1 else [0.5]
+    out = [(r.name, "rail", float(u), h, np.asarray(exp.rail(r.name).position(u), dtype=float) + h)
+           for r in exp.rails for u in grid for h in heads]
+    zero = np.zeros(3)
+    for m in exp.mounts:
+        points = zone_grid(m, d.zone_points, d.zone_heights) if m.kind == "zone" else [m.position]
+        out += [(m.name, m.kind, math.nan, zero, np.asarray(p, dtype=float)) for p in points]
+    out += [("", "fixed", math.nan, zero, np.asarray(c.position, dtype=float))
+            for c in exp.camera_specs if c.position is not None and c.mount is None]
+    return out
+
+
+def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
+    """The candidate poses (module docstring) that keep their clearance: (cameras, mount names,
+    kinds, u, offsets, body index, target index, targets)."""
+    aims = targets(samples)
+    offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in exp.design.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
-    tree = cKDTree(mesh_points(meshes))
-    cams, rails, us, heads_of, tg = [], [], [], [], []
-    for rail, u, head, p in spots:
+    cams, rows, points = [], [], []
+    for mount, kind, u, head, p in spots(exp):
         for t, aim in enumerate(aims):
             if np.linalg.norm(aim - p) < 1e-6:
                 continue
             pan0, tilt0 = look_at_angles(p, aim)
             for dp, dt in offsets:
-                for f in lenses(exp):
-                    c = Camera(name=f"c{len(cams)}", width=W, height=H, pixel_size=width / W,
-                               focal_length=f, position=p, pan=pan0 + dp, tilt=tilt0 + dt)
-                    pts = camera_body_points(f) @ c.R + p     # x_w = R^T x_c + C
-                    if tree.query(pts)[0].min() < exp.optimize.clearance:
-                        continue
-                    cams.append(c)
-                    rails.append(rail)
-                    us.append(u)
-                    heads_of.append(head)
-                    tg.append(t)
-    return (cams, rails, np.array(us), np.array(heads_of).reshape(-1, 3), np.array(tg, dtype=int),
-            aims)
+                for b, body in enumerate(bodies(exp)):
+                    W, H = body.pixels
+                    for f in lenses(exp, body):
+                        c = Camera(name=f"c{len(cams)}", width=W, height=H,
+                                   pixel_size=body.sensor_width / W, focal_length=f, position=p,
+                                   pan=pan0 + dp, tilt=tilt0 + dt)
+                        cams.append(c)
+                        rows.append((mount, kind, u, head, b, t))
+                        points.append(camera_body_points(f) @ c.R + p)     # x_w = R^T x_c + C
+    if cams:   # one query, pruned at the clearance (an unbounded query from far away is slow)
+        gap = cKDTree(mesh_points(meshes)).query(np.concatenate(points),
+                                                 distance_upper_bound=exp.optimize.clearance)[0]
+        clear = (gap.reshape(len(cams), -1) >= exp.optimize.clearance).all(axis=1)
+        cams = [c for c, ok in zip(cams, clear) if ok]
+        rows = [r for r, ok in zip(rows, clear) if ok]
+    mount, kind, u, head, b, t = zip(*rows) if rows else ((),) * 6
+    return (cams, tuple(mount), tuple(kind), np.array(u, dtype=float),
+            np.array(head, dtype=float).reshape(-1, 3), np.array(b, dtype=int),
+            np.array(t, dtype=int), aims)
+
+
+def keyframe_steps(load_path, count: int) -> list:
+    """`count` steps of the load path far from rest and from each other (farthest-point sampling
+    from rest on each step's motion: the translations (m) and rotation matrices minus identity of
+    its posed groups, and its largest nodal displacement (m)); all steps when there are fewer."""
+    steps = list(load_path.steps)
+    if count <= 0 or not steps:
+        return []
+    if count >= len(steps):
+        return steps
+    groups = sorted(load_path.groups)
+    feats = []
+    for step in steps:
+        f = []
+        for g in groups:
+            pose = load_path.poses.get((step, g))
+            f += ([0.0] * 12 if pose is None else
+                  [*pose.translation, *(pose.rotation - np.eye(3)).ravel()])
+        u = (load_path.displacements or {}).get(step)
+        f.append(0.0 if u is None else float(np.linalg.norm(u, axis=1).max()))
+        feats.append(f)
+    feats = np.array(feats)
+    dist = np.linalg.norm(feats, axis=1)        # from rest
+    chosen = []
+    for _ in range(count):
+        k = int(np.argmax(dist))
+        chosen.append(k)
+        dist = np.minimum(dist, np.linalg.norm(feats - feats[k], axis=1))
+    return [steps[k] for k in sorted(chosen)]
+
+
+def path_visibility(geometry: Geometry, load_path, cameras, steps) -> np.ndarray:
+    """(C, N) True where camera c sees sample n (in front, in the image, facing, unoccluded; the
+    meshes only, no camera bodies) at every one of `steps` of the load path, the samples and the
+    moving meshes posed by `vdo.keyframes.at_step`: one ray cast per step. All True without
+    steps. (The load path's worst case for the candidates; `vdo.loadpath` may later give the same
+    for a fraction of the steps.)"""
+    exp = geometry.experiment
+    seen = np.ones((len(cameras), len(geometry.samples)), bool)
+    for step in steps:
+        moved = at_step(geometry, load_path, step)
+        seen &= compute_visibility(build_scene(list(moved.meshes)), list(cameras), moved.samples,
+                                   exp.evaluation.incidence_limit, progress=False).visible
+    return seen
 
 
 def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
     """Every candidate's information and weights on `geometry`'s samples (module docstring)."""
     samples = geometry.samples
-    cams, rails, u, heads, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
+    R = len(samples.region_names)
+    cams, mount, kind, u, heads, body, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
     if not cams:
-        return Candidates((), (), u, heads, tg, aims, np.zeros((0, len(samples), 6)),
-                          np.zeros((0, len(samples)), np.float32),
-                          np.zeros((0, len(samples.region_names)), bool),
-                          np.zeros((0, len(samples.region_names))))
+        return Candidates((), (), (), u, heads, body, tg, aims, np.zeros((0, len(samples), 6)),
+                          np.zeros((0, len(samples)), np.float32), np.zeros((0, R), bool),
+                          np.zeros((0, R)), np.zeros(0))
     scene = build_scene(list(geometry.meshes))
     vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=progress)
     bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
                               samples, exp.evaluation.incidence_limit).visible
     hidden = bare & ~vis.visible
+    path = load_path_of(exp, list(geometry.meshes))
+    steps = keyframe_steps(path, exp.design.keyframes) if path is not None else []
+    on_path = path_visibility(geometry, path, cams, steps)
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     smp = samples_for_objective(exp, samples)
     st = replace(settings(exp), pair_dtype="float64")
@@ -247,16 +356,20 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
         info[s:s + len(part)] = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
         w = np.asarray(objective.geometry(cp, smp, st).weight)
         weight[s:s + len(part)] = w * np.asarray(pv.unoccluded, float)
+    at_rest = usable.usable_views(weight)
+    info *= on_path[..., None]
+    weight *= on_path
     use = usable.usable_views(weight)
-    R = len(samples.region_names)
+    lost = 1 - use.sum(1) / np.maximum(at_rest.sum(1), 1)
     assigned, masked = np.zeros((K, R), bool), np.zeros((K, R))
     for r in range(R):
         m = samples.region == r
         a = samples.area[m]
         assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
         masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), 1e-30)
-    return Candidates(tuple(cams), tuple(rails), u, heads, tg, aims, info, weight, assigned,
-                      masked)
+    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(steps), steps)
+    return Candidates(tuple(cams), mount, kind, u, heads, body, tg, aims, info, weight, assigned,
+                      masked, lost)
 
 
 class Scorer:
@@ -333,13 +446,17 @@ class Feasibility:
                 conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + 1e-9)
         self.conflict = conflict
         self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
+        self.body = cand.body
+        self.counts = np.array([b.count for b in bodies(exp)])
 
     def allowed(self, chosen) -> np.ndarray:
-        """(K,) True for the candidates compatible with every camera in `chosen`."""
+        """(K,) True for the candidates compatible with every camera in `chosen` and whose body
+        kind is not used up by `chosen`."""
         ok = self.alone.copy()
         for j in chosen:
             ok &= ~self.conflict[j]
-        return ok
+        used = np.bincount(self.body[list(chosen)], minlength=len(self.counts))
+        return ok & (used < self.counts)[self.body]
 
 
 def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
@@ -387,14 +504,16 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
 
 
 def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
-    """[[camera]] entries d1, d2, ... for the chosen candidates (rail + u + offset, or position)."""
-    width, pixels = body(exp)
+    """[[camera]] entries d1, d2, ... for the chosen candidates: rail + u + offset, zone or fixed
+    mount + position, or position."""
+    kinds = bodies(exp)
     out = []
     for k, i in enumerate(chosen):
-        c = cand.cameras[i]
-        on_rail = cand.rail[i] != ""
-        out.append(CameraSpec(name=f"d{k + 1}", sensor_width=width, pixels=tuple(pixels),
-                              focal_length=c.focal_length, rail=cand.rail[i] if on_rail else None,
+        c, body, mount = cand.cameras[i], kinds[cand.body[i]], cand.mount[i] or None
+        on_rail = cand.kind[i] == "rail"
+        out.append(CameraSpec(name=f"d{k + 1}", sensor_width=body.sensor_width,
+                              pixels=tuple(body.pixels), focal_length=c.focal_length,
+                              rail=mount if on_rail else None, mount=None if on_rail else mount,
                               u=float(cand.u[i]) if on_rail else None,
                               offset=np.array(cand.offset[i]),
                               position=None if on_rail else np.asarray(c.position),
@@ -424,20 +543,84 @@ def measures(state, exp: Experiment) -> dict:
 
 
 def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
-    """What no selection can fix, each naming the region: an inventory below a region's
-    min_cameras, no candidate that is a usable view of a region."""
+    """What no selection can fix, each naming the region and what is missing: an inventory below
+    its min_cameras; no candidate that is a usable view of it (at rest, or over the load path's
+    keyframes); fewer candidate spots (optical centres SPOT_M apart) seeing it than its
+    min_cameras."""
     out, n = [], inventory(exp)
     use = usable.usable_views(cand.weight) if len(cand.cameras) else np.zeros((0, len(samples)), bool)
+    where = "[design] max_cameras" if exp.design.max_cameras else \
+        ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
     for r, spec in enumerate(exp.regions):
         need = spec.min_cameras or exp.evaluation.min_cameras
         if need > n:
             out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
-                       f"has {n} ([design] max_cameras)")
+                       f"has {n} ({where}): add {need - n} camera bod{'y' if need - n == 1 else 'ies'}")
         m = samples.region == r
-        if not use[:, m].any():
-            out.append(f"region {spec.name!r}: no candidate pose sees it (add a [[rail]] or a fixed "
-                       "[[camera]] position in view of it, or more rail_positions/aim_offsets_deg)")
+        seeing = np.flatnonzero(use[:, m].any(axis=1))
+        if seeing.size == 0:
+            moving = " over the load path's keyframes" if np.any(cand.path_lost > 0) else ""
+            out.append(f"region {spec.name!r}: no candidate pose sees it{moving}: add a mount "
+                       "([[mount]] or [[rail]]) in view of it, or more [design] rail_positions, "
+                       "zone_points or aim_offsets_deg")
+            continue
+        spots_seen = _distinct(cand.positions[seeing])
+        if 0 < spots_seen < need <= n:
+            out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but only "
+                       f"{spots_seen} candidate spot(s) see it: add a mount in view of it")
     return out
+
+
+def _distinct(points: np.ndarray) -> int:
+    """How many of `points` are SPOT_M apart (greedy clustering)."""
+    left, count = np.asarray(points), 0
+    while len(left):
+        left = left[np.linalg.norm(left - left[0], axis=1) >= SPOT_M]
+        count += 1
+    return count
+
+
+def shortfalls(state, exp: Experiment) -> list[str]:
+    """Regions the designed layout leaves short of their min_cameras, each named with the area
+    fraction seen by that many usable views."""
+    out, smp = [], state.samples
+    for r, spec in enumerate(exp.regions):
+        need = spec.min_cameras or exp.evaluation.min_cameras
+        m = smp.region == r
+        seen = smp.area[m & (state.prediction.coverage >= need)].sum() / smp.area[m].sum()
+        if seen < 1 - 1e-9:
+            out.append(f"region {spec.name!r}: the design sees {100 * seen:.1f} % of it by its "
+                       f"min_cameras = {need} usable views (missing: more cameras or a mount in "
+                       "view of the rest)")
+    return out
+
+
+def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
+    """Candidate statistics for design.json and the report: counts per mount kind, body, lens
+    and region (candidates assigned it), the load path's mean loss, and the chosen cameras."""
+    kinds = bodies(exp)
+    f = np.array([c.focal_length for c in cand.cameras])
+    return {
+        "per_mount_kind": {k: int(sum(x == k for x in cand.kind)) for k in ("rail", "zone", "fixed")},
+        "per_body": {b.name: int((cand.body == i).sum()) for i, b in enumerate(kinds)},
+        "per_lens_mm": {f"{x * 1e3:g}": int((f == x).sum()) for x in np.unique(f)},
+        "per_region_assigned": {r.name: int(cand.assigned[:, k].sum())
+                                for k, r in enumerate(exp.regions)},
+        "usable_samples_mean": float(usable.usable_views(cand.weight).sum(1).mean()),
+        "load_path_lost_mean": float(cand.path_lost.mean()),
+        "chosen": [{"camera": f"d{k + 1}", "body": kinds[cand.body[i]].name,
+                    "focal_mm": round(cand.cameras[i].focal_length * 1e3, 6),
+                    "mount": cand.mount[i] or "position", "kind": cand.kind[i],
+                    "position_m": np.round(cand.cameras[i].position, 4).tolist(),
+                    "regions": [r.name for k, r in enumerate(exp.regions) if cand.assigned[i, k]]}
+                   for k, i in enumerate(chosen)]}
+
+
+def constraint_checks(exp: Experiment) -> list[dict]:
+    """Every constraint check `vdo optimize` makes (`vdo.optimize.Problem.check`: axis angles,
+    clearance, obscuration, field of view, shadows), on the experiment's own cameras."""
+    problem = Problem(exp)
+    return problem.check(problem.start)
 
 
 def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
@@ -459,8 +642,8 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
     for msg in issues:
         log.warning(msg)
     if K == 0:
-        raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add rails or "
-                                              "fixed [[camera]] positions")
+        raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
+                                              "[[mount]] or [[rail]] clear of the meshes")
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
     order, _ = greedy(cand, scorer, feas, n_max, progress=not quiet)
     curve = []
@@ -469,6 +652,8 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
         chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
         state = layout_state(coarse, designed(exp, cand, chosen).cameras())
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
+                      "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
+                      "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
                       **measures(state, exp)})
     best = curve[-1]
     target = None
@@ -478,56 +663,81 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
         target = ok[0]["cameras"] if ok else None
         if target is None:
             reached = "unmeasured" if best["sigma_p95_um"] is None else f"{best['sigma_p95_um']:.4g} um"
-            issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is not reached on the "
-                          f"scored regions with {n_max} cameras (best: {reached})")
+            scored = ", ".join(repr(r) for r in (exp.optimize.regions or [r.name for r in exp.regions]))
+            issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is not reached on "
+                          f"region(s) {scored} with {len(best['chosen'])} cameras (best: {reached}; "
+                          "missing: more cameras, longer lenses or closer mounts)")
             log.warning(issues[-1])
     final = designed(exp, cand, best["chosen"])
     state = layout_state(prepare(final))
+    for msg in shortfalls(state, exp):
+        issues.append(msg)
+        log.warning(msg)
     summary = report.state_summary(state)
+    checks = constraint_checks(final)
+    violated = [c for c in checks if not c["met"]]
+    if violated:
+        log.warning("the designed layout breaks %d constraint check(s) of vdo optimize (constraints.json); "
+                    "vdo design --refine (vdo optimize) starts from it", len(violated))
+    stats = statistics(exp, cand, best["chosen"])
+    for c in stats["chosen"]:
+        say(f"{c['camera']}: {c['body']}, {c['focal_mm']:g} mm, {c['kind']} {c['mount']} at "
+            f"{c['position_m']} m, sees {', '.join(c['regions']) or 'no region whole'}")
     wall = time.perf_counter() - t0
     with run_folder(out, overwrite) as tmp:
         report.write_config(tmp / "designed.toml", final)
         report.write_json(tmp / "layout.json", report.layout(list(state.cameras)))
         report.write_json(tmp / "summary.json", summary)
-        _write_candidates(tmp / "candidates.csv", cand, best["chosen"])
+        report.write_json(tmp / "constraints.json", {"violations": len(violated), "violated": violated,
+                                                     "checks": checks})
+        _write_candidates(tmp / "candidates.csv", exp, cand, best["chosen"])
         _write_curve(tmp / "pareto.csv", curve)
         _plot_curve(tmp / "pareto.png", curve, d.target_sigma_um, exp.name)
         report.write_json(tmp / "design.json", {
             "candidates": K, "samples": N, "selection_spacing_mm": d.sample_spacing * 1e3,
             "lenses_mm": [f * 1e3 for f in lenses(exp)], "inventory": n_max,
-            "targets_m": cand.targets.tolist(), "problems": issues,
+            "bodies": [{"name": b.name, "count": b.count, "pixels": list(b.pixels),
+                        "sensor_width_mm": b.sensor_width * 1e3,
+                        "lenses_mm": [f * 1e3 for f in lenses(exp, b)]} for b in bodies(exp)],
+            "targets_m": cand.targets.tolist(), "problems": issues, "statistics": stats,
+            "constraint_violations": len(violated),
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
             "wall_s": wall})
         html_report.write_report(tmp)
         refined = optimize(final, tmp / "refine", quiet=quiet) if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
-            "refined": refined,
+            "refined": refined, "statistics": stats, "violations": len(violated),
             "curve": curve, "summary": summary, "wall_s": wall}
 
 
-def _write_candidates(path, cand: Candidates, chosen):
-    """One row per candidate: pose, lens, samples it sees usably, regions assigned, selected."""
+def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
+    """One row per candidate: mount, pose, body, lens, samples it sees usably, regions assigned,
+    the fraction of its view the load path takes away, selected."""
     use = usable.usable_views(cand.weight).sum(1)
+    names = [b.name for b in bodies(exp)]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["candidate", "rail", "u", "x_m", "y_m", "z_m", "pan_deg", "tilt_deg", "focal_mm",
-                    "target", "usable_samples", "regions_assigned", "selected"])
+        w.writerow(["candidate", "mount", "kind", "u", "x_m", "y_m", "z_m", "pan_deg", "tilt_deg",
+                    "body", "focal_mm", "target", "usable_samples", "regions_assigned",
+                    "load_path_lost", "selected"])
         for i, c in enumerate(cand.cameras):
-            w.writerow([i, cand.rail[i], f"{cand.u[i]:.4f}", *(f"{x:.4f}" for x in c.position),
+            w.writerow([i, cand.mount[i], cand.kind[i], "" if math.isnan(cand.u[i]) else f"{cand.u[i]:.4f}",
+                        *(f"{x:.4f}" for x in c.position),
                         f"{math.degrees(c.pan):.2f}", f"{math.degrees(c.tilt):.2f}",
-                        f"{c.focal_length * 1e3:g}", int(cand.target[i]), int(use[i]),
-                        int(cand.assigned[i].sum()), int(i in chosen)])
+                        names[cand.body[i]], f"{c.focal_length * 1e3:g}", int(cand.target[i]),
+                        int(use[i]), int(cand.assigned[i].sum()), f"{cand.path_lost[i]:.3f}",
+                        int(i in chosen)])
 
 
 def _write_curve(path, curve):
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps"])
+        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies"])
         for c in curve:
             w.writerow([c["cameras"], f"{c['score']:.6g}",
                         "" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.5g}",
-                        f"{c['coverage']:.4f}", c["swaps"]])
+                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"]])
 
 
 def _plot_curve(path, curve, target, name):

@@ -3,7 +3,8 @@
 The page holds an interactive 3D view of the run (`view3d.load`: meshes, region samples coloured by
 a field chosen from a list, camera frustums and names, light panels), the region table from
 summary.json, every other table of the folder's JSON files, the contact sheet, the unfolded maps,
-the optimizer's before/after and convergence figure, and a sweep's results.csv and figures. What a
+the optimizer's before/after and convergence figure, a design's camera-count curve, chosen cameras
+and candidate statistics, and a sweep's results.csv and figures. What a
 folder lacks (an interrupted run) is listed at the top instead of failing.
 
 The field shown first can be chosen by the address: report.html#field=sigma_max.
@@ -27,11 +28,14 @@ log = logging.getLogger(__name__)
 
 # What each command's run folder holds, the command recognised by the first file of its marker
 # list that is present (an evaluate folder when none is).
-KINDS = (("optimize", ("optimized.toml", "summary_before.json", "summary_after.json")),
+KINDS = (("design", ("designed.toml", "design.json", "pareto.csv")),
+         ("optimize", ("optimized.toml", "summary_before.json", "summary_after.json")),
          ("sweep", ("results.csv",)),
          ("validate", ("validation.csv", "validation.png")),
          ("render", ("render.json", "contact_sheet.png")))
 EXPECTED = {"evaluate": ("config.toml", "layout.json", "samples.vtp", "summary.json"),
+            "design": ("designed.toml", "layout.json", "summary.json", "design.json", "pareto.csv",
+                       "pareto.png", "candidates.csv"),
             "optimize": ("optimized.toml", "layout.json", "summary_before.json",
                          "summary_after.json", "constraints.json", "convergence.png"),
             "sweep": ("results.csv",),
@@ -40,7 +44,10 @@ EXPECTED = {"evaluate": ("config.toml", "layout.json", "samples.vtp", "summary.j
 WHY = {"config.toml": "meshes and lights are not drawn", "optimized.toml": "meshes and lights are "
        "not drawn", "layout.json": "no camera is drawn", "samples.vtp": "no field is drawn",
        "summary.json": "no region table", "summary_before.json": "no table before optimizing",
-       "summary_after.json": "no table after optimizing", "convergence.png": "no convergence figure"}
+       "summary_after.json": "no table after optimizing", "convergence.png": "no convergence figure",
+       "designed.toml": "meshes and lights are not drawn", "design.json": "no design section",
+       "pareto.png": "no camera-count curve"}
+NOT_TABULATED = ("candidates.csv",)   # one row per candidate: counted, not listed
 MAX_TABLE_ROWS = 500
 
 _STYLE = """
@@ -196,7 +203,7 @@ def _regions_table(summary: dict) -> str:
 
 
 SHOWN_JSON = ("summary.json", "summary_before.json", "summary_after.json", "constraints.json",
-              "layout.json")
+              "layout.json", "design.json")
 COMPARED = (("sigma_max_um", "p95", "σ_max p95 (µm)"), ("sigma_max_um", "max", "σ_max max (µm)"),
             ("seen_by_2_or_more", None, "seen by ≥ 2"), ("unmeasured_fraction", None, "unmeasured"))
 
@@ -216,6 +223,38 @@ def _compare_table(before: dict, after: dict) -> str:
             row[f"{label} before"], row[f"{label} after"] = vb, va
         rows.append(row)
     return _table(rows)
+
+
+def _design_section(run_dir: Path, data: dict) -> str:
+    """`vdo design`'s folder: the problems, the camera-count curve (figure and table), the chosen
+    cameras with their bodies and lenses, and the candidate statistics (design.json)."""
+    parts = ["<h2>Design</h2>"]
+    problems = data.get("problems") or []
+    if problems:
+        parts.append('<div class="missing"><b>What the design could not meet</b><ul>'
+                     + "".join(f"<li>{html.escape(str(p))}</li>" for p in problems) + "</ul></div>")
+    scalars = {k: data.get(k) for k in ("candidates", "samples", "selection_spacing_mm",
+                                        "inventory", "lenses_mm", "target_sigma_um",
+                                        "smallest_count_meeting_target", "wall_s")}
+    parts.append(_table([scalars]))
+    if (run_dir / "pareto.png").is_file():
+        parts.append("<h3>Cameras needed</h3>" + _image(run_dir / "pareto.png", "pareto.png"))
+    if isinstance(data.get("curve"), list):
+        parts.append(_table([c for c in data["curve"] if isinstance(c, dict)],
+                            "per camera count: σ_max p95 of the worst scored region (µm), area seen "
+                            "by its min_cameras, chosen lenses (mm) and bodies"))
+    stats = data.get("statistics") if isinstance(data.get("statistics"), dict) else {}
+    if isinstance(stats.get("chosen"), list):
+        parts.append("<h3>Chosen cameras and lenses</h3>"
+                     + _table([c for c in stats["chosen"] if isinstance(c, dict)]))
+    if isinstance(data.get("bodies"), list):
+        parts.append("<h3>Inventory</h3>" + _table([b for b in data["bodies"] if isinstance(b, dict)]))
+    counts = {k: v for k, v in stats.items() if isinstance(v, dict)}
+    if counts:
+        parts.append("<h3>Candidates</h3>" + "".join(
+            _table([{"": k, **v}], k) for k, v in counts.items())
+            + _table([{k: v for k, v in stats.items() if not isinstance(v, (dict, list))}]))
+    return "".join(parts)
 
 
 def _json_section(title: str, data) -> str:
@@ -301,6 +340,12 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
         body.append(f'<script type="application/json" id="vdo-fields">{payload}</script>')
         body.append(f"<script>{_SCRIPT}</script>")
 
+    shown = set()
+    design = run_dir / "design.json"
+    data = _read_json(design, missing) if design.is_file() else None
+    if isinstance(data, dict):
+        body.append(_design_section(run_dir, data))
+        shown.add(run_dir / "pareto.png")
     if summary is not None:
         body.append("<h2>Regions</h2>" + _regions_table(summary))
         body.append(_json_section("summary.json", summary))
@@ -326,6 +371,12 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
             if data is not None:
                 body.append(f"<h2>{html.escape(path.name)}</h2>" + _json_section(path.name, data))
     for path in sorted(run_dir.glob("*.csv"), key=lambda p: (p.name != "results.csv", p.name)):
+        if path.name in NOT_TABULATED:
+            with path.open() as fh:
+                rows = sum(1 for _ in fh) - 1
+            body.append(f"<h2>{html.escape(path.name)}</h2><p>{rows} rows, one per candidate "
+                        "(open the file).</p>")
+            continue
         try:
             with path.open(newline="") as fh:
                 rows = list(csv.DictReader(fh))
@@ -336,7 +387,6 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
         body.append(f"<h2>{html.escape(path.name)} ({len(rows)} rows{shown_rows})</h2>"
                     + _table(rows))
 
-    shown = set()
     for title, paths in (("Contact sheet", [run_dir / "contact_sheet.png"]),
                          ("Convergence", [run_dir / "convergence.png"]),
                          ("Figures", sorted(run_dir.glob("*.png")) + sorted(run_dir.glob("figures/*.png"))),

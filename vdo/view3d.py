@@ -149,8 +149,8 @@ def _samples_from_vtp(points: np.ndarray, arrays: dict) -> SurfaceSamples:
 
 
 def load(run_dir) -> Scene3D:
-    """Read config.toml or optimized.toml (meshes, lights), layout.json (cameras) and samples.vtp
-    (fields) from a run folder, each when present. An unreadable file is noted in `unreadable`,
+    """Read config.toml, optimized.toml or designed.toml (meshes, lights), layout.json (cameras)
+    and samples.vtp (fields) from a run folder, each when present. An unreadable file is noted in `unreadable`,
     never raised."""
     from .config import load as load_config
     from .lighting import panel_frame
@@ -158,8 +158,8 @@ def load(run_dir) -> Scene3D:
 
     run_dir = Path(run_dir)
     sc = Scene3D()
-    cfg = next((p for p in (run_dir / "config.toml", run_dir / "optimized.toml") if p.is_file()),
-               None)
+    cfg = next((p for p in (run_dir / "config.toml", run_dir / "optimized.toml",
+                            run_dir / "designed.toml") if p.is_file()), None)
     if cfg is not None:
         try:
             exp = load_config(cfg)
