@@ -942,9 +942,9 @@ class DesignSpec:
     zone_heights: int = row("zone_heights", Whole(low=1), 3,
                             doc="candidate heights per zone, evenly spread over its height range")
     keyframes: int = row("keyframes", Whole(low=0), 3,
-                         doc="load-path steps (evenly spread) at which the candidates' occlusion is "
-                             "also judged; a candidate counts where it sees a sample at rest and at "
-                             "each (0: at rest only)")
+                         doc="load-path steps at which the candidates' occlusion is also judged (the "
+                             "steps farthest from rest and from each other); a candidate counts where "
+                             "it sees a sample at rest and at each (0: at rest only)")
 
 
 # --------------------------------------------------------------------------------------------
