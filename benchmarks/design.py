@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo import config, design, report
+from vdo.configure import configure
 from vdo.optimize import optimize
 from vdo.state import layout_state, prepare
 
@@ -61,6 +62,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    configure()   # as the command line does (x64, the compilation cache)
     exp = config.load(args.config)
     t0 = time.perf_counter()
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation,

@@ -134,6 +134,9 @@ def test_bad_inputs_name_the_region_and_still_write_the_layout(plate_experiment,
     designed = config.load(out / "designed.toml")
     assert len(designed.camera_specs) == 2
     assert (out / "pareto.csv").read_text().startswith("cameras,")
+    page = (out / "report.html").read_text()
+    assert "<h2>Design</h2>" in page and "Cameras needed" in page and "Chosen cameras" in page
+    assert "no candidate pose sees it" in page and "Missing from this" not in page
 
 
 SLAB = """

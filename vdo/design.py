@@ -83,6 +83,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
@@ -748,6 +749,7 @@ def _plot_curve(path, curve, target, name):
     if target is not None:
         ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
     ax.set_xlabel("cameras")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("σ_max p95 (µm)")
     ax2 = ax.twinx()
     ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
