@@ -310,3 +310,17 @@ def test_candidates_lose_what_the_load_path_hides(plate_experiment):
         assert np.all(moving.weight[i, hidden] == 0) and np.all(moving.info[i, hidden] == 0)
         np.testing.assert_array_equal(moving.weight[i, clear], still.weight[i, clear])
     assert np.all(still.path_lost == 0) and moving.path_lost.max() > 0.5
+
+
+def test_too_few_spots_for_a_region_are_named(plate_experiment):
+    """Two rail positions (x = -1 and +1 m) for a region that needs 3 cameras out of an inventory
+    of 3: the region is named with the 2 spots that see it."""
+    exp = _experiment(plate_experiment, n=3)
+    exp = replace(exp, design=replace(exp.design, rail_positions=2),
+                  regions=(replace(exp.regions[0], min_cameras=3),))
+    geometry = prepare(exp)
+    cand = design.judge(exp, geometry)
+    assert sorted(c.position[0] for c in cand.cameras) == [-1.0, 1.0]
+    assert design.problems(exp, cand, geometry.samples) == [
+        "region 'top' needs 3 cameras (min_cameras) but only 2 candidate spot(s) see it: add a "
+        "mount in view of it"]
