@@ -6,7 +6,8 @@ and the paper's sec. 5.3-5.4 give the model; this module implements it with the 
 notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
 t_u x t_v = n, surface coordinates xi in metres along them):
 
-sensitivity   s_i = dx_i/dX = (f / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R_i    (2x3, pixel/m)
+sensitivity   s_i = dx_i/dX = (f / Z_c) D [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R_i  (2x3, pixel/m)
+              (D the lens distortion's Jacobian, I for a pinhole: "Lens distortion" below)
 footprint     A_i = s_i [t_u t_v]                                               (2x2, pixel/m)
               A A^T = sum_k a_k^2 v_k v_k^T, v_k in the image; a_k = pixels per metre of surface
               along e_k; the pixel blur (Gaussian, std kappa pixels) is std l_k = kappa / a_k (m)
@@ -71,6 +72,16 @@ importance[region_n], q = `score_power` (default 8: a smooth maximum, between th
 max; 1 % of the area at sigma_max alone gives 0.56 sigma_max) and k the per-region minimum camera
 count (2 by default, 3 on the joint). With the default coverage_weight = 1000 a sample one camera
 short costs as much as an unmeasured one (prior_sigma / sigma_unit = 1000).
+
+Lens distortion (`CameraParams.distortion`, Brown-Conrady as `vdo.camera` models it). The pixel is
+u = f x_d + c_x, v = f y_d + c_y with (x_d, y_d) = `vdo.camera.distort`(X_c/Z_c, Y_c/Z_c), and the
+sensitivity carries D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]] (`vdo.camera.distortion_jacobian`;
+symmetric), so s = (f/Z_c) D E R with E R the pinhole rows; the soft image weight reads the
+distorted pixel. In the reverse pass D (g_s0, g_s1) feeds the pinhole chain, and D's own
+dependence on (x, y) enters through its four distinct derivatives
+(`vdo.camera.distortion_curvature`). The coefficients are constants (gradient 0). With
+distortion None the camera table has 17 columns and the programs are the pinhole ones exactly
+(bit-identical to a build without distortion, and as fast); with coefficients it has 22.
 
 Sparse pairs (`ViewData`). Most (camera, sample) pairs have w = 0 exactly (occluded, behind, outside
 the image, beyond the incidence limit), so the per-pair work runs over a list of P selected pairs only
