@@ -6,7 +6,8 @@ plate seen by both cameras at every step. Both are judged at every step by
 
 Geometry (metres): the 0.6 m plate at z = 0; cameras on the rail at z = 1.2, `b` fixed at x = -0.6,
 `a` free from x = 0.3 (a 41-degree stereo angle; the score gains from a wider one, so the rest
-optimum moves `a` outward). The 1.5 m shutter, at z = 0.9, spans x >= 0.35 at step 2. The ray from
+optimum moves `a` outward, to x = 0.77 when measured; over the path it stops short of the
+shutter's shadow, at x = 0.34). The 1.5 m shutter, at z = 0.9, spans x >= 0.35 at step 2. The ray from
 the rail point x_c to the plate point x_p crosses z = 0.9 at x_p + 0.75 (x_c - x_p): the shutter
 hides part of the plate from x_c > 0.37 and all of it from x_c > 0.57; b's rays cross at x <= -0.37.
 """
@@ -108,3 +109,5 @@ def test_rest_optimum_loses_the_plate_and_the_path_optimum_keeps_it(tmp_path, ov
         assert [(x["camera"], x["step"]) for x in after["losses"]] == [("a", 2)]
     else:
         assert after["regions"]["top"]["covered_fraction_min"] > 0.99 and not after["losses"]
+    scores = json.loads((out / "optimizer.json").read_text())
+    assert scores["score_after"]["score_um"] < scores["score_before"]["score_um"]   # it did move

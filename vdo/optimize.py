@@ -93,6 +93,7 @@ FOV_MARGIN = 0.002                 # added to each least in-image fraction of a 
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
+BACKTRACKS = 4    # halvings of a round's move whose refreshed layout ranks worse than its start (`_backtrack`)
 
 log = logging.getLogger(__name__)
 
@@ -833,6 +834,22 @@ def _violated(result: Result) -> str:
                      + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
 
 
+def _backtrack(problem: Problem, before: Result, theta, start: int):
+    """(θ, state, result) of a round's end: the layout at θ refreshed and judged. Within a round
+    the ray-cast visibility is frozen, so the solver can move a camera where the refresh then
+    finds a counted view hidden (behind an obstacle, or by a part that moves along the load
+    path): when the layout ranks worse than `before`, the round's start, the move is halved,
+    up to `BACKTRACKS` times, and the first layout that ranks no worse is kept; if none does,
+    the round's start."""
+    for _ in range(BACKTRACKS + 1):
+        state = problem.refresh(theta)
+        result = judge(problem, theta, state, start)
+        if result.rank <= before.rank or problem.run.stop():
+            return theta, state, result
+        theta = before.theta + 0.5 * (np.asarray(theta) - before.theta)
+    return before.theta, before.state, before
+
+
 def solve(problem: Problem, say=None, starts: int | None = None, first_label: int = 0) -> list[Result]:
     """Every start, every round, until they end or `problem.run.stop`; per start the best layout
     met at the end of a round (or the start itself), judged exactly (`Result.rank`); returns
@@ -867,9 +884,7 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             label += 1
             if np.array_equal(moved, theta):
                 return
-            theta = moved
-            state = problem.refresh(theta)
-            result = judge(problem, theta, state, start)
+            theta, state, result = _backtrack(problem, result, moved, start)
             best = min(best, result, key=lambda r: r.rank)
             say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
                 f"{result.violations} violation(s) {_violated(result)}"
