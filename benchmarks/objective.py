@@ -127,16 +127,16 @@ def numpy_score(cam, smp, pho, table, st: ob.Settings):
     e0 = R[:, None, 0] - xn[..., None] * R[:, None, 2]
     e1 = R[:, None, 1] - yn[..., None] * R[:, None, 2]
     if cam.distortion is None:
-        a, b, d, xd, yd = 1.0, 0.0, 1.0, xn, yn
+        da, db, dd, xd, yd = 1.0, 0.0, 1.0, xn, yn
     else:
         coefficients = tuple(np.asarray(cam.distortion)[:, k, None] for k in range(5))
         xd, yd = distort(xn, yn, coefficients)
-        a, b, _, d = distortion_jacobian(xn, yn, coefficients)
-        a, b, d = (np.asarray(x)[..., None] for x in (a, b, d))
+        da, db, _, dd = distortion_jacobian(xn, yn, coefficients)
+        da, db, dd = (np.asarray(x)[..., None] for x in (da, db, dd))
     u = f * xd + np.asarray(cam.cx)[:, None]
     v = f * yd + np.asarray(cam.cy)[:, None]
-    s0 = (f / z)[..., None] * (a * e0 + b * e1)
-    s1 = (f / z)[..., None] * (b * e0 + d * e1)
+    s0 = (f / z)[..., None] * (da * e0 + db * e1)
+    s1 = (f / z)[..., None] * (db * e0 + dd * e1)
     tu, tv = np.asarray(smp.tangent_u)[None], np.asarray(smp.tangent_v)[None]
     A = np.stack([np.stack([(s0 * tu).sum(-1), (s0 * tv).sum(-1)], -1),
                   np.stack([(s1 * tu).sum(-1), (s1 * tv).sum(-1)], -1)], -2)
@@ -244,7 +244,6 @@ def main():
     v_np = numpy_score(cam, smp, dense, table, st)
     v_np_lens = numpy_score(lens, smp, dense, table, st)
 
-    print(f"{'path':<38}{'compile s':>10}{'median ms':>11}{'min ms':>8}{'vs numpy':>10}{'score':>16}")
     print(f"{'path':<46}{'compile s':>10}{'median ms':>11}{'min ms':>8}{'vs numpy':>10}{'score':>16}")
     print(f"{'numpy value (dense, float64)':<46}{'-':>10}{1e3 * t_np:>11.1f}{1e3 * t_np_min:>8.1f}"
           f"{1.0:>9.2f}x{v_np:>16.10g}")
