@@ -476,7 +476,7 @@ class _Geo(NamedTuple):
     u: jax.Array   # pixel
     v: jax.Array
     g: jax.Array   # f / Z_c, pixel/m
-    lens: tuple | None  # with distortion: (coefficients, x_d, y_d, (a, b, d) = D), else None
+    lens: tuple | None  # with distortion: (coefficients, x_d, y_d, D's entries (a, b, d)), else None
     s0: tuple      # sensitivity rows, pixel/m
     s1: tuple
     A: tuple       # footprint A00, A01, A10, A11, pixel/m
@@ -508,14 +508,14 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
     else:  # s = g D [[1, 0, -x], [0, 1, -y]] R with D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]]
         coefficients = tuple(cq[_DIST])
         xd, yd = distort(xn, yn, coefficients)
-        da, db, _, dd = distortion_jacobian(xn, yn, coefficients)
-        lens = (coefficients, xd, yd, (da, db, dd))
+        jxx, jxy, _, jyy = distortion_jacobian(xn, yn, coefficients)
+        lens = (coefficients, xd, yd, (jxx, jxy, jyy))
         u = f * xd + cx
         v = f * yd + cy
         e0 = tuple(R[0][b] - xn * R[2][b] for b in range(3))
         e1 = tuple(R[1][b] - yn * R[2][b] for b in range(3))
-        s0 = tuple(g * (da * e0[b] + db * e1[b]) for b in range(3))
-        s1 = tuple(g * (db * e0[b] + dd * e1[b]) for b in range(3))
+        s0 = tuple(g * (jxx * e0[b] + jxy * e1[b]) for b in range(3))
+        s1 = tuple(g * (jxy * e0[b] + jyy * e1[b]) for b in range(3))
     A = (_dot(s0, tu), _dot(s0, tv), _dot(s1, tu), _dot(s1, tv))
 
     dd = _dot(d, d)
@@ -714,9 +714,10 @@ def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
 def _sample_sums(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
     """Per-sample sums over the listed pairs of ent (6 entries) and of w: 7 arrays (n,) (float64).
 
-    ctab (B, 17) (22 with distortion) is the camera row of each block (float64); geometry the 12 sample columns, occ,
-    kc, one and sample (B, block) per pair, in the pair dtype; B a multiple of `chunk`. The
-    per-pair work (`_block_forward`) runs over chunks of `chunk` blocks (`_chunked`).
+    ctab (B, 17) (22 with distortion) is the camera row of each block (float64); geometry the
+    12 sample columns, occ, kc, one and sample (B, block) per pair, in the pair dtype; B a
+    multiple of `chunk`. The per-pair work (`_block_forward`) runs over chunks of `chunk` blocks
+    (`_chunked`).
     Differentiable with respect to ctab only (the other inputs are constants), by the
     hand-written `_block_vjp`, which recomputes the forward chunk by chunk."""
     dt = occ.dtype
@@ -760,8 +761,8 @@ def _chunked(fun, args, chunk):
 
 
 def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
-    """Cotangent of the (B, 17) (or 22) block camera rows ctab for per-pair cotangents c_ent (6, float64)
-    of ent and c_w of w, written out by hand (module docstring, "Reverse pass").
+    """Cotangent of the (B, 17) (or 22) block camera rows ctab for per-pair cotangents c_ent
+    (6, float64) of ent and c_w of w, written out by hand (module docstring, "Reverse pass").
 
     With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
     Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
@@ -848,17 +849,17 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
         # [b, d]] a function of (xn, yn), u = f x_d + cx, v = f y_d + cy: the pinhole chain below
         # with the cotangents D (g_s0, g_s1) of e0/g, e1/g, plus D's and (x_d, y_d)'s own
         # dependence on (xn, yn) (`vdo.camera.distortion_curvature`)
-        coefficients, xd, yd, (da, db, dd) = geo.lens
+        coefficients, xd, yd, (jxx, jxy, jyy) = geo.lens
         e0 = [R[0][b] - geo.xn * R[2][b] for b in range(3)]
         e1 = [R[1][b] - geo.yn * R[2][b] for b in range(3)]
-        g_da, g_dd = geo.g * _dot(g_s0, e0), geo.g * _dot(g_s1, e1)
-        g_db = geo.g * (_dot(g_s0, e1) + _dot(g_s1, e0))
-        g_s0, g_s1 = ([da * g_s0[b] + db * g_s1[b] for b in range(3)],
-                      [db * g_s0[b] + dd * g_s1[b] for b in range(3)])
+        g_jxx, g_jyy = geo.g * _dot(g_s0, e0), geo.g * _dot(g_s1, e1)
+        g_jxy = geo.g * (_dot(g_s0, e1) + _dot(g_s1, e0))
+        g_s0, g_s1 = ([jxx * g_s0[b] + jxy * g_s1[b] for b in range(3)],
+                      [jxy * g_s0[b] + jyy * g_s1[b] for b in range(3)])
         d_xxx, d_xxy, d_xyy, d_yyy = distortion_curvature(geo.xn, geo.yn, coefficients)
         g_xd, g_yd = f * g_u, f * g_v
-        lens_xn = da * g_xd + db * g_yd + g_da * d_xxx + g_db * d_xxy + g_dd * d_xyy
-        lens_yn = db * g_xd + dd * g_yd + g_da * d_xxy + g_db * d_xyy + g_dd * d_yyy
+        lens_xn = jxx * g_xd + jxy * g_yd + g_jxx * d_xxx + g_jxy * d_xxy + g_jyy * d_xyy
+        lens_yn = jxy * g_xd + jyy * g_yd + g_jxx * d_xxy + g_jxy * d_xyy + g_jyy * d_yyy
         lens_f = g_u * xd + g_v * yd
     g_e0 = [geo.g * x for x in g_s0]
     g_e1 = [geo.g * x for x in g_s1]
