@@ -3,7 +3,9 @@
 Evaluates the built-in 10-camera experiment over the first K steps of its load path for several
 K, and prints the wall time, the time per keyframe and a least-squares line t = a + b K (the fixed
 cost a: meshes, samples, speckle; b per keyframe: ray cast, lighting, prediction). The first run
-compiles the prediction and is not timed.
+compiles the prediction and is not timed. Then the part the optimizer pays at each visibility
+refresh for scoring over the path: `vdo.loadpath.path_occlusion` (one ray cast per keyframe, no
+lighting, no prediction) at the keyframes `keyframe_steps` picks, beside the rest state's cast.
 Run: .venv/bin/python benchmarks/load_path.py [--spacing-mm 10] [--counts 1 4 8 16 24]
 """
 
@@ -18,7 +20,8 @@ import numpy as np
 
 import vdo
 from vdo.keyframes import load_path_of
-from vdo.loadpath import evaluate_load_path
+from vdo.loadpath import evaluate_load_path, keyframe_steps, path_occlusion
+from vdo.state import layout_state
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -50,6 +53,18 @@ def main() -> None:
     residual = np.max(np.abs(np.polyval([b, a], counts) - seconds) / np.asarray(seconds))
     print(f"fit t = a + b K        a = {a:.2f} s, b = {b:.3f} s per keyframe "
           f"(largest deviation from the line {100 * residual:.0f} %)")
+    cameras = exp.cameras()
+    t0 = time.perf_counter()
+    layout_state(geometry, cameras, predict_fields=False)
+    rest = time.perf_counter() - t0
+    print(f"optimizer refresh: rest ray cast + lighting {rest:.2f} s")
+    for k in (1, 4, 8):
+        steps = keyframe_steps(full, k)
+        t0 = time.perf_counter()
+        held = path_occlusion(geometry, full, cameras, steps)
+        dt = time.perf_counter() - t0
+        print(f"  path_occlusion, {k} keyframes {steps}: {dt:.2f} s ({dt / k:.3f} s each); "
+              f"{int(held.sum()):,} of {held.size:,} (camera, sample) views hold over them")
 
 
 if __name__ == "__main__":

@@ -7,8 +7,10 @@ runs over a sparse pair list (`ViewData`): once with every pair whose occlusion 
 dense path computed, exact for any camera parameters) and once with the pairs the geometric
 selection keeps at these cameras (`ViewData.from_dense(..., samples, cameras)`), in float64 and
 with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.predict.settings` and so
-the optimizer use). Checks that the values agree with NumPy, that both pair lists give the same
-gradient and how far the float32 gradient is from the float64 one. Prints the kernel time and
+the optimizer use), and with lens distortion on every camera (`CameraParams.distortion`, the
+coefficients `LENS`) beside the pinhole rows. Checks that the values agree with NumPy (which
+applies the distortion with `vdo.camera.distort` and its Jacobian), that both pair lists give the
+same gradient and how far the float32 gradient is from the float64 one. Prints the kernel time and
 page faults per value + gradient call too: by default the script keeps freed memory in the heap
 (`vdo.memory.retain_freed_memory`, what the command line does); `--default-malloc` measures
 without it.
@@ -18,6 +20,7 @@ Run: .venv/bin/python benchmarks/objective.py [--samples N] [--repeat K] [--defa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import resource
@@ -30,10 +33,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo import objective as ob
-from vdo.camera import look_at_angles, rotation
+from vdo.camera import distort, distortion_jacobian, look_at_angles, rotation
 from vdo.configure import configure
 from vdo.memory import retain_freed_memory
 from vdo.speckle import generate_pattern, gradient_energy_table, normalise
+
+
+LENS = (-0.12, 0.05, 2e-4, -1e-4, 0.0)   # k1, k2, p1, p2, k3: a typical 12-25 mm lens
 
 
 @dataclass
@@ -118,10 +124,19 @@ def numpy_score(cam, smp, pho, table, st: ob.Settings):
     z = np.where(front, p[..., 2], 1.0)
     f = np.asarray(cam.focal_px)[:, None]
     xn, yn = p[..., 0] / z, p[..., 1] / z
-    u = f * xn + np.asarray(cam.cx)[:, None]
-    v = f * yn + np.asarray(cam.cy)[:, None]
-    s0 = (f / z)[..., None] * (R[:, None, 0] - xn[..., None] * R[:, None, 2])
-    s1 = (f / z)[..., None] * (R[:, None, 1] - yn[..., None] * R[:, None, 2])
+    e0 = R[:, None, 0] - xn[..., None] * R[:, None, 2]
+    e1 = R[:, None, 1] - yn[..., None] * R[:, None, 2]
+    if cam.distortion is None:
+        da, db, dd, xd, yd = 1.0, 0.0, 1.0, xn, yn
+    else:
+        coefficients = tuple(np.asarray(cam.distortion)[:, k, None] for k in range(5))
+        xd, yd = distort(xn, yn, coefficients)
+        da, db, _, dd = distortion_jacobian(xn, yn, coefficients)
+        da, db, dd = (np.asarray(x)[..., None] for x in (da, db, dd))
+    u = f * xd + np.asarray(cam.cx)[:, None]
+    v = f * yd + np.asarray(cam.cy)[:, None]
+    s0 = (f / z)[..., None] * (da * e0 + db * e1)
+    s1 = (f / z)[..., None] * (db * e0 + dd * e1)
     tu, tv = np.asarray(smp.tangent_u)[None], np.asarray(smp.tangent_v)[None]
     A = np.stack([np.stack([(s0 * tu).sum(-1), (s0 * tv).sum(-1)], -1),
                   np.stack([(s1 * tu).sum(-1), (s1 * tv).sum(-1)], -1)], -2)
@@ -205,41 +220,63 @@ def main():
           f"built in {1e3 * t_cull:.0f} ms)")
 
     st32 = ob.Settings(pair_dtype="float32")
+    lens = dataclasses.replace(cam, distortion=jnp.tile(jnp.asarray(LENS), (args.cameras, 1)))
+    culled_lens = ob.ViewData.from_dense(dense.occlusion, dense.contrast, dense.noise, smp, lens, st)
     rows = []
-    for label, vd, sv in (("all occlusion>0 pairs", all_pairs, st), ("selected pairs", culled, st),
-                          ("selected pairs, f32", culled, st32)):
+    for label, c, vd, sv in (("all occlusion>0 pairs", cam, all_pairs, st),
+                             ("selected pairs", cam, culled, st),
+                             ("selected pairs, f32", cam, culled, st32),
+                             ("distorted, selected pairs", lens, culled_lens, st),
+                             ("distorted, selected pairs, f32", lens, culled_lens, st32)):
         t0 = time.perf_counter()
-        jax.block_until_ready(ob.score(cam, smp, vd, table, sv))
+        jax.block_until_ready(ob.score(c, smp, vd, table, sv))
         compile_v = time.perf_counter() - t0
         t0 = time.perf_counter()
-        value, grad = jax.block_until_ready(ob.score_and_grad(cam, smp, vd, table, sv))
+        value, grad = jax.block_until_ready(ob.score_and_grad(c, smp, vd, table, sv))
         compile_g = time.perf_counter() - t0
-        tv = timed(lambda: ob.score(cam, smp, vd, table, sv), args.repeat)
-        tg = timed(lambda: ob.score_and_grad(cam, smp, vd, table, sv), args.repeat)
+        tv = timed(lambda: ob.score(c, smp, vd, table, sv), args.repeat)
+        tg = timed(lambda: ob.score_and_grad(c, smp, vd, table, sv), args.repeat)
         rows.append((label, compile_v, compile_g, tv, tg, float(value), grad))
 
     sys_s, faults = kernel_time_and_faults(lambda: ob.score_and_grad(cam, smp, culled, table, st32),
                                            args.repeat)
     t_np, t_np_min = timed(lambda: numpy_score(cam, smp, dense, table, st), max(3, args.repeat // 3))
     v_np = numpy_score(cam, smp, dense, table, st)
+    v_np_lens = numpy_score(lens, smp, dense, table, st)
 
-    print(f"{'path':<38}{'compile s':>10}{'median ms':>11}{'min ms':>8}{'vs numpy':>10}{'score':>16}")
-    print(f"{'numpy value (dense, float64)':<38}{'-':>10}{1e3 * t_np:>11.1f}{1e3 * t_np_min:>8.1f}"
+    print(f"{'path':<46}{'compile s':>10}{'median ms':>11}{'min ms':>8}{'vs numpy':>10}{'score':>16}")
+    print(f"{'numpy value (dense, float64)':<46}{'-':>10}{1e3 * t_np:>11.1f}{1e3 * t_np_min:>8.1f}"
           f"{1.0:>9.2f}x{v_np:>16.10g}")
+    print(f"{'numpy value (dense, float64), distorted':<46}{'-':>10}{'-':>11}{'-':>8}{'-':>10}"
+          f"{v_np_lens:>16.10g}")
     for label, cv, cg, (tv, tv_min), (tg, tg_min), value, _ in rows:
-        print(f"{'jax value, ' + label:<38}{cv:>10.2f}{1e3 * tv:>11.1f}{1e3 * tv_min:>8.1f}"
+        print(f"{'jax value, ' + label:<46}{cv:>10.2f}{1e3 * tv:>11.1f}{1e3 * tv_min:>8.1f}"
               f"{t_np / tv:>9.2f}x{value:>16.10g}")
-        print(f"{'jax value+grad, ' + label:<38}{cg:>10.2f}{1e3 * tg:>11.1f}{1e3 * tg_min:>8.1f}"
+        print(f"{'jax value+grad, ' + label:<46}{cg:>10.2f}{1e3 * tg:>11.1f}{1e3 * tg_min:>8.1f}"
               f"{t_np / tg:>9.2f}x{'':>16}")
     for label, *_, value, _ in rows:
-        print(f"relative difference of the values, jax ({label}) vs numpy: {abs(value / v_np - 1):.2e}")
-    g_all, g_cull, g_32 = (jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(r[6])])
-                           for r in rows)
+        ref = v_np_lens if label.startswith("distorted") else v_np
+        print(f"relative difference of the values, jax ({label}) vs numpy: {abs(value / ref - 1):.2e}")
+    g_all, g_cull, g_32, *_ = (jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(r[6])])
+                               for r in rows)
     rel = lambda a, b: float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
     print(f"gradient, selected vs all pairs: max |diff| / max |g| = {rel(g_cull, g_all):.2e}")
     print(f"gradient, f32 vs f64 pairs (selected): max |diff| / max |g| = {rel(g_32, g_cull):.2e}")
     print(f"value+grad, selected pairs, f32: {1e3 * sys_s:.1f} ms kernel time and {faults:.0f} "
           f"page faults per call")
+    g_lens, g_lens32 = (jnp.concatenate([jnp.ravel(x) for x in jax.tree.leaves(r[6])]) for r in rows[3:])
+    print(f"gradient, distorted, f32 vs f64 pairs (selected): max |diff| / max |g| = {rel(g_lens32, g_lens):.2e}")
+    # pinhole vs distorted value + gradient (f32, selected pairs), interleaved call by call so
+    # that the load of a shared host falls on both alike
+    pin, dis = [], []
+    for _ in range(2 * args.repeat):
+        for out, c, vd in ((pin, cam, culled), (dis, lens, culled_lens)):
+            t = time.perf_counter()
+            jax.block_until_ready(ob.score_and_grad(c, smp, vd, table, st32))
+            out.append(time.perf_counter() - t)
+    print(f"interleaved value+grad, selected pairs, f32: pinhole median {1e3 * statistics.median(pin):.1f} "
+          f"min {1e3 * min(pin):.1f} ms; distorted median {1e3 * statistics.median(dis):.1f} "
+          f"min {1e3 * min(dis):.1f} ms; distorted / pinhole (min) {min(dis) / min(pin):.2f}")
     print("target: value+grad <= 50 ms on 2 CPU cores")
 
 

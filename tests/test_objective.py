@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from vdo import objective as ob
-from vdo.camera import intrinsic_matrix, look_at_angles, project, rotation
+from vdo.camera import intrinsic_matrix, look_at_angles, project, rotation, sensitivity
 from vdo.speckle import generate_pattern, gradient_energy_table, normalise
 
 GAUSS = ob.GaussianFieldEnergy(0.6e-3)  # smooth closed-form G
@@ -50,9 +50,10 @@ def views(smp, c, contrast=800.0, noise=5.0):
     return ob.ViewData.from_dense(np.ones((c, smp.points.shape[0])), contrast, noise, smp)
 
 
-def two_plane_scene(n=300, seed=0):
+def two_plane_scene(n=300, seed=0, distortion=None):
     """A floor (z = 0, region 0, >= 2 cameras) and a 30-degree ramp (region 1, >= 3 cameras), seen by
-    3 cameras; camera 0 is fronto-parallel over the floor with sample 0 on its principal ray."""
+    3 cameras; camera 0 is fronto-parallel over the floor with sample 0 on its principal ray.
+    `distortion` (3, 5): the cameras' lens distortion (None: pinholes)."""
     rng = np.random.default_rng(seed)
     n1 = n // 2
     floor = np.c_[rng.uniform(-0.15, 0.15, (n1, 2)), np.zeros(n1)]
@@ -72,7 +73,16 @@ def two_plane_scene(n=300, seed=0):
               look_at_angles(pos[2], [0.15, 0, 0])]
     cam = make_cameras(pos, None, focal_px=np.array([2600.0, 2400.0, 2800.0]), width=1600,
                        height=1200, roll=[0.0, 0.1, -0.05], angles=angles)
+    if distortion is not None:
+        cam = eqx_replace(cam, "distortion", np.asarray(distortion, dtype=float))
     return cam, smp, views(smp, 3)
+
+
+# Brown-Conrady coefficients (k1, k2, p1, p2, k3) of the three cameras: barrel, pincushion with
+# tangential terms, mixed; 2-9 px at the image corners of the two-plane scene
+LENSES = np.array([[-0.25, 0.08, 0.0, 0.0, -0.01],
+                   [0.12, -0.03, 0.0015, -0.001, 0.02],
+                   [-0.08, 0.0, -0.002, 0.0025, 0.0]])
 
 
 # --------------------------------------------------------------------------------------------
@@ -96,6 +106,50 @@ def test_sensitivity_and_footprint_match_finite_differences_of_project():
                    for d in (smp.tangent_u, smp.tangent_v)], -1)
     A = np.asarray(geo.footprint)
     assert np.max(np.abs(A - fa) / np.abs(A).max(axis=(-1, -2), keepdims=True)) < 1e-6
+
+
+def test_distorted_pixel_and_sensitivity_match_opencv_and_the_camera_model():
+    """With lens distortion: the pixels against cv2.projectPoints, the sensitivity against
+    `vdo.camera.sensitivity` and against OpenCV's Jacobian of the pixel with respect to the
+    translation (d x / d t = d x / d X_c, so d x / d X = (d x / d t) R)."""
+    import cv2
+
+    cam, smp, _ = two_plane_scene(60, distortion=LENSES)
+    pinhole = ob.geometry(eqx_replace(cam, "distortion", None), smp)
+    geo = ob.geometry(cam, smp)
+    K = np.asarray(intrinsic_matrix(cam.focal_px, cam.cx, cam.cy))
+    R = np.asarray(rotation(cam.pan, cam.tilt, cam.roll))
+    t = -np.einsum("cij,cj->ci", R, np.asarray(cam.position))
+    X = np.asarray(smp.points)
+    moved = 0.0
+    for c in range(3):
+        rvec, _ = cv2.Rodrigues(R[c])
+        uv, jac = cv2.projectPoints(X, rvec, t[c], K[c], LENSES[c])
+        np.testing.assert_allclose(np.asarray(geo.pixel[c]), uv[:, 0], rtol=0, atol=1e-6)
+        s_cv = jac[:, 3:6].reshape(-1, 2, 3) @ R[c]
+        s = np.asarray(geo.sensitivity[c])
+        own = np.asarray(sensitivity(K[c], R[c], t[c], jnp.asarray(X), jnp.asarray(LENSES[c])))
+        scale = np.abs(s).max()
+        assert np.abs(s - s_cv).max() < 1e-9 * scale
+        assert np.abs(s - own).max() < 1e-12 * scale
+        moved = max(moved, np.abs(s - np.asarray(pinhole.sensitivity[c])).max() / scale)
+    assert moved > 1e-2   # the distortion really changes the sensitivity
+
+
+def test_zero_distortion_gives_the_pinhole_results():
+    """Coefficients all zero take the distorted code path: value, gradient and the report's
+    sigma agree with the pinhole path to 1e-12 relative."""
+    cam, smp, vd = two_plane_scene(300)
+    zero = eqx_replace(cam, "distortion", np.zeros((3, 5)))
+    st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
+    (v0, g0), (v1, g1) = (ob.score_and_grad(c, smp, vd, GAUSS, st) for c in (cam, zero))
+    assert abs(float(v1) / float(v0) - 1.0) < 1e-12
+    for name in ("position", "pan", "tilt", "roll", "focal_px", "cx", "cy"):
+        a, b = np.asarray(getattr(g0, name)), np.asarray(getattr(g1, name))
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(a).max(), name
+    f0, f1 = (ob.fields(c, smp, vd, GAUSS, st) for c in (cam, zero))
+    np.testing.assert_allclose(np.asarray(f1.sigma_max), np.asarray(f0.sigma_max), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(f1.sensitivity), np.asarray(f0.sensitivity), rtol=1e-12)
 
 
 # --------------------------------------------------------------------------------------------
@@ -150,9 +204,10 @@ def small_table():
     return gradient_energy_table(f, h, n=48)
 
 
-@pytest.mark.parametrize("energy_kind", ["gauss", "table"])
-def test_score_gradient_matches_finite_differences(energy_kind, small_table):
-    cam, smp, pho = two_plane_scene(300)
+@pytest.mark.parametrize("energy_kind, lens", [("gauss", None), ("table", None), ("gauss", "distorted"),
+                                               ("table", "distorted")])
+def test_score_gradient_matches_finite_differences(energy_kind, lens, small_table):
+    cam, smp, pho = two_plane_scene(300, distortion=None if lens is None else LENSES)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st = ob.Settings(coverage_weight=1.0, image_margin_px=40.0, incidence_ramp=math.radians(20.0))
     w = np.asarray(ob.geometry(cam, smp, st).weight)
@@ -180,8 +235,9 @@ def test_score_gradient_matches_finite_differences(energy_kind, small_table):
 
 
 def eqx_replace(cam, name, value):
-    import equinox as eqx
-    return eqx.tree_at(lambda c: getattr(c, name), cam, jnp.asarray(value))
+    """`cam` with one field replaced (None allowed: a pinhole's distortion)."""
+    import dataclasses
+    return dataclasses.replace(cam, **{name: None if value is None else jnp.asarray(value)})
 
 
 # --------------------------------------------------------------------------------------------
@@ -380,10 +436,11 @@ def test_weights_fall_smoothly_to_zero_at_the_incidence_limit():
 # --------------------------------------------------------------------------------------------
 # The hand-written reverse pass and the float32 per-pair path
 # --------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("energy_kind", ["gauss", "table"])
-def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
-    """`_block_vjp` against jax.vjp of the same per-pair forward, for random cotangents."""
-    cam, smp, vd = two_plane_scene(300)
+@pytest.mark.parametrize("energy_kind, lens", [("gauss", None), ("table", None), ("gauss", "distorted")])
+def test_hand_written_pair_backward_matches_autodiff(energy_kind, lens, small_table):
+    """`_block_vjp` against jax.vjp of the same per-pair forward, for random cotangents (with
+    lens distortion, its coefficients are constants: zero cotangent from both)."""
+    cam, smp, vd = two_plane_scene(300, distortion=None if lens is None else LENSES)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
     ctab, sq, occ, kc, one = ob._pair_inputs(cam, vd, st, jnp.float64)
@@ -408,7 +465,8 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, small_table):
         return m - np.swapaxes(m, 1, 2)
 
     auto = np.concatenate([skew(auto).reshape(-1, 9), auto[:, 9:15]], 1)
-    assert np.all(hand[:, 15:] == 0.0)  # width and height: constants
+    assert hand.shape[1] == (17 if lens is None else 22)
+    assert np.all(hand[:, 15:] == 0.0)  # width, height (and distortion): constants
     hand = np.concatenate([skew(hand).reshape(-1, 9), hand[:, 9:15]], 1)
     scale = np.maximum(np.abs(auto).max(axis=0), 1e-12 * np.abs(auto).max())  # per column
     assert np.max(np.abs(hand - auto) / scale) < 1e-9

@@ -135,6 +135,23 @@ def distortion_jacobian(x, y, distortion):
             radial + 2.0 * y * y * slope + 6.0 * p1 * y + 2.0 * p2 * x)
 
 
+def distortion_curvature(x, y, distortion):
+    """The derivatives of `distortion_jacobian`'s entries (a, b, d) = (dx_d/dx, dx_d/dy = dy_d/dx,
+    dy_d/dy) along x and y, as their four distinct values (da/dx, da/dy = db/dx, db/dy = dd/dx,
+    dd/dy) (the Jacobian is symmetric, so these are the third derivatives of one potential):
+    da/dx = 6 x L' + 4 x^3 L'' + 6 p2, da/dy = 2 y L' + 4 x^2 y L'' + 2 p1,
+    db/dy = 2 x L' + 4 x y^2 L'' + 2 p2, dd/dy = 6 y L' + 4 y^3 L'' + 6 p1, with L' as in
+    `distortion_jacobian` and L'' = 2 k2 + 6 k3 r^2. For the reverse pass of `vdo.objective`."""
+    k1, k2, p1, p2, k3 = _coefficients(distortion)
+    r2 = x * x + y * y
+    slope = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
+    bend = 2.0 * k2 + 6.0 * k3 * r2
+    return (x * (6.0 * slope + 4.0 * x * x * bend) + 6.0 * p2,
+            y * (2.0 * slope + 4.0 * x * x * bend) + 2.0 * p1,
+            x * (2.0 * slope + 4.0 * y * y * bend) + 2.0 * p2,
+            y * (6.0 * slope + 4.0 * y * y * bend) + 6.0 * p1)
+
+
 def image_point(K, x, y, distortion=None):
     """Pixel (u, v) of the normalised point (x, y): distortion, then K (u = f_x x_d + s y_d + c_x,
     v = f_y y_d + c_y). The one step from the camera frame to pixels: `project`, its Jacobians and

@@ -890,6 +890,18 @@ class OptimizeSpec:
                       doc="penalty rounds, each ending with a visibility refresh")
     max_steps: int = row("max_steps", Whole(low=1), 40, doc="BFGS steps per round")
     seed: int = row("seed", Whole(low=0), 0, doc="perturbation of the extra starts")
+    load_path: bool = row(
+        "load_path", Flag(), True,
+        doc="with a [load_path]: score the views that hold over the test (seen at rest and at "
+            "load_path_fraction of the keyframes), not at rest alone (docs/theory.md)")
+    load_path_fraction: float = row(
+        "load_path_fraction", Real(high=1.0, positive=True), 1.0,
+        doc="fraction q (0 < q <= 1) of the keyframes at which a view must be seen to count; 1 = "
+            "every one (the worst case)")
+    load_path_keyframes: int = row(
+        "load_path_keyframes", Whole(low=1), 4,
+        doc="keyframes each visibility refresh casts: the extremes of the path first, then evenly "
+            "spaced (all steps when the path has no more); the result is judged over every step")
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,18 +9,28 @@ the σ_max p95. A camera **loses** a region at the first step where it sees less
 
 The cost is one ray cast, one lighting pass and one prediction per step: linear in the number of
 steps (`benchmarks/load_path.py`).
+
+For the optimizer and the design search (`path_occlusion`, `scored_path`): a view (camera i,
+sample n) **holds over the path** when camera i sees sample n (in front, in the image, facing it
+within the incidence limit, unoccluded: `vdo.visibility`) in the geometry moved to at least a
+fraction q of the chosen keyframes (q = 1: every one, the worst case); the score then counts only
+views that hold over the path and are seen at rest (the reference image), while the sensitivity
+and footprint stay those of the rest geometry (docs/theory.md, "Over the load path").
 """
 
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
-from .keyframes import LoadPath, at_step
-from .state import Geometry, LayoutState, layout_state
+from .keyframes import LoadPath, at_step, load_path_of
+from .scene import build_scene
+from .state import Geometry, LayoutState, bodies, layout_state
+from .visibility import compute_visibility
 
 logger = logging.getLogger(__name__)
 
@@ -113,6 +123,87 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
                                camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
     return LoadPathResult(steps, camera_names, geometry.samples.region_names, np.array(coverage),
                           np.array(sigma), seen_arr, np.array(covered), np.array(p95), tuple(losses))
+
+
+def _motion(load_path: LoadPath, step: int) -> np.ndarray:
+    """What moves at `step`, as one vector (m): per group its translation and its rotation
+    vector (rad, read as metres at a 1 m lever), then the specimen's mean nodal displacement and
+    the largest nodal displacement's length."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for group in sorted(load_path.groups):
+        pose = load_path.poses.get((step, group))
+        if pose is None:
+            out += [0.0] * 6
+        else:
+            out += [*pose.translation, *Rotation.from_matrix(pose.rotation).as_rotvec()]
+    if load_path.displacements:
+        u = load_path.displacements.get(step)
+        u = np.zeros((1, 3)) if u is None else u
+        out += [*u.mean(axis=0), float(np.linalg.norm(u, axis=1).max())]
+    return np.array(out, dtype=float)
+
+
+def keyframe_steps(load_path: LoadPath, count: int) -> tuple[int, ...]:
+    """`count` steps of `load_path` that stand for it (all of them when it has no more): first
+    the extremes, the steps where a component of the motion (`_motion`: a group's translation or
+    rotation along an axis, the specimen's mean or largest displacement) is largest or smallest,
+    those that move most first; then steps evenly spaced along the path. Sorted."""
+    steps = list(load_path.steps)
+    if count >= len(steps):
+        return tuple(steps)
+    motion = np.array([_motion(load_path, s) for s in steps])
+    size = np.linalg.norm(motion, axis=1)
+    extremes = set()
+    for column in motion.T:
+        if np.ptp(column) > 0:
+            extremes |= {int(np.argmax(column)), int(np.argmin(column))}
+    chosen = sorted(extremes, key=lambda k: (-size[k], k))[:count]
+    for k in np.linspace(0, len(steps) - 1, count).round().astype(int):
+        if len(chosen) < count and k not in chosen:
+            chosen.append(int(k))
+    for k in np.argsort(-size, kind="stable"):   # evenly spaced steps that were extremes already
+        if len(chosen) < count and k not in chosen:
+            chosen.append(int(k))
+    return tuple(steps[k] for k in sorted(chosen))
+
+
+def path_occlusion(geometry: Geometry, load_path: LoadPath, cameras, steps=None,
+                   fraction: float = 1.0) -> np.ndarray:
+    """(C, N) float, 1.0 where camera c sees sample n (`vdo.visibility`: in front, in the image,
+    facing within the incidence limit, unoccluded by the meshes and the experiment's camera
+    bodies) in the geometry moved to at least `fraction` of `steps` (default: every step of the
+    path; `fraction` 1: all of them, the worst case), else 0.0. `cameras`: a list of
+    `vdo.camera.Camera` (judged where they stand; only those the experiment lists with a body
+    are obstacles). The rest state is not among the steps: combine with its own ray cast.
+    One ray cast per step."""
+    exp = geometry.experiment
+    cameras = list(cameras)
+    steps = tuple(load_path.steps if steps is None else steps)
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"path_occlusion: fraction must lie in (0, 1], got {fraction}")
+    seen = np.zeros((len(cameras), len(geometry.samples)))
+    for step in steps:
+        moved = at_step(geometry, load_path, step)
+        scene = build_scene(list(moved.meshes) + bodies(exp, cameras))
+        seen += compute_visibility(scene, cameras, moved.samples, exp.evaluation.incidence_limit,
+                                   progress=False).visible
+    need = math.ceil(fraction * len(steps) - 1e-9)
+    return (seen >= need).astype(float)
+
+
+def scored_path(exp, geometry: Geometry):
+    """What `vdo optimize` scores over: (load path, keyframe steps, fraction q) from
+    `[optimize] load_path`, `load_path_keyframes` and `load_path_fraction`, or None when the
+    experiment has no `[load_path]` or scoring over it is off."""
+    if not exp.optimize.load_path:
+        return None
+    load_path = load_path_of(exp, geometry.meshes)
+    if load_path is None or not load_path.steps:
+        return None
+    return (load_path, keyframe_steps(load_path, exp.optimize.load_path_keyframes),
+            exp.optimize.load_path_fraction)
 
 
 def summary(result: LoadPathResult) -> dict:

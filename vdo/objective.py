@@ -6,7 +6,8 @@ and the paper's sec. 5.3-5.4 give the model; this module implements it with the 
 notation made exact. Notation, per camera i and surface sample X (normal n, unit tangents t_u, t_v with
 t_u x t_v = n, surface coordinates xi in metres along them):
 
-sensitivity   s_i = dx_i/dX = (f / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R_i    (2x3, pixel/m)
+sensitivity   s_i = dx_i/dX = (f / Z_c) D [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R_i  (2x3, pixel/m)
+              (D the lens distortion's Jacobian, I for a pinhole: "Lens distortion" below)
 footprint     A_i = s_i [t_u t_v]                                               (2x2, pixel/m)
               A A^T = sum_k a_k^2 v_k v_k^T, v_k in the image; a_k = pixels per metre of surface
               along e_k; the pixel blur (Gaussian, std kappa pixels) is std l_k = kappa / a_k (m)
@@ -71,6 +72,16 @@ importance[region_n], q = `score_power` (default 8: a smooth maximum, between th
 max; 1 % of the area at sigma_max alone gives 0.56 sigma_max) and k the per-region minimum camera
 count (2 by default, 3 on the joint). With the default coverage_weight = 1000 a sample one camera
 short costs as much as an unmeasured one (prior_sigma / sigma_unit = 1000).
+
+Lens distortion (`CameraParams.distortion`, Brown-Conrady as `vdo.camera` models it). The pixel is
+u = f x_d + c_x, v = f y_d + c_y with (x_d, y_d) = `vdo.camera.distort`(X_c/Z_c, Y_c/Z_c), and the
+sensitivity carries D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]] (`vdo.camera.distortion_jacobian`;
+symmetric), so s = (f/Z_c) D E R with E R the pinhole rows; the soft image weight reads the
+distorted pixel. In the reverse pass D (g_s0, g_s1) feeds the pinhole chain, and D's own
+dependence on (x, y) enters through its four distinct derivatives
+(`vdo.camera.distortion_curvature`). The coefficients are constants (gradient 0). With
+distortion None the camera table has 17 columns and the programs are the pinhole ones exactly
+(bit-identical to a build without distortion, and as fast); with coefficients it has 22.
 
 Sparse pairs (`ViewData`). Most (camera, sample) pairs have w = 0 exactly (occluded, behind, outside
 the image, beyond the incidence limit), so the per-pair work runs over a list of P selected pairs only
@@ -145,7 +156,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vdo.camera import rotation
+from vdo.camera import distort, distortion_curvature, distortion_jacobian, rotation
 from vdo.configure import require_x64
 from vdo.speckle import GradientEnergyTable, g_aniso_lookup
 
@@ -177,7 +188,9 @@ KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (docs/theory.
 class CameraParams(eqx.Module):
     """C cameras as arrays. position (C, 3) m; pan, tilt, roll (C,) rad (`vdo.camera` convention);
     focal_px, cx, cy (C,) pixels; width, height (C,) pixel counts (floats; constants: the score's
-    gradient with respect to them is 0)."""
+    gradient with respect to them is 0); distortion (C, 5) the Brown-Conrady coefficients in
+    `vdo.camera.DISTORTION` order (constants), or None for pinholes (the programs then hold no
+    distortion arithmetic at all: module docstring, "Lens distortion")."""
 
     position: jax.Array
     pan: jax.Array
@@ -188,19 +201,22 @@ class CameraParams(eqx.Module):
     cy: jax.Array
     width: jax.Array
     height: jax.Array
+    distortion: jax.Array | None = None
 
     def __check_init__(self):
         require_x64()  # float64 inputs would silently become float32
 
     @classmethod
     def from_cameras(cls, cameras) -> "CameraParams":
-        """Stack `vdo.camera.Camera` objects."""
+        """Stack `vdo.camera.Camera` objects (distortion None unless one of them is distorted)."""
         f = lambda get: jnp.asarray(np.array([get(c) for c in cameras], dtype=np.float64))
+        distorted = any(c.distorted for c in cameras)
         return cls(position=f(lambda c: np.asarray(c.position, dtype=float)),
                    pan=f(lambda c: c.pan), tilt=f(lambda c: c.tilt), roll=f(lambda c: c.roll),
                    focal_px=f(lambda c: c.focal_px), cx=f(lambda c: c.principal_point[0]),
                    cy=f(lambda c: c.principal_point[1]), width=f(lambda c: c.width),
-                   height=f(lambda c: c.height))
+                   height=f(lambda c: c.height),
+                   distortion=f(lambda c: c.distortion) if distorted else None)
 
 
 class Samples(eqx.Module):
@@ -313,8 +329,11 @@ def _candidates(cameras, samples, st, margin_px, margin_angle):
     front = p[2] > st.near
     z = np.where(front, p[2], 1.0)
     f = np.asarray(cameras.focal_px)[:, None]
-    u = f * p[0] / z + np.asarray(cameras.cx)[:, None]
-    v = f * p[1] / z + np.asarray(cameras.cy)[:, None]
+    dist = (None if cameras.distortion is None else
+            tuple(np.asarray(cameras.distortion)[:, k, None] for k in range(5)))
+    xd, yd = distort(p[0] / z, p[1] / z, dist)
+    u = f * xd + np.asarray(cameras.cx)[:, None]
+    v = f * yd + np.asarray(cameras.cy)[:, None]
     W, H = np.asarray(cameras.width)[:, None], np.asarray(cameras.height)[:, None]
     lo = -0.5 - margin_px
     inside = (u > lo) & (u < W - 1 - lo) & (v > lo) & (v < H - 1 - lo)
@@ -416,18 +435,23 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-# Per-camera quantities, columns of the (C, 17) camera table: R (row-major), position, intrinsics.
+# Per-camera quantities, columns of the (C, 17) camera table: R (row-major), position, intrinsics;
+# with lens distortion 5 more (C, 22): the coefficients in `vdo.camera.DISTORTION` order.
 _R, _POS, _F, _CX, _CY, _W, _H = slice(0, 9), slice(9, 12), 12, 13, 14, 15, 16
+_PINHOLE_COLUMNS, _DIST = 17, slice(17, 22)
 
 
 def _camera_table(cam: CameraParams):
     """(C, 17): R = rotation (rows x_c, y_c, z_c) row-major, position, f, cx, cy, W, H (the
-    pixel counts W, H not differentiated)."""
+    pixel counts W, H not differentiated); (C, 22) with the distortion coefficients (constants)
+    when `cam.distortion` is not None."""
     R = rotation(cam.pan, cam.tilt, cam.roll)
     c = R.shape[0]
     W, H = jax.lax.stop_gradient((cam.width, cam.height))
-    return jnp.concatenate([R.reshape(c, 9), cam.position, jnp.stack(
-        [cam.focal_px, cam.cx, cam.cy, W, H], -1)], -1)
+    columns = [R.reshape(c, 9), cam.position, jnp.stack([cam.focal_px, cam.cx, cam.cy, W, H], -1)]
+    if cam.distortion is not None:
+        columns.append(jax.lax.stop_gradient(jnp.asarray(cam.distortion, dtype=R.dtype)))
+    return jnp.concatenate(columns, -1)
 
 
 def _sample_table(smp: Samples):
@@ -452,6 +476,7 @@ class _Geo(NamedTuple):
     u: jax.Array   # pixel
     v: jax.Array
     g: jax.Array   # f / Z_c, pixel/m
+    lens: tuple | None  # with distortion: (coefficients, x_d, y_d, D's entries (a, b, d)), else None
     s0: tuple      # sensitivity rows, pixel/m
     s1: tuple
     A: tuple       # footprint A00, A01, A10, A11, pixel/m
@@ -463,8 +488,8 @@ class _Geo(NamedTuple):
 
 
 def _pairs_from(cq, sq, st: Settings) -> _Geo:
-    """Per-pair geometry from broadcastable components: cq the 17 camera columns, sq the 12
-    sample columns (module docstring for the formulas)."""
+    """Per-pair geometry from broadcastable components: cq the 17 camera columns (22 with the
+    lens distortion), sq the 12 sample columns (module docstring for the formulas)."""
     R = [cq[3 * a:3 * a + 3] for a in range(3)]
     P, f, cx, cy, W, H = cq[9:12], cq[_F], cq[_CX], cq[_CY], cq[_W], cq[_H]
     X, nrm, tu, tv = sq[0:3], sq[3:6], sq[6:9], sq[9:12]
@@ -473,11 +498,24 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
     front = p[2] > st.near
     iz = 1.0 / jnp.where(front, p[2], 1.0)  # safe depth: the weight is 0 where not in front
     xn, yn = p[0] * iz, p[1] * iz
-    u = f * xn + cx
-    v = f * yn + cy
     g = f * iz
-    s0 = tuple(g * (R[0][b] - xn * R[2][b]) for b in range(3))
-    s1 = tuple(g * (R[1][b] - yn * R[2][b]) for b in range(3))
+    if len(cq) == _PINHOLE_COLUMNS:
+        lens = None
+        u = f * xn + cx
+        v = f * yn + cy
+        s0 = tuple(g * (R[0][b] - xn * R[2][b]) for b in range(3))
+        s1 = tuple(g * (R[1][b] - yn * R[2][b]) for b in range(3))
+    else:  # s = g D [[1, 0, -x], [0, 1, -y]] R with D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]]
+        coefficients = tuple(cq[_DIST])
+        xd, yd = distort(xn, yn, coefficients)
+        jxx, jxy, _, jyy = distortion_jacobian(xn, yn, coefficients)
+        lens = (coefficients, xd, yd, (jxx, jxy, jyy))
+        u = f * xd + cx
+        v = f * yd + cy
+        e0 = tuple(R[0][b] - xn * R[2][b] for b in range(3))
+        e1 = tuple(R[1][b] - yn * R[2][b] for b in range(3))
+        s0 = tuple(g * (jxx * e0[b] + jxy * e1[b]) for b in range(3))
+        s1 = tuple(g * (jxy * e0[b] + jyy * e1[b]) for b in range(3))
     A = (_dot(s0, tu), _dot(s0, tv), _dot(s1, tu), _dot(s1, tv))
 
     dd = _dot(d, d)
@@ -488,7 +526,7 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
     t_img = ((u + 0.5) * m, (W - 0.5 - u) * m, (v + 0.5) * m, (H - 0.5 - v) * m)
     w_img = smoothstep(t_img[0]) * smoothstep(t_img[1]) * smoothstep(t_img[2]) * smoothstep(t_img[3])
     w = jnp.where(front, smoothstep(t_inc) * w_img, 0.0)
-    return _Geo(d, p, front, iz, xn, yn, u, v, g, s0, s1, A, rd, cos_inc, t_inc, t_img, w)
+    return _Geo(d, p, front, iz, xn, yn, u, v, g, lens, s0, s1, A, rd, cos_inc, t_inc, t_img, w)
 
 
 def _pairs(cam: CameraParams, smp: Samples, st: Settings) -> _Geo:
@@ -638,7 +676,7 @@ def _f64(x):
 
 
 def _block_columns(ctab, dtype):
-    """(B, 17) camera rows -> 17 (B, 1) columns in the pair dtype."""
+    """(B, 17) camera rows (22 with distortion) -> as many (B, 1) columns in the pair dtype."""
     return [ctab[:, k].astype(dtype)[:, None] for k in range(ctab.shape[1])]
 
 
@@ -676,9 +714,10 @@ def _block_forward(cq, sq, occ, kc, one, energy, st, jacobian=False):
 def _sample_sums(ctab, geometry, occ, kc, one, sample, energy, st, chunk, n):
     """Per-sample sums over the listed pairs of ent (6 entries) and of w: 7 arrays (n,) (float64).
 
-    ctab (B, 17) is the camera row of each block (float64); geometry the 12 sample columns, occ,
-    kc, one and sample (B, block) per pair, in the pair dtype; B a multiple of `chunk`. The
-    per-pair work (`_block_forward`) runs over chunks of `chunk` blocks (`_chunked`).
+    ctab (B, 17) (22 with distortion) is the camera row of each block (float64); geometry the
+    12 sample columns, occ, kc, one and sample (B, block) per pair, in the pair dtype; B a
+    multiple of `chunk`. The per-pair work (`_block_forward`) runs over chunks of `chunk` blocks
+    (`_chunked`).
     Differentiable with respect to ctab only (the other inputs are constants), by the
     hand-written `_block_vjp`, which recomputes the forward chunk by chunk."""
     dt = occ.dtype
@@ -722,8 +761,8 @@ def _chunked(fun, args, chunk):
 
 
 def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
-    """Cotangent of the (B, 17) block camera rows ctab for per-pair cotangents c_ent (6, float64)
-    of ent and c_w of w, written out by hand (module docstring, "Reverse pass").
+    """Cotangent of the (B, 17) (or 22) block camera rows ctab for per-pair cotangents c_ent
+    (6, float64) of ent and c_w of w, written out by hand (module docstring, "Reverse pass").
 
     With Q the symmetric 3x3 of c_ent (off-diagonals halved), L = k tr(T Y) + c_w w with
     Y = S Q S^T: dL/dk = tr(T Y), dL/dT = k Y (dL/dT01 = 2 k Y01), dL/ds0 = 2k (T00 Q s0 + T01 Q s1)
@@ -805,14 +844,36 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     # projection: s0 = g (R0 - xn R2), s1 = g (R1 - yn R2), g = f iz, u = f xn + cx, v = f yn + cy
     R = [cq[3 * a:3 * a + 3] for a in range(3)]
     f = cq[_F]
+    if geo.lens is not None:
+        # s0 = g (a e0 + b e1), s1 = g (b e0 + d e1), e0 = R0 - xn R2, e1 = R1 - yn R2, D = [[a, b],
+        # [b, d]] a function of (xn, yn), u = f x_d + cx, v = f y_d + cy: the pinhole chain below
+        # with the cotangents D (g_s0, g_s1) of e0/g, e1/g, plus D's and (x_d, y_d)'s own
+        # dependence on (xn, yn) (`vdo.camera.distortion_curvature`)
+        coefficients, xd, yd, (jxx, jxy, jyy) = geo.lens
+        e0 = [R[0][b] - geo.xn * R[2][b] for b in range(3)]
+        e1 = [R[1][b] - geo.yn * R[2][b] for b in range(3)]
+        g_jxx, g_jyy = geo.g * _dot(g_s0, e0), geo.g * _dot(g_s1, e1)
+        g_jxy = geo.g * (_dot(g_s0, e1) + _dot(g_s1, e0))
+        g_s0, g_s1 = ([jxx * g_s0[b] + jxy * g_s1[b] for b in range(3)],
+                      [jxy * g_s0[b] + jyy * g_s1[b] for b in range(3)])
+        d_xxx, d_xxy, d_xyy, d_yyy = distortion_curvature(geo.xn, geo.yn, coefficients)
+        g_xd, g_yd = f * g_u, f * g_v
+        lens_xn = jxx * g_xd + jxy * g_yd + g_jxx * d_xxx + g_jxy * d_xxy + g_jyy * d_xyy
+        lens_yn = jxy * g_xd + jyy * g_yd + g_jxx * d_xxy + g_jxy * d_xyy + g_jyy * d_yyy
+        lens_f = g_u * xd + g_v * yd
     g_e0 = [geo.g * x for x in g_s0]
     g_e1 = [geo.g * x for x in g_s1]
     g_g = (_dot(g_s0, [R[0][b] - geo.xn * R[2][b] for b in range(3)])
            + _dot(g_s1, [R[1][b] - geo.yn * R[2][b] for b in range(3)]))
     h = [[_dot(g_e, R[c]) for c in range(3)] for g_e in (g_e0, g_e1)]  # camera-frame components
-    g_xn = f * g_u - h[0][2]
-    g_yn = f * g_v - h[1][2]
-    g_f = g_u * geo.xn + g_v * geo.yn + g_g * geo.iz
+    if geo.lens is None:
+        g_xn = f * g_u - h[0][2]
+        g_yn = f * g_v - h[1][2]
+        g_f = g_u * geo.xn + g_v * geo.yn + g_g * geo.iz
+    else:
+        g_xn = lens_xn - h[0][2]
+        g_yn = lens_yn - h[1][2]
+        g_f = lens_f + g_g * geo.iz
     g_iz = g_g * f + g_xn * geo.p[0] + g_yn * geo.p[1]
     g_p = keep((g_xn * geo.iz, g_yn * geo.iz, jnp.where(geo.front, -g_iz * geo.iz * geo.iz, 0.0)))
     # cos_inc = -n.d / |d|, p = R d, d = X - P
@@ -837,11 +898,14 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
     S = 0.5 * jnp.stack([jnp.stack([zero, u01, u02], -1), jnp.stack([-u01, zero, u12], -1),
                          jnp.stack([-u02, -u12, zero], -1)], -2)
     g_R = jnp.einsum("gab,gbc->gac", S, ctab[:, _R].reshape(-1, 3, 3)).reshape(-1, 9)
-    return jnp.concatenate([g_R, sums[:, 3:], jnp.zeros_like(sums[:, :2])], -1)  # W, H: constants
+    # W, H and the distortion coefficients: constants
+    constants = jnp.zeros((sums.shape[0], ctab.shape[1] - _W), sums.dtype)
+    return jnp.concatenate([g_R, sums[:, 3:], constants], -1)
 
 
 def _pair_inputs(cam, vd: ViewData, st, dt):
-    """The per-pair inputs: the camera row of each block (B, 17) (float64) and, as (B, block)
+    """The per-pair inputs: the camera row of each block (B, 17, or 22 with distortion) (float64)
+    and, as (B, block)
     arrays in dtype dt, the 12 sample columns of the pairs' geometry, the occlusion,
     kc = Omega c^2 / sigma^2 (m^2) and a runtime 1.0 (`_keep`)."""
     L = vd.block

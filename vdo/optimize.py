@@ -47,6 +47,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import functools
 import logging
 import math
 import signal
@@ -65,10 +66,11 @@ from scipy.spatial import cKDTree
 from scipy.special import expit
 from tqdm import tqdm
 
-from . import constraints, html_report, objective, reachability, report
+from . import constraints, html_report, loadpath, objective, reachability, report
 from .camera import Camera, intrinsic_matrix, rotation
 from .config import Experiment, inside_floor
 from .errors import ConfigError
+from .keyframes import load_path_of
 from .lighting import illuminate, panel_frame
 from .obscuration import ObscurationRenderer
 from .objective import _bucket
@@ -91,6 +93,7 @@ FOV_MARGIN = 0.002                 # added to each least in-image fraction of a 
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
+BACKTRACKS = 4    # halvings of a round's move whose refreshed layout ranks worse than its start (`_backtrack`)
 
 log = logging.getLogger(__name__)
 
@@ -395,6 +398,7 @@ class Problem:
             cx=jnp.asarray([c.principal_point[0] for c in c0]),
             cy=jnp.asarray([c.principal_point[1] for c in c0]),
             size=jnp.asarray([[c.width, c.height] for c in c0], dtype=float),
+            distortion=objective.CameraParams.from_cameras(c0).distortion,
             samples=self.obj_samples, energy=self.speckle.table,
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
@@ -431,6 +435,12 @@ class Problem:
         return out
 
     # -- the frozen state of a round ------------------------------------------------------
+    @functools.cached_property
+    def path(self):
+        """(load path, keyframe steps, fraction) the scored views must hold over, or None
+        (`vdo.loadpath.scored_path`, `[optimize] load_path`)."""
+        return loadpath.scored_path(self.exp, self.geometry)
+
     def refresh(self, theta) -> State:
         cams = self.param.cameras_at(theta)
         layout = layout_state(self.geometry, cams, predict_fields=False)
@@ -439,8 +449,13 @@ class Problem:
         obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies(self.exp, cams))
         vis_obstacles = compute_visibility(obstacles, cams, self.samples,
                                            self.exp.evaluation.incidence_limit, progress=False)
+        scored = vis
+        if self.path is not None:   # the score counts the views that hold over the load path
+            load_path, steps, fraction = self.path
+            held = loadpath.path_occlusion(self.geometry, load_path, cams, steps, fraction) > 0
+            scored = dataclasses.replace(vis, unoccluded=vis.unoccluded & held)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     self.run.padded(view_data(self.exp, self.obj_samples, vis, illum, self.speckle)))
+                     self.run.padded(view_data(self.exp, self.obj_samples, scored, illum, self.speckle)))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
@@ -515,7 +530,8 @@ class Problem:
         P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise)."""
         pos, pan, tilt, roll = self.param.poses(theta, data["held"])
         f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
-        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1])
+        cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1],
+                                      data["distortion"])
         R = rotation(pan, tilt, roll)
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
@@ -818,6 +834,22 @@ def _violated(result: Result) -> str:
                      + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
 
 
+def _backtrack(problem: Problem, before: Result, theta, start: int):
+    """(θ, state, result) of a round's end: the layout at θ refreshed and judged. Within a round
+    the ray-cast visibility is frozen, so the solver can move a camera where the refresh then
+    finds a counted view hidden (behind an obstacle, or by a part that moves along the load
+    path): when the layout ranks worse than `before`, the round's start, the move is halved,
+    up to `BACKTRACKS` times, and the first layout that ranks no worse is kept; if none does,
+    the round's start."""
+    for _ in range(BACKTRACKS + 1):
+        state = problem.refresh(theta)
+        result = judge(problem, theta, state, start)
+        if result.rank <= before.rank or problem.run.stop():
+            return theta, state, result
+        theta = before.theta + 0.5 * (np.asarray(theta) - before.theta)
+    return before.theta, before.state, before
+
+
 def solve(problem: Problem, say=None, starts: int | None = None, first_label: int = 0) -> list[Result]:
     """Every start, every round, until they end or `problem.run.stop`; per start the best layout
     met at the end of a round (or the start itself), judged exactly (`Result.rank`); returns
@@ -852,9 +884,7 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             label += 1
             if np.array_equal(moved, theta):
                 return
-            theta = moved
-            state = problem.refresh(theta)
-            result = judge(problem, theta, state, start)
+            theta, state, result = _backtrack(problem, result, moved, start)
             best = min(best, result, key=lambda r: r.rank)
             say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
                 f"{result.violations} violation(s) {_violated(result)}"
@@ -1046,6 +1076,12 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     say(f"search ended: {status} after {time.perf_counter() - run.t0:.0f} s; writing {out}")
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
+    over_path = load_path_of(exp, problem.meshes)
+    if over_path is not None:   # both layouts judged at every step of the path, as `vdo evaluate` does
+        say(f"judging both layouts over the {len(over_path.steps)} steps of the load path")
+        for summary, state in ((before, problem.start), (after, best.state)):
+            summary["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
+                problem.geometry, over_path, state.cameras))
     checks_before = problem.check(problem.start)
     score_before = _score_parts(problem, problem.start)
     score_after = _score_parts(final, best.state)
