@@ -17,10 +17,11 @@ One judgement of all candidates. The regions are sampled at `[design] sample_spa
 the samples (`vdo.lighting`), and then per candidate i and sample n the mean-field information
 C_i(n) = Omega w_i |det A_i| C_i (3x3, 1/m^2, `vdo.objective.camera_information`; unclipped patch)
 and the soft weight w_i(n) of the objective (incidence, image edge and occlusion). Over a load
-path, the candidates are also ray cast at `[design] keyframes` of its steps (`keyframe_steps`:
-those farthest from rest and from each other), the samples and moving meshes posed by
-`vdo.keyframes.at_step`, and C_i(n) and w_i(n) are zeroed where candidate i loses sample n at
-any of them (`path_visibility`: the worst case over the keyframes). Stored as 6
+path, the candidates are also ray cast at `[design] keyframes` of its steps
+(`vdo.loadpath.keyframe_steps`: the path's extremes first), the samples and moving meshes posed
+by `vdo.keyframes.at_step`, and C_i(n) and w_i(n) are zeroed where candidate i loses sample n at
+any of them (`vdo.loadpath.path_occlusion`, the worst case over the keyframes, as `vdo optimize`
+scores it). Stored as 6
 float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
 3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
 vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
@@ -87,12 +88,12 @@ from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from . import html_report, objective, report, usable
+from . import html_report, loadpath, objective, report, usable
 from .camera import Camera, look_at_angles
 from .config import BodySpec, CameraSpec, Experiment, inside_floor
 from .constraints import stereo_min_angle
 from .errors import ConfigError
-from .keyframes import at_step, load_path_of
+from .keyframes import load_path_of
 from .lighting import illuminate
 from .optimize import Problem, optimize
 from .predict import samples_for_objective, settings, view_data
@@ -277,51 +278,6 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
             np.array(t, dtype=int), aims)
 
 
-def keyframe_steps(load_path, count: int) -> list:
-    """`count` steps of the load path far from rest and from each other (farthest-point sampling
-    from rest on each step's motion: the translations (m) and rotation matrices minus identity of
-    its posed groups, and its largest nodal displacement (m)); all steps when there are fewer."""
-    steps = list(load_path.steps)
-    if count <= 0 or not steps:
-        return []
-    if count >= len(steps):
-        return steps
-    groups = sorted(load_path.groups)
-    feats = []
-    for step in steps:
-        f = []
-        for g in groups:
-            pose = load_path.poses.get((step, g))
-            f += ([0.0] * 12 if pose is None else
-                  [*pose.translation, *(pose.rotation - np.eye(3)).ravel()])
-        u = (load_path.displacements or {}).get(step)
-        f.append(0.0 if u is None else float(np.linalg.norm(u, axis=1).max()))
-        feats.append(f)
-    feats = np.array(feats)
-    dist = np.linalg.norm(feats, axis=1)        # from rest
-    chosen = []
-    for _ in range(count):
-        k = int(np.argmax(dist))
-        chosen.append(k)
-        dist = np.minimum(dist, np.linalg.norm(feats - feats[k], axis=1))
-    return [steps[k] for k in sorted(chosen)]
-
-
-def path_visibility(geometry: Geometry, load_path, cameras, steps) -> np.ndarray:
-    """(C, N) True where camera c sees sample n (in front, in the image, facing, unoccluded; the
-    meshes only, no camera bodies) at every one of `steps` of the load path, the samples and the
-    moving meshes posed by `vdo.keyframes.at_step`: one ray cast per step. All True without
-    steps. (The load path's worst case for the candidates; `vdo.loadpath` may later give the same
-    for a fraction of the steps.)"""
-    exp = geometry.experiment
-    seen = np.ones((len(cameras), len(geometry.samples)), bool)
-    for step in steps:
-        moved = at_step(geometry, load_path, step)
-        seen &= compute_visibility(build_scene(list(moved.meshes)), list(cameras), moved.samples,
-                                   exp.evaluation.incidence_limit, progress=False).visible
-    return seen
-
-
 def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
     """Every candidate's information and weights on `geometry`'s samples (module docstring)."""
     samples = geometry.samples
@@ -337,8 +293,9 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
                               samples, exp.evaluation.incidence_limit).visible
     hidden = bare & ~vis.visible
     path = load_path_of(exp, list(geometry.meshes))
-    steps = keyframe_steps(path, exp.design.keyframes) if path is not None else []
-    on_path = path_visibility(geometry, path, cams, steps)
+    steps = () if path is None else loadpath.keyframe_steps(path, exp.design.keyframes)
+    on_path = (np.ones((len(cams), len(samples)), bool) if not steps else
+               loadpath.path_occlusion(geometry, path, cams, steps) > 0)
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     smp = samples_for_objective(exp, samples)
     st = replace(settings(exp), pair_dtype="float64")
