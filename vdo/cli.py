@@ -69,6 +69,11 @@ def _evaluate(exp, args):
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _pairs(names):
+    """--pairs FIRST:SECOND ... as (first, second) tuples, or None."""
+    return None if names is None else [tuple(p.split(":", 1)) for p in names]
+
+
 def _render(exp, args):
     from .render import render_experiment
 
@@ -77,13 +82,14 @@ def _render(exp, args):
 
         poses = None if args.series == "load_path" else args.series
         summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,
-                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
+                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet,
+                                pairs=_pairs(args.pairs))
         if not args.quiet:
             print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
                   f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
         return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
-                                overwrite=args.overwrite, quiet=args.quiet)
+                                overwrite=args.overwrite, quiet=args.quiet, pairs=_pairs(args.pairs))
     if not args.quiet:
         print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
@@ -148,7 +154,7 @@ def _design(exp, args) -> None:
 def _export(_, args) -> None:
     from .formats.export import export
 
-    pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
+    pairs = _pairs(args.pairs)
     for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
         print(f"wrote {path}")
 
@@ -192,6 +198,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="render a reference and deformed image series over the load path: the "
                          "experiment's [load_path], or the poses per step and group (or mesh) of "
                          "POSES.csv (see vdo.keyframes)")
+    rd.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs of the calibration files (default: cameras assigned a "
+                         "common region); each must share a field of view")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")

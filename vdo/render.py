@@ -468,7 +468,8 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
 
 
 def render_experiment(exp, out, scale: float | None = None, spp: int | None = None,
-                      seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
+                      seed: int | None = None, overwrite: bool = False, quiet: bool = False,
+                      pairs=None) -> dict:
     """Render every camera of `exp` and write the run folder `out` (atomically, vdo.runfolder):
 
     images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth, counts aligned to
@@ -487,7 +488,9 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
     config.toml, render.json   the resolved config; settings and time per camera
 
-    `scale`, `spp`, `seed` default to the config's [render] section. Returns the render.json dict.
+    `scale`, `spp`, `seed` default to the config's [render] section; `pairs`: the stereo pairs of
+    the calibration files as (first, second) names (default: cameras assigned a common region).
+    Returns the render.json dict.
     """
     from tqdm import tqdm
 
@@ -521,6 +524,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
     # The scaled cameras have the full-size cameras' poses and lenses, hence the same bodies.
     state = layout_state(geometry, cameras, predict_fields=False)
     vis, illum = state.visibility, state.illumination
+    stereo = default_pairs(exp, cameras, vis, samples, pairs)
     pattern = geometry.speckle.pattern
     scene = build_render_scene(exp, meshes, region_faces, bodies(exp, cameras), pattern)
     pho = photometry(illum, exp.speckle, exp.sensor, geometry.speckle.mean, geometry.speckle.std,
@@ -548,7 +552,7 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
             clean[cam.name] = noise_free_dn(linear, exp.sensor)
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
+        write_all(cameras, stereo, tmp / "calibration", exp.path)
         contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {scale:g}, {spp} spp")
         rows = _region_photometry(cameras, vis, samples, pho, clean, exp.sensor.offset,

@@ -30,10 +30,13 @@ from .errors import ConfigError
 
 
 def render_series(exp, out, poses_path=None, scale: float | None = None, spp: int | None = None,
-                  seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
+                  seed: int | None = None, overwrite: bool = False, quiet: bool = False,
+                  pairs=None) -> dict:
     """Render step 0 and every step of the load path for every camera into the run folder `out`
-    (module docstring). `scale`, `spp`, `seed` default to the config's [render] section. Returns
-    the series.json dict."""
+    (module docstring). `scale`, `spp`, `seed` default to the config's [render] section; `pairs`:
+    the stereo pairs of the calibration files as (first, second) names (default: cameras
+    assigned a common region), checked to share a field of view before anything is rendered.
+    Returns the series.json dict."""
     from tqdm import tqdm
 
     from . import html_report, report
@@ -62,6 +65,8 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
                                                  "a [load_path] in the experiment")
     cameras = [scaled_camera(c, scale) for c in exp.cameras()]
     obstacles = bodies(exp, cameras)
+    vis = layout_state(geometry, cameras, predict_fields=False).visibility
+    stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
     steps = [0, *load_path.steps]
     with run_folder(out, overwrite) as tmp:
         for cam in cameras:
@@ -80,15 +85,14 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
         bar.close()
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
-        vis = layout_state(geometry, cameras, predict_fields=False).visibility
-        write_all(cameras, default_pairs(exp, cameras, vis, geometry.samples), tmp / "calibration",
-                  exp.path)
+        write_all(cameras, stereo, tmp / "calibration", exp.path)
         if poses_path is not None:
             shutil.copyfile(poses_path, tmp / "poses.csv")
         summary = {"experiment": exp.name, "config": str(exp.path),
                    "poses": None if poses_path is None else str(poses_path),
                    "scale": scale, "spp": spp, "seed": seed, "steps": steps,
                    "cameras": [c.name for c in cameras],
+                   "stereo_pairs": [[pair.first.name, pair.second.name] for pair in stereo],
                    "total_seconds": round(time.perf_counter() - started, 3)}
         (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
         html_report.write_report(tmp)
