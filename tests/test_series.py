@@ -321,7 +321,8 @@ def test_bad_displacement_files_are_one_clear_line(plate_experiment, tmp_path, c
 
 def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp_path, capsys):
     up = CAMERA[:CAMERA.index("[speckle]")].replace('"down"', '"up"').replace("tilt_deg = -90",
-                                                                              "tilt_deg = 80")
+                                                                              "tilt_deg = 80").replace(
+        "position_m = [0.0, 0.0, 1.0]", "position_m = [0.3, 0.0, 1.0]")
     cameras = CAMERA + up
     path = plate_experiment(cameras=cameras)
     (tmp_path / "motions.csv").write_text(MOTIONS)
