@@ -225,37 +225,70 @@ def read_displacements(file: Path, vertices: np.ndarray, mesh: str) -> dict:
     return out
 
 
-def surface_distance(points: np.ndarray, triangles: np.ndarray, chunk: int = 2_000_000) -> np.ndarray:
-    """Distance (N,) from each point (N, 3) to the nearest of `triangles` (T, 3, 3): the closest
-    point on each triangle by its Voronoi regions (vertex, edge, face; Ericson, Real-Time Collision
-    Detection, sec. 5.1.5), brute force over point chunks of `chunk` point-triangle pairs."""
-    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+def _point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Distance from points p to triangles (a, b, c), all broadcast against each other (..., 3):
+    the closest point on the triangle by its Voronoi regions (vertex, edge, face; Ericson,
+    Real-Time Collision Detection, sec. 5.1.5)."""
     ab, ac = b - a, c - a
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        q = a + (vb / denom)[..., None] * ab + (vc / denom)[..., None] * ac      # face region
+        edges = ((vc <= 0) & (d1 >= 0) & (d3 <= 0), d1 / (d1 - d3), a, ab), \
+                ((vb <= 0) & (d2 >= 0) & (d6 <= 0), d2 / (d2 - d6), a, ac), \
+                ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), (d4 - d3) / ((d4 - d3) + (d5 - d6)), b, c - b)
+        for mask, t, origin, direction in edges:
+            q = np.where(mask[..., None], origin + t[..., None] * direction, q)
+    for mask, corner in (((d1 <= 0) & (d2 <= 0), a), ((d3 >= 0) & (d4 <= d3), b), ((d6 >= 0) & (d5 <= d6), c)):
+        q = np.where(mask[..., None], corner + 0 * q, q)
+    q = np.where(np.isfinite(q), q, a + 0 * q)                          # degenerate triangles
+    return np.linalg.norm(p - q, axis=-1)
+
+
+def surface_distance(points: np.ndarray, triangles: np.ndarray, chunk: int = 1_000_000) -> np.ndarray:
+    """Distance (N,) from each point (N, 3) to the nearest of `triangles` (T, 3, 3), brute force
+    over chunks of `chunk` point-triangle pairs."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
     out = np.empty(len(points))
     step = max(1, chunk // max(1, len(triangles)))
     for start in range(0, len(points), step):
-        p = points[start:start + step, None, :]                         # (n, 1, 3)
-        ap, bp, cp = p - a, p - b, p - c
-        d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
-        d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
-        d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
-        va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            denom = va + vb + vc
-            v, w = vb / denom, vc / denom                               # face region
-            q = a + v[..., None] * ab + w[..., None] * ac
-            edges = ((vc <= 0) & (d1 >= 0) & (d3 <= 0), d1 / (d1 - d3), a, ab), \
-                    ((vb <= 0) & (d2 >= 0) & (d6 <= 0), d2 / (d2 - d6), a, ac), \
-                    ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-                     (d4 - d3) / ((d4 - d3) + (d5 - d6)), b, c - b)
-            for mask, t, origin, direction in edges:
-                q = np.where(mask[..., None], origin + t[..., None] * direction, q)
-        for mask, corner in (((d1 <= 0) & (d2 <= 0), a), ((d3 >= 0) & (d4 <= d3), b),
-                             ((d6 >= 0) & (d5 <= d6), c)):
-            q = np.where(mask[..., None], corner + 0 * q, q)
-        q = np.where(np.isfinite(q), q, a + 0 * q)                      # degenerate triangles
-        out[start:start + step] = np.linalg.norm(p - q, axis=-1).min(axis=1)
+        out[start:start + step] = _point_triangle_distance(points[start:start + step, None], a, b, c).min(axis=1)
     return out
+
+
+def off_surface(points: np.ndarray, triangles: np.ndarray, tolerance: float,
+                max_reported: int = 100) -> tuple[np.ndarray, float]:
+    """(which points (N,) lie farther than `tolerance` from the triangles, the largest such
+    distance). Triangles are grouped by size (their centroid-to-corner radius r, by powers of 2);
+    a point is tested against a group's triangles whose centroid lies within `tolerance` + the
+    group's largest r (any triangle nearer than `tolerance` is among them). The largest distance
+    is exact over at most `max_reported` far points (those farthest from any centroid)."""
+    from scipy.spatial import cKDTree
+
+    centroids = triangles.mean(axis=1)
+    radius = np.linalg.norm(triangles - centroids[:, None], axis=2).max(axis=1)
+    size_class = np.floor(np.log2(np.maximum(radius, 1e-12))).astype(int)
+    nearest = np.full(len(points), np.inf)
+    for cls in np.unique(size_class):
+        members = np.flatnonzero(size_class == cls)
+        hits = cKDTree(centroids[members]).query_ball_point(points, float(radius[members].max()) + tolerance)
+        counts = np.fromiter((len(h) for h in hits), int, len(points))
+        if counts.sum() == 0:
+            continue
+        node = np.repeat(np.arange(len(points)), counts)
+        tri = triangles[members[np.concatenate([np.asarray(h, int) for h in hits])]]
+        d = _point_triangle_distance(points[node], tri[:, 0], tri[:, 1], tri[:, 2])
+        np.minimum.at(nearest, node, d)
+    far = nearest > tolerance
+    if not far.any():
+        return far, 0.0
+    idx = np.flatnonzero(far)
+    idx = idx[np.argsort(-cKDTree(centroids).query(points[idx])[0])[:max_reported]]
+    return far, float(surface_distance(points[idx], triangles).max())
 
 
 def _displacement_array(data, file: Path, name: str | None) -> np.ndarray:
@@ -316,9 +349,8 @@ def read_vtk_displacements(file: Path, vertices: np.ndarray, faces: np.ndarray, 
                                                  f"finite ({int(bad.sum())} such nodes; node ids "
                                                  "count from 0 as in ParaView)")
         if nodes_seen is None or nodes.shape != nodes_seen.shape or not np.array_equal(nodes, nodes_seen):
-            far = surface_distance(nodes, triangles) > SURFACE_TOLERANCE
+            far, largest = off_surface(nodes, triangles, SURFACE_TOLERANCE)
             if far.any():
-                largest = surface_distance(nodes[far], triangles).max()
                 raise ConfigError(path, "points", f"{int(far.sum())} of {len(nodes)} nodes are farther "
                                                   f"than {SURFACE_TOLERANCE * 1e3:g} mm from the surface "
                                                   f"of mesh {mesh!r} (largest {largest * 1e3:.3g} mm): "
@@ -347,13 +379,9 @@ def _vertex_fit(nodes: np.ndarray, vertices: np.ndarray, tree):
     spacing = float(np.median(tree.query(nodes, k=2)[0][:, 1])) if len(nodes) > 1 else 1.0
     dist, idx = tree.query(vertices, k=k)
     dist, idx = dist.reshape(len(vertices), k), idx.reshape(len(vertices), k)
-    rows, cols, values = [], [], []
-    for v in range(len(vertices)):
-        if dist[v, 0] <= NODE_TOLERANCE:
-            rows.append(np.full(1, v))
-            cols.append(idx[v, :1])
-            values.append(np.ones(1))
-            continue
+    exact = np.flatnonzero(dist[:, 0] <= NODE_TOLERANCE)
+    rows, cols, values = [exact], [idx[exact, 0]], [np.ones(len(exact))]
+    for v in np.flatnonzero(dist[:, 0] > NODE_TOLERANCE):
         w = 1.0 / (dist[v] / spacing + 1.0) ** 2
         design = np.hstack([np.ones((k, 1)), (nodes[idx[v]] - vertices[v]) / spacing]) * w[:, None]
         # the fit's value at the vertex: the first row of pinv(design) applied to w * u

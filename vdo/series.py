@@ -97,3 +97,68 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
         (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
         html_report.write_report(tmp)
     return summary
+
+
+def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent_v,
+                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement (N, 3) m that vdo's own correlation (`vdo.correlate`, as `vdo.validate`
+    uses it) measures at `points` (N, 3) between step 0 and `step` of a series folder, with the
+    cameras `camera_names` of its layout.json (at least two: a stereo pair or more): per point a
+    square patch of side `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a
+    bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
+    centre (the mean of its four nodes), starting from `start_guess`. Returns (U, converged (N,)
+    bool)."""
+    from PIL import Image
+
+    from .correlate import Patch, correlate
+    from .formats.export import camera_from_layout
+
+    folder = Path(folder)
+    layout = folder / "layout.json"
+    entries = {e["name"]: e for e in json.loads(layout.read_text())["cameras"]}
+    missing = [n for n in camera_names if n not in entries]
+    if missing or len(camera_names) < 2:
+        raise ConfigError(layout, "cameras", f"need at least two of its cameras ({', '.join(entries)}); "
+                                             f"got {', '.join(camera_names)}")
+    cameras = [camera_from_layout(entries[n], layout) for n in camera_names]
+
+    def image(name, k):
+        with Image.open(folder / "images" / name / f"{name}_{k:04d}.tif") as im:
+            return np.asarray(im, dtype=np.float64)
+
+    references = [image(n, 0) for n in camera_names]
+    deformed = [image(n, step) for n in camera_names]
+    half = patch_size / 2
+    out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)
+    for k, (X, t_u, t_v) in enumerate(zip(np.asarray(points), np.asarray(tangent_u), np.asarray(tangent_v))):
+        patch = Patch(origin=X - half * t_u - half * t_v, t_u=t_u, t_v=t_v, size=(patch_size, patch_size))
+        U0 = start_guess(cameras, references, deformed, X)
+        result = correlate(cameras, deformed, patch, reference="images", reference_images=references,
+                           model="q4", mesh=(1, 1), U0=np.tile(U0, (4, 1)))
+        out[k] = result.U.mean(axis=0)
+        converged[k] = result.converged
+    return out, converged
+
+
+def start_guess(cameras, references, deformed, X, half: int = 24) -> np.ndarray:
+    """A starting displacement (3,) m at the world point X for the Gauss-Newton correlation (whose
+    basin is about a speckle dot): per camera the whole-pixel image shift d_i of a (2 half + 1)^2
+    window around X's image (smaller near the image border), the peak of the phase correlation (normalised cross-power spectrum),
+    then the least-squares 3D motion with s_i U = d_i (s_i = dx/dX, `Camera.sensitivity`)."""
+    rows, rhs = [], []
+    for cam, ref, dfm in zip(cameras, references, deformed):
+        u, v = np.rint(cam.project(X[None])[0]).astype(int)
+        h = min(half, u, v, cam.width - 1 - u, cam.height - 1 - v)     # the window inside the image
+        if h < 8:
+            continue
+        window = np.s_[v - h:v + h + 1, u - h:u + h + 1]
+        a, b = ref[window] - ref[window].mean(), dfm[window] - dfm[window].mean()
+        spectrum = np.fft.fft2(b) * np.conj(np.fft.fft2(a))
+        peak = np.unravel_index(np.argmax(np.fft.ifft2(spectrum / (np.abs(spectrum) + 1e-12)).real),
+                                a.shape)
+        dv, du = ((k + n // 2) % n - n // 2 for k, n in zip(peak, a.shape))
+        rows.append(np.asarray(cam.sensitivity(X[None]))[0])
+        rhs.append([du, dv])
+    if len(rows) < 2:
+        return np.zeros(3)
+    return np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
