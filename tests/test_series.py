@@ -332,3 +332,35 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
     assert code == 2 and len(err.splitlines()) == 1
     assert "plate.toml" in err and "'down' and 'up' share no field of view" in err
     assert not (tmp_path / "o").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# The built-in virtual test (docs/examples/virtual_test.py --quick): the beam-column under a
+# closed-form field, two cropped joint cameras, measured by vdo's correlation
+# --------------------------------------------------------------------------------------------
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+IMAGE_ERROR_PX = 0.05          # render + correlation accuracy on the joint (measured 0.003-0.035 px)
+CALIBRATION_PX = 1e-6
+
+
+@pytest.mark.slow
+def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
+    import runpy
+
+    example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
+    result = example["run"](tmp_path / "series", quick=True, spp=64, per_region=3)
+    rows = result["rows"]
+    assert len(rows) >= 3 and {r["region"] for r in rows} >= {"joint_top"}
+    assert result["calibration_px"] < CALIBRATION_PX
+    exp = config.load(tmp_path / "series" / "config.toml")
+    cameras = {c.name: scaled_camera(c, result["series"]["scale"]) for c in exp.cameras()}
+    for r in rows:
+        assert r["converged"]
+        X = np.array(r["point_mm"]) * 1e-3
+        # the imposed field as rendered is the closed form (vertices carry it exactly)
+        np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=0.5)
+        for name in r["pair"].split(":"):
+            cam = cameras[name]
+            moved = cam.project((X + np.array(r["measured_um"]) * 1e-6)[None])[0]
+            true = cam.project((X + np.array(r["rendered_um"]) * 1e-6)[None])[0]
+            assert np.abs(moved - true).max() < IMAGE_ERROR_PX, (r, name)
