@@ -2,7 +2,7 @@
 
 Step 0 is the reference state (the meshes as configured); every step of the load path
 (`vdo.keyframes`) moves mesh groups rigidly and, when the experiment's `[load_path]` names a
-displacement file, deforms the specimen. With a POSES.csv the poses come from that file (one row
+displacement file (a CSV, or the FE model's VTK `.vtu`/`.vtp`/`.pvd`), deforms the specimen. With a POSES.csv the poses come from that file (one row
 per step and group, the `vdo.keyframes` format; every mesh is also a group of its own name);
 without it, from the experiment's `[load_path]`. The speckle moves with the surface (texture
 coordinates from the rest vertices, `vdo.render.build_render_scene`); lights and camera bodies
