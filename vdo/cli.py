@@ -28,7 +28,8 @@ from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 # per command: the module whose import is heavy (done inside `interrupts.held`)
-_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
+_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render_command",
+            "validate": "validate_command",
             "optimize": "optimize", "design": "design", "export": "formats.export", "sweep": "sweep",
             "report": "html_report"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
@@ -70,7 +71,7 @@ def _evaluate(exp, args):
 
 
 def _render(exp, args):
-    from .render import render_experiment
+    from .render_command import render_experiment
 
     if args.series is not None:
         from .series import render_series
@@ -83,17 +84,16 @@ def _render(exp, args):
                   f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
         return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
-                                overwrite=args.overwrite, quiet=args.quiet)
+                                overwrite=args.overwrite)
     if not args.quiet:
         print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
 
 
 def _validate(spec, args):
-    from .validate import print_table, validate
+    from .validate_command import print_table, validate_cases
 
-    summary = validate(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite,
-                       quiet=args.quiet)
+    summary = validate_cases(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite)
     if not args.quiet:
         print_table(summary["rows"])
         print(f"{'all ratios in [0.8, 1.25]' if summary['passed'] else 'SOME RATIOS OUTSIDE [0.8, 1.25]'}"
