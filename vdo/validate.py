@@ -15,7 +15,7 @@ For each case of a validation file (experiments/validation.toml, schema in docs/
    to the correlated patch;
 3. for each seed, independent sensor noise is drawn for the reference and the displaced image of
    every camera (`vdo.render.expose`, distinct seeds), and U is measured by global multi-view
-   correlation (`vdo.correlate.correlate`, translation model, reference="images": each camera
+   correlation (`vdo.correlate.correlate`, `Translation` model, `ImageReference`: each camera
    against its own noisy reference image);
 4. the scatter of the measured U over the seeds is compared with the prediction. Both images are
    noisy, so the expected standard deviation is √2 σ_predicted, and
@@ -49,7 +49,7 @@ from . import strain
 from .camera import Camera, look_at_angles
 from .config import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
-from .correlate import Patch, correlate
+from .correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
 from .errors import ConfigError
 from .lighting import pattern_stats
 from .predict import SpeckleModel
@@ -615,12 +615,12 @@ def _correlate(setup: Setup, deformed, references, xi=None) -> list:
     """The case's correlation(s) of `deformed` against `references`: one global correlation
     (translation or Q4), or one translation per subset. `xi`: the points of an earlier call."""
     case = setup.case
+    reference = ImageReference(references)
     if case.subsets is None:
-        return [correlate(setup.cameras, deformed, setup.patch, reference="images",
-                          reference_images=references, xi=None if xi is None else xi[0],
-                          **_model(case))]
-    return [correlate(setup.cameras, deformed, p, reference="images", reference_images=references,
-                      model="translation", xi=None if xi is None else xi[k])
+        return [correlate(setup.cameras, deformed, setup.patch, reference, model=_model(case),
+                          integration=PixelIntegration(None if xi is None else xi[0]))]
+    return [correlate(setup.cameras, deformed, p, reference,
+                      integration=PixelIntegration(None if xi is None else xi[k]))
             for k, p in enumerate(subset_patches(setup))]
 
 
@@ -645,8 +645,8 @@ def _estimate(setup: Setup, results) -> np.ndarray:
     return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
 
 
-def _model(case: Case) -> dict:
-    return {"model": "translation"} if case.strain is None else {"model": "q4", "mesh": case.q4_mesh}
+def _model(case: Case) -> Translation | Q4:
+    return Translation() if case.strain is None else Q4(*case.q4_mesh)
 
 
 def _centre_displacement(setup: Setup, results) -> np.ndarray:
