@@ -58,7 +58,7 @@ def _load(args):
 def _evaluate(exp, args):
     from .evaluate import evaluate
 
-    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite)
     if not args.quiet:
         _print_summary(summary)
         rows = summary["design_checks"]
@@ -78,7 +78,7 @@ def _render(exp, args):
 
         poses = None if args.series == "load_path" else args.series
         summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,
-                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
+                                seed=args.seed, overwrite=args.overwrite)
         if not args.quiet:
             print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
                   f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
@@ -164,8 +164,7 @@ def _report(_, args) -> None:
 def _sweep(_, args) -> int:
     from .sweep import load_sweep, sweep
 
-    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
-                   quiet=args.quiet)
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask)
     for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
         print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
     print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "

@@ -20,6 +20,7 @@ The run folder (atomic, `vdo.runfolder`):
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import time
 from pathlib import Path
@@ -28,13 +29,15 @@ import numpy as np
 
 from .errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 
 def render_series(exp, out, poses_path=None, scale: float | None = None, spp: int | None = None,
-                  seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
+                  seed: int | None = None, overwrite: bool = False) -> dict:
     """Render step 0 and every step of the load path for every camera into the run folder `out`
     (module docstring). `scale`, `spp`, `seed` default to the config's [render] section. Returns
-    the series.json dict."""
-    from tqdm import tqdm
+    the series.json dict. Progress goes to the `vdo.series` logger (`vdo.progress`)."""
+    from .progress import bar as progress_bar
 
     from . import html_report, report
     from .formats.calibration import file_stem
@@ -66,7 +69,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     with run_folder(out, overwrite) as tmp:
         for cam in cameras:
             (tmp / "images" / file_stem(cam.name, exp.path)).mkdir(parents=True)
-        bar = tqdm(total=len(steps) * len(cameras), desc="series", unit="image", disable=quiet)
+        bar = progress_bar(log, total=len(steps) * len(cameras), desc="series", unit="image")
         for step in steps:
             posed = geometry.meshes if step == 0 else at_step(geometry, load_path, step).meshes
             scene = build_render_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
