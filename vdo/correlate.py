@@ -84,7 +84,6 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import ndimage
 
-from .camera import image_point
 
 __all__ = ["Patch", "SplineImage", "TextureSampler", "CorrelationResult", "integration_points", "pixel_points",
            "q4_shape_functions", "correlate", "ImageReference", "AverageReference", "TextureReference",
@@ -133,14 +132,6 @@ class Patch:
         return self.origin + xi[..., :1] * self.t_u + xi[..., 1:2] * self.t_v
 
 
-def _project(cam, X) -> np.ndarray:
-    """`Camera.project` evaluated with the camera's own K, R, t and distortion in NumPy (no JAX
-    dispatch per call): `vdo.camera.image_point` of (X_c/Z_c, Y_c/Z_c), p = R X + t."""
-    p = X @ cam.R.T + cam.t
-    return np.stack(image_point(cam.K, p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], cam.distortion_array),
-                    axis=1)
-
-
 def _footprint(camera, patch: Patch, X) -> np.ndarray:
     """A = ∂x/∂ξ (..., 2, 2) pixel/m."""
     return camera.sensitivity(X) @ patch.tangents
@@ -182,7 +173,7 @@ def _visible(cam, patch, X, margin_px, min_cos):
     ray = X - np.asarray(cam.position, dtype=float)
     cos = np.abs(ray @ patch.normal) / np.linalg.norm(ray, axis=-1)
     ok = (pc[:, 2] > 0) & (cos >= min_cos)
-    x = _project(cam, X)
+    x = cam.project(X)
     ok &= (x[:, 0] >= margin_px) & (x[:, 0] <= cam.width - 1 - margin_px)
     ok &= (x[:, 1] >= margin_px) & (x[:, 1] <= cam.height - 1 - margin_px)
     return ok
@@ -574,6 +565,27 @@ def _integration_points_and_weights(integration, cameras, patch):
     return xis, [np.ones(len(x)) for x in xis]
 
 
+DENSE_NODES = 16    # meshes of up to this many nodes keep their shape functions dense
+
+
+def _scale_rows(N, v):
+    """diag(v) N for a dense or a SciPy sparse N."""
+    return N.multiply(v[:, None]) if hasattr(N, "multiply") else N * v[:, None]
+
+
+def _dense(M) -> np.ndarray:
+    return M.toarray() if hasattr(M, "toarray") else np.asarray(M)
+
+
+def _transpose_times(N):
+    """X -> Nᵀ X for a dense or a SciPy sparse N (dense: einsum, several times faster than matmul's
+    path for a (points, 1) N)."""
+    if hasattr(N, "tocsr"):
+        NT = N.T.tocsr()
+        return lambda X: NT @ X
+    return lambda X: np.einsum("pn,pk->nk", N, X)
+
+
 def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Reference, *,
               model: Translation | Q4 = Translation(),
               integration: PixelIntegration | GridIntegration | None = None,
@@ -625,12 +637,14 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
                              f"{cameras[i].name!r} are seen by every camera")
     Xs = [patch.points(x) for x in xis]
 
-    # Kinematics: N (points × nodes) per camera, sparse.
-    from scipy import sparse
+    # Kinematics: N (points × nodes) per camera; sparse for large meshes, dense for a few nodes
+    # (where SciPy's per-call overhead would cost more than the arithmetic).
     if isinstance(model, Translation):
-        Ns = [sparse.csr_matrix(np.ones((len(x), 1))) for x in xis]
+        Ns = [np.ones((len(x), 1)) for x in xis]
     else:
         Ns = [q4_shape_functions(x, patch.size, int(model.nx), int(model.ny)) for x in xis]
+        if Ns[0].shape[1] <= DENSE_NODES:
+            Ns = [N.toarray() for N in Ns]
     nn = Ns[0].shape[1]
     nu = 3 * nn
     ndof = nu + 2 * nc
@@ -644,12 +658,12 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
         for cam, im, X in zip(cameras, reference.images, Xs):
             im = np.asarray(im, dtype=float)
             if on_pixels:      # the rays of pixel centres: read the samples directly
-                x = np.rint(_project(cam, X)).astype(int)
+                x = np.rint(cam.project(X)).astype(int)
                 g.append(im[x[:, 1], x[:, 0]])
             else:
-                g.append(SplineImage(im)(_project(cam, X)))
+                g.append(SplineImage(im)(cam.project(X)))
     elif averaged:
-        g = [SplineImage(im)(_project(cam, Xs[0])) for cam, im in zip(cameras, reference.images)]
+        g = [SplineImage(im)(cam.project(Xs[0])) for cam, im in zip(cameras, reference.images)]
         mean = np.array([gi.mean() for gi in g])
         k = 1.0 / np.array([gi.std() for gi in g])
         avg = sum(k[i] * (g[i] - mean[i]) for i in range(nc)) / nc
@@ -670,7 +684,7 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
     if gradient is Gradient.REFERENCE:
         # G0_i = ∇_x g_i · s_i(X) (points, 3), fixed; the U columns of J are c_i G0_i.
         if isinstance(reference, ImageReference):
-            ref_grad = [SplineImage(im).gradient(_project(cam, X))
+            ref_grad = [SplineImage(im).gradient(cam.project(X))
                         for cam, im, X in zip(cameras, reference.images, Xs)]
         G0 = [np.einsum("nj,nja->na", gr, cam.sensitivity(X))
               for gr, cam, X in zip(ref_grad, cameras, Xs)]
@@ -689,10 +703,10 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
         for i, (cam, sp) in enumerate(zip(cameras, splines)):
             Xd = Xs[i] + Ns[i] @ Un
             if gradient is Gradient.REFERENCE:
-                f = sp(_project(cam, Xd))
+                f = sp(cam.project(Xd))
                 G = p[nu + 2 * i + 1] * G0[i]
             else:
-                f, grad = sp.value_and_gradient(_project(cam, Xd))
+                f, grad = sp.value_and_gradient(cam.project(Xd))
                 G = np.einsum("nj,nja->na", grad, cam.sensitivity(Xd))
             r = f - p[nu + 2 * i] - p[nu + 2 * i + 1] * g[i]
             out.append((r, G, f))
@@ -708,7 +722,7 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
         """Dense (points, ndof) Jacobian of camera i's residuals."""
         N = Ns[i]
         J = np.zeros((N.shape[0], ndof))
-        J[:, :nu] = np.stack([N.multiply(G[:, [a]]).toarray() for a in range(3)], 2).reshape(-1, nu)
+        J[:, :nu] = np.stack([_dense(_scale_rows(N, G[:, a])) for a in range(3)], 2).reshape(-1, nu)
         J[:, nu + 2 * i] = -1.0
         J[:, nu + 2 * i + 1] = -g[i]
         return J
@@ -719,23 +733,23 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Re
         Hcams = []
         for i, (r, G, f) in enumerate(ev):
             N, wi = Ns[i], ws[i]
-            NT = N.T.tocsr()
+            Nt_times = _transpose_times(N)
             Hi = np.zeros((ndof, ndof))
             blocks = np.zeros((nn, 3, nn, 3))
             for a in range(3):             # H[(n,a),(m,b)] = Σ_p w G_a G_b N_n N_m
                 for bb in range(a, 3):
-                    Mab = (NT @ N.multiply((wi * G[:, a] * G[:, bb])[:, None])).toarray()
+                    Mab = _dense(Nt_times(_scale_rows(N, wi * G[:, a] * G[:, bb])))
                     blocks[:, a, :, bb] = Mab
                     blocks[:, bb, :, a] = Mab
             Hi[:nu, :nu] = blocks.reshape(nu, nu)
             jc = -g[i]
             ib, ic = nu + 2 * i, nu + 2 * i + 1
-            Hi[:nu, ib] = Hi[ib, :nu] = -(NT @ (wi[:, None] * G)).reshape(nu)
-            Hi[:nu, ic] = Hi[ic, :nu] = (NT @ (wi[:, None] * G * jc[:, None])).reshape(nu)
+            Hi[:nu, ib] = Hi[ib, :nu] = -Nt_times(wi[:, None] * G).reshape(nu)
+            Hi[:nu, ic] = Hi[ic, :nu] = Nt_times(wi[:, None] * G * jc[:, None]).reshape(nu)
             Hi[ib, ib] = np.sum(wi)
             Hi[ic, ic] = np.sum(wi * jc * jc)
             Hi[ib, ic] = Hi[ic, ib] = -np.sum(wi * jc)
-            rhs[:nu] -= (NT @ (wi[:, None] * G * r[:, None])).reshape(nu)
+            rhs[:nu] -= Nt_times(wi[:, None] * G * r[:, None]).reshape(nu)
             rhs[ib] += np.sum(wi * r)
             rhs[ic] -= np.sum(wi * jc * r)
             H += Hi
