@@ -57,7 +57,7 @@ def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_pat
     (tmp_path / "motions.csv").write_text(MOTIONS)
     exp = config.load(path)
     out = tmp_path / "series"
-    summary = render_series(exp, out, tmp_path / "motions.csv", quiet=True)
+    summary = render_series(exp, out, tmp_path / "motions.csv")
     assert summary["steps"] == [0, 1, 2]
     images = []
     for step in range(3):

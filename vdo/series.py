@@ -20,6 +20,7 @@ The run folder (atomic, `vdo.runfolder`):
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import time
 from pathlib import Path
@@ -28,16 +29,17 @@ import numpy as np
 
 from .errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 
 def render_series(exp, out, poses_path=None, scale: float | None = None, spp: int | None = None,
-                  seed: int | None = None, overwrite: bool = False, quiet: bool = False,
-                  pairs=None) -> dict:
+                  seed: int | None = None, overwrite: bool = False, pairs=None) -> dict:
     """Render step 0 and every step of the load path for every camera into the run folder `out`
     (module docstring). `scale`, `spp`, `seed` default to the config's [render] section; `pairs`:
     the stereo pairs of the calibration files as (first, second) names (default: cameras
     assigned a common region), checked to share a field of view before anything is rendered.
-    Returns the series.json dict."""
-    from tqdm import tqdm
+    Returns the series.json dict. Progress goes to the `vdo.series` logger (`vdo.progress`)."""
+    from .progress import bar as progress_bar
 
     from . import html_report, report
     from .formats.calibration import file_stem
@@ -71,7 +73,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     with run_folder(out, overwrite) as tmp:
         for cam in cameras:
             (tmp / "images" / file_stem(cam.name, exp.path)).mkdir(parents=True)
-        bar = tqdm(total=len(steps) * len(cameras), desc="series", unit="image", disable=quiet)
+        bar = progress_bar(log, total=len(steps) * len(cameras), desc="series", unit="image")
         for step in steps:
             posed = geometry.meshes if step == 0 else at_step(geometry, load_path, step).meshes
             scene = build_render_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
@@ -110,7 +112,7 @@ def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent
     bool)."""
     from PIL import Image
 
-    from .correlate import Patch, correlate
+    from .correlate import ImageReference, Patch, Q4, correlate
     from .formats.export import camera_from_layout
 
     folder = Path(folder)
@@ -133,8 +135,8 @@ def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent
     for k, (X, t_u, t_v) in enumerate(zip(np.asarray(points), np.asarray(tangent_u), np.asarray(tangent_v))):
         patch = Patch(origin=X - half * t_u - half * t_v, t_u=t_u, t_v=t_v, size=(patch_size, patch_size))
         U0 = start_guess(cameras, references, deformed, X)
-        result = correlate(cameras, deformed, patch, reference="images", reference_images=references,
-                           model="q4", mesh=(1, 1), U0=np.tile(U0, (4, 1)))
+        result = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
+                           U0=np.tile(U0, (4, 1)))
         out[k] = result.U.mean(axis=0)
         converged[k] = result.converged
     return out, converged

@@ -161,7 +161,7 @@ def run(out: Path, quick: bool = False, scale: float | None = None, spp: int | N
     if quick:
         exp = cropped(exp, QUICK_PAIR, QUICK_CROP_PX)
     exp = inputs(out.with_name(out.name + "_inputs"), exp)
-    summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite, quiet=quick)
+    summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite)
     geometry = prepare(exp)
     moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1).samples.points
     cameras = {c.name: scaled_camera(c, summary["scale"]) for c in exp.cameras()}
