@@ -336,31 +336,39 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
 
 # --------------------------------------------------------------------------------------------
 # The built-in virtual test (docs/examples/virtual_test.py --quick): the beam-column under a
-# closed-form field, two cropped joint cameras, measured by vdo's correlation
+# closed-form field, cam1 and cam2 cropped to 150 x 100 px on the joint, measured by vdo's
+# correlation on the exported TIFFs; the error split into the bias (the same correlation on the
+# noise-free .exr images) and the sensor-noise part, which sqrt(2) sigma predicts
 # --------------------------------------------------------------------------------------------
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
-IMAGE_ERROR_PX = 0.05          # render + correlation accuracy on the joint (measured 0.003-0.035 px)
+N_SIGMA = 3.0                  # the criterion, on the noise part of every axis
+BIAS_FLOOR_PX = 0.02           # the correlation's interpolation bias (docs/exports.md: measured
+                               # 0.001-0.017 px on these crops, the same at 64 and 256 spp)
 CALIBRATION_PX = 1e-6
+RENDERED_UM = 0.5              # the rendered field (moved samples) against the closed form
 
 
 @pytest.mark.slow
 def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
+    import math
     import runpy
 
     example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
-    result = example["run"](tmp_path / "series", quick=True, spp=64, per_region=3)
+    realisations = 4
+    result = example["run"](tmp_path / "series", quick=True, spp=16, per_region=3,
+                            realisations=realisations)
     rows = result["rows"]
-    assert len(rows) >= 3 and {r["region"] for r in rows} >= {"joint_top"}
+    assert len(rows) >= 3 and {r["pair"] for r in rows} == {"cam1:cam2"}
+    assert {r["region"] for r in rows} >= {"joint_top"}
     assert result["calibration_px"] < CALIBRATION_PX
-    exp = config.load(tmp_path / "series" / "config.toml")
-    cameras = {c.name: scaled_camera(c, result["series"]["scale"]) for c in exp.cameras()}
+    assert example["BIAS_FLOOR_PX"] == BIAS_FLOOR_PX and example["N_SIGMA"] == N_SIGMA
     for r in rows:
-        assert r["converged"]
-        X = np.array(r["point_mm"]) * 1e-3
+        assert r["converged"], r
         # the imposed field as rendered is the closed form (vertices carry it exactly)
-        np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=0.5)
-        for name in r["pair"].split(":"):
-            cam = cameras[name]
-            moved = cam.project((X + np.array(r["measured_um"]) * 1e-6)[None])[0]
-            true = cam.project((X + np.array(r["rendered_um"]) * 1e-6)[None])[0]
-            assert np.abs(moved - true).max() < IMAGE_ERROR_PX, (r, name)
+        np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
+        # the whole error is the bias plus the noise part
+        np.testing.assert_allclose(r["error_um"], np.add(r["bias_um"], r["noise_um"]), atol=1e-6)
+        assert r["bias_px"] < BIAS_FLOOR_PX, r
+        sigma = np.array(r["sigma_um"])
+        assert np.all(np.abs(r["noise_um"]) <= N_SIGMA * sigma), r
+        assert np.all(np.abs(r["mean_noise_um"]) <= N_SIGMA * sigma / math.sqrt(realisations)), r

@@ -142,23 +142,26 @@ def resample(linear: np.ndarray, where: np.ndarray) -> np.ndarray:
     return np.maximum(out, 0.0).astype(np.float32)
 
 
-def render_camera(scene, camera: Camera, spec, spp: int, seed: int) -> np.ndarray:
+def render_camera(scene, camera: Camera, spec, spp: int, seed: int, jitter: bool = True) -> np.ndarray:
     """One camera's (H, W) float32 linear image: `render_linear` through `camera_sensor`, and for a
     camera with lens distortion the wider pinhole render resampled onto the distorted pixels
-    (`undistorted_canvas`, `resample`)."""
+    (`undistorted_canvas`, `resample`). `jitter`: the stratified sampler's random offsets within
+    each stratum (False: stratum centres, a fixed sqrt(spp) x sqrt(spp) midpoint rule per pixel
+    and per light, as `vdo.validate` and `vdo.series` render)."""
     if not camera.distorted:
-        return render_linear(scene, camera_sensor(camera, spec, spp), seed)
+        return render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed)
     wide, where = undistorted_canvas(camera)
-    return resample(render_linear(scene, camera_sensor(wide, spec, spp), seed), where)
+    return resample(render_linear(scene, camera_sensor(wide, spec, spp, jitter), seed), where)
 
 
-def camera_sensor(camera: Camera, spec, spp: int) -> dict:
+def camera_sensor(camera: Camera, spec, spp: int, jitter: bool = True) -> dict:
     """`sensor_dict` for an already scaled camera and its CameraSpec (thin lens when the spec has
     f_number: aperture radius f / (2N), focused at focus_distance)."""
     if spec is not None and spec.f_number is not None:
-        return sensor_dict(camera, spp=spp, aperture_radius=camera.focal_length / (2 * spec.f_number),
+        return sensor_dict(camera, spp=spp, jitter=jitter,
+                           aperture_radius=camera.focal_length / (2 * spec.f_number),
                            focus_distance=spec.focus_distance)
-    return sensor_dict(camera, spp=spp)
+    return sensor_dict(camera, spp=spp, jitter=jitter)
 
 
 # --------------------------------------------------------------------------------------------

@@ -8,11 +8,22 @@ without it, from the experiment's `[load_path]`. The speckle moves with the surf
 coordinates from the rest vertices, `vdo.render.build_render_scene`); lights and camera bodies
 stay.
 
+Every image is rendered without the sampler's jitter (`vdo.render.render_camera`, as
+`vdo.validate` renders): each pixel is the fixed sqrt(spp) x sqrt(spp) midpoint rule of its box
+and the lights' sampling is stratified the same way, with the same Mitsuba seed per camera at
+every step. A jittered render adds Monte Carlo noise that differs from image to image and is no
+part of the camera (measured on the built-in joint: 34 DN at 16 spp against a sensor noise of
+16 DN, docs/exports.md), so a correlation of the series would measure the renderer, not the
+design; without jitter the images of two steps differ by the motion and the sensor noise only
+(and a deterministic quadrature error of a few DN that moves with the pixel grid).
+
 The run folder (atomic, `vdo.runfolder`):
 
     images/<camera>/<camera>_<step:04d>.tif  16-bit TIFF (DN, the sensor's bit depth), step 0000
                                              the reference; sensor noise drawn independently per
                                              image, generator default_rng([seed, camera, step])
+    images/<camera>/<camera>_<step:04d>.exr  the linear float radiance before the sensor, when
+                                             [render] exr = true
     calibration/<format>/                    the cameras for DIC software (`vdo.formats`)
     layout.json, config.toml, poses.csv (when given), series.json
 """
@@ -79,10 +90,14 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
             scene = build_render_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
                                        geometry.speckle.pattern, posed)
             for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
-                linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
+                linear = render_camera(scene, cam, spec, spp, render_seed(seed, i), jitter=False)
                 dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
-                save_image(tmp / "images" / cam.name / f"{cam.name}_{step:04d}.tif", dn,
-                           exp.sensor.bit_depth)
+                stem = tmp / "images" / cam.name / f"{cam.name}_{step:04d}"
+                save_image(stem.with_suffix(".tif"), dn, exp.sensor.bit_depth)
+                if exp.render.exr:
+                    from .backend import mitsuba
+
+                    mitsuba().Bitmap(linear[..., None]).write(str(stem.with_suffix(".exr")))
                 bar.update()
         bar.close()
         report.write_json(tmp / "layout.json", report.layout(cameras))
@@ -92,7 +107,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
             shutil.copyfile(poses_path, tmp / "poses.csv")
         summary = {"experiment": exp.name, "config": str(exp.path),
                    "poses": None if poses_path is None else str(poses_path),
-                   "scale": scale, "spp": spp, "seed": seed, "steps": steps,
+                   "scale": scale, "spp": spp, "seed": seed, "jitter": False, "steps": steps,
                    "cameras": [c.name for c in cameras],
                    "stereo_pairs": [[pair.first.name, pair.second.name] for pair in stereo],
                    "total_seconds": round(time.perf_counter() - started, 3)}
@@ -103,33 +118,58 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
 
 def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent_v,
                      patch_size: float) -> tuple[np.ndarray, np.ndarray]:
-    """The displacement (N, 3) m that vdo's own correlation (`vdo.correlate`, as `vdo.validate`
-    uses it) measures at `points` (N, 3) between step 0 and `step` of a series folder, with the
-    cameras `camera_names` of its layout.json (at least two: a stereo pair or more): per point a
-    square patch of side `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a
-    bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
-    centre (the mean of its four nodes), starting from `start_guess`. Returns (U, converged (N,)
-    bool)."""
-    from PIL import Image
+    """The displacement (N, 3) m that vdo's own correlation measures at `points` (N, 3) between
+    the TIFF images of step 0 and `step` of a series folder, with the cameras `camera_names` of
+    its layout.json (at least two: a stereo pair or more); `correlate_points` does the measuring.
+    Returns (U, converged (N,) bool)."""
+    cameras = series_cameras(folder, camera_names)
+    references = [series_image(folder, n, 0) for n in camera_names]
+    deformed = [series_image(folder, n, step) for n in camera_names]
+    return correlate_points(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
 
-    from .correlate import ImageReference, Patch, Q4, correlate
+
+def series_cameras(folder, camera_names) -> list:
+    """The cameras `camera_names` (at least two) of a series folder's layout.json."""
     from .formats.export import camera_from_layout
 
-    folder = Path(folder)
-    layout = folder / "layout.json"
+    layout = Path(folder) / "layout.json"
     entries = {e["name"]: e for e in json.loads(layout.read_text())["cameras"]}
     missing = [n for n in camera_names if n not in entries]
     if missing or len(camera_names) < 2:
         raise ConfigError(layout, "cameras", f"need at least two of its cameras ({', '.join(entries)}); "
                                              f"got {', '.join(camera_names)}")
-    cameras = [camera_from_layout(entries[n], layout) for n in camera_names]
+    return [camera_from_layout(entries[n], layout) for n in camera_names]
 
-    def image(name, k):
-        with Image.open(folder / "images" / name / f"{name}_{k:04d}.tif") as im:
-            return np.asarray(im, dtype=np.float64)
 
-    references = [image(n, 0) for n in camera_names]
-    deformed = [image(n, step) for n in camera_names]
+def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarray:
+    """Camera `name`'s image of `step` in a series folder, float64 (H, W): the TIFF's DN, or with
+    `linear` the radiance of its .exr ([render] exr = true)."""
+    path = Path(folder) / "images" / name / f"{name}_{step:04d}.{'exr' if linear else 'tif'}"
+    if not path.is_file():
+        raise ConfigError(path, "images", "no such image in the series folder"
+                          + (" (render it with [render] exr = true)" if linear else ""))
+    if linear:
+        from .backend import mitsuba
+
+        image = np.array(mitsuba().Bitmap(str(path)), dtype=np.float64)
+        return image.reshape(image.shape[0], image.shape[1])
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im, dtype=np.float64)
+
+
+def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
+                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement (N, 3) m that vdo's own correlation (`vdo.correlate`, as `vdo.validate`
+    uses it: each camera against its own reference image, integrated on its reference pixel
+    centres, cubic B-spline interpolation) measures at `points` (N, 3) from the `references` to
+    the `deformed` images (gray levels, one per camera): per point a square patch of side
+    `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a bilinear (Q4, one
+    element) field so that the patch may stretch and turn, read at the patch centre (the mean of
+    its four nodes), starting from `start_guess`. Returns (U, converged (N,) bool)."""
+    from .correlate import ImageReference, Patch, Q4, correlate
+
     half = patch_size / 2
     out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)
     for k, (X, t_u, t_v) in enumerate(zip(np.asarray(points), np.asarray(tangent_u), np.asarray(tangent_v))):
