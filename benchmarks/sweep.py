@@ -93,7 +93,7 @@ def main():
         folder = out / f"w{workers}"
         shutil.rmtree(folder, ignore_errors=True)
         start = time.time()
-        result = sw.sweep(spec, folder, workers=workers, quiet=True)
+        result = sw.sweep(spec, folder, workers=workers)
         wall = time.time() - start
         assert result["done"] == len(points), result
         times = stored(folder)

@@ -86,20 +86,27 @@ tilt_deg = -90
 """
 
 
+def write_plate_experiment(folder: Path, spacing=10, limit=75, height=1.5, cameras=None,
+                           extra_meshes="", files=()) -> Path:
+    """A 1 m x 1 m plate (top face at z = 0) seen from above, written into `folder`; returns the
+    TOML path. `files`: more boxes (name, extents mm, centre mm)."""
+    write_box(folder / "plate.stl", [1000, 1000, 10], center=[0, 0, -5])
+    for name, extents, center in files:
+        write_box(folder / name, extents, center)
+    cams = cameras if cameras is not None else DOWN_CAMERA.format(name="down", focal=24, u=0.5)
+    text = PLATE_TOML.format(spacing=spacing, limit=limit, height=height, cameras=cams,
+                             extra_meshes=extra_meshes)
+    path = folder / "plate.toml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
 @pytest.fixture
 def plate_experiment(tmp_path):
-    """Factory: a 1 m x 1 m plate (top face at z = 0) seen from above; returns the TOML path."""
+    """Factory: `write_plate_experiment` into the test's temporary folder."""
 
-    def make(spacing=10, limit=75, height=1.5, cameras=None, extra_meshes="", files=()):
-        write_box(tmp_path / "plate.stl", [1000, 1000, 10], center=[0, 0, -5])
-        for name, extents, center in files:
-            write_box(tmp_path / name, extents, center)
-        cams = cameras if cameras is not None else DOWN_CAMERA.format(name="down", focal=24, u=0.5)
-        text = PLATE_TOML.format(spacing=spacing, limit=limit, height=height, cameras=cams,
-                                 extra_meshes=extra_meshes)
-        path = tmp_path / "plate.toml"
-        path.write_text(textwrap.dedent(text))
-        return path
+    def make(**options):
+        return write_plate_experiment(tmp_path, **options)
 
     return make
 

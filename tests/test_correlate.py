@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from vdo.camera import Camera, look_at_angles
-from vdo.correlate import Patch, SplineImage, correlate, integration_points
+from vdo.correlate import (AverageReference, Gradient, ImageReference, Patch, PixelIntegration, Q4,
+                           Solver, SplineImage, TextureReference, correlate, integration_points)
 from vdo.speckle import generate_pattern
 
 TEXEL = 25e-6                    # 4 texels per pixel footprint
@@ -140,8 +141,9 @@ def test_integration_points_are_seen_by_every_camera():
 @pytest.mark.parametrize("reference", ["images", "texture", "average"])
 def test_translation_noise_free(pattern, images, cams, reference):
     ref, dfm = (ims[:len(cams)] for ims in images)
-    res = correlate(cams, dfm, PATCH, reference=reference, reference_images=ref,
-                    texture=pattern, texel=TEXEL, tol=1e-9)
+    options = {"images": ImageReference(ref), "texture": TextureReference(pattern, TEXEL),
+               "average": AverageReference(ref)}
+    res = correlate(cams, dfm, PATCH, options[reference], solver=Solver(tol=1e-9))
     assert res.converged and not res.rank_deficient
     err = px_error(cams, res.U, U_TRUE)
     # "average" (paper eq. 3) needs one ξ grid for all cameras, so every reference image is read by
@@ -159,13 +161,13 @@ def test_brightness_contrast_per_camera(pattern, images):
     ref = images[0]
     dfm = [render(cam, pattern, U_TRUE, b=0.1 * ci + bi, c=0.8 * ci)
            for cam, (bi, ci) in zip(TRIPLE, bc)]
-    res = correlate(TRIPLE, dfm, PATCH, reference_images=ref, tol=1e-9)
+    res = correlate(TRIPLE, dfm, PATCH, ImageReference(ref), solver=Solver(tol=1e-9))
     assert np.all(px_error(TRIPLE, res.U, U_TRUE) < 0.01)
     # c is ~1.6% low: the spline interpolant off the pixel grid attenuates the sharp speckle
     assert np.allclose(res.c, [ci for _, ci in bc], rtol=0.03)
     assert np.allclose(res.b, [bi for bi, _ in bc], atol=0.02)
     # and against the true texture (gray = b + c f with f in [0, 1])
-    res = correlate(TRIPLE, dfm, PATCH, reference="texture", texture=pattern, texel=TEXEL, tol=1e-9)
+    res = correlate(TRIPLE, dfm, PATCH, TextureReference(pattern, TEXEL), solver=Solver(tol=1e-9))
     assert np.all(px_error(TRIPLE, res.U, U_TRUE) < 0.01)
     assert np.allclose(res.c, [0.8 * ci for _, ci in bc], rtol=0.03)
 
@@ -192,7 +194,7 @@ def test_q4_bilinear_field(pattern, mesh, tol_px):
     ref = [render(cam, pattern, patch=patch) for cam in TRIPLE]
     dfm = [render(cam, pattern, field, patch=patch) for cam in TRIPLE]
     nx, ny = mesh
-    res = correlate(TRIPLE, dfm, patch, reference_images=ref, model="q4", mesh=mesh, tol=1e-9)
+    res = correlate(TRIPLE, dfm, patch, ImageReference(ref), model=Q4(*mesh), solver=Solver(tol=1e-9))
     assert res.converged and not res.rank_deficient
     assert res.U.shape == ((nx + 1) * (ny + 1), 3)
     nodes = np.stack(np.meshgrid(np.linspace(0, L[0], nx + 1), np.linspace(0, L[1], ny + 1),
@@ -220,12 +222,12 @@ def test_one_camera_is_ill_conditioned_along_the_viewing_direction(pattern):
 
     # Full solve: not singular (perspective), but the weak direction is the viewing ray and its
     # uncertainty is tens of times the in-plane one.
-    res = correlate([cam], dfm, PATCH, reference_images=ref, tol=1e-9)
+    res = correlate([cam], dfm, PATCH, ImageReference(ref), solver=Solver(tol=1e-9))
     assert res.uncertainty_ratio > 20
     assert abs(res.weakest_direction @ view) > 0.99
     # Dropping it (pseudo-inverse) is flagged, and the components across the viewing direction are
     # still recovered to < 0.01 px while the one along it is not.
-    res = correlate([cam], dfm, PATCH, reference_images=ref, tol=1e-9, rcond=1e-2)
+    res = correlate([cam], dfm, PATCH, ImageReference(ref), solver=Solver(tol=1e-9, rcond=1e-2))
     assert res.rank_deficient and res.rank == 4
     assert abs(res.null_directions[0][:3] @ view) / np.linalg.norm(res.null_directions[0][:3]) > 0.99
     e = res.U - U_TRUE
@@ -243,7 +245,7 @@ def test_noise_scatter_matches_propagated_covariance(images):
     seeds = 40
     cams = TRIPLE
     ref0, dfm0 = images
-    clean = correlate(cams, dfm0, PATCH, reference_images=ref0)
+    clean = correlate(cams, dfm0, PATCH, ImageReference(ref0))
     predicted = 2 * sigma ** 2 * np.linalg.inv(clean.hessian_U)
     # the helper accounts for c ≈ 0.98 (noise of the reference enters as c² σ²): within a few %
     assert np.allclose(np.diag(clean.covariance(sigma)), np.diag(predicted), rtol=0.05, atol=0)
@@ -252,7 +254,7 @@ def test_noise_scatter_matches_propagated_covariance(images):
         rng = np.random.default_rng(seed)
         ref = [im + rng.normal(0, sigma, im.shape) for im in ref0]
         dfm = [im + rng.normal(0, sigma, im.shape) for im in dfm0]
-        res = correlate(cams, dfm, PATCH, reference_images=ref, xi=clean.xi)
+        res = correlate(cams, dfm, PATCH, ImageReference(ref), integration=PixelIntegration(clean.xi))
         assert res.converged
         est.append(res.U)
     est = np.array(est)
@@ -267,3 +269,17 @@ def test_noise_scatter_matches_propagated_covariance(images):
     assert abs(m2 - 1) < 0.25, m2
     # the mean is the noise-free answer (no noise-induced bias beyond the scatter of the mean)
     assert np.all(np.abs(est.mean(0) - clean.U) < 4 * np.sqrt(np.diag(predicted) / seeds))
+
+
+def test_option_objects_reject_wrong_combinations(images):
+    ref, dfm = images
+    with pytest.raises(ValueError, match="GridIntegration"):
+        correlate(TRIPLE, dfm, PATCH, AverageReference(ref), integration=PixelIntegration())
+    with pytest.raises(ValueError, match="not available"):
+        correlate(TRIPLE, dfm, PATCH, AverageReference(ref), gradient=Gradient.REFERENCE)
+    with pytest.raises(ValueError, match="one reference image per camera"):
+        correlate(TRIPLE, dfm, PATCH, ImageReference(ref[:2]))
+    with pytest.raises(ValueError, match="ImageReference"):
+        correlate(TRIPLE, dfm, PATCH, ref)
+    with pytest.raises(ValueError, match="nx, ny >= 1"):
+        Q4(0, 2)

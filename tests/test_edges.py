@@ -148,7 +148,7 @@ def test_usable_views_counts_sigma_and_summary_agree(holed, tmp_path):
     # the maps and report to draw)
     coarse = dataclasses.replace(exp, evaluation=dataclasses.replace(exp.evaluation,
                                                                      sample_spacing=2e-3))
-    summary = evaluate(coarse, tmp_path / "run", quiet=True)
+    summary = evaluate(coarse, tmp_path / "run")
     from vtk import vtkXMLPolyDataReader
     from vtk.util.numpy_support import vtk_to_numpy
     reader = vtkXMLPolyDataReader()

@@ -49,6 +49,7 @@ class Run:
             time.sleep(0.01)
 
     def signal_and_wait(self, signum):
+        self.err_before_signal = len(self.err)   # what the command logged before (vdo.cli)
         self.proc.send_signal(signum)
         sent = time.monotonic()
         self.proc.wait(timeout=30)
@@ -60,8 +61,10 @@ class Run:
 def check_interrupted(run: Run, signum, elapsed, parent: Path):
     assert run.proc.returncode == 128 + signum, run.err[-10:]
     assert elapsed < PROMPT_S
-    messages = [line for line in run.err if line.strip() and "%|" not in line]  # tqdm bars aside
+    # after the signal, one line: the progress messages logged before it and tqdm bars aside
+    messages = [line for line in run.err[run.err_before_signal:] if line.strip() and "%|" not in line]
     assert messages == [f"vdo: interrupted by {signal.Signals(signum).name}"], run.err[-10:]
+    assert not any("Traceback" in line or "Error" in line for line in run.err), run.err[-10:]
     assert sorted(p.name for p in parent.iterdir()) == [], "output or partial folder left"
 
 
@@ -109,14 +112,17 @@ def test_signal_mid_computation(plate, tmp_path, signum):
     check_interrupted(run, signum, run.signal_and_wait(signum), parent)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_signal_mid_write(plate, tmp_path, signum):
-    """While the render writes its images into the hidden partial folder (Mitsuba used to wrap the
-    interrupt in `RuntimeError: drjit.custom(...)`)."""
+@pytest.mark.parametrize("signum, during", [(signal.SIGINT, "render"), (signal.SIGTERM, "write")])
+def test_signal_mid_render_and_mid_write(plate, tmp_path, signum, during):
+    """While Mitsuba renders (it used to wrap the interrupt in `RuntimeError: drjit.custom(...)`),
+    and while the command writes the images into the hidden partial folder."""
     parent = tmp_path / "runs"
     parent.mkdir()
     run = Run("render", plate, "--out", parent / "out", "--spp", 64, "--scale", 0.5)
-    run.wait_for(lambda: any(p.name.startswith(".out.partial-") for p in parent.iterdir()))
+    if during == "render":
+        run.wait_for(lambda: any(line.startswith("rendering") for line in run.err))
+    else:
+        run.wait_for(lambda: any(p.name.startswith(".out.partial-") for p in parent.iterdir()))
     check_interrupted(run, signum, run.signal_and_wait(signum), parent)
 
 

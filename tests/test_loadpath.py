@@ -138,7 +138,7 @@ def test_evaluate_over_the_load_path_names_the_loss_and_writes_the_worst_case(pl
     config = plate_experiment(spacing=100, extra_meshes=extra)
     out = tmp_path / "run"
     assert cli.main(["evaluate", str(config), "--out", str(out)]) == 0
-    assert "warning: camera down loses region top at step 5" in capsys.readouterr().out
+    assert "warning: camera down loses region top at step 5" in capsys.readouterr().err
     summary = json.loads((out / "summary.json").read_text())
     assert [(x["camera"], x["step"]) for x in summary["load_path"]["losses"]] == [("down", 5)]
     assert summary["load_path"]["steps"] == 7

@@ -9,7 +9,7 @@ import trimesh
 from vtk import vtkXMLPolyDataReader
 from vtk.util.numpy_support import vtk_to_numpy
 
-from conftest import DOWN_CAMERA
+from conftest import DOWN_CAMERA, write_plate_experiment
 from vdo import config
 from vdo.cli import main
 from vdo.maps import unfold
@@ -17,11 +17,13 @@ from vdo.runfolder import run_folder
 from vdo.scene import SurfaceSamples, face_frame
 
 
-@pytest.fixture
-def run(plate_experiment, tmp_path):
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """One `vdo evaluate` run shared by the tests that read it (none of them writes into it)."""
     cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
-    path = plate_experiment(cameras=cams)
-    out = tmp_path / "run"
+    folder = tmp_path_factory.mktemp("outputs")
+    path = write_plate_experiment(folder, cameras=cams)
+    out = folder / "run"
     assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 0
     return path, out
 

@@ -11,7 +11,7 @@ from scipy import ndimage
 
 from conftest import DOWN_CAMERA
 from vdo import config
-from vdo.render import render_experiment
+from vdo.render_command import render_experiment
 from vdo.speckle import generate_pattern, normalise, pixel_averaged_std
 
 
@@ -87,7 +87,7 @@ def renders(tmp_path_factory):
     out = {}
     for scale in (1.0, 0.25):
         folder = root / f"scale{scale}"
-        render_experiment(exp, folder, scale=scale, quiet=True)
+        render_experiment(exp, folder, scale=scale)
         out[scale] = next(csv.DictReader((folder / "photometry.csv").open()))
     return out
 

@@ -16,8 +16,8 @@ from scipy.spatial import cKDTree
 
 from vdo import config, lighting, scene, visibility
 from vdo.cli import main
-from vdo.render import (build_render_scene, camera_sensor, expose, render_experiment,
-                        render_linear, scaled_camera)
+from vdo.render import build_render_scene, camera_sensor, expose, render_linear, scaled_camera
+from vdo.render_command import render_experiment
 from vdo.speckle import pattern_for
 from vdo.scene import SurfaceSamples
 
@@ -87,7 +87,7 @@ def test_renders_are_bit_identical_for_a_seed(plate_experiment, tmp_path):
     runs = []
     for k, seed in enumerate((None, None, 4)):
         out = tmp_path / f"run{k}"
-        render_experiment(exp, out, seed=seed, quiet=True)
+        render_experiment(exp, out, seed=seed)
         runs.append([(out / "images" / f"c.{ext}").read_bytes() for ext in ("png", "exr")])
     assert runs[0] == runs[1]
     assert runs[0][0] != runs[2][0] and runs[0][1] != runs[2][1]
@@ -216,7 +216,7 @@ def test_shadow_of_a_bar_is_where_the_shadow_map_puts_it(plate_experiment):
 def test_builtin_experiment_renders_a_complete_run_folder(tmp_path):
     exp = config.load(ROOT / "experiments/beam_column/ten_cameras.toml")
     out = tmp_path / "run"
-    summary = render_experiment(exp, out, scale=0.05, spp=2, quiet=True)
+    summary = render_experiment(exp, out, scale=0.05, spp=2)
     names = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()}
     calibration = {n for n in names if n.startswith("calibration/")}
     names -= calibration

@@ -120,11 +120,12 @@ def test_camera_lens_catalogue_is_read_and_satisfies_a_free_lens(tmp_path):
     assert config.parse(exp.to_dict(), path).camera_specs[0].lenses == exp.camera_specs[0].lenses
 
 
-def test_evaluate_warns_of_a_3_degree_pair(tmp_path, capsys):
+def test_evaluate_warns_of_a_3_degree_pair(tmp_path, caplog):
     """Cameras 6 cm apart at 1.2 m, both aimed at the plate centre: 2.9 deg between their axes,
-    below the 24 mm rule of thumb (21.1 deg): evaluate says so and summary.json records it."""
+    below the 24 mm rule of thumb (21.1 deg): evaluate says so (a warning of the vdo.evaluate
+    logger) and summary.json records it."""
     summary = evaluate(config.load(write(tmp_path, u=(0.485, 0.515))), tmp_path / "run")
-    out = capsys.readouterr().out
+    out = caplog.text
     assert "warning: cameras a and b: optical axes 2.9 deg apart, below the minimum of 21.1 deg" in out
     entry = [e for e in summary["axis_angles"] if e["constraint"] == "axis_angle"][0]
     assert not entry["met"] and entry["value"] == pytest.approx(2 * math.degrees(math.atan(0.03 / 1.2)), rel=1e-6)

@@ -226,7 +226,7 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     n_valid = 4
 
     # 1. uninterrupted, on Dask
-    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local", quiet=True)
+    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local")
     assert (whole["points"], whole["done"], whole["failed"]) == (6, 4, 2)
     table = read_table(tmp_path / "dask" / "results.csv")
     assert [r["status"] for r in table] == ["done"] * 4 + ["failed"] * 2
@@ -271,7 +271,7 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     # 4. resumed (with run folders: not part of a point's key): only the missing points run,
     # and the table is the uninterrupted one
     with_folders = load_sweep(plate_sweep(extra="run_folders = true", name="folders.toml"))
-    resumed = sweep(with_folders, tmp_path / "killed", workers=1, quiet=True)
+    resumed = sweep(with_folders, tmp_path / "killed", workers=1)
     assert resumed["reused"] == len(before) and resumed["computed"] == n_valid - len(before)
     after = done_files(tmp_path / "killed")
     assert all(after[k] == v for k, v in before.items()), "a finished point was recomputed"

@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from vdo import validate as V
+from vdo.validate_command import validate_cases
 from vdo.errors import ConfigError
 
 SEEDS = 160
@@ -71,12 +72,12 @@ def results(spec):
 
 def test_noise_free_renders_recover_the_displacement(results):
     for name, result in results.items():
-        for camera, err in result["info"]["noise_free_error_px"].items():
+        for camera, err in result.info["noise_free_error_px"].items():
             assert np.all(np.abs(err) < 0.01), (name, camera, err)
 
 
 def test_measured_scatter_matches_sqrt2_times_prediction(results):
-    rows = [r for result in results.values() for r in result["rows"]]
+    rows = [r for result in results.values() for r in result.rows]
     assert len(rows) == 6
     assert all(r["n_seeds"] == SEEDS for r in rows)
     sampling = 1 / math.sqrt(2 * (SEEDS - 1))
@@ -108,7 +109,7 @@ def test_one_camera_reports_in_plane_axes_only(spec, tmp_path):
 
 
 def test_validate_writes_the_run_folder(spec, tmp_path):
-    summary = V.validate(spec, tmp_path / "run", seeds=3, quiet=True, cases=["stereo"])
+    summary = validate_cases(spec, tmp_path / "run", seeds=3, cases=["stereo"])
     out = tmp_path / "run"
     for name in ("validation.csv", "validation.png", "summary.json", "estimates.csv",
                  "validation.toml", "images/stereo.png"):
@@ -160,16 +161,16 @@ def test_strain_scatter_matches_the_derived_sigma(strain_result):
     against sqrt(2) x vdo.strain's prediction for one Q4 element (F = 12 / h^4), per component
     (eps_uu, eps_vv, eps_uv) in [0.8, 1.25]; the correlation's own linear propagation agrees with
     the prediction within 5 % (the same information, computed from the images' gradients)."""
-    rows = strain_result["rows"]
+    rows = strain_result.rows
     assert [r["axis"] for r in rows] == ["eps_uu", "eps_vv", "eps_uv"]
     assert all(r["unit"] == "microstrain" for r in rows)
     for r in rows:
         assert 0.8 <= r["ratio"] <= 1.25, r
         assert r["sigma_linear_um"] / r["sigma_expected_um"] == pytest.approx(1.0, abs=0.05), r
     # noise-free: the imposed strain is recovered with an error below the noise
-    err = np.abs(strain_result["info"]["noise_free_strain_error_microstrain"])
+    err = np.abs(strain_result.info["noise_free_strain_error_microstrain"])
     assert np.all(err < [r["sigma_expected_um"] for r in rows]), err
-    assert strain_result["info"]["noise_free_ok"]
+    assert strain_result.info["noise_free_ok"]
 
 
 @pytest.mark.parametrize("edit, field", [
@@ -208,11 +209,11 @@ def test_subset_strain_scatter_matches_the_virtual_strain_gauge(tmp_path):
     independent = 12 / ((2e-3) ** 2 * (1e-3) ** 2 * 16 * 15)
     assert m.sqrt(strain.vsg_factor(2e-3, 1e-3, 4) / independent) == pytest.approx(1.479, abs=1e-3)
     result = V.run_case(case, path, SUBSET_SEEDS)
-    for r in result["rows"]:
+    for r in result.rows:
         assert 0.8 <= r["ratio"] <= 1.25, r
-    pooled = m.sqrt(np.mean([r["ratio"] ** 2 for r in result["rows"]]))
+    pooled = m.sqrt(np.mean([r["ratio"] ** 2 for r in result.rows]))
     assert 0.85 <= pooled <= 1.18, pooled
-    assert result["info"]["noise_free_ok"]
+    assert result.info["noise_free_ok"]
 
 
 def test_subset_case_errors_name_the_field(tmp_path):

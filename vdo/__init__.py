@@ -11,8 +11,9 @@ The public API (names are imported on first use, so `import vdo` stays light)::
     vdo.write_evaluation(state, "runs/eval")  # the run folder of `vdo evaluate`
 
 `vdo.evaluate_experiment`, `vdo.render_experiment`, `vdo.optimize_experiment` and
-`vdo.validate_cases` are the library functions behind the commands (`vdo.evaluate`, `vdo.render`,
-... are the modules). See docs/api.md.
+`vdo.validate_cases` are the commands as functions (each writes a run folder; `vdo.evaluate`,
+`vdo.render`, ... are the modules); `vdo.render_images` and `vdo.run_validation` compute without
+writing, `vdo.write_render` and `vdo.write_validation` write what they return. See docs/api.md.
 """
 
 from __future__ import annotations
@@ -39,9 +40,16 @@ _EXPORTS = {
     "summary": ("vdo.report", "state_summary"),
     "evaluate_experiment": ("vdo.evaluate", "evaluate"),
     "write_evaluation": ("vdo.evaluate", "write_evaluation"),
-    "render_experiment": ("vdo.render", "render_experiment"),
+    "render_images": ("vdo.render", "render_images"),
+    "RenderResult": ("vdo.render", "RenderResult"),
+    "render_experiment": ("vdo.render_command", "render_experiment"),
+    "write_render": ("vdo.render_command", "write_render"),
     "optimize_experiment": ("vdo.optimize", "optimize"),
-    "validate_cases": ("vdo.validate", "validate"),
+    "load_validation": ("vdo.validate", "load"),
+    "run_validation": ("vdo.validate", "run_cases"),
+    "ValidationResult": ("vdo.validate", "ValidationResult"),
+    "validate_cases": ("vdo.validate_command", "validate_cases"),
+    "write_validation": ("vdo.validate_command", "write_validation"),
 }
 # The command functions carry a suffix: `vdo.evaluate`, `vdo.render`, ... are the modules.
 

@@ -93,9 +93,16 @@ def intrinsic_matrix(focal_px, cx, cy):
                       jnp.stack([z, z, o], -1)], -2)
 
 
+def _xp(*arrays):
+    """The array module for `arrays`: jax.numpy when any is a JAX array (or a tracer, under
+    `jit`/`grad`), else NumPy, so that NumPy callers (`vdo.correlate`, the checks) pay no JAX
+    dispatch per operation."""
+    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
+
+
 def to_camera(R, t, X):
     """Camera-frame coordinates R X + t, metres."""
-    return jnp.einsum("...ij,...j->...i", R, X) + t
+    return _xp(R, t, X).einsum("...ij,...j->...i", R, X) + t
 
 
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")   # OpenCV's order of the coefficients
@@ -165,17 +172,19 @@ def project(K, R, t, X, distortion=None):
     """Pixel coordinates (u, v) of world points X (..., 3) -> (..., 2), with the lens distortion
     (..., 5) in `DISTORTION` order (None: a pinhole)."""
     p = to_camera(R, t, X)
-    return jnp.stack(image_point(K, p[..., 0] / p[..., 2], p[..., 1] / p[..., 2], distortion), axis=-1)
+    return _xp(K, p, distortion).stack(image_point(K, p[..., 0] / p[..., 2], p[..., 1] / p[..., 2],
+                                                   distortion), axis=-1)
 
 
 def _d_pixel_d_camera(K, p, distortion=None):
     """d(u, v)/d(camera-frame point), (..., 2, 3), pixels per metre: the chain
     [[f_x, s], [0, f_y]] . d(x_d, y_d)/d(x, y) . (1/Z_c) [[1, 0, -x], [0, 1, -y]]."""
+    xp = _xp(K, p, distortion)
     zinv = 1.0 / p[..., 2]
     x, y = p[..., 0] * zinv, p[..., 1] * zinv
-    zero = jnp.zeros_like(zinv)
-    dn = jnp.stack([jnp.stack([zinv, zero, -x * zinv], -1),
-                    jnp.stack([zero, zinv, -y * zinv], -1)], -2)         # d(x, y)/dp
+    zero = xp.zeros_like(zinv)
+    dn = xp.stack([xp.stack([zinv, zero, -x * zinv], -1),
+                   xp.stack([zero, zinv, -y * zinv], -1)], -2)           # d(x, y)/dp
     fx, s, fy = K[..., 0, 0], K[..., 0, 1], K[..., 1, 1]
     if distortion is None:
         a, b, c, d = fx, s, zero, fy
@@ -183,7 +192,7 @@ def _d_pixel_d_camera(K, p, distortion=None):
         dxx, dxy, dyx, dyy = distortion_jacobian(x, y, distortion)
         a, b = fx * dxx + s * dyx, fx * dxy + s * dyy
         c, d = fy * dyx, fy * dyy
-    M = jnp.stack([jnp.stack([a + zero, b + zero], -1), jnp.stack([c + zero, d + zero], -1)], -2)
+    M = xp.stack([xp.stack([a + zero, b + zero], -1), xp.stack([c + zero, d + zero], -1)], -2)
     return M @ dn
 
 
@@ -293,11 +302,11 @@ class Camera:
         return np.asarray(self.distortion, dtype=float) if self.distorted else None
 
     def project(self, X) -> np.ndarray:
-        return np.asarray(project(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64),
+        return np.asarray(project(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
                                   self.distortion_array))
 
     def sensitivity(self, X) -> np.ndarray:
-        return np.asarray(sensitivity(self.K, self.R, self.t, jnp.asarray(X, dtype=jnp.float64),
+        return np.asarray(sensitivity(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
                                       self.distortion_array))
 
     def undistorted_pixels(self, uv) -> np.ndarray:

@@ -28,7 +28,8 @@ from .runfolder import check_out
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 # per command: the module whose import is heavy (done inside `interrupts.held`)
-_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render", "validate": "validate",
+_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render_command",
+            "validate": "validate_command",
             "optimize": "optimize", "design": "design", "export": "formats.export", "sweep": "sweep",
             "report": "html_report"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
@@ -57,7 +58,7 @@ def _load(args):
 def _evaluate(exp, args):
     from .evaluate import evaluate
 
-    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet)
+    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite)
     if not args.quiet:
         _print_summary(summary)
         rows = summary["design_checks"]
@@ -69,31 +70,35 @@ def _evaluate(exp, args):
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _pairs(names):
+    """--pairs FIRST:SECOND ... as (first, second) tuples, or None."""
+    return None if names is None else [tuple(p.split(":", 1)) for p in names]
+
+
 def _render(exp, args):
-    from .render import render_experiment
+    from .render_command import render_experiment
 
     if args.series is not None:
         from .series import render_series
 
         poses = None if args.series == "load_path" else args.series
         summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,
-                                seed=args.seed, overwrite=args.overwrite, quiet=args.quiet)
+                                seed=args.seed, overwrite=args.overwrite, pairs=_pairs(args.pairs))
         if not args.quiet:
             print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
                   f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
         return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
-                                overwrite=args.overwrite, quiet=args.quiet)
+                                overwrite=args.overwrite, pairs=_pairs(args.pairs))
     if not args.quiet:
         print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
 
 
 def _validate(spec, args):
-    from .validate import print_table, validate
+    from .validate_command import print_table, validate_cases
 
-    summary = validate(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite,
-                       quiet=args.quiet)
+    summary = validate_cases(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite)
     if not args.quiet:
         print_table(summary["rows"])
         print(f"{'all ratios in [0.8, 1.25]' if summary['passed'] else 'SOME RATIOS OUTSIDE [0.8, 1.25]'}"
@@ -148,7 +153,7 @@ def _design(exp, args) -> None:
 def _export(_, args) -> None:
     from .formats.export import export
 
-    pairs = None if args.pairs is None else [tuple(p.split(":", 1)) for p in args.pairs]
+    pairs = _pairs(args.pairs)
     for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
         print(f"wrote {path}")
 
@@ -164,8 +169,7 @@ def _report(_, args) -> None:
 def _sweep(_, args) -> int:
     from .sweep import load_sweep, sweep
 
-    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
-                   quiet=args.quiet)
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask)
     for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
         print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
     print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "
@@ -192,6 +196,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="render a reference and deformed image series over the load path: the "
                          "experiment's [load_path], or the poses per step and group (or mesh) of "
                          "POSES.csv (see vdo.keyframes)")
+    rd.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs of the calibration files (default: cameras assigned a "
+                         "common region); each must share a field of view")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")

@@ -837,10 +837,18 @@ class LoadPathSpec:
 
     poses: Path | None = row("poses", File((".csv",), "pose", "a CSV"), None, shown="none",
                              doc="CSV: step, group, x_mm, y_mm, z_mm, rx_deg, ry_deg, rz_deg")
-    displacements: Path | None = row("displacements", File((".csv",), "displacement", "a CSV"), None,
-                                     shown="none", doc="CSV: step, x_m, y_m, z_m, ux_mm, uy_mm, uz_mm")
+    displacements: Path | None = row("displacements", File((".csv", ".vtu", ".vtp", ".pvd"), "displacement",
+                                                           "a CSV, .vtu, .vtp or .pvd"), None,
+                                     shown="none", doc="CSV: step, x_m, y_m, z_m, ux_mm, uy_mm, uz_mm; or "
+                                                       "VTK XML nodal displacements (.vtu/.vtp, one step; "
+                                                       ".pvd, one file per step)")
     deformed_mesh: str | None = row("deformed_mesh", Text(name=True), None, shown="none",
                                     doc="the specimen mesh the displacements apply to")
+    unit: str | None = row("unit", Text(choices=tuple(UNITS)), None, shown="none",
+                           doc="length unit of a VTK file's points and displacements (required for VTK)")
+    displacement_array: str | None = row("displacement_array", Text(), None, shown="auto",
+                                         doc="the VTK point array of displacements (default: the one "
+                                             "3-component array, or the one named displacement, U, ...)")
 
     @property
     def active(self) -> bool:
@@ -851,6 +859,13 @@ def _check_load_path(t: Table, v: dict) -> None:
     if (v["displacements"] is None) != (v["deformed_mesh"] is None):
         raise t.error("deformed_mesh", "give displacements and deformed_mesh together (the file's "
                                        "nodes are that mesh's vertices)")
+    vtk = v["displacements"] is not None and v["displacements"].suffix.lower() != ".csv"
+    if vtk and v["unit"] is None:
+        raise t.error("unit", "a VTK file carries no length unit: give unit = \"mm\" or \"m\" (its "
+                              "points and displacements)")
+    if not vtk and (v["unit"] is not None or v["displacement_array"] is not None):
+        raise t.error("unit" if v["unit"] is not None else "displacement_array",
+                      "is for a VTK displacement file (a CSV names its units in its header)")
 
 
 @dataclass(frozen=True)

@@ -7,8 +7,8 @@ Formulation
 The surface is a planar patch X(ξ) = origin + ξ1 t_u + ξ2 t_v, ξ in [0, size] (metres), the same face
 coordinates (u, v) as `vdo.scene.RegionFaces.uv`. Cameras are known `vdo.camera.Camera` objects
 (OpenCV frame, pixel (u, v) = (column, row), pixel centres at integer coordinates). The displacement
-U(ξ) is expressed in the world (specimen) frame and is either a rigid translation (`"translation"`,
-3 unknowns) or a bilinear Q4 finite-element field on an nx × ny mesh of the patch (`"q4"`, 3 dof per
+U(ξ) is expressed in the world (specimen) frame and is either a rigid translation (`Translation()`,
+3 unknowns) or a bilinear Q4 finite-element field on an nx × ny mesh of the patch (`Q4(nx, ny)`, 3 dof per
 node, dof index 3 * node + component, node = j * (nx + 1) + i with i along t_u).
 
 For integration points ξ_p and cameras i the residual is
@@ -17,18 +17,18 @@ For integration points ξ_p and cameras i the residual is
 
 with g_i the reference seen by camera i:
 
-* ``reference="images"``: g_i(ξ) = f_i^ref(P_i(X(ξ))), each camera against its own reference image
+* `ImageReference(images)`: g_i(ξ) = f_i^ref(P_i(X(ξ))), each camera against its own reference image
   (the classic choice). Both images are noisy, so the residual noise variance is σ_def² + c_i² σ_ref²,
   i.e. **twice the single-image (Cramér–Rao) bound** when σ_ref = σ_def and c ≈ 1: the covariance of
   U is ≈ 2σ² H⁻¹, not σ² H⁻¹.
-* ``reference="average"``: the paper's eq. 3, g(ξ) = mean_j k_j (f_j^ref(P_j X(ξ)) - m_j), each
+* `AverageReference(images)`: the paper's eq. 3, g(ξ) = mean_j k_j (f_j^ref(P_j X(ξ)) - m_j), each
   reference normalised to zero mean / unit variance over the integration points, shared by all cameras.
-* ``reference="texture"``: the true texture f̂(ξ) (a callable of ξ (..., 2) in metres, or a pattern
+* `TextureReference(texture, texel, pixel)`: the true texture f̂(ξ) (a callable of ξ (..., 2) in metres, or a pattern
   array + texel size mapped as `vdo.render` maps it: texel (row i, column j) has its centre at
   ξ = ((j + ½) h, (i + ½) h), bilinear, periodic) blurred by the camera's pixel: the box pixel is
   transported to the surface through the local Jacobian A_i = ∂x_i/∂ξ and averaged over
-  `supersample`² sub-pixel points (``pixel_filter="box"``), or a Gaussian of std `pixel_sigma` px
-  (``pixel_filter="gaussian"``, Gauss–Hermite points). Only the deformed image is noisy: σ² H⁻¹.
+  `supersample`² sub-pixel points (`BoxPixel(supersample)`), or a Gaussian of std `sigma_px`
+  (`GaussianPixel(sigma_px)`, Gauss–Hermite points). Only the deformed image is noisy: σ² H⁻¹.
 
 Brightness / contrast (b_i, c_i) per camera are **unknowns solved alongside U** in the same
 Gauss–Newton system (columns -1 and -g_i of the Jacobian), initialised by a linear least-squares fit
@@ -37,8 +37,8 @@ and c eliminated) is the Hessian whose inverse is the covariance of U.
 
 The functional is Σ_i Σ_p w_ip r_ip² with w_ip = |det A_i(ξ_p)| × (surface area per integration
 point): the number of camera-i pixels an integration point stands for, so that the sum approximates
-the paper's sum over image pixels whatever the integration density (``weights="pixel"``; or
-``"uniform"``, w = 1). With this weighting H = Σ w JᵀJ is on the pixel-noise scale and σ² H⁻¹ is
+the paper's sum over image pixels whatever the integration density (`Weights.PIXEL`; or
+`Weights.UNIFORM`, w = 1). With this weighting H = Σ w JᵀJ is on the pixel-noise scale and σ² H⁻¹ is
 the covariance for white pixel noise of variance σ² (in the continuum limit; spline interpolation of
 the noise makes the true value a few percent off, see tests/test_correlate.py).
 
@@ -46,21 +46,21 @@ Gauss–Newton on gray levels: J_ip = ∇f(x) · s_i(X) · N(ξ_p) with s_i = �
 and N the shape functions. Images are interpolated by cubic B-splines (`scipy.ndimage.spline_filter`
 once per image, `map_coordinates(order=3, prefilter=False)`); the gradient is the spline's exact
 derivative (cubic weights and their derivatives on the 4 × 4 support). ∇f is taken from
-* the reference image at its own pixel centres (``gradient="reference"``, default for "images"):
+* the reference image at its own pixel centres (`Gradient.REFERENCE`, default for images):
   a modified Gauss–Newton, J = c_i ∇f_i^ref(x) s_i(X) N, fixed but for c_i. At pixel centres the
   noise gradient is uncorrelated with the noise itself, so this has no noise-induced bias;
-* the deformed image at the current position (``gradient="deformed"``, default for "texture" and
-  "average"): exact Gauss–Newton, J = ∇f_i^def(P_i(X + U)) s_i(X + U) N. Off the pixel grid the
+* the deformed image at the current position (`Gradient.DEFORMED`, default for texture and
+  average): exact Gauss–Newton, J = ∇f_i^def(P_i(X + U)) s_i(X + U) N. Off the pixel grid the
   variance of spline-interpolated noise depends on the sub-pixel phase, E[∇n n] ≠ 0, and the mean
   estimate drifts by ~σ²-proportional amounts (measured ~0.002 px at σ = 0.02 of a 0.8 contrast;
-  see tests/test_correlate.py). (With reference="texture" and the texture's own gradient, the sharp
+  see tests/test_correlate.py). (With the texture reference and the texture's own gradient, the sharp
   speckle's spline misfit biased noise-free results by ~0.05 px, so that is not the default.)
 
-Integration: by default ("pixels") each camera is integrated over its own reference pixel centres
+Integration: by default (`PixelIntegration`) each camera is integrated over its own reference pixel centres
 on the patch (weight 1 each: the paper's sum over image pixels exactly, and the reference image
-is read at its samples, not interpolated). A shared ξ grid ("grid") makes every reference image
+is read at its samples, not interpolated). A shared ξ grid (`GridIntegration`) makes every reference image
 be interpolated off its pixel grid, which for sharp box-pixel speckle gives an interpolation bias
-of ~0.015-0.03 px at 0.3 px shifts (measured), against ~0.003 px with "pixels".
+of ~0.015-0.03 px at 0.3 px shifts (measured), against ~0.003 px on the pixel centres.
 
 Rank deficiency: the normal equations are solved by an eigen-decomposition, scaled so that the U dofs
 (all metres) share one scale and b, c each have their own; directions with scaled eigenvalue
@@ -69,21 +69,26 @@ combinations keep their starting value), reported by `rank`, `rank_deficient` an
 `null_directions`. A translation seen by one camera is determined along the viewing direction only
 through perspective: H is not singular but badly conditioned; `uncertainty_ratio` (sqrt of the
 eigenvalue ratio of `hessian_U`, in metres for every dof) and `weakest_direction` say so, and a
-caller can pass a larger `rcond` to drop it.
+caller can pass a larger `Solver(rcond=...)` to drop it.
+
+Every choice is a small option object (`ImageReference`, `Q4`, `GridIntegration`, `Gradient`,
+`Solver`, ...), so a call states what it means and a wrong combination fails at once.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy import ndimage
 
-from .camera import image_point
 
 __all__ = ["Patch", "SplineImage", "TextureSampler", "CorrelationResult", "integration_points", "pixel_points",
-           "q4_shape_functions", "correlate"]
+           "q4_shape_functions", "correlate", "ImageReference", "AverageReference", "TextureReference",
+           "BoxPixel", "GaussianPixel", "Translation", "Q4", "PixelIntegration", "GridIntegration",
+           "Weights", "Gradient", "Solver"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -127,14 +132,6 @@ class Patch:
         return self.origin + xi[..., :1] * self.t_u + xi[..., 1:2] * self.t_v
 
 
-def _project(cam, X) -> np.ndarray:
-    """`Camera.project` evaluated with the camera's own K, R, t and distortion in NumPy (no JAX
-    dispatch per call): `vdo.camera.image_point` of (X_c/Z_c, Y_c/Z_c), p = R X + t."""
-    p = X @ cam.R.T + cam.t
-    return np.stack(image_point(cam.K, p[:, 0] / p[:, 2], p[:, 1] / p[:, 2], cam.distortion_array),
-                    axis=1)
-
-
 def _footprint(camera, patch: Patch, X) -> np.ndarray:
     """A = ∂x/∂ξ (..., 2, 2) pixel/m."""
     return camera.sensitivity(X) @ patch.tangents
@@ -176,7 +173,7 @@ def _visible(cam, patch, X, margin_px, min_cos):
     ray = X - np.asarray(cam.position, dtype=float)
     cos = np.abs(ray @ patch.normal) / np.linalg.norm(ray, axis=-1)
     ok = (pc[:, 2] > 0) & (cos >= min_cos)
-    x = _project(cam, X)
+    x = cam.project(X)
     ok &= (x[:, 0] >= margin_px) & (x[:, 0] <= cam.width - 1 - margin_px)
     ok &= (x[:, 1] >= margin_px) & (x[:, 1] <= cam.height - 1 - margin_px)
     return ok
@@ -284,7 +281,7 @@ def q4_shape_functions(xi, size, nx: int, ny: int):
 # --------------------------------------------------------------------------------------------
 @dataclass(eq=False)
 class CorrelationResult:
-    """U: (3,) for "translation", (nodes, 3) for "q4" (metres, world frame). b, c: (n_cameras,).
+    """U: (3,) for `Translation`, (nodes, 3) for `Q4` (metres, world frame). b, c: (n_cameras,).
     hessian: the full Gauss–Newton Hessian Σ w JᵀJ (U dofs first, then b_0, c_0, b_1, c_1, ...), at
     the solution; hessian_U: its Schur complement on the U dofs (b, c eliminated)."""
 
@@ -303,8 +300,8 @@ class CorrelationResult:
     weakest_direction: np.ndarray    # eigenvector of hessian_U with the smallest eigenvalue
     xi: list                         # integration points per camera, each (N_i, 2)
     residual_rms_per_camera: np.ndarray
-    reference: str
-    model: str
+    reference: str                   # the reference's name: "images", "average" or "texture"
+    model: str                       # "translation" or "q4"
     _camera_hessians: list = field(default_factory=list, repr=False)
     _reference_noise: np.ndarray | None = field(default=None, repr=False)
     _solve_inverse: np.ndarray | None = field(default=None, repr=False)
@@ -316,9 +313,9 @@ class CorrelationResult:
     def covariance(self, sigma, sigma_ref=None) -> np.ndarray:
         """Noise-propagated covariance of the U dofs (n_u × n_u, m²) for white Gaussian pixel noise of
         std `sigma` in the deformed images and `sigma_ref` in the reference images (default: the
-        same; ignored for reference="texture"); each a scalar or one value per camera, in the gray
+        same; ignored for a TextureReference); each a scalar or one value per camera, in the gray
         levels of the images. Linear propagation H⁺ (Σ_i σ_i² H_i + σ_ref² M_ref) H⁺ with b, c
-        solved alongside; for reference="images", σ_ref = σ and c = 1 this is 2σ² hessian_U⁻¹."""
+        solved alongside; for an ImageReference, σ_ref = σ and c = 1 this is 2σ² hessian_U⁻¹."""
         n = len(self._camera_hessians)
         s = np.broadcast_to(np.asarray(sigma, dtype=float), (n,))
         M = sum(si ** 2 * Hi for si, Hi in zip(s, self._camera_hessians))
@@ -412,144 +409,283 @@ def pixel_points(patch: Patch, cameras: Sequence, index: int, margin_px: float =
     return xi[keep]
 
 
-def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference: str = "images",
-              reference_images: Sequence | None = None,
-              texture: Callable | np.ndarray | None = None, texel: float | None = None,
-              pixel_filter: str = "box", supersample: int = 4, pixel_sigma: float = 0.5,
-              model: str = "translation", mesh: tuple[int, int] = (1, 1),
-              integration: str = "auto", xi: np.ndarray | None = None,
-              cell_area: float | None = None, spacing: float | None = None, density: float = 1.0,
-              margin_px: float = 3.0, weights: str = "pixel", gradient: str = "auto", U0=None,
-              tol: float = 1e-6, max_iter: int = 30, rcond: float = 1e-10) -> CorrelationResult:
+# --------------------------------------------------------------------------------------------
+# Options
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ImageReference:
+    """Each camera against its own reference image `images[i]` (gray levels, (height, width)).
+    Both images noisy: the residual noise variance is σ_def² + c_i² σ_ref²."""
+
+    images: Sequence
+    name = "images"
+
+
+@dataclass(frozen=True, eq=False)
+class AverageReference:
+    """The paper's eq. 3: one reference shared by all cameras, the mean of the `images`
+    normalised to zero mean and unit variance over the integration points (needs a shared grid,
+    `GridIntegration`)."""
+
+    images: Sequence
+    name = "average"
+
+
+@dataclass(frozen=True)
+class BoxPixel:
+    """A camera's box pixel, averaged over `supersample`² sub-pixel points."""
+
+    supersample: int = 4
+
+
+@dataclass(frozen=True)
+class GaussianPixel:
+    """A Gaussian pixel of std `sigma_px` pixels (Gauss–Hermite points)."""
+
+    sigma_px: float = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class TextureReference:
+    """The true texture f̂(ξ): a callable of ξ (..., 2) in metres, or a pattern array mapped as
+    `vdo.render` maps it (`TextureSampler`, `texel` metres), blurred by the camera's `pixel`.
+    Only the deformed image is noisy."""
+
+    texture: Callable | np.ndarray
+    texel: float | None = None
+    pixel: BoxPixel | GaussianPixel = BoxPixel()
+    name = "texture"
+
+    def sampler(self) -> Callable:
+        if callable(self.texture):
+            return self.texture
+        if self.texel is None:
+            raise ValueError("TextureReference with a pattern array: expected `texel`")
+        return TextureSampler(self.texture, self.texel)
+
+
+Reference = ImageReference | AverageReference | TextureReference
+
+
+@dataclass(frozen=True)
+class Translation:
+    """A rigid translation of the patch: U (3,), world frame, metres."""
+
+    name = "translation"
+
+
+@dataclass(frozen=True)
+class Q4:
+    """A bilinear field on an nx × ny element mesh of the patch: U (nodes, 3), node
+    j * (nx + 1) + i with i along t_u."""
+
+    nx: int = 1
+    ny: int = 1
+    name = "q4"
+
+    def __post_init__(self):
+        if int(self.nx) < 1 or int(self.ny) < 1:
+            raise ValueError(f"Q4: expected nx, ny >= 1, got ({self.nx}, {self.ny})")
+
+
+class Weights(Enum):
+    """The weight of a grid integration point: the camera pixels it stands for
+    (|det A_i| × cell area), or 1."""
+
+    PIXEL = "pixel"
+    UNIFORM = "uniform"
+
+
+@dataclass(frozen=True, eq=False)
+class PixelIntegration:
+    """Each camera integrated over its own reference pixel centres on the patch (weight 1 each),
+    keeping those that every camera sees at least `margin_px` inside its image; or the given
+    per-camera points `xi` (one (N_i, 2) array per camera, e.g. `result.xi` of an earlier call)."""
+
+    xi: Sequence | None = None
+    margin_px: float = 3.0
+
+
+@dataclass(frozen=True, eq=False)
+class GridIntegration:
+    """One ξ grid shared by all cameras: `integration_points(patch, cameras, spacing, density,
+    margin_px)`, or the given `xi` (N, 2) with its `cell_area` (m², needed with pixel weights)."""
+
+    xi: np.ndarray | None = None
+    cell_area: float | None = None
+    spacing: float | None = None
+    density: float = 1.0
+    margin_px: float = 3.0
+    weights: Weights = Weights.PIXEL
+
+
+class Gradient(Enum):
+    """Where the Gauss–Newton image gradient comes from (module docstring): the reference at its
+    own points (modified Gauss–Newton, fixed J), or the deformed image at the current position."""
+
+    REFERENCE = "reference"
+    DEFORMED = "deformed"
+
+
+@dataclass(frozen=True)
+class Solver:
+    """Stop when max |ΔU| < `tol` (metres) or after `max_iter` iterations; drop the directions of
+    the scaled normal matrix with eigenvalue < `rcond` × the largest (`_pinv_solve`)."""
+
+    tol: float = 1e-6
+    max_iter: int = 30
+    rcond: float = 1e-10
+
+
+def _integration_points_and_weights(integration, cameras, patch):
+    """Per camera: the integration points ξ (N_i, 2) and their weights (N_i,)."""
+    nc = len(cameras)
+    if isinstance(integration, GridIntegration):
+        if isinstance(integration.xi, (list, tuple)):
+            raise ValueError("GridIntegration needs one `xi` array shared by all cameras")
+        cell_area = integration.cell_area
+        if integration.xi is None:
+            xi, cell_area = integration_points(patch, cameras, integration.spacing,
+                                               integration.density, integration.margin_px)
+        else:
+            xi = np.asarray(integration.xi, dtype=float).reshape(-1, 2)
+            if cell_area is None and integration.weights is Weights.PIXEL:
+                raise ValueError("correlate: given `xi` with Weights.PIXEL needs `cell_area`")
+        pixel = integration.weights is Weights.PIXEL
+        return [xi] * nc, [np.abs(np.linalg.det(_footprint(cam, patch, patch.points(xi)))) * cell_area
+                           if pixel else np.ones(len(xi)) for cam in cameras]
+    if not isinstance(integration, PixelIntegration):
+        raise ValueError(f"integration: expected PixelIntegration or GridIntegration, got {integration!r}")
+    if integration.xi is not None:      # e.g. `result.xi` of an earlier run on the same images
+        if len(integration.xi) != nc:
+            raise ValueError("correlate: PixelIntegration.xi needs one array per camera")
+        xis = [np.asarray(x, dtype=float).reshape(-1, 2) for x in integration.xi]
+    else:
+        xis = [pixel_points(patch, cameras, i, integration.margin_px) for i in range(nc)]
+    return xis, [np.ones(len(x)) for x in xis]
+
+
+DENSE_NODES = 16    # meshes of up to this many nodes keep their shape functions dense
+
+
+def _scale_rows(N, v):
+    """diag(v) N for a dense or a SciPy sparse N."""
+    return N.multiply(v[:, None]) if hasattr(N, "multiply") else N * v[:, None]
+
+
+def _dense(M) -> np.ndarray:
+    return M.toarray() if hasattr(M, "toarray") else np.asarray(M)
+
+
+def _transpose_times(N):
+    """X -> Nᵀ X for a dense or a SciPy sparse N (dense: einsum, several times faster than matmul's
+    path for a (points, 1) N)."""
+    if hasattr(N, "tocsr"):
+        NT = N.T.tocsr()
+        return lambda X: NT @ X
+    return lambda X: np.einsum("pn,pk->nk", N, X)
+
+
+def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, reference: Reference, *,
+              model: Translation | Q4 = Translation(),
+              integration: PixelIntegration | GridIntegration | None = None,
+              gradient: Gradient | None = None, U0=None,
+              solver: Solver = Solver()) -> CorrelationResult:
     """Global multi-view Gauss–Newton correlation of `deformed` images (one per camera, gray levels,
     (height, width)) on `patch`; see the module docstring for the formulation.
 
-    reference: "images" (each camera against its own `reference_images[i]`), "average" (paper eq. 3
-    from `reference_images`), or "texture" (`texture` callable of ξ (..., 2) -> values, or a pattern
-    array with `texel` metres, blurred by the pixel: `pixel_filter` "box" with `supersample`² points
-    or "gaussian" of std `pixel_sigma` px).
-    model: "translation" (U (3,)) or "q4" (mesh = (nx, ny) elements, U (nodes, 3)).
-    integration: "pixels" (each camera's own reference pixel centres on the patch, weight 1; the
-    default for "images" and "texture"), "grid" (one grid ξ shared by all cameras, from
-    `integration_points(patch, cameras, spacing, density, margin_px)` or the given `xi` with its
-    `cell_area`; the default for "average", which needs a shared ξ). Either way only points that
-    every camera sees at least `margin_px` inside its image are kept. `xi` may also be a list of
-    per-camera pixel points (e.g. `result.xi` of a previous call), to skip recomputing them.
-    weights (grid only): "pixel" (each point weighted by the camera pixels it stands for,
-    |det A_i| × cell area) or "uniform".
-    gradient: "reference" (J from the reference: c_i ∇g_i(x) · s_i(X) N, modified Gauss–Newton; the
-    default for "images" and "texture") or "deformed" (∇f_i^def at the current position; the
-    default, and only choice, for "average").
-    Stops when max |ΔU| < tol (metres) or after max_iter iterations.
+    reference    `ImageReference(images)` (each camera against its own reference image),
+                 `AverageReference(images)` (paper eq. 3) or `TextureReference(texture, texel,
+                 pixel=BoxPixel(4) | GaussianPixel(0.5))`
+    model        `Translation()` (U (3,)) or `Q4(nx, ny)` (U (nodes, 3))
+    integration  `PixelIntegration()` (each camera's own reference pixel centres on the patch,
+                 weight 1; the default for images and texture) or `GridIntegration()` (one grid ξ
+                 shared by all cameras, pixel or uniform weights; the default, and only choice,
+                 for the average reference). Either way only points that every camera sees at
+                 least `margin_px` inside its image are kept.
+    gradient     `Gradient.REFERENCE` (J from the reference: c_i ∇g_i(x) · s_i(X) N, modified
+                 Gauss–Newton; the default for images and texture) or `Gradient.DEFORMED`
+                 (∇f_i^def at the current position; the default, and only choice, for average)
+    U0           starting U (3,) (broadcast to every node of a Q4 mesh) or (nodes, 3)
+    solver       `Solver(tol, max_iter, rcond)`
     """
     cameras = list(cameras)
     nc = len(cameras)
     if nc == 0 or len(deformed) != nc:
         raise ValueError("correlate: expected one deformed image per camera")
-    if reference not in ("images", "average", "texture"):
-        raise ValueError(f"reference: expected 'images', 'average' or 'texture', got {reference!r}")
-    if model not in ("translation", "q4"):
-        raise ValueError(f"model: expected 'translation' or 'q4', got {model!r}")
-    if weights not in ("pixel", "uniform"):
-        raise ValueError(f"weights: expected 'pixel' or 'uniform', got {weights!r}")
-    per_camera_xi = isinstance(xi, (list, tuple))
-    if integration == "auto":
-        integration = "pixels" if per_camera_xi or (xi is None and reference != "average") \
-            else "grid"
-    if integration not in ("pixels", "grid"):
-        raise ValueError(f"integration: expected 'auto', 'pixels' or 'grid', got {integration!r}")
-    if reference == "average" and integration != "grid":
-        raise ValueError("reference='average' needs integration='grid' (one ξ shared by all cameras)")
+    if not isinstance(reference, (ImageReference, AverageReference, TextureReference)):
+        raise ValueError("reference: expected ImageReference(images), AverageReference(images) or "
+                         f"TextureReference(texture, texel), got {type(reference).__name__}")
+    if not isinstance(model, (Translation, Q4)):
+        raise ValueError(f"model: expected Translation() or Q4(nx, ny), got {model!r}")
+    averaged = isinstance(reference, AverageReference)
+    if integration is None:
+        integration = GridIntegration() if averaged else PixelIntegration()
+    if averaged and not isinstance(integration, GridIntegration):
+        raise ValueError("AverageReference needs GridIntegration (one ξ shared by all cameras)")
+    on_pixels = isinstance(integration, PixelIntegration)
+    if gradient is None:
+        gradient = Gradient.REFERENCE if isinstance(reference, ImageReference) else Gradient.DEFORMED
+    if gradient is Gradient.REFERENCE and averaged:
+        raise ValueError("Gradient.REFERENCE is not available with AverageReference")
+    tol, max_iter, rcond = solver.tol, solver.max_iter, solver.rcond
 
-    # Integration points and weights, per camera.
-    if integration == "grid":
-        if per_camera_xi:
-            raise ValueError("integration='grid' needs one `xi` array shared by all cameras")
-        if xi is None:
-            xi, cell_area = integration_points(patch, cameras, spacing, density, margin_px)
-        else:
-            xi = np.asarray(xi, dtype=float).reshape(-1, 2)
-            if cell_area is None and weights == "pixel":
-                raise ValueError("correlate: given `xi` with weights='pixel' needs `cell_area`")
-        xis = [xi] * nc
-        ws = [np.abs(np.linalg.det(_footprint(cam, patch, patch.points(xi)))) * cell_area
-              if weights == "pixel" else np.ones(len(xi)) for cam in cameras]
-    else:
-        if per_camera_xi:           # e.g. `result.xi` of an earlier run on the same images
-            if len(xi) != nc:
-                raise ValueError("correlate: `xi` as a list needs one array per camera")
-            xis = [np.asarray(x, dtype=float).reshape(-1, 2) for x in xi]
-        else:
-            xis = [pixel_points(patch, cameras, i, margin_px) for i in range(nc)]
-        ws = [np.ones(len(x)) for x in xis]
+    xis, ws = _integration_points_and_weights(integration, cameras, patch)
     for i, x in enumerate(xis):
         if len(x) < 4:
             raise ValueError(f"correlate: only {len(x)} integration points for camera "
                              f"{cameras[i].name!r} are seen by every camera")
     Xs = [patch.points(x) for x in xis]
 
-    # Kinematics: N (points × nodes) per camera, sparse.
-    from scipy import sparse
-    if model == "translation":
-        Ns = [sparse.csr_matrix(np.ones((len(x), 1))) for x in xis]
+    # Kinematics: N (points × nodes) per camera; sparse for large meshes, dense for a few nodes
+    # (where SciPy's per-call overhead would cost more than the arithmetic).
+    if isinstance(model, Translation):
+        Ns = [np.ones((len(x), 1)) for x in xis]
     else:
-        nx, ny = int(mesh[0]), int(mesh[1])
-        if nx < 1 or ny < 1:
-            raise ValueError(f"mesh: expected (nx, ny) >= 1, got {mesh!r}")
-        Ns = [q4_shape_functions(x, patch.size, nx, ny) for x in xis]
+        Ns = [q4_shape_functions(x, patch.size, int(model.nx), int(model.ny)) for x in xis]
+        if Ns[0].shape[1] <= DENSE_NODES:
+            Ns = [N.toarray() for N in Ns]
     nn = Ns[0].shape[1]
     nu = 3 * nn
     ndof = nu + 2 * nc
 
     # Reference gray levels g_i at camera i's points.
     k = np.ones(nc)
-    if reference == "images":
-        if reference_images is None or len(reference_images) != nc:
-            raise ValueError("reference='images': expected one reference image per camera")
+    if not isinstance(reference, TextureReference) and len(reference.images) != nc:
+        raise ValueError(f"{type(reference).__name__}: expected one reference image per camera")
+    if isinstance(reference, ImageReference):
         g = []
-        for cam, im, X in zip(cameras, reference_images, Xs):
+        for cam, im, X in zip(cameras, reference.images, Xs):
             im = np.asarray(im, dtype=float)
-            if integration == "pixels":      # the rays of pixel centres: read the samples directly
-                x = np.rint(_project(cam, X)).astype(int)
+            if on_pixels:      # the rays of pixel centres: read the samples directly
+                x = np.rint(cam.project(X)).astype(int)
                 g.append(im[x[:, 1], x[:, 0]])
             else:
-                g.append(SplineImage(im)(_project(cam, X)))
-    elif reference == "average":
-        if reference_images is None or len(reference_images) != nc:
-            raise ValueError("reference='average': expected one reference image per camera")
-        g = [SplineImage(im)(_project(cam, Xs[0])) for cam, im in zip(cameras, reference_images)]
+                g.append(SplineImage(im)(cam.project(X)))
+    elif averaged:
+        g = [SplineImage(im)(cam.project(Xs[0])) for cam, im in zip(cameras, reference.images)]
         mean = np.array([gi.mean() for gi in g])
         k = 1.0 / np.array([gi.std() for gi in g])
         avg = sum(k[i] * (g[i] - mean[i]) for i in range(nc)) / nc
         g = [avg] * nc
     else:
-        if texture is None:
-            raise ValueError("reference='texture': expected `texture` (callable or pattern array)")
-        if not callable(texture):
-            if texel is None:
-                raise ValueError("reference='texture' with a pattern array: expected `texel`")
-            texture = TextureSampler(texture, texel)
-        if pixel_filter == "box":
-            offs, ow = _box_offsets(int(supersample))
-        elif pixel_filter == "gaussian":
-            offs, ow = _gauss_offsets(float(pixel_sigma))
+        texture = reference.sampler()
+        if isinstance(reference.pixel, BoxPixel):
+            offs, ow = _box_offsets(int(reference.pixel.supersample))
+        elif isinstance(reference.pixel, GaussianPixel):
+            offs, ow = _gauss_offsets(float(reference.pixel.sigma_px))
         else:
-            raise ValueError(f"pixel_filter: expected 'box' or 'gaussian', got {pixel_filter!r}")
+            raise ValueError(f"TextureReference.pixel: expected BoxPixel or GaussianPixel, got "
+                             f"{reference.pixel!r}")
         g, ref_grad = zip(*[_texture_reference(texture, cam, patch, x, offs, ow)
                             for cam, x in zip(cameras, xis)])
         g = list(g)
 
-    if gradient == "auto":
-        gradient = "reference" if reference == "images" else "deformed"
-    if gradient not in ("reference", "deformed"):
-        raise ValueError(f"gradient: expected 'auto', 'reference' or 'deformed', got {gradient!r}")
-    if gradient == "reference" and reference == "average":
-        raise ValueError("gradient='reference' is not available with reference='average'")
-    if gradient == "reference":
+    if gradient is Gradient.REFERENCE:
         # G0_i = ∇_x g_i · s_i(X) (points, 3), fixed; the U columns of J are c_i G0_i.
-        if reference == "images":
-            ref_grad = [SplineImage(im).gradient(_project(cam, X))
-                        for cam, im, X in zip(cameras, reference_images, Xs)]
+        if isinstance(reference, ImageReference):
+            ref_grad = [SplineImage(im).gradient(cam.project(X))
+                        for cam, im, X in zip(cameras, reference.images, Xs)]
         G0 = [np.einsum("nj,nja->na", gr, cam.sensitivity(X))
               for gr, cam, X in zip(ref_grad, cameras, Xs)]
 
@@ -558,7 +694,7 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
     p = np.zeros(ndof)
     if U0 is not None:
         U0 = np.asarray(U0, dtype=float)
-        p[:nu] = np.broadcast_to(U0, (nn, 3)).ravel() if model == "q4" else U0.reshape(3)
+        p[:nu] = np.broadcast_to(U0, (nn, 3)).ravel() if isinstance(model, Q4) else U0.reshape(3)
 
     def evaluate(p):
         """Per camera: residual r, U-gradient rows G (points, 3) = ∇f · s, image values f."""
@@ -566,11 +702,11 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
         out = []
         for i, (cam, sp) in enumerate(zip(cameras, splines)):
             Xd = Xs[i] + Ns[i] @ Un
-            if gradient == "reference":
-                f = sp(_project(cam, Xd))
+            if gradient is Gradient.REFERENCE:
+                f = sp(cam.project(Xd))
                 G = p[nu + 2 * i + 1] * G0[i]
             else:
-                f, grad = sp.value_and_gradient(_project(cam, Xd))
+                f, grad = sp.value_and_gradient(cam.project(Xd))
                 G = np.einsum("nj,nja->na", grad, cam.sensitivity(Xd))
             r = f - p[nu + 2 * i] - p[nu + 2 * i + 1] * g[i]
             out.append((r, G, f))
@@ -586,7 +722,7 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
         """Dense (points, ndof) Jacobian of camera i's residuals."""
         N = Ns[i]
         J = np.zeros((N.shape[0], ndof))
-        J[:, :nu] = np.stack([N.multiply(G[:, [a]]).toarray() for a in range(3)], 2).reshape(-1, nu)
+        J[:, :nu] = np.stack([_dense(_scale_rows(N, G[:, a])) for a in range(3)], 2).reshape(-1, nu)
         J[:, nu + 2 * i] = -1.0
         J[:, nu + 2 * i + 1] = -g[i]
         return J
@@ -597,23 +733,23 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
         Hcams = []
         for i, (r, G, f) in enumerate(ev):
             N, wi = Ns[i], ws[i]
-            NT = N.T.tocsr()
+            Nt_times = _transpose_times(N)
             Hi = np.zeros((ndof, ndof))
             blocks = np.zeros((nn, 3, nn, 3))
             for a in range(3):             # H[(n,a),(m,b)] = Σ_p w G_a G_b N_n N_m
                 for bb in range(a, 3):
-                    Mab = (NT @ N.multiply((wi * G[:, a] * G[:, bb])[:, None])).toarray()
+                    Mab = _dense(Nt_times(_scale_rows(N, wi * G[:, a] * G[:, bb])))
                     blocks[:, a, :, bb] = Mab
                     blocks[:, bb, :, a] = Mab
             Hi[:nu, :nu] = blocks.reshape(nu, nu)
             jc = -g[i]
             ib, ic = nu + 2 * i, nu + 2 * i + 1
-            Hi[:nu, ib] = Hi[ib, :nu] = -(NT @ (wi[:, None] * G)).reshape(nu)
-            Hi[:nu, ic] = Hi[ic, :nu] = (NT @ (wi[:, None] * G * jc[:, None])).reshape(nu)
+            Hi[:nu, ib] = Hi[ib, :nu] = -Nt_times(wi[:, None] * G).reshape(nu)
+            Hi[:nu, ic] = Hi[ic, :nu] = Nt_times(wi[:, None] * G * jc[:, None]).reshape(nu)
             Hi[ib, ib] = np.sum(wi)
             Hi[ic, ic] = np.sum(wi * jc * jc)
             Hi[ib, ic] = Hi[ic, ib] = -np.sum(wi * jc)
-            rhs[:nu] -= (NT @ (wi[:, None] * G * r[:, None])).reshape(nu)
+            rhs[:nu] -= Nt_times(wi[:, None] * G * r[:, None]).reshape(nu)
             rhs[ib] += np.sum(wi * r)
             rhs[ic] -= np.sum(wi * jc * r)
             H += Hi
@@ -648,9 +784,9 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
 
     # Reference-noise matrices (unit σ_ref per camera), for `covariance`.
     ref_noise = None
-    if reference == "images":
+    if isinstance(reference, ImageReference):
         ref_noise = [p[nu + 2 * i + 1] ** 2 * Hcams[i] for i in range(nc)]
-    elif reference == "average":
+    elif averaged:
         # Noise n_j of reference j enters every residual through g = Σ_j k_j n_j / nc; its
         # contribution to the gradient is a_jp n_j(x_jp) with a_jp = (k_j / nc) Σ_i c_i w_ip J_ip.
         # Pixel-sampled white noise summed over camera j's pixels: Var = σ² Σ_p a_jp a_jpᵀ / w_jp.
@@ -659,9 +795,9 @@ def correlate(cameras: Sequence, deformed: Sequence, patch: Patch, *, reference:
 
     U = p[:nu].reshape(nn, 3)
     return CorrelationResult(
-        U=U[0].copy() if model == "translation" else U.copy(),
+        U=U[0].copy() if isinstance(model, Translation) else U.copy(),
         b=p[nu::2].copy(), c=p[nu + 1::2].copy(), iterations=it, residual_rms=rms,
         converged=converged, hessian=H, hessian_U=HU, rank=rank, rank_deficient=rank < ndof,
         null_directions=null, uncertainty_ratio=ratio, weakest_direction=V[:, 0].copy(),
-        xi=xis, residual_rms_per_camera=rms_cam, reference=reference, model=model,
+        xi=xis, residual_rms_per_camera=rms_cam, reference=reference.name, model=model.name,
         _camera_hessians=Hcams, _reference_noise=ref_noise, _solve_inverse=Hp)

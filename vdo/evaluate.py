@@ -4,6 +4,7 @@ every region of interest, written into a run folder."""
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -13,46 +14,45 @@ from .config import Experiment
 from .runfolder import run_folder
 from .keyframes import load_path_of
 from .loadpath import LoadPathResult, evaluate_load_path
+from .progress import shown
 from .state import LayoutState, layout_state, prepare
+
+log = logging.getLogger(__name__)
 
 UM = 1e6            # m -> um
 MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
 
 
-def say(message: str, quiet: bool) -> None:
-    if not quiet:
-        print(message, flush=True)
-
-
-def evaluate(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False) -> dict:
+def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
     component for the [analysis] settings, `vdo.strain`); summary.json also holds the design
-    checks per camera and region (`vdo.checks`)."""
+    checks per camera and region (`vdo.checks`). Progress and warnings go to the `vdo.evaluate`
+    logger (`vdo.progress`)."""
     geometry = prepare(exp)
     samples = geometry.samples
-    say(f"{len(samples):,} samples on {len(exp.regions)} regions "
-        f"({exp.evaluation.sample_spacing * 1e3:g} mm spacing)", quiet)
+    log.info("%s samples on %d regions (%g mm spacing)", f"{len(samples):,}", len(exp.regions),
+             exp.evaluation.sample_spacing * 1e3)
     if not exp.lights and exp.render.ambient_radiance == 0:
-        say("note: no [[light]] and no [render] ambient_radiance: the images would be black, so "
-            "the uncertainty is not predicted (sigma = inf)", quiet)
+        log.warning("note: no [[light]] and no [render] ambient_radiance: the images would be "
+                    "black, so the uncertainty is not predicted (sigma = inf)")
     load_path = load_path_of(exp, geometry.meshes)     # its files are checked before any ray
-    state = layout_state(geometry, progress=not quiet)
+    state = layout_state(geometry, progress=shown(log))
     over_path = None
     if load_path is not None:
-        say(f"load path: {len(load_path.steps)} steps", quiet)
-        over_path = evaluate_load_path(geometry, load_path, progress=not quiet, rest=state)
+        log.info("load path: %d steps", len(load_path.steps))
+        over_path = evaluate_load_path(geometry, load_path, progress=shown(log), rest=state)
         for loss in over_path.losses:
-            say(f"warning: camera {loss['camera']} loses region {loss['region']} at step "
-                f"{loss['step']} (sees {100 * loss['fraction']:.0f} % of it, "
-                f"{100 * loss['rest_fraction']:.0f} % at rest)", quiet)
+            log.warning("warning: camera %s loses region %s at step %s (sees %.0f %% of it, "
+                        "%.0f %% at rest)", loss["camera"], loss["region"], loss["step"],
+                        100 * loss["fraction"], 100 * loss["rest_fraction"])
     summary = write_evaluation(state, out, overwrite, over_path)
     for e in summary["axis_angles"]:
         if not e["met"]:
             bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
-            say(f"warning: cameras {e['cameras'][0]} and {e['cameras'][1]}: optical axes "
-                f"{e['value']:.1f} deg apart, {bound} of {e['limit']:.1f} deg", quiet)
+            log.warning("warning: cameras %s and %s: optical axes %.1f deg apart, %s of %.1f deg",
+                        e["cameras"][0], e["cameras"][1], e["value"], bound, e["limit"])
     return summary
 
 

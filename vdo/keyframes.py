@@ -25,6 +25,19 @@ vertices per triangle); vertices with no node stay at rest. Surface
 samples move with their triangle (barycentric interpolation of its vertices' displacements) and
 keep their rest normals and tangents (the rotations of a test's strains are far below the
 incidence limits that the normals feed).
+
+Or the displacements come from a finite-element model as VTK XML files (`vdo.vtkxml`): a `.vtu` or
+`.vtp` (one step, step 1) or a `.pvd` collection (its DataSets in the order of their timesteps
+are steps 1, 2, ...; a DataSet at timestep 0 is the rest state, skipped, and must not move). The
+file's points are the nodes (in the `[load_path]` `unit`, world frame, at rest) and its
+displacement point array (`displacement_array`, or the one 3-component array, or the one named as
+FE exporters name it, `DISPLACEMENT_NAMES`) their displacements. The nodes must lie on the
+specimen mesh's surface (within `SURFACE_TOLERANCE`: export the FE model's outer surface, e.g.
+ParaView's Extract Surface): a file with nodes off it is refused, naming how many and the largest
+distance (wrong unit, frame or mesh). Each mesh vertex takes the displacement of a node within
+`NODE_TOLERANCE` of it, else a weighted linear least-squares fit of its `FIT_NODES` nearest nodes
+(weights 1/(1 + d/h)^2, h the median node spacing), which reproduces any linear field exactly; the
+surface samples then follow their triangle as above.
 """
 
 from __future__ import annotations
@@ -43,6 +56,9 @@ from .errors import ConfigError
 logger = logging.getLogger(__name__)
 
 NODE_TOLERANCE = 1e-4         # m: a displacement node matches a mesh vertex this close
+SURFACE_TOLERANCE = 1e-4      # m: a VTK node lies on the mesh surface this close
+FIT_NODES = 12                # nearest nodes of a VTK file fitted at a vertex with no node
+DISPLACEMENT_NAMES = ("displacement", "displacements", "disp", "displ", "u", "depl")
 MAX_ROTATION_DEG = 360.0      # |rotation| beyond a full turn is a unit mistake
 SMALL_ROTATION_DEG = 0.2      # all rotations below this in a _deg column: likely radians
 _UNITS = {"m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0, "rad": 1.0}
@@ -209,6 +225,174 @@ def read_displacements(file: Path, vertices: np.ndarray, mesh: str) -> dict:
     return out
 
 
+def _point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Distance from points p to triangles (a, b, c), all broadcast against each other (..., 3):
+    the closest point on the triangle by its Voronoi regions (vertex, edge, face; Ericson,
+    Real-Time Collision Detection, sec. 5.1.5)."""
+    ab, ac = b - a, c - a
+    ap, bp, cp = p - a, p - b, p - c
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        q = a + (vb / denom)[..., None] * ab + (vc / denom)[..., None] * ac      # face region
+        edges = ((vc <= 0) & (d1 >= 0) & (d3 <= 0), d1 / (d1 - d3), a, ab), \
+                ((vb <= 0) & (d2 >= 0) & (d6 <= 0), d2 / (d2 - d6), a, ac), \
+                ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), (d4 - d3) / ((d4 - d3) + (d5 - d6)), b, c - b)
+        for mask, t, origin, direction in edges:
+            q = np.where(mask[..., None], origin + t[..., None] * direction, q)
+    for mask, corner in (((d1 <= 0) & (d2 <= 0), a), ((d3 >= 0) & (d4 <= d3), b), ((d6 >= 0) & (d5 <= d6), c)):
+        q = np.where(mask[..., None], corner + 0 * q, q)
+    q = np.where(np.isfinite(q), q, a + 0 * q)                          # degenerate triangles
+    return np.linalg.norm(p - q, axis=-1)
+
+
+def surface_distance(points: np.ndarray, triangles: np.ndarray, chunk: int = 1_000_000) -> np.ndarray:
+    """Distance (N,) from each point (N, 3) to the nearest of `triangles` (T, 3, 3), brute force
+    over chunks of `chunk` point-triangle pairs."""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    out = np.empty(len(points))
+    step = max(1, chunk // max(1, len(triangles)))
+    for start in range(0, len(points), step):
+        out[start:start + step] = _point_triangle_distance(points[start:start + step, None], a, b, c).min(axis=1)
+    return out
+
+
+def off_surface(points: np.ndarray, triangles: np.ndarray, tolerance: float,
+                max_reported: int = 100) -> tuple[np.ndarray, float]:
+    """(which points (N,) lie farther than `tolerance` from the triangles, the largest such
+    distance). Triangles are grouped by size (their centroid-to-corner radius r, by powers of 2);
+    a point is tested against a group's triangles whose centroid lies within `tolerance` + the
+    group's largest r (any triangle nearer than `tolerance` is among them). The largest distance
+    is exact over at most `max_reported` far points (those farthest from any centroid)."""
+    from scipy.spatial import cKDTree
+
+    centroids = triangles.mean(axis=1)
+    radius = np.linalg.norm(triangles - centroids[:, None], axis=2).max(axis=1)
+    size_class = np.floor(np.log2(np.maximum(radius, 1e-12))).astype(int)
+    nearest = np.full(len(points), np.inf)
+    for cls in np.unique(size_class):
+        members = np.flatnonzero(size_class == cls)
+        hits = cKDTree(centroids[members]).query_ball_point(points, float(radius[members].max()) + tolerance)
+        counts = np.fromiter((len(h) for h in hits), int, len(points))
+        if counts.sum() == 0:
+            continue
+        node = np.repeat(np.arange(len(points)), counts)
+        tri = triangles[members[np.concatenate([np.asarray(h, int) for h in hits])]]
+        d = _point_triangle_distance(points[node], tri[:, 0], tri[:, 1], tri[:, 2])
+        np.minimum.at(nearest, node, d)
+    far = nearest > tolerance
+    if not far.any():
+        return far, 0.0
+    idx = np.flatnonzero(far)
+    idx = idx[np.argsort(-cKDTree(centroids).query(points[idx])[0])[:max_reported]]
+    return far, float(surface_distance(points[idx], triangles).max())
+
+
+def _displacement_array(data, file: Path, name: str | None) -> np.ndarray:
+    """The displacement point array of a VTK file: `name`, else the only 3-component array, else
+    the only one named as in DISPLACEMENT_NAMES (case-insensitive)."""
+    vectors = {k: v for k, v in data.arrays.items() if v.ndim == 2 and v.shape[1] == 3}
+    if name is not None:
+        if name not in data.arrays:
+            raise ConfigError(file, "displacement_array", f"no point array {name!r} (arrays: "
+                                                          f"{', '.join(data.arrays) or 'none'})")
+        if name not in vectors:
+            raise ConfigError(file, f"point array {name!r}", "is not a 3-component vector array")
+        return vectors[name]
+    named = [k for k in vectors if k.lower() in DISPLACEMENT_NAMES]
+    if len(vectors) == 1 or len(named) == 1:
+        return vectors[named[0] if len(named) == 1 else next(iter(vectors))]
+    raise ConfigError(file, "displacement_array", f"cannot tell which point array holds the "
+                                                  f"displacements (3-component arrays: "
+                                                  f"{', '.join(vectors) or 'none'}): name it in "
+                                                  f"[load_path] displacement_array")
+
+
+def _vtk_steps(file: Path) -> list[tuple[int, Path]]:
+    """(step, .vtu/.vtp file) of a VTK displacement file: step 1 for one file; a .pvd's DataSets
+    by timestep as steps 1, 2, ..., a timestep-0 DataSet (the rest state) kept as step 0."""
+    from .vtkxml import collection
+
+    if file.suffix.lower() != ".pvd":
+        return [(1, file)]
+    sets = collection(file)
+    rest = [f for t, f in sets if t == 0]
+    moving = [f for t, f in sets if t != 0]
+    return [(0, f) for f in rest] + [(k, f) for k, f in enumerate(moving, start=1)]
+
+
+def read_vtk_displacements(file: Path, vertices: np.ndarray, faces: np.ndarray, mesh: str,
+                           unit: str, array: str | None = None) -> dict:
+    """{step: (n_vertices, 3) displacement in m} from VTK XML nodal displacements (module
+    docstring): nodes checked on the mesh surface, every vertex given its node's displacement or
+    the fit of its nearest nodes."""
+    from scipy.spatial import cKDTree
+
+    from .config import UNITS
+    from .vtkxml import read_points
+
+    file = Path(file)
+    scale = UNITS[unit]
+    triangles = vertices[faces]
+    out, nodes_seen = {}, None
+    for step, path in _vtk_steps(file):
+        data = read_points(path)
+        nodes = data.points * scale
+        u = _displacement_array(data, path, array) * scale
+        bad = ~np.isfinite(u).all(axis=1) | ~np.isfinite(nodes).all(axis=1)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ConfigError(path, f"node {k}", f"displacement {u[k].tolist()} or position is not "
+                                                 f"finite ({int(bad.sum())} such nodes; node ids "
+                                                 "count from 0 as in ParaView)")
+        if nodes_seen is None or nodes.shape != nodes_seen.shape or not np.array_equal(nodes, nodes_seen):
+            far, largest = off_surface(nodes, triangles, SURFACE_TOLERANCE)
+            if far.any():
+                raise ConfigError(path, "points", f"{int(far.sum())} of {len(nodes)} nodes are farther "
+                                                  f"than {SURFACE_TOLERANCE * 1e3:g} mm from the surface "
+                                                  f"of mesh {mesh!r} (largest {largest * 1e3:.3g} mm): "
+                                                  f"the nodes must lie on it (check the unit "
+                                                  f"{unit!r}, the frame, and give the FE model's "
+                                                  "outer surface only)")
+            fit = _vertex_fit(nodes, vertices, cKDTree(nodes))
+            nodes_seen = nodes
+        if step == 0:
+            if np.abs(u).max() > 0:
+                raise ConfigError(path, "timestep 0", "the rest state's displacements must be zero "
+                                                      "(vdo's step 0 is the undeformed mesh)")
+            continue
+        out[step] = fit(u)
+    return out
+
+
+def _vertex_fit(nodes: np.ndarray, vertices: np.ndarray, tree):
+    """A linear map node displacements (M, 3) -> vertex displacements (V, 3): the node within
+    NODE_TOLERANCE of a vertex, else the weighted affine least-squares fit of its FIT_NODES
+    nearest nodes evaluated at the vertex (exact for linear fields; minimum-norm in directions
+    the nodes do not span, e.g. across a flat face)."""
+    from scipy import sparse
+
+    k = min(FIT_NODES, len(nodes))
+    spacing = float(np.median(tree.query(nodes, k=2)[0][:, 1])) if len(nodes) > 1 else 1.0
+    dist, idx = tree.query(vertices, k=k)
+    dist, idx = dist.reshape(len(vertices), k), idx.reshape(len(vertices), k)
+    exact = np.flatnonzero(dist[:, 0] <= NODE_TOLERANCE)
+    rows, cols, values = [exact], [idx[exact, 0]], [np.ones(len(exact))]
+    for v in np.flatnonzero(dist[:, 0] > NODE_TOLERANCE):
+        w = 1.0 / (dist[v] / spacing + 1.0) ** 2
+        design = np.hstack([np.ones((k, 1)), (nodes[idx[v]] - vertices[v]) / spacing]) * w[:, None]
+        # the fit's value at the vertex: the first row of pinv(design) applied to w * u
+        rows.append(np.full(k, v))
+        cols.append(idx[v])
+        values.append(np.linalg.pinv(design, rcond=1e-10)[0] * w)
+    weights = sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                                shape=(len(vertices), len(nodes)))
+    return lambda u: np.asarray(weights @ u)
+
+
 # --------------------------------------------------------------------------------------------
 # Applying a step to a geometry
 # --------------------------------------------------------------------------------------------
@@ -284,7 +468,11 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
     displacements = None
     if spec.displacements is not None:
         mesh = next(m for m in meshes if m.name == spec.deformed_mesh)
-        displacements = read_displacements(spec.displacements, mesh.vertices, mesh.name)
+        if spec.displacements.suffix.lower() == ".csv":
+            displacements = read_displacements(spec.displacements, mesh.vertices, mesh.name)
+        else:
+            displacements = read_vtk_displacements(spec.displacements, mesh.vertices, mesh.faces,
+                                                   mesh.name, spec.unit, spec.displacement_array)
     table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
     steps = sorted({step for step, _ in table} | set(displacements or {}))
     return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)

@@ -1,4 +1,6 @@
-"""Images with Mitsuba: the sensor for a vdo camera, the render scene, and `vdo render`.
+"""Images with Mitsuba: the sensor for a vdo camera, the render scene, and the images of every
+camera of an experiment (`render_images`, the computation of `vdo render`; `vdo.render_command`
+writes them into a run folder).
 
 `sensor_dict` is the only place a vdo `Camera` becomes a Mitsuba sensor; the frame conversion
 itself lives in `Camera.mitsuba_to_world` / `mitsuba_principal_offset`.
@@ -36,16 +38,17 @@ by 1/s'^2, "bigger pixels collect more light", would saturate a 1/8-scale previe
 
 from __future__ import annotations
 
-import csv
-import json
+import logging
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .camera import Camera, image_point
 from .speckle import normalise, pattern_for
+
+log = logging.getLogger(__name__)
 
 BODY_ALBEDO = 0.05
 
@@ -139,23 +142,26 @@ def resample(linear: np.ndarray, where: np.ndarray) -> np.ndarray:
     return np.maximum(out, 0.0).astype(np.float32)
 
 
-def render_camera(scene, camera: Camera, spec, spp: int, seed: int) -> np.ndarray:
+def render_camera(scene, camera: Camera, spec, spp: int, seed: int, jitter: bool = True) -> np.ndarray:
     """One camera's (H, W) float32 linear image: `render_linear` through `camera_sensor`, and for a
     camera with lens distortion the wider pinhole render resampled onto the distorted pixels
-    (`undistorted_canvas`, `resample`)."""
+    (`undistorted_canvas`, `resample`). `jitter`: the stratified sampler's random offsets within
+    each stratum (False: stratum centres, a fixed sqrt(spp) x sqrt(spp) midpoint rule per pixel
+    and per light, as `vdo.validate` and `vdo.series` render)."""
     if not camera.distorted:
-        return render_linear(scene, camera_sensor(camera, spec, spp), seed)
+        return render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed)
     wide, where = undistorted_canvas(camera)
-    return resample(render_linear(scene, camera_sensor(wide, spec, spp), seed), where)
+    return resample(render_linear(scene, camera_sensor(wide, spec, spp, jitter), seed), where)
 
 
-def camera_sensor(camera: Camera, spec, spp: int) -> dict:
+def camera_sensor(camera: Camera, spec, spp: int, jitter: bool = True) -> dict:
     """`sensor_dict` for an already scaled camera and its CameraSpec (thin lens when the spec has
     f_number: aperture radius f / (2N), focused at focus_distance)."""
     if spec is not None and spec.f_number is not None:
-        return sensor_dict(camera, spp=spp, aperture_radius=camera.focal_length / (2 * spec.f_number),
+        return sensor_dict(camera, spp=spp, jitter=jitter,
+                           aperture_radius=camera.focal_length / (2 * spec.f_number),
                            focus_distance=spec.focus_distance)
-    return sensor_dict(camera, spp=spp)
+    return sensor_dict(camera, spp=spp, jitter=jitter)
 
 
 # --------------------------------------------------------------------------------------------
@@ -367,35 +373,8 @@ def noise_free_dn(linear: np.ndarray, sensor) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# vdo render
+# Photometry of the renders
 # --------------------------------------------------------------------------------------------
-def _say(message: str, quiet: bool) -> None:
-    if not quiet:
-        print(message, flush=True)
-
-
-def contact_sheet(images: dict, max_dn: int, path, title: str = "") -> None:
-    """All cameras' DN images in a grid, each titled with its camera name; PNG."""
-    import matplotlib.pyplot as plt
-
-    n = len(images)
-    cols = min(n, 5 if n > 6 else 3 if n > 2 else n)
-    rows = math.ceil(n / cols)
-    first = next(iter(images.values()))
-    aspect = first.shape[0] / first.shape[1]
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.6 * aspect * rows + 0.6),
-                             squeeze=False, layout="constrained")
-    for ax in axes.ravel():
-        ax.axis("off")
-    for ax, (name, image) in zip(axes.ravel(), images.items()):
-        ax.imshow(image, cmap="gray", vmin=0, vmax=max_dn, interpolation="antialiased")
-        ax.set_title(f"{name}  ({image.shape[1]}x{image.shape[0]})", fontsize=9)
-    if title:
-        fig.suptitle(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
 def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.ndarray:
     """(K,) std of the rendered pixel values of a unit-variance pattern f̂: each pixel is the
     mean of `spp` samples, one uniform in each of the sqrt(spp) x sqrt(spp) strata of the pixel
@@ -421,11 +400,11 @@ def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.
 PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
 
 
-def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
-                       pattern_normalised, texel: float, spp: int) -> list[dict]:
+def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_normalised,
+                      texel: float, spp: int) -> list[dict]:
     """One row per (camera, region) of photometry.csv (docs/photometry.md). Over the
     `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
-    render: b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
+    render (`noise_free_dn` of each camera's `linear` image): b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
     mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
     the irradiance's variation over the region does not count as contrast). Predictions at the
     pixel footprint of the row's middle visible sample: c_pixel_predicted = c_predicted x
@@ -438,7 +417,9 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
     half = PHOTOMETRY_WINDOW // 2
     dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
     tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
+    offset_dn = sensor.offset
     for i, cam in enumerate(cameras):
+        clean = noise_free_dn(linear[cam.name], sensor)
         uv = cam.project(samples.points)
         for k, region in enumerate(samples.region_names):
             mask = vis.visible[i] & (samples.region == k)
@@ -446,7 +427,7 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
             if mask.any():
                 col = np.clip(np.rint(uv[mask, 0]).astype(int)[:, None] + dx.ravel(), 0, cam.width - 1)
                 r = np.clip(np.rint(uv[mask, 1]).astype(int)[:, None] + dy.ravel(), 0, cam.height - 1)
-                values = clean_dn[cam.name][r, col]                         # (n, window^2)
+                values = clean[r, col]                         # (n, window^2)
                 level = pho.brightness[i, mask] - offset_dn
                 ratio = (values - offset_dn) / level[:, None]
                 middle = np.flatnonzero(mask)[mask.sum() // 2]
@@ -467,37 +448,51 @@ def _region_photometry(cameras, vis, samples, pho, clean_dn, offset_dn: float,
     return rows
 
 
-def render_experiment(exp, out, scale: float | None = None, spp: int | None = None,
-                      seed: int | None = None, overwrite: bool = False, quiet: bool = False) -> dict:
-    """Render every camera of `exp` and write the run folder `out` (atomically, vdo.runfolder):
 
-    images/<camera>.png|.tif   noisy DN images (16-bit files above 8-bit depth, counts aligned to
-                               the most significant bits or raw: [render] bit_alignment),
-                               [render] image_format
-    images/<camera>.exr        linear float radiance, when [render] exr = true
-    layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
-    calibration/<format>/      the same cameras for DIC software (`vdo.formats.export.write_all`)
-    contact_sheet.png          all cameras in a grid with their names
-    photometry.csv             per camera and region: brightness b and contrast c of the noise-free
-                               render around the projected visible samples, next to vdo.lighting's
-                               prediction (b, c of the paint, noise σ) and the contrasts predicted
-                               for a camera's box pixels and for the rendered pixels
-                               (docs/photometry.md)
-    shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
-    maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
-    config.toml, render.json   the resolved config; settings and time per camera
 
-    `scale`, `spp`, `seed` default to the config's [render] section. Returns the render.json dict.
+# --------------------------------------------------------------------------------------------
+# Every camera of an experiment (the computation behind `vdo render`)
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class RenderResult:
+    """The images of every camera of an experiment and what was predicted for them
+    (`render_images`). Writing them is `vdo.render_command`'s business.
+
+    state        the layout state of the cameras *at the rendered scale* (`scaled_camera`; same
+                 poses and lenses, hence the same bodies, visibility and lighting)
+    images       camera name -> noisy DN image (H, W), uint8 or uint16 (`SensorModel.expose`)
+    linear       camera name -> linear float32 radiance image (H, W) before the sensor
+    photometry   one row per (camera, region): rendered against predicted brightness and
+                 contrast (`region_photometry`, docs/photometry.md)
+    seconds      camera name -> render time (s)
+    pairs        the stereo pairs of the calibration files (`vdo.formats.export.default_pairs`)
     """
-    from tqdm import tqdm
 
-    from . import html_report, maps, report, vtp
+    state: object                 # vdo.state.LayoutState
+    scale: float
+    spp: int
+    seed: int
+    images: dict
+    linear: dict
+    photometry: list
+    seconds: dict
+    total_seconds: float
+    pairs: list
+
+    @property
+    def experiment(self):
+        return self.state.experiment
+
+    @property
+    def cameras(self) -> list[Camera]:
+        return list(self.state.cameras)
+
+
+def render_settings(exp, scale: float | None = None, spp: int | None = None,
+                    seed: int | None = None) -> tuple[float, int, int]:
+    """(scale, spp, seed): the given values or the experiment's [render] ones, checked (a
+    ConfigError naming the option and the fix, before any heavy work)."""
     from .errors import ConfigError
-    from .formats.export import default_pairs, write_all
-    from .lighting import photometry
-    from .runfolder import inside, run_folder
-    from .sensor import save_image
-    from .state import bodies, layout_state, prepare
 
     rs = exp.render
     scale = rs.scale if scale is None else float(scale)
@@ -509,70 +504,49 @@ def render_experiment(exp, out, scale: float | None = None, spp: int | None = No
         raise ConfigError(exp.path, "--spp", f"must be at least 1 (got {spp})")
     if seed < 0:
         raise ConfigError(exp.path, "--seed", f"must be >= 0 (got {seed})")
-    started = time.perf_counter()
-    geometry = prepare(exp)
-    meshes, samples = list(geometry.meshes), geometry.samples
-    region_faces = list(geometry.region_faces)
-    cameras = [scaled_camera(c, scale) for c in exp.cameras()]
-    for spec, cam in zip(exp.camera_specs, cameras):
-        if spec.f_number is not None and cam.principal_offset_px != (0.0, 0.0):
+    for spec in exp.camera_specs:
+        if spec.f_number is not None and tuple(spec.principal_offset_px) != (0.0, 0.0):
             raise ConfigError(exp.path, f'camera "{spec.name}".f_number',
                               "a thin lens (depth of field) cannot have a principal_offset_px")
+    return scale, spp, seed
+
+
+def render_images(exp, scale: float | None = None, spp: int | None = None,
+                  seed: int | None = None, pairs=None) -> RenderResult:
+    """Render every camera of `exp` (the render scene of `build_render_scene`, camera i with
+    Mitsuba seed `render_seed(seed, i)` and sensor noise `expose(linear, sensor, seed, i)`) and
+    compare the noise-free renders with the photometric prediction (`region_photometry`).
+    `scale`, `spp`, `seed` default to the config's [render] section (`render_settings`). Progress
+    goes to the `vdo.render` logger (`vdo.progress`). `pairs`: the stereo pairs of the
+    calibration files as (first, second) names (default: cameras assigned a common region),
+    checked to share a field of view before anything is rendered."""
+    from .formats.export import default_pairs
+    from .lighting import photometry
+    from .progress import bar
+    from .state import bodies, layout_state, prepare
+
+    scale, spp, seed = render_settings(exp, scale, spp, seed)
+    started = time.perf_counter()
+    geometry = prepare(exp)
+    cameras = [scaled_camera(c, scale) for c in exp.cameras()]
     # The scaled cameras have the full-size cameras' poses and lenses, hence the same bodies.
     state = layout_state(geometry, cameras, predict_fields=False)
-    vis, illum = state.visibility, state.illumination
+    stereo = default_pairs(exp, cameras, state.visibility, geometry.samples, pairs)
     pattern = geometry.speckle.pattern
-    scene = build_render_scene(exp, meshes, region_faces, bodies(exp, cameras), pattern)
-    pho = photometry(illum, exp.speckle, exp.sensor, geometry.speckle.mean, geometry.speckle.std,
-                     len(cameras))
-    _say(f"rendering {len(cameras)} cameras at scale {scale:g}, {spp} spp, seed {seed}", quiet)
-
-    suffix = {"png": ".png", "tiff": ".tif"}[rs.image_format]
-    dn_images, clean, timings = {}, {}, {}
-    with run_folder(out, overwrite) as tmp:
-        (tmp / "images").mkdir()
-        (tmp / "maps").mkdir()
-        for i, (cam, spec) in enumerate(tqdm(list(zip(cameras, exp.camera_specs)), desc="render",
-                                             unit="camera", disable=quiet)):
-            t0 = time.perf_counter()
-            linear = render_camera(scene, cam, spec, spp, render_seed(seed, i))
-            dn = expose(linear, exp.sensor, seed, i)
-            timings[cam.name] = time.perf_counter() - t0
-            save_image(inside(tmp / "images", f"{cam.name}{suffix}"), dn, exp.sensor.bit_depth,
-                       rs.bit_alignment)
-            if rs.exr:
-                from .backend import mitsuba
-
-                mitsuba().Bitmap(linear[..., None]).write(str(inside(tmp / "images", f"{cam.name}.exr")))
-            dn_images[cam.name] = dn
-            clean[cam.name] = noise_free_dn(linear, exp.sensor)
-        report.write_json(tmp / "layout.json", report.layout(cameras))
-        report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, default_pairs(exp, cameras, vis, samples), tmp / "calibration", exp.path)
-        contact_sheet(dn_images, exp.sensor.max_dn, tmp / "contact_sheet.png",
-                      f"{exp.name}: scale {scale:g}, {spp} spp")
-        rows = _region_photometry(cameras, vis, samples, pho, clean, exp.sensor.offset,
-                                  normalise(pattern), exp.speckle.texel, spp)
-        fields = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
-                  "c_render_predicted_dn", "c_pixel_predicted_dn", "c_predicted_dn", "pixel_factor",
-                  "render_factor", "noise_predicted_dn"]
-        with open(tmp / "photometry.csv", "w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=fields, restval="")
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({k: (f"{v:.3f}" if isinstance(v, float) else v) for k, v in row.items()})
-        arrays = {f"lit_{name}": illum.lit[k] for k, name in enumerate(illum.light_names)}
-        arrays |= {"irradiance": illum.irradiance, "lights": illum.lights_reaching.astype(np.int32),
-                   "region": samples.region.astype(np.int32), "normal": samples.normals}
-        vtp.write_points(tmp / "shadows.vtp", samples.points, arrays)
-        maps.plot_unfolded(samples, illum.lights_reaching, tmp / "maps" / "shadows.png",
-                           f"{exp.name}: number of lights reaching each point", "lights",
-                           discrete=True)
-        summary = {"experiment": exp.name, "config": str(exp.path), "scale": scale, "spp": spp,
-                   "seed": seed, "integrator": "direct", "lights": list(illum.light_names),
-                   "cameras": {c.name: {"width": c.width, "height": c.height,
-                                        "seconds": round(timings[c.name], 3)} for c in cameras},
-                   "total_seconds": round(time.perf_counter() - started, 3)}
-        (tmp / "render.json").write_text(json.dumps(summary, indent=2) + "\n")
-        html_report.write_report(tmp)
-    return summary
+    scene = build_render_scene(exp, list(geometry.meshes), list(geometry.region_faces),
+                               bodies(exp, cameras), pattern)
+    log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(cameras), scale, spp, seed)
+    images, linear, seconds = {}, {}, {}
+    for i, (cam, spec) in enumerate(bar(log, iterable=list(zip(cameras, exp.camera_specs)),
+                                        desc="render", unit="camera")):
+        t0 = time.perf_counter()
+        linear[cam.name] = render_camera(scene, cam, spec, spp, render_seed(seed, i))
+        images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
+        seconds[cam.name] = time.perf_counter() - t0
+    pho = photometry(state.illumination, exp.speckle, exp.sensor, geometry.speckle.mean,
+                     geometry.speckle.std, len(cameras))
+    rows = region_photometry(cameras, state.visibility, geometry.samples, pho, linear, exp.sensor,
+                             normalise(pattern), exp.speckle.texel, spp)
+    return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,
+                        photometry=rows, seconds=seconds,
+                        total_seconds=time.perf_counter() - started, pairs=stereo)

@@ -47,10 +47,10 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .config import Table, parse, read_toml
 from .errors import ConfigError
+from .progress import bar as progress_bar
 
 log = logging.getLogger(__name__)
 
@@ -467,7 +467,7 @@ def run_point(point: Point) -> dict:
         elif point.run_dir is not None:
             from .evaluate import evaluate
 
-            summary, extra = evaluate(exp, Path(point.run_dir), overwrite=True, quiet=True), {}
+            summary, extra = evaluate(exp, Path(point.run_dir), overwrite=True), {}
         else:
             summary, extra = _evaluation_summary(exp), {}
         record |= {"metrics": metrics(summary) | extra, "summary": summary}
@@ -622,11 +622,12 @@ def write_table(path: Path, rows: list[dict]) -> None:
 # The command
 # --------------------------------------------------------------------------------------------
 def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = None,
-          quiet: bool = False, connect_timeout: float = 5.0) -> dict:
+          connect_timeout: float = 5.0) -> dict:
     """Run every point of `spec` not yet stored in `out` (on `workers` local processes, default
     one per core, or on the Dask scheduler at `dask`, "local" for a LocalCluster of `workers`
     processes); write results.csv and figures/. Returns the counts (points, done, failed,
-    reused: stored before, computed: run now), the rows and the output paths."""
+    reused: stored before, computed: run now), the rows and the output paths. Progress goes to
+    the `vdo.sweep` logger (`vdo.progress`)."""
     out = open_store(out)
     points = expand(spec, out)
     invalid = {p.key: check_point(p) for p in points}
@@ -666,8 +667,8 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
         if invalid[p.key]:
             store(p, _failure(invalid[p.key]))
     failed = len(todo) - len(runnable)
-    bar = tqdm(total=len(todo), initial=failed, unit="point", desc="sweep",
-               disable=quiet or not todo, dynamic_ncols=True)
+    bar = progress_bar(log, total=len(todo), initial=failed, unit="point", desc="sweep",
+                       disable=not todo, dynamic_ncols=True)
     bar.set_postfix(failed=failed)
     try:
         if runnable and dask == "local":

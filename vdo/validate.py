@@ -1,4 +1,5 @@
-"""`vdo validate`: the predicted uncertainty against correlation on vdo's own renders.
+"""The predicted uncertainty against correlation on vdo's own renders: the computation of
+`vdo validate` (`run_cases`; `vdo.validate_command` writes the run folder).
 
 For each case of a validation file (experiments/validation.toml, schema in docs/validation.md):
 
@@ -14,7 +15,7 @@ For each case of a validation file (experiments/validation.toml, schema in docs/
    to the correlated patch;
 3. for each seed, independent sensor noise is drawn for the reference and the displaced image of
    every camera (`vdo.render.expose`, distinct seeds), and U is measured by global multi-view
-   correlation (`vdo.correlate.correlate`, translation model, reference="images": each camera
+   correlation (`vdo.correlate.correlate`, `Translation` model, `ImageReference`: each camera
    against its own noisy reference image);
 4. the scatter of the measured U over the seeds is compared with the prediction. Both images are
    noisy, so the expected standard deviation is √2 σ_predicted, and
@@ -36,54 +37,35 @@ mesh's own gradient factors), with the same √2 and the same ratio.
 
 from __future__ import annotations
 
-import csv
-import json
+import logging
 import math
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from . import html_report, strain
+from . import strain
 from .camera import Camera, look_at_angles
 from .config import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
                      SpeckleSpec, Table, as_numbers, read_toml)
-from .correlate import Patch, correlate
+from .correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
 from .errors import ConfigError
 from .lighting import pattern_stats
 from .predict import SpeckleModel
-from .render import (build_render_scene, contact_sheet, expose, noise_free_dn, render_linear,
-                     render_seed, sensor_dict)
-from .runfolder import inside, run_folder
+from .render import build_render_scene, expose, noise_free_dn, render_linear, render_seed, sensor_dict
 from .scene import SceneMesh, SurfaceSamples, face_frame, region_faces
 from .sensor import SensorModel
 from .speckle import gradient_energy_table, normalise, pattern_for
 from .state import Geometry, layout_state
 
+log = logging.getLogger(__name__)
+
 AXES = "xyz"
 STRAIN_AXES = ("eps_uu", "eps_vv", "eps_uv")
 UM = 1e6
 SQRT2 = math.sqrt(2.0)
-BAND = (0.8, 1.25)
-CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
-              "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
-              "sigma_linear_um", "unit"]
-CONVENTION = ("sigma_predicted_um: vdo.predict, the Cramer-Rao bound for ONE noisy image against a "
-              "noise-free reference, for the correlated patch. sigma_measured_um: standard "
-              "deviation over the seeds of the correlated displacement, reference and deformed "
-              "images both noisy (reference='images'). sigma_expected_um = sqrt(2) * "
-              "sigma_predicted_um. ratio = sigma_measured_um / sigma_expected_um (1 when the model "
-              "is right; the requirement is [0.8, 1.25]). ratio_ci95_*: the 95% interval of the "
-              "ratio from the seed count alone. bias_um: mean error (measured - imposed). "
-              "rms_error_um: rms error about the imposed displacement. sigma_linear_um: the "
-              "correlation's own linear noise propagation (CorrelationResult.covariance) at the "
-              "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
-              "on the plate, Q4 correlation): axis eps_uu, eps_vv, eps_uv (tensor shear, face "
-              "frame) at the centre of the middle element, vdo.strain's prediction, and the *_um "
-              "columns in microstrain (unit column).")
-
+BAND = (0.8, 1.25)       # the requirement on every ratio (`ValidationResult.passed`)
 
 # --------------------------------------------------------------------------------------------
 # The validation file
@@ -633,12 +615,12 @@ def _correlate(setup: Setup, deformed, references, xi=None) -> list:
     """The case's correlation(s) of `deformed` against `references`: one global correlation
     (translation or Q4), or one translation per subset. `xi`: the points of an earlier call."""
     case = setup.case
+    reference = ImageReference(references)
     if case.subsets is None:
-        return [correlate(setup.cameras, deformed, setup.patch, reference="images",
-                          reference_images=references, xi=None if xi is None else xi[0],
-                          **_model(case))]
-    return [correlate(setup.cameras, deformed, p, reference="images", reference_images=references,
-                      model="translation", xi=None if xi is None else xi[k])
+        return [correlate(setup.cameras, deformed, setup.patch, reference, model=_model(case),
+                          integration=PixelIntegration(None if xi is None else xi[0]))]
+    return [correlate(setup.cameras, deformed, p, reference,
+                      integration=PixelIntegration(None if xi is None else xi[k]))
             for k, p in enumerate(subset_patches(setup))]
 
 
@@ -663,8 +645,8 @@ def _estimate(setup: Setup, results) -> np.ndarray:
     return np.array([p.t_u @ d1, p.t_v @ d2, 0.5 * (p.t_u @ d2 + p.t_v @ d1)])
 
 
-def _model(case: Case) -> dict:
-    return {"model": "translation"} if case.strain is None else {"model": "q4", "mesh": case.q4_mesh}
+def _model(case: Case) -> Translation | Q4:
+    return Translation() if case.strain is None else Q4(*case.q4_mesh)
 
 
 def _centre_displacement(setup: Setup, results) -> np.ndarray:
@@ -717,8 +699,9 @@ def axes_reported(case: Case) -> list[int]:
     return [k for k in range(3) if abs(n[k]) < 0.5]
 
 
-def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
-    """Render, predict, correlate `seeds` times; returns the per-axis statistics and diagnostics."""
+def run_case(case: Case, path: Path, seeds: int, progress=None) -> CaseResult:
+    """Render, predict, correlate `seeds` times; returns the per-axis statistics and diagnostics.
+    `progress`: called with 1 after each seed."""
     t0 = time.perf_counter()
     setup = build_setup(case, path)
     render_case(setup)
@@ -761,8 +744,8 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
                      "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * scale,
                      "sigma_linear_um": sigma_lin[a] * scale, "unit": unit})
     centre = setup.patch.points(setup.patch.size / 2)
-    return {"rows": rows, "estimates": estimates, "setup": setup,
-            "info": {"case": case.name, "cameras": len(case.cameras),
+    return CaseResult(rows=rows, estimates=estimates, setup=setup,
+                      info={"case": case.name, "cameras": len(case.cameras),
                      "noise_dn": sigma_dn,
                      "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)},
                      "noise_free_ok": bool(np.all(np.abs(px_err) < 0.01)),
@@ -774,71 +757,52 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> dict:
                      "shift_px": [float(np.linalg.norm(c.sensitivity(centre) @ case.displacement))
                                   for c in setup.cameras],
                      "render_seconds": round(t_render, 2),
-                     "seconds": round(time.perf_counter() - t0, 2)}}
+                     "seconds": round(time.perf_counter() - t0, 2)})
 
 
-def plot(rows: list[dict], path, title: str = "") -> None:
-    """Measured against expected (√2 x predicted) sigma, log-log, y = x and the [0.8, 1.25] band."""
-    import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 5.6), layout="constrained")
-    x = np.array([r["sigma_expected_um"] for r in rows])
-    y = np.array([r["sigma_measured_um"] for r in rows])
-    lo, hi = min(x.min(), y.min()) / 1.6, max(x.max(), y.max()) * 1.6
-    line = np.geomspace(lo, hi, 50)
-    ax.fill_between(line, BAND[0] * line, BAND[1] * line, color="0.88", label="ratio in [0.8, 1.25]")
-    ax.plot(line, line, "k-", lw=1, label="measured = √2 predicted")
-    cases = list(dict.fromkeys(r["case"] for r in rows))
-    colors = plt.get_cmap("tab10")
-    markers = {"x": "o", "y": "s", "z": "^", "eps_uu": "D", "eps_vv": "v", "eps_uv": "<"}
-    unit = "µε" if rows[0].get("unit") == "microstrain" else "µm"
-    for r in rows:
-        ci = cases.index(r["case"])
-        err = [[r["sigma_measured_um"] * (1 - r["ratio_ci95_low"] / r["ratio"])],
-               [r["sigma_measured_um"] * (r["ratio_ci95_high"] / r["ratio"] - 1)]]
-        ax.errorbar(r["sigma_expected_um"], r["sigma_measured_um"], yerr=err, fmt=markers[r["axis"]],
-                    color=colors(ci % 10), ms=6, capsize=2,
-                    label=f"{r['case']} {r['axis']}")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlim(lo, hi)
-    ax.set_ylim(lo, hi)
-    ax.set_xlabel(f"expected σ = √2 × predicted ({unit})  [both images noisy]")
-    ax.set_ylabel(f"measured σ over seeds ({unit})")
-    ax.set_title(title or "vdo validate: predicted vs measured uncertainty", fontsize=10)
-    ax.legend(fontsize=6, ncol=2, loc="upper left")
-    ax.grid(True, which="both", alpha=0.3)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+@dataclass(frozen=True, eq=False)
+class CaseResult:
+    """One case's outcome (`run_case`): `rows` per reported axis (predicted, measured, ratio, ...;
+    the *_um columns in `unit`), `estimates` (seeds, 3) the measured U (m) or strain, `setup` the
+    case's cameras, patch and noise-free renders, `info` the diagnostics of summary.json."""
+
+    rows: list
+    estimates: np.ndarray
+    setup: Setup
+    info: dict
 
 
-def write_csv(rows: list[dict], path) -> None:
-    with open(path, "w", newline="") as fh:
-        fh.write(f"# {CONVENTION}\n")
-        writer = csv.DictWriter(fh, fieldnames=CSV_FIELDS)
-        writer.writeheader()
-        for r in rows:
-            writer.writerow({k: (f"{v:.5g}" if isinstance(v, float) else v) for k, v in r.items()})
+@dataclass(frozen=True, eq=False)
+class ValidationResult:
+    """Every chosen case of a validation file (`run_cases`), in file order."""
+
+    spec: ValidationSpec
+    seeds: int
+    cases: tuple[CaseResult, ...]
+    wall_seconds: float
+
+    @property
+    def rows(self) -> list[dict]:
+        return [row for case in self.cases for row in case.rows]
+
+    @property
+    def passed(self) -> bool:
+        """Every ratio inside `BAND`."""
+        return all(BAND[0] <= r["ratio"] <= BAND[1] for r in self.rows)
+
+    @property
+    def noise_free_passed(self) -> bool:
+        """Every case's noise-free correlation within 0.01 px of the imposed motion."""
+        return all(c.info["noise_free_ok"] for c in self.cases)
 
 
-def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: bool = False,
-             quiet: bool = False, cases: list[str] | None = None) -> dict:
-    """Run every case (or those named in `cases`) with `seeds` seeds (default: the file's) and
-    write the run folder `out` (vdo.runfolder, appears whole or not at all):
-
-    validation.csv     per case and axis: predicted, measured, ratio, n_seeds (+ diagnostics);
-                       a '#' comment line states the convention
-                       (strain cases: the strain components, in microstrain, `unit` column)
-    validation.png     measured against √2 x predicted sigma, log-log, the [0.8, 1.25] band
-                       (validation_strain.png: the same for the strain cases)
-    estimates.csv      every measured U (µm) per case and seed (estimates_strain.csv: strains)
-    summary.json       the convention, per-case diagnostics (noise-free errors, speckle and shift in
-                       pixels, times), wall time, pass/fail
-    images/<case>.png  the noise-free reference image of each camera
-    validation.toml    a copy of the validation file
-    """
-    from tqdm import tqdm
-
+def run_cases(spec: ValidationSpec, seeds: int | None = None,
+              cases: list[str] | None = None) -> ValidationResult:
+    """Run every case of `spec` (or those named in `cases`) with `seeds` noise seeds (default: the
+    file's); a ConfigError for a bad seed count or an unknown case name before any work. Progress
+    goes to the `vdo.validate` logger (`vdo.progress`)."""
+    from .progress import bar
 
     seeds = spec.seeds if seeds is None else int(seeds)
     if seeds < 2:
@@ -850,64 +814,10 @@ def validate(spec: ValidationSpec, out, seeds: int | None = None, overwrite: boo
             raise ConfigError(spec.path, "case", f"no case named {', '.join(map(repr, unknown))}")
         chosen = tuple(c for c in spec.cases if c.name in cases)
     started = time.perf_counter()
-    rows, infos, estimates = [], [], {}
-    with run_folder(out, overwrite) as tmp:
-        (tmp / "images").mkdir()
-        bar = tqdm(total=seeds * len(chosen), desc="validate", unit="seed", disable=quiet)
+    results = []
+    with bar(log, total=seeds * len(chosen), desc="validate", unit="seed") as progress:
         for case in chosen:
-            bar.set_postfix_str(case.name)
-            result = run_case(case, spec.path, seeds, progress=bar.update)
-            rows += result["rows"]
-            infos.append(result["info"])
-            estimates[case.name] = result["estimates"]
-            setup = result["setup"]
-            contact_sheet({c.name: np.rint(im).astype(np.int64) for c, im in
-                           zip(setup.cameras, noise_free_images(setup, False))}, case.sensor.max_dn,
-                          inside(tmp / "images", f"{case.name}.png"), f"{case.name}: noise-free reference")
-        bar.close()
-        wall = time.perf_counter() - started
-        strain_cases = [c.name for c in chosen if c.strain is not None]
-        write_csv(rows, tmp / "validation.csv")
-        with open(tmp / "estimates.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["case", "seed", "Ux_um", "Uy_um", "Uz_um"])
-            for name, est in estimates.items():
-                if name in strain_cases:
-                    continue
-                for k, u in enumerate(est):
-                    w.writerow([name, k, *(f"{v * UM:.6g}" for v in u)])
-        if strain_cases:
-            with open(tmp / "estimates_strain.csv", "w", newline="") as fh:
-                w = csv.writer(fh)
-                w.writerow(["case", "seed", *(f"{a}_microstrain" for a in STRAIN_AXES)])
-                for name in strain_cases:
-                    for k, e in enumerate(estimates[name]):
-                        w.writerow([name, k, *(f"{v * 1e6:.6g}" for v in e)])
-        for suffix, kind in (("", "um"), ("_strain", "microstrain")):
-            chosen_rows = [r for r in rows if r["unit"] == kind]
-            if chosen_rows:
-                plot(chosen_rows, tmp / f"validation{suffix}.png",
-                     f"{spec.name}: {seeds} seeds per case" + (" (strain)" if suffix else ""))
-        shutil.copyfile(spec.path, tmp / "validation.toml")
-        passed = all(BAND[0] <= r["ratio"] <= BAND[1] for r in rows)
-        summary = {"name": spec.name, "config": str(spec.path), "seeds": seeds,
-                   "convention": CONVENTION, "band": list(BAND), "passed": passed,
-                   "noise_free_passed": all(i["noise_free_ok"] for i in infos),
-                   "wall_seconds": round(wall, 1), "cases": infos,
-                   "rows": [{k: ((round(v, 6) if math.isfinite(v) else None) if isinstance(v, float)
-                             else v) for k, v in r.items()}
-                            for r in rows]}
-        (tmp / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        html_report.write_report(tmp)
-    return summary
-
-
-def print_table(rows: list[dict]) -> None:
-    print(f"{'case':<24}{'axis':>5}{'pred um':>10}{'sqrt2*pred':>12}{'meas um':>10}{'ratio':>8}"
-          f"{'95% CI':>15}{'bias um':>10}{'n':>6}")
-    for r in rows:
-        flag = "" if BAND[0] <= r["ratio"] <= BAND[1] else "  OUTSIDE"
-        print(f"{r['case']:<24}{r['axis']:>5}{r['sigma_predicted_um']:>10.4f}"
-              f"{r['sigma_expected_um']:>12.4f}{r['sigma_measured_um']:>10.4f}{r['ratio']:>8.3f}"
-              f"{r['ratio_ci95_low']:>8.3f}-{r['ratio_ci95_high']:.3f}{r['bias_um']:>10.4f}"
-              f"{r['n_seeds']:>6}{flag}")
+            progress.set_postfix_str(case.name)
+            results.append(run_case(case, spec.path, seeds, progress=progress.update))
+    return ValidationResult(spec=spec, seeds=seeds, cases=tuple(results),
+                            wall_seconds=time.perf_counter() - started)

@@ -25,10 +25,14 @@ log = logging.getLogger(__name__)
 FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write, "vic3d": vic3d.write}
 
 
-def default_pairs(exp, cameras, vis, samples) -> list:
-    """The stereo pairs of a layout: cameras assigned a common region (`stereo_pairs`)."""
+def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> list:
+    """The stereo pairs of a layout: cameras assigned a common region, or the `requested`
+    (first, second) names, each checked to share a field of view (`stereo_pairs`; errors name
+    `source`, default the experiment file)."""
     from ..constraints import assignments
 
+    if requested is not None:
+        return stereo_pairs(cameras, vis.visible, None, requested, source or exp.path)
     return stereo_pairs(cameras, vis.visible,
                         assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
 
@@ -122,10 +126,7 @@ def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[P
     exp, cameras, errors_in = _sources(source)
     state = layout_state(prepare(exp), cameras, predict_fields=False)
     vis, samples = state.visibility, state.samples
-    if pairs is None:
-        chosen = default_pairs(exp, cameras, vis, samples)
-    else:
-        chosen = stereo_pairs(cameras, vis.visible, None, pairs, errors_in)
+    chosen = default_pairs(exp, cameras, vis, samples, pairs, errors_in)
     if not chosen and fmt in ("matchid", "vic3d"):
         raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and no two "
                                                  "cameras are assigned a common region: name the "

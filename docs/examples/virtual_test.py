@@ -1,0 +1,269 @@
+"""The built-in virtual test: the beam-column under a closed-form displacement field, rendered as an
+image series (`vdo render --series`), then measured by vdo's own correlation on the exported
+images and compared with the imposed field and the predicted uncertainty; the folder's OpenCV
+calibration files re-projected against its layout.json.
+
+    python docs/examples/virtual_test.py --out runs/virtual_test [--scale 0.25] [--spp 16]
+    python docs/examples/virtual_test.py --out /tmp/vt --quick     # 2 cropped cameras (the test)
+
+The field (metres; joint centre c = (0, 0, 1.2), beam along +y from its root y0 = 0.06 to its
+end y0 + L, L = 1 m, s = clip((y - y0) / L, 0, 1)): a rigid motion of the whole specimen, a
+translation T plus a turn by phi about the vertical axis through c, and the Euler-Bernoulli
+bending of a cantilever beam under an end load, with end deflection delta (down) and so an end
+rotation of 3 delta / (2 L) about x:
+
+    u = T + phi e_z x (X - c) + (0, -(z - c_z) w'(y), w(y)),  w = -delta (3 s^2 - s^3) / 2
+
+The specimen mesh is refined to edges of at most `EDGE_MM` (so that the rendered surface follows
+the cubic bending; vdo moves the mesh's vertices) and the field is written at its vertices as a
+VTK file (`[load_path] displacements`, `vdo.keyframes`). Points: samples of every stereo pair's
+regions that both cameras use with their whole patch; predicted sigma from the layout state of
+the pair alone at the rendered scale, times sqrt(2) (reference and deformed images are both
+noisy). The error is split into the bias (the same correlation on the noise-free images, the
+series' .exr radiance through the sensor's mean: the interpolation floor, docs/exports.md) and the
+noise part (TIFF minus noise-free), which must be within 3 such sigmas on every axis. Needs
+opencv-python (the test extra) for the calibration check.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+import vdo
+
+HERE = Path(__file__).resolve().parent
+EXPERIMENT = HERE.parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+CENTRE = np.array([0.0, 0.0, 1.2])          # m, the joint
+BEAM_ROOT, BEAM_LENGTH = 0.06, 1.0          # m
+TRANSLATION = np.array([0.6, -0.4, 0.8]) * 1e-3   # m
+TURN = math.radians(0.15)                   # about z through the joint
+END_DEFLECTION = 3e-3                       # m, down, at the beam end
+EDGE_MM = 25.0                              # refined specimen mesh
+N_SIGMA = 3.0
+BIAS_FLOOR_PX = 0.02                        # interpolation bias of the correlation (docs/exports.md)
+QUICK_PAIR = ("cam1", "cam2")               # the 100 mm lenses on the joint, from the front, above
+QUICK_CROP_PX = (600, 400)                  # full-size pixels around the joint top's centre
+
+
+def imposed(X: np.ndarray) -> np.ndarray:
+    """The closed-form displacement (N, 3) m at rest points X (N, 3) m (module docstring)."""
+    X = np.atleast_2d(X)
+    rel = X - CENTRE
+    s = np.clip((X[:, 1] - BEAM_ROOT) / BEAM_LENGTH, 0.0, 1.0)
+    w = -END_DEFLECTION * (3 * s ** 2 - s ** 3) / 2
+    dw = -END_DEFLECTION * (6 * s - 3 * s ** 2) / (2 * BEAM_LENGTH)
+    u = TRANSLATION + TURN * np.column_stack([-rel[:, 1], rel[:, 0], np.zeros(len(X))])
+    return u + np.column_stack([np.zeros(len(X)), -rel[:, 2] * dw, w])
+
+
+def inputs(folder: Path, exp):
+    """The refined specimen STL and the field at its vertices (.vtp, mm) in `folder`; the
+    experiment using them (its [load_path] only these displacements, step 1)."""
+    import trimesh
+
+    from vdo import config, vtp
+
+    folder.mkdir(parents=True, exist_ok=True)
+    spec = next(m for m in exp.meshes if m.name == "specimen")
+    mesh = trimesh.load(spec.path, force="mesh")
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=EDGE_MM)
+    trimesh.Trimesh(vertices, faces, process=False).export(folder / "specimen_refined.stl")
+    nodes = np.unique(vertices * spec.scale, axis=0)
+    vtp.write_points(folder / "field.vtp", nodes / 1e-3, {"displacement": imposed(nodes) / 1e-3})
+    meshes = tuple(dataclasses.replace(m, path=folder / "specimen_refined.stl") if m is spec else m
+                   for m in exp.meshes)
+    load_path = config.LoadPathSpec(displacements=folder / "field.vtp", deformed_mesh="specimen",
+                                    unit="mm")
+    return dataclasses.replace(exp, meshes=meshes, load_path=load_path)
+
+
+def cropped(exp, names, crop_px):
+    """The experiment with only the cameras `names`, each cropped to `crop_px` full-size pixels
+    centred on the projection of the joint top's centre (same pixels, shifted principal point)."""
+    cameras = {c.name: c for c in exp.cameras()}
+    specs = []
+    for spec in exp.camera_specs:
+        if spec.name not in names:
+            continue
+        cam = cameras[spec.name]
+        centre = cam.project(np.array([[0.0, 0.0, 1.26]]))[0]
+        width, height = crop_px
+        x0, y0 = np.rint(centre - np.array([width, height]) / 2)
+        cx, cy = cam.principal_point
+        offset = (float(cx - x0 - (width - 1) / 2), float(cy - y0 - (height - 1) / 2))
+        specs.append(dataclasses.replace(spec, pixels=(width, height),
+                                         sensor_width=cam.pixel_size * width,
+                                         principal_offset_px=offset))
+    return exp.with_cameras(specs)
+
+
+def points_of_pair(state, first: int, second: int, per_region: int):
+    """Sample indices the two cameras both use with their whole patch, up to `per_region` per
+    region, spread over it (farthest-point order from the sample nearest the region's centre)."""
+    pred, samples = state.prediction, state.samples
+    ok = pred.usable[first] & pred.usable[second] & pred.measured & (pred.patch_fraction >= 1.0)
+    chosen = []
+    for region in np.unique(samples.region[ok]):
+        idx = np.flatnonzero(ok & (samples.region == region))
+        pts = samples.points[idx]
+        pick = [int(np.argmin(np.linalg.norm(pts - pts.mean(axis=0), axis=1)))]
+        while len(pick) < min(per_region, len(idx)):
+            d = np.min(np.linalg.norm(pts[:, None] - pts[pick][None], axis=2), axis=1)
+            pick.append(int(np.argmax(d)))
+        chosen += [int(idx[p]) for p in pick]
+    return chosen
+
+
+def calibration_error(folder: Path) -> float:
+    """Largest difference (px) between cv2.projectPoints with the values cv2.FileStorage reads
+    from calibration/opencv/<camera>.yml and the projection by layout.json's K, R, t and
+    distortion (OpenCV's model written out here), over points in front of each camera."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for entry in json.loads((folder / "layout.json").read_text())["cameras"]:
+        K, R, t = (np.asarray(entry[k], float) for k in ("K", "R", "t"))
+        k1, k2, p1, p2, k3 = entry.get("distortion", [0.0] * 5)
+        pc = np.column_stack([rng.uniform(-0.3, 0.3, 50), rng.uniform(-0.2, 0.2, 50),
+                              rng.uniform(1.0, 3.0, 50)])
+        X = (pc - t) @ R                                    # world points (m)
+        x, y = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        xd, yd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x), y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        mine = np.column_stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+        fs = cv2.FileStorage(str(folder / "calibration" / "opencv" / f"{entry['name']}.yml"),
+                             cv2.FILE_STORAGE_READ)
+        rvec = cv2.Rodrigues(fs.getNode("R").mat())[0]
+        theirs = cv2.projectPoints(X * 1e3, rvec, fs.getNode("t").mat(), fs.getNode("camera_matrix").mat(),
+                                   fs.getNode("distortion_coefficients").mat())[0].reshape(-1, 2)
+        fs.release()
+        worst = max(worst, float(np.abs(theirs - mine).max()))
+    return worst
+
+
+def run(out: Path, quick: bool = False, scale: float | None = None, spp: int | None = None,
+        per_region: int = 2, realisations: int = 4, overwrite: bool = False,
+        crop_px: tuple[int, int] = QUICK_CROP_PX) -> dict:
+    """Render the series and measure it (module docstring). Per point: the error of the series'
+    own TIFFs, split into the bias (the same correlation on the noise-free images, the .exr
+    radiance through the sensor's mean) and the noise part (TIFF minus noise-free), which
+    √2 sigma predicts; and the mean noise part over `realisations` sensor-noise draws on the
+    same radiance (the TIFF's and realisations - 1 more, `SensorModel.expose`). Returns
+    {"rows": [...], "calibration_px": float, "series": series.json}."""
+    from vdo import config
+    from vdo.keyframes import at_step, load_path_of
+    from vdo.render import noise_free_dn, scaled_camera
+    from vdo.series import (correlate_points, correlate_series, render_series, series_cameras,
+                            series_image)
+    from vdo.state import layout_state, prepare
+
+    out = Path(out)
+    exp = config.load(EXPERIMENT)
+    if quick:
+        exp = cropped(exp, QUICK_PAIR, crop_px)
+    exp = inputs(out.with_name(out.name + "_inputs"), exp)
+    exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True))
+    summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,
+                            pairs=[QUICK_PAIR] if quick else None)
+    geometry = prepare(exp)
+    moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1).samples.points
+    cameras = {c.name: scaled_camera(c, summary["scale"]) for c in exp.cameras()}
+    sensor, s, patch = exp.sensor, geometry.samples, exp.evaluation.patch_size
+    rows = []
+    for first, second in summary["stereo_pairs"]:
+        names = [first, second]
+        state = layout_state(geometry, [cameras[first], cameras[second]])
+        chosen = points_of_pair(state, 0, 1, per_region)
+        if not chosen:
+            continue
+        at = (s.points[chosen], s.tangent_u[chosen], s.tangent_v[chosen], patch)
+        pair = series_cameras(out, names)
+        linear = {step: [series_image(out, n, step, linear=True) for n in names] for step in (0, 1)}
+        clean, _ = correlate_points(pair, *([noise_free_dn(x, sensor) for x in linear[step]]
+                                            for step in (0, 1)), *at)
+        measured, converged = correlate_series(out, 1, names, *at)
+        noise = [measured - clean]
+        for r in range(1, realisations):
+            draw = {step: [sensor.expose(x, np.random.default_rng([summary["seed"], 1000 + r, i, step]))
+                           for i, x in enumerate(linear[step])] for step in (0, 1)}
+            noise.append(correlate_points(pair, draw[0], draw[1], *at)[0] - clean)
+        mean_noise = np.mean(noise, axis=0)
+        sigma = math.sqrt(2) * state.prediction.sigma_xyz[chosen]
+        for k, i in enumerate(chosen):
+            rendered = moved[i] - s.points[i]
+            bias = clean[k] - rendered
+            bias_px = max(float(np.abs(c.project((s.points[i] + clean[k])[None])[0]
+                                       - c.project((s.points[i] + rendered)[None])[0]).max())
+                          for c in pair)
+            rows.append({"pair": f"{first}:{second}", "region": s.region_names[s.region[i]],
+                         "point_mm": (s.points[i] * 1e3).round(1).tolist(),
+                         "closed_form_um": (imposed(s.points[i])[0] * 1e6).tolist(),
+                         "rendered_um": (rendered * 1e6).tolist(),
+                         "measured_um": (measured[k] * 1e6).tolist(),
+                         "error_um": ((measured[k] - rendered) * 1e6).tolist(),
+                         "bias_um": (bias * 1e6).tolist(), "bias_px": bias_px,
+                         "noise_um": (noise[0][k] * 1e6).tolist(),
+                         "mean_noise_um": (mean_noise[k] * 1e6).tolist(),
+                         "realisations": len(noise), "sigma_um": (sigma[k] * 1e6).tolist(),
+                         "ratio": float(np.max(np.abs(measured[k] - rendered) / sigma[k])),
+                         "noise_ratio": float(np.max(np.abs(noise[0][k]) / sigma[k])),
+                         "mean_noise_ratio": float(np.max(np.abs(mean_noise[k]) / sigma[k])
+                                                   * math.sqrt(len(noise))),
+                         "converged": bool(converged[k])})
+    return {"rows": rows, "calibration_px": calibration_error(out), "series": summary}
+
+
+def print_table(result: dict) -> None:
+    print(f"{'pair':<12}{'region':<16}{'axis':>5}{'closed form':>12}{'rendered':>10}{'measured':>10}"
+          f"{'error':>8}{'bias':>8}{'noise':>8}{'mean noise':>11}{'sqrt2 sig':>10}{'noise/sig':>10}")
+    for r in result["rows"]:
+        for a, axis in enumerate("xyz"):
+            print(f"{r['pair'] if a == 0 else '':<12}{r['region'] if a == 0 else '':<16}{axis:>5}"
+                  f"{r['closed_form_um'][a]:>12.1f}{r['rendered_um'][a]:>10.1f}{r['measured_um'][a]:>10.1f}"
+                  f"{r['error_um'][a]:>8.2f}{r['bias_um'][a]:>8.2f}{r['noise_um'][a]:>8.2f}"
+                  f"{r['mean_noise_um'][a]:>11.2f}{r['sigma_um'][a]:>10.2f}"
+                  f"{abs(r['noise_um'][a]) / r['sigma_um'][a]:>10.2f}")
+    rows = result["rows"]
+    n = rows[0]["realisations"]
+    print(f"bias (noise-free images): {min(r['bias_px'] for r in rows):.4f}-"
+          f"{max(r['bias_px'] for r in rows):.4f} px in the images (floor {BIAS_FLOOR_PX} px); "
+          f"{sum(r['ratio'] <= N_SIGMA for r in rows)} of {len(rows)} points' whole error within "
+          f"{N_SIGMA:g} sqrt(2) sigma (largest {max(r['ratio'] for r in rows):.2f})")
+    print(f"noise part (TIFF minus noise-free): {sum(r['noise_ratio'] <= N_SIGMA for r in rows)} of "
+          f"{len(rows)} points within {N_SIGMA:g} sqrt(2) sigma on every axis (largest "
+          f"{max(r['noise_ratio'] for r in rows):.2f}); mean of {n} draws within {N_SIGMA:g} "
+          f"sqrt(2) sigma / sqrt({n}): {sum(r['mean_noise_ratio'] <= N_SIGMA for r in rows)} of "
+          f"{len(rows)} (largest {max(r['mean_noise_ratio'] for r in rows):.2f}); displacements in um")
+    print(f"calibration/opencv vs layout.json: largest re-projection difference "
+          f"{result['calibration_px']:.2e} px")
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True, type=Path, help="the series folder (new)")
+    parser.add_argument("--quick", action="store_true", help="two cropped cameras (the test)")
+    parser.add_argument("--crop", type=int, nargs=2, default=QUICK_CROP_PX, metavar=("W", "H"),
+                        help="--quick: full-size pixels kept around the joint")
+    parser.add_argument("--scale", type=float, default=None, help="default: [render] scale")
+    parser.add_argument("--spp", type=int, default=None, help="default: [render] spp")
+    parser.add_argument("--per-region", type=int, default=2, help="points per pair and region")
+    parser.add_argument("--realisations", type=int, default=4, help="sensor-noise draws per point")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    vdo.configure()
+    result = run(args.out, args.quick, args.scale, args.spp, args.per_region, args.realisations,
+                 args.overwrite, tuple(args.crop))
+    print_table(result)
+    return result
+
+
+if __name__ == "__main__":
+    main()
