@@ -22,8 +22,11 @@ Conventions (stated once, tested in tests/test_camera.py):
   pixel (0, 0) is the top-left *corner*; `mitsuba_to_world` and `mitsuba_principal_offset` are the
   only place that converts (diag(-1, -1, 1) on the camera axes, half a pixel on the film).
 
-The functions below are pure `jax.numpy` so they trace under jit/vmap/grad; `Camera` bundles one
-configured camera for the rest of the program.
+The functions below trace under jit/vmap/grad; the projection and its point Jacobian
+(`to_camera`, `project`, `sensitivity`) compute in NumPy when every input is a NumPy array (no JAX
+dispatch per operation for NumPy callers such as `vdo.correlate`) and in `jax.numpy` otherwise.
+`Camera` bundles one configured camera for the rest of the program; its `project` and
+`sensitivity` take and return NumPy arrays.
 """
 
 from __future__ import annotations
