@@ -22,8 +22,11 @@ Conventions (stated once, tested in tests/test_camera.py):
   pixel (0, 0) is the top-left *corner*; `mitsuba_to_world` and `mitsuba_principal_offset` are the
   only place that converts (diag(-1, -1, 1) on the camera axes, half a pixel on the film).
 
-The functions below are pure `jax.numpy` so they trace under jit/vmap/grad; `Camera` bundles one
-configured camera for the rest of the program.
+The functions below are `jax.numpy` so they trace under jit/vmap/grad; the projection and its
+point Jacobian (`to_camera`, `project`, `sensitivity`) take the array module as `xp`, so that
+`Camera.project` and `Camera.sensitivity` (NumPy in, NumPy out, for `vdo.correlate`, the checks,
+the exports) run the same arithmetic in NumPy, without a JAX dispatch per operation. `Camera`
+bundles one configured camera for the rest of the program.
 """
 
 from __future__ import annotations
@@ -93,16 +96,10 @@ def intrinsic_matrix(focal_px, cx, cy):
                       jnp.stack([z, z, o], -1)], -2)
 
 
-def _xp(*arrays):
-    """The array module for `arrays`: jax.numpy when any is a JAX array (or a tracer, under
-    `jit`/`grad`), else NumPy, so that NumPy callers (`vdo.correlate`, the checks) pay no JAX
-    dispatch per operation."""
-    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
-
-
-def to_camera(R, t, X):
-    """Camera-frame coordinates R X + t, metres."""
-    return _xp(R, t, X).einsum("...ij,...j->...i", R, X) + t
+def to_camera(R, t, X, xp=jnp):
+    """Camera-frame coordinates R X + t, metres. `xp`: the array module (jax.numpy, or NumPy for
+    NumPy callers: no JAX dispatch per operation, see `Camera.project`)."""
+    return xp.einsum("...ij,...j->...i", R, X) + t
 
 
 DISTORTION = ("k1", "k2", "p1", "p2", "k3")   # OpenCV's order of the coefficients
@@ -168,18 +165,16 @@ def image_point(K, x, y, distortion=None):
             K[..., 1, 1] * yd + K[..., 1, 2])
 
 
-def project(K, R, t, X, distortion=None):
+def project(K, R, t, X, distortion=None, xp=jnp):
     """Pixel coordinates (u, v) of world points X (..., 3) -> (..., 2), with the lens distortion
     (..., 5) in `DISTORTION` order (None: a pinhole)."""
-    p = to_camera(R, t, X)
-    return _xp(K, p, distortion).stack(image_point(K, p[..., 0] / p[..., 2], p[..., 1] / p[..., 2],
-                                                   distortion), axis=-1)
+    p = to_camera(R, t, X, xp)
+    return xp.stack(image_point(K, p[..., 0] / p[..., 2], p[..., 1] / p[..., 2], distortion), axis=-1)
 
 
-def _d_pixel_d_camera(K, p, distortion=None):
+def _d_pixel_d_camera(K, p, distortion=None, xp=jnp):
     """d(u, v)/d(camera-frame point), (..., 2, 3), pixels per metre: the chain
     [[f_x, s], [0, f_y]] . d(x_d, y_d)/d(x, y) . (1/Z_c) [[1, 0, -x], [0, 1, -y]]."""
-    xp = _xp(K, p, distortion)
     zinv = 1.0 / p[..., 2]
     x, y = p[..., 0] * zinv, p[..., 1] * zinv
     zero = xp.zeros_like(zinv)
@@ -196,10 +191,10 @@ def _d_pixel_d_camera(K, p, distortion=None):
     return M @ dn
 
 
-def sensitivity(K, R, t, X, distortion=None):
+def sensitivity(K, R, t, X, distortion=None, xp=jnp):
     """s = dx/dX (..., 2, 3) in pixel/m (paper eq. 4, with the distortion's Jacobian D):
     s = [[f_x, s], [0, f_y]] D (1 / Z_c) [[1, 0, -X_c/Z_c], [0, 1, -Y_c/Z_c]] R."""
-    return _d_pixel_d_camera(K, to_camera(R, t, X), distortion) @ R
+    return _d_pixel_d_camera(K, to_camera(R, t, X, xp), distortion, xp) @ R
 
 
 def undistort(x_d, y_d, distortion, iterations: int = 20):
@@ -302,12 +297,12 @@ class Camera:
         return np.asarray(self.distortion, dtype=float) if self.distorted else None
 
     def project(self, X) -> np.ndarray:
-        return np.asarray(project(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
-                                  self.distortion_array))
+        return project(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
+                       self.distortion_array, xp=np)
 
     def sensitivity(self, X) -> np.ndarray:
-        return np.asarray(sensitivity(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
-                                      self.distortion_array))
+        return sensitivity(self.K, self.R, self.t, np.asarray(X, dtype=np.float64),
+                           self.distortion_array, xp=np)
 
     def undistorted_pixels(self, uv) -> np.ndarray:
         """Where the pixels uv (..., 2) of this camera's (distorted) image lie in the image of the

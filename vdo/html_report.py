@@ -405,5 +405,5 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
             f"<body>{''.join(body)}</body></html>")
     out = run_dir / "report.html"
     out.write_text(page, encoding="utf-8")
-    log.info("wrote %s (%.1f MB)", out, out.stat().st_size / 1e6)
+    log.debug("wrote %s (%.1f MB)", out, out.stat().st_size / 1e6)
     return out
