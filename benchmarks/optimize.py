@@ -87,17 +87,19 @@ def main():
 
     # vdo's time counts its compilation (the solver step compiles on its first call; with
     # JAX_COMPILATION_CACHE_DIR set and a previous run, it loads from the cache instead)
-    problem.run.t0 = t0 = time.perf_counter()
-    problem.run.verdicts.clear()
+    t0 = time.perf_counter()
+    judged_before = len(problem.run.verdicts)
     results = solve(problem)
     vdo_time = time.perf_counter() - t0
-    vdo_trace = best_feasible_trace(problem.run.verdicts)
+    offset = t0 - problem.run.t0   # the run's clock started when the problem was built
+    solved = [dict(v, wall_s=v["wall_s"] - offset) for v in problem.run.verdicts[judged_before:]]
+    vdo_trace = best_feasible_trace(solved)
     best = results[0]
     print(f"start layout        score {start_verdict.score:.5g} µm  ({start_verdict.violations} violations)")
     print(f"vdo (BFGS rounds)   {vdo_time:.1f} s, {len(problem.run.history)} accepted steps: "
           f"best score {best.score:.5g} µm with {best.violations} violations")
 
-    feasible = next((v for v in problem.run.verdicts if v["violations"] == 0), None)
+    feasible = next((v for v in solved if v["violations"] == 0), None)
     starts = [("hand layout", problem.param.theta0)]
     if feasible is not None:
         starts.append((f"first feasible layout of vdo (score {feasible['score']:.5g}, "

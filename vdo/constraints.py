@@ -182,11 +182,7 @@ def clearance_penalty(body_world, near_points, clearance: float):
         d = jnp.sqrt(d2 + 1e-12)
         return (jnp.maximum(clearance - d, 0.0) / clearance) ** 2
 
-    # the (body point, mesh point) pairs in float32 (a µm at 10 m; twice the throughput),
-    # their sum in float64
-    body32, near32 = body_world.astype(jnp.float32), near_points.astype(jnp.float32)
-    total = jnp.sum(hinge(jnp.sum((body32[:, :, None, :] - near32[:, None, :, :]) ** 2, -1)),
-                    dtype=jnp.float64)
+    total = jnp.sum(hinge(jnp.sum((body_world[:, :, None, :] - near_points[:, None, :, :]) ** 2, -1)))
     n = body_world.shape[0]
     if n > 1:
         diff = body_world[:, None, :, None, :] - body_world[None, :, None, :, :]

@@ -312,6 +312,12 @@ class ObscurationTerm:
 
         self.penalty = penalty
 
+    def track(self, renderers: list[tuple[int, ObscurationRenderer]]) -> None:
+        """Differentiate these (camera, renderer) pairs from now on (the cache of the last
+        evaluation is dropped with the old set)."""
+        self.tracked = list(renderers)
+        self._cache = (None, None)
+
 
 # --------------------------------------------------------------------------------------------
 # The problem: everything an objective evaluation needs, built once
@@ -379,7 +385,6 @@ class Problem:
         else:
             self.fov_limits = reference.fov_limits
         self.fov = self._fov_groups(self.start)
-        self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
 
     @property
     def obscuration(self) -> "ObscurationTerm":
@@ -481,27 +486,28 @@ class Problem:
                     points=jnp.asarray(points), area=jnp.asarray(area), ramp=jnp.asarray(ramp),
                     limit=jnp.asarray([self.fov_limits[c, r] for c, r in groups]))
 
-    def track_obscured(self, state: State, checks: list[dict]) -> None:
+    def track_obscured(self, state: State, checks: list[dict], masked: frozenset = frozenset()) -> frozenset:
         """Render-differentiated obscuration for every assigned (camera, region) pair that an
-        obstacle has masked beyond the limit at this or any earlier refresh of the start (a pair
-        that was cleared stays tracked, or the next round could walk the camera back behind the
-        obstacle). Pairs within the limit are left to the exact check: each tracked pair costs two
-        Mitsuba renders and a backward pass per evaluation, and its Monte Carlo noise (spp 16)
-        stalls BFGS's line search when the pair has nothing to gain (measured on the built-in
-        experiment: no accepted step with two such pairs, 5 % lower score without them).
-        `checks` is `check(state)`."""
+        obstacle has masked beyond the limit at this or any earlier refresh of the start (`masked`,
+        the pairs so far; returned with this refresh's added: a pair that was cleared stays
+        tracked, or the next round could walk the camera back behind the obstacle). Pairs within
+        the limit are left to the exact check: each tracked pair costs two Mitsuba renders and a
+        backward pass per evaluation, and its Monte Carlo noise (spp 16) stalls BFGS's line search
+        when the pair has nothing to gain (measured on the built-in experiment: no accepted step
+        with two such pairs, 5 % lower score without them). `checks` is `check(state)`."""
         by_name = {c.name: i for i, c in enumerate(self.cams0)}
         threshold = self.exp.optimize.max_obscuration
-        for entry in checks:
-            if entry["constraint"] == "obscuration" and entry["value"] > threshold:
-                self.masked.add((by_name[entry["cameras"][0]], self.samples.region_names.index(entry["region"])))
-        self.obscuration.tracked = []
-        for c, r in sorted(self.masked):
+        masked = frozenset(masked) | {
+            (by_name[e["cameras"][0]], self.samples.region_names.index(e["region"]))
+            for e in checks if e["constraint"] == "obscuration" and e["value"] > threshold}
+        renderers = []
+        for c, r in sorted(masked):
             others = [camera_body(o) for k, o in enumerate(state.cameras) if k != c]
             obstacles = [m for m in self.meshes if m.role != "specimen"] + others
-            self.obscuration.tracked.append(
+            renderers.append(
                 (c, ObscurationRenderer(state.cameras[c], self._region_mesh(r), obstacles, width=96, spp=16)))
-        self.obscuration._cache = (None, None)
+        self.obscuration.track(renderers)
+        return masked
 
     def _region_mesh(self, r: int) -> SceneMesh:
         spec = self.exp.regions[r]
@@ -744,8 +750,9 @@ class _Run:
     """What the starts and lens trials of one run share: the compiled solver programs (one pair
     per structure, `Parameterization.signature`; the layout's arrays are their argument,
     `Problem.data`, so another start or lens reuses them), the obscuration term, the record of
-    accepted solver step (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
-    size of the pair lists, how each round ended, the stop request and the progress line."""
+    accepted solver step (`history`, what the rounds returned) and exact verdict (`verdicts`), the best
+    verdict so far, the fixed size of the pair lists, each round's outcome, the stop request and the
+    progress line."""
 
     def __init__(self, n_cameras: int, max_obscuration: float):
         self.obscuration = ObscurationTerm(n_cameras, max_obscuration)
@@ -756,9 +763,8 @@ class _Run:
         self.stop = Stop()
         self.blocks = None   # (block, blocks, chunk) of every pair list
         self.progress = _Progress(None)
-        self.rounds: list[str] = []   # how each round ended
-        self.ends: list[str] = []     # how each start ended (its last round)
-        self.label = (0, 0)
+        self.rounds: list[dict] = []  # each round's `RoundOutcome.record`
+        self.ends: list[str] = []     # how each start ended
         self._programs: dict = {}
 
     def programs(self, problem: "Problem"):
@@ -779,12 +785,6 @@ class _Run:
                 eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, aux_struct, frozenset())),
                 eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2]))
         return self._programs[key]
-
-    def record(self, terms):
-        """Keep one evaluation's terms (`history`, with the start, round and wall time)."""
-        self.history.append(dict(start=self.label[0], round=self.label[1],
-                                 wall_s=time.perf_counter() - self.t0,
-                                 **{k: float(v) for k, v in terms.items()}))
 
     def padded(self, views: objective.ViewData) -> objective.ViewData:
         """`views` with padding blocks (occlusion 0: weight and gradient exactly 0) up to the
@@ -895,27 +895,28 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             theta = theta + _perturbation(problem.param, rng)
         state = problem.start if k_start == 0 else problem.refresh(theta)   # hand layout: cast once
         best = result = judge(problem, theta, state, start)
-        problem.masked = set()
+        masked = frozenset()   # the (camera, region) pairs whose obscuration this start tracks
         label = 0
-        rounds_before = len(run.rounds)
+        end = "converged"
 
         def one_round(w_score, mu, name):
-            nonlocal theta, state, result, best, label
-            run.label = (start, label)
-            problem.track_obscured(state, result.checks)
+            nonlocal theta, state, result, best, label, masked, end
+            masked = problem.track_obscured(state, result.checks, masked)
             where = f"start {start + 1} {name}"
-            moved, status = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where)
-            run.rounds.append(status)
+            outcome = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where, (start, label))
+            run.history.extend(outcome.history)
+            run.rounds.append(outcome.record(start, name))
+            end = outcome.status
             label += 1
-            if np.array_equal(moved, theta):
+            if np.array_equal(outcome.theta, theta):
                 return
-            theta = moved
+            theta = outcome.theta
             state = problem.refresh(theta)
             result = judge(problem, theta, state, start)
             best = min(best, result, key=lambda r: r.rank)
             say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
                 f"{result.violations} violation(s) {_violated(result)}"
-                + ("" if status in ("converged", "max_steps") else f" (stopped: {status})"))
+                + ("" if outcome.status in ("converged", "max_steps") else f" (ended: {outcome.reason})"))
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
         for k in range(FEASIBILITY_ROUNDS):
@@ -929,10 +930,10 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
             if (k > 0 and previous.violations == 0 and result.violations == 0
                     and previous.score - result.score < ROUND_TOL * previous.score):
-                run.rounds.append("converged")   # the penalty continuation has nothing left
+                end = "converged"   # the penalty continuation has nothing left
                 break
         results.append(best)
-        run.ends.append(run.rounds[-1] if len(run.rounds) > rounds_before else "converged")
+        run.ends.append(end)
     return sorted(results, key=lambda r: r.rank)
 
 
@@ -997,14 +998,37 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
     return best
 
 
-def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) -> tuple[np.ndarray, str]:
+@dataclasses.dataclass(frozen=True)
+class RoundOutcome:
+    """One BFGS solve (`_round`): θ at its last accepted step, how it ended (`status`:
+    "converged", "max_steps", "time_limit", "interrupted" or "failed"; `reason` in words),
+    optimistix's `Solution` (value: y, the scaled step from the round's start; result; aux: the
+    terms at y; stats: num_steps, num_accepted_steps, max_steps; state: the solver state) and
+    the terms at every accepted step (`history`: start, round, wall_s, score, the penalties)."""
+
+    theta: np.ndarray
+    status: str
+    reason: str
+    solution: optx.Solution | None
+    history: tuple[dict, ...]
+
+    def record(self, start: int, name: str) -> dict:
+        """The round for optimizer.json."""
+        stats = {} if self.solution is None else {k: int(v) for k, v in self.solution.stats.items()}
+        result = "" if self.solution is None else optx.RESULTS[self.solution.result]
+        return dict(start=start, round=name, status=self.status, reason=self.reason,
+                    solver_result=result or "successful", **stats)
+
+
+def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
+           label: tuple[int, int]) -> RoundOutcome:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
     step moves about one natural unit (`Parameterization.scale`) along the steepest parameter.
     The solver runs step by step (one compiled step per call, `_Run`), checking the stop
-    request between steps. Returns θ at the last accepted step and how the round ended:
-    "converged" (the solver's tolerance), "max_steps", "time_limit", "interrupted" or "failed"
-    (a non-finite step)."""
+    request between steps; `label` (start, round) tags the history rows. A step that leaves the
+    solver's iterate, its value or gradient non-finite ends the round ("failed", with the
+    reason): it is never replaced."""
     run = problem.run
     origin = jnp.asarray(theta, dtype=jnp.float64)
     scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
@@ -1013,36 +1037,51 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) 
     y = jnp.zeros_like(origin)
     args = lambda norm: (origin, scale, jnp.asarray(norm, dtype=jnp.float64), views, weights, data)
     if run.stop():
-        return np.asarray(theta), run.stop.reason
+        return RoundOutcome(np.asarray(theta), run.stop.reason, "stopped before the round", None, ())
     # the first step of a solve accepts its start: there, its gradient is dJ/dy at norm 1
     init, step = run.programs(problem)
     _, probe = step(y, args(1.0), init(y, args(1.0)))
-    norm = float(jnp.max(jnp.abs(probe.f_info.grad)))
-    if not np.isfinite(norm) or norm == 0:
-        return np.asarray(theta), "converged"
+    grad = np.asarray(probe.f_info.grad)
+    if not np.all(np.isfinite(grad)):
+        return RoundOutcome(np.asarray(theta), "failed", "non-finite gradient at the round's start",
+                            None, ())
+    norm = float(np.max(np.abs(grad)))
+    if norm == 0:
+        return RoundOutcome(np.asarray(theta), "converged", "zero gradient at the round's start", None, ())
     solver_args = args(norm)
     state = init(y, solver_args)
-    status = "max_steps"
-    for k in range(max_steps):
+    status, reason = "max_steps", f"{max_steps} steps"
+    history = []
+    k = 0
+    for k in range(1, max_steps + 1):
         if run.stop():
-            status = run.stop.reason
+            status, reason = run.stop.reason, f"stop request after {k - 1} steps"
+            k -= 1
             break
         accepted = int(state.num_accepted_steps)
         y_new, state = step(y, solver_args, state)
-        if int(state.num_accepted_steps) > accepted:
-            run.record(state.aux)   # the terms at the step just accepted
-        run.progress.step(f"{where}, step {k + 1}/{max_steps}", run.best)
-        if not np.all(np.isfinite(np.asarray(y_new))):
-            status = "failed"
+        if int(state.num_accepted_steps) > accepted:   # the terms at the step just accepted
+            history.append(dict(start=label[0], round=label[1], wall_s=time.perf_counter() - run.t0,
+                                **{name: float(v) for name, v in state.aux.items()}))
+        run.progress.step(f"{where}, step {k}/{max_steps}", run.best)
+        finite = {"iterate": y_new, "objective": state.f_info.f, "gradient": state.f_info.grad,
+                  "next trial point": state.y_eval}
+        bad = [name for name, v in finite.items() if not np.all(np.isfinite(np.asarray(v)))]
+        if bad:
+            status, reason = "failed", f"non-finite {', '.join(bad)} at step {k}"
+            log.warning("%s: %s; the round ends at its last finite step", where, reason)
             break
         y = y_new
         if bool(state.terminate):
-            status = "converged"
+            status, reason = "converged", f"solver tolerance met at step {k}"
             break
         if not bool(state.result == optx.RESULTS.successful):
-            status = "failed"
+            status, reason = "failed", optx.RESULTS[state.result]
             break
-    return np.asarray(origin + scale * y), status
+    solution = optx.Solution(value=y, result=state.result, aux=state.aux, state=state,
+                             stats=dict(num_steps=k, num_accepted_steps=int(state.num_accepted_steps),
+                                        max_steps=max_steps))
+    return RoundOutcome(np.asarray(origin + scale * y), status, reason, solution, tuple(history))
 
 
 def _perturbation(param: Parameterization, rng) -> np.ndarray:
