@@ -22,8 +22,9 @@ obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`); P_sha
 camera bodies (covered by spheres) from hiding any part of a light panel from the samples it
 lights.
 
-A round is one BFGS solve (optimistix) with the ray-cast occlusion and the lighting frozen;
-between rounds they are recomputed at the new layout. From a start that violates a constraint,
+A round is one BFGS solve (optimistix; its line search `RememberingArmijo`) with the ray-cast
+occlusion and the lighting frozen; between rounds they are recomputed at the new layout. A round
+returns its `RoundOutcome` (optimistix's `Solution`, the accepted steps' terms, how it ended). From a start that violates a constraint,
 feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at most
 `FEASIBILITY_ROUNDS`) until the layout meets every constraint, so that the score never trades
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
