@@ -90,6 +90,8 @@ ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
+LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
+                   # within this distance of the anchor layout (`Problem.local`)
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
 
@@ -366,9 +368,11 @@ class Problem:
         self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
-        self.near_points = jnp.asarray(_pad_axis(constraints.near_points(
+        self.near_sets = constraints.near_points(
             self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
-            + opt.clearance + CLEARANCE_MARGIN), 1, 1e3))
+            + opt.clearance + CLEARANCE_MARGIN)
+        self.near_trees = [cKDTree(p) for p in self.near_sets]
+        self.near_points = jnp.asarray(_pad_axis(constraints.padded_points(self.near_sets), 1, 1e3))
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
@@ -408,6 +412,40 @@ class Problem:
             fov=self.fov, body_local=self.body_local, near_points=self.near_points,
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
+
+    def body_points(self, theta):
+        """(R (C, 3, 3), optical centres (C, 3), body points (C, B, 3) in the world, m) at θ."""
+        cams = self.param.cameras_at(theta)
+        R = np.stack([c.R for c in cams])
+        pos = np.stack([np.asarray(c.position, float) for c in cams])
+        return R, pos, np.einsum("cji,cbj->cbi", R, np.asarray(self.body_local)) + pos[:, None, :]
+
+    def local(self, theta) -> dict:
+        """What the clearance and shadow penalties read near the layout θ (the anchor): its body
+        points (C, B, 3) and sphere centres (m), each camera's mesh points within the clearance
+        (+ margin) + `LOCAL_MOVE` of its body points (a subset of `near_points`, padded:
+        `_Run.size`), and the (camera, lit sample) pairs that `constraints.shadow_pairs` keeps for
+        spheres moving at most `LOCAL_MOVE`. While no body point or sphere centre has moved more
+        than `LOCAL_MOVE` from the anchor, the penalties over these sets equal the full ones
+        (`terms` falls back to the full sets beyond; `_round` moves the anchor with the
+        solver's trial point)."""
+        R, pos, body = self.body_points(theta)
+        reach = self.exp.optimize.clearance + CLEARANCE_MARGIN + LOCAL_MOVE
+        kept = [constraints.points_near(pts, tree, b, reach) if len(pts) else pts
+                for pts, tree, b in zip(self.near_sets, self.near_trees, body)]
+        out = dict(body=jnp.asarray(body), near=jnp.asarray(constraints.padded_points(
+            kept, self.run.size("near", max(len(k) for k in kept)))))
+        if self.lit_samples is not None and self.sphere_local is not None:
+            b = self.bodied
+            spheres = np.einsum("cji,cbj->cbi", R[b], np.asarray(self.sphere_local)) + pos[b][:, None, :]
+            pairs = constraints.shadow_pairs(spheres, np.asarray(self.sphere_radii),
+                                             *(np.asarray(a) for a in self.lit_samples), SHADOW_MARGIN,
+                                             LOCAL_MOVE)
+            size = self.run.size("shadow", len(pairs))
+            out.update(spheres=jnp.asarray(spheres),
+                       shadow_pairs=jnp.asarray(np.pad(pairs, ((0, size - len(pairs)), (0, 0)))),
+                       shadow_weight=jnp.asarray(np.arange(size) < len(pairs), dtype=float))
+        return out
 
     def _paths(self) -> list[np.ndarray]:
         """Where each optical centre can go: its rail (+ offset) sampled at most ~2 cm apart, or
@@ -528,7 +566,20 @@ class Problem:
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
         clearance = self.exp.optimize.clearance
+        clearance = clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0
         fov = data["fov"]
+        # the penalties over the anchor's sets (`local`) while every body point and sphere centre
+        # stays within LOCAL_MOVE of it (there they equal the full ones), else over the full sets
+        local = data["local"]
+        body = constraints.body_points_world(data["body_local"], R, pos)
+        moved = lambda now, anchor: jnp.max(jnp.linalg.norm(jax.lax.stop_gradient(now) - anchor, axis=-1))
+        near = moved(body, local["body"]) <= LOCAL_MOVE
+        shadowed = data["lit"] is not None and data["spheres"] is not None
+        if shadowed:
+            spheres = constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied])
+            near = near & (moved(spheres, local["spheres"]) <= LOCAL_MOVE)
+        penalty = lambda cheap, full: jax.lax.cond(near, lambda: jnp.asarray(cheap(), jnp.float64),
+                                                      lambda: jnp.asarray(full(), jnp.float64))
         out = dict(
             score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
             angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"],
@@ -536,14 +587,15 @@ class Problem:
             fov=constraints.fov_penalty(constraints.in_image_fraction(
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
                 fov["ramp"]), fov["limit"], FOV_MARGIN),
-            clearance=constraints.clearance_penalty(
-                constraints.body_points_world(data["body_local"], R, pos), data["near_points"],
-                clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
+            clearance=0.0 if clearance <= 0 else penalty(
+                lambda: constraints.clearance_penalty(body, local["near"], clearance),
+                lambda: constraints.clearance_penalty(body, data["near_points"], clearance)),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
-            shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
-                constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
-                data["spheres"][1], *data["lit"], SHADOW_MARGIN))
+            shadow=0.0 if not shadowed else penalty(
+                lambda: constraints.shadow_penalty(spheres, data["spheres"][1], *data["lit"], SHADOW_MARGIN,
+                                                   local["shadow_pairs"], local["shadow_weight"]),
+                lambda: constraints.shadow_penalty(spheres, data["spheres"][1], *data["lit"], SHADOW_MARGIN)))
         return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
     def _scaled(self, y, args, obscured: bool):
@@ -767,6 +819,15 @@ class _Run:
         self.rounds: list[dict] = []  # each round's `RoundOutcome.record`
         self.ends: list[str] = []     # how each start ended
         self._programs: dict = {}
+        self._sizes: dict = {}
+
+    def size(self, name: str, n: int) -> int:
+        """The run's padded length of the array `name` that holds n rows now: the first call sets
+        it with 25 % headroom (`objective._bucket`), a longer array raises it (a new compile), so
+        that the compiled programs keep their shapes while `Problem.local` moves."""
+        if name not in self._sizes or self._sizes[name] < n:
+            self._sizes[name] = _bucket(max(int(1.25 * n), 1))
+        return self._sizes[name]
 
     def programs(self, problem: "Problem"):
         """(init, step): BFGS's init and one step on `problem._scaled`, jit-compiled once per
@@ -1034,7 +1095,7 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
     origin = jnp.asarray(theta, dtype=jnp.float64)
     scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
     weights = jnp.asarray(weights, dtype=jnp.float64)
-    data = problem.data
+    data = dict(problem.data, local=problem.local(theta))
     y = jnp.zeros_like(origin)
     args = lambda norm: (origin, scale, jnp.asarray(norm, dtype=jnp.float64), views, weights, data)
     if run.stop():
@@ -1060,6 +1121,12 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
             k -= 1
             break
         accepted = int(state.num_accepted_steps)
+        # the point this step evaluates: the local sets move with it, so that they serve it
+        trial = np.asarray(origin + scale * state.y_eval)
+        if np.linalg.norm(problem.body_points(trial)[2] - np.asarray(data["local"]["body"]), axis=-1).max() \
+                > LOCAL_MOVE / 4:
+            data = dict(data, local=problem.local(trial))
+            solver_args = (*solver_args[:5], data)
         y_new, state = step(y, solver_args, state)
         if int(state.num_accepted_steps) > accepted:   # the terms at the step just accepted
             history.append(dict(start=label[0], round=label[1], wall_s=time.perf_counter() - run.t0,
