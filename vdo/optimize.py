@@ -38,8 +38,8 @@ Anytime: the solver runs one BFGS step per call and checks a `Stop` (time limit,
 via `stop_on_signals`) between steps and rounds; the best judged layout of the run is kept
 (`_Run.best`) and written whatever ends the search. Compile once: the step is one jitted program
 per run and structure (`_Run.programs`) that takes every layout-dependent array as an argument
-(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and other arrays to few
-sizes (`_pad_axis`); without tracked obscuration it holds no host callback, so JAX's persistent
+(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and the clearance and
+shadow sets to sizes fixed per run (`_Run.size`); without tracked obscuration it holds no host callback, so JAX's persistent
 compilation cache can serve it to the next run.
 """
 
@@ -92,8 +92,10 @@ FOV_MARGIN = 0.002                 # added to each least in-image fraction of a 
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
                    # within this distance of the anchor layout (`Problem.local`)
+PATH_SLACK = 0.05  # m: the farthest an optical centre can be from the nearest point of `Problem._paths`
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
+CHECKPOINT_STEPS = 10   # steps between the exact verdicts within a start's first rounds (`solve`)
 
 log = logging.getLogger(__name__)
 
@@ -368,11 +370,11 @@ class Problem:
         self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
+        paths = self._paths()
         self.near_sets = constraints.near_points(
-            self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
+            self.scene_points, paths, reach=float(np.abs(self.body_local).max()) * 1.8
             + opt.clearance + CLEARANCE_MARGIN)
         self.near_trees = [cKDTree(p) for p in self.near_sets]
-        self.near_points = jnp.asarray(_pad_axis(constraints.padded_points(self.near_sets), 1, 1e3))
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
@@ -384,6 +386,8 @@ class Problem:
         self.sphere_local = jnp.asarray(np.stack([c for c, _ in spheres])) if spheres else None
         self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres])) if spheres else None
         self.lit_samples = self._lit_samples()
+        if reference is None:
+            self._size_local_sets(paths)
         if reference is None:
             self.fov_limits = None   # None: 1 - max_obscuration, to judge the hand layout itself
             self.fov_limits = self._fov_limits(self.check(self.start))   # then no worse than it
@@ -409,7 +413,7 @@ class Problem:
             samples=self.obj_samples, energy=self.speckle.table,
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
-            fov=self.fov, body_local=self.body_local, near_points=self.near_points,
+            fov=self.fov, body_local=self.body_local,
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
 
@@ -420,15 +424,35 @@ class Problem:
         pos = np.stack([np.asarray(c.position, float) for c in cams])
         return R, pos, np.einsum("cji,cbj->cbi", R, np.asarray(self.body_local)) + pos[:, None, :]
 
+    def _size_local_sets(self, paths: list[np.ndarray]) -> None:
+        """Fix the run's padded sizes of `local`'s sets before the first compile, from where the
+        bodies can go: the most mesh points within e + clearance (+ margin) + `LOCAL_MOVE` +
+        `PATH_SLACK` of one point of a camera's path (e: the farthest body point from the optical
+        centre), and the (camera, sample) pairs that `constraints.shadow_pairs` keeps for a sphere
+        of the largest radius anywhere on the camera's path, moving e + `LOCAL_MOVE` +
+        `PATH_SLACK`. An estimate, not a bound: a larger set raises the size (`_Run.size`)."""
+        opt = self.exp.optimize
+        extent = float(np.linalg.norm(np.asarray(self.body_local), axis=-1).max())
+        reach = opt.clearance + CLEARANCE_MARGIN + LOCAL_MOVE + PATH_SLACK + extent
+        self.run.size("near", max(int(np.max(tree.query_ball_point(path, reach, return_length=True)))
+                                  for tree, path in zip(self.near_trees, paths)))
+        if self.lit_samples is not None and self.sphere_local is not None:
+            samples, panels = (np.asarray(a) for a in self.lit_samples)
+            radius = float(np.asarray(self.sphere_radii).max())
+            self.run.size("shadow", sum(len(constraints.shadow_pairs(
+                paths[c][None], np.full((1, len(paths[c])), radius), samples, panels, SHADOW_MARGIN,
+                extent + LOCAL_MOVE + PATH_SLACK)) for c in self.bodied))
+
     def local(self, theta) -> dict:
         """What the clearance and shadow penalties read near the layout θ (the anchor): its body
         points (C, B, 3) and sphere centres (m), each camera's mesh points within the clearance
-        (+ margin) + `LOCAL_MOVE` of its body points (a subset of `near_points`, padded:
+        (+ margin) + `LOCAL_MOVE` of its body points (a subset of `near_sets`, padded:
         `_Run.size`), and the (camera, lit sample) pairs that `constraints.shadow_pairs` keeps for
-        spheres moving at most `LOCAL_MOVE`. While no body point or sphere centre has moved more
-        than `LOCAL_MOVE` from the anchor, the penalties over these sets equal the full ones
-        (`terms` falls back to the full sets beyond; `_round` moves the anchor with the
-        solver's trial point)."""
+        spheres moving at most `LOCAL_MOVE`. While no body point has moved more than `LOCAL_MOVE`
+        from the anchor, the penalties over these sets equal the full ones (`_round` moves the
+        anchor with the
+        solver's trial point). The sphere centres lie in the convex hull of the body points, so
+        under a rigid move they move no more than the farthest body point."""
         R, pos, body = self.body_points(theta)
         reach = self.exp.optimize.clearance + CLEARANCE_MARGIN + LOCAL_MOVE
         kept = [constraints.points_near(pts, tree, b, reach) if len(pts) else pts
@@ -558,7 +582,10 @@ class Problem:
     # -- the objective (traced: reads only `data` and the static structure) ------------------
     def terms(self, theta, views, data, obscured: bool = True) -> dict:
         """The score and each penalty at θ (float64 JAX scalars): score and the `PENALTIES`;
-        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise)."""
+        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise). P_clearance and
+        P_shadow read `data["local"]`, `local` at an anchor from which no body point of θ is
+        more than `LOCAL_MOVE` away: there they equal the penalties over every mesh point and
+        every lit sample (`_round` moves the anchor before every evaluation that needs it)."""
         pos, pan, tilt, roll = self.param.poses(theta, data["held"])
         f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
         cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1])
@@ -568,18 +595,7 @@ class Problem:
         clearance = self.exp.optimize.clearance
         clearance = clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0
         fov = data["fov"]
-        # the penalties over the anchor's sets (`local`) while every body point and sphere centre
-        # stays within LOCAL_MOVE of it (there they equal the full ones), else over the full sets
-        local = data["local"]
-        body = constraints.body_points_world(data["body_local"], R, pos)
-        moved = lambda now, anchor: jnp.max(jnp.linalg.norm(jax.lax.stop_gradient(now) - anchor, axis=-1))
-        near = moved(body, local["body"]) <= LOCAL_MOVE
-        shadowed = data["lit"] is not None and data["spheres"] is not None
-        if shadowed:
-            spheres = constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied])
-            near = near & (moved(spheres, local["spheres"]) <= LOCAL_MOVE)
-        penalty = lambda cheap, full: jax.lax.cond(near, lambda: jnp.asarray(cheap(), jnp.float64),
-                                                      lambda: jnp.asarray(full(), jnp.float64))
+        local = data["local"]   # the clearance and shadow sets of an anchor near θ (`local`)
         out = dict(
             score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
             angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"],
@@ -587,15 +603,14 @@ class Problem:
             fov=constraints.fov_penalty(constraints.in_image_fraction(
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
                 fov["ramp"]), fov["limit"], FOV_MARGIN),
-            clearance=0.0 if clearance <= 0 else penalty(
-                lambda: constraints.clearance_penalty(body, local["near"], clearance),
-                lambda: constraints.clearance_penalty(body, data["near_points"], clearance)),
+            clearance=constraints.clearance_penalty(
+                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
-            shadow=0.0 if not shadowed else penalty(
-                lambda: constraints.shadow_penalty(spheres, data["spheres"][1], *data["lit"], SHADOW_MARGIN,
-                                                   local["shadow_pairs"], local["shadow_weight"]),
-                lambda: constraints.shadow_penalty(spheres, data["spheres"][1], *data["lit"], SHADOW_MARGIN)))
+            shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
+                constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
+                data["spheres"][1], *data["lit"], SHADOW_MARGIN, local["shadow_pairs"],
+                local["shadow_weight"]))
         return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
     def _scaled(self, y, args, obscured: bool):
@@ -681,15 +696,6 @@ def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:
     t = np.tan(alpha / 2)
     w = (np.roll(t, 1) + t) / r
     return w / w.sum()
-
-
-def _pad_axis(a: np.ndarray, axis: int, value: float) -> np.ndarray:
-    """`a` padded with `value` along `axis` to a size of few distinct values (`objective._bucket`),
-    so that layouts of one run seldom change the compiled programs' shapes."""
-    n = a.shape[axis]
-    widths = [(0, 0)] * a.ndim
-    widths[axis] = (0, _bucket(n) - n)
-    return np.pad(a, widths, constant_values=value)
 
 
 # --------------------------------------------------------------------------------------------
@@ -822,11 +828,11 @@ class _Run:
         self._sizes: dict = {}
 
     def size(self, name: str, n: int) -> int:
-        """The run's padded length of the array `name` that holds n rows now: the first call sets
-        it with 25 % headroom (`objective._bucket`), a longer array raises it (a new compile), so
-        that the compiled programs keep their shapes while `Problem.local` moves."""
+        """The run's padded length of the array `name` that holds n rows now: set once
+        (`Problem._size_local_sets`, `objective._bucket`) so that the compiled programs keep their
+        shapes while `Problem.local` moves; a longer array raises it (a new compile)."""
         if name not in self._sizes or self._sizes[name] < n:
-            self._sizes[name] = _bucket(max(int(1.25 * n), 1))
+            self._sizes[name] = _bucket(max(n, 1))
         return self._sizes[name]
 
     def programs(self, problem: "Problem"):
@@ -961,11 +967,23 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
         label = 0
         end = "converged"
 
-        def one_round(w_score, mu, name):
+        def one_round(w_score, mu, name, checkpoints=False):
             nonlocal theta, state, result, best, label, masked, end
             masked = problem.track_obscured(state, result.checks, masked)
             where = f"start {start + 1} {name}"
-            outcome = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where, (start, label))
+            checked = {}   # the last layout judged within the round
+
+            def checkpoint(at) -> bool:
+                """Judge the round's iterate; True (end the round) in a feasibility round once it
+                meets every constraint."""
+                nonlocal best
+                checked.update(theta=at, state=problem.refresh(at))
+                checked["result"] = judge(problem, at, checked["state"], start)
+                best = min(best, checked["result"], key=lambda r: r.rank)
+                return w_score == 0 and checked["result"].violations == 0
+
+            outcome = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where, (start, label),
+                             checkpoint if checkpoints else None)
             run.history.extend(outcome.history)
             run.rounds.append(outcome.record(start, name))
             end = outcome.status
@@ -973,8 +991,11 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             if np.array_equal(outcome.theta, theta):
                 return
             theta = outcome.theta
-            state = problem.refresh(theta)
-            result = judge(problem, theta, state, start)
+            if checked and np.array_equal(checked["theta"], theta):   # judged at its last checkpoint
+                state, result = checked["state"], checked["result"]
+            else:
+                state = problem.refresh(theta)
+                result = judge(problem, theta, state, start)
             best = min(best, result, key=lambda r: r.rank)
             say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
                 f"{result.violations} violation(s) {_violated(result)}"
@@ -984,12 +1005,12 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
         for k in range(FEASIBILITY_ROUNDS):
             if result.violations == 0 or run.stop():
                 break
-            one_round(0.0, 1.0, f"feasibility round {k + 1}")
+            one_round(0.0, 1.0, f"feasibility round {k + 1}", checkpoints=True)
         for k in range(opt.rounds):
             if run.stop():
                 break
             previous = result
-            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}", checkpoints=k == 0)
             if (k > 0 and previous.violations == 0 and result.violations == 0
                     and previous.score - result.score < ROUND_TOL * previous.score):
                 end = "converged"   # the penalty continuation has nothing left
@@ -1063,7 +1084,8 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
 @dataclasses.dataclass(frozen=True)
 class RoundOutcome:
     """One BFGS solve (`_round`): θ at its last accepted step, how it ended (`status`:
-    "converged", "max_steps", "time_limit", "interrupted" or "failed"; `reason` in words),
+    "converged", "max_steps", "feasible" (a feasibility round that met every constraint at a
+    checkpoint), "time_limit", "interrupted" or "failed"; `reason` in words),
     optimistix's `Solution` (value: y, the scaled step from the round's start; result; aux: the
     terms at y; stats: num_steps, num_accepted_steps, max_steps; state: the solver state) and
     the terms at every accepted step (`history`: start, round, wall_s, score, the penalties)."""
@@ -1083,14 +1105,16 @@ class RoundOutcome:
 
 
 def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
-           label: tuple[int, int]) -> RoundOutcome:
+           label: tuple[int, int], checkpoint=None) -> RoundOutcome:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
     step moves about one natural unit (`Parameterization.scale`) along the steepest parameter.
     The solver runs step by step (one compiled step per call, `_Run`), checking the stop
     request between steps; `label` (start, round) tags the history rows. A step that leaves the
     solver's iterate, its value or gradient non-finite ends the round ("failed", with the
-    reason): it is never replaced."""
+    reason): it is never replaced. With a `checkpoint` (θ -> bool), every `CHECKPOINT_STEPS` steps
+    the last accepted θ, if it moved, is passed to it (`solve` judges it, so that the best layout
+    so far is known within a long round); True ends the round there ("feasible")."""
     run = problem.run
     origin = jnp.asarray(theta, dtype=jnp.float64)
     scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
@@ -1114,6 +1138,7 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
     state = init(y, solver_args)
     status, reason = "max_steps", f"{max_steps} steps"
     history = []
+    judged = np.zeros_like(np.asarray(y))   # the last iterate passed to `checkpoint`
     k = 0
     for k in range(1, max_steps + 1):
         if run.stop():
@@ -1121,10 +1146,10 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
             k -= 1
             break
         accepted = int(state.num_accepted_steps)
-        # the point this step evaluates: the local sets move with it, so that they serve it
+        # the point this step evaluates: the local sets move with it (`Problem.terms`)
         trial = np.asarray(origin + scale * state.y_eval)
         if np.linalg.norm(problem.body_points(trial)[2] - np.asarray(data["local"]["body"]), axis=-1).max() \
-                > LOCAL_MOVE / 4:
+                > LOCAL_MOVE / 2:
             data = dict(data, local=problem.local(trial))
             solver_args = (*solver_args[:5], data)
         y_new, state = step(y, solver_args, state)
@@ -1143,6 +1168,12 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
         if bool(state.terminate):
             status, reason = "converged", f"solver tolerance met at step {k}"
             break
+        if checkpoint is not None and k % CHECKPOINT_STEPS == 0 and k < max_steps \
+                and not np.array_equal(np.asarray(y), judged):
+            judged = np.asarray(y)
+            if checkpoint(np.asarray(origin + scale * y)):
+                status, reason = "feasible", f"every constraint met at step {k}"
+                break
         if not bool(state.result == optx.RESULTS.successful):
             status, reason = "failed", optx.RESULTS[state.result]
             break
