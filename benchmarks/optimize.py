@@ -8,10 +8,11 @@ total excess (`Result.rank`). vdo runs its gradient-based rounds (BFGS with froz
 refreshed between rounds); the baseline is a (1+1) evolution strategy with the 1/5 success rule
 on that same ranking (a constrained ES with feasibility rules), starting from the same hand
 layout with steps of one natural unit (3 deg, 0.5 in logit u), for `--budget` times vdo's wall
-time. Printed: the best feasible score against wall time for both, and when each first reaches
+time (default 5: with less, the baseline is stopped before it improves much, and its final
+score says little). Printed: the best feasible score against wall time for both, and when each first reaches
 the baseline's final score.
 
-Run: .venv/bin/python benchmarks/optimize.py [--config ...] [--budget 1.5]
+Run: .venv/bin/python benchmarks/optimize.py [--config ...] [--budget 5]
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def first_reach(trace, target):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--config", default=ROOT / "experiments/beam_column/ten_cameras.toml")
-    parser.add_argument("--budget", type=float, default=1.5, help="baseline time / vdo time")
+    parser.add_argument("--budget", type=float, default=5.0, help="baseline time / vdo time")
     parser.add_argument("--rounds", type=int, default=None, help="override [optimize] rounds")
     parser.add_argument("--max-steps", type=int, default=None, help="override [optimize] max_steps")
     args = parser.parse_args()
