@@ -30,8 +30,10 @@ feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
 (penalty continuation), until a feasible round improves on the feasible round before it by
 less than `ROUND_TOL` of the score. Several starts: the hand layout and randomly perturbed copies. Each
-round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
-start the best one wins (`Result.rank`: feasible first, by score), and the report names any
+round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`), and so
+is the iterate every `CHECKPOINT_STEPS` steps of a start's feasibility rounds (which end there once
+it is feasible) and first penalty round, so that the best layout so far is known within a long
+round; per start the best one wins (`Result.rank`: feasible first, by score), and the report names any
 violation that remains.
 
 Anytime: the solver runs one BFGS step per call and checks a `Stop` (time limit, SIGINT/SIGTERM
@@ -1329,7 +1331,8 @@ def _write_history(path, history):
 
 def _plot_history(path, history, verdicts, name):
     """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin line) and the exact score of each
-    round's layout (markers: filled where it meets every constraint), per start; layouts judged
+    judged layout (markers: filled where it meets every constraint; each round's, and the
+    checkpoints within the first rounds), per start; layouts judged
     without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     solved = sorted({h["start"] for h in history})
@@ -1341,7 +1344,7 @@ def _plot_history(path, history, verdicts, name):
             v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
                     color=line.get_color(), mfc=line.get_color() if feasible else "white",
-                    label=f"start {s + 1}: round's layout, {'feasible' if feasible else 'violates a constraint'}")
+                    label=f"start {s + 1}: judged layout, {'feasible' if feasible else 'violates a constraint'}")
     screened = [r for r in verdicts if r["start"] not in solved]
     if screened:
         ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
