@@ -141,3 +141,55 @@ def test_shadow_penalty_gradient_matches_finite_differences():
     fd = np.array([(f(c0 + h * e) - f(c0 - h * e)) / (2 * h) for e in np.eye(3)])
     assert float(f(c0)) > 0 and np.abs(g).max() > 1
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
+
+
+def _moves(rng, n, length):
+    """n random translations (3,) of norm at most `length`, half of them exactly `length`."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * np.where(np.arange(n) % 2 == 0, length, rng.uniform(0, length, n))[:, None]
+
+
+# (name, clearance m, how far the bodies may move m, trials)
+LOCAL_CASES = [("tight", 0.05, 0.1, 40), ("wide", 0.1, 0.3, 40)]
+
+
+@pytest.mark.parametrize("name, clearance, move, trials", LOCAL_CASES)
+def test_local_clearance_and_shadow_sets_give_the_full_penalties_for_moves_within_reach(
+        name, clearance, move, trials):
+    """The point set `points_near` keeps around a body, and the (camera, sample) pairs
+    `shadow_pairs` keeps around its spheres, give the same penalties as every point and every
+    pair for any move of the bodies up to `move`, on a floor of points and samples lit by a panel
+    above, with bodies placed across the light's rays; the sets are much smaller than the full
+    ones, and the moves do make both penalties nonzero (else the equality would prove nothing)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(1)
+    g = np.linspace(-1, 1, 41)
+    floor = np.stack(np.meshgrid(g, g, [0.0], indexing="ij"), -1).reshape(-1, 3)   # 5 cm apart
+    sample_pts, panel_row = _panel_above(height=2.0, size=0.4)
+    samples = floor[::3]
+    panels = np.tile(np.asarray(panel_row[0]), (len(samples), 1))
+    local = np.array([[0.0, 0.0, 0.0], [0.04, 0.03, 0.05], [-0.04, -0.03, 0.1]])
+    anchors = np.array([[0.1, 0.0, 0.12], [0.3, -0.2, 0.9], [-0.5, 0.4, 1.3]])   # near the floor, in the light
+    radii = np.full((3, 3), 0.04)
+    tree = cKDTree(floor)
+    body0 = anchors[:, None, :] + local
+    kept = [constraints.points_near(floor, tree, b, clearance + move) for b in body0]
+    pairs = constraints.shadow_pairs(body0, radii, samples, panels, 0.005, move)
+    assert max(len(k) for k in kept) < len(floor) / 4 and len(pairs) < 3 * len(samples) / 2
+    near_kept = jnp.asarray(constraints.padded_points(kept))
+    near_all = jnp.asarray(np.broadcast_to(floor, (3, *floor.shape)))
+    nonzero = [0, 0]
+    for d in _moves(rng, trials, move):
+        body = jnp.asarray(body0 + d)
+        full = float(constraints.clearance_penalty(body, near_all, clearance))
+        assert float(constraints.clearance_penalty(body, near_kept, clearance)) == pytest.approx(full, rel=1e-12, abs=1e-15)
+        full_shadow = float(constraints.shadow_penalty(body, jnp.asarray(radii), jnp.asarray(samples),
+                                                       jnp.asarray(panels), 0.005))
+        cheap = float(constraints.shadow_penalty(body, jnp.asarray(radii), jnp.asarray(samples), jnp.asarray(panels),
+                                                 0.005, jnp.asarray(pairs), jnp.ones(len(pairs))))
+        assert cheap == pytest.approx(full_shadow, rel=1e-12, abs=1e-15)
+        nonzero[0] += full > 0
+        nonzero[1] += full_shadow > 0
+    assert min(nonzero) > 0

@@ -96,3 +96,26 @@ def test_photometry_formulas_follow_the_sensor_model():
     dn_per_unit = sensor.mean_dn(1.0) - sensor.mean_dn(0.0)
     np.testing.assert_allclose(pho.contrast[0], dn_per_unit * 0.7 * 0.45 * E / np.pi)
     assert pho.noise[0, 0] > 0 and pho.contrast[0, 0] == 0
+
+
+@pytest.mark.parametrize("case, blocker_lo, blocker_hi, shaded_min", [
+    # a small box between the panel and part of the samples: those samples lose light
+    ("half shaded", [-0.3, -0.3, 0.18], [0.0, 0.3, 0.22], 10),
+    # a box beside the light paths: nothing changes, and nothing needs casting again
+    ("clear", [2.0, 2.0, 0.1], [2.2, 2.2, 0.3], 0),
+])
+def test_relight_equals_a_full_cast_with_the_added_occluder(case, blocker_lo, blocker_hi, shaded_min):
+    """`relight` (cast again only the samples an added occluder may shade) against `illuminate` of
+    the whole scene with it: the same lit fractions and irradiance, for samples shaded and not."""
+    light = LightSpec("p", np.array([0, 0, 0.5]), np.array([0, 0, 0.0]), (0.3, 0.3), 5.0)
+    xs = np.linspace(-0.4, 0.4, 21)
+    grid = samples_at(np.array([[x, y, 0.0] for x in xs for y in xs]))
+    base = [box_mesh("far", [50, 50, 50], [51, 51, 51])]
+    blocker = box_mesh("blocker", blocker_lo, blocker_hi)
+    unobstructed = lighting.illuminate(scene.build_scene(base), [light], grid)
+    full = lighting.illuminate(scene.build_scene(base + [blocker]), [light], grid)
+    fast = lighting.relight(scene.build_scene(base + [blocker]), [light], grid, unobstructed,
+                            [blocker.vertices])
+    np.testing.assert_array_equal(fast.lit, full.lit)
+    np.testing.assert_allclose(fast.direct, full.direct, rtol=0, atol=1e-12)
+    assert int((full.lit < unobstructed.lit).sum()) >= shaded_min, case

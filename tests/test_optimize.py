@@ -239,7 +239,8 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["status"] == "interrupted" and not summary["converged"]
     # the round in progress ended on the signal (or had just converged at that very step)
-    assert summary["rounds"][-1] in ("interrupted", "converged") and len(summary["rounds"]) == 1
+    assert summary["rounds"][-1]["status"] in ("interrupted", "converged") and len(summary["rounds"]) == 1
+    assert summary["rounds"][-1]["num_steps"] <= 2   # optimistix's stats, kept per round
     assert sorted(p.name for p in out.iterdir()) == FOLDER
     _layout_reloads(out)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handler restored
@@ -271,3 +272,49 @@ def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit)
     assert code == 2 and len(err) == 1
     assert "--time-limit" in err[0] and "positive" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_local_clearance_and_shadow_sets_match_every_point_and_pair_near_the_anchor(tmp_path):
+    """On a plate under two rail cameras with a bar beside one of them and an LED panel above
+    them: the clearance and shadow penalties the solver evaluates (`Problem.terms` over
+    `Problem.local`'s sets at the start layout) equal those over every mesh point near the rails
+    and every lit sample, at layouts whose body points moved up to `LOCAL_MOVE`; and those
+    layouts do violate both (else the equality would prove nothing)."""
+    import jax.numpy as jnp
+
+    from vdo import constraints
+    from vdo.optimize import CLEARANCE_MARGIN, LOCAL_MOVE, SHADOW_MARGIN, Problem
+
+    bar = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\n'
+    light = ('[[light]]\nname = "panel"\nposition_m = [0.0, 0.0, 2.0]\ntarget_m = [0, 0, 0]\n'
+             'size_m = [0.6, 0.6]\nradiance = 60\n')
+    cams = aimed_camera("a", 0.45) + aimed_camera("b", 0.6)
+    exp = experiment(tmp_path, cams + light, ["a", "b"], extra_meshes=bar,
+                     files=[("bar.stl", [40, 40, 600], [-100, 120, 1000])])
+    exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, clearance=0.15))
+    problem = Problem(exp)
+    theta0 = problem.param.theta0
+    data = dict(problem.data, local=problem.local(theta0))
+    body0 = problem.body_points(theta0)[2]
+    near_all = jnp.asarray(constraints.padded_points(problem.near_sets))
+    rng = np.random.default_rng(0)
+    active = [0, 0]
+    for _ in range(12):
+        step = rng.normal(size=theta0.size) * problem.param.scale
+        # the largest multiple of the step that keeps every body point within LOCAL_MOVE
+        t = 1.0
+        while np.linalg.norm(problem.body_points(theta0 + t * step)[2] - body0, axis=-1).max() > LOCAL_MOVE:
+            t *= 0.8
+        theta = theta0 + t * step
+        terms = problem.terms(jnp.asarray(theta), problem.start.views, data, obscured=False)
+        R, pos, body = problem.body_points(theta)
+        full_clearance = float(constraints.clearance_penalty(
+            jnp.asarray(body), near_all, exp.optimize.clearance + CLEARANCE_MARGIN))
+        spheres = np.einsum("cji,cbj->cbi", R, np.asarray(problem.sphere_local)) + pos[:, None]
+        full_shadow = float(constraints.shadow_penalty(jnp.asarray(spheres), problem.sphere_radii,
+                                                       *problem.lit_samples, SHADOW_MARGIN))
+        assert float(terms["clearance"]) == pytest.approx(full_clearance, rel=1e-9, abs=1e-12)
+        assert float(terms["shadow"]) == pytest.approx(full_shadow, rel=1e-9, abs=1e-12)
+        active[0] += full_clearance > 0
+        active[1] += full_shadow > 0
+    assert min(active) > 0, active

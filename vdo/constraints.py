@@ -29,6 +29,7 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .camera import to_camera
 from .objective import smoothstep
@@ -191,7 +192,7 @@ def clearance_penalty(body_world, near_points, clearance: float):
     return total
 
 
-def shadow_penalty(centres, radii, samples, panels, margin: float):
+def shadow_penalty(centres, radii, samples, panels, margin: float, pairs=None, weight=None):
     """Σ (max(0, α + margin / D - β) / α)^2 over every body sphere (centres (C, K, 3), radii
     (C, K), m) and lit sample X, in angles seen from X: the sphere (centre c at distance D)
     covers a cone of half-angle α = r / D, and β is the angle between X -> c and X -> Y, Y the
@@ -203,39 +204,93 @@ def shadow_penalty(centres, radii, samples, panels, margin: float):
     (emitting side), width direction e_1, half-width and half-height (the height direction,
     n x e_1, is derived). 0 when no body comes within `margin` (m, at the body) of
     shadowing a sample; continuous in the body poses, C^1 except where the ray X -> c crosses
-    the panel's outline (where the slope of β changes) or the panel's plane."""
-    centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
-                                          panels[:, 9:10], panels[:, 10:11])
+    the panel's outline (where the slope of β changes) or the panel's plane.
+
+    With `pairs` (P, 2) rows (camera, sample) and `weight` (P,) (1, or 0 for padding rows), the
+    sum runs over those pairs only (every sphere of the camera): `shadow_pairs` keeps the pairs
+    that can be nonzero near a layout, so that the sum equals the full one there."""
+    if pairs is None:
+        terms = _shadow_terms(samples, centres[:, :, None, :], radii[:, :, None], panels, margin)
+        return jnp.sum(terms)
+    cam, sample = pairs[:, 0], pairs[:, 1]
+    terms = _shadow_terms(samples[sample][:, None, :], centres[cam], radii[cam],
+                          panels[sample][:, None, :], margin)
+    return jnp.sum(weight[:, None] * terms)
+
+
+def _shadow_terms(x, c, r, panel, margin: float):
+    """`shadow_penalty`'s term for samples x (..., 3), sphere centres c (..., 3), radii r (...)
+    and the samples' panel rows (..., 11), broadcast against each other."""
+    centre, normal, e1, half_w, half_h = (panel[..., :3], panel[..., 3:6], panel[..., 6:9],
+                                          panel[..., 9:10], panel[..., 10:11])
     e2 = jnp.cross(normal, e1)
-    ray = centres[:, :, None, :] - samples                    # (C, K, S, 3)  X -> c
+    ray = c - x                                               # X -> c
     along = jnp.sum(ray * normal, -1)                         # < 0 toward the emitting face
-    reach = jnp.sum((centre - samples) * normal, -1)          # (S,) < 0: X in front of the panel
+    reach = jnp.sum((centre - x) * normal, -1)                # < 0: X in front of the panel
     toward = along < -1e-9
     lam = jnp.where(toward, reach / jnp.where(toward, along, -1.0), 0.0)
-    q = samples + lam[..., None] * ray - centre               # in the panel plane, from its centre
+    q = x + lam[..., None] * ray - centre                     # in the panel plane, from its centre
     y = (centre + jnp.clip(jnp.sum(q * e1, -1, keepdims=True), -half_w, half_w) * e1
-         + jnp.clip(jnp.sum(q * e2, -1, keepdims=True), -half_h, half_h) * e2 - samples)
+         + jnp.clip(jnp.sum(q * e2, -1, keepdims=True), -half_h, half_h) * e2 - x)
     dist = jnp.sqrt(jnp.sum(ray * ray, -1) + 1e-12)
     sin_b = jnp.sqrt(jnp.sum(jnp.cross(ray, y) ** 2, -1) + 1e-18)
     beta = jnp.arctan2(sin_b, jnp.sum(ray * y, -1))
-    alpha = radii[:, :, None] / dist
+    alpha = r / dist
     hit = toward & (lam > 1.0)
-    return jnp.sum(jnp.where(hit, (jnp.maximum(alpha + margin / dist - beta, 0.0) / alpha) ** 2, 0.0))
+    return jnp.where(hit, (jnp.maximum(alpha + margin / dist - beta, 0.0) / alpha) ** 2, 0.0)
 
 
-def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> np.ndarray:
-    """(C, Q, 3): for each camera, the mesh points within `reach` of its path (the points its
-    optical centre can take: a sampled rail, or its fixed position), padded to a common Q with a
-    point far away (1 km) that never binds."""
-    from scipy.spatial import cKDTree
+def shadow_pairs(centres: np.ndarray, radii: np.ndarray, samples: np.ndarray, panels: np.ndarray,
+                 margin: float, move: float) -> np.ndarray:
+    """(P, 2) rows (camera, sample) of `shadow_penalty` that can be nonzero while no sphere centre
+    moves more than `move` (m) from `centres` (C, K, 3): the others are 0 there, so the sum over
+    these pairs equals the full sum.
 
+    A term (sphere c' = c + δ, |δ| <= move, at distance D' from X) is nonzero only if
+    β' < (r + margin) / D'. β' is at least the angle β* from X -> c' to the nearest direction
+    from X into the panel; β* changes by at most asin(move / D) when c moves by `move` (D = |c - X|),
+    D' >= D - move, and β* >= ∠(X -> c, X -> panel centre) - γ, γ the largest angle from the
+    centre's direction to a corner's (the panel lies in that cone: the cone is convex for
+    γ < 90 deg, and so is its cut with the panel's plane). A pair is kept when for one of its
+    spheres ∠ - γ < (r + margin) / (D - move) + asin(move / D), or D <= move + r + margin, or
+    γ >= 90 deg."""
+    centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
+                                          panels[:, 9:10], panels[:, 10:11])
+    e2 = np.cross(normal, e1)
+    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-30)
+    to_centre = unit(centre - samples)                                              # (S, 3)
+    corners = np.stack([centre + a * half_w * e1 + b * half_h * e2 - samples
+                        for a in (-1, 1) for b in (-1, 1)], 1)                      # (S, 4, 3)
+    gamma = np.arccos(np.clip(np.einsum("sj,skj->sk", to_centre, unit(corners)), -1, 1)).max(1)
+    ray = centres[:, :, None, :] - samples                                          # (C, K, S, 3)
+    dist = np.linalg.norm(ray, axis=-1)
+    angle = np.arccos(np.clip(np.einsum("cksj,sj->cks", unit(ray), to_centre), -1, 1))
+    rho = radii[:, :, None] + margin
+    room = dist - move
+    bound = rho / np.maximum(room, 1e-30) + np.arcsin(np.clip(move / np.maximum(dist, 1e-30), 0, 1))
+    keep = (room <= rho) | (angle - gamma < bound) | (gamma >= np.pi / 2)
+    return np.argwhere(keep.any(axis=1)).astype(np.int32)
+
+
+def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> list[np.ndarray]:
+    """For each camera, the mesh points (Q_c, 3) within `reach` of its path (the points its
+    optical centre can take: a sampled rail, or its fixed position)."""
     tree = cKDTree(points)
-    chosen = []
-    for path in paths:
-        idx = sorted(set().union(*tree.query_ball_point(np.atleast_2d(path), reach)))
-        chosen.append(points[idx])
-    q = max(1, max(len(c) for c in chosen))
-    out = np.full((len(paths), q, 3), 1e3)
+    return [points_near(points, tree, path, reach) for path in paths]
+
+
+def points_near(points: np.ndarray, tree: cKDTree, anchors: np.ndarray, reach: float) -> np.ndarray:
+    """The rows of `points` (`tree` holds them) within `reach` (m) of any row of `anchors` (A, 3).
+    For a body's points as anchors and reach = clearance + d: every point that `clearance_penalty`
+    can count while no body point moves more than d."""
+    return points[sorted(set().union(*tree.query_ball_point(np.atleast_2d(anchors), reach)))]
+
+
+def padded_points(chosen: list[np.ndarray], size: int | None = None) -> np.ndarray:
+    """(C, Q, 3): the per-camera point sets `chosen`, padded to Q = `size` (default the largest
+    set, at least 1) with a point far away (1 km) that never binds `clearance_penalty`."""
+    q = max([1] + [len(c) for c in chosen]) if size is None else size
+    out = np.full((len(chosen), q, 3), 1e3)
     for c, pts in enumerate(chosen):
         out[c, :len(pts)] = pts
     return out

@@ -108,9 +108,44 @@ def illuminate(scene, lights, samples: SurfaceSamples, ambient_radiance: float =
     `scene` is a Mitsuba scene for shadow rays (vdo.scene.build_scene of the meshes and camera
     bodies); it must not hold the emitters themselves. All shadow rays of a light go to Mitsuba's
     `ray_test` in batches of at most `batch_rays`."""
-    mi = mitsuba()
+    lit, direct = _cast(scene, lights, np.asarray(samples.points, float),
+                        np.asarray(samples.normals, float), grid, batch_rays)
+    return Illumination(tuple(lt.name for lt in lights), lit, direct, float(np.pi * ambient_radiance))
+
+
+def relight(scene, lights, samples: SurfaceSamples, unobstructed: Illumination,
+            occluders: list[np.ndarray], grid: int = GRID, batch_rays: int = 4_000_000) -> Illumination:
+    """`illuminate(scene, lights, samples)` for a scene that is the scene of `unobstructed` (the
+    same lights and samples) plus the `occluders` (vertex arrays (V, 3), e.g. camera bodies),
+    casting again only the samples whose shadow rays an occluder may cross; the others keep
+    their values from `unobstructed`, which is exact: an added obstacle can only block rays it
+    meets. A sample x is cast again, for a light with panel centre P_c and grid points within ρ
+    of it, when some occluder's bounding sphere (centre c, radius R) comes within R + ρ of the
+    segment x -> P_c (every shadow ray x -> P_j lies within ρ of that segment). On the built-in
+    experiment's 13,488 samples and 10 camera bodies, a few percent of the samples."""
     X = np.asarray(samples.points, float)
-    nrm = np.asarray(samples.normals, float)
+    lit, direct = unobstructed.lit.copy(), unobstructed.direct.copy()
+    spheres = [((v.max(axis=0) + v.min(axis=0)) / 2, v) for v in map(np.asarray, occluders) if len(v)]
+    spheres = np.array([[*c, np.linalg.norm(v - c, axis=1).max()] for c, v in spheres]).reshape(-1, 4)
+    for k, light in enumerate(lights):
+        P, _ = panel_points(light, grid)
+        centre = P.mean(axis=0)
+        rho = np.linalg.norm(P - centre, axis=1).max() + EPSILON
+        seg = centre - X                                                   # (N, 3)
+        t = np.clip(((spheres[None, :, :3] - X[:, None]) @ seg[..., None])[..., 0]
+                    / np.maximum((seg * seg).sum(axis=1), 1e-12)[:, None], 0.0, 1.0)   # (N, K)
+        gap = np.linalg.norm(X[:, None] + t[..., None] * seg[:, None] - spheres[None, :, :3], axis=-1)
+        near = np.flatnonzero((gap <= spheres[None, :, 3] + rho).any(axis=1))
+        if near.size:
+            lit_k, direct_k = _cast(scene, [light], X[near], np.asarray(samples.normals, float)[near],
+                                    grid, batch_rays)
+            lit[k, near], direct[k, near] = lit_k[0], direct_k[0]
+    return Illumination(unobstructed.light_names, lit, direct, unobstructed.ambient)
+
+
+def _cast(scene, lights, X: np.ndarray, nrm: np.ndarray, grid: int, batch_rays: int):
+    """(lit, direct), each (L, N), of the points X with normals nrm (`illuminate`)."""
+    mi = mitsuba()
     n_s = len(X)
     lit = np.zeros((len(lights), n_s))
     direct = np.zeros((len(lights), n_s))
@@ -143,7 +178,7 @@ def illuminate(scene, lights, samples: SurfaceSamples, ambient_radiance: float =
             lit[k, start:start + per] = V.mean(axis=1)
             direct[k, start:start + per] = light.radiance * dA * np.sum(
                 np.where(V, cos_s * cos_l / r**2, 0.0), axis=1)
-    return Illumination(tuple(lt.name for lt in lights), lit, direct, float(np.pi * ambient_radiance))
+    return lit, direct
 
 
 # --------------------------------------------------------------------------------------------

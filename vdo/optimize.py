@@ -22,23 +22,26 @@ obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`); P_sha
 camera bodies (covered by spheres) from hiding any part of a light panel from the samples it
 lights.
 
-A round is one BFGS solve (optimistix) with the ray-cast occlusion and the lighting frozen;
-between rounds they are recomputed at the new layout. From a start that violates a constraint,
+A round is one BFGS solve (optimistix; its line search `RememberingArmijo`) with the ray-cast
+occlusion and the lighting frozen; between rounds they are recomputed at the new layout. A round
+returns its `RoundOutcome` (optimistix's `Solution`, the accepted steps' terms, how it ended). From a start that violates a constraint,
 feasibility rounds come first: the penalties alone (a = 0, μ = 1), repeated (at most
 `FEASIBILITY_ROUNDS`) until the layout meets every constraint, so that the score never trades
 against a violation the layout could shed. Then `rounds` rounds with a = 1 and μ = 10, 100, ...
 (penalty continuation), until a feasible round improves on the feasible round before it by
 less than `ROUND_TOL` of the score. Several starts: the hand layout and randomly perturbed copies. Each
-round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`); per
-start the best one wins (`Result.rank`: feasible first, by score), and the report names any
+round's layout is judged exactly (`judge`: the ray cast, the score and `constraints.check`), and so
+is the iterate every `CHECKPOINT_STEPS` steps of a start's feasibility rounds (which end there once
+it is feasible) and first penalty round, so that the best layout so far is known within a long
+round; per start the best one wins (`Result.rank`: feasible first, by score), and the report names any
 violation that remains.
 
 Anytime: the solver runs one BFGS step per call and checks a `Stop` (time limit, SIGINT/SIGTERM
 via `stop_on_signals`) between steps and rounds; the best judged layout of the run is kept
 (`_Run.best`) and written whatever ends the search. Compile once: the step is one jitted program
 per run and structure (`_Run.programs`) that takes every layout-dependent array as an argument
-(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and other arrays to few
-sizes (`_pad_axis`); without tracked obscuration it holds no host callback, so JAX's persistent
+(`Problem.data`), with the pair lists padded to one size (`_Run.padded`) and the clearance and
+shadow sets to sizes fixed per run (`_Run.size`); without tracked obscuration it holds no host callback, so JAX's persistent
 compilation cache can serve it to the next run.
 """
 
@@ -71,12 +74,12 @@ from .camera import Camera, intrinsic_matrix, rotation
 from .config import Experiment, inside_floor
 from .errors import ConfigError
 from .keyframes import load_path_of
-from .lighting import illuminate, panel_frame
+from .lighting import panel_frame
 from .obscuration import ObscurationRenderer
 from .objective import _bucket
 from .predict import predict, samples_for_objective, settings, view_data
 from .runfolder import run_folder
-from .state import bodies, layout_state, prepare
+from .state import bodies, layout_state, prepare, unobstructed_lighting
 from .scene import (SceneMesh, build_scene, camera_body, camera_body_points,
                     camera_body_spheres)
 from .visibility import compute_visibility
@@ -91,9 +94,13 @@ ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
+LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
+                   # within this distance of the anchor layout (`Problem.local`)
+PATH_SLACK = 0.05  # m: the farthest an optical centre can be from the nearest point of `Problem._paths`
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
 BACKTRACKS = 4    # halvings of a round's move whose refreshed layout ranks worse than its start (`_backtrack`)
+CHECKPOINT_STEPS = 10   # steps between the exact verdicts within a start's first rounds (`solve`)
 
 log = logging.getLogger(__name__)
 
@@ -315,6 +322,12 @@ class ObscurationTerm:
 
         self.penalty = penalty
 
+    def track(self, renderers: list[tuple[int, ObscurationRenderer]]) -> None:
+        """Differentiate these (camera, renderer) pairs from now on (the cache of the last
+        evaluation is dropped with the old set)."""
+        self.tracked = list(renderers)
+        self._cache = (None, None)
+
 
 # --------------------------------------------------------------------------------------------
 # The problem: everything an objective evaluation needs, built once
@@ -342,12 +355,13 @@ class Problem:
         if reference is None:
             self.geometry = prepare(exp)
             self.scene_points = _surface_points(list(self.geometry.meshes), spacing=0.015)
-            # lights reaching each sample with no camera in the scene, to see what the bodies hide
-            self.lit_without_cameras = (illuminate(build_scene(list(self.geometry.meshes)), exp.lights,
-                                                   self.geometry.samples).lit if exp.lights else None)
+            # the lighting with no camera in the scene: what the bodies hide, and the base that
+            # each refresh casts again only where a body may be in the way (`layout_state`)
+            self.unobstructed = unobstructed_lighting(self.geometry)
         else:
-            for name in ("geometry", "scene_points", "lit_without_cameras"):
+            for name in ("geometry", "scene_points", "unobstructed"):
                 setattr(self, name, getattr(reference, name))
+        self.lit_without_cameras = self.unobstructed.lit if exp.lights else None
         self.meshes, self.samples = list(self.geometry.meshes), self.geometry.samples
         self.faces, self.speckle = list(self.geometry.region_faces), self.geometry.speckle
         self.settings = settings(exp)
@@ -361,9 +375,11 @@ class Problem:
         self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
-        self.near_points = jnp.asarray(_pad_axis(constraints.near_points(
-            self.scene_points, self._paths(), reach=float(np.abs(self.body_local).max()) * 1.8
-            + opt.clearance + CLEARANCE_MARGIN), 1, 1e3))
+        paths = self._paths()
+        self.near_sets = constraints.near_points(
+            self.scene_points, paths, reach=float(np.abs(self.body_local).max()) * 1.8
+            + opt.clearance + CLEARANCE_MARGIN)
+        self.near_trees = [cKDTree(p) for p in self.near_sets]
         self.start = self.refresh(self.param.theta0)
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
@@ -376,12 +392,13 @@ class Problem:
         self.sphere_radii = jnp.asarray(np.stack([r for _, r in spheres])) if spheres else None
         self.lit_samples = self._lit_samples()
         if reference is None:
+            self._size_local_sets(paths)
+        if reference is None:
             self.fov_limits = None   # None: 1 - max_obscuration, to judge the hand layout itself
             self.fov_limits = self._fov_limits(self.check(self.start))   # then no worse than it
         else:
             self.fov_limits = reference.fov_limits
         self.fov = self._fov_groups(self.start)
-        self.masked: set[tuple[int, int]] = set()    # (camera, region) pairs tracked this start
 
     @property
     def obscuration(self) -> "ObscurationTerm":
@@ -402,9 +419,63 @@ class Problem:
             samples=self.obj_samples, energy=self.speckle.table,
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
-            fov=self.fov, body_local=self.body_local, near_points=self.near_points,
+            fov=self.fov, body_local=self.body_local,
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
+
+    def body_points(self, theta):
+        """(R (C, 3, 3), optical centres (C, 3), body points (C, B, 3) in the world, m) at θ."""
+        cams = self.param.cameras_at(theta)
+        R = np.stack([c.R for c in cams])
+        pos = np.stack([np.asarray(c.position, float) for c in cams])
+        return R, pos, np.einsum("cji,cbj->cbi", R, np.asarray(self.body_local)) + pos[:, None, :]
+
+    def _size_local_sets(self, paths: list[np.ndarray]) -> None:
+        """Fix the run's padded sizes of `local`'s sets before the first compile, from where the
+        bodies can go: the most mesh points within e + clearance (+ margin) + `LOCAL_MOVE` +
+        `PATH_SLACK` of one point of a camera's path (e: the farthest body point from the optical
+        centre), and the (camera, sample) pairs that `constraints.shadow_pairs` keeps for a sphere
+        of the largest radius anywhere on the camera's path, moving e + `LOCAL_MOVE` +
+        `PATH_SLACK`. An estimate, not a bound: a larger set raises the size (`_Run.size`)."""
+        opt = self.exp.optimize
+        extent = float(np.linalg.norm(np.asarray(self.body_local), axis=-1).max())
+        reach = opt.clearance + CLEARANCE_MARGIN + LOCAL_MOVE + PATH_SLACK + extent
+        self.run.size("near", max(int(np.max(tree.query_ball_point(path, reach, return_length=True)))
+                                  for tree, path in zip(self.near_trees, paths)))
+        if self.lit_samples is not None and self.sphere_local is not None:
+            samples, panels = (np.asarray(a) for a in self.lit_samples)
+            radius = float(np.asarray(self.sphere_radii).max())
+            self.run.size("shadow", sum(len(constraints.shadow_pairs(
+                paths[c][None], np.full((1, len(paths[c])), radius), samples, panels, SHADOW_MARGIN,
+                extent + LOCAL_MOVE + PATH_SLACK)) for c in self.bodied))
+
+    def local(self, theta) -> dict:
+        """What the clearance and shadow penalties read near the layout θ (the anchor): its body
+        points (C, B, 3) and sphere centres (m), each camera's mesh points within the clearance
+        (+ margin) + `LOCAL_MOVE` of its body points (a subset of `near_sets`, padded:
+        `_Run.size`), and the (camera, lit sample) pairs that `constraints.shadow_pairs` keeps for
+        spheres moving at most `LOCAL_MOVE`. While no body point has moved more than `LOCAL_MOVE`
+        from the anchor, the penalties over these sets equal the full ones (`_round` moves the
+        anchor with the
+        solver's trial point). The sphere centres lie in the convex hull of the body points, so
+        under a rigid move they move no more than the farthest body point."""
+        R, pos, body = self.body_points(theta)
+        reach = self.exp.optimize.clearance + CLEARANCE_MARGIN + LOCAL_MOVE
+        kept = [constraints.points_near(pts, tree, b, reach) if len(pts) else pts
+                for pts, tree, b in zip(self.near_sets, self.near_trees, body)]
+        out = dict(body=jnp.asarray(body), near=jnp.asarray(constraints.padded_points(
+            kept, self.run.size("near", max(len(k) for k in kept)))))
+        if self.lit_samples is not None and self.sphere_local is not None:
+            b = self.bodied
+            spheres = np.einsum("cji,cbj->cbi", R[b], np.asarray(self.sphere_local)) + pos[b][:, None, :]
+            pairs = constraints.shadow_pairs(spheres, np.asarray(self.sphere_radii),
+                                             *(np.asarray(a) for a in self.lit_samples), SHADOW_MARGIN,
+                                             LOCAL_MOVE)
+            size = self.run.size("shadow", len(pairs))
+            out.update(spheres=jnp.asarray(spheres),
+                       shadow_pairs=jnp.asarray(np.pad(pairs, ((0, size - len(pairs)), (0, 0)))),
+                       shadow_weight=jnp.asarray(np.arange(size) < len(pairs), dtype=float))
+        return out
 
     def _paths(self) -> list[np.ndarray]:
         """Where each optical centre can go: its rail (+ offset) sampled at most ~2 cm apart, or
@@ -443,7 +514,7 @@ class Problem:
 
     def refresh(self, theta) -> State:
         cams = self.param.cameras_at(theta)
-        layout = layout_state(self.geometry, cams, predict_fields=False)
+        layout = layout_state(self.geometry, cams, predict_fields=False, unobstructed=self.unobstructed)
         vis, illum = layout.visibility, layout.illumination
         # the same cast against the obstacles alone: what hides a region that the specimen does not
         obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies(self.exp, cams))
@@ -495,27 +566,28 @@ class Problem:
                     points=jnp.asarray(points), area=jnp.asarray(area), ramp=jnp.asarray(ramp),
                     limit=jnp.asarray([self.fov_limits[c, r] for c, r in groups]))
 
-    def track_obscured(self, state: State, checks: list[dict]) -> None:
+    def track_obscured(self, state: State, checks: list[dict], masked: frozenset = frozenset()) -> frozenset:
         """Render-differentiated obscuration for every assigned (camera, region) pair that an
-        obstacle has masked beyond the limit at this or any earlier refresh of the start (a pair
-        that was cleared stays tracked, or the next round could walk the camera back behind the
-        obstacle). Pairs within the limit are left to the exact check: each tracked pair costs two
-        Mitsuba renders and a backward pass per evaluation, and its Monte Carlo noise (spp 16)
-        stalls BFGS's line search when the pair has nothing to gain (measured on the built-in
-        experiment: no accepted step with two such pairs, 5 % lower score without them).
-        `checks` is `check(state)`."""
+        obstacle has masked beyond the limit at this or any earlier refresh of the start (`masked`,
+        the pairs so far; returned with this refresh's added: a pair that was cleared stays
+        tracked, or the next round could walk the camera back behind the obstacle). Pairs within
+        the limit are left to the exact check: each tracked pair costs two Mitsuba renders and a
+        backward pass per evaluation, and its Monte Carlo noise (spp 16) stalls BFGS's line search
+        when the pair has nothing to gain (measured on the built-in experiment: no accepted step
+        with two such pairs, 5 % lower score without them). `checks` is `check(state)`."""
         by_name = {c.name: i for i, c in enumerate(self.cams0)}
         threshold = self.exp.optimize.max_obscuration
-        for entry in checks:
-            if entry["constraint"] == "obscuration" and entry["value"] > threshold:
-                self.masked.add((by_name[entry["cameras"][0]], self.samples.region_names.index(entry["region"])))
-        self.obscuration.tracked = []
-        for c, r in sorted(self.masked):
+        masked = frozenset(masked) | {
+            (by_name[e["cameras"][0]], self.samples.region_names.index(e["region"]))
+            for e in checks if e["constraint"] == "obscuration" and e["value"] > threshold}
+        renderers = []
+        for c, r in sorted(masked):
             others = [camera_body(o) for k, o in enumerate(state.cameras) if k != c]
             obstacles = [m for m in self.meshes if m.role != "specimen"] + others
-            self.obscuration.tracked.append(
+            renderers.append(
                 (c, ObscurationRenderer(state.cameras[c], self._region_mesh(r), obstacles, width=96, spp=16)))
-        self.obscuration._cache = (None, None)
+        self.obscuration.track(renderers)
+        return masked
 
     def _region_mesh(self, r: int) -> SceneMesh:
         spec = self.exp.regions[r]
@@ -527,7 +599,10 @@ class Problem:
     # -- the objective (traced: reads only `data` and the static structure) ------------------
     def terms(self, theta, views, data, obscured: bool = True) -> dict:
         """The score and each penalty at θ (float64 JAX scalars): score and the `PENALTIES`;
-        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise)."""
+        P_obscuration only when `obscured` (a Mitsuba callback; 0 otherwise). P_clearance and
+        P_shadow read `data["local"]`, `local` at an anchor from which no body point of θ is
+        more than `LOCAL_MOVE` away: there they equal the penalties over every mesh point and
+        every lit sample (`_round` moves the anchor before every evaluation that needs it)."""
         pos, pan, tilt, roll = self.param.poses(theta, data["held"])
         f, cx, cy, size = data["focal_px"], data["cx"], data["cy"], data["size"]
         cams = objective.CameraParams(pos, pan, tilt, roll, f, cx, cy, size[:, 0], size[:, 1],
@@ -536,7 +611,9 @@ class Problem:
         t = -jnp.einsum("cij,cj->ci", R, pos)
         K = intrinsic_matrix(f, cx, cy)
         clearance = self.exp.optimize.clearance
+        clearance = clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0
         fov = data["fov"]
+        local = data["local"]   # the clearance and shadow sets of an anchor near θ (`local`)
         out = dict(
             score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
             angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"],
@@ -545,13 +622,13 @@ class Problem:
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
                 fov["ramp"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
-                constraints.body_points_world(data["body_local"], R, pos), data["near_points"],
-                clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0),
+                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
             shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
                 constraints.body_points_world(data["spheres"][0], R[self.bodied], pos[self.bodied]),
-                data["spheres"][1], *data["lit"], SHADOW_MARGIN))
+                data["spheres"][1], *data["lit"], SHADOW_MARGIN, local["shadow_pairs"],
+                local["shadow_weight"]))
         return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in out.items()}
 
     def _scaled(self, y, args, obscured: bool):
@@ -583,8 +660,10 @@ class Problem:
         return limits
 
     def exact_score(self, state: State) -> float:
-        f = objective.CameraParams.from_cameras(state.cameras)
-        return float(objective.score(f, self.obj_samples, state.views, self.speckle.table, self.settings))
+        """The score at the refreshed layout (µm): `_score_parts`'s, from the one compiled
+        `objective.fields` program that the report also uses (`objective.score` gives the same
+        within 1e-7 relative, its pairs in float32, and would be one more program to compile)."""
+        return _score_parts(self, state)["score_um"]
 
 
 def _surface_points(meshes, spacing: float) -> np.ndarray:
@@ -637,13 +716,58 @@ def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:
     return w / w.sum()
 
 
-def _pad_axis(a: np.ndarray, axis: int, value: float) -> np.ndarray:
-    """`a` padded with `value` along `axis` to a size of few distinct values (`objective._bucket`),
-    so that layouts of one run seldom change the compiled programs' shapes."""
-    n = a.shape[axis]
-    widths = [(0, 0)] * a.ndim
-    widths[axis] = (0, _bucket(n) - n)
-    return np.pad(a, widths, constant_values=value)
+# --------------------------------------------------------------------------------------------
+# The solver: BFGS with a line search that remembers its step
+# --------------------------------------------------------------------------------------------
+class _SearchState(eqx.Module):
+    step_size: jax.Array
+
+
+class RememberingArmijo(optx.AbstractSearch):
+    """Backtracking Armijo line search that starts each step where the last one was accepted.
+
+    A trial y_eval = y + α d (d the quasi-Newton direction) is accepted when
+    f(y_eval) - f(y) <= slope · ∇f(y)·(y_eval - y) with ∇f(y)·(y_eval - y) <= 0. After a
+    rejection α ← `decrease` α; after an acceptance α ← min(1, `increase` α), where optimistix's
+    `BacktrackingArmijo` restarts from α = 1. Why: the penalties of `vdo.constraints` are 0 on the
+    feasible side and rise steeply behind it (a camera body entering a light's cone), which BFGS's
+    curvature model, built from accepted points where they vanish, cannot see; every full step
+    then runs into a wall and is halved 4-12 times (measured on the built-in experiment: 7 of 40
+    steps accepted in a penalty round; with this search 18 of 40, and a lower score)."""
+
+    decrease: float = 0.5
+    increase: float = 2.0
+    slope: float = 0.1
+
+    def init(self, y, f_info_struct):
+        del y, f_info_struct
+        return _SearchState(jnp.array(1.0))
+
+    def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
+        predicted = f_info.compute_grad_dot(jax.tree_util.tree_map(lambda a, b: a - b, y_eval, y))
+        armijo = f_eval_info.as_min() - f_info.as_min() <= self.slope * predicted
+        accept = first_step | (armijo & (predicted <= 0))
+        step_size = jnp.where(accept, jnp.minimum(1.0, self.increase * state.step_size),
+                              self.decrease * state.step_size)
+        return step_size, accept, optx.RESULTS.successful, _SearchState(step_size)
+
+
+class BFGS(optx.AbstractBFGS):
+    """optimistix's BFGS (inverse-Hessian update, Newton direction) with `RememberingArmijo`."""
+
+    rtol: float
+    atol: float
+    norm: object
+    use_inverse: bool
+    descent: optx.NewtonDescent
+    search: RememberingArmijo
+    verbose: object
+
+    def __init__(self, rtol: float, atol: float):
+        self.rtol, self.atol, self.norm, self.use_inverse = rtol, atol, optx.max_norm, True
+        self.descent = optx.NewtonDescent()
+        self.search = RememberingArmijo()
+        self.verbose = lambda **kwargs: None
 
 
 # --------------------------------------------------------------------------------------------
@@ -703,8 +827,9 @@ class _Run:
     """What the starts and lens trials of one run share: the compiled solver programs (one pair
     per structure, `Parameterization.signature`; the layout's arrays are their argument,
     `Problem.data`, so another start or lens reuses them), the obscuration term, the record of
-    accepted solver step (`history`) and exact verdict (`verdicts`), the best verdict so far, the fixed
-    size of the pair lists, how each round ended, the stop request and the progress line."""
+    accepted solver step (`history`, what the rounds returned) and exact verdict (`verdicts`), the best
+    verdict so far, the fixed size of the pair lists, each round's outcome, the stop request and the
+    progress line."""
 
     def __init__(self, n_cameras: int, max_obscuration: float):
         self.obscuration = ObscurationTerm(n_cameras, max_obscuration)
@@ -715,10 +840,18 @@ class _Run:
         self.stop = Stop()
         self.blocks = None   # (block, blocks, chunk) of every pair list
         self.progress = _Progress(None)
-        self.rounds: list[str] = []   # how each round ended
-        self.ends: list[str] = []     # how each start ended (its last round)
-        self.label = (0, 0)
+        self.rounds: list[dict] = []  # each round's `RoundOutcome.record`
+        self.ends: list[str] = []     # how each start ended
         self._programs: dict = {}
+        self._sizes: dict = {}
+
+    def size(self, name: str, n: int) -> int:
+        """The run's padded length of the array `name` that holds n rows now: set once
+        (`Problem._size_local_sets`, `objective._bucket`) so that the compiled programs keep their
+        shapes while `Problem.local` moves; a longer array raises it (a new compile)."""
+        if name not in self._sizes or self._sizes[name] < n:
+            self._sizes[name] = _bucket(max(n, 1))
+        return self._sizes[name]
 
     def programs(self, problem: "Problem"):
         """(init, step): BFGS's init and one step on `problem._scaled`, jit-compiled once per
@@ -730,7 +863,7 @@ class _Run:
         obscured = bool(self.obscuration.tracked)
         key = (problem.param.signature, obscured)
         if key not in self._programs:
-            solver = optx.BFGS(rtol=1e-6, atol=1e-6)
+            solver = BFGS(rtol=1e-6, atol=1e-6)
             fn = lambda y, args: problem._scaled(y, args, obscured)
             f_struct = jax.ShapeDtypeStruct((), jnp.float64)
             aux_struct = {k: f_struct for k in ("score", *PENALTIES)}
@@ -738,12 +871,6 @@ class _Run:
                 eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, aux_struct, frozenset())),
                 eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2]))
         return self._programs[key]
-
-    def record(self, terms):
-        """Keep one evaluation's terms (`history`, with the start, round and wall time)."""
-        self.history.append(dict(start=self.label[0], round=self.label[1],
-                                 wall_s=time.perf_counter() - self.t0,
-                                 **{k: float(v) for k, v in terms.items()}))
 
     def padded(self, views: objective.ViewData) -> objective.ViewData:
         """`views` with padding blocks (occlusion 0: weight and gradient exactly 0) up to the
@@ -834,16 +961,20 @@ def _violated(result: Result) -> str:
                      + (f" {e['region']}" if "region" in e else "") for e in result.checks if not e["met"])
 
 
-def _backtrack(problem: Problem, before: Result, theta, start: int):
-    """(θ, state, result) of a round's end: the layout at θ refreshed and judged. Within a round
+def _backtrack(problem: Problem, before: Result, theta, start: int, judged=None):
+    """(θ, state, result) of a round's end: the layout at θ refreshed and judged (`judged`:
+    its (state, result) when a checkpoint judged it already). Within a round
     the ray-cast visibility is frozen, so the solver can move a camera where the refresh then
     finds a counted view hidden (behind an obstacle, or by a part that moves along the load
     path): when the layout ranks worse than `before`, the round's start, the move is halved,
     up to `BACKTRACKS` times, and the first layout that ranks no worse is kept; if none does,
     the round's start."""
     for _ in range(BACKTRACKS + 1):
-        state = problem.refresh(theta)
-        result = judge(problem, theta, state, start)
+        state, result = judged or (None, None)
+        if judged is None:
+            state = problem.refresh(theta)
+            result = judge(problem, theta, state, start)
+        judged = None
         if result.rank <= before.rank or problem.run.stop():
             return theta, state, result
         theta = before.theta + 0.5 * (np.asarray(theta) - before.theta)
@@ -870,42 +1001,58 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
             theta = theta + _perturbation(problem.param, rng)
         state = problem.start if k_start == 0 else problem.refresh(theta)   # hand layout: cast once
         best = result = judge(problem, theta, state, start)
-        problem.masked = set()
+        masked = frozenset()   # the (camera, region) pairs whose obscuration this start tracks
         label = 0
-        rounds_before = len(run.rounds)
+        end = "converged"
 
-        def one_round(w_score, mu, name):
-            nonlocal theta, state, result, best, label
-            run.label = (start, label)
-            problem.track_obscured(state, result.checks)
+        def one_round(w_score, mu, name, checkpoints=False):
+            nonlocal theta, state, result, best, label, masked, end
+            masked = problem.track_obscured(state, result.checks, masked)
             where = f"start {start + 1} {name}"
-            moved, status = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where)
-            run.rounds.append(status)
+            checked = {}   # the last layout judged within the round
+
+            def checkpoint(at) -> bool:
+                """Judge the round's iterate; True (end the round) in a feasibility round once it
+                meets every constraint."""
+                nonlocal best
+                checked.update(theta=at, state=problem.refresh(at))
+                checked["result"] = judge(problem, at, checked["state"], start)
+                best = min(best, checked["result"], key=lambda r: r.rank)
+                return w_score == 0 and checked["result"].violations == 0
+
+            outcome = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where, (start, label),
+                             checkpoint if checkpoints else None)
+            run.history.extend(outcome.history)
+            run.rounds.append(outcome.record(start, name))
+            end = outcome.status
             label += 1
-            if np.array_equal(moved, theta):
+            if np.array_equal(outcome.theta, theta):
                 return
-            theta, state, result = _backtrack(problem, result, moved, start)
+            judged = None   # the round's end, when its last checkpoint judged it already
+            if checked and np.array_equal(checked["theta"], outcome.theta):
+                judged = checked["state"], checked["result"]
+            theta, state, result = _backtrack(problem, result, outcome.theta, start, judged)
             best = min(best, result, key=lambda r: r.rank)
             say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
                 f"{result.violations} violation(s) {_violated(result)}"
-                + ("" if status in ("converged", "max_steps") else f" (stopped: {status})"))
+                + ("" if outcome.status in ("converged", "max_steps") else f" (ended: {outcome.reason})"))
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
         for k in range(FEASIBILITY_ROUNDS):
             if result.violations == 0 or run.stop():
                 break
-            one_round(0.0, 1.0, f"feasibility round {k + 1}")
+            one_round(0.0, 1.0, f"feasibility round {k + 1}", checkpoints=True)
         for k in range(opt.rounds):
             if run.stop():
                 break
             previous = result
-            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}")
+            one_round(1.0, MU0 * 10.0 ** k, f"round {k + 1}/{opt.rounds}", checkpoints=k == 0)
             if (k > 0 and previous.violations == 0 and result.violations == 0
                     and previous.score - result.score < ROUND_TOL * previous.score):
-                run.rounds.append("converged")   # the penalty continuation has nothing left
+                end = "converged"   # the penalty continuation has nothing left
                 break
         results.append(best)
-        run.ends.append(run.rounds[-1] if len(run.rounds) > rounds_before else "converged")
+        run.ends.append(end)
     return sorted(results, key=lambda r: r.rank)
 
 
@@ -970,52 +1117,106 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
     return best
 
 
-def _round(problem: Problem, theta, views, weights, max_steps: int, where: str) -> tuple[np.ndarray, str]:
+@dataclasses.dataclass(frozen=True)
+class RoundOutcome:
+    """One BFGS solve (`_round`): θ at its last accepted step, how it ended (`status`:
+    "converged", "max_steps", "feasible" (a feasibility round that met every constraint at a
+    checkpoint), "time_limit", "interrupted" or "failed"; `reason` in words),
+    optimistix's `Solution` (value: y, the scaled step from the round's start; result; aux: the
+    terms at y; stats: num_steps, num_accepted_steps, max_steps; state: the solver state) and
+    the terms at every accepted step (`history`: start, round, wall_s, score, the penalties)."""
+
+    theta: np.ndarray
+    status: str
+    reason: str
+    solution: optx.Solution | None
+    history: tuple[dict, ...]
+
+    def record(self, start: int, name: str) -> dict:
+        """The round for optimizer.json."""
+        stats = {} if self.solution is None else {k: int(v) for k, v in self.solution.stats.items()}
+        result = "" if self.solution is None else optx.RESULTS[self.solution.result]
+        return dict(start=start, round=name, status=self.status, reason=self.reason,
+                    solver_result=result or "successful", **stats)
+
+
+def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
+           label: tuple[int, int], checkpoint=None) -> RoundOutcome:
     """One BFGS solve of J (`Problem._total`) in scaled variables y = (θ - θ_start) / scale, with J
     divided by the largest scaled gradient component at the start, so that the first quasi-Newton
     step moves about one natural unit (`Parameterization.scale`) along the steepest parameter.
     The solver runs step by step (one compiled step per call, `_Run`), checking the stop
-    request between steps. Returns θ at the last accepted step and how the round ended:
-    "converged" (the solver's tolerance), "max_steps", "time_limit", "interrupted" or "failed"
-    (a non-finite step)."""
+    request between steps; `label` (start, round) tags the history rows. A step that leaves the
+    solver's iterate, its value or gradient non-finite ends the round ("failed", with the
+    reason): it is never replaced. With a `checkpoint` (θ -> bool), every `CHECKPOINT_STEPS` steps
+    the last accepted θ, if it moved, is passed to it (`solve` judges it, so that the best layout
+    so far is known within a long round); True ends the round there ("feasible")."""
     run = problem.run
     origin = jnp.asarray(theta, dtype=jnp.float64)
     scale = jnp.asarray(problem.param.scale, dtype=jnp.float64)
     weights = jnp.asarray(weights, dtype=jnp.float64)
-    data = problem.data
+    data = dict(problem.data, local=problem.local(theta))
     y = jnp.zeros_like(origin)
     args = lambda norm: (origin, scale, jnp.asarray(norm, dtype=jnp.float64), views, weights, data)
     if run.stop():
-        return np.asarray(theta), run.stop.reason
+        return RoundOutcome(np.asarray(theta), run.stop.reason, "stopped before the round", None, ())
     # the first step of a solve accepts its start: there, its gradient is dJ/dy at norm 1
     init, step = run.programs(problem)
     _, probe = step(y, args(1.0), init(y, args(1.0)))
-    norm = float(jnp.max(jnp.abs(probe.f_info.grad)))
-    if not np.isfinite(norm) or norm == 0:
-        return np.asarray(theta), "converged"
+    grad = np.asarray(probe.f_info.grad)
+    if not np.all(np.isfinite(grad)):
+        return RoundOutcome(np.asarray(theta), "failed", "non-finite gradient at the round's start",
+                            None, ())
+    norm = float(np.max(np.abs(grad)))
+    if norm == 0:
+        return RoundOutcome(np.asarray(theta), "converged", "zero gradient at the round's start", None, ())
     solver_args = args(norm)
     state = init(y, solver_args)
-    status = "max_steps"
-    for k in range(max_steps):
+    status, reason = "max_steps", f"{max_steps} steps"
+    history = []
+    judged = np.zeros_like(np.asarray(y))   # the last iterate passed to `checkpoint`
+    k = 0
+    for k in range(1, max_steps + 1):
         if run.stop():
-            status = run.stop.reason
+            status, reason = run.stop.reason, f"stop request after {k - 1} steps"
+            k -= 1
             break
         accepted = int(state.num_accepted_steps)
+        # the point this step evaluates: the local sets move with it (`Problem.terms`)
+        trial = np.asarray(origin + scale * state.y_eval)
+        if np.linalg.norm(problem.body_points(trial)[2] - np.asarray(data["local"]["body"]), axis=-1).max() \
+                > LOCAL_MOVE / 2:
+            data = dict(data, local=problem.local(trial))
+            solver_args = (*solver_args[:5], data)
         y_new, state = step(y, solver_args, state)
-        if int(state.num_accepted_steps) > accepted:
-            run.record(state.aux)   # the terms at the step just accepted
-        run.progress.step(f"{where}, step {k + 1}/{max_steps}", run.best)
-        if not np.all(np.isfinite(np.asarray(y_new))):
-            status = "failed"
+        if int(state.num_accepted_steps) > accepted:   # the terms at the step just accepted
+            history.append(dict(start=label[0], round=label[1], wall_s=time.perf_counter() - run.t0,
+                                **{name: float(v) for name, v in state.aux.items()}))
+        run.progress.step(f"{where}, step {k}/{max_steps}", run.best)
+        finite = {"iterate": y_new, "objective": state.f_info.f, "gradient": state.f_info.grad,
+                  "next trial point": state.y_eval}
+        bad = [name for name, v in finite.items() if not np.all(np.isfinite(np.asarray(v)))]
+        if bad:
+            status, reason = "failed", f"non-finite {', '.join(bad)} at step {k}"
+            log.warning("%s: %s; the round ends at its last finite step", where, reason)
             break
         y = y_new
         if bool(state.terminate):
-            status = "converged"
+            status, reason = "converged", f"solver tolerance met at step {k}"
             break
+        if checkpoint is not None and k % CHECKPOINT_STEPS == 0 and k < max_steps \
+                and not np.array_equal(np.asarray(y), judged):
+            judged = np.asarray(y)
+            if checkpoint(np.asarray(origin + scale * y)):
+                status, reason = "feasible", f"every constraint met at step {k}"
+                break
         if not bool(state.result == optx.RESULTS.successful):
-            status = "failed"
+            status, reason = "failed", optx.RESULTS[state.result]
             break
-    return np.asarray(origin + scale * y), status
+    solution = optx.Solution(value=y, result=state.result, aux=state.aux, state=state,
+                             stats=dict(num_steps=k, num_accepted_steps=int(state.num_accepted_steps),
+                                        max_steps=max_steps))
+    return RoundOutcome(np.asarray(origin + scale * y), status, reason, solution, tuple(history))
 
 
 def _perturbation(param: Parameterization, rng) -> np.ndarray:
@@ -1170,7 +1371,8 @@ def _write_history(path, history):
 
 def _plot_history(path, history, verdicts, name):
     """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin line) and the exact score of each
-    round's layout (markers: filled where it meets every constraint), per start; layouts judged
+    judged layout (markers: filled where it meets every constraint; each round's, and the
+    checkpoints within the first rounds), per start; layouts judged
     without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     solved = sorted({h["start"] for h in history})
@@ -1182,7 +1384,7 @@ def _plot_history(path, history, verdicts, name):
             v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
                     color=line.get_color(), mfc=line.get_color() if feasible else "white",
-                    label=f"start {s + 1}: round's layout, {'feasible' if feasible else 'violates a constraint'}")
+                    label=f"start {s + 1}: judged layout, {'feasible' if feasible else 'violates a constraint'}")
     screened = [r for r in verdicts if r["start"] not in solved]
     if screened:
         ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",

@@ -11,6 +11,7 @@ evaluated with de Boor's algorithm on homogeneous points (w P, w).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import jax
@@ -59,29 +60,41 @@ class Rail:
                              signature="()->(3)")(u)
 
     def _point(self, u):
-        p = self.degree
-        knots = jnp.asarray(self.knots)
-        n = len(self.control_points)
-        homogeneous = jnp.asarray(np.hstack([self.control_points * self.weights[:, None],
-                                             self.weights[:, None]]))
-        span = jnp.clip(jnp.searchsorted(knots, u, side="right") - 1, p, n - 1)
-        d = [homogeneous[span - p + j] for j in range(p + 1)]
-        for r in range(1, p + 1):
-            for j in range(p, r - 1, -1):
-                lo = knots[span - p + j]
-                hi = knots[span + 1 + j - r]
-                alpha = (u - lo) / jnp.where(hi > lo, hi - lo, 1.0)
-                d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
-        return d[p][:3] / d[p][3]
+        return _de_boor(jnp.asarray(self.knots), jnp.asarray(self._homogeneous), self.degree, u)
+
+    @property
+    def _homogeneous(self) -> np.ndarray:
+        """(n, 4): the control points times their weights, and the weights."""
+        return np.hstack([self.control_points * self.weights[:, None], self.weights[:, None]])
 
     def arc_length(self, u: float) -> float:
         """Length along the rail from u = 0 to u, in metres: 16-point Gauss-Legendre quadrature of
-        |dC/du| on each knot span (the speed may jump at a knot)."""
+        |dC/du| on each knot span (the speed may jump at a knot), the spans clipped to [0, u], all
+        in one compiled call per rail."""
         nodes, weights = np.polynomial.legendre.leggauss(16)
-        breaks = np.unique(np.clip(np.append(self.knots, u), 0.0, u))
-        total = 0.0
-        for a, b in zip(breaks[:-1], breaks[1:]):
-            grid = 0.5 * (b - a) * nodes + 0.5 * (a + b)
-            speed = np.linalg.norm(np.asarray(self.tangent(grid)), axis=-1)
-            total += 0.5 * (b - a) * float(weights @ speed)
-        return total
+        knots = np.unique(self.knots)
+        a, b = np.clip(knots[:-1], 0.0, u), np.clip(knots[1:], 0.0, u)
+        grid = 0.5 * (b - a)[:, None] * nodes + 0.5 * (a + b)[:, None]   # (spans, 16)
+        speed = np.linalg.norm(np.asarray(_speeds(self.knots, self._homogeneous, self.degree, grid)), axis=-1)
+        return float(np.sum(0.5 * (b - a) * (speed @ weights)))
+
+
+def _de_boor(knots, homogeneous, p: int, u):
+    """C(u) by de Boor's algorithm on the homogeneous control points (n, 4), degree p."""
+    n = homogeneous.shape[0]
+    span = jnp.clip(jnp.searchsorted(knots, u, side="right") - 1, p, n - 1)
+    d = [homogeneous[span - p + j] for j in range(p + 1)]
+    for r in range(1, p + 1):
+        for j in range(p, r - 1, -1):
+            lo = knots[span - p + j]
+            hi = knots[span + 1 + j - r]
+            alpha = (u - lo) / jnp.where(hi > lo, hi - lo, 1.0)
+            d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
+    return d[p][:3] / d[p][3]
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _speeds(knots, homogeneous, p: int, u):
+    """dC/du at every u: one compiled program for all rails of the same size and degree."""
+    point = lambda s: _de_boor(knots, homogeneous, p, s)
+    return jnp.vectorize(lambda s: jax.jvp(point, (s,), (jnp.ones_like(s),))[1], signature="()->(3)")(u)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from . import strain
 from .camera import Camera
 from .config import Experiment
-from .lighting import Illumination, illuminate
+from .lighting import Illumination, illuminate, relight
 from .predict import Prediction, SpeckleModel, predict, speckle_model
 from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
                     load_meshes, sample_regions)
@@ -70,6 +70,14 @@ def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
                     tuple(all_region_faces(exp, meshes)))
 
 
+def unobstructed_lighting(geometry: Geometry) -> Illumination:
+    """The lighting of `geometry` with no camera in the scene (for `layout_state`'s
+    `unobstructed`, and to see what the camera bodies hide)."""
+    exp = geometry.experiment
+    return illuminate(build_scene(list(geometry.meshes)), exp.lights, geometry.samples,
+                      exp.render.ambient_radiance)
+
+
 def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
     """The camera bodies that act as obstacles: those of cameras the experiment lists with
     `body = true` (the default)."""
@@ -78,17 +86,24 @@ def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
-                 clip_patch: bool = True, progress: bool = False) -> LayoutState:
+                 clip_patch: bool = True, progress: bool = False,
+                 unobstructed: Illumination | None = None) -> LayoutState:
     """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
     with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`; `clip_patch`
-    False keeps every sample's whole DIC patch, for samples that each stand for a whole patch)."""
+    False keeps every sample's whole DIC patch, for samples that each stand for a whole patch).
+    `unobstructed`, the lighting of `geometry` without camera bodies (`unobstructed_lighting`),
+    when given, makes the lighting cheaper and leaves it the same (`vdo.lighting.relight`)."""
     exp = geometry.experiment
     cameras = tuple(exp.cameras() if cameras is None else cameras)
-    scene = build_scene(list(geometry.meshes) + bodies(exp, cameras))
+    obstacles = bodies(exp, cameras)
+    scene = build_scene(list(geometry.meshes) + obstacles)
     vis = compute_visibility(scene, list(cameras), geometry.samples,
                              exp.evaluation.incidence_limit, progress=progress)
     samples = geometry.samples
-    illumination = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    if unobstructed is None:
+        illumination = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    else:
+        illumination = relight(scene, exp.lights, samples, unobstructed, [b.vertices for b in obstacles])
     if not predict_fields:
         return LayoutState(geometry, cameras, scene, vis, illumination, None)
     density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
