@@ -89,7 +89,7 @@ def main() -> None:
             if pick is None:
                 continue
             out = Path(tmp) / f"restart{len(restarts)}"
-            result = optimize(design.designed(exp, cand, pick), out, quiet=True, time_limit=left)
+            result = optimize(design.designed(exp, cand, pick), out, time_limit=left)
             found = config.load(out / "optimized.toml")
             j = judged(found)
             rank = (result["violations"], np.inf if j["joint_p95_um"] is None else j["joint_p95_um"])

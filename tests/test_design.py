@@ -127,7 +127,7 @@ def test_bad_inputs_name_the_region_and_still_write_the_layout(plate_experiment,
     exp.path.write_text(text)
     exp = config.load(exp.path)
     out = tmp_path / "out"
-    result = design.design(exp, out, quiet=True)
+    result = design.design(exp, out)
     messages = " | ".join(result["problems"])
     assert "region 'top' needs 3 cameras" in messages
     assert "region 'underside': no candidate pose sees it" in messages
@@ -203,7 +203,7 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert sorted(map(tuple, grid)) == sorted(map(tuple, expected))
     assert {k for _, k, *_ in spots} == {"zone"}
     out = tmp_path / "out"
-    result = design.design(exp, out, quiet=True)
+    result = design.design(exp, out)
     again = config.load(out / "designed.toml")
     assert [c.mount for c in again.camera_specs] == ["stand", "stand"]
     for c in again.camera_specs:

@@ -156,7 +156,7 @@ def test_optimized_zone_camera_stays_in_its_zone_and_reloads(tmp_path):
     exp = config.load(write(tmp_path, extra=extra))
     exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, min_axis_angle=0.0))
     out = tmp_path / "run"
-    optimize(exp, out, quiet=True)
+    optimize(exp, out)
     again = config.load(out / "optimized.toml")
     zone = again.mount("tripod")
     cam = again.cameras()[0]

@@ -4,6 +4,7 @@ too narrow, writes a complete run folder whose layout loads again) and on the bu
 import csv
 import dataclasses
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -55,7 +56,7 @@ def test_camera_behind_a_bar_ends_with_a_clear_view(tmp_path):
                      files=[("bar.stl", [40, 1200, 40], [180, 0, 600])])
     out = tmp_path / "run"
     before_checks = None
-    result = optimize(exp, out, quiet=True)
+    result = optimize(exp, out)
     before_checks = json.loads((out / "constraints.json").read_text())["before"]
     start = [e for e in before_checks if e["constraint"] == "obscuration" and e["cameras"] == ["a"]]
     assert start and start[0]["value"] > 0.05                     # really masked at the start
@@ -69,7 +70,7 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     out = tmp_path / "run"
-    result = optimize(exp, out, quiet=True)
+    result = optimize(exp, out)
     limit = math.degrees(stereo_min_angle(0.024))
     angle = constraint(out, "axis_angle")[0]
     before = json.loads((out / "constraints.json").read_text())["before"]
@@ -139,7 +140,7 @@ def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_pa
     exp = config.load(EXPERIMENTS / "ten_cameras.toml")
     exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1,
                                                                 max_steps=15))
-    result = optimize(exp, tmp_path / "run", quiet=True)
+    result = optimize(exp, tmp_path / "run")
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
     assert [e["cameras"] for e in before if not e["met"]] == [["cam1", "cam9"], ["cam2", "cam9"]]
     assert result["violations"] == 0, result["violated"]
@@ -179,8 +180,8 @@ def test_lens_catalogue_keeps_the_longest_lens_that_still_holds_the_plate(tmp_pa
     exp = lens_experiment(tmp_path, "24, 28, 50")
     assert exp.optimize.lenses == pytest.approx((0.024, 0.028, 0.050))
     fixed = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, free=("u", "pan", "tilt")))
-    base = optimize(fixed, tmp_path / "fixed", quiet=True)
-    result = optimize(exp, tmp_path / "run", quiet=True)
+    base = optimize(fixed, tmp_path / "fixed")
+    result = optimize(exp, tmp_path / "run")
     moves = {row["camera"]: row for row in csv.DictReader((tmp_path / "run" / "moves.csv").open())}
     assert (moves["a"]["focal_mm_before"], moves["a"]["focal_mm_after"]) == ("24", "28")
     assert moves["b"]["focal_mm_after"] == "24"
@@ -233,7 +234,7 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
 
     monkeypatch.setattr(opt_module._Progress, "step", step)
     out = tmp_path / "run"
-    result = optimize(exp, out, quiet=True)
+    result = optimize(exp, out)
     assert len(steps) == 2
     assert result["status"] == "interrupted"
     summary = json.loads((out / "optimizer.json").read_text())
@@ -246,13 +247,20 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler   # handler restored
 
 
-def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path):
+def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, capsys):
     """With a time limit shorter than one round the search stops on time: the folder is complete,
-    optimizer.json says "time_limit", and the layout (the best judged so far) reloads."""
+    optimizer.json says "time_limit", and the layout (the best judged so far) reloads. Its
+    progress lines go to the `vdo.optimize` logger (INFO), never to stdout."""
     cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     out = tmp_path / "run"
-    result = optimize(exp, out, quiet=True, time_limit=1e-3)
+    with caplog.at_level(logging.INFO, logger="vdo"):
+        result = optimize(exp, out, time_limit=1e-3)
+    lines = [r.getMessage() for r in caplog.records if r.name == "vdo.optimize"]
+    assert lines[0].endswith("time limit 0.001 s") and "free parameters" in lines[0]
+    assert any(line.startswith("search ended: time_limit after") for line in lines)
+    assert lines[-1].startswith("best: start 1, score ")
+    assert capsys.readouterr().out == ""
     assert result["status"] == "time_limit"
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["status"] == "time_limit" and summary["time_limit_s"] == 1e-3

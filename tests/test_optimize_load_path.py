@@ -96,7 +96,7 @@ def test_path_occlusion_hides_the_views_the_geometry_says(tmp_path):
 def test_rest_optimum_loses_the_plate_and_the_path_optimum_keeps_it(tmp_path, over_path, loses):
     exp = experiment(tmp_path, over_path)
     out = tmp_path / "run"
-    optimize(exp, out, quiet=True)
+    optimize(exp, out)
     after = json.loads((out / "summary_after.json").read_text())["load_path"]
     before = json.loads((out / "summary_before.json").read_text())["load_path"]
     moves = {row.split(",")[0]: row.split(",") for row in (out / "moves.csv").read_text().splitlines()}

@@ -140,7 +140,7 @@ def test_optimizer_keeps_a_declared_pair_within_its_maximum(tmp_path):
     pairs = '[[stereo_pair]]\ncameras = ["a", "b"]\nmin_angle_deg = 10\nmax_angle_deg = 20'
     half = math.tan(math.radians(9)) * 1.2 / 2.0       # rail x in [-1, 1]: u = 0.5 +- x / 2
     exp = config.load(write(tmp_path, u=(0.5 - half, 0.5 + half), pairs=pairs))
-    result = optimize(exp, tmp_path / "run", quiet=True)
+    result = optimize(exp, tmp_path / "run")
     after = json.loads((tmp_path / "run" / "constraints.json").read_text())["after"]
     top = [e for e in after if e["constraint"] == "axis_angle_max"][0]
     assert top["limit"] == pytest.approx(20) and top["met"], top

@@ -111,8 +111,7 @@ def _validate(spec, args):
 def _optimize(exp, args) -> None:
     from .optimize import optimize
 
-    result = optimize(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
-                      time_limit=args.time_limit)
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit)
     if not args.quiet:
         print(f"search: {result['status']}; score (smooth sigma_max percentile) "
               f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
@@ -134,10 +133,7 @@ def _optimize(exp, args) -> None:
 def _design(exp, args) -> None:
     from .design import design
 
-    result = design(exp, Path(args.out), overwrite=args.overwrite, quiet=args.quiet,
-                    refine=args.refine)
-    for message in result["problems"]:
-        print(f"warning: {message}", file=sys.stderr)
+    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine)   # logs its problems
     if not args.quiet:
         for c in result["curve"]:
             p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
@@ -278,8 +274,10 @@ def _run(args) -> int:
 @contextmanager
 def _log_to_stderr(quiet: bool):
     """Show the `vdo` logger's records on stderr while the command runs: warnings with --quiet,
-    information otherwise."""
-    handler = logging.StreamHandler(sys.stderr)
+    information otherwise; each line above the progress bars (`vdo.progress.AboveBars`)."""
+    from .progress import AboveBars
+
+    handler = AboveBars(sys.stderr)
     handler.setFormatter(logging.Formatter("%(message)s"))
     logger = logging.getLogger("vdo")
     level = logger.level

@@ -86,7 +86,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
-from tqdm import tqdm
 
 from . import html_report, loadpath, objective, report, usable
 from .camera import Camera, look_at_angles
@@ -97,6 +96,7 @@ from .keyframes import load_path_of
 from .lighting import illuminate
 from .optimize import Problem, optimize
 from .predict import samples_for_objective, settings, view_data
+from .progress import bar, shown
 from .runfolder import run_folder
 from .scene import build_scene, camera_body_points
 from .state import Geometry, layout_state, prepare
@@ -278,8 +278,9 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
             np.array(t, dtype=int), aims)
 
 
-def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candidates:
-    """Every candidate's information and weights on `geometry`'s samples (module docstring)."""
+def judge(exp: Experiment, geometry: Geometry) -> Candidates:
+    """Every candidate's information and weights on `geometry`'s samples (module docstring); with
+    progress bars when the module logger passes INFO (`vdo.progress`)."""
     samples = geometry.samples
     R = len(samples.region_names)
     cams, mount, kind, u, heads, body, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
@@ -288,7 +289,7 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
                           np.zeros((0, len(samples)), np.float32), np.zeros((0, R), bool),
                           np.zeros((0, R)), np.zeros(0))
     scene = build_scene(list(geometry.meshes))
-    vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=progress)
+    vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=shown(log))
     bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
                               samples, exp.evaluation.incidence_limit).visible
     hidden = bare & ~vis.visible
@@ -303,7 +304,7 @@ def judge(exp: Experiment, geometry: Geometry, progress: bool = False) -> Candid
     info = np.zeros((K, N, 6))
     weight = np.zeros((K, N), np.float32)
     batches = range(0, K, BATCH)
-    for s in tqdm(batches, desc="candidates", unit="batch", disable=not progress, leave=False):
+    for s in bar(log, iterable=batches, desc="candidates", unit="batch", leave=False):
         part = cams[s:s + BATCH]
         pv = replace(vis, camera_names=vis.camera_names[s:s + BATCH],
                      **{k: getattr(vis, k)[s:s + BATCH] for k in
@@ -418,12 +419,13 @@ class Feasibility:
 
 
 def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
-           start=(), progress: bool = False) -> tuple[list[int], list[float]]:
+           start=()) -> tuple[list[int], list[float]]:
     """Forward selection up to n cameras from `start`: the chosen indices and the score after
-    each addition (stops early when no feasible candidate is left)."""
+    each addition (stops early when no feasible candidate is left); a progress bar when the module
+    logger passes INFO."""
     chosen, scores = list(start), []
     N = cand.info.shape[1]
-    for _ in tqdm(range(n - len(chosen)), desc="greedy", disable=not progress, leave=False):
+    for _ in bar(log, iterable=range(n - len(chosen)), desc="greedy", leave=False):
         ok = np.flatnonzero(feas.allowed(chosen))
         if ok.size == 0:
             break
@@ -581,21 +583,21 @@ def constraint_checks(exp: Experiment) -> list[dict]:
     return problem.check(problem.start)
 
 
-def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
-           refine: bool = False) -> dict:
+def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
     `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
-    constraints.json "before" holds every constraint check of the designed layout)."""
-    say = (lambda m: None) if quiet else (lambda m: print(m, flush=True))
+    constraints.json "before" holds every constraint check of the designed layout). Progress
+    and the chosen cameras: INFO lines and bars through the module logger; each problem found
+    (also in the result): a warning."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
-    cand = judge(exp, coarse, progress=not quiet)
+    cand = judge(exp, coarse)
     K, N = cand.info.shape[:2]
-    say(f"{K:,} candidates x {N:,} samples ({d.sample_spacing * 1e3:g} mm) judged in "
-        f"{time.perf_counter() - t0:.0f} s")
+    log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
+             d.sample_spacing * 1e3, time.perf_counter() - t0)
     issues = problems(exp, cand, coarse.samples)
     for msg in issues:
         log.warning(msg)
@@ -603,10 +605,10 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
         raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
                                               "[[mount]] or [[rail]] clear of the meshes")
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
-    order, _ = greedy(cand, scorer, feas, n_max, progress=not quiet)
+    order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
-    for n in tqdm(range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
-                  disable=quiet, leave=False):
+    for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
+                 leave=False):
         chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
         state = layout_state(coarse, designed(exp, cand, chosen).cameras())
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
@@ -639,8 +641,8 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
                     "vdo design --refine (vdo optimize) starts from it", len(violated))
     stats = statistics(exp, cand, best["chosen"])
     for c in stats["chosen"]:
-        say(f"{c['camera']}: {c['body']}, {c['focal_mm']:g} mm, {c['kind']} {c['mount']} at "
-            f"{c['position_m']} m, sees {', '.join(c['regions']) or 'no region whole'}")
+        log.info("%s: %s, %g mm, %s %s at %s m, sees %s", c["camera"], c["body"], c["focal_mm"], c["kind"],
+                 c["mount"], c["position_m"], ", ".join(c["regions"]) or "no region whole")
     wall = time.perf_counter() - t0
     with run_folder(out, overwrite) as tmp:
         report.write_config(tmp / "designed.toml", final)
@@ -663,7 +665,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = Fa
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
             "wall_s": wall})
         html_report.write_report(tmp)
-        refined = optimize(final, tmp / "refine", quiet=quiet) if refine else None
+        refined = optimize(final, tmp / "refine") if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
             "refined": refined, "statistics": stats, "violations": len(violated),
             "curve": curve, "summary": summary, "wall_s": wall}

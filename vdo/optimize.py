@@ -67,7 +67,6 @@ import optimistix as optx
 import trimesh
 from scipy.spatial import cKDTree
 from scipy.special import expit
-from tqdm import tqdm
 
 from . import constraints, html_report, loadpath, objective, reachability, report
 from .camera import Camera, intrinsic_matrix, rotation
@@ -78,6 +77,7 @@ from .lighting import panel_frame
 from .obscuration import ObscurationRenderer
 from .objective import _bucket
 from .predict import predict, samples_for_objective, settings, view_data
+from .progress import bar
 from .runfolder import run_folder
 from .state import bodies, layout_state, prepare, unobstructed_lighting
 from .scene import (SceneMesh, build_scene, camera_body, camera_body_points,
@@ -345,12 +345,12 @@ class State:
 
 
 class Problem:
-    def __init__(self, exp: Experiment, quiet: bool = True, reference: "Problem | None" = None):
+    def __init__(self, exp: Experiment, reference: "Problem | None" = None):
         """Everything an objective evaluation needs, for the layout of `exp`. With a `reference`
         (the same experiment with other lenses, `choose_lenses`), its meshes, samples and lighting
         are reused, and so is what the hand layout defined: the regions assigned to each camera
         and the least in-image fraction of each."""
-        self.exp, self.quiet = exp, quiet
+        self.exp = exp
         opt = exp.optimize
         if reference is None:
             self.geometry = prepare(exp)
@@ -896,11 +896,11 @@ class _Progress:
     score so far (µm; feasible layouts first) and the time left, the least of the time limit
     and the steps left at the mean time per step so far (refreshes and checks included)."""
 
-    def __init__(self, planned: int | None, stop: Stop | None = None, show: bool = False):
+    def __init__(self, planned: int | None, stop: Stop | None = None):
         self.planned, self.stop, self.done = planned, stop, 0
         self.t0 = time.perf_counter()
-        self.bar = tqdm(total=planned, desc="optimize", unit="step", disable=not show or planned is None,
-                        bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
+        self.bar = bar(log, total=planned, desc="optimize", unit="step", disable=planned is None,
+                       bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
 
     def left(self) -> float:
         rate = (time.perf_counter() - self.t0) / max(self.done, 1)
@@ -981,14 +981,13 @@ def _backtrack(problem: Problem, before: Result, theta, start: int, judged=None)
     return before.theta, before.state, before
 
 
-def solve(problem: Problem, say=None, starts: int | None = None, first_label: int = 0) -> list[Result]:
+def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> list[Result]:
     """Every start, every round, until they end or `problem.run.stop`; per start the best layout
     met at the end of a round (or the start itself), judged exactly (`Result.rank`); returns
     them sorted best first. Start k > 0 perturbs the hand layout at random; starts are labelled
-    from `first_label` in the records."""
+    from `first_label` in the records; each round's end is logged (INFO)."""
     opt = problem.exp.optimize
     run = problem.run
-    say = say or (lambda m: None)
     rng = np.random.default_rng(opt.seed)
     results = []
     n_starts = opt.starts if starts is None else starts
@@ -1033,9 +1032,9 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
                 judged = checked["state"], checked["result"]
             theta, state, result = _backtrack(problem, result, outcome.theta, start, judged)
             best = min(best, result, key=lambda r: r.rank)
-            say(f"  start {start + 1} {name}: score {result.score:.4g} µm, "
-                f"{result.violations} violation(s) {_violated(result)}"
-                + ("" if outcome.status in ("converged", "max_steps") else f" (ended: {outcome.reason})"))
+            log.info("  start %d %s: score %.4g µm, %d violation(s) %s%s", start + 1, name, result.score,
+                     result.violations, _violated(result),
+                     "" if outcome.status in ("converged", "max_steps") else f" (ended: {outcome.reason})")
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
         for k in range(FEASIBILITY_ROUNDS):
@@ -1056,7 +1055,7 @@ def solve(problem: Problem, say=None, starts: int | None = None, first_label: in
     return sorted(results, key=lambda r: r.rank)
 
 
-def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
+def choose_lenses(problem: Problem, best: Result) -> Result:
     """The discrete choice over `[optimize] lenses` by screening: every (moving camera, other
     focal length) option is judged once at the best layout so far (its positions and aims; a
     camera in a zone steps along its axis by the ratio of the focal lengths, clipped to the zone
@@ -1065,8 +1064,8 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
     and only the `LENS_TRIALS` best are optimised again (`solve`, one start, feasibility rounds
     first if the option breaks a constraint; a camera on a rail cannot step back, so an option
     that screens worse than the current layout may still win), one camera at a time; an option is kept when its optimised layout ranks better (`Result.rank`). Constraints keep the hand layout's meaning
-    (`Problem(reference=...)`); the stereo-angle rule follows the new lenses."""
-    say = say or (lambda m: None)
+    (`Problem(reference=...)`); the stereo-angle rule follows the new lenses. Every screened and
+    optimised option is logged (INFO)."""
     run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
 
@@ -1099,18 +1098,18 @@ def choose_lenses(problem: Problem, best: Result, say=None) -> Result:
             t = trial(best, c, focal)
             screened = judge(t, t.param.theta0, t.start, label)
             options.append((screened.score, c, focal))
-            say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm at the current layout: score "
-                f"{screened.score:.4g} µm, {screened.violations} violation(s)")
+            log.info("  lens %s %g mm at the current layout: score %.4g µm, %d violation(s)",
+                     problem.cams0[c].name, focal * 1e3, screened.score, screened.violations)
     promising = sorted(options)[:LENS_TRIALS]   # moving and aiming may recover what screening lost
     changed = set()
     for _, c, focal in promising:
         if run.stop() or c in changed:
             continue
         label = max(v["start"] for v in run.verdicts) + 1
-        result = solve(trial(best, c, focal), say, starts=1, first_label=label)[0]
+        result = solve(trial(best, c, focal), starts=1, first_label=label)[0]
         kept = result.rank < best.rank
-        say(f"  lens {problem.cams0[c].name} {focal * 1e3:g} mm optimised: score {result.score:.4g} µm, "
-            f"{result.violations} violation(s){' (kept)' if kept else ''}")
+        log.info("  lens %s %g mm optimised: score %.4g µm, %d violation(s)%s", problem.cams0[c].name,
+                 focal * 1e3, result.score, result.violations, " (kept)" if kept else "")
         if kept:
             best = result
             changed.add(c)
@@ -1233,7 +1232,7 @@ def _perturbation(param: Parameterization, rng) -> np.ndarray:
 DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
 
 
-def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = False,
+def optimize(exp: Experiment, out: Path, overwrite: bool = False,
              time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None) -> dict:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
     constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
@@ -1241,11 +1240,11 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     Anytime: the search ends when every round has run, after `time_limit` seconds (> 0), or on a
     stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
     it then owns); in every case the folder is written with the best layout judged so far
-    (feasible first, `Result.rank`), and optimizer.json says how the search ended."""
+    (feasible first, `Result.rank`), and optimizer.json says how the search ended. Progress:
+    INFO lines and a bar through the module logger (`vdo.progress`)."""
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
-    say = (lambda m: None) if quiet else tqdm.write   # lines above the progress line
     own = stop is None
     stop = Stop(time_limit) if own else stop
     stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
@@ -1257,29 +1256,26 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
         planned = opt.starts * (opt.rounds + 1) * opt.max_steps
         if "lens" in opt.free:
             planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
-        say(f"{len(problem.samples):,} samples, {len(problem.param.theta0)} free parameters, "
-            f"{len(problem.pairs)} camera pairs sharing a region; time limit {time_limit:g} s")
-        reach = reachability.check(exp, problem.meshes, problem.samples)
-        for entry in reach:
-            if entry["short"]:
-                say(f"warning: {entry['message']}")
-        run.progress = _Progress(planned, stop, show=not quiet)
+        log.info("%s samples, %d free parameters, %d camera pairs sharing a region; time limit %g s",
+                 f"{len(problem.samples):,}", len(problem.param.theta0), len(problem.pairs), time_limit)
+        reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
+        run.progress = _Progress(planned, stop)
         try:
-            solve(problem, say)
+            solve(problem)
             if "lens" in opt.free and not stop():
-                say(f"lens catalogue: {', '.join(f'{f * 1e3:g}' for f in opt.lenses)} mm")
-                choose_lenses(problem, run.best, say)
+                log.info("lens catalogue: %s mm", ", ".join(f"{f * 1e3:g}" for f in opt.lenses))
+                choose_lenses(problem, run.best)
         finally:
             run.progress.close()
     best = run.best
     final = best.problem
     status = stop.reason or ("converged" if all(e == "converged" for e in run.ends) else "max_steps")
-    say(f"search ended: {status} after {time.perf_counter() - run.t0:.0f} s; writing {out}")
+    log.info("search ended: %s after %.0f s; writing %s", status, time.perf_counter() - run.t0, out)
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     over_path = load_path_of(exp, problem.meshes)
     if over_path is not None:   # both layouts judged at every step of the path, as `vdo evaluate` does
-        say(f"judging both layouts over the {len(over_path.steps)} steps of the load path")
+        log.info("judging both layouts over the %d steps of the load path", len(over_path.steps))
         for summary, state in ((before, problem.start), (after, best.state)):
             summary["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
                 problem.geometry, over_path, state.cameras))
@@ -1287,8 +1283,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False, quiet: bool = 
     score_before = _score_parts(problem, problem.start)
     score_after = _score_parts(final, best.state)
     joint = _joint_p95(before), _joint_p95(after)
-    say(f"best: start {best.start + 1}, score {score_before['score_um']:.4g} -> "
-        f"{score_after['score_um']:.4g} µm, {best.violations} constraint violation(s)")
+    log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
+             score_before["score_um"], score_after["score_um"], best.violations)
     with run_folder(out, overwrite) as tmp:
         optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
         report.write_config(tmp / "optimized.toml", optimized)

@@ -4,7 +4,8 @@ A library function that reports progress takes no `quiet` argument: it logs thro
 logger (`logging.getLogger("vdo....")`) and draws its bar with `bar(log, ...)`, which is shown
 only when that logger passes INFO records. The package logger has a null handler and no level, so
 a library user sees nothing unless they configure logging; the command line shows INFO (bars
-included) and `--quiet` raises the level to WARNING (`vdo.cli`).
+included) and `--quiet` raises the level to WARNING (`vdo.cli`), through `AboveBars`, which
+writes each record above the bars instead of through them.
 """
 
 from __future__ import annotations
@@ -24,3 +25,17 @@ def bar(log: logging.Logger, **tqdm_options):
 
     disable = tqdm_options.pop("disable", False) or not shown(log)
     return tqdm(disable=disable, **tqdm_options)
+
+
+class AboveBars(logging.StreamHandler):
+    """A stream handler that writes each record on its own line above the open progress bars
+    (`tqdm.write`: the bars are cleared, the line written, the bars drawn again)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm import tqdm
+
+        try:
+            tqdm.write(self.format(record), file=self.stream)
+            self.flush()
+        except Exception:
+            self.handleError(record)

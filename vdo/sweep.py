@@ -460,7 +460,7 @@ def run_point(point: Point) -> dict:
         if point.action == "optimize":
             from .optimize import optimize
 
-            result = optimize(exp, Path(point.run_dir), overwrite=True, quiet=True)
+            result = optimize(exp, Path(point.run_dir), overwrite=True)
             summary = json.loads((Path(point.run_dir) / "summary_after.json").read_text())
             extra = {"score_before": result["score_before"], "score_after": result["score_after"],
                      "violations": result["violations"]}
