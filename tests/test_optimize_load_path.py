@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, aimed_camera, write_box
-from vdo import config
+from vdo import config, loadpath
 from vdo.camera import look_at_angles
 from vdo.keyframes import load_path_of
 from vdo.loadpath import keyframe_steps, path_occlusion
@@ -98,7 +98,8 @@ def test_rest_optimum_loses_the_plate_and_the_path_optimum_keeps_it(tmp_path, ov
     out = tmp_path / "run"
     optimize(exp, out)
     after = json.loads((out / "summary_after.json").read_text())["load_path"]
-    before = json.loads((out / "summary_before.json").read_text())["load_path"]
+    geometry = prepare(exp)   # the hand layout, judged over the path as `vdo evaluate` does
+    before = loadpath.summary(loadpath.evaluate_load_path(geometry, load_path_of(exp, geometry.meshes)))
     moves = {row.split(",")[0]: row.split(",") for row in (out / "moves.csv").read_text().splitlines()}
     x_after = float(moves["a"][13])
     print(f"load_path={over_path}: camera a x = {x_after:.3f} m; covered at the worst step "

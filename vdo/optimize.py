@@ -1274,11 +1274,10 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     over_path = load_path_of(exp, problem.meshes)
-    if over_path is not None:   # both layouts judged at every step of the path, as `vdo evaluate` does
-        log.info("judging both layouts over the %d steps of the load path", len(over_path.steps))
-        for summary, state in ((before, problem.start), (after, best.state)):
-            summary["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
-                problem.geometry, over_path, state.cameras))
+    if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
+        log.info("judging the optimized layout over the %d steps of the load path", len(over_path.steps))
+        after["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
+            problem.geometry, over_path, best.state.cameras))
     checks_before = problem.check(problem.start)
     score_before = _score_parts(problem, problem.start)
     score_after = _score_parts(final, best.state)
