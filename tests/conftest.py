@@ -26,6 +26,24 @@ def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     return path
 
 
+# An obstacle mesh "shutter.stl" in a group "slide" that the poses of "poses.csv" move: a part
+# that hides a region during the load path (appended to PLATE_TOML's meshes).
+SLIDING_SHUTTER = """
+[[mesh]]
+name = "shutter"
+file = "shutter.stl"
+unit = "mm"
+role = "obstacle"
+
+[[group]]
+name = "slide"
+meshes = ["shutter"]
+
+[load_path]
+poses = "poses.csv"
+"""
+
+
 PLATE_TOML = """
 [experiment]
 name = "plate under one camera"

@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from conftest import SLIDING_SHUTTER
 from vdo import config, design, objective
 from vdo.errors import ConfigError
 from vdo.keyframes import load_path_of
@@ -269,28 +270,12 @@ def test_bad_inventories_are_refused(plate_experiment, extra, field, message):
         config.load(path)
 
 
-SHUTTER = """
-[[mesh]]
-name = "shutter"
-file = "shutter.stl"
-unit = "mm"
-role = "obstacle"
-
-[[group]]
-name = "slide"
-meshes = ["shutter"]
-
-[load_path]
-poses = "poses.csv"
-"""
-
-
 def test_candidates_lose_what_the_load_path_hides(plate_experiment):
     """A 1.2 m shutter at z = 0.75 m slides in -x by 0.5 m per step (steps 1-7) from x = 3 m. One
     keyframe: the step farthest from rest, 7, where it spans x in [-1.1, 0.1]. The ray from a
     candidate at (c, 0, 1.5) to a plate point (p, y, 0) crosses z = 0.75 at x = (c + p) / 2, so the
     candidate loses the samples with (c + p) / 2 < 0.1 and keeps the others (as at rest)."""
-    path = plate_experiment(spacing=50, extra_meshes=SHUTTER,
+    path = plate_experiment(spacing=50, extra_meshes=SLIDING_SHUTTER,
                             files=[("shutter.stl", [1200, 1200, 10], [3000, 0, 750])])
     rows = ["step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
     (path.parent / "poses.csv").write_text(

@@ -17,7 +17,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import PLATE_TOML, aimed_camera, write_box
+from conftest import PLATE_TOML, SLIDING_SHUTTER, aimed_camera, write_box
 from vdo import config, loadpath
 from vdo.camera import look_at_angles
 from vdo.keyframes import load_path_of
@@ -27,21 +27,6 @@ from vdo.state import prepare
 
 SHUTTER_EDGE = 0.35   # m: the shutter's near edge at step 2
 RAIL_HEIGHT, SHUTTER_HEIGHT = 1.2, 0.9
-
-SCENE = """
-[[mesh]]
-name = "shutter"
-file = "shutter.stl"
-unit = "mm"
-role = "obstacle"
-
-[[group]]
-name = "slide"
-meshes = ["shutter"]
-
-[load_path]
-poses = "poses.csv"
-"""
 
 SETTINGS = """
 [render]
@@ -65,7 +50,7 @@ def experiment(tmp_path, over_path: bool):
             "1,slide,-1500,0,0,0,0,0", "2,slide,-3000,0,0,0,0,0", "3,slide,0,0,0,0,0,0"]
     (tmp_path / "poses.csv").write_text("\n".join(rows) + "\n")
     cams = aimed_camera("a", 0.65) + aimed_camera("b", 0.2)
-    text = PLATE_TOML.format(spacing=50, limit=75, height=RAIL_HEIGHT, extra_meshes=SCENE,
+    text = PLATE_TOML.format(spacing=50, limit=75, height=RAIL_HEIGHT, extra_meshes=SLIDING_SHUTTER,
                              cameras=cams + SETTINGS.format(over_path=str(over_path).lower()))
     path = tmp_path / "exp.toml"
     path.write_text(text)

@@ -472,16 +472,25 @@ class RailSpec:
                                      doc="NURBS weights, one per control point")
 
 
+def _sensor_width_row():
+    """The sensor width row, shared by a camera and a body of the design inventory."""
+    return row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
+               shown="or sensor_mm", doc="sensor width")
+
+
+def _pixels_row():
+    """The pixel count row, shared by a camera and a body of the design inventory."""
+    return row("pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"),
+               doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+
+
 @dataclass(frozen=True, eq=False)
 class CameraSpec:
     """A camera as written in the file; `Experiment.cameras()` resolves its pose."""
 
     name: str = row("name", Text(name=True), doc="unique; names the camera's output files")
-    sensor_width: float = row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
-                              shown="or sensor_mm", doc="sensor width")
-    pixels: tuple[int, int] = row("pixels", Vector(2, positive=True, whole=True, as_tuple=True,
-                                                   letters="WH"),
-                                  doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+    sensor_width: float = _sensor_width_row()
+    pixels: tuple[int, int] = _pixels_row()
     focal_length: float = row("focal_mm", Real(*FOCAL_RANGE_MM, positive=True,
                                                why="the focal lengths of real lenses"), unit="mm",
                               doc="lens focal length")
@@ -924,11 +933,8 @@ class BodySpec:
     """A kind of camera body in `vdo design`'s inventory: its sensor and how many are available."""
 
     name: str = row("name", Text(name=True), doc="unique, e.g. \"5MP\"")
-    sensor_width: float = row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
-                              shown="or sensor_mm", doc="sensor width")
-    pixels: tuple[int, int] = row("pixels", Vector(2, positive=True, whole=True, as_tuple=True,
-                                                   letters="WH"),
-                                  doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+    sensor_width: float = _sensor_width_row()
+    pixels: tuple[int, int] = _pixels_row()
     count: int = row("count", Whole(low=1), doc="how many bodies of this kind are available")
     lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
                                     unit="mm", shown="[design] lenses_mm",
