@@ -8,21 +8,12 @@ import math
 import numpy as np
 import pytest
 
+from conftest import DOWN_CAMERA
 from vdo import checks
 from vdo.lighting import illuminate
 from vdo.speckle import pattern_for
 
-CAMERA = """
-[[camera]]
-name = "down"
-sensor_mm = [22.2, 14.8]
-pixels = [600, 400]
-focal_mm = 24
-rail = "overhead"
-u = 0.5
-pan_deg = 0
-tilt_deg = -90
-{lens}
+CAMERA = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + """{lens}
 
 [speckle]
 dot_diameter_mm = {dot}

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import DOWN_CAMERA
 from vdo import config
 from vdo.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project, rotation,
                         sensitivity)
@@ -107,18 +108,7 @@ def test_undistorted_pixels_invert_the_distortion(cam):
 
 
 def test_config_distortion_field(plate_experiment):
-    cams = """
-[[camera]]
-name = "down"
-sensor_mm = [22.2, 14.8]
-pixels = [600, 400]
-focal_mm = 24
-rail = "overhead"
-u = 0.5
-pan_deg = 0
-tilt_deg = -90
-distortion = [-0.1, 0.02, 0.001, -0.002, 0.003]
-"""
+    cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + "distortion = [-0.1, 0.02, 0.001, -0.002, 0.003]\n"
     exp = config.load(plate_experiment(cameras=cams))
     assert exp.cameras()[0].distortion == (-0.1, 0.02, 0.001, -0.002, 0.003)
     assert exp.to_dict()["camera"][0]["distortion"] == [-0.1, 0.02, 0.001, -0.002, 0.003]

@@ -201,17 +201,21 @@ def finish(child, signum, count=1, settle=0.3):
     return time.monotonic() - sent, err
 
 
-def test_swallowed_interrupt_ends_by_the_watchdog(tmp_path):
-    """Code that catches the interrupt and carries on (as native code may) is ended after the
-    grace period, with the status of the signal and the partial folder removed."""
-    child, parent = scripted(tmp_path, """
+# A child that catches every interrupt and carries on, as native code may.
+SWALLOWS_INTERRUPTS = """
 print("ready", flush=True)
 for _ in range(200):
     try:
         time.sleep(0.05)
     except BaseException:
         pass
-""")
+"""
+
+
+def test_swallowed_interrupt_ends_by_the_watchdog(tmp_path):
+    """Code that catches the interrupt and carries on (as native code may) is ended after the
+    grace period, with the status of the signal and the partial folder removed."""
+    child, parent = scripted(tmp_path, SWALLOWS_INTERRUPTS)
     elapsed, err = finish(child, signal.SIGTERM)
     assert child.returncode == 143 and err.strip() == "vdo: interrupted by SIGTERM"
     assert GRACE_S - 0.2 < elapsed < PROMPT_S
@@ -219,14 +223,7 @@ for _ in range(200):
 
 
 def test_second_signal_ends_at_once(tmp_path):
-    child, parent = scripted(tmp_path, """
-print("ready", flush=True)
-for _ in range(200):
-    try:
-        time.sleep(0.05)
-    except BaseException:
-        pass
-""")
+    child, parent = scripted(tmp_path, SWALLOWS_INTERRUPTS)
     elapsed, err = finish(child, signal.SIGINT, count=2)
     assert child.returncode == 130 and err.strip() == "vdo: interrupted by SIGINT"
     assert elapsed < GRACE_S - 0.5
