@@ -144,40 +144,45 @@ def relight(scene, lights, samples: SurfaceSamples, unobstructed: Illumination,
 
 
 def _cast(scene, lights, X: np.ndarray, nrm: np.ndarray, grid: int, batch_rays: int):
-    """(lit, direct), each (L, N), of the points X with normals nrm (`illuminate`)."""
+    """(lit, direct), each (L, N), of the points X with normals nrm (`illuminate`). One Dr.Jit
+    kernel per light and batch: ray k is sample k // G to panel point k % G, its geometry in
+    float64 (rays in float32, as Mitsuba traces them), the sums over the G panel points by
+    `drjit.block_sum`."""
+    import drjit as dr
+
     mi = mitsuba()
+    F64 = mi.Float64
     n_s = len(X)
     lit = np.zeros((len(lights), n_s))
     direct = np.zeros((len(lights), n_s))
     for k, light in enumerate(lights):
         P, dA = panel_points(light, grid)
+        G = len(P)
         n_l, _, _ = panel_frame(light)
-        per = max(1, batch_rays // len(P))
+        per = max(1, batch_rays // G)
+        panel = [F64(np.ascontiguousarray(P[:, a])) for a in range(3)]
         for start in range(0, n_s, per):
             x, nn = X[start:start + per], nrm[start:start + per]
-            d = P[None, :, :] - x[:, None, :]                  # (m, G, 3) sample -> panel point
-            r = np.linalg.norm(d, axis=-1)
-            d /= r[..., None]
-            cos_s = np.einsum("mgk,mk->mg", d, nn)
-            cos_l = -(d @ n_l)
+            ray = dr.arange(mi.UInt32, len(x) * G)
+            sample, point = ray // G, ray % G
+            xs = [dr.gather(F64, F64(np.ascontiguousarray(x[:, a])), sample) for a in range(3)]
+            ns = [dr.gather(F64, F64(np.ascontiguousarray(nn[:, a])), sample) for a in range(3)]
+            ps = [dr.gather(F64, panel[a], point) for a in range(3)]
+            d = [p - q for p, q in zip(ps, xs)]                    # sample -> panel point
+            r = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+            cos_s = (d[0] * ns[0] + d[1] * ns[1] + d[2] * ns[2]) / r
+            cos_l = -(d[0] * n_l[0] + d[1] * n_l[1] + d[2] * n_l[2]) / r
             front = (cos_s > 0) & (cos_l > 0)
-            origin = x[:, None, :] + EPSILON * nn[:, None, :]
-            seg = P[None, :, :] - origin
-            dist = np.linalg.norm(seg, axis=-1)
-            seg /= dist[..., None]
-            idx = np.flatnonzero(front.ravel())
-            clear = np.zeros(front.size, dtype=bool)
-            if idx.size:
-                o = np.broadcast_to(origin, seg.shape).reshape(-1, 3)[idx]
-                v = seg.reshape(-1, 3)[idx]
-                ray = mi.Ray3f(mi.Point3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in o.T)),
-                               mi.Vector3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in v.T)))
-                ray.maxt = mi.Float(np.maximum(dist.ravel()[idx] - EPSILON, 0.0).astype(np.float32))
-                clear[idx] = ~np.asarray(scene.ray_test(ray), dtype=bool)
-            V = clear.reshape(front.shape)
-            lit[k, start:start + per] = V.mean(axis=1)
-            direct[k, start:start + per] = light.radiance * dA * np.sum(
-                np.where(V, cos_s * cos_l / r**2, 0.0), axis=1)
+            origin = [q + EPSILON * n for q, n in zip(xs, ns)]
+            seg = [p - o for p, o in zip(ps, origin)]
+            dist = dr.sqrt(seg[0] * seg[0] + seg[1] * seg[1] + seg[2] * seg[2])
+            shadow = mi.Ray3f(mi.Point3f(*(mi.Float(o) for o in origin)),
+                              mi.Vector3f(*(mi.Float(s / dist) for s in seg)))
+            shadow.maxt = mi.Float(dr.maximum(dist - EPSILON, 0.0))
+            clear = front & ~scene.ray_test(shadow, front)
+            lit[k, start:start + per] = dr.block_sum(dr.select(clear, F64(1.0), F64(0.0)), G).numpy() / G
+            direct[k, start:start + per] = light.radiance * dA * dr.block_sum(
+                dr.select(clear, cos_s * cos_l / (r * r), F64(0.0)), G).numpy()
     return lit, direct
 
 

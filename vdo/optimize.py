@@ -1315,7 +1315,7 @@ def _summary(problem: Problem, state: State) -> dict:
     """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.predict` (usable
     views, clipped patches) on the round's ray cast and lighting."""
     pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
-                   problem.speckle)
+                   problem.speckle, overlap=problem.geometry.overlap)
     return report.summary(problem.exp, problem.samples, state.vis, pred)
 
 

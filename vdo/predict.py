@@ -97,19 +97,22 @@ class Prediction:
 
 def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
             illumination: Illumination, speckle: SpeckleModel,
-            clip_patch: bool = True) -> Prediction:
+            clip_patch: bool = True, overlap=None) -> Prediction:
     """The report fields with the usable-view definition and the clipped patch of `vdo.usable`:
     a first pass gives the soft weights, hence the usable views and each camera's usable patch
     fraction phi_i; the second pass weights each pair by phi_i (Omega_i = phi_i Omega). With
     `clip_patch` False every usable view keeps the whole patch (phi_i = 1): for samples that each
-    stand for one whole correlated patch (`vdo.validate`), not for points of a sampled surface."""
+    stand for one whole correlated patch (`vdo.validate`), not for points of a sampled surface.
+    `overlap`: `usable.patch_overlap(samples, patch_size)` when already known (it depends on the
+    samples' parametric cells only, not on the cameras or on a keyframe's motion)."""
     smp = samples_for_objective(exp, samples)
     cams = objective.CameraParams.from_cameras(cameras)
     st = settings(exp)
     first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle),
                              speckle.table, st)
     use = usable.usable_views(np.asarray(first.weights))
-    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    if overlap is None:
+        overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
     phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
     f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi),
                          speckle.table, st)

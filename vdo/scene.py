@@ -11,6 +11,8 @@ X = O + u t_u + v t_v carries the area h^2, the face normal n = t_u x t_v, and (
 
 from __future__ import annotations
 
+import functools
+
 import logging
 import math
 from dataclasses import dataclass
@@ -391,16 +393,27 @@ def lens_length(focal_length: float) -> float:
     return float(np.clip(focal_length * 1.2, 0.04, 0.15))
 
 
-def camera_body_local(focal_length: float) -> trimesh.Trimesh:
-    """The body in the camera's own OpenCV frame (z forward): a lens barrel over z in [-L, 0] and
-    a DSLR-sized box behind it. Everything lies behind the optical centre (the lens front), so a
-    ray that reaches the camera's own optical centre from its field of view never crosses it."""
+@functools.lru_cache(maxsize=64)
+def _body_arrays(focal_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of `camera_body_local`, built once per focal length (read-only)."""
     length = lens_length(focal_length)
     lens = trimesh.creation.cylinder(radius=LENS_DIAMETER / 2, height=length, sections=24)
     lens.apply_translation([0, 0, -length / 2])
     body = trimesh.creation.box(extents=BODY_SIZE)
     body.apply_translation([0, 0, -length - BODY_SIZE[2] / 2])
-    return trimesh.util.concatenate([lens, body])
+    mesh = trimesh.util.concatenate([lens, body])
+    vertices, faces = np.array(mesh.vertices), np.array(mesh.faces)
+    vertices.setflags(write=False)
+    faces.setflags(write=False)
+    return vertices, faces
+
+
+def camera_body_local(focal_length: float) -> trimesh.Trimesh:
+    """The body in the camera's own OpenCV frame (z forward): a lens barrel over z in [-L, 0] and
+    a DSLR-sized box behind it. Everything lies behind the optical centre (the lens front), so a
+    ray that reaches the camera's own optical centre from its field of view never crosses it."""
+    vertices, faces = _body_arrays(float(focal_length))
+    return trimesh.Trimesh(vertices.copy(), faces.copy(), process=False)
 
 
 def camera_body_points(focal_length: float) -> np.ndarray:
@@ -432,14 +445,11 @@ def camera_body_spheres(focal_length: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def camera_body(camera: Camera) -> SceneMesh:
-    """`camera_body_local` placed at the camera's pose, as an obstacle for the other cameras."""
-    local = camera_body_local(camera.focal_length)
-    cam_to_world = np.eye(4)
-    cam_to_world[:3, :3] = camera.R.T
-    cam_to_world[:3, 3] = camera.position
-    local.apply_transform(cam_to_world)
-    return SceneMesh(f"camera:{camera.name}", "camera", np.asarray(local.vertices),
-                     np.asarray(local.faces))
+    """`camera_body_local` placed at the camera's pose, as an obstacle for the other cameras:
+    X_world = R^T X_cam + C."""
+    vertices, faces = _body_arrays(float(camera.focal_length))
+    return SceneMesh(f"camera:{camera.name}", "camera", vertices @ camera.R + camera.position,
+                     faces.copy())
 
 
 # --------------------------------------------------------------------------------------------

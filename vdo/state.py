@@ -5,7 +5,7 @@ by the tests, so that the chain camera bodies -> Mitsuba scene -> visibility -> 
 prediction is written once:
 
 * `prepare(exp)` -> `Geometry`: what does not depend on the cameras (the meshes in metres, the
-  surface samples of the regions of interest, the speckle model). Build it once per experiment
+  surface samples of the regions of interest, the speckle model, the samples' patch overlap). Build it once per experiment
   (and per keyframe of a moving test) and reuse it for every camera layout.
 * `layout_state(geometry, cameras)` -> `LayoutState`: the scene with the camera bodies as
   obstacles, the ray-cast visibility of every (camera, sample) pair, the light reaching every
@@ -27,6 +27,7 @@ from .lighting import Illumination, illuminate, relight
 from .predict import Prediction, SpeckleModel, predict, speckle_model
 from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
                     load_meshes, sample_regions)
+from .usable import patch_overlap
 from .visibility import Visibility, compute_visibility
 
 
@@ -39,6 +40,7 @@ class Geometry:
     samples: SurfaceSamples
     speckle: SpeckleModel
     region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
+    overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.usable.patch_overlap`)
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,8 +68,9 @@ class LayoutState:
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     """Read the meshes (unless given), sample the regions and build the speckle model."""
     meshes = load_meshes(exp) if meshes is None else meshes
-    return Geometry(exp, tuple(meshes), sample_regions(exp, meshes), speckle_model(exp),
-                    tuple(all_region_faces(exp, meshes)))
+    samples = sample_regions(exp, meshes)
+    return Geometry(exp, tuple(meshes), samples, speckle_model(exp), tuple(all_region_faces(exp, meshes)),
+                    patch_overlap(samples, exp.evaluation.patch_size))
 
 
 def unobstructed_lighting(geometry: Geometry) -> Illumination:
@@ -110,7 +113,7 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
                                    samples.tangent_v)
     strain.check_regions(exp.analysis, samples, density, exp.path)
     prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
-                         clip_patch=clip_patch)
+                         clip_patch=clip_patch, overlap=geometry.overlap)
     fields = strain.analysis_fields(exp.analysis, density, samples, prediction.information,
                                     prediction.measured, exp.evaluation.patch_size ** 2)
     return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields)

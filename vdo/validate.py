@@ -56,6 +56,7 @@ from .predict import SpeckleModel
 from .render import build_render_scene, expose, noise_free_dn, render_linear, render_seed, sensor_dict
 from .scene import SceneMesh, SurfaceSamples, face_frame, region_faces
 from .sensor import SensorModel
+from .usable import patch_overlap
 from .speckle import gradient_energy_table, normalise, pattern_for
 from .state import Geometry, layout_state
 
@@ -517,7 +518,8 @@ def _predict_once(setup: Setup, cameras, speckle) -> np.ndarray:
 def _prediction(setup: Setup, cameras, speckle, n: int):
     """vdo.predict at n x n samples of the correlated patch (each with Ω = the patch area)."""
     samples = _samples(setup, n)
-    geometry = Geometry(setup.experiment, (setup.plate,), samples, speckle, (setup.region,))
+    geometry = Geometry(setup.experiment, (setup.plate,), samples, speckle, (setup.region,),
+                        patch_overlap(samples, setup.experiment.evaluation.patch_size))
     pred = layout_state(geometry, cameras, clip_patch=False).prediction
     if not np.all(pred.measured):
         raise RuntimeError(f"case {setup.case.name!r}: the prediction leaves part of the patch "
