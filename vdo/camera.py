@@ -22,8 +22,9 @@ Conventions (stated once, tested in tests/test_camera.py):
   pixel (0, 0) is the top-left *corner*; `mitsuba_to_world` and `mitsuba_principal_offset` are the
   only place that converts (diag(-1, -1, 1) on the camera axes, half a pixel on the film).
 
-The functions below are `jax.numpy` so they trace under jit/vmap/grad; the projection and its
-point Jacobian (`to_camera`, `project`, `sensitivity`) take the array module as `xp`, so that
+The functions below are `jax.numpy` so they trace under jit/vmap/grad; the orientation, the
+intrinsics, the projection and its point Jacobian (`rotation`, `intrinsic_matrix`, `to_camera`,
+`project`, `sensitivity`) take the array module as `xp`, so that `Camera.R`, `Camera.K`,
 `Camera.project` and `Camera.sensitivity` (NumPy in, NumPy out, for `vdo.correlate`, the checks,
 the exports) run the same arithmetic in NumPy, without a JAX dispatch per operation. `Camera`
 bundles one configured camera for the rest of the program.
@@ -34,7 +35,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from functools import cached_property
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,22 +44,20 @@ from .configure import require_x64
 # --------------------------------------------------------------------------------------------
 # Orientation
 # --------------------------------------------------------------------------------------------
-def _axes(pan, tilt, roll):
-    cp, sp, ct, st = jnp.cos(pan), jnp.sin(pan), jnp.cos(tilt), jnp.sin(tilt)
-    cr, sr = jnp.cos(roll), jnp.sin(roll)
-    z = jnp.stack([ct * cp, ct * sp, st], axis=-1)
-    x0 = jnp.stack([sp, -cp, jnp.zeros_like(sp)], axis=-1)
-    y0 = jnp.stack([st * cp, st * sp, -ct], axis=-1)
+def _axes(pan, tilt, roll, xp=jnp):
+    cp, sp, ct, st = xp.cos(pan), xp.sin(pan), xp.cos(tilt), xp.sin(tilt)
+    cr, sr = xp.cos(roll), xp.sin(roll)
+    z = xp.stack([ct * cp, ct * sp, st], axis=-1)
+    x0 = xp.stack([sp, -cp, xp.zeros_like(sp)], axis=-1)
+    y0 = xp.stack([st * cp, st * sp, -ct], axis=-1)
     return x0, y0, z, cr[..., None], sr[..., None]
 
 
-def rotation(pan, tilt, roll):
-    """R (world -> camera), rows x_c, y_c, z_c as in the module docstring. Shape (..., 3, 3)."""
-    x0, y0, z, cr, sr = _axes(pan, tilt, roll)
-    return jnp.stack([cr * x0 + sr * y0, -sr * x0 + cr * y0, z], axis=-2)
-
-
-_rotation_jit = jax.jit(rotation)
+def rotation(pan, tilt, roll, xp=jnp):
+    """R (world -> camera), rows x_c, y_c, z_c as in the module docstring. Shape (..., 3, 3).
+    `xp`: the array module (NumPy for host callers: `Camera.R`)."""
+    x0, y0, z, cr, sr = _axes(pan, tilt, roll, xp)
+    return xp.stack([cr * x0 + sr * y0, -sr * x0 + cr * y0, z], axis=-2)
 
 
 def rotation_derivatives(pan, tilt, roll):
@@ -89,11 +87,11 @@ def look_at_angles(position, target):
 # --------------------------------------------------------------------------------------------
 # Projection and its Jacobians
 # --------------------------------------------------------------------------------------------
-def intrinsic_matrix(focal_px, cx, cy):
-    """K for square pixels, in pixels."""
-    z, o = jnp.zeros_like(focal_px), jnp.ones_like(focal_px)
-    return jnp.stack([jnp.stack([focal_px, z, cx], -1), jnp.stack([z, focal_px, cy], -1),
-                      jnp.stack([z, z, o], -1)], -2)
+def intrinsic_matrix(focal_px, cx, cy, xp=jnp):
+    """K for square pixels, in pixels. `xp`: the array module, as in `rotation`."""
+    z, o = xp.zeros_like(focal_px), xp.ones_like(focal_px)
+    return xp.stack([xp.stack([focal_px, z, cx], -1), xp.stack([z, focal_px, cy], -1),
+                     xp.stack([z, z, o], -1)], -2)
 
 
 def to_camera(R, t, X, xp=jnp):
@@ -276,12 +274,11 @@ class Camera:
     @cached_property
     def K(self) -> np.ndarray:
         cx, cy = self.principal_point
-        return np.asarray(intrinsic_matrix(jnp.float64(self.focal_px), jnp.float64(cx), jnp.float64(cy)))
+        return intrinsic_matrix(np.float64(self.focal_px), np.float64(cx), np.float64(cy), xp=np)
 
     @cached_property
     def R(self) -> np.ndarray:
-        # one compiled call: eager, the ~20 operations cost ~15 ms per camera under load
-        return np.asarray(_rotation_jit(jnp.float64(self.pan), jnp.float64(self.tilt), jnp.float64(self.roll)))
+        return rotation(np.float64(self.pan), np.float64(self.tilt), np.float64(self.roll), xp=np)
 
     @cached_property
     def t(self) -> np.ndarray:

@@ -1209,7 +1209,7 @@ def camera_positions(exp: Experiment) -> list[np.ndarray]:
     out = []
     for spec in exp.camera_specs:
         if spec.rail is not None:
-            out.append(np.asarray(exp.rail(spec.rail).position(spec.u), dtype=float) + spec.offset)
+            out.append(exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset)
         else:
             out.append(np.asarray(spec.position, dtype=float))
     return out

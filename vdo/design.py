@@ -233,7 +233,7 @@ def spots(exp: Experiment) -> list[tuple]:
     d = exp.design
     heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
     grid = np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1 else [0.5]
-    out = [(r.name, "rail", float(u), h, np.asarray(exp.rail(r.name).position(u), dtype=float) + h)
+    out = [(r.name, "rail", float(u), h, exp.rail(r.name).position(u, xp=np) + h)
            for r in exp.rails for u in grid for h in heads]
     zero = np.zeros(3)
     for m in exp.mounts:

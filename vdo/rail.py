@@ -48,10 +48,11 @@ class Rail:
         interior = np.arange(1, n - p) / (n - p)
         return np.concatenate([np.zeros(p + 1), interior, np.ones(p + 1)])
 
-    def position(self, u):
-        """C(u) in metres, for scalar or array u in [0, 1] (shape u.shape + (3,)). JAX-traceable."""
-        u = jnp.asarray(u, dtype=jnp.float64)
-        return jnp.vectorize(self._point, signature="()->(3)")(u)
+    def position(self, u, xp=jnp):
+        """C(u) in metres, for scalar or array u in [0, 1] (shape u.shape + (3,)). JAX-traceable;
+        `xp` = NumPy evaluates on the host without a JAX dispatch per operation."""
+        u = xp.asarray(u, dtype=xp.float64)
+        return _de_boor(xp.asarray(self.knots), xp.asarray(self._homogeneous), self.degree, u, xp)
 
     def tangent(self, u):
         """dC/du in metres per unit of u (forward-mode derivative of `position`)."""
@@ -79,18 +80,19 @@ class Rail:
         return float(np.sum(0.5 * (b - a) * (speed @ weights)))
 
 
-def _de_boor(knots, homogeneous, p: int, u):
-    """C(u) by de Boor's algorithm on the homogeneous control points (n, 4), degree p."""
+def _de_boor(knots, homogeneous, p: int, u, xp=jnp):
+    """C(u) (u.shape + (3,)) by de Boor's algorithm on the homogeneous control points (n, 4),
+    degree p, for every u at once; `xp` the array module."""
     n = homogeneous.shape[0]
-    span = jnp.clip(jnp.searchsorted(knots, u, side="right") - 1, p, n - 1)
+    span = xp.clip(xp.searchsorted(knots, u, side="right") - 1, p, n - 1)
     d = [homogeneous[span - p + j] for j in range(p + 1)]
     for r in range(1, p + 1):
         for j in range(p, r - 1, -1):
             lo = knots[span - p + j]
             hi = knots[span + 1 + j - r]
-            alpha = (u - lo) / jnp.where(hi > lo, hi - lo, 1.0)
+            alpha = ((u - lo) / xp.where(hi > lo, hi - lo, 1.0))[..., None]
             d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
-    return d[p][:3] / d[p][3]
+    return d[p][..., :3] / d[p][..., 3:]
 
 
 @functools.partial(jax.jit, static_argnums=2)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 
-import jax
 import numpy as np
 
 from .camera import look_at_angles
@@ -38,7 +37,7 @@ def mount_positions(exp: Experiment, spec, camera, moving: bool, positions: int 
     if moving and spec.rail is not None:
         rail = exp.rail(spec.rail)
         grid = np.linspace(0, 1, positions)
-        return f"rail {spec.rail}", np.asarray(jax.jit(lambda: rail.position(grid))()) + spec.offset
+        return f"rail {spec.rail}", rail.position(grid, xp=np) + spec.offset
     if moving and spec.mount is not None and exp.mount(spec.mount).kind == "zone":
         zone = exp.mount(spec.mount)
         per_axis = max(2, round(positions ** (1 / 2)))
