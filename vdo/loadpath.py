@@ -99,7 +99,7 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
             state = rest
         else:
             moved = geometry if step == "rest" else at_step(geometry, load_path, step)
-            state = layout_state(moved, cameras)
+            state = layout_state(moved, cameras, strain_fields=False)
         s, c, p, sig = _region_stats(state, minimum)
         coverage.append(state.prediction.coverage)
         sigma.append(sig)

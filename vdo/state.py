@@ -89,11 +89,12 @@ def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
-                 clip_patch: bool = True, progress: bool = False,
+                 strain_fields: bool = True, clip_patch: bool = True, progress: bool = False,
                  unobstructed: Illumination | None = None) -> LayoutState:
     """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
     with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`; `clip_patch`
-    False keeps every sample's whole DIC patch, for samples that each stand for a whole patch).
+    False keeps every sample's whole DIC patch, for samples that each stand for a whole patch)
+    and, with `strain_fields` too, the strain uncertainty of the `[analysis]` (`vdo.strain`).
     `unobstructed`, the lighting of `geometry` without camera bodies (`unobstructed_lighting`),
     when given, makes the lighting cheaper and leaves it the same (`vdo.lighting.relight`)."""
     exp = geometry.experiment
@@ -109,11 +110,14 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
         illumination = relight(scene, exp.lights, samples, unobstructed, [b.vertices for b in obstacles])
     if not predict_fields:
         return LayoutState(geometry, cameras, scene, vis, illumination, None)
-    density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
-                                   samples.tangent_v)
-    strain.check_regions(exp.analysis, samples, density, exp.path)
+    density = None
+    if strain_fields:   # checked before the prediction: a bad [analysis] fails early
+        density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
+                                       samples.tangent_v)
+        strain.check_regions(exp.analysis, samples, density, exp.path)
     prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
                          clip_patch=clip_patch, overlap=geometry.overlap)
-    fields = strain.analysis_fields(exp.analysis, density, samples, prediction.information,
-                                    prediction.measured, exp.evaluation.patch_size ** 2)
+    fields = None if density is None else strain.analysis_fields(
+        exp.analysis, density, samples, prediction.information, prediction.measured,
+        exp.evaluation.patch_size ** 2)
     return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields)
