@@ -193,3 +193,21 @@ def test_local_clearance_and_shadow_sets_give_the_full_penalties_for_moves_withi
         nonzero[0] += full > 0
         nonzero[1] += full_shadow > 0
     assert min(nonzero) > 0
+
+
+def test_in_image_fraction_of_a_distorted_camera_counts_what_opencv_projects_inside():
+    """A barrel-distorted camera before a plane wider than its view: with a ramp of 1e-3 px the
+    smooth fraction is the fraction of points that cv2.projectPoints puts on the sensor."""
+    cv2 = pytest.importorskip("cv2")
+    W, H, f = 1000, 800, 900.0
+    dist = np.array([-0.25, 0.06, 0.002, -0.001, 0.0])           # k1, k2, p1, p2, k3
+    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    x, y = np.meshgrid(np.linspace(-0.8, 0.8, 61), np.linspace(-0.6, 0.6, 47))
+    X = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 1.0)])
+    uv = cv2.projectPoints(X, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    exact = np.mean((uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5))
+    assert 0.3 < exact < 0.95                                      # the edges cross the plane
+    frac = constraints.in_image_fraction(
+        jnp.asarray(K)[None], jnp.eye(3)[None], jnp.zeros((1, 3)), jnp.asarray([W]), jnp.asarray([H]),
+        np.array([0]), jnp.asarray(X)[None], jnp.ones((1, len(X))), jnp.asarray([1e-3]), jnp.asarray(dist)[None])
+    assert float(frac[0]) == pytest.approx(exact, abs=0.5 / len(X))

@@ -156,11 +156,17 @@ def distortion_curvature(x, y, distortion):
 
 def image_point(K, x, y, distortion=None):
     """Pixel (u, v) of the normalised point (x, y): distortion, then K (u = f_x x_d + s y_d + c_x,
-    v = f_y y_d + c_y). The one step from the camera frame to pixels: `project`, its Jacobians and
-    `vdo.correlate` all go through here. Plain arithmetic (NumPy or JAX)."""
+    v = f_y y_d + c_y). The one step from the camera frame to pixels: `project`, its Jacobians,
+    `vdo.correlate`, the visibility kernel, the objective and the field-of-view penalty all go
+    through here. `K` is a (..., 3, 3) matrix or its entries (f_x, s, c_x, f_y, c_y), s None for
+    no skew (for the Dr.Jit kernel and the objective's per-pair tables). Plain arithmetic
+    (NumPy, JAX or Dr.Jit)."""
+    if isinstance(K, tuple):
+        fx, s, cx, fy, cy = K
+    else:
+        fx, s, cx, fy, cy = K[..., 0, 0], K[..., 0, 1], K[..., 0, 2], K[..., 1, 1], K[..., 1, 2]
     xd, yd = distort(x, y, distortion)
-    return (K[..., 0, 0] * xd + K[..., 0, 1] * yd + K[..., 0, 2],
-            K[..., 1, 1] * yd + K[..., 1, 2])
+    return (fx * xd + cx if s is None else fx * xd + s * yd + cx), fy * yd + cy
 
 
 def project(K, R, t, X, distortion=None, xp=jnp):

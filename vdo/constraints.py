@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .camera import to_camera
+from .camera import image_point, to_camera
 from .objective import smoothstep
 from .scene import SurfaceSamples
 from .visibility import Visibility
@@ -135,7 +135,7 @@ def axis_angles(cameras, pairs: np.ndarray) -> np.ndarray:
                                                     -1.0, 1.0))) for i, j in pairs])
 
 
-def in_image_fraction(K, R, t, width, height, camera, points, area, ramp):
+def in_image_fraction(K, R, t, width, height, camera, points, area, ramp, distortion=None):
     """(G,) smooth fraction of each group's area that projects inside its camera's image.
 
     Group g holds the points (G, M, 3) with areas (G, M) (0 for padding) of one region as seen
@@ -143,13 +143,14 @@ def in_image_fraction(K, R, t, width, height, camera, points, area, ramp):
     signed distance inside that edge in pixels, r_g = ramp[g] pixels (about the sample spacing in
     the image, so that the fraction varies smoothly as the edge sweeps over the samples) and S the
     C^2 smoothstep: 1/2 on the edge itself, so that on a region that the edge crosses the smooth
-    fraction equals the exact one to O(r^2); points behind the camera count 0."""
+    fraction equals the exact one to O(r^2); points behind the camera count 0. The pixel is the
+    camera's (`vdo.camera.image_point`), with the lens `distortion` (C, 5) when given."""
     c = jnp.asarray(camera)
     p = to_camera(R[c][:, None], t[c][:, None], points)
-    z = p[..., 2]
-    front = z > 1e-3
-    uvw = jnp.einsum("gij,gmj->gmi", K[c], jnp.where(front[..., None], p, jnp.array([0.0, 0.0, 1.0])))
-    u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    front = p[..., 2] > 1e-3
+    p = jnp.where(front[..., None], p, jnp.array([0.0, 0.0, 1.0]))
+    u, v = image_point(K[c][:, None], p[..., 0] / p[..., 2], p[..., 1] / p[..., 2],
+                       None if distortion is None else jnp.asarray(distortion)[c][:, None])
     w, h = width[c][:, None], height[c][:, None]
     r = jnp.asarray(ramp)[:, None]
     edge = lambda d: smoothstep((d + r) / (2 * r))

@@ -156,7 +156,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vdo.camera import distort, distortion_curvature, distortion_jacobian, rotation
+from vdo.camera import distort, distortion_curvature, distortion_jacobian, image_point, rotation
 from vdo.configure import require_x64
 from vdo.speckle import GradientEnergyTable, g_aniso_lookup
 
@@ -323,7 +323,7 @@ class ViewData(eqx.Module):
 
 def _candidates(cameras, samples, st, margin_px, margin_angle):
     """(C, N) bool, numpy: in front, inside the image + margin_px, incidence < limit + margin."""
-    R = np.asarray(rotation(cameras.pan, cameras.tilt, cameras.roll))
+    R = rotation(*(np.asarray(a) for a in (cameras.pan, cameras.tilt, cameras.roll)), xp=np)
     d = np.asarray(samples.points)[None] - np.asarray(cameras.position)[:, None]  # (C, N, 3)
     p = np.einsum("cab,cnb->acn", R, d)
     front = p[2] > st.near
@@ -331,9 +331,8 @@ def _candidates(cameras, samples, st, margin_px, margin_angle):
     f = np.asarray(cameras.focal_px)[:, None]
     dist = (None if cameras.distortion is None else
             tuple(np.asarray(cameras.distortion)[:, k, None] for k in range(5)))
-    xd, yd = distort(p[0] / z, p[1] / z, dist)
-    u = f * xd + np.asarray(cameras.cx)[:, None]
-    v = f * yd + np.asarray(cameras.cy)[:, None]
+    u, v = image_point((f, None, np.asarray(cameras.cx)[:, None], f, np.asarray(cameras.cy)[:, None]),
+                       p[0] / z, p[1] / z, dist)
     W, H = np.asarray(cameras.width)[:, None], np.asarray(cameras.height)[:, None]
     lo = -0.5 - margin_px
     inside = (u > lo) & (u < W - 1 - lo) & (v > lo) & (v < H - 1 - lo)
@@ -501,8 +500,7 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
     g = f * iz
     if len(cq) == _PINHOLE_COLUMNS:
         lens = None
-        u = f * xn + cx
-        v = f * yn + cy
+        u, v = image_point((f, None, cx, f, cy), xn, yn)
         s0 = tuple(g * (R[0][b] - xn * R[2][b]) for b in range(3))
         s1 = tuple(g * (R[1][b] - yn * R[2][b]) for b in range(3))
     else:  # s = g D [[1, 0, -x], [0, 1, -y]] R with D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]]
@@ -510,8 +508,7 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
         xd, yd = distort(xn, yn, coefficients)
         jxx, jxy, _, jyy = distortion_jacobian(xn, yn, coefficients)
         lens = (coefficients, xd, yd, (jxx, jxy, jyy))
-        u = f * xd + cx
-        v = f * yd + cy
+        u, v = image_point((f, None, cx, f, cy), xn, yn, coefficients)
         e0 = tuple(R[0][b] - xn * R[2][b] for b in range(3))
         e1 = tuple(R[1][b] - yn * R[2][b] for b in range(3))
         s0 = tuple(g * (jxx * e0[b] + jxy * e1[b]) for b in range(3))

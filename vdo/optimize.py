@@ -620,7 +620,7 @@ class Problem:
                                                  data["max_angles"]),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
-                fov["ramp"]), fov["limit"], FOV_MARGIN),
+                fov["ramp"], data["distortion"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
                 constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))

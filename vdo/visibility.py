@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .backend import mitsuba
-from .camera import Camera, distort
+from .camera import Camera, image_point
 from .scene import SurfaceSamples
 
 EPSILON = 1e-4   # m: ray origins are lifted off the surface by this, and stop this short of C
@@ -95,8 +95,7 @@ def compute_visibility(scene, cameras: list[Camera], samples: SurfaceSamples,
         centre = mi.Point3f(*col[17:20])
         in_front = p.z > 1e-6
         z = dr.select(in_front, p.z, 1.0)
-        xd, yd = distort(p.x / z, p.y / z, tuple(col[20:25]))
-        u, v = f * xd + cx, f * yd + cy
+        u, v = image_point((f, None, cx, f, cy), p.x / z, p.y / z, tuple(col[20:25]))
         in_image = in_front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)
         origin = X + EPSILON * nrm
         to_cam = centre - origin
