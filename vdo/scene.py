@@ -20,7 +20,7 @@ import trimesh
 
 from .backend import mitsuba
 from .camera import Camera
-from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, camera_positions
+from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
 from .errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -440,6 +440,49 @@ def camera_body(camera: Camera) -> SceneMesh:
     local.apply_transform(cam_to_world)
     return SceneMesh(f"camera:{camera.name}", "camera", np.asarray(local.vertices),
                      np.asarray(local.faces))
+
+
+# --------------------------------------------------------------------------------------------
+# Tripods as obstacles
+# --------------------------------------------------------------------------------------------
+TRIPOD_SECTIONS = 24     # sides of the prisms that stand for the legs' and column's cylinders
+
+
+def tripod_cylinders(camera: Camera, spec: TripodSpec) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """The tripod under `camera` as cylinders (top (3,), bottom (3,), radius), metres, world frame:
+    the legs first, then the centre column; [] when the top casting is not above the floor.
+
+    The body's centre is B = C - (L + d/2) z_c (`camera_body_local`: lens length L, body depth d,
+    optical centre C, optical axis z_c); the top casting is T = B - (h_body/2 + head_m) e_z. Leg k
+    (k = 0 .. legs-1) runs from T to the foot T_floor + spread_m (cos φ_k, sin φ_k, 0), with
+    T_floor = T with z = floor_z_m and φ_k = pan + azimuth_deg + 2πk/legs; the column runs from T
+    down by min(column_length_m, T_z - floor_z_m). Everything hangs below the top casting, inside
+    the cone of the legs, so a camera that looks up, level, or down less steeply than its legs
+    lean sees past its own tripod (tests/test_tripods.py)."""
+    length = lens_length(camera.focal_length)
+    body_centre = np.asarray(camera.position, float) - (length + BODY_SIZE[2] / 2) * camera.optical_axis
+    top = body_centre - np.array([0.0, 0.0, BODY_SIZE[1] / 2 + spec.head])
+    height = top[2] - spec.floor_z
+    if height <= 0:
+        return []
+    below = np.array([top[0], top[1], spec.floor_z])
+    angles = camera.pan + spec.azimuth + 2 * np.pi * np.arange(spec.legs) / spec.legs
+    feet = below + spec.spread * np.c_[np.cos(angles), np.sin(angles), np.zeros(spec.legs)]
+    legs = [(top, foot, spec.leg_diameter / 2) for foot in feet]
+    column = top - np.array([0.0, 0.0, min(spec.column_length, height)])
+    return legs + [(top, column, spec.column_diameter / 2)]
+
+
+def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
+    """`tripod_cylinders` as closed prisms of TRIPOD_SECTIONS sides inscribed in the cylinders
+    (radius short by at most r (1 - cos(π / TRIPOD_SECTIONS)), under 1 %), one obstacle mesh
+    each (so that `vdo.lighting.relight` bounds each part alone)."""
+    out = []
+    for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec)):
+        prism = trimesh.creation.cylinder(radius=radius, segment=[bottom, top], sections=TRIPOD_SECTIONS)
+        out.append(SceneMesh(f"tripod:{camera.name}:{k}", "camera", np.asarray(prism.vertices),
+                             np.asarray(prism.faces)))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
