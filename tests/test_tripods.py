@@ -318,3 +318,21 @@ def test_render_shows_the_other_cameras_tripod(tmp_path):
     assert on_leg.sum() >= MIN_LEG_PIXELS
     assert with_tripod[on_leg].mean() < MAX_LEG_BRIGHTNESS * without[on_leg].mean()
     assert with_tripod[~on_leg].mean() == pytest.approx(without[~on_leg].mean(), rel=0.1)
+
+
+def test_prisms_are_closed_outward_and_inscribed():
+    """A leg's prism: watertight, normals outward (positive volume), of the inscribed n-gon's
+    volume (n/2) r² sin(2π/n) L, its vertices on the cylinder."""
+    import trimesh
+
+    from vdo.scene import prism
+
+    top, bottom, radius = np.array([0.1, 0.2, 1.4]), np.array([0.5, -0.1, 0.0]), 0.015
+    vertices, faces = prism(top, bottom, radius)
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    n, length = TRIPOD_SECTIONS, np.linalg.norm(top - bottom)
+    assert mesh.volume == pytest.approx(n / 2 * radius**2 * math.sin(2 * math.pi / n) * length, rel=1e-9)
+    axis = (top - bottom) / length
+    rel = vertices[:2 * n] - bottom
+    np.testing.assert_allclose(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1), radius, rtol=1e-12)

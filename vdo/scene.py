@@ -473,16 +473,42 @@ def tripod_cylinders(camera: Camera, spec: TripodSpec) -> list[tuple[np.ndarray,
     return legs + [(top, column, spec.column_diameter / 2)]
 
 
+def _prism_faces(sections: int) -> np.ndarray:
+    """Triangles of a closed prism whose vertices are `sections` points of the bottom ring, the
+    same of the top ring, then the bottom and top centres; wound counter-clockwise seen from
+    outside (outward normals, as the renderer's one-sided BSDFs need)."""
+    k = np.arange(sections)
+    nxt = (k + 1) % sections
+    bottom, top = 2 * sections, 2 * sections + 1
+    side = np.concatenate([np.c_[k, nxt, sections + nxt], np.c_[k, sections + nxt, sections + k]])
+    caps = np.concatenate([np.c_[np.full(sections, bottom), nxt, k],
+                           np.c_[np.full(sections, top), sections + k, sections + nxt]])
+    return np.concatenate([side, caps])
+
+
+PRISM_FACES = _prism_faces(TRIPOD_SECTIONS)
+
+
+def prism(top: np.ndarray, bottom: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of the closed TRIPOD_SECTIONS-sided prism inscribed in the cylinder of
+    axis bottom -> top and `radius` (m): ring vertices bottom + r (cos α_j e_1 + sin α_j e_2)
+    (+ the axis for the top ring), e_1, e_2 unit and perpendicular to the axis."""
+    bottom, axis = np.asarray(bottom, float), np.asarray(top, float) - np.asarray(bottom, float)
+    a = axis / np.linalg.norm(axis)
+    e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    angle = 2 * np.pi * np.arange(TRIPOD_SECTIONS) / TRIPOD_SECTIONS
+    ring = bottom + radius * (np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2)
+    return np.vstack([ring, ring + axis, bottom, bottom + axis]), PRISM_FACES
+
+
 def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
     """`tripod_cylinders` as closed prisms of TRIPOD_SECTIONS sides inscribed in the cylinders
-    (radius short by at most r (1 - cos(π / TRIPOD_SECTIONS)), under 1 %), one obstacle mesh
-    each (so that `vdo.lighting.relight` bounds each part alone)."""
-    out = []
-    for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec)):
-        prism = trimesh.creation.cylinder(radius=radius, segment=[bottom, top], sections=TRIPOD_SECTIONS)
-        out.append(SceneMesh(f"tripod:{camera.name}:{k}", "camera", np.asarray(prism.vertices),
-                             np.asarray(prism.faces)))
-    return out
+    (`prism`: radius short by at most r (1 - cos(π / TRIPOD_SECTIONS)), under 1 %), one obstacle
+    mesh each (so that `vdo.lighting.relight` bounds each part alone)."""
+    return [SceneMesh(f"tripod:{camera.name}:{k}", "camera", *prism(top, bottom, radius))
+            for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec))]
 
 
 # --------------------------------------------------------------------------------------------
