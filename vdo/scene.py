@@ -1,5 +1,5 @@
-"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies,
-and the Mitsuba scene built from them.
+"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies and
+the tripods under them, and the Mitsuba scene built from them.
 
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory, so a
 user's CAD export and the built-in example take the same path.
@@ -28,7 +28,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
 class SceneMesh:
-    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera"."""
+    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera" (a camera's
+    body or a part of its tripod)."""
 
     name: str
     role: str
