@@ -336,3 +336,21 @@ def test_prisms_are_closed_outward_and_inscribed():
     axis = (top - bottom) / length
     rel = vertices[:2 * n] - bottom
     np.testing.assert_allclose(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1), radius, rtol=1e-12)
+
+
+def test_the_run_in_3d_draws_each_tripod(tmp_path):
+    """`vdo.view3d.load` (report.html, view3d_*.png) draws one mesh per tripod, at the camera's
+    pose in the run's config.toml."""
+    from vdo import report, view3d
+    from vdo.scene import tripods
+
+    exp = config.load(write(tmp_path))
+    run = tmp_path / "run"
+    run.mkdir()
+    report.write_config(run / "config.toml", exp)
+    drawn = {name: (v, f) for name, _, v, f in view3d.load(run).meshes}
+    assert set(drawn) == {"wall", "tripod:stand"}
+    parts = tripods(exp, exp.cameras())
+    vertices, faces = drawn["tripod:stand"]
+    np.testing.assert_allclose(vertices, np.vstack([p.vertices for p in parts]), atol=1e-9)
+    assert len(faces) == sum(len(p.faces) for p in parts) and faces.max() == len(vertices) - 1

@@ -512,6 +512,15 @@ def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
             for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec))]
 
 
+def tripods(exp: Experiment, cameras) -> list[SceneMesh]:
+    """The `tripod` parts of every camera of `cameras` that the experiment lists on a zone
+    [[mount]] with a [mount.tripod], built where the camera stands."""
+    mounts = {spec.name: spec.mount for spec in exp.camera_specs}
+    specs = {m.name: m.tripod for m in exp.mounts if m.tripod is not None}
+    return [part for c in cameras if mounts.get(c.name) in specs
+            for part in tripod(c, specs[mounts[c.name]])]
+
+
 # --------------------------------------------------------------------------------------------
 # Mitsuba
 # --------------------------------------------------------------------------------------------

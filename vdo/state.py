@@ -27,7 +27,7 @@ from .config import Experiment
 from .lighting import Illumination, illuminate, relight
 from .predict import Prediction, SpeckleModel, predict, speckle_model
 from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
-                    load_meshes, sample_regions, tripod)
+                    load_meshes, sample_regions, tripods)
 from .visibility import Visibility, compute_visibility
 
 
@@ -81,20 +81,10 @@ def unobstructed_lighting(geometry: Geometry) -> Illumination:
 
 def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
     """The obstacles that move with the cameras: the bodies of cameras the experiment lists with
-    `body = true` (the default), and the tripod (`vdo.scene.tripod`) of every camera whose zone
-    [[mount]] has a [mount.tripod], built where the camera stands now."""
-    specs = {spec.name: spec for spec in exp.camera_specs}
-    tripods = {m.name: m.tripod for m in exp.mounts if m.tripod is not None}
-    out = []
-    for c in cameras:
-        spec = specs.get(c.name)
-        if spec is None:
-            continue
-        if spec.body:
-            out.append(camera_body(c))
-        if spec.mount in tripods:
-            out += tripod(c, tripods[spec.mount])
-    return out
+    `body = true` (the default), and the tripods (`vdo.scene.tripods`) of those on a zone
+    [[mount]] with a [mount.tripod], built where the cameras stand now."""
+    with_body = {spec.name for spec in exp.camera_specs if spec.body}
+    return [camera_body(c) for c in cameras if c.name in with_body] + tripods(exp, cameras)
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
