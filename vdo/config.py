@@ -60,7 +60,12 @@ REQUIRED = _Required()
 
 
 class _Bad(Exception):
-    """A value that does not fit its Kind; `Table` turns it into a ConfigError naming the field."""
+    """A value that does not fit its Kind; `Table` turns it into a ConfigError naming the field
+    (with `key`, the key inside a nested table: ``mount "left".tripod.legs``)."""
+
+    def __init__(self, message: str, key: str = ""):
+        super().__init__(message)
+        self.key = key
 
 
 # --------------------------------------------------------------------------------------------
@@ -327,6 +332,38 @@ class File(Kind):
 
     def write(self, value, scale):
         return str(value)
+
+
+@dataclass(frozen=True)
+class SubTable(Kind):
+    """A table nested in another (`[mount.tripod]` under a `[[mount]]`), read into `cls` by
+    `cls`'s own schema rows; absent keys take their defaults, unknown keys are refused."""
+
+    cls: type
+    doc = "table"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, dict):
+            raise _Bad(f"must be a table of {', '.join(r.key for r in rows_of(self.cls))} "
+                       f"(got {_show(value)})")
+        rows = rows_of(self.cls)
+        known = tuple(r.key for r in rows)
+        for key in value:
+            if key not in known:
+                close = difflib.get_close_matches(key, known, n=1)
+                raise _Bad(f"unknown field; {f'did you mean {close[0]!r}?' if close else 'known fields: ' + ', '.join(known)}",
+                           key=key if key.isprintable() else repr(key))
+        values = {}
+        for r in rows:
+            if r.key in value:
+                try:
+                    values[r.attr] = r.kind.read(value[r.key], r.scale, base)
+                except _Bad as exc:
+                    raise _Bad(str(exc), key=f"{r.key}.{exc.key}" if exc.key else r.key) from None
+        return self.cls(**values)
+
+    def write(self, value, scale):
+        return _write(value, rows_of(self.cls))
 
 
 # --------------------------------------------------------------------------------------------
@@ -661,6 +698,34 @@ MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1
                   "floor_m": "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]"}
 
 
+@dataclass(frozen=True)
+class TripodSpec:
+    """The tripod a zone mount's camera stands on (`vdo.scene.tripod`): a top casting `head_m`
+    below the underside of the camera body, `legs` straight legs from it to feet on the floor
+    (z = `floor_z_m`) spaced evenly on a circle of radius `spread_m` around the point below it,
+    the first at `azimuth_deg` from the camera's pan, and a centre column hanging
+    `column_length_m` below it. Legs and column are cylinders that move with the camera: they
+    hide the other cameras' views and cast shadows."""
+
+    legs: int = row("legs", Whole(low=3), 3, doc="number of legs")
+    spread: float = row("spread_m", Real(positive=True), 0.45, unit="m",
+                        doc="radius of the circle of the feet, around the point below the head")
+    leg_diameter: float = row("leg_diameter_m", Real(positive=True), 0.03, unit="m",
+                              doc="diameter of a leg")
+    column_diameter: float = row("column_diameter_m", Real(positive=True), 0.05, unit="m",
+                                 doc="diameter of the centre column")
+    column_length: float = row("column_length_m", Real(positive=True), 0.35, unit="m",
+                               doc="the centre column's length below the top casting (cut at the floor)")
+    head: float = row("head_m", Real(positive=True), 0.1, unit="m",
+                      doc="height of the tripod head: from the underside of the camera body to the "
+                          "top casting where the legs meet")
+    floor_z: float = row("floor_z_m", Real(), 0.0, unit="m",
+                         doc="height of the floor the feet stand on (below the zone)")
+    azimuth: float = row("azimuth_deg", Real(), 180.0, unit="deg",
+                         doc="direction of the first leg from the camera's pan (180: one leg back, "
+                             "the others spread in front, out of the view)")
+
+
 @dataclass(frozen=True, eq=False)
 class MountSpec:
     """Where a camera stands. kind "rail": a NURBS curve (as a [[rail]]; read into `rails`);
@@ -685,6 +750,10 @@ class MountSpec:
                                              None, unit="m", shown="zone", doc="the polygon zone's heights")
     position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
                                       shown="fixed", doc="a fixed mount's optical centre")
+    tripod: TripodSpec | None = row("tripod", SubTable(TripodSpec), None, shown="none",
+                                    doc="a zone's tripod as the table [mount.tripod] (fields below; "
+                                        "`tripod = {}` takes the defaults): its legs and column "
+                                        "occlude the other cameras and cast shadows")
 
     @property
     def low(self) -> np.ndarray:
@@ -709,6 +778,9 @@ def _check_mount(t: Table, v: dict) -> None:
     for key in needs:
         if not t.has(key):
             raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
+    if t.has("tripod") and kind != "zone":
+        raise t.error("tripod", f"only a zone mount stands on a tripod (this one is {kind}): move "
+                                "[mount.tripod] under a zone mount or drop it")
     if kind == "rail":
         v["degree"] = v["degree"] or 1
         _check_rail(t, v)
@@ -735,6 +807,14 @@ def _check_mount(t: Table, v: dict) -> None:
         if hi[0] <= lo[0] or hi[1] <= lo[1]:
             raise t.error("box_max_m", "the zone has no floor area: give it an extent in both x "
                                        "and y (box_min_m < box_max_m), or use a rail or fixed mount")
+    tripod = v.get("tripod")
+    if tripod is not None:
+        lowest = float(v["height"][0] if floor else v["box_min"][2])
+        if tripod.floor_z + tripod.head >= lowest:
+            raise t.error("tripod.floor_z_m", f"= {tripod.floor_z:g} m leaves no room for the tripod "
+                                              f"under the zone's lowest camera height {lowest:g} m "
+                                              f"(head_m = {tripod.head:g} m): lower floor_z_m or "
+                                              "raise the zone")
 
 
 def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
@@ -1254,7 +1334,7 @@ class Table:
         try:
             return kind.read(self.data[key], scale, self.file.parent)
         except _Bad as exc:
-            raise self.error(key, str(exc)) from None
+            raise self.error(f"{key}.{exc.key}" if exc.key else key, str(exc)) from None
 
     def get(self, r: Row, default=None):
         """The attribute value of schema row `r`: read from the file, else `default` (the
@@ -1517,4 +1597,8 @@ def markdown() -> str:
             rows += [x for x in sec.extra if x.key == r.either] + [r]
         parts.append(_doc_table(title, rows, sec.doc + (" Optional." if not sec.required and sec.array
                                                         else "")))
+        for r in sec.rows:
+            if isinstance(r.kind, SubTable):
+                doc = " ".join((r.kind.cls.__doc__ or "").split())
+                parts.append(_doc_table(f"`[{sec.key}.{r.key}]`", rows_of(r.kind.cls), doc))
     return "\n".join(parts)

@@ -55,8 +55,8 @@ score. Feasible with the selected set:
 * obscuration: no obstacle hides more than `[optimize] max_obscuration` of a region the
   candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
   on the whole scene: a second ray cast).
-Obscuration by other camera bodies is not judged during selection; the designed layout is judged
-whole (bodies included) with `vdo.state.layout_state` at [evaluation]'s sample spacing, and with
+Obscuration by other camera bodies and tripods is not judged during selection; the designed
+layout is judged whole (bodies and tripods included) with `vdo.state.layout_state` at [evaluation]'s sample spacing, and with
 every constraint check of `vdo optimize` (`constraint_checks`, constraints.json).
 
 How many cameras. The greedy order and exchange passes per count give the best layout for every

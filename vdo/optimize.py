@@ -582,7 +582,7 @@ class Problem:
             for e in checks if e["constraint"] == "obscuration" and e["value"] > threshold}
         renderers = []
         for c, r in sorted(masked):
-            others = [camera_body(o) for k, o in enumerate(state.cameras) if k != c]
+            others = bodies(self.exp, [o for k, o in enumerate(state.cameras) if k != c])
             obstacles = [m for m in self.meshes if m.role != "specimen"] + others
             renderers.append(
                 (c, ObscurationRenderer(state.cameras[c], self._region_mesh(r), obstacles, width=96, spp=16)))

@@ -1,5 +1,5 @@
-"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies,
-and the Mitsuba scene built from them.
+"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies and
+the tripods under them, and the Mitsuba scene built from them.
 
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory, so a
 user's CAD export and the built-in example take the same path.
@@ -22,7 +22,7 @@ import trimesh
 
 from .backend import mitsuba
 from .camera import Camera
-from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, camera_positions
+from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
 from .errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
 class SceneMesh:
-    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera"."""
+    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera" (a camera's
+    body or a part of its tripod)."""
 
     name: str
     role: str
@@ -450,6 +451,84 @@ def camera_body(camera: Camera) -> SceneMesh:
     vertices, faces = _body_arrays(float(camera.focal_length))
     return SceneMesh(f"camera:{camera.name}", "camera", vertices @ camera.R + camera.position,
                      faces.copy())
+
+
+# --------------------------------------------------------------------------------------------
+# Tripods as obstacles
+# --------------------------------------------------------------------------------------------
+TRIPOD_SECTIONS = 24     # sides of the prisms that stand for the legs' and column's cylinders
+
+
+def tripod_cylinders(camera: Camera, spec: TripodSpec) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """The tripod under `camera` as cylinders (top (3,), bottom (3,), radius), metres, world frame:
+    the legs first, then the centre column; [] when the top casting is not above the floor.
+
+    The body's centre is B = C - (L + d/2) z_c (`camera_body_local`: lens length L, body depth d,
+    optical centre C, optical axis z_c); the top casting is T = B - (h_body/2 + head_m) e_z. Leg k
+    (k = 0 .. legs-1) runs from T to the foot T_floor + spread_m (cos φ_k, sin φ_k, 0), with
+    T_floor = T with z = floor_z_m and φ_k = pan + azimuth_deg + 2πk/legs; the column runs from T
+    down by min(column_length_m, T_z - floor_z_m). Everything hangs below the top casting, inside
+    the cone of the legs, so a camera that looks up, level, or down less steeply than its legs
+    lean sees past its own tripod (tests/test_tripods.py)."""
+    length = lens_length(camera.focal_length)
+    body_centre = np.asarray(camera.position, float) - (length + BODY_SIZE[2] / 2) * camera.optical_axis
+    top = body_centre - np.array([0.0, 0.0, BODY_SIZE[1] / 2 + spec.head])
+    height = top[2] - spec.floor_z
+    if height <= 0:
+        return []
+    below = np.array([top[0], top[1], spec.floor_z])
+    angles = camera.pan + spec.azimuth + 2 * np.pi * np.arange(spec.legs) / spec.legs
+    feet = below + spec.spread * np.c_[np.cos(angles), np.sin(angles), np.zeros(spec.legs)]
+    legs = [(top, foot, spec.leg_diameter / 2) for foot in feet]
+    column = top - np.array([0.0, 0.0, min(spec.column_length, height)])
+    return legs + [(top, column, spec.column_diameter / 2)]
+
+
+def _prism_faces(sections: int) -> np.ndarray:
+    """Triangles of a closed prism whose vertices are `sections` points of the bottom ring, the
+    same of the top ring, then the bottom and top centres; wound counter-clockwise seen from
+    outside (outward normals, as the renderer's one-sided BSDFs need)."""
+    k = np.arange(sections)
+    nxt = (k + 1) % sections
+    bottom, top = 2 * sections, 2 * sections + 1
+    side = np.concatenate([np.c_[k, nxt, sections + nxt], np.c_[k, sections + nxt, sections + k]])
+    caps = np.concatenate([np.c_[np.full(sections, bottom), nxt, k],
+                           np.c_[np.full(sections, top), sections + k, sections + nxt]])
+    return np.concatenate([side, caps])
+
+
+PRISM_FACES = _prism_faces(TRIPOD_SECTIONS)
+
+
+def prism(top: np.ndarray, bottom: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of the closed TRIPOD_SECTIONS-sided prism inscribed in the cylinder of
+    axis bottom -> top and `radius` (m): ring vertices bottom + r (cos α_j e_1 + sin α_j e_2)
+    (+ the axis for the top ring), e_1, e_2 unit and perpendicular to the axis."""
+    bottom, axis = np.asarray(bottom, float), np.asarray(top, float) - np.asarray(bottom, float)
+    a = axis / np.linalg.norm(axis)
+    e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    angle = 2 * np.pi * np.arange(TRIPOD_SECTIONS) / TRIPOD_SECTIONS
+    ring = bottom + radius * (np.cos(angle)[:, None] * e1 + np.sin(angle)[:, None] * e2)
+    return np.vstack([ring, ring + axis, bottom, bottom + axis]), PRISM_FACES
+
+
+def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
+    """`tripod_cylinders` as closed prisms of TRIPOD_SECTIONS sides inscribed in the cylinders
+    (`prism`: radius short by at most r (1 - cos(π / TRIPOD_SECTIONS)), under 1 %), one obstacle
+    mesh each (so that `vdo.lighting.relight` bounds each part alone)."""
+    return [SceneMesh(f"tripod:{camera.name}:{k}", "camera", *prism(top, bottom, radius))
+            for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec))]
+
+
+def tripods(exp: Experiment, cameras) -> list[SceneMesh]:
+    """The `tripod` parts of every camera of `cameras` that the experiment lists on a zone
+    [[mount]] with a [mount.tripod], built where the camera stands."""
+    mounts = {spec.name: spec.mount for spec in exp.camera_specs}
+    specs = {m.name: m.tripod for m in exp.mounts if m.tripod is not None}
+    return [part for c in cameras if mounts.get(c.name) in specs
+            for part in tripod(c, specs[mounts[c.name]])]
 
 
 # --------------------------------------------------------------------------------------------

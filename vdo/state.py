@@ -13,7 +13,8 @@ prediction is written once:
   and the strain uncertainty for the experiment's `[analysis]` (`vdo.strain`).
 
 Both results are immutable. A camera whose `[[camera]]` entry says `body = false`, or that the
-experiment does not list (a probe camera), is not an obstacle.
+experiment does not list (a probe camera), is not an obstacle; the tripod of a camera on a zone
+mount with a [mount.tripod] is one, wherever the camera stands (`bodies`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from .config import Experiment
 from .lighting import Illumination, illuminate, relight
 from .predict import Prediction, SpeckleModel, predict, speckle_model
 from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
-                    load_meshes, sample_regions)
+                    load_meshes, sample_regions, tripods)
 from .usable import patch_overlap
 from .visibility import Visibility, compute_visibility
 
@@ -82,10 +83,11 @@ def unobstructed_lighting(geometry: Geometry) -> Illumination:
 
 
 def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
-    """The camera bodies that act as obstacles: those of cameras the experiment lists with
-    `body = true` (the default)."""
+    """The obstacles that move with the cameras: the bodies of cameras the experiment lists with
+    `body = true` (the default), and the tripods (`vdo.scene.tripods`) of those on a zone
+    [[mount]] with a [mount.tripod], built where the cameras stand now."""
     with_body = {spec.name for spec in exp.camera_specs if spec.body}
-    return [camera_body(c) for c in cameras if c.name in with_body]
+    return [camera_body(c) for c in cameras if c.name in with_body] + tripods(exp, cameras)
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,

@@ -154,7 +154,7 @@ def load(run_dir) -> Scene3D:
     never raised."""
     from .config import load as load_config
     from .lighting import panel_frame
-    from .scene import load_meshes
+    from .scene import load_meshes, tripods
 
     run_dir = Path(run_dir)
     sc = Scene3D()
@@ -170,6 +170,14 @@ def load(run_dir) -> Scene3D:
                     v, f = decimate(v, f, MAX_OBSTACLE_FACES)
                     log.info("mesh %s simplified from %d to %d faces", m.name, len(m.faces), len(f))
                 sc.meshes.append((m.name, m.role, v, f))
+            on_tripods = any(m.tripod is not None for m in exp.mounts)
+            for cam in exp.cameras() if on_tripods else ():     # each camera's tripod, one mesh
+                parts = tripods(exp, [cam])
+                if parts:
+                    offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+                    sc.meshes.append((f"tripod:{cam.name}", "camera",
+                                      np.vstack([p.vertices for p in parts]),
+                                      np.vstack([p.faces + o for p, o in zip(parts, offsets)])))
             for lt in exp.lights:
                 _, e1, e2 = panel_frame(lt)
                 w, h = lt.size
