@@ -27,8 +27,8 @@ interpolation  the correlation's interpolation floor against the sensor noise, a
                interpolation undoes), against σ_n = sqrt(sensor.variance_dn) at the mean gray.
                The error is a fixed gray-level pattern that moves with the motion, so the
                correlation's displacement bias grows with e_DN / σ_n against the noise's √2 σ
-               (measured on the built-in joint, noise-free renders: bias about 0.3-0.6 √2σ at
-               e_DN / σ_n ≈ 1, 2.2 √2σ at 3.3, 2-9 √2σ at 4.5-10; docs/exports.md). Flagged
+               (measured on the built-in joint, noise-free renders: bias at most 0.65 √2σ at
+               e_DN / σ_n ≈ 1, 2.5 √2σ at 3.3, up to 11 √2σ at 4.5-10; docs/exports.md). Flagged
                when e_DN > 2 σ_n: the correlation's error is then bias-dominated, not what the
                predicted σ says; finer pixels, or a speckle whose edges are soft at the pixel
                scale, lower e.
@@ -87,32 +87,32 @@ def exposure(irradiance, weights, speckle, sensor, pattern) -> dict:
             "saturated_fraction": float(np.sum(w[dn.ravel() >= sat]) / np.sum(w)), "flags": flags}
 
 
-def interpolation_floor(footprint, irradiance: float, speckle, sensor, pattern_normalised,
-                        pattern_std: float, pattern_mean: float) -> dict:
-    """The interpolation check of the module docstring at one footprint A (2, 2) px/m and
-    irradiance E (W m^-2): {"error_dn", "noise_dn", "ratio"}, e_DN and σ_n in DN."""
-    from .speckle import interpolation_error
+def interpolation_floor(footprints, irradiance, speckle, sensor, pattern) -> list[dict]:
+    """The interpolation check of the module docstring at K footprints A (K, 2, 2) px/m under
+    irradiances E (K,) W m^-2, for the [0, 1] `pattern`: one {"error_dn", "noise_dn", "ratio"}
+    per footprint, e_DN and σ_n in DN."""
+    from .speckle import interpolation_error, normalise
 
-    e = float(interpolation_error(pattern_normalised, speckle.texel, np.linalg.inv(footprint))[0])
-    radiance = irradiance / np.pi
-    contrast = float(sensor.mean_dn(radiance * speckle.white_albedo)
-                     - sensor.mean_dn(radiance * speckle.black_albedo))     # DN per unit of f
-    mean = sensor.mean_dn(radiance * (speckle.black_albedo + (speckle.white_albedo
-                                                              - speckle.black_albedo) * pattern_mean))
-    noise = float(math.sqrt(sensor.variance_dn(float(mean))))
-    error = e * contrast * pattern_std
-    return {"error_dn": error, "noise_dn": noise, "ratio": error / noise}
+    f = np.asarray(pattern, dtype=np.float64)
+    e = interpolation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)))
+    out = []
+    for e_k, E in zip(e, np.asarray(irradiance, dtype=float)):
+        radiance = E / np.pi
+        contrast = float(sensor.mean_dn(radiance * speckle.white_albedo)
+                         - sensor.mean_dn(radiance * speckle.black_albedo))   # DN per unit of f
+        mean = sensor.mean_dn(radiance * (speckle.black_albedo + (speckle.white_albedo
+                                                                  - speckle.black_albedo) * f.mean()))
+        noise = float(math.sqrt(sensor.variance_dn(float(mean))))
+        error = float(e_k) * contrast * float(f.std())
+        out.append({"error_dn": error, "noise_dn": noise, "ratio": error / noise})
+    return out
 
 
 def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[dict]:
     """One row per (camera, region) with seen samples: the checks of the module docstring.
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
     (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile."""
-    from .speckle import normalise
-
-    rows = []
-    f = np.asarray(pattern, dtype=np.float64)
-    f_normalised, f_std, f_mean = normalise(f), float(f.std()), float(f.mean())
+    rows, footprints, irradiances = [], [], []
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
         for k, region in enumerate(samples.region_names):
@@ -142,13 +142,8 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                                  f"{far:.3f} m")
             expo = exposure(irradiance[seen], pixels, exp.speckle, exp.sensor, pattern)
             median = int(np.argsort(density)[len(density) // 2])
-            interp = interpolation_floor(A[median], float(irradiance[seen][median]), exp.speckle,
-                                         exp.sensor, f_normalised, f_std, f_mean)
-            if interp["ratio"] > INTERPOLATION_NOISE:
-                flags.append(f"interpolation floor: the correlation's interpolation error "
-                             f"{interp['error_dn']:.0f} DN exceeds the sensor noise "
-                             f"{interp['noise_dn']:.0f} DN ({interp['ratio']:.1f}x): displacement "
-                             f"bias, not noise, will dominate (finer pixels or a softer speckle)")
+            footprints.append(A[median])
+            irradiances.append(float(irradiance[seen][median]))
             rows.append({
                 "camera": cam.name, "region": region,
                 "standoff_m": float(np.median(np.linalg.norm(X - cam.position, axis=1))),
@@ -157,8 +152,17 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                 "depth_of_field": dof,
                 "fov_fill": float(pixels.sum() / (cam.width * cam.height)),
                 "exposure": {k: v for k, v in expo.items() if k != "flags"},
-                "interpolation": interp,
                 "flags": flags + expo["flags"]})
+    if rows:
+        floors = interpolation_floor(footprints, irradiances, exp.speckle, exp.sensor, pattern)
+        for row, interp in zip(rows, floors):
+            row["interpolation"] = interp
+            if interp["ratio"] > INTERPOLATION_NOISE:
+                row["flags"].append(f"interpolation floor: the correlation's interpolation error "
+                                    f"{interp['error_dn']:.0f} DN exceeds the sensor noise "
+                                    f"{interp['noise_dn']:.0f} DN ({interp['ratio']:.1f}x): "
+                                    f"displacement bias, not noise, will dominate (finer pixels "
+                                    f"or a softer speckle)")
     return rows
 
 
