@@ -17,7 +17,7 @@ CAMERA = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + """{lens}
 
 [speckle]
 dot_diameter_mm = {dot}
-texel_mm = 1
+texel_mm = {texel}
 tile_texels = 256
 
 [render]
@@ -25,9 +25,9 @@ ambient_radiance = {ambient}
 """
 
 
-def _rows(plate_experiment, dot=9.0, ambient=1.0, lens=""):
+def _rows(plate_experiment, dot=9.0, ambient=1.0, lens="", texel=1.0):
     from conftest import raycast
-    path = plate_experiment(spacing=50, cameras=CAMERA.format(dot=dot, ambient=ambient, lens=lens))
+    path = plate_experiment(spacing=50, cameras=CAMERA.format(dot=dot, ambient=ambient, lens=lens, texel=texel))
     exp, samples, cams, scene, vis = raycast(path)
     illum = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     rows = checks.design_checks(exp, cams, samples, vis.visible, illum.irradiance,
@@ -37,11 +37,13 @@ def _rows(plate_experiment, dot=9.0, ambient=1.0, lens=""):
 
 
 def test_a_good_design_has_no_flag_and_closed_form_numbers(plate_experiment):
-    row, exp = _rows(plate_experiment, lens="f_number = 8\nfocus_m = 1.5")
+    # 11 mm dots of 3.66 mm texels: edges soft at the 2.3 mm pixel (interpolation error 1.9x the
+    # sensor noise, under the flag)
+    row, exp = _rows(plate_experiment, dot=11.0, texel=3.66, lens="f_number = 8\nfocus_m = 1.5")
     assert row["flags"] == []
     pixel = 22.2e-3 / 600
     assert row["mm_per_px"] == pytest.approx(1.5 * pixel / 24e-3 * 1e3, rel=0.02)  # frontal: Z p / f
-    assert row["speckle_px"] == pytest.approx(9e-3 / (1.5 * pixel / 24e-3), rel=0.02)
+    assert row["speckle_px"] == pytest.approx(11e-3 / (1.5 * pixel / 24e-3), rel=0.02)
     assert row["standoff_m"] == pytest.approx(1.5, rel=0.1)
     # the plate (1 m) fills the image's width: 1 m / (W mm/px) columns of the 600 x 400 image
     cols = 1.0 / (row["mm_per_px"] * 1e-3)
@@ -60,6 +62,28 @@ def test_speckle_flags(plate_experiment):
     large, _ = _rows(plate_experiment, dot=20.0)
     assert any("speckle dots" in f for f in small["flags"]) and small["speckle_px"] < 3
     assert any("speckle dots" in f for f in large["flags"]) and large["speckle_px"] > 5
+
+
+def test_interpolation_floor_flag(plate_experiment):
+    """9 mm dots of 1 mm texels have edges sharp at the 2.3 mm pixel: the interpolation error
+    (`vdo.speckle.interpolation_error`, checked in test_speckle.py) is several times the sensor
+    noise and flagged; 11 mm dots of 3.66 mm texels are soft at the pixel scale: not flagged. The
+    gray levels from the sensor model: linear 0.8 (white) and 0.05 (black) at E = π L, L = 1."""
+    from vdo.speckle import interpolation_error, normalise
+
+    sharp, exp = _rows(plate_experiment)
+    soft, _ = _rows(plate_experiment, dot=11.0, texel=3.66)
+    assert any("interpolation floor" in f for f in sharp["flags"])
+    assert sharp["interpolation"]["ratio"] > checks.INTERPOLATION_NOISE
+    assert soft["interpolation"]["ratio"] < checks.INTERPOLATION_NOISE
+    assert not any("interpolation floor" in f for f in soft["flags"])
+    s, f = exp.sensor, pattern_for(exp.speckle)
+    p = sharp["mm_per_px"] * 1e-3                      # frontal view: a square pixel
+    e = interpolation_error(normalise(f), exp.speckle.texel, np.diag([p, p]))[0]
+    contrast = (s.mean_dn(0.8) - s.mean_dn(0.05)) * f.std()
+    assert sharp["interpolation"]["error_dn"] == pytest.approx(e * contrast, rel=0.03)
+    mean = s.mean_dn(0.05 + 0.75 * f.mean())
+    assert sharp["interpolation"]["noise_dn"] == pytest.approx(math.sqrt(s.variance_dn(mean)), rel=0.03)
 
 
 def test_depth_of_field_flag(plate_experiment):

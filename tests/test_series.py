@@ -338,7 +338,12 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
 # The built-in virtual test (docs/examples/virtual_test.py --quick): the beam-column under a
 # closed-form field, cam1 and cam2 cropped to 150 x 100 px on the joint, measured by vdo's
 # correlation on the exported TIFFs; the error split into the bias (the same correlation on the
-# noise-free .exr images) and the sensor-noise part, which sqrt(2) sigma predicts
+# noise-free .exr images) and the sensor-noise part, which sqrt(2) sigma predicts. At this
+# reduced scale (0.47 mm pixels, 4.3 px dots) the speckle's edges alias and the correlation's
+# interpolation error is ~9x the sensor noise (vdo.checks' interpolation floor, checked in
+# test_checks/test_speckle): the bias (0.008-0.015 px) is several sqrt(2) sigma, so the whole
+# error is not asserted here; the design check must flag it (docs/exports.md: at scale 1 the
+# bias falls to 0.0006-0.002 px, within sqrt(2) sigma)
 # --------------------------------------------------------------------------------------------
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 N_SIGMA = 3.0                  # the issue's criterion, on the noise part of every axis
@@ -346,6 +351,7 @@ BIAS_FLOOR_PX = 0.02           # the correlation's interpolation bias (docs/expo
                                # 0.001-0.017 px on these crops, the same at 64 and 256 spp)
 CALIBRATION_PX = 1e-6
 RENDERED_UM = 0.5              # the rendered field (moved samples) against the closed form
+INTERPOLATION_NOISE = 2.0      # vdo.checks' flag: interpolation error over sensor noise
 
 
 @pytest.mark.slow
@@ -362,6 +368,8 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
     assert {r["region"] for r in rows} >= {"joint_top"}
     assert result["calibration_px"] < CALIBRATION_PX
     assert example["BIAS_FLOOR_PX"] == BIAS_FLOOR_PX and example["N_SIGMA"] == N_SIGMA
+    from vdo import checks
+    assert checks.INTERPOLATION_NOISE == INTERPOLATION_NOISE
     for r in rows:
         assert r["converged"], r
         # the imposed field as rendered is the closed form (vertices carry it exactly)
@@ -372,3 +380,9 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
         sigma = np.array(r["sigma_um"])
         assert np.all(np.abs(r["noise_um"]) <= N_SIGMA * sigma), r
         assert np.all(np.abs(r["mean_noise_um"]) <= N_SIGMA * sigma / math.sqrt(realisations)), r
+    # the design check at the rendered scale predicts what the split measures: an interpolation
+    # error above the flag on both cameras, and a bias beyond sqrt(2) sigma somewhere
+    floor = [f for f in result["interpolation"] if f["region"] == "joint_top"]
+    assert {f["camera"] for f in floor} == {"cam1", "cam2"}
+    assert all(f["ratio"] > INTERPOLATION_NOISE for f in floor), floor
+    assert max(np.max(np.abs(r["bias_um"]) / np.array(r["sigma_um"])) for r in rows) > 1.0

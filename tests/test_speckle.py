@@ -21,7 +21,7 @@ from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
 
 from vdo.speckle import (GradientEnergyTable, g_aniso_lookup, g_iso_lookup, generate_pattern,
-                         gradient_energy_table, load_pattern, normalise)
+                         gradient_energy_table, interpolation_error, load_pattern, normalise)
 
 H = 1e-4  # texel [m]
 N = 1024  # tile side [texels]
@@ -330,3 +330,41 @@ def test_g_iso_non_square_odd_image(shape):
         l = table.log_l[i]
         full = 0.5 * np.sum(4 * np.pi ** 2 * k2 * np.exp(-4 * np.pi ** 2 * k2 * l ** 2) * power)
         assert table.g_iso[i] == pytest.approx(full, rel=1e-3)
+
+
+# --------------------------------------------------------------------------------------------
+# Interpolation error of the box-pixel image (the correlation's floor, vdo.checks)
+# --------------------------------------------------------------------------------------------
+INTERPOLATION_REL = 0.02       # spectral sum against the images (midpoint box, 16 x 16 points)
+
+
+def _box_image(f, texel, pixels, shift, sub=16):
+    """The image of the periodic bilinear texture f (texel centres at (j + ½) h) seen by square
+    pixels tiling the tile `pixels` times per side, the texture moved by `shift` pixels: each
+    pixel the mean of sub x sub midpoints (scipy map_coordinates, order 1, grid-wrap)."""
+    p = f.shape[0] * texel / pixels
+    o = (np.arange(sub) + 0.5) / sub - 0.5
+    centres = np.arange(pixels)
+    u = (centres[None, :, None, None] + o[None, None, None, :] - shift[0]) * p
+    v = (centres[:, None, None, None] + o[None, None, :, None] - shift[1]) * p
+    u, v = np.broadcast_arrays(u, v)
+    values = ndimage.map_coordinates(f, [v / texel - 0.5, u / texel - 0.5], order=1, mode="grid-wrap")
+    return values.reshape(pixels, pixels, -1).mean(-1), p
+
+
+@pytest.mark.parametrize("pixels,phase", [(100, (0.5, 0.0)), (100, (0.5, 0.5)), (40, (0.25, 0.5))])
+def test_interpolation_error_against_spline_on_box_images(pixels, phase):
+    """The RMS difference between scipy's cubic B-spline (periodic) through the image of the
+    texture moved by `phase` pixels, read at the pixel centres moved by `phase`, and the image of
+    the unmoved texture: the spectral sum of `interpolation_error` (8-texel dots: 3.1 px at 100
+    pixels per tile, 1.25 px at 40)."""
+    f = normalise(generate_pattern(256, H, DOT, 0.5, 10, 3)).astype(np.float64)
+    still, p = _box_image(f, H, pixels, (0.0, 0.0))
+    moved, _ = _box_image(f, H, pixels, phase)
+    coeffs = ndimage.spline_filter(moved, order=3, mode="grid-wrap")
+    rows, cols = np.meshgrid(np.arange(pixels) + phase[1], np.arange(pixels) + phase[0], indexing="ij")
+    read = ndimage.map_coordinates(coeffs, [rows, cols], order=3, prefilter=False, mode="grid-wrap")
+    measured = float(np.sqrt(np.mean((read - still) ** 2)))
+    predicted = interpolation_error(f, H, np.diag([p, p]), phase=phase)[0]
+    assert measured > 0.01
+    assert predicted == pytest.approx(measured, rel=INTERPOLATION_REL)
