@@ -336,19 +336,17 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
 
 # --------------------------------------------------------------------------------------------
 # The built-in virtual test (docs/examples/virtual_test.py --quick): the beam-column under a
-# closed-form field, cam1 and cam2 cropped to 150 x 100 px on the joint, measured by vdo's
-# correlation on the exported TIFFs; the error split into the bias (the same correlation on the
-# noise-free .exr images) and the sensor-noise part, which sqrt(2) sigma predicts. At this
-# reduced scale (0.47 mm pixels, 4.3 px dots) the speckle's edges alias and the correlation's
-# interpolation error is ~9x the sensor noise (vdo.checks' interpolation floor, checked in
-# test_checks/test_speckle): the bias (0.008-0.015 px) is several sqrt(2) sigma, so the whole
-# error is not asserted here; the design check must flag it (docs/exports.md: at scale 1 the
-# bias falls to 0.0006-0.002 px, within sqrt(2) sigma)
+# closed-form field, cam1 and cam2 cropped to 320 x 240 px on the joint at their own pixels
+# (scale 1), measured by vdo's correlation on the exported TIFFs; the error split into the bias
+# (the same correlation on the noise-free .exr images) and the sensor-noise part, which sqrt(2)
+# sigma predicts. At the built-in's reduced render scale 0.25 the speckle's edges alias and the
+# bias is several sigma (docs/exports.md); vdo.checks' interpolation floor flags that (tested in
+# test_checks / test_speckle), and at scale 1 it does not.
 # --------------------------------------------------------------------------------------------
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
-N_SIGMA = 3.0                  # the issue's criterion, on the noise part of every axis
-BIAS_FLOOR_PX = 0.02           # the correlation's interpolation bias (docs/exports.md: measured
-                               # 0.001-0.017 px on these crops, the same at 64 and 256 spp)
+N_SIGMA = 3.0                  # the issue's criterion: the whole error, on every axis
+BIAS_FLOOR_PX = 0.005          # the correlation's interpolation bias at the cameras' own pixels
+                               # (docs/exports.md: measured 0.0006-0.0022 px at scale 1)
 CALIBRATION_PX = 1e-6
 RENDERED_UM = 0.5              # the rendered field (moved samples) against the closed form
 INTERPOLATION_NOISE = 2.0      # vdo.checks' flag: interpolation error over sensor noise
@@ -356,6 +354,11 @@ INTERPOLATION_NOISE = 2.0      # vdo.checks' flag: interpolation error over sens
 
 @pytest.mark.slow
 def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
+    """The built-in virtual test (docs/examples/virtual_test.py, two cropped cameras at their own
+    pixels): vdo's correlation on the exported TIFFs recovers the imposed field within 3 sqrt(2)
+    sigma on every axis of every point; its bias (noise-free images) is below sqrt(2) sigma, as
+    the design check, which does not flag these cameras, says; the noise part and its mean over
+    4 sensor draws are within 3 sqrt(2) sigma (and / sqrt(4)); the calibration matches."""
     import math
     import runpy
 
@@ -366,6 +369,7 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
     rows = result["rows"]
     assert len(rows) >= 3 and {r["pair"] for r in rows} == {"cam1:cam2"}
     assert {r["region"] for r in rows} >= {"joint_top"}
+    assert result["series"]["scale"] == 1.0
     assert result["calibration_px"] < CALIBRATION_PX
     assert example["BIAS_FLOOR_PX"] == BIAS_FLOOR_PX and example["N_SIGMA"] == N_SIGMA
     from vdo import checks
@@ -374,15 +378,15 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
         assert r["converged"], r
         # the imposed field as rendered is the closed form (vertices carry it exactly)
         np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
+        sigma = np.array(r["sigma_um"])
+        assert np.all(np.abs(r["error_um"]) <= N_SIGMA * sigma), r        # the Must-show
         # the whole error is the bias plus the noise part
         np.testing.assert_allclose(r["error_um"], np.add(r["bias_um"], r["noise_um"]), atol=1e-6)
         assert r["bias_px"] < BIAS_FLOOR_PX, r
-        sigma = np.array(r["sigma_um"])
+        assert np.all(np.abs(r["bias_um"]) <= sigma), r
         assert np.all(np.abs(r["noise_um"]) <= N_SIGMA * sigma), r
         assert np.all(np.abs(r["mean_noise_um"]) <= N_SIGMA * sigma / math.sqrt(realisations)), r
-    # the design check at the rendered scale predicts what the split measures: an interpolation
-    # error above the flag on both cameras, and a bias beyond sqrt(2) sigma somewhere
+    # the design check at the rendered scale: an interpolation error below the flag
     floor = [f for f in result["interpolation"] if f["region"] == "joint_top"]
     assert {f["camera"] for f in floor} == {"cam1", "cam2"}
-    assert all(f["ratio"] > INTERPOLATION_NOISE for f in floor), floor
-    assert max(np.max(np.abs(r["bias_um"]) / np.array(r["sigma_um"])) for r in rows) > 1.0
+    assert all(f["ratio"] < INTERPOLATION_NOISE for f in floor), floor

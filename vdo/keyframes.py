@@ -396,23 +396,47 @@ def _vertex_fit(nodes: np.ndarray, vertices: np.ndarray, tree):
 # --------------------------------------------------------------------------------------------
 # Applying a step to a geometry
 # --------------------------------------------------------------------------------------------
-def _barycentric_displacement(points, triangles, displaced) -> np.ndarray:
+def _barycentric_displacement(points, triangles, displaced, candidates: int = 16) -> np.ndarray:
     """Displacement at `points` (N, 3) lying on `triangles` (T, 3, 3): barycentric interpolation
-    of the corner displacements `displaced` (T, 3, 3) of the triangle each point lies on."""
+    of the corner displacements `displaced` (T, 3, 3) of the triangle each point lies on (its
+    in-plane coordinates (l1, l2) with X - A = l1 (B - A) + l2 (C - A), all >= -1e-6 and
+    l1 + l2 <= 1 + 1e-6). Each point tries the `candidates` triangles with the nearest centroids
+    first, then every triangle; on a shared edge the nearer centroid wins (the field is
+    continuous across it)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, float)
     out = np.zeros_like(points)
-    todo = np.ones(len(points), bool)
-    for tri, d in zip(triangles, displaced):
-        e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
-        gram = np.array([[e1 @ e1, e1 @ e2], [e1 @ e2, e2 @ e2]])
-        if abs(np.linalg.det(gram)) < 1e-30:
-            continue
-        rel = points[todo] - tri[0]
-        lam = np.linalg.solve(gram, np.stack([rel @ e1, rel @ e2])).T       # (n, 2)
-        inside = (lam >= -1e-6).all(axis=1) & (lam.sum(axis=1) <= 1 + 1e-6)
-        idx = np.flatnonzero(todo)[inside]
-        l1, l2 = lam[inside, :1], lam[inside, 1:]
-        out[idx] = (1 - l1 - l2) * d[0] + l1 * d[1] + l2 * d[2]
-        todo[idx] = False
+    e1, e2 = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    g11, g12, g22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
+    det = g11 * g22 - g12 * g12
+    usable = np.abs(det) >= 1e-30
+
+    def solve(idx, tri):   # (n, k) candidate triangles -> barycentric (n, k, 2), inside (n, k)
+        rel = points[idx, None] - triangles[tri, 0]
+        r1, r2 = (rel * e1[tri]).sum(-1), (rel * e2[tri]).sum(-1)
+        d = np.where(usable[tri], det[tri], 1.0)
+        lam = np.stack([(g22[tri] * r1 - g12[tri] * r2) / d, (g11[tri] * r2 - g12[tri] * r1) / d], -1)
+        inside = usable[tri] & (lam >= -1e-6).all(-1) & (lam.sum(-1) <= 1 + 1e-6)
+        return lam, inside
+
+    def assign(idx, tri, lam, inside):
+        found = inside.any(axis=1)
+        pick = np.argmax(inside, axis=1)[found]
+        rows, t = idx[found], tri[found, pick]
+        l1, l2 = lam[found, pick, :1], lam[found, pick, 1:]
+        out[rows] = (1 - l1 - l2) * displaced[t, 0] + l1 * displaced[t, 1] + l2 * displaced[t, 2]
+        return idx[~found]
+
+    k = min(candidates, len(triangles))
+    _, near = cKDTree(triangles.mean(axis=1)).query(points, k=k)
+    near = np.asarray(near).reshape(len(points), k)
+    left = assign(np.arange(len(points)), near, *solve(np.arange(len(points)), near))
+    every = np.arange(len(triangles))
+    for chunk in np.array_split(left, max(1, len(left) * len(triangles) // 2_000_000 + 1)):
+        if len(chunk):
+            tri = np.broadcast_to(every, (len(chunk), len(every)))
+            assign(chunk, tri, *solve(chunk, tri))
     return out
 
 

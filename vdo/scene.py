@@ -160,23 +160,26 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
     triangle of the mesh that it crosses (one vertex alone on one side -> 3 triangles, a vertex on
     the plane -> 2), with one new vertex per cut edge, so a closed mesh stays closed and the
     surface is unchanged. Afterwards each triangle lies on one side of every such plane."""
+    eps = 1e-9 * max(1.0, float(np.abs(vertices).max()))   # splitting keeps the extent
     for region in regions:
-        for k in range(3):
-            for c in (region.box_min[k], region.box_max[k]):
-                if not np.isfinite(c):
-                    continue
+        planes = [(k, c) for k in range(3) for c in (region.box_min[k], region.box_max[k]) if np.isfinite(c)]
+        tri = None   # the triangles and what the region could select of them, until a split
+        for k, c in planes:
+            if tri is None:
                 tri = vertices[faces]
-                eps = 1e-9 * max(1.0, float(np.abs(vertices).max()))
-                side = np.sign(np.where(np.abs(tri[..., k] - c) < eps, 0.0, tri[..., k] - c))
-                crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
                 normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
                 length = np.linalg.norm(normals, axis=1)
                 facing = normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
-                box = np.all((tri.max(axis=1) >= region.box_min) & (tri.min(axis=1) <= region.box_max), axis=1)
-                if np.any(crossing & facing & box):
-                    log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
-                             int(crossing.sum()), "xyz"[k], c)
-                    vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
+                selectable = facing & np.all((tri.max(axis=1) >= region.box_min)
+                                             & (tri.min(axis=1) <= region.box_max), axis=1)
+            offset = tri[..., k] - c
+            side = np.sign(np.where(np.abs(offset) < eps, 0.0, offset))
+            crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+            if np.any(crossing & selectable):
+                log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
+                         int(crossing.sum()), "xyz"[k], c)
+                vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
+                tri = None
     return vertices, faces
 
 
@@ -311,26 +314,25 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
     normal, t_u, t_v = rf.normal, rf.t_u, rf.t_v
     tri = tm.triangles[rf.faces]                                # (T, 3, 3)
     uv_tri = rf.uv(tri)                                         # (T, 3, 2)
-    keys, points = [], []
-    for corners, corners3d in zip(uv_tri, tri):
-        lo = np.floor(corners.min(axis=0) / spacing - 0.5).astype(int)
-        hi = np.ceil(corners.max(axis=0) / spacing - 0.5).astype(int)
-        ii, jj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
-        ij = np.stack([ii.ravel(), jj.ravel()], axis=1)
-        q = (ij + 0.5) * spacing
-        a, b, c = corners
-        m = np.array([b - a, c - a]).T
-        if abs(np.linalg.det(m)) < 1e-18:
-            continue
-        lam = np.linalg.solve(m, (q - a).T).T                  # barycentric (l1, l2)
-        tol = 1e-9  # grid points on an edge shared by two triangles must not be lost to rounding
-        inside = (lam[:, 0] >= -tol) & (lam[:, 1] >= -tol) & (lam.sum(axis=1) <= 1 + tol)
-        l1, l2 = lam[inside, 0:1], lam[inside, 1:2]
-        keys.append(ij[inside])
-        points.append((1 - l1 - l2) * corners3d[0] + l1 * corners3d[1] + l2 * corners3d[2])
-    ij = np.concatenate(keys)
+    # every grid point (i + 1/2, j + 1/2) spacing of each triangle's bounding box, all at once
+    lo = np.floor(uv_tri.min(axis=1) / spacing - 0.5).astype(int)             # (T, 2)
+    size = np.ceil(uv_tri.max(axis=1) / spacing - 0.5).astype(int) - lo + 1   # (T, 2)
+    a, e1, e2 = uv_tri[:, 0], uv_tri[:, 1] - uv_tri[:, 0], uv_tri[:, 2] - uv_tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    size[np.abs(det) < 1e-18] = 0                                              # degenerate: none
+    count = size.prod(axis=1)
+    t = np.repeat(np.arange(len(tri)), count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    ij = lo[t] + np.stack([k // size[t, 1], k % size[t, 1]], axis=1)
+    q = (ij + 0.5) * spacing - a[t]
+    l1 = (q[:, 0] * e2[t, 1] - q[:, 1] * e2[t, 0]) / det[t]                   # barycentric (l1, l2):
+    l2 = (e1[t, 0] * q[:, 1] - e1[t, 1] * q[:, 0]) / det[t]                   # q = l1 e1 + l2 e2
+    tol = 1e-9  # grid points on an edge shared by two triangles must not be lost to rounding
+    inside = (l1 >= -tol) & (l2 >= -tol) & (l1 + l2 <= 1 + tol)
+    t, l1, l2, ij = t[inside], l1[inside, None], l2[inside, None], ij[inside]
+    points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
     _, first = np.unique(ij, axis=0, return_index=True)        # points on shared edges once
-    ij, pts = ij[first], np.concatenate(points)[first]
+    ij, pts = ij[first], points[first]
     if len(pts) == 0:
         raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
     n = len(pts)

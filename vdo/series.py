@@ -194,10 +194,10 @@ def start_guess(cameras, references, deformed, X, half: int = 24) -> np.ndarray:
         if h < 8:
             continue
         window = np.s_[v - h:v + h + 1, u - h:u + h + 1]
-        a, b = ref[window] - ref[window].mean(), dfm[window] - dfm[window].mean()
+        taper = np.outer(*(2 * [np.hanning(2 * h + 1)]))
+        a, b = ((img[window] - img[window].mean()) * taper for img in (ref, dfm))
         spectrum = np.fft.fft2(b) * np.conj(np.fft.fft2(a))
-        peak = np.unravel_index(np.argmax(np.fft.ifft2(spectrum / (np.abs(spectrum) + 1e-12)).real),
-                                a.shape)
+        peak = np.unravel_index(np.argmax(np.fft.ifft2(spectrum).real), a.shape)
         dv, du = ((k + n // 2) % n - n // 2 for k, n in zip(peak, a.shape))
         rows.append(np.asarray(cam.sensitivity(X[None]))[0])
         rhs.append([du, dv])
