@@ -2,13 +2,14 @@
 image motion OpenCV's phase correlation measures where the projection predicts it."""
 
 import json
+import logging
 
 import cv2
 import numpy as np
 import pytest
 from PIL import Image
 
-from vdo import cli, config
+from vdo import checks, cli, config
 from vdo.errors import ConfigError
 from vdo.render import scaled_camera
 from vdo.keyframes import load_path_of
@@ -52,13 +53,18 @@ def shift(a, b, centre, half=32):
     return warp[:, 2].astype(float)
 
 
-def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_path):
+def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_path, caplog):
     path = plate_experiment(cameras=CAMERA)
     (tmp_path / "motions.csv").write_text(MOTIONS)
     exp = config.load(path)
     out = tmp_path / "series"
-    summary = render_series(exp, out, tmp_path / "motions.csv")
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        summary = render_series(exp, out, tmp_path / "motions.csv")
     assert summary["steps"] == [0, 1, 2]
+    # the design check at the rendered scale (0.5 mm/px, 4 px dots): flagged, and said so
+    (floor,) = summary["interpolation"]
+    assert floor["camera"] == "down" and floor["ratio"] > checks.INTERPOLATION_NOISE
+    assert "interpolation error exceeds" in caplog.text and "--scale 1" in caplog.text
     images = []
     for step in range(3):
         with Image.open(out / "images" / "down" / f"down_{step:04d}.tif") as im:

@@ -78,8 +78,10 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
                                                  "a [load_path] in the experiment")
     cameras = [scaled_camera(c, scale) for c in exp.cameras()]
     obstacles = bodies(exp, cameras)
-    vis = layout_state(geometry, cameras, predict_fields=False).visibility
+    state = layout_state(geometry, cameras, predict_fields=False)
+    vis = state.visibility
     stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
+    floor = interpolation_floor(exp, cameras, state, scale)
     steps = [0, *load_path.steps]
     with run_folder(out, overwrite) as tmp:
         for cam in cameras:
@@ -110,10 +112,32 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
                    "scale": scale, "spp": spp, "seed": seed, "jitter": False, "steps": steps,
                    "cameras": [c.name for c in cameras],
                    "stereo_pairs": [[pair.first.name, pair.second.name] for pair in stereo],
+                   "interpolation": floor,
                    "total_seconds": round(time.perf_counter() - started, 3)}
         (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
         html_report.write_report(tmp)
     return summary
+
+
+def interpolation_floor(exp, cameras, state, scale: float) -> list[dict]:
+    """Per camera and region at the rendered `scale` (`cameras` scaled): `vdo.checks`'
+    interpolation floor, {camera, region, mm_per_px, error_dn, noise_dn, ratio}; a warning names
+    the worst pair when some exceed `checks.INTERPOLATION_NOISE` (correlation on these images is
+    then bias-dominated, docs/exports.md)."""
+    from . import checks
+
+    rows = [{"camera": r["camera"], "region": r["region"], "mm_per_px": r["mm_per_px"], **r["interpolation"]}
+            for r in checks.design_checks(exp, cameras, state.samples, state.visibility.visible,
+                                          state.illumination.irradiance, state.geometry.speckle.pattern)]
+    flagged = [r for r in rows if r["ratio"] > checks.INTERPOLATION_NOISE]
+    if flagged:
+        worst = max(flagged, key=lambda r: r["ratio"])
+        log.warning("at render scale %g the correlation's interpolation error exceeds %g x the sensor "
+                    "noise on %d of %d camera-region pairs (worst: %s on %s, %.1f x at %.2f mm/px): "
+                    "displacements measured on these images will be bias-dominated; render at the "
+                    "cameras' own pixels (--scale 1) for a virtual test", scale, checks.INTERPOLATION_NOISE,
+                    len(flagged), len(rows), worst["camera"], worst["region"], worst["ratio"], worst["mm_per_px"])
+    return rows
 
 
 def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent_v,

@@ -182,7 +182,7 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     √2 sigma predicts; and the mean noise part over `realisations` sensor-noise draws on the
     same radiance (the TIFF's and realisations - 1 more, `SensorModel.expose`). Returns
     {"rows": [...], "calibration_px": float, "series": series.json}."""
-    from vdo import checks, config
+    from vdo import config
     from vdo.keyframes import at_step, load_path_of
     from vdo.render import noise_free_dn, scaled_camera
     from vdo.series import (correlate_points, correlate_series, render_series, series_cameras,
@@ -201,7 +201,6 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1).samples.points
     cameras = {c.name: scaled_camera(c, summary["scale"]) for c in exp.cameras()}
     sensor, s, patch = exp.sensor, geometry.samples, exp.evaluation.patch_size
-    specs = {spec.name: spec for spec in exp.camera_specs}
     rows, floor = [], []
     for first, second in summary["stereo_pairs"]:
         names = [first, second]
@@ -210,13 +209,8 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         if not chosen:
             continue
         regions = {s.region_names[s.region[i]] for i in chosen}
-        floor += [{"camera": r["camera"], "region": r["region"], "mm_per_px": r["mm_per_px"],
-                   **r["interpolation"]}
-                  for r in checks.design_checks(exp.with_cameras([specs[n] for n in names]),
-                                                state.cameras, s, state.visibility.visible,
-                                                state.illumination.irradiance,
-                                                geometry.speckle.pattern)
-                  if r["region"] in regions]
+        floor += [f for f in summary["interpolation"]   # series.json: the check at the rendered scale
+                  if f["camera"] in names and f["region"] in regions and f not in floor]
         at = (s.points[chosen], s.tangent_u[chosen], s.tangent_v[chosen], patch)
         pair = series_cameras(out, names)
         linear = {step: [series_image(out, n, step, linear=True) for n in names] for step in (0, 1)}
