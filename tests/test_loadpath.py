@@ -121,6 +121,35 @@ def test_camera_loses_the_region_at_the_step_the_geometry_says(plate_experiment,
     assert np.all(result.worst_coverage[geometry.samples.points[:, 0] > 0] == 0)
 
 
+def test_a_path_that_returns_to_a_pose_is_judged_as_each_of_its_steps(plate_experiment, tmp_path):
+    """The shutter of the test above slides in and back out (-2.5 m, 0: the identity, -2.5 m
+    again), then turns about its own centre. Steps that repeat a geometry share its key (the
+    identity has the rest key), and the judgement of every step equals a layout state computed
+    at that step on its own."""
+    from vdo import config
+    from vdo.keyframes import at_step
+    from vdo.loadpath import evaluate_load_path
+    from vdo.state import layout_state, prepare
+
+    write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
+    exp = config.load(plate_experiment(spacing=50, extra_meshes=SHUTTER))
+    geometry = prepare(exp)
+    slide = lambda x: Pose(np.eye(3), np.array([x, 0.0, 0.0]), np.zeros(3))
+    turn = Pose(rotation_xyz(0.0, 0.0, 0.3), np.zeros(3), np.array([3.0, 0.0, 0.75]))
+    poses = {(1, "slide"): slide(-2.5), (2, "slide"): slide(0.0), (3, "slide"): slide(-2.5),
+             (4, "slide"): turn}
+    lp = LoadPath(steps=(1, 2, 3, 4), groups={"slide": ("shutter",)}, poses=poses)
+    keys = [lp.step_key(k) for k in lp.steps]
+    assert keys[1] == () and keys[0] == keys[2] and len({keys[0], keys[3], ()}) == 3
+    result = evaluate_load_path(geometry, lp)
+    assert result.seen_fraction[1, 0, 0] < 0.9 * result.seen_fraction[0, 0, 0]   # step 1 hides
+    for index, step in enumerate(lp.steps, start=1):
+        alone = layout_state(at_step(geometry, lp, step), strain_fields=False).prediction
+        np.testing.assert_array_equal(result.coverage[index], alone.coverage)
+        np.testing.assert_allclose(result.sigma_max[index], np.where(alone.measured, alone.sigma_max, np.inf),
+                                   rtol=1e-12)
+
+
 def test_evaluate_over_the_load_path_names_the_loss_and_writes_the_worst_case(plate_experiment,
                                                                               tmp_path, capsys):
     """`vdo evaluate` on the shutter scene with a [load_path]: the warning, summary.json's loss,

@@ -32,7 +32,8 @@ from .memory import retain_freed_memory
 
 log = logging.getLogger(__name__)
 
-MIN_COMPILE_S = 0.1  # seconds of compilation above which a program goes into the persistent cache
+MIN_COMPILE_S = 0.0  # every program goes into the persistent cache: the many small ones (~5-50 ms
+                     # each) add up to seconds per run
 
 
 def cache_dir() -> Path:

@@ -108,6 +108,24 @@ class LoadPath:
                 return self.poses[(step, group)]
         return None
 
+    def step_key(self, step) -> tuple:
+        """What `at_step` reads at `step`, exactly and hashable: each group's pose that is not the
+        identity (its rotation and translation bytes) and a digest of the specimen's displacements
+        if any is non-zero. Steps with equal keys have the same geometry (up to rounding); a step
+        that moves nothing has the key of the rest state, (). Cyclic paths return to a pose many
+        times (the built-in one to rest at 12 of its 24 steps), and `vdo.loadpath` judges each
+        geometry once."""
+        import hashlib
+
+        key = []
+        for (at, group), pose in sorted(self.poses.items(), key=lambda item: (str(item[0][0]), item[0][1])):
+            if at == step and (np.any(pose.translation != 0) or np.any(pose.rotation != np.eye(3))):
+                key.append((group, pose.rotation.tobytes(), pose.translation.tobytes(), pose.pivot.tobytes()))
+        u = (self.displacements or {}).get(step)
+        if u is not None and np.any(u != 0):
+            key.append(("displacement", hashlib.sha1(np.ascontiguousarray(u, dtype=float).tobytes()).hexdigest()))
+        return tuple(key)
+
 
 # --------------------------------------------------------------------------------------------
 # Reading the CSV files

@@ -88,26 +88,32 @@ def _region_stats(state: LayoutState, minimum: np.ndarray):
 
 def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
                        progress: bool = False, rest: LayoutState | None = None) -> LoadPathResult:
-    """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`.
-    `rest`: the state at rest when already computed (`layout_state(geometry, cameras)`)."""
+    """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`,
+    each distinct geometry once (`LoadPath.step_key`: a step that returns to an earlier pose
+    reuses its judgement). `rest`: the state at rest when already computed
+    (`layout_state(geometry, cameras)`)."""
     exp = geometry.experiment
     minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
     steps = ("rest",) + tuple(load_path.steps)
+    judged = {}   # step key -> (coverage, seen, covered, p95, sigma)
     coverage, sigma, seen, covered, p95 = [], [], [], [], []
     for step in tqdm(steps, desc="load path", unit="step", disable=not progress):
-        if step == "rest" and rest is not None:
-            state = rest
-        else:
-            moved = geometry if step == "rest" else at_step(geometry, load_path, step)
-            state = layout_state(moved, cameras, strain_fields=False)
-        s, c, p, sig = _region_stats(state, minimum)
-        coverage.append(state.prediction.coverage)
+        key = () if step == "rest" else load_path.step_key(step)
+        if key not in judged:
+            if key == () and rest is not None:
+                state = rest
+            else:
+                moved = geometry if key == () else at_step(geometry, load_path, step)
+                state = layout_state(moved, cameras, strain_fields=False)
+            judged[key] = (state.prediction.coverage, *_region_stats(state, minimum))
+            camera_names = state.visibility.camera_names
+        cov, s, c, p, sig = judged[key]
+        coverage.append(cov)
         sigma.append(sig)
         seen.append(s)
         covered.append(c)
         p95.append(p)
     seen_arr = np.array(seen)
-    camera_names = state.visibility.camera_names
     losses = []
     for c, camera in enumerate(camera_names):
         for r, region in enumerate(geometry.samples.region_names):
