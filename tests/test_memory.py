@@ -34,5 +34,7 @@ def _faults(mode):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc options")
 def test_freed_memory_is_reused_without_page_faults():
     default, retained = _faults("default"), _faults("retain")
-    assert min(default) > 100  # glibc maps and unmaps the block every time
-    assert retained[0] > 100 and max(retained[1:]) <= 0.01 * retained[0]
+    # glibc maps and unmaps the block every time: every allocation faults its pages in again
+    # (32,768 faults of 4 KiB pages, or 65 where the kernel backs the block with 2 MiB huge pages)
+    assert min(default) >= 0.5 * max(default) > 0
+    assert retained[0] >= 0.5 * min(default) and max(retained[1:]) <= 0.01 * retained[0]
