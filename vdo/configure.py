@@ -7,9 +7,10 @@ vdo computation:
 
 * ``jax_enable_x64``: vdo computes in float64 (the objective's per-pair work may opt into float32,
   see `vdo.objective`). `require_x64()` raises a clear error where this was forgotten.
-* JAX's persistent compilation cache in ``cache_dir() / "jax"``, for every program that took more
-  than `MIN_COMPILE_S` to compile, so that a second run (or test session, or worker) loads the
-  compiled programs instead of compiling them again. An explicit ``JAX_COMPILATION_CACHE_DIR``
+* JAX's persistent compilation cache in ``cache_dir() / "jax"``, for every compiled program
+  (`MIN_COMPILE_S` = 0; programs holding a host callback are never cached, by JAX's rule), so
+  that a second run (or test session, or worker) loads the compiled programs instead of
+  compiling them again. An explicit ``JAX_COMPILATION_CACHE_DIR``
   (or ``jax_compilation_cache_dir`` set before) is kept.
 * matplotlib's non-interactive ``Agg`` backend (vdo only writes figures to files).
 * glibc's malloc options of `vdo.memory.retain_freed_memory` (call before the first JAX
