@@ -43,6 +43,7 @@ surface samples then follow their triangle as above.
 from __future__ import annotations
 
 import csv
+import hashlib
 import logging
 import math
 import re
@@ -115,11 +116,10 @@ class LoadPath:
         that moves nothing has the key of the rest state, (). Cyclic paths return to a pose many
         times (the built-in one to rest at 12 of its 24 steps), and `vdo.loadpath` judges each
         geometry once."""
-        import hashlib
-
         key = []
-        for (at, group), pose in sorted(self.poses.items(), key=lambda item: (str(item[0][0]), item[0][1])):
-            if at == step and (np.any(pose.translation != 0) or np.any(pose.rotation != np.eye(3))):
+        for group in sorted(g for at, g in self.poses if at == step):
+            pose = self.poses[(step, group)]
+            if np.any(pose.translation != 0) or np.any(pose.rotation != np.eye(3)):
                 key.append((group, pose.rotation.tobytes(), pose.translation.tobytes(), pose.pivot.tobytes()))
         u = (self.displacements or {}).get(step)
         if u is not None and np.any(u != 0):

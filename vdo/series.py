@@ -81,7 +81,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     state = layout_state(geometry, cameras, predict_fields=False)
     vis = state.visibility
     stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
-    floor = interpolation_floor(exp, cameras, state, scale)
+    floor = _interpolation_at_scale(exp, cameras, state, scale)
     steps = [0, *load_path.steps]
     with run_folder(out, overwrite) as tmp:
         for cam in cameras:
@@ -119,7 +119,7 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     return summary
 
 
-def interpolation_floor(exp, cameras, state, scale: float) -> list[dict]:
+def _interpolation_at_scale(exp, cameras, state, scale: float) -> list[dict]:
     """Per camera and region at the rendered `scale` (`cameras` scaled): `vdo.checks`'
     interpolation floor, {camera, region, mm_per_px, error_dn, noise_dn, ratio}; a warning names
     the worst pair when some exceed `checks.INTERPOLATION_NOISE` (correlation on these images is
