@@ -173,9 +173,12 @@ def test_local_clearance_and_shadow_sets_give_the_full_penalties_for_moves_withi
     local = np.array([[0.0, 0.0, 0.0], [0.04, 0.03, 0.05], [-0.04, -0.03, 0.1]])
     anchors = np.array([[0.1, 0.0, 0.12], [0.3, -0.2, 0.9], [-0.5, 0.4, 1.3]])   # near the floor, in the light
     radii = np.full((3, 3), 0.04)
-    tree = cKDTree(floor)
     body0 = anchors[:, None, :] + local
-    kept = [constraints.points_near(floor, tree, b, clearance + move) for b in body0]
+    tree = cKDTree(floor)
+    kept = [constraints.points_near(floor, b, clearance + move, tree) for b in body0]
+    # the other way to the same sets: a tree of the anchors
+    assert all(np.array_equal(k, constraints.points_near(floor, b, clearance + move))
+               for k, b in zip(kept, body0))
     pairs = constraints.shadow_pairs(body0, radii, samples, panels, 0.005, move)
     assert max(len(k) for k in kept) < len(floor) / 4 and len(pairs) < 3 * len(samples) / 2
     near_kept = jnp.asarray(constraints.padded_points(kept))

@@ -276,15 +276,22 @@ def shadow_pairs(centres: np.ndarray, radii: np.ndarray, samples: np.ndarray, pa
 def near_points(points: np.ndarray, paths: list[np.ndarray], reach: float) -> list[np.ndarray]:
     """For each camera, the mesh points (Q_c, 3) within `reach` of its path (the points its
     optical centre can take: a sampled rail, or its fixed position)."""
-    tree = cKDTree(points)
-    return [points_near(points, tree, path, reach) for path in paths]
+    return [points_near(points, path, reach) for path in paths]
 
 
-def points_near(points: np.ndarray, tree: cKDTree, anchors: np.ndarray, reach: float) -> np.ndarray:
-    """The rows of `points` (`tree` holds them) within `reach` (m) of any row of `anchors` (A, 3).
-    For a body's points as anchors and reach = clearance + d: every point that `clearance_penalty`
-    can count while no body point moves more than d."""
-    return points[sorted(set().union(*tree.query_ball_point(np.atleast_2d(anchors), reach)))]
+def points_near(points: np.ndarray, anchors: np.ndarray, reach: float,
+                tree: cKDTree | None = None) -> np.ndarray:
+    """The rows of `points` within `reach` (m) of any row of `anchors` (A, 3), in their order.
+    With `tree` (a k-d tree of `points`, for many calls with a few anchors each) a ball query
+    around each anchor; without, each point's nearest anchor from a tree of the anchors (one
+    call, many anchors). For a body's points as anchors and reach = clearance + d: every point
+    that `clearance_penalty` can count while no body point moves more than d."""
+    if len(points) == 0:
+        return points
+    if tree is not None:
+        return points[sorted(set().union(*tree.query_ball_point(np.atleast_2d(anchors), reach)))]
+    distance, _ = cKDTree(np.atleast_2d(anchors)).query(points, distance_upper_bound=2 * reach)
+    return points[distance <= reach]
 
 
 def padded_points(chosen: list[np.ndarray], size: int | None = None) -> np.ndarray:
