@@ -184,7 +184,10 @@ def clearance_penalty(body_world, near_points, clearance: float):
         d = jnp.sqrt(d2 + 1e-12)
         return (jnp.maximum(clearance - d, 0.0) / clearance) ** 2
 
-    total = jnp.sum(hinge(jnp.sum((body_world[:, :, None, :] - near_points[:, None, :, :]) ** 2, -1)))
+    # |b - q|^2 = |b|^2 + |q|^2 - 2 b.q: one batched product instead of a (C, B, Q, 3) difference
+    d2 = (jnp.sum(body_world ** 2, -1)[:, :, None] + jnp.sum(near_points ** 2, -1)[:, None, :]
+          - 2 * jnp.einsum("cbk,cqk->cbq", body_world, near_points))
+    total = jnp.sum(hinge(jnp.maximum(d2, 0.0)))
     n = body_world.shape[0]
     if n > 1:
         diff = body_world[:, None, :, None, :] - body_world[None, :, None, :, :]
