@@ -101,6 +101,7 @@ SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the
 LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
                    # within this distance of the anchor layout (`Problem.local`)
 PATH_SLACK = 0.05  # m: the farthest an optical centre can be from the nearest point of `Problem._paths`
+SIZE_PROBES = 1024  # path points per camera from which `Problem._size_local_sets` counts the shadow pairs
 LENS_TRIALS = 3   # lens options optimised after screening (`choose_lenses`)
 ROUND_TOL = 1e-3  # a start ends when a penalty round, feasible after a feasible one, gains less (relative)
 BACKTRACKS = 4    # halvings of a round's move whose refreshed layout ranks worse than its start (`_backtrack`)
@@ -441,7 +442,11 @@ class Problem:
         `PATH_SLACK` of one point of a camera's path (e: the farthest body point from the optical
         centre), and the (camera, sample) pairs that `constraints.shadow_pairs` keeps for a sphere
         of the largest radius anywhere on the camera's path, moving e + `LOCAL_MOVE` +
-        `PATH_SLACK`. An estimate, not a bound: a larger set raises the size (`_Run.size`)."""
+        `PATH_SLACK`. An estimate, not a bound: a larger set raises the size (`_Run.size`). The
+        shadow pairs are counted from at most `SIZE_PROBES` points of each path, the move grown by
+        the farthest any path point lies from them, so that they cover the whole path (a zone's
+        grid has thousands of points: counted from all of them, this took 26 s on the steel
+        beam's two tripods)."""
         opt = self.exp.optimize
         extent = float(np.linalg.norm(np.asarray(self.body_local), axis=-1).max())
         reach = opt.clearance + CLEARANCE_MARGIN + LOCAL_MOVE + PATH_SLACK + extent
@@ -450,9 +455,15 @@ class Problem:
         if self.lit_samples is not None and self.sphere_local is not None:
             samples, panels = (np.asarray(a) for a in self.lit_samples)
             radius = float(np.asarray(self.sphere_radii).max())
-            self.run.size("shadow", sum(len(constraints.shadow_pairs(
-                paths[c][None], np.full((1, len(paths[c])), radius), samples, panels, SHADOW_MARGIN,
-                extent + LOCAL_MOVE + PATH_SLACK)) for c in self.bodied))
+            count = 0
+            for c in self.bodied:
+                probes, gap = paths[c], 0.0
+                if len(probes) > SIZE_PROBES:
+                    probes = probes[np.linspace(0, len(probes) - 1, SIZE_PROBES).round().astype(int)]
+                    gap = float(cKDTree(probes).query(paths[c])[0].max())
+                count += len(constraints.shadow_pairs(probes[None], np.full((1, len(probes)), radius), samples,
+                                                      panels, SHADOW_MARGIN, extent + LOCAL_MOVE + PATH_SLACK + gap))
+            self.run.size("shadow", count)
 
     def local(self, theta) -> dict:
         """What the clearance and shadow penalties read near the layout θ (the anchor): its body
