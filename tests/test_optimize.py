@@ -8,13 +8,15 @@ import logging
 import math
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo import config
 from vdo.constraints import stereo_min_angle
-from vdo.optimize import Parameterization, optimize
+from vdo.optimize import MU0, Parameterization, optimize
 
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
@@ -99,6 +101,17 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     assert summary["score_um"] == pytest.approx(result["score_after"], rel=1e-5)
     assert summary["regions"]["top"]["sigma_smooth_um"] == pytest.approx(summary["sigma_smooth_um"], rel=1e-12)
     assert 0.1 < summary["sigma_smooth_um"] < 100   # micrometres, not metres or pixels
+    # the penalty weight grows only after a round whose layout breaks a constraint, and a
+    # penalty round after another with the same weights starts from its curvature
+    rounds = json.loads((out / "optimizer.json").read_text())["rounds"]
+    penalty = [r for r in rounds if r["score_weight"] == 1.0]
+    assert penalty and penalty[0]["penalty_weight"] == MU0
+    assert not penalty[0]["curvature_from_last_round"]
+    for before, after in zip(penalty, penalty[1:]):
+        assert after["penalty_weight"] == before["penalty_weight"] * (10 if before["violations"] else 1)
+        assert after["curvature_from_last_round"] == (after["penalty_weight"] == before["penalty_weight"]
+                                                      and before["num_accepted_steps"] >= 2)
+    assert len(penalty) >= 2 and penalty[-1]["violations"] == 0
 
 
 def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
@@ -327,3 +340,55 @@ def test_local_clearance_and_shadow_sets_match_every_point_and_pair_near_the_anc
         active[0] += full_clearance > 0
         active[1] += full_shadow > 0
     assert min(active) > 0, active
+
+
+def test_rejected_step_backtracks_to_the_parabola_minimum_within_its_bounds():
+    """On f(y) = (y - 1)^2 from y = 0 along d = 1, a trial at α (f(α) - f(0) = α^2 - 2α, slope
+    -2) is rejected for α >= 1.8 (Armijo slope 0.1) and the next α is the minimiser of f along
+    d, 1 (exact: f is the parabola), clipped to [0.1 α, 0.5 α]."""
+    import equinox as eqx
+    import optimistix as optx
+
+    from vdo.optimize import RememberingArmijo
+
+    search = RememberingArmijo()
+    y = jnp.zeros(1)
+    remembered = lambda alpha: eqx.tree_at(lambda st: st.step_size, search.init(y, None), jnp.asarray(alpha))
+    at_y = optx.FunctionInfo.EvalGrad(jnp.asarray(1.0), jnp.asarray([-2.0]))
+    for alpha, expected in [(4.0, 1.0), (2.5, 1.0), (20.0, 2.0), (1.9, 0.95)]:
+        trial = y + alpha
+        f_trial = optx.FunctionInfo.Eval(jnp.asarray((alpha - 1.0) ** 2))
+        step, accept, _, _ = search.step(jnp.asarray(False), y, trial, at_y, f_trial, remembered(alpha))
+        assert not bool(accept)
+        assert float(step) == pytest.approx(expected, rel=1e-12)
+    # an accepted step doubles α, up to 1
+    ok = optx.FunctionInfo.Eval(jnp.asarray(0.0))
+    step, accept, _, _ = search.step(jnp.asarray(False), y, y + 1.0, at_y, ok, remembered(0.25))
+    assert bool(accept) and float(step) == pytest.approx(0.5)
+
+
+def test_bfgs_started_from_the_exact_inverse_hessian_lands_on_the_minimum_in_one_step():
+    """On a quadratic ½ yᵀA y - bᵀy, BFGS given A⁻¹ by `with_inverse_hessian` takes the Newton
+    step A⁻¹ b on its first move (accepted, the minimum); from the identity it does not."""
+    from vdo.optimize import BFGS, with_inverse_hessian
+
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(5, 5))
+    A = jnp.asarray(M @ M.T + 5 * np.eye(5))
+    b = jnp.asarray(rng.normal(size=5))
+    fn = lambda y, args: (0.5 * y @ A @ y - b @ y, None)
+    solver = BFGS(rtol=1e-9, atol=1e-9)
+    y0 = jnp.zeros(5)
+    f_struct = jax.ShapeDtypeStruct((), jnp.float64)
+
+    def two_steps(state):
+        y = y0
+        for _ in range(2):   # the first step accepts the start; the second evaluates the move
+            y, state, _ = solver.step(fn, y, None, {}, state, frozenset())
+        return state.y_eval
+
+    start = solver.init(fn, y0, None, {}, f_struct, None, frozenset())
+    minimum = np.linalg.solve(np.asarray(A), np.asarray(b))
+    np.testing.assert_allclose(two_steps(with_inverse_hessian(start, np.linalg.inv(np.asarray(A)))),
+                               minimum, rtol=1e-10, atol=1e-12)
+    assert np.abs(np.asarray(two_steps(start)) - minimum).max() > 1e-2

@@ -782,6 +782,14 @@ class RememberingArmijo(optx.AbstractSearch):
         return step_size, accept, optx.RESULTS.successful, _SearchState(step_size)
 
 
+def with_inverse_hessian(state, inverse_hessian):
+    """BFGS's state from `init` (`BFGS`) with its inverse-Hessian estimate replaced by
+    `inverse_hessian` (n, n) instead of the identity. The first step keeps it (its update sees
+    y_eval - y = 0 and leaves the estimate alone), so the second evaluates y - H ∇f(y)."""
+    old = state.f_info.hessian_inv.pytree
+    return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, jnp.asarray(inverse_hessian, dtype=old.dtype))
+
+
 class BFGS(optx.AbstractBFGS):
     """optimistix's BFGS (inverse-Hessian update, Newton direction) with `RememberingArmijo`."""
 
@@ -1059,7 +1067,9 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
             if outcome.curvature is not None:
                 curvature = (w_score, mu), outcome.curvature
             run.history.extend(outcome.history)
-            run.rounds.append(outcome.record(start, name))
+            record = dict(outcome.record(start, name), score_weight=w_score, penalty_weight=mu,
+                          curvature_from_last_round=warm is not None, violations=result.violations)
+            run.rounds.append(record)   # `violations`: of the layout the round ends at
             end = outcome.status
             label += 1
             if np.array_equal(outcome.theta, theta):
@@ -1068,6 +1078,7 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
             if checked and np.array_equal(checked["theta"], outcome.theta):
                 judged = checked["state"], checked["result"]
             theta, state, result = _backtrack(problem, result, outcome.theta, start, judged)
+            record["violations"] = result.violations
             best = min(best, result, key=lambda r: r.rank)
             log.info("  start %d %s: score %.4g µm, %d violation(s) %s%s", start + 1, name, result.score,
                      result.violations, _violated(result),
@@ -1220,9 +1231,8 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
         return RoundOutcome(np.asarray(theta), "converged", "zero gradient at the round's start", None, ())
     solver_args = args(norm)
     state = init(y, solver_args)
-    if curvature is not None:   # the first step keeps it: its update sees y_diff = 0
-        state = eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state,
-                            jnp.asarray(norm * curvature, dtype=state.f_info.hessian_inv.pytree.dtype))
+    if curvature is not None:
+        state = with_inverse_hessian(state, norm * curvature)
     status, reason = "max_steps", f"{max_steps} steps"
     history = []
     judged = np.zeros_like(np.asarray(y))   # the last iterate passed to `checkpoint`
