@@ -461,8 +461,9 @@ class Problem:
                 if len(probes) > SIZE_PROBES:
                     probes = probes[np.linspace(0, len(probes) - 1, SIZE_PROBES).round().astype(int)]
                     gap = float(cKDTree(probes).query(paths[c])[0].max())
-                count += len(constraints.shadow_pairs(probes[None], np.full((1, len(probes)), radius), samples,
-                                                      panels, SHADOW_MARGIN, extent + LOCAL_MOVE + PATH_SLACK + gap))
+                move = extent + LOCAL_MOVE + PATH_SLACK + gap
+                count += len(constraints.shadow_pairs(probes[None], np.full((1, len(probes)), radius),
+                                                      samples, panels, SHADOW_MARGIN, move))
             self.run.size("shadow", count)
 
     def local(self, theta) -> dict:
@@ -747,10 +748,12 @@ class RememberingArmijo(optx.AbstractSearch):
     rejection α ← t α, t the minimiser of the parabola through f(y), its slope along the step and
     f(y_eval) (Δ = f(y_eval) - f(y), p = ∇f(y)·(y_eval - y): t = -p / (2 (Δ - p))), kept within
     [`shrink`, `decrease`] (safeguarded quadratic backtracking); after an acceptance
-    α ← min(1, `increase` α), where optimistix's `BacktrackingArmijo` restarts from α = 1. Why: the penalties of `vdo.constraints` are 0 on the
-    feasible side and rise steeply behind it (a camera body entering a light's cone), which BFGS's
-    curvature model, built from accepted points where they vanish, cannot see; every full step
-    then runs into a wall and is halved 4-12 times (measured on the built-in experiment: 7 of 40
+    α ← min(1, `increase` α), where optimistix's `BacktrackingArmijo` restarts from α = 1.
+
+    Why remember: the penalties of `vdo.constraints` are 0 on the feasible side and rise steeply
+    behind it (a camera body entering a light's cone), which BFGS's curvature model, built from
+    accepted points where they vanish, cannot see; every full step then runs into a wall and is
+    halved 4-12 times (measured on the built-in experiment: 7 of 40
     steps accepted in a penalty round; with this search 18 of 40, and a lower score). The
     parabola matters after a visibility refresh: a stiff penalty term (the shadow penalty, just
     active) dominates the gradient, and the first step overshoots by a factor ~1000: halving took
@@ -786,8 +789,9 @@ def with_inverse_hessian(state, inverse_hessian):
     """BFGS's state from `init` (`BFGS`) with its inverse-Hessian estimate replaced by
     `inverse_hessian` (n, n) instead of the identity. The first step keeps it (its update sees
     y_eval - y = 0 and leaves the estimate alone), so the second evaluates y - H ∇f(y)."""
-    old = state.f_info.hessian_inv.pytree
-    return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state, jnp.asarray(inverse_hessian, dtype=old.dtype))
+    dtype = state.f_info.hessian_inv.pytree.dtype
+    return eqx.tree_at(lambda s: s.f_info.hessian_inv.pytree, state,
+                       jnp.asarray(inverse_hessian, dtype=dtype))
 
 
 class BFGS(optx.AbstractBFGS):
@@ -1041,9 +1045,9 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
         masked = frozenset()   # the (camera, region) pairs whose obscuration this start tracks
         label = 0
         end = "converged"
-        curvature = None   # (weights, CurvatureEstimate) of the last round
+        curvature = None   # (weights, `RoundOutcome.curvature`) of the last round
 
-        def one_round(w_score, mu, name, checkpoints=False):
+        def one_round(w_score, mu, name):
             nonlocal theta, state, result, best, label, masked, end, curvature
             masked = problem.track_obscured(state, result.checks, masked)
             where = f"start {start + 1} {name}"
@@ -1063,7 +1067,7 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
 
             warm = curvature[1] if curvature is not None and curvature[0] == (w_score, mu) else None
             outcome = _round(problem, theta, state.views, (w_score, mu), opt.max_steps, where, (start, label),
-                             checkpoint if checkpoints else None, warm)
+                             checkpoint, warm)
             if outcome.curvature is not None:
                 curvature = (w_score, mu), outcome.curvature
             run.history.extend(outcome.history)
@@ -1088,13 +1092,13 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
         for k in range(FEASIBILITY_ROUNDS):
             if result.violations == 0 or run.stop():
                 break
-            one_round(0.0, 1.0, f"feasibility round {k + 1}", checkpoints=True)
+            one_round(0.0, 1.0, f"feasibility round {k + 1}")
         mu = MU0
         for k in range(opt.rounds):
             if run.stop():
                 break
             previous = result
-            one_round(1.0, mu, f"round {k + 1}/{opt.rounds}", checkpoints=True)
+            one_round(1.0, mu, f"round {k + 1}/{opt.rounds}")
             if result.violations:
                 mu *= 10.0
             if (k > 0 and previous.violations == 0 and result.violations == 0
@@ -1430,9 +1434,9 @@ def _write_history(path, history):
 
 
 def _plot_history(path, history, verdicts, name):
-    """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin line) and the exact score of each
-    judged layout (markers: filled where it meets every constraint; each round's, and the
-    checkpoints within the first rounds), per start; layouts judged
+    """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin
+    line) and the exact score of each judged layout (markers: filled where it meets every
+    constraint; each round's end, and the checkpoints within rounds), per start; layouts judged
     without a solve (lens screening) as crosses."""
     fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
     solved = sorted({h["start"] for h in history})
