@@ -350,9 +350,7 @@ class SubTable(Kind):
         known = tuple(r.key for r in rows)
         for key in value:
             if key not in known:
-                close = difflib.get_close_matches(key, known, n=1)
-                raise _Bad(f"unknown field; {f'did you mean {close[0]!r}?' if close else 'known fields: ' + ', '.join(known)}",
-                           key=key if key.isprintable() else repr(key))
+                raise _Bad(_unknown_field(key, known), key=key if key.isprintable() else repr(key))
         values = {}
         for r in rows:
             if r.key in value:
@@ -1298,6 +1296,12 @@ def camera_positions(exp: Experiment) -> list[np.ndarray]:
 # --------------------------------------------------------------------------------------------
 # Reading with clear errors
 # --------------------------------------------------------------------------------------------
+def _unknown_field(key: str, allowed) -> str:
+    """The message for a key no schema row has: the nearest known one, else all of them."""
+    close = difflib.get_close_matches(key, allowed, n=1)
+    return "unknown field; " + (f"did you mean {close[0]!r}?" if close else f"known fields: {', '.join(allowed)}")
+
+
 class Table:
     """One TOML table being read: every key must be known, every value checked."""
 
@@ -1307,9 +1311,7 @@ class Table:
             raise ConfigError(file, where, "must be a table")
         for key in data:
             if key not in allowed:
-                close = difflib.get_close_matches(key, allowed, n=1)
-                hint = f"did you mean {close[0]!r}?" if close else f"known fields: {', '.join(allowed)}"
-                raise ConfigError(file, self._field(key), f"unknown field; {hint}")
+                raise ConfigError(file, self._field(key), _unknown_field(key, allowed))
         self.data = data
 
     def _field(self, key):

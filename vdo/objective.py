@@ -508,7 +508,7 @@ def _pairs_from(cq, sq, st: Settings) -> _Geo:
         xd, yd = distort(xn, yn, coefficients)
         jxx, jxy, _, jyy = distortion_jacobian(xn, yn, coefficients)
         lens = (coefficients, xd, yd, (jxx, jxy, jyy))
-        u, v = image_point((f, None, cx, f, cy), xn, yn, coefficients)
+        u, v = image_point((f, None, cx, f, cy), xd, yd)   # (x_d, y_d): distorted above
         e0 = tuple(R[0][b] - xn * R[2][b] for b in range(3))
         e1 = tuple(R[1][b] - yn * R[2][b] for b in range(3))
         s0 = tuple(g * (jxx * e0[b] + jxy * e1[b]) for b in range(3))
