@@ -1,7 +1,7 @@
 """vdo design against random restarts of the continuous optimizer at equal wall time
 (benchmarks/README.md, "Design").
 
-The design: `vdo.design` on experiments/beam_column/design.toml (candidates on the rails x aims
+The design: `vdo.design.select` on experiments/beam_column/design.toml (candidates on the rails x aims
 x lenses judged in one ray cast, greedy forward selection + exchange passes on the optimizer's
 score), timed from the experiment to the selected layout (judging included). The baseline, given
 the same wall time: random feasible layouts of the same size (each camera uniform among the
@@ -28,8 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo import config, design, report
-from vdo.configure import configure
+from vdo.config import experiment as config
+from vdo.design import select as design
+from vdo.outputs import report
+from vdo.core.configure import configure
 from vdo.optimize import optimize
 from vdo.state import layout_state, prepare
 

@@ -1,6 +1,6 @@
-"""The light reaching every sample (`vdo.lighting.illuminate`) against a NumPy baseline.
+"""The light reaching every sample (`vdo.physics.lighting.illuminate`) against a NumPy baseline.
 
-Both integrate every light panel over the same grid (`vdo.lighting.GRID`^2 points per panel) with
+Both integrate every light panel over the same grid (`vdo.physics.lighting.GRID`^2 points per panel) with
 one shadow ray per (sample, panel point) traced by Mitsuba's `ray_test`: the baseline builds the
 rays, the cosines and the sums in NumPy (float64 arrays of all rays of a batch, as vdo did up to
 this release), vdo in one Dr.Jit kernel per light. Prints the median wall time of each over
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import vdo
-from vdo.backend import mitsuba
-from vdo.lighting import EPSILON, GRID, illuminate, panel_frame, panel_points
+from vdo.core.backend import mitsuba
+from vdo.physics.lighting import EPSILON, GRID, illuminate, panel_frame, panel_points
 from vdo.scene import build_scene
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -4,7 +4,7 @@ Evaluates the built-in 10-camera experiment over the first K steps of its load p
 K, and prints the wall time, the time per keyframe and a least-squares line t = a + b K (the fixed
 cost a: meshes, samples, speckle; b per keyframe: ray cast, lighting, prediction). The first run
 compiles the prediction and is not timed. Then the part the optimizer pays at each visibility
-refresh for scoring over the path: `vdo.loadpath.path_occlusion` (one ray cast per keyframe, no
+refresh for scoring over the path: `vdo.search.loadpath.path_occlusion` (one ray cast per keyframe, no
 lighting, no prediction) at the keyframes `keyframe_steps` picks, beside the rest state's cast.
 Run: .venv/bin/python benchmarks/load_path.py [--spacing-mm 10] [--counts 1 4 8 16 24]
 """
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 import vdo
-from vdo.keyframes import load_path_of
-from vdo.loadpath import evaluate_load_path, keyframe_steps, path_occlusion
+from vdo.geometry.keyframes import load_path_of
+from vdo.search.loadpath import evaluate_load_path, keyframe_steps, path_occlusion
 from vdo.state import layout_state
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,13 +6,13 @@ evaluation of the same value on the dense (C, N) inputs, measured in the same ru
 runs over a sparse pair list (`ViewData`): once with every pair whose occlusion is > 0 (what the
 dense path computed, exact for any camera parameters) and once with the pairs the geometric
 selection keeps at these cameras (`ViewData.from_dense(..., samples, cameras)`), in float64 and
-with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.predict.settings` and so
+with float32 per-pair work (`Settings(pair_dtype="float32")`, what `vdo.physics.predict.settings` and so
 the optimizer use), and with lens distortion on every camera (`CameraParams.distortion`, the
 coefficients `LENS`) beside the pinhole rows. Checks that the values agree with NumPy (which
-applies the distortion with `vdo.camera.distort` and its Jacobian), that both pair lists give the
+applies the distortion with `vdo.model.camera.distort` and its Jacobian), that both pair lists give the
 same gradient and how far the float32 gradient is from the float64 one. Prints the kernel time and
 page faults per value + gradient call too: by default the script keeps freed memory in the heap
-(`vdo.memory.retain_freed_memory`, what the command line does); `--default-malloc` measures
+(`vdo.core.memory.retain_freed_memory`, what the command line does); `--default-malloc` measures
 without it.
 Run: .venv/bin/python benchmarks/objective.py [--samples N] [--repeat K] [--default-malloc]
 """
@@ -33,10 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo import objective as ob
-from vdo.camera import distort, distortion_jacobian, look_at_angles, rotation
-from vdo.configure import configure
-from vdo.memory import retain_freed_memory
-from vdo.speckle import generate_pattern, gradient_energy_table, normalise
+from vdo.model.camera import distort, distortion_jacobian, look_at_angles, rotation
+from vdo.core.configure import configure
+from vdo.core.memory import retain_freed_memory
+from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise
 
 
 LENS = (-0.12, 0.05, 2e-4, -1e-4, 0.0)   # k1, k2, p1, p2, k3: a typical 12-25 mm lens
@@ -197,7 +197,7 @@ def main():
     ap.add_argument("--cameras", type=int, default=10)
     ap.add_argument("--repeat", type=int, default=10)
     ap.add_argument("--default-malloc", action="store_true",
-                    help="do not keep freed memory in the heap (vdo.memory)")
+                    help="do not keep freed memory in the heap (vdo.core.memory)")
     args = ap.parse_args()
     retained = False if args.default_malloc else retain_freed_memory()
     configure(retain_memory=False, compilation_cache=False)  # x64; compile times measured cold

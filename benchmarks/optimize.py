@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo import config
-from vdo.configure import configure
+from vdo.config import experiment as config
+from vdo.core.configure import configure
 from vdo.optimize import Problem, judge, solve
 
 ROOT = Path(__file__).resolve().parent.parent

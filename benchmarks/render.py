@@ -16,11 +16,12 @@ from pathlib import Path
 
 os.environ.setdefault("VDO_VARIANT", "llvm_ad_rgb")
 
-from vdo import config, scene  # noqa: E402
-from vdo.configure import configure  # noqa: E402
+from vdo import scene
+from vdo.config import experiment as config  # noqa: E402
+from vdo.core.configure import configure  # noqa: E402
 from vdo.render import (build_render_scene, camera_sensor, expose, render_linear,  # noqa: E402
                         render_seed, scaled_camera)
-from vdo.speckle import pattern_for  # noqa: E402
+from vdo.model.speckle import pattern_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 

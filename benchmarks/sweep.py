@@ -1,7 +1,7 @@
 """Sweep throughput with 1 and 2 local workers, and the per-point cost beyond one evaluation.
 
 A 12-point sweep (6 lenses x 2 speckle sizes, one patch size so a worker compiles once) of the
-built-in 3-camera experiment at 20 mm sample spacing, run by `vdo.sweep.sweep` with 1 and then 2
+built-in 3-camera experiment at 20 mm sample spacing, run by `vdo.commands.sweep.sweep` with 1 and then 2
 spawned workers, beside the same evaluation called in this process (warm, median of 3).
 
 * start-up: from the start of the sweep to its first stored point, less that point's own time
@@ -27,8 +27,8 @@ import statistics
 import time
 from pathlib import Path
 
-from vdo import sweep as sw
-from vdo.config import load, parse
+from vdo.commands import sweep as sw
+from vdo.config.experiment import load, parse
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "experiments" / "beam_column" / "three_cameras.toml"

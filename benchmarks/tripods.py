@@ -15,11 +15,11 @@ import statistics
 import time
 from pathlib import Path
 
-from vdo import config
-from vdo.configure import configure
+from vdo.config import experiment as config
+from vdo.core.configure import configure
 from vdo.scene import build_scene
 from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
-from vdo.visibility import compute_visibility
+from vdo.physics.visibility import compute_visibility
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -15,8 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo import config, scene, visibility
-from vdo.configure import configure
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.physics import visibility
+from vdo.core.configure import configure
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -42,7 +44,7 @@ def numpy_baseline(sc, cameras, samples, limit):
 
 
 def _segment_clear(sc, origins, target):
-    from vdo.backend import mitsuba
+    from vdo.core.backend import mitsuba
 
     mi = mitsuba()
     d = target - origins

@@ -1,8 +1,8 @@
-"""Write docs/config.md from the schema in vdo/config.py (run from the repository root)."""
+"""Write docs/config.md from the schema in vdo/config/experiment.py (run from the repository root)."""
 
 from pathlib import Path
 
-from vdo.config import markdown
+from vdo.config.experiment import markdown
 
 if __name__ == "__main__":
     Path(__file__).resolve().parents[1].joinpath("docs", "config.md").write_text(markdown())

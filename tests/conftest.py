@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from vdo.configure import configure
+from vdo.core.configure import configure
 
 
 def pytest_configure(config):
@@ -132,7 +132,7 @@ def plate_experiment(tmp_path):
 def raycast(path):
     """Load an experiment and ray-cast it as `vdo evaluate` does (every camera body an obstacle).
     Returns (experiment, samples, cameras, Mitsuba scene, visibility)."""
-    from vdo import config
+    from vdo.config import experiment as config
     from vdo.state import layout_state, prepare
 
     exp = config.load(path)

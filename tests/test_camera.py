@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vdo.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project,
+from vdo.model.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project,
                         rotation, rotation_derivatives)
 
 RNG = np.random.default_rng(7)

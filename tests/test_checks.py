@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA
-from vdo import checks
-from vdo.lighting import illuminate
-from vdo.speckle import pattern_for
+from vdo.physics import checks
+from vdo.physics.lighting import illuminate
+from vdo.model.speckle import pattern_for
 
 CAMERA = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + """{lens}
 
@@ -66,10 +66,10 @@ def test_speckle_flags(plate_experiment):
 
 def test_interpolation_floor_flag(plate_experiment):
     """9 mm dots of 1 mm texels have edges sharp at the 2.3 mm pixel: the interpolation error
-    (`vdo.speckle.interpolation_error`, checked in test_speckle.py) is several times the sensor
+    (`vdo.model.speckle.interpolation_error`, checked in test_speckle.py) is several times the sensor
     noise and flagged; 11 mm dots of 3.66 mm texels are soft at the pixel scale: not flagged. The
     gray levels from the sensor model: linear 0.8 (white) and 0.05 (black) at E = π L, L = 1."""
-    from vdo.speckle import interpolation_error, normalise
+    from vdo.model.speckle import interpolation_error, normalise
 
     sharp, exp = _rows(plate_experiment)
     soft, _ = _rows(plate_experiment, dot=11.0, texel=3.66)

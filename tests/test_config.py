@@ -5,9 +5,9 @@ import math
 import pytest
 import trimesh
 
-from vdo import config
-from vdo.cli import main
-from vdo.errors import ConfigError
+from vdo.config import experiment as config
+from vdo.commands.cli import main
+from vdo.core.errors import ConfigError
 from vdo.scene import load_meshes, sample_regions
 
 

@@ -11,8 +11,9 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vdo import config, scene
-from vdo.errors import ConfigError
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.core.errors import ConfigError
 
 
 def edited(path, *edits):
@@ -307,7 +308,7 @@ def test_split_area_equals_box_overlap(lo, size, turn):
 def test_config_errors_come_before_heavy_imports(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text('[experiment]\nname = "x"\n[[mesh]]\nname = "a"\nfile = "nope.stl"\n')
-    code = ("import sys\nfrom vdo.config import load\ntry:\n    load(sys.argv[1])\n"
+    code = ("import sys\nfrom vdo.config.experiment import load\ntry:\n    load(sys.argv[1])\n"
             "except Exception as exc:\n    print(type(exc).__name__)\n"
             "print(sorted(m for m in ('jax', 'mitsuba', 'drjit', 'matplotlib', 'trimesh') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, check=True)

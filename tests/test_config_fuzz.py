@@ -18,8 +18,9 @@ from config_documents import JUNK, NO_SHRINK, plate_file, same
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from vdo import config, scene
-from vdo.errors import ConfigError
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.core.errors import ConfigError
 
 SCALE = int(os.environ.get("VDO_FUZZ_SCALE", "1"))
 

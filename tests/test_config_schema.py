@@ -11,7 +11,7 @@ import tomli_w
 from config_documents import NO_SHRINK, documents, plate_file, same
 from hypothesis import HealthCheck, given, settings
 
-from vdo import config
+from vdo.config import experiment as config
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p for p in (ROOT / "experiments").rglob("*.toml")

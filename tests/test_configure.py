@@ -11,7 +11,7 @@ from pathlib import Path
 
 import jax
 
-from vdo.configure import cache_dir, configure
+from vdo.core.configure import cache_dir, configure
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -26,7 +26,7 @@ vdo.configure()  # idempotent
 import numpy as np
 from vdo import objective
 A = np.array([[[800.0, 30.0], [-20.0, 900.0]]])
-from vdo.speckle import generate_pattern, gradient_energy_table, normalise
+from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise
 table = gradient_energy_table(normalise(generate_pattern(64, 1e-4, 4e-4, seed=1)), 1e-4, n=12)
 T = objective.gradient_tensor(A, objective.TableEnergy(table))
 print(json.dumps({"dir": jax.config.jax_compilation_cache_dir, "x64": jax.config.jax_enable_x64,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from vdo import constraints
-from vdo.camera import intrinsic_matrix, rotation
+from vdo.model.camera import intrinsic_matrix, rotation
 
 
 def test_clearance_penalty_is_the_sum_of_hinges_over_point_pairs():

@@ -1,4 +1,4 @@
-"""Global multi-view correlation (vdo/correlate.py) against images it did not make.
+"""Global multi-view correlation (vdo/dic/correlate.py) against images it did not make.
 
 The images here are made by an independent little renderer (not Mitsuba, not the correlator's code):
 each pixel of a pinhole camera is supersampled 4 x 4, each sub-pixel ray is intersected with the
@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vdo.camera import Camera, look_at_angles
-from vdo.correlate import (AverageReference, Gradient, ImageReference, Patch, PixelIntegration, Q4,
+from vdo.model.camera import Camera, look_at_angles
+from vdo.dic.correlate import (AverageReference, Gradient, ImageReference, Patch, PixelIntegration, Q4,
                            Solver, SplineImage, TextureReference, correlate, integration_points)
-from vdo.speckle import generate_pattern
+from vdo.model.speckle import generate_pattern
 
 TEXEL = 25e-6                    # 4 texels per pixel footprint
 DOT = 0.45e-3                    # 4.5 px in the images

@@ -13,15 +13,17 @@ import numpy as np
 import pytest
 
 from conftest import SLIDING_SHUTTER
-from vdo import config, design, objective
-from vdo.errors import ConfigError
-from vdo.keyframes import load_path_of
-from vdo.lighting import illuminate
-from vdo.predict import samples_for_objective, settings, view_data
+from vdo import objective
+from vdo.config import experiment as config
+from vdo.design import select as design
+from vdo.core.errors import ConfigError
+from vdo.geometry.keyframes import load_path_of
+from vdo.physics.lighting import illuminate
+from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.scene import build_scene
 from vdo.state import prepare
-from vdo.loadpath import keyframe_steps
-from vdo.visibility import compute_visibility
+from vdo.search.loadpath import keyframe_steps
+from vdo.physics.visibility import compute_visibility
 
 DESIGN = """
 [design]

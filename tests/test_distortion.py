@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA
-from vdo import config
-from vdo.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project, rotation,
+from vdo.config import experiment as config
+from vdo.model.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project, rotation,
                         sensitivity)
-from vdo.errors import ConfigError
+from vdo.core.errors import ConfigError
 
 RNG = np.random.default_rng(11)
 LENSES = [(-0.25, 0.08, 0.0, 0.0, -0.01),            # barrel, radial only
@@ -131,7 +131,7 @@ def test_rendered_marker_lands_on_distorted_projection(position, roll, offset, d
     """A bright sphere (4 mm, ~3 px radius) far from the principal point, where the distortion
     moves it by more than a pixel: its intensity centroid in `render_camera`'s image is within
     0.05 px of the distorted projection of its centre."""
-    from vdo.backend import mitsuba
+    from vdo.core.backend import mitsuba
     from vdo.render import render_camera
 
     mi = mitsuba()
@@ -155,7 +155,8 @@ def test_rendered_marker_lands_on_distorted_projection(position, roll, offset, d
 def test_visibility_uses_the_distorted_image(plate_experiment):
     """Barrel distortion pulls the plate's far points into the frame: the ray cast's in-image test
     agrees with `Camera.project` (float32 there: points within 0.01 px of an edge may differ)."""
-    from vdo import scene, visibility
+    from vdo import scene
+    from vdo.physics import visibility
 
     cams = """
 [[camera]]

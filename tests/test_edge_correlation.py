@@ -1,5 +1,5 @@
-"""A DIC patch at the edge of the speckled surface: the clipped-patch prediction (`vdo.usable`)
-against correlation on renders (`vdo.validate`'s renderer and correlation).
+"""A DIC patch at the edge of the speckled surface: the clipped-patch prediction (`vdo.physics.usable`)
+against correlation on renders (`vdo.dic.validate`'s renderer and correlation).
 
 A stereo pair (25 deg apart) looks at a plate that ends 0.6 mm from the centre X0 of a nominal
 6 mm patch: only 60 % of the patch square lies on the plate. vdo predicts sigma at X0 from the
@@ -18,11 +18,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from vdo import validate as V
-from vdo.lighting import illuminate
-from vdo.predict import predict
+from vdo.dic import validate as V
+from vdo.physics.lighting import illuminate
+from vdo.physics.predict import predict
 from vdo.scene import SceneMesh, SurfaceSamples, build_scene, region_faces, sample_region
-from vdo.visibility import compute_visibility
+from vdo.physics.visibility import compute_visibility
 
 SEEDS = 160
 L, PHI, SPACING = 6e-3, 0.6, 0.4e-3

@@ -1,4 +1,4 @@
-"""Usable views and the DIC patch clipped at edges (`vdo.usable`), on the holed-plate experiment
+"""Usable views and the DIC patch clipped at edges (`vdo.physics.usable`), on the holed-plate experiment
 (experiments/holed_plate, meshes rebuilt here by its make_meshes.py) and on synthetic grids.
 
 Checked against things vdo does not compute: the exact area of a square clipped by a straight
@@ -16,9 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vdo import config, objective, usable
-from vdo.evaluate import evaluate
-from vdo.predict import predict, samples_for_objective, settings, view_data
+from vdo import objective
+from vdo.config import experiment as config
+from vdo.physics import usable
+from vdo.commands.evaluate import evaluate
+from vdo.physics.predict import predict, samples_for_objective, settings, view_data
 from vdo.scene import SurfaceSamples
 from vdo.state import layout_state, prepare
 

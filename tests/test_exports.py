@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vdo import cli, config, report
-from vdo.errors import ConfigError
-from vdo.formats.export import export
+from vdo.commands import cli
+from vdo.config import experiment as config
+from vdo.outputs import report
+from vdo.core.errors import ConfigError
+from vdo.commands.export import export
 
 CAMERAS = """
 [[camera]]
@@ -292,7 +294,8 @@ def test_unsafe_camera_name_is_refused(plate_experiment, tmp_path):
     # a run folder's layout.json is not checked by the config: the export refuses the name itself
     import json
 
-    from vdo import config, report
+    from vdo.config import experiment as config
+    from vdo.outputs import report
 
     run = tmp_path / "run"
     run.mkdir()

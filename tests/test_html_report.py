@@ -14,9 +14,10 @@ import trimesh
 from PIL import Image
 
 from conftest import DOWN_CAMERA, PLATE_TOML, write_box
-from vdo import view3d, vtp
-from vdo.cli import main
-from vdo.html_report import write_report
+from vdo.outputs import view3d
+from vdo.core import vtp
+from vdo.commands.cli import main
+from vdo.outputs.html_report import write_report
 
 CHROMIUM = shutil.which("chromium")
 
@@ -131,7 +132,9 @@ def test_frustum_corners_project_to_the_image_corners_in_opencv(run):
 def test_cells_from_the_run_folder_are_the_samplers(run):
     """The 3D view rebuilds each sample's cell from samples.vtp: it matches the cell of the sample
     as vdo's sampler made it, up to the lift off the face; the static figure shows it."""
-    from vdo import config, maps, scene
+    from vdo import scene
+    from vdo.config import experiment as config
+    from vdo.outputs import maps
 
     sc = view3d.load(run)
     exp = config.load(run / "config.toml")

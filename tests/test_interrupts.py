@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from conftest import DOWN_CAMERA
-from vdo.interrupts import GRACE_S
+from vdo.core.interrupts import GRACE_S
 
 ROOT = Path(__file__).resolve().parent.parent
 PROMPT_S = GRACE_S + 1.5   # the watchdog's grace plus the process's own exit
@@ -49,7 +49,7 @@ class Run:
             time.sleep(0.01)
 
     def signal_and_wait(self, signum):
-        self.err_before_signal = len(self.err)   # what the command logged before (vdo.cli)
+        self.err_before_signal = len(self.err)   # what the command logged before (vdo.commands.cli)
         self.proc.send_signal(signum)
         sent = time.monotonic()
         self.proc.wait(timeout=30)
@@ -138,7 +138,7 @@ for m in pkgutil.iter_modules(vdo.__path__):
         importlib.import_module("vdo." + m.name)
 assert not jax.config.jax_enable_x64, "x64 set at import"
 assert matplotlib.rcParams._get_backend_or_none() == backend, "matplotlib backend set at import"
-from vdo.camera import Camera
+from vdo.model.camera import Camera
 make = lambda: Camera("c", 640, 480, 5e-6, 0.025, [0.0, 0.0, 1.0], 0.0, -1.5)
 try:
     make()
@@ -157,7 +157,7 @@ print(make().project([[0.0, 0.0, 0.0]]).dtype)
 
 
 def test_settings_live_only_in_configure():
-    """No module but vdo/configure.py changes JAX's configuration or matplotlib's backend."""
+    """No module but vdo/core/configure.py changes JAX's configuration or matplotlib's backend."""
     pattern = re.compile(r"jax\.config\.update|matplotlib\.use\(")
     hits = [f"{p.relative_to(ROOT)}:{n}" for p in sorted((ROOT / "vdo").rglob("*.py"))
             for n, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
@@ -166,8 +166,8 @@ def test_settings_live_only_in_configure():
 
 SCRIPT = """
 import gc, sys, time
-from vdo import interrupts
-from vdo.runfolder import run_folder
+from vdo.core import interrupts
+from vdo.core.runfolder import run_folder
 interrupts.install()
 try:
     with run_folder(sys.argv[1]) as tmp:

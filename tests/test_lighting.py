@@ -7,10 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from vdo import lighting, scene
-from vdo.config import LightSpec, SpeckleSpec
+from vdo import scene
+from vdo.physics import lighting
+from vdo.config.experiment import LightSpec, SpeckleSpec
 from vdo.scene import SceneMesh, SurfaceSamples
-from vdo.sensor import SensorModel
+from vdo.model.sensor import SensorModel
 
 
 def samples_at(points, normal=(0, 0, 1)):

@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from conftest import write_box
-from vdo.errors import ConfigError
-from vdo.keyframes import LoadPath, Pose, at_step, read_displacements, read_poses, rotation_xyz
+from vdo.core.errors import ConfigError
+from vdo.geometry.keyframes import LoadPath, Pose, at_step, read_displacements, read_poses, rotation_xyz
 
 SHUTTER = """
 [[mesh]]
@@ -75,7 +75,7 @@ def test_radians_in_degree_columns_are_warned(tmp_path, caplog):
 
 
 def test_deformed_plate_samples_follow_a_linear_field(plate_experiment, tmp_path):
-    from vdo import config
+    from vdo.config import experiment as config
     from vdo.state import prepare
 
     geometry = prepare(config.load(plate_experiment(spacing=100)))
@@ -102,8 +102,8 @@ def test_camera_loses_the_region_at_the_step_the_geometry_says(plate_experiment,
     (0, 0, 1.5) looks down at the 1 m plate: its rays cross z = 0.75 at x/2, |x/2| <= 0.25. The
     shutter's near edge is at 2.4 - 0.5 k: at step 4 (0.4) it hides nothing; at step 5 (-0.1) it
     hides every plate point with x > -0.2, 70 % of the plate: the camera loses it at step 5."""
-    from vdo import config
-    from vdo.loadpath import evaluate_load_path
+    from vdo.config import experiment as config
+    from vdo.search.loadpath import evaluate_load_path
     from vdo.state import prepare
 
     write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
@@ -126,9 +126,9 @@ def test_a_path_that_returns_to_a_pose_is_judged_as_each_of_its_steps(plate_expe
     again), then turns about its own centre. Steps that repeat a geometry share its key (the
     identity has the rest key), and the judgement of every step equals a layout state computed
     at that step on its own."""
-    from vdo import config
-    from vdo.keyframes import at_step
-    from vdo.loadpath import evaluate_load_path
+    from vdo.config import experiment as config
+    from vdo.geometry.keyframes import at_step
+    from vdo.search.loadpath import evaluate_load_path
     from vdo.state import layout_state, prepare
 
     write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
@@ -156,8 +156,8 @@ def test_evaluate_over_the_load_path_names_the_loss_and_writes_the_worst_case(pl
     load_path.csv, the worst-case arrays and maps."""
     import json
 
-    from vdo import cli
-    from vdo.vtp import read_points
+    from vdo.commands import cli
+    from vdo.core.vtp import read_points
 
     write_box(tmp_path / "shutter.stl", [1200, 1200, 10], [3000, 0, 750])
     rows = ["step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]

@@ -8,7 +8,9 @@ import pytest
 from PIL import Image
 
 from conftest import write_box
-from vdo import config, maps, scene
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.outputs import maps
 
 PLATE = """
 [experiment]

@@ -1,4 +1,4 @@
-"""`vdo.memory.retain_freed_memory`: a large block freed and allocated again no longer faults its
+"""`vdo.core.memory.retain_freed_memory`: a large block freed and allocated again no longer faults its
 pages in again (counted by the kernel, `getrusage`), in a fresh process as the command line uses it."""
 
 import subprocess
@@ -13,7 +13,7 @@ SCRIPT = """
 import resource, sys
 import numpy as np
 if sys.argv[1] == "retain":
-    from vdo.memory import retain_freed_memory
+    from vdo.core.memory import retain_freed_memory
     assert retain_freed_memory()
 faults = []
 for _ in range(5):

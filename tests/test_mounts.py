@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, write_box
-from vdo import config, report
-from vdo.errors import ConfigError
+from vdo.config import experiment as config
+from vdo.outputs import report
+from vdo.core.errors import ConfigError
 from vdo.optimize import Parameterization
 
 MOUNTS = """
@@ -179,7 +180,7 @@ def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
     """A pentagon floor zone: θ0 reproduces the configured position (mean value coordinates),
     any θ stays over the polygon (half-plane test) and within the heights, and the derivative
     matches finite differences."""
-    from vdo.config import inside_floor
+    from vdo.config.experiment import inside_floor
 
     exp = config.load(write(tmp_path, MOUNTS + FLOOR, FLOOR_CAMERA))
     param = Parameterization(exp, exp.cameras(), np.zeros(3))

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from vdo import objective as ob
-from vdo.camera import intrinsic_matrix, look_at_angles, project, rotation, sensitivity
-from vdo.speckle import generate_pattern, gradient_energy_table, normalise
+from vdo.model.camera import intrinsic_matrix, look_at_angles, project, rotation, sensitivity
+from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise
 
 GAUSS = ob.GaussianFieldEnergy(0.6e-3)  # smooth closed-form G
 
@@ -110,7 +110,7 @@ def test_sensitivity_and_footprint_match_finite_differences_of_project():
 
 def test_distorted_pixel_and_sensitivity_match_opencv_and_the_camera_model():
     """With lens distortion: the pixels against cv2.projectPoints, the sensitivity against
-    `vdo.camera.sensitivity` and against OpenCV's Jacobian of the pixel with respect to the
+    `vdo.model.camera.sensitivity` and against OpenCV's Jacobian of the pixel with respect to the
     translation (d x / d t = d x / d X_c, so d x / d X = (d x / d t) R)."""
     import cv2
 

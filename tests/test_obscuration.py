@@ -1,4 +1,4 @@
-"""Differentiable obscuration (vdo.obscuration): value against an independent ray-box computation,
+"""Differentiable obscuration (vdo.search.obscuration): value against an independent ray-box computation,
 gradient against central finite differences of the same rendered quantity, the JAX bridge.
 
 Scene: a 0.4 m square plate (its top face at z = 0 is the region), a 0.03 x 0.6 x 0.03 m bar at
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from vdo.camera import Camera, look_at_angles, rotation
-from vdo.obscuration import ObscurationRenderer, camera_theta
+from vdo.model.camera import Camera, look_at_angles, rotation
+from vdo.search.obscuration import ObscurationRenderer, camera_theta
 from vdo.scene import SceneMesh
 
 BAR_CENTER = np.array([0.25, 0.18, 0.5])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, aimed_camera, write_box
-from vdo import config
+from vdo.config import experiment as config
 from vdo.constraints import stereo_min_angle
 from vdo.optimize import MU0, Parameterization, optimize
 
@@ -204,7 +204,7 @@ def test_lens_catalogue_keeps_the_longest_lens_that_still_holds_the_plate(tmp_pa
 
 
 def test_lens_without_a_catalogue_is_a_config_error(tmp_path):
-    from vdo.errors import ConfigError
+    from vdo.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r'optimize.free: lists "lens" but no lenses_mm'):
         lens_experiment(tmp_path, "").optimize
@@ -284,7 +284,7 @@ def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, cap
 
 @pytest.mark.parametrize("limit", ["0", "-5"])
 def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit):
-    from vdo.cli import main
+    from vdo.commands.cli import main
 
     cams = aimed_camera("a", 0.48)
     experiment(tmp_path, cams, ["a"])

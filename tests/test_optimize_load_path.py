@@ -2,7 +2,7 @@
 optimised at rest moves camera `a` where the shutter hides the plate at step 2; optimised over the
 path (`[optimize] load_path`, the default when the experiment has a `[load_path]`), it keeps the
 plate seen by both cameras at every step. Both are judged at every step by
-`vdo.loadpath.evaluate_load_path` (summary_after.json), which knows nothing of the optimizer.
+`vdo.search.loadpath.evaluate_load_path` (summary_after.json), which knows nothing of the optimizer.
 
 Geometry (metres): the 0.6 m plate at z = 0; cameras on the rail at z = 1.2, `b` fixed at x = -0.6,
 `a` free from x = 0.3 (a 41-degree stereo angle; the score gains from a wider one, so the rest
@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, SLIDING_SHUTTER, aimed_camera, write_box
-from vdo import config, loadpath
-from vdo.camera import look_at_angles
-from vdo.keyframes import load_path_of
-from vdo.loadpath import keyframe_steps, path_occlusion
+from vdo.config import experiment as config
+from vdo.search import loadpath
+from vdo.model.camera import look_at_angles
+from vdo.geometry.keyframes import load_path_of
+from vdo.search.loadpath import keyframe_steps, path_occlusion
 from vdo.optimize import optimize
 from vdo.state import prepare
 

@@ -10,10 +10,10 @@ from vtk import vtkXMLPolyDataReader
 from vtk.util.numpy_support import vtk_to_numpy
 
 from conftest import DOWN_CAMERA, write_plate_experiment
-from vdo import config
-from vdo.cli import main
-from vdo.maps import unfold
-from vdo.runfolder import run_folder
+from vdo.config import experiment as config
+from vdo.commands.cli import main
+from vdo.outputs.maps import unfold
+from vdo.core.runfolder import run_folder
 from vdo.scene import SurfaceSamples, face_frame
 
 
@@ -52,7 +52,7 @@ def test_samples_vtp_reads_in_vtk_and_agrees_with_summary(run):
     assert n_verts == len(points) == 10_000
     assert {"normal", "region", "area", "coverage", "visible_a", "visible_b", "sensitivity_x",
             "sensitivity_y", "sensitivity_z", "sigma_max", "sigma_x", "sigma_y", "sigma_z"} <= set(arrays)
-    # coverage counts the usable views (vdo.usable), each of them a view the ray cast found clear
+    # coverage counts the usable views (vdo.physics.usable), each of them a view the ray cast found clear
     np.testing.assert_array_equal(arrays["coverage"], arrays["usable_a"] + arrays["usable_b"])
     assert np.all(arrays["usable_a"] <= arrays["visible_a"]) and np.all(arrays["usable_b"] <= arrays["visible_b"])
     summary = json.loads((out / "summary.json").read_text())

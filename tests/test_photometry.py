@@ -10,9 +10,9 @@ import pytest
 from scipy import ndimage
 
 from conftest import DOWN_CAMERA
-from vdo import config
-from vdo.render_command import render_experiment
-from vdo.speckle import generate_pattern, normalise, pixel_averaged_std
+from vdo.config import experiment as config
+from vdo.commands.render import render_experiment
+from vdo.model.speckle import generate_pattern, normalise, pixel_averaged_std
 
 
 @pytest.mark.parametrize("side_texels, skew", [(4, 0.0), (16, 0.0), (8, 0.5)])
@@ -40,8 +40,8 @@ def test_pixel_averaged_std_matches_a_direct_box_average(side_texels, skew):
 def test_block_summed_spectrum_matches_the_full_sum():
     """A 1024-texel tile is summed over 4 x 4 frequency blocks: within 5e-4 of the full sum over
     every frequency, for parallelogram footprints of 0.1 to 9 mm."""
-    from vdo.config import SpeckleSpec
-    from vdo.speckle import pattern_for
+    from vdo.config.experiment import SpeckleSpec
+    from vdo.model.speckle import pattern_for
 
     sp = SpeckleSpec()
     f = normalise(pattern_for(sp))

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA, raycast
-from vdo import lighting
-from vdo.predict import predict, speckle_model
+from vdo.physics import lighting
+from vdo.physics.predict import predict, speckle_model
 
 LIGHT = """
 [[light]]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from vdo.rail import Rail
+from vdo.model.rail import Rail
 
 
 def test_polyline_is_piecewise_linear_with_uniform_knots():

@@ -4,7 +4,9 @@ before any optimization; a region both rail cameras see is not."""
 import logging
 
 from conftest import PLATE_TOML, aimed_camera, write_box
-from vdo import config, reachability, scene
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.search import reachability
 
 BOTTOM = """
 [[region]]

@@ -14,11 +14,14 @@ from PIL import Image
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from vdo import config, lighting, scene, visibility
-from vdo.cli import main
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.physics import lighting
+from vdo.physics import visibility
+from vdo.commands.cli import main
 from vdo.render import build_render_scene, camera_sensor, expose, render_linear, scaled_camera
-from vdo.render_command import render_experiment
-from vdo.speckle import pattern_for
+from vdo.commands.render import render_experiment
+from vdo.model.speckle import pattern_for
 from vdo.scene import SurfaceSamples
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -14,11 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vdo import evaluate as evaluate_module
-from vdo.cli import main
-from vdo.errors import ConfigError
-from vdo.interrupts import Interrupted
-from vdo.runfolder import check_out, inside, remove_stale_partials, run_folder
+from vdo.commands import evaluate as evaluate_module
+from vdo.commands.cli import main
+from vdo.core.errors import ConfigError
+from vdo.core.interrupts import Interrupted
+from vdo.core.runfolder import check_out, inside, remove_stale_partials, run_folder
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -128,7 +128,7 @@ def test_stale_partials_of_dead_processes_removed(tmp_path, plate_experiment, ca
 def test_partial_left_by_sigkill_is_removed_by_the_next_run(tmp_path):
     """A process killed with SIGKILL inside `run_folder` leaves its hidden folder; the next
     `check_out` into the same parent removes it."""
-    script = ("import sys, time\nfrom vdo.runfolder import run_folder\n"
+    script = ("import sys, time\nfrom vdo.core.runfolder import run_folder\n"
               "with run_folder(sys.argv[1]) as tmp:\n"
               "    (tmp / 'half.json').write_text('{')\n    print('ready', flush=True)\n"
               "    time.sleep(60)\n")

@@ -1,4 +1,4 @@
-"""Tests for vdo.sensor: the EMVA 1288 noise model, saturation, determinism, JAX, image files."""
+"""Tests for vdo.model.sensor: the EMVA 1288 noise model, saturation, determinism, JAX, image files."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from vdo.sensor import SensorModel, save_image
+from vdo.model.sensor import SensorModel, save_image
 
 SHAPE = (256, 256)
 FILLS = (0.05, 0.2, 0.4, 0.6, 0.75, 0.9)  # fraction of full well (mean electrons)

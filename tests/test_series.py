@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vdo import checks, cli, config
-from vdo.errors import ConfigError
+from vdo.physics import checks
+from vdo.commands import cli
+from vdo.config import experiment as config
+from vdo.core.errors import ConfigError
 from vdo.render import scaled_camera
-from vdo.keyframes import load_path_of
-from vdo.series import render_series
+from vdo.geometry.keyframes import load_path_of
+from vdo.dic.series import render_series
 
 CAMERA = """
 [[camera]]
@@ -116,8 +118,8 @@ def test_bad_motion_files_are_one_clear_line(plate_experiment, tmp_path, capsys,
 vtk = pytest.importorskip("vtk")
 from vtk.util.numpy_support import numpy_to_vtk  # noqa: E402
 
-from vdo.keyframes import at_step, surface_distance  # noqa: E402
-from vdo.vtkxml import read_points  # noqa: E402
+from vdo.geometry.keyframes import at_step, surface_distance  # noqa: E402
+from vdo.core.vtkxml import read_points  # noqa: E402
 
 # how FE exporters and ParaView write XML VTK: (data mode, base64 appended, compressor, header, order)
 WRITER_MODES = {
@@ -346,7 +348,7 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
 # (scale 1), measured by vdo's correlation on the exported TIFFs; the error split into the bias
 # (the same correlation on the noise-free .exr images) and the sensor-noise part, which sqrt(2)
 # sigma predicts. At the built-in's reduced render scale 0.25 the speckle's edges alias and the
-# bias is several sigma (docs/exports.md); vdo.checks' interpolation floor flags that (tested in
+# bias is several sigma (docs/exports.md); vdo.physics.checks' interpolation floor flags that (tested in
 # test_checks / test_speckle), and at scale 1 it does not.
 # --------------------------------------------------------------------------------------------
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
@@ -355,7 +357,7 @@ BIAS_FLOOR_PX = 0.005          # the correlation's interpolation bias at the cam
                                # (docs/exports.md: measured 0.0006-0.0022 px at scale 1)
 CALIBRATION_PX = 1e-6
 RENDERED_UM = 0.5              # the rendered field (moved samples) against the closed form
-INTERPOLATION_NOISE = 2.0      # vdo.checks' flag: interpolation error over sensor noise
+INTERPOLATION_NOISE = 2.0      # vdo.physics.checks' flag: interpolation error over sensor noise
 
 
 @pytest.mark.slow
@@ -378,7 +380,7 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
     assert result["series"]["scale"] == 1.0
     assert result["calibration_px"] < CALIBRATION_PX
     assert example["BIAS_FLOOR_PX"] == BIAS_FLOOR_PX and example["N_SIGMA"] == N_SIGMA
-    from vdo import checks
+    from vdo.physics import checks
     assert checks.INTERPOLATION_NOISE == INTERPOLATION_NOISE
     for r in rows:
         assert r["converged"], r

@@ -1,4 +1,4 @@
-"""Tests for vdo.speckle: pattern generation, loading, and the gradient-energy tables.
+"""Tests for vdo.model.speckle: pattern generation, loading, and the gradient-energy tables.
 
 The energies are checked against direct measurements on blurred images: the normalised pattern is
 blurred in the spatial domain (scipy.ndimage.gaussian_filter, mode="wrap") and differentiated
@@ -20,7 +20,7 @@ from PIL import Image
 from scipy import ndimage
 from scipy.interpolate import RegularGridInterpolator
 
-from vdo.speckle import (GradientEnergyTable, g_aniso_lookup, g_iso_lookup, generate_pattern,
+from vdo.model.speckle import (GradientEnergyTable, g_aniso_lookup, g_iso_lookup, generate_pattern,
                          gradient_energy_table, interpolation_error, load_pattern, normalise)
 
 H = 1e-4  # texel [m]
@@ -333,7 +333,7 @@ def test_g_iso_non_square_odd_image(shape):
 
 
 # --------------------------------------------------------------------------------------------
-# Interpolation error of the box-pixel image (the correlation's floor, vdo.checks)
+# Interpolation error of the box-pixel image (the correlation's floor, vdo.physics.checks)
 # --------------------------------------------------------------------------------------------
 INTERPOLATION_REL = 0.02       # spectral sum against the images (midpoint box, 16 x 16 points)
 

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from conftest import PLATE_TOML, aimed_camera, write_box
-from vdo import config, constraints
-from vdo.errors import ConfigError
-from vdo.evaluate import evaluate
+from vdo import constraints
+from vdo.config import experiment as config
+from vdo.core.errors import ConfigError
+from vdo.commands.evaluate import evaluate
 from vdo.optimize import optimize
 
 TAIL = """
@@ -122,7 +123,7 @@ def test_camera_lens_catalogue_is_read_and_satisfies_a_free_lens(tmp_path):
 
 def test_evaluate_warns_of_a_3_degree_pair(tmp_path, caplog):
     """Cameras 6 cm apart at 1.2 m, both aimed at the plate centre: 2.9 deg between their axes,
-    below the 24 mm rule of thumb (21.1 deg): evaluate says so (a warning of the vdo.evaluate
+    below the 24 mm rule of thumb (21.1 deg): evaluate says so (a warning of the vdo.commands.evaluate
     logger) and summary.json records it."""
     summary = evaluate(config.load(write(tmp_path, u=(0.485, 0.515))), tmp_path / "run")
     out = caplog.text

@@ -1,4 +1,4 @@
-"""vdo.strain against things we did not write: the finite Q4 mesh solved as a matrix (the
+"""vdo.physics.strain against things we did not write: the finite Q4 mesh solved as a matrix (the
 infinite-mesh constant comes from a Fourier integral), the virtual strain gauge against an exact
 pixel-level least-squares propagation (no overlap kernel), the strain combination against Monte
 Carlo; the [analysis] config errors name their field."""
@@ -11,8 +11,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from vdo import config, strain
-from vdo.errors import ConfigError
+from vdo.config import experiment as config
+from vdo.physics import strain
+from vdo.core.errors import ConfigError
 
 
 def test_q4_interior_element_matches_a_large_finite_mesh():
@@ -145,7 +146,7 @@ def test_evaluate_writes_strain_sigma_and_design_checks(plate_experiment, tmp_pa
 
     from conftest import DOWN_CAMERA
     from test_outputs import read_vtp
-    from vdo.cli import main
+    from vdo.commands.cli import main
 
     cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
     path = plate_experiment(spacing=50, cameras=cams + "\n[render]\nambient_radiance = 1.0\n"

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from vdo.errors import ConfigError
-from vdo.sweep import _run_local, combinations, expand, load_sweep, pareto_front, split_path, sweep
+from vdo.core.errors import ConfigError
+from vdo.commands.sweep import _run_local, combinations, expand, load_sweep, pareto_front, split_path, sweep
 
 ROOT = Path(__file__).resolve().parent.parent
 HEIGHT = 1.5        # m, the rail above the plate's top face (z = 0)
@@ -82,7 +82,7 @@ def without_times(rows):
 
 def footprint_fractions(focal_mm: float) -> tuple[float, float]:
     """Plate area fractions inside >= 1 and both usable square footprints (closed form). A view
-    is usable where its image-edge weight S((u + 1/2) / m) >= 1/2 (`vdo.usable`), i.e. m/2 pixels
+    is usable where its image-edge weight S((u + 1/2) / m) >= 1/2 (`vdo.physics.usable`), i.e. m/2 pixels
     inside each image edge: the footprint loses m of its 300 pixels per side."""
     from vdo.objective import Settings
 

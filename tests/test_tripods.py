@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 
 from conftest import write_box
-from vdo import config, lighting
-from vdo.errors import ConfigError
+from vdo.config import experiment as config
+from vdo.physics import lighting
+from vdo.core.errors import ConfigError
 from vdo.scene import TRIPOD_SECTIONS, tripod_cylinders
 from vdo.state import layout_state, prepare
-from vdo.visibility import EPSILON
+from vdo.physics.visibility import EPSILON
 
 TRIPOD = """
 [mount.tripod]
@@ -137,7 +138,7 @@ def hidden_by_tripod(cylinders, origins, ends, scale, slack):
 
 
 def sight_lines(state, camera):
-    """The visibility rays of `camera` (`vdo.visibility`): from each sample lifted by EPSILON
+    """The visibility rays of `camera` (`vdo.physics.visibility`): from each sample lifted by EPSILON
     along its normal to EPSILON short of the optical centre."""
     s = state.samples
     origins = s.points + EPSILON * s.normals
@@ -339,9 +340,10 @@ def test_prisms_are_closed_outward_and_inscribed():
 
 
 def test_the_run_in_3d_draws_each_tripod(tmp_path):
-    """`vdo.view3d.load` (report.html, view3d_*.png) draws one mesh per tripod, at the camera's
+    """`vdo.outputs.view3d.load` (report.html, view3d_*.png) draws one mesh per tripod, at the camera's
     pose in the run's config.toml."""
-    from vdo import report, view3d
+    from vdo.outputs import report
+    from vdo.outputs import view3d
     from vdo.scene import tripods
 
     exp = config.load(write(tmp_path))

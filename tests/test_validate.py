@@ -1,4 +1,4 @@
-"""`vdo validate`, reduced: the predicted uncertainty (vdo.predict) against correlation on renders.
+"""`vdo validate`, reduced: the predicted uncertainty (vdo.physics.predict) against correlation on renders.
 
 Two small cases (a stereo pair 25 deg apart on a frontal plate, and three cameras around a plate
 tilted 30 deg), 120 x 90 images, 160 noise seeds each, deterministic. Statistics, stated so that
@@ -19,9 +19,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from vdo import validate as V
-from vdo.validate_command import validate_cases
-from vdo.errors import ConfigError
+from vdo.dic import validate as V
+from vdo.commands.validate import validate_cases
+from vdo.core.errors import ConfigError
 
 SEEDS = 160
 
@@ -139,7 +139,7 @@ def test_config_errors_name_the_field(tmp_path, edit, field):
 
 
 # --------------------------------------------------------------------------------------------
-# Strain: a homogeneous strain imposed on the rendered plate, one Q4 element, vdo.strain's sigma
+# Strain: a homogeneous strain imposed on the rendered plate, one Q4 element, vdo.physics.strain's sigma
 # --------------------------------------------------------------------------------------------
 STRAIN_SEEDS = 100
 STRAIN_TOML = TOML.replace('[[case]]\nname = "stereo"', '[[case]]\nname = "stereo"\n'
@@ -158,7 +158,7 @@ def strain_result(tmp_path_factory):
 
 def test_strain_scatter_matches_the_derived_sigma(strain_result):
     """The measured strain sigma over 100 seeds (relative sampling error 1/sqrt(2 x 99) = 7 %)
-    against sqrt(2) x vdo.strain's prediction for one Q4 element (F = 12 / h^4), per component
+    against sqrt(2) x vdo.physics.strain's prediction for one Q4 element (F = 12 / h^4), per component
     (eps_uu, eps_vv, eps_uv) in [0.8, 1.25]; the correlation's own linear propagation agrees with
     the prediction within 5 % (the same information, computed from the images' gradients)."""
     rows = strain_result.rows
@@ -201,7 +201,7 @@ def test_subset_strain_scatter_matches_the_virtual_strain_gauge(tmp_path):
     overlapping subsets as independent would predict a sigma 1.48x smaller (ratio ~1.5)."""
     import math as m
 
-    from vdo import strain
+    from vdo.physics import strain
     path = tmp_path / "subsets.toml"
     path.write_text(textwrap.dedent(SUBSET_TOML))
     case = V.load(path).cases[0]

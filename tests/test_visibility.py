@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA, raycast
-from vdo import visibility
+from vdo.physics import visibility
 
 H = 1.5          # camera height above the plate (m)
 CELL = 0.01      # sample spacing (m)

@@ -11,7 +11,7 @@ The public API (names are imported on first use, so `import vdo` stays light)::
     vdo.write_evaluation(state, "runs/eval")  # the run folder of `vdo evaluate`
 
 `vdo.evaluate_experiment`, `vdo.render_experiment`, `vdo.optimize_experiment` and
-`vdo.validate_cases` are the commands as functions (each writes a run folder; `vdo.evaluate`,
+`vdo.validate_cases` are the commands as functions (each writes a run folder; `vdo.commands.evaluate`,
 `vdo.render`, ... are the modules); `vdo.render_images` and `vdo.run_validation` compute without
 writing, `vdo.write_render` and `vdo.write_validation` write what they return. See docs/api.md.
 """
@@ -21,37 +21,37 @@ from __future__ import annotations
 import importlib
 import logging
 
-from .configure import configure   # a name, not the submodule: imported here on purpose
+from vdo.core.configure import configure   # a name, not the submodule: imported here on purpose
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 _EXPORTS = {
-    "load": ("vdo.config", "load"),
-    "parse": ("vdo.config", "parse"),
-    "Experiment": ("vdo.config", "Experiment"),
-    "ConfigError": ("vdo.errors", "ConfigError"),
-    "Camera": ("vdo.camera", "Camera"),
+    "load": ("vdo.config.experiment", "load"),
+    "parse": ("vdo.config.experiment", "parse"),
+    "Experiment": ("vdo.config.experiment", "Experiment"),
+    "ConfigError": ("vdo.core.errors", "ConfigError"),
+    "Camera": ("vdo.model.camera", "Camera"),
     "prepare": ("vdo.state", "prepare"),
     "layout_state": ("vdo.state", "layout_state"),
     "Geometry": ("vdo.state", "Geometry"),
     "LayoutState": ("vdo.state", "LayoutState"),
-    "Prediction": ("vdo.predict", "Prediction"),
-    "Visibility": ("vdo.visibility", "Visibility"),
-    "summary": ("vdo.report", "state_summary"),
-    "evaluate_experiment": ("vdo.evaluate", "evaluate"),
-    "write_evaluation": ("vdo.evaluate", "write_evaluation"),
+    "Prediction": ("vdo.physics.predict", "Prediction"),
+    "Visibility": ("vdo.physics.visibility", "Visibility"),
+    "summary": ("vdo.outputs.report", "state_summary"),
+    "evaluate_experiment": ("vdo.commands.evaluate", "evaluate"),
+    "write_evaluation": ("vdo.commands.evaluate", "write_evaluation"),
     "render_images": ("vdo.render", "render_images"),
     "RenderResult": ("vdo.render", "RenderResult"),
-    "render_experiment": ("vdo.render_command", "render_experiment"),
-    "write_render": ("vdo.render_command", "write_render"),
+    "render_experiment": ("vdo.commands.render", "render_experiment"),
+    "write_render": ("vdo.commands.render", "write_render"),
     "optimize_experiment": ("vdo.optimize", "optimize"),
-    "load_validation": ("vdo.validate", "load"),
-    "run_validation": ("vdo.validate", "run_cases"),
-    "ValidationResult": ("vdo.validate", "ValidationResult"),
-    "validate_cases": ("vdo.validate_command", "validate_cases"),
-    "write_validation": ("vdo.validate_command", "write_validation"),
+    "load_validation": ("vdo.dic.validate", "load"),
+    "run_validation": ("vdo.dic.validate", "run_cases"),
+    "ValidationResult": ("vdo.dic.validate", "ValidationResult"),
+    "validate_cases": ("vdo.commands.validate", "validate_cases"),
+    "write_validation": ("vdo.commands.validate", "write_validation"),
 }
-# The command functions carry a suffix: `vdo.evaluate`, `vdo.render`, ... are the modules.
+# The command functions carry a suffix: `vdo.commands.evaluate`, `vdo.render`, ... are the modules.
 
 __all__ = sorted(_EXPORTS) + ["configure"]
 

@@ -10,7 +10,7 @@ JAX, and exact checks for the report.
                 `[[stereo_pair]]` its own [min_angle_deg, max_angle_deg] (default
                 max: the minimum + 20 deg, e.g. 15-35 deg for 35 mm lenses), `angle_limits`;
 * obscuration:  no obstacle (bars, machine, lights, other camera bodies) masks more than
-                `max_obscuration` of an assigned region's image (`vdo.obscuration` differentiates
+                `max_obscuration` of an assigned region's image (`vdo.search.obscuration` differentiates
                 it through Mitsuba; the report counts blocked rays);
 * field of view: an assigned region keeps in the image at least what the hand layout had of it
                 (minus 1 %, and at most 1 - max_obscuration is required);
@@ -31,10 +31,10 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .camera import image_point, to_camera
-from .objective import smoothstep
-from .scene import SurfaceSamples
-from .visibility import Visibility
+from vdo.model.camera import image_point, to_camera
+from vdo.objective import smoothstep
+from vdo.scene import SurfaceSamples
+from vdo.physics.visibility import Visibility
 
 
 def stereo_min_angle(focal_length: float) -> float:
@@ -91,7 +91,7 @@ def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.nda
     set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
     when they are (min: the pair's, or the rule of thumb; max: the pair's, or that minimum +
     STEREO_SPAN_DEG)."""
-    from .config import STEREO_SPAN_DEG
+    from vdo.config.experiment import STEREO_SPAN_DEG
 
     opt = exp.optimize
     index = {c.name: i for i, c in enumerate(cameras)}
@@ -144,7 +144,7 @@ def in_image_fraction(K, R, t, width, height, camera, points, area, ramp, distor
     the image, so that the fraction varies smoothly as the edge sweeps over the samples) and S the
     C^2 smoothstep: 1/2 on the edge itself, so that on a region that the edge crosses the smooth
     fraction equals the exact one to O(r^2); points behind the camera count 0. The pixel is the
-    camera's (`vdo.camera.image_point`), with the lens `distortion` (C, 5) when given."""
+    camera's (`vdo.model.camera.image_point`), with the lens `distortion` (C, 5) when given."""
     c = jnp.asarray(camera)
     p = to_camera(R[c][:, None], t[c][:, None], points)
     front = p[..., 2] > 1e-3

@@ -15,7 +15,7 @@ footprint     A_i = s_i [t_u t_v]                                               
 gradient      T_i = c_i^2 sum_k G(l_k, l_other) / a_k^2 v_k v_k^T                (gray^2/pixel^2)
 tensor        G(l_par, l_perp) = <(d_e (G_blur * f_hat))^2> (1/m^2) is the directional gradient
               energy of the normalised speckle f_hat under an anisotropic Gaussian blur (std l_par
-              along e, l_perp across), G(l, l) = g_f(l) (`vdo.speckle`).
+              along e, l_perp across), G(l, l) = g_f(l) (`vdo.model.speckle`).
 information   C_i = (1/sigma_i)^2 s_i^T T_i s_i                         (3x3, 1/m^2 per pixel)
 per sample    C = Omega sum_i w_i |det A_i| C_i                                       (1/m^2)
               |det A_i| = a_1 a_2 is the pixel density (pixel/m^2), Omega the DIC patch area (m^2),
@@ -73,13 +73,13 @@ max; 1 % of the area at sigma_max alone gives 0.56 sigma_max) and k the per-regi
 count (2 by default, 3 on the joint). With the default coverage_weight = 1000 a sample one camera
 short costs as much as an unmeasured one (prior_sigma / sigma_unit = 1000).
 
-Lens distortion (`CameraParams.distortion`, Brown-Conrady as `vdo.camera` models it). The pixel is
-u = f x_d + c_x, v = f y_d + c_y with (x_d, y_d) = `vdo.camera.distort`(X_c/Z_c, Y_c/Z_c), and the
-sensitivity carries D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]] (`vdo.camera.distortion_jacobian`;
+Lens distortion (`CameraParams.distortion`, Brown-Conrady as `vdo.model.camera` models it). The pixel is
+u = f x_d + c_x, v = f y_d + c_y with (x_d, y_d) = `vdo.model.camera.distort`(X_c/Z_c, Y_c/Z_c), and the
+sensitivity carries D = d(x_d, y_d)/d(x, y) = [[a, b], [b, d]] (`vdo.model.camera.distortion_jacobian`;
 symmetric), so s = (f/Z_c) D E R with E R the pinhole rows; the soft image weight reads the
 distorted pixel. In the reverse pass D (g_s0, g_s1) feeds the pinhole chain, and D's own
 dependence on (x, y) enters through its four distinct derivatives
-(`vdo.camera.distortion_curvature`). The coefficients are constants (gradient 0). With
+(`vdo.model.camera.distortion_curvature`). The coefficients are constants (gradient 0). With
 distortion None the camera table has 17 columns and the programs are the pinhole ones exactly
 (bit-identical to a build without distortion, and as fast); with coefficients it has 22.
 
@@ -124,7 +124,7 @@ value + gradient); the block sums are one batched dot with ones (separate row su
 slower); a variadic `lax.reduce` compiles to scalar code (~7x slower); gathers inside the
 per-pair chain (a sample-major layout) stop vectorisation (~4x slower forward). Each call's
 temporaries (~130 MB before the chunks) come from malloc, and glibc maps and unmaps blocks that
-large on every call: `vdo.memory.retain_freed_memory` keeps them in the heap instead (58 -> 47
+large on every call: `vdo.core.memory.retain_freed_memory` keeps them in the heap instead (58 -> 47
 ms per value + gradient).
 
 Precision (`Settings.pair_dtype`). The per-pair work (projection, footprint, spectrum, table
@@ -136,11 +136,11 @@ leaves ~1e-7 |C_i| along the ray, far above the prior 1/prior_sigma^2 that alone
 direction for a sample seen by one camera (it made sigma NaN there). Per-sample sums and the
 score are float64. Measured on 10 cameras x 100k samples: value within ~4e-8 and gradient
 within ~1e-5 (max |diff| / max |g|) of float64. The default stays float64 (the finite-
-difference tests need it); `vdo.predict.settings`, and so the optimizer, uses float32; the reports
+difference tests need it); `vdo.physics.predict.settings`, and so the optimizer, uses float32; the reports
 (`fields`, `information`, `camera_information`) always run float64.
 
 Inputs are pytrees (equinox Modules) of arrays: `CameraParams` (C cameras), `Samples` (N samples,
-R regions), `ViewData` (per-pair constants for the P selected pairs), an `energy` G (a `vdo.speckle.GradientEnergyTable`,
+R regions), `ViewData` (per-pair constants for the P selected pairs), an `energy` G (a `vdo.model.speckle.GradientEnergyTable`,
 or any jax-traceable callable G(l_par, l_perp) -> 1/m^2, e.g. `GaussianFieldEnergy`) and `Settings`
 (static). Everything is jit-compiled with `equinox.filter_jit`.
 """
@@ -156,9 +156,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vdo.camera import distort, distortion_curvature, distortion_jacobian, image_point, rotation
-from vdo.configure import require_x64
-from vdo.speckle import GradientEnergyTable, g_aniso_lookup
+from vdo.model.camera import distort, distortion_curvature, distortion_jacobian, image_point, rotation
+from vdo.core.configure import require_x64
+from vdo.model.speckle import GradientEnergyTable, g_aniso_lookup
 
 __all__ = [
     "CameraParams",
@@ -186,10 +186,10 @@ KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (docs/theory.
 # Inputs
 # --------------------------------------------------------------------------------------------
 class CameraParams(eqx.Module):
-    """C cameras as arrays. position (C, 3) m; pan, tilt, roll (C,) rad (`vdo.camera` convention);
+    """C cameras as arrays. position (C, 3) m; pan, tilt, roll (C,) rad (`vdo.model.camera` convention);
     focal_px, cx, cy (C,) pixels; width, height (C,) pixel counts (floats; constants: the score's
     gradient with respect to them is 0); distortion (C, 5) the Brown-Conrady coefficients in
-    `vdo.camera.DISTORTION` order (constants), or None for pinholes (the programs then hold no
+    `vdo.model.camera.DISTORTION` order (constants), or None for pinholes (the programs then hold no
     distortion arithmetic at all: module docstring, "Lens distortion")."""
 
     position: jax.Array
@@ -208,7 +208,7 @@ class CameraParams(eqx.Module):
 
     @classmethod
     def from_cameras(cls, cameras) -> "CameraParams":
-        """Stack `vdo.camera.Camera` objects (distortion None unless one of them is distorted)."""
+        """Stack `vdo.model.camera.Camera` objects (distortion None unless one of them is distorted)."""
         f = lambda get: jnp.asarray(np.array([get(c) for c in cameras], dtype=np.float64))
         distorted = any(c.distorted for c in cameras)
         return cls(position=f(lambda c: np.asarray(c.position, dtype=float)),
@@ -234,7 +234,7 @@ class Samples(eqx.Module):
     min_cameras: jax.Array
 
 
-def _bucket(n: int) -> int:
+def bucket(n: int) -> int:
     """n rounded up to 2^k x {1, 1.125, ..., 1.875} (at most 12.5 % more): few distinct sizes."""
     if n <= 16:
         return max(n, 1)
@@ -298,7 +298,7 @@ class ViewData(eqx.Module):
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
         blocks = -(-counts // L)  # per camera
-        n_blocks = _bucket(int(blocks.sum()))
+        n_blocks = bucket(int(blocks.sum()))
         chunk = max(1, min(chunk_pairs // L, n_blocks))
         n_blocks = -(-n_blocks // chunk) * chunk
         block_cam = np.zeros(n_blocks, dtype=np.int32)
@@ -382,7 +382,7 @@ class Settings(eqx.Module):
 
 
 class TableEnergy(eqx.Module):
-    """G(l_par, l_perp) from a `vdo.speckle.GradientEnergyTable` (bilinear in log-log), 1/m^2."""
+    """G(l_par, l_perp) from a `vdo.model.speckle.GradientEnergyTable` (bilinear in log-log), 1/m^2."""
 
     table: GradientEnergyTable
 
@@ -435,7 +435,7 @@ def _dot(a, b):
 
 
 # Per-camera quantities, columns of the (C, 17) camera table: R (row-major), position, intrinsics;
-# with lens distortion 5 more (C, 22): the coefficients in `vdo.camera.DISTORTION` order.
+# with lens distortion 5 more (C, 22): the coefficients in `vdo.model.camera.DISTORTION` order.
 _R, _POS, _F, _CX, _CY, _W, _H = slice(0, 9), slice(9, 12), 12, 13, 14, 15, 16
 _PINHOLE_COLUMNS, _DIST = 17, slice(17, 22)
 
@@ -562,7 +562,7 @@ def _phis(energy, lam1, lam2, kappa, jacobian=False):
         phis, (j11, j21) = jax.jvp(fun, (lam1, lam2), (one, zero))
         _, (j12, j22) = jax.jvp(fun, (lam1, lam2), (zero, one))
         return phis, (j11, j12, j21, j22)
-    # bilinear in (log l_par, log l_perp) on log G as `vdo.speckle.g_aniso_lookup` (same clamping):
+    # bilinear in (log l_par, log l_perp) on log G as `vdo.model.speckle.g_aniso_lookup` (same clamping):
     # u = c0 - log(lam)/2 per grid step, clamped to the grid; s, t the fractions in the cell
     dt = lam1.dtype
     grid = jnp.asarray(table.log_l)
@@ -845,7 +845,7 @@ def _block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st):
         # s0 = g (a e0 + b e1), s1 = g (b e0 + d e1), e0 = R0 - xn R2, e1 = R1 - yn R2, D = [[a, b],
         # [b, d]] a function of (xn, yn), u = f x_d + cx, v = f y_d + cy: the pinhole chain below
         # with the cotangents D (g_s0, g_s1) of e0/g, e1/g, plus D's and (x_d, y_d)'s own
-        # dependence on (xn, yn) (`vdo.camera.distortion_curvature`)
+        # dependence on (xn, yn) (`vdo.model.camera.distortion_curvature`)
         coefficients, xd, yd, (jxx, jxy, jyy) = geo.lens
         e0 = [R[0][b] - geo.xn * R[2][b] for b in range(3)]
         e1 = [R[1][b] - geo.yn * R[2][b] for b in range(3)]

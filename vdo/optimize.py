@@ -18,7 +18,7 @@ quadratic penalty's minimiser always lies a little beyond what the penalty aims 
 inside the limit puts it on the feasible side. P_fov keeps a smooth in-image area fraction of
 each assigned region at least what the hand layout had (minus 1 %, at most 1 - max_obscuration);
 P_obscuration = Σ (o / max_obscuration)^2 over the assigned (camera, region) pairs that an
-obstacle has masked, o differentiated through Mitsuba (`vdo.obscuration`); P_shadow keeps the
+obstacle has masked, o differentiated through Mitsuba (`vdo.search.obscuration`); P_shadow keeps the
 camera bodies (covered by spheres) from hiding any part of a light panel from the samples it
 lights.
 
@@ -72,21 +72,26 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.special import expit
 
-from . import constraints, html_report, loadpath, objective, reachability, report
-from .camera import Camera, intrinsic_matrix, rotation
-from .config import Experiment, inside_floor
-from .errors import ConfigError
-from .keyframes import load_path_of
-from .lighting import panel_frame
-from .obscuration import ObscurationRenderer
-from .objective import _bucket
-from .predict import predict, samples_for_objective, settings, view_data
-from .progress import bar
-from .runfolder import run_folder
-from .state import bodies, layout_state, prepare, unobstructed_lighting
-from .scene import (SceneMesh, build_scene, camera_body, camera_body_points,
+from vdo import constraints
+from vdo.outputs import html_report
+from vdo.search import loadpath
+from vdo import objective
+from vdo.search import reachability
+from vdo.outputs import report
+from vdo.model.camera import Camera, intrinsic_matrix, rotation
+from vdo.config.experiment import Experiment, inside_floor
+from vdo.core.errors import ConfigError
+from vdo.geometry.keyframes import load_path_of
+from vdo.physics.lighting import panel_frame
+from vdo.search.obscuration import ObscurationRenderer
+from vdo.objective import bucket
+from vdo.physics.predict import predict, samples_for_objective, settings, view_data
+from vdo.core.progress import bar
+from vdo.core.runfolder import run_folder
+from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
+from vdo.scene import (SceneMesh, build_scene, camera_body, camera_body_points,
                     camera_body_spheres)
-from .visibility import compute_visibility
+from vdo.physics.visibility import compute_visibility
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
 FEASIBILITY_ROUNDS = 3    # at most this many feasibility rounds (penalties only) per start
@@ -526,7 +531,7 @@ class Problem:
     @functools.cached_property
     def path(self):
         """(load path, keyframe steps, fraction) the scored views must hold over, or None
-        (`vdo.loadpath.scored_path`, `[optimize] load_path`)."""
+        (`vdo.search.loadpath.scored_path`, `[optimize] load_path`)."""
         return loadpath.scored_path(self.exp, self.geometry)
 
     def refresh(self, theta) -> State:
@@ -570,7 +575,7 @@ class Problem:
         groups = [(c, r) for c in range(len(self.cams0)) for r in np.flatnonzero(self.assigned[c])]
         facing = state.vis.in_front & state.vis.facing
         members = [np.flatnonzero((self.samples.region == r) & facing[c]) for c, r in groups]
-        m = _bucket(max([1] + [idx.size for idx in members]))   # few sizes: few compilations
+        m = bucket(max([1] + [idx.size for idx in members]))   # few sizes: few compilations
         points, area = np.zeros((len(groups), m, 3)), np.zeros((len(groups), m))
         ramp = np.ones(len(groups))
         for g, ((c, r), idx) in enumerate(zip(groups, members)):
@@ -889,10 +894,10 @@ class _Run:
 
     def size(self, name: str, n: int) -> int:
         """The run's padded length of the array `name` that holds n rows now: set once
-        (`Problem._size_local_sets`, `objective._bucket`) so that the compiled programs keep their
+        (`Problem._size_local_sets`, `objective.bucket`) so that the compiled programs keep their
         shapes while `Problem.local` moves; a longer array raises it (a new compile)."""
         if name not in self._sizes or self._sizes[name] < n:
-            self._sizes[name] = _bucket(max(n, 1))
+            self._sizes[name] = bucket(max(n, 1))
         return self._sizes[name]
 
     def programs(self, problem: "Problem"):
@@ -1310,7 +1315,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
     it then owns); in every case the folder is written with the best layout judged so far
     (feasible first, `Result.rank`), and optimizer.json says how the search ended. Progress:
-    INFO lines and a bar through the module logger (`vdo.progress`)."""
+    INFO lines and a bar through the module logger (`vdo.core.progress`)."""
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
@@ -1381,7 +1386,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
 
 
 def _summary(problem: Problem, state: State) -> dict:
-    """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.predict` (usable
+    """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.physics.predict` (usable
     views, clipped patches) on the round's ray cast and lighting."""
     pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
                    problem.speckle, overlap=problem.geometry.overlap)

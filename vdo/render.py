@@ -1,5 +1,5 @@
 """Images with Mitsuba: the sensor for a vdo camera, the render scene, and the images of every
-camera of an experiment (`render_images`, the computation of `vdo render`; `vdo.render_command`
+camera of an experiment (`render_images`, the computation of `vdo render`; `vdo.commands.render`
 writes them into a run folder).
 
 `sensor_dict` is the only place a vdo `Camera` becomes a Mitsuba sensor; the frame conversion
@@ -8,7 +8,7 @@ itself lives in `Camera.mitsuba_to_world` / `mitsuba_principal_offset`.
 The render scene (`build_render_scene`):
 
 * each region of interest is its own mesh, textured with the speckle albedo
-  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `vdo.speckle.pattern_for`), mapped at physical scale: a
+  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `vdo.model.speckle.pattern_for`), mapped at physical scale: a
   point with face coordinates (u, v) in metres (`vdo.scene.RegionFaces.uv`, the samples' uv) has
   texture coordinates (u / T_u, v / T_v), T = texel x pattern size, wrap mode repeat. Mitsuba's
   bitmap has v = 0 on its top row, so the pattern's row i covers v in [i, i+1) texels
@@ -16,11 +16,11 @@ The render scene (`build_render_scene`):
 * the rest of the specimen is white paint (ρ_w); obstacles are diffuse of their `albedo`, or a rough
   conductor (aluminium, α = 0.2) when `metal`; camera bodies are dark (ρ = 0.05);
 * each [[light]] is a one-sided rectangle area emitter of its radiance, facing its target (the
-  frame of `vdo.lighting.panel_frame`); [render] ambient_radiance is a constant environment;
+  frame of `vdo.physics.lighting.panel_frame`); [render] ambient_radiance is a constant environment;
 * the integrator is `vdo_panels` (`_register_integrator`): direct illumination only, no
   interreflection, with one sample on *every* panel per camera sample (Mitsuba's `direct` picks one
   emitter at random: 10 % pixel noise at 64 spp with 4 panels). So the renders and the photometric
-  model of `vdo.lighting` describe the same light transport: they agree up to Monte Carlo noise,
+  model of `vdo.physics.lighting` describe the same light transport: they agree up to Monte Carlo noise,
   the panel quadrature and ambient occlusion (which the model ignores).
 
 Each camera is rendered with a box filter into a linear float luminance film (bit-identical for a
@@ -31,7 +31,7 @@ seed * 1009 + i.
 Scale. `scale` s < 1 renders round(s W) x round(s H) pixels of the same view (`scaled_camera`: same
 field of view; pixel pitch and K scaled by s' = round(s W) / W). The linear value stays the
 radiance, *not* multiplied by 1/s'^2: the small image stands for the same sensor (same full well,
-same exposure level per pixel), so brightness, contrast and noise in DN are those `vdo.lighting`
+same exposure level per pixel), so brightness, contrast and noise in DN are those `vdo.physics.lighting`
 predicts for the full-size camera, at any scale; only the sampling of the surface changes. (Scaling
 by 1/s'^2, "bigger pixels collect more light", would saturate a 1/8-scale preview 64 times over.)
 """
@@ -45,8 +45,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .camera import Camera, image_point
-from .speckle import normalise, pattern_for
+from vdo.model.camera import Camera, image_point
+from vdo.model.speckle import normalise, pattern_for
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,7 @@ def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool 
 
 
 def _transform(matrix: np.ndarray):
-    from .backend import mitsuba
+    from vdo.core.backend import mitsuba
 
     return mitsuba().ScalarTransform4f(np.asarray(matrix, dtype=float))
 
@@ -147,7 +147,7 @@ def render_camera(scene, camera: Camera, spec, spp: int, seed: int, jitter: bool
     camera with lens distortion the wider pinhole render resampled onto the distorted pixels
     (`undistorted_canvas`, `resample`). `jitter`: the stratified sampler's random offsets within
     each stratum (False: stratum centres, a fixed sqrt(spp) x sqrt(spp) midpoint rule per pixel
-    and per light, as `vdo.validate` and `vdo.series` render)."""
+    and per light, as `vdo.dic.validate` and `vdo.dic.series` render)."""
     if not camera.distorted:
         return render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed)
     wide, where = undistorted_canvas(camera)
@@ -180,7 +180,7 @@ def pattern_value(pattern: np.ndarray, texel: float, uv: np.ndarray) -> np.ndarr
 # The render scene
 # --------------------------------------------------------------------------------------------
 def _mi_mesh(name, vertices, faces, bsdf, uv=None):
-    from .scene import SceneMesh, mitsuba_mesh
+    from vdo.scene import SceneMesh, mitsuba_mesh
 
     return mitsuba_mesh(SceneMesh(name, "render", vertices, faces), bsdf, uv)
 
@@ -196,7 +196,7 @@ def _diffuse(albedo):
 
 def light_emitter(light) -> dict:
     """A one-sided rectangle area emitter of the light's radiance, facing its target."""
-    from .lighting import panel_frame
+    from vdo.physics.lighting import panel_frame
 
     n, e1, e2 = panel_frame(light)
     w, h = light.size
@@ -220,9 +220,9 @@ def _register_integrator() -> str:
     f(ω_i, ω_o) cosθ_s L cosθ_l A / r^2 when P is visible (f from the hit's BSDF, so textures and
     the rough conductor work); (3) with an ambient sky, one BSDF-sampled direction and a shadow
     ray: weight x L_amb when it escapes. This is the estimator of exactly the integral in
-    `vdo.lighting` (direct light only, no interreflection), with the noise of the cosθ/r^2
+    `vdo.physics.lighting` (direct light only, no interreflection), with the noise of the cosθ/r^2
     variation over one panel (about 1 % per sample) instead of the emitter lottery."""
-    from .backend import mitsuba
+    from vdo.core.backend import mitsuba
 
     mi = mitsuba()
     if _PANEL_INTEGRATOR in getattr(_register_integrator, "done", set()):
@@ -268,7 +268,7 @@ def _register_integrator() -> str:
 
 
 def _integrator_dict(lights, ambient: float) -> dict:
-    from .lighting import panel_frame
+    from vdo.physics.lighting import panel_frame
 
     out = {"type": _register_integrator(), "light_count": len(lights), "ambient": float(ambient)}
     for k, light in enumerate(lights):
@@ -285,16 +285,16 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
     """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
     experiment's SceneMeshes at rest (vdo.scene.load_meshes), `region_faces` one RegionFaces per
     region, `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
-    `vdo.speckle.pattern_for(exp.speckle)`). `posed` are the same meshes at a step of the load
-    path (`vdo.keyframes.at_step`): their vertices are rendered, while the texture coordinates
-    come from the rest vertices, so the speckle moves with the surface (`vdo.series`)."""
+    `vdo.model.speckle.pattern_for(exp.speckle)`). `posed` are the same meshes at a step of the load
+    path (`vdo.geometry.keyframes.at_step`): their vertices are rendered, while the texture coordinates
+    come from the rest vertices, so the speckle moves with the surface (`vdo.dic.series`)."""
     at = {m.name: m.vertices for m in (posed or meshes)}
 
     def moved(name, faces):
         """The vertices of `faces` of mesh `name` at the step (the order `_submesh` gives)."""
         return _submesh(at[name], faces)[0]
 
-    from .backend import mitsuba
+    from vdo.core.backend import mitsuba
 
     mi = mitsuba()
     sp = exp.speckle
@@ -350,7 +350,7 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
 
 def render_linear(scene, sensor: dict, seed: int) -> np.ndarray:
     """One render of `scene` through the sensor dict: (H, W) float32 linear radiance."""
-    from .backend import mitsuba
+    from vdo.core.backend import mitsuba
 
     mi = mitsuba()
     image = mi.render(scene, sensor=mi.load_dict(sensor), seed=int(seed) & 0xFFFFFFFF)
@@ -379,7 +379,7 @@ def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.
     """(K,) std of the rendered pixel values of a unit-variance pattern f̂: each pixel is the
     mean of `spp` samples, one uniform in each of the sqrt(spp) x sqrt(spp) strata of the pixel
     (the stratified sampler with jitter), not the box average a camera pixel takes. With
-    s(P) = `vdo.speckle.pixel_averaged_std` over a parallelogram P (the pixel A^-1, a stratum
+    s(P) = `vdo.model.speckle.pixel_averaged_std` over a parallelogram P (the pixel A^-1, a stratum
     A^-1 / sqrt(spp)) and s_0 that of the texture alone (P = 0):
 
         std^2 = s(A^-1)^2 + (s_0^2 - s(A^-1 / sqrt spp)^2) / spp
@@ -388,7 +388,7 @@ def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int) -> np.
     stratum, s_0^2 - s(stratum)^2 for a stationary pattern, over spp independent samples). The
     second term is the render's Monte Carlo sampling of the speckle: small when a stratum is
     small against a speckle, large for a reduced-scale render whose pixels span speckles."""
-    from .speckle import pixel_averaged_std
+    from vdo.model.speckle import pixel_averaged_std
 
     sides = np.asarray(pixel_sides, dtype=float).reshape(-1, 2, 2)
     box = pixel_averaged_std(pattern_normalised, texel, sides)
@@ -408,10 +408,10 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
     mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
     the irradiance's variation over the region does not count as contrast). Predictions at the
     pixel footprint of the row's middle visible sample: c_pixel_predicted = c_predicted x
-    pixel_factor (`vdo.speckle.pixel_averaged_std`), the contrast of a camera's box pixels;
+    pixel_factor (`vdo.model.speckle.pixel_averaged_std`), the contrast of a camera's box pixels;
     c_render_predicted = c_predicted x render_factor (`rendered_std`), that of the rendered
     pixels, each a mean of `spp` samples."""
-    from .speckle import pixel_averaged_std
+    from vdo.model.speckle import pixel_averaged_std
 
     rows, sides = [], []
     half = PHOTOMETRY_WINDOW // 2
@@ -456,7 +456,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
 @dataclass(frozen=True, eq=False)
 class RenderResult:
     """The images of every camera of an experiment and what was predicted for them
-    (`render_images`). Writing them is `vdo.render_command`'s business.
+    (`render_images`). Writing them is `vdo.commands.render`'s business.
 
     state        the layout state of the cameras *at the rendered scale* (`scaled_camera`; same
                  poses and lenses, hence the same bodies, visibility and lighting)
@@ -492,7 +492,7 @@ def render_settings(exp, scale: float | None = None, spp: int | None = None,
                     seed: int | None = None) -> tuple[float, int, int]:
     """(scale, spp, seed): the given values or the experiment's [render] ones, checked (a
     ConfigError naming the option and the fix, before any heavy work)."""
-    from .errors import ConfigError
+    from vdo.core.errors import ConfigError
 
     rs = exp.render
     scale = rs.scale if scale is None else float(scale)
@@ -517,13 +517,13 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     Mitsuba seed `render_seed(seed, i)` and sensor noise `expose(linear, sensor, seed, i)`) and
     compare the noise-free renders with the photometric prediction (`region_photometry`).
     `scale`, `spp`, `seed` default to the config's [render] section (`render_settings`). Progress
-    goes to the `vdo.render` logger (`vdo.progress`). `pairs`: the stereo pairs of the
+    goes to the `vdo.render` logger (`vdo.core.progress`). `pairs`: the stereo pairs of the
     calibration files as (first, second) names (default: cameras assigned a common region),
     checked to share a field of view before anything is rendered."""
-    from .formats.export import default_pairs
-    from .lighting import photometry
-    from .progress import bar
-    from .state import bodies, layout_state, prepare
+    from vdo.formats.export import default_pairs
+    from vdo.physics.lighting import photometry
+    from vdo.core.progress import bar
+    from vdo.state import bodies, layout_state, prepare
 
     scale, spp, seed = render_settings(exp, scale, spp, seed)
     started = time.perf_counter()

@@ -20,10 +20,10 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from .backend import mitsuba
-from .camera import Camera
-from .config import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
-from .errors import ConfigError
+from vdo.core.backend import mitsuba
+from vdo.model.camera import Camera
+from vdo.config.experiment import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
+from vdo.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -519,7 +519,7 @@ def prism(top: np.ndarray, bottom: np.ndarray, radius: float) -> tuple[np.ndarra
 def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
     """`tripod_cylinders` as closed prisms of TRIPOD_SECTIONS sides inscribed in the cylinders
     (`prism`: radius short by at most r (1 - cos(π / TRIPOD_SECTIONS)), under 1 %), one obstacle
-    mesh each (so that `vdo.lighting.relight` bounds each part alone)."""
+    mesh each (so that `vdo.physics.lighting.relight` bounds each part alone)."""
     return [SceneMesh(f"tripod:{camera.name}:{k}", "camera", *prism(top, bottom, radius))
             for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec))]
 

@@ -9,8 +9,8 @@ prediction is written once:
   (and per keyframe of a moving test) and reuse it for every camera layout.
 * `layout_state(geometry, cameras)` -> `LayoutState`: the scene with the camera bodies as
   obstacles, the ray-cast visibility of every (camera, sample) pair, the light reaching every
-  sample, and (unless `predict_fields=False`) the predicted displacement fields (`vdo.predict`)
-  and the strain uncertainty for the experiment's `[analysis]` (`vdo.strain`).
+  sample, and (unless `predict_fields=False`) the predicted displacement fields (`vdo.physics.predict`)
+  and the strain uncertainty for the experiment's `[analysis]` (`vdo.physics.strain`).
 
 Both results are immutable. A camera whose `[[camera]]` entry says `body = false`, or that the
 experiment does not list (a probe camera), is not an obstacle; the tripod of a camera on a zone
@@ -21,15 +21,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from . import strain
-from .camera import Camera
-from .config import Experiment
-from .lighting import Illumination, illuminate, relight
-from .predict import Prediction, SpeckleModel, predict, speckle_model
-from .scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
+from vdo.physics import strain
+from vdo.model.camera import Camera
+from vdo.config.experiment import Experiment
+from vdo.physics.lighting import Illumination, illuminate, relight
+from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
+from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
                     load_meshes, sample_regions, tripods)
-from .usable import patch_overlap
-from .visibility import Visibility, compute_visibility
+from vdo.physics.usable import patch_overlap
+from vdo.physics.visibility import Visibility, compute_visibility
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,7 +41,7 @@ class Geometry:
     samples: SurfaceSamples
     speckle: SpeckleModel
     region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
-    overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.usable.patch_overlap`)
+    overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.physics.usable.patch_overlap`)
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,11 +94,11 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
                  strain_fields: bool = True, clip_patch: bool = True, progress: bool = False,
                  unobstructed: Illumination | None = None) -> LayoutState:
     """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
-    with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.predict`; `clip_patch`
+    with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.physics.predict`; `clip_patch`
     False keeps every sample's whole DIC patch, for samples that each stand for a whole patch)
-    and, with `strain_fields` too, the strain uncertainty of the `[analysis]` (`vdo.strain`).
+    and, with `strain_fields` too, the strain uncertainty of the `[analysis]` (`vdo.physics.strain`).
     `unobstructed`, the lighting of `geometry` without camera bodies (`unobstructed_lighting`),
-    when given, makes the lighting cheaper and leaves it the same (`vdo.lighting.relight`)."""
+    when given, makes the lighting cheaper and leaves it the same (`vdo.physics.lighting.relight`)."""
     exp = geometry.experiment
     cameras = tuple(exp.cameras() if cameras is None else cameras)
     obstacles = bodies(exp, cameras)

@@ -258,9 +258,9 @@ def write_load_path(folder: Path = HERE) -> None:
     vertices are at the joint (y = HALF) and stay at rest, so the beam's faces tilt linearly."""
     mesh = specimen()
     moving = np.unique(np.round(mesh.vertices[mesh.vertices[:, 1] >= BEAM_HELMET - 1e-9], 9), axis=0)
-    platform = ["# the hexapod platform's pose per step (vdo.keyframes); written by make_meshes.py",
+    platform = ["# the hexapod platform's pose per step (vdo.geometry.keyframes); written by make_meshes.py",
                 "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
-    nodes = ["# specimen vertices that move with the beam end (vdo.keyframes); written by make_meshes.py",
+    nodes = ["# specimen vertices that move with the beam end (vdo.geometry.keyframes); written by make_meshes.py",
              "step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm"]
     for k, (dx, dz) in enumerate(load_history(), start=1):
         platform.append(f"{k},platform,{dx * MM:g},0,{dz * MM:g},0,0,0")

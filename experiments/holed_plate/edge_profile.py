@@ -4,7 +4,7 @@ Run from the repository root:
 
     python experiments/holed_plate/edge_profile.py --out runs/holed_plate_edge
 
-Evaluates experiments/holed_plate/stereo.toml (`vdo.evaluate`: samples.vtp, summary.json, maps/
+Evaluates experiments/holed_plate/stereo.toml (`vdo.commands.evaluate`: samples.vtp, summary.json, maps/
 in OUT) and writes OUT/edge_profile.png and OUT/edge_profile.csv: for every sample within 20 mm of
 the hole's edge, its distance d (mm) to the edge, vdo's sigma_max (um) and the model
 sigma_far / sqrt(phi_exact), where phi_exact is the area fraction of the 10 mm patch square
@@ -24,8 +24,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
 
-from vdo import config  # noqa: E402
-from vdo.evaluate import evaluate  # noqa: E402
+from vdo.config import experiment as config  # noqa: E402
+from vdo.commands.evaluate import evaluate  # noqa: E402
 
 CENTRE, RADIUS = np.array([0.0, 1.0]), 0.015   # hole centre (x, z) and radius, m (make_meshes.py)
 

@@ -1,7 +1,7 @@
 """What the calibration exports share: stereo pairs, the pose of one camera relative to another,
 Euler angles, the length unit and safe file names.
 
-vdo's cameras (`vdo.camera`): x ~ K (R X + t) with R world -> camera (OpenCV axes: x right, y down,
+vdo's cameras (`vdo.model.camera`): x ~ K (R X + t) with R world -> camera (OpenCV axes: x right, y down,
 z forward), t = -R C, world metres, pixel (0, 0) the centre of the top-left pixel, lens distortion
 (k1, k2, p1, p2, k3) in OpenCV's order. The exports write lengths in millimetres (`MM` per metre),
 the unit of DIC software.
@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Camera
-from ..config import NAME_PATTERN
-from ..errors import ConfigError
+from vdo.model.camera import Camera
+from vdo.config.experiment import NAME_PATTERN
+from vdo.core.errors import ConfigError
 
 MM = 1e3   # millimetres per metre: the exports' length unit
-_SAFE = re.compile(NAME_PATTERN)     # the names the config accepts (`vdo.config`)
+_SAFE = re.compile(NAME_PATTERN)     # the names the config accepts (`vdo.config.experiment`)
 
 
 def file_stem(name: str, source) -> str:
@@ -71,12 +71,12 @@ def euler_xyz_deg(R: np.ndarray) -> tuple[float, float, float]:
 def stereo_pairs(cameras: list[Camera], visible: np.ndarray, assigned: np.ndarray, requested,
                  source) -> list[StereoPair]:
     """The stereo pairs to export. `visible` (C, N): which camera sees which surface sample (the
-    ray cast, `vdo.visibility`); `assigned` (C, R): the regions each camera is assigned
+    ray cast, `vdo.physics.visibility`); `assigned` (C, R): the regions each camera is assigned
     (`vdo.constraints.assignments`). None requested: the pairs i < j, in the cameras' order,
     assigned a common region (`vdo.constraints.shared_pairs`, the pairs whose stereo angle the
     optimizer constrains). `requested`: (first, second) name tuples, each checked: known names,
     two different cameras that both see at least one sample, else a ConfigError naming them."""
-    from ..constraints import shared_pairs
+    from vdo.constraints import shared_pairs
 
     if requested is None:
         return [StereoPair(cameras[i], cameras[j]) for i, j in shared_pairs(assigned)]

@@ -19,7 +19,7 @@ import logging
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-from .calibration import MM, StereoPair, file_stem
+from vdo.formats.calibration import MM, StereoPair, file_stem
 
 log = logging.getLogger(__name__)
 MAX_CAMERAS = 8   # DICe's reader throws on reaching index 9 of its 10 slots: CAMERA 0..7 load

@@ -4,22 +4,24 @@ calibration files for DIC software.
 SOURCE is an experiment TOML (its cameras resolved as `vdo evaluate` does) or a run folder with
 layout.json (cameras at that run's pose and image scale). The stereo pairs are the cameras
 assigned a common region (`calibration.stereo_pairs`); for a run folder the scene comes from its
-config.toml. Which camera sees which sample comes from the ray cast (`vdo.visibility`).
+config.toml. Which camera sees which sample comes from the ray cast (`vdo.physics.visibility`).
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import ConfigError
-from . import dice, matchid, opencv, vic3d
-from .calibration import stereo_pairs
+from vdo.model.camera import Camera
+from vdo.core.errors import ConfigError
+from vdo.formats import dice
+from vdo.formats import matchid
+from vdo.formats import opencv
+from vdo.formats import vic3d
+from vdo.formats.calibration import stereo_pairs
 
 log = logging.getLogger(__name__)
 FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write, "vic3d": vic3d.write}
@@ -29,7 +31,7 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
     """The stereo pairs of a layout: cameras assigned a common region, or the `requested`
     (first, second) names, each checked to share a field of view (`stereo_pairs`; errors name
     `source`, default the experiment file)."""
-    from ..constraints import assignments
+    from vdo.constraints import assignments
 
     if requested is not None:
         return stereo_pairs(cameras, vis.visible, None, requested, source or exp.path)
@@ -59,7 +61,7 @@ def write_all(cameras, pairs, folder: Path, source) -> dict[str, list[Path]]:
 
 
 def camera_from_layout(entry: dict, path) -> Camera:
-    """A `Camera` from one layout.json entry (`vdo.report.layout`), rebuilt from its pose fields
+    """A `Camera` from one layout.json entry (`vdo.outputs.report.layout`), rebuilt from its pose fields
     and checked against the K, R, t stored beside them (1e-9 relative), so that a hand-edited
     layout.json cannot export a calibration that differs from its own matrices."""
     name = str(entry.get("name", "?"))
@@ -84,53 +86,3 @@ def camera_from_layout(entry: dict, path) -> Camera:
             raise ConfigError(path, f'camera "{name}".{key}', "does not match the camera's pose "
                                                               "fields (was layout.json edited?)")
     return cam
-
-
-def _sources(source: Path):
-    """(experiment, cameras, the file to name in errors): the cameras of an experiment TOML, or
-    of a run folder's layout.json with the experiment of its config.toml."""
-    from .. import config
-
-    if source.is_dir():
-        layout = source / "layout.json"
-        if not layout.is_file():
-            raise ConfigError(source, "", "is a folder without layout.json: give an experiment "
-                                          "TOML or a vdo run folder")
-        try:
-            entries = json.loads(layout.read_text())["cameras"]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ConfigError(layout, "cameras", f"cannot read the camera list ({exc})") from None
-        cameras = [camera_from_layout(e, layout) for e in entries]
-        if not (source / "config.toml").is_file():
-            raise ConfigError(source, "config.toml", "missing: the run's experiment is needed to "
-                                                     "find which cameras share a field of view")
-        return config.load(source / "config.toml"), cameras, layout
-    if source.is_file():
-        exp = config.load(source)
-        return exp, exp.cameras(), source
-    raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
-
-
-def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[Path]:
-    """Write the `fmt` calibration files of `source`'s cameras into the run folder `out`
-    (atomically, `vdo.runfolder`). `pairs`: (first, second) camera names, or None for the pairs
-    assigned a common region (`default_pairs`). Returns the written paths (inside `out`)."""
-    from ..runfolder import run_folder
-
-    source = Path(source)
-    if fmt not in FORMATS:
-        raise ConfigError(source, "--format", f"unknown format {fmt!r}; choose one of "
-                                              f"{', '.join(FORMATS)}")
-    from ..state import layout_state, prepare
-
-    exp, cameras, errors_in = _sources(source)
-    state = layout_state(prepare(exp), cameras, predict_fields=False)
-    vis, samples = state.visibility, state.samples
-    chosen = default_pairs(exp, cameras, vis, samples, pairs, errors_in)
-    if not chosen and fmt in ("matchid", "vic3d"):
-        raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and no two "
-                                                 "cameras are assigned a common region: name the "
-                                                 "pairs with --pairs")
-    with run_folder(out, overwrite) as tmp:
-        names = [p.name for p in FORMATS[fmt](cameras, chosen, tmp, errors_in)]
-    return [Path(out).resolve() / n for n in names]

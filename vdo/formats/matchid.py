@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .calibration import MM, StereoPair, euler_xyz_deg, file_stem
+from vdo.formats.calibration import MM, StereoPair, euler_xyz_deg, file_stem
 
 
 def _camera_lines(k: int, c) -> list[str]:

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
-from .calibration import MM, StereoPair, file_stem
+from vdo.model.camera import Camera
+from vdo.formats.calibration import MM, StereoPair, file_stem
 
 
 def _matrix(key: str, M) -> str:

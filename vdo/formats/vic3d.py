@@ -23,8 +23,8 @@ from __future__ import annotations
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
-from ..errors import ConfigError
-from .calibration import MM, StereoPair, euler_xyz_deg, file_stem
+from vdo.core.errors import ConfigError
+from vdo.formats.calibration import MM, StereoPair, euler_xyz_deg, file_stem
 
 
 def _camera(i: int, c) -> str:

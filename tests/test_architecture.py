@@ -1,0 +1,95 @@
+"""The house rules, read from the code itself (ast): imports run one way, down the floors below.
+
+A module may import a module of its own package, or of a package (or top-level module) on a
+lower floor; never one above. Inner (function-level) imports count as much as top-level ones.
+No private name (leading underscore) is imported from another module. docs/architecture.md
+draws the same floors.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "vdo"
+
+# floor of each package or top-level module, bottom (0) to top
+FLOORS = {
+    "core": 0,
+    "model": 1,
+    "config": 2,
+    "scene": 3,
+    "geometry": 4,
+    "objective": 5,
+    "physics": 6,
+    "constraints": 7,
+    "state": 8,
+    "formats": 9,
+    "outputs": 10,
+    "render": 11,
+    "dic": 12,
+    "search": 13,
+    "optimize": 14,
+    "calib": 14,
+    "design": 15,
+    "commands": 16,
+    "__init__": 17,
+    "__main__": 17,
+}
+
+
+def _unit(module: str) -> str:
+    """vdo.physics.predict -> physics; vdo.scene -> scene."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _modules():
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT.parent).with_suffix("")
+        name = ".".join(rel.parts)
+        package = name.rsplit(".", 1)[0] if path.name != "__init__.py" else name[: -len(".__init__")]
+        yield path, name, package
+
+
+def _imports(path: Path, package: str):
+    """(line, imported module, imported names) for every vdo import in the file, resolved."""
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("vdo"):
+                    yield node.lineno, a.name, ()
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            if module.startswith("vdo"):
+                yield node.lineno, module, tuple(a.name for a in node.names)
+
+
+def test_every_module_has_a_floor():
+    units = {_unit(name) for _, name, _ in _modules() if name != "vdo.__init__"}
+    assert units <= set(FLOORS), f"give these a floor in FLOORS and docs/architecture.md: {units - set(FLOORS)}"
+
+
+@pytest.mark.parametrize("path,name,package", list(_modules()), ids=lambda x: str(x))
+def test_imports_run_down(path, name, package):
+    me = "__init__" if name == "vdo.__init__" else _unit(name)
+    wrong = []
+    for line, module, names in _imports(path, package):
+        targets = [module] if module != "vdo" else [f"vdo.{n}" for n in names]
+        for target in targets:
+            other = _unit(target) if target != "vdo" else "__init__"
+            if other == me:
+                continue
+            if FLOORS[other] >= FLOORS[me]:
+                wrong.append(f"{path.name}:{line} imports {target} (floor {FLOORS[other]} >= {FLOORS[me]})")
+        if module != name:
+            private = [n for n in names if n.startswith("_") and n != "__version__"]
+            if private:
+                wrong.append(f"{path.name}:{line} imports private {private} from {module}")
+    assert not wrong, "\n".join(wrong)

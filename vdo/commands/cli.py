@@ -1,0 +1,324 @@
+"""The command line: `vdo evaluate|render|validate|optimize CONFIG --out DIR`, `vdo export`,
+`vdo sweep`, `vdo report` and `vdo demo`.
+
+Order of work, so that mistakes and interrupts cost nothing: SIGINT/SIGTERM handlers first
+(`vdo.core.interrupts`), then the arguments, the output folder (`vdo.core.runfolder.check_out`) and the
+config file, all before JAX, Mitsuba or matplotlib are imported (this module imports them only
+inside the commands); then `vdo.core.configure.configure()` and the work. Exit status: 0 done, 1 a
+check that failed (`validate`), 2 a user mistake (one line naming file and field), 3 Mitsuba
+could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from vdo.core import interrupts
+from vdo.core.backend import BackendError
+from vdo.physics.checks import print_checks
+from vdo.core.errors import ConfigError
+from vdo.core.runfolder import check_out
+from vdo.core.memory import retain_freed_memory
+
+BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
+# per command: the module whose import is heavy (done inside `interrupts.held`)
+_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render_command",
+            "validate": "validate_command",
+            "optimize": "optimize", "design": "design", "export": "formats.export", "sweep": "sweep",
+            "report": "html_report"}
+_OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
+
+
+def _print_summary(summary: dict) -> None:
+    print(f"{'region':<22}{'area m2':>8}{'>=1':>6}{'>=2':>6}{'>=3':>6}"
+          f"{'sens x/y/z mpx/um':>21}{'sigma p50/p95 um':>19}")
+    for name, r in summary["regions"].items():
+        sens = "/".join(f"{r['sensitivity_mpx_per_um'][a]:.1f}" for a in "xyz")
+        sig = r["sigma_max_um"]
+        sig = "-" if sig["p50"] is None else f"{sig['p50']:.2f}/{sig['p95']:.2f}"
+        print(f"{name:<22}{r['area_m2']:>8.3f}" + "".join(
+            f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}")
+
+
+def _load(args):
+    """The command's validated input (config or validation spec), before any heavy import."""
+    if args.command == "validate":
+        from vdo.dic.validate import load
+    else:
+        from vdo.config.experiment import load
+    return load(args.config)
+
+
+def _evaluate(exp, args):
+    from vdo.commands.evaluate import evaluate
+
+    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite)
+    if not args.quiet:
+        _print_summary(summary)
+        rows = summary["design_checks"]
+        flagged = [r for r in rows if r["flags"]]
+        print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged "
+              "(all of them in summary.json and report.html)")
+        if flagged:
+            print_checks(flagged)
+        print(f"wrote {Path(args.out).resolve()}")
+
+
+def _pairs(names):
+    """--pairs FIRST:SECOND ... as (first, second) tuples, or None."""
+    return None if names is None else [tuple(p.split(":", 1)) for p in names]
+
+
+def _render(exp, args):
+    from vdo.commands.render import render_experiment
+
+    if args.series is not None:
+        from vdo.dic.series import render_series
+
+        poses = None if args.series == "load_path" else args.series
+        summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,
+                                seed=args.seed, overwrite=args.overwrite, pairs=_pairs(args.pairs))
+        if not args.quiet:
+            print(f"rendered {len(summary['steps'])} steps x {len(summary['cameras'])} cameras in "
+                  f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
+        return
+    summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
+                                overwrite=args.overwrite, pairs=_pairs(args.pairs))
+    if not args.quiet:
+        print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
+              f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
+
+
+def _validate(spec, args):
+    from vdo.commands.validate import print_table, validate_cases
+
+    summary = validate_cases(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite)
+    if not args.quiet:
+        print_table(summary["rows"])
+        print(f"{'all ratios in [0.8, 1.25]' if summary['passed'] else 'SOME RATIOS OUTSIDE [0.8, 1.25]'}"
+              f"; noise-free check {'passed' if summary['noise_free_passed'] else 'FAILED'}; "
+              f"{summary['wall_seconds']:.0f} s; wrote {Path(args.out).resolve()}")
+    return 0 if summary["passed"] and summary["noise_free_passed"] else 1
+
+
+def _optimize(exp, args) -> None:
+    from vdo.optimize import optimize
+
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit)
+    if not args.quiet:
+        print(f"search: {result['status']}; score (smooth sigma_max percentile) "
+              f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
+        for name, r in result["score_regions_um"].items():   # the regions the score counts
+            if r["scored"] and r["sigma_smooth_um"] is not None:
+                print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
+                      + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
+                         "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
+                      + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
+        before, after = result["joint_p95_um"]
+        if before is not None and after is not None:
+            print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
+        for entry in result["violated"]:
+            print(f"violated: {entry['constraint']} {entry.get('cameras', '')} "
+                  f"{entry.get('region', '')}: {entry['value']:.4g} (limit {entry['limit']})")
+        print(f"wrote {Path(args.out).resolve()}")
+
+
+def _design(exp, args) -> None:
+    from vdo.design.select import design
+
+    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine)   # logs its problems
+    if not args.quiet:
+        for c in result["curve"]:
+            p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
+            print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
+        if result["target_count"] is not None:
+            print(f"smallest count meeting the target: {result['target_count']}")
+        if result["refined"] is not None:
+            before, after = result["refined"]["joint_p95_um"]
+            print(f"refined: joint sigma_max p95 {before} -> {after} um, "
+                  f"{result['refined']['violations']} constraint violation(s)")
+        print(f"wrote {Path(args.out).resolve()} ({result['wall_s']:.0f} s)")
+
+
+def _export(_, args) -> None:
+    from vdo.commands.export import export
+
+    pairs = _pairs(args.pairs)
+    for path in export(args.source, args.format, args.out, pairs, overwrite=args.overwrite):
+        print(f"wrote {path}")
+
+
+def _report(_, args) -> None:
+    from vdo.outputs.html_report import write_report
+
+    if not Path(args.run_dir).is_dir():
+        raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
+    print(f"wrote {write_report(args.run_dir).resolve()}")
+
+
+def _sweep(_, args) -> int:
+    from vdo.commands.sweep import load_sweep, sweep
+
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask)
+    for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
+        print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
+    print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "
+          f"{result['failed']} failed; wrote {result['results']}")
+    return 1 if result["failed"] else 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
+    sub = parser.add_subparsers(dest="command", required=True)
+    ev = sub.add_parser("evaluate", help="coverage of the regions of interest by the cameras")
+    ev.add_argument("config", help="experiment TOML file")
+    ev.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ev.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    ev.add_argument("--quiet", action="store_true")
+    rd = sub.add_parser("render", help="photo-realistic noisy images of every camera")
+    rd.add_argument("config", help="experiment TOML file")
+    rd.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
+                                                              "(default: [render] scale)")
+    rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
+    rd.add_argument("--seed", type=int, default=None, help="random seed (default: [render] seed)")
+    rd.add_argument("--series", nargs="?", const="load_path", default=None, metavar="POSES.csv",
+                    help="render a reference and deformed image series over the load path: the "
+                         "experiment's [load_path], or the poses per step and group (or mesh) of "
+                         "POSES.csv (see vdo.geometry.keyframes)")
+    rd.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs of the calibration files (default: cameras assigned a "
+                         "common region); each must share a field of view")
+    rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    rd.add_argument("--quiet", action="store_true")
+    va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
+    va.add_argument("config", help="validation TOML file (e.g. experiments/validation.toml)")
+    va.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    va.add_argument("--seeds", type=int, default=None,
+                    help="noise seeds per case (default: [validation] seeds)")
+    va.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    va.add_argument("--quiet", action="store_true")
+    op = sub.add_parser("optimize", help="move the cameras along their rails under the constraints")
+    op.add_argument("config", help="experiment TOML file (its [optimize] table says what moves)")
+    op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    op.add_argument("--time-limit", type=float, default=900.0, metavar="SECONDS",
+                    help="end the search after this long and write the best layout so far (default 900)")
+    op.add_argument("--quiet", action="store_true")
+    de = sub.add_parser("design", help="choose camera poses and lenses from scratch (docs/design.md)")
+    de.add_argument("config", help="experiment TOML file (its [design] table says what to choose from)")
+    de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
+    de.add_argument("--quiet", action="store_true")
+    ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
+    ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
+    ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
+    ex.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ex.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
+                    help="stereo pairs (default: every pair that shares a field of view)")
+    ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    rp = sub.add_parser("report", help="write RUN_DIR/report.html (3D view, tables, figures)")
+    rp.add_argument("run_dir", help="a run folder written by vdo")
+    sw = sub.add_parser("sweep", help="evaluate or optimize many variants of an experiment")
+    sw.add_argument("sweep", help="sweep TOML file (base experiments, axes, action)")
+    sw.add_argument("--out", required=True, help="sweep folder: new, or an earlier run's to resume")
+    sw.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
+    sw.add_argument("--dask", default=None, help="Dask scheduler address, or 'local' for a LocalCluster")
+    sw.add_argument("--quiet", action="store_true")
+    demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
+    demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
+    return parser
+
+
+def _run(args) -> int:
+    started = time.perf_counter()
+    if args.command == "demo":
+        if not BUILTIN.is_file():
+            raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
+                                           "from a checkout of the vdo repository")
+        args.config, args.overwrite, args.quiet = BUILTIN, False, False
+        args.out = args.out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
+    if getattr(args, "out", None) is not None and args.command not in _OWN_FOLDER:
+        check_out(args.out, getattr(args, "overwrite", False))
+    if "jax" not in sys.modules:  # float64 from JAX's first import, should loading the config need it
+        os.environ["JAX_ENABLE_X64"] = "1"
+    # before loading the config, whose checks may run JAX: threads that allocate before it keep
+    # their own malloc arenas (`vdo.core.memory`; measured: 10 M page faults, 20 s of system time in
+    # the built-in `vdo optimize` when this came after the load)
+    retain_freed_memory()
+    with interrupts.held():  # heavy imports (`vdo.core.interrupts`)
+        loaded = _load(args) if hasattr(args, "config") else None
+        from vdo.core.configure import configure
+
+        configure()
+        if args.command in _MODULES:
+            importlib.import_module(f".{_MODULES[args.command]}", __package__)
+    handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
+               "optimize": _optimize, "design": _design, "export": _export, "report": _report,
+               "sweep": _sweep}[args.command]
+    status = handler(loaded, args) or 0
+    if args.command == "demo":
+        print(f"demo finished in {time.perf_counter() - started:.0f} s; open "
+              f"{Path(args.out).resolve() / 'report.html'} in a browser")
+    return status
+
+
+@contextmanager
+def _log_to_stderr(quiet: bool):
+    """Show the `vdo` logger's records on stderr while the command runs: warnings with --quiet,
+    information otherwise; each line above the progress bars (`vdo.core.progress.AboveBars`)."""
+    from vdo.core.progress import AboveBars
+
+    handler = AboveBars(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger = logging.getLogger("vdo")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if quiet else logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+def main(argv=None) -> int:
+    """Run one command; returns the exit status (module docstring). Called without `argv` it is
+    the program (``vdo ...``, ``python -m vdo``): after an interrupt it ends the process at once,
+    instead of waiting seconds for Dr.Jit's threads to finish the render they were given."""
+    restore = interrupts.install()
+    try:
+        args = _parser().parse_args(argv)
+        with _log_to_stderr(getattr(args, "quiet", False)):
+            return _run(args)
+    except BaseException as exc:
+        stop = interrupts.interruption(exc)
+        if stop is not None:
+            interrupts.acknowledge()
+            print(stop.message, file=sys.stderr)
+            if argv is None:
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(stop.exit_code)
+            return stop.exit_code
+        if isinstance(exc, ConfigError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if isinstance(exc, BackendError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 3
+        raise
+    finally:
+        restore()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,152 @@
+"""`vdo evaluate`: coverage, sensitivity and predicted uncertainty of the configured cameras on
+every region of interest, written into a run folder."""
+
+from __future__ import annotations
+
+import csv
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from vdo.physics import checks
+from vdo import constraints
+from vdo.outputs import html_report
+from vdo.search import loadpath
+from vdo.outputs import maps
+from vdo.outputs import report
+from vdo.physics import strain
+from vdo.core import vtp
+from vdo.config.experiment import Experiment
+from vdo.core.runfolder import run_folder
+from vdo.geometry.keyframes import load_path_of
+from vdo.search.loadpath import LoadPathResult, evaluate_load_path
+from vdo.core.progress import shown
+from vdo.state import LayoutState, layout_state, prepare
+
+log = logging.getLogger(__name__)
+
+UM = 1e6            # m -> um
+MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
+
+
+def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
+    """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
+    uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
+    unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
+    component for the [analysis] settings, `vdo.physics.strain`); summary.json also holds the design
+    checks per camera and region (`vdo.physics.checks`). Progress and warnings go to the `vdo.commands.evaluate`
+    logger (`vdo.core.progress`)."""
+    geometry = prepare(exp)
+    samples = geometry.samples
+    log.info("%s samples on %d regions (%g mm spacing)", f"{len(samples):,}", len(exp.regions),
+             exp.evaluation.sample_spacing * 1e3)
+    if not exp.lights and exp.render.ambient_radiance == 0:
+        log.warning("note: no [[light]] and no [render] ambient_radiance: the images would be "
+                    "black, so the uncertainty is not predicted (sigma = inf)")
+    load_path = load_path_of(exp, geometry.meshes)     # its files are checked before any ray
+    state = layout_state(geometry, progress=shown(log))
+    over_path = None
+    if load_path is not None:
+        log.info("load path: %d steps", len(load_path.steps))
+        over_path = evaluate_load_path(geometry, load_path, progress=shown(log), rest=state)
+        for loss in over_path.losses:
+            log.warning("warning: camera %s loses region %s at step %s (sees %.0f %% of it, "
+                        "%.0f %% at rest)", loss["camera"], loss["region"], loss["step"],
+                        100 * loss["fraction"], 100 * loss["rest_fraction"])
+    summary = write_evaluation(state, out, overwrite, over_path)
+    for e in summary["axis_angles"]:
+        if not e["met"]:
+            bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
+            log.warning("warning: cameras %s and %s: optical axes %.1f deg apart, %s of %.1f deg",
+                        e["cameras"][0], e["cameras"][1], e["value"], bound, e["limit"])
+    return summary
+
+
+def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
+                     over_path: LoadPathResult | None = None) -> dict:
+    """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary.
+    With `over_path` (`vdo.search.loadpath`) also the load path: load_path.csv, load_path.png, the worst
+    case over the steps in samples.vtp (coverage_worst, sigma_max_worst, worst_step) and in
+    maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path"."""
+    exp, samples, cameras = state.experiment, state.samples, state.cameras
+    vis, illumination, pred = state.visibility, state.illumination, state.prediction
+    eps, sigma_dic = state.strain
+    summary = report.state_summary(state)
+    summary["axis_angles"] = constraints.angle_checks(exp, list(cameras), vis, samples)
+    summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
+                                                    illumination.irradiance,
+                                                    state.geometry.speckle.pattern)
+    if over_path is not None:
+        summary["load_path"] = loadpath.summary(over_path)
+    with run_folder(out, overwrite) as tmp:
+        report.write_json(tmp / "layout.json", report.layout(cameras))
+        report.write_json(tmp / "summary.json", summary)
+        report.write_config(tmp / "config.toml", exp)
+        sigma_um = np.where(pred.measured, pred.sigma_max * UM, np.nan)
+        sigma_xyz_um = np.where(pred.measured[:, None], pred.sigma_xyz * UM, np.nan)
+        sens = pred.sensitivity * MPX_PER_UM
+        arrays = {"normal": samples.normals, "region": samples.region.astype(np.int32),
+                  "area": samples.area, "coverage": pred.coverage,
+                  "patch_fraction": pred.patch_fraction, "edge_limited": pred.edge_limited,
+                  "outlier": pred.outlier,
+                  "irradiance": illumination.irradiance,
+                  **{f"sensitivity_{a}": sens[:, k] for k, a in enumerate("xyz")},
+                  "sigma_max": sigma_um,
+                  **{f"sigma_{a}": sigma_xyz_um[:, k] for k, a in enumerate("xyz")}}
+        arrays |= {f"sigma_strain_{c}": np.where(np.isfinite(eps[:, k]), eps[:, k] * 1e6, np.nan)
+                   for k, c in enumerate(strain.STRAIN_COMPONENTS)}
+        arrays["sigma_dic_max"] = np.where(np.isfinite(sigma_dic), sigma_dic * UM, np.nan)
+        arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
+        arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
+        arrays |= {f"usable_{name}": pred.usable[i] for i, name in enumerate(vis.camera_names)}
+        if over_path is not None:
+            worst_sigma = over_path.worst_sigma
+            arrays |= {"coverage_worst": over_path.worst_coverage.astype(np.int32),
+                       "sigma_max_worst": np.where(np.isfinite(worst_sigma), worst_sigma * UM, np.nan),
+                       "worst_step": over_path.worst_step_index.astype(np.int32)}
+        vtp.write_points(tmp / "samples.vtp", samples.points, arrays)
+        (tmp / "maps").mkdir()
+        maps.plot_unfolded(samples, pred.coverage, tmp / "maps" / "coverage.png",
+                           f"{exp.name}: number of usable views of each point", "cameras",
+                           discrete=True)
+        for k, a in enumerate("xyz"):
+            maps.plot_unfolded(samples, sens[:, k], tmp / "maps" / f"sensitivity_{a}.png",
+                               f"{exp.name}: global sensitivity along {a.upper()}",
+                               "mpixel/µm")
+        if np.isfinite(sigma_um).any():
+            maps.plot_unfolded(samples, sigma_um, tmp / "maps" / "sigma_max.png",
+                               f"{exp.name}: displacement uncertainty, worst direction "
+                               "(grey: < 2 usable views)", "σ_max (µm)", cmap="magma_r")
+            for k, a in enumerate("xyz"):
+                maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
+                                   f"{exp.name}: displacement uncertainty along {a.upper()}",
+                                   "σ (µm)", cmap="magma_r")
+            eps_ue = np.where(np.isfinite(eps), eps * 1e6, np.nan)
+            for k, c in enumerate(strain.STRAIN_COMPONENTS):
+                maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
+                                   f"{exp.name}: strain uncertainty ε_{c} (face frame, "
+                                   f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r")
+        if over_path is not None:
+            _write_load_path(tmp, exp, samples, over_path)
+        html_report.write_report(tmp)
+    return summary
+
+
+def _write_load_path(tmp: Path, exp: Experiment, samples, result: LoadPathResult) -> None:
+    """The load-path files of `write_evaluation`."""
+    rows = loadpath.table(result)
+    with open(tmp / "load_path.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    loadpath.plot(result, tmp / "load_path.png",
+                  f"{exp.name}: coverage and σ_max p95 over the load path")
+    maps.plot_unfolded(samples, result.worst_coverage, tmp / "maps" / "coverage_worst.png",
+                       f"{exp.name}: fewest usable views of each point over the load path",
+                       "cameras", discrete=True)
+    worst = np.where(np.isfinite(result.worst_sigma), result.worst_sigma * UM, np.nan)
+    if np.isfinite(worst).any():
+        maps.plot_unfolded(samples, worst, tmp / "maps" / "sigma_max_worst.png",
+                           f"{exp.name}: largest σ_max of each point over the load path "
+                           "(grey: < 2 usable views at some step)", "σ_max (µm)", cmap="magma_r")

@@ -1,0 +1,59 @@
+"""`vdo export CONFIG_OR_RUN --format F --out DIR`: calibration files for DIC software from an
+experiment TOML or a run folder's layout.json (the formats: `vdo.formats`)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from vdo.core.errors import ConfigError
+from vdo.formats.export import FORMATS, camera_from_layout, default_pairs
+
+
+def sources(source: Path):
+    """(experiment, cameras, the file to name in errors): the cameras of an experiment TOML, or
+    of a run folder's layout.json with the experiment of its config.toml."""
+    from vdo.config import experiment as config
+
+    if source.is_dir():
+        layout = source / "layout.json"
+        if not layout.is_file():
+            raise ConfigError(source, "", "is a folder without layout.json: give an experiment "
+                                          "TOML or a vdo run folder")
+        try:
+            entries = json.loads(layout.read_text())["cameras"]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ConfigError(layout, "cameras", f"cannot read the camera list ({exc})") from None
+        cameras = [camera_from_layout(e, layout) for e in entries]
+        if not (source / "config.toml").is_file():
+            raise ConfigError(source, "config.toml", "missing: the run's experiment is needed to "
+                                                     "find which cameras share a field of view")
+        return config.load(source / "config.toml"), cameras, layout
+    if source.is_file():
+        exp = config.load(source)
+        return exp, exp.cameras(), source
+    raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
+
+
+def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[Path]:
+    """Write the `fmt` calibration files of `source`'s cameras into the run folder `out`
+    (atomically, `vdo.core.runfolder`). `pairs`: (first, second) camera names, or None for the pairs
+    assigned a common region (`default_pairs`). Returns the written paths (inside `out`)."""
+    from vdo.core.runfolder import run_folder
+
+    source = Path(source)
+    if fmt not in FORMATS:
+        raise ConfigError(source, "--format", f"unknown format {fmt!r}; choose one of "
+                                              f"{', '.join(FORMATS)}")
+    from vdo.state import layout_state, prepare
+
+    exp, cameras, errors_in = sources(source)
+    state = layout_state(prepare(exp), cameras, predict_fields=False)
+    vis, samples = state.visibility, state.samples
+    chosen = default_pairs(exp, cameras, vis, samples, pairs, errors_in)
+    if not chosen and fmt in ("matchid", "vic3d"):
+        raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and no two "
+                                                 "cameras are assigned a common region: name the "
+                                                 "pairs with --pairs")
+    with run_folder(out, overwrite) as tmp:
+        names = [p.name for p in FORMATS[fmt](cameras, chosen, tmp, errors_in)]
+    return [Path(out).resolve() / n for n in names]

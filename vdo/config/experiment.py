@@ -1,0 +1,1606 @@
+"""The experiment file: one schema table drives reading, writing and docs/config.md.
+
+One TOML file describes one experiment. Lengths are metres unless a field's name says otherwise
+(``_mm``); angles are degrees in the file (``_deg``) and radians inside vdo. Mesh files are
+read with the unit they declare. Relative paths are relative to the TOML file.
+
+The schema is the table of `Row`s attached to the fields of the parsed dataclasses (`Experiment`,
+`CameraSpec`, ...): each row gives the TOML key, its type (a `Kind`: check + conversion), the unit
+in the file, the default and the documentation. The same rows read a file (`parse`), write one back
+(`Experiment.to_dict`, so ``parse(e.to_dict()) == e``) and generate docs/config.md (`markdown`).
+Defaults live in the rows only. Adding a field is one `row(...)` line in its dataclass; adding a table
+is one dataclass plus one `table(...)` line in `Experiment`; checks that involve several fields of a
+table go in the table's `check` function, checks across tables in `_check_references`.
+
+Everything is validated before any work starts. A user mistake raises `ConfigError` naming the file,
+the field (``camera "cam3".focal_mm``) and what is expected. This module imports only NumPy and the
+light `sensor` module, so a config error comes before any heavy import (JAX, Mitsuba).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import math
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from vdo.core.errors import ConfigError
+from vdo.model.sensor import ALIGNMENTS, SensorModel
+
+SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+ROLES = ("specimen", "obstacle")
+NAME_PATTERN = r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}"   # names that become parts of file names
+NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not starting with '.' or "
+             "'-'; at most 64 characters), as it names output files")
+MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float image)
+FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
+MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
+COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
+IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
+               b"MM\x00*": "TIFF", b"BM": "BMP"}
+_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
+_SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
+
+
+class _Required:
+    def __repr__(self):
+        return "required"
+
+
+REQUIRED = _Required()
+
+
+class _Bad(Exception):
+    """A value that does not fit its Kind; `Table` turns it into a ConfigError naming the field
+    (with `key`, the key inside a nested table: ``mount "left".tripod.legs``)."""
+
+    def __init__(self, message: str, key: str = ""):
+        super().__init__(message)
+        self.key = key
+
+
+# --------------------------------------------------------------------------------------------
+# Kinds: how one TOML value is checked, converted to the attribute value and written back.
+# `scale` converts file units to SI (mm -> m, deg -> rad); ranges are in file units.
+# --------------------------------------------------------------------------------------------
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _tidy(x: float) -> float:
+    return float(f"{x:.{_SIGNIFICANT}g}")
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+class Kind:
+    doc = ""
+
+    def read(self, value, scale: float, base: Path):
+        raise NotImplementedError
+
+    def write(self, value, scale: float):
+        return value
+
+
+@dataclass(frozen=True)
+class Text(Kind):
+    """A string: one of `choices`, a name (NAME_PATTERN) or free text without control characters."""
+
+    choices: tuple[str, ...] | None = None
+    name: bool = False
+    empty: bool = False
+    title: bool = False
+
+    @property
+    def doc(self):
+        return ", ".join(self.choices) if self.choices else ("name" if self.name else "string")
+
+    def read(self, value, scale, base):
+        if not isinstance(value, str) or not (value or self.empty):
+            raise _Bad(f"must be a{'' if self.empty else ' non-empty'} string (got {_show(value)})")
+        if self.choices is not None and value not in self.choices:
+            raise _Bad(f"must be one of {', '.join(self.choices)} (got {_show(value)})")
+        if self.name and not re.fullmatch(NAME_PATTERN, value):
+            raise _Bad(f"{NAME_RULE} (got {_show(value)})")
+        if (self.name or self.title) and not value.isprintable():
+            raise _Bad(f"must not contain control characters (got {_show(value)})")
+        if self.title and (len(value) > 200 or "/" in value or "\\" in value):
+            raise _Bad(f"must be a title of at most 200 characters without '/' or '\\' (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Flag(Kind):
+    doc = "true/false"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, bool):
+            raise _Bad(f"must be true or false (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Real(Kind):
+    """A finite number; `positive`, then [low, high] (file units; `why` explains the range)."""
+
+    low: float | None = None
+    high: float | None = None
+    positive: bool = False
+    why: str = ""
+
+    @property
+    def doc(self):
+        if self.low is not None and self.high is not None:
+            return f"{self.low:g} to {self.high:g}"
+        if self.low is not None:
+            return f"≥ {self.low:g}"
+        return "> 0" if self.positive else "number"
+
+    def read(self, value, scale, base):
+        if not _is_number(value) or not math.isfinite(value):
+            raise _Bad(f"must be a finite number (got {_show(value)})")
+        if self.positive and value <= 0:
+            raise _Bad(f"must be positive (got {_show(value)})")
+        if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+            raise _Bad(f"must lie in [{self.low}, {self.high}] (got {_show(value)})"
+                       + (f": {self.why}" if self.why else ""))
+        return float(value) * scale
+
+    def write(self, value, scale):
+        return _tidy(value / scale)
+
+
+@dataclass(frozen=True)
+class Whole(Kind):
+    """A TOML integer (not a float, not a boolean) in [low, high]."""
+
+    low: int | None = None
+    high: int | None = None
+
+    @property
+    def doc(self):
+        if self.high is not None:
+            return f"integer {self.low}–{self.high}"
+        return f"integer ≥ {self.low}" if self.low is not None else "integer"
+
+    def read(self, value, scale, base):
+        bad = isinstance(value, bool) or not isinstance(value, int)
+        if bad or (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
+            bounds = f" >= {self.low}" if self.high is None else f" in {self.low}..{self.high}"
+            raise _Bad(f"must be an integer{bounds if self.low is not None else ''} (got {_show(value)})")
+        return value
+
+
+@dataclass(frozen=True)
+class Vector(Kind):
+    """A list of `length` numbers: an array in SI units, or a tuple when `as_tuple`. `whole`:
+    TOML integers; `finite=False` admits ±inf (never NaN)."""
+
+    length: int
+    positive: bool = False
+    whole: bool = False
+    finite: bool = True
+    as_tuple: bool = False
+    letters: str = ""
+
+    @property
+    def doc(self):
+        return f"[{', '.join(self.letters)}]" if self.letters else f"{self.length} numbers"
+
+    def read(self, value, scale, base):
+        if self.whole:
+            ok = isinstance(value, list) and len(value) == self.length and all(
+                isinstance(x, int) and not isinstance(x, bool) for x in value)
+            if not ok:
+                raise _Bad(f"must be {self.length} whole numbers [{', '.join(self.letters)}] "
+                           f"(got {_show(value)})")
+        ok = isinstance(value, list) and len(value) == self.length and all(
+            _is_number(x) and not math.isnan(x) and (math.isfinite(x) or not self.finite) for x in value)
+        if not ok:
+            raise _Bad(f"must be a list of {self.length} {'finite ' if self.finite else ''}numbers "
+                       f"(got {_show(value)})")
+        if not self.whole and any(math.isfinite(x) and abs(x) > MAX_COORDINATE for x in value):
+            raise _Bad(f"has a value beyond ±{MAX_COORDINATE:g} (got {_show(value)})")
+        if self.positive and any(x <= 0 for x in value):
+            raise _Bad(f"must be positive (got {_show(value)})")
+        if self.as_tuple:
+            return tuple(value) if self.whole else tuple(float(x) * scale for x in value)
+        return np.array(value, dtype=float) * scale
+
+    def write(self, value, scale):
+        if self.whole:
+            return list(value)
+        return [_tidy(float(x) / scale) for x in value]
+
+
+@dataclass(frozen=True)
+class Points(Kind):
+    """A list of at least `minimum` points of `dims` coordinates ([x, y, z] or [x, y]): an
+    (n, dims) array."""
+
+    minimum: int = 2
+    dims: int = 3
+
+    @property
+    def doc(self):
+        return "[[x, y, z], …]" if self.dims == 3 else "[[x, y], …]"
+
+    def read(self, value, scale, base):
+        ok = isinstance(value, list) and len(value) >= self.minimum and all(
+            isinstance(p, list) and len(p) == self.dims and all(
+                _is_number(x) and math.isfinite(x) and abs(x) <= MAX_COORDINATE for x in p)
+            for p in value)
+        if not ok:
+            axes = "[x, y, z]" if self.dims == 3 else "[x, y]"
+            raise _Bad(f"must be a list of at least {self.minimum} {axes} points in metres "
+                       f"(each coordinate within ±{MAX_COORDINATE:g})")
+        return np.array(value, dtype=float) * scale
+
+    def write(self, value, scale):
+        return [[_tidy(float(x) / scale) for x in p] for p in value]
+
+
+@dataclass(frozen=True)
+class Numbers(Kind):
+    """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
+
+    as_set: bool = False
+    what: str = "numbers"
+    doc = "list of numbers > 0"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, list) or not all(_is_number(x) and math.isfinite(x) and x > 0 for x in value):
+            raise _Bad(f"must be a list of {self.what}, each > 0 (got {_show(value)})")
+        out = [float(x) * scale for x in value]
+        return tuple(sorted(set(out))) if self.as_set else tuple(out)
+
+    def write(self, value, scale):
+        return [_tidy(x / scale) for x in value]
+
+
+@dataclass(frozen=True)
+class Words(Kind):
+    """A list of strings (a tuple): some of `choices`, or names of other tables (`what`)."""
+
+    choices: tuple[str, ...] | None = None
+    what: str = "names"
+    nonempty: bool = False
+
+    @property
+    def doc(self):
+        return f"list of {', '.join(self.choices)}" if self.choices else f"list of {self.what}"
+
+    def read(self, value, scale, base):
+        ok = isinstance(value, list) and all(isinstance(x, str) for x in value) \
+            and (value or not self.nonempty)
+        if self.choices is not None:
+            if not ok or not value or not set(value) <= set(self.choices):
+                raise _Bad(f"must list some of {', '.join(self.choices)} (got {_show(value)})")
+        elif not ok:
+            raise _Bad(f"must be a {'non-empty ' if self.nonempty else ''}list of {self.what}")
+        twice = sorted({x for x in value if value.count(x) > 1})
+        if twice:
+            raise _Bad(f"lists {', '.join(map(repr, twice))} more than once")
+        return tuple(value)
+
+    def write(self, value, scale):
+        return list(value)
+
+
+@dataclass(frozen=True)
+class File(Kind):
+    """A path to an existing, readable file with one of `suffixes`, relative to the config file;
+    `magic`: the first bytes must be one of these image formats."""
+
+    suffixes: tuple[str, ...]
+    what: str
+    kinds: str
+    magic: bool = False
+    doc = "path"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, str) or not value or "\x00" in value:
+            raise _Bad(f"must be a non-empty string (got {_show(value)})")
+        path = (base / value).resolve()
+        if not path.is_file():
+            raise _Bad(f"{self.what} file {str(path)!r} does not exist; give a path to "
+                       f"{self.kinds} file, relative to the config file")
+        if not os.access(path, os.R_OK):
+            raise _Bad(f"{self.what} file {str(path)!r} is not readable")
+        if path.suffix.lower() not in self.suffixes:
+            raise _Bad(f"{path.name!r} is not {self.kinds} file (by its suffix)")
+        if self.magic:
+            with open(path, "rb") as fh:
+                head = fh.read(8)
+            if not any(head.startswith(m) for m in IMAGE_MAGIC):
+                raise _Bad(f"{path.name!r} is not an image: its content is not "
+                           f"{', '.join(sorted(set(IMAGE_MAGIC.values())))}")
+        return path
+
+    def write(self, value, scale):
+        return str(value)
+
+
+@dataclass(frozen=True)
+class SubTable(Kind):
+    """A table nested in another (`[mount.tripod]` under a `[[mount]]`), read into `cls` by
+    `cls`'s own schema rows; absent keys take their defaults, unknown keys are refused."""
+
+    cls: type
+    doc = "table"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, dict):
+            raise _Bad(f"must be a table of {', '.join(r.key for r in rows_of(self.cls))} "
+                       f"(got {_show(value)})")
+        rows = rows_of(self.cls)
+        known = tuple(r.key for r in rows)
+        for key in value:
+            if key not in known:
+                raise _Bad(_unknown_field(key, known), key=key if key.isprintable() else repr(key))
+        values = {}
+        for r in rows:
+            if r.key in value:
+                try:
+                    values[r.attr] = r.kind.read(value[r.key], r.scale, base)
+                except _Bad as exc:
+                    raise _Bad(str(exc), key=f"{r.key}.{exc.key}" if exc.key else r.key) from None
+        return self.cls(**values)
+
+    def write(self, value, scale):
+        return _write(value, rows_of(self.cls))
+
+
+# --------------------------------------------------------------------------------------------
+# Rows and tables
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Row:
+    """One schema row: TOML `key` -> dataclass attribute `attr` (filled from the field's name).
+
+    `default` is in file units (REQUIRED, or None: absent). `either`: another key that may stand in
+    for a required one (checked by the table's check). `when`: attributes (space-separated) one of
+    which must be set for this key to apply (written only then). `shown`: the default as the docs show it."""
+
+    key: str
+    kind: Kind
+    default: Any = REQUIRED
+    unit: str = ""
+    doc: str = ""
+    either: str = ""
+    when: str = ""
+    shown: str = ""
+    attr: str = ""
+
+    @property
+    def scale(self) -> float:
+        return _UNIT_SCALE[self.unit]
+
+
+@dataclass(frozen=True)
+class Section:
+    """A TOML table ([key]) or array of tables ([[key]], each with a unique name) read into `cls`.
+    `check(t, values)` checks several fields together and may complete `values` before `cls(**values)`;
+    `extra`: keys accepted in the file that are not attributes (read by `check`)."""
+
+    key: str
+    cls: type
+    array: bool = False
+    required: bool = False
+    check: Callable | None = None
+    extra: tuple[Row, ...] = ()
+    rows: tuple[Row, ...] | None = None
+    doc: str = ""
+    attr: str = ""
+
+
+def row(key, kind, default=REQUIRED, *, unit="", doc="", either="", when="", shown=""):
+    """A dataclass field described by a schema row; its default is the row's default in SI units."""
+    spec = Row(key, kind, default, unit, doc, either, when, shown)
+    meta = {"vdo.row": spec}
+    if default is REQUIRED:
+        return field(metadata=meta)
+    if default is None:
+        return field(default=None, metadata=meta)
+    value = kind.read(default, spec.scale, Path("."))
+    if isinstance(value, np.ndarray):
+        return field(default_factory=value.copy, metadata=meta)
+    return field(default=value, metadata=meta)
+
+
+def table(key, cls, *, array=False, required=False, check=None, extra=(), rows=None, doc="",
+          default=dataclasses.MISSING):
+    """A dataclass field holding a parsed table (`cls`) or a tuple of them (`array`)."""
+    return field(default=default, metadata={"vdo.table": Section(key, cls, array, required, check,
+                                                                  tuple(extra), rows, doc)})
+
+
+@functools.cache
+def rows_of(cls) -> tuple[Row, ...]:
+    """The schema rows of a dataclass, in field order, with `attr` filled in."""
+    return tuple(replace(f.metadata["vdo.row"], attr=f.name) for f in dataclasses.fields(cls)
+                 if "vdo.row" in f.metadata)
+
+
+@functools.cache
+def sections() -> tuple[Section, ...]:
+    """The tables of an experiment file (besides [experiment]), in `Experiment` field order."""
+    out = []
+    for f in dataclasses.fields(Experiment):
+        if "vdo.table" in f.metadata:
+            sec = f.metadata["vdo.table"]
+            out.append(replace(sec, attr=f.name, rows=sec.rows or rows_of(sec.cls)))
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------------------------
+# The tables
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MeshSpec:
+    """A mesh file and how it looks: diffuse paint of `albedo`, or bare metal when `metal`."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    path: Path = row("file", File((".stl", ".obj", ".ply"), "mesh", "an STL, OBJ or PLY"), doc="STL, OBJ or PLY")
+    unit: str = row("unit", Text(choices=tuple(UNITS)), "m", doc="unit of the file's coordinates")
+    role: str = row("role", Text(choices=ROLES), "obstacle",
+                    doc="regions of interest lie on specimen meshes; every mesh occludes")
+    albedo: float = row("albedo", Real(0.0, 1.0), 0.5, doc="diffuse reflectance for renders")
+    metal: bool = row("metal", Flag(), False, doc="render as rough metal instead of paint")
+
+    @property
+    def scale(self) -> float:
+        """Metres per mesh unit."""
+        return UNITS[self.unit]
+
+
+@dataclass(frozen=True, eq=False)
+class RegionSpec:
+    """A region of interest: the faces of `mesh` whose normal is within `normal_tolerance` of
+    `normal` and which lie in the box [box_min, box_max] (metres; faces that cross the box are
+    split at it when the meshes are loaded)."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    mesh: str = row("mesh", Text(name=True), doc="a specimen mesh")
+    normal: np.ndarray = row("normal", Vector(3, letters="xyz"),
+                             doc="outward normal of the face (world frame; normalised)")
+    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), [-math.inf] * 3,
+                              unit="m", shown="unbounded",
+                              doc="the region is the part of the selected faces inside this box "
+                                  "(faces crossing it are split at it; ±inf allowed)")
+    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), [math.inf] * 3,
+                              unit="m", shown="unbounded", doc="upper corner of the box")
+    importance: float = row("importance", Real(positive=True), 1.0,
+                            doc="weight in the score (the joint matters most)")
+    normal_tolerance: float = row("normal_tolerance_deg", Real(0.0, 89.0), 5.0, unit="deg",
+                                  doc="faces whose normal is within this of `normal`")
+    max_axis_angle: float | None = row(
+        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
+        doc="largest angle between the optical axes of two cameras that share this region")
+    min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
+                                  doc="coverage requirement on this region")
+
+
+@dataclass(frozen=True, eq=False)
+class RailSpec:
+    """A bar cameras slide along: a clamped NURBS curve (see `vdo.model.rail.Rail`, built by
+    `Experiment.rail`). `control_points` (n, 3) in metres, `weights` (n,)."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    control_points: np.ndarray = row("control_points_m", Points(2), unit="m",
+                                     doc="at least 2, consecutive points distinct")
+    degree: int = row("degree", Whole(low=1), 1, doc="B-spline degree p < n (1 = polyline)")
+    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="all 1",
+                                     doc="NURBS weights, one per control point")
+
+
+def _sensor_width_row():
+    """The sensor width row, shared by a camera and a body of the design inventory."""
+    return row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
+               shown="or sensor_mm", doc="sensor width")
+
+
+def _pixels_row():
+    """The pixel count row, shared by a camera and a body of the design inventory."""
+    return row("pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"),
+               doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraSpec:
+    """A camera as written in the file; `Experiment.cameras()` resolves its pose."""
+
+    name: str = row("name", Text(name=True), doc="unique; names the camera's output files")
+    sensor_width: float = _sensor_width_row()
+    pixels: tuple[int, int] = _pixels_row()
+    focal_length: float = row("focal_mm", Real(*FOCAL_RANGE_MM, positive=True,
+                                               why="the focal lengths of real lenses"), unit="mm",
+                              doc="lens focal length")
+    rail: str | None = row("rail", Text(name=True), None, shown="either rail + u",
+                           doc="the [[rail]] the camera sits on")
+    mount: str | None = row("mount", Text(name=True), None, shown="or mount",
+                            doc="the [[mount]] the camera stands on (a rail mount takes u, a zone "
+                                "position_m, default its centre; a fixed mount nothing)")
+    u: float | None = row("u", Real(), None, when="rail mount", doc="position on the rail, 0 to 1")
+    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
+                             when="rail mount", doc="from the rail point to the optical centre")
+    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
+                                      shown="or this", doc="optical centre")
+    target: np.ndarray | None = row("target_m", Vector(3, letters="xyz"), None, unit="m",
+                                    shown="either this", doc="aim the optical axis at a point")
+    pan: float | None = row("pan_deg", Real(), None, unit="deg", shown="or pan + tilt",
+                            doc="azimuth from +x toward +y")
+    tilt: float | None = row("tilt_deg", Real(), None, unit="deg", shown="or pan + tilt",
+                             doc="elevation (negative looks down)")
+    roll: float = row("roll_deg", Real(), 0.0, unit="deg", doc="0 keeps the image x axis horizontal")
+    principal_offset_px: tuple[float, float] = row(
+        "principal_offset_px", Vector(2, as_tuple=True, letters=("dx", "dy")), [0.0, 0.0],
+        doc="principal point offset from the image centre")
+    body: bool = row("body", Flag(), True, doc="the camera's body occludes the other cameras' views")
+    f_number: float | None = row("f_number", Real(positive=True), None, shown="none",
+                                 doc="with focus_m: thin lens with depth of field in renders")
+    focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
+                                       doc="focus distance, with f_number")
+    lenses: tuple[float, ...] = row(
+        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm", shown="none",
+        doc="the lenses this body takes, for \"lens\" in [optimize] free (default: [optimize] lenses_mm)")
+    distortion: tuple[float, ...] = row(
+        "distortion", Vector(5, as_tuple=True, letters=("k1", "k2", "p1", "p2", "k3")),
+        [0.0, 0.0, 0.0, 0.0, 0.0], doc="Brown-Conrady lens distortion, OpenCV's order and units")
+
+
+def _sensor_mm_row() -> Row:
+    return Row("sensor_mm", Vector(2, positive=True, letters="wh"), None, "mm",
+               "sensor size (instead of sensor_width_mm); pixels must be square within 1 %",
+               shown="or sensor_width_mm")
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """[evaluation]: how the regions are sampled and what a camera sees."""
+
+    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 10.0, unit="mm",
+                                doc="grid spacing of the surface samples on each region")
+    incidence_limit: float = row("incidence_limit_deg", Real(1.0, 89.9), 75.0, unit="deg",
+                                 doc="a camera sees a point only when the angle between the normal "
+                                     "and the direction to the camera is below this")
+    patch_size: float = row("patch_mm", Real(positive=True), 10.0, unit="mm",
+                            doc="side of the DIC measurement patch (Ω = side²) used by the uncertainty")
+    min_cameras: int = row("min_cameras", Whole(low=1), 2,
+                           doc="coverage requirement per point (a region may override it)")
+
+
+@dataclass(frozen=True, eq=False)
+class LightSpec:
+    """A rectangular LED panel: a one-sided diffuse area emitter of `radiance` (W sr^-1 m^-2,
+    any consistent unit: the sensor's photons_per_unit maps it to electrons) centred at `position`
+    and facing `target`, `size` (width, height) in metres."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    position: np.ndarray = row("position_m", Vector(3, letters="xyz"), unit="m", doc="panel centre")
+    target: np.ndarray = row("target_m", Vector(3, letters="xyz"), unit="m", doc="the panel faces it")
+    size: tuple[float, float] = row("size_m", Vector(2, positive=True, as_tuple=True, letters="wh"),
+                                    unit="m", doc="panel width and height")
+    radiance: float = row("radiance", Real(positive=True),
+                          doc="emitted radiance (any unit consistent with [sensor] photons_per_unit)")
+
+
+@dataclass(frozen=True)
+class SpeckleSpec:
+    """The paint on the regions of interest: generated dots + strokes, or a user image."""
+
+    dot_diameter: float = row("dot_diameter_mm", Real(positive=True), 2.0, unit="mm",
+                              doc="black dots on white paint")
+    coverage: float = row("coverage", Real(0.01, 0.95), 0.5, doc="black area fraction")
+    strokes: int = row("strokes", Whole(low=0), 10, doc="random brush strokes per tile")
+    texel: float = row("texel_mm", Real(positive=True), 0.25, unit="mm",
+                       doc="pattern resolution on the surface (at most a third of the dot diameter)")
+    tile_texels: int = row("tile_texels", Whole(low=64), 1024,
+                           doc="the pattern tile repeats seamlessly every tile_texels × texel_mm")
+    seed: int = row("seed", Whole(low=0), 1, doc="random seed of the pattern")
+    image: Path | None = row("image", File((".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"), "pattern",
+                                           "an image (PNG, JPEG, TIFF or BMP)", magic=True), None, shown="none",
+                             doc="a photo of a real pattern instead (at texel_mm per pixel)")
+    white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
+    black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,
+                              doc="reflectance of the black paint (below white_albedo)")
+
+
+def _sensor_rows() -> tuple[Row, ...]:
+    """[sensor]: `SensorModel`'s fields; it keeps the defaults and checks the ranges itself."""
+    defaults = {f.name: f.default for f in dataclasses.fields(SensorModel)}
+    kinds = {"bit_depth": Whole()}
+    docs = {"quantum_efficiency": ("fraction of photons converted to electrons, in (0, 1]", ""),
+            "full_well_e": ("full-well capacity, electrons > 0", ""),
+            "read_noise_e": ("read noise, electrons rms ≥ 0", ""),
+            "bit_depth": ("A/D converter resolution, 8 to 16 bits", ""),
+            "gain_dn_per_e": ("system gain, DN per electron > 0", "full well → top DN"),
+            "offset_dn": ("dark offset, DN in [0, 2^bit_depth − 1)", "2^(bit_depth − 7)"),
+            "photons_per_unit": ("photons per pixel per unit of the linear render value, > 0",
+                                 "a linear value of 1 fills 70 % of the full well")}
+    return tuple(Row(name, kinds.get(name, Real()), defaults[name], doc=docs[name][0],
+                     shown=docs[name][1], attr=name) for name in SENSOR_FIELDS)
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    """[render]: settings of `vdo render`."""
+
+    spp: int = row("spp", Whole(low=1), 16, doc="samples per pixel")
+    scale: float = row("scale", Real(positive=True, high=4.0), 1.0,
+                       doc="image size relative to the sensor's pixel counts")
+    seed: int = row("seed", Whole(low=0), 0, doc="render noise seed")
+    ambient_radiance: float = row("ambient_radiance", Real(low=0.0), 0.0,
+                                  doc="uniform environment light, same unit as [[light]] radiance")
+    image_format: str = row("image_format", Text(choices=("png", "tiff")), "png",
+                            doc="tiff: 16-bit above 8-bit depth")
+    exr: bool = row("exr", Flag(), False, doc="also write the linear float images")
+    bit_alignment: str = row("bit_alignment", Text(choices=ALIGNMENTS), "msb",
+                             doc="16-bit files: msb (counts shifted to the top bits, as most DIC "
+                                 "software expects) or raw (counts as they are)")
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """The DIC analysis the strain uncertainty is predicted for (`vdo.physics.strain`): global DIC with Q4
+    elements of side `element` (m), or subset DIC with square subsets of side `subset` (m) or
+    `subset_px` pixels on a grid of `step` (m) or `step_px` pixels, shape function "zero" or
+    "affine", strain from a plane fit over `strain_window` x `strain_window` subset centres.
+    Pixels are those of the finest camera at each sample (`vdo.physics.strain.sizes`)."""
+
+    method: str = row("method", Text(choices=("global", "subset")), "global",
+                      doc="global (finite-element) or subset (local) DIC")
+    element: float | None = row("element_mm", Real(positive=True), None, unit="mm",
+                                shown="[evaluation] patch_mm", doc="Q4 element side (global DIC)")
+    subset: float | None = row("subset_mm", Real(positive=True), None, unit="mm", shown="none",
+                               doc="subset side in mm (or subset_px)")
+    subset_px: float | None = row("subset_px", Real(positive=True), 29.0,
+                                  doc="subset side in pixels (unless subset_mm)")
+    step: float | None = row("step_mm", Real(positive=True), None, unit="mm", shown="none",
+                             doc="subset grid step in mm (or step_px)")
+    step_px: float | None = row("step_px", Real(positive=True), 7.0,
+                                doc="subset grid step in pixels (unless step_mm)")
+    shape_function: str = row("shape_function", Text(choices=("zero", "affine")), "affine",
+                              doc="subset shape function")
+    strain_window: int = row("strain_window", Whole(low=2), 15,
+                             doc="subset centres per side of the strain plane fit (virtual gauge)")
+
+
+def _check_analysis(t: Table, v: dict) -> None:
+    for mm, px in (("subset", "subset_px"), ("step", "step_px")):
+        if t.has(f"{mm}_mm") and t.has(px):
+            raise t.error(px, f"give the size once: {px} or {mm}_mm")
+        if v[mm] is not None:
+            v[px] = None
+
+
+MOUNT_NEEDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"),
+               "fixed": ("position_m",)}
+ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a convex floor polygon
+MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
+                  "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
+                  "position_m": "position_m = [1.0, 0.0, 1.5]", "height_m": "height_m = [1.2, 1.8]",
+                  "floor_m": "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]"}
+
+
+@dataclass(frozen=True)
+class TripodSpec:
+    """The tripod a zone mount's camera stands on (`vdo.scene.tripod`): a top casting `head_m`
+    below the underside of the camera body, `legs` straight legs from it to feet on the floor
+    (z = `floor_z_m`) spaced evenly on a circle of radius `spread_m` around the point below it,
+    the first at `azimuth_deg` from the camera's pan, and a centre column hanging
+    `column_length_m` below it. Legs and column are cylinders that move with the camera: they
+    hide the other cameras' views and cast shadows."""
+
+    legs: int = row("legs", Whole(low=3), 3, doc="number of legs")
+    spread: float = row("spread_m", Real(positive=True), 0.45, unit="m",
+                        doc="radius of the circle of the feet, around the point below the head")
+    leg_diameter: float = row("leg_diameter_m", Real(positive=True), 0.03, unit="m",
+                              doc="diameter of a leg")
+    column_diameter: float = row("column_diameter_m", Real(positive=True), 0.05, unit="m",
+                                 doc="diameter of the centre column")
+    column_length: float = row("column_length_m", Real(positive=True), 0.35, unit="m",
+                               doc="the centre column's length below the top casting (cut at the floor)")
+    head: float = row("head_m", Real(positive=True), 0.1, unit="m",
+                      doc="height of the tripod head: from the underside of the camera body to the "
+                          "top casting where the legs meet")
+    floor_z: float = row("floor_z_m", Real(), 0.0, unit="m",
+                         doc="height of the floor the feet stand on (below the zone)")
+    azimuth: float = row("azimuth_deg", Real(), 180.0, unit="deg",
+                         doc="direction of the first leg from the camera's pan (180: one leg back, "
+                             "the others spread in front, out of the view)")
+
+
+@dataclass(frozen=True, eq=False)
+class MountSpec:
+    """Where a camera stands. kind "rail": a NURBS curve (as a [[rail]]; read into `rails`);
+    "zone": anywhere in the axis-aligned box [box_min, box_max] (m), e.g. a tripod on a floor
+    area with its height range in z (a zero extent holds that axis), or anywhere above the convex
+    polygon `floor` ((n, 2) m, counter-clockwise) within `height` (m); "fixed": at `position` (m)."""
+
+    name: str = row("name", Text(name=True), doc="unique among mounts and rails")
+    kind: str = row("kind", Text(choices=tuple(MOUNT_NEEDS)), doc="rail, zone or fixed")
+    control_points: np.ndarray | None = row("control_points_m", Points(2), None, unit="m",
+                                            shown="rail", doc="a rail mount's control points")
+    degree: int | None = row("degree", Whole(low=1), None, shown="rail: 1", doc="a rail mount's degree")
+    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="rail: all 1",
+                                     doc="a rail mount's NURBS weights")
+    box_min: np.ndarray | None = row("box_min_m", Vector(3, letters="xyz"), None, unit="m",
+                                     shown="zone", doc="a box zone's lower corner")
+    box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
+                                     shown="zone", doc="a box zone's upper corner")
+    floor: np.ndarray | None = row("floor_m", Points(3, dims=2), None, unit="m", shown="zone",
+                                   doc="or a convex floor polygon (with height_m)")
+    height: tuple[float, float] | None = row("height_m", Vector(2, as_tuple=True, letters=("low", "high")),
+                                             None, unit="m", shown="zone", doc="the polygon zone's heights")
+    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
+                                      shown="fixed", doc="a fixed mount's optical centre")
+    tripod: TripodSpec | None = row("tripod", SubTable(TripodSpec), None, shown="none",
+                                    doc="a zone's tripod as the table [mount.tripod] (fields below; "
+                                        "`tripod = {}` takes the defaults): its legs and column "
+                                        "occlude the other cameras and cast shadows")
+
+    @property
+    def low(self) -> np.ndarray:
+        """The zone's lower bounding corner (m)."""
+        return self.box_min if self.floor is None else np.array([*self.floor.min(0), self.height[0]])
+
+    @property
+    def high(self) -> np.ndarray:
+        """The zone's upper bounding corner (m)."""
+        return self.box_max if self.floor is None else np.array([*self.floor.max(0), self.height[1]])
+
+
+def _check_mount(t: Table, v: dict) -> None:
+    kind = v["kind"]
+    floor = kind == "zone" and t.has("floor_m")
+    needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
+    allowed = needs + (("degree", "weights") if kind == "rail" else ())
+    for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
+        if t.has(key) and key not in allowed:
+            raise t.error(key, f"does not apply to a {kind} mount{' with floor_m' if floor else ''} "
+                               f"(it takes {', '.join(allowed)})")
+    for key in needs:
+        if not t.has(key):
+            raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
+    if t.has("tripod") and kind != "zone":
+        raise t.error("tripod", f"only a zone mount stands on a tripod (this one is {kind}): move "
+                                "[mount.tripod] under a zone mount or drop it")
+    if kind == "rail":
+        v["degree"] = v["degree"] or 1
+        _check_rail(t, v)
+    elif floor:
+        corners = v["floor"]
+        x, y = corners[:, 0], corners[:, 1]
+        area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        if abs(area) < 1e-6:
+            raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
+        corners = corners if area > 0 else corners[::-1]
+        edges = np.roll(corners, -1, axis=0) - corners
+        turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+        if np.any(turn < -1e-12):
+            raise t.error("floor_m", "must be a convex polygon (split a concave floor area into several "
+                                     "zones, one per tripod)")
+        if v["height"][1] < v["height"][0]:
+            raise t.error("height_m", f"must be [low, high] with low <= high (got {list(v['height'])})")
+        v["floor"] = corners
+    elif kind == "zone":
+        lo, hi = v["box_min"], v["box_max"]
+        if np.any(hi < lo):
+            raise t.error("box_max_m", f"must be >= box_min_m on every axis (got {hi.tolist()} "
+                                       f"against {lo.tolist()})")
+        if hi[0] <= lo[0] or hi[1] <= lo[1]:
+            raise t.error("box_max_m", "the zone has no floor area: give it an extent in both x "
+                                       "and y (box_min_m < box_max_m), or use a rail or fixed mount")
+    tripod = v.get("tripod")
+    if tripod is not None:
+        lowest = float(v["height"][0] if floor else v["box_min"][2])
+        if tripod.floor_z + tripod.head >= lowest:
+            raise t.error("tripod.floor_z_m", f"= {tripod.floor_z:g} m leaves no room for the tripod "
+                                              f"under the zone's lowest camera height {lowest:g} m "
+                                              f"(head_m = {tripod.head:g} m): lower floor_z_m or "
+                                              "raise the zone")
+
+
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
+    """Whether the point xy (m) lies in the convex, counter-clockwise polygon `floor`."""
+    edges = np.roll(floor, -1, axis=0) - floor
+    rel = np.asarray(xy)[None] - floor
+    return bool(np.all(edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0] >= -tol))
+
+
+def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
+    """Rail mounts become rails (a camera on one sits on that rail); a camera on a fixed mount
+    takes its position, one in a zone its position_m (default: the zone's centre), checked to be
+    inside. Runs before the Experiment is built, so the parsed experiment has one form."""
+    rails = {r.name for r in values["rails"]}
+    clash = rails & {m.name for m in values["mounts"]}
+    if clash:
+        raise ConfigError(path, "mount", f"{sorted(clash)[0]!r} names both a [[rail]] and a "
+                                         "[[mount]]; rename one")
+    as_rails = [m for m in values["mounts"] if m.kind == "rail"]
+    values["rails"] = values["rails"] + tuple(
+        RailSpec(name=m.name, control_points=m.control_points, degree=m.degree, weights=m.weights)
+        for m in as_rails)
+    mounts = {m.name: m for m in values["mounts"] if m.kind != "rail"}
+    values["mounts"] = tuple(mounts.values())
+    rail_names = rails | {m.name for m in as_rails}
+    specs = []
+    for spec, t in zip(values["camera_specs"], tables["camera"]):
+        name = spec.mount
+        if name is not None and name in rail_names:
+            if not t.has("u"):
+                raise t.error("u", "is required for a camera on a rail mount (0 to 1)")
+            if not 0.0 <= spec.u <= 1.0:
+                raise t.error("u", f"= {spec.u} is off rail mount {name!r}: the rail parameter runs "
+                                   "from 0 to 1")
+            spec = replace(spec, rail=name, mount=None)
+        elif name is not None:
+            mount = mounts.get(name)
+            if mount is None:
+                known = sorted(rail_names | set(mounts))
+                raise t.error("mount", f"no [[mount]] or [[rail]] named {name!r} (known: "
+                                       f"{', '.join(known) or 'none'})")
+            if t.has("u") or np.any(spec.offset != 0):
+                raise t.error("u" if t.has("u") else "offset_m", "only applies to a camera on a rail")
+            if mount.kind == "fixed":
+                if spec.position is not None and np.linalg.norm(spec.position - mount.position) > 1e-6:
+                    raise t.error("position_m", f"differs from fixed mount {name!r} at "
+                                                f"{mount.position.tolist()}; drop position_m")
+                spec = replace(spec, position=mount.position)
+            else:
+                centre = (mount.low + mount.high) / 2
+                if mount.floor is not None:
+                    centre[:2] = mount.floor.mean(axis=0)
+                position = centre if spec.position is None else spec.position
+                if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
+                        or (mount.floor is not None and not inside_floor(mount.floor, position[:2]))):
+                    raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
+                                                f"({mount.low.tolist()} to {mount.high.tolist()})")
+                spec = replace(spec, position=position)
+        specs.append(spec)
+    values["camera_specs"] = tuple(specs)
+
+
+STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
+
+
+@dataclass(frozen=True)
+class StereoPairSpec:
+    """A declared stereo pair: two cameras whose optical axes must make an angle in
+    [min_angle, max_angle] (rad). min_angle None: the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`); max_angle None: that minimum + STEREO_SPAN_DEG."""
+
+    cameras: tuple[str, ...] = row("cameras", Words(what="two camera names", nonempty=True),
+                                   doc='the two cameras, e.g. ["left", "right"]')
+    min_angle: float | None = row("min_angle_deg", Real(0.0, 180.0), None, unit="deg",
+                                  shown="by lens", doc="smallest angle between the optical axes")
+    max_angle: float | None = row("max_angle_deg", Real(0.0, 180.0), None, unit="deg",
+                                  shown=f"min + {STEREO_SPAN_DEG:g}", doc="largest angle between the optical axes")
+
+
+def _check_stereo_pair(t: Table, v: dict) -> None:
+    if len(v["cameras"]) != 2:
+        raise t.error("cameras", f'must name two different cameras, e.g. ["left", "right"] '
+                                 f"(got {list(v['cameras'])!r})")
+    _check_angles(t, v, "min_angle_deg", "max_angle_deg", "min_angle", "max_angle")
+
+
+def _check_angles(t: Table, v: dict, low_key, high_key, low, high) -> None:
+    if v[low] is not None and v[high] is not None and v[high] < v[low]:
+        raise t.error(high_key, f"= {math.degrees(v[high]):g} is below {low_key} = "
+                                f"{math.degrees(v[low]):g}: the maximum must be at least the minimum")
+
+
+@dataclass(frozen=True, eq=False)
+class GroupSpec:
+    """Meshes that move together along the load path (a hexapod's platform with its
+    end-effector, a crosshead). Every mesh is also a group of its own name."""
+
+    name: str = row("name", Text(name=True), doc="unique; not the name of a mesh")
+    meshes: tuple[str, ...] = row("meshes", Words(what="mesh names", nonempty=True),
+                                  doc="the [[mesh]] names that move together")
+    pivot: np.ndarray = row("pivot_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
+                            doc="the point the group's rotations turn about")
+
+
+@dataclass(frozen=True)
+class LoadPathSpec:
+    """The steps of a moving test (`vdo.geometry.keyframes`): rigid poses of groups per step, and
+    optionally nodal displacements of one specimen mesh per step."""
+
+    poses: Path | None = row("poses", File((".csv",), "pose", "a CSV"), None, shown="none",
+                             doc="CSV: step, group, x_mm, y_mm, z_mm, rx_deg, ry_deg, rz_deg")
+    displacements: Path | None = row("displacements", File((".csv", ".vtu", ".vtp", ".pvd"), "displacement",
+                                                           "a CSV, .vtu, .vtp or .pvd"), None,
+                                     shown="none", doc="CSV: step, x_m, y_m, z_m, ux_mm, uy_mm, uz_mm; or "
+                                                       "VTK XML nodal displacements (.vtu/.vtp, one step; "
+                                                       ".pvd, one file per step)")
+    deformed_mesh: str | None = row("deformed_mesh", Text(name=True), None, shown="none",
+                                    doc="the specimen mesh the displacements apply to")
+    unit: str | None = row("unit", Text(choices=tuple(UNITS)), None, shown="none",
+                           doc="length unit of a VTK file's points and displacements (required for VTK)")
+    displacement_array: str | None = row("displacement_array", Text(), None, shown="auto",
+                                         doc="the VTK point array of displacements (default: the one "
+                                             "3-component array, or the one named displacement, U, ...)")
+
+    @property
+    def active(self) -> bool:
+        return self.poses is not None or self.displacements is not None
+
+
+def _check_load_path(t: Table, v: dict) -> None:
+    if (v["displacements"] is None) != (v["deformed_mesh"] is None):
+        raise t.error("deformed_mesh", "give displacements and deformed_mesh together (the file's "
+                                       "nodes are that mesh's vertices)")
+    vtk = v["displacements"] is not None and v["displacements"].suffix.lower() != ".csv"
+    if vtk and v["unit"] is None:
+        raise t.error("unit", "a VTK file carries no length unit: give unit = \"mm\" or \"m\" (its "
+                              "points and displacements)")
+    if not vtk and (v["unit"] is not None or v["displacement_array"] is not None):
+        raise t.error("unit" if v["unit"] is not None else "displacement_array",
+                      "is for a VTK displacement file (a CSV names its units in its header)")
+
+
+@dataclass(frozen=True)
+class OptimizeSpec:
+    """What `vdo optimize` may move and the practical constraints it enforces."""
+
+    free: tuple[str, ...] = row(
+        "free", Words(choices=("u", "pan", "tilt", "roll", "lens")), ["u", "pan", "tilt"],
+        doc='parameters that move per camera (add "roll" to free it, otherwise cameras stay '
+            'horizontal; add "lens" to choose each moving camera\'s lens from lenses_mm)')
+    lenses: tuple[float, ...] = row(
+        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm",
+        doc='the lens catalogue for "lens" in free: a greedy outer loop tries each other lens on each '
+            "moving camera and keeps it when the result is better (feasible first, then by score)")
+    cameras: tuple[str, ...] | None = row("cameras", Words(what="camera names"), None, shown="all",
+                                          doc="names of the cameras that move")
+    regions: tuple[str, ...] | None = row(
+        "regions", Words(what="region names", nonempty=True), None, shown="all",
+        doc="regions whose uncertainty and coverage enter the score (constraints apply everywhere)")
+    min_axis_angle: float | None = row(
+        "min_axis_angle_deg", Real(0.0, 90.0), None, unit="deg", shown="by lens",
+        doc="minimum angle between the optical axes of two cameras sharing a region; default 35° up "
+            "to 12 mm, 25° at 17 mm, 15° from 35 mm (the shorter lens of the pair)")
+    max_axis_angle: float | None = row(
+        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
+        doc="largest angle between the optical axes of two cameras sharing a region (off by default "
+            "for multi-view; declared stereo pairs have their own)")
+    clearance: float = row("clearance_m", Real(low=0.0), 0.05, unit="m",
+                           doc="camera bodies keep this distance from every mesh and each other")
+    max_obscuration: float = row("max_obscuration", Real(0.0, 1.0), 0.01,
+                                 doc="largest fraction of an assigned region's image an obstacle may mask")
+    assign_fraction: float = row("assign_fraction", Real(0.01, 1.0), 0.5,
+                                 doc="a camera is assigned the regions it sees this much of in the "
+                                     "starting layout")
+    starts: int = row("starts", Whole(low=1), 3, doc="multi-start: the hand layout + perturbed copies")
+    rounds: int = row("rounds", Whole(low=1), 3,
+                      doc="penalty rounds, each ending with a visibility refresh")
+    max_steps: int = row("max_steps", Whole(low=1), 40, doc="BFGS steps per round")
+    seed: int = row("seed", Whole(low=0), 0, doc="perturbation of the extra starts")
+    load_path: bool = row(
+        "load_path", Flag(), True,
+        doc="with a [load_path]: score the views that hold over the test (seen at rest and at "
+            "load_path_fraction of the keyframes), not at rest alone (docs/theory.md)")
+    load_path_fraction: float = row(
+        "load_path_fraction", Real(high=1.0, positive=True), 1.0,
+        doc="fraction q (0 < q <= 1) of the keyframes at which a view must be seen to count; 1 = "
+            "every one (the worst case)")
+    load_path_keyframes: int = row(
+        "load_path_keyframes", Whole(low=1), 4,
+        doc="keyframes each visibility refresh casts: the extremes of the path first, then evenly "
+            "spaced (all steps when the path has no more); the result is judged over every step")
+
+
+@dataclass(frozen=True, eq=False)
+class BodySpec:
+    """A kind of camera body in `vdo design`'s inventory: its sensor and how many are available."""
+
+    name: str = row("name", Text(name=True), doc="unique, e.g. \"5MP\"")
+    sensor_width: float = _sensor_width_row()
+    pixels: tuple[int, int] = _pixels_row()
+    count: int = row("count", Whole(low=1), doc="how many bodies of this kind are available")
+    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
+                                    unit="mm", shown="[design] lenses_mm",
+                                    doc="the lenses this body takes")
+
+
+@dataclass(frozen=True, eq=False)
+class DesignSpec:
+    """What `vdo design` may choose: the camera bodies ([[body]], or [design]'s one sensor), the
+    lens catalogue, where candidates stand on the mounts and how they aim (`vdo.design.select`)."""
+
+    max_cameras: int | None = row("max_cameras", Whole(low=1), None,
+                                  shown="the [[body]] counts, else the [[camera]] count",
+                                  doc="the most cameras to place (the inventory)")
+    min_cameras: int = row("min_cameras", Whole(low=1), 2, doc="fewest cameras on the Pareto curve")
+    sensor_width: float | None = row("sensor_width_mm", Real(positive=True), None, unit="mm",
+                                     shown="the first [[camera]]'s", doc="sensor width of the bodies")
+    pixels: tuple[int, int] | None = row(
+        "pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"), None,
+        shown="the first [[camera]]'s", doc="pixel counts of the bodies")
+    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
+                                    unit="mm", shown="the [[camera]] lenses", doc="the lens catalogue")
+    target_sigma_um: float | None = row("target_sigma_um", Real(positive=True), None, shown="none",
+                                        doc="sigma_max p95 (µm) to reach on the scored regions: the "
+                                            "smallest camera count that does is reported")
+    rail_positions: int = row("rail_positions", Whole(low=1), 12,
+                              doc="candidate positions per rail, evenly spread in u")
+    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",
+                             doc="from the rail point to a candidate's optical centre (also tried mirrored below the bar)")
+    aim_offsets: tuple[float, ...] = row("aim_offsets_deg", Numbers(as_set=True, what="angles in deg"),
+                                         [], unit="deg", shown="none",
+                                         doc="extra aims: each region target's pan and tilt +- these")
+    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 20.0, unit="mm",
+                                doc="sample spacing for the selection (the result is judged at [evaluation]'s)")
+    zone_points: int = row("zone_points", Whole(low=1), 3,
+                           doc="candidate positions per horizontal axis of a zone [[mount]] (a grid; "
+                               "in a floor polygon, the grid points inside it)")
+    zone_heights: int = row("zone_heights", Whole(low=1), 3,
+                            doc="candidate heights per zone, evenly spread over its height range")
+    keyframes: int = row("keyframes", Whole(low=0), 3,
+                         doc="load-path steps at which the candidates' occlusion is also judged (the "
+                             "steps farthest from rest and from each other); a candidate counts where "
+                             "it sees a sample at rest and at each (0: at rest only)")
+
+
+# --------------------------------------------------------------------------------------------
+# Checks across the fields of one table: check(t, values) raises t.error or completes values
+# --------------------------------------------------------------------------------------------
+def _sensor_size(t: Table, v: dict) -> None:
+    """A camera's or body's sensor: sensor_mm or sensor_width_mm (once), square pixels, at most
+    MAX_CAMERA_PIXELS; sets v["sensor_width"] from sensor_mm."""
+    if t.has("sensor_mm") == t.has("sensor_width_mm"):
+        raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
+                                   "sensor_width_mm")
+    width_px, height_px = v["pixels"]
+    if width_px * height_px > MAX_CAMERA_PIXELS:
+        raise t.error("pixels", f"{width_px} x {height_px} is {width_px * height_px / 1e6:.4g} Mpx; "
+                                f"at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx per camera")
+    if t.has("sensor_mm"):
+        sensor = t.get(_sensor_mm_row())
+        pitch_w, pitch_h = sensor[0] / width_px, sensor[1] / height_px
+        if abs(pitch_w - pitch_h) > 0.01 * pitch_w:
+            raise t.error("sensor_mm", f"gives non-square pixels ({pitch_w * 1e6:.3f} x "
+                                       f"{pitch_h * 1e6:.3f} um); vdo models square pixels: check "
+                                       "the sensor size and pixel counts")
+        v["sensor_width"] = float(sensor[0])
+
+
+def _check_camera(t: Table, v: dict) -> None:
+    _sensor_size(t, v)
+    if t.has("f_number") != t.has("focus_m"):
+        raise t.error("f_number", "depth of field needs both f_number and focus_m")
+    if t.has("mount"):
+        if t.has("rail"):
+            raise t.error("mount", "give either rail or mount, not both")
+    elif t.has("rail") == t.has("position_m"):
+        raise t.error("rail", "give either rail (with u), mount or position_m, not several or none")
+    if t.has("rail"):
+        if not t.has("u"):
+            raise t.error("u", "is required for a camera on a rail (0 to 1)")
+        if not 0.0 <= v["u"] <= 1.0:
+            raise t.error("u", f"= {v['u']} is off rail {v['rail']!r}: the rail parameter runs "
+                               "from 0 to 1")
+    if t.has("target_m") == (t.has("pan_deg") or t.has("tilt_deg")):
+        raise t.error("target_m", "aim the camera with either target_m or pan_deg + tilt_deg")
+    if t.has("pan_deg") != t.has("tilt_deg"):
+        raise t.error("pan_deg", "give both pan_deg and tilt_deg")
+
+
+def _check_region(t: Table, v: dict) -> None:
+    if np.linalg.norm(v["normal"]) < 1e-9:
+        raise t.error("normal", "must be a non-zero vector")
+    v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    if np.any(v["box_min"] >= v["box_max"]):
+        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
+
+
+def _check_rail(t: Table, v: dict) -> None:
+    points = v["control_points"]
+    if v["degree"] >= len(points):
+        raise t.error("degree", f"must be less than the number of control points ({len(points)})")
+    gaps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    if np.any(gaps < 1e-6):
+        i = int(np.argmax(gaps < 1e-6))
+        raise t.error("control_points_m", f"points {i} and {i + 1} coincide: a rail needs distinct "
+                                          "consecutive control points (remove the repeated one)")
+    if v["weights"] is None:
+        v["weights"] = np.ones(len(points))
+    elif len(v["weights"]) != len(points):
+        raise t.error("weights", f"must be a list of {len(points)} numbers > 0, one per control point")
+    else:
+        v["weights"] = np.asarray(v["weights"], dtype=float)
+
+
+def _check_light(t: Table, v: dict) -> None:
+    if np.linalg.norm(v["target"] - v["position"]) < 1e-6:
+        raise t.error("target_m", "must differ from position_m (the panel faces the target)")
+
+
+def _check_speckle(t: Table, v: dict) -> None:
+    if v["black_albedo"] >= v["white_albedo"]:
+        raise t.error("black_albedo", "must be less than white_albedo")
+    if v["image"] is None and v["dot_diameter"] < 3 * v["texel"]:
+        raise t.error("texel_mm", f"must be at most a third of the dot diameter "
+                                  f"({v['dot_diameter'] * 1e3:g} mm) to draw round dots")
+
+
+def _check_optimize(t: Table, v: dict) -> None:
+    _check_angles(t, v, "min_axis_angle_deg", "max_axis_angle_deg", "min_axis_angle", "max_axis_angle")
+
+
+def _check_body(t: Table, v: dict) -> None:
+    _sensor_size(t, v)
+
+
+def _check_design(t: Table, v: dict) -> None:
+    if (v["sensor_width"] is None) != (v["pixels"] is None):
+        raise t.error("pixels", "give the bodies' sensor_width_mm and pixels together (or neither: "
+                                "the first [[camera]]'s)")
+    if v["max_cameras"] is not None and v["max_cameras"] < v["min_cameras"]:
+        raise t.error("max_cameras", f"= {v['max_cameras']} is below min_cameras = {v['min_cameras']}")
+
+
+# --------------------------------------------------------------------------------------------
+# The experiment
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Experiment:
+    """A validated experiment. `path` is the TOML file it came from; `name` and `description` are
+    the [experiment] table, the other fields one table each."""
+
+    path: Path
+    name: str = row("name", Text(title=True),
+                    doc="shown in figures and summaries; at most 200 characters, no `/`, `\\` or "
+                        "control characters")
+    meshes: tuple[MeshSpec, ...] = table("mesh", MeshSpec, array=True, required=True,
+                                         doc='At least one with `role = "specimen"`.')
+    regions: tuple[RegionSpec, ...] = table(
+        "region", RegionSpec, array=True, required=True, check=_check_region,
+        doc="A planar face of interest on a specimen mesh. The selected faces must be coplanar "
+            "(within a quarter of the sample spacing).")
+    rails: tuple[RailSpec, ...] = table(
+        "rail", RailSpec, array=True, check=_check_rail,
+        doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
+            "the first control point, `u = 1` the last.")
+    camera_specs: tuple[CameraSpec, ...] = table(
+        "camera", CameraSpec, array=True, required=True, check=_check_camera, extra=(_sensor_mm_row(),),
+        doc="Place a camera with `rail` + `u` (+ `offset_m`) or `position_m`; aim it with `target_m` "
+            "or `pan_deg` + `tilt_deg`. Two cameras may not share one optical centre.")
+    evaluation: Evaluation = table("evaluation", Evaluation)
+    description: str = row("description", Text(empty=True), "", doc="free text")
+    lights: tuple[LightSpec, ...] = table("light", LightSpec, array=True, check=_check_light,
+                                          doc="A rectangular LED panel.", default=())
+    speckle: SpeckleSpec = table("speckle", SpeckleSpec, check=_check_speckle, default=SpeckleSpec(),
+                                 doc="The paint on the regions of interest (`vdo render`).")
+    sensor: SensorModel = table("sensor", SensorModel, rows=_sensor_rows(), default=SensorModel(),
+                                doc="EMVA 1288 sensor model (`vdo.model.sensor.SensorModel`).")
+    render: RenderSpec = table("render", RenderSpec, default=RenderSpec())
+    optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=_check_optimize,
+                                   default=OptimizeSpec(), doc="What `vdo optimize` may move.")
+    analysis: Analysis = table("analysis", Analysis, check=_check_analysis, default=Analysis(),
+                               doc="The DIC analysis strain uncertainties are predicted for "
+                                   "(docs/theory.md, strain).")
+    mounts: tuple[MountSpec, ...] = table(
+        "mount", MountSpec, array=True, check=_check_mount, default=(),
+        doc="Where cameras can stand: a rail, a zone (a box, or a floor polygon with a height "
+            "range: a tripod) or a fixed point. Cameras name one with `mount`; rail mounts are "
+            "written back as [[rail]].")
+    stereo_pairs: tuple[StereoPairSpec, ...] = table(
+        "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
+        doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
+    groups: tuple[GroupSpec, ...] = table(
+        "group", GroupSpec, array=True, default=(),
+        doc="Meshes that move rigidly together along the load path.")
+    load_path: LoadPathSpec = table(
+        "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
+        doc="A moving test: `vdo evaluate` judges every step (`vdo.geometry.keyframes`, docs/load_path.md).")
+    design: DesignSpec = table("design", DesignSpec, check=_check_design, default=DesignSpec(),
+                               doc="What `vdo design` chooses from (`vdo.design.select`).")
+    bodies: tuple[BodySpec, ...] = table(
+        "body", BodySpec, array=True, check=_check_body, extra=(_sensor_mm_row(),), default=(),
+        doc="`vdo design`'s inventory of camera bodies, e.g. 6 of a 5 MP sensor and 4 of a 12 MP "
+            "one; without any, [design] sensor_width_mm + pixels (or the first [[camera]]'s) and "
+            "max_cameras.")
+
+    def __post_init__(self):
+        if self.analysis.element is None:      # a Q4 element defaults to the DIC patch
+            object.__setattr__(self, "analysis", replace(self.analysis,
+                                                         element=self.evaluation.patch_size))
+
+    def mount(self, name: str) -> MountSpec:
+        """The zone or fixed [[mount]] called `name`."""
+        return next(m for m in self.mounts if m.name == name)
+
+    def rail(self, name: str):
+        """The `vdo.model.rail.Rail` (JAX-evaluated NURBS) of the [[rail]] called `name`."""
+        from vdo.model.rail import Rail
+        spec = next(r for r in self.rails if r.name == name)
+        return Rail(name=spec.name, control_points=spec.control_points, degree=spec.degree,
+                    weights=spec.weights)
+
+    def cameras(self) -> list:
+        """The configured cameras (`vdo.model.camera.Camera`) with poses resolved from rails, positions
+        and targets."""
+        from vdo.model.camera import Camera, look_at_angles
+        positions = camera_positions(self)
+        out = []
+        for spec, position in zip(self.camera_specs, positions):
+            pan, tilt = look_at_angles(position, spec.target) if spec.target is not None \
+                else (spec.pan, spec.tilt)
+            width, height = spec.pixels
+            out.append(Camera(name=spec.name, width=width, height=height,
+                              pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
+                              position=position, pan=pan, tilt=tilt, roll=spec.roll,
+                              principal_offset_px=spec.principal_offset_px,
+                              distortion=spec.distortion))
+        return out
+
+    def with_cameras(self, specs) -> "Experiment":
+        return replace(self, camera_specs=tuple(specs))
+
+    def to_dict(self) -> dict:
+        """The experiment as a TOML-ready dict: every table, defaults filled, absolute paths;
+        ``parse(e.to_dict(), e.path)`` gives back `e` (to 12 significant digits)."""
+        out = {"experiment": _write(self, rows_of(Experiment))}
+        for sec in sections():
+            value = getattr(self, sec.attr)
+            if sec.array:
+                if value:
+                    out[sec.key] = [_write(item, sec.rows) for item in value]
+            else:
+                out[sec.key] = _write(value, sec.rows)
+        return out
+
+
+def table_dict(obj) -> dict:
+    """One parsed table (e.g. `exp.analysis`) as its TOML dict, in file units."""
+    return _write(obj, rows_of(type(obj)))
+
+
+def _write(obj, rows) -> dict:
+    out = {}
+    for r in rows:
+        value = getattr(obj, r.attr)
+        if value is not None and not (r.when and all(getattr(obj, w) is None for w in r.when.split())):
+            out[r.key] = r.kind.write(value, r.scale)
+    return out
+
+
+def camera_positions(exp: Experiment) -> list[np.ndarray]:
+    """The optical centre (m) of every camera spec: rail point + offset, or position_m."""
+    out = []
+    for spec in exp.camera_specs:
+        if spec.rail is not None:
+            out.append(exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset)
+        else:
+            out.append(np.asarray(spec.position, dtype=float))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Reading with clear errors
+# --------------------------------------------------------------------------------------------
+def _unknown_field(key: str, allowed) -> str:
+    """The message for a key no schema row has: the nearest known one, else all of them."""
+    close = difflib.get_close_matches(key, allowed, n=1)
+    return "unknown field; " + (f"did you mean {close[0]!r}?" if close else f"known fields: {', '.join(allowed)}")
+
+
+class Table:
+    """One TOML table being read: every key must be known, every value checked."""
+
+    def __init__(self, data, where: str, file: Path, allowed: tuple[str, ...]):
+        self.file, self.where = file, where
+        if not isinstance(data, dict):
+            raise ConfigError(file, where, "must be a table")
+        for key in data:
+            if key not in allowed:
+                raise ConfigError(file, self._field(key), _unknown_field(key, allowed))
+        self.data = data
+
+    def _field(self, key):
+        key = key if key.isprintable() else repr(key)
+        return f"{self.where}.{key}" if self.where and key else (key or self.where)
+
+    def error(self, key, message):
+        return ConfigError(self.file, self._field(key), message)
+
+    def has(self, key):
+        return key in self.data
+
+    def raw(self, key, default=REQUIRED):
+        if key not in self.data:
+            if default is REQUIRED:
+                raise self.error(key, "is required")
+            return default
+        return self.data[key]
+
+    def read(self, key, kind: Kind, scale: float = 1.0):
+        """The value at `key` (present) checked and converted by `kind`."""
+        try:
+            return kind.read(self.data[key], scale, self.file.parent)
+        except _Bad as exc:
+            raise self.error(f"{key}.{exc.key}" if exc.key else key, str(exc)) from None
+
+    def get(self, r: Row, default=None):
+        """The attribute value of schema row `r`: read from the file, else `default` (the
+        dataclass default), else an error when the row is required."""
+        if r.key in self.data:
+            return self.read(r.key, r.kind, r.scale)
+        if r.default is REQUIRED and not (r.either and self.has(r.either)):
+            raise self.error(r.key, "is required")
+        return default
+
+    # The helpers below read fields that have no schema row (validate.py's cases, sweep files).
+    def _value(self, key, default, kind):
+        return self.read(key, kind) if key in self.data else self.raw(key, default)
+
+    def string(self, key, default=REQUIRED, choices=None):
+        return self._value(key, default, Text(tuple(choices) if choices else None))
+
+    def number(self, key, default=REQUIRED, low=None, high=None, positive=False):
+        return self._value(key, default, Real(low, high, positive))
+
+    def integer(self, key, default=REQUIRED, low=None):
+        return self._value(key, default, Whole(low))
+
+    def boolean(self, key, default=REQUIRED):
+        return self._value(key, default, Flag())
+
+    def vector(self, key, length, default=REQUIRED, positive=False):
+        return self._value(key, default, Vector(length, positive))
+
+
+def as_numbers(value):
+    """`value` (a number or a rectangular list of lists of numbers) as a float array; None when it
+    holds anything else (strings, booleans, NaN or inf, ragged or too deep nesting)."""
+    try:
+        arr = np.asarray(value, dtype=object)
+    except (ValueError, RecursionError):
+        return None
+    if not all(_is_number(x) and math.isfinite(x) for x in arr.flat):
+        return None
+    return arr.astype(float)
+
+
+def read_toml(path) -> dict:
+    """The parsed TOML document at `path`; ConfigError when it is missing, unreadable, not UTF-8
+    text or invalid."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(path, "", "file not found") from None
+    except OSError as exc:
+        raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ConfigError(path, "", "is UTF-16 text; save it as UTF-8 (TOML files are UTF-8)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ConfigError(path, "", f"is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
+                                    "save it as UTF-8 (TOML files are UTF-8)") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
+    except RecursionError:
+        raise ConfigError(path, "", "is not valid TOML for vdo: arrays or tables nested too deep") from None
+
+
+def load(path) -> Experiment:
+    """Read and validate an experiment file. Raises ConfigError on any user mistake."""
+    return parse(read_toml(path), Path(path))
+
+
+def _read_section(top: Table, sec: Section, path: Path):
+    """The value of one table (or the tuple of an array of tables) of the experiment file."""
+    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else
+                (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+                for f in dataclasses.fields(sec.cls)}
+    allowed = tuple(r.key for r in sec.rows + sec.extra)
+
+    def one(data, where):
+        t = Table(data, where, path, allowed)
+        values = {r.attr: t.get(r, defaults[r.attr]) for r in sec.rows}
+        for r in sec.rows:
+            if r.when and t.has(r.key) and all(values[w] is None for w in r.when.split()):
+                other = " or ".join(o.key for o in sec.rows if o.attr in r.when.split())
+                raise t.error(r.key, f"only applies together with {other}")
+        if sec.check is not None:
+            sec.check(t, values)
+        try:
+            return sec.cls(**values), t
+        except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
+            name, _, message = str(exc).partition(": ")
+            raise t.error(name.rpartition(".")[2], message) from None
+
+    if not sec.array:
+        if not top.has(sec.key) and not sec.required:
+            return sec.cls(), ()
+        value, t = one(top.raw(sec.key), sec.key)
+        return value, (t,)
+    items = top.raw(sec.key, REQUIRED if sec.required else [])
+    if not isinstance(items, list) or (sec.required and not items):
+        raise ConfigError(path, sec.key, f"needs at least one [[{sec.key}]] table")
+    values, tables, names = [], [], set()
+    for i, item in enumerate(items):
+        name = item.get("name") if isinstance(item, dict) else None
+        ok = isinstance(name, str) and re.fullmatch(NAME_PATTERN, name)
+        where = f'{sec.key} "{name}"' if ok else f"{sec.key}[{i}]"
+        value, t = one(item, where)
+        key = getattr(value, "name", None)      # unnamed tables (stereo pairs) are checked later
+        if key is not None and key in names:
+            raise ConfigError(path, where, "name is used twice; names must be unique")
+        names.add(key)
+        values.append(value)
+        tables.append(t)
+    return tuple(values), tuple(tables)
+
+
+def parse(data: dict, path: Path) -> Experiment:
+    """Validate an already-parsed TOML document that came from `path`."""
+    path = Path(path).resolve()
+    secs = sections()
+    top = Table(data, "", path, ("experiment",) + tuple(s.key for s in secs))
+    head = Table(top.raw("experiment"), "experiment", path, tuple(r.key for r in rows_of(Experiment)))
+    values = {r.attr: head.get(r, r.default) for r in rows_of(Experiment)}
+    tables = {}
+    for sec in secs:
+        values[sec.attr], tables[sec.key] = _read_section(top, sec, path)
+    _resolve_mounts(values, tables, path)
+    exp = Experiment(path=path, **values)
+    _check_references(exp, tables)
+    return exp
+
+
+def _check_references(exp: Experiment, tables: dict) -> None:
+    """Checks across tables: names that refer to other tables, and camera poses."""
+    path = exp.path
+    roles = {m.name: m.role for m in exp.meshes}
+    if "specimen" not in roles.values():
+        raise ConfigError(path, "mesh", 'needs at least one mesh with role = "specimen"')
+    for region, t in zip(exp.regions, tables["region"]):
+        if roles.get(region.mesh) != "specimen":
+            raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {region.mesh!r}; "
+                                  f"specimen meshes: {', '.join(n for n, r in roles.items() if r == 'specimen')})")
+    rails = {r.name for r in exp.rails}
+    for cam, t in zip(exp.camera_specs, tables["camera"]):
+        if cam.rail is not None and cam.rail not in rails:
+            raise t.error("rail", f"no [[rail]] named {cam.rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
+    for key, names, kind in (("cameras", exp.optimize.cameras, "camera"),
+                             ("regions", exp.optimize.regions, "region")):
+        known = {x.name for x in (exp.camera_specs if kind == "camera" else exp.regions)}
+        unknown = sorted(set(names or ()) - known)
+        if unknown:
+            raise ConfigError(path, f"optimize.{key}", f"no [[{kind}]] named {', '.join(map(repr, unknown))}")
+    if "lens" in exp.optimize.free and not exp.optimize.lenses and \
+            not any(c.lenses for c in exp.camera_specs):
+        raise ConfigError(path, "optimize.free", 'lists "lens" but no lenses_mm catalogue is given: '
+                                                 'add e.g. lenses_mm = [24, 35, 50, 100] here or on '
+                                                 'a [[camera]]')
+    cameras, pairs = {c.name for c in exp.camera_specs}, set()
+    for pair, t in zip(exp.stereo_pairs, tables["stereo_pair"]):
+        unknown = sorted(set(pair.cameras) - cameras)
+        if unknown:
+            raise t.error("cameras", f"no [[camera]] named {', '.join(map(repr, unknown))}")
+        if frozenset(pair.cameras) in pairs:
+            raise t.error("cameras", "this pair is declared twice")
+        pairs.add(frozenset(pair.cameras))
+    meshes = set(roles)
+    grouped: dict[str, str] = {}
+    for group, t in zip(exp.groups, tables["group"]):
+        if group.name in meshes:
+            raise t.error("name", f"{group.name!r} is a mesh's name (every mesh is already a group "
+                                  "of its own name); choose another")
+        for mesh in group.meshes:
+            if mesh not in meshes:
+                raise t.error("meshes", f"no [[mesh]] named {mesh!r} (meshes: {', '.join(sorted(meshes))})")
+            if mesh in grouped:
+                raise t.error("meshes", f"mesh {mesh!r} is already in group {grouped[mesh]!r}")
+            grouped[mesh] = group.name
+    if exp.bodies:
+        if exp.design.sensor_width is not None:
+            raise ConfigError(path, "design.sensor_width_mm", "give the camera bodies either as "
+                                                             "[[body]] tables or as [design] "
+                                                             "sensor_width_mm + pixels, not both")
+        total = sum(b.count for b in exp.bodies)
+        if exp.design.max_cameras is not None and exp.design.max_cameras > total:
+            raise ConfigError(path, "design.max_cameras", f"= {exp.design.max_cameras} is more than "
+                                                          f"the {total} [[body]] bodies; lower it or "
+                                                          "raise a body's count")
+    deformed = exp.load_path.deformed_mesh
+    if deformed is not None and roles.get(deformed) != "specimen":
+        raise ConfigError(path, "load_path.deformed_mesh", f"must name a specimen mesh (got {deformed!r})")
+    positions = camera_positions(exp)
+    for spec, position, t in zip(exp.camera_specs, positions, tables["camera"]):
+        if spec.target is not None and np.linalg.norm(spec.target - position) < 1e-6:
+            raise t.error("target_m", "is the camera's own position")
+    if len(positions) > 1:
+        p = np.array(positions)
+        gap = np.linalg.norm(p[:, None] - p[None], axis=-1)
+        np.fill_diagonal(gap, np.inf)
+        i, j = np.unravel_index(np.argmin(gap), gap.shape)
+        if gap[i, j] < COINCIDENT_M:
+            a, b = sorted((int(i), int(j)))
+            raise tables["camera"][b].error(
+                "", f"has its optical centre {gap[i, j] * 1e3:.3g} mm from camera "
+                    f"{exp.camera_specs[a].name!r}'s ({np.round(p[b], 4).tolist()} m): two cameras "
+                    "cannot share one pose; move or remove one")
+
+
+# --------------------------------------------------------------------------------------------
+# docs/config.md
+# --------------------------------------------------------------------------------------------
+_DOC_HEAD = """\
+# The experiment file
+
+<!-- Generated from the schema in vdo/config/experiment.py by scripts/config_docs.py; do not edit by hand. -->
+
+One TOML file (UTF-8) describes one experiment. Lengths are **metres** unless the field's name says
+`_mm`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
+Every field is checked before any work starts; an unknown field is an error (with the nearest
+known name). Names of meshes, regions, rails, cameras and lights become parts of file names: they
+must match `{pattern}` (letters, digits, `_`, `.`, `-`; at most 64 characters).
+`experiments/beam_column/ten_cameras.toml` is a complete example.
+"""
+
+
+def _doc_value(value) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_doc_value(x) for x in value) + "]"
+    return str(value)
+
+
+def _doc_table(title: str, rows, doc: str) -> str:
+    lines = [f"## {title}", ""]
+    if doc:
+        lines += [doc, ""]
+    lines += ["| field | type | unit | default | meaning |", "| --- | --- | --- | --- | --- |"]
+    for r in rows:
+        default = r.shown or ("required" if r.default is REQUIRED else
+                              "none" if r.default is None else _doc_value(r.default))
+        unit = "°" if r.unit == "deg" else r.unit
+        lines.append(f"| `{r.key}` | {r.kind.doc} | {unit} | {default} | {r.doc} |")
+    return "\n".join(lines) + "\n"
+
+
+def markdown() -> str:
+    """docs/config.md: the schema as tables, generated from the rows."""
+    parts = [_DOC_HEAD.format(pattern=NAME_PATTERN),
+             _doc_table("`[experiment]`", rows_of(Experiment), "")]
+    for sec in sections():
+        title = f"`[[{sec.key}]]`" if sec.array else f"`[{sec.key}]`"
+        rows = []
+        for r in sec.rows:
+            rows += [x for x in sec.extra if x.key == r.either] + [r]
+        parts.append(_doc_table(title, rows, sec.doc + (" Optional." if not sec.required and sec.array
+                                                        else "")))
+        for r in sec.rows:
+            if isinstance(r.kind, SubTable):
+                doc = " ".join((r.kind.cls.__doc__ or "").split())
+                parts.append(_doc_table(f"`[{sec.key}.{r.key}]`", rows_of(r.kind.cls), doc))
+    return "\n".join(parts)

@@ -1,0 +1,231 @@
+"""A virtual test as an image series: `vdo render CONFIG --series [POSES.csv] --out DIR`.
+
+Step 0 is the reference state (the meshes as configured); every step of the load path
+(`vdo.geometry.keyframes`) moves mesh groups rigidly and, when the experiment's `[load_path]` names a
+displacement file (a CSV, or the FE model's VTK `.vtu`/`.vtp`/`.pvd`), deforms the specimen. With a POSES.csv the poses come from that file (one row
+per step and group, the `vdo.geometry.keyframes` format; every mesh is also a group of its own name);
+without it, from the experiment's `[load_path]`. The speckle moves with the surface (texture
+coordinates from the rest vertices, `vdo.render.build_render_scene`); lights and camera bodies
+stay.
+
+Every image is rendered without the sampler's jitter (`vdo.render.render_camera`, as
+`vdo.dic.validate` renders): each pixel is the fixed sqrt(spp) x sqrt(spp) midpoint rule of its box
+and the lights' sampling is stratified the same way, with the same Mitsuba seed per camera at
+every step. A jittered render adds Monte Carlo noise that differs from image to image and is no
+part of the camera (measured on the built-in joint: 34 DN at 16 spp against a sensor noise of
+16 DN, docs/exports.md), so a correlation of the series would measure the renderer, not the
+design; without jitter the images of two steps differ by the motion and the sensor noise only
+(and a deterministic quadrature error of a few DN that moves with the pixel grid).
+
+The run folder (atomic, `vdo.core.runfolder`):
+
+    images/<camera>/<camera>_<step:04d>.tif  16-bit TIFF (DN, the sensor's bit depth), step 0000
+                                             the reference; sensor noise drawn independently per
+                                             image, generator default_rng([seed, camera, step])
+    images/<camera>/<camera>_<step:04d>.exr  the linear float radiance before the sensor, when
+                                             [render] exr = true
+    calibration/<format>/                    the cameras for DIC software (`vdo.formats`)
+    layout.json, config.toml, poses.csv (when given), series.json
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from vdo.core.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def render_series(exp, out, poses_path=None, scale: float | None = None, spp: int | None = None,
+                  seed: int | None = None, overwrite: bool = False, pairs=None) -> dict:
+    """Render step 0 and every step of the load path for every camera into the run folder `out`
+    (module docstring). `scale`, `spp`, `seed` default to the config's [render] section; `pairs`:
+    the stereo pairs of the calibration files as (first, second) names (default: cameras
+    assigned a common region), checked to share a field of view before anything is rendered.
+    Returns the series.json dict. Progress goes to the `vdo.dic.series` logger (`vdo.core.progress`)."""
+    from vdo.core.progress import bar as progress_bar
+
+    from vdo.outputs import html_report
+    from vdo.outputs import report
+    from vdo.formats.calibration import file_stem
+    from vdo.formats.export import default_pairs, write_all
+    from vdo.geometry.keyframes import at_step, load_path_of
+    from vdo.render import build_render_scene, render_camera, render_seed, scaled_camera
+    from vdo.core.runfolder import run_folder
+    from vdo.model.sensor import save_image
+    from vdo.state import bodies, layout_state, prepare
+
+    rs = exp.render
+    scale = rs.scale if scale is None else float(scale)
+    spp = rs.spp if spp is None else int(spp)
+    seed = rs.seed if seed is None else int(seed)
+    if not (0 < scale <= 4) or spp < 1 or seed < 0:
+        raise ConfigError(exp.path, "--scale/--spp/--seed", "need 0 < scale <= 4, spp >= 1, seed >= 0")
+    if poses_path is not None and not Path(poses_path).is_file():
+        raise ConfigError(poses_path, "--series", "no such file: give a CSV of poses per step and "
+                                                  "group (see vdo.geometry.keyframes)")
+    started = time.perf_counter()
+    geometry = prepare(exp)
+    load_path = load_path_of(exp, geometry.meshes, poses_path)
+    if load_path is None:
+        raise ConfigError(exp.path, "load_path", "a series needs poses: give --series POSES.csv or "
+                                                 "a [load_path] in the experiment")
+    cameras = [scaled_camera(c, scale) for c in exp.cameras()]
+    obstacles = bodies(exp, cameras)
+    state = layout_state(geometry, cameras, predict_fields=False)
+    vis = state.visibility
+    stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
+    floor = _interpolation_at_scale(exp, cameras, state, scale)
+    steps = [0, *load_path.steps]
+    with run_folder(out, overwrite) as tmp:
+        for cam in cameras:
+            (tmp / "images" / file_stem(cam.name, exp.path)).mkdir(parents=True)
+        bar = progress_bar(log, total=len(steps) * len(cameras), desc="series", unit="image")
+        for step in steps:
+            posed = geometry.meshes if step == 0 else at_step(geometry, load_path, step).meshes
+            scene = build_render_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
+                                       geometry.speckle.pattern, posed)
+            for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
+                linear = render_camera(scene, cam, spec, spp, render_seed(seed, i), jitter=False)
+                dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
+                stem = tmp / "images" / cam.name / f"{cam.name}_{step:04d}"
+                save_image(stem.with_suffix(".tif"), dn, exp.sensor.bit_depth)
+                if exp.render.exr:
+                    from vdo.core.backend import mitsuba
+
+                    mitsuba().Bitmap(linear[..., None]).write(str(stem.with_suffix(".exr")))
+                bar.update()
+        bar.close()
+        report.write_json(tmp / "layout.json", report.layout(cameras))
+        report.write_config(tmp / "config.toml", exp)
+        write_all(cameras, stereo, tmp / "calibration", exp.path)
+        if poses_path is not None:
+            shutil.copyfile(poses_path, tmp / "poses.csv")
+        summary = {"experiment": exp.name, "config": str(exp.path),
+                   "poses": None if poses_path is None else str(poses_path),
+                   "scale": scale, "spp": spp, "seed": seed, "jitter": False, "steps": steps,
+                   "cameras": [c.name for c in cameras],
+                   "stereo_pairs": [[pair.first.name, pair.second.name] for pair in stereo],
+                   "interpolation": floor,
+                   "total_seconds": round(time.perf_counter() - started, 3)}
+        (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
+        html_report.write_report(tmp)
+    return summary
+
+
+def _interpolation_at_scale(exp, cameras, state, scale: float) -> list[dict]:
+    """Per camera and region at the rendered `scale` (`cameras` scaled): `vdo.physics.checks`'
+    interpolation floor, {camera, region, mm_per_px, error_dn, noise_dn, ratio}; a warning names
+    the worst pair when some exceed `checks.INTERPOLATION_NOISE` (correlation on these images is
+    then bias-dominated, docs/exports.md)."""
+    from vdo.physics import checks
+
+    rows = [{"camera": r["camera"], "region": r["region"], "mm_per_px": r["mm_per_px"], **r["interpolation"]}
+            for r in checks.design_checks(exp, cameras, state.samples, state.visibility.visible,
+                                          state.illumination.irradiance, state.geometry.speckle.pattern)]
+    flagged = [r for r in rows if r["ratio"] > checks.INTERPOLATION_NOISE]
+    if flagged:
+        worst = max(flagged, key=lambda r: r["ratio"])
+        log.warning("at render scale %g the correlation's interpolation error exceeds %g x the sensor "
+                    "noise on %d of %d camera-region pairs (worst: %s on %s, %.1f x at %.2f mm/px): "
+                    "displacements measured on these images will be bias-dominated; render at the "
+                    "cameras' own pixels (--scale 1) for a virtual test", scale, checks.INTERPOLATION_NOISE,
+                    len(flagged), len(rows), worst["camera"], worst["region"], worst["ratio"], worst["mm_per_px"])
+    return rows
+
+
+def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent_v,
+                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement (N, 3) m that vdo's own correlation measures at `points` (N, 3) between
+    the TIFF images of step 0 and `step` of a series folder, with the cameras `camera_names` of
+    its layout.json (at least two: a stereo pair or more); `correlate_points` does the measuring.
+    Returns (U, converged (N,) bool)."""
+    cameras = series_cameras(folder, camera_names)
+    references = [series_image(folder, n, 0) for n in camera_names]
+    deformed = [series_image(folder, n, step) for n in camera_names]
+    return correlate_points(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
+
+
+def series_cameras(folder, camera_names) -> list:
+    """The cameras `camera_names` (at least two) of a series folder's layout.json."""
+    from vdo.formats.export import camera_from_layout
+
+    layout = Path(folder) / "layout.json"
+    entries = {e["name"]: e for e in json.loads(layout.read_text())["cameras"]}
+    missing = [n for n in camera_names if n not in entries]
+    if missing or len(camera_names) < 2:
+        raise ConfigError(layout, "cameras", f"need at least two of its cameras ({', '.join(entries)}); "
+                                             f"got {', '.join(camera_names)}")
+    return [camera_from_layout(entries[n], layout) for n in camera_names]
+
+
+def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarray:
+    """Camera `name`'s image of `step` in a series folder, float64 (H, W): the TIFF's DN, or with
+    `linear` the radiance of its .exr ([render] exr = true)."""
+    path = Path(folder) / "images" / name / f"{name}_{step:04d}.{'exr' if linear else 'tif'}"
+    if not path.is_file():
+        raise ConfigError(path, "images", "no such image in the series folder"
+                          + (" (render it with [render] exr = true)" if linear else ""))
+    if linear:
+        from vdo.core.backend import mitsuba
+
+        image = np.array(mitsuba().Bitmap(str(path)), dtype=np.float64)
+        return image.reshape(image.shape[0], image.shape[1])
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im, dtype=np.float64)
+
+
+def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
+                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """The displacement (N, 3) m that vdo's own correlation (`vdo.dic.correlate`, as `vdo.dic.validate`
+    uses it: each camera against its own reference image, integrated on its reference pixel
+    centres, cubic B-spline interpolation) measures at `points` (N, 3) from the `references` to
+    the `deformed` images (gray levels, one per camera): per point a square patch of side
+    `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a bilinear (Q4, one
+    element) field so that the patch may stretch and turn, read at the patch centre (the mean of
+    its four nodes), starting from `start_guess`. Returns (U, converged (N,) bool)."""
+    from vdo.dic.correlate import ImageReference, Patch, Q4, correlate
+
+    half = patch_size / 2
+    out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)
+    for k, (X, t_u, t_v) in enumerate(zip(np.asarray(points), np.asarray(tangent_u), np.asarray(tangent_v))):
+        patch = Patch(origin=X - half * t_u - half * t_v, t_u=t_u, t_v=t_v, size=(patch_size, patch_size))
+        U0 = start_guess(cameras, references, deformed, X)
+        result = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
+                           U0=np.tile(U0, (4, 1)))
+        out[k] = result.U.mean(axis=0)
+        converged[k] = result.converged
+    return out, converged
+
+
+def start_guess(cameras, references, deformed, X, half: int = 24) -> np.ndarray:
+    """A starting displacement (3,) m at the world point X for the Gauss-Newton correlation (whose
+    basin is about a speckle dot): per camera the whole-pixel image shift d_i of a (2 half + 1)^2
+    window around X's image (smaller near the image border), the peak of the phase correlation (normalised cross-power spectrum),
+    then the least-squares 3D motion with s_i U = d_i (s_i = dx/dX, `Camera.sensitivity`)."""
+    rows, rhs = [], []
+    for cam, ref, dfm in zip(cameras, references, deformed):
+        u, v = np.rint(cam.project(X[None])[0]).astype(int)
+        h = min(half, u, v, cam.width - 1 - u, cam.height - 1 - v)     # the window inside the image
+        if h < 8:
+            continue
+        window = np.s_[v - h:v + h + 1, u - h:u + h + 1]
+        taper = np.outer(*(2 * [np.hanning(2 * h + 1)]))
+        a, b = ((img[window] - img[window].mean()) * taper for img in (ref, dfm))
+        spectrum = np.fft.fft2(b) * np.conj(np.fft.fft2(a))
+        peak = np.unravel_index(np.argmax(np.fft.ifft2(spectrum).real), a.shape)
+        dv, du = ((k + n // 2) % n - n // 2 for k, n in zip(peak, a.shape))
+        rows.append(np.asarray(cam.sensitivity(X[None]))[0])
+        rhs.append([du, dv])
+    if len(rows) < 2:
+        return np.zeros(3)
+    return np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]

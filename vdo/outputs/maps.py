@@ -1,0 +1,241 @@
+"""Fields on the unfolded specimen, laid out in first-angle projection (paper Fig. 11).
+
+Each sample goes to the view that looks at its face: the view of the axis its normal points along.
+In first-angle projection the front view (looking along +y at faces with normal -y) is in the
+middle; the view from above (+z faces) is drawn *below* it, the view from below above it, the view
+from the left (-x faces) to its right, the view from the right to its left, and the rear view at
+the far right. Sheet coordinates of each view, from the world coordinates (x, y, z):
+
+    front (-y): ( x, z)      top (+z): (x,  y)     bottom (-z): (x, -y)
+    left  (-x): (-y, z)      right (+x): (y, z)    back (+y):  (-x, z)
+
+so that neighbouring views share their common edges as on a drawing sheet. Each panel carries the
+world directions of its sheet axes (→ right, ↑ up) and the names and outlines of its regions.
+
+Every sample is drawn as its own surface cell: the square of side sqrt(area) around it in its
+face's tangent frame (t_u, t_v), projected onto the sheet. Cells of a regular sample grid tile the
+face exactly, so no sample can be lost or doubled by binning onto a raster, and no colour spills
+past the face's edge.
+"""
+
+from __future__ import annotations
+
+import textwrap
+from dataclasses import dataclass
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
+from scipy.spatial import ConvexHull, QhullError  # noqa: E402
+
+from vdo.scene import SurfaceSamples  # noqa: E402
+
+# name, world axis of the face normal, sign, sheet axes as (world axis, sign) for horizontal, vertical
+VIEWS = (
+    ("front", 1, -1, (0, 1), (2, 1)),
+    ("top", 2, +1, (0, 1), (1, 1)),
+    ("bottom", 2, -1, (0, 1), (1, -1)),
+    ("left", 0, -1, (1, -1), (2, 1)),
+    ("right", 0, +1, (1, 1), (2, 1)),
+    ("back", 1, +1, (0, -1), (2, 1)),
+)
+NO_VALUE = "0.78"     # grey of samples without a value (NaN); white is where there is no surface
+OUTLIER_RATIO = 1.5   # a continuous scale stops at the 98th percentile when max > 1.5 x p98
+
+
+@dataclass(frozen=True)
+class Panel:
+    name: str
+    x0: float
+    y0: float
+    width: float
+    height: float
+
+
+def cell_corners(samples: SurfaceSamples) -> np.ndarray:
+    """(N, 4, 3) corners of each sample's surface cell: X ± (h/2) t_u ± (h/2) t_v with
+    h = sqrt(area) (m), counter-clockwise seen from outside the face."""
+    half = 0.5 * np.sqrt(samples.area)[:, None, None]
+    signs = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float)      # (4, 2)
+    offsets = signs[None, :, 0:1] * samples.tangent_u[:, None, :] \
+        + signs[None, :, 1:2] * samples.tangent_v[:, None, :]
+    return samples.points[:, None, :] + half * offsets
+
+
+def _view_of(normals: np.ndarray) -> np.ndarray:
+    axis = np.argmax(np.abs(normals), axis=1)
+    sign = np.sign(normals[np.arange(len(normals)), axis])
+    view_of = np.empty(len(normals), dtype=int)
+    for k, (_, ax, sg, _, _) in enumerate(VIEWS):
+        view_of[(axis == ax) & (sign == sg)] = k
+    return view_of
+
+
+def unfold(samples: SurfaceSamples, gap: float | None = None):
+    """Sheet coordinates (N, 2) in metres, view index (N,), the panels, each sample's depth toward
+    its viewer (larger = nearer, drawn last), and each sample's cell on the sheet (N, 4, 2).
+
+    The panels span the samples' cells (`cell_corners`), i.e. the faces themselves, not only the
+    sample centres."""
+    pts = samples.points
+    corners = cell_corners(samples)
+    view_of = _view_of(samples.normals)
+    flat = corners.reshape(-1, 3)
+    lo, hi = np.minimum(flat.min(axis=0), pts.min(axis=0)), np.maximum(flat.max(axis=0), pts.max(axis=0))
+    span = hi - lo
+    gap = 0.08 * span.max() if gap is None else gap
+
+    def local(k, p):
+        _, _, _, (ha, hs), (va, vs) = VIEWS[k]
+        h = (p[..., ha] - lo[ha]) if hs > 0 else (hi[ha] - p[..., ha])
+        v = (p[..., va] - lo[va]) if vs > 0 else (hi[va] - p[..., va])
+        return np.stack([h, v], axis=-1)
+
+    Lx, Ly, Lz = span
+    origin = {"front": (0.0, 0.0), "top": (0.0, -gap - Ly), "bottom": (0.0, Lz + gap),
+              "left": (Lx + gap, 0.0), "right": (-gap - Ly, 0.0), "back": (Lx + 2 * gap + Ly, 0.0)}
+    size = {"front": (Lx, Lz), "top": (Lx, Ly), "bottom": (Lx, Ly), "left": (Ly, Lz),
+            "right": (Ly, Lz), "back": (Lx, Lz)}
+    sheet = np.zeros((len(pts), 2))
+    cells = np.zeros((len(pts), 4, 2))
+    depth = np.zeros(len(pts))
+    panels = []
+    for k, (name, ax, sg, _, _) in enumerate(VIEWS):
+        mask = view_of == k
+        if not mask.any():
+            continue
+        sheet[mask] = local(k, pts[mask]) + origin[name]
+        cells[mask] = local(k, corners[mask]) + origin[name]
+        depth[mask] = sg * pts[mask, ax]
+        panels.append(Panel(name, *origin[name], *size[name]))
+    return sheet, view_of, panels, depth, cells
+
+
+def axis_label(axis: tuple[int, int]) -> str:
+    """'+x', '-y', ... for a sheet axis given as (world axis, sign)."""
+    return ("+" if axis[1] > 0 else "−") + "xyz"[axis[0]]
+
+
+def color_range(values: np.ndarray, vmin=None, vmax=None) -> tuple[float, float, str]:
+    """The colour scale's limits and how they were chosen: the finite data's min and max, or the
+    98th percentile when max > OUTLIER_RATIO x p98 (a few outliers would flatten the rest);
+    explicit `vmin`/`vmax` win."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return (0.0 if vmin is None else vmin), (1.0 if vmax is None else vmax), "no finite value"
+    dmin, dmax, p98 = float(finite.min()), float(finite.max()), float(np.percentile(finite, 98))
+    how = []
+    if vmin is None:
+        vmin = dmin
+        how.append("data min")
+    else:
+        how.append("set")
+    if vmax is None:
+        if dmax > OUTLIER_RATIO * p98 and p98 > vmin:
+            vmax = p98
+            how.append(f"98th pct.; max {dmax:.4g}")
+        else:
+            vmax = dmax
+            how.append("data max")
+    else:
+        how.append("set")
+    if vmax <= vmin:
+        vmax = vmin + max(abs(vmin) * 1e-6, 1e-12)
+    return float(vmin), float(vmax), " – ".join(how)
+
+
+def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str, label: str,
+                  discrete: bool = False, cmap: str | None = None, vmin=None, vmax=None) -> dict:
+    """Draw one per-sample field on the unfolded specimen and save it as PNG.
+
+    The colour scale runs over the data's range (`color_range`) and the colour bar states its
+    limits; samples without a value (NaN) are grey. Returns each region's bounding box in the
+    PNG's pixels, {name: (col0, row0, col1, row1)} with row 0 at the top."""
+    values = np.asarray(values, dtype=float)
+    sheet, view_of, panels, depth, cells = unfold(samples)
+    lo = np.array([min(p.x0 for p in panels), min(p.y0 for p in panels)])
+    hi = np.array([max(p.x0 + p.width for p in panels), max(p.y0 + p.height for p in panels)])
+    margin = 0.06 * max(hi - lo)
+    lo, hi = lo - margin, hi + margin
+
+    if discrete:
+        finite = values[np.isfinite(values)]
+        top = int(max(finite.max() if finite.size else 0, 1))
+        cmap_obj = plt.get_cmap(cmap or "viridis", top + 1)
+        vmin, vmax, scale = -0.5, top + 0.5, f"0 – {top}"
+    else:
+        cmap_obj = plt.get_cmap(cmap or "viridis")
+        vmin, vmax, how = color_range(values, vmin, vmax)
+        scale = f"scale {vmin:.4g} – {vmax:.4g} ({how})"
+    cmap_obj = cmap_obj.with_extremes(bad=NO_VALUE)
+
+    aspect = (hi[0] - lo[0]) / max(hi[1] - lo[1], 1e-9)
+    width_in = min(4 + 6 * aspect, 18)
+    dpi = 130
+    fig, axes = plt.subplots(figsize=(width_in, 7), layout="constrained", dpi=dpi)
+    order = np.argsort(depth, kind="stable")              # nearer faces drawn last
+    coll = PolyCollection(cells[order], array=np.ma.masked_invalid(values[order]), cmap=cmap_obj,
+                          edgecolors="face", linewidths=0.2, antialiaseds=False)
+    coll.set_clim(vmin, vmax)
+    axes.add_collection(coll)
+    fs = 7
+    for p in panels:
+        k = [v[0] for v in VIEWS].index(p.name)
+        _, ax, sg, h_axis, v_axis = VIEWS[k]
+        axes.text(p.x0, p.y0 + p.height + 0.01 * margin,
+                  f"view from {'+' if sg > 0 else '−'}{'xyz'[ax]} ({p.name}):  "
+                  f"→ {axis_label(h_axis)}   ↑ {axis_label(v_axis)}",
+                  va="bottom", ha="left", fontsize=fs, color="0.2")
+    hulls = {}
+    for r, name in enumerate(samples.region_names):
+        mask = samples.region == r
+        if not mask.any():
+            continue
+        corners = cells[mask].reshape(-1, 2)
+        try:
+            ring = corners[ConvexHull(corners).vertices]
+        except QhullError:                                 # degenerate (a line of samples)
+            ring = corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]]
+        hulls[name] = ring
+        axes.add_patch(plt.Polygon(ring, closed=True, fill=False, lw=0.6, ec="0.15", ls="--"))
+        c = 0.5 * (ring.min(axis=0) + ring.max(axis=0))
+        ext = ring.max(axis=0) - ring.min(axis=0)
+        axes.text(*c, name, ha="center", va="center", fontsize=fs - 1.5,
+                  rotation=90 if ext[1] > 1.5 * ext[0] else 0, color="0.1",
+                  bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.6))
+    # scale bar, bottom left
+    bar = 10 ** np.floor(np.log10(0.2 * (hi[0] - lo[0])))
+    axes.plot([lo[0] + 0.2 * margin, lo[0] + 0.2 * margin + bar], [lo[1] + 0.3 * margin] * 2,
+              color="k", lw=1.5)
+    axes.text(lo[0] + 0.2 * margin + bar / 2, lo[1] + 0.35 * margin, f"{bar:g} m", ha="center",
+              va="bottom", fontsize=fs)
+    axes.set_xlim(lo[0], hi[0])
+    axes.set_ylim(lo[1], hi[1])
+    axes.set_aspect("equal")
+    axes.set_axis_off()
+    chars = max(int(width_in * 72 / (0.6 * 12) * 0.8), 30)
+    axes.set_title(textwrap.fill(f"{title} (first-angle projection)", chars), fontsize=12)
+    cbar = fig.colorbar(coll, ax=axes, shrink=0.8, extend="neither" if discrete else _extend(
+        values, vmin, vmax))
+    cbar.set_label(textwrap.fill(f"{label}; {scale}", 40), fontsize=9)
+    if discrete:
+        cbar.set_ticks(range(0, int(vmax + 0.5)))
+    if np.isnan(values).any():
+        fig.text(0.01, 0.01, "grey: no value (not measured)", fontsize=8, color="0.3")
+    fig.savefig(path, dpi=dpi)
+    fig_h = fig.get_size_inches()[1] * dpi
+    boxes = {}
+    for name, ring in hulls.items():
+        px = axes.transData.transform(ring)
+        boxes[name] = (float(px[:, 0].min()), float(fig_h - px[:, 1].max()),
+                       float(px[:, 0].max()), float(fig_h - px[:, 1].min()))
+    plt.close(fig)
+    return boxes
+
+
+def _extend(values: np.ndarray, vmin: float, vmax: float) -> str:
+    finite = values[np.isfinite(values)]
+    below = bool(finite.size and finite.min() < vmin)
+    above = bool(finite.size and finite.max() > vmax)
+    return {(False, False): "neither", (True, False): "min", (False, True): "max",
+            (True, True): "both"}[(below, above)]

@@ -1,0 +1,126 @@
+"""From an experiment to the predicted fields: the inputs `vdo.objective` takes, assembled once.
+
+The cameras, samples and ray-cast occlusion come from `vdo.scene` and `vdo.physics.visibility`; contrast
+and noise from the light and sensor models (`vdo.physics.lighting`); the speckle's gradient energy from its
+power spectrum (`vdo.model.speckle`). `evaluate` reports the fields; `optimize` differentiates the score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from vdo import objective
+from vdo.physics import usable
+from vdo.model.camera import Camera
+from vdo.config.experiment import Experiment
+from vdo.physics.lighting import Illumination, pattern_stats, photometry
+from vdo.scene import SurfaceSamples
+from vdo.model.speckle import GradientEnergyTable, gradient_energy_table, normalise, pattern_for
+from vdo.physics.visibility import Visibility
+
+
+@dataclass(frozen=True, eq=False)
+class SpeckleModel:
+    """The pattern tile, its statistics and its gradient-energy table."""
+
+    pattern: np.ndarray
+    mean: float
+    std: float
+    table: GradientEnergyTable
+
+
+def speckle_model(exp: Experiment) -> SpeckleModel:
+    pattern = pattern_for(exp.speckle)
+    mean, std = pattern_stats(pattern)
+    table = gradient_energy_table(normalise(pattern), exp.speckle.texel,
+                                  l_max=max(50 * exp.speckle.dot_diameter, 0.05))
+    return SpeckleModel(pattern, mean, std, table)
+
+
+def settings(exp: Experiment) -> objective.Settings:
+    """The objective's settings for an experiment. The score's per-pair work in float32 (the
+    per-sample sums, the score and the report fields in float64): on the 10-camera x 100k-sample
+    benchmark, value within 4e-8 and gradient within 8e-6 of float64 and value + gradient ~1.5x
+    faster (`vdo.objective.Settings.pair_dtype`, `benchmarks/README.md`)."""
+    return objective.Settings(patch_area=exp.evaluation.patch_size ** 2,
+                              incidence_limit=exp.evaluation.incidence_limit,
+                              pair_dtype="float32")
+
+
+def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective.Samples:
+    minimum = [r.min_cameras or exp.evaluation.min_cameras for r in exp.regions]
+    return objective.Samples(*(jnp.asarray(a) for a in (
+        samples.points, samples.normals, samples.tangent_u, samples.tangent_v, samples.area,
+        samples.region)), jnp.asarray(samples.region_importance, dtype=float),
+        jnp.asarray(minimum, dtype=float))
+
+
+def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
+              illumination: Illumination, speckle: SpeckleModel,
+              patch_fraction: np.ndarray | None = None) -> objective.ViewData:
+    """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
+    the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
+    unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
+    away, as occluded), exact for these cameras. With `patch_fraction` (C, N) (`vdo.physics.usable`:
+    phi_i, the usable fraction of each camera's patch) the occlusion is multiplied by it, so
+    that the patch area becomes Omega phi_i."""
+    pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
+                     len(vis.camera_names))
+    occlusion = np.asarray(vis.unoccluded, dtype=float)
+    if patch_fraction is not None:
+        occlusion = occlusion * patch_fraction
+    return objective.ViewData.from_dense(occlusion, np.asarray(pho.contrast),
+                                         np.asarray(pho.noise), samples)
+
+
+@dataclass(frozen=True, eq=False)
+class Prediction:
+    """Per-sample fields in SI units (numpy). Sigmas are the Cramér-Rao bound for one noisy image
+    against a noise-free reference (x sqrt(2) when both images are noisy), over the DIC patch
+    clipped to the usable surface (`vdo.physics.usable`); +inf where fewer than two usable, non-parallel
+    views make the 3D displacement unmeasurable. `usable` (C, N) is `vdo.physics.usable.usable_views`;
+    coverage, patch_fraction, edge_limited and outlier are `vdo.physics.usable.flags`."""
+
+    sensitivity: np.ndarray   # (N, 3) pixel/m, every view by its soft weight (not only usable ones)
+    sigma_max: np.ndarray     # (N,) m
+    sigma_xyz: np.ndarray     # (N, 3) m
+    measured: np.ndarray      # (N,) bool
+    information: np.ndarray   # (N, 3, 3) 1/m^2, C for the (clipped) patch
+    usable: np.ndarray        # (C, N) bool
+    coverage: np.ndarray      # (N,) int: usable views
+    patch_fraction: np.ndarray  # (N,) fraction of the patch usable by >= 2 views
+    edge_limited: np.ndarray  # (N,) bool
+    outlier: np.ndarray       # (N,) bool
+
+
+def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
+            illumination: Illumination, speckle: SpeckleModel,
+            clip_patch: bool = True, overlap=None) -> Prediction:
+    """The report fields with the usable-view definition and the clipped patch of `vdo.physics.usable`:
+    a first pass gives the soft weights, hence the usable views and each camera's usable patch
+    fraction phi_i; the second pass weights each pair by phi_i (Omega_i = phi_i Omega). With
+    `clip_patch` False every usable view keeps the whole patch (phi_i = 1): for samples that each
+    stand for one whole correlated patch (`vdo.dic.validate`), not for points of a sampled surface.
+    `overlap`: `usable.patch_overlap(samples, patch_size)` when already known (it depends on the
+    samples' parametric cells only, not on the cameras or on a keyframe's motion)."""
+    smp = samples_for_objective(exp, samples)
+    cams = objective.CameraParams.from_cameras(cameras)
+    st = settings(exp)
+    first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle),
+                             speckle.table, st)
+    use = usable.usable_views(np.asarray(first.weights))
+    if overlap is None:
+        overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
+    f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi),
+                         speckle.table, st)
+    measured = np.asarray(f.measured) & (use.sum(axis=0) >= 2)
+    sigma_max = np.where(measured, np.asarray(f.sigma_max), np.inf)
+    sigma_xyz = np.where(measured[:, None], np.asarray(f.sigma_xyz), np.inf)
+    flag = usable.flags(overlap, use, sigma_max, measured, samples.region)
+    return Prediction(np.asarray(first.sensitivity), sigma_max, sigma_xyz, measured,
+                      np.asarray(f.information), use, flag["coverage"], flag["patch_fraction"],
+                      flag["edge_limited"], flag["outlier"])

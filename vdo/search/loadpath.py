@@ -1,0 +1,266 @@
+"""Coverage and uncertainty over a test's load path: one layout state per keyframe.
+
+For each step k of the load path (`vdo.geometry.keyframes`) the geometry is moved to that step and the
+cameras judged on it (`vdo.state.layout_state`). Per sample the **worst case** over the steps is
+kept: the fewest cameras that see it and the largest σ_max (and the step where it occurs). Per
+region and step: the area fraction seen by at least the region's minimum number of cameras and
+the σ_max p95. A camera **loses** a region at the first step where it sees less than
+`SEEN_FRACTION` of the region's area after having seen at least that much at rest.
+
+The cost is one ray cast, one lighting pass and one prediction per step: linear in the number of
+steps (`benchmarks/load_path.py`).
+
+For the optimizer and the design search (`path_occlusion`, `scored_path`): a view (camera i,
+sample n) **holds over the path** when camera i sees sample n (in front, in the image, facing it
+within the incidence limit, unoccluded: `vdo.physics.visibility`) in the geometry moved to at least a
+fraction q of the chosen keyframes (q = 1: every one, the worst case); the score then counts only
+views that hold over the path and are seen at rest (the reference image), while the sensitivity
+and footprint stay those of the rest geometry (docs/theory.md, "Over the load path").
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
+from vdo.scene import build_scene
+from vdo.state import Geometry, LayoutState, bodies, layout_state
+from vdo.physics.visibility import compute_visibility
+
+logger = logging.getLogger(__name__)
+
+SEEN_FRACTION = 0.5     # a camera sees a region when it sees at least this fraction of its area
+
+
+@dataclass(frozen=True, eq=False)
+class LoadPathResult:
+    """Per-step fields over the samples (index 0 is the rest state, then the load path's steps)."""
+
+    steps: tuple                  # ("rest", step_1, step_2, ...)
+    camera_names: tuple[str, ...]
+    region_names: tuple[str, ...]
+    coverage: np.ndarray          # (K, N) cameras that see each sample
+    sigma_max: np.ndarray         # (K, N) m, +inf where unmeasured
+    seen_fraction: np.ndarray     # (K, C, R) area fraction of each region each camera sees
+    region_covered: np.ndarray    # (K, R) area fraction seen by >= the region's minimum cameras
+    region_sigma_p95: np.ndarray  # (K, R) m over the measured samples (NaN if none)
+    losses: tuple[dict, ...]      # {"camera", "region", "step", "rest_fraction", "fraction"}
+
+    @property
+    def worst_coverage(self) -> np.ndarray:
+        return self.coverage.min(axis=0)
+
+    @property
+    def worst_sigma(self) -> np.ndarray:
+        return self.sigma_max.max(axis=0)
+
+    @property
+    def worst_step_index(self) -> np.ndarray:
+        """Index into `steps` of each sample's largest σ_max."""
+        return self.sigma_max.argmax(axis=0)
+
+
+def _region_stats(state: LayoutState, minimum: np.ndarray):
+    samples = state.samples
+    area = samples.area
+    visible = state.prediction.usable           # usable views (`vdo.physics.usable`), as everywhere
+    covered = state.prediction.coverage >= minimum[samples.region]
+    sigma = np.where(state.prediction.measured, state.prediction.sigma_max, np.inf)
+    n_regions = len(samples.region_names)
+    seen = np.zeros((visible.shape[0], n_regions))
+    cov = np.zeros(n_regions)
+    p95 = np.full(n_regions, np.nan)
+    for r in range(n_regions):
+        mask = samples.region == r
+        total = area[mask].sum()
+        seen[:, r] = (visible[:, mask] * area[mask]).sum(axis=1) / total
+        cov[r] = area[mask & covered].sum() / total
+        finite = sigma[mask][np.isfinite(sigma[mask])]
+        if finite.size:
+            p95[r] = np.percentile(finite, 95)
+    return seen, cov, p95, sigma
+
+
+def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
+                       progress: bool = False, rest: LayoutState | None = None) -> LoadPathResult:
+    """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`,
+    each distinct geometry once (`LoadPath.step_key`: a step that returns to an earlier pose
+    reuses its judgement). `rest`: the state at rest when already computed
+    (`layout_state(geometry, cameras)`)."""
+    exp = geometry.experiment
+    minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
+    steps = ("rest",) + tuple(load_path.steps)
+    judged = {}   # step key -> (coverage, seen, covered, p95, sigma)
+    coverage, sigma, seen, covered, p95 = [], [], [], [], []
+    for step in tqdm(steps, desc="load path", unit="step", disable=not progress):
+        key = () if step == "rest" else load_path.step_key(step)
+        if key not in judged:
+            if key == () and rest is not None:
+                state = rest
+            else:
+                moved = geometry if key == () else at_step(geometry, load_path, step)
+                state = layout_state(moved, cameras, strain_fields=False)
+            judged[key] = (state.prediction.coverage, *_region_stats(state, minimum))
+            camera_names = state.visibility.camera_names
+        cov, s, c, p, sig = judged[key]
+        coverage.append(cov)
+        sigma.append(sig)
+        seen.append(s)
+        covered.append(c)
+        p95.append(p)
+    seen_arr = np.array(seen)
+    losses = []
+    for c, camera in enumerate(camera_names):
+        for r, region in enumerate(geometry.samples.region_names):
+            if seen_arr[0, c, r] < SEEN_FRACTION:
+                continue
+            lost = np.flatnonzero(seen_arr[1:, c, r] < SEEN_FRACTION)
+            if lost.size:
+                k = lost[0] + 1
+                losses.append({"camera": camera, "region": region, "step": steps[k],
+                               "rest_fraction": float(seen_arr[0, c, r]),
+                               "fraction": float(seen_arr[k, c, r])})
+                logger.warning("camera %s loses region %s at step %s (sees %.0f%% of it, %.0f%% at rest)",
+                               camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
+    return LoadPathResult(steps, camera_names, geometry.samples.region_names, np.array(coverage),
+                          np.array(sigma), seen_arr, np.array(covered), np.array(p95), tuple(losses))
+
+
+def _motion(load_path: LoadPath, step: int) -> np.ndarray:
+    """What moves at `step`, as one vector (m): per group its translation and its rotation
+    vector (rad, read as metres at a 1 m lever), then the specimen's mean nodal displacement and
+    the largest nodal displacement's length."""
+    from scipy.spatial.transform import Rotation
+
+    out = []
+    for group in sorted(load_path.groups):
+        pose = load_path.poses.get((step, group))
+        if pose is None:
+            out += [0.0] * 6
+        else:
+            out += [*pose.translation, *Rotation.from_matrix(pose.rotation).as_rotvec()]
+    if load_path.displacements:
+        u = load_path.displacements.get(step)
+        u = np.zeros((1, 3)) if u is None else u
+        out += [*u.mean(axis=0), float(np.linalg.norm(u, axis=1).max())]
+    return np.array(out, dtype=float)
+
+
+def keyframe_steps(load_path: LoadPath, count: int) -> tuple[int, ...]:
+    """`count` steps of `load_path` that stand for it (all of them when it has no more): first
+    the extremes, the steps where a component of the motion (`_motion`: a group's translation or
+    rotation along an axis, the specimen's mean or largest displacement) is largest or smallest,
+    those that move most first; then steps evenly spaced along the path. Sorted."""
+    steps = list(load_path.steps)
+    if count >= len(steps):
+        return tuple(steps)
+    motion = np.array([_motion(load_path, s) for s in steps])
+    size = np.linalg.norm(motion, axis=1)
+    extremes = set()
+    for column in motion.T:
+        if np.ptp(column) > 0:
+            extremes |= {int(np.argmax(column)), int(np.argmin(column))}
+    chosen = sorted(extremes, key=lambda k: (-size[k], k))[:count]
+    for k in np.linspace(0, len(steps) - 1, count).round().astype(int):
+        if len(chosen) < count and k not in chosen:
+            chosen.append(int(k))
+    for k in np.argsort(-size, kind="stable"):   # evenly spaced steps that were extremes already
+        if len(chosen) < count and k not in chosen:
+            chosen.append(int(k))
+    return tuple(steps[k] for k in sorted(chosen))
+
+
+def path_occlusion(geometry: Geometry, load_path: LoadPath, cameras, steps=None,
+                   fraction: float = 1.0) -> np.ndarray:
+    """(C, N) float, 1.0 where camera c sees sample n (`vdo.physics.visibility`: in front, in the image,
+    facing within the incidence limit, unoccluded by the meshes and the experiment's camera
+    bodies) in the geometry moved to at least `fraction` of `steps` (default: every step of the
+    path; `fraction` 1: all of them, the worst case), else 0.0. `cameras`: a list of
+    `vdo.model.camera.Camera` (judged where they stand; only those the experiment lists with a body
+    are obstacles). The rest state is not among the steps: combine with its own ray cast.
+    One ray cast per step."""
+    exp = geometry.experiment
+    cameras = list(cameras)
+    steps = tuple(load_path.steps if steps is None else steps)
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"path_occlusion: fraction must lie in (0, 1], got {fraction}")
+    seen = np.zeros((len(cameras), len(geometry.samples)))
+    for step in steps:
+        moved = at_step(geometry, load_path, step)
+        scene = build_scene(list(moved.meshes) + bodies(exp, cameras))
+        seen += compute_visibility(scene, cameras, moved.samples, exp.evaluation.incidence_limit,
+                                   progress=False).visible
+    need = math.ceil(fraction * len(steps) - 1e-9)
+    return (seen >= need).astype(float)
+
+
+def scored_path(exp, geometry: Geometry):
+    """What `vdo optimize` scores over: (load path, keyframe steps, fraction q) from
+    `[optimize] load_path`, `load_path_keyframes` and `load_path_fraction`, or None when the
+    experiment has no `[load_path]` or scoring over it is off."""
+    if not exp.optimize.load_path:
+        return None
+    load_path = load_path_of(exp, geometry.meshes)
+    if load_path is None or not load_path.steps:
+        return None
+    return (load_path, keyframe_steps(load_path, exp.optimize.load_path_keyframes),
+            exp.optimize.load_path_fraction)
+
+
+def summary(result: LoadPathResult) -> dict:
+    """For summary.json: the steps, the losses, and per region the worst step's covered area
+    fraction and σ_max p95 (µm) with the steps where they occur."""
+    regions = {}
+    for r, region in enumerate(result.region_names):
+        covered, p95 = result.region_covered[:, r], result.region_sigma_p95[:, r]
+        worst = int(np.nanargmax(p95)) if np.isfinite(p95).any() else None
+        regions[region] = {
+            "covered_fraction_min": float(covered.min()),
+            "covered_fraction_min_step": result.steps[int(covered.argmin())],
+            "sigma_max_p95_um_max": None if worst is None else float(p95[worst] * 1e6),
+            "sigma_max_p95_um_max_step": None if worst is None else result.steps[worst]}
+    return {"steps": len(result.steps) - 1, "seen_fraction": SEEN_FRACTION,
+            "losses": list(result.losses), "regions": regions}
+
+
+def table(result: LoadPathResult) -> list[dict]:
+    """Rows (step, region, covered fraction, σ_max p95 in µm) for `load_path.csv`."""
+    rows = []
+    for k, step in enumerate(result.steps):
+        for r, region in enumerate(result.region_names):
+            p95 = result.region_sigma_p95[k, r]
+            rows.append({"step": step, "region": region,
+                         "covered_fraction": round(float(result.region_covered[k, r]), 4),
+                         "sigma_max_p95_um": "" if np.isnan(p95) else round(float(p95) * 1e6, 4)})
+    return rows
+
+
+def plot(result: LoadPathResult, path, title: str = "") -> None:
+    """Two panels against the step: each region's covered area fraction and its σ_max p95."""
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(result.steps))
+    fig, (ax_c, ax_s) = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
+    colours = plt.get_cmap("tab20")
+    for r, region in enumerate(result.region_names):
+        style = dict(marker=".", label=region, color=colours(r % 20), ls="-" if r < 20 else "--")
+        ax_c.plot(x, 100 * result.region_covered[:, r], **style)
+        ax_s.plot(x, result.region_sigma_p95[:, r] * 1e6, **style)
+    ax_c.set_ylabel("area seen by ≥ min. cameras (%)")
+    ax_c.set_ylim(-5, 105)
+    ax_s.set_ylabel("σ_max p95 (µm)")
+    ax_s.set_xlabel("step")
+    ax_s.set_xticks(x, [str(s) for s in result.steps], rotation=90 if len(x) > 20 else 0, fontsize=7)
+    ax_c.legend(fontsize=7, ncol=3, loc="lower left")
+    for loss in result.losses:
+        k = result.steps.index(loss["step"])
+        ax_c.axvline(k, color="0.6", lw=0.8, ls="--")
+    ax_c.set_title(title or "coverage and uncertainty over the load path", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
