@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from vdo.core.errors import ConfigError
+from vdo.model import nurbs
 from vdo.model.sensor import ALIGNMENTS, SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
@@ -1287,7 +1288,8 @@ def camera_positions(exp: Experiment) -> list[np.ndarray]:
     out = []
     for spec in exp.camera_specs:
         if spec.rail is not None:
-            out.append(exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset)
+            rail = next(r for r in exp.rails if r.name == spec.rail)
+            out.append(nurbs.point(rail.control_points, rail.degree, rail.weights, spec.u) + spec.offset)
         else:
             out.append(np.asarray(spec.position, dtype=float))
     return out

@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from vdo.model.nurbs import clamped_knots, de_boor, homogeneous
+
 
 @dataclass(frozen=True, eq=False)
 class Rail:
@@ -44,15 +46,13 @@ class Rail:
     @property
     def knots(self) -> np.ndarray:
         """Clamped uniform knot vector on [0, 1] (n + p + 1 values)."""
-        n, p = len(self.control_points), self.degree
-        interior = np.arange(1, n - p) / (n - p)
-        return np.concatenate([np.zeros(p + 1), interior, np.ones(p + 1)])
+        return clamped_knots(len(self.control_points), self.degree)
 
     def position(self, u, xp=jnp):
         """C(u) in metres, for scalar or array u in [0, 1] (shape u.shape + (3,)). JAX-traceable;
         `xp` = NumPy evaluates on the host without a JAX dispatch per operation."""
         u = xp.asarray(u, dtype=xp.float64)
-        return _de_boor(xp.asarray(self.knots), xp.asarray(self._homogeneous), self.degree, u, xp)
+        return de_boor(xp.asarray(self.knots), xp.asarray(self._homogeneous), self.degree, u, xp)
 
     def tangent(self, u):
         """dC/du in metres per unit of u (forward-mode derivative of `position`)."""
@@ -61,12 +61,12 @@ class Rail:
                              signature="()->(3)")(u)
 
     def _point(self, u):
-        return _de_boor(jnp.asarray(self.knots), jnp.asarray(self._homogeneous), self.degree, u)
+        return de_boor(jnp.asarray(self.knots), jnp.asarray(self._homogeneous), self.degree, u, jnp)
 
     @property
     def _homogeneous(self) -> np.ndarray:
         """(n, 4): the control points times their weights, and the weights."""
-        return np.hstack([self.control_points * self.weights[:, None], self.weights[:, None]])
+        return homogeneous(self.control_points, self.weights)
 
     def arc_length(self, u: float) -> float:
         """Length along the rail from u = 0 to u, in metres: 16-point Gauss-Legendre quadrature of
@@ -80,23 +80,8 @@ class Rail:
         return float(np.sum(0.5 * (b - a) * (speed @ weights)))
 
 
-def _de_boor(knots, homogeneous, p: int, u, xp=jnp):
-    """C(u) (u.shape + (3,)) by de Boor's algorithm on the homogeneous control points (n, 4),
-    degree p, for every u at once; `xp` the array module."""
-    n = homogeneous.shape[0]
-    span = xp.clip(xp.searchsorted(knots, u, side="right") - 1, p, n - 1)
-    d = [homogeneous[span - p + j] for j in range(p + 1)]
-    for r in range(1, p + 1):
-        for j in range(p, r - 1, -1):
-            lo = knots[span - p + j]
-            hi = knots[span + 1 + j - r]
-            alpha = ((u - lo) / xp.where(hi > lo, hi - lo, 1.0))[..., None]
-            d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
-    return d[p][..., :3] / d[p][..., 3:]
-
-
 @functools.partial(jax.jit, static_argnums=2)
 def _speeds(knots, homogeneous, p: int, u):
     """dC/du at every u: one compiled program for all rails of the same size and degree."""
-    point = lambda s: _de_boor(knots, homogeneous, p, s)
+    point = lambda s: de_boor(knots, homogeneous, p, s, jnp)
     return jnp.vectorize(lambda s: jax.jvp(point, (s,), (jnp.ones_like(s),))[1], signature="()->(3)")(u)

@@ -1,0 +1,44 @@
+"""NURBS curves without JAX: the clamped uniform knot vector and de Boor's algorithm on
+homogeneous control points, for any array module `xp` (NumPy here and in the config; `jax.numpy`
+in `vdo.model.rail`, which differentiates them).
+
+    C(u) = sum_i N_{i,p}(u) w_i P_i / sum_i N_{i,p}(u) w_i
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def clamped_knots(n: int, p: int) -> np.ndarray:
+    """Clamped uniform knot vector on [0, 1] for n control points of degree p (n + p + 1 values)."""
+    interior = np.arange(1, n - p) / (n - p)
+    return np.concatenate([np.zeros(p + 1), interior, np.ones(p + 1)])
+
+
+def homogeneous(control_points: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(n, 4): the control points times their weights, and the weights."""
+    return np.hstack([control_points * weights[:, None], weights[:, None]])
+
+
+def point(control_points, degree: int, weights, u) -> np.ndarray:
+    """C(u) in metres (u.shape + (3,)) on the host, NumPy only."""
+    pts = np.asarray(control_points, dtype=float)
+    w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float)
+    return de_boor(clamped_knots(len(pts), degree), homogeneous(pts, w), degree,
+                   np.asarray(u, dtype=float))
+
+
+def de_boor(knots, homogeneous, p: int, u, xp=np):
+    """C(u) (u.shape + (3,)) by de Boor's algorithm on the homogeneous control points (n, 4),
+    degree p, for every u at once; `xp` the array module."""
+    n = homogeneous.shape[0]
+    span = xp.clip(xp.searchsorted(knots, u, side="right") - 1, p, n - 1)
+    d = [homogeneous[span - p + j] for j in range(p + 1)]
+    for r in range(1, p + 1):
+        for j in range(p, r - 1, -1):
+            lo = knots[span - p + j]
+            hi = knots[span + 1 + j - r]
+            alpha = ((u - lo) / xp.where(hi > lo, hi - lo, 1.0))[..., None]
+            d[j] = (1.0 - alpha) * d[j - 1] + alpha * d[j]
+    return d[p][..., :3] / d[p][..., 3:]
