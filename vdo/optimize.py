@@ -88,10 +88,10 @@ from vdo.objective import bucket
 from vdo.physics.predict import predict, samples_for_objective, settings, view_data
 from vdo.core.progress import bar
 from vdo.core.runfolder import run_folder
-from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
+from vdo.state import LayoutState, bodies, layout_state, prepare, unobstructed_lighting
 from vdo.scene import (SceneMesh, build_scene, camera_body, camera_body_points,
                     camera_body_spheres)
-from vdo.physics.visibility import compute_visibility
+from vdo.physics.visibility import Visibility, compute_visibility
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
 FEASIBILITY_ROUNDS = 3    # at most this many feasibility rounds (penalties only) per start
@@ -101,6 +101,7 @@ ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle 
 # always lies a little beyond what it aims at, meets the exact limit.
 ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
+CLEARANCE_SPACING = 0.015          # m between the mesh points clearances are measured to
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
@@ -365,7 +366,7 @@ class Problem:
         opt = exp.optimize
         if reference is None:
             self.geometry = prepare(exp)
-            self.scene_points = _surface_points(list(self.geometry.meshes), spacing=0.015)
+            self.scene_points = _surface_points(list(self.geometry.meshes), spacing=CLEARANCE_SPACING)
             # the lighting with no camera in the scene: what the bodies hide, and the base that
             # each refresh casts again only where a body may be in the way (`layout_state`)
             self.unobstructed = unobstructed_lighting(self.geometry)
@@ -538,10 +539,7 @@ class Problem:
         cams = self.param.cameras_at(theta)
         layout = layout_state(self.geometry, cams, predict_fields=False, unobstructed=self.unobstructed)
         vis, illum = layout.visibility, layout.illumination
-        # the same cast against the obstacles alone: what hides a region that the specimen does not
-        obstacles = build_scene([m for m in self.meshes if m.role != "specimen"] + bodies(self.exp, cams))
-        vis_obstacles = compute_visibility(obstacles, cams, self.samples,
-                                           self.exp.evaluation.incidence_limit, progress=False)
+        vis_obstacles = obstacle_visibility(self.geometry, cams)
         scored = vis
         if self.path is not None:   # the score counts the views that hold over the load path
             load_path, steps, fraction = self.path
@@ -666,7 +664,7 @@ class Problem:
         opt = self.exp.optimize
         return constraints.check(state.cameras, state.vis_obstacles, self.samples, self.assigned,
                                  self.pairs, self.min_angles, _clearances(state.cameras, self.scene_tree),
-                                 opt.clearance, opt.max_obscuration, _light_lost(self, state),
+                                 opt.clearance, opt.max_obscuration, light_lost(self.lit_without_cameras, state.illumination.lit, self.samples),
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
                                  fov_limits=self.fov_limits, max_angles=self.max_angles)
 
@@ -711,14 +709,47 @@ def _clearances(cameras, tree) -> np.ndarray:
     return out
 
 
-def _light_lost(problem: Problem, state: State) -> np.ndarray:
-    """Per region, the area fraction where the camera bodies hide more than 1 % of a light."""
-    if problem.lit_without_cameras is None:
-        return np.zeros(len(problem.samples.region_names))
-    lost = ((problem.lit_without_cameras - state.illumination.lit) > 0.01).any(axis=0)
-    s = problem.samples
-    return np.array([(s.area[(s.region == r) & lost]).sum() / s.area[s.region == r].sum()
-                     for r in range(len(s.region_names))])
+def light_lost(lit_without_cameras, lit, samples) -> np.ndarray:
+    """Per region, the area fraction where the camera bodies hide more than 1 % of a light:
+    `lit_without_cameras` and `lit` (L, N) the light each sample gets without and with the bodies
+    (None: no light, nothing lost)."""
+    if lit_without_cameras is None:
+        return np.zeros(len(samples.region_names))
+    lost = ((lit_without_cameras - lit) > 0.01).any(axis=0)
+    return np.array([(samples.area[(samples.region == r) & lost]).sum() / samples.area[samples.region == r].sum()
+                     for r in range(len(samples.region_names))])
+
+
+def obstacle_visibility(geometry, cameras) -> Visibility:
+    """The ray cast of `cameras` against the obstacles alone (machine, mounts, camera bodies and
+    tripods, not the specimen): what hides a region that the specimen itself does not (the
+    obscuration check)."""
+    exp = geometry.experiment
+    obstacles = build_scene([m for m in geometry.meshes if m.role != "specimen"] + bodies(exp, cameras))
+    return compute_visibility(obstacles, cameras, geometry.samples, exp.evaluation.incidence_limit,
+                              progress=False)
+
+
+def layout_checks(state: LayoutState) -> list[dict]:
+    """Every constraint check of `vdo optimize` (`vdo.constraints.check`: axis angles, clearance,
+    obscuration, field of view, shadows of the camera bodies, horizontal, on the rail) on a layout
+    as it stands: the one verdict that `vdo evaluate`, `vdo design` and the optimizer's report
+    share. Regions are assigned as in the optimizer (`vdo.constraints.assignments`), the least
+    in-image fraction of an assigned region is 1 - max_obscuration, clearances are measured to
+    the meshes sampled every `CLEARANCE_SPACING` metres."""
+    exp, geometry, samples = state.experiment, state.geometry, state.samples
+    opt, cameras = exp.optimize, list(state.cameras)
+    assigned = constraints.assignments(state.visibility, samples, opt.assign_fraction)
+    pairs, min_angles, max_angles = constraints.angle_limits(exp, cameras, assigned)
+    tree = cKDTree(_surface_points(list(geometry.meshes), spacing=CLEARANCE_SPACING))
+    lit_without = unobstructed_lighting(geometry).lit if exp.lights else None
+    specs = {s.name: s for s in exp.camera_specs}
+    rails_u = [specs[c.name].u if c.name in specs and specs[c.name].rail is not None else None
+               for c in cameras]
+    return constraints.check(cameras, obstacle_visibility(geometry, cameras), samples, assigned, pairs, min_angles,
+                             _clearances(cameras, tree), opt.clearance, opt.max_obscuration,
+                             light_lost(lit_without, state.illumination.lit, samples), rails_u,
+                             roll_free="roll" in opt.free, max_angles=max_angles)
 
 
 def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:

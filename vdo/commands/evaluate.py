@@ -22,6 +22,7 @@ from vdo.core.runfolder import run_folder
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import LoadPathResult, evaluate_load_path
 from vdo.core.progress import shown
+from vdo.optimize import layout_checks
 from vdo.state import LayoutState, layout_state, prepare
 
 log = logging.getLogger(__name__)
@@ -54,21 +55,42 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
             log.warning("warning: camera %s loses region %s at step %s (sees %.0f %% of it, "
                         "%.0f %% at rest)", loss["camera"], loss["region"], loss["step"],
                         100 * loss["fraction"], 100 * loss["rest_fraction"])
-    summary = write_evaluation(state, out, overwrite, over_path)
-    for e in summary["axis_angles"]:
-        if not e["met"]:
-            bound = "below the minimum" if e["constraint"] == "axis_angle" else "above the maximum"
-            log.warning("warning: cameras %s and %s: optical axes %.1f deg apart, %s of %.1f deg",
-                        e["cameras"][0], e["cameras"][1], e["value"], bound, e["limit"])
+    summary = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state))
+    for line in warnings(summary):
+        log.warning("warning: %s", line)
     return summary
 
 
+def warnings(summary: dict) -> list[str]:
+    """What is wrong with the layout, one line each: a camera that sees no region usefully, and
+    every constraint check it breaks (`vdo.optimize.layout_checks`), worst first."""
+    out = [f"camera {name} sees no region (no usable view of any sample: aimed away, blocked "
+           "or out of range?)" for name in summary["cameras_seeing_nothing"]]
+    broken = sorted((c for c in summary["constraints"]["checks"] if not c["met"]),
+                    key=lambda c: -c["excess"])
+    for c in broken:
+        who = " and ".join(c.get("cameras", [])) or "the layout"
+        where = f" on region {c['region']}" if "region" in c else ""
+        out.append(f"{c['constraint']} not met: {who}{where}: {_shown(c['value'])} {c['unit']}, "
+                   f"limit {_shown(c['limit'])}")
+    return out
+
+
+def _shown(value) -> str:
+    """A check's value or limit ([low, high] for a range) with 4 significant digits."""
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(f"{v:.4g}" for v in value) + "]"
+    return f"{value:.4g}"
+
+
 def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
-                     over_path: LoadPathResult | None = None) -> dict:
+                     over_path: LoadPathResult | None = None, checked: list[dict] | None = None) -> dict:
     """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary.
     With `over_path` (`vdo.search.loadpath`) also the load path: load_path.csv, load_path.png, the worst
     case over the steps in samples.vtp (coverage_worst, sigma_max_worst, worst_step) and in
-    maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path"."""
+    maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path".
+    `checked`, the constraint checks of the layout (`vdo.optimize.layout_checks`), go into
+    constraints.json and summary.json's "constraints" (None: not judged)."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
@@ -77,9 +99,16 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
                                                     illumination.irradiance,
                                                     state.geometry.speckle.pattern)
+    summary["cameras_seeing_nothing"] = [name for i, name in enumerate(vis.camera_names)
+                                         if not pred.usable[i].any()]
+    if checked is not None:
+        broken = [c for c in checked if not c["met"]]
+        summary["constraints"] = {"violations": len(broken), "checks": checked}
     if over_path is not None:
         summary["load_path"] = loadpath.summary(over_path)
     with run_folder(out, overwrite) as tmp:
+        if checked is not None:
+            report.write_json(tmp / "constraints.json", summary["constraints"])
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", summary)
         report.write_config(tmp / "config.toml", exp)

@@ -57,7 +57,7 @@ score. Feasible with the selected set:
   on the whole scene: a second ray cast).
 Obscuration by other camera bodies and tripods is not judged during selection; the designed
 layout is judged whole (bodies and tripods included) with `vdo.state.layout_state` at [evaluation]'s sample spacing, and with
-every constraint check of `vdo optimize` (`constraint_checks`, constraints.json).
+every constraint check of `vdo optimize` (`vdo.optimize.layout_checks`, constraints.json).
 
 How many cameras. The greedy order and exchange passes per count give the best layout for every
 count from `[design] min_cameras` to the inventory; `pareto.csv` holds, per count, sigma_max p95
@@ -98,7 +98,7 @@ from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
-from vdo.optimize import Problem, optimize
+from vdo.optimize import layout_checks, optimize
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.core.progress import bar, shown
 from vdo.core.runfolder import run_folder
@@ -580,13 +580,6 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
                    for k, i in enumerate(chosen)]}
 
 
-def constraint_checks(exp: Experiment) -> list[dict]:
-    """Every constraint check `vdo optimize` makes (`vdo.optimize.Problem.check`: axis angles,
-    clearance, obscuration, field of view, shadows), on the experiment's own cameras."""
-    problem = Problem(exp)
-    return problem.check(problem.start)
-
-
 def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
@@ -638,7 +631,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         issues.append(msg)
         log.warning(msg)
     summary = report.state_summary(state)
-    checks = constraint_checks(final)
+    checks = layout_checks(state)
     violated = [c for c in checks if not c["met"]]
     if violated:
         log.warning("the designed layout breaks %d constraint check(s) of vdo optimize (constraints.json); "
