@@ -133,9 +133,9 @@ def test_importing_vdo_changes_no_global_setting():
 import importlib, pkgutil, sys, jax, matplotlib
 import vdo
 backend = matplotlib.rcParams._get_backend_or_none()
-for m in pkgutil.iter_modules(vdo.__path__):
-    if m.name != "__main__":
-        importlib.import_module("vdo." + m.name)
+for m in pkgutil.walk_packages(vdo.__path__, "vdo."):
+    if m.name != "vdo.__main__":
+        importlib.import_module(m.name)
 assert not jax.config.jax_enable_x64, "x64 set at import"
 assert matplotlib.rcParams._get_backend_or_none() == backend, "matplotlib backend set at import"
 from vdo.model.camera import Camera
@@ -161,7 +161,7 @@ def test_settings_live_only_in_configure():
     pattern = re.compile(r"jax\.config\.update|matplotlib\.use\(")
     hits = [f"{p.relative_to(ROOT)}:{n}" for p in sorted((ROOT / "vdo").rglob("*.py"))
             for n, line in enumerate(p.read_text().splitlines(), 1) if pattern.search(line)]
-    assert hits and all(h.startswith(os.path.join("vdo", "configure.py")) for h in hits), hits
+    assert hits and all(h.startswith(os.path.join("vdo", "core", "configure.py")) for h in hits), hits
 
 
 SCRIPT = """
