@@ -512,14 +512,18 @@ def render_settings(exp, scale: float | None = None, spp: int | None = None,
 
 
 def render_images(exp, scale: float | None = None, spp: int | None = None,
-                  seed: int | None = None, pairs=None) -> RenderResult:
+                  seed: int | None = None, pairs=None, only=None) -> RenderResult:
     """Render every camera of `exp` (the render scene of `build_render_scene`, camera i with
     Mitsuba seed `render_seed(seed, i)` and sensor noise `expose(linear, sensor, seed, i)`) and
     compare the noise-free renders with the photometric prediction (`region_photometry`).
     `scale`, `spp`, `seed` default to the config's [render] section (`render_settings`). Progress
     goes to the `vdo.render` logger (`vdo.core.progress`). `pairs`: the stereo pairs of the
     calibration files as (first, second) names (default: cameras assigned a common region),
-    checked to share a field of view before anything is rendered."""
+    checked to share a field of view before anything is rendered. `only`: the names of the
+    cameras to render (default all); the others stay in the scene as bodies and tripods, and
+    camera i keeps its seed."""
+    import dataclasses
+
     from vdo.formats.export import default_pairs
     from vdo.physics.lighting import photometry
     from vdo.core.progress import bar
@@ -531,21 +535,28 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     cameras = [scaled_camera(c, scale) for c in exp.cameras()]
     # The scaled cameras have the full-size cameras' poses and lenses, hence the same bodies.
     state = layout_state(geometry, cameras, predict_fields=False)
-    stereo = default_pairs(exp, cameras, state.visibility, geometry.samples, pairs)
+    chosen = [i for i, c in enumerate(cameras) if only is None or c.name in only]
+    vis = state.visibility
+    if len(chosen) < len(cameras):   # the chosen cameras' rows of the ray cast
+        vis = dataclasses.replace(vis, camera_names=tuple(vis.camera_names[i] for i in chosen),
+                                  **{f: getattr(vis, f)[chosen] for f in
+                                     ("in_front", "in_image", "facing", "unoccluded")})
+        state = dataclasses.replace(state, cameras=tuple(cameras[i] for i in chosen), visibility=vis)
+    stereo = default_pairs(exp, list(state.cameras), vis, geometry.samples, pairs)
     pattern = geometry.speckle.pattern
     scene = build_render_scene(exp, list(geometry.meshes), list(geometry.region_faces),
                                bodies(exp, cameras), pattern)
-    log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(cameras), scale, spp, seed)
+    log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(chosen), scale, spp, seed)
     images, linear, seconds = {}, {}, {}
-    for i, (cam, spec) in enumerate(bar(log, iterable=list(zip(cameras, exp.camera_specs)),
-                                        desc="render", unit="camera")):
+    for i in bar(log, iterable=chosen, desc="render", unit="camera"):
+        cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()
         linear[cam.name] = render_camera(scene, cam, spec, spp, render_seed(seed, i))
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
         seconds[cam.name] = time.perf_counter() - t0
     pho = photometry(state.illumination, exp.speckle, exp.sensor, geometry.speckle.mean,
-                     geometry.speckle.std, len(cameras))
-    rows = region_photometry(cameras, state.visibility, geometry.samples, pho, linear, exp.sensor,
+                     geometry.speckle.std, len(chosen))
+    rows = region_photometry(list(state.cameras), vis, geometry.samples, pho, linear, exp.sensor,
                              normalise(pattern), exp.speckle.texel, spp)
     return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,
                         photometry=rows, seconds=seconds,

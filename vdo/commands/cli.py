@@ -53,7 +53,52 @@ def _load(args):
         from vdo.dic.validate import load
     else:
         from vdo.config.experiment import load
-    return load(args.config)
+    loaded = load(args.config)
+    if getattr(args, "cameras", None) is not None:
+        names = [c.name for c in loaded.camera_specs]
+        unknown = [n for n in args.cameras if n not in names]
+        if unknown or not args.cameras:
+            what = f"no camera is named {unknown[0]!r}" if unknown else "names no camera"
+            raise ConfigError(args.config, "--cameras", f"{what}: give names of {', '.join(names)}, "
+                                                        "separated by commas")
+        if args.series is not None:
+            raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
+                                                        "renders every camera (drop one of them)")
+    return loaded
+
+
+def kind_of(path) -> str:
+    """'validation', 'sweep' or 'experiment': which file `path` is, by its top tables."""
+    from vdo.config.experiment import read_toml
+
+    data = read_toml(path)
+    return "validation" if "validation" in data or "case" in data else \
+        "sweep" if "sweep" in data else "experiment"
+
+
+def check(paths) -> int:
+    """`vdo check FILE...`: every up-front check of each file (an experiment, a validation or a
+    sweep file; with its meshes, load-path files and cases), nothing computed; one line per
+    file. Returns 0 when all pass, else 2 (the first error line is printed by `main`)."""
+    for path in paths:
+        kind = kind_of(path)
+        if kind != "experiment":   # their cases and points build cameras (JAX, float64)
+            from vdo.core.configure import configure
+            configure()
+        if kind == "validation":
+            from vdo.dic.validate import load as load_validation
+            spec = load_validation(path)
+            print(f"ok: {path}: validation file, {len(spec.cases)} cases")
+        elif kind == "sweep":
+            from vdo.commands.sweep import expand, load_sweep
+            points = expand(load_sweep(path))
+            print(f"ok: {path}: sweep file, {len(points)} points")
+        else:
+            from vdo.config.experiment import load
+            exp = load(path)
+            print(f"ok: {path}: experiment {exp.name!r}, {len(exp.camera_specs)} cameras, "
+                  f"{len(exp.regions)} regions, {len(exp.meshes)} meshes")
+    return 0
 
 
 def _evaluate(exp, args):
@@ -90,7 +135,7 @@ def _render(exp, args):
                   f"{summary['total_seconds']:.1f} s; wrote {Path(args.out).resolve()}")
         return
     summary = render_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp, seed=args.seed,
-                                overwrite=args.overwrite, pairs=_pairs(args.pairs))
+                                overwrite=args.overwrite, pairs=_pairs(args.pairs), only=args.cameras)
     if not args.quiet:
         print(f"rendered {len(summary['cameras'])} cameras in {summary['total_seconds']:.1f} s; "
               f"wrote {Path(args.out).resolve()} (see contact_sheet.png)")
@@ -196,6 +241,9 @@ def _parser() -> argparse.ArgumentParser:
     rd.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
                     help="stereo pairs of the calibration files (default: cameras assigned a "
                          "common region); each must share a field of view")
+    rd.add_argument("--cameras", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
+                    default=None, metavar="A,B", help="render only these cameras (the others stay "
+                                                      "in the scene as bodies)")
     rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rd.add_argument("--quiet", action="store_true")
     va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
@@ -233,6 +281,8 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
     sw.add_argument("--dask", default=None, help="Dask scheduler address, or 'local' for a LocalCluster")
     sw.add_argument("--quiet", action="store_true")
+    ck = sub.add_parser("check", help="validate experiment, validation or sweep files without computing")
+    ck.add_argument("files", nargs="+", help="TOML files")
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     return parser
@@ -254,6 +304,8 @@ def _run(args) -> int:
     # their own malloc arenas (`vdo.core.memory`; measured: 10 M page faults, 20 s of system time in
     # the built-in `vdo optimize` when this came after the load)
     retain_freed_memory()
+    if args.command == "check":
+        return check(args.files)
     with interrupts.held():  # heavy imports (`vdo.core.interrupts`)
         loaded = _load(args) if hasattr(args, "config") else None
         from vdo.core.configure import configure

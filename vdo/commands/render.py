@@ -38,16 +38,17 @@ PHOTOMETRY_FIELDS = ["camera", "region", "n_samples", "b_render_dn", "b_predicte
 
 
 def render_experiment(exp, out, scale: float | None = None, spp: int | None = None,
-                      seed: int | None = None, overwrite: bool = False, pairs=None) -> dict:
+                      seed: int | None = None, overwrite: bool = False, pairs=None,
+                      only=None) -> dict:
     """Render every camera of `exp` (`vdo.render.render_images`) and write the run folder `out`
     (module docstring). The options, the output folder and the stereo `pairs` of the calibration
     files ((first, second) names; default: cameras assigned a common region) are checked before
-    any render. Returns the render.json dict."""
+    any render; `only` names the cameras to render (default all). Returns the render.json dict."""
     from vdo.core.runfolder import check_out
 
     render_settings(exp, scale, spp, seed)
     check_out(out, overwrite)
-    return write_render(render_images(exp, scale, spp, seed, pairs), out, overwrite)
+    return write_render(render_images(exp, scale, spp, seed, pairs, only), out, overwrite)
 
 
 def write_render(result: RenderResult, out, overwrite: bool = False) -> dict:
