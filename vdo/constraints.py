@@ -35,6 +35,7 @@ from vdo.model.camera import image_point, to_camera
 from vdo.objective import smoothstep
 from vdo.scene import SurfaceSamples
 from vdo.physics.visibility import Visibility
+from vdo.core.tolerances import CHECK_MET_REL, IN_FRONT_M, LIMIT_SLACK, SMOOTH_SQRT, TINY
 
 
 def stereo_min_angle(focal_length: float) -> float:
@@ -147,7 +148,7 @@ def in_image_fraction(K, R, t, width, height, camera, points, area, ramp, distor
     camera's (`vdo.model.camera.image_point`), with the lens `distortion` (C, 5) when given."""
     c = jnp.asarray(camera)
     p = to_camera(R[c][:, None], t[c][:, None], points)
-    front = p[..., 2] > 1e-3
+    front = p[..., 2] > IN_FRONT_M
     p = jnp.where(front[..., None], p, jnp.array([0.0, 0.0, 1.0]))
     u, v = image_point(K[c][:, None], p[..., 0] / p[..., 2], p[..., 1] / p[..., 2],
                        None if distortion is None else jnp.asarray(distortion)[c][:, None])
@@ -155,7 +156,7 @@ def in_image_fraction(K, R, t, width, height, camera, points, area, ramp, distor
     r = jnp.asarray(ramp)[:, None]
     edge = lambda d: smoothstep((d + r) / (2 * r))
     inside = edge(u + 0.5) * edge(w - 0.5 - u) * edge(v + 0.5) * edge(h - 0.5 - v)
-    return jnp.sum(area * jnp.where(front, inside, 0.0), -1) / jnp.maximum(jnp.sum(area, -1), 1e-30)
+    return jnp.sum(area * jnp.where(front, inside, 0.0), -1) / jnp.maximum(jnp.sum(area, -1), TINY)
 
 
 def fov_penalty(fraction, limit, margin: float):
@@ -181,7 +182,7 @@ def clearance_penalty(body_world, near_points, clearance: float):
         return 0.0
 
     def hinge(d2):
-        d = jnp.sqrt(d2 + 1e-12)
+        d = jnp.sqrt(d2 + SMOOTH_SQRT)
         return (jnp.maximum(clearance - d, 0.0) / clearance) ** 2
 
     # |b - q|^2 = |b|^2 + |q|^2 - 2 b.q: one batched product instead of a (C, B, Q, 3) difference
@@ -236,7 +237,7 @@ def _shadow_terms(x, c, r, panel, margin: float):
     q = x + lam[..., None] * ray - centre                     # in the panel plane, from its centre
     y = (centre + jnp.clip(jnp.sum(q * e1, -1, keepdims=True), -half_w, half_w) * e1
          + jnp.clip(jnp.sum(q * e2, -1, keepdims=True), -half_h, half_h) * e2 - x)
-    dist = jnp.sqrt(jnp.sum(ray * ray, -1) + 1e-12)
+    dist = jnp.sqrt(jnp.sum(ray * ray, -1) + SMOOTH_SQRT)
     sin_b = jnp.sqrt(jnp.sum(jnp.cross(ray, y) ** 2, -1) + 1e-18)
     beta = jnp.arctan2(sin_b, jnp.sum(ray * y, -1))
     alpha = r / dist
@@ -261,7 +262,7 @@ def shadow_pairs(centres: np.ndarray, radii: np.ndarray, samples: np.ndarray, pa
     centre, normal, e1, half_w, half_h = (panels[:, :3], panels[:, 3:6], panels[:, 6:9],
                                           panels[:, 9:10], panels[:, 10:11])
     e2 = np.cross(normal, e1)
-    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-30)
+    unit = lambda v: v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), TINY)
     to_centre = unit(centre - samples)                                              # (S, 3)
     corners = np.stack([centre + a * half_w * e1 + b * half_h * e2 - samples
                         for a in (-1, 1) for b in (-1, 1)], 1)                      # (S, 4, 3)
@@ -271,7 +272,7 @@ def shadow_pairs(centres: np.ndarray, radii: np.ndarray, samples: np.ndarray, pa
     angle = np.arccos(np.clip(np.einsum("cksj,sj->cks", unit(ray), to_centre), -1, 1))
     rho = radii[:, :, None] + margin
     room = dist - move
-    bound = rho / np.maximum(room, 1e-30) + np.arcsin(np.clip(move / np.maximum(dist, 1e-30), 0, 1))
+    bound = rho / np.maximum(room, TINY) + np.arcsin(np.clip(move / np.maximum(dist, TINY), 0, 1))
     keep = (room <= rho) | (angle - gamma < bound) | (gamma >= np.pi / 2)
     return np.argwhere(keep.any(axis=1)).astype(np.int32)
 
@@ -312,19 +313,19 @@ def padded_points(chosen: list[np.ndarray], size: int | None = None) -> np.ndarr
 # --------------------------------------------------------------------------------------------
 def _entry(constraint: str, value: float, limit, unit: str, kind: str, **about) -> dict:
     """A check entry. kind 'min' (value >= limit), 'max' (value <= limit), 'zero' (|value| <= limit
-    within 1e-9) or 'range' (limit = [low, high]). `excess` is by how much the value is beyond
+    within LIMIT_SLACK) or 'range' (limit = [low, high]). `excess` is by how much the value is beyond
     its limit, relative to the limit's scale (max(|limit|, 1) for 'zero', max(high - low, 1) for
-    'range', else max(|limit|, 1e-3), where the limit is met within 1e-6 of the scale), 0 when
+    'range', else max(|limit|, 1e-3), where the limit is met within CHECK_MET_REL of the scale), 0 when
     met: a common measure of how far a layout is from feasible."""
     if kind == "range":
         low, high = limit
         gap = max(low - value, value - high, 0.0) / max(high - low, 1.0)
     elif kind == "zero":
-        gap = max(abs(value) - limit - 1e-9, 0.0) / max(abs(limit), 1.0)
+        gap = max(abs(value) - limit - LIMIT_SLACK, 0.0) / max(abs(limit), 1.0)
     else:
         scale = max(abs(limit), 1e-3)
         beyond = (limit - value) if kind == "min" else (value - limit)
-        gap = max(beyond - 1e-6 * scale, 0.0) / scale   # met within 1e-6 of the scale
+        gap = max(beyond - CHECK_MET_REL * scale, 0.0) / scale   # met within CHECK_MET_REL of the scale
     return dict(constraint=constraint, **about, value=value, limit=limit, unit=unit,
                 met=bool(gap == 0.0), excess=float(gap))
 
@@ -358,11 +359,11 @@ def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarra
             area = samples.area[mask]
             about = dict(cameras=[cam.name], region=samples.region_names[r])
             in_view = geometric[c, mask]
-            blocked = float((area * (in_view & ~vis.unoccluded[c, mask])).sum() / max((area * in_view).sum(), 1e-30))
+            blocked = float((area * (in_view & ~vis.unoccluded[c, mask])).sum() / max((area * in_view).sum(), TINY))
             out.append(_entry("obscuration", blocked, max_obscuration, "fraction of the region's image",
                               "max", **about))
             faces = facing[c, mask]
-            inside = float((area * (faces & vis.in_image[c, mask])).sum() / max((area * faces).sum(), 1e-30))
+            inside = float((area * (faces & vis.in_image[c, mask])).sum() / max((area * faces).sum(), TINY))
             limit = 1 - max_obscuration if fov_limits is None else float(fov_limits[c, r])
             out.append(_entry("field_of_view", inside, limit, "fraction of the region in the image",
                               "min", **about))

@@ -159,6 +159,7 @@ import numpy as np
 from vdo.model.camera import distort, distortion_curvature, distortion_jacobian, image_point, rotation
 from vdo.core.configure import require_x64
 from vdo.model.speckle import GradientEnergyTable, g_aniso_lookup
+from vdo.core.tolerances import IN_FRONT_M
 
 __all__ = [
     "CameraParams",
@@ -370,7 +371,7 @@ class Settings(eqx.Module):
     incidence_limit: float = eqx.field(static=True, default=math.radians(70.0))
     incidence_ramp: float = eqx.field(static=True, default=math.radians(10.0))
     image_margin_px: float = eqx.field(static=True, default=10.0)
-    near: float = eqx.field(static=True, default=1e-3)
+    near: float = eqx.field(static=True, default=IN_FRONT_M)
     prior_sigma: float = eqx.field(static=True, default=1e-3)
     sigma_unit: float = eqx.field(static=True, default=1e-6)
     score_power: float = eqx.field(static=True, default=8.0)

@@ -51,6 +51,7 @@ import numpy as np
 from vdo.config.experiment import Table, parse, read_toml
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar as progress_bar
+from vdo.core.tolerances import LIMIT_SLACK
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ def _axis(t: Table, samples: int | None) -> Axis:
         start, stop, step = t.vector("range", 3)
         if step == 0 or (stop - start) / step < 0:
             raise t.error("range", "[start, stop, step] needs a step that leads from start to stop")
-        count = math.floor((stop - start) / step + 1e-9) + 1
+        count = math.floor((stop - start) / step + LIMIT_SLACK) + 1
         if count > 100_000:
             raise t.error("range", f"gives {count} values; use a coarser step")
         whole = all(isinstance(v, int) for v in t.raw("range"))

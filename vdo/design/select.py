@@ -105,6 +105,7 @@ from vdo.core.runfolder import run_folder
 from vdo.scene import build_scene, camera_body_points
 from vdo.state import Geometry, layout_state, prepare
 from vdo.physics.visibility import compute_visibility
+from vdo.core.tolerances import LIMIT_SLACK, TINY
 
 log = logging.getLogger(__name__)
 
@@ -329,7 +330,7 @@ def judge(exp: Experiment, geometry: Geometry) -> Candidates:
         m = samples.region == r
         a = samples.area[m]
         assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
-        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), 1e-30)
+        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), TINY)
     log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(steps), steps)
     return Candidates(tuple(cams), mount, kind, u, heads, body, tg, aims, info, weight, assigned,
                       masked, lost)
@@ -400,13 +401,13 @@ class Feasibility:
         self.exclusive = np.linalg.norm(p[:, None] - p[None], axis=-1) < SPOT_M
         share = (cand.assigned.astype(int) @ cand.assigned.T.astype(int)) > 0
         angle = np.arccos(np.clip(a @ a.T, -1, 1))
-        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - 1e-9))
+        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - LIMIT_SLACK))
         if exp.optimize.max_axis_angle is not None:
-            conflict |= share & (angle > exp.optimize.max_axis_angle + 1e-9)
+            conflict |= share & (angle > exp.optimize.max_axis_angle + LIMIT_SLACK)
         for r, spec in enumerate(exp.regions):
             if spec.max_axis_angle is not None:
                 on = cand.assigned[:, r]
-                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + 1e-9)
+                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + LIMIT_SLACK)
         self.conflict = conflict
         self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
         self.body = cand.body

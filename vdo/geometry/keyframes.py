@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.core.errors import ConfigError
+from vdo.core.tolerances import BARYCENTRIC_SLACK
 
 logger = logging.getLogger(__name__)
 
@@ -435,7 +436,7 @@ def _barycentric_displacement(points, triangles, displaced, candidates: int = 16
         r1, r2 = (rel * e1[tri]).sum(-1), (rel * e2[tri]).sum(-1)
         d = np.where(usable[tri], det[tri], 1.0)
         lam = np.stack([(g22[tri] * r1 - g12[tri] * r2) / d, (g11[tri] * r2 - g12[tri] * r1) / d], -1)
-        inside = usable[tri] & (lam >= -1e-6).all(-1) & (lam.sum(-1) <= 1 + 1e-6)
+        inside = usable[tri] & (lam >= -BARYCENTRIC_SLACK).all(-1) & (lam.sum(-1) <= 1 + BARYCENTRIC_SLACK)
         return lam, inside
 
     def assign(idx, tri, lam, inside):

@@ -50,8 +50,9 @@ from vdo.core.backend import mitsuba
 from vdo.config.experiment import LightSpec, SpeckleSpec
 from vdo.scene import SurfaceSamples
 from vdo.model.sensor import SensorModel
+from vdo.core.tolerances import RAY_OFFSET_M
 
-EPSILON = 1e-4   # m: shadow rays start this far off the surface and stop this short of the panel
+EPSILON = RAY_OFFSET_M   # m: shadow rays start this far off the surface and stop this short of the panel
 GRID = 8         # panel points per side for the irradiance integral
 
 

@@ -25,8 +25,9 @@ from tqdm import tqdm
 from vdo.core.backend import mitsuba
 from vdo.model.camera import Camera, image_point
 from vdo.scene import SurfaceSamples
+from vdo.core.tolerances import IN_FRONT_M, RAY_OFFSET_M
 
-EPSILON = 1e-4   # m: ray origins are lifted off the surface by this, and stop this short of C
+EPSILON = RAY_OFFSET_M   # m: ray origins are lifted off the surface by this, and stop this short of C
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +94,7 @@ def compute_visibility(scene, cameras: list[Camera], samples: SurfaceSamples,
                           for r in range(3)))
         f, cx, cy, width, height = col[12:17]
         centre = mi.Point3f(*col[17:20])
-        in_front = p.z > 1e-6
+        in_front = p.z > IN_FRONT_M
         z = dr.select(in_front, p.z, 1.0)
         u, v = image_point((f, None, cx, f, cy), p.x / z, p.y / z, tuple(col[20:25]))
         in_image = in_front & (u >= -0.5) & (u <= width - 0.5) & (v >= -0.5) & (v <= height - 0.5)

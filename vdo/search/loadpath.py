@@ -31,6 +31,7 @@ from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
 from vdo.scene import build_scene
 from vdo.state import Geometry, LayoutState, bodies, layout_state
 from vdo.physics.visibility import compute_visibility
+from vdo.core.tolerances import LIMIT_SLACK
 
 logger = logging.getLogger(__name__)
 
@@ -195,7 +196,7 @@ def path_occlusion(geometry: Geometry, load_path: LoadPath, cameras, steps=None,
         scene = build_scene(list(moved.meshes) + bodies(exp, cameras))
         seen += compute_visibility(scene, cameras, moved.samples, exp.evaluation.incidence_limit,
                                    progress=False).visible
-    need = math.ceil(fraction * len(steps) - 1e-9)
+    need = math.ceil(fraction * len(steps) - LIMIT_SLACK)
     return (seen >= need).astype(float)
 
 
