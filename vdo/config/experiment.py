@@ -1220,9 +1220,15 @@ class Experiment:
             "max_cameras.")
 
     def __post_init__(self):
-        if self.analysis.element is None:      # a Q4 element defaults to the DIC patch
+        """The defaults that depend on another table, resolved once here: a Q4 element defaults
+        to the DIC patch, a region's min_cameras to [evaluation] min_cameras."""
+        if self.analysis.element is None:
             object.__setattr__(self, "analysis", replace(self.analysis,
                                                          element=self.evaluation.patch_size))
+        if any(r.min_cameras is None for r in self.regions):
+            object.__setattr__(self, "regions", tuple(
+                r if r.min_cameras is not None else replace(r, min_cameras=self.evaluation.min_cameras)
+                for r in self.regions))
 
     def mount(self, name: str) -> MountSpec:
         """The zone or fixed [[mount]] called `name`."""

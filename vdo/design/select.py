@@ -345,7 +345,7 @@ class Scorer:
             np.isin(samples.region_names, exp.optimize.regions)
         omega = samples.area * samples.region_importance[samples.region] * scored[samples.region]
         area = samples.area / samples.area.sum()
-        minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
+        minimum = np.array([r.min_cameras for r in exp.regions])
         self.settings = st
         self.omega = jnp.asarray(omega / omega.sum())
         self.area = jnp.asarray(area)
@@ -501,7 +501,7 @@ def measures(state, exp: Experiment) -> dict:
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     p95 = [summary["regions"][r]["sigma_max_um"]["p95"] for r in scored]
     smp = state.samples
-    need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[smp.region]
+    need = np.array([r.min_cameras for r in exp.regions])[smp.region]
     seen = smp.area[state.prediction.coverage >= need].sum() / smp.area.sum()
     return {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
             "coverage": float(seen)}
@@ -517,7 +517,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     where = "[design] max_cameras" if exp.design.max_cameras else \
         ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
     for r, spec in enumerate(exp.regions):
-        need = spec.min_cameras or exp.evaluation.min_cameras
+        need = spec.min_cameras
         if need > n:
             out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
                        f"has {n} ({where}): add {need - n} camera bod{'y' if need - n == 1 else 'ies'}")
@@ -550,7 +550,7 @@ def shortfalls(state, exp: Experiment) -> list[str]:
     fraction seen by that many usable views."""
     out, smp = [], state.samples
     for r, spec in enumerate(exp.regions):
-        need = spec.min_cameras or exp.evaluation.min_cameras
+        need = spec.min_cameras
         m = smp.region == r
         seen = smp.area[m & (state.prediction.coverage >= need)].sum() / smp.area[m].sum()
         if seen < 1 - 1e-9:

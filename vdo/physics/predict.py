@@ -51,7 +51,7 @@ def settings(exp: Experiment) -> objective.Settings:
 
 
 def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective.Samples:
-    minimum = [r.min_cameras or exp.evaluation.min_cameras for r in exp.regions]
+    minimum = [r.min_cameras for r in exp.regions]
     return objective.Samples(*(jnp.asarray(a) for a in (
         samples.points, samples.normals, samples.tangent_u, samples.tangent_v, samples.area,
         samples.region)), jnp.asarray(samples.region_importance, dtype=float),

@@ -94,7 +94,7 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
     reuses its judgement). `rest`: the state at rest when already computed
     (`layout_state(geometry, cameras)`)."""
     exp = geometry.experiment
-    minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
+    minimum = np.array([r.min_cameras for r in exp.regions])
     steps = ("rest",) + tuple(load_path.steps)
     judged = {}   # step key -> (coverage, seen, covered, p95, sigma)
     coverage, sigma, seen, covered, p95 = [], [], [], [], []

@@ -79,7 +79,7 @@ def check(exp: Experiment, meshes, samples: SurfaceSamples, positions: int = 9) 
         vis = compute_visibility(scene, poses, sub, exp.evaluation.incidence_limit, progress=False)
         seen = np.zeros((len(cameras), len(sub)), dtype=bool)
         np.logical_or.at(seen, np.array(owner), np.asarray(vis.visible, dtype=bool))
-        need = spec.min_cameras or exp.evaluation.min_cameras
+        need = spec.min_cameras
         count = seen.sum(axis=0)
         best = float((sub.area * (count >= need)).sum() / sub.area.sum())
         seers = [c for c in range(len(cameras)) if seen[c].any()]
