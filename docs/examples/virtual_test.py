@@ -16,7 +16,7 @@ rotation of 3 delta / (2 L) about x:
 
 The specimen mesh is refined to edges of at most `EDGE_MM` (so that the rendered surface follows
 the cubic bending; vdo moves the mesh's vertices) and the field is written at its vertices as a
-VTK file (`[load_path] displacements`, `vdo.keyframes`). Points: samples of every stereo pair's
+VTK file (`[load_path] displacements`, `vdo.geometry.keyframes`). Points: samples of every stereo pair's
 regions that both cameras use with their whole patch; predicted sigma from the layout state of
 the pair alone at the rendered scale, times sqrt(2) (reference and deformed images are both
 noisy); only points whose patch corners, at rest and moved, lie inside both (cropped) images.
@@ -30,7 +30,7 @@ at the built-in's [render] scale 0.25 (0.47 mm/px on the joint) the 2 mm dots ar
 edges a quarter of a pixel wide, their content above the pixel's Nyquist frequency aliases, the
 interpolation error is ~9x the sensor noise and the bias (0.008-0.02 px) is several sqrt(2) sigma
 (measured change by change in docs/exports.md: not the renderer, the solver or the spline
-order). The run prints `vdo.checks`' interpolation floor of its cameras at the rendered scale;
+order). The run prints `vdo.physics.checks`' interpolation floor of its cameras at the rendered scale;
 at scale 1 (0.116 mm/px) it is ~1x the noise and the bias 0.0006-0.002 px. Needs opencv-python
 (the test extra) for the calibration check.
 """
@@ -78,7 +78,8 @@ def inputs(folder: Path, exp):
     experiment using them (its [load_path] only these displacements, step 1)."""
     import trimesh
 
-    from vdo import config, vtp
+    from vdo.config import experiment as config
+    from vdo.core import vtp
 
     folder.mkdir(parents=True, exist_ok=True)
     spec = next(m for m in exp.meshes if m.name == "specimen")
@@ -182,10 +183,10 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     √2 sigma predicts; and the mean noise part over `realisations` sensor-noise draws on the
     same radiance (the TIFF's and realisations - 1 more, `SensorModel.expose`). Returns
     {"rows": [...], "calibration_px": float, "series": series.json}."""
-    from vdo import config
-    from vdo.keyframes import at_step, load_path_of
+    from vdo.config import experiment as config
+    from vdo.geometry.keyframes import at_step, load_path_of
     from vdo.render import noise_free_dn, scaled_camera
-    from vdo.series import (correlate_points, correlate_series, render_series, series_cameras,
+    from vdo.dic.series import (correlate_points, correlate_series, render_series, series_cameras,
                             series_image)
     from vdo.state import layout_state, prepare
 
@@ -250,7 +251,7 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
 
 
 def print_table(result: dict) -> None:
-    from vdo import checks
+    from vdo.physics import checks
 
     print(f"{'pair':<12}{'region':<16}{'axis':>5}{'closed form':>12}{'rendered':>10}{'measured':>10}"
           f"{'error':>8}{'bias':>8}{'noise':>8}{'mean noise':>11}{'sqrt2 sig':>10}{'noise/sig':>10}")
