@@ -84,6 +84,7 @@ from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import panel_frame
 from vdo.search.obscuration import ObscurationRenderer
+from vdo.search.status import Status
 from vdo.objective import bucket
 from vdo.physics.predict import predict, samples_for_objective, settings, view_data
 from vdo.core.progress import bar
@@ -1080,7 +1081,7 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
         best = result = judge(problem, theta, state, start)
         masked = frozenset()   # the (camera, region) pairs whose obscuration this start tracks
         label = 0
-        end = "converged"
+        end = Status.CONVERGED
         curvature = None   # (weights, `RoundOutcome.curvature`) of the last round
 
         def one_round(w_score, mu, name):
@@ -1139,7 +1140,7 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
                 mu *= 10.0
             if (k > 0 and previous.violations == 0 and result.violations == 0
                     and previous.score - result.score < ROUND_TOL * previous.score):
-                end = "converged"   # the penalty continuation has nothing left
+                end = Status.CONVERGED   # the penalty continuation has nothing left
                 break
         results.append(best)
         run.ends.append(end)
@@ -1219,7 +1220,7 @@ class RoundOutcome:
     variables at the round's end, (n, n), or None when the round accepted fewer than 2 steps."""
 
     theta: np.ndarray
-    status: str
+    status: Status
     reason: str
     solution: optx.Solution | None
     history: tuple[dict, ...]
@@ -1268,18 +1269,18 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
                             None, ())
     norm = float(np.max(np.abs(grad)))
     if norm == 0:
-        return RoundOutcome(np.asarray(theta), "converged", "zero gradient at the round's start", None, ())
+        return RoundOutcome(np.asarray(theta), Status.CONVERGED, "zero gradient at the round's start", None, ())
     solver_args = args(norm)
     state = init(y, solver_args)
     if curvature is not None:
         state = with_inverse_hessian(state, norm * curvature)
-    status, reason = "max_steps", f"{max_steps} steps"
+    status, reason = Status.MAX_STEPS, f"{max_steps} steps"
     history = []
     judged = np.zeros_like(np.asarray(y))   # the last iterate passed to `checkpoint`
     k = 0
     for k in range(1, max_steps + 1):
         if run.stop():
-            status, reason = run.stop.reason, f"stop request after {k - 1} steps"
+            status, reason = Status(run.stop.reason), f"stop request after {k - 1} steps"
             k -= 1
             break
         accepted = int(state.num_accepted_steps)
@@ -1298,21 +1299,21 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
                   "next trial point": state.y_eval}
         bad = [name for name, v in finite.items() if not np.all(np.isfinite(np.asarray(v)))]
         if bad:
-            status, reason = "failed", f"non-finite {', '.join(bad)} at step {k}"
+            status, reason = Status.FAILED, f"non-finite {', '.join(bad)} at step {k}"
             log.warning("%s: %s; the round ends at its last finite step", where, reason)
             break
         y = y_new
         if bool(state.terminate):
-            status, reason = "converged", f"solver tolerance met at step {k}"
+            status, reason = Status.CONVERGED, f"solver tolerance met at step {k}"
             break
         if checkpoint is not None and k % CHECKPOINT_STEPS == 0 and k < max_steps \
                 and not np.array_equal(np.asarray(y), judged):
             judged = np.asarray(y)
             if checkpoint(np.asarray(origin + scale * y)):
-                status, reason = "feasible", f"every constraint met at step {k}"
+                status, reason = Status.FEASIBLE, f"every constraint met at step {k}"
                 break
         if not bool(state.result == optx.RESULTS.successful):
-            status, reason = "failed", optx.RESULTS[state.result]
+            status, reason = Status.FAILED, optx.RESULTS[state.result]
             break
     solution = optx.Solution(value=y, result=state.result, aux=state.aux, state=state,
                              stats=dict(num_steps=k, num_accepted_steps=int(state.num_accepted_steps),
