@@ -1,5 +1,5 @@
-"""The search's status enum: each name has a message, compares equal to its JSON value, and
-the optimizer's round outcomes carry it (a zero-gradient round, a solved quadratic)."""
+"""The search's status enum: each name has a message and compares equal to its JSON value, so
+optimizer.json files written before the enum read the same."""
 import json
 
 from vdo.search.status import Status
