@@ -41,7 +41,7 @@ def read_vtp(path):
 def test_run_folder_contents(run):
     _, out = run
     names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
-    assert names == ["config.toml", "layout.json", "maps/coverage.png", "maps/sensitivity_x.png",
+    assert names == ["config.toml", "constraints.json", "layout.json", "maps/coverage.png", "maps/sensitivity_x.png",
                      "maps/sensitivity_y.png", "maps/sensitivity_z.png", "maps/view3d_coverage.png",
                      "report.html", "samples.vtp", "summary.json"]
 
