@@ -48,12 +48,23 @@ def _print_summary(summary: dict) -> None:
 
 
 def _load(args):
-    """The command's validated input (config or validation spec), before any heavy import."""
+    """The command's validated input (config or validation spec), before any heavy import; for
+    an experiment, its load path's files too (every step: `vdo.geometry.keyframes.check_load_path`),
+    so that a bad row stops the command before any work."""
     if args.command == "validate":
         from vdo.dic.validate import load
-    else:
-        from vdo.config.experiment import load
-    return load(args.config)
+
+        return load(args.config)
+    from vdo.config.experiment import load
+    from vdo.geometry.keyframes import check_load_path
+
+    exp = load(args.config)
+    series = getattr(args, "series", None)
+    if series not in (None, "load_path") and not Path(series).is_file():
+        raise ConfigError(series, "--series", "no such file: give a CSV of poses per step and "
+                                              "group (see vdo.geometry.keyframes)")
+    check_load_path(exp, None if series in (None, "load_path") else Path(series))
+    return exp
 
 
 def _evaluate(exp, args):
