@@ -306,3 +306,17 @@ def test_a_dead_worker_is_replaced(plate_sweep):
     for point, record in results:
         assert record["pid"] != killed[0]
         assert f"patch_mm: must be positive (got {point.axes['evaluation.patch_mm']})" in record["error"]
+
+
+def test_vdo_set_is_part_of_each_point(plate_sweep, monkeypatch):
+    """A coarse run (VDO_SET) is other points than the full run: its values are in each point's
+    config and key, over the axis values, so a store never mixes them."""
+    spec = load_sweep(plate_sweep())
+    full = expand(spec)
+    monkeypatch.setenv("VDO_SET", "evaluation.sample_spacing_mm = 80; camera.*.focal_mm = 35")
+    coarse = expand(spec)
+    assert len(coarse) == len(full) == 4
+    assert not {p.key for p in coarse} & {p.key for p in full}
+    for p in coarse:
+        assert p.config["evaluation"]["sample_spacing_mm"] == 80
+        assert [c["focal_mm"] for c in p.config["camera"]] == [35, 35]

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import Table, parse, read_toml
+from vdo.config.experiment import Table, parse, read_toml, sections, with_overrides
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar as progress_bar
 
@@ -62,6 +62,7 @@ MARKER = "sweep.json"                                       # marks a folder as 
 METRICS = (("sigma_p50_um", "σ_max p50 (µm)"), ("sigma_p95_um", "σ_max p95 (µm)"),
            ("sigma_max_um", "σ_max max (µm)"), ("seen_1", "area seen by ≥ 1 camera"),
            ("seen_2", "area seen by ≥ 2 cameras"), ("seen_3", "area seen by ≥ 3 cameras"))
+EXPERIMENT_TABLES = ("experiment",) + tuple(s.key for s in sections())
 MAX_ATTEMPTS = 3           # a point whose worker process dies is tried this many times
 
 
@@ -379,6 +380,7 @@ def expand(spec: SweepSpec, out: Path | None = None) -> list[Point]:
             config = copy.deepcopy(raw)
             for axis in spec.axes:
                 _assign(config, axis.tokens, combo[axis.path], spec.path, axis.path)
+            config = with_overrides(config, EXPERIMENT_TABLES)  # in the key: a coarse run is another point
             _absolute_files(config, base)
             key = point_key(config, spec.action)
             writes = spec.action == "optimize" or spec.run_folders

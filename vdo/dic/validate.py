@@ -49,7 +49,7 @@ from vdo.physics import strain
 from vdo.physics.strain import SIZE_TOLERANCE, fits
 from vdo.model.camera import Camera, look_at_angles
 from vdo.config.experiment import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
-                     SpeckleSpec, Table, as_numbers, read_toml)
+                     SpeckleSpec, Table, as_numbers, read_toml, with_overrides)
 from vdo.dic.correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
@@ -132,8 +132,11 @@ def parse(data: dict, path) -> ValidationSpec:
     """Validate an already-parsed validation document that came from `path`.
 
     `[defaults]` holds any case field (but name); each `[[case]]` inherits it and overrides it
-    (a case's `sensor` table is merged key by key over the defaults' one)."""
+    (a case's `sensor` table is merged key by key over the defaults' one). The environment's
+    VDO_SET items for `validation` and `defaults` are written in first
+    (`vdo.config.experiment.with_overrides`)."""
     path = Path(path).resolve()
+    data = with_overrides(data, ("validation", "defaults"))
     top = Table(data, "", path, ("validation", "defaults", "case"))
     head = Table(top.raw("validation", {}), "validation", path, ("name", "seeds"))
     name = head.string("name", "vdo validation")
