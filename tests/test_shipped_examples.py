@@ -5,7 +5,8 @@ up) passes its up-front checks, and each command that applies to it runs on it, 
 * the environment variable VDO_SET (`vdo.config.experiment.with_overrides`) coarsens every file
   the same way, from the file's own values: the sample spacings (`[evaluation]`, `[design]`)
   `SPACING_FACTOR` times the file's, one optimizer start, round and `OPTIMIZE_STEPS` steps, the
-  design search's candidates thinned (`DESIGN`), validation renders at `VALIDATION_SPP` spp;
+  design search's candidates thinned (`DESIGN`) and its curve ended at one camera more than the
+  file's `min_cameras`, validation renders at `VALIDATION_SPP` spp;
 * flags that the commands already have: `--seeds 2` (validate), `--scale 0.05 --spp 1` (render),
   `--time-limit 1` (optimize), `--workers 1` (sweep), a fresh `--out` in the test's folder.
 
@@ -148,6 +149,8 @@ def reduced(path: str) -> str:
     spacing = min(e.evaluation.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
     design = min(e.design.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
     settings.append(f"evaluation.sample_spacing_mm = {spacing:g}; design.sample_spacing_mm = {design:g}")
+    if all("design" in read_toml(e.path) for e in experiments):
+        settings.append(f"design.max_cameras = {max(e.design.min_cameras for e in experiments) + 1}")
     return "; ".join(settings)
 
 
