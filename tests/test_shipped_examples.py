@@ -72,27 +72,30 @@ def applicable(path: str) -> list[list[str]]:
 
 def doc_commands() -> list[tuple[str, list[str]]]:
     """(where, argv) of every `vdo ...` (or `python -m vdo ...`) line in a fenced code block of
-    README.md and docs/*.md: '$ ' prompts, '# ' comments and [optional] parts dropped, '\\'
-    continuations joined."""
+    README.md and docs/*.md: '$ ' prompts, '# ' comments, [optional] parts and leading
+    environment assignments (the test sets VDO_SET itself) dropped, '\\' continuations joined."""
+    command = re.compile(r'(\w+=("[^"]*"|\S*)\s+)*(python3? -m )?vdo\s')
     found = []
     for doc in DOCS:
         inside, lines = False, doc.read_text().splitlines()
         k = 0
         while k < len(lines):
-            line = lines[k]
+            line, number = lines[k], k + 1
+            k += 1
             if line.lstrip().startswith("```"):
                 inside = not inside
-            elif inside:
-                number = k + 1
-                while line.rstrip().endswith("\\") and k + 1 < len(lines):
-                    k += 1
-                    line = line.rstrip()[:-1] + " " + lines[k].strip()
-                text = re.sub(r"\s#.*$", "", line.strip().removeprefix("$ "))
-                text = re.sub(r"\[[^\]]*\]", "", text)
-                text = re.sub(r"^python3? -m vdo ", "vdo ", text)
-                if text.startswith("vdo "):
-                    found.append((f"{doc.relative_to(ROOT)}:{number}", shlex.split(text)[1:]))
-            k += 1
+                continue
+            while inside and line.rstrip().endswith("\\") and k < len(lines):
+                line = line.rstrip()[:-1] + " " + lines[k].strip()
+                k += 1
+            text = re.sub(r"\[[^\]]*\]", "", re.sub(r"\s#.*$", "", line.strip().removeprefix("$ ")))
+            if not inside or not command.match(text):
+                continue
+            words = shlex.split(text)
+            while re.fullmatch(r"\w+=.*", words[0]):
+                words = words[1:]
+            words = words[3:] if words[0].startswith("python") else words[1:]
+            found.append((f"{doc.relative_to(ROOT)}:{number}", words))
     return found
 
 
