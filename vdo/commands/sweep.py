@@ -391,9 +391,9 @@ def expand(spec: SweepSpec, out: Path | None = None) -> list[Point]:
 
 
 def check_points(spec: SweepSpec, points: list[Point]) -> None:
-    """Every point checked before any work: its experiment parsed (`vdo.config.experiment.parse`) and its load
-    path's files read whole (`vdo.geometry.keyframes.check_load_path`, once per distinct
-    `[load_path]`, `[[group]]` and `[[mesh]]` tables). The first point that fails is a
+    """Every point checked before any work: its experiment parsed (`vdo.config.experiment.parse`)
+    and its load path's files read whole (`vdo.geometry.keyframes.check_load_path`, once per
+    distinct `[load_path]`, `[[group]]` and `[[mesh]]` tables). The first point that fails is a
     ConfigError naming the sweep file, the point (its index and axis values) and the
     experiment's file and field."""
     from vdo.geometry.keyframes import check_load_path
