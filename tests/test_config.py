@@ -95,3 +95,33 @@ def test_defaults_and_units_are_resolved(plate_experiment):
     cam = exp.cameras()[0]
     assert cam.pixel_size == pytest.approx(22.2e-3 / 600)
     assert cam.position.tolist() == pytest.approx([0.0, 0.0, 1.5])
+
+
+def test_vdo_set_writes_fields_over_the_file(plate_experiment, monkeypatch):
+    """VDO_SET gives the experiment that the file edited by hand gives: a table's field, a field
+    of every [[camera]], a table the file lacks; items for a validation file's tables are left
+    alone; a malformed item is one line naming VDO_SET."""
+    from test_sweep import CAMERAS
+
+    path = plate_experiment(spacing=25, cameras=CAMERAS)
+    text = path.read_text()
+    assert "sample_spacing_mm = 25" in text and text.count("focal_mm = 24") == 2
+    edited = path.with_name("edited.toml")
+    edited.write_text(text.replace("sample_spacing_mm = 25", "sample_spacing_mm = 60")
+                      .replace("focal_mm = 24", "focal_mm = 35") + "\n[optimize]\nstarts = 1\n")
+    by_hand = config.load(edited)
+    monkeypatch.setenv("VDO_SET", "evaluation.sample_spacing_mm = 60; camera.*.focal_mm = 35;"
+                                  " optimize.starts = 1; defaults.spp = 4; validation.seeds = 2")
+    overridden = config.load(path)
+    assert overridden.evaluation == by_hand.evaluation and overridden.optimize == by_hand.optimize
+    assert [c.focal_length for c in overridden.camera_specs] == [0.035, 0.035] == [
+        c.focal_length for c in by_hand.camera_specs]
+    monkeypatch.setenv("VDO_SET", "evaluation.sample_spacing_mm = -1")
+    with pytest.raises(ConfigError, match=r"evaluation.sample_spacing_mm: must be positive"):
+        config.load(path)
+    for bad in ("evaluation.sample_spacing_mm", "evaluation = 3", "camera.cam1.focal_mm = 35",
+                "evaluation.sample_spacing_mm = [1,"):
+        monkeypatch.setenv("VDO_SET", bad)
+        with pytest.raises(ConfigError) as err:
+            config.load(path)
+        assert str(err.value).startswith(f"VDO_SET: {bad}: write TABLE.FIELD = VALUE")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import math
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -222,3 +223,53 @@ def test_subset_case_errors_name_the_field(tmp_path):
     with pytest.raises(ConfigError) as info:
         V.load(path)
     assert info.value.field == 'case "stereo".strain_window'
+
+
+SHIPPED = Path(__file__).resolve().parent.parent / "experiments" / "validation.toml"
+
+
+@pytest.fixture(scope="module")
+def subset_setup():
+    spec = V.load(SHIPPED)
+    case = next(c for c in spec.cases if c.subsets is not None)
+    return V.build_setup(case, spec.path)
+
+
+def test_sizes_equal_to_the_patch_up_to_rounding_fit(subset_setup):
+    """The shipped subset case's patch (6 mm) measured back from its samples is 6 mm up to float
+    rounding (the samples' extent plus one sample's side, closed form: the patch side); an
+    element of exactly the patch side fits, one larger by 10x the named tolerance is refused, and
+    the message states the tolerance."""
+    from vdo.config.experiment import Analysis
+    from vdo.physics import strain
+
+    samples = V._samples(subset_setup, 5)
+    side = min(subset_setup.case.patch)
+    density = np.ones(len(samples))
+    strain.check_regions(Analysis(element=side), samples, density, SHIPPED)
+    with pytest.raises(ConfigError) as err:
+        strain.check_regions(Analysis(element=side * (1 + 10 * strain.SIZE_TOLERANCE)), samples,
+                             density, SHIPPED)
+    assert err.value.field == "analysis.element_mm"
+    assert f"relative tolerance {strain.SIZE_TOLERANCE:g}" in str(err.value)
+
+
+def test_shipped_subset_case_is_predicted_as_subset_dic(subset_setup):
+    """The shipped subset case (the one `vdo validate` stopped at): its experiment's analysis is
+    its own subset DIC, and its strain prediction is the virtual strain gauge's closed form,
+    sqrt(F / S_u) per component, with F = vdo.physics.strain.vsg_factor and S_u the patch's
+    displacement information per area (computed here from the same prediction)."""
+    from vdo.physics import strain
+
+    case = subset_setup.case
+    analysis = subset_setup.experiment.analysis
+    assert (analysis.method, analysis.subset, analysis.step, analysis.strain_window) == (
+        "subset", *case.subsets)
+    sigma = V.predict_strain_sigma(subset_setup)
+    pred = V._prediction(subset_setup, subset_setup.cameras, V.speckle_model_of(subset_setup), 5)
+    area = case.patch[0] * case.patch[1]
+    sigma_u = area * np.linalg.inv(pred.information.mean(axis=0))
+    F = strain.vsg_factor(*case.subsets)
+    t_u, t_v = subset_setup.patch.t_u, subset_setup.patch.t_v
+    uu, vv = F * t_u @ sigma_u @ t_u, F * t_v @ sigma_u @ t_v
+    assert sigma == pytest.approx(np.sqrt([uu, vv, (uu + vv) / 4]), rel=1e-9)

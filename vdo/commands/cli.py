@@ -48,14 +48,15 @@ def _print_summary(summary: dict) -> None:
 
 
 def _load(args):
-    """The command's validated input (config or validation spec), before any heavy import."""
+    """The command's validated input (config or validation spec), before any heavy import; for
+    an experiment, its load path's files too (every step: `vdo.geometry.keyframes.check_load_path`),
+    so that a bad row stops the command before any work."""
     if args.command == "validate":
         from vdo.dic.validate import load
-    else:
-        from vdo.config.experiment import load
-    loaded = load(args.config)
+        return load(args.config)
+    exp = _experiment(args.config, getattr(args, "series", None))
     if getattr(args, "cameras", None) is not None:
-        names = [c.name for c in loaded.camera_specs]
+        names = [c.name for c in exp.camera_specs]
         unknown = [n for n in args.cameras if n not in names]
         if unknown or not args.cameras:
             what = f"no camera is named {unknown[0]!r}" if unknown else "names no camera"
@@ -64,7 +65,21 @@ def _load(args):
         if args.series is not None:
             raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
                                                         "renders every camera (drop one of them)")
-    return loaded
+    return exp
+
+
+def _experiment(path, series=None):
+    """The experiment of `path`, read and checked whole: its tables, meshes and load-path files
+    (every step, `vdo.geometry.keyframes.check_load_path`), and a --series POSES.csv."""
+    from vdo.config.experiment import load
+    from vdo.geometry.keyframes import check_load_path
+
+    exp = load(path)
+    if series not in (None, "load_path") and not Path(series).is_file():
+        raise ConfigError(series, "--series", "no such file: give a CSV of poses per step and "
+                                              "group (see vdo.geometry.keyframes)")
+    check_load_path(exp, None if series in (None, "load_path") else Path(series))
+    return exp
 
 
 def kind_of(path) -> str:
@@ -94,8 +109,7 @@ def check(paths) -> int:
             points = expand(load_sweep(path))
             print(f"ok: {path}: sweep file, {len(points)} points")
         else:
-            from vdo.config.experiment import load
-            exp = load(path)
+            exp = _experiment(path)
             print(f"ok: {path}: experiment {exp.name!r}, {len(exp.camera_specs)} cameras, "
                   f"{len(exp.regions)} regions, {len(exp.meshes)} meshes")
     return 0

@@ -7,7 +7,8 @@ it on every camera), ``region.joint_top.importance``. Values come as a list, a r
 or (with ``samples = N``) random draws from a seeded generator. Axes vary as a grid (product, in
 file order, first axis slowest); axes with the same ``zip`` name vary together. Each point is the
 base file's TOML with the axis values written in, checked by `vdo.config.experiment.parse` like any
-experiment: a value that fails its field's check fails that point, with the check's message.
+experiment (and its load path's files read whole), every point before any work: a value that fails
+its field's check stops the sweep in one line naming the point and the field (`check_points`).
 
 The output folder is a resumable store, not an all-or-nothing run folder: ``points/KEY.json``
 holds each point's result under KEY = SHA-256 of the canonical JSON of (the point's TOML with
@@ -48,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import Table, parse, read_toml
+from vdo.config.experiment import Table, parse, read_toml, sections, with_overrides
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar as progress_bar
 from vdo.core.tolerances import LIMIT_SLACK
@@ -62,6 +63,7 @@ MARKER = "sweep.json"                                       # marks a folder as 
 METRICS = (("sigma_p50_um", "σ_max p50 (µm)"), ("sigma_p95_um", "σ_max p95 (µm)"),
            ("sigma_max_um", "σ_max max (µm)"), ("seen_1", "area seen by ≥ 1 camera"),
            ("seen_2", "area seen by ≥ 2 cameras"), ("seen_3", "area seen by ≥ 3 cameras"))
+EXPERIMENT_TABLES = ("experiment",) + tuple(s.key for s in sections())
 MAX_ATTEMPTS = 3           # a point whose worker process dies is tried this many times
 
 
@@ -379,6 +381,7 @@ def expand(spec: SweepSpec, out: Path | None = None) -> list[Point]:
             config = copy.deepcopy(raw)
             for axis in spec.axes:
                 _assign(config, axis.tokens, combo[axis.path], spec.path, axis.path)
+            config = with_overrides(config, EXPERIMENT_TABLES)  # in the key: a coarse run is another point
             _absolute_files(config, base)
             key = point_key(config, spec.action)
             writes = spec.action == "optimize" or spec.run_folders
@@ -388,13 +391,27 @@ def expand(spec: SweepSpec, out: Path | None = None) -> list[Point]:
     return points
 
 
-def check_point(point: Point) -> str | None:
-    """The ConfigError text of a point whose values fail their fields' checks, else None."""
-    try:
-        parse(point.config, Path(point.base))
-    except ConfigError as exc:
-        return str(exc)
-    return None
+def check_points(spec: SweepSpec, points: list[Point]) -> None:
+    """Every point checked before any work: its experiment parsed (`vdo.config.experiment.parse`)
+    and its load path's files read whole (`vdo.geometry.keyframes.check_load_path`, once per
+    distinct `[load_path]`, `[[group]]` and `[[mesh]]` tables). The first point that fails is a
+    ConfigError naming the sweep file, the point (its index and axis values) and the
+    experiment's file and field."""
+    from vdo.geometry.keyframes import check_load_path
+
+    read = set()
+    for point in points:
+        try:
+            exp = parse(point.config, Path(point.base))
+            tables = json.dumps([point.config.get(k) for k in ("load_path", "group", "mesh")],
+                                sort_keys=True, default=str)
+            if tables not in read:
+                check_load_path(exp)
+                read.add(tables)
+        except ConfigError as exc:
+            values = ", ".join(f"{k} = {v!r}" for k, v in point.axes.items())
+            raise ConfigError(spec.path, f"point {point.index} ({point.experiment}: {values})",
+                              str(exc)) from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -631,22 +648,17 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     the `vdo.commands.sweep` logger (`vdo.core.progress`)."""
     out = open_store(out)
     points = expand(spec, out)
-    invalid = {p.key: check_point(p) for p in points}
-    if all(invalid.values()):
-        first = next(iter(invalid.values()))
-        raise ConfigError(spec.path, "axis", f"every point fails its experiment's checks; "
-                                             f"the first: {first}")
+    check_points(spec, points)
     records = {p.key: load_record(out, p.key) for p in points}
     finished = {k for k, r in records.items() if r and r["status"] == "done"}
     todo = list({p.key: p for p in points if p.key not in finished}.values())
-    runnable = [p for p in todo if not invalid[p.key]]
-    workers = max(1, min(workers or cores(), len(runnable) or 1))
+    workers = max(1, min(workers or cores(), len(todo) or 1))
     threads = max(1, cores() // workers) if dask in (None, "local") else None
     several = len(spec.experiments) > 1
     log.info("%d points, %d stored, %d to run", len(points), len(finished), len(todo))
 
     client = cluster = None
-    if dask and dask != "local" and runnable:      # before writing anything
+    if dask and dask != "local" and todo:      # before writing anything
         client, cluster = connect_dask(dask, workers, connect_timeout, out)
     (out / "points").mkdir(parents=True, exist_ok=True)
     write_atomic(out / MARKER, json.dumps({"vdo_sweep": 1, "vdo": vdo_version(),
@@ -664,20 +676,17 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
         table()
 
     table()
-    for p in todo:
-        if invalid[p.key]:
-            store(p, _failure(invalid[p.key]))
-    failed = len(todo) - len(runnable)
-    bar = progress_bar(log, total=len(todo), initial=failed, unit="point", desc="sweep",
+    failed = 0
+    bar = progress_bar(log, total=len(todo), unit="point", desc="sweep",
                        disable=not todo, dynamic_ncols=True)
     bar.set_postfix(failed=failed)
     try:
-        if runnable and dask == "local":
+        if todo and dask == "local":
             client, cluster = connect_dask("local", workers, connect_timeout, out / "dask-scratch")
-        if runnable and client is not None:
-            results = _run_dask(runnable, client, threads)
+        if todo and client is not None:
+            results = _run_dask(todo, client, threads)
         else:
-            results = _run_local(runnable, workers, threads)
+            results = _run_local(todo, workers, threads)
         for point, record in results:
             store(point, record)
             failed += record["status"] != "done"
@@ -698,7 +707,7 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     write_report(out)
     status = Counter(r["status"] for r in rows)
     return {"points": len(points), "done": status["done"], "failed": status["failed"],
-            "computed": len(runnable), "reused": sum(p.key in finished for p in points),
+            "computed": len(todo), "reused": sum(p.key in finished for p in points),
             "rows": rows, "results": out / "results.csv", "figures": figures, "out": out}
 
 

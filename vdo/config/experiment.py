@@ -1413,6 +1413,52 @@ def read_toml(path) -> dict:
         raise ConfigError(path, "", "is not valid TOML for vdo: arrays or tables nested too deep") from None
 
 
+OVERRIDE_VARIABLE = "VDO_SET"   # environment: field values written over the files vdo reads
+
+
+def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
+    """`data` (a parsed TOML document) with the fields of the environment variable VDO_SET
+    written in, for a quick, coarse run of any file without editing it (the test of the shipped
+    examples runs them so). VDO_SET holds `TABLE.FIELD = VALUE` items separated by ';', VALUE in
+    TOML syntax, e.g. `evaluation.sample_spacing_mm = 60; optimize.starts = 1`;
+    `TABLE.*.FIELD` sets FIELD on every table of an array of tables ([[camera]]). Only the items
+    whose TABLE is one of `tables` apply (a validation file reads `validation` and `defaults`,
+    an experiment its own tables), so one VDO_SET serves every kind of file; an item the file's
+    table does not take is refused by the file's own checks. ConfigError (naming VDO_SET) for an
+    item that is not of that form."""
+    import copy
+    import os
+    import tomllib
+
+    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
+    if not text:
+        return data
+    data = copy.deepcopy(data)
+    for item in filter(None, (part.strip() for part in text.split(";"))):
+        path, eq, value = item.partition("=")
+        tokens = path.strip().split(".")
+        try:
+            parsed = tomllib.loads(f"v = {value.strip()}")["v"] if eq else None
+        except tomllib.TOMLDecodeError:
+            parsed = None
+        if parsed is None or len(tokens) not in (2, 3) or not all(tokens) or \
+                (len(tokens) == 3 and tokens[1] != "*"):
+            raise ConfigError(OVERRIDE_VARIABLE, item, "write TABLE.FIELD = VALUE or "
+                                                       "TABLE.*.FIELD = VALUE (VALUE in TOML), "
+                                                       "items separated by ';'")
+        if tokens[0] not in tables:
+            continue
+        if len(tokens) == 2:
+            table = data.setdefault(tokens[0], {})
+            if isinstance(table, dict):
+                table[tokens[1]] = parsed
+        else:
+            for table in data.get(tokens[0], []):
+                if isinstance(table, dict):
+                    table[tokens[2]] = parsed
+    return data
+
+
 def load(path) -> Experiment:
     """Read and validate an experiment file. Raises ConfigError on any user mistake."""
     return parse(read_toml(path), Path(path))
@@ -1464,9 +1510,11 @@ def _read_section(top: Table, sec: Section, path: Path):
 
 
 def parse(data: dict, path: Path) -> Experiment:
-    """Validate an already-parsed TOML document that came from `path`."""
+    """Validate an already-parsed TOML document that came from `path` (with the fields of
+    `with_overrides` written in)."""
     path = Path(path).resolve()
     secs = sections()
+    data = with_overrides(data, ("experiment",) + tuple(s.key for s in secs))
     top = Table(data, "", path, ("experiment",) + tuple(s.key for s in secs))
     head = Table(top.raw("experiment"), "experiment", path, tuple(r.key for r in rows_of(Experiment)))
     values = {r.attr: head.get(r, r.default) for r in rows_of(Experiment)}

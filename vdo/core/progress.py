@@ -6,11 +6,21 @@ only when that logger passes INFO records. The package logger has a null handler
 a library user sees nothing unless they configure logging; the command line shows INFO (bars
 included) and `--quiet` raises the level to WARNING (`vdo.commands.cli`), through `AboveBars`, which
 writes each record above the bars instead of through them.
+
+When the stream is not a terminal (a log file, a pipe, CI), a redrawn bar would write a carriage
+return per update, thousands of them on one line; there `bar` returns a `PlainBar` instead: whole
+lines, one every `PLAIN_FRACTION` of the total or `PLAIN_SECONDS`, whichever comes first, each with
+the count, the elapsed time and the time left (elapsed / n x (total - n)), and one when it closes.
 """
 
 from __future__ import annotations
 
 import logging
+import sys
+import time
+
+PLAIN_FRACTION = 0.1      # a plain progress line every tenth of the total ...
+PLAIN_SECONDS = 30.0      # ... or every 30 s, whichever comes first
 
 
 def shown(log: logging.Logger) -> bool:
@@ -19,12 +29,97 @@ def shown(log: logging.Logger) -> bool:
 
 
 def bar(log: logging.Logger, **tqdm_options):
-    """A tqdm bar (stderr), disabled unless `log` passes INFO records; `tqdm_options` as tqdm's
-    (`disable=True` still disables it)."""
+    """A progress bar on stderr (or `file`), disabled unless `log` passes INFO records:
+    `shown_bar`."""
+    return shown_bar(shown(log), **tqdm_options)
+
+
+def shown_bar(show: bool, **tqdm_options):
+    """A tqdm bar on stderr (or the `file` option) when that stream is a terminal, else a
+    `PlainBar` (module docstring); disabled unless `show` (`disable=True` still disables it).
+    `tqdm_options` as tqdm's; the plain lines use iterable, total, initial, desc, unit, file."""
     from tqdm import tqdm
 
-    disable = tqdm_options.pop("disable", False) or not shown(log)
-    return tqdm(disable=disable, **tqdm_options)
+    disable = tqdm_options.pop("disable", False) or not show
+    stream = tqdm_options.get("file") or sys.stderr
+    if disable or _is_terminal(stream):
+        return tqdm(disable=disable, **tqdm_options)
+    return PlainBar(**tqdm_options)
+
+
+def _is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):    # no isatty, or a closed stream
+        return False
+
+
+class PlainBar:
+    """tqdm's interface (iteration, update, set_postfix[_str], close, a context manager) as
+    plain lines: "desc: n/total unit (p %), elapsed s, ~left s left [postfix]", written when the
+    count crosses a multiple of `PLAIN_FRACTION` x total or `PLAIN_SECONDS` have passed since the
+    last line, and once on close. Without a total: every `PLAIN_SECONDS`, no time left."""
+
+    def __init__(self, iterable=None, total=None, initial=0, desc="", unit="it", file=None,
+                 **_drawing_options):   # bar_format, leave, dynamic_ncols ...: a line has no bar
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)
+        self.iterable, self.total, self.n, self.desc, self.unit = iterable, total, initial, desc, unit
+        self.file, self.postfix = file, ""
+        self.t0 = self.last_time = time.monotonic()
+        self.last_tenth, self.last_n = self._tenth(), initial
+        self.closed = False
+
+    def _tenth(self) -> int:
+        if not self.total:
+            return 0
+        return int(self.n / self.total / PLAIN_FRACTION + 1e-9)
+
+    def line(self) -> str:
+        elapsed = time.monotonic() - self.t0
+        text = f"{self.desc}: {self.n}" + (f"/{self.total}" if self.total else "") + f" {self.unit}"
+        if self.total:
+            text += f" ({100 * self.n / self.total:.0f} %)"
+        text += f", {elapsed:.0f} s"
+        if self.total and self.n > 0:
+            text += f", ~{elapsed / self.n * max(self.total - self.n, 0):.0f} s left"
+        return text + (f" [{self.postfix}]" if self.postfix else "")
+
+    def _write(self) -> None:
+        stream = self.file or sys.stderr
+        stream.write(self.line() + "\n")
+        stream.flush()
+        self.last_time, self.last_tenth, self.last_n = time.monotonic(), self._tenth(), self.n
+
+    def update(self, n=1) -> None:
+        self.n += n
+        if self._tenth() > self.last_tenth or time.monotonic() - self.last_time >= PLAIN_SECONDS:
+            self._write()
+
+    def set_postfix_str(self, s="", refresh=True) -> None:
+        self.postfix = str(s)
+
+    def set_postfix(self, ordered_dict=None, refresh=True, **kwargs) -> None:
+        items = {**(ordered_dict or {}), **kwargs}
+        self.postfix = ", ".join(f"{k}={v}" for k, v in items.items())
+
+    def __iter__(self):
+        for item in self.iterable:
+            yield item
+            self.update(1)
+        self.close()
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            if self.n != self.last_n:
+                self._write()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 class AboveBars(logging.StreamHandler):

@@ -46,9 +46,10 @@ from pathlib import Path
 import numpy as np
 
 from vdo.physics import strain
+from vdo.physics.strain import SIZE_TOLERANCE, fits
 from vdo.model.camera import Camera, look_at_angles
 from vdo.config.experiment import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
-                     SpeckleSpec, Table, as_numbers, read_toml)
+                     SpeckleSpec, Table, as_numbers, read_toml, with_overrides)
 from vdo.dic.correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
@@ -131,8 +132,11 @@ def parse(data: dict, path) -> ValidationSpec:
     """Validate an already-parsed validation document that came from `path`.
 
     `[defaults]` holds any case field (but name); each `[[case]]` inherits it and overrides it
-    (a case's `sensor` table is merged key by key over the defaults' one)."""
+    (a case's `sensor` table is merged key by key over the defaults' one). The environment's
+    VDO_SET items for `validation` and `defaults` are written in first
+    (`vdo.config.experiment.with_overrides`)."""
     path = Path(path).resolve()
+    data = with_overrides(data, ("validation", "defaults"))
     top = Table(data, "", path, ("validation", "defaults", "case"))
     head = Table(top.raw("validation", {}), "validation", path, ("name", "seeds"))
     name = head.string("name", "vdo validation")
@@ -263,10 +267,11 @@ def _strain_fields(t: Table, n_cameras: int) -> dict:
         step = t.number("step_mm", positive=True) * 1e-3
         n = t.integer("strain_window", low=2)
         patch = t.vector("patch_mm", 2) * 1e-3
-        if (n - 1) * step + side > min(patch) + 1e-9:
+        if not fits((n - 1) * step + side, min(patch)):
             raise t.error("strain_window", f"the window ((n - 1) step + subset = "
                                            f"{((n - 1) * step + side) * 1e3:g} mm) is larger than "
-                                           "the patch")
+                                           f"the patch ({min(patch) * 1e3:g} mm; relative tolerance "
+                                           f"{SIZE_TOLERANCE:g})")
         subsets = (side, step, n)
     if n_cameras < 2:
         raise t.error("strain_microstrain", "a strain case needs at least two cameras")
@@ -399,7 +404,9 @@ class Setup:
 def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
     """An in-memory vdo Experiment for the case: one specimen plate, one region (the plate's
     face), ambient light only, the DIC patch side sqrt(patch area) (Ω = the correlated area);
-    the strain analysis' element is the patch's shorter side (it must fit in the region)."""
+    the strain analysis is the case's: subset DIC with its subset, step and window for a
+    subset case, else global DIC with the patch's shorter side as element (it fits the region,
+    the patch itself, up to rounding: `vdo.physics.strain.SIZE_TOLERANCE`)."""
     g = plate_geometry(case)
     region = RegionSpec(name="patch", mesh="plate", normal=g["normal"],
                         box_min=np.full(3, -np.inf), box_max=np.full(3, np.inf),
@@ -412,7 +419,18 @@ def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
                                             patch_size=math.sqrt(w * h), min_cameras=1),
                       speckle=case.speckle, sensor=case.sensor,
                       render=RenderSpec(spp=case.spp, ambient_radiance=case.ambient_radiance),
-                      analysis=Analysis(element=min(w, h)))
+                      analysis=analysis_of(case))
+
+
+def analysis_of(case: Case) -> Analysis:
+    """The `[analysis]` of a case (`experiment_for`): subset DIC (subset, step and window in
+    metres, sizes in pixels unset) for a subset case, else global DIC, element = the patch's
+    shorter side."""
+    if case.subsets is not None:
+        side, step, n = case.subsets
+        return Analysis(method="subset", subset=side, subset_px=None, step=step, step_px=None,
+                        strain_window=n)
+    return Analysis(element=min(case.patch))
 
 
 def build_setup(case: Case, path: Path) -> Setup:

@@ -519,3 +519,17 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
     table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
     steps = sorted({step for step, _ in table} | set(displacements or {}))
     return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)
+
+
+def check_load_path(exp, poses: Path | None = None) -> LoadPath | None:
+    """Read the experiment's load path (and `poses`, `vdo render --series`'s file) whole, as the
+    commands do before any ray is cast, rendering or compile: every row of every step checked,
+    the first bad one a ConfigError naming the file, the row and the column (`load_path_of`).
+    The meshes are read only when the specimen's displacements need its vertices. Returns the
+    load path, or None when there is none."""
+    from vdo.scene import load_meshes
+
+    if not exp.load_path.active and poses is None:
+        return None
+    meshes = load_meshes(exp) if exp.load_path.displacements is not None else []
+    return load_path_of(exp, meshes, poses)

@@ -44,6 +44,11 @@ Q4_INTERIOR = 12.0 * math.sqrt(3.0) - 18.0    # F h^4 at an interior element's c
 AFFINE_PATCH = 12.0                           # F L^4 of an affine patch / isolated element
 Q4_INTERIOR_NODE = 3.0                        # var(node) = 3 Σ_u / h^2 (interior node)
 SHAPE_FUNCTIONS = ("zero", "affine")
+# relative: a size may exceed the side it must fit in by this fraction and still fit. Sides are
+# sums of float coordinates (a patch of side w measured back as 0.005999999999999998 m for 6 mm),
+# so an equal size must not be refused; 1e-6 is far above float64 rounding (1e-16 relative) and
+# far below any size a user chooses (a micrometre per metre).
+SIZE_TOLERANCE = 1e-6
 
 
 def mass_matrix_1d(n_elements: int, h: float) -> np.ndarray:
@@ -160,10 +165,17 @@ def analysis_factors(analysis, density: np.ndarray):
     return Fs, 1.0 / S ** 2
 
 
+def fits(size: float, side: float) -> bool:
+    """Whether a size (m) fits in a side (m): size <= side (1 + SIZE_TOLERANCE), so that sizes
+    equal up to rounding fit."""
+    return size <= side * (1.0 + SIZE_TOLERANCE)
+
+
 def check_regions(analysis, samples, density: np.ndarray, path) -> None:
     """ConfigError when the element (global) or the subset (subset DIC; its median size over the
     region's seen samples for a size in pixels) is larger than a region's smaller side (the
-    extent of its samples' face coordinates)."""
+    extent of its samples' face coordinates plus one sample's side), beyond the relative
+    `SIZE_TOLERANCE` (`fits`)."""
     from vdo.core.errors import ConfigError
 
     if analysis.method == "global":
@@ -176,10 +188,11 @@ def check_regions(analysis, samples, density: np.ndarray, path) -> None:
         uv = samples.uv[mask]
         side = float((uv.max(axis=0) - uv.min(axis=0)).min()) + math.sqrt(samples.area[mask].mean())
         seen = size[mask][np.isfinite(size[mask])]
-        if seen.size and float(np.median(seen)) > side:
-            raise ConfigError(path, field, f"is {np.median(seen) * 1e3:.3g} mm on the surface, "
-                                           f"larger than region {name!r} ({side * 1e3:.3g} mm "
-                                           "across): choose a smaller one")
+        if seen.size and not fits(float(np.median(seen)), side):
+            raise ConfigError(path, field, f"is {np.median(seen) * 1e3:.6g} mm on the surface, "
+                                           f"larger than region {name!r} ({side * 1e3:.6g} mm "
+                                           f"across, relative tolerance {SIZE_TOLERANCE:g}): "
+                                           "choose a smaller one")
 
 
 def analysis_fields(analysis, density, samples, information, measured, patch_area):

@@ -20,9 +20,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from vdo.core.backend import mitsuba
+from vdo.core.progress import shown_bar
 from vdo.model.camera import Camera, image_point
 from vdo.scene import SurfaceSamples
 from vdo.core.tolerances import IN_FRONT_M, RAY_OFFSET_M
@@ -83,8 +83,8 @@ def compute_visibility(scene, cameras: list[Camera], samples: SurfaceSamples,
         return mi.Vector3f(*(dr.gather(mi.Float, array, index * 3 + k) for k in range(3)))
 
     starts = range(0, n_cam * n, batch_pairs)
-    for start in tqdm(starts, desc="visibility", unit="batch", disable=not progress or len(starts) < 2,
-                      leave=False):
+    for start in shown_bar(bool(progress) and len(starts) >= 2, iterable=starts, desc="visibility",
+                           unit="batch", leave=False):
         pair = dr.arange(mi.UInt32, start, min(start + batch_pairs, n_cam * n))
         cam = pair // n
         sample = pair - cam * n

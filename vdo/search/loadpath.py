@@ -25,8 +25,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
+from vdo.core.progress import shown_bar
 from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
 from vdo.scene import build_scene
 from vdo.state import Geometry, LayoutState, bodies, layout_state
@@ -98,7 +98,7 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
     steps = ("rest",) + tuple(load_path.steps)
     judged = {}   # step key -> (coverage, seen, covered, p95, sigma)
     coverage, sigma, seen, covered, p95 = [], [], [], [], []
-    for step in tqdm(steps, desc="load path", unit="step", disable=not progress):
+    for step in shown_bar(progress, iterable=steps, desc="load path", unit="step"):
         key = () if step == "rest" else load_path.step_key(step)
         if key not in judged:
             if key == () and rest is not None:

@@ -1,0 +1,99 @@
+"""Progress off a terminal (`vdo.core.progress`): plain whole lines, a bounded number of them, each
+with the time left, instead of a bar redrawn by carriage returns."""
+
+from __future__ import annotations
+
+import io
+import logging
+
+import pytest
+
+from vdo.core import progress
+
+LOG = logging.getLogger("vdo.test_progress")
+
+
+class FakeClock:
+    """time.monotonic advanced by hand (seconds)."""
+
+    def __init__(self):
+        self.now = 1000.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch):
+    fake = FakeClock()
+    monkeypatch.setattr(progress.time, "monotonic", fake)
+    return fake
+
+
+@pytest.fixture
+def shown(monkeypatch):
+    monkeypatch.setattr(LOG, "level", logging.INFO)
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_off_a_terminal_lines_every_tenth_with_the_time_left(shown, clock):
+    """1000 updates, 0.05 s each (50 s in all, under 30 s between tenths): one line per tenth,
+    no carriage return, and the time left at each line is elapsed / n x (total - n)."""
+    stream = io.StringIO()
+    with progress.bar(LOG, total=1000, desc="validate", unit="seed", file=stream) as bar:
+        assert isinstance(bar, progress.PlainBar)
+        for k in range(1000):
+            clock.now += 0.05
+            bar.set_postfix_str(f"case{k // 300}")
+            bar.update()
+    text = stream.getvalue()
+    assert "\r" not in text
+    lines = text.splitlines()
+    assert len(lines) == round(1 / progress.PLAIN_FRACTION)
+    assert lines[0] == "validate: 100/1000 seed (10 %), 5 s, ~45 s left [case0]"
+    assert lines[4] == "validate: 500/1000 seed (50 %), 25 s, ~25 s left [case1]"
+    assert lines[-1].startswith("validate: 1000/1000 seed (100 %), 50 s, ~0 s left")
+
+
+def test_off_a_terminal_slow_work_gets_a_line_every_30_s(shown, clock):
+    """20 updates of 40 s each: every update is more than PLAIN_SECONDS after the last line, so
+    each gets one (20 lines, none drawn in place); an open-ended count (no total) gets a line
+    per PLAIN_SECONDS and one on close."""
+    stream = io.StringIO()
+    bar = progress.bar(LOG, total=20, desc="optimize", unit="step", file=stream,
+                       bar_format="{desc}", dynamic_ncols=True)
+    for _ in range(20):
+        clock.now += 40.0
+        bar.update(1)
+    bar.close()
+    bar.close()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 20 and "\r" not in stream.getvalue()
+    assert lines[1] == "optimize: 2/20 step (10 %), 80 s, ~720 s left"
+
+    stream = io.StringIO()
+    for _ in progress.shown_bar(True, iterable=iter(range(95)), desc="rays", unit="batch",
+                                file=stream):
+        clock.now += 1.0
+    lines = stream.getvalue().splitlines()
+    assert lines == ["rays: 30 batch, 30 s", "rays: 60 batch, 60 s", "rays: 90 batch, 90 s",
+                     "rays: 95 batch, 95 s"]
+
+
+def test_a_terminal_gets_the_tqdm_bar_and_a_quiet_logger_nothing(shown):
+    from tqdm import tqdm
+
+    bar = progress.bar(LOG, total=10, file=Terminal())
+    assert isinstance(bar, tqdm) and not bar.disable
+    bar.close()
+    LOG.setLevel(logging.WARNING)
+    stream = io.StringIO()
+    quiet = progress.bar(LOG, total=10, file=stream)
+    for _ in range(10):
+        quiet.update()
+    quiet.close()
+    assert stream.getvalue() == ""

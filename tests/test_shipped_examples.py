@@ -1,0 +1,210 @@
+"""Every shipped example runs: each TOML under experiments/ (found by glob, so a new one is picked
+up) passes its up-front checks, and each command that applies to it runs on it, as does every
+`vdo ...` command shown in a code block of README.md and docs/*.md, in a reduced form:
+
+* the environment variable VDO_SET (`vdo.config.experiment.with_overrides`) coarsens every file
+  the same way, from the file's own values: the sample spacings (`[evaluation]`, `[design]`)
+  `SPACING_FACTOR` times the file's, one optimizer start, round and `OPTIMIZE_STEPS` steps, the
+  design search's candidates thinned (`DESIGN`) and its curve ended at one camera more than the
+  file's `min_cameras`, validation renders at `VALIDATION_SPP` spp;
+* flags that the commands already have: `--seeds 2` (validate), `--scale 0.05 --spp 1` (render),
+  `--time-limit 1` (optimize), `--workers 1` (sweep), a fresh `--out` in the test's folder.
+
+A command is applicable to an experiment when the file has what it needs: evaluate (and `vdo report`
+on its folder) and export always, render when it has cameras, render --series with a
+`[load_path]`, optimize when a camera stands on a rail or mount, design with a `[design]` table;
+validate to a validation file, sweep to a sweep file. A command shown in the docs on a file that is
+not shipped under experiments/ is a placeholder (CONFIG, my-sweep.toml) and is not run; one that
+names a missing file under experiments/ fails. The commands on one file and subcommand run in one
+test, in order, so that the docs' sweep variants resume the first one's store.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from vdo.config.experiment import read_toml
+
+ROOT = Path(__file__).resolve().parent.parent
+SHIPPED = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "experiments").glob("**/*.toml"))
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+SPACING_FACTOR = 3          # sample spacings x 3: about 9x fewer samples
+OPTIMIZE_STEPS = 2          # BFGS steps of the one start and round
+VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
+DESIGN = "design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1"
+# per command: the flags that shorten it (a flag given in the docs is replaced)
+FLAGS = {"validate": ["--seeds", "2"], "render": ["--scale", "0.05", "--spp", "1"],
+         "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1"]}
+REPLACED = {"--out": 1, "--seeds": 1, "--scale": 1, "--spp": 1, "--time-limit": 1, "--workers": 1,
+            "--overwrite": 0, "--quiet": 0}
+
+
+def kind(path: str) -> str:
+    data = read_toml(ROOT / path)
+    return "validation" if "validation" in data else "sweep" if "sweep" in data else "experiment"
+
+
+def applicable(path: str) -> list[list[str]]:
+    """The commands (argv after `vdo`, without --out) that apply to a shipped file."""
+    if kind(path) == "validation":
+        return [["validate", path]]
+    if kind(path) == "sweep":
+        return [["sweep", path]]
+    from vdo.config.experiment import load
+
+    exp = load(ROOT / path)
+    out = [["evaluate", path], ["export", path, "--format", "opencv"]]
+    if exp.camera_specs:
+        out.append(["render", path])
+    if exp.load_path.active:
+        out.append(["render", path, "--series"])
+    if any(c.rail is not None or c.mount is not None for c in exp.camera_specs):
+        out.append(["optimize", path])
+    if "design" in read_toml(ROOT / path):
+        out.append(["design", path])
+    return out
+
+
+def doc_commands() -> list[tuple[str, list[str]]]:
+    """(where, argv) of every `vdo ...` (or `python -m vdo ...`) line in a fenced code block of
+    README.md and docs/*.md: '$ ' prompts, '# ' comments, [optional] parts and leading
+    environment assignments (the test sets VDO_SET itself) dropped, '\\' continuations joined."""
+    command = re.compile(r'(\w+=("[^"]*"|\S*)\s+)*(python3? -m )?vdo\s')
+    found = []
+    for doc in DOCS:
+        inside, lines = False, doc.read_text().splitlines()
+        k = 0
+        while k < len(lines):
+            line, number = lines[k], k + 1
+            k += 1
+            if line.lstrip().startswith("```"):
+                inside = not inside
+                continue
+            while inside and line.rstrip().endswith("\\") and k < len(lines):
+                line = line.rstrip()[:-1] + " " + lines[k].strip()
+                k += 1
+            text = re.sub(r"\[[^\]]*\]", "", re.sub(r"\s#.*$", "", line.strip().removeprefix("$ ")))
+            if not inside or not command.match(text):
+                continue
+            words = shlex.split(text)
+            while re.fullmatch(r"\w+=.*", words[0]):
+                words = words[1:]
+            words = words[3:] if words[0].startswith("python") else words[1:]
+            found.append((f"{doc.relative_to(ROOT)}:{number}", words))
+    return found
+
+
+def _strip(argv: list[str]) -> list[str]:
+    """argv without the flags the test sets itself (REPLACED)."""
+    out, k = [], 0
+    while k < len(argv):
+        if argv[k] in REPLACED:
+            k += 1 + REPLACED[argv[k]]
+            continue
+        out.append(argv[k])
+        k += 1
+    return out
+
+
+def groups() -> dict[tuple[str, str], list[list[str]]]:
+    """(file, subcommand) -> the argv variants to run: the applicable command first, then each
+    different one the docs show. Docs' commands on files outside experiments/ are placeholders."""
+    out: dict[tuple[str, str], list[list[str]]] = {}
+    for path in SHIPPED:
+        for argv in applicable(path):
+            out.setdefault((path, argv[0]), []).append(argv)
+    for where, argv in doc_commands():
+        argv = _strip(argv)
+        files = [a for a in argv[1:] if a.endswith(".toml")]
+        if not files or files[0] not in SHIPPED:
+            if files and files[0].startswith("experiments/"):
+                out.setdefault((files[0], argv[0]), []).append(argv)   # fails: not shipped
+            continue
+        variants = out.setdefault((files[0], argv[0]), [])
+        if argv not in variants:
+            variants.append(argv)
+    return out
+
+
+GROUPS = groups()
+
+
+def reduced(path: str) -> str:
+    """VDO_SET for a file (module docstring): from its own spacings (the smallest over a sweep's
+    base experiments)."""
+    from vdo.config.experiment import load
+
+    settings = [f"optimize.starts = 1; optimize.rounds = 1; optimize.max_steps = {OPTIMIZE_STEPS}",
+                DESIGN, f"defaults.spp = {VALIDATION_SPP}"]
+    if kind(path) == "validation":
+        return "; ".join(settings)
+    if kind(path) == "sweep":
+        from vdo.commands.sweep import load_sweep
+
+        experiments = [load(base) for _, base in load_sweep(ROOT / path).experiments]
+    else:
+        experiments = [load(ROOT / path)]
+    spacing = min(e.evaluation.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
+    design = min(e.design.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
+    settings.append(f"evaluation.sample_spacing_mm = {spacing:g}; design.sample_spacing_mm = {design:g}")
+    if all("design" in read_toml(e.path) for e in experiments):
+        settings.append(f"design.max_cameras = {max(e.design.min_cameras for e in experiments) + 1}")
+    return "; ".join(settings)
+
+
+def test_every_shipped_file_and_doc_command_is_covered():
+    """The glob finds the shipped files, every file gets a command, and every docs command on a
+    shipped file is one of the runs."""
+    assert "experiments/validation.toml" in SHIPPED and len(SHIPPED) >= 8
+    assert {path for path, _ in GROUPS} >= set(SHIPPED)
+    for where, argv in doc_commands():
+        argv = _strip(argv)
+        files = [a for a in argv[1:] if a.endswith(".toml")]
+        if files and files[0] in SHIPPED:
+            assert argv in GROUPS[(files[0], argv[0])], where
+
+
+@pytest.mark.parametrize("path", SHIPPED)
+def test_upfront_checks(path):
+    """What every command checks before any work: the file (every case, every point) and the
+    load path's files, every step."""
+    from vdo.config.experiment import load
+    from vdo.geometry.keyframes import check_load_path
+
+    if kind(path) == "validation":
+        from vdo.dic.validate import load as load_validation
+
+        assert load_validation(ROOT / path).cases
+    elif kind(path) == "sweep":
+        from vdo.commands.sweep import check_points, expand, load_sweep
+
+        spec = load_sweep(ROOT / path)
+        check_points(spec, expand(spec))
+    else:
+        check_load_path(load(ROOT / path))
+
+
+@pytest.mark.parametrize("path, command", list(GROUPS), ids=[f"{p}::{c}" for p, c in GROUPS])
+def test_command_runs_reduced(path, command, tmp_path, monkeypatch):
+    from vdo.commands.cli import main
+
+    monkeypatch.chdir(ROOT)
+    monkeypatch.delenv("VDO_SET", raising=False)
+    monkeypatch.setenv("VDO_SET", reduced(path))
+    for k, argv in enumerate(GROUPS[(path, command)]):
+        out = tmp_path / ("store" if command == "sweep" else f"run{k}")
+        full = [*argv, *FLAGS.get(command, []), "--out", str(out)]
+        status = main(full)
+        if command == "validate":   # 2 seeds judge no ratio: 1 (a ratio outside) is a finished run
+            assert status in (0, 1), full
+        else:
+            assert status == 0, full
+        assert out.is_dir() and any(out.iterdir()), full
+        if command == "evaluate":
+            assert main(["report", str(out)]) == 0
+            assert (out / "report.html").is_file()

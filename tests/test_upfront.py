@@ -1,0 +1,175 @@
+"""Every case of a validation file, every point of a sweep and every step of a load path is checked
+before any heavy work: one bad case deep in a long list stops the command in one line naming the
+file, the case and the field, and the heavy work (JAX/Mitsuba set-up, rendering, the sweep's
+points) is never reached: the functions that start it are replaced by ones that fail the test."""
+
+from __future__ import annotations
+
+import shutil
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from vdo.commands.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+class Reached(AssertionError):
+    pass
+
+
+def forbid(monkeypatch, module, name):
+    def heavy(*args, **kwargs):
+        raise Reached(f"{module}.{name} was reached before the bad input was refused")
+
+    monkeypatch.setattr(f"{module}.{name}", heavy)
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """The commands call vdo.core.configure.configure() (JAX, Dr.Jit) right after loading their
+    input, before importing their heavy module; and validate's cases start in run_case."""
+    forbid(monkeypatch, "vdo.core.configure", "configure")
+    forbid(monkeypatch, "vdo.dic.validate", "run_case")
+    forbid(monkeypatch, "vdo.dic.validate", "render_case")
+
+
+def one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err, err
+    return err
+
+
+# --------------------------------------------------------------------------------------------
+# A validation file: 12 cases, the 11th bad
+# --------------------------------------------------------------------------------------------
+VALIDATION_HEAD = """
+[validation]
+name = "long"
+seeds = 50
+
+[defaults]
+patch_mm = [6, 5]
+plate_margin_mm = 4
+dot_mm = 0.35
+texel_mm = 0.0125
+tile_texels = 1024
+focal_mm = 25
+pixel_um = 5
+pixels = [120, 90]
+distance_mm = 500
+displacement_um = [31, -23, 37]
+"""
+
+CASE = """
+[[case]]
+name = "c{k}"
+cameras = [{{polar_deg = {a}, azimuth_deg = 180}}, {{polar_deg = {a}, azimuth_deg = 0}}]
+seed = {k}
+"""
+
+
+@pytest.mark.parametrize("bad, field, words", [
+    ("polar_deg = 95", 'case "c11".cameras[1].polar_deg', "95"),
+    ("dot_mm = -1", 'case "c11".dot_mm', "positive"),
+    ("strain_microstrain = [2000, -1000, 500]\nsubset_mm = 2\nstep_mm = 1\nstrain_window = 6",
+     'case "c11".strain_window', "larger than the patch"),
+])
+def test_validation_file_bad_case_deep_in_the_list(tmp_path, capsys, no_work, bad, field, words):
+    cases = [CASE.format(k=k, a=5 + k) for k in range(1, 13)]
+    if bad.startswith("polar_deg"):
+        cases[10] = cases[10].replace("polar_deg = 16, azimuth_deg = 0", bad)
+    else:
+        cases[10] += bad + "\n"
+    path = tmp_path / "long.toml"
+    path.write_text(textwrap.dedent(VALIDATION_HEAD) + "".join(cases))
+    assert main(["validate", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = one_line(capsys)
+    assert err.startswith(f"error: {path.resolve()}: {field}: ") and words in err, err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# A sweep: 12 points, the last three bad
+# --------------------------------------------------------------------------------------------
+def test_sweep_bad_point_deep_in_the_list(plate_experiment, tmp_path, capsys, monkeypatch):
+    from test_sweep import CAMERAS, HEIGHT
+
+    for name in ("_run_local", "_run_dask", "plot"):
+        forbid(monkeypatch, "vdo.commands.sweep", name)
+    plate_experiment(spacing=25, height=HEIGHT, cameras=CAMERAS)
+    path = tmp_path / "sweep.toml"
+    path.write_text(textwrap.dedent("""
+        [sweep]
+        experiment = "plate.toml"
+        [[axis]]
+        path = "camera.*.focal_mm"
+        values = [16, 24, 35, -5]
+        [[axis]]
+        path = "speckle.dot_diameter_mm"
+        values = [2, 3, 4]
+        """))
+    assert main(["sweep", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = one_line(capsys)
+    assert err.startswith(f"error: {path.resolve()}: point 9 (plate.toml: camera.*.focal_mm = -5, "
+                          "speckle.dot_diameter_mm = 2): "), err
+    assert 'plate.toml: camera "left".focal_mm: must be positive (got -5)' in err
+    assert not (tmp_path / "out").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# A load path: the built-in beam-column's, one row deep in one of its CSV files made bad
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def beam_column(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("lp") / "beam_column"
+    shutil.copytree(ROOT / "experiments" / "beam_column", folder,
+                    ignore=shutil.ignore_patterns("*.py", "sweep.toml"))
+    return folder
+
+
+def spoil(folder: Path, file: str, line: int, column: int, value: str) -> None:
+    """Set one cell of a CSV (1-based line of the file, counting its comment line)."""
+    path = folder / file
+    lines = path.read_text().splitlines()
+    cells = lines[line - 1].split(",")
+    cells[column] = value
+    lines[line - 1] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize("command", [["evaluate"], ["optimize"], ["render", "--series"], ["design"]])
+@pytest.mark.parametrize("file, line, column, value, words", [
+    ("load_path_platform.csv", 24, 5, "400", "column rx_deg|rotation 400.0 deg is more than a full turn"),
+    ("load_path_specimen.csv", 180, 1, "0.5", "mm from the nearest vertex of mesh 'specimen'"),
+])
+def test_load_path_bad_step_deep_in_the_list(beam_column, tmp_path, capsys, no_work, command,
+                                             file, line, column, value, words):
+    import re
+
+    folder = tmp_path / "bc"
+    shutil.copytree(beam_column, folder)
+    original = (folder / file).read_text().splitlines()
+    assert len(original) > line, "the shipped load path is shorter than this test assumes"
+    spoil(folder, file, line, column, value)
+    config = folder / ("design.toml" if command == ["design"] else "ten_cameras.toml")
+    assert main([command[0], str(config), *command[1:], "--out", str(tmp_path / "out")]) == 2
+    err = one_line(capsys)
+    # the reader numbers rows from the header (row 2 = the first data row; the comment line is skipped)
+    assert err.startswith(f"error: {folder / file}: row {line - 1}: "), err
+    assert re.search(words, err), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_series_poses_file_bad_step(beam_column, tmp_path, capsys, no_work):
+    poses = tmp_path / "poses.csv"
+    rows = ["step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg"]
+    rows += [f"{k},platform,{k},0,0,0,0,0" for k in range(1, 40)]
+    rows[35] = "35,plattform,1,0,0,0,0,0"
+    poses.write_text("\n".join(rows) + "\n")
+    assert main(["render", str(beam_column / "ten_cameras.toml"), "--series", str(poses), "--out",
+                 str(tmp_path / "out")]) == 2
+    err = one_line(capsys)
+    assert err.startswith(f"error: {poses}: row 36: group 'plattform' is neither a [[group]] "), err
