@@ -19,7 +19,7 @@ def test_import_is_light_and_names_resolve():
     assert out.stdout.strip() == ""
     for name in vdo.__all__:
         assert getattr(vdo, name) is not None, name
-    assert callable(vdo.core.configure) and callable(vdo.evaluate_experiment)
+    assert callable(vdo.configure) and callable(vdo.evaluate_experiment)
 
 
 def test_example_compares_two_layouts(capsys):

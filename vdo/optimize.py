@@ -78,7 +78,7 @@ from vdo.search import loadpath
 from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
-from vdo.model.camera import Camera, intrinsic_matrix, rotation
+from vdo.model.camera import Camera, aim_point, holds_aim, intrinsic_matrix, rotation
 from vdo.config.experiment import Experiment, inside_floor
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -186,8 +186,7 @@ class Parameterization:
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
-            depth = max(float((np.asarray(centre) - cam.position) @ cam.optical_axis), 0.1)
-            aims.append(cam.position + depth * cam.optical_axis)
+            aims.append(aim_point(cam, centre))
         self.theta0 = np.array(theta, dtype=float)
         self.scale = np.array(scale, dtype=float)   # the solver works in units of these
         self.aims = np.array(aims)
@@ -197,7 +196,7 @@ class Parameterization:
     def _aimed(idx: dict, cam: Camera) -> bool:
         """Aim-relative angles: the position free and the axis not vertical (where the heading is
         undefined)."""
-        return Parameterization.moves(idx) and abs(math.cos(cam.tilt)) > 1e-3
+        return Parameterization.moves(idx) and holds_aim(cam)
 
     @classmethod
     def moves(cls, idx: dict) -> bool:
@@ -381,7 +380,7 @@ class Problem:
             keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
-        self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
+        self.param = Parameterization(exp, exp.cameras(), self.geometry.centre)
         self.cams0 = self.param.cameras
         self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
@@ -1129,7 +1128,7 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
     run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
 
-    centre = problem.samples.points.mean(axis=0)
+    centre = problem.geometry.centre
 
     def trial(current: Result, c: int, focal: float) -> Problem:
         specs = current.problem.param.specs_at(current.theta)
@@ -1138,9 +1137,9 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
         if zone is not None and Parameterization.moves(problem.param.index[c]):
             # in a zone, step along the axis so that the regions keep their size in the image
             cam = current.state.cameras[c]
-            depth = max(float((centre - cam.position) @ cam.optical_axis), 0.1)
+            aim = aim_point(cam, centre)
+            depth = float((aim - cam.position) @ cam.optical_axis)
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
-            aim = cam.position + depth * cam.optical_axis
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
             if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
                 moved = cam.position   # not over the floor: screen it where it stands

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from vdo.physics import strain
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
@@ -42,6 +44,16 @@ class Geometry:
     speckle: SpeckleModel
     region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
     overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.physics.usable.patch_overlap`)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """The regions' centroid (m): the mean of the surface samples, the depth at which a moved
+        camera keeps its aim (`Experiment.with_camera`, `vdo optimize`)."""
+        return self.samples.points.mean(axis=0)
+
+    def with_camera(self, name: str, **fields) -> Experiment:
+        """`Experiment.with_camera` on this geometry's experiment, re-aiming at `centre`."""
+        return self.experiment.with_camera(name, centre=self.centre, **fields)
 
 
 @dataclass(frozen=True, eq=False)

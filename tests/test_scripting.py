@@ -1,0 +1,131 @@
+"""The scripting API (docs/api.md): checked edits in the file's names and units, a layout state
+that carries the experiment it was judged with, the differentiable fields of the mount variables."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import vdo
+from vdo.config.experiment import parse, read_toml
+
+ROOT = Path(__file__).resolve().parent.parent
+BEAM = ROOT / "experiments" / "beam_column" / "ten_cameras.toml"
+STEEL = ROOT / "experiments" / "steel_beam" / "four_point_bending.toml"
+AT_CENTRE_PX = 1e-6     # px: a point on the optical axis projects this close to the principal point
+
+
+@pytest.fixture(scope="module")
+def beam():
+    return vdo.prepare(vdo.load(BEAM).with_settings(evaluation={"sample_spacing_mm": 40}))
+
+
+@pytest.fixture(scope="module")
+def steel():
+    return vdo.prepare(vdo.load(STEEL).with_settings(evaluation={"sample_spacing_mm": 40}))
+
+
+def _opencv_pixel(cam, X):
+    """X (3,) projected by OpenCV's pinhole model (an independent projection)."""
+    rvec, _ = cv2.Rodrigues(cam.R)
+    uv, _ = cv2.projectPoints(np.asarray(X, float)[None], rvec, cam.t, cam.K, None)
+    return uv.reshape(2)
+
+
+def test_edit_in_file_units_equals_the_file(beam, tmp_path):
+    """with_camera(u=, focal_mm=, pan_deg=, tilt_deg=) gives the cameras of a file that says the same."""
+    exp = beam.experiment
+    edited = exp.with_camera("cam2", u=0.3, focal_mm=50, pan_deg=-20, tilt_deg=10)
+    text = BEAM.read_text()
+    data = read_toml(BEAM)
+    entry = next(c for c in data["camera"] if c["name"] == "cam2")
+    for key in ("target_m", "pan_deg", "tilt_deg"):
+        entry.pop(key, None)
+    entry.update(u=0.3, focal_mm=50, pan_deg=-20, tilt_deg=10)
+    from_file = parse(data, BEAM).with_settings(evaluation={"sample_spacing_mm": 40})
+    assert text   # the shipped file itself is unchanged
+    for a, b in zip(edited.cameras(), from_file.cameras()):
+        np.testing.assert_allclose(a.K, b.K, rtol=1e-12)
+        np.testing.assert_allclose(a.R, b.R, atol=1e-12)
+        np.testing.assert_allclose(a.position, b.position, atol=1e-12)
+    cam = edited.cameras()[1]
+    assert cam.focal_length == pytest.approx(0.050) and math.degrees(cam.pan) == pytest.approx(-20)
+
+
+@pytest.mark.parametrize("which,camera,move", [
+    ("beam", "cam2", dict(u=0.3)),                                # slide along a rail
+    ("steel", "left", dict(position_m=[-0.3, -1.4, 0.8])),        # step within a tripod zone
+])
+def test_a_move_reaims_at_the_aim_point(which, camera, move, beam, steel):
+    """After a move the camera looks at the point of its old optical axis at the depth of the
+    regions' centroid (vdo optimize's rule), checked with OpenCV's projection."""
+    geometry = beam if which == "beam" else steel
+    exp = geometry.experiment
+    if which == "steel":   # aim it by pan and tilt first (the file aims it at a target)
+        exp = exp.with_camera(camera, pan_deg=75.0, tilt_deg=8.0)
+    c = [s.name for s in exp.camera_specs].index(camera)
+    old = exp.cameras()[c]
+    moved = exp.with_camera(camera, centre=geometry.centre, **move)
+    new = moved.cameras()[c]
+    depth = float((geometry.centre - old.position) @ old.optical_axis)
+    aim = old.position + depth * old.optical_axis
+    np.testing.assert_allclose(_opencv_pixel(old, aim), old.principal_point, atol=AT_CENTRE_PX)
+    assert np.linalg.norm(new.position - old.position) > 0.01
+    np.testing.assert_allclose(_opencv_pixel(new, aim), new.principal_point, atol=AT_CENTRE_PX)
+    assert new.roll == pytest.approx(old.roll)
+
+
+def test_a_camera_with_a_target_keeps_it(steel):
+    exp = steel.experiment
+    moved = steel.with_camera("left", position_m=[-0.3, -1.4, 0.8])
+    new = moved.cameras()[0]
+    target = exp.camera_specs[0].target
+    np.testing.assert_allclose(_opencv_pixel(new, target), new.principal_point, atol=AT_CENTRE_PX)
+
+
+@pytest.mark.parametrize("fields,field,fix", [
+    (dict(u=1.3), 'camera "cam2".u', "runs from 0 to 1"),
+    (dict(focal_mm=-50), 'camera "cam2".focal_mm', "positive"),
+    (dict(pan_deg=-400), 'camera "cam2".pan_deg', "[-360.0, 360.0]"),
+    (dict(tilt_deg=1000), 'camera "cam2".tilt_deg', "[-360.0, 360.0]"),
+    (dict(focal=0.05), 'camera "cam2".focal', "did you mean 'focal_mm'"),
+    (dict(u=0.3), 'camera "cam2"', "pass centre=geometry.centre"),
+])
+def test_bad_edits_are_one_line(beam, fields, field, fix):
+    with pytest.raises(vdo.ConfigError) as err:
+        beam.experiment.with_camera("cam2", **fields)
+    text = str(err.value)
+    assert "\n" not in text and err.value.field == field and fix in text
+
+
+def test_bad_edits_outside_a_zone_and_unknown_camera(steel):
+    with pytest.raises(vdo.ConfigError) as err:
+        steel.with_camera("left", position_m=[-0.2, -1.3, 10.7])
+    assert err.value.field == 'camera "left".position_m' and "outside zone 'tripod_left'" in str(err.value)
+    with pytest.raises(vdo.ConfigError) as err:
+        steel.with_camera("middle", focal_mm=12)
+    assert "cameras: left, right" in str(err.value)
+
+
+def test_the_file_refuses_an_angle_beyond_360(tmp_path):
+    data = read_toml(BEAM)
+    data["camera"][1] |= {"pan_deg": 400.0}
+    with pytest.raises(vdo.ConfigError) as err:
+        parse(data, BEAM)
+    assert err.value.field == 'camera "cam2".pan_deg'
+
+
+def test_with_settings_is_checked(beam):
+    exp = beam.experiment.with_settings(sensor={"read_noise_e": 3.0}, evaluation={"patch_mm": 12})
+    assert exp.sensor.read_noise_e == 3.0 and exp.evaluation.patch_size == pytest.approx(0.012)
+    assert exp.evaluation.sample_spacing == pytest.approx(0.04)   # the other keys are kept
+    with pytest.raises(vdo.ConfigError) as err:
+        beam.experiment.with_settings(evaluation={"sample_spacing_mm": -1})
+    assert err.value.field == "evaluation.sample_spacing_mm"
+    with pytest.raises(vdo.ConfigError) as err:
+        beam.experiment.with_settings(camera={"u": 1})
+    assert "with_camera" in str(err.value)
