@@ -129,3 +129,65 @@ def test_with_settings_is_checked(beam):
     with pytest.raises(vdo.ConfigError) as err:
         beam.experiment.with_settings(camera={"u": 1})
     assert "with_camera" in str(err.value)
+
+
+# ---- one source of truth for a state ------------------------------------------------------
+def test_a_batch_of_reparsed_variants_judges_each_variant(beam):
+    """The first silent trap: a geometry prepared once, variants re-parsed from the file with
+    another lens. Each state judges the variant's cameras, and its numbers equal those of a
+    geometry prepared from the variant itself (an independent preparation)."""
+    base = beam.experiment
+    data = base.to_dict()
+    for entry in data["camera"]:
+        entry["focal_mm"] = 50.0
+    variant = parse(data, BEAM)   # re-parsed: another object than the geometry's experiment
+    state = vdo.layout_state(beam, variant)
+    assert state.experiment is variant
+    assert all(c.focal_length == pytest.approx(0.050) for c in state.cameras)
+    alone = vdo.layout_state(vdo.prepare(variant))
+    np.testing.assert_array_equal(state.prediction.sigma_max, alone.prediction.sigma_max)
+    default = vdo.layout_state(beam)   # the geometry's own experiment: its 35 mm-class lenses
+    assert not np.array_equal(default.prediction.sigma_max, state.prediction.sigma_max)
+
+
+def test_a_geometry_from_another_experiment_is_refused(beam, steel):
+    finer = beam.experiment.with_settings(evaluation={"sample_spacing_mm": 20})
+    with pytest.raises(vdo.ConfigError) as err:
+        vdo.layout_state(beam, finer)
+    assert err.value.field == "evaluation.sample_spacing_mm" and "vdo.prepare(exp)" in str(err.value)
+    with pytest.raises(vdo.ConfigError) as err:
+        vdo.layout_state(beam, steel.experiment)
+    assert err.value.field.startswith("mesh") and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("which", ["beam", "steel"])
+def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_path):
+    """The second silent trap: a state of edited cameras (another lens, a moved camera) written by
+    write_evaluation. Its config.toml, read back and judged afresh, gives the layout.json cameras
+    and the summary.json numbers."""
+    import dataclasses
+    import json
+    geometry = beam if which == "beam" else steel
+    cams = geometry.experiment.cameras()
+    cams[0] = dataclasses.replace(cams[0], focal_length=cams[0].focal_length * 1.5)
+    cams[1] = cams[1].with_pose(cams[1].position + np.array([0.02, 0.0, 0.03]), cams[1].pan + 0.05,
+                                cams[1].tilt)
+    state = vdo.layout_state(geometry, cams)
+    summary = vdo.write_evaluation(state, tmp_path / "run")
+    again = vdo.load(tmp_path / "run" / "config.toml")
+    layout = json.loads((tmp_path / "run" / "layout.json").read_text())
+    for cam, written in zip(again.cameras(), cams):
+        np.testing.assert_allclose(cam.K, written.K, rtol=1e-10)
+        np.testing.assert_allclose(cam.R, written.R, atol=1e-10)
+        np.testing.assert_allclose(cam.position, written.position, atol=1e-10)
+    for cam, written in zip(again.cameras(), layout["cameras"]):   # config.toml agrees with layout.json
+        assert cam.name == written["name"]
+        np.testing.assert_allclose(cam.K, written["K"], rtol=1e-10)
+        np.testing.assert_allclose(cam.R, written["R"], atol=1e-10)
+        np.testing.assert_allclose(cam.t, written["t"], atol=1e-10)
+    fresh = vdo.summary(vdo.layout_state(vdo.prepare(again)))
+    written = json.loads((tmp_path / "run" / "summary.json").read_text())
+    for name, region in fresh["regions"].items():
+        assert written["regions"][name]["sigma_max_um"]["p95"] == pytest.approx(
+            region["sigma_max_um"]["p95"], rel=1e-9, nan_ok=True)
+    assert summary["regions"].keys() == fresh["regions"].keys()
