@@ -191,3 +191,84 @@ def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_p
         assert written["regions"][name]["sigma_max_um"]["p95"] == pytest.approx(
             region["sigma_max_um"]["p95"], rel=1e-9, nan_ok=True)
     assert summary["regions"].keys() == fresh["regions"].keys()
+
+
+# ---- a script's own objective, with gradients -------------------------------------------------
+FD_STEP = 1e-6       # central differences in θ (logit, rad) and in mm: O(h^2) truncation ~1e-6 relative
+GRAD_RTOL = 1e-4     # max |AD - FD| / max |FD|, as tests/test_objective.py holds the score's gradient
+
+
+def _masked_objective(mask):
+    """Area-weighted mean out-of-plane σ (µm) over the samples in `mask` + a coverage shortfall term."""
+    import jax.numpy as jnp
+
+    def out_of_plane(f):
+        w = f.area * mask
+        short = jnp.maximum(f.min_cameras[f.region] - f.coverage, 0.0)
+        return (jnp.sum(w * f.sigma_xyz[:, 2]) / jnp.sum(w) * 1e6
+                + 10.0 * jnp.sum(f.area * short ** 2) / jnp.sum(f.area))
+    return out_of_plane
+
+
+@pytest.mark.parametrize("path", [BEAM.parent / "three_cameras.toml", STEEL])
+def test_gradient_of_a_user_objective_matches_finite_differences(path):
+    import jax
+    import jax.numpy as jnp
+    from vdo.optimize import MountModel
+    model = MountModel(vdo.load(path).with_settings(evaluation={"sample_spacing_mm": 40}), float64=True)
+    theta, focal = jnp.asarray(model.theta0), jnp.asarray(model.focal0_mm)
+    first = model.fields(theta)
+    assert first.sigma_xyz.shape == (first.area.shape[0], 3) and first.information.shape[1:] == (3, 3)
+    # the fields at the configured layout are the report's: information as vdo.physics.predict's first pass
+    mask = jnp.asarray(np.asarray(first.sigma_max) < 100e-6, dtype=float)   # well measured at the start
+    objective = _masked_objective(mask)
+    J = jax.jit(lambda t, f: objective(model.fields(t, f)))
+    g_theta, g_focal = jax.jit(jax.grad(lambda t, f: objective(model.fields(t, f)), argnums=(0, 1)))(theta, focal)
+    fd_theta = np.array([(J(theta + e, focal) - J(theta - e, focal)) / (2 * FD_STEP)
+                         for e in FD_STEP * np.eye(len(theta))])
+    fd_focal = np.array([(J(theta, focal + e) - J(theta, focal - e)) / (2 * FD_STEP)
+                         for e in FD_STEP * np.eye(len(focal))])
+    assert np.max(np.abs(fd_theta)) > 0 and np.max(np.abs(fd_focal)) > 0
+    assert np.max(np.abs(np.asarray(g_theta) - fd_theta)) < GRAD_RTOL * np.max(np.abs(fd_theta))
+    assert np.max(np.abs(np.asarray(g_focal) - fd_focal)) < GRAD_RTOL * np.max(np.abs(fd_focal))
+    assert len(model.names) == len(theta) and all("." in n for n in model.names)
+
+
+def test_optimizer_minimises_a_user_objective(tmp_path):
+    """optimize_experiment(objective=...): the built-in constraints hold at the end and the
+    user's objective, judged afresh at the written layout (a new ray cast), is below the start's."""
+    import json
+    import jax.numpy as jnp
+    from vdo.optimize import MountModel
+    exp = vdo.load(BEAM.parent / "three_cameras.toml").with_settings(
+        evaluation={"sample_spacing_mm": 40}, optimize={"starts": 1, "rounds": 2, "max_steps": 15})
+
+    def mean_sigma_z_um(f):
+        w = f.area / jnp.sum(f.area)
+        short = jnp.maximum(f.min_cameras[f.region] - f.coverage, 0.0)
+        return jnp.sum(w * f.sigma_xyz[:, 2]) * 1e6 + 10.0 * jnp.sum(w * short ** 2)
+
+    result = vdo.optimize_experiment(exp, tmp_path / "opt", objective=mean_sigma_z_um, time_limit=600)
+    assert result["violations"] == 0 and result["score_after"] < result["score_before"]
+    written = vdo.load(tmp_path / "opt" / "optimized.toml")
+    again = MountModel(written)   # a fresh problem: its own ray cast at the optimized layout
+    after = float(mean_sigma_z_um(again.fields(again.theta0)))
+    assert after == pytest.approx(result["score_after"], rel=1e-6)
+    before = float(mean_sigma_z_um(MountModel(exp).fields(jnp.asarray(MountModel(exp).theta0))))
+    assert after < before
+    assert json.loads((tmp_path / "opt" / "optimizer.json").read_text())["score_after"]["objective"] == \
+        "mean_sigma_z_um"
+
+
+@pytest.mark.parametrize("bad,says", [
+    (lambda f: float(f.sigma_max[0]), "is not JAX-traceable"),
+    (lambda f: np.asarray(f.sigma_max).mean(), "is not JAX-traceable"),
+    (lambda f: f.sigma_max * 2, "returns shape (4,)"),
+    ("sigma", "must be a function"),
+])
+def test_a_bad_user_objective_is_refused_in_one_line(bad, says, tmp_path):
+    exp = vdo.load(BEAM.parent / "three_cameras.toml")
+    with pytest.raises(vdo.ConfigError) as err:
+        vdo.optimize_experiment(exp, tmp_path / "never", objective=bad)
+    assert says in str(err.value) and "\n" not in str(err.value)
+    assert not (tmp_path / "never").exists()

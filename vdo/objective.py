@@ -1114,3 +1114,49 @@ def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                   sigma_max_smooth=_smooth_sigma_max(ent, settings),
                   coverage=_per_sample(w, views.sample, n), measured=measured,
                   weights=_per_pair_dense(w, views, c, n), information=C)
+
+
+class SampleFields(eqx.Module):
+    """Per-sample fields as differentiable functions of the cameras (`sample_fields`), for a
+    user's own objective. N samples, R regions; sigmas for one noisy image (x sqrt 2 for two).
+
+    information  (N, 3, 3) 1/m^2: C = Omega sum_i w_i |det A_i| C_i (no regularisation)
+    sigma_xyz    (N, 3) m: sqrt(diag Sigma_reg), Sigma_reg = (C + I/prior_sigma^2)^-1: finite
+                 everywhere (about prior_sigma, 1 mm, along a direction no camera measures)
+    sigma_max    (N,) m: the score's smooth sqrt(lam_max(Sigma_reg)) (trace p-norm, at most
+                 3^(1/2p) above the exact value: module docstring)
+    coverage     (N,) cameras: sum_i w_i, the smooth count of usable views (the soft weights w
+                 of the module docstring; with occlusion frozen by the `ViewData`)
+    area         (N,) m^2, region (N,) int in [0, R), importance (R,), min_cameras (R,): the
+                 samples' constants (`Samples`), for weighting
+    """
+
+    information: jax.Array
+    sigma_xyz: jax.Array
+    sigma_max: jax.Array
+    coverage: jax.Array
+    area: jax.Array
+    region: jax.Array
+    importance: jax.Array
+    min_cameras: jax.Array
+
+
+def sample_fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
+                  settings: Settings = Settings()) -> SampleFields:
+    """`SampleFields` of `cameras`: the per-sample sums of the score (the same pair work and
+    hand-written reverse pass, `settings.pair_dtype` per pair), so that `jax.grad` of any
+    function of them w.r.t. the cameras' position, pan, tilt, roll, focal_px, cx, cy works and
+    costs about one score gradient. Traceable (use inside `jax.jit`, `jax.grad`)."""
+    ctab, geometry, occ, kc, one = _pair_inputs(cameras, views, settings,
+                                                jnp.dtype(settings.pair_dtype))
+    n = samples.points.shape[0]
+    *ent, cov = _sample_sums(ctab, geometry, occ, kc, one, views.sample.reshape(occ.shape),
+                             jax.lax.stop_gradient(energy), settings, views.chunk, n)
+    C = _sym_full(ent)
+    reg = C + jnp.eye(3) / settings.prior_sigma ** 2
+    tc = jnp.trace(reg, axis1=-2, axis2=-1)   # scaled to trace 1 before the inverse
+    sigma_xyz = jnp.sqrt(jnp.diagonal(jnp.linalg.inv(reg / tc[:, None, None]), axis1=-2, axis2=-1)
+                         / tc[:, None])
+    return SampleFields(information=C, sigma_xyz=sigma_xyz, sigma_max=_smooth_sigma_max(ent, settings),
+                        coverage=cov, area=samples.area, region=samples.region,
+                        importance=samples.importance, min_cameras=samples.min_cameras)
