@@ -272,3 +272,37 @@ def test_a_bad_user_objective_is_refused_in_one_line(bad, says, tmp_path):
         vdo.optimize_experiment(exp, tmp_path / "never", objective=bad)
     assert says in str(err.value) and "\n" not in str(err.value)
     assert not (tmp_path / "never").exists()
+
+
+# ---- regions and results for scripts ----------------------------------------------------------
+@pytest.mark.parametrize("which", ["beam", "steel"])
+def test_region_stats_are_the_summary_numbers(which, beam, steel, tmp_path):
+    import csv
+    from vdo.core.table import write_csv
+    geometry = beam if which == "beam" else steel
+    state = vdo.layout_state(geometry)
+    summary = vdo.summary(state)
+    rows = state.regions()
+    assert [r.region for r in rows] == list(summary["regions"])
+    for r in rows:
+        s = summary["regions"][r.region]
+        assert r.area_m2 == pytest.approx(s["area_m2"], rel=1e-12)
+        assert r.seen_by_2_or_more == pytest.approx(s["seen_by_2_or_more"], abs=1e-12)
+        assert r.measured_fraction == pytest.approx(1 - s["unmeasured_fraction"], abs=1e-12)
+        for mine, theirs in ((r.sigma_max_um_p95, s["sigma_max_um"]["p95"]),
+                             (r.sigma_max_um_max, s["sigma_max_um"]["max"]),
+                             (r.sigma_z_um_p95, s["sigma_axis_um"]["z"]["p95"])):
+            assert (mine is None and theirs is None) or mine == pytest.approx(theirs, rel=1e-12)
+        mask = state.region_mask(r.region)   # covered: an independent count over the samples
+        need = r.min_cameras
+        area = geometry.samples.area
+        assert r.covered_fraction == pytest.approx(
+            area[mask & (state.prediction.coverage >= need)].sum() / area[mask].sum())
+    path = write_csv(tmp_path / "regions.csv", rows)
+    with open(path) as fh:
+        back = list(csv.DictReader(fh))
+    assert [b["region"] for b in back] == [r.region for r in rows]
+    assert float(back[0]["area_m2"]) == pytest.approx(rows[0].area_m2, rel=1e-12)
+    with pytest.raises(vdo.ConfigError) as err:
+        state.region_mask("nowhere")
+    assert "regions: " in str(err.value)

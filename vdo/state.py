@@ -86,6 +86,93 @@ class LayoutState:
     def samples(self) -> SurfaceSamples:
         return self.geometry.samples
 
+    # -- for scripts: the fields in named units, per region ----------------------------------
+    def _predicted(self) -> Prediction:
+        if self.prediction is None:
+            raise ValueError("this layout state was judged with predict_fields=False: call "
+                             "vdo.layout_state(geometry, cameras) to predict the fields")
+        return self.prediction
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """(N,) int: the number of usable views of each sample (`vdo.physics.usable`: a camera
+        counts where its soft weight reaches `USABLE_WEIGHT`), the coverage of `vdo evaluate`'s
+        summary and maps. (`visibility.coverage` is the hard ray-cast count, before the soft
+        incidence and image-edge weights: not the one to report.)"""
+        return self._predicted().coverage
+
+    @property
+    def sigma_max_um(self) -> np.ndarray:
+        """(N,) µm: worst-direction displacement uncertainty, NaN where unmeasured (fewer than two
+        usable views), as samples.vtp holds it."""
+        p = self._predicted()
+        return np.where(p.measured, p.sigma_max * 1e6, np.nan)
+
+    @property
+    def sigma_xyz_um(self) -> np.ndarray:
+        """(N, 3) µm: uncertainty along world x, y, z, NaN where unmeasured."""
+        p = self._predicted()
+        return np.where(p.measured[:, None], p.sigma_xyz * 1e6, np.nan)
+
+    def region_mask(self, name: str) -> np.ndarray:
+        """(N,) bool: the samples of region `name` (ConfigError, one line, for an unknown name)."""
+        names = self.samples.region_names
+        if name not in names:
+            raise ConfigError(self.experiment.path, f"region {name!r}", f"no such region (regions: "
+                                                                        f"{', '.join(names)})")
+        return self.samples.region == names.index(name)
+
+    def region_stats(self, name: str) -> "RegionStats":
+        """The statistics of region `name` (`RegionStats`, the definitions of `vdo evaluate`'s
+        summary.json)."""
+        mask = self.region_mask(name)
+        area = self.samples.area[mask]
+        need = self.experiment.regions[self.samples.region_names.index(name)].min_cameras \
+            or self.experiment.evaluation.min_cameras
+        cov = self.coverage[mask]
+        sigma, axes = self.sigma_max_um[mask], self.sigma_xyz_um[mask]
+        pct = lambda x, q: float(np.percentile(x[np.isfinite(x)], q)) if np.isfinite(x).any() else None
+        total = float(area.sum())
+        return RegionStats(
+            region=name, area_m2=total, n_samples=int(mask.sum()), min_cameras=int(need),
+            covered_fraction=float(area[cov >= need].sum() / total),
+            seen_by_2_or_more=float(area[cov >= 2].sum() / total),
+            measured_fraction=float(area[np.isfinite(sigma)].sum() / total),
+            sigma_max_um_p50=pct(sigma, 50), sigma_max_um_p95=pct(sigma, 95),
+            sigma_max_um_max=pct(sigma, 100),
+            sigma_x_um_p95=pct(axes[:, 0], 95), sigma_y_um_p95=pct(axes[:, 1], 95),
+            sigma_z_um_p95=pct(axes[:, 2], 95))
+
+    def regions(self) -> list["RegionStats"]:
+        """`region_stats` of every region, in the file's order."""
+        return [self.region_stats(name) for name in self.samples.region_names]
+
+
+@dataclass(frozen=True)
+class RegionStats:
+    """One region of a judged layout (`LayoutState.region_stats`), with the definitions of
+    `vdo evaluate`'s summary.json: fractions are of the region's area; coverage counts usable
+    views (`LayoutState.coverage`); σ percentiles (µm) over the measured samples, None when none
+    is measured; one noisy image (x sqrt 2 when the reference is noisy too)."""
+
+    region: str
+    area_m2: float
+    n_samples: int
+    min_cameras: int                # the region's coverage requirement
+    covered_fraction: float         # area with at least min_cameras usable views
+    seen_by_2_or_more: float        # area with at least 2 usable views
+    measured_fraction: float        # area where the 3D displacement is measured (σ finite)
+    sigma_max_um_p50: float | None
+    sigma_max_um_p95: float | None
+    sigma_max_um_max: float | None
+    sigma_x_um_p95: float | None
+    sigma_y_um_p95: float | None
+    sigma_z_um_p95: float | None
+
+    def to_dict(self) -> dict:
+        """The fields as a flat dict (a CSV row: `vdo.core.table.write_csv`)."""
+        return dataclasses.asdict(self)
+
 
 SAME_POSITION_M = 1e-9   # m: a camera closer than this to its configured optical centre has not moved
 SAME_ANGLE_RAD = 1e-9    # rad: nor turned, within this of its configured pan, tilt and roll
