@@ -306,3 +306,63 @@ def test_region_stats_are_the_summary_numbers(which, beam, steel, tmp_path):
     with pytest.raises(vdo.ConfigError) as err:
         state.region_mask("nowhere")
     assert "regions: " in str(err.value)
+
+
+# ---- sweeps from Python -----------------------------------------------------------------------
+def test_a_python_sweep_of_variants_runs_and_resumes(tmp_path):
+    """Variants built in code through the sweep engine (one local worker): each row holds the
+    numbers of its own experiment judged in this process, and a second call reuses every point."""
+    import csv
+    from vdo.commands.sweep import sweep_variants
+    base = vdo.load(BEAM.parent / "three_cameras.toml").with_settings(evaluation={"sample_spacing_mm": 40})
+    variants = []
+    for focal in (25, 50):
+        exp = base
+        for spec in base.camera_specs:
+            exp = exp.with_camera(spec.name, focal_mm=focal)
+        variants.append(({"focal_mm": focal}, exp))
+    first = sweep_variants(variants, tmp_path / "sweep", workers=1)
+    assert (first["points"], first["done"], first["computed"]) == (2, 2, 2)
+    for (values, exp), row in zip(variants, first["rows"]):
+        assert row["focal_mm"] == values["focal_mm"]
+        mine = vdo.layout_state(vdo.prepare(exp)).region_stats("joint_top")
+        assert row["joint_top.sigma_p95_um"] == pytest.approx(mine.sigma_max_um_p95, rel=1e-9)
+    again = sweep_variants(variants, tmp_path / "sweep", workers=1)
+    assert (again["computed"], again["reused"]) == (0, 2)
+    with open(tmp_path / "sweep" / "results.csv") as fh:
+        assert [r["status"] for r in csv.DictReader(fh)] == ["done", "done"]
+    with pytest.raises(vdo.ConfigError) as err:
+        sweep_variants([({"a": 1}, base), ({"b": 2}, base)], tmp_path / "bad")
+    assert "same keys" in str(err.value)
+
+
+# ---- compilation made predictable ----------------------------------------------------------------
+_COMPILES = {"on": False, "n": 0}
+
+
+def _count(name, secs, **kw):
+    if _COMPILES["on"] and name in ("/jax/core/compile/backend_compile_duration",
+                                    "/jax/compilation_cache/cache_retrieval_time_sec"):
+        _COMPILES["n"] += 1
+
+
+@pytest.mark.parametrize("which,camera,moves", [
+    ("beam", "cam1", [dict(u=float(u)) for u in np.linspace(0.05, 0.95, 50)[:8]]),
+    ("steel", "left", [dict(position_m=[x, -1.3, 0.7]) for x in np.linspace(-1.0, -0.2, 5)]),
+])
+def test_new_camera_positions_compile_nothing_after_warm_up(which, camera, moves, steel):
+    """After `vdo.warm_up`, layouts never judged before (a camera at new rail or zone positions)
+    run no JAX compilation and load nothing from the compilation cache (at 10 mm spacing on the
+    beam, the bucketed pair lists recompiled at new positions)."""
+    import jax
+    exp = vdo.load(BEAM.parent / "three_cameras.toml") if which == "beam" else steel.experiment
+    geometry = vdo.prepare(exp.with_settings(evaluation={"sample_spacing_mm": 10 if which == "beam" else 20}))
+    jax.monitoring.register_event_duration_secs_listener(_count)
+    assert vdo.warm_up(geometry, geometry.with_camera(camera, **moves[0])) > 0
+    _COMPILES.update(on=True, n=0)
+    try:
+        for move in moves[1:]:
+            vdo.layout_state(geometry, geometry.with_camera(camera, **move))
+    finally:
+        _COMPILES["on"] = False
+    assert _COMPILES["n"] == 0

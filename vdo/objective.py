@@ -180,6 +180,7 @@ __all__ = [
 ]
 
 KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (docs/theory.md)
+PAIR_HEADROOM = 1.25   # `ViewData.from_dense` with sizes: the first list's blocks x this, for later layouts
 
 
 # --------------------------------------------------------------------------------------------
@@ -268,7 +269,7 @@ class ViewData(eqx.Module):
     def from_dense(cls, occlusion, contrast, noise, samples: "Samples",
                    cameras: "CameraParams | None" = None, settings: "Settings | None" = None, *,
                    margin_px: float = 64.0, margin_angle: float = math.radians(3.0),
-                   block: int = 1024, chunk_pairs: int = 32768) -> "ViewData":
+                   block: int = 1024, chunk_pairs: int = 32768, sizes: dict | None = None) -> "ViewData":
         """Select the pairs that can have w > 0 from (C, N) arrays (contrast, noise broadcast)
         for the N `samples`.
 
@@ -276,7 +277,13 @@ class ViewData(eqx.Module):
         them: also in front (Z_c > near), inside the image grown by `margin_px` on every side,
         and incidence below `settings.incidence_limit + margin_angle`: exact at these cameras and
         while they move less than the margins (refresh after larger moves). `block` is the
-        most pairs per block, `chunk_pairs` about the pairs per chunk of both passes."""
+        most pairs per block, `chunk_pairs` about the pairs per chunk of both passes.
+
+        `sizes` (a dict kept with the samples, e.g. `vdo.state.Geometry.sizes`) fixes the block
+        count per block size across calls, so that the lists of new camera layouts keep one
+        shape and the programs that read them compile once: the first list sets it to its
+        blocks x `PAIR_HEADROOM` (whole chunks); a longer list raises it (one new shape).
+        Without it the count is `bucket`ed (a new bucket, a new compile)."""
         occ = np.asarray(occlusion, dtype=np.float64)
         if occ.ndim != 2 or occ.shape[1] != samples.points.shape[0]:
             raise ValueError(f"ViewData.from_dense: occlusion must be (C, N) with N = "
@@ -287,10 +294,10 @@ class ViewData(eqx.Module):
         if cameras is not None:
             keep &= _candidates(cameras, samples, settings or Settings(), margin_px, margin_angle)
         return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise,
-                               np.asarray(_sample_table(samples)), block, chunk_pairs)
+                               np.asarray(_sample_table(samples)), block, chunk_pairs, sizes)
 
     @classmethod
-    def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs):
+    def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs, sizes=None):
         """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values;
         table (N, 12) the sample columns (`_sample_table`)."""
         n_cameras = occ.shape[0]
@@ -298,9 +305,15 @@ class ViewData(eqx.Module):
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
         blocks = -(-counts // L)  # per camera
-        n_blocks = bucket(int(blocks.sum()))
-        chunk = max(1, min(chunk_pairs // L, n_blocks))
-        n_blocks = -(-n_blocks // chunk) * chunk
+        if sizes is not None and sizes.get(("blocks", L), (0, 0))[0] >= blocks.sum():
+            n_blocks, chunk = sizes[("blocks", L)]
+        else:
+            n_blocks = bucket(int(blocks.sum())) if sizes is None else \
+                max(1, math.ceil(PAIR_HEADROOM * int(blocks.sum())))
+            chunk = max(1, min(chunk_pairs // L, n_blocks))
+            n_blocks = -(-n_blocks // chunk) * chunk
+            if sizes is not None:
+                sizes[("blocks", L)] = (n_blocks, chunk)
         block_cam = np.zeros(n_blocks, dtype=np.int32)
         block_cam[:blocks.sum()] = np.repeat(np.arange(n_cameras), blocks)
         first_pair = np.cumsum(counts) - counts
@@ -314,6 +327,30 @@ class ViewData(eqx.Module):
         return cls(jnp.asarray(np.repeat(block_cam, L)), jnp.asarray(out_s), jnp.asarray(out_o),
                    jnp.asarray(out_c), jnp.asarray(out_n),
                    jnp.asarray(table[out_s].T.reshape(12, n_blocks, L)), L, chunk)
+
+    @property
+    def n_blocks(self) -> int:
+        """B, the number of blocks (pairs = B x `block`)."""
+        return self.camera.shape[0] // self.block
+
+    def padded(self, n_blocks: int, chunk: int | None = None) -> "ViewData":
+        """This list with padding blocks up to `n_blocks` (>= `n_blocks`, a multiple of `chunk`,
+        the result's blocks per chunk, default this list's):
+        occlusion 0, hence weight and gradient exactly 0; a real sample's geometry (finite). The
+        same values from every program, with the shapes of a larger list: callers fix the size
+        so that new layouts reuse one compiled program (`vdo.optimize`, `vdo.physics.predict`)."""
+        L, B, chunk = self.block, self.n_blocks, chunk or self.chunk
+        if n_blocks < B or n_blocks % chunk:
+            raise ValueError(f"ViewData.padded: {n_blocks} blocks must be >= {B} and a multiple of "
+                             f"the chunk {chunk}")
+        extra = (n_blocks - B) * L   # on the host: an XLA concatenate would compile per shape
+        fill = lambda a, value: jnp.asarray(np.concatenate(  # noqa: E731
+            [np.asarray(a), np.full(extra, value, np.asarray(a).dtype)]))
+        table = np.asarray(self.geometry)
+        geometry = jnp.asarray(np.concatenate([table, np.broadcast_to(
+            table[:, :1, :1], (12, n_blocks - B, L))], axis=1))
+        return ViewData(fill(self.camera, 0), fill(self.sample, 0), fill(self.occlusion, 0.0),
+                        fill(self.contrast, 0.0), fill(self.noise, 1.0), geometry, L, chunk)
 
     @property
     def n_pairs(self) -> int:

@@ -943,14 +943,7 @@ class _Run:
         if self.blocks is None or self.blocks[0] != L or self.blocks[1] < B:
             chunk = views.chunk
             self.blocks = (L, -(-int(1.25 * B) // chunk) * chunk, chunk)
-        _, target, chunk = self.blocks
-        extra = (target - B) * L
-        fill = lambda a, value: jnp.concatenate([a, jnp.full(extra, value, a.dtype)])
-        geometry = jnp.concatenate([views.geometry, jnp.broadcast_to(
-            views.geometry[:, :1, :1], (12, target - B, L))], axis=1)   # a real sample's: finite
-        return objective.ViewData(fill(views.camera, 0), fill(views.sample, 0),
-                                  fill(views.occlusion, 0.0), fill(views.contrast, 0.0),
-                                  fill(views.noise, 1.0), geometry, L, chunk)
+        return views.padded(self.blocks[1], self.blocks[2])
 
 
 class _Progress:

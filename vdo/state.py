@@ -20,6 +20,7 @@ mount with a [mount.tripod] is one, wherever the camera stands (`bodies`).
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -47,6 +48,9 @@ class Geometry:
     speckle: SpeckleModel
     region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
     overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.physics.usable.patch_overlap`)
+    # the fixed pair-list sizes of the layouts judged on it (`vdo.objective.ViewData.from_dense`):
+    # a new camera layout reuses the compiled programs (docs/api.md, "Compilation")
+    sizes: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def centre(self) -> np.ndarray:
@@ -328,8 +332,21 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
                                        samples.tangent_v)
         strain.check_regions(exp.analysis, samples, density, exp.path)
     prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
-                         clip_patch=clip_patch, overlap=geometry.overlap)
+                         clip_patch=clip_patch, overlap=geometry.overlap, sizes=geometry.sizes)
     fields = None if density is None else strain.analysis_fields(
         exp.analysis, density, samples, prediction.information, prediction.measured,
         exp.evaluation.patch_size ** 2)
     return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields, source=exp)
+
+
+def warm_up(geometry: Geometry, cameras=None) -> float:
+    """Compile what judging a layout on `geometry` needs, and fix its pair-list sizes
+    (`Geometry.sizes`), by judging `cameras` (as `layout_state` takes them; default the
+    experiment's) once. Later layouts on this geometry then compile nothing while they see at
+    most `vdo.objective.PAIR_HEADROOM` times the pairs of this one (warm up with the layout that
+    sees the most); the compiled programs also go to the persistent compilation cache
+    (`vdo.configure`), so the next process loads them instead of compiling. Returns the seconds
+    it took."""
+    t0 = time.perf_counter()
+    layout_state(geometry, cameras)
+    return time.perf_counter() - t0
