@@ -50,6 +50,13 @@ _EXPORTS = {
     "ValidationResult": ("vdo.dic.validate", "ValidationResult"),
     "validate_cases": ("vdo.commands.validate", "validate_cases"),
     "write_validation": ("vdo.commands.validate", "write_validation"),
+    # scripting (docs/api.md): edits, regions, your own objective, sweeps from Python
+    "RegionStats": ("vdo.state", "RegionStats"),
+    "write_csv": ("vdo.core.table", "write_csv"),
+    "MountModel": ("vdo.optimize", "MountModel"),
+    "SampleFields": ("vdo.objective", "SampleFields"),
+    "sweep_variants": ("vdo.commands.sweep", "sweep_variants"),
+    "warm_up": ("vdo.state", "warm_up"),
 }
 # The command functions carry a suffix: `vdo.commands.evaluate`, `vdo.render`, ... are the modules.
 

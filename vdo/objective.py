@@ -181,6 +181,7 @@ __all__ = [
 ]
 
 KAPPA_BOX = 1.0 / math.sqrt(12.0)  # std of a box pixel, in pixels (docs/theory.md)
+PAIR_HEADROOM = 1.25   # `ViewData.from_dense` with sizes: the first list's blocks x this, for later layouts
 
 
 # --------------------------------------------------------------------------------------------
@@ -269,7 +270,7 @@ class ViewData(eqx.Module):
     def from_dense(cls, occlusion, contrast, noise, samples: "Samples",
                    cameras: "CameraParams | None" = None, settings: "Settings | None" = None, *,
                    margin_px: float = 64.0, margin_angle: float = math.radians(3.0),
-                   block: int = 1024, chunk_pairs: int = 32768) -> "ViewData":
+                   block: int = 1024, chunk_pairs: int = 32768, sizes: dict | None = None) -> "ViewData":
         """Select the pairs that can have w > 0 from (C, N) arrays (contrast, noise broadcast)
         for the N `samples`.
 
@@ -277,7 +278,13 @@ class ViewData(eqx.Module):
         them: also in front (Z_c > near), inside the image grown by `margin_px` on every side,
         and incidence below `settings.incidence_limit + margin_angle`: exact at these cameras and
         while they move less than the margins (refresh after larger moves). `block` is the
-        most pairs per block, `chunk_pairs` about the pairs per chunk of both passes."""
+        most pairs per block, `chunk_pairs` about the pairs per chunk of both passes.
+
+        `sizes` (a dict kept with the samples, e.g. `vdo.state.Geometry.sizes`) fixes the block
+        count per block size across calls, so that the lists of new camera layouts keep one
+        shape and the programs that read them compile once: the first list sets it to its
+        blocks x `PAIR_HEADROOM` (whole chunks); a longer list raises it (one new shape).
+        Without it the count is `bucket`ed (a new bucket, a new compile)."""
         occ = np.asarray(occlusion, dtype=np.float64)
         if occ.ndim != 2 or occ.shape[1] != samples.points.shape[0]:
             raise ValueError(f"ViewData.from_dense: occlusion must be (C, N) with N = "
@@ -288,10 +295,10 @@ class ViewData(eqx.Module):
         if cameras is not None:
             keep &= _candidates(cameras, samples, settings or Settings(), margin_px, margin_angle)
         return cls._from_pairs(*np.nonzero(keep), occ, contrast, noise,
-                               np.asarray(_sample_table(samples)), block, chunk_pairs)
+                               np.asarray(_sample_table(samples)), block, chunk_pairs, sizes)
 
     @classmethod
-    def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs):
+    def _from_pairs(cls, cam, smp, occ, contrast, noise, table, block, chunk_pairs, sizes=None):
         """cam, smp (K,) sorted by camera then sample (np.nonzero order); dense (C, N) values;
         table (N, 12) the sample columns (`_sample_table`)."""
         n_cameras = occ.shape[0]
@@ -299,9 +306,15 @@ class ViewData(eqx.Module):
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
         blocks = -(-counts // L)  # per camera
-        n_blocks = bucket(int(blocks.sum()))
-        chunk = max(1, min(chunk_pairs // L, n_blocks))
-        n_blocks = -(-n_blocks // chunk) * chunk
+        if sizes is not None and sizes.get(("blocks", L), (0, 0))[0] >= blocks.sum():
+            n_blocks, chunk = sizes[("blocks", L)]
+        else:
+            n_blocks = bucket(int(blocks.sum())) if sizes is None else \
+                max(1, math.ceil(PAIR_HEADROOM * int(blocks.sum())))
+            chunk = max(1, min(chunk_pairs // L, n_blocks))
+            n_blocks = -(-n_blocks // chunk) * chunk
+            if sizes is not None:
+                sizes[("blocks", L)] = (n_blocks, chunk)
         block_cam = np.zeros(n_blocks, dtype=np.int32)
         block_cam[:blocks.sum()] = np.repeat(np.arange(n_cameras), blocks)
         first_pair = np.cumsum(counts) - counts
@@ -315,6 +328,30 @@ class ViewData(eqx.Module):
         return cls(jnp.asarray(np.repeat(block_cam, L)), jnp.asarray(out_s), jnp.asarray(out_o),
                    jnp.asarray(out_c), jnp.asarray(out_n),
                    jnp.asarray(table[out_s].T.reshape(12, n_blocks, L)), L, chunk)
+
+    @property
+    def n_blocks(self) -> int:
+        """B, the number of blocks (pairs = B x `block`)."""
+        return self.camera.shape[0] // self.block
+
+    def padded(self, n_blocks: int, chunk: int | None = None) -> "ViewData":
+        """This list with padding blocks up to `n_blocks` (>= `n_blocks`, a multiple of `chunk`,
+        the result's blocks per chunk, default this list's):
+        occlusion 0, hence weight and gradient exactly 0; a real sample's geometry (finite). The
+        same values from every program, with the shapes of a larger list: callers fix the size
+        so that new layouts reuse one compiled program (`vdo.optimize`, `vdo.physics.predict`)."""
+        L, B, chunk = self.block, self.n_blocks, chunk or self.chunk
+        if n_blocks < B or n_blocks % chunk:
+            raise ValueError(f"ViewData.padded: {n_blocks} blocks must be >= {B} and a multiple of "
+                             f"the chunk {chunk}")
+        extra = (n_blocks - B) * L   # on the host: an XLA concatenate would compile per shape
+        fill = lambda a, value: jnp.asarray(np.concatenate(  # noqa: E731
+            [np.asarray(a), np.full(extra, value, np.asarray(a).dtype)]))
+        table = np.asarray(self.geometry)
+        geometry = jnp.asarray(np.concatenate([table, np.broadcast_to(
+            table[:, :1, :1], (12, n_blocks - B, L))], axis=1))
+        return ViewData(fill(self.camera, 0), fill(self.sample, 0), fill(self.occlusion, 0.0),
+                        fill(self.contrast, 0.0), fill(self.noise, 1.0), geometry, L, chunk)
 
     @property
     def n_pairs(self) -> int:
@@ -1115,3 +1152,49 @@ def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                   sigma_max_smooth=_smooth_sigma_max(ent, settings),
                   coverage=_per_sample(w, views.sample, n), measured=measured,
                   weights=_per_pair_dense(w, views, c, n), information=C)
+
+
+class SampleFields(eqx.Module):
+    """Per-sample fields as differentiable functions of the cameras (`sample_fields`), for a
+    user's own objective. N samples, R regions; sigmas for one noisy image (x sqrt 2 for two).
+
+    information  (N, 3, 3) 1/m^2: C = Omega sum_i w_i |det A_i| C_i (no regularisation)
+    sigma_xyz    (N, 3) m: sqrt(diag Sigma_reg), Sigma_reg = (C + I/prior_sigma^2)^-1: finite
+                 everywhere (about prior_sigma, 1 mm, along a direction no camera measures)
+    sigma_max    (N,) m: the score's smooth sqrt(lam_max(Sigma_reg)) (trace p-norm, at most
+                 3^(1/2p) above the exact value: module docstring)
+    coverage     (N,) cameras: sum_i w_i, the smooth count of usable views (the soft weights w
+                 of the module docstring; with occlusion frozen by the `ViewData`)
+    area         (N,) m^2, region (N,) int in [0, R), importance (R,), min_cameras (R,): the
+                 samples' constants (`Samples`), for weighting
+    """
+
+    information: jax.Array
+    sigma_xyz: jax.Array
+    sigma_max: jax.Array
+    coverage: jax.Array
+    area: jax.Array
+    region: jax.Array
+    importance: jax.Array
+    min_cameras: jax.Array
+
+
+def sample_fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
+                  settings: Settings = Settings()) -> SampleFields:
+    """`SampleFields` of `cameras`: the per-sample sums of the score (the same pair work and
+    hand-written reverse pass, `settings.pair_dtype` per pair), so that `jax.grad` of any
+    function of them w.r.t. the cameras' position, pan, tilt, roll, focal_px, cx, cy works and
+    costs about one score gradient. Traceable (use inside `jax.jit`, `jax.grad`)."""
+    ctab, geometry, occ, kc, one = _pair_inputs(cameras, views, settings,
+                                                jnp.dtype(settings.pair_dtype))
+    n = samples.points.shape[0]
+    *ent, cov = _sample_sums(ctab, geometry, occ, kc, one, views.sample.reshape(occ.shape),
+                             jax.lax.stop_gradient(energy), settings, views.chunk, n)
+    C = _sym_full(ent)
+    reg = C + jnp.eye(3) / settings.prior_sigma ** 2
+    tc = jnp.trace(reg, axis1=-2, axis2=-1)   # scaled to trace 1 before the inverse
+    sigma_xyz = jnp.sqrt(jnp.diagonal(jnp.linalg.inv(reg / tc[:, None, None]), axis1=-2, axis2=-1)
+                         / tc[:, None])
+    return SampleFields(information=C, sigma_xyz=sigma_xyz, sigma_max=_smooth_sigma_max(ent, settings),
+                        coverage=cov, area=samples.area, region=samples.region,
+                        importance=samples.importance, min_cameras=samples.min_cameras)

@@ -78,7 +78,7 @@ from vdo.search import loadpath
 from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
-from vdo.model.camera import Camera, intrinsic_matrix, rotation
+from vdo.model.camera import Camera, aim_point, holds_aim, intrinsic_matrix, rotation
 from vdo.config.experiment import Experiment, inside_floor
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -188,8 +188,7 @@ class Parameterization:
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
-            depth = max(float((np.asarray(centre) - cam.position) @ cam.optical_axis), 0.1)
-            aims.append(cam.position + depth * cam.optical_axis)
+            aims.append(aim_point(cam, centre))
         self.theta0 = np.array(theta, dtype=float)
         self.scale = np.array(scale, dtype=float)   # the solver works in units of these
         self.aims = np.array(aims)
@@ -199,7 +198,7 @@ class Parameterization:
     def _aimed(idx: dict, cam: Camera) -> bool:
         """Aim-relative angles: the position free and the axis not vertical (where the heading is
         undefined)."""
-        return Parameterization.moves(idx) and abs(math.cos(cam.tilt)) > 1e-3
+        return Parameterization.moves(idx) and holds_aim(cam)
 
     @classmethod
     def moves(cls, idx: dict) -> bool:
@@ -358,12 +357,15 @@ class State:
 
 
 class Problem:
-    def __init__(self, exp: Experiment, reference: "Problem | None" = None):
+    def __init__(self, exp: Experiment, reference: "Problem | None" = None, user_objective=None):
         """Everything an objective evaluation needs, for the layout of `exp`. With a `reference`
         (the same experiment with other lenses, `choose_lenses`), its meshes, samples and lighting
         are reused, and so is what the hand layout defined: the regions assigned to each camera
-        and the least in-image fraction of each."""
+        and the least in-image fraction of each (and its `user_objective`). `user_objective`: a
+        JAX-traceable scalar function of `vdo.objective.SampleFields` minimised instead of
+        `vdo.objective.score` (`check_objective`)."""
         self.exp = exp
+        self.user_objective = reference.user_objective if reference is not None else user_objective
         opt = exp.optimize
         if reference is None:
             self.geometry = prepare(exp)
@@ -383,7 +385,7 @@ class Problem:
             keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
-        self.param = Parameterization(exp, exp.cameras(), self.samples.points.mean(axis=0))
+        self.param = Parameterization(exp, exp.cameras(), self.geometry.centre)
         self.cams0 = self.param.cameras
         self.run = reference.run if reference is not None else _Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
@@ -635,8 +637,13 @@ class Problem:
         clearance = clearance + CLEARANCE_MARGIN if clearance > 0 else 0.0
         fov = data["fov"]
         local = data["local"]   # the clearance and shadow sets of an anchor near θ (`local`)
+        if self.user_objective is not None:
+            score = self.user_objective(objective.sample_fields(cams, data["samples"], views, data["energy"],
+                                                                self.settings))
+        else:
+            score = objective.score(cams, data["samples"], views, data["energy"], self.settings)
         out = dict(
-            score=objective.score(cams, data["samples"], views, data["energy"], self.settings),
+            score=score,
             angle=constraints.axis_angle_penalty(R[:, 2, :], data["pairs"], data["min_angles"],
                                                  data["max_angles"]),
             fov=constraints.fov_penalty(constraints.in_image_fraction(
@@ -683,8 +690,16 @@ class Problem:
     def exact_score(self, state: State) -> float:
         """The score at the refreshed layout (µm): `_score_parts`'s, from the one compiled
         `objective.fields` program that the report also uses (`objective.score` gives the same
-        within 1e-7 relative, its pairs in float32, and would be one more program to compile)."""
-        return _score_parts(self, state)["score_um"]
+        within 1e-7 relative, its pairs in float32, and would be one more program to compile).
+        With a `user_objective`, its value at the refreshed layout."""
+        if self.user_objective is None:
+            return _score_parts(self, state)["score_um"]
+        programs = self.run._programs
+        if "user" not in programs:   # one program per run: the layout's arrays are arguments
+            programs["user"] = eqx.filter_jit(lambda cams, views, samples, energy: self.user_objective(
+                objective.sample_fields(cams, samples, views, energy, self.settings)))
+        return float(programs["user"](objective.CameraParams.from_cameras(state.cameras), state.views,
+                                      self.obj_samples, self.speckle.table))
 
 
 def _surface_points(meshes, spacing: float) -> np.ndarray:
@@ -960,14 +975,7 @@ class _Run:
         if self.blocks is None or self.blocks[0] != L or self.blocks[1] < B:
             chunk = views.chunk
             self.blocks = (L, -(-int(1.25 * B) // chunk) * chunk, chunk)
-        _, target, chunk = self.blocks
-        extra = (target - B) * L
-        fill = lambda a, value: jnp.concatenate([a, jnp.full(extra, value, a.dtype)])
-        geometry = jnp.concatenate([views.geometry, jnp.broadcast_to(
-            views.geometry[:, :1, :1], (12, target - B, L))], axis=1)   # a real sample's: finite
-        return objective.ViewData(fill(views.camera, 0), fill(views.sample, 0),
-                                  fill(views.occlusion, 0.0), fill(views.contrast, 0.0),
-                                  fill(views.noise, 1.0), geometry, L, chunk)
+        return views.padded(self.blocks[1], self.blocks[2])
 
 
 class _Progress:
@@ -998,6 +1006,104 @@ class _Progress:
 
     def close(self) -> None:
         self.bar.close()
+
+
+# --------------------------------------------------------------------------------------------
+# A script's own objective: the mount variables -> differentiable per-sample fields
+# --------------------------------------------------------------------------------------------
+class MountModel:
+    """The mount variables of an experiment and the per-sample fields they give, differentiable
+    with JAX: what `vdo optimize` moves, built from its `Problem` (the same parameterisation,
+    samples, speckle, lighting and ray cast).
+
+    theta (P,), the optimizer's unconstrained variables (`Parameterization`), one per free
+    parameter ([optimize] free) of each moving camera ([optimize] cameras), named in `names`:
+    "cam.u": logit of the rail parameter (u = sigmoid(θ), 0..1 along the rail); "cam.x", "cam.y",
+    "cam.z": logit of the fraction of a zone's box along that axis (over a floor polygon
+    "cam.w1", ...: softmax logits of its corners against the first, and "cam.z"); "cam.pan",
+    "cam.tilt" (rad): offsets from the direction to the camera's aim point when its position is
+    free (`vdo.model.camera.aim_point`: sliding keeps the same point in the middle of the image),
+    else absolute; "cam.roll" (rad). `theta0` is the configured layout. focal_mm (C,) the focal
+    length of every camera in mm, a continuous variable (default the configured lenses).
+
+    `fields(theta, focal_mm, views)` is traceable: `jax.grad(lambda t: f(model.fields(t)))`
+    works for any JAX function f of the `vdo.objective.SampleFields`. The ray-cast occlusion and
+    the lighting are frozen at the layout `views` was cast at (default the configured one;
+    `refresh(theta)` casts them at θ), as within one round of `vdo optimize`. `float64`: the
+    per-pair work in float64 (for checks against finite differences; the optimizer's float32
+    pairs carry ~1e-7 relative rounding)."""
+
+    def __init__(self, exp: Experiment, float64: bool = False):
+        self.problem = problem = Problem(exp)
+        if float64:
+            problem.settings = dataclasses.replace(problem.settings, pair_dtype="float64")
+        self.theta0 = problem.param.theta0.copy()
+        self.names = [""] * len(self.theta0)
+        for cam, idx in zip(problem.cams0, problem.param.index):
+            for name, k in idx.items():
+                self.names[k] = f"{cam.name}.{name}"
+        self.focal0_mm = np.array([c.focal_length * 1e3 for c in problem.cams0])
+        self.pixel_size = jnp.asarray([c.pixel_size for c in problem.cams0])
+        self.views = problem.start.views
+
+    def camera_params(self, theta, focal_mm=None) -> objective.CameraParams:
+        """The cameras at (θ, focal_mm) as `vdo.objective.CameraParams` (traceable)."""
+        data = self.problem.data
+        pos, pan, tilt, roll = self.problem.param.poses(jnp.asarray(theta), data["held"])
+        f = data["focal_px"] if focal_mm is None else jnp.asarray(focal_mm) * 1e-3 / self.pixel_size
+        size = data["size"]
+        return objective.CameraParams(pos, pan, tilt, roll, f, data["cx"], data["cy"], size[:, 0],
+                                      size[:, 1], data["distortion"])
+
+    def fields(self, theta, focal_mm=None, views=None) -> objective.SampleFields:
+        """The per-sample fields at (θ, focal_mm) (`vdo.objective.sample_fields`), traceable."""
+        p = self.problem
+        return objective.sample_fields(self.camera_params(theta, focal_mm), p.obj_samples,
+                                       self.views if views is None else views, p.speckle.table,
+                                       p.settings)
+
+    def refresh(self, theta) -> objective.ViewData:
+        """The ray cast and lighting at θ, as the frozen `views` of `fields`."""
+        return self.problem.refresh(np.asarray(theta, dtype=float)).views
+
+    def cameras_at(self, theta) -> list[Camera]:
+        """The `vdo.model.camera.Camera`s at θ (configured lenses)."""
+        return self.problem.param.cameras_at(np.asarray(theta, dtype=float))
+
+    def experiment_at(self, theta) -> Experiment:
+        """The experiment with its cameras at θ (rail parameter, zone position, pan/tilt/roll),
+        e.g. for `vdo.layout_state` or writing with `vdo.write_evaluation`."""
+        return self.problem.exp.with_cameras(self.problem.param.specs_at(np.asarray(theta, dtype=float)))
+
+
+def check_objective(user_objective, exp: Experiment) -> None:
+    """Refuse, in one line (`ConfigError`), a user objective that is not callable, not
+    JAX-traceable or not a real scalar: it is traced once on four placeholder samples
+    (`jax.eval_shape`, no computation) before any heavy work."""
+    name = getattr(user_objective, "__name__", type(user_objective).__name__)
+    where = f"objective {name}"
+    if not callable(user_objective):
+        raise ConfigError("optimize_experiment", where, "must be a function of vdo.objective.SampleFields "
+                                                        "returning a scalar")
+    n, r = 4, len(exp.regions)
+    f = jax.ShapeDtypeStruct
+    probe = objective.SampleFields(
+        information=f((n, 3, 3), jnp.float64), sigma_xyz=f((n, 3), jnp.float64),
+        sigma_max=f((n,), jnp.float64), coverage=f((n,), jnp.float64), area=f((n,), jnp.float64),
+        region=f((n,), jnp.int64), importance=f((r,), jnp.float64), min_cameras=f((r,), jnp.float64))
+    try:
+        out = jax.eval_shape(user_objective, probe)
+    except Exception as exc:   # any failure to trace: numpy on a tracer, float(), a Python branch
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise ConfigError("optimize_experiment", where,
+                          f"is not JAX-traceable ({type(exc).__name__}: {first[:160]}); write it with "
+                          "jax.numpy on the fields' arrays (no numpy, float() or if on their values)") from None
+    shape = getattr(out, "shape", None)
+    if shape != () or not jnp.issubdtype(out.dtype, jnp.floating):
+        raise ConfigError("optimize_experiment", where,
+                          f"returns {'shape ' + str(shape) if shape is not None else type(out).__name__}"
+                          f"{'' if shape != () else ' of ' + str(out.dtype)}; return one real "
+                          "number, e.g. jnp.sum(fields.area * fields.sigma_max) / jnp.sum(fields.area)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -1161,7 +1267,7 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
     run = problem.run
     moving = [i for i, idx in enumerate(problem.param.index) if idx]
 
-    centre = problem.samples.points.mean(axis=0)
+    centre = problem.geometry.centre
 
     def trial(current: Result, c: int, focal: float) -> Problem:
         specs = current.problem.param.specs_at(current.theta)
@@ -1170,9 +1276,9 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
         if zone is not None and Parameterization.moves(problem.param.index[c]):
             # in a zone, step along the axis so that the regions keep their size in the image
             cam = current.state.cameras[c]
-            depth = max(float((centre - cam.position) @ cam.optical_axis), 0.1)
+            aim = aim_point(cam, centre)
+            depth = float((aim - cam.position) @ cam.optical_axis)
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
-            aim = cam.position + depth * cam.optical_axis
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
             if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
                 moved = cam.position   # not over the floor: screen it where it stands
@@ -1339,9 +1445,18 @@ DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
 
 
 def optimize(exp: Experiment, out: Path, overwrite: bool = False,
-             time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None) -> dict:
+             time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
+             objective=None) -> dict:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
     constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
+
+    `objective`: a user's function of `vdo.objective.SampleFields` returning a JAX scalar,
+    minimised instead of the built-in score with the same constraints, penalty rounds,
+    visibility refreshes, starts, lens choice and anytime stop (`MountModel` documents the
+    fields' variables); refused in one line when it is not traceable or not a scalar
+    (`check_objective`). Scale it like the built-in score (a few units at a good layout, e.g.
+    micrometres): the penalties weigh ~1 at a clear violation. The returned and written
+    score_before/score_after are then its values.
 
     Anytime: the search ends when every round has run, after `time_limit` seconds (> 0), or on a
     stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
@@ -1351,11 +1466,13 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
+    if objective is not None:
+        check_objective(objective, exp)
     own = stop is None
     stop = Stop(time_limit) if own else stop
     stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
     with (stop_on_signals(stop) if own else contextlib.nullcontext()):
-        problem = Problem(exp)
+        problem = Problem(exp, user_objective=objective)
         run = problem.run
         run.stop = stop
         opt = exp.optimize
@@ -1387,6 +1504,10 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     checks_before = problem.check(problem.start)
     score_before = _score_parts(problem, problem.start)
     score_after = _score_parts(final, best.state)
+    if objective is not None:   # the user's objective's values: what was minimised
+        score_before["score_um"] = problem.exact_score(problem.start)
+        score_after["score_um"] = best.score
+        score_before["objective"] = score_after["objective"] = getattr(objective, "__name__", "user")
     joint = _joint_p95(before), _joint_p95(after)
     log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
              score_before["score_um"], score_after["score_um"], best.violations)

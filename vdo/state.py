@@ -19,11 +19,17 @@ mount with a [mount.tripod] is one, wherever the camera stands (`bodies`).
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
 
 from vdo.physics import strain
 from vdo.model.camera import Camera
-from vdo.config.experiment import Experiment
+from vdo.config.experiment import CameraSpec, Experiment, inside_floor
+from vdo.core.errors import ConfigError
 from vdo.physics.lighting import Illumination, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
@@ -42,12 +48,27 @@ class Geometry:
     speckle: SpeckleModel
     region_faces: tuple[RegionFaces, ...]   # the faces each region selects, in config order
     overlap: object    # (N, N) sparse patch-cell overlap of the samples (`vdo.physics.usable.patch_overlap`)
+    # the fixed pair-list sizes of the layouts judged on it (`vdo.objective.ViewData.from_dense`):
+    # a new camera layout reuses the compiled programs (docs/api.md, "Compilation")
+    sizes: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """The regions' centroid (m): the mean of the surface samples, the depth at which a moved
+        camera keeps its aim (`Experiment.with_camera`, `vdo optimize`)."""
+        return self.samples.points.mean(axis=0)
+
+    def with_camera(self, name: str, **fields) -> Experiment:
+        """`Experiment.with_camera` on this geometry's experiment, re-aiming at `centre`."""
+        return self.experiment.with_camera(name, centre=self.centre, **fields)
 
 
 @dataclass(frozen=True, eq=False)
 class LayoutState:
     """One camera layout judged on one geometry. `scene` is the Mitsuba scene of the meshes and
-    the camera bodies (for further ray casts); `prediction` is None when not asked for."""
+    the camera bodies (for further ray casts); `prediction` is None when not asked for. `source`
+    is the experiment whose settings (lights, sensor, analysis) it was judged with (default: the
+    geometry's)."""
 
     geometry: Geometry
     cameras: tuple[Camera, ...]
@@ -56,14 +77,200 @@ class LayoutState:
     illumination: Illumination
     prediction: Prediction | None
     strain: tuple | None = None    # (sigma of the strain (N, 3), of the analysis' displacement (N,))
+    source: Experiment | None = None
 
-    @property
+    @cached_property
     def experiment(self) -> Experiment:
-        return self.geometry.experiment
+        """The experiment this state was judged with, cameras included: `source` (or the
+        geometry's experiment) with its [[camera]] tables describing `cameras`
+        (`experiment_with_cameras`), the one `write_evaluation` writes as config.toml."""
+        return experiment_with_cameras(self.source or self.geometry.experiment, self.cameras)
 
     @property
     def samples(self) -> SurfaceSamples:
         return self.geometry.samples
+
+    # -- for scripts: the fields in named units, per region ----------------------------------
+    def _predicted(self) -> Prediction:
+        if self.prediction is None:
+            raise ValueError("this layout state was judged with predict_fields=False: call "
+                             "vdo.layout_state(geometry, cameras) to predict the fields")
+        return self.prediction
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """(N,) int: the number of usable views of each sample (`vdo.physics.usable`: a camera
+        counts where its soft weight reaches `USABLE_WEIGHT`), the coverage of `vdo evaluate`'s
+        summary and maps. (`visibility.coverage` is the hard ray-cast count, before the soft
+        incidence and image-edge weights: not the one to report.)"""
+        return self._predicted().coverage
+
+    @property
+    def sigma_max_um(self) -> np.ndarray:
+        """(N,) µm: worst-direction displacement uncertainty, NaN where unmeasured (fewer than two
+        usable views), as samples.vtp holds it."""
+        p = self._predicted()
+        return np.where(p.measured, p.sigma_max * 1e6, np.nan)
+
+    @property
+    def sigma_xyz_um(self) -> np.ndarray:
+        """(N, 3) µm: uncertainty along world x, y, z, NaN where unmeasured."""
+        p = self._predicted()
+        return np.where(p.measured[:, None], p.sigma_xyz * 1e6, np.nan)
+
+    def region_mask(self, name: str) -> np.ndarray:
+        """(N,) bool: the samples of region `name` (ConfigError, one line, for an unknown name)."""
+        names = self.samples.region_names
+        if name not in names:
+            raise ConfigError(self.experiment.path, f"region {name!r}", f"no such region (regions: "
+                                                                        f"{', '.join(names)})")
+        return self.samples.region == names.index(name)
+
+    def region_stats(self, name: str) -> "RegionStats":
+        """The statistics of region `name` (`RegionStats`, the definitions of `vdo evaluate`'s
+        summary.json)."""
+        mask = self.region_mask(name)
+        area = self.samples.area[mask]
+        need = self.experiment.regions[self.samples.region_names.index(name)].min_cameras \
+            or self.experiment.evaluation.min_cameras
+        cov = self.coverage[mask]
+        sigma, axes = self.sigma_max_um[mask], self.sigma_xyz_um[mask]
+        pct = lambda x, q: float(np.percentile(x[np.isfinite(x)], q)) if np.isfinite(x).any() else None
+        total = float(area.sum())
+        return RegionStats(
+            region=name, area_m2=total, n_samples=int(mask.sum()), min_cameras=int(need),
+            covered_fraction=float(area[cov >= need].sum() / total),
+            seen_by_2_or_more=float(area[cov >= 2].sum() / total),
+            measured_fraction=float(area[np.isfinite(sigma)].sum() / total),
+            sigma_max_um_p50=pct(sigma, 50), sigma_max_um_p95=pct(sigma, 95),
+            sigma_max_um_max=pct(sigma, 100),
+            sigma_x_um_p95=pct(axes[:, 0], 95), sigma_y_um_p95=pct(axes[:, 1], 95),
+            sigma_z_um_p95=pct(axes[:, 2], 95))
+
+    def regions(self) -> list["RegionStats"]:
+        """`region_stats` of every region, in the file's order."""
+        return [self.region_stats(name) for name in self.samples.region_names]
+
+
+@dataclass(frozen=True)
+class RegionStats:
+    """One region of a judged layout (`LayoutState.region_stats`), with the definitions of
+    `vdo evaluate`'s summary.json: fractions are of the region's area; coverage counts usable
+    views (`LayoutState.coverage`); σ percentiles (µm) over the measured samples, None when none
+    is measured; one noisy image (x sqrt 2 when the reference is noisy too)."""
+
+    region: str
+    area_m2: float
+    n_samples: int
+    min_cameras: int                # the region's coverage requirement
+    covered_fraction: float         # area with at least min_cameras usable views
+    seen_by_2_or_more: float        # area with at least 2 usable views
+    measured_fraction: float        # area where the 3D displacement is measured (σ finite)
+    sigma_max_um_p50: float | None
+    sigma_max_um_p95: float | None
+    sigma_max_um_max: float | None
+    sigma_x_um_p95: float | None
+    sigma_y_um_p95: float | None
+    sigma_z_um_p95: float | None
+
+    def to_dict(self) -> dict:
+        """The fields as a flat dict (a CSV row: `vdo.core.table.write_csv`)."""
+        return dataclasses.asdict(self)
+
+
+SAME_POSITION_M = 1e-9   # m: a camera closer than this to its configured optical centre has not moved
+SAME_ANGLE_RAD = 1e-9    # rad: nor turned, within this of its configured pan, tilt and roll
+SAME_REL = 1e-12         # relative: a sensor width that differs by less is the same (rounding)
+GEOMETRY_TABLES = ("mesh", "region", "speckle", "evaluation")   # what `prepare` reads ...
+GEOMETRY_KEYS = {"evaluation": ("sample_spacing_mm", "patch_mm")}   # ... of these tables only these keys
+
+
+def experiment_with_cameras(exp: Experiment, cameras) -> Experiment:
+    """`exp` with [[camera]] tables that describe `cameras` (`vdo.model.camera.Camera`s): a camera
+    of `exp` keeps its table where it has not moved or turned (within `SAME_POSITION_M`,
+    `SAME_ANGLE_RAD`); moved, it keeps its zone mount while inside the zone, else stands at
+    `position_m`; turned (or moved), it is aimed by pan, tilt and roll; its lens, sensor and
+    distortion are the camera's. A camera `exp` does not list (a probe) is added with
+    `body = false`; a camera of `exp` absent from `cameras` is dropped. `exp` itself when every
+    camera is as it configures them."""
+    cameras = tuple(cameras)
+    configured = {c.name: c for c in exp.cameras()}
+    specs = {s.name: s for s in exp.camera_specs}
+    out = []
+    for cam in cameras:
+        lens = dict(focal_length=float(cam.focal_length), sensor_width=float(cam.pixel_size * cam.width),
+                    pixels=(int(cam.width), int(cam.height)),
+                    principal_offset_px=tuple(float(x) for x in cam.principal_offset_px),
+                    distortion=tuple(float(x) for x in cam.distortion))
+        aim = dict(target=None, pan=float(cam.pan), tilt=float(cam.tilt), roll=float(cam.roll))
+        position = np.asarray(cam.position, dtype=float)
+        if cam.name not in specs:
+            out.append(CameraSpec(name=cam.name, position=position, body=False, **lens, **aim))
+            continue
+        spec, before = specs[cam.name], configured[cam.name]
+        if abs(lens["sensor_width"] - spec.sensor_width) <= SAME_REL * spec.sensor_width:
+            lens["sensor_width"] = spec.sensor_width   # pixel size x width rounds it
+        moved = np.linalg.norm(position - before.position) > SAME_POSITION_M
+        turned = max(abs(a - b) for a, b in zip((cam.pan, cam.tilt, cam.roll),
+                                                 (before.pan, before.tilt, before.roll))) > SAME_ANGLE_RAD
+        spec = dataclasses.replace(spec, **lens, **(aim if moved or turned else {}))
+        if moved:
+            zone = exp.mount(spec.mount) if spec.mount else None
+            inside = (zone is not None and zone.kind == "zone" and np.all(position >= zone.low)
+                      and np.all(position <= zone.high)
+                      and (zone.floor is None or inside_floor(zone.floor, position[:2])))
+            spec = dataclasses.replace(spec, position=position, rail=None, u=None,
+                                       offset=np.zeros(3), mount=spec.mount if inside else None)
+        out.append(spec)
+    unchanged = len(out) == len(exp.camera_specs) and all(
+        a is b or (a.name == b.name and all(_same(getattr(a, f.name), getattr(b, f.name))
+                                            for f in dataclasses.fields(a)))
+        for a, b in zip(out, exp.camera_specs))
+    return exp if unchanged else exp.with_cameras(out)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return a is not None and b is not None and np.array_equal(a, b)
+    return a == b
+
+
+def check_geometry(geometry: Geometry, exp: Experiment) -> None:
+    """Refuse (`ConfigError`, one line naming the first field that differs) an experiment whose
+    meshes, regions, speckle or sample spacing and patch (what `prepare` read) differ from those
+    of the experiment `geometry` was prepared from."""
+    if exp is geometry.experiment:
+        return
+    mine, theirs = geometry.experiment.to_dict(), exp.to_dict()
+    for table in GEOMETRY_TABLES:
+        a, b = mine.get(table), theirs.get(table)
+        keys = GEOMETRY_KEYS.get(table)
+        if keys is not None:
+            a, b = ({k: t.get(k) for k in keys} for t in (a or {}, b or {}))
+        field = _first_difference(table, a, b)
+        if field is not None:
+            raise ConfigError(exp.path, field, f"differs from the experiment the geometry was prepared "
+                                               f"from ({geometry.experiment.path.name}): prepare a "
+                                               "geometry for this one, vdo.prepare(exp)")
+
+
+def _first_difference(table: str, a, b) -> str | None:
+    """The field name (`region "joint".box_max_m`) of the first difference of two TOML tables (or
+    arrays of named tables), None when equal."""
+    if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+        for x, y in zip(a, b):
+            if x.get("name") != y.get("name"):
+                return table
+            field = _first_difference(f'{table} "{x.get("name")}"', x, y)
+            if field is not None:
+                return field
+        return None
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in list(a) + [k for k in b if k not in a]:
+            if a.get(key) != b.get(key):
+                return f"{table}.{key}"
+        return None
+    return None if a == b else table
 
 
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
@@ -93,13 +300,20 @@ def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
                  strain_fields: bool = True, clip_patch: bool = True, progress: bool = False,
                  unobstructed: Illumination | None = None) -> LayoutState:
-    """Judge `cameras` (default: the experiment's own) on `geometry`: ray cast, lighting and,
+    """Judge `cameras` on `geometry`: a list of `Camera`s (judged with the geometry's
+    experiment's settings), an `Experiment` (an edited or re-parsed copy of the geometry's:
+    its cameras and its settings; refused in one line by `check_geometry` when its meshes,
+    regions, speckle, sample spacing or patch differ from the geometry's), or None (the
+    geometry's experiment's own cameras). Ray cast, lighting and,
     with `predict_fields`, the predicted sensitivity and uncertainty (`vdo.physics.predict`; `clip_patch`
     False keeps every sample's whole DIC patch, for samples that each stand for a whole patch)
     and, with `strain_fields` too, the strain uncertainty of the `[analysis]` (`vdo.physics.strain`).
     `unobstructed`, the lighting of `geometry` without camera bodies (`unobstructed_lighting`),
     when given, makes the lighting cheaper and leaves it the same (`vdo.physics.lighting.relight`)."""
     exp = geometry.experiment
+    if isinstance(cameras, Experiment):
+        check_geometry(geometry, cameras)
+        exp, cameras = cameras, cameras.cameras()
     cameras = tuple(exp.cameras() if cameras is None else cameras)
     obstacles = bodies(exp, cameras)
     scene = build_scene(list(geometry.meshes) + obstacles)
@@ -111,15 +325,28 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
     else:
         illumination = relight(scene, exp.lights, samples, unobstructed, [b.vertices for b in obstacles])
     if not predict_fields:
-        return LayoutState(geometry, cameras, scene, vis, illumination, None)
+        return LayoutState(geometry, cameras, scene, vis, illumination, None, source=exp)
     density = None
     if strain_fields:   # checked before the prediction: a bad [analysis] fails early
         density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
                                        samples.tangent_v)
         strain.check_regions(exp.analysis, samples, density, exp.path)
     prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
-                         clip_patch=clip_patch, overlap=geometry.overlap)
+                         clip_patch=clip_patch, overlap=geometry.overlap, sizes=geometry.sizes)
     fields = None if density is None else strain.analysis_fields(
         exp.analysis, density, samples, prediction.information, prediction.measured,
         exp.evaluation.patch_size ** 2)
-    return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields)
+    return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields, source=exp)
+
+
+def warm_up(geometry: Geometry, cameras=None) -> float:
+    """Compile what judging a layout on `geometry` needs, and fix its pair-list sizes
+    (`Geometry.sizes`), by judging `cameras` (as `layout_state` takes them; default the
+    experiment's) once. Later layouts on this geometry then compile nothing while they see at
+    most `vdo.objective.PAIR_HEADROOM` times the pairs of this one (warm up with the layout that
+    sees the most); the compiled programs also go to the persistent compilation cache
+    (`vdo.configure`), so the next process loads them instead of compiling. Returns the seconds
+    it took."""
+    t0 = time.perf_counter()
+    layout_state(geometry, cameras)
+    return time.perf_counter() - t0

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import Table, parse, read_toml, sections, with_overrides
+from vdo.config.experiment import Experiment, Table, parse, read_toml, sections, with_overrides
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar as progress_bar
 from vdo.core.tolerances import LIMIT_SLACK
@@ -649,6 +649,60 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     out = open_store(out)
     points = expand(spec, out)
     check_points(spec, points)
+    return run_sweep(spec, points, out, spec.path.read_text(), workers, dask, connect_timeout)
+
+
+def sweep_variants(variants, out, action: str = "evaluate", workers: int | None = None,
+                   dask: str | None = None, name: str = "variants", connect_timeout: float = 5.0) -> dict:
+    """The sweep engine on experiments built in code: `variants` is a list of `Experiment`s
+    (e.g. from `Experiment.with_camera` / `with_settings`), each alone (its column "variant" is
+    its index) or as a pair (values, experiment), values a dict of the columns that describe it
+    (``{"focal_mm": 50, "camera": "cam2"}``; every variant the same keys) or a label. Runs
+    `action` ("evaluate" or "optimize") on each in a local pool of `workers` processes or on
+    Dask (`dask`: an address or "local"), into the resumable store `out` exactly as `vdo sweep`
+    does (a variant whose experiment was stored before is not run again; results.csv,
+    points/KEY.json, figures/); returns `sweep`'s dict. ConfigError (one line) for a bad list."""
+    if action not in ACTIONS:
+        raise ConfigError("sweep_variants", "action", f"must be one of {', '.join(ACTIONS)} (got {action!r})")
+    if not isinstance(variants, (list, tuple)) or not variants:
+        raise ConfigError("sweep_variants", "variants", "give a non-empty list of experiments or "
+                                                        "(values, experiment) pairs")
+    pairs = []
+    for i, item in enumerate(variants):
+        values, exp = item if isinstance(item, tuple) and len(item) == 2 else (i, item)
+        values = values if isinstance(values, dict) else {"variant": values}
+        if not isinstance(exp, Experiment):
+            raise ConfigError("sweep_variants", f"variant {i}", f"is a {type(exp).__name__}, not a "
+                                                                "vdo.Experiment (vdo.load, with_camera, ...)")
+        if pairs and set(values) != set(pairs[0][0]):
+            raise ConfigError("sweep_variants", f"variant {i}", f"describes itself by {sorted(values)}, "
+                                                                f"variant 0 by {sorted(pairs[0][0])}: "
+                                                                "give every variant the same keys")
+        pairs.append((values, exp))
+    out = open_store(out)
+    bases = list(dict.fromkeys(str(exp.path) for _, exp in pairs))
+    labels = {b: Path(b).name if len(bases) == 1 else f"{k}:{Path(b).name}" for k, b in enumerate(bases)}
+    axes = tuple(Axis(path=k, tokens=(k,), values=tuple(dict.fromkeys(v[k] for v, _ in pairs)),
+                      draw=None, zip=None) for k in pairs[0][0])
+    spec = SweepSpec(path=Path(bases[0]), name=name, experiments=tuple((labels[b], Path(b)) for b in bases),
+                     action=action, axes=axes, samples=None, seed=0, run_folders=False, regions=None,
+                     pareto=(None, None))
+    points = []
+    for values, exp in pairs:
+        config = exp.to_dict()   # absolute file paths: the point reads what the experiment read
+        key = point_key(config, action)
+        points.append(Point(index=len(points), key=key, experiment=labels[str(exp.path)], base=str(exp.path),
+                            axes=values, config=config, action=action,
+                            run_dir=str(out / "runs" / key) if action == "optimize" else None))
+    source = (f"# {name}: {len(points)} variants built in Python (vdo.sweep_variants); each point's "
+              "experiment is in points/KEY.json\n")
+    return run_sweep(spec, points, out, source, workers, dask, connect_timeout)
+
+
+def run_sweep(spec: SweepSpec, points: list[Point], out: Path, source: str, workers: int | None,
+              dask: str | None, connect_timeout: float) -> dict:
+    """Run the `points` not yet stored in the store `out` (`open_store`) and write results.csv and
+    figures/ (`sweep`, `sweep_variants`); `source` is kept as sweep.toml."""
     records = {p.key: load_record(out, p.key) for p in points}
     finished = {k for k, r in records.items() if r and r["status"] == "done"}
     todo = list({p.key: p for p in points if p.key not in finished}.values())
@@ -663,7 +717,7 @@ def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = N
     (out / "points").mkdir(parents=True, exist_ok=True)
     write_atomic(out / MARKER, json.dumps({"vdo_sweep": 1, "vdo": vdo_version(),
                                            "sweep": str(spec.path), "points": len(points)}, indent=2))
-    write_atomic(out / "sweep.toml", spec.path.read_text())
+    write_atomic(out / "sweep.toml", source)
 
     def table():
         write_table(out / "results.csv", [row(p, records[p.key], several) for p in points])

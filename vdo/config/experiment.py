@@ -46,6 +46,8 @@ MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float ima
 FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
 MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
 COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
+MAX_ANGLE_DEG = 360.0              # a camera angle beyond ±360° is radians or a typo
+ANGLE_WHY = "an angle in degrees (a value in radians? multiply by 57.3)"
 IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
                b"MM\x00*": "TIFF", b"BM": "BMP"}
 _UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
@@ -542,11 +544,11 @@ class CameraSpec:
                                       shown="or this", doc="optical centre")
     target: np.ndarray | None = row("target_m", Vector(3, letters="xyz"), None, unit="m",
                                     shown="either this", doc="aim the optical axis at a point")
-    pan: float | None = row("pan_deg", Real(), None, unit="deg", shown="or pan + tilt",
+    pan: float | None = row("pan_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), None, unit="deg", shown="or pan + tilt",
                             doc="azimuth from +x toward +y")
-    tilt: float | None = row("tilt_deg", Real(), None, unit="deg", shown="or pan + tilt",
+    tilt: float | None = row("tilt_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), None, unit="deg", shown="or pan + tilt",
                              doc="elevation (negative looks down)")
-    roll: float = row("roll_deg", Real(), 0.0, unit="deg", doc="0 keeps the image x axis horizontal")
+    roll: float = row("roll_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), 0.0, unit="deg", doc="0 keeps the image x axis horizontal")
     principal_offset_px: tuple[float, float] = row(
         "principal_offset_px", Vector(2, as_tuple=True, letters=("dx", "dy")), [0.0, 0.0],
         doc="principal point offset from the image centre")
@@ -1259,7 +1261,90 @@ class Experiment:
         return out
 
     def with_cameras(self, specs) -> "Experiment":
+        """This experiment with other `CameraSpec`s (SI units, unchecked: for code that builds
+        specs from a checked experiment, e.g. `vdo optimize`). From a script use `with_camera`."""
         return replace(self, camera_specs=tuple(specs))
+
+    PLACEMENT = ("rail", "u", "offset_m", "mount", "position_m")   # the keys that move a camera
+    AIM = ("target_m", "pan_deg", "tilt_deg")                      # the keys that aim it
+
+    def with_camera(self, name: str, *, centre=None, **fields) -> "Experiment":
+        """This experiment with camera `name` edited, checked as the file is: `fields` are the
+        [[camera]] keys of the file in its units (``u=0.3, focal_mm=50, pan_deg=-20,
+        target_m=[x, y, z], position_m=..., mount="zone1"``; docs/config.md), and any mistake
+        (off a rail, outside a zone, a focal length out of range, an angle beyond ±360°, an
+        unknown key) raises the file's one-line `ConfigError` naming the camera and the field.
+
+        A new placement replaces the old: `rail` or `mount` drops the camera's rail, u, offset and
+        position; `position_m` on a rail camera takes it off the rail; `u` or `offset_m` keep it.
+        Likewise `target_m` replaces pan and tilt, and `pan_deg` or `tilt_deg` replaces a target
+        (the other angle is kept). A camera aimed with `target_m` keeps looking at its target
+        when it moves. One aimed with pan and tilt re-aims as `vdo optimize` does: after the
+        move it looks at its `vdo.model.camera.aim_point`, the point of its old optical axis at
+        the depth of `centre` (m; the regions' centroid, `Geometry.centre`; `Geometry.with_camera`
+        passes it), with its roll kept (a camera whose axis is vertical keeps its angles,
+        `holds_aim`). Giving pan/tilt or a target with the move aims it as given."""
+        from vdo.model.camera import aim_point, holds_aim, look_at_angles
+        where = f'camera "{name}"'
+        data = self.to_dict()
+        entries = data["camera"]
+        index = next((i for i, c in enumerate(entries) if c["name"] == name), None)
+        if index is None:
+            raise ConfigError(self.path, where, f"no [[camera]] named {name!r} (cameras: "
+                                                f"{', '.join(c['name'] for c in entries)})")
+        known = tuple(r.key for r in rows_of(CameraSpec)) + ("sensor_mm",)
+        for key in fields:
+            if key not in known:
+                raise ConfigError(self.path, f"{where}.{key}", _unknown_field(key, known))
+        entry = {k: v for k, v in entries[index].items() if k not in fields}
+        drop = set()
+        if "rail" in fields or "mount" in fields:
+            drop |= {"rail", "u", "offset_m", "mount", "position_m"}
+        if "position_m" in fields and "rail" in entry:
+            drop |= {"rail", "u", "offset_m"}
+        if "target_m" in fields:
+            drop |= {"pan_deg", "tilt_deg"}
+        if "pan_deg" in fields or "tilt_deg" in fields:
+            old = self.cameras()[index]
+            entry.setdefault("pan_deg", math.degrees(old.pan))
+            entry.setdefault("tilt_deg", math.degrees(old.tilt))
+            drop.add("target_m")
+        if "sensor_mm" in fields:
+            drop.add("sensor_width_mm")
+        entry = {k: v for k, v in entry.items() if k not in drop - set(fields)} | fields
+        moved = any(k in fields for k in self.PLACEMENT)
+        reaim = moved and not any(k in fields for k in self.AIM) and "target_m" not in entry
+        old = self.cameras()[index] if reaim else None
+        data["camera"] = entries[:index] + [entry] + entries[index + 1:]
+        edited = parse(data, self.path)
+        if reaim and holds_aim(old) and centre is None:
+            raise ConfigError(self.path, where, "moves, and a camera aimed with pan and tilt re-aims "
+                                                "at the depth of the regions' centre: pass centre="
+                                                "geometry.centre (or call geometry.with_camera), or "
+                                                "give pan_deg + tilt_deg or target_m")
+        if reaim and holds_aim(old):
+            pan, tilt = look_at_angles(edited.cameras()[index].position, aim_point(old, centre))
+            entry = entry | {"pan_deg": math.degrees(pan), "tilt_deg": math.degrees(tilt)}
+            data["camera"] = entries[:index] + [entry] + entries[index + 1:]
+            edited = parse(data, self.path)
+        return edited
+
+    def with_settings(self, **tables) -> "Experiment":
+        """This experiment with keys of its single tables changed, checked as the file is:
+        ``exp.with_settings(evaluation={"sample_spacing_mm": 20}, sensor={"read_noise_e": 3})``
+        (file keys and units, docs/config.md; the other keys of each table keep their values).
+        Cameras: `with_camera`."""
+        single = tuple(sec.key for sec in sections() if not sec.array)
+        data = self.to_dict()
+        for key, values in tables.items():
+            if key not in single:
+                raise ConfigError(self.path, key, f"with_settings edits the tables {', '.join(single)}"
+                                                  " (a camera: with_camera)")
+            if not isinstance(values, dict):
+                raise ConfigError(self.path, key, f"give a dict of {key} keys, e.g. "
+                                                  f"{key}={{{next(iter(data.get(key, {'key': 1})))!r}: ...}}")
+            data[key] = data.get(key, {}) | values
+        return parse(data, self.path)
 
     def to_dict(self) -> dict:
         """The experiment as a TOML-ready dict: every table, defaults filled, absolute paths;

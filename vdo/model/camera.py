@@ -32,6 +32,7 @@ bundles one configured camera for the rest of the program.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -82,6 +83,25 @@ def look_at_angles(position, target):
     """(pan, tilt) in radians that point the optical axis from `position` at `target`."""
     d = np.asarray(target, dtype=float) - np.asarray(position, dtype=float)
     return float(np.arctan2(d[1], d[0])), float(np.arctan2(d[2], np.hypot(d[0], d[1])))
+
+
+MIN_AIM_DEPTH = 0.1   # m: the least depth of an aim point along the optical axis (`aim_point`)
+VERTICAL_COS = 1e-3   # |cos tilt| below this: the axis is vertical, its heading undefined (`holds_aim`)
+
+
+def aim_point(camera: "Camera", centre) -> np.ndarray:
+    """The point a camera keeps in the middle of its image when it moves on its mount (the rule of
+    `vdo optimize`): the point of its optical axis z at the depth of `centre` (m, the regions'
+    centroid), a = P + max((centre - P) . z, MIN_AIM_DEPTH) z, in metres."""
+    z = camera.optical_axis
+    depth = max(float((np.asarray(centre, dtype=float) - camera.position) @ z), MIN_AIM_DEPTH)
+    return np.asarray(camera.position, dtype=float) + depth * z
+
+
+def holds_aim(camera: "Camera") -> bool:
+    """Whether a moved camera re-aims at its `aim_point` (its axis is not vertical, where the
+    heading is undefined: then pan, tilt and roll stay as they are)."""
+    return abs(math.cos(camera.tilt)) > VERTICAL_COS
 
 
 # --------------------------------------------------------------------------------------------

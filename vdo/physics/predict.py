@@ -60,20 +60,21 @@ def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective
 
 def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
               illumination: Illumination, speckle: SpeckleModel,
-              patch_fraction: np.ndarray | None = None) -> objective.ViewData:
+              patch_fraction: np.ndarray | None = None, sizes: dict | None = None) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
     the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
     unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
     away, as occluded), exact for these cameras. With `patch_fraction` (C, N) (`vdo.physics.usable`:
     phi_i, the usable fraction of each camera's patch) the occlusion is multiplied by it, so
-    that the patch area becomes Omega phi_i."""
+    that the patch area becomes Omega phi_i. `sizes`: fixed list sizes across layouts
+    (`objective.ViewData.from_dense`)."""
     pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
     occlusion = np.asarray(vis.unoccluded, dtype=float)
     if patch_fraction is not None:
         occlusion = occlusion * patch_fraction
     return objective.ViewData.from_dense(occlusion, np.asarray(pho.contrast),
-                                         np.asarray(pho.noise), samples)
+                                         np.asarray(pho.noise), samples, sizes=sizes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,24 +99,26 @@ class Prediction:
 
 def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
             illumination: Illumination, speckle: SpeckleModel,
-            clip_patch: bool = True, overlap=None) -> Prediction:
+            clip_patch: bool = True, overlap=None, sizes: dict | None = None) -> Prediction:
     """The report fields with the usable-view definition and the clipped patch of `vdo.physics.usable`:
     a first pass gives the soft weights, hence the usable views and each camera's usable patch
     fraction phi_i; the second pass weights each pair by phi_i (Omega_i = phi_i Omega). With
     `clip_patch` False every usable view keeps the whole patch (phi_i = 1): for samples that each
     stand for one whole correlated patch (`vdo.dic.validate`), not for points of a sampled surface.
     `overlap`: `usable.patch_overlap(samples, patch_size)` when already known (it depends on the
-    samples' parametric cells only, not on the cameras or on a keyframe's motion)."""
+    samples' parametric cells only, not on the cameras or on a keyframe's motion). `sizes`: the
+    pair lists' fixed sizes for these samples (`objective.ViewData.from_dense`): a new layout
+    then compiles nothing."""
     smp = samples_for_objective(exp, samples)
     cams = objective.CameraParams.from_cameras(cameras)
     st = settings(exp)
-    first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle),
+    first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, sizes=sizes),
                              speckle.table, st)
     use = usable.usable_views(np.asarray(first.weights))
     if overlap is None:
         overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
     phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
-    f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi),
+    f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi, sizes),
                          speckle.table, st)
     measured = np.asarray(f.measured) & (use.sum(axis=0) >= 2)
     sigma_max = np.where(measured, np.asarray(f.sigma_max), np.inf)
