@@ -469,14 +469,19 @@ class MeshSpec:
 
 @dataclass(frozen=True, eq=False)
 class RegionSpec:
-    """A region of interest: the faces of `mesh` whose normal is within `normal_tolerance` of
-    `normal` and which lie in the box [box_min, box_max] (metres; faces that cross the box are
-    split at it when the meshes are loaded)."""
+    """A region of interest: a patch of the surface of `mesh`, every selector given applying at
+    once: faces whose normal is within `normal_tolerance` of `normal` (when given), the part
+    inside the box [box_min, box_max] (metres; faces that cross the box are split at it when the
+    meshes are loaded), and the part at a distance in [beyond, within] (metres) of a point, of an
+    axis (the line through two points), of another mesh, or of a separate region mesh
+    (`region_file`, in the specimen mesh's unit). Without any selector the whole mesh is the
+    region. A planar selection is one face; a curved one is developed (`vdo.model.surface`)."""
 
     name: str = row("name", Text(name=True), doc="unique")
     mesh: str = row("mesh", Text(name=True), doc="a specimen mesh")
-    normal: np.ndarray = row("normal", Vector(3, letters="xyz"),
-                             doc="outward normal of the face (world frame; normalised)")
+    normal: np.ndarray | None = row("normal", Vector(3, letters="xyz"), None, shown="any",
+                                    doc="faces whose outward normal (world frame; normalised) is "
+                                        "within normal_tolerance_deg of this")
     box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), [-math.inf] * 3,
                               unit="m", shown="unbounded",
                               doc="the region is the part of the selected faces inside this box "
@@ -492,6 +497,29 @@ class RegionSpec:
         doc="largest angle between the optical axes of two cameras that share this region")
     min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
                                   doc="coverage requirement on this region")
+    near_point: np.ndarray | None = row("near_point_m", Vector(3, letters="xyz"), None, unit="m",
+                                        shown="none", doc="select by the distance to this point")
+    near_axis: np.ndarray | None = row("near_axis_m", Points(2), None, unit="m", shown="none",
+                                       doc="select by the distance to the line through these 2 points")
+    near_mesh: str | None = row("near_mesh", Text(name=True), None, shown="none",
+                                doc="select by the distance to this [[mesh]]'s surface")
+    region_file: Path | None = row("region_file", File((".stl", ".obj", ".ply"), "region mesh",
+                                                       "an STL, OBJ or PLY"), None, shown="none",
+                                   doc="select the part of the mesh within within_m of this "
+                                       "surface (same unit as the specimen mesh)")
+    within: float | None = row("within_m", Real(positive=True), None, unit="m",
+                               shown="sample spacing for region_file",
+                               doc="largest distance to the near_* point, axis or mesh")
+    beyond: float = row("beyond_m", Real(low=0.0), 0.0, unit="m",
+                        doc="smallest distance to the near_* point, axis or mesh")
+
+    @property
+    def near(self) -> str | None:
+        """The distance selector's field name, or None."""
+        keys = [k for k, v in (("near_point_m", self.near_point), ("near_axis_m", self.near_axis),
+                               ("near_mesh", self.near_mesh), ("region_file", self.region_file))
+                if v is not None]
+        return keys[0] if keys else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -1103,9 +1131,26 @@ def _check_camera(t: Table, v: dict) -> None:
 
 
 def _check_region(t: Table, v: dict) -> None:
-    if np.linalg.norm(v["normal"]) < 1e-9:
-        raise t.error("normal", "must be a non-zero vector")
-    v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    if v["normal"] is not None:
+        if np.linalg.norm(v["normal"]) < 1e-9:
+            raise t.error("normal", "must be a non-zero vector")
+        v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    near = [k for k in ("near_point_m", "near_axis_m", "near_mesh", "region_file") if t.has(k)]
+    if len(near) > 1:
+        raise t.error(near[1], f"give one distance selector per region (also {near[0]}); "
+                               "intersect several with a box or a normal instead")
+    if near[:1] and near[0] != "region_file" and v["within"] is None:
+        raise t.error("within_m", f"is required with {near[0]}: the largest distance (m)")
+    if (v["within"] is not None or v["beyond"] > 0) and not near:
+        raise t.error("within_m" if v["within"] is not None else "beyond_m",
+                      "applies to a distance selector: add near_point_m, near_axis_m, near_mesh or "
+                      "region_file")
+    if v["near_axis"] is not None:
+        axis = v["near_axis"]
+        if len(axis) != 2 or np.linalg.norm(axis[1] - axis[0]) < 1e-9:
+            raise t.error("near_axis_m", "must be 2 distinct points [[x, y, z], [x, y, z]] on the axis")
+    if v["within"] is not None and v["beyond"] >= v["within"]:
+        raise t.error("beyond_m", f"must be less than within_m ({v['within']:g} m)")
     if np.any(v["box_min"] >= v["box_max"]):
         raise t.error("box_max_m", "must be greater than box_min_m on every axis")
 
@@ -1172,8 +1217,10 @@ class Experiment:
                                          doc='At least one with `role = "specimen"`.')
     regions: tuple[RegionSpec, ...] = table(
         "region", RegionSpec, array=True, required=True, check=_check_region,
-        doc="A planar face of interest on a specimen mesh. The selected faces must be coplanar "
-            "(within a quarter of the sample spacing).")
+        doc="A patch of interest on a specimen mesh, chosen by a normal, a box, a distance to a "
+            "point, an axis, another mesh or a region mesh (all that are given apply). A planar "
+            "selection is one face; a curved one must be one connected piece of surface, developed "
+            "onto the plane (docs/curved.md).")
     rails: tuple[RailSpec, ...] = table(
         "rail", RailSpec, array=True, check=_check_rail,
         doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
@@ -1481,6 +1528,9 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         if roles.get(region.mesh) != "specimen":
             raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {region.mesh!r}; "
                                   f"specimen meshes: {', '.join(n for n, r in roles.items() if r == 'specimen')})")
+        if region.near_mesh is not None and region.near_mesh not in roles:
+            raise t.error("near_mesh", f"no [[mesh]] named {region.near_mesh!r} (meshes: "
+                                       f"{', '.join(sorted(roles))})")
     rails = {r.name for r in exp.rails}
     for cam, t in zip(exp.camera_specs, tables["camera"]):
         if cam.rail is not None and cam.rail not in rails:

@@ -75,20 +75,33 @@ def usable_views(weights: np.ndarray) -> np.ndarray:
 def patch_overlap(samples: SurfaceSamples, patch_size: float) -> scipy.sparse.csr_matrix:
     """(N, N) sparse: entry (n, j) = o(X_n, j) / L^2, the fraction of the patch square of side
     `patch_size` L (m) centred at sample n covered by the cell of sample j of the same region
-    (module docstring). The cell side h is each region's sample spacing, sqrt(area)."""
+    (module docstring). The cell side h is each region's grid spacing (`region_cell`; else
+    sqrt(area), planar cells). A ring closed around its axis wraps in u at its period."""
     L = float(patch_size)
     rows, cols, vals = [], [], []
+    periods = samples.region_period if samples.region_period is not None else \
+        np.zeros(len(samples.region_names))
     for r in np.unique(samples.region):
         idx = np.flatnonzero(samples.region == r)
         uv = np.asarray(samples.uv[idx], dtype=float)
-        h = float(np.sqrt(np.median(samples.area[idx])))
-        tree = cKDTree(uv)
+        period = float(periods[r])
+        h = float(np.sqrt(np.median(samples.area[idx]))) if samples.region_cell is None \
+            else float(samples.region_cell[r])
+        if period > 0:        # a ring: u wraps at the period
+            uv = uv - [0.0, uv[:, 1].min()]
+            box = [period, 2 * (float(uv[:, 1].max()) + L + h) + 1.0]
+            tree = cKDTree(np.mod(uv, box), boxsize=box)
+        else:
+            tree = cKDTree(uv)
         # cells overlapping the square: centres within (L + h)/2 in the max norm (minus rounding)
-        pairs = tree.query_ball_point(uv, r=(L + h) / 2 * (1 - 1e-12), p=np.inf)
+        pairs = tree.query_ball_point(np.mod(uv, box) if period > 0 else uv,
+                                      r=(L + h) / 2 * (1 - 1e-12), p=np.inf)
         counts = np.fromiter((len(p) for p in pairs), dtype=np.int64, count=len(pairs))
         a = np.repeat(np.arange(len(idx)), counts)
         b = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs]) if len(pairs) else a
         d = np.abs(uv[a] - uv[b])                                    # (K, 2)
+        if period > 0:
+            d[:, 0] = np.minimum(d[:, 0], period - d[:, 0])
         overlap = np.clip((L + h) / 2 - d, 0.0, min(L, h))         # 1D overlap per axis
         rows.append(idx[a])
         cols.append(idx[b])
@@ -96,6 +109,34 @@ def patch_overlap(samples: SurfaceSamples, patch_size: float) -> scipy.sparse.cs
     n = len(samples)
     return scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                    shape=(n, n))
+
+
+def patch_normal_spread(overlap: scipy.sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
+    """(N,) the largest angle (rad) between a sample's normal and the normals of the cells its
+    patch overlaps: 0 on a planar region, about L / R on a surface of radius of curvature R."""
+    coo = overlap.tocoo()
+    cos = np.einsum("ij,ij->i", normals[coo.row], normals[coo.col])
+    lowest = np.ones(overlap.shape[0])
+    np.minimum.at(lowest, coo.row, cos)
+    return np.arccos(np.clip(lowest, -1.0, 1.0))
+
+
+def surface_patch_information(overlap: scipy.sparse.csr_matrix, usable: np.ndarray,
+                              per_camera: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 3, 3) information (1/m^2) of the patches of samples `rows` summed over the
+    patch's own surface points: C(X_n) = sum_i [i usable at n] sum_j o(n, j) [i usable at j] P_ij,
+    with P_ij (`per_camera` (C, N, 3, 3): Omega w |det A| C_i of camera i at sample j, whole patch)
+    the per-area information of cell j (its own normal, frame and view) times Omega, and o(n, j)
+    the fraction of the patch on cell j (`patch_overlap`). On a plane with a uniform view this is
+    the clipped model Omega phi_i w |det A_i| C_i; on a curved surface each cell keeps its own
+    normal."""
+    use = np.asarray(usable, dtype=bool)
+    sub = overlap[rows]
+    out = np.zeros((len(rows), 9))
+    for i in range(use.shape[0]):
+        if use[i, rows].any():
+            out += use[i, rows, None] * (sub @ (use[i, :, None] * per_camera[i].reshape(-1, 9)))
+    return out.reshape(-1, 3, 3)
 
 
 def patch_fractions(overlap: scipy.sparse.csr_matrix, usable: np.ndarray) -> np.ndarray:
