@@ -25,6 +25,7 @@ from vdo.state import layout_state, prepare
 RADIUS, HEIGHT, SECTIONS = 0.1, 0.3, 256
 PATCH_RTOL = 0.02     # sigma vs the exact-cylinder integral: facets (0.7 deg) and 4 mm cells
 FINE = 41             # reference quadrature points per side of the patch
+STL_ROUNDING = 1e-6  # m: STL stores float32 coordinates (7 digits of a 0.1 m part)
 
 CAMERA = """
 [[camera]]
@@ -181,3 +182,54 @@ def test_distance_band_selects_a_ring(tmp_path):
     half = math.sqrt(0.12 ** 2 - RADIUS ** 2)           # |z| where the sphere meets the wall
     assert np.abs(s.points[:, 2]).max() <= half
     assert s.area.sum() == pytest.approx(2 * math.pi * RADIUS * 2 * half, rel=2 * s.region_cell[0] / (2 * half))
+
+
+def test_cone_is_developed_exactly(tmp_path):
+    """The lateral surface of a cone (base radius 0.1 m, height 0.2 m): half-angle atan(r / h),
+    no distortion, the samples' area the closed form pi r l (l the slant height)."""
+    r, h = 0.1, 0.2
+    trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
+    path = write_cylinder(tmp_path, region="""
+        box_min_m = [-1, -1, 0.001]""")
+    trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
+    exp = config.load(path)
+    meshes = load_meshes(exp)
+    from vdo.scene import all_region_faces
+    dev = all_region_faces(exp, meshes)[0].development
+    assert dev.kind == "cone"
+    assert dev.half_angle == pytest.approx(math.atan(r / h), abs=STL_ROUNDING / h)
+    assert dev.centre == pytest.approx([0, 0, h], abs=STL_ROUNDING)
+    assert max(dev.distortion.area_p95, dev.distortion.angle_p95) < 1e-3
+    s = sample_regions(exp, meshes)
+    slant = math.hypot(r, h)
+    # sample cells tile the developed sector; its rim is resolved to a cell
+    assert s.area.sum() == pytest.approx(math.pi * r * slant, rel=4 * s.region_cell[0] / slant)
+
+
+def test_general_surface_is_mapped_with_its_distortion_warned(tmp_path, caplog):
+    """A spherical cap (polar angle up to 60 deg) cannot be developed: the least-squares conformal
+    map keeps angles (a conformal map) and distorts areas, by (1 + cos 60)^2 / 4 = 0.56 between
+    the rim and the pole for any conformal map of the cap (the stereographic scale factor);
+    the warning names the region and the distortion."""
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.1)
+    sphere.export(tmp_path / "cyl.stl")
+    path = write_cylinder(tmp_path, region="""
+        normal = [0, 0, 1]
+        normal_tolerance_deg = 60""")
+    sphere.export(tmp_path / "cyl.stl")
+    exp = config.load(path)
+    meshes = load_meshes(exp)
+    from vdo.model.surface import face_distortion
+    from vdo.scene import all_region_faces
+    with caplog.at_level("WARNING"):
+        rf = all_region_faces(exp, meshes)[0]
+    dev = rf.development
+    assert dev.kind == "general"
+    assert dev.distortion.angle_p95 < 0.05
+    tri = meshes[0].trimesh.triangles[rf.faces]
+    ratio, _ = face_distortion(tri, dev.faces_uv)
+    z = tri.mean(axis=1)[:, 2] / 0.1
+    rim, pole = np.median(ratio[z < 0.52]), np.median(ratio[z > 0.98])
+    assert rim / pole == pytest.approx((1 + 0.5) ** 2 / 4, rel=0.1)
+    assert dev.distortion.large
+    assert any('region "shell"' in r.message and "distortion" in r.message for r in caplog.records)
