@@ -497,6 +497,51 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
                 uv=(ij + 0.5) * spacing, area=spacing**2 * ratio[t])
 
 
+RASTER_MAX = 4_000_000      # fine points of one region's surface raster (4 MB of booleans)
+RASTER_FINE = 8             # fine points per cell side at most
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceRaster:
+    """Which points of a fine grid lie on a region's surface: the grid of spacing h / K in the
+    region's (u, v) (fine point (m_u, m_v) at ((m + 1/2) h / K), so that cell (i, j) of the sample
+    grid holds the fine points i K .. i K + K - 1 along each axis. `mask[a, b]` is fine point
+    (offset[0] + a, offset[1] + b); a ring's mask is padded by `pad` wrapped columns each side."""
+
+    mask: np.ndarray        # (Nu, Nv) bool
+    offset: np.ndarray      # (2,) int: the fine index of mask[0, 0]
+    fine: int               # K
+    cell: float             # h, m
+    around: int             # cells around a ring (0: not a ring)
+
+
+def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: int = 2) -> SurfaceRaster:
+    """The `SurfaceRaster` of a region from its own triangles (not from its samples): the fine
+    points inside its (developed) triangles, and in its box and distance band, as `sample_region`
+    decides for a sample. K = RASTER_FINE, fewer when the region would exceed RASTER_MAX."""
+    tm = mesh.trimesh
+    tri = tm.triangles[rf.faces]
+    dev = rf.development
+    h = ring_spacing(dev.period, spacing) if dev is not None else spacing
+    uv_tri = rf.uv(tri) if dev is None else dev.triangles_uv(tri)
+    cells = float(tm.area_faces[rf.faces].sum()) / h ** 2
+    fine = int(max(2, min(RASTER_FINE, math.floor(math.sqrt(RASTER_MAX / max(cells, 1.0))))))
+    t, l1, l2, m = _grid_points(uv_tri, h / fine)
+    if rf.selector is not None and (rf.selector.distance is not None or dev is not None):
+        points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
+        m = m[rf.selector.keep(points)]
+    around = int(round(dev.period / h)) if dev is not None and dev.period > 0 else 0
+    if around:
+        m[:, 0] = np.mod(m[:, 0], around * fine)
+        pad = pad_cells * fine
+        m = np.concatenate([m, m[m[:, 0] < pad] + [around * fine, 0],
+                            m[m[:, 0] >= around * fine - pad] - [around * fine, 0]])
+    lo = m.min(axis=0)
+    mask = np.zeros(tuple(m.max(axis=0) - lo + 1), dtype=bool)
+    mask[m[:, 0] - lo[0], m[:, 1] - lo[1]] = True
+    return SurfaceRaster(mask, lo, fine, h, around)
+
+
 def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
                      spacing: float | None = None) -> list[RegionFaces]:
     """`region_faces` for every region of the experiment, in config order."""
