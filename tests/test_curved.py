@@ -166,7 +166,7 @@ def test_selection_that_selects_nothing_says_what_it_needs(tmp_path):
         sample_regions(exp, load_meshes(exp))
     e = err.value
     assert e.field == 'region "shell"' and "near_point_m" in e.message and "within_m" in e.message
-    assert "lie 0.9" in e.message            # the nearest face centroid: 1 m - R = 0.9 m away
+    assert "faces lie 0.9" in e.message      # the nearest face centroid: about 1 m - R = 0.9 m away
 
 
 def test_distance_band_selects_a_ring(tmp_path):

@@ -357,8 +357,11 @@ def _nothing_selected(mesh: SceneMesh, region: RegionSpec, selector: RegionSelec
         ok = selector.facing(tm.face_normals) & selector.in_box(tm.triangles_center)
         if ok.any():
             d = selector.distance(tm.triangles_center[ok])
-            raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: its faces (in the box and "
-                                      f"normal cone) lie {d.min():.4g} to {d.max():.4g} m from "
+            limited = [w for w, on in (("box", np.isfinite(region.box_min).any() or np.isfinite(region.box_max).any()),
+                                       ("normal cone", region.normal is not None)) if on]
+            within = f" (in the {' and '.join(limited)})" if limited else ""
+            raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: its faces{within} "
+                                      f"lie {d.min():.4g} to {d.max():.4g} m from "
                                       f"{NEAR_FIELDS[near]} ({near}); set within_m / beyond_m to "
                                       "include some of that range")
     if region.normal is not None:
