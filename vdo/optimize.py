@@ -431,6 +431,9 @@ class Problem:
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
             fov=self.fov, body_local=self.body_local,
+            keep_out=tuple(jnp.asarray(np.clip(np.array([getattr(k, a) for k in self.exp.keep_outs]).reshape(-1, 3),
+                                               -constraints.KEEP_OUT_FAR, constraints.KEEP_OUT_FAR))
+                           for a in ("box_min", "box_max")),
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
 
@@ -644,7 +647,8 @@ class Problem:
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
                 fov["ramp"], data["distortion"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
-                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance),
+                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance)
+            + constraints.keep_out_penalty(pos, *data["keep_out"], CLEARANCE_MARGIN),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
             shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
@@ -668,7 +672,8 @@ class Problem:
                                  self.pairs, self.min_angles, _clearances(state.cameras, self.scene_tree),
                                  opt.clearance, opt.max_obscuration, _light_lost(self, state),
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
-                                 fov_limits=self.fov_limits, max_angles=self.max_angles)
+                                 fov_limits=self.fov_limits, max_angles=self.max_angles) \
+            + constraints.keep_out_checks(state.cameras, self.exp.keep_outs)
 
     def _fov_limits(self, entries) -> np.ndarray:
         """(C, R) least in-image fraction of each assigned region: 1 - max_obscuration, or what

@@ -792,6 +792,79 @@ class MountSpec:
         return self.box_max if self.floor is None else np.array([*self.floor.max(0), self.height[1]])
 
 
+@dataclass(frozen=True, eq=False)
+class KeepOutSpec:
+    """A volume no camera may stand in (the specimen's surroundings, a machine, a walkway): the
+    box [box_min, box_max] (m). A camera's optical centre inside one is refused; design drops the
+    candidate poses inside one; optimize keeps the cameras out."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), unit="m",
+                              doc="lower corner (±inf allowed)")
+    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), unit="m",
+                              doc="upper corner (±inf allowed)")
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) whether points (N, 3) (m) lie strictly inside the box."""
+        p = np.atleast_2d(np.asarray(points, float))
+        return np.all((p > self.box_min) & (p < self.box_max), axis=1)
+
+
+def _check_keep_out(t: Table, v: dict) -> None:
+    if np.any(v["box_min"] >= v["box_max"]):
+        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
+
+
+def inside_keep_out(keep_outs, points: np.ndarray) -> np.ndarray:
+    """(N,) index of the first keep-out volume holding each point (N, 3), -1 where none does."""
+    p = np.atleast_2d(np.asarray(points, float))
+    out = np.full(len(p), -1)
+    for k, box in reversed(list(enumerate(keep_outs))):
+        out[box.contains(p)] = k
+    return out
+
+
+KEEP_OUT_RAIL_POINTS = 201   # positions along a rail tested against the keep-out volumes
+
+
+def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
+    """ConfigError for a camera whose optical centre lies in a keep-out volume, and for a keep-out
+    that holds every position of a camera's mount (a zone's box or floor corners at both heights,
+    KEEP_OUT_RAIL_POINTS along a rail), naming the camera, the mount and the fix."""
+    if not exp.keep_outs:
+        return
+    mounts = {m.name: m for m in exp.mounts}
+    for spec, t in zip(exp.camera_specs, tables["camera"]):
+        if spec.rail is not None:
+            rail = exp.rail(spec.rail)
+            track = np.array([rail.position(u, xp=np) for u in np.linspace(0, 1, KEEP_OUT_RAIL_POINTS)]) + spec.offset
+            where, field, what = inside_keep_out(exp.keep_outs, track), "rail", f"rail {spec.rail!r}"
+        elif spec.mount is not None and mounts[spec.mount].kind == "zone":
+            zone = mounts[spec.mount]
+            xy = zone.floor if zone.floor is not None else np.array(
+                [[x, y] for x in (zone.low[0], zone.high[0]) for y in (zone.low[1], zone.high[1])])
+            track = np.array([[*c, z] for c in xy for z in (zone.low[2], zone.high[2])])
+            where, field, what = inside_keep_out(exp.keep_outs, track), "mount", f"zone {spec.mount!r}"
+            # a box holds a convex zone when it holds its corners; a floor polygon is checked by them too
+        else:
+            where = np.array([-1])
+        if len(where) and np.all(where >= 0) and len(set(where.tolist())) == 1:
+            box = exp.keep_outs[int(where[0])]
+            raise t.error(field, f"every position of {what} lies in keep_out {box.name!r} "
+                                 f"({box.box_min.tolist()} to {box.box_max.tolist()} m): camera "
+                                 f"{spec.name!r} has nowhere to stand; shrink the keep-out or move the mount")
+        own = spec.position if spec.rail is None else \
+            exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset
+        if own is not None:
+            k = int(inside_keep_out(exp.keep_outs, own)[0])
+            if k >= 0:
+                box = exp.keep_outs[k]
+                raise t.error("position_m" if spec.rail is None else "u",
+                              f"{np.round(own, 4).tolist()} lies in keep_out {box.name!r} "
+                                            f"({box.box_min.tolist()} to {box.box_max.tolist()} m): "
+                                            "move the camera out of it")
+
+
 def _check_mount(t: Table, v: dict) -> None:
     kind = v["kind"]
     floor = kind == "zone" and t.has("floor_m")
@@ -1248,6 +1321,10 @@ class Experiment:
         doc="Where cameras can stand: a rail, a zone (a box, or a floor polygon with a height "
             "range: a tripod) or a fixed point. Cameras name one with `mount`; rail mounts are "
             "written back as [[rail]].")
+    keep_outs: tuple[KeepOutSpec, ...] = table(
+        "keep_out", KeepOutSpec, array=True, check=_check_keep_out, default=(),
+        doc="A box no camera may stand in: cameras inside one are refused, design drops the "
+            "candidates inside one, optimize keeps its cameras out.")
     stereo_pairs: tuple[StereoPairSpec, ...] = table(
         "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
         doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
@@ -1515,6 +1592,7 @@ def parse(data: dict, path: Path) -> Experiment:
     _resolve_mounts(values, tables, path)
     exp = Experiment(path=path, **values)
     _check_references(exp, tables)
+    _check_keep_outs(exp, tables)
     return exp
 
 

@@ -93,7 +93,7 @@ from vdo import objective
 from vdo.outputs import report
 from vdo.physics import usable
 from vdo.model.camera import Camera, look_at_angles
-from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_floor
+from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_floor, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -255,7 +255,13 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in exp.design.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
     cams, rows, points = [], [], []
+    kept_out: dict[str, int] = {}
     for mount, kind, u, head, p in spots(exp):
+        box = int(inside_keep_out(exp.keep_outs, p)[0])
+        if box >= 0:
+            key = f"{mount or 'fixed'}: in keep_out {exp.keep_outs[box].name!r}"
+            kept_out[key] = kept_out.get(key, 0) + 1
+            continue
         for t, aim in enumerate(aims):
             if np.linalg.norm(aim - p) < 1e-6:
                 continue
@@ -274,8 +280,14 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
         gap = cKDTree(mesh_points(meshes)).query(np.concatenate(points),
                                                  distance_upper_bound=exp.optimize.clearance)[0]
         clear = (gap.reshape(len(cams), -1) >= exp.optimize.clearance).all(axis=1)
+        for name in dict.fromkeys(r[0] for r in rows):
+            of = np.array([r[0] == name for r in rows])
+            log.info("mount %s: %d candidate poses, %d dropped for clearance (closer than %g m to a "
+                     "mesh)", name or "fixed", of.sum(), (of & ~clear).sum(), exp.optimize.clearance)
         cams = [c for c, ok in zip(cams, clear) if ok]
         rows = [r for r, ok in zip(rows, clear) if ok]
+    for key, count in kept_out.items():
+        log.info("mount %s: %d candidate positions dropped", key, count)
     mount, kind, u, head, b, t = zip(*rows) if rows else ((),) * 6
     return (cams, tuple(mount), tuple(kind), np.array(u, dtype=float),
             np.array(head, dtype=float).reshape(-1, 3), np.array(b, dtype=int),
