@@ -79,7 +79,7 @@ from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
 from vdo.model.camera import Camera, intrinsic_matrix, rotation
-from vdo.config.experiment import Experiment, inside_floor
+from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import panel_frame
@@ -161,6 +161,12 @@ class Parameterization:
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
                     elif name == "u" and zone is not None and zone.floor is not None:
+                        if not zone.convex:
+                            raise ConfigError(exp.path, f'mount "{zone.name}".floor_m',
+                                              f"camera {cam.name!r} moves over a floor that is not convex "
+                                              "(or has holes): vdo optimize moves cameras over convex "
+                                              "floors only; split it into convex sectors for optimize "
+                                              "(evaluate and design take it whole)")
                         weights = mean_value_coordinates(zone.floor, cam.position[:2])
                         for k in range(1, len(zone.floor)):   # softmax logits against corner 0
                             idx[f"w{k}"] = len(theta)
@@ -522,7 +528,7 @@ class Problem:
                         for k in range(3)]
                 grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
                 if zone.floor is not None:   # the grid points over the polygon, and its corners
-                    keep = [inside_floor(zone.floor, g[:2], tol=0.05) for g in grid]
+                    keep = [zone.inside(g[:2], tol=0.05) for g in grid]
                     corners = [[*v, z] for v in zone.floor for z in (lo[2], hi[2])]
                     grid = np.vstack([grid[keep], corners])
                 out.append(grid)
@@ -1147,7 +1153,7 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
             aim = cam.position + depth * cam.optical_axis
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
-            if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
+            if zone.floor is not None and not zone.inside(moved[:2]):
                 moved = cam.position   # not over the floor: screen it where it stands
             specs[c] = dataclasses.replace(specs[c], position=moved, target=aim)   # aimed again
         return Problem(current.problem.exp.with_cameras(specs), reference=problem)

@@ -254,6 +254,22 @@ class Points(Kind):
 
 
 @dataclass(frozen=True)
+class Polygons(Kind):
+    """A list of polygons, each a list of at least 3 [x, y] points (m): a tuple of (n, 2) arrays."""
+
+    doc = "[[[x, y], …], …]"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, list) or not value:
+            raise _Bad(f"must be a non-empty list of polygons, each a list of at least 3 [x, y] points "
+                       f"(got {_show(value)})")
+        return tuple(Points(3, dims=2).read(p, scale, base) for p in value)
+
+    def write(self, value, scale):
+        return [Points(3, dims=2).write(p, scale) for p in value]
+
+
+@dataclass(frozen=True)
 class Numbers(Kind):
     """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
 
@@ -771,15 +787,29 @@ class MountSpec:
     box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
                                      shown="zone", doc="a box zone's upper corner")
     floor: np.ndarray | None = row("floor_m", Points(3, dims=2), None, unit="m", shown="zone",
-                                   doc="or a convex floor polygon (with height_m)")
+                                   doc="or a floor polygon, any simple one (with height_m)")
     height: tuple[float, float] | None = row("height_m", Vector(2, as_tuple=True, letters=("low", "high")),
                                              None, unit="m", shown="zone", doc="the polygon zone's heights")
+    floor_holes: tuple[np.ndarray, ...] | None = row(
+        "floor_holes_m", Polygons(), None, unit="m", shown="none",
+        doc="polygons cut out of the floor polygon (a ring around the specimen: one hole)")
     position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
                                       shown="fixed", doc="a fixed mount's optical centre")
     tripod: TripodSpec | None = row("tripod", SubTable(TripodSpec), None, shown="none",
                                     doc="a zone's tripod as the table [mount.tripod] (fields below; "
                                         "`tripod = {}` takes the defaults): its legs and column "
                                         "occlude the other cameras and cast shadows")
+
+    @property
+    def convex(self) -> bool:
+        """Whether the zone is a box or a convex floor polygon without holes."""
+        return self.floor is None or (not self.floor_holes and _is_convex(self.floor))
+
+    def inside(self, xy: np.ndarray, tol: float = 1e-9) -> bool:
+        """Whether the floor point xy (m) lies on the zone's floor (a box zone: its x, y range)."""
+        if self.floor is None:
+            return bool(np.all(xy >= self.low[:2] - tol) and np.all(xy <= self.high[:2] + tol))
+        return inside_floor(self.floor, xy, tol, self.floor_holes or ())
 
     @property
     def low(self) -> np.ndarray:
@@ -868,6 +898,8 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
 def _check_mount(t: Table, v: dict) -> None:
     kind = v["kind"]
     floor = kind == "zone" and t.has("floor_m")
+    if t.has("floor_holes_m") and not floor:
+        raise t.error("floor_holes_m", "applies to a zone with floor_m (a floor polygon)")
     needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
     allowed = needs + (("degree", "weights") if kind == "rail" else ())
     for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
@@ -890,11 +922,14 @@ def _check_mount(t: Table, v: dict) -> None:
         if abs(area) < 1e-6:
             raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
         corners = corners if area > 0 else corners[::-1]
-        edges = np.roll(corners, -1, axis=0) - corners
-        turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-        if np.any(turn < -1e-12):
-            raise t.error("floor_m", "must be a convex polygon (split a concave floor area into several "
-                                     "zones, one per tripod)")
+        if not _is_simple(corners):
+            raise t.error("floor_m", "must be a simple polygon: two of its edges cross (list the "
+                                     "corners in order around the area)")
+        for k, hole in enumerate(v["floor_holes"] or ()):
+            if not _is_simple(hole) or abs(_signed_area(hole)) < 1e-6:
+                raise t.error("floor_holes_m", f"hole {k} must be a simple polygon with an area")
+            if not all(inside_floor(corners, p) for p in hole):
+                raise t.error("floor_holes_m", f"hole {k} must lie inside floor_m")
         if v["height"][1] < v["height"][0]:
             raise t.error("height_m", f"must be [low, high] with low <= high (got {list(v['height'])})")
         v["floor"] = corners
@@ -916,11 +951,63 @@ def _check_mount(t: Table, v: dict) -> None:
                                               "raise the zone")
 
 
-def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
-    """Whether the point xy (m) lies in the convex, counter-clockwise polygon `floor`."""
-    edges = np.roll(floor, -1, axis=0) - floor
-    rel = np.asarray(xy)[None] - floor
-    return bool(np.all(edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0] >= -tol))
+def _signed_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _is_convex(poly: np.ndarray) -> bool:
+    """Whether the counter-clockwise polygon turns left (or goes straight) at every corner."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    return bool(np.all(turn >= -1e-12))
+
+
+def _is_simple(poly: np.ndarray) -> bool:
+    """Whether no two non-adjacent edges of the polygon cross or touch (orientation tests)."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    n = len(poly)
+
+    def orient(p, q, r):
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+    for i in range(n):
+        j = np.arange(i + 2, n)
+        j = j[(j + 1) % n != i]
+        if not len(j):
+            continue
+        o1, o2 = orient(a[i], b[i], a[j]), orient(a[i], b[i], b[j])
+        o3, o4 = orient(a[j], b[j], a[i]), orient(a[j], b[j], b[i])
+        if np.any((o1 != o2) & (o3 != o4)):
+            return False
+    return True
+
+
+def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> bool:
+    """Even-odd rule: a ray from xy along +x crosses the polygon's edges an odd number of times."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    x, y = float(xy[0]), float(xy[1])
+    straddle = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return bool(np.count_nonzero(straddle & (cross > x)) % 2)
+
+
+def _edge_distance(poly: np.ndarray, xy: np.ndarray) -> float:
+    """Distance (m) from xy to the polygon's boundary."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    d = b - a
+    t = np.clip(np.einsum("ij,ij->i", np.asarray(xy) - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
+    return float(np.min(np.linalg.norm(a + t[:, None] * d - xy, axis=1)))
+
+
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9, holes=()) -> bool:
+    """Whether the point xy (m) lies on the floor polygon `floor` (any simple polygon; within
+    `tol` of its edge counts as on it) and in none of `holes` (strictly inside one: off)."""
+    xy = np.asarray(xy, dtype=float)[:2]
+    if not (_in_polygon(floor, xy) or _edge_distance(floor, xy) <= tol):
+        return False
+    return not any(_in_polygon(h, xy) and _edge_distance(h, xy) > tol for h in holes)
 
 
 def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
@@ -966,9 +1053,12 @@ def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
                 centre = (mount.low + mount.high) / 2
                 if mount.floor is not None:
                     centre[:2] = mount.floor.mean(axis=0)
+                if spec.position is None and not mount.inside(centre[:2]):
+                    raise t.error("position_m", f"is required on zone {name!r}: its centroid "
+                                                f"{np.round(centre, 4).tolist()} is not on its floor (a ring)")
                 position = centre if spec.position is None else spec.position
                 if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
-                        or (mount.floor is not None and not inside_floor(mount.floor, position[:2]))):
+                        or not mount.inside(position[:2])):
                     raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
                                                 f"({mount.low.tolist()} to {mount.high.tolist()})")
                 spec = replace(spec, position=position)

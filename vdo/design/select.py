@@ -93,7 +93,7 @@ from vdo import objective
 from vdo.outputs import report
 from vdo.physics import usable
 from vdo.model.camera import Camera, look_at_angles
-from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_floor, inside_keep_out
+from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -216,7 +216,7 @@ def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
     """(P, 3) candidate optical centres (m) in a zone [[mount]]: `per_axis` evenly spaced values
     along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
     values over its height range; over a floor polygon, the points of that grid on its bounding box
-    that lie inside the polygon, and its centroid."""
+    that lie on the polygon (off its holes), and its centroid when that does."""
     lo, hi = zone.low, zone.high
     axes = [np.linspace(lo[k], hi[k], per_axis) if hi[k] > lo[k] and per_axis > 1
             else np.array([(lo[k] + hi[k]) / 2]) for k in range(2)]
@@ -224,8 +224,9 @@ def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
                 else np.array([(lo[2] + hi[2]) / 2]))
     xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
     if zone.floor is not None:
-        xy = np.vstack([[p for p in xy if inside_floor(zone.floor, p)] or np.zeros((0, 2)),
-                        zone.floor.mean(axis=0)])
+        xy = np.vstack([p for p in xy if zone.inside(p)] or np.zeros((0, 2)))
+        centre = zone.floor.mean(axis=0)
+        xy = np.vstack([xy, centre]) if zone.inside(centre) else xy
     return np.array([[x, y, z] for x, y in xy for z in axes[2]])
 
 
