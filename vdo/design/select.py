@@ -505,18 +505,47 @@ def designed(exp: Experiment, cand: Candidates, chosen) -> Experiment:
                    optimize=replace(exp.optimize, cameras=None))
 
 
-def measures(state, exp: Experiment) -> dict:
+def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
+    """(N,) the samples that some selection of candidates could measure: usable views from at
+    least their region's min_cameras distinct spots (optical centres SPOT_M apart) among all
+    candidates."""
+    need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[samples.region]
+    if not len(cand.cameras):
+        return np.zeros(len(samples), dtype=bool)
+    spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
+    use = usable.usable_views(cand.weight)
+    seen = np.zeros((spot.max() + 1, len(samples)), dtype=bool)
+    np.logical_or.at(seen, spot, use)
+    return seen.sum(axis=0) >= need
+
+
+def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
     """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
-    region is unmeasured) and the area fraction of all regions seen by their region's
-    min_cameras usable views."""
+    region is unmeasured), the area fraction of all regions seen by their region's min_cameras
+    usable views, and over the area that can be measured at all (`can_measure`, `measurable`;
+    default everywhere): that area's fraction, the fraction of it seen by min_cameras, sigma_max
+    p95 per region over its measured samples there (None for a region with none), and the worst
+    of those (None only when no region has one)."""
     summary = report.state_summary(state)
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     p95 = [summary["regions"][r]["sigma_max_um"]["p95"] for r in scored]
-    smp = state.samples
+    smp, pred = state.samples, state.prediction
     need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[smp.region]
-    seen = smp.area[state.prediction.coverage >= need].sum() / smp.area.sum()
+    covered = pred.coverage >= need
+    seen = smp.area[covered].sum() / smp.area.sum()
+    can = np.ones(len(smp), dtype=bool) if can_measure is None else np.asarray(can_measure, bool)
+    by_region = {}
+    for r, name in enumerate(smp.region_names):
+        m = (smp.region == r) & can & pred.measured
+        by_region[name] = float(np.percentile(pred.sigma_max[m] * 1e6, 95)) if m.any() else None
+    values = [by_region[r] for r in scored if by_region[r] is not None]
+    area = float(smp.area[can].sum())
     return {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
-            "coverage": float(seen)}
+            "coverage": float(seen),
+            "measurable_fraction": area / float(smp.area.sum()),
+            "coverage_of_measurable": float(smp.area[can & covered].sum() / area) if area > 0 else 0.0,
+            "sigma_p95_measurable_um": max(values) if values else None,
+            "sigma_p95_by_region_um": by_region}
 
 
 def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
@@ -622,6 +651,10 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
                                               "[[mount]] or [[rail]] clear of the meshes")
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
+    can_measure = measurable(exp, cand, coarse.samples)
+    log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
+             "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
+             / coarse.samples.area.sum(), exp.evaluation.min_cameras)
     order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
@@ -631,7 +664,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
-                      **measures(state, exp)})
+                      **measures(state, exp, can_measure)})
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
@@ -708,13 +741,19 @@ def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 
 
 def _write_curve(path, curve):
+    regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
+    show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies"])
+        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies",
+                    "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+                   + [f"sigma_p95_um_{r}" for r in regions])
         for c in curve:
-            w.writerow([c["cameras"], f"{c['score']:.6g}",
-                        "" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.5g}",
-                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"]])
+            w.writerow([c["cameras"], f"{c['score']:.6g}", show(c["sigma_p95_um"]),
+                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"],
+                        f"{c['measurable_fraction']:.4f}", f"{c['coverage_of_measurable']:.4f}",
+                        show(c["sigma_p95_measurable_um"])]
+                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
 
 
 def _plot_curve(path, curve, target, name):
@@ -722,6 +761,9 @@ def _plot_curve(path, curve, target, name):
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
     ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    for k, r in enumerate(curve[0]["sigma_p95_by_region_um"] if curve else ()):
+        ax.semilogy(n, [np.nan if c["sigma_p95_by_region_um"][r] is None else c["sigma_p95_by_region_um"][r]
+                        for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
     if target is not None:
         ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
     ax.set_xlabel("cameras")
@@ -729,6 +771,9 @@ def _plot_curve(path, curve, target, name):
     ax.set_ylabel("σ_max p95 (µm)")
     ax2 = ax.twinx()
     ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
+    if curve:
+        ax2.plot(n, [100 * c["coverage_of_measurable"] for c in curve], "^:", color="C1", alpha=0.6,
+                 label=f"coverage of the measurable {100 * curve[0]['measurable_fraction']:.0f} %")
     ax2.set_ylabel("area seen by its min_cameras (%)")
     ax2.set_ylim(0, 105)
     ax.set_title(f"{name}: cameras needed")
