@@ -233,3 +233,28 @@ def test_general_surface_is_mapped_with_its_distortion_warned(tmp_path, caplog):
     assert rim / pole == pytest.approx((1 + 0.5) ** 2 / 4, rel=0.1)
     assert dev.distortion.large
     assert any('region "shell"' in r.message and "distortion" in r.message for r in caplog.records)
+
+
+def test_a_ring_is_textured_without_a_seam(tmp_path):
+    """The render scene gives a curved region's faces texture coordinates of their own: around
+    the closed cylinder no face spans more than its own width in u (a face across the seam would
+    span the whole period with shared vertices), and u runs over the full turn 2 pi R."""
+    import mitsuba as mi
+
+    from vdo.model.speckle import pattern_for
+    from vdo.render import build_render_scene
+    from vdo.scene import all_region_faces
+
+    exp = config.load(write_cylinder(tmp_path))
+    meshes = load_meshes(exp)
+    faces = all_region_faces(exp, meshes)
+    scene = build_render_scene(exp, meshes, faces)
+    (shape,) = [s for s in scene.shapes() if s.has_vertex_texcoords()]     # the speckled region
+    params = mi.traverse(shape)
+    uv = np.asarray(params["vertex_texcoords"]).reshape(-1, 3, 2)
+    tile = exp.speckle.texel * np.array(pattern_for(exp.speckle).shape[::-1])
+    u = uv[..., 0] * tile[0]
+    width = 2 * math.pi * RADIUS / SECTIONS
+    assert np.ptp(u, axis=1).max() < 1.01 * width
+    # the full turn, plus at most the faces across the seam, which keep their corners together
+    assert 2 * math.pi * RADIUS * (1 - 1e-3) <= np.ptp(u) <= 2 * math.pi * RADIUS + 1.01 * width
