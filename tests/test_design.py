@@ -311,3 +311,22 @@ def test_too_few_spots_for_a_region_are_named(plate_experiment):
     assert design.problems(exp, cand, geometry.samples) == [
         "region 'top' needs 3 cameras (min_cameras) but only 2 candidate spot(s) see it: add a "
         "mount in view of it"]
+
+
+def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_experiment, tmp_path):
+    """The plate's underside faces away from the rail above it: no candidate sees it, so the
+    worst-region sigma is None at every count, while the curve over the measurable area (the top:
+    half the regions' area, the two faces being equal) has a sigma from two cameras on, the top's
+    own, and counts the coverage of that area alone."""
+    exp = _experiment(plate_experiment, n=2, regions='\n[[region]]\nname = "under"\nmesh = "plate"\n'
+                                                     'normal = [0, 0, -1]\n[render]\nambient_radiance = 20\n')
+    result = design.design(exp, tmp_path / "out")
+    for c in result["curve"]:
+        assert c["sigma_p95_um"] is None
+        assert c["measurable_fraction"] == pytest.approx(0.5, abs=1e-9)
+        assert c["sigma_p95_by_region_um"]["under"] is None
+        assert c["sigma_p95_measurable_um"] == c["sigma_p95_by_region_um"]["top"]
+        assert (c["sigma_p95_measurable_um"] is not None) == (c["cameras"] >= 2)   # two views measure
+        assert c["coverage_of_measurable"] == pytest.approx(2 * c["coverage"], abs=1e-9)
+    text = (tmp_path / "out" / "pareto.csv").read_text().splitlines()
+    assert text[0].endswith("sigma_p95_um_top,sigma_p95_um_under")

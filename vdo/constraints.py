@@ -15,6 +15,7 @@ JAX, and exact checks for the report.
 * field of view: an assigned region keeps in the image at least what the hand layout had of it
                 (minus 1 %, and at most 1 - max_obscuration is required);
 * clearance:    camera bodies keep `clearance` metres from every mesh and from each other;
+* keep-out:     no optical centre inside a `[[keep_out]]` box (counted with the clearance);
 * rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
 * shadows:      camera bodies do not shadow the regions from the lights (lights are not variables:
                 the bodies keep off the rays from the lit samples to the panels).
@@ -195,6 +196,42 @@ def clearance_penalty(body_world, near_points, clearance: float):
         per_pair = jnp.sum(hinge(jnp.sum(diff ** 2, -1)), axis=(-2, -1))
         total = total + 0.5 * jnp.sum(jnp.where(~jnp.eye(n, dtype=bool), per_pair, 0.0))
     return total
+
+
+KEEP_OUT_FAR = 1e6      # m: an unbounded side of a keep-out box, for the penalty's arithmetic
+KEEP_OUT_SCALE = 0.05   # m: the penalty is ((depth + margin) / this)^2
+
+
+def keep_out_depth(positions, lows, highs):
+    """(C, B) how deep (m) each optical centre (C, 3) lies inside each keep-out box (B, 3) x 2:
+    min over the axes of min(p - low, high - p); negative outside (minus the distance to the
+    nearest face along one axis, or less)."""
+    p = positions[:, None, :]
+    return jnp.min(jnp.minimum(p - lows[None], highs[None] - p), axis=-1)
+
+
+def keep_out_penalty(positions, lows, highs, margin: float):
+    """Σ (max(0, depth + margin) / KEEP_OUT_SCALE)^2 over cameras and keep-out boxes
+    (`keep_out_depth`): 0 exactly where every optical centre is `margin` or more outside every
+    box, C^1 in the positions (a hinge squared)."""
+    if lows.shape[0] == 0:
+        return 0.0
+    depth = keep_out_depth(positions, lows, highs)
+    return jnp.sum((jnp.maximum(depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2)
+
+
+def keep_out_checks(cameras, keep_outs) -> list[dict]:
+    """One "keep_out" entry per camera and keep-out box: the depth (m) of its optical centre
+    inside the box (`keep_out_depth`), met when <= 0."""
+    if not keep_outs:
+        return []
+    lows, highs = (np.clip(np.array([getattr(k, a) for k in keep_outs]), -KEEP_OUT_FAR, KEEP_OUT_FAR)
+                   for a in ("box_min", "box_max"))
+    depth = np.asarray(keep_out_depth(jnp.asarray([c.position for c in cameras]), jnp.asarray(lows),
+                                      jnp.asarray(highs)))
+    return [_entry("keep_out", float(depth[c, b]), 0.0, "m inside", "max", cameras=[cam.name],
+                   keep_out=box.name)
+            for c, cam in enumerate(cameras) for b, box in enumerate(keep_outs)]
 
 
 def shadow_penalty(centres, radii, samples, panels, margin: float, pairs=None, weight=None):

@@ -79,7 +79,7 @@ from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
 from vdo.model.camera import Camera, aim_point, holds_aim, intrinsic_matrix, rotation
-from vdo.config.experiment import Experiment, inside_floor
+from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import panel_frame
@@ -163,6 +163,12 @@ class Parameterization:
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
                     elif name == "u" and zone is not None and zone.floor is not None:
+                        if not zone.convex:
+                            raise ConfigError(exp.path, f'mount "{zone.name}".floor_m',
+                                              f"camera {cam.name!r} moves over a floor that is not convex "
+                                              "(or has holes): vdo optimize moves cameras over convex "
+                                              "floors only; split it into convex sectors for optimize "
+                                              "(evaluate and design take it whole)")
                         weights = mean_value_coordinates(zone.floor, cam.position[:2])
                         for k in range(1, len(zone.floor)):   # softmax logits against corner 0
                             idx[f"w{k}"] = len(theta)
@@ -435,6 +441,9 @@ class Problem:
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
             fov=self.fov, body_local=self.body_local,
+            keep_out=tuple(jnp.asarray(np.clip(np.array([getattr(k, a) for k in self.exp.keep_outs]).reshape(-1, 3),
+                                               -constraints.KEEP_OUT_FAR, constraints.KEEP_OUT_FAR))
+                           for a in ("box_min", "box_max")),
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
 
@@ -523,7 +532,7 @@ class Problem:
                         for k in range(3)]
                 grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
                 if zone.floor is not None:   # the grid points over the polygon, and its corners
-                    keep = [inside_floor(zone.floor, g[:2], tol=0.05) for g in grid]
+                    keep = [zone.inside(g[:2], tol=0.05) for g in grid]
                     corners = [[*v, z] for v in zone.floor for z in (lo[2], hi[2])]
                     grid = np.vstack([grid[keep], corners])
                 out.append(grid)
@@ -650,7 +659,8 @@ class Problem:
                 K, R, t, size[:, 0], size[:, 1], fov["camera"], fov["points"], fov["area"],
                 fov["ramp"], data["distortion"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
-                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance),
+                constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance)
+            + constraints.keep_out_penalty(pos, *data["keep_out"], CLEARANCE_MARGIN),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
             shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
@@ -674,7 +684,8 @@ class Problem:
                                  self.pairs, self.min_angles, _clearances(state.cameras, self.scene_tree),
                                  opt.clearance, opt.max_obscuration, light_lost(self.lit_without_cameras, state.illumination.lit, self.samples),
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
-                                 fov_limits=self.fov_limits, max_angles=self.max_angles)
+                                 fov_limits=self.fov_limits, max_angles=self.max_angles) \
+            + constraints.keep_out_checks(state.cameras, self.exp.keep_outs)
 
     def _fov_limits(self, entries) -> np.ndarray:
         """(C, R) least in-image fraction of each assigned region: 1 - max_obscuration, or what
@@ -1280,7 +1291,7 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
             depth = float((aim - cam.position) @ cam.optical_axis)
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
-            if zone.floor is not None and not inside_floor(zone.floor, moved[:2]):
+            if zone.floor is not None and not zone.inside(moved[:2]):
                 moved = cam.position   # not over the floor: screen it where it stands
             specs[c] = dataclasses.replace(specs[c], position=moved, target=aim)   # aimed again
         return Problem(current.problem.exp.with_cameras(specs), reference=problem)

@@ -315,9 +315,18 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
             for region, rf in zip(exp.regions, region_faces):
                 if region.mesh != mesh.name:
                     continue
-                sel = rf.faces[~taken[rf.faces]]
+                fresh = ~taken[rf.faces]
+                sel = rf.faces[fresh]
                 taken[sel] = True
                 if len(sel) == 0:
+                    continue
+                if rf.development is not None:   # a curved region: corners of its own per face,
+                    # so that a ring's seam does not smear the texture (texture coordinates per face)
+                    uv = rf.development.triangles_uv(mesh.vertices[faces[rf.faces]])[fresh]
+                    soup = np.arange(3 * len(sel)).reshape(-1, 3)
+                    shapes[f"region:{region.name}"] = _mi_mesh(
+                        f"region:{region.name}", at[mesh.name][faces[sel]].reshape(-1, 3), soup,
+                        speckled, uv=uv.reshape(-1, 2) / tile)
                     continue
                 v, f = _submesh(mesh.vertices, faces[sel])
                 shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}",

@@ -4,9 +4,13 @@ the tripods under them, and the Mitsuba scene built from them.
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory, so a
 user's CAD export and the built-in example take the same path.
 
-Regions of interest are planar faces of a specimen mesh (the paper's elementary surfaces). Each is
-sampled on a regular grid of spacing h in its own parametric frame (t_u, t_v): a sample at
-X = O + u t_u + v t_v carries the area h^2, the face normal n = t_u x t_v, and (u, v) in metres.
+Regions of interest are patches of a specimen mesh chosen by selectors (`RegionSelector`: a normal
+cone, a box, a distance band to a point, an axis or a mesh). A planar patch (the paper's elementary
+surface) is sampled on a regular grid of spacing h in its own parametric frame (t_u, t_v): a sample
+at X = O + u t_u + v t_v carries the area h^2, the face normal n = t_u x t_v, and (u, v) in metres.
+A curved patch is developed onto the plane (`vdo.model.surface`) and sampled on the same grid there;
+each sample carries its cell's surface area, its face's normal and its own tangent frame
+(`sample_region`).
 """
 
 from __future__ import annotations
@@ -16,11 +20,13 @@ import functools
 import logging
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import trimesh
 
 from vdo.core.backend import mitsuba
+from vdo.model import surface
 from vdo.model.camera import Camera
 from vdo.config.experiment import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
 from vdo.core.errors import ConfigError
@@ -169,7 +175,8 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
                 tri = vertices[faces]
                 normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
                 length = np.linalg.norm(normals, axis=1)
-                facing = normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
+                facing = (np.ones(len(tri), dtype=bool) if region.normal is None else
+                          normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300))
                 selectable = facing & np.all((tri.max(axis=1) >= region.box_min)
                                              & (tri.min(axis=1) <= region.box_max), axis=1)
             offset = tri[..., k] - c
@@ -231,6 +238,8 @@ class SurfaceSamples:
     region: np.ndarray       # (N,) index into region_names
     region_names: tuple[str, ...]
     region_importance: np.ndarray  # (R,)
+    region_period: np.ndarray | None = None  # (R,) u period of a ring closed around its axis, m (0: none)
+    region_cell: np.ndarray | None = None    # (R,) grid spacing in (u, v), m (None: sqrt(area))
 
     def __len__(self):
         return len(self.points)
@@ -244,84 +253,188 @@ def face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.cross(t_v, normal), t_v
 
 
-def _select_faces(mesh: trimesh.Trimesh, region: RegionSpec) -> np.ndarray:
-    cos_tol = np.cos(region.normal_tolerance)
-    centroids = mesh.triangles_center
-    inside = np.all((centroids >= region.box_min) & (centroids <= region.box_max), axis=1)
-    facing = mesh.face_normals @ region.normal >= cos_tol
-    return np.flatnonzero(inside & facing & (mesh.area_faces > 0))
+NEAR_FIELDS = {"near_point_m": "a point", "near_axis_m": "an axis", "near_mesh": "mesh",
+               "region_file": "the region mesh"}
+
+
+@dataclass(frozen=True, eq=False)
+class RegionSelector:
+    """What a region selects, as predicates: the normal cone per face, the box and the distance
+    band [beyond, within] per point (m). `distance(points)` is the distance to the near_* point,
+    axis or surface (None without one)."""
+
+    region: RegionSpec
+    distance: Callable[[np.ndarray], np.ndarray] | None = None
+    within: float = math.inf
+
+    def facing(self, normals: np.ndarray) -> np.ndarray:
+        if self.region.normal is None:
+            return np.ones(len(normals), dtype=bool)
+        return normals @ self.region.normal >= np.cos(self.region.normal_tolerance)
+
+    def in_box(self, points: np.ndarray) -> np.ndarray:
+        return np.all((points >= self.region.box_min) & (points <= self.region.box_max), axis=1)
+
+    def in_band(self, points: np.ndarray, slack: np.ndarray | float = 0.0) -> np.ndarray:
+        """Points within [beyond - slack, within + slack] of the selector (all True without one).
+        A distance is 1-Lipschitz, so a triangle of circumradius r about its centroid c has a point
+        in the band only if c is in the band widened by r."""
+        if self.distance is None:
+            return np.ones(len(points), dtype=bool)
+        d = self.distance(points)
+        return (d <= self.within + slack) & (d >= self.region.beyond - slack)
+
+    def keep(self, points: np.ndarray) -> np.ndarray:
+        """(N,) the points the region keeps of those on its selected faces: in the box and band."""
+        return self.in_box(points) & self.in_band(points)
+
+
+def region_selector(exp: Experiment, region: RegionSpec, meshes: list[SceneMesh],
+                    spacing: float) -> RegionSelector:
+    """The `RegionSelector` of `region`: the near_mesh's surface from `meshes`, the region_file
+    read in the specimen mesh's unit; a region file's band defaults to `spacing` (m)."""
+    field = f'region "{region.name}".region_file'
+    if region.near_point is not None:
+        distance = lambda x: np.linalg.norm(x - region.near_point, axis=1)
+    elif region.near_axis is not None:
+        distance = lambda x: surface.distance_to_line(x, *region.near_axis)
+    elif region.near_mesh is not None:
+        other = next(m for m in meshes if m.name == region.near_mesh)
+        distance = lambda x: surface.distance_to_mesh(x, other.vertices, other.faces)
+    elif region.region_file is not None:
+        scale = next(m.scale for m in exp.meshes if m.name == region.mesh)
+        loaded = _read_mesh(region.region_file, (exp.path, field))
+        v, f = np.asarray(loaded.vertices, float) * scale, np.asarray(loaded.faces)
+        distance = lambda x: surface.distance_to_mesh(x, v, f)
+    else:
+        return RegionSelector(region)
+    within = region.within if region.within is not None else spacing
+    return RegionSelector(region, distance, within)
 
 
 @dataclass(frozen=True, eq=False)
 class RegionFaces:
-    """The faces of one region of interest and its planar frame (metres).
+    """The faces of one region of interest and its frame (metres).
 
-    A point X of the face has parametric coordinates uv = ((X - origin) . t_u, (X - origin) . t_v),
-    the same (u, v) that `sample_region` gives its samples (so a texture mapped with these uv
-    lines up with the samples). t_u x t_v = normal (outward): seen from outside the face, u runs
-    right and v up."""
+    Planar (`development` None): a point X of the face has parametric coordinates
+    uv = ((X - origin) . t_u, (X - origin) . t_v), the same (u, v) that `sample_region` gives its
+    samples (so a texture mapped with these uv lines up with the samples). t_u x t_v = normal
+    (outward): seen from outside the face, u runs right and v up. Curved: uv is the
+    `vdo.model.surface.Development`'s and `normal` the area-weighted mean normal. `selector`
+    keeps the samples in the region's box and distance band."""
 
     faces: np.ndarray      # (T,) indices into the mesh's faces
     normal: np.ndarray     # (3,)
     t_u: np.ndarray        # (3,)
     t_v: np.ndarray        # (3,)
     origin: np.ndarray     # (3,) a point of the face's plane with uv = (0, 0)
+    development: surface.Development | None = None
+    selector: RegionSelector | None = None
 
     def uv(self, points: np.ndarray) -> np.ndarray:
         """(..., 2) parametric coordinates of points (..., 3) on the face, m."""
+        if self.development is not None:
+            return self.development.uv(points)
         rel = np.asarray(points, dtype=float) - self.origin
         return np.stack([rel @ self.t_u, rel @ self.t_v], axis=-1)
 
 
-def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
-                 tm: trimesh.Trimesh | None = None) -> RegionFaces:
-    """The faces that `region` selects on `mesh` and their frame; ConfigError (at `where`) when
-    none is selected or they are not coplanar (tolerance max(spacing / 4, 0.1 mm))."""
-    tm = mesh.trimesh if tm is None else tm
-    faces = _select_faces(tm, region)
-    if len(faces) == 0:
-        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-        hint = ""
-        if np.any(region.box_min > hi) or np.any(region.box_max < lo):
-            hint = (f"; the box misses the mesh, which spans {np.round(lo, 3).tolist()} to "
-                    f"{np.round(hi, 3).tolist()} m")
-            size = np.where(np.isfinite(region.box_max - region.box_min), region.box_max - region.box_min, 0)
-            if np.ptp(mesh.vertices, axis=0).max() > 100 * max(size.max(), 1e-9):
-                hint += ": is the mesh's unit right (unit = \"mm\" for a CAD export in mm)?"
+def _nothing_selected(mesh: SceneMesh, region: RegionSpec, selector: RegionSelector, tm, where):
+    """ConfigError naming what the selection would need: the box misses the mesh, no face faces
+    the normal, or the distance band holds no face (with the distances the faces have)."""
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    hint = ""
+    if np.any(region.box_min > hi) or np.any(region.box_max < lo):
+        hint = (f"; the box misses the mesh, which spans {np.round(lo, 3).tolist()} to "
+                f"{np.round(hi, 3).tolist()} m")
+        size = np.where(np.isfinite(region.box_max - region.box_min), region.box_max - region.box_min, 0)
+        if np.ptp(mesh.vertices, axis=0).max() > 100 * max(size.max(), 1e-9):
+            hint += ": is the mesh's unit right (unit = \"mm\" for a CAD export in mm)?"
         raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check normal, "
                                   f"box_min_m and box_max_m (metres, world frame){hint}")
+    near = region.near
+    if near is not None:
+        ok = selector.facing(tm.face_normals) & selector.in_box(tm.triangles_center)
+        if ok.any():
+            d = selector.distance(tm.triangles_center[ok])
+            limited = [w for w, on in (("box", np.isfinite(region.box_min).any() or np.isfinite(region.box_max).any()),
+                                       ("normal cone", region.normal is not None)) if on]
+            within = f" (in the {' and '.join(limited)})" if limited else ""
+            raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: its faces{within} "
+                                      f"lie {d.min():.4g} to {d.max():.4g} m from "
+                                      f"{NEAR_FIELDS[near]} ({near}); set within_m / beyond_m to "
+                                      "include some of that range")
+    if region.normal is not None:
+        best = float(np.degrees(np.arccos(np.clip((tm.face_normals @ region.normal).max(), -1, 1))))
+        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: the closest face normal is "
+                                  f"{best:.1f} deg from normal (tolerance "
+                                  f"{np.degrees(region.normal_tolerance):g} deg); check normal, "
+                                  "normal_tolerance_deg, box_min_m and box_max_m (metres, world frame)")
+    raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check box_min_m and box_max_m "
+                              "(metres, world frame)")
+
+
+def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                 tm: trimesh.Trimesh | None = None, selector: RegionSelector | None = None) -> RegionFaces:
+    """The faces that `region` selects on `mesh` and their frame; ConfigError (at `where`) when
+    none is selected. A selection whose faces are coplanar (tolerance max(spacing / 4, 0.1 mm))
+    is a planar face; otherwise it must be one connected piece of surface, developed by
+    `vdo.model.surface.fit_development` (same tolerance for the fit). `selector`: the region's
+    `RegionSelector` (needed for near_mesh and region_file; built here for the others)."""
+    tm = mesh.trimesh if tm is None else tm
+    if selector is None:
+        if region.near_mesh is not None or region.region_file is not None:
+            raise ValueError("a region that selects by a mesh needs its RegionSelector")
+        selector = region_selector(None, region, [], spacing)
+    centroids = tm.triangles_center
+    radius = np.linalg.norm(tm.triangles - centroids[:, None], axis=2).max(axis=1)
+    chosen = selector.facing(tm.face_normals) & selector.in_box(centroids) & (tm.area_faces > 0)
+    if selector.distance is not None and chosen.any():
+        chosen[chosen] = selector.in_band(centroids[chosen], radius[chosen])
+    faces = np.flatnonzero(chosen)
+    if len(faces) == 0:
+        _nothing_selected(mesh, region, selector, tm, where)
     normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])
-    normal /= np.linalg.norm(normal)
-    t_u, t_v = face_frame(normal)
+    normal /= max(np.linalg.norm(normal), 1e-300)
     tri = tm.triangles[faces]                                   # (T, 3, 3)
+    tolerance = max(0.25 * spacing, 1e-4)
     depth = tri.reshape(-1, 3) @ normal
-    if np.ptp(depth) > max(0.25 * spacing, 1e-4):
+    if np.ptp(depth) <= tolerance and np.linalg.norm(normal) > 0.5:
+        t_u, t_v = face_frame(normal)
+        flat = tri.reshape(-1, 3)
+        ou, ov = (flat @ t_u).min(), (flat @ t_v).min()
+        origin = ou * t_u + ov * t_v + depth.mean() * normal
+        return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=origin, selector=selector)
+    vertices, merged_faces = surface.merged(tri)
+    pieces = surface.components(merged_faces, len(vertices))
+    count = int(pieces.max()) + 1
+    if count > 1:
         raise ConfigError(*where, f"selects faces that are not coplanar (depth spread "
-                                  f"{np.ptp(depth) * 1e3:.1f} mm): a region must be one planar "
-                                  "face; narrow its box or normal_tolerance_deg")
-    flat = tri.reshape(-1, 3)
-    ou, ov = (flat @ t_u).min(), (flat @ t_v).min()
-    origin = ou * t_u + ov * t_v + depth.mean() * normal
-    return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=origin)
+                                  f"{np.ptp(depth) * 1e3:.1f} mm) and not one connected surface "
+                                  f"({count} separate pieces): a region must be one planar face or "
+                                  "one connected curved patch; narrow its box, normal_tolerance_deg "
+                                  "or distance band")
+    dev = surface.fit_development(tri, tm.face_normals[faces], tm.area_faces[faces], tolerance)
+    if dev.distortion.large:
+        log.warning("%s: %s: developed with distortion %.0f %% in area and %.0f %% in angle (p95 "
+                    "over its surface; samples carry their true area, but its maps are distorted "
+                    "by as much): split it into flatter regions", where[0], where[1],
+                    100 * dev.distortion.area_p95, 100 * dev.distortion.angle_p95)
+    t_u, t_v = face_frame(normal) if np.linalg.norm(normal) > 0.5 else (np.eye(3)[0], np.eye(3)[1])
+    return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=tri.reshape(-1, 3).mean(0),
+                       development=dev, selector=selector)
 
 
-def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
-                  rf: RegionFaces | None = None) -> dict:
-    """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
-    found by `region_faces`)."""
-    tm = mesh.trimesh
-    rf = region_faces(mesh, region, spacing, where, tm) if rf is None else rf
-    normal, t_u, t_v = rf.normal, rf.t_u, rf.t_v
-    tri = tm.triangles[rf.faces]                                # (T, 3, 3)
-    uv_tri = rf.uv(tri)                                         # (T, 3, 2)
-    # every grid point (i + 1/2, j + 1/2) spacing of each triangle's bounding box, all at once
+def _grid_points(uv_tri: np.ndarray, spacing: float):
+    """Grid points (i + 1/2, j + 1/2) spacing inside the 2D triangles uv_tri (T, 3, 2): (triangle
+    index t, barycentric l1, l2 (K, 1) each, grid index ij (K, 2))."""
     lo = np.floor(uv_tri.min(axis=1) / spacing - 0.5).astype(int)             # (T, 2)
     size = np.ceil(uv_tri.max(axis=1) / spacing - 0.5).astype(int) - lo + 1   # (T, 2)
     a, e1, e2 = uv_tri[:, 0], uv_tri[:, 1] - uv_tri[:, 0], uv_tri[:, 2] - uv_tri[:, 0]
     det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     size[np.abs(det) < 1e-18] = 0                                              # degenerate: none
     count = size.prod(axis=1)
-    t = np.repeat(np.arange(len(tri)), count)
+    t = np.repeat(np.arange(len(uv_tri)), count)
     k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     ij = lo[t] + np.stack([k // size[t, 1], k % size[t, 1]], axis=1)
     q = (ij + 0.5) * spacing - a[t]
@@ -329,16 +442,107 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
     l2 = (e1[t, 0] * q[:, 1] - e1[t, 1] * q[:, 0]) / det[t]                   # q = l1 e1 + l2 e2
     tol = 1e-9  # grid points on an edge shared by two triangles must not be lost to rounding
     inside = (l1 >= -tol) & (l2 >= -tol) & (l1 + l2 <= 1 + tol)
-    t, l1, l2, ij = t[inside], l1[inside, None], l2[inside, None], ij[inside]
+    return t[inside], l1[inside, None], l2[inside, None], ij[inside]
+
+
+def ring_spacing(period: float, spacing: float) -> float:
+    """The grid spacing of a region closed around its axis: the largest h' <= h that divides the
+    period 2 pi R into whole cells, so that the grid closes on itself."""
+    return period / math.ceil(period / spacing - 1e-9) if period > 0 else spacing
+
+
+def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                  rf: RegionFaces | None = None) -> dict:
+    """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
+    found by `region_faces`), in the region's (u, v): each stands for its cell of the grid.
+
+    Planar: the cell's area h^2 and the face frame. Curved (developed): the grid lies in the
+    developed plane; a sample on face T carries the surface area of its cell, h^2 A_T / A'_T (the
+    face's area on the surface over its developed area: 1 for an exact development but for the
+    chord of a facet against its arc), the face's normal n and the tangent frame t_u = the unit
+    image of the developed u direction on the face (J = E D^-1, E the face's edge vectors, D the
+    developed ones), projected off n, and t_v = n x t_u. A ring closed around its axis is sampled
+    at `ring_spacing` and its grid index wraps at the period. Samples outside the region's box
+    and distance band are dropped."""
+    tm = mesh.trimesh
+    rf = region_faces(mesh, region, spacing, where, tm) if rf is None else rf
+    tri = tm.triangles[rf.faces]                                # (T, 3, 3)
+    dev = rf.development
+    if dev is not None:
+        spacing = ring_spacing(dev.period, spacing)
+    uv_tri = rf.uv(tri) if dev is None else dev.triangles_uv(tri)   # (T, 3, 2)
+    t, l1, l2, ij = _grid_points(uv_tri, spacing)
     points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
+    if dev is not None and dev.period > 0:
+        ij[:, 0] = np.mod(ij[:, 0], round(dev.period / spacing))
     _, first = np.unique(ij, axis=0, return_index=True)        # points on shared edges once
-    ij, pts = ij[first], points[first]
+    t, ij, pts = t[first], ij[first], points[first]
+    if rf.selector is not None and (rf.selector.distance is not None or dev is not None):
+        keep = rf.selector.keep(pts)
+        t, ij, pts = t[keep], ij[keep], pts[keep]
     if len(pts) == 0:
         raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
     n = len(pts)
-    return dict(points=pts, normals=np.tile(normal, (n, 1)), tangent_u=np.tile(t_u, (n, 1)),
-                tangent_v=np.tile(t_v, (n, 1)), uv=(ij + 0.5) * spacing,
-                area=np.full(n, spacing**2))
+    if dev is None:
+        return dict(points=pts, normals=np.tile(rf.normal, (n, 1)), tangent_u=np.tile(rf.t_u, (n, 1)),
+                    tangent_v=np.tile(rf.t_v, (n, 1)), uv=(ij + 0.5) * spacing,
+                    area=np.full(n, spacing**2))
+    E = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=-1)      # (T, 3, 2)
+    D = np.stack([uv_tri[:, 1] - uv_tri[:, 0], uv_tri[:, 2] - uv_tri[:, 0]], axis=-1)
+    det = np.linalg.det(D)
+    J = E @ np.linalg.inv(np.where(np.abs(det)[:, None, None] > 1e-300, D, np.eye(2)))
+    normal = tm.face_normals[rf.faces]
+    t_u = J[:, :, 0] - normal * np.einsum("ij,ij->i", J[:, :, 0], normal)[:, None]
+    t_u /= np.linalg.norm(t_u, axis=1, keepdims=True)
+    t_v = np.cross(normal, t_u)
+    ratio = tm.area_faces[rf.faces] / np.maximum(np.abs(det) / 2, 1e-300)
+    return dict(points=pts, normals=normal[t], tangent_u=t_u[t], tangent_v=t_v[t],
+                uv=(ij + 0.5) * spacing, area=spacing**2 * ratio[t])
+
+
+RASTER_MAX = 4_000_000      # fine points of one region's surface raster (4 MB of booleans)
+RASTER_FINE = 8             # fine points per cell side at most
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceRaster:
+    """Which points of a fine grid lie on a region's surface: the grid of spacing h / K in the
+    region's (u, v) (fine point (m_u, m_v) at ((m + 1/2) h / K), so that cell (i, j) of the sample
+    grid holds the fine points i K .. i K + K - 1 along each axis. `mask[a, b]` is fine point
+    (offset[0] + a, offset[1] + b); a ring's mask is padded by `pad` wrapped columns each side."""
+
+    mask: np.ndarray        # (Nu, Nv) bool
+    offset: np.ndarray      # (2,) int: the fine index of mask[0, 0]
+    fine: int               # K
+    cell: float             # h, m
+    around: int             # cells around a ring (0: not a ring)
+
+
+def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: int = 2) -> SurfaceRaster:
+    """The `SurfaceRaster` of a region from its own triangles (not from its samples): the fine
+    points inside its (developed) triangles, and in its box and distance band, as `sample_region`
+    decides for a sample. K = RASTER_FINE, fewer when the region would exceed RASTER_MAX."""
+    tm = mesh.trimesh
+    tri = tm.triangles[rf.faces]
+    dev = rf.development
+    h = ring_spacing(dev.period, spacing) if dev is not None else spacing
+    uv_tri = rf.uv(tri) if dev is None else dev.triangles_uv(tri)
+    cells = float(tm.area_faces[rf.faces].sum()) / h ** 2
+    fine = int(max(2, min(RASTER_FINE, math.floor(math.sqrt(RASTER_MAX / max(cells, 1.0))))))
+    t, l1, l2, m = _grid_points(uv_tri, h / fine)
+    if rf.selector is not None and (rf.selector.distance is not None or dev is not None):
+        points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
+        m = m[rf.selector.keep(points)]
+    around = int(round(dev.period / h)) if dev is not None and dev.period > 0 else 0
+    if around:
+        m[:, 0] = np.mod(m[:, 0], around * fine)
+        pad = pad_cells * fine
+        m = np.concatenate([m, m[m[:, 0] < pad] + [around * fine, 0],
+                            m[m[:, 0] >= around * fine - pad] - [around * fine, 0]])
+    lo = m.min(axis=0)
+    mask = np.zeros(tuple(m.max(axis=0) - lo + 1), dtype=bool)
+    mask[m[:, 0] - lo[0], m[:, 1] - lo[1]] = True
+    return SurfaceRaster(mask, lo, fine, h, around)
 
 
 def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
@@ -346,7 +550,8 @@ def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
     """`region_faces` for every region of the experiment, in config order."""
     spacing = exp.evaluation.sample_spacing if spacing is None else spacing
     by_name = {m.name: m for m in meshes}
-    return [region_faces(by_name[r.mesh], r, spacing, (exp.path, f'region "{r.name}"'))
+    return [region_faces(by_name[r.mesh], r, spacing, (exp.path, f'region "{r.name}"'),
+                         selector=region_selector(exp, r, meshes, spacing))
             for r in exp.regions]
 
 
@@ -380,8 +585,13 @@ def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | No
         part["region"] = np.full(len(part["points"]), index)
         parts.append(part)
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    period = np.array([0.0 if rf.development is None else rf.development.period for rf in faces])
     return SurfaceSamples(**merged, region_names=tuple(r.name for r in exp.regions),
-                          region_importance=np.array([r.importance for r in exp.regions]))
+                          region_importance=np.array([r.importance for r in exp.regions]),
+                          region_period=period,
+                          region_cell=np.array([spacing if rf.development is None else
+                                                ring_spacing(rf.development.period, spacing)
+                                                for rf in faces]))
 
 
 # --------------------------------------------------------------------------------------------

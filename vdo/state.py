@@ -33,8 +33,8 @@ from vdo.core.errors import ConfigError
 from vdo.physics.lighting import Illumination, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
-                    load_meshes, sample_regions, tripods)
-from vdo.physics.usable import patch_overlap
+                    load_meshes, sample_regions, surface_raster, tripods)
+from vdo.physics.usable import FINE_PATCH_CELLS, patch_overlap
 from vdo.physics.visibility import Visibility, compute_visibility
 
 
@@ -277,8 +277,13 @@ def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     """Read the meshes (unless given), sample the regions and build the speckle model."""
     meshes = load_meshes(exp) if meshes is None else meshes
     samples = sample_regions(exp, meshes)
-    return Geometry(exp, tuple(meshes), samples, speckle_model(exp), tuple(all_region_faces(exp, meshes)),
-                    patch_overlap(samples, exp.evaluation.patch_size))
+    faces = tuple(all_region_faces(exp, meshes))
+    spacing, patch = exp.evaluation.sample_spacing, exp.evaluation.patch_size
+    by_name = {m.name: m for m in meshes}
+    rasters = [surface_raster(by_name[r.mesh], rf, spacing) if patch <= FINE_PATCH_CELLS * spacing else None
+               for r, rf in zip(exp.regions, faces)]
+    return Geometry(exp, tuple(meshes), samples, speckle_model(exp), faces,
+                    patch_overlap(samples, patch, rasters))
 
 
 def unobstructed_lighting(geometry: Geometry) -> Illumination:

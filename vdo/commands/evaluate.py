@@ -156,6 +156,18 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                 maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
                                    f"{exp.name}: strain uncertainty ε_{c} (face frame, "
                                    f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r")
+        meshes = {m.name: m for m in state.geometry.meshes}
+        for r, (region, faces) in enumerate(zip(exp.regions, state.geometry.region_faces)):
+            if faces.development is not None:
+                mesh = meshes[region.mesh]
+                developed = maps.plot_developed(
+                    samples, r, faces, mesh.vertices, mesh.faces, sigma_um, pred.usable,
+                    vis.camera_names, tmp / "maps" / f"developed_{region.name}.png",
+                    f"{exp.name}: region {region.name!r} developed, σ_max and the usable views",
+                    "σ_max (µm)")
+                summary.setdefault("developed", {})[region.name] = developed
+        if "developed" in summary:
+            report.write_json(tmp / "summary.json", summary)
         if over_path is not None:
             _write_load_path(tmp, exp, samples, over_path)
         html_report.write_report(tmp)

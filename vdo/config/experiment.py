@@ -257,6 +257,22 @@ class Points(Kind):
 
 
 @dataclass(frozen=True)
+class Polygons(Kind):
+    """A list of polygons, each a list of at least 3 [x, y] points (m): a tuple of (n, 2) arrays."""
+
+    doc = "[[[x, y], …], …]"
+
+    def read(self, value, scale, base):
+        if not isinstance(value, list) or not value:
+            raise _Bad(f"must be a non-empty list of polygons, each a list of at least 3 [x, y] points "
+                       f"(got {_show(value)})")
+        return tuple(Points(3, dims=2).read(p, scale, base) for p in value)
+
+    def write(self, value, scale):
+        return [Points(3, dims=2).write(p, scale) for p in value]
+
+
+@dataclass(frozen=True)
 class Numbers(Kind):
     """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
 
@@ -472,14 +488,19 @@ class MeshSpec:
 
 @dataclass(frozen=True, eq=False)
 class RegionSpec:
-    """A region of interest: the faces of `mesh` whose normal is within `normal_tolerance` of
-    `normal` and which lie in the box [box_min, box_max] (metres; faces that cross the box are
-    split at it when the meshes are loaded)."""
+    """A region of interest: a patch of the surface of `mesh`, every selector given applying at
+    once: faces whose normal is within `normal_tolerance` of `normal` (when given), the part
+    inside the box [box_min, box_max] (metres; faces that cross the box are split at it when the
+    meshes are loaded), and the part at a distance in [beyond, within] (metres) of a point, of an
+    axis (the line through two points), of another mesh, or of a separate region mesh
+    (`region_file`, in the specimen mesh's unit). Without any selector the whole mesh is the
+    region. A planar selection is one face; a curved one is developed (`vdo.model.surface`)."""
 
     name: str = row("name", Text(name=True), doc="unique")
     mesh: str = row("mesh", Text(name=True), doc="a specimen mesh")
-    normal: np.ndarray = row("normal", Vector(3, letters="xyz"),
-                             doc="outward normal of the face (world frame; normalised)")
+    normal: np.ndarray | None = row("normal", Vector(3, letters="xyz"), None, shown="any",
+                                    doc="faces whose outward normal (world frame; normalised) is "
+                                        "within normal_tolerance_deg of this")
     box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), [-math.inf] * 3,
                               unit="m", shown="unbounded",
                               doc="the region is the part of the selected faces inside this box "
@@ -495,6 +516,29 @@ class RegionSpec:
         doc="largest angle between the optical axes of two cameras that share this region")
     min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
                                   doc="coverage requirement on this region")
+    near_point: np.ndarray | None = row("near_point_m", Vector(3, letters="xyz"), None, unit="m",
+                                        shown="none", doc="select by the distance to this point")
+    near_axis: np.ndarray | None = row("near_axis_m", Points(2), None, unit="m", shown="none",
+                                       doc="select by the distance to the line through these 2 points")
+    near_mesh: str | None = row("near_mesh", Text(name=True), None, shown="none",
+                                doc="select by the distance to this [[mesh]]'s surface")
+    region_file: Path | None = row("region_file", File((".stl", ".obj", ".ply"), "region mesh",
+                                                       "an STL, OBJ or PLY"), None, shown="none",
+                                   doc="select the part of the mesh within within_m of this "
+                                       "surface (same unit as the specimen mesh)")
+    within: float | None = row("within_m", Real(positive=True), None, unit="m",
+                               shown="sample spacing for region_file",
+                               doc="largest distance to the near_* point, axis or mesh")
+    beyond: float = row("beyond_m", Real(low=0.0), 0.0, unit="m",
+                        doc="smallest distance to the near_* point, axis or mesh")
+
+    @property
+    def near(self) -> str | None:
+        """The distance selector's field name, or None."""
+        keys = [k for k, v in (("near_point_m", self.near_point), ("near_axis_m", self.near_axis),
+                               ("near_mesh", self.near_mesh), ("region_file", self.region_file))
+                if v is not None]
+        return keys[0] if keys else None
 
 
 @dataclass(frozen=True, eq=False)
@@ -746,15 +790,29 @@ class MountSpec:
     box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
                                      shown="zone", doc="a box zone's upper corner")
     floor: np.ndarray | None = row("floor_m", Points(3, dims=2), None, unit="m", shown="zone",
-                                   doc="or a convex floor polygon (with height_m)")
+                                   doc="or a floor polygon, any simple one (with height_m)")
     height: tuple[float, float] | None = row("height_m", Vector(2, as_tuple=True, letters=("low", "high")),
                                              None, unit="m", shown="zone", doc="the polygon zone's heights")
+    floor_holes: tuple[np.ndarray, ...] | None = row(
+        "floor_holes_m", Polygons(), None, unit="m", shown="none",
+        doc="polygons cut out of the floor polygon (a ring around the specimen: one hole)")
     position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
                                       shown="fixed", doc="a fixed mount's optical centre")
     tripod: TripodSpec | None = row("tripod", SubTable(TripodSpec), None, shown="none",
                                     doc="a zone's tripod as the table [mount.tripod] (fields below; "
                                         "`tripod = {}` takes the defaults): its legs and column "
                                         "occlude the other cameras and cast shadows")
+
+    @property
+    def convex(self) -> bool:
+        """Whether the zone is a box or a convex floor polygon without holes."""
+        return self.floor is None or (not self.floor_holes and _is_convex(self.floor))
+
+    def inside(self, xy: np.ndarray, tol: float = 1e-9) -> bool:
+        """Whether the floor point xy (m) lies on the zone's floor (a box zone: its x, y range)."""
+        if self.floor is None:
+            return bool(np.all(xy >= self.low[:2] - tol) and np.all(xy <= self.high[:2] + tol))
+        return inside_floor(self.floor, xy, tol, self.floor_holes or ())
 
     @property
     def low(self) -> np.ndarray:
@@ -767,9 +825,84 @@ class MountSpec:
         return self.box_max if self.floor is None else np.array([*self.floor.max(0), self.height[1]])
 
 
+@dataclass(frozen=True, eq=False)
+class KeepOutSpec:
+    """A volume no camera may stand in (the specimen's surroundings, a machine, a walkway): the
+    box [box_min, box_max] (m). A camera's optical centre inside one is refused; design drops the
+    candidate poses inside one; optimize keeps the cameras out."""
+
+    name: str = row("name", Text(name=True), doc="unique")
+    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), unit="m",
+                              doc="lower corner (±inf allowed)")
+    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), unit="m",
+                              doc="upper corner (±inf allowed)")
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) whether points (N, 3) (m) lie strictly inside the box."""
+        p = np.atleast_2d(np.asarray(points, float))
+        return np.all((p > self.box_min) & (p < self.box_max), axis=1)
+
+
+def _check_keep_out(t: Table, v: dict) -> None:
+    if np.any(v["box_min"] >= v["box_max"]):
+        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
+
+
+def inside_keep_out(keep_outs, points: np.ndarray) -> np.ndarray:
+    """(N,) index of the first keep-out volume holding each point (N, 3), -1 where none does."""
+    p = np.atleast_2d(np.asarray(points, float))
+    out = np.full(len(p), -1)
+    for k, box in reversed(list(enumerate(keep_outs))):
+        out[box.contains(p)] = k
+    return out
+
+
+KEEP_OUT_RAIL_POINTS = 201   # positions along a rail tested against the keep-out volumes
+
+
+def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
+    """ConfigError for a camera whose optical centre lies in a keep-out volume, and for a keep-out
+    that holds every position of a camera's mount (a zone's box or floor corners at both heights,
+    KEEP_OUT_RAIL_POINTS along a rail), naming the camera, the mount and the fix."""
+    if not exp.keep_outs:
+        return
+    mounts = {m.name: m for m in exp.mounts}
+    for spec, t in zip(exp.camera_specs, tables["camera"]):
+        if spec.rail is not None:
+            rail = exp.rail(spec.rail)
+            track = np.array([rail.position(u, xp=np) for u in np.linspace(0, 1, KEEP_OUT_RAIL_POINTS)]) + spec.offset
+            where, field, what = inside_keep_out(exp.keep_outs, track), "rail", f"rail {spec.rail!r}"
+        elif spec.mount is not None and mounts[spec.mount].kind == "zone":
+            zone = mounts[spec.mount]
+            xy = zone.floor if zone.floor is not None else np.array(
+                [[x, y] for x in (zone.low[0], zone.high[0]) for y in (zone.low[1], zone.high[1])])
+            track = np.array([[*c, z] for c in xy for z in (zone.low[2], zone.high[2])])
+            where, field, what = inside_keep_out(exp.keep_outs, track), "mount", f"zone {spec.mount!r}"
+            # a box holds a convex zone when it holds its corners; a floor polygon is checked by them too
+        else:
+            where = np.array([-1])
+        if len(where) and np.all(where >= 0) and len(set(where.tolist())) == 1:
+            box = exp.keep_outs[int(where[0])]
+            raise t.error(field, f"every position of {what} lies in keep_out {box.name!r} "
+                                 f"({box.box_min.tolist()} to {box.box_max.tolist()} m): camera "
+                                 f"{spec.name!r} has nowhere to stand; shrink the keep-out or move the mount")
+        own = spec.position if spec.rail is None else \
+            exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset
+        if own is not None:
+            k = int(inside_keep_out(exp.keep_outs, own)[0])
+            if k >= 0:
+                box = exp.keep_outs[k]
+                raise t.error("position_m" if spec.rail is None else "u",
+                              f"{np.round(own, 4).tolist()} lies in keep_out {box.name!r} "
+                                            f"({box.box_min.tolist()} to {box.box_max.tolist()} m): "
+                                            "move the camera out of it")
+
+
 def _check_mount(t: Table, v: dict) -> None:
     kind = v["kind"]
     floor = kind == "zone" and t.has("floor_m")
+    if t.has("floor_holes_m") and not floor:
+        raise t.error("floor_holes_m", "applies to a zone with floor_m (a floor polygon)")
     needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
     allowed = needs + (("degree", "weights") if kind == "rail" else ())
     for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
@@ -792,11 +925,14 @@ def _check_mount(t: Table, v: dict) -> None:
         if abs(area) < 1e-6:
             raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
         corners = corners if area > 0 else corners[::-1]
-        edges = np.roll(corners, -1, axis=0) - corners
-        turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-        if np.any(turn < -1e-12):
-            raise t.error("floor_m", "must be a convex polygon (split a concave floor area into several "
-                                     "zones, one per tripod)")
+        if not _is_simple(corners):
+            raise t.error("floor_m", "must be a simple polygon: two of its edges cross (list the "
+                                     "corners in order around the area)")
+        for k, hole in enumerate(v["floor_holes"] or ()):
+            if not _is_simple(hole) or abs(_signed_area(hole)) < 1e-6:
+                raise t.error("floor_holes_m", f"hole {k} must be a simple polygon with an area")
+            if not all(inside_floor(corners, p) for p in hole):
+                raise t.error("floor_holes_m", f"hole {k} must lie inside floor_m")
         if v["height"][1] < v["height"][0]:
             raise t.error("height_m", f"must be [low, high] with low <= high (got {list(v['height'])})")
         v["floor"] = corners
@@ -818,11 +954,63 @@ def _check_mount(t: Table, v: dict) -> None:
                                               "raise the zone")
 
 
-def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9) -> bool:
-    """Whether the point xy (m) lies in the convex, counter-clockwise polygon `floor`."""
-    edges = np.roll(floor, -1, axis=0) - floor
-    rel = np.asarray(xy)[None] - floor
-    return bool(np.all(edges[:, 0] * rel[:, 1] - edges[:, 1] * rel[:, 0] >= -tol))
+def _signed_area(poly: np.ndarray) -> float:
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+
+
+def _is_convex(poly: np.ndarray) -> bool:
+    """Whether the counter-clockwise polygon turns left (or goes straight) at every corner."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    return bool(np.all(turn >= -1e-12))
+
+
+def _is_simple(poly: np.ndarray) -> bool:
+    """Whether no two non-adjacent edges of the polygon cross or touch (orientation tests)."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    n = len(poly)
+
+    def orient(p, q, r):
+        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
+                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
+    for i in range(n):
+        j = np.arange(i + 2, n)
+        j = j[(j + 1) % n != i]
+        if not len(j):
+            continue
+        o1, o2 = orient(a[i], b[i], a[j]), orient(a[i], b[i], b[j])
+        o3, o4 = orient(a[j], b[j], a[i]), orient(a[j], b[j], b[i])
+        if np.any((o1 != o2) & (o3 != o4)):
+            return False
+    return True
+
+
+def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> bool:
+    """Even-odd rule: a ray from xy along +x crosses the polygon's edges an odd number of times."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    x, y = float(xy[0]), float(xy[1])
+    straddle = (a[:, 1] > y) != (b[:, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
+    return bool(np.count_nonzero(straddle & (cross > x)) % 2)
+
+
+def _edge_distance(poly: np.ndarray, xy: np.ndarray) -> float:
+    """Distance (m) from xy to the polygon's boundary."""
+    a, b = poly, np.roll(poly, -1, axis=0)
+    d = b - a
+    t = np.clip(np.einsum("ij,ij->i", np.asarray(xy) - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
+    return float(np.min(np.linalg.norm(a + t[:, None] * d - xy, axis=1)))
+
+
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9, holes=()) -> bool:
+    """Whether the point xy (m) lies on the floor polygon `floor` (any simple polygon; within
+    `tol` of its edge counts as on it) and in none of `holes` (strictly inside one: off)."""
+    xy = np.asarray(xy, dtype=float)[:2]
+    if not (_in_polygon(floor, xy) or _edge_distance(floor, xy) <= tol):
+        return False
+    return not any(_in_polygon(h, xy) and _edge_distance(h, xy) > tol for h in holes)
 
 
 def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
@@ -868,9 +1056,12 @@ def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
                 centre = (mount.low + mount.high) / 2
                 if mount.floor is not None:
                     centre[:2] = mount.floor.mean(axis=0)
+                if spec.position is None and not mount.inside(centre[:2]):
+                    raise t.error("position_m", f"is required on zone {name!r}: its centroid "
+                                                f"{np.round(centre, 4).tolist()} is not on its floor (a ring)")
                 position = centre if spec.position is None else spec.position
                 if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
-                        or (mount.floor is not None and not inside_floor(mount.floor, position[:2]))):
+                        or not mount.inside(position[:2])):
                     raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
                                                 f"({mount.low.tolist()} to {mount.high.tolist()})")
                 spec = replace(spec, position=position)
@@ -1106,9 +1297,26 @@ def _check_camera(t: Table, v: dict) -> None:
 
 
 def _check_region(t: Table, v: dict) -> None:
-    if np.linalg.norm(v["normal"]) < 1e-9:
-        raise t.error("normal", "must be a non-zero vector")
-    v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    if v["normal"] is not None:
+        if np.linalg.norm(v["normal"]) < 1e-9:
+            raise t.error("normal", "must be a non-zero vector")
+        v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
+    near = [k for k in ("near_point_m", "near_axis_m", "near_mesh", "region_file") if t.has(k)]
+    if len(near) > 1:
+        raise t.error(near[1], f"give one distance selector per region (also {near[0]}); "
+                               "intersect several with a box or a normal instead")
+    if near[:1] and near[0] != "region_file" and v["within"] is None:
+        raise t.error("within_m", f"is required with {near[0]}: the largest distance (m)")
+    if (v["within"] is not None or v["beyond"] > 0) and not near:
+        raise t.error("within_m" if v["within"] is not None else "beyond_m",
+                      "applies to a distance selector: add near_point_m, near_axis_m, near_mesh or "
+                      "region_file")
+    if v["near_axis"] is not None:
+        axis = v["near_axis"]
+        if len(axis) != 2 or np.linalg.norm(axis[1] - axis[0]) < 1e-9:
+            raise t.error("near_axis_m", "must be 2 distinct points [[x, y, z], [x, y, z]] on the axis")
+    if v["within"] is not None and v["beyond"] >= v["within"]:
+        raise t.error("beyond_m", f"must be less than within_m ({v['within']:g} m)")
     if np.any(v["box_min"] >= v["box_max"]):
         raise t.error("box_max_m", "must be greater than box_min_m on every axis")
 
@@ -1175,8 +1383,10 @@ class Experiment:
                                          doc='At least one with `role = "specimen"`.')
     regions: tuple[RegionSpec, ...] = table(
         "region", RegionSpec, array=True, required=True, check=_check_region,
-        doc="A planar face of interest on a specimen mesh. The selected faces must be coplanar "
-            "(within a quarter of the sample spacing).")
+        doc="A patch of interest on a specimen mesh, chosen by a normal, a box, a distance to a "
+            "point, an axis, another mesh or a region mesh (all that are given apply). A planar "
+            "selection is one face; a curved one must be one connected piece of surface, developed "
+            "onto the plane (docs/curved.md).")
     rails: tuple[RailSpec, ...] = table(
         "rail", RailSpec, array=True, check=_check_rail,
         doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
@@ -1204,6 +1414,10 @@ class Experiment:
         doc="Where cameras can stand: a rail, a zone (a box, or a floor polygon with a height "
             "range: a tripod) or a fixed point. Cameras name one with `mount`; rail mounts are "
             "written back as [[rail]].")
+    keep_outs: tuple[KeepOutSpec, ...] = table(
+        "keep_out", KeepOutSpec, array=True, check=_check_keep_out, default=(),
+        doc="A box no camera may stand in: cameras inside one are refused, design drops the "
+            "candidates inside one, optimize keeps its cameras out.")
     stereo_pairs: tuple[StereoPairSpec, ...] = table(
         "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
         doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
@@ -1609,6 +1823,7 @@ def parse(data: dict, path: Path) -> Experiment:
     _resolve_mounts(values, tables, path)
     exp = Experiment(path=path, **values)
     _check_references(exp, tables)
+    _check_keep_outs(exp, tables)
     return exp
 
 
@@ -1622,6 +1837,9 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         if roles.get(region.mesh) != "specimen":
             raise t.error("mesh", f"must name a mesh with role \"specimen\" (got {region.mesh!r}; "
                                   f"specimen meshes: {', '.join(n for n, r in roles.items() if r == 'specimen')})")
+        if region.near_mesh is not None and region.near_mesh not in roles:
+            raise t.error("near_mesh", f"no [[mesh]] named {region.near_mesh!r} (meshes: "
+                                       f"{', '.join(sorted(roles))})")
     rails = {r.name for r in exp.rails}
     for cam, t in zip(exp.camera_specs, tables["camera"]):
         if cam.rail is not None and cam.rail not in rails:

@@ -93,7 +93,7 @@ from vdo import objective
 from vdo.outputs import report
 from vdo.physics import usable
 from vdo.model.camera import Camera, look_at_angles
-from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_floor
+from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -217,7 +217,7 @@ def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
     """(P, 3) candidate optical centres (m) in a zone [[mount]]: `per_axis` evenly spaced values
     along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
     values over its height range; over a floor polygon, the points of that grid on its bounding box
-    that lie inside the polygon, and its centroid."""
+    that lie on the polygon (off its holes), and its centroid when that does."""
     lo, hi = zone.low, zone.high
     axes = [np.linspace(lo[k], hi[k], per_axis) if hi[k] > lo[k] and per_axis > 1
             else np.array([(lo[k] + hi[k]) / 2]) for k in range(2)]
@@ -225,8 +225,9 @@ def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
                 else np.array([(lo[2] + hi[2]) / 2]))
     xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
     if zone.floor is not None:
-        xy = np.vstack([[p for p in xy if inside_floor(zone.floor, p)] or np.zeros((0, 2)),
-                        zone.floor.mean(axis=0)])
+        xy = np.vstack([p for p in xy if zone.inside(p)] or np.zeros((0, 2)))
+        centre = zone.floor.mean(axis=0)
+        xy = np.vstack([xy, centre]) if zone.inside(centre) else xy
     return np.array([[x, y, z] for x, y in xy for z in axes[2]])
 
 
@@ -256,7 +257,13 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in exp.design.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
     cams, rows, points = [], [], []
+    kept_out: dict[str, int] = {}
     for mount, kind, u, head, p in spots(exp):
+        box = int(inside_keep_out(exp.keep_outs, p)[0])
+        if box >= 0:
+            key = f"{mount or 'fixed'}: in keep_out {exp.keep_outs[box].name!r}"
+            kept_out[key] = kept_out.get(key, 0) + 1
+            continue
         for t, aim in enumerate(aims):
             if np.linalg.norm(aim - p) < 1e-6:
                 continue
@@ -275,8 +282,14 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
         gap = cKDTree(mesh_points(meshes)).query(np.concatenate(points),
                                                  distance_upper_bound=exp.optimize.clearance)[0]
         clear = (gap.reshape(len(cams), -1) >= exp.optimize.clearance).all(axis=1)
+        for name in dict.fromkeys(r[0] for r in rows):
+            of = np.array([r[0] == name for r in rows])
+            log.info("mount %s: %d candidate poses, %d dropped for clearance (closer than %g m to a "
+                     "mesh)", name or "fixed", of.sum(), (of & ~clear).sum(), exp.optimize.clearance)
         cams = [c for c, ok in zip(cams, clear) if ok]
         rows = [r for r, ok in zip(rows, clear) if ok]
+    for key, count in kept_out.items():
+        log.info("mount %s: %d candidate positions dropped", key, count)
     mount, kind, u, head, b, t = zip(*rows) if rows else ((),) * 6
     return (cams, tuple(mount), tuple(kind), np.array(u, dtype=float),
             np.array(head, dtype=float).reshape(-1, 3), np.array(b, dtype=int),
@@ -493,18 +506,47 @@ def designed(exp: Experiment, cand: Candidates, chosen) -> Experiment:
                    optimize=replace(exp.optimize, cameras=None))
 
 
-def measures(state, exp: Experiment) -> dict:
+def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
+    """(N,) the samples that some selection of candidates could measure: usable views from at
+    least their region's min_cameras distinct spots (optical centres SPOT_M apart) among all
+    candidates."""
+    need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[samples.region]
+    if not len(cand.cameras):
+        return np.zeros(len(samples), dtype=bool)
+    spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
+    use = usable.usable_views(cand.weight)
+    seen = np.zeros((spot.max() + 1, len(samples)), dtype=bool)
+    np.logical_or.at(seen, spot, use)
+    return seen.sum(axis=0) >= need
+
+
+def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
     """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
-    region is unmeasured) and the area fraction of all regions seen by their region's
-    min_cameras usable views."""
+    region is unmeasured), the area fraction of all regions seen by their region's min_cameras
+    usable views, and over the area that can be measured at all (`can_measure`, `measurable`;
+    default everywhere): that area's fraction, the fraction of it seen by min_cameras, sigma_max
+    p95 per region over its measured samples there (None for a region with none), and the worst
+    of those (None only when no region has one)."""
     summary = report.state_summary(state)
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     p95 = [summary["regions"][r]["sigma_max_um"]["p95"] for r in scored]
-    smp = state.samples
+    smp, pred = state.samples, state.prediction
     need = np.array([r.min_cameras for r in exp.regions])[smp.region]
-    seen = smp.area[state.prediction.coverage >= need].sum() / smp.area.sum()
+    covered = pred.coverage >= need
+    seen = smp.area[covered].sum() / smp.area.sum()
+    can = np.ones(len(smp), dtype=bool) if can_measure is None else np.asarray(can_measure, bool)
+    by_region = {}
+    for r, name in enumerate(smp.region_names):
+        m = (smp.region == r) & can & pred.measured
+        by_region[name] = float(np.percentile(pred.sigma_max[m] * 1e6, 95)) if m.any() else None
+    values = [by_region[r] for r in scored if by_region[r] is not None]
+    area = float(smp.area[can].sum())
     return {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
-            "coverage": float(seen)}
+            "coverage": float(seen),
+            "measurable_fraction": area / float(smp.area.sum()),
+            "coverage_of_measurable": float(smp.area[can & covered].sum() / area) if area > 0 else 0.0,
+            "sigma_p95_measurable_um": max(values) if values else None,
+            "sigma_p95_by_region_um": by_region}
 
 
 def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
@@ -603,6 +645,10 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
                                               "[[mount]] or [[rail]] clear of the meshes")
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
+    can_measure = measurable(exp, cand, coarse.samples)
+    log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
+             "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
+             / coarse.samples.area.sum(), exp.evaluation.min_cameras)
     order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
@@ -612,7 +658,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
-                      **measures(state, exp)})
+                      **measures(state, exp, can_measure)})
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
@@ -689,13 +735,19 @@ def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 
 
 def _write_curve(path, curve):
+    regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
+    show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies"])
+        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies",
+                    "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+                   + [f"sigma_p95_um_{r}" for r in regions])
         for c in curve:
-            w.writerow([c["cameras"], f"{c['score']:.6g}",
-                        "" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.5g}",
-                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"]])
+            w.writerow([c["cameras"], f"{c['score']:.6g}", show(c["sigma_p95_um"]),
+                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"],
+                        f"{c['measurable_fraction']:.4f}", f"{c['coverage_of_measurable']:.4f}",
+                        show(c["sigma_p95_measurable_um"])]
+                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
 
 
 def _plot_curve(path, curve, target, name):
@@ -703,6 +755,9 @@ def _plot_curve(path, curve, target, name):
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
     ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    for k, r in enumerate(curve[0]["sigma_p95_by_region_um"] if curve else ()):
+        ax.semilogy(n, [np.nan if c["sigma_p95_by_region_um"][r] is None else c["sigma_p95_by_region_um"][r]
+                        for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
     if target is not None:
         ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
     ax.set_xlabel("cameras")
@@ -710,6 +765,9 @@ def _plot_curve(path, curve, target, name):
     ax.set_ylabel("σ_max p95 (µm)")
     ax2 = ax.twinx()
     ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
+    if curve:
+        ax2.plot(n, [100 * c["coverage_of_measurable"] for c in curve], "^:", color="C1", alpha=0.6,
+                 label=f"coverage of the measurable {100 * curve[0]['measurable_fraction']:.0f} %")
     ax2.set_ylabel("area seen by its min_cameras (%)")
     ax2.set_ylim(0, 105)
     ax.set_title(f"{name}: cameras needed")

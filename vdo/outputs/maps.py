@@ -239,3 +239,146 @@ def _extend(values: np.ndarray, vmin: float, vmax: float) -> str:
     above = bool(finite.size and finite.max() > vmax)
     return {(False, False): "neither", (True, False): "min", (False, True): "max",
             (True, True): "both"}[(below, above)]
+
+
+# --------------------------------------------------------------------------------------------
+# Curved regions drawn developed
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DevelopedOutline:
+    """A curved region's lines in its developed plane (m): `outline` the edges of the union of
+    its samples' grid cells (the sampled surface's edge), `holes` its mesh's free edges (holes and
+    open ends that the region's faces border), `seam` the u of a ring's seam (None when open)."""
+
+    outline: np.ndarray      # (E, 2, 2)
+    holes: np.ndarray        # (F, 2, 2)
+    seam: float | None
+
+
+def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices: np.ndarray,
+                      mesh_faces: np.ndarray) -> DevelopedOutline:
+    """The `DevelopedOutline` of region `region` (its `vdo.scene.RegionFaces` `faces`, whose
+    development gives the map) on a mesh (vertices (V, 3) m, faces (F, 3)). Cell edges: a side of
+    the square cell (i, j) (uv = (i + 1/2, j + 1/2) h) not shared with another cell of the region
+    (ring neighbours across the seam count). Free edges: edges used by one face of the whole mesh
+    (corners merged to 1 nm), of the region's faces, developed with their face."""
+    from vdo.model.surface import merged
+    from vdo.scene import ring_spacing
+
+    mask = samples.region == region
+    dev = faces.development
+    period = float(dev.period) if dev is not None else 0.0
+    h = float(samples.region_cell[region]) if samples.region_cell is not None else \
+        float(np.sqrt(np.median(samples.area[mask])))
+    h = ring_spacing(period, h) if period else h
+    ij = np.round(samples.uv[mask] / h - 0.5).astype(np.int64)
+    n_around = int(round(period / h)) if period else 0
+    cells = {tuple(c) for c in ij}
+    lines = []
+    for (i, j) in cells:
+        for di, dj, a, b in ((1, 0, (1, 0), (1, 1)), (-1, 0, (0, 0), (0, 1)),
+                             (0, 1, (0, 1), (1, 1)), (0, -1, (0, 0), (1, 0))):
+            k = (i + di) % n_around if n_around else i + di
+            if (k, j + dj) not in cells:
+                lines.append([[(i + a[0]) * h, (j + a[1]) * h], [(i + b[0]) * h, (j + b[1]) * h]])
+    tri_all = np.asarray(mesh_vertices, float)[np.asarray(mesh_faces)]
+    _, f_all = merged(tri_all)
+    edges = np.sort(np.stack([f_all[:, [0, 1]], f_all[:, [1, 2]], f_all[:, [2, 0]]], axis=1), axis=2)
+    keys, counts = np.unique(edges.reshape(-1, 2), axis=0, return_counts=True)
+    free = {tuple(k) for k in keys[counts == 1]}
+    uv_tri = dev.triangles_uv(tri_all[faces.faces]) if dev is not None else faces.uv(tri_all[faces.faces])
+    holes = []
+    for t, face in enumerate(faces.faces):
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            if tuple(sorted((f_all[face, a], f_all[face, b]))) in free:
+                holes.append(uv_tri[t, [a, b]])
+    holes = np.array(holes).reshape(-1, 2, 2)
+    if period:
+        holes[..., 0] = np.mod(holes[..., 0], period)
+        wrapped = np.abs(holes[:, 0, 0] - holes[:, 1, 0]) > period / 2
+        holes = holes[~wrapped]
+    return DevelopedOutline(np.array(lines).reshape(-1, 2, 2), holes, 0.0 if period else None)
+
+
+def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, mesh_faces,
+                   values: np.ndarray, usable: np.ndarray, camera_names, path, title: str,
+                   label: str, cmap: str = "magma_r") -> dict:
+    """One curved region drawn developed and saved as PNG: the field `values` (N,) on each
+    sample's square cell in (u, v) (exact for a cylinder or a cone; a parameterisation otherwise,
+    its distortion in the title), the region's outline (black), its hole and free edges (blue),
+    a ring's seam (dotted), and one small panel per camera that sees part of it (usable views
+    `usable` (C, N)) with the cells it sees. Returns {"kind", "area_distortion",
+    "angle_distortion", "cameras": {name: fraction of the region's area seen}}."""
+    from matplotlib.collections import LineCollection
+
+    mask = samples.region == region
+    dev = faces.development
+    outline = developed_outline(samples, region, faces, mesh_vertices, mesh_faces)
+    period = dev.period if dev is not None else 0.0
+    h = float(samples.region_cell[region]) if samples.region_cell is not None else \
+        float(np.sqrt(np.median(samples.area[mask])))
+    uv = samples.uv[mask]
+    square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=float) * h / 2
+    cells = uv[:, None, :] + square[None]
+    vals = np.asarray(values, float)[mask]
+    seen = np.asarray(usable, bool)[:, mask]
+    area = samples.area[mask]
+    shown = [i for i in range(len(camera_names)) if seen[i].any()]
+    lo, hi = cells.reshape(-1, 2).min(0), cells.reshape(-1, 2).max(0)
+    ext = hi - lo
+    ncols = max(len(shown), 1)
+    fig = plt.figure(figsize=(max(8, min(18, 2.2 * ncols)), 8), layout="constrained", dpi=120)
+    grid = fig.add_gridspec(2, ncols, height_ratios=[3, 1.2])
+    main = fig.add_subplot(grid[0, :])
+    main.set_anchor("C")
+    vmin, vmax, how = color_range(vals)
+    coll = PolyCollection(cells, array=np.ma.masked_invalid(vals),
+                          cmap=plt.get_cmap(cmap).with_extremes(bad=NO_VALUE),
+                          edgecolors="face", linewidths=0.2, antialiaseds=False)
+    coll.set_clim(vmin, vmax)
+    main.add_collection(coll)
+
+    def lines(ax, width):
+        ax.add_collection(LineCollection(outline.outline, colors="k", linewidths=width))
+        if len(outline.holes):
+            ax.add_collection(LineCollection(outline.holes, colors="tab:blue", linewidths=1.6 * width))
+        if outline.seam is not None:
+            ax.axvline(outline.seam, color="0.3", ls=":", lw=width)
+            ax.axvline(period, color="0.3", ls=":", lw=width)
+        ax.set_xlim(lo[0] - 0.02 * ext.max(), hi[0] + 0.02 * ext.max())
+        ax.set_ylim(lo[1] - 0.02 * ext.max(), hi[1] + 0.02 * ext.max())
+        ax.set_aspect("equal")
+
+    lines(main, 0.8)
+    main.set_xlabel("u (m, developed" + (", R θ)" if dev is not None and dev.kind == "cylinder" else ")"))
+    main.set_ylabel("v (m)")
+    kind = dev.kind if dev is not None else "plane"
+    dist = dev.distortion if dev is not None else None
+    how_dev = {"cylinder": f"cylinder R = {abs(dev.radius):.4g} m, developed exactly" if dev is not None else "",
+               "cone": f"cone half-angle {np.degrees(dev.half_angle):.3g}°, developed exactly"
+               if dev is not None else "",
+               "general": "least-squares conformal map", "plane": "planar"}[kind]
+    if dist is not None:
+        how_dev += f"; area distortion p95 {100 * dist.area_p95:.2g} %, angle {100 * dist.angle_p95:.2g} %"
+        if dist.large:
+            how_dev += " (LARGE: distances on this map are off by as much)"
+    main.set_title(textwrap.fill(f"{title}\n{how_dev}", 110), fontsize=10)
+    cbar = fig.colorbar(coll, ax=main, shrink=0.8)
+    cbar.set_label(f"{label}; scale {vmin:.4g} – {vmax:.4g} ({how})", fontsize=8)
+    fig.text(0.01, 0.005, "black: region outline   blue: hole / free edges"
+             + ("   dotted: the ring's seam (u wraps)" if period else ""), fontsize=8, color="0.3")
+    fractions = {}
+    for col, i in enumerate(shown):
+        ax = fig.add_subplot(grid[1, col])
+        colors = np.where(seen[i], 0.25, 0.9)
+        ax.add_collection(PolyCollection(cells, array=colors, cmap="Greens_r", clim=(0, 1),
+                                         edgecolors="face", linewidths=0.1, antialiaseds=False))
+        lines(ax, 0.4)
+        fractions[camera_names[i]] = float(area[seen[i]].sum() / area.sum())
+        ax.set_title(f"{camera_names[i]}: {100 * fractions[camera_names[i]]:.0f} %", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.savefig(path)
+    plt.close(fig)
+    return {"kind": kind, "area_distortion": None if dist is None else dist.area_p95,
+            "angle_distortion": None if dist is None else dist.angle_p95, "cameras": fractions}

@@ -22,6 +22,10 @@ from vdo.model.speckle import GradientEnergyTable, gradient_energy_table, normal
 from vdo.physics.visibility import Visibility
 
 
+CURVED_PATCH_SPREAD = 0.05   # rad: above this spread of normals over a patch (L / R on a
+# surface of radius R), its information is summed over its own surface points (docs/theory.md)
+
+
 @dataclass(frozen=True, eq=False)
 class SpeckleModel:
     """The pattern tile, its statistics and its gradient-energy table."""
@@ -108,22 +112,52 @@ def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis
     `overlap`: `usable.patch_overlap(samples, patch_size)` when already known (it depends on the
     samples' parametric cells only, not on the cameras or on a keyframe's motion). `sizes`: the
     pair lists' fixed sizes for these samples (`objective.ViewData.from_dense`): a new layout
-    then compiles nothing."""
+    then compiles nothing.
+
+    Curved surfaces: where the normals over a sample's patch spread by more than
+    CURVED_PATCH_SPREAD (`vdo.physics.usable.patch_normal_spread`), its information is the sum over
+    the patch's own cells, each with its own normal, frame and view
+    (`vdo.physics.usable.surface_patch_information`), instead of the centre's view times phi_i."""
     smp = samples_for_objective(exp, samples)
     cams = objective.CameraParams.from_cameras(cameras)
     st = settings(exp)
-    first = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, sizes=sizes),
-                             speckle.table, st)
+    first_views = view_data(exp, smp, vis, illumination, speckle, sizes=sizes)
+    first = objective.fields(cams, smp, first_views, speckle.table, st)
     use = usable.usable_views(np.asarray(first.weights))
     if overlap is None:
         overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
     phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
     f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi, sizes),
                          speckle.table, st)
-    measured = np.asarray(f.measured) & (use.sum(axis=0) >= 2)
-    sigma_max = np.where(measured, np.asarray(f.sigma_max), np.inf)
-    sigma_xyz = np.where(measured[:, None], np.asarray(f.sigma_xyz), np.inf)
+    information = np.asarray(f.information)
+    f_measured, f_sigma_max, f_sigma_xyz = (np.array(x) for x in (f.measured, f.sigma_max, f.sigma_xyz))
+    curved = np.flatnonzero(usable.patch_normal_spread(overlap, samples.normals) > CURVED_PATCH_SPREAD) \
+        if clip_patch else np.zeros(0, dtype=int)
+    if len(curved):
+        per_camera = np.asarray(objective.camera_information(cams, smp, first_views, speckle.table, st))
+        information = information.copy()
+        information[curved] = usable.surface_patch_information(overlap, use, per_camera, curved)
+        f_measured[curved], f_sigma_max[curved], f_sigma_xyz[curved] = sigmas(information[curved],
+                                                                              st.rank_rtol)
+    measured = f_measured & (use.sum(axis=0) >= 2)
+    sigma_max = np.where(measured, f_sigma_max, np.inf)
+    sigma_xyz = np.where(measured[:, None], f_sigma_xyz, np.inf)
     flag = usable.flags(overlap, use, sigma_max, measured, samples.region)
     return Prediction(np.asarray(first.sensitivity), sigma_max, sigma_xyz, measured,
-                      np.asarray(f.information), use, flag["coverage"], flag["patch_fraction"],
+                      information, use, flag["coverage"], flag["patch_fraction"],
                       flag["edge_limited"], flag["outlier"])
+
+
+def sigmas(information: np.ndarray, rank_rtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(measured (N,), sigma_max (N,) m, sigma_xyz (N, 3) m) of information matrices C (N, 3, 3)
+    in 1/m^2: Sigma = C^-1, sigma_max = lam_min(C)^(-1/2), sigma_xyz = sqrt(diag Sigma); not
+    measured (+inf) where lam_min <= rank_rtol lam_max (as `vdo.objective.fields`)."""
+    C = np.asarray(information, dtype=float)
+    tc = np.trace(C, axis1=-2, axis2=-1)
+    scale = np.where(tc > 0, tc, 1.0)
+    lam, V = np.linalg.eigh(C / scale[:, None, None])
+    measured = (tc > 0) & (lam[:, 0] > rank_rtol * lam[:, 2])
+    safe = np.where(measured[:, None], lam, 1.0)
+    var = np.einsum("nkj,nj->nk", V * V, 1.0 / safe) / scale[:, None]
+    return (measured, np.where(measured, 1.0 / np.sqrt(safe[:, 0] * scale), np.inf),
+            np.where(measured[:, None], np.sqrt(var), np.inf))

@@ -65,6 +65,7 @@ from vdo.scene import SurfaceSamples
 USABLE_WEIGHT = 0.5    # a view counts when its soft weight w_i >= this
 EDGE_FRACTION = 0.5    # edge-limited: less than this fraction of the patch usable by >= 2 views
 OUTLIER_FACTOR = 3.0   # outlier: sigma_max above this multiple of its region's median
+FINE_PATCH_CELLS = 2.0  # a patch at most this many cells wide is clipped on the surface itself
 
 
 def usable_views(weights: np.ndarray) -> np.ndarray:
@@ -72,23 +73,85 @@ def usable_views(weights: np.ndarray) -> np.ndarray:
     return np.asarray(weights) >= USABLE_WEIGHT
 
 
-def patch_overlap(samples: SurfaceSamples, patch_size: float) -> scipy.sparse.csr_matrix:
+def raster_overlap(samples: SurfaceSamples, region: int, patch_size: float,
+                   raster) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols, values) of the overlap of the patches of region `region`'s samples with its
+    cells, from the surface itself (`vdo.scene.SurfaceRaster`, fine points of spacing h / K):
+    o(n, j) = #(fine points of the patch square of sample n in cell j that lie on the surface)
+    / #(fine points of the whole square). The patch spans cells i - 1 .. i + 1 (L <= 2 h); the
+    counts come from the raster's summed-area table. Error: an edge is resolved to h / K."""
+    L, K, h = float(patch_size), raster.fine, raster.cell
+    idx = np.flatnonzero(samples.region == region)
+    ij = np.round(samples.uv[idx] / h - 0.5).astype(np.int64)
+    S = np.zeros((raster.mask.shape[0] + 1, raster.mask.shape[1] + 1), dtype=np.int64)
+    S[1:, 1:] = raster.mask.cumsum(axis=0).cumsum(axis=1)
+
+    def count(a0, a1, b0, b1):
+        """On-surface fine points in [a0, a1) x [b0, b1) (fine indices), per sample."""
+        a0, a1 = (np.clip(x - raster.offset[0], 0, raster.mask.shape[0]) for x in (a0, a1))
+        b0, b1 = (np.clip(x - raster.offset[1], 0, raster.mask.shape[1]) for x in (b0, b1))
+        a1, b1 = np.maximum(a1, a0), np.maximum(b1, b0)
+        return S[a1, b1] - S[a0, b1] - S[a1, b0] + S[a0, b0]
+
+    half = L * K / (2 * h)                              # the patch's half side in fine spacings
+    centre = ij * K + K / 2                             # fine coordinate of the cell centres
+    lo = np.ceil(centre - half - 0.5 - 1e-9).astype(np.int64)
+    hi = np.ceil(centre + half - 0.5 - 1e-9).astype(np.int64)
+    whole = np.prod(hi - lo, axis=1).astype(float)
+    lookup = {tuple(c): k for k, c in enumerate(ij)}
+    rows, cols, vals = [], [], []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            other = ij + [di, dj]
+            a0, a1 = np.maximum(lo[:, 0], other[:, 0] * K), np.minimum(hi[:, 0], other[:, 0] * K + K)
+            b0, b1 = np.maximum(lo[:, 1], other[:, 1] * K), np.minimum(hi[:, 1], other[:, 1] * K + K)
+            c = count(a0, a1, b0, b1)
+            if raster.around:
+                other[:, 0] = np.mod(other[:, 0], raster.around)
+            j = np.array([lookup.get(tuple(o), -1) for o in other])
+            ok = (c > 0) & (j >= 0)
+            rows.append(idx[ok])
+            cols.append(idx[j[ok]])
+            vals.append(c[ok] / whole[ok])
+    return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+
+def patch_overlap(samples: SurfaceSamples, patch_size: float, rasters=None) -> scipy.sparse.csr_matrix:
     """(N, N) sparse: entry (n, j) = o(X_n, j) / L^2, the fraction of the patch square of side
     `patch_size` L (m) centred at sample n covered by the cell of sample j of the same region
-    (module docstring). The cell side h is each region's sample spacing, sqrt(area)."""
+    (module docstring). The cell side h is each region's grid spacing (`region_cell`; else
+    sqrt(area), planar cells). A ring closed around its axis wraps in u at its period. With
+    `rasters` (one `vdo.scene.SurfaceRaster` or None per region), a region whose patch is at most
+    FINE_PATCH_CELLS cells wide takes its overlaps from its surface (`raster_overlap`)."""
     L = float(patch_size)
     rows, cols, vals = [], [], []
+    periods = samples.region_period if samples.region_period is not None else \
+        np.zeros(len(samples.region_names))
     for r in np.unique(samples.region):
+        if rasters is not None and rasters[r] is not None and L <= FINE_PATCH_CELLS * rasters[r].cell:
+            for out, part in zip((rows, cols, vals), raster_overlap(samples, r, L, rasters[r])):
+                out.append(part)
+            continue
         idx = np.flatnonzero(samples.region == r)
         uv = np.asarray(samples.uv[idx], dtype=float)
-        h = float(np.sqrt(np.median(samples.area[idx])))
-        tree = cKDTree(uv)
+        period = float(periods[r])
+        h = float(np.sqrt(np.median(samples.area[idx]))) if samples.region_cell is None \
+            else float(samples.region_cell[r])
+        if period > 0:        # a ring: u wraps at the period
+            uv = uv - [0.0, uv[:, 1].min()]
+            box = [period, 2 * (float(uv[:, 1].max()) + L + h) + 1.0]
+            tree = cKDTree(np.mod(uv, box), boxsize=box)
+        else:
+            tree = cKDTree(uv)
         # cells overlapping the square: centres within (L + h)/2 in the max norm (minus rounding)
-        pairs = tree.query_ball_point(uv, r=(L + h) / 2 * (1 - 1e-12), p=np.inf)
+        pairs = tree.query_ball_point(np.mod(uv, box) if period > 0 else uv,
+                                      r=(L + h) / 2 * (1 - 1e-12), p=np.inf)
         counts = np.fromiter((len(p) for p in pairs), dtype=np.int64, count=len(pairs))
         a = np.repeat(np.arange(len(idx)), counts)
         b = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs]) if len(pairs) else a
         d = np.abs(uv[a] - uv[b])                                    # (K, 2)
+        if period > 0:
+            d[:, 0] = np.minimum(d[:, 0], period - d[:, 0])
         overlap = np.clip((L + h) / 2 - d, 0.0, min(L, h))         # 1D overlap per axis
         rows.append(idx[a])
         cols.append(idx[b])
@@ -96,6 +159,34 @@ def patch_overlap(samples: SurfaceSamples, patch_size: float) -> scipy.sparse.cs
     n = len(samples)
     return scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                                    shape=(n, n))
+
+
+def patch_normal_spread(overlap: scipy.sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
+    """(N,) the largest angle (rad) between a sample's normal and the normals of the cells its
+    patch overlaps: 0 on a planar region, about L / R on a surface of radius of curvature R."""
+    coo = overlap.tocoo()
+    cos = np.einsum("ij,ij->i", normals[coo.row], normals[coo.col])
+    lowest = np.ones(overlap.shape[0])
+    np.minimum.at(lowest, coo.row, cos)
+    return np.arccos(np.clip(lowest, -1.0, 1.0))
+
+
+def surface_patch_information(overlap: scipy.sparse.csr_matrix, usable: np.ndarray,
+                              per_camera: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 3, 3) information (1/m^2) of the patches of samples `rows` summed over the
+    patch's own surface points: C(X_n) = sum_i [i usable at n] sum_j o(n, j) [i usable at j] P_ij,
+    with P_ij (`per_camera` (C, N, 3, 3): Omega w |det A| C_i of camera i at sample j, whole patch)
+    the per-area information of cell j (its own normal, frame and view) times Omega, and o(n, j)
+    the fraction of the patch on cell j (`patch_overlap`). On a plane with a uniform view this is
+    the clipped model Omega phi_i w |det A_i| C_i; on a curved surface each cell keeps its own
+    normal."""
+    use = np.asarray(usable, dtype=bool)
+    sub = overlap[rows]
+    out = np.zeros((len(rows), 9))
+    for i in range(use.shape[0]):
+        if use[i, rows].any():
+            out += use[i, rows, None] * (sub @ (use[i, :, None] * per_camera[i].reshape(-1, 9)))
+    return out.reshape(-1, 3, 3)
 
 
 def patch_fractions(overlap: scipy.sparse.csr_matrix, usable: np.ndarray) -> np.ndarray:

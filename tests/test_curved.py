@@ -1,0 +1,260 @@
+"""Curved regions: selection, development, sampling and the sigma model on a cylinder, checked
+against an independent computation on the exact cylinder (not its facets): the DIC patch's
+information integrated on a fine grid of the true surface (exact radial normals and tangents),
+each point's per-area information from `vdo.objective` (the per-point model itself, which
+tests/test_objective.py checks against finite differences and renders)."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+
+import numpy as np
+import pytest
+import trimesh
+
+from vdo import objective
+from vdo.config import experiment as config
+from vdo.core.errors import ConfigError
+from vdo.physics import strain
+from vdo.physics.lighting import photometry
+from vdo.physics.predict import settings, sigmas
+from vdo.scene import load_meshes, sample_regions
+from vdo.state import layout_state, prepare
+
+RADIUS, HEIGHT, SECTIONS = 0.1, 0.3, 256
+PATCH_RTOL = 0.02     # sigma vs the exact-cylinder integral: facets (0.7 deg) and 4 mm cells
+FINE = 41             # reference quadrature points per side of the patch
+STL_ROUNDING = 1e-6  # m: STL stores float32 coordinates (7 digits of a 0.1 m part)
+
+CAMERA = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [1200, 800]
+focal_mm = 35
+position_m = {position}
+target_m = [0, 0, 0]
+"""
+
+
+def write_cylinder(tmp_path, patch_mm=20, region=None):
+    trimesh.creation.cylinder(radius=RADIUS, height=HEIGHT, sections=SECTIONS).export(tmp_path / "cyl.stl")
+    region = region or textwrap.dedent("""
+        near_axis_m = [[0, 0, 0], [0, 0, 1]]
+        within_m = 0.11
+        box_min_m = [-1, -1, -0.149]
+        box_max_m = [1, 1, 0.149]""")
+    cams = "".join(CAMERA.format(name=n, position=p) for n, p in
+                   (("a", "[0.8, -0.3, 0.1]"), ("b", "[0.8, 0.3, 0.1]"), ("c", "[-0.8, 0.0, -0.1]")))
+    text = textwrap.dedent(f"""
+        [experiment]
+        name = "cylinder"
+        [evaluation]
+        sample_spacing_mm = 4
+        patch_mm = {patch_mm}
+        incidence_limit_deg = 75
+        [render]
+        ambient_radiance = 20
+        [analysis]
+        method = "global"
+        element_mm = 20
+        [[mesh]]
+        name = "cyl"
+        file = "cyl.stl"
+        role = "specimen"
+        [[region]]
+        name = "shell"
+        mesh = "cyl"
+        """) + textwrap.dedent(region) + cams
+    path = tmp_path / "cyl.toml"
+    path.write_text(text)
+    return path
+
+
+def exact_patch(theta0, z0, L):
+    """Points, normals and frames (M, 3) of a FINE x FINE grid of the patch of side L centred at
+    (theta0, z0) on the exact cylinder, and each point's share of the patch (1 / FINE^2)."""
+    s = (np.arange(FINE) + 0.5) / FINE * L - L / 2
+    S, T = np.meshgrid(s, s, indexing="ij")
+    theta = theta0 + S.ravel() / RADIUS
+    radial = np.stack([np.cos(theta), np.sin(theta), np.zeros_like(theta)], axis=1)
+    points = RADIUS * radial + np.outer(z0 + T.ravel(), [0, 0, 1.0])
+    t_u = np.stack([-np.sin(theta), np.cos(theta), np.zeros_like(theta)], axis=1)
+    t_v = np.tile([0, 0, 1.0], (len(theta), 1))
+    return points, radial, t_u, t_v
+
+
+@pytest.fixture(scope="module")
+def cylinder_state(tmp_path_factory):
+    path = write_cylinder(tmp_path_factory.mktemp("cyl"))
+    exp = config.load(path)
+    return exp, layout_state(prepare(exp))
+
+
+def test_cylinder_is_developed_exactly(cylinder_state):
+    exp, state = cylinder_state
+    rf = state.geometry.region_faces[0]
+    dev = rf.development
+    assert dev.kind == "cylinder" and dev.period > 0
+    assert abs(dev.radius) == pytest.approx(RADIUS, rel=1e-6)
+    assert abs(dev.axis[2]) == pytest.approx(1.0, abs=1e-9)
+    s = state.samples
+    # area: the facets' area inside the box, |z| <= 0.149 (chord sin(x)/x of the arc)
+    chord = SECTIONS * 2 * RADIUS * math.sin(math.pi / SECTIONS)
+    cell = s.region_cell[0]
+    assert s.area.sum() == pytest.approx(chord * 0.298, rel=cell / 0.298)
+    # frames: t_u along the circumference, t_v along the axis, t_u x t_v = the face normal
+    radial = s.points[:, :2] / np.linalg.norm(s.points[:, :2], axis=1, keepdims=True)
+    assert np.abs(np.einsum("ij,ij->i", np.cross(s.tangent_u, s.tangent_v), s.normals) - 1).max() < 1e-12
+    assert np.abs(np.einsum("ij,ij->i", s.normals[:, :2], radial) - 1).max() < 1e-4
+    assert np.abs(s.tangent_v[:, 2]).min() > 1 - 1e-9
+    # u = R theta: the samples' u against the angle about the axis
+    theta = np.arctan2(s.points[:, 1], s.points[:, 0])
+    d = s.uv[:, 0] / (dev.flip * dev.radius) - np.sign(dev.axis[2]) * theta
+    assert np.abs(np.angle(np.exp(1j * (d - d[0])))).max() < 1e-3     # one offset, the seam's
+
+
+def test_sigma_and_strain_match_the_exact_cylinder(cylinder_state):
+    exp, state = cylinder_state
+    s, p = state.samples, state.prediction
+    L = exp.evaluation.patch_size
+    use = p.usable
+    # samples whose patch lies on cells with the same usable cameras, away from the region's ends
+    neighbours = state.geometry.overlap
+    same = np.array([np.all(use[:, neighbours[n].indices] == use[:, [n]]) for n in range(len(s))])
+    ok = p.measured & same & (np.abs(s.points[:, 2]) < 0.149 - L)
+    chosen = np.flatnonzero(ok)[:: max(1, ok.sum() // 12)]
+    assert len(chosen) >= 8
+    cams = objective.CameraParams.from_cameras(list(state.cameras))
+    st = settings(exp)
+    pho = photometry(state.illumination, exp.speckle, exp.sensor, state.geometry.speckle.mean,
+                     state.geometry.speckle.std, len(state.cameras))
+    contrast, noise = np.asarray(pho.contrast)[:, :1], np.asarray(pho.noise)[:, :1]
+    assert np.ptp(np.asarray(pho.contrast), axis=1).max() < 1e-12       # uniform ambient light
+    Fs, _ = strain.analysis_factors(exp.analysis, np.ones(1))
+    for n in chosen:
+        theta0 = math.atan2(s.points[n, 1], s.points[n, 0])
+        pts, nrm, tu, tv = exact_patch(theta0, s.points[n, 2], L)
+        m = len(pts)
+        ref_smp = objective.Samples(pts, nrm, tu, tv, np.full(m, (L / FINE) ** 2), np.zeros(m, int),
+                                    np.ones(1), np.full(1, 2.0))
+        views = objective.ViewData.from_dense(np.ones((len(state.cameras), m)), contrast, noise, ref_smp)
+        per_camera = np.asarray(objective.camera_information(cams, ref_smp, views,
+                                                             state.geometry.speckle.table, st))
+        weights = np.asarray(objective.fields(cams, ref_smp, views, state.geometry.speckle.table, st).weights)
+        assert np.all((weights >= 0.5) == use[:, [n]])       # the same cameras over the whole patch
+        C = np.einsum("c,cmij->ij", use[:, n].astype(float), per_camera) / m
+        _, ref_sigma, ref_xyz = sigmas(C[None], st.rank_rtol)
+        assert p.sigma_max[n] == pytest.approx(ref_sigma[0], rel=PATCH_RTOL)
+        assert p.sigma_xyz[n] == pytest.approx(ref_xyz[0], rel=PATCH_RTOL)
+        # strain: var eps_uu = F t_u' Sigma_u t_u, Sigma_u = Omega C^-1, exact hoop direction
+        sigma_u = L ** 2 * np.linalg.inv(C)
+        t_u = tu[m // 2]
+        ref_eps_uu = math.sqrt(Fs[0] * t_u @ sigma_u @ t_u)
+        ref_eps_vv = math.sqrt(Fs[0] * tv[0] @ sigma_u @ tv[0])
+        assert state.strain[0][n, 0] == pytest.approx(ref_eps_uu, rel=PATCH_RTOL)
+        assert state.strain[0][n, 1] == pytest.approx(ref_eps_vv, rel=PATCH_RTOL)
+
+
+def test_selection_that_selects_nothing_says_what_it_needs(tmp_path):
+    path = write_cylinder(tmp_path, region="""
+        near_point_m = [1, 0, 0]
+        within_m = 0.2""")
+    exp = config.load(path)
+    with pytest.raises(ConfigError) as err:
+        sample_regions(exp, load_meshes(exp))
+    e = err.value
+    assert e.field == 'region "shell"' and "near_point_m" in e.message and "within_m" in e.message
+    assert "faces lie 0.9" in e.message      # the nearest face centroid: about 1 m - R = 0.9 m away
+
+
+def test_distance_band_selects_a_ring(tmp_path):
+    """A band beyond_m..within_m around a point on the axis: the cylinder wall between two
+    heights (sample level), area 2 pi R x (height of the band)."""
+    path = write_cylinder(tmp_path, region="""
+        near_point_m = [0, 0, 0]
+        within_m = 0.12
+        box_min_m = [-1, -1, -0.149]
+        box_max_m = [1, 1, 0.149]""")
+    exp = config.load(path)
+    s = sample_regions(exp, load_meshes(exp))
+    half = math.sqrt(0.12 ** 2 - RADIUS ** 2)           # |z| where the sphere meets the wall
+    assert np.abs(s.points[:, 2]).max() <= half
+    assert s.area.sum() == pytest.approx(2 * math.pi * RADIUS * 2 * half, rel=2 * s.region_cell[0] / (2 * half))
+
+
+def test_cone_is_developed_exactly(tmp_path):
+    """The lateral surface of a cone (base radius 0.1 m, height 0.2 m): half-angle atan(r / h),
+    no distortion, the samples' area the closed form pi r l (l the slant height)."""
+    r, h = 0.1, 0.2
+    trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
+    path = write_cylinder(tmp_path, region="""
+        box_min_m = [-1, -1, 0.001]""")
+    trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
+    exp = config.load(path)
+    meshes = load_meshes(exp)
+    from vdo.scene import all_region_faces
+    dev = all_region_faces(exp, meshes)[0].development
+    assert dev.kind == "cone"
+    assert dev.half_angle == pytest.approx(math.atan(r / h), abs=STL_ROUNDING / h)
+    assert dev.centre == pytest.approx([0, 0, h], abs=STL_ROUNDING)
+    assert max(dev.distortion.area_p95, dev.distortion.angle_p95) < 1e-3
+    s = sample_regions(exp, meshes)
+    slant = math.hypot(r, h)
+    # sample cells tile the developed sector; its rim is resolved to a cell
+    assert s.area.sum() == pytest.approx(math.pi * r * slant, rel=4 * s.region_cell[0] / slant)
+
+
+def test_general_surface_is_mapped_with_its_distortion_warned(tmp_path, caplog):
+    """A spherical cap (polar angle up to 60 deg) cannot be developed: the least-squares conformal
+    map keeps angles (a conformal map) and distorts areas, by (1 + cos 60)^2 / 4 = 0.56 between
+    the rim and the pole for any conformal map of the cap (the stereographic scale factor);
+    the warning names the region and the distortion."""
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=0.1)
+    sphere.export(tmp_path / "cyl.stl")
+    path = write_cylinder(tmp_path, region="""
+        normal = [0, 0, 1]
+        normal_tolerance_deg = 60""")
+    sphere.export(tmp_path / "cyl.stl")
+    exp = config.load(path)
+    meshes = load_meshes(exp)
+    from vdo.model.surface import face_distortion
+    from vdo.scene import all_region_faces
+    with caplog.at_level("WARNING"):
+        rf = all_region_faces(exp, meshes)[0]
+    dev = rf.development
+    assert dev.kind == "general"
+    assert dev.distortion.angle_p95 < 0.05
+    tri = meshes[0].trimesh.triangles[rf.faces]
+    ratio, _ = face_distortion(tri, dev.faces_uv)
+    z = tri.mean(axis=1)[:, 2] / 0.1
+    rim, pole = np.median(ratio[z < 0.52]), np.median(ratio[z > 0.98])
+    assert rim / pole == pytest.approx((1 + 0.5) ** 2 / 4, rel=0.1)
+    assert dev.distortion.large
+    assert any('region "shell"' in r.message and "distortion" in r.message for r in caplog.records)
+
+
+def test_a_ring_is_textured_without_a_seam(tmp_path):
+    """The render scene gives a curved region's faces texture coordinates of their own: around
+    the closed cylinder no face spans more than its own width in u (a face across the seam would
+    span the whole period with shared vertices), and u runs over the full turn 2 pi R."""
+    import mitsuba as mi
+
+    from vdo.model.speckle import pattern_for
+    from vdo.render import build_render_scene
+    from vdo.scene import all_region_faces
+
+    exp = config.load(write_cylinder(tmp_path))
+    meshes = load_meshes(exp)
+    faces = all_region_faces(exp, meshes)
+    scene = build_render_scene(exp, meshes, faces)
+    (shape,) = [s for s in scene.shapes() if s.has_vertex_texcoords()]     # the speckled region
+    params = mi.traverse(shape)
+    uv = np.asarray(params["vertex_texcoords"]).reshape(-1, 3, 2)
+    tile = exp.speckle.texel * np.array(pattern_for(exp.speckle).shape[::-1])
+    u = uv[..., 0] * tile[0]
+    width = 2 * math.pi * RADIUS / SECTIONS
+    assert np.ptp(u, axis=1).max() < 1.01 * width
+    # the full turn, plus at most the faces across the seam, which keep their corners together
+    assert 2 * math.pi * RADIUS * (1 - 1e-3) <= np.ptp(u) <= 2 * math.pi * RADIUS + 1.01 * width
