@@ -617,6 +617,8 @@ class SpeckleSpec:
     white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
     black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,
                               doc="reflectance of the black paint (below white_albedo)")
+    print_dpi: float = row("print_dpi", Real(positive=True), 600.0,
+                           doc="printer resolution of `vdo speckle`'s print-ready patterns (dots per inch)")
 
 
 def _sensor_rows() -> tuple[Row, ...]:
