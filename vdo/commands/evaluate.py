@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.physics import checks
+from vdo.physics import checks, glare
 from vdo import constraints
 from vdo.outputs import html_report
 from vdo.search import loadpath
@@ -77,6 +77,10 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
                                                     illumination.irradiance,
                                                     state.geometry.speckle.pattern)
+    summary["glare"] = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
+    for row in summary["glare"]:
+        for flag in row["flags"]:
+            log.warning("camera %s: %s", row["camera"], flag)
     if over_path is not None:
         summary["load_path"] = loadpath.summary(over_path)
     with run_folder(out, overwrite) as tmp:

@@ -460,6 +460,9 @@ class MeshSpec:
                     doc="regions of interest lie on specimen meshes; every mesh occludes")
     albedo: float = row("albedo", Real(0.0, 1.0), 0.5, doc="diffuse reflectance for renders")
     metal: bool = row("metal", Flag(), False, doc="render as rough metal instead of paint")
+    finish: str = row("finish", Text(choices=("matte", "satin")), "matte",
+                      doc="a specimen's paint: matte, or satin (a specular coat: renders and the "
+                          "hot-spot check, `vdo.physics.glare`)")
 
     @property
     def scale(self) -> float:
