@@ -13,6 +13,8 @@ The render scene (`build_render_scene`):
   texture coordinates (u / T_u, v / T_v), T = texel x pattern size, wrap mode repeat. Mitsuba's
   bitmap has v = 0 on its top row, so the pattern's row i covers v in [i, i+1) texels
   (`pattern_value` reads it the same way);
+* a specimen [[mesh]] with finish = "satin": the same paint under Mitsuba's roughplastic coat
+  (GGX, `vdo.physics.glare`'s roughness and index), whose specular lobe gives the hot spots;
 * the rest of the specimen is white paint (ρ_w); obstacles are diffuse of their `albedo`, or a rough
   conductor (aluminium, α = 0.2) when `metal`; camera bodies are dark (ρ = 0.05);
 * each [[light]] is a one-sided rectangle area emitter of its radiance, facing its target (the
@@ -47,6 +49,7 @@ import numpy as np
 
 from vdo.model.camera import Camera, image_point
 from vdo.model.speckle import normalise, pattern_for
+from vdo.physics.glare import SATIN_ALPHA, SATIN_IOR
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +193,13 @@ def _submesh(vertices, faces):
     return vertices[used], inverse.reshape(faces.shape)
 
 
+def _satin(reflectance: dict) -> dict:
+    """A satin paint: Mitsuba's roughplastic (GGX coat of `vdo.physics.glare`'s roughness and
+    index over the diffuse `reflectance`)."""
+    return {"type": "roughplastic", "distribution": "ggx", "alpha": SATIN_ALPHA, "int_ior": SATIN_IOR,
+            "ext_ior": 1.0, "nonlinear": False, "diffuse_reflectance": reflectance}
+
+
 def _diffuse(albedo):
     return {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(albedo)}}
 
@@ -305,12 +315,16 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
         "type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
         "wrap_mode": "repeat", "filter_type": "bilinear"}})
     white = mi.load_dict(_diffuse(sp.white_albedo))
+    satin_speckled = mi.load_dict(_satin({"type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
+                                          "wrap_mode": "repeat", "filter_type": "bilinear"}))
+    satin_white = mi.load_dict(_satin({"type": "rgb", "value": float(sp.white_albedo)}))
     spec_of = {m.name: m for m in exp.meshes}
     shapes = {}
     for mesh in meshes:
         spec = spec_of.get(mesh.name)
         faces = np.asarray(mesh.faces)
         if mesh.role == "specimen":
+            satin = spec is not None and spec.finish == "satin"
             taken = np.zeros(len(faces), dtype=bool)
             for region, rf in zip(exp.regions, region_faces):
                 if region.mesh != mesh.name:
@@ -330,13 +344,14 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
                     continue
                 v, f = _submesh(mesh.vertices, faces[sel])
                 shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}",
-                                                           moved(mesh.name, faces[sel]), f, speckled,
+                                                           moved(mesh.name, faces[sel]), f,
+                                                           satin_speckled if satin else speckled,
                                                            uv=rf.uv(v) / tile)
             rest = faces[~taken]
             if len(rest):
                 _, f = _submesh(mesh.vertices, rest)
                 shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, rest),
-                                                        f, white)
+                                                        f, satin_white if satin else white)
         else:
             if spec is not None and spec.metal:
                 bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}

@@ -189,6 +189,16 @@ def _optimize(exp, args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _speckle(exp, args) -> None:
+    from vdo.design.pattern import speckle
+
+    result = speckle(exp, Path(args.out), overwrite=args.overwrite)
+    for region, r in result["regions"].items():
+        s = "unmeasured" if r["sigma_p95_um"] is None else f"{r['sigma_p95_um']:.3f} um"
+        print(f"{region}: dots {' + '.join(f'{d:g}' for d in r['dots_mm'])} mm, sigma_max p95 {s}, "
+              f"{len(r['flags'])} flagged checks; print {args.out}/{r['files'][0]}")
+
+
 def _design(exp, args) -> None:
     from vdo.design.select import design
 
@@ -280,6 +290,11 @@ def _parser() -> argparse.ArgumentParser:
     de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
     de.add_argument("--quiet", action="store_true")
+    sp = sub.add_parser("speckle", help="design the speckle per region; print-ready files (docs/speckle.md)")
+    sp.add_argument("config", help="experiment TOML file (its cameras and [speckle] print_dpi)")
+    sp.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    sp.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    sp.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
@@ -328,7 +343,7 @@ def _run(args) -> int:
         if args.command in _MODULES:
             importlib.import_module(_MODULES[args.command])
     handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
-               "optimize": _optimize, "design": _design, "export": _export, "report": _report,
+               "optimize": _optimize, "design": _design, "speckle": _speckle, "export": _export, "report": _report,
                "sweep": _sweep}[args.command]
     status = handler(loaded, args) or 0
     if args.command == "demo":

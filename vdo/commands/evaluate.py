@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.physics import checks
+from vdo.physics import checks, glare
 from vdo import constraints
 from vdo.outputs import html_report
 from vdo.search import loadpath
@@ -104,6 +104,10 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     if checked is not None:
         broken = [c for c in checked if not c["met"]]
         summary["constraints"] = {"violations": len(broken), "checks": checked}
+    summary["glare"] = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
+    for row in summary["glare"]:
+        for flag in row["flags"]:
+            log.warning("camera %s: %s", row["camera"], flag)
     if over_path is not None:
         summary["load_path"] = loadpath.summary(over_path)
     with run_folder(out, overwrite) as tmp:

@@ -479,6 +479,9 @@ class MeshSpec:
                     doc="regions of interest lie on specimen meshes; every mesh occludes")
     albedo: float = row("albedo", Real(0.0, 1.0), 0.5, doc="diffuse reflectance for renders")
     metal: bool = row("metal", Flag(), False, doc="render as rough metal instead of paint")
+    finish: str = row("finish", Text(choices=("matte", "satin")), "matte",
+                      doc="a specimen's paint: matte, or satin (a specular coat: renders and the "
+                          "hot-spot check, `vdo.physics.glare`)")
 
     @property
     def scale(self) -> float:
@@ -664,6 +667,8 @@ class SpeckleSpec:
     white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
     black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,
                               doc="reflectance of the black paint (below white_albedo)")
+    print_dpi: float = row("print_dpi", Real(positive=True), 600.0,
+                           doc="printer resolution of `vdo speckle`'s print-ready patterns (dots per inch)")
 
 
 def _sensor_rows() -> tuple[Row, ...]:
@@ -1250,6 +1255,9 @@ class DesignSpec:
                          doc="load-path steps at which the candidates' occlusion is also judged (the "
                              "steps farthest from rest and from each other); a candidate counts where "
                              "it sees a sample at rest and at each (0: at rest only)")
+    bound_seconds: float = row("bound_s", Real(low=0), 30.0,
+                               doc="wall seconds per camera count for the bound on the best score "
+                                   "(`vdo.design.bound`; 0: no bound)")
 
 
 # --------------------------------------------------------------------------------------------

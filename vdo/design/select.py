@@ -65,6 +65,11 @@ over the scored regions (the worst region's p95, at the selection spacing, camer
 and the area fraction seen by its region's min_cameras. With `target_sigma_um` the smallest count
 that meets it with full coverage is reported.
 
+The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0, 1] (body counts
+and obscuration kept, pairwise rules dropped) and certifies a lower bound on the score of every
+selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pareto.csv, the console
+and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count).
+
 What no selection can fix is reported naming the region and what is missing (`problems`,
 `shortfalls`): an inventory below its min_cameras, no candidate that sees it (at rest or over the
 keyframes), fewer candidate spots seeing it than its min_cameras, a target sigma not reached, a
@@ -87,6 +92,7 @@ import numpy as np
 from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 
+from vdo.design import bound
 from vdo.outputs import html_report
 from vdo.search import loadpath
 from vdo import objective
@@ -375,6 +381,11 @@ class Scorer:
         short = jnp.maximum(self.minimum - cover, 0.0)
         return agg + st.coverage_weight * jnp.sum(self.area * short * short)
 
+    def value(self, info, cover):
+        """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
+        traceable JAX function, convex in both (`vdo.design.bound`)."""
+        return self._one(info, cover)
+
     def add(self, base_info, base_cover, info, weight) -> np.ndarray:
         """Scores of base + each candidate: base (N, 6), (N,); info (M, N, 6), weight (M, N)."""
         out = []
@@ -510,7 +521,7 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
     """(N,) the samples that some selection of candidates could measure: usable views from at
     least their region's min_cameras distinct spots (optical centres SPOT_M apart) among all
     candidates."""
-    need = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])[samples.region]
+    need = np.array([r.min_cameras for r in exp.regions])[samples.region]
     if not len(cand.cameras):
         return np.zeros(len(samples), dtype=bool)
     spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
@@ -659,6 +670,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
                       **measures(state, exp, can_measure)})
+    relax_curve(exp, cand, scorer, feas, curve)
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
@@ -707,12 +719,31 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             "constraint_violations": len(violated),
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
+            "gap_to_bound": best["gap"], "bound": best["bound"],
             "wall_s": wall})
         html_report.write_report(tmp)
         refined = optimize(final, tmp / "refine") if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
             "refined": refined, "statistics": stats, "violations": len(violated),
             "curve": curve, "summary": summary, "wall_s": wall}
+
+
+def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve) -> None:
+    """Adds to each count of `curve` the certified lower bound on the score of any selection of
+    that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
+    rules dropped; [design] bound_s wall seconds per count): "bound", "gap" (1 - bound / score)
+    and "bound_converged"; None where bound_s = 0. Logs each gap."""
+    seconds = exp.design.bound_seconds
+    for c in bar(log, iterable=curve, desc="bound", leave=False):
+        if seconds <= 0:
+            c.update(bound=None, gap=None, bound_converged=None)
+            continue
+        b = bound.relaxation(scorer.value, cand.info, cand.weight, c["cameras"], feas.alone, feas.body,
+                             feas.counts, start=c["chosen"], time_limit=seconds)
+        c.update(bound=b.value, gap=b.gap(c["score"]), bound_converged=b.converged)
+        log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
+                 "(%d steps, %s)", c["cameras"], c["score"], b.value, 100 * c["gap"], b.iterations,
+                 "converged" if b.converged else f"time limit {seconds:g} s")
 
 
 def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
@@ -739,19 +770,24 @@ def _write_curve(path, curve):
     show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["cameras", "score", "sigma_p95_um", "coverage", "swaps", "lenses_mm", "bodies",
-                    "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+        w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "lenses_mm",
+                    "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
                    + [f"sigma_p95_um_{r}" for r in regions])
         for c in curve:
-            w.writerow([c["cameras"], f"{c['score']:.6g}", show(c["sigma_p95_um"]),
-                        f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"], c["bodies"],
-                        f"{c['measurable_fraction']:.4f}", f"{c['coverage_of_measurable']:.4f}",
-                        show(c["sigma_p95_measurable_um"])]
+            w.writerow([c["cameras"], f"{c['score']:.6g}",
+                        "" if c["bound"] is None else f"{c['bound']:.6g}",
+                        "" if c["gap"] is None else f"{c['gap']:.4f}",
+                        show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"],
+                        c["bodies"], f"{c['measurable_fraction']:.4f}",
+                        f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
                        + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
 
 
 def _plot_curve(path, curve, target, name):
-    fig, ax = plt.subplots(figsize=(6, 4), layout="constrained")
+    """Top: sigma_max p95 and coverage per camera count; bottom: the design's score and the
+    relaxation's bound on any selection's score per count (`relax_curve`)."""
+    fig, (ax, low) = plt.subplots(2, 1, figsize=(6, 6.5), layout="constrained", sharex=True,
+                                  height_ratios=(3, 2))
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
     ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
@@ -760,7 +796,6 @@ def _plot_curve(path, curve, target, name):
                         for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
     if target is not None:
         ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
-    ax.set_xlabel("cameras")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("σ_max p95 (µm)")
     ax2 = ax.twinx()
@@ -773,5 +808,12 @@ def _plot_curve(path, curve, target, name):
     ax.set_title(f"{name}: cameras needed")
     lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
     ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
+    low.semilogy(n, [c["score"] for c in curve], "o-", label="design's score")
+    bounds = [np.nan if c["bound"] is None or c["bound"] <= 0 else c["bound"] for c in curve]
+    if not np.all(np.isnan(bounds)):
+        low.semilogy(n, bounds, "v--", color="C2", label="bound: no selection scores lower")
+    low.set_xlabel("cameras")
+    low.set_ylabel("score")
+    low.legend(fontsize=8)
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -235,14 +235,17 @@ def _design_section(run_dir: Path, data: dict) -> str:
                      + "".join(f"<li>{html.escape(str(p))}</li>" for p in problems) + "</ul></div>")
     scalars = {k: data.get(k) for k in ("candidates", "samples", "selection_spacing_mm",
                                         "inventory", "lenses_mm", "target_sigma_um",
-                                        "smallest_count_meeting_target", "wall_s")}
+                                        "smallest_count_meeting_target", "bound",
+                                        "gap_to_bound", "wall_s")}
     parts.append(_table([scalars]))
     if (run_dir / "pareto.png").is_file():
         parts.append("<h3>Cameras needed</h3>" + _image(run_dir / "pareto.png", "pareto.png"))
     if isinstance(data.get("curve"), list):
         parts.append(_table([c for c in data["curve"] if isinstance(c, dict)],
                             "per camera count: σ_max p95 of the worst scored region (µm), area seen "
-                            "by its min_cameras, chosen lenses (mm) and bodies"))
+                            "by its min_cameras, chosen lenses (mm) and bodies, the score, the "
+                            "bound no selection of that many cameras can beat and the gap "
+                            "1 - bound/score"))
     stats = data.get("statistics") if isinstance(data.get("statistics"), dict) else {}
     if isinstance(stats.get("chosen"), list):
         parts.append("<h3>Chosen cameras and lenses</h3>"

@@ -1,0 +1,126 @@
+"""Glare (`vdo.physics.glare`): the satin lobe against Mitsuba's own roughplastic BSDF, and the
+hot-spot check on a satin plate facing a light panel (flagged; the light moved off the mirror
+direction clears it), with the hot spot where a Mitsuba render of the plate shows it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import DOWN_CAMERA, write_plate_experiment
+from vdo.config import experiment as config
+from vdo.physics import glare
+from vdo.state import layout_state, prepare
+
+# Mitsuba evaluates its BSDF in float32
+FLOAT32_RTOL = 1e-5
+
+PANEL = """
+[[light]]
+name = "panel"
+position_m = [{x}, 0.0, 1.2]
+target_m = [0.0, 0.0, 0.0]
+size_m = [0.3, 0.3]
+radiance = 60.0
+"""
+
+
+def test_the_satin_lobe_is_mitsubas_roughplastic():
+    """Mitsuba's roughplastic with no diffuse part, GGX of the same roughness and index: its
+    eval (f_s cos_o) at random pairs of directions near the mirror direction."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    bsdf = mi.load_dict({"type": "roughplastic", "distribution": "ggx", "alpha": glare.SATIN_ALPHA,
+                         "int_ior": glare.SATIN_IOR, "ext_ior": 1.0, "nonlinear": False,
+                         "diffuse_reflectance": {"type": "rgb", "value": 0.0}})
+    rng = np.random.default_rng(0)
+    n = np.array([0.0, 0.0, 1.0])
+    values = []
+    for _ in range(12):
+        wi = rng.normal(size=3)
+        wi[2] = abs(wi[2])
+        wi /= np.linalg.norm(wi)
+        wo = wi * [-1, -1, 1] + rng.normal(scale=0.1, size=3)
+        wo[2] = abs(wo[2])
+        wo /= np.linalg.norm(wo)
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wi = mi.Vector3f(*map(float, wi))
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        ref = float(np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*map(float, wo))))[0, 0])
+        ours = float(glare.lobe(n, wi, wo)) * wo[2]
+        values.append(ours)
+        assert ours == pytest.approx(ref, rel=FLOAT32_RTOL, abs=1e-7)
+    assert max(values) > 1.0 > min(values)      # the pairs span the lobe's peak and its tail
+
+
+def _satin_plate(folder, x):
+    path = write_plate_experiment(folder, spacing=20, cameras=DOWN_CAMERA.format(name="down", focal=24, u=0.5))
+    text = path.read_text().replace('role = "specimen"', 'role = "specimen"\nfinish = "satin"')
+    path.write_text(text + PANEL.format(x=x))
+    return config.load(path)
+
+
+def test_a_satin_plate_facing_a_panel_is_flagged_and_moving_the_light_clears_it(tmp_path):
+    """Camera straight above the plate's centre at 1.5 m. Panel at x = 0.3 m, 1.2 m high: its
+    mirror point on the plate is x = 0.3 x 1.5 / 2.7 = 0.167 m, inside the plate: flagged, with
+    the hottest sample there. Panel at x = -1.2 m: mirror point x = -0.667 m, off the plate:
+    cleared. The matte plate under the first panel: no row (only satin regions are checked)."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    facing = _satin_plate(tmp_path / "a", 0.3)
+    state = layout_state(prepare(facing), predict_fields=False)
+    rows = glare.hot_spots(facing, list(state.cameras), state.samples, state.visibility.visible,
+                           state.illumination)
+    assert len(rows) == 1 and rows[0]["flags"]
+    assert rows[0]["hot_spot_fraction"] > glare.HOT_SPOT_FRACTION
+    smp = state.samples
+    Ls = glare.specular_radiance(facing.lights, state.illumination.lit, smp.points, smp.normals,
+                                 [state.cameras[0].position])[0]
+    hottest = smp.points[np.argmax(Ls)]
+    assert hottest[0] == pytest.approx(0.3 * 1.5 / 2.7, abs=0.03)   # the mirror point, to a sample
+    assert abs(hottest[1]) <= 0.03
+
+    moved = _satin_plate(tmp_path / "b", -1.2)
+    state = layout_state(prepare(moved), predict_fields=False)
+    rows = glare.hot_spots(moved, list(state.cameras), state.samples, state.visibility.visible,
+                           state.illumination)
+    assert len(rows) == 1 and not rows[0]["flags"]
+    assert rows[0]["hot_spot_fraction"] <= glare.HOT_SPOT_FRACTION
+
+    matte = config.load(write_plate_experiment(tmp_path / "a", spacing=20))
+    assert glare.satin_samples(matte, state.samples).sum() == 0
+
+
+# the render integrates each panel with one light sample per pixel sample (RENDER_SPP stratified
+# samples) over a lobe narrower than the panel: a few percent
+RENDER_RTOL = 0.05
+RENDER_SPP = 256
+
+
+def test_a_mitsuba_render_shows_the_predicted_hot_spot(tmp_path):
+    """The satin plate with (almost) no diffuse paint rendered by Mitsuba (render.py's satin
+    roughplastic, the panel an area emitter): the brightest pixel is where the predicted
+    specular radiance peaks, and its value is the predicted peak."""
+    from vdo import scene
+    from vdo.render import build_render_scene, render_camera, scaled_camera
+
+    exp = _satin_plate(tmp_path, 0.3)
+    text = exp.path.read_text() + "\n[speckle]\nwhite_albedo = 0.001\nblack_albedo = 0.0\n"
+    exp.path.write_text(text.replace("spacing_mm = 20", "spacing_mm = 5"))
+    exp = config.load(exp.path)
+    geometry = prepare(exp)
+    state = layout_state(geometry, predict_fields=False)
+    cam = scaled_camera(state.cameras[0], 0.25)
+    smp = state.samples
+    Ls = glare.specular_radiance(exp.lights, state.illumination.lit, smp.points, smp.normals,
+                                 [cam.position])[0]
+    meshes = list(geometry.meshes)
+    sc = build_render_scene(exp, meshes, scene.all_region_faces(exp, meshes), ())
+    image = render_camera(sc, cam, exp.camera_specs[0], RENDER_SPP, seed=1, jitter=False)
+    peak = np.unravel_index(np.argmax(image), image.shape)
+    u, v = np.asarray(cam.project(smp.points[np.argmax(Ls)][None]))[0]
+    assert image.max() == pytest.approx(Ls.max(), rel=RENDER_RTOL)
+    assert np.hypot(peak[1] + 0.5 - u, peak[0] + 0.5 - v) <= 3

@@ -1,0 +1,199 @@
+"""A certified lower bound on the best score any selection of k cameras can reach (`vdo design`).
+
+The relaxation. Give each candidate i a weight w_i in [0, 1] instead of a yes/no, with sum_i w_i =
+k and, per body kind b, sum_{i of kind b} w_i <= count_b (the inventory). The per-sample
+information and coverage of `vdo.design.select` are linear in w:
+
+    C_n(w) = sum_i w_i C_i(n)   (3x3, 1/m^2),      k_n(w) = sum_i w_i w_i(n),
+
+and the score of `vdo.design.select.Scorer` is convex in (C, k):
+
+* sigma_n = sqrt((tr Sigma_n^p)^(1/p)), Sigma_n = (C_n + I/prior^2)^-1, equals
+  c Phi(C_n)^(-1/2) with Phi(M) = (tr M^-p / 3)^(-1/p) Kiefer's information function, concave on
+  positive definite M; t -> t^(-1/2) is convex and decreasing, so sigma_n is convex in C_n (the
+  same argument as for lambda_min(C)^(-1/2));
+* the weighted power mean (sum_n omega_n sigma_n^q)^(1/q), q >= 1, is a norm of the non-negative,
+  convex sigma_n, non-decreasing in each: convex;
+* the coverage penalty W sum_n a_n max(0, m_n - k_n)^2 is convex in k_n.
+
+So f(w) = score(C(w), k(w)) is convex on the polytope P of the weights, and every selection of k
+cameras that `vdo design` may choose is a vertex of P (the pairwise rules of the selection, one
+camera per spot and the axis angles, are dropped: that only enlarges the set, and lowers the
+minimum). Hence min_P f <= the score of every feasible k-selection.
+
+The certificate. For any w where f is convex and differentiable, with g = df/dw,
+
+    min_P f >= f(w) + min_{s in P} g.(s - w)      (the Frank-Wolfe duality gap's bound),
+
+and the linear minimisation over P is exact and cheap: P is the base polytope of a truncated
+partition matroid, so s takes candidates by increasing g_i while their body kind has room, until
+k are taken (`vertex`). The best of these over the iterates is a certified lower bound, whatever
+the convergence; it meets the relaxed optimum as the iterate reaches it.
+
+The iterates. Accelerated projected gradient (FISTA with backtracking on the Lipschitz estimate
+and a restart when the value rises) from the design's own selection (a vertex); the projection
+onto P is exact (`project`: w_i = clip(v_i - lambda - mu_b(i), 0, 1), the multipliers found by
+bisection). g comes from JAX on the per-sample function, g_i = sum_n <dF/dC_n, C_i(n)> + dF/dk_n
+w_i(n). Measured on the built-in experiment (1,666 candidates x 3,372 samples, 10 cameras,
+60 s wall on a loaded 2-core machine): Frank-Wolfe with exact line search reached f = 0.092 and a
+bound of 0.028, the accelerated gradient f = 0.080 and a bound of 0.050; a conic solver would need
+one 3x3 linear matrix inequality and a power cone per sample, and the score's smooth sigma_max (a
+trace p-norm) has no compact conic form. The loop stops when the best value and the bound agree
+to REL_TOL, after MAX_ITER steps or at the time limit.
+
+The relaxation keeps the body counts and drops the pairwise rules; measured on the built-in
+experiment, the relaxed optimum already puts at most about one camera's weight on any spot (its
+weight per optical centre is <= 1.02), so the spot rule would barely tighten it. What separates
+the bound from a design is mostly the relaxation's own integrality gap: fractional weights mix
+lenses and aims at a spot, which no selection can.
+
+The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
+many cameras can lower the score by more than that fraction.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import jax
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+REL_TOL = 1e-3        # stop when (best value - bound) <= REL_TOL * bound
+MAX_ITER = 2000       # gradient steps at most per camera count
+BISECTIONS = 60       # bisection steps of the projection's multipliers (to 2^-60 of their range)
+ROUNDING = 1e-12      # relative rounding allowed in the backtracking test of the score
+DOUBLINGS = 60        # backtracking doublings of the Lipschitz estimate at most per step
+SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (backtracking doubles it)
+
+
+@dataclass(frozen=True)
+class Bound:
+    """The relaxation for k cameras. value: certified lower bound on the score of every feasible
+    selection of k cameras (the best certificate over the iterates); relaxed: f at the best
+    iterate (>= the relaxed optimum >= value); weights (K,) that iterate; iterations made;
+    converged: (relaxed - value) <= REL_TOL * value; seconds: wall time."""
+
+    cameras: int
+    value: float
+    relaxed: float
+    weights: np.ndarray
+    iterations: int
+    converged: bool
+    seconds: float
+
+    def gap(self, score: float) -> float:
+        """1 - value / score: the largest fraction by which any selection of `cameras` cameras
+        could lower `score` (0 when the design meets the bound)."""
+        return max(0.0, 1.0 - self.value / score)
+
+
+def vertex(g: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
+           counts: np.ndarray) -> np.ndarray:
+    """argmin of g.s over P = {s in [0, 1]^K, s_i = 0 where not allowed, sum s = k, per body kind
+    b sum_{body_i = b} s_i <= counts[b]}: the 0/1 vector of the candidates taken by increasing g
+    while their body kind has room, until k are taken (greedy is exact on a matroid's base
+    polytope)."""
+    s = np.zeros(len(g))
+    room = np.array(counts, dtype=int)
+    taken = 0
+    for i in np.flatnonzero(allowed)[np.argsort(g[allowed], kind="stable")]:
+        if taken == k:
+            break
+        if room[body[i]] > 0:
+            s[i], room[body[i]], taken = 1.0, room[body[i]] - 1, taken + 1
+    return s
+
+
+def largest(allowed: np.ndarray, body: np.ndarray, counts: np.ndarray) -> int:
+    """The most candidates a selection may hold: per body kind, min(count, allowed candidates)."""
+    return int(sum(min(int(c), int((allowed & (body == b)).sum())) for b, c in enumerate(counts)))
+
+
+def project(v: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
+            counts: np.ndarray) -> np.ndarray:
+    """The Euclidean projection of v onto P (`vertex`), k <= `largest(...)`: from the KKT
+    conditions w_i = clip(v_i - lambda - mu_b(i), 0, 1) on the allowed candidates (0 elsewhere),
+    mu_b >= 0 the smallest that brings body kind b's sum to at most counts[b], lambda the one that
+    brings the total to k (bisection on both; the total is non-increasing in lambda)."""
+    groups = [np.flatnonzero(allowed & (body == b)) for b in range(len(counts))]
+    low, high = (float(v[allowed].min()), float(v[allowed].max())) if allowed.any() else (0.0, 0.0)
+    span = high - low + 2.0   # mu_b beyond this clips every entry to 0
+
+    def capped(lam: float) -> np.ndarray:
+        w = np.zeros(len(v))
+        for b, idx in enumerate(groups):
+            x = v[idx] - lam
+            if np.clip(x, 0, 1).sum() > counts[b]:
+                lo, hi = 0.0, span
+                for _ in range(BISECTIONS):
+                    mid = 0.5 * (lo + hi)
+                    lo, hi = (mid, hi) if np.clip(x - mid, 0, 1).sum() > counts[b] else (lo, mid)
+                x = x - hi
+            w[idx] = np.clip(x, 0, 1)
+        return w
+
+    lo, hi = low - 1.0, high   # at low - 1 every allowed entry clips to 1 (total >= k), at high to 0
+    for _ in range(BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if capped(mid).sum() > k else (lo, mid)
+    return capped(hi)
+
+
+def relaxation(value: Callable, info: np.ndarray, weight: np.ndarray, k: int, allowed: np.ndarray,
+               body: np.ndarray, counts: np.ndarray, start=None, rel_tol: float = REL_TOL,
+               max_iter: int = MAX_ITER, time_limit: float = 60.0) -> Bound:
+    """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
+    k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.select.Scorer.value`);
+    info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights;
+    allowed (K,) the candidates a selection may hold at all; body (K,) their body kind, counts
+    its inventory; start: indices of a feasible selection (the design's), else the vertex of the
+    first candidates; time_limit in wall seconds. k is cut to `largest(...)` (no selection holds
+    more)."""
+    t0 = time.perf_counter()
+    k = min(int(k), largest(allowed, body, counts))
+    K = info.shape[0]
+    weight = np.asarray(weight, dtype=float)
+    both = jax.jit(jax.value_and_grad(value, argnums=(0, 1)))
+    only = jax.jit(value)
+
+    def summed(w):
+        nz = np.flatnonzero(w)
+        return np.tensordot(w[nz], info[nz], axes=1), w[nz] @ weight[nz]
+
+    x = np.zeros(K)
+    if start is not None and len(start):
+        x[list(start)] = 1.0
+    else:
+        x = vertex(-np.ones(K), k, allowed, body, counts)
+    fx = float(only(*summed(x)))
+    y, t, lipschitz = x.copy(), 1.0, 1.0
+    best, best_x, bound, it = fx, x, -np.inf, 0
+    for it in range(1, max_iter + 1):
+        fy, (gC, gc) = both(*summed(y))
+        fy = float(fy)
+        g = np.tensordot(info, np.asarray(gC), axes=([1, 2], [0, 1])) + weight @ np.asarray(gc)
+        bound = max(bound, fy + float(g @ (vertex(g, k, allowed, body, counts) - y)))
+        if best - bound <= rel_tol * abs(bound) or time.perf_counter() - t0 > time_limit:
+            break
+        for _ in range(DOUBLINGS):   # backtracking: the quadratic model at y bounds f at the step
+            xn = project(y - g / lipschitz, k, allowed, body, counts)
+            fn, d = float(only(*summed(xn))), xn - y
+            if fn <= fy + float(g @ d) + 0.5 * lipschitz * float(d @ d) + ROUNDING * abs(fy):
+                break
+            lipschitz *= 2.0
+        if fn > fx:   # restart the momentum from the last accepted iterate
+            y, t = x.copy(), 1.0
+            continue
+        tn = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        y = np.clip(xn + (t - 1.0) / tn * (xn - x), 0.0, 1.0)   # w >= 0 keeps every C_n >= 0
+        x, fx, t = xn, fn, tn
+        if fx < best:
+            best, best_x = fx, x
+        lipschitz *= SHRINK
+    return Bound(cameras=k, value=float(bound), relaxed=float(best), weights=best_x, iterations=it,
+                 converged=best - bound <= rel_tol * abs(bound), seconds=time.perf_counter() - t0)
