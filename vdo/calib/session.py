@@ -2,7 +2,7 @@
 
 A pose places the target frame (`vdo.calib.target`) in the world: X_world = o + R_t X_target
 (R_t's columns are the target's axes in the world). A camera sees a pose when every point of the
-pattern's outline (the outer squares' corners, or the dots' outline) projects inside its image
+pattern's outline (the outer squares' corners) projects inside its image
 with `EDGE_PX` to spare, the target lies in front of it, and the printed face turns towards it by
 less than `MAX_VIEW_ANGLE_DEG`.
 
@@ -67,7 +67,7 @@ class Session:
 
 def outline(target: Target) -> np.ndarray:
     """(8, 3) points of the pattern's outline in the target frame: the corners and edge middles of
-    the region the detector needs (the outer squares, or the dots' half pitch)."""
+    the region the detector needs (the outer squares)."""
     low, high = target.extent
     low = low + MARGIN_PITCHES * target.pitch
     high = high - MARGIN_PITCHES * target.pitch

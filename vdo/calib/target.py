@@ -1,11 +1,10 @@
 """The calibration target: its points in its own frame, its printed image and its description.
 
-Frame of the target (OpenCV's object points): the first inner corner (dot) at the origin, x along
+Frame of the target (OpenCV's object points): the first inner corner at the origin, x along
 a row of `columns` points, y along a column of `rows` points, z = 0 on the target, all spaced by
 the pitch p. The printed checkerboard has (columns + 1) x (rows + 1) squares, the square that
 holds the origin's upper-left neighbour black ((i + j) even is black for square (i, j), i along
-x), inside a white margin of one square. A dot grid has a black dot of diameter `DOT_FRACTION` p
-on every point, in the same margin. The front face (printed side) looks along -z (the camera that
+x), inside a white margin of one square. The front face (printed side) looks along -z (the camera that
 sees the print looks along +z of the target frame, as OpenCV's calibration assumes).
 """
 
@@ -16,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 TEXELS_PER_PITCH = 32     # texels per square of the printed image (nearest-texel lookup)
-DOT_FRACTION = 0.5        # dot diameter / pitch of a dot grid
 MARGIN_PITCHES = 1        # white border around the printed pattern, in pitches (quiet zone)
 WHITE_ALBEDO = 0.8        # matte white paper / ceramic print
 BLACK_ALBEDO = 0.05       # matte black print
@@ -24,8 +22,7 @@ BLACK_ALBEDO = 0.05       # matte black print
 
 @dataclass(frozen=True)
 class Target:
-    """A planar target: `kind` ("checkerboard" or "dots"), `rows` x `columns` points (inner
-    corners or dot centres), `pitch` (m)."""
+    """A planar target: `kind` ("checkerboard"), `rows` x `columns` inner corners, `pitch` (m)."""
 
     kind: str
     rows: int
@@ -50,9 +47,8 @@ class Target:
     @property
     def extent(self) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) corners (x, y) in metres of the printed sheet in the target frame: the
-        pattern (one square beyond the outer points for a checkerboard, half a pitch for dots)
-        plus `MARGIN_PITCHES`."""
-        beyond = (1.0 if self.kind == "checkerboard" else 0.5) + MARGIN_PITCHES
+        pattern (one square beyond the outer corners) plus `MARGIN_PITCHES`."""
+        beyond = 1.0 + MARGIN_PITCHES
         low = -beyond * self.pitch * np.ones(2)
         high = np.array([(self.columns - 1), (self.rows - 1)]) * self.pitch + beyond * self.pitch
         return low, high
@@ -77,15 +73,9 @@ class Target:
         x = low[0] / self.pitch + (np.arange(width) + 0.5) / n          # in pitches
         y = low[1] / self.pitch + (np.arange(height) + 0.5) / n
         X, Y = np.meshgrid(x, y)
-        black = np.zeros(X.shape, dtype=bool)
-        if self.kind == "checkerboard":
-            inside = (X > -1) & (X < self.columns) & (Y > -1) & (Y < self.rows)
-            i, j = np.floor(X).astype(int) + 1, np.floor(Y).astype(int) + 1
-            black = inside & ((i + j) % 2 == 0)
-        else:
-            ci = np.clip(np.rint(X), 0, self.columns - 1)
-            cj = np.clip(np.rint(Y), 0, self.rows - 1)
-            black = np.hypot(X - ci, Y - cj) <= DOT_FRACTION / 2
+        inside = (X > -1) & (X < self.columns) & (Y > -1) & (Y < self.rows)
+        i, j = np.floor(X).astype(int) + 1, np.floor(Y).astype(int) + 1
+        black = inside & ((i + j) % 2 == 0)
         return np.where(black, BLACK_ALBEDO, WHITE_ALBEDO).astype(np.float32)
 
     def description(self) -> dict:
@@ -97,9 +87,7 @@ class Target:
 def description_yaml(target: Target) -> str:
     """target.yml in OpenCV FileStorage YAML (`cv2.FileStorage(path, cv2.FILE_STORAGE_READ)`):
     board_width = columns and board_height = rows (inner corners, OpenCV's patternSize),
-    square_size in mm, pattern "CHESSBOARD" or "CIRCLES_GRID" (the names of OpenCV's
-    calibration sample)."""
-    pattern = "CHESSBOARD" if target.kind == "checkerboard" else "CIRCLES_GRID"
+    square_size in mm, pattern "CHESSBOARD" (the name OpenCV's calibration sample uses)."""
     return ("%YAML:1.0\n---\n"
             f"board_width: {target.columns}\nboard_height: {target.rows}\n"
-            f"square_size: {target.pitch * 1e3:.17g}\nunits: \"mm\"\npattern: \"{pattern}\"\n")
+            f"square_size: {target.pitch * 1e3:.17g}\nunits: \"mm\"\npattern: \"CHESSBOARD\"\n")

@@ -1058,7 +1058,7 @@ class DesignSpec:
                              "it sees a sample at rest and at each (0: at rest only)")
 
 
-TARGET_KINDS = ("checkerboard", "dots")   # what `vdo calibrate` renders and detects (OpenCV)
+TARGET_KINDS = ("checkerboard",)   # what `vdo calibrate` renders and detects (OpenCV)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1067,15 +1067,14 @@ class CalibrationSpec:
     propagates (`vdo.calib`, docs/calibration.md): the target, its poses, the detection noise."""
 
     target: str = row("target", Text(choices=TARGET_KINDS), "checkerboard",
-                      doc="checkerboard (inner corners, findChessboardCornersSB) or dots (a "
-                          "symmetric grid of black dots, findCirclesGrid)")
+                      doc="checkerboard (inner corners: findChessboardCorners + cornerSubPix)")
     rows: int = row("rows", Whole(low=3, high=60), 7,
-                    doc="inner corners (dots) per column; rows + columns odd (one odd, one even) so "
+                    doc="inner corners per column; rows + columns odd (one odd, one even) so "
                         "that the board's orientation is unambiguous")
-    columns: int = row("columns", Whole(low=3, high=60), 10, doc="inner corners (dots) per row")
+    columns: int = row("columns", Whole(low=3, high=60), 10, doc="inner corners per row")
     pitch: float | None = row("pitch_mm", Real(positive=True), None, unit="mm",
                               shown="the target spans field_fill of the narrowest field",
-                              doc="square side (dot spacing)")
+                              doc="square side")
     pitch_tolerance: float = row("pitch_tolerance_mm", Real(low=0.0), 0.0, unit="mm",
                                  doc="the maker's pitch tolerance (1 sigma): a scale error of the "
                                      "whole calibration, shared by every load step")
