@@ -59,3 +59,17 @@ def detect(image: np.ndarray, target, max_dn: float) -> np.ndarray | None:
     corners = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1),
                                (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 100, SUBPIX_EPS))
     return orient(corners.reshape(-1, 2).astype(float), gray, target)
+
+
+def detect_all(images: dict, target, max_dn: float) -> tuple[list, list]:
+    """(observations, missed (camera, pose) keys) of `images` {(camera, pose): DN image}."""
+    from vdo.calib.solve import Observation
+
+    found, missed = [], []
+    for (name, k), image in sorted(images.items()):
+        corners = detect(image, target, max_dn)
+        if corners is None:
+            missed.append((name, k))
+        else:
+            found.append(Observation(name, k, corners))
+    return found, missed

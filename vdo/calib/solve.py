@@ -22,6 +22,7 @@ estimate sqrt(sum r^2 / (m - P)) (m residuals, P parameters).
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -126,6 +127,21 @@ class Calibration:
         return R, t2 - R @ t1
 
 
+@functools.cache
+def _kernels():
+    """The jitted residual model and its Jacobian over a batch of observations (compiled once
+    per batch shape: Monte Carlo trials reuse them)."""
+    import jax
+    import jax.numpy as jnp
+
+    def one(intr, ext, pose, X):
+        return project(intr, ext, pose, X, jnp).reshape(-1)
+
+    axes = (0, 0, 0, None)
+    return (jax.jit(jax.vmap(one, in_axes=axes)),
+            jax.jit(jax.vmap(jax.jacfwd(one, argnums=(0, 1, 2)), in_axes=axes)))
+
+
 def _groups(cameras: list[str], observations: list[Observation]) -> dict[str, str]:
     """camera -> the reference camera of its group (cameras linked through shared poses)."""
     seen: dict[int, set] = {}
@@ -191,7 +207,6 @@ def calibrate(cameras: list[str], sizes: dict, observations: list[Observation], 
               sigma_det: float | None = None) -> Calibration:
     """The joint calibration of `cameras` (names, each with `sizes` (W, H)) from the detected
     `observations` (module docstring)."""
-    import jax
     import jax.numpy as jnp
     from scipy import sparse
 
@@ -226,12 +241,13 @@ def calibrate(cameras: list[str], sizes: dict, observations: list[Observation], 
     ce = np.array([index[(o.camera, "extrinsics")].start if (o.camera, "extrinsics") in index else -1
                    for o in observations])
     cp = np.array([index[("pose", o.pose)].start for o in observations])
+    kernel_predict, kernel_jacobian = _kernels()
 
-    def one(intr, ext, pose):
-        return project(intr, ext, pose, X, jnp).reshape(-1)
+    def predict(*b):
+        return kernel_predict(*b, X)
 
-    predict = jax.jit(jax.vmap(one))
-    jacobian = jax.jit(jax.vmap(jax.jacfwd(one, argnums=(0, 1, 2))))
+    def jacobian(*b):
+        return kernel_jacobian(*b, X)
 
     def blocks(th):
         ext = np.where(ce[:, None] >= 0, th[np.maximum(ce, 0)[:, None] + np.arange(6)], 0.0)
