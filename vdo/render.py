@@ -372,6 +372,22 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
     return mi.load_dict(scene)
 
 
+def lit_scene(exp, shapes: dict):
+    """A Mitsuba scene of the given shapes (name -> `mi.Mesh`) lit by the experiment's [[light]]
+    panels and ambient radiance with the `vdo_panels` integrator, as `build_render_scene` lights
+    the specimen (`vdo.calib.images` renders the calibration target in it)."""
+    from vdo.core.backend import mitsuba
+
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    for i, shape in enumerate(shapes.values()):
+        scene[f"shape_{i:04d}"] = shape
+    for i, light in enumerate(exp.lights):
+        scene[f"light_{i:03d}"] = light_emitter(light)
+    if exp.render.ambient_radiance > 0:
+        scene["ambient"] = {"type": "constant",
+                            "radiance": {"type": "rgb", "value": float(exp.render.ambient_radiance)}}
+    return mitsuba().load_dict(scene)
+
 def render_linear(scene, sensor: dict, seed: int) -> np.ndarray:
     """One render of `scene` through the sensor dict: (H, W) float32 linear radiance."""
     from vdo.core.backend import mitsuba

@@ -32,7 +32,8 @@ BUILTIN = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / 
 _MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate",
             "render": "vdo.commands.render", "validate": "vdo.commands.validate",
             "optimize": "vdo.optimize", "design": "vdo.design.select", "export": "vdo.commands.export",
-            "sweep": "vdo.commands.sweep", "report": "vdo.outputs.html_report"}
+            "sweep": "vdo.commands.sweep", "report": "vdo.outputs.html_report",
+            "calibrate": "vdo.commands.calibrate"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
@@ -243,6 +244,30 @@ def _sweep(_, args) -> int:
     return 1 if result["failed"] else 0
 
 
+def _calibrate(exp, args) -> None:
+    from vdo.commands.calibrate import calibrate_experiment, print_summary
+
+    summary = calibrate_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp,
+                                   overwrite=args.overwrite, time_limit=args.time_limit)
+    if not args.quiet:
+        print_summary(summary)
+        print(f"wrote {Path(args.out).resolve()}")
+
+
+def _calibrate_parser(sub) -> None:
+    ca = sub.add_parser("calibrate", help="render the calibration session, calibrate it, "
+                                          "and carry its uncertainty into strain (docs/calibration.md)")
+    ca.add_argument("config", help="experiment TOML file (its [calibration] table)")
+    ca.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ca.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
+                                                              "(default: [render] scale)")
+    ca.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
+    ca.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                    help="stop the renders after this long (no output folder)")
+    ca.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    ca.add_argument("--quiet", action="store_true")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -312,6 +337,7 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--quiet", action="store_true")
     ck = sub.add_parser("check", help="validate experiment, validation or sweep files without computing")
     ck.add_argument("files", nargs="+", help="TOML files")
+    _calibrate_parser(sub)
     demo = sub.add_parser("demo", help="evaluate the built-in 10-camera beam-column experiment")
     demo.add_argument("--out", default=None, help="output folder (default: runs/demo-TIMESTAMP)")
     return parser
@@ -344,7 +370,7 @@ def _run(args) -> int:
             importlib.import_module(_MODULES[args.command])
     handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
                "optimize": _optimize, "design": _design, "speckle": _speckle, "export": _export, "report": _report,
-               "sweep": _sweep}[args.command]
+               "sweep": _sweep, "calibrate": _calibrate}[args.command]
     status = handler(loaded, args) or 0
     if args.command == "demo":
         print(f"demo finished in {time.perf_counter() - started:.0f} s; open "

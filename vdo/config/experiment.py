@@ -1260,6 +1260,79 @@ class DesignSpec:
                                    "(`vdo.design.bound`; 0: no bound)")
 
 
+TARGET_KINDS = ("checkerboard",)   # what `vdo calibrate` renders and detects (OpenCV)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationSpec:
+    """[calibration]: the lab's calibration session that `vdo calibrate` renders, calibrates and
+    propagates (`vdo.calib`, docs/calibration.md): the target, its poses, the detection noise."""
+
+    target: str = row("target", Text(choices=TARGET_KINDS), "checkerboard",
+                      doc="checkerboard (inner corners: findChessboardCorners + cornerSubPix)")
+    rows: int = row("rows", Whole(low=3, high=60), 7,
+                    doc="inner corners per column; rows + columns odd (one odd, one even) so "
+                        "that the board's orientation is unambiguous")
+    columns: int = row("columns", Whole(low=3, high=60), 10, doc="inner corners per row")
+    pitch: float | None = row("pitch_mm", Real(positive=True), None, unit="mm",
+                              shown="the target spans field_fill of the narrowest field",
+                              doc="square side")
+    pitch_tolerance: float = row("pitch_tolerance_mm", Real(low=0.0), 0.0, unit="mm",
+                                 doc="the maker's pitch tolerance (1 sigma): a scale error of the "
+                                     "whole calibration, shared by every load step")
+    flatness: float = row("flatness_mm", Real(low=0.0), 0.0, unit="mm",
+                          doc="the maker's flatness tolerance: the rendered target bows by this "
+                              "much at its centre (the calibration assumes it flat)")
+    field_fill: float = row("field_fill", Real(0.1, 1.0), 0.5,
+                            doc="fraction of a camera's field width the target spans at the "
+                                "working distance (generated poses, automatic pitch)")
+    poses_per_camera: int = row("poses_per_camera", Whole(low=3, high=500), 12,
+                                doc="generated poses per camera (intrinsics), spread over its field")
+    shared_poses: int = row("shared_poses", Whole(low=0, high=500), 6,
+                            doc="generated poses per stereo pair seen by both cameras (extrinsics)")
+    distances: tuple[float, ...] | None = row(
+        "distances_m", Numbers(what="distances in metres"), None, unit="m",
+        shown="each camera's working distance", doc="target distances from the camera, cycled")
+    tilt: float = row("tilt_deg", Real(0.0, 60.0), 30.0, unit="deg",
+                      doc="largest tilt of a generated pose away from facing the camera")
+    pose_centres: np.ndarray | None = row("pose_centres_m", Points(minimum=1), None, unit="m",
+                                          shown="none (generated)",
+                                          doc="explicit poses: where the target's centre is")
+    pose_normals: np.ndarray | None = row("pose_normals", Points(minimum=1), None, shown="none",
+                                          when="pose_centres",
+                                          doc="explicit poses: the target's front normal, one per centre")
+    detection_sigma_px: float | None = row(
+        "detection_sigma_px", Real(positive=True), None, shown="from the residuals",
+        doc="corner/dot detection noise (px, 1 sigma) of the covariance sigma^2 (J^T J)^-1")
+    strain: float = row("strain", Real(positive=True, high=0.5), 0.002,
+                        doc="the test's strain level (calibration-induced error is also given per unit)")
+    displacement: float = row("displacement_mm", Real(positive=True), 1.0, unit="mm",
+                              doc="the test's displacement level")
+    target_strain_error: float = row("target_strain_error", Real(positive=True), 1e-5,
+                                     doc="`vdo calibrate --plan`: calibration-induced strain error "
+                                         "(1 sigma, p95 over samples) to reach at the test's level")
+    seed: int = row("seed", Whole(low=0), 0, doc="seed of the generated poses and the images' noise")
+
+
+def _check_calibration(t: Table, v: dict) -> None:
+    if (v["rows"] + v["columns"]) % 2 == 0:
+        raise t.error("columns", f"rows = {v['rows']} and columns = {v['columns']} have the same "
+                                 "parity: make one odd and one even (a board that looks the same "
+                                 "turned by 180 deg has no defined corner order)")
+    centres, normals = v["pose_centres"], v["pose_normals"]
+    if (centres is None) != (normals is None):
+        raise t.error("pose_normals", "explicit poses need pose_centres_m and pose_normals together")
+    if centres is not None:
+        if len(normals) != len(centres):
+            raise t.error("pose_normals", f"must hold one normal per centre ({len(centres)})")
+        length = np.linalg.norm(normals, axis=1)
+        if np.any(length < 1e-9):
+            raise t.error("pose_normals", f"normal {int(np.argmin(length))} is zero")
+        v["pose_normals"] = normals / length[:, None]
+    if v["pitch"] is not None and v["pitch_tolerance"] >= 0.1 * v["pitch"]:
+        raise t.error("pitch_tolerance_mm", "must be below a tenth of pitch_mm")
+
+
 # --------------------------------------------------------------------------------------------
 # Checks across the fields of one table: check(t, values) raises t.error or completes values
 # --------------------------------------------------------------------------------------------
@@ -1442,6 +1515,9 @@ class Experiment:
         doc="`vdo design`'s inventory of camera bodies, e.g. 6 of a 5 MP sensor and 4 of a 12 MP "
             "one; without any, [design] sensor_width_mm + pixels (or the first [[camera]]'s) and "
             "max_cameras.")
+    calibration: CalibrationSpec = table(
+        "calibration", CalibrationSpec, check=_check_calibration, default=CalibrationSpec(),
+        doc="The calibration session `vdo calibrate` renders and calibrates (docs/calibration.md).")
 
     def __post_init__(self):
         """The defaults that depend on another table, resolved once here: a Q4 element defaults

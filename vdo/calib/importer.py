@@ -1,0 +1,168 @@
+"""A lab's own calibration as the experiment's cameras: the files vdo exports (`vdo.formats`:
+OpenCV, VIC-3D, DICe, MatchID) read back into vdo `Camera`s.
+
+Each file gives, per camera, K (pixels), the distortion and the pose of the camera in the
+calibration's frame (world -> camera for OpenCV, DICe and VIC-3D; for MatchID, the second camera
+relative to the first, whose frame is then the calibration frame). `frame` (4 x 4) places that
+frame in the experiment's CAD frame: X_cad = frame[:3, :3] X_cal + frame[:3, 3] (metres). The
+sensor's pixel size comes from the experiment's camera of the same name (calibration files
+hold pixels, not millimetres), and a file whose image size disagrees with that camera's is
+refused (`ConfigError`). vdo models square pixels without skew: fx and fy must agree within
+`SQUARE_PIXELS`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from vdo.core.errors import ConfigError
+from vdo.formats.calibration import MM
+
+SQUARE_PIXELS = 1e-9     # relative difference of fx and fy accepted as square pixels
+FORMATS = ("opencv", "vic3d", "dice", "matchid")
+
+
+def euler_matrix(a: float, b: float, c: float) -> np.ndarray:
+    """R = Rz(c) Ry(b) Rx(a), degrees (the inverse of `vdo.formats.calibration.euler_xyz_deg`)."""
+    a, b, c = (math.radians(v) for v in (a, b, c))
+    Rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    Ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+    Rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def angles(R: np.ndarray) -> tuple[float, float, float]:
+    """(pan, tilt, roll) in radians of the world -> camera rotation R (`vdo.model.camera`'s
+    convention: z_c = (cos t cos p, cos t sin p, sin t), x_c = cos r x0 + sin r y0)."""
+    z = R[2]
+    tilt = math.asin(max(-1.0, min(1.0, z[2])))
+    pan = math.atan2(z[1], z[0])
+    x0 = np.array([math.sin(pan), -math.cos(pan), 0.0])
+    y0 = np.cross(z, x0)
+    roll = math.atan2(R[0] @ y0, R[0] @ x0)
+    return pan, tilt, roll
+
+
+def as_camera(base, K, distortion, R, t, size, frame: np.ndarray, path, name):
+    """The experiment's camera `base` with the calibrated K, distortion and pose (world -> camera
+    R, t in metres in the calibration frame), placed in the CAD frame by `frame`."""
+    if tuple(size) != (base.width, base.height):
+        raise ConfigError(path, f'camera "{name}".image size',
+                          f"is {size[0]} x {size[1]} px but the experiment's camera has "
+                          f"{base.width} x {base.height}: import the calibration of this sensor "
+                          "(or fix [[camera]] pixels)")
+    fx, fy = K[0, 0], K[1, 1]
+    if abs(fx - fy) > SQUARE_PIXELS * fx or abs(K[0, 1]) > SQUARE_PIXELS * fx:
+        raise ConfigError(path, f'camera "{name}".fx', f"fx = {fx:.6g} and fy = {fy:.6g} (skew "
+                                                       f"{K[0, 1]:.3g}): vdo models square pixels "
+                                                       "without skew")
+    Rf, tf = frame[:3, :3], frame[:3, 3]
+    R_world = R @ Rf.T                      # X_cam = R X_cal + t, X_cal = Rf^T (X_cad - tf)
+    C = Rf @ (-R.T @ t) + tf
+    pan, tilt, roll = angles(R_world)
+    return replace(base, focal_length=fx * base.pixel_size, position=C, pan=pan, tilt=tilt, roll=roll,
+                   principal_offset_px=(K[0, 2] - (base.width - 1) / 2, K[1, 2] - (base.height - 1) / 2),
+                   distortion=tuple(float(d) for d in distortion))
+
+
+def _opencv(path: Path):
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        name = fs.getNode("camera_name").string()
+        size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
+        K, d = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
+        R, t = fs.getNode("R").mat(), fs.getNode("t").mat().ravel() / MM
+    finally:
+        fs.release()
+    return [(name, K, d, R, t, size)]
+
+
+def _numbers(text: str) -> list[float]:
+    return [float(x) for x in text.replace("{", " ").replace("}", " ").replace(",", " ").split()]
+
+
+def _dice(path: Path):
+    import xml.etree.ElementTree as ET
+
+    out = []
+    for cam in ET.parse(path).getroot().iter("ParameterList"):
+        if not (cam.get("name") or "").startswith("CAMERA "):
+            continue
+        p = {e.get("name"): e.get("value") for e in cam.findall("Parameter")}
+        rows = {e.get("name"): _numbers(e.get("value")) for e in cam.iter("Parameter")
+                if (e.get("name") or "").startswith("ROW ")}
+        h, w = (int(v) for v in _numbers(p["IMAGE_HEIGHT_WIDTH"]))
+        K = np.array([[float(p["FX"]), 0, float(p["CX"])], [0, float(p["FY"]), float(p["CY"])], [0, 0, 1]])
+        d = [float(p[k]) for k in ("K1", "K2", "P1", "P2", "K3")]
+        R = np.array([rows[f"ROW {r}"] for r in range(3)])
+        t = np.array([float(p[k]) for k in ("TX", "TY", "TZ")]) / MM
+        out.append((p["CAMERA_ID"], K, d, R, t, (w, h)))
+    return out
+
+
+def _vic3d(path: Path):
+    text = path.read_text()
+    head = re.search(r"camera 0: (\S+) \((\d+) x (\d+) pixels\); camera 1: (\S+) \((\d+) x (\d+) pixels\)", text)
+    if head is None:
+        raise ConfigError(path, "", "is not a VIC-3D calibration written by vdo (no camera names "
+                                    "and sizes in its header)")
+    out = []
+    for i, m in enumerate(re.finditer(r'<camera id="\d+">([^<]*)<orientation>([^<]*)</orientation>', text)):
+        cx, cy, fx, fy, fs, k1, k2, k3 = _numbers(m.group(1))
+        alpha, beta, gamma, tx, ty, tz = _numbers(m.group(2))
+        K = np.array([[fx, fs, cx], [0, fy, cy], [0, 0, 1]])
+        name, w, h = head.group(1 + 3 * i), int(head.group(2 + 3 * i)), int(head.group(3 + 3 * i))
+        out.append((name, K, [k1, k2, 0.0, 0.0, k3], euler_matrix(alpha, beta, gamma),
+                    np.array([tx, ty, tz]) / MM, (w, h)))
+    return out
+
+
+def _matchid(path: Path, bases: dict):
+    values = {}
+    for line in path.read_text().splitlines():
+        if ";" in line:
+            key, value = line.split(";", 1)
+            values[key.strip()] = float(value)
+    names = path.stem.split("_", 1) if path.stem.count("_") == 1 else None
+    if names is None or any(n not in bases for n in names):
+        raise ConfigError(path, "file name", "must be <first>_<second>.caldat with the two cameras' names")
+    out = []
+    for k, name in enumerate(names):
+        v = {key.split("_", 1)[1].split(" [")[0]: val for key, val in values.items() if key.startswith(f"Cam{k}_")}
+        K = np.array([[v["Fx"], v["Fs"], v["Cx"]], [0, v["Fy"], v["Cy"]], [0, 0, 1]])
+        d = [v["Kappa 1"], v["Kappa 2"], v["P1"], v["P2"], v["Kappa 3"]]
+        if k == 0:
+            R, t = np.eye(3), np.zeros(3)
+        else:
+            R = euler_matrix(values["Theta [deg]"], values["Phi [deg]"], values["Psi [deg]"])
+            t = np.array([values["Tx [mm]"], values["Ty [mm]"], values["Tz [mm]"]]) / MM
+        base = bases[name]
+        out.append((name, K, d, R, t, (base.width, base.height)))
+    return out
+
+
+def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> list:
+    """The cameras of the calibration file `path` in format `fmt` (`FORMATS`) as vdo Cameras,
+    each based on the experiment's camera of the same name in `cameras` (module docstring)."""
+    path = Path(path)
+    if fmt not in FORMATS:
+        raise ConfigError(path, "format", f"must be one of {', '.join(FORMATS)} (got {fmt!r})")
+    bases = {c.name: c for c in cameras}
+    frame = np.eye(4) if frame is None else np.asarray(frame, dtype=float)
+    entries = {"opencv": _opencv, "dice": _dice, "vic3d": _vic3d}[fmt](path) if fmt != "matchid" \
+        else _matchid(path, bases)
+    out = []
+    for name, K, d, R, t, size in entries:
+        if name not in bases:
+            raise ConfigError(path, f'camera "{name}"', f"is not a [[camera]] of the experiment "
+                                                        f"({', '.join(bases)})")
+        out.append(as_camera(bases[name], np.asarray(K, dtype=float), d, np.asarray(R, dtype=float),
+                             np.asarray(t, dtype=float), size, frame, path, name))
+    return out

@@ -1,0 +1,186 @@
+"""`vdo calibrate CONFIG --out DIR`: the lab's calibration session rendered and calibrated.
+
+Order: the session is built and checked (`vdo.calib.session.plan`: one-line errors before any
+render), the target images rendered (`vdo.calib.images`), exposed with the sensor's noise, the
+corners detected (`vdo.calib.detect`), the rig calibrated (`vdo.calib.solve`) and compared with
+the true cameras (`vdo.calib.truth`). The run folder (atomic, `vdo.core.runfolder`):
+
+    images/<camera>/pose_<k>.png|.tif   the target images a lab would take ([render] image_format)
+    target.yml                          the target (OpenCV FileStorage: board_width, board_height,
+                                        square_size in mm)
+    summary.json                        per camera: the calibrated intrinsics, their sigma, the true
+                                        values and the z-scores; per stereo pair: the relative
+                                        pose's errors and sigmas; the reprojection rms; the
+                                        detection noise used; the poses each camera saw
+    contact_sheet.png                   each camera's first image
+    samples.vtp                         per sample: the calibration-induced sigmas of position,
+                                        displacement and strain (at the test's level and per unit;
+                                        `vdo.calib.propagate`) beside the image noise's
+    maps/calibration_strain.png         calibration-induced strain sigma; maps/noise_strain.png the
+                                        image noise's
+    config.toml                         the resolved experiment
+
+Images are rendered at the render scale (--scale, default [render] scale): the calibration is that
+of the scaled cameras (pixels of the scaled images).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return x
+
+
+def calibrate_experiment(exp, out, scale: float | None = None, spp: int | None = None,
+                         overwrite: bool = False, time_limit: float | None = None) -> dict:
+    """Render, calibrate and write the run folder `out` (module docstring); returns the
+    summary.json dict."""
+    from vdo.calib.detect import detect_all
+    from vdo.calib.images import render_session, write
+    from vdo.calib.session import plan
+    from vdo.calib.solve import calibrate
+    from vdo.calib.truth import versus_truth
+    from vdo.commands.render import contact_sheet
+    from vdo.core.errors import ConfigError
+    from vdo.core.runfolder import check_out, run_folder
+    from vdo.outputs import report
+    from vdo.calib.propagate import sample_errors
+    from vdo.render import render_settings
+    from vdo.state import layout_state
+
+    started = time.perf_counter()
+    scale, spp, _ = render_settings(exp, scale, spp, None)
+    check_out(out, overwrite)
+    planned = plan(exp, scale)
+    session = planned.session
+    deadline = None if time_limit is None else time.monotonic() + time_limit
+    rendered = render_session(exp, session, scale, spp, deadline)
+    images = rendered.exposed(exp.sensor, exp.calibration.seed, 0)
+    observations, missed = detect_all(images, session.target, exp.sensor.max_dn)
+    for name, k in missed:
+        log.warning("camera %s, pose %d: the target was not found in the image; image dropped", name, k)
+    names = [c.name for c in rendered.cameras]
+    for name in names:
+        if sum(o.camera == name for o in observations) < 3:
+            raise ConfigError(exp.path, "calibration", f"the target was found in fewer than 3 of "
+                                                       f"camera {name!r}'s images: check the lights "
+                                                       "and the poses (tilt_deg, distances_m)")
+    sizes = {c.name: (c.width, c.height) for c in rendered.cameras}
+    cal = calibrate(names, sizes, observations, session.target, exp.calibration.detection_sigma_px)
+    truth = versus_truth(cal, rendered.cameras, session.pairs)
+    state = layout_state(planned.geometry, list(planned.cameras))
+    samples = planned.geometry.samples
+    errors = sample_errors(cal, exp, list(rendered.cameras), samples, state.visibility.visible,
+                           session.pairs)
+    noise_strain, noise_u = state.strain[0][:, 0], state.strain[1]
+    summary = {"experiment": exp.name, "config": str(exp.path), "scale": scale, "spp": spp,
+               "target": session.target.description(),
+               "poses": len(session.poses),
+               "views": {n: [int(k) for k in session.views[n]] for n in names},
+               "missed": [[n, int(k)] for n, k in missed],
+               "rms_px": cal.rms_all, "sigma_det_px": cal.sigma_det,
+               "sigma_residual_px": cal.sigma_residual, **truth,
+               "propagation": region_table(exp, samples, errors, noise_u, noise_strain),
+               "seconds": {"render": round(rendered.seconds, 3)}}
+    with run_folder(out, overwrite) as tmp:
+        write(images, session, tmp, exp.sensor, exp.render.image_format, exp.render.bit_alignment)
+        first = {n: images[(n, session.views[n][0])] for n in names}
+        contact_sheet(first, exp.sensor.max_dn, tmp / "contact_sheet.png",
+                      f"{exp.name}: calibration, first image per camera")
+        report.write_config(tmp / "config.toml", exp)
+        write_fields(tmp, exp, samples, errors, noise_u, noise_strain)
+        summary["seconds"]["total"] = round(time.perf_counter() - started, 3)
+        (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+    return summary
+
+
+def _percentiles(x: np.ndarray, scale: float) -> dict:
+    x = x[np.isfinite(x)]
+    if len(x) == 0:
+        return {"p50": None, "p95": None}
+    return {"p50": float(np.percentile(x, 50) * scale), "p95": float(np.percentile(x, 95) * scale)}
+
+
+def region_table(exp, samples, errors, noise_u, noise_strain) -> dict:
+    """Per region, p50/p95 over its samples: the calibration-induced position sigma (mm),
+    displacement sigma at the test's level (um) and per unit displacement (um/mm), strain sigma at
+    the test's level and per unit strain (microstrain), beside the image noise's displacement and
+    strain sigma (one image pair: random, per load step)."""
+    out = {}
+    for k, name in enumerate(samples.region_names):
+        m = samples.region == k
+        out[name] = {
+            "calibration_position_mm": _percentiles(errors.position[m], 1e3),
+            "calibration_displacement_um": _percentiles(errors.displacement[m], 1e6),
+            "calibration_displacement_um_per_mm": _percentiles(errors.per_unit_displacement[m], 1e3),
+            "calibration_strain_microstrain": _percentiles(errors.strain[m], 1e6),
+            "calibration_strain_per_unit_strain": _percentiles(errors.per_unit_strain[m], 1.0),
+            "noise_displacement_um": _percentiles(noise_u[m], 1e6),
+            "noise_strain_microstrain": _percentiles(noise_strain[m], 1e6),
+            "test_strain": exp.calibration.strain,
+            "test_displacement_mm": exp.calibration.displacement * 1e3}
+    return out
+
+
+def write_fields(folder, exp, samples, errors, noise_u, noise_strain) -> None:
+    """samples.vtp (calibration and image-noise sigmas per sample) and maps/ (calibration strain
+    sigma beside the image noise's)."""
+    from vdo.core import vtp
+    from vdo.outputs import maps
+
+    (folder / "maps").mkdir()
+    arrays = {"calib_position_sigma": errors.position, "calib_displacement_sigma": errors.displacement,
+              "calib_displacement_per_unit": errors.per_unit_displacement,
+              "calib_strain_sigma": errors.strain, "calib_strain_per_unit": errors.per_unit_strain,
+              "calib_pair": errors.pair.astype(np.int32), "noise_displacement_sigma": noise_u,
+              "noise_strain_sigma": noise_strain, "region": samples.region.astype(np.int32)}
+    vtp.write_points(folder / "samples.vtp", samples.points, arrays)
+    level = exp.calibration.strain
+    for name, values, title in (
+            ("calibration_strain.png", errors.strain * 1e6,
+             f"calibration-induced strain sigma at strain {level:g} (microstrain, systematic)"),
+            ("noise_strain.png", np.where(np.isfinite(noise_strain), noise_strain, np.nan) * 1e6,
+             "image-noise strain sigma (microstrain, random per step)")):
+        maps.plot_unfolded(samples, values, folder / "maps" / name, f"{exp.name}: {title}", "microstrain")
+
+
+def print_summary(summary: dict) -> None:
+    """The console table: per camera views, rms, f and c with sigma and error; per pair the
+    relative pose's errors."""
+    print(f"target {summary['target']['columns']} x {summary['target']['rows']} corners, pitch "
+          f"{summary['target']['pitch_mm']:.3g} mm; {summary['poses']} poses; reprojection rms "
+          f"{summary['rms_px']:.3f} px; detection sigma {summary['sigma_det_px']:.3f} px")
+    print(f"{'camera':<14}{'views':>6}{'rms px':>8}{'fx (sigma, error) px':>30}{'cx (sigma, error) px':>28}")
+    for name, c in summary["cameras"].items():
+        fx, cx = c["fx"], c["cx"]
+        print(f"{name:<14}{c['views']:>6}{c['rms_px']:>8.3f}"
+              f"{fx['value']:>12.2f} ({fx['sigma']:.2f}, {fx['error']:+.2f})"
+              f"{cx['value']:>11.2f} ({cx['sigma']:.2f}, {cx['error']:+.2f})")
+    for pair, p in summary["pairs"].items():
+        rot = max(abs(x) for x in p["rotation_error_deg"])
+        print(f"pair {pair}: rotation error {rot:.4f} deg, baseline error {p['baseline_error_mm']:+.4f} mm")
+    print(f"{'region':<18}{'calib u um (/mm)':>20}{'noise u um':>12}{'calib strain ue (/unit)':>26}"
+          f"{'noise strain ue':>17}   (p95; calibration systematic, noise random)")
+    for name, r in summary["propagation"].items():
+        def show(d):
+            return "-" if d["p95"] is None else f"{d['p95']:.3g}"
+        print(f"{name:<18}{show(r['calibration_displacement_um']):>11} ({show(r['calibration_displacement_um_per_mm'])})"
+              f"{show(r['noise_displacement_um']):>12}"
+              f"{show(r['calibration_strain_microstrain']):>15} ({show(r['calibration_strain_per_unit_strain'])})"
+              f"{show(r['noise_strain_microstrain']):>17}")
