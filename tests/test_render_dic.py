@@ -29,6 +29,7 @@ QUADRATURE_TOL = 2e-5       # its error: the bilinear texture's kinks, O(1 / FIN
 NOISE_RATIO = 1.5           # fast - reference within this many times the reference's own noise
 REFERENCE_SPP = 256
 CONTRAST_TOL = 0.01         # relative: the σ model's box-pixel contrast (same integral, exact)
+TILE_TOL = 1e-4             # tiles against one: light-map interpolation within SHADE_TOLERANCE
 ENERGY_TOL = 0.02           # relative: the 64-spp reference's noise adds ~0.5 % of gradient energy
 
 
@@ -145,3 +146,38 @@ def test_bad_render_settings_name_the_field_and_the_fix(plate_experiment):
         'mode = "dic"', 'mode = "fast"'))
     with pytest.raises(ConfigError, match="mode.*sampled, dic"):
         config.load(Path(exp.path).parent / "bad.toml")
+
+
+def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_experiment, monkeypatch):
+    """The plan is made from the cameras alone (bytes per pixel measured, `vdo.render`): the DIC
+    mode splits its tiles to fit, and a render whose images alone do not fit is refused with the
+    size it needs, naming [render] scale."""
+    from vdo.render import IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, TILE_PIXELS, plan_render, \
+        render_images, scaled_camera
+
+    exp = plate(plate_experiment, down_camera("c", [0, 0, 0.5], (6000, 4000), 3.45, 25), bar=False)
+    cams = exp.cameras()
+    kept = 6000 * 4000 * IMAGE_BYTES_PER_PIXEL
+    roomy = plan_render(cams, "dic", available=8 * 2 ** 30)
+    assert roomy.tile_pixels == TILE_PIXELS and roomy.kept == kept
+    tight = plan_render(cams, "dic", available=kept + 20 * 2 ** 20)
+    assert MIN_TILE_PIXELS <= tight.tile_pixels < TILE_PIXELS and tight.needed <= tight.available
+    with pytest.raises(MemoryError, match=r"needs 0\.\d+ GiB"):
+        plan_render(cams, "dic", available=kept // 2)
+    with pytest.raises(MemoryError):
+        plan_render(cams, "sampled", available=kept + 20 * 2 ** 20)
+    # Through render_images: refused before any geometry work, one line naming the field.
+    monkeypatch.setattr("vdo.render.available_memory", lambda: kept)
+    with pytest.raises(ConfigError, match=r"\[render\] scale.*GiB.*lower scale") as err:
+        render_images(exp, scale=1.0)
+    assert "\n" not in str(err.value)
+    monkeypatch.undo()
+    # Tiles: the same image in 1 tile or in tiles of 16 rows (light-map nodes restart per tile).
+    small = scaled_camera(cams[0], 0.04)
+    meshes = scene.load_meshes(exp)
+    ds = build_dic_scene(exp, meshes, scene.all_region_faces(exp, meshes))
+    whole = render_camera_dic(ds, small)
+    tiled = render_camera_dic(ds, small, tile_pixels=16 * small.width)
+    assert np.abs(tiled - whole).max() <= TILE_TOL * whole.max()
+
+

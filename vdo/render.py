@@ -548,8 +548,16 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     scale, spp, seed = render_settings(exp, scale, spp, seed)
     dic = exp.render.mode == "dic"
     started = time.perf_counter()
-    geometry = prepare(exp)
     cameras = [scaled_camera(c, scale) for c in exp.cameras()]
+    try:
+        plan = plan_render(cameras, exp.render.mode)
+    except MemoryError as err:
+        from vdo.core.errors import ConfigError
+
+        fix = ("lower scale, or render fewer cameras" if dic else
+               'lower scale, render fewer cameras, or set [render] mode = "dic" (tiles)')
+        raise ConfigError(exp.path, "[render] scale", f"{err}: {fix}") from None
+    geometry = prepare(exp)
     # The scaled cameras have the full-size cameras' poses and lenses, hence the same bodies.
     state = layout_state(geometry, cameras, predict_fields=False)
     stereo = default_pairs(exp, cameras, state.visibility, geometry.samples, pairs)
@@ -564,7 +572,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     for i, (cam, spec) in enumerate(bar(log, iterable=list(zip(cameras, exp.camera_specs)),
                                         desc="render", unit="camera")):
         t0 = time.perf_counter()
-        linear[cam.name] = (render_camera_dic(scene, cam) if dic
+        linear[cam.name] = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels) if dic
                             else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
         seconds[cam.name] = time.perf_counter() - t0
@@ -594,9 +602,14 @@ SHADE_TOLERANCE = 0.01       # a light-map cell whose corner values differ by mo
                              # fraction (a shadow edge, a panel's rim) is computed at every pixel
 EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
                              # mean of EDGE_SUPERSAMPLE^2 sub-pixel rays, each with its own footprint
-TILE_PIXELS = 1 << 20        # pixels per tile of a DIC-mode render
-TILE_BYTES_PER_PIXEL = 700   # measured peak working set of a tile, bytes per pixel (Dr.Jit
-                             # surface interactions, ray differentials, the numpy glue)
+TILE_PIXELS = 1 << 20        # pixels per tile of a DIC-mode render (fewer when memory is short)
+MIN_TILE_PIXELS = 1 << 14    # below this a tile's fixed costs dominate: refuse instead
+TILE_BYTES_PER_PIXEL = 150   # peak working set of a DIC tile per pixel (115 measured with
+                             # ru_maxrss on a 1920 x 1280 plate render, plus a margin)
+SAMPLED_BYTES_PER_PIXEL = 80 # Mitsuba's film and wavefront per pixel, any spp (59 measured at
+                             # 16 and 64 spp on 614k px, plus a margin)
+DISTORTION_BYTES_PER_PIXEL = 48   # the resampling map (H, W, 2) float64 and its spline copies
+IMAGE_BYTES_PER_PIXEL = 6    # what render_images keeps per pixel and camera: float32 + 16-bit DN
 
 
 @dataclass(frozen=True, eq=False)
@@ -696,9 +709,69 @@ def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=No
                     float(exp.render.ambient_radiance))
 
 
-def render_camera_dic(dscene: DicScene, camera: Camera, progress=None) -> np.ndarray:
+def available_memory() -> int:
+    """Bytes this process may still allocate: MemAvailable of /proc/meminfo (Linux), else the
+    physical memory (os.sysconf)."""
+    import os
+
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """The memory a render needs (`plan_render`): `tile_pixels` per DIC tile, `kept` bytes of
+    the finished images, `working` bytes of the largest camera's render, `available` bytes."""
+
+    mode: str
+    tile_pixels: int
+    kept: int
+    working: int
+    available: int
+
+    @property
+    def needed(self) -> int:
+        return self.kept + self.working
+
+
+def plan_render(cameras, mode: str, available: int | None = None) -> RenderPlan:
+    """The memory of rendering `cameras` (already scaled) in `mode`, before anything is rendered:
+    every finished image is kept (IMAGE_BYTES_PER_PIXEL per pixel); one camera renders at a time,
+    the sampled mode with its whole film (SAMPLED_BYTES_PER_PIXEL, plus
+    DISTORTION_BYTES_PER_PIXEL for a distorted camera), the DIC mode in tiles of TILE_PIXELS
+    (TILE_BYTES_PER_PIXEL each), split into smaller tiles (down to MIN_TILE_PIXELS) when that
+    does not fit in `available` bytes (default `available_memory`). Raises MemoryError with the
+    bytes it would need when even that does not fit."""
+    available = available_memory() if available is None else int(available)
+    kept = sum(c.width * c.height for c in cameras) * IMAGE_BYTES_PER_PIXEL
+    tile = TILE_PIXELS
+    if mode == "dic":
+        room = available - kept
+        while tile > MIN_TILE_PIXELS and tile * TILE_BYTES_PER_PIXEL > room:
+            tile //= 2
+        working = tile * TILE_BYTES_PER_PIXEL
+    else:
+        working = max((c.width * c.height * (SAMPLED_BYTES_PER_PIXEL
+                                             + (DISTORTION_BYTES_PER_PIXEL if c.distorted else 0))
+                       for c in cameras), default=0)
+    plan = RenderPlan(mode, tile, kept, working, available)
+    if plan.needed > available:
+        raise MemoryError(f"the render needs {plan.needed / 2 ** 30:.2f} GiB ({kept / 2 ** 30:.2f} GiB "
+                          f"of images, {working / 2 ** 30:.2f} GiB to render one camera); "
+                          f"{available / 2 ** 30:.2f} GiB available")
+    return plan
+
+
+def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
+                      tile_pixels: int = TILE_PIXELS) -> np.ndarray:
     """One camera's (H, W) float32 linear image in the DIC render mode, in tiles of at most
-    TILE_PIXELS pixels (whole rows). Per pixel (u, v) of the (distorted) image:
+    `tile_pixels` pixels (whole rows; `plan_render` chooses). Per pixel (u, v) of the (distorted) image:
 
     * one primary ray through the pinhole pixel p = `Camera.undistorted_pixels`(u, v), with ray
       differentials through p + ∂p/∂u and p + ∂p/∂v (central differences over ±½ px): Mitsuba's
@@ -716,7 +789,7 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None) -> np.nda
     * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere).
 
     `progress`: called with the number of rows done after each tile."""
-    rows = max(1, TILE_PIXELS // camera.width)
+    rows = max(1, tile_pixels // camera.width)
     out = np.empty((camera.height, camera.width), dtype=np.float32)
     for r0 in range(0, camera.height, rows):
         r1 = min(camera.height, r0 + rows)
