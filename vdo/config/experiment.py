@@ -703,6 +703,10 @@ class RenderSpec:
     bit_alignment: str = row("bit_alignment", Text(choices=ALIGNMENTS), "msb",
                              doc="16-bit files: msb (counts shifted to the top bits, as most DIC "
                                  "software expects) or raw (counts as they are)")
+    mode: str = row("mode", Text(choices=("sampled", "dic")), "sampled",
+                    doc="sampled: spp path samples per pixel (the reference); dic: one ray per "
+                        "pixel, the speckle averaged over the pixel's footprint, for full-size "
+                        "images (docs/render.md)")
 
 
 @dataclass(frozen=True)

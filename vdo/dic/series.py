@@ -185,19 +185,58 @@ def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarr
 
 
 def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
-                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+                     patch_size: float, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """The displacement (N, 3) m that vdo's own correlation (`vdo.dic.correlate`, as `vdo.dic.validate`
     uses it: each camera against its own reference image, integrated on its reference pixel
-    centres, cubic B-spline interpolation) measures at `points` (N, 3) from the `references` to
-    the `deformed` images (gray levels, one per camera): per point a square patch of side
-    `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a bilinear (Q4, one
-    element) field so that the patch may stretch and turn, read at the patch centre (the mean of
-    its four nodes), starting from `start_guess`. Returns (U, converged (N,) bool)."""
+    centres, B-spline interpolation on windows around each patch) measures at `points` (N, 3)
+    from the `references` to the `deformed` images (gray levels, one per camera): per point a
+    square patch of side `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a
+    bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
+    centre (the mean of its four nodes), starting from `start_guess`. With `workers` > 1 the
+    points are shared among that many processes (spawned: Dr.Jit and JAX do not survive a fork),
+    each given the images once, in contiguous chunks (neighbouring points, one image window).
+    Returns (U, converged (N,) bool)."""
+    points, tangent_u, tangent_v = (np.asarray(a, dtype=float) for a in (points, tangent_u, tangent_v))
+    n = len(points)
+    workers = max(1, min(int(workers), n))
+    if workers == 1:
+        return _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    chunks = np.array_split(np.arange(n), workers * POOL_CHUNKS_PER_WORKER)
+    out, converged = np.zeros((n, 3)), np.zeros(n, bool)
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_pool_start, initargs=(cameras, references, deformed)) as pool:
+        jobs = {pool.submit(_pool_chunk, points[k], tangent_u[k], tangent_v[k], patch_size): k
+                for k in chunks if len(k)}
+        for job, k in jobs.items():
+            out[k], converged[k] = job.result()
+    return out, converged
+
+
+POOL_CHUNKS_PER_WORKER = 4      # chunks per process: the slowest chunk's wait stays short
+_POOL = {}                      # a pool process's cameras and images (`_pool_start`)
+
+
+def _pool_start(cameras, references, deformed):
+    from vdo.core.configure import configure
+
+    configure()
+    _POOL.update(cameras=cameras, references=references, deformed=deformed)
+
+
+def _pool_chunk(points, tangent_u, tangent_v, patch_size):
+    return _correlate_chunk(_POOL["cameras"], _POOL["references"], _POOL["deformed"], points,
+                            tangent_u, tangent_v, patch_size)
+
+
+def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size):
     from vdo.dic.correlate import ImageReference, Patch, Q4, correlate
 
     half = patch_size / 2
     out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)
-    for k, (X, t_u, t_v) in enumerate(zip(np.asarray(points), np.asarray(tangent_u), np.asarray(tangent_v))):
+    for k, (X, t_u, t_v) in enumerate(zip(points, tangent_u, tangent_v)):
         patch = Patch(origin=X - half * t_u - half * t_v, t_u=t_u, t_v=t_v, size=(patch_size, patch_size))
         U0 = start_guess(cameras, references, deformed, X)
         result = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
