@@ -183,34 +183,52 @@ def _visible(cam, patch, X, margin_px, min_cos):
 # Interpolation
 # --------------------------------------------------------------------------------------------
 class SplineImage:
-    """Cubic B-spline interpolant of a gray image (coefficients computed once), evaluated at vdo
-    pixel coordinates x = (u, v) = (column, row), pixel centres at integers."""
+    """B-spline interpolant of a gray image (coefficients computed once), evaluated at vdo pixel
+    coordinates x = (u, v) = (column, row), pixel centres at integers. `order` 3 (cubic, the
+    default) or 5 (quintic)."""
 
-    def __init__(self, image):
+    def __init__(self, image, order: int = 3):
         img = np.asarray(image, dtype=np.float64)
         if img.ndim != 2:
             raise ValueError(f"image: expected a 2-D gray image, got shape {img.shape}")
+        if order not in (3, 5):
+            raise ValueError(f"order: expected 3 (cubic) or 5 (quintic), got {order!r}")
         self.shape = img.shape
-        self.coeffs = ndimage.spline_filter(img, order=3, mode="mirror")
+        self.order = order
+        self.coeffs = ndimage.spline_filter(img, order=order, mode="mirror")
         # Coefficients padded by mirroring (the extension `spline_filter(mode="mirror")` assumes)
-        # so that the 4 x 4 support of any point within 1 px outside the image is addressable.
-        self._pad = 3
+        # so that the (order + 1)² support of any point within 1 px outside the image is addressable.
+        self._pad = order
         self._cp = np.pad(self.coeffs, self._pad, mode="reflect")
 
     def __call__(self, x) -> np.ndarray:
         x = np.asarray(x, dtype=float)
-        return ndimage.map_coordinates(self.coeffs, [x[..., 1], x[..., 0]], order=3,
+        return ndimage.map_coordinates(self.coeffs, [x[..., 1], x[..., 0]], order=self.order,
                                        prefilter=False, mode="mirror")
 
-    @staticmethod
-    def _weights(t):
-        """Cubic B-spline weights of the 4 coefficients floor(x) - 1 .. floor(x) + 2 and their
-        derivatives, for t = x - floor(x)."""
-        t2, t3, s = t * t, t * t * t, 1.0 - t
-        w = np.stack([s ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6,
-                      t3 / 6], -1)
-        dw = np.stack([-(s ** 2) / 2, (3 * t2 - 4 * t) / 2, (-3 * t2 + 2 * t + 1) / 2, t2 / 2], -1)
-        return w, dw
+    def _weights(self, t):
+        """B-spline weights of the order + 1 coefficients floor(x) - (order - 1)/2 .. floor(x) +
+        (order + 1)/2 and their derivatives, for t = x - floor(x): β(t - j) and β'(t - j) with the
+        centred B-spline β(x) = (1/n!) Σ_k (-1)^k C(n+1, k) max(x + (n+1)/2 - k, 0)^n and
+        β'(x) = β_{n-1}(x + 1/2) - β_{n-1}(x - 1/2) (the cubic's closed forms for order 3)."""
+        if self.order == 3:
+            t2, t3, s = t * t, t * t * t, 1.0 - t
+            w = np.stack([s ** 3 / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6,
+                          t3 / 6], -1)
+            dw = np.stack([-(s ** 2) / 2, (3 * t2 - 4 * t) / 2, (-3 * t2 + 2 * t + 1) / 2, t2 / 2], -1)
+            return w, dw
+        from math import comb, factorial
+
+        n = self.order
+        x = t[:, None] - (np.arange(n + 1) - (n - 1) // 2)          # t - j
+
+        def beta(x, n):
+            k = np.arange(n + 2)
+            c = np.array([(-1) ** i * comb(n + 1, i) for i in k], dtype=float)
+            return (c * np.maximum(x[..., None] + 0.5 * (n + 1) - k, 0.0) ** n).sum(-1) \
+                / factorial(n)
+
+        return beta(x, n), beta(x + 0.5, n - 1) - beta(x - 0.5, n - 1)
 
     def value_and_gradient(self, x):
         """Spline value f (...) and its exact gradient (∂f/∂u, ∂f/∂v) (..., 2) in gray level per
@@ -224,9 +242,10 @@ class SplineImage:
         fu, fv = np.floor(u), np.floor(v)
         wu, dwu = self._weights(u - fu)
         wv, dwv = self._weights(v - fv)
-        cols = fu.astype(np.int64)[:, None] - 1 + self._pad + np.arange(4)
-        rows = fv.astype(np.int64)[:, None] - 1 + self._pad + np.arange(4)
-        C = self._cp[rows[:, :, None], cols[:, None, :]]          # (N, 4 rows, 4 cols)
+        first = self._pad - (self.order - 1) // 2
+        cols = fu.astype(np.int64)[:, None] + first + np.arange(self.order + 1)
+        rows = fv.astype(np.int64)[:, None] + first + np.arange(self.order + 1)
+        C = self._cp[rows[:, :, None], cols[:, None, :]]          # (N, order+1 rows, order+1 cols)
         Cu = np.einsum("nrc,nc->nr", C, wu)
         Cdu = np.einsum("nrc,nc->nr", C, dwu)
         f = np.einsum("nr,nr->n", Cu, wv)
