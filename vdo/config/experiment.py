@@ -677,6 +677,10 @@ class Analysis:
                               doc="subset shape function")
     strain_window: int = row("strain_window", Whole(low=2), 15,
                              doc="subset centres per side of the strain plane fit (virtual gauge)")
+    interpolant: str = row("interpolant", Text(choices=("cubic", "quintic")), "cubic",
+                           doc="the correlation's B-spline interpolant (σ_measured's bias and noise)")
+    reference: str = row("reference", Text(choices=("noisy", "noise-free")), "noisy",
+                         doc="noisy: a recorded reference image; noise-free: a synthetic one")
 
 
 def _check_analysis(t: Table, v: dict) -> None:

@@ -512,7 +512,8 @@ def _spline_shift_response(omega: np.ndarray, phase: float, order: int, terms: i
 
 
 def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
-                        order: int = INTERPOLATION_ORDER, phase=(0.5, 0.5)) -> np.ndarray:
+                        order: int = INTERPOLATION_ORDER, phase=(0.5, 0.5),
+                        optics=None) -> np.ndarray:
     """RMS error (K,) of the image-correlation interpolation on the box-pixel image of the
     normalised pattern f̂ (variance 1 before averaging), for K pixel footprints `pixel_sides`
     (K, 2, 2) m (as `pixel_averaged_std`): the difference between the B-spline interpolant of the
@@ -534,7 +535,9 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
     The half-pixel phase is the worst: about the largest error over sub-pixel motions. The
     spectrum is summed over blocks of side // 64 frequencies (`_blocked_spectrum`; 0.3 % off the
     full sum for the built-in 1024-texel tile): one FFT of the tile per call, then about 0.02 s
-    per footprint; pass all footprints at once."""
+    per footprint; pass all footprints at once. `optics`: K `vdo.model.optics.OpticsBlur` (None
+    entries or None: no lens blur), whose MTF²(|q|) multiplies each term (q = (k'.a_1, k'.a_2)
+    cycles per pixel)."""
     f = np.asarray(pattern_normalised)
     w, ku, kv = _blocked_spectrum(f, texel_m, texel_filter=False, block=max(1, min(f.shape) // 64))
     m = np.arange(-TEXEL_IMAGES, TEXEL_IMAGES + 1) / texel_m
@@ -545,10 +548,13 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
     keep = weight.sum(axis=1) >= 1e-6 * w.sum()           # far texel images: < 1e-6 of the variance
     qu, qv, weight = qu[keep], qv[keep], weight[keep]
     sides = np.asarray(pixel_sides, dtype=np.float64).reshape(-1, 2, 2)
+    optics = [None] * len(sides) if optics is None else list(optics)
     out = np.empty(len(sides))
-    for i, a in enumerate(sides):
+    for i, (a, opt) in enumerate(zip(sides, optics)):
         k1, k2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
         box = (np.sinc(k1) * np.sinc(k2)) ** 2
+        if opt is not None:
+            box = box * opt.mtf(np.hypot(k1, k2)) ** 2
         K = (_spline_shift_response(2 * np.pi * k1, phase[0], order)
              * _spline_shift_response(2 * np.pi * k2, phase[1], order))
         out[i] = math.sqrt(float(np.sum(weight * box * np.abs(K - 1.0) ** 2)))
