@@ -611,6 +611,8 @@ class CorrelationError:
               patch to patch of the pattern is scatter / P (px²)
     bound     (K, 2, 2) (Σ_k w |2πq|² q̂ q̂ᵀ)⁻¹: the Cramér-Rao bound of one noisy image with the
               true gradient (σ² bound / P), for the ratio
+    bound_sharp (K, 2, 2) the same without the optics' MTF (the image the bound of
+              `vdo.objective` describes)
     phases    ((n₁,), (n₂,)) the sub-pixel positions d₁, d₂ averaged over
     bias_curve (K, n₁, n₂, 2) b(d₁, d₂) in px
     """
@@ -620,6 +622,7 @@ class CorrelationError:
     bias: np.ndarray
     scatter: np.ndarray
     bound: np.ndarray
+    bound_sharp: np.ndarray
     phases: tuple
     bias_curve: np.ndarray
 
@@ -629,11 +632,13 @@ class CorrelationError:
         p = np.asarray(pixels, dtype=float) * np.ones(len(self.noise))
         return (s2[:, None, None] * self.noise + self.scatter) / p[:, None, None] + self.bias
 
-    def ratio(self, sigma, pixels) -> np.ndarray:
-        """(K, 2) per image axis: sqrt(measured variance / the bound's σ² bound / P)."""
+    def ratio(self, sigma, pixels, sharp: bool = False) -> np.ndarray:
+        """(K, 2) per image axis: sqrt(measured variance / the bound's σ² bound / P); `sharp`:
+        against the bound of the image without the optics (`bound_sharp`)."""
         s2 = np.asarray(sigma, dtype=float) ** 2 * np.ones(len(self.noise))
         p = np.asarray(pixels, dtype=float) * np.ones(len(self.noise))
-        crb = s2[:, None] * np.diagonal(self.bound, axis1=1, axis2=2) / p[:, None]
+        crb = s2[:, None] * np.diagonal(self.bound_sharp if sharp else self.bound,
+                                        axis1=1, axis2=2) / p[:, None]
         return np.sqrt(np.diagonal(self.covariance(sigma, pixels), axis1=1, axis2=2) / crb)
 
 
@@ -688,12 +693,16 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     grid = np.arange(PHASES) / PHASES
     px, py = (grid, grid) if phases is None else (np.atleast_1d(np.asarray(p, dtype=float))
                                                   for p in phases)
-    out = {k: np.empty((len(sides), 2, 2)) for k in ("gradient", "noise", "bias", "scatter", "bound")}
+    out = {k: np.empty((len(sides), 2, 2))
+           for k in ("gradient", "noise", "bias", "scatter", "bound", "bound_sharp")}
     curves = np.empty((len(sides), px.size, py.size, 2))
     r = 1.0 if noisy_reference else 0.0
     for i, (a, opt) in enumerate(zip(sides, optics)):
         q1, q2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
         wk = weight * (np.sinc(q1) * np.sinc(q2)) ** 2
+        qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
+        out["bound_sharp"][i] = np.linalg.inv(np.einsum("m,am,bm->ab", wk * (2 * np.pi) ** 2
+                                                        * (q1 ** 2 + q2 ** 2), qn, qn))
         if opt is not None:
             wk = wk * opt.mtf(np.hypot(q1, q2)) ** 2
         big = wk >= 1e-9 * wk.sum()

@@ -27,7 +27,7 @@ interpolation  what the lab's correlation measures against the noise alone, at t
                pixels and the sensor noise σ_n against the pattern's gray contrast. Reported:
                `measured_over_noise` = σ_measured / σ_noise (its noise part alone, what an exact
                interpolant would give) and `measured_over_bound` (against the Cramér-Rao bound
-               of one noisy image), per image axis, and the bias's RMS over sub-pixel positions
+               of one noisy image without the lens's blur, as vdo's σ), per image axis, and the bias's RMS over sub-pixel positions
                (px). Also e_DN, the RMS interpolation error of the gray levels at a half-pixel
                motion of the images as `vdo render` makes them (diffraction only for a camera
                with an f_number), against σ_n (`interpolation_floor`; `vdo.dic.series` warns
@@ -146,7 +146,7 @@ def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, p
     p = np.asarray(pixels, dtype=float)
     total = np.diagonal(model.covariance(sigma, p), axis1=1, axis2=2)
     noise = (sigma ** 2 / p)[:, None] * np.diagonal(model.noise, axis1=1, axis2=2)
-    over_bound = model.ratio(sigma, p)
+    over_bound = model.ratio(sigma, p, sharp=True)
     bias = np.sqrt(np.diagonal(model.bias, axis1=1, axis2=2))
     return [{"measured_over_noise": [float(x) for x in np.sqrt(total[k] / noise[k])],
              "measured_over_bound": [float(x) for x in over_bound[k]],
