@@ -167,3 +167,21 @@ def test_a_declared_pair_that_shares_no_region_is_one_line(tmp_path):
         _evaluate(tmp_path, EXPERIMENTS / "holed_plate" / "stereo.toml", away
                   + '[analysis]\nprocessing = "pairs"\npairs = "declared"\n'
                   '[[stereo_pair]]\ncameras = ["left", "top"]\n', "bad", 5)
+
+
+def test_the_documented_analysis_table_loads(tmp_path):
+    # docs/measured.md's [analysis] example, appended to the holed plate, is a valid file.
+    import re
+    import shutil
+
+    from vdo.config.experiment import load
+
+    doc = (EXPERIMENTS.parent / "docs" / "measured.md").read_text()
+    snippet = re.search(r"```toml\n(.*?)```", doc, re.S).group(1)
+    folder = tmp_path / "plate"
+    shutil.copytree(EXPERIMENTS / "holed_plate", folder)
+    path = folder / "stereo.toml"
+    path.write_text((EXPERIMENTS / "holed_plate" / "stereo.toml").read_text() + "\n" + snippet)
+    a = load(path).analysis
+    assert (a.interpolant, a.processing, a.pairs, a.merge) == ("quintic", "pairs", "auto", "best")
+    assert a.max_pair_angle == pytest.approx(math.radians(60))
