@@ -256,14 +256,17 @@ def _stats(values_um: np.ndarray) -> dict:
 
 
 def summary(exp, meas: MeasuredFields, samples, pred, strain_sigma=None) -> dict:
-    """summary.json's "measured": the processing, per region σ_measured (µm, per axis and max)
-    beside the bound's σ_max, their ratio, the strain σ (µε) measured, which pair serves how much
+    """summary.json's "measured": the processing, per region the area fraction with a finite
+    σ_measured (served: by some pair, or by >= 2 usable views), σ_measured (µm, per axis and max)
+    beside the bound's σ_max, their ratio per sample, the strain σ (µε) measured, which pair serves how much
     of the region ("best"), and the per-camera terms (`camera_terms`)."""
     a = exp.analysis
     regions = {}
     for k, name in enumerate(samples.region_names):
         mask = samples.region == k
-        r = {"sigma_measured_um": _stats(meas.sigma_max[mask] * 1e6),
+        area = samples.area[mask]
+        r = {"served_fraction": float(area[np.isfinite(meas.sigma_max[mask])].sum() / area.sum()),
+             "sigma_measured_um": _stats(meas.sigma_max[mask] * 1e6),
              "sigma_bound_um": _stats(np.where(pred.measured[mask], pred.sigma_max[mask], np.inf) * 1e6),
              "sigma_measured_axis_um": {ax: _stats(meas.sigma_xyz[mask, j] * 1e6)
                                         for j, ax in enumerate("xyz")},
@@ -274,7 +277,6 @@ def summary(exp, meas: MeasuredFields, samples, pred, strain_sigma=None) -> dict
             r["sigma_strain_measured_microstrain"] = {
                 f"eps_{c}": _stats(eps[:, j] * 1e6) for j, c in enumerate(STRAIN_COMPONENTS)}
         if meas.pairs and a.merge == "best":
-            area = samples.area[mask]
             served = meas.pair[mask]
             r["pairs"] = {f"{p[0]}+{p[1]}": round(float(area[served == i].sum() / area.sum()), 4)
                           for i, p in enumerate(meas.pairs) if (served == i).any()}
