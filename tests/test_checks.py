@@ -40,7 +40,7 @@ def test_a_good_design_has_no_flag_and_closed_form_numbers(plate_experiment):
     # 11 mm dots of 3.66 mm texels: edges soft at the 2.3 mm pixel (interpolation error 1.9x the
     # sensor noise, under the flag)
     row, exp = _rows(plate_experiment, dot=11.0, texel=3.66, lens="f_number = 8\nfocus_m = 1.5")
-    assert row["flags"] == []
+    assert row["flags"] == [] and row["severity"] is None
     pixel = 22.2e-3 / 600
     assert row["mm_per_px"] == pytest.approx(1.5 * pixel / 24e-3 * 1e3, rel=0.02)  # frontal: Z p / f
     assert row["speckle_px"] == pytest.approx(11e-3 / (1.5 * pixel / 24e-3), rel=0.02)
@@ -64,26 +64,51 @@ def test_speckle_flags(plate_experiment):
     assert any("speckle dots" in f for f in large["flags"]) and large["speckle_px"] > 5
 
 
-def test_interpolation_floor_flag(plate_experiment):
+def test_interpolation_floor(plate_experiment):
     """9 mm dots of 1 mm texels have edges sharp at the 2.3 mm pixel: the interpolation error
     (`vdo.model.speckle.interpolation_error`, checked in test_speckle.py) is several times the sensor
-    noise and flagged; 11 mm dots of 3.66 mm texels are soft at the pixel scale: not flagged. The
-    gray levels from the sensor model: linear 0.8 (white) and 0.05 (black) at E = π L, L = 1."""
-    from vdo.model.speckle import interpolation_error, normalise
+    noise; 11 mm dots of 3.66 mm texels are soft at the pixel scale. The gray levels from the
+    sensor model: linear 0.8 (white) and 0.05 (black) at E = π L, L = 1. The measured/noise ratio
+    is `correlation_error`'s (checked against correlation in test_measured.py) at the same σ and
+    patch: the sharp pattern's is larger, and only it is flagged."""
+    from vdo.model.optics import optics_blur
+    from vdo.model.speckle import correlation_error, interpolation_error, normalise
 
     sharp, exp = _rows(plate_experiment)
     soft, _ = _rows(plate_experiment, dot=11.0, texel=3.66)
-    assert any("interpolation floor" in f for f in sharp["flags"])
     assert sharp["interpolation"]["ratio"] > checks.INTERPOLATION_NOISE
     assert soft["interpolation"]["ratio"] < checks.INTERPOLATION_NOISE
-    assert not any("interpolation floor" in f for f in soft["flags"])
     s, f = exp.sensor, pattern_for(exp.speckle)
     p = sharp["mm_per_px"] * 1e-3                      # frontal view: a square pixel
     e = interpolation_error(normalise(f), exp.speckle.texel, np.diag([p, p]))[0]
     contrast = (s.mean_dn(0.8) - s.mean_dn(0.05)) * f.std()
     assert sharp["interpolation"]["error_dn"] == pytest.approx(e * contrast, rel=0.03)
     mean = s.mean_dn(0.05 + 0.75 * f.mean())
-    assert sharp["interpolation"]["noise_dn"] == pytest.approx(math.sqrt(s.variance_dn(mean)), rel=0.03)
+    noise = math.sqrt(s.variance_dn(mean))
+    assert sharp["interpolation"]["noise_dn"] == pytest.approx(noise, rel=0.03)
+    # the measured/noise ratio at the frontal footprint, f/8 assumed (no f_number), 10 mm patch
+    m = sharp["interpolation"]["measured"]
+    assert sharp["interpolation"]["optics"]["f_number_assumed"]
+    lens = optics_blur(22.2e-3 / 600, 24e-3, None, None)
+    model = correlation_error(normalise(f), exp.speckle.texel, np.diag([p, p])[None], optics=[lens])
+    sigma, pixels = noise / contrast, (10e-3 / p) ** 2
+    total = np.diagonal(model.covariance(sigma, pixels)[0])
+    expected = np.sqrt(total / (sigma ** 2 / pixels * np.diagonal(model.noise[0])))
+    assert m["measured_over_noise"] == pytest.approx(expected, rel=0.03)
+    assert max(m["measured_over_noise"]) > max(soft["interpolation"]["measured"]["measured_over_noise"])
+    flagged = [f for f in sharp["findings"] if f["check"] == "interpolation"]
+    assert flagged and flagged[0]["severity"] in ("warn", "advice")
+    assert not any(f["check"] == "interpolation" for f in soft["findings"])
+
+
+def test_findings_carry_a_severity_worst_first(plate_experiment):
+    row, _ = _rows(plate_experiment, dot=3.0, ambient=2.0, lens="f_number = 1.4\nfocus_m = 1.0")
+    severities = [f["severity"] for f in row["findings"]]
+    assert severities[0] == "fail" and row["severity"] == "fail"
+    assert severities == sorted(severities, key=checks.SEVERITIES.index)
+    assert {f["check"] for f in row["findings"]} >= {"depth of field", "exposure", "speckle"}
+    assert row["flags"] == [f["message"] for f in row["findings"]]
+    assert checks.count_findings([row])["fail"] == severities.count("fail")
 
 
 def test_depth_of_field_flag(plate_experiment):

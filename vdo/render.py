@@ -150,11 +150,30 @@ def render_camera(scene, camera: Camera, spec, spp: int, seed: int, jitter: bool
     camera with lens distortion the wider pinhole render resampled onto the distorted pixels
     (`undistorted_canvas`, `resample`). `jitter`: the stratified sampler's random offsets within
     each stratum (False: stratum centres, a fixed sqrt(spp) x sqrt(spp) midpoint rule per pixel
-    and per light, as `vdo.dic.validate` and `vdo.dic.series` render)."""
+    and per light, as `vdo.dic.validate` and `vdo.dic.series` render). A camera with an f_number
+    also gets the lens's diffraction (`diffraction_blur`); its defocus is Mitsuba's thin lens."""
     if not camera.distorted:
-        return render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed)
+        return diffraction_blur(render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed),
+                                camera, spec)
     wide, where = undistorted_canvas(camera)
-    return resample(render_linear(scene, camera_sensor(wide, spec, spp, jitter), seed), where)
+    return resample(diffraction_blur(render_linear(scene, camera_sensor(wide, spec, spp, jitter),
+                                                   seed), wide, spec), where)
+
+
+def diffraction_blur(linear: np.ndarray, camera: Camera, spec) -> np.ndarray:
+    """The image blurred by the diffraction of a lens at the spec's f_number: a Gaussian of std
+    0.42 λ N_w / p pixels (`vdo.model.optics`: the Airy core's fit, N_w the working f-number at
+    the focus distance, p the camera's pixel pitch, scaled with the render). Mitsuba's thin lens
+    models defocus only. Unchanged for a pinhole (no f_number)."""
+    if spec is None or spec.f_number is None:
+        return linear
+    from scipy import ndimage
+
+    from vdo.model.optics import optics_blur
+
+    sigma = optics_blur(camera.pixel_size, camera.focal_length, spec.f_number,
+                        spec.focus_distance).sigma_px
+    return ndimage.gaussian_filter(np.asarray(linear), sigma, mode="nearest").astype(np.float32)
 
 
 def camera_sensor(camera: Camera, spec, spp: int, jitter: bool = True) -> dict:

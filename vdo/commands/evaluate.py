@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.physics import checks, glare
+from vdo.physics import checks, glare, measured
 from vdo import constraints
 from vdo.outputs import html_report
 from vdo.search import loadpath
@@ -108,6 +108,9 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     for row in summary["glare"]:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)
+    meas = measured.measured_fields(exp, list(cameras), samples, vis, illumination,
+                                    state.geometry.speckle, pred, constraints.stereo_min_angle)
+    summary["measured"] = measured.summary(exp, meas, samples, pred, eps)
     if over_path is not None:
         summary["load_path"] = loadpath.summary(over_path)
     with run_folder(out, overwrite) as tmp:
@@ -130,6 +133,13 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
         arrays |= {f"sigma_strain_{c}": np.where(np.isfinite(eps[:, k]), eps[:, k] * 1e6, np.nan)
                    for k, c in enumerate(strain.STRAIN_COMPONENTS)}
         arrays["sigma_dic_max"] = np.where(np.isfinite(sigma_dic), sigma_dic * UM, np.nan)
+        arrays["sigma_measured_max"] = np.where(np.isfinite(meas.sigma_max), meas.sigma_max * UM, np.nan)
+        arrays |= {f"sigma_measured_{a}": np.where(np.isfinite(meas.sigma_xyz[:, k]),
+                                                   meas.sigma_xyz[:, k] * UM, np.nan)
+                   for k, a in enumerate("xyz")}
+        arrays["sigma_measured_ratio"] = np.where(np.isfinite(meas.ratio), meas.ratio, np.nan)
+        if meas.pairs:
+            arrays["stereo_pair"] = meas.pair.astype(np.int32)
         arrays["tangent_u"], arrays["tangent_v"] = samples.tangent_u, samples.tangent_v
         arrays |= {f"visible_{name}": vis.visible[i] for i, name in enumerate(vis.camera_names)}
         arrays |= {f"usable_{name}": pred.usable[i] for i, name in enumerate(vis.camera_names)}
@@ -155,6 +165,11 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                 maps.plot_unfolded(samples, sigma_xyz_um[:, k], tmp / "maps" / f"sigma_{a}.png",
                                    f"{exp.name}: displacement uncertainty along {a.upper()}",
                                    "σ (µm)", cmap="magma_r")
+            maps.plot_unfolded(samples, arrays["sigma_measured_max"],
+                               tmp / "maps" / "sigma_measured_max.png",
+                               f"{exp.name}: measured displacement error, worst direction "
+                               f"({exp.analysis.processing}, {exp.analysis.interpolant} spline)",
+                               "σ_measured (µm)", cmap="magma_r")
             eps_ue = np.where(np.isfinite(eps), eps * 1e6, np.nan)
             for k, c in enumerate(strain.STRAIN_COMPONENTS):
                 maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",

@@ -733,9 +733,24 @@ class Analysis:
                               doc="subset shape function")
     strain_window: int = row("strain_window", Whole(low=2), 15,
                              doc="subset centres per side of the strain plane fit (virtual gauge)")
+    interpolant: str = row("interpolant", Text(choices=("cubic", "quintic")), "cubic",
+                           doc="the correlation's B-spline interpolant (σ_measured's bias and noise)")
+    reference: str = row("reference", Text(choices=("noisy", "noise-free")), "noisy",
+                         doc="noisy: a recorded reference image; noise-free: a synthetic one")
+    processing: str = row("processing", Text(choices=("all-views", "pairs")), "all-views",
+                          doc="all views in one correlation, or stereo pairs merged per point")
+    pairs: str = row("pairs", Text(choices=("auto", "declared")), "auto",
+                     doc="pairs: auto (any two usable views with the angle between their rays "
+                         "in [lens minimum, max_pair_angle_deg]) or the [[stereo_pair]] tables")
+    merge: str = row("merge", Text(choices=("best", "fusion")), "best",
+                     doc="pairs at a point: the best one, or inverse-variance fusion")
+    max_pair_angle: float | None = row("max_pair_angle_deg", Real(1.0, 180.0), None, unit="deg",
+                                       shown="60", doc="largest angle between a pair's rays (auto)")
 
 
 def _check_analysis(t: Table, v: dict) -> None:
+    if v["pairs"] == "declared" and v["processing"] != "pairs":
+        raise t.error("pairs", 'declared pairs need processing = "pairs"')
     for mm, px in (("subset", "subset_px"), ("step", "step_px")):
         if t.has(f"{mm}_mm") and t.has(px):
             raise t.error(px, f"give the size once: {px} or {mm}_mm")
@@ -1951,6 +1966,9 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         if frozenset(pair.cameras) in pairs:
             raise t.error("cameras", "this pair is declared twice")
         pairs.add(frozenset(pair.cameras))
+    if exp.analysis.pairs == "declared" and not exp.stereo_pairs:
+        raise ConfigError(path, "analysis.pairs", 'is "declared" but the file has no [[stereo_pair]]: '
+                                                  'declare the lab\'s pairs, or use pairs = "auto"')
     meshes = set(roles)
     grouped: dict[str, str] = {}
     for group, t in zip(exp.groups, tables["group"]):

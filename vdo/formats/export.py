@@ -3,7 +3,8 @@ calibration files for DIC software.
 
 SOURCE is an experiment TOML (its cameras resolved as `vdo evaluate` does) or a run folder with
 layout.json (cameras at that run's pose and image scale). The stereo pairs are the cameras
-assigned a common region (`calibration.stereo_pairs`); for a run folder the scene comes from its
+assigned a common region with optical axes at most the pair rule's maximum apart
+(`default_pairs`); for a run folder the scene comes from its
 config.toml. Which camera sees which sample comes from the ray cast (`vdo.physics.visibility`).
 """
 
@@ -28,15 +29,30 @@ FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write,
 
 
 def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> list:
-    """The stereo pairs of a layout: cameras assigned a common region, or the `requested`
-    (first, second) names, each checked to share a field of view (`stereo_pairs`; errors name
-    `source`, default the experiment file)."""
+    """The stereo pairs of a layout: cameras assigned a common region whose optical axes are at
+    most [analysis] max_pair_angle_deg apart (default `vdo.physics.measured`'s 60°: beyond it
+    stereo matching fails on foreshortening; dropped pairs are logged), or the `requested`
+    (first, second) names, the lab's override, each checked to share a field of view
+    (`stereo_pairs`; errors name `source`, default the experiment file)."""
     from vdo.constraints import assignments
+    from vdo.physics.measured import DEFAULT_MAX_PAIR_ANGLE_DEG
 
     if requested is not None:
         return stereo_pairs(cameras, vis.visible, None, requested, source or exp.path)
-    return stereo_pairs(cameras, vis.visible,
-                        assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
+    pairs = stereo_pairs(cameras, vis.visible,
+                         assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
+    limit = exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
+        else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)
+    kept = []
+    for pair in pairs:
+        angle = math.acos(float(np.clip(pair.first.optical_axis @ pair.second.optical_axis, -1, 1)))
+        if angle <= limit:
+            kept.append(pair)
+        else:
+            log.info("stereo pair %s:%s not exported: optical axes %.0f deg apart, above the %.0f "
+                     "deg of the pair rule ([analysis] max_pair_angle_deg; --pairs overrides)",
+                     pair.first.name, pair.second.name, math.degrees(angle), math.degrees(limit))
+    return kept
 
 
 def write_all(cameras, pairs, folder: Path, source) -> dict[str, list[Path]]:

@@ -512,7 +512,8 @@ def _spline_shift_response(omega: np.ndarray, phase: float, order: int, terms: i
 
 
 def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
-                        order: int = INTERPOLATION_ORDER, phase=(0.5, 0.5)) -> np.ndarray:
+                        order: int = INTERPOLATION_ORDER, phase=(0.5, 0.5),
+                        optics=None) -> np.ndarray:
     """RMS error (K,) of the image-correlation interpolation on the box-pixel image of the
     normalised pattern f̂ (variance 1 before averaging), for K pixel footprints `pixel_sides`
     (K, 2, 2) m (as `pixel_averaged_std`): the difference between the B-spline interpolant of the
@@ -534,7 +535,9 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
     The half-pixel phase is the worst: about the largest error over sub-pixel motions. The
     spectrum is summed over blocks of side // 64 frequencies (`_blocked_spectrum`; 0.3 % off the
     full sum for the built-in 1024-texel tile): one FFT of the tile per call, then about 0.02 s
-    per footprint; pass all footprints at once."""
+    per footprint; pass all footprints at once. `optics`: K `vdo.model.optics.OpticsBlur` (None
+    entries or None: no lens blur), whose MTF²(|q|) multiplies each term (q = (k'.a_1, k'.a_2)
+    cycles per pixel)."""
     f = np.asarray(pattern_normalised)
     w, ku, kv = _blocked_spectrum(f, texel_m, texel_filter=False, block=max(1, min(f.shape) // 64))
     m = np.arange(-TEXEL_IMAGES, TEXEL_IMAGES + 1) / texel_m
@@ -545,11 +548,213 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
     keep = weight.sum(axis=1) >= 1e-6 * w.sum()           # far texel images: < 1e-6 of the variance
     qu, qv, weight = qu[keep], qv[keep], weight[keep]
     sides = np.asarray(pixel_sides, dtype=np.float64).reshape(-1, 2, 2)
+    optics = [None] * len(sides) if optics is None else list(optics)
     out = np.empty(len(sides))
-    for i, a in enumerate(sides):
+    for i, (a, opt) in enumerate(zip(sides, optics)):
         k1, k2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
         box = (np.sinc(k1) * np.sinc(k2)) ** 2
+        if opt is not None:
+            box = box * opt.mtf(np.hypot(k1, k2)) ** 2
         K = (_spline_shift_response(2 * np.pi * k1, phase[0], order)
              * _spline_shift_response(2 * np.pi * k2, phase[1], order))
         out[i] = math.sqrt(float(np.sum(weight * box * np.abs(K - 1.0) ** 2)))
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# What an interpolating correlation measures: noise through the interpolant, and its bias
+# --------------------------------------------------------------------------------------------
+INTERPOLANTS = {"cubic": 3, "quintic": 5}   # B-spline interpolants the lab may run, by order
+PHASES = 8                  # sub-pixel positions per axis over which the bias is averaged (d = j / 8)
+FOLD_BINS = 32              # bins per axis of the folded pixel spectrum (scatter of the bias)
+_ALIAS_TERMS = 4            # |l| <= this in the Poisson sums of the spline's responses
+
+
+def _spline_sums(omega: np.ndarray, order: int):
+    """(β̂(ω + 2πl) for |l| <= _ALIAS_TERMS (..., L), l): the B-spline's spectrum at the aliases."""
+    l = np.arange(-_ALIAS_TERMS, _ALIAS_TERMS + 1)
+    return np.sinc(omega[..., None] / (2 * np.pi) + l) ** (order + 1), l
+
+
+def _shift_responses(omega: np.ndarray, phases: np.ndarray, order: int) -> np.ndarray:
+    """R_d(ω) (n_phases, M) of `_spline_shift_response` for every phase d at once."""
+    s, l = _spline_sums(omega, order)
+    return np.einsum("ml,pl->pm", s, np.exp(2j * np.pi * np.outer(phases, l))) / s.sum(-1)
+
+
+def _derivative_shift_responses(omega: np.ndarray, phases: np.ndarray, order: int) -> np.ndarray:
+    """R'_d(ω) (n_phases, M): the spline's derivative at n + d of the samples of exp(iωx), divided
+    by i exp(iω(n + d)): Σ_l β̂(ω + 2πl)(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)."""
+    s, l = _spline_sums(omega, order)
+    s = s * (omega[..., None] + 2 * np.pi * l)
+    return np.einsum("ml,pl->pm", s, np.exp(2j * np.pi * np.outer(phases, l))) / \
+        _spline_sums(omega, order)[0].sum(-1)
+
+
+def _derivative_response(omega: np.ndarray, order: int) -> np.ndarray:
+    """D(ω): the spline's derivative at the sample points of exp(iωx), divided by i exp(iωn):
+    Σ_l β̂(ω + 2πl)(ω + 2πl) / Σ_l β̂(ω + 2πl) (real; ω itself for a band-limited ω << π)."""
+    s, l = _spline_sums(omega, order)
+    return (s * (omega[..., None] + 2 * np.pi * l)).sum(-1) / s.sum(-1)
+
+
+@dataclass(frozen=True, eq=False)
+class CorrelationError:
+    """What a B-spline interpolating correlation of a translation measures on K footprints, per
+    unit-variance pattern f̂ (`correlation_error`); image axes (x, y), pixels.
+
+    gradient  (K, 2, 2) H₁ = <∇f ∇fᵀ> per pixel, ∇ the spline's derivative at the pixel centres
+    noise     (K, 2, 2) mean over sub-pixel positions of H₁⁻¹ N_d H₁⁻¹: the noise covariance for
+              a noise std σ (in units of the pattern's std) and P pixels is σ² noise / P (px²)
+    bias      (K, 2, 2) mean over sub-pixel positions of b(d) b(d)ᵀ: the systematic bias (px²)
+    scatter   (K, 2, 2) mean over sub-pixel positions of H₁⁻¹ V_d H₁⁻¹: the bias's variation from
+              patch to patch of the pattern is scatter / P (px²)
+    bound     (K, 2, 2) (Σ_k w |2πq|² q̂ q̂ᵀ)⁻¹: the Cramér-Rao bound of one noisy image with the
+              true gradient (σ² bound / P), for the ratio
+    bound_sharp (K, 2, 2) the same without the optics' MTF (the image the bound of
+              `vdo.objective` describes)
+    phases    ((n₁,), (n₂,)) the sub-pixel positions d₁, d₂ averaged over
+    bias_curve (K, n₁, n₂, 2) b(d₁, d₂) in px
+    """
+
+    gradient: np.ndarray
+    noise: np.ndarray
+    bias: np.ndarray
+    scatter: np.ndarray
+    bound: np.ndarray
+    bound_sharp: np.ndarray
+    phases: tuple
+    bias_curve: np.ndarray
+
+    def covariance(self, sigma, pixels) -> np.ndarray:
+        """(K, 2, 2) px²: σ² noise / P + scatter / P + bias, σ (K,) or scalar in pattern stds."""
+        s2 = np.asarray(sigma, dtype=float) ** 2 * np.ones(len(self.noise))
+        p = np.asarray(pixels, dtype=float) * np.ones(len(self.noise))
+        return (s2[:, None, None] * self.noise + self.scatter) / p[:, None, None] + self.bias
+
+    def ratio(self, sigma, pixels, sharp: bool = False) -> np.ndarray:
+        """(K, 2) per image axis: sqrt(measured variance / the bound's σ² bound / P); `sharp`:
+        against the bound of the image without the optics (`bound_sharp`)."""
+        s2 = np.asarray(sigma, dtype=float) ** 2 * np.ones(len(self.noise))
+        p = np.asarray(pixels, dtype=float) * np.ones(len(self.noise))
+        crb = s2[:, None] * np.diagonal(self.bound_sharp if sharp else self.bound,
+                                        axis1=1, axis2=2) / p[:, None]
+        return np.sqrt(np.diagonal(self.covariance(sigma, pixels), axis1=1, axis2=2) / crb)
+
+
+def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int = 3,
+                      optics=None, noisy_reference: bool = True,
+                      texel_filter: str = "bilinear", phases=None) -> CorrelationError:
+    """The error of a B-spline (`order` 3 or 5) interpolating correlation of a translation on the
+    box-pixel image of the pattern f̂ at K footprints `pixel_sides` (K, 2, 2) m (as
+    `pixel_averaged_std`), after the optics' MTF (`optics`: K `vdo.model.optics.OpticsBlur`, or
+    None for none). The correlation (`vdo.dic.correlate`) reads the reference at its pixel centres
+    n with the spline's gradient there, and interpolates the deformed image at n + u; d = frac(u).
+
+    Every pattern frequency k (cycles/m, with its texel images k + m/h as `interpolation_error`)
+    lands in the image at q_j = k.a_j cycles per pixel, ω = 2πq, with the weight
+    w(k) = |F(k)|² T(k) sinc²(q₁) sinc²(q₂) MTF²(|q|) (T the texel filter: bilinear sinc⁴ per axis,
+    box sinc²). With R_d(ω) the spline's shift response (the interpolated over the true value,
+    `_spline_shift_response`), D(ω) its derivative response (`_derivative_response`),
+    E = R_{d₁}(ω₁) R_{d₂}(ω₂) - 1 the interpolation error and ω̄ the frequency folded into
+    [-π, π) (where the sampled noise lives), over a patch of P pixels and for a pattern with
+    independent random phases:
+
+        H₁  = Σ_k w D Dᵀ                          (gradient per pixel)
+        b(d) = -H₁⁻¹ Σ_k w D Im E                   (the systematic bias, px)
+        N_d = Σ_k w D Dᵀ (|R_{d₁}(ω̄₁) R_{d₂}(ω̄₂)|² + r)   (r = 1: a noisy reference)
+        V_d = ∫ [S_DD(q̄) S_EE(q̄) + Re S_DE(q̄) S_DE(q̄)ᵀ] dq̄   (Gaussian fourth moments)
+
+    with S_DD, S_EE, S_DE the folded spectra (Σ of w DDᵀ, w|E|², w i D Ē over the k that fold to
+    q̄, binned FOLD_BINS² over the unit cell). Then û - u = b(d) + noise + scatter with
+    Cov = σ² H₁⁻¹ N_d H₁⁻¹ / P + H₁⁻¹ V_d H₁⁻¹ / P: the mean over d on a PHASES² grid is returned
+    (docs/theory.md, "What the lab measures"); `phases` = (d₁ values, d₂ values) replaces that
+    grid (e.g. ([0, 1/8, ...], [0]) for shifts along x only).
+    `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
+    band-limited interpolant: no texel filter, no texel images)."""
+    if order not in INTERPOLANTS.values():
+        raise ValueError(f"order: expected one of {sorted(INTERPOLANTS.values())}, got {order!r}")
+    f = np.asarray(pattern_normalised)
+    w, ku, kv = _blocked_spectrum(f, texel_m, texel_filter=False, block=max(1, min(f.shape) // 256))
+    m = np.arange(-TEXEL_IMAGES, TEXEL_IMAGES + 1) / texel_m
+    shape = (m.size, m.size, ku.size)
+    qu = np.broadcast_to(ku[None, None, :] + m[:, None, None], shape).reshape(-1)
+    qv = np.broadcast_to(kv[None, None, :] + m[None, :, None], shape).reshape(-1)
+    if texel_filter == "ideal":     # the texels' band-limited (trigonometric) interpolant
+        m = np.zeros(1)
+        shape = (1, 1, ku.size)
+        qu, qv = ku, kv
+    power = {"bilinear": 4, "box": 2, "ideal": 0}[texel_filter]
+    weight = np.broadcast_to(w, shape).reshape(-1) * (np.sinc(qu * texel_m) * np.sinc(qv * texel_m)) ** power
+    keep = weight >= 1e-9 * w.sum()
+    qu, qv, weight = qu[keep], qv[keep], weight[keep]
+    sides = np.asarray(pixel_sides, dtype=np.float64).reshape(-1, 2, 2)
+    optics = [None] * len(sides) if optics is None else list(optics)
+    grid = np.arange(PHASES) / PHASES
+    px, py = (grid, grid) if phases is None else (np.atleast_1d(np.asarray(p, dtype=float))
+                                                  for p in phases)
+    out = {k: np.empty((len(sides), 2, 2))
+           for k in ("gradient", "noise", "bias", "scatter", "bound", "bound_sharp")}
+    curves = np.empty((len(sides), px.size, py.size, 2))
+    r = 1.0 if noisy_reference else 0.0
+    for i, (a, opt) in enumerate(zip(sides, optics)):
+        q1, q2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
+        wk = weight * (np.sinc(q1) * np.sinc(q2)) ** 2
+        qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
+        out["bound_sharp"][i] = np.linalg.inv(np.einsum("m,am,bm->ab", wk * (2 * np.pi) ** 2
+                                                        * (q1 ** 2 + q2 ** 2), qn, qn))
+        if opt is not None:
+            wk = wk * opt.mtf(np.hypot(q1, q2)) ** 2
+        big = wk >= 1e-9 * wk.sum()
+        q1, q2, wk = q1[big], q2[big], wk[big]
+        om1, om2 = 2 * np.pi * q1, 2 * np.pi * q2
+        D = np.stack([_derivative_response(om1, order), _derivative_response(om2, order)])  # (2, M)
+        H1 = np.einsum("m,am,bm->ab", wk, D, D)
+        qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
+        out["bound"][i] = np.linalg.inv(np.einsum("m,am,bm->ab", wk * (om1 ** 2 + om2 ** 2), qn, qn))
+        R1, R2 = _shift_responses(om1, px, order), _shift_responses(om2, py, order)
+        G1, G2 = _derivative_shift_responses(om1, px, order), _derivative_shift_responses(om2, py, order)
+        fold1, fold2 = (q1 + 0.5) % 1.0 - 0.5, (q2 + 0.5) % 1.0 - 0.5
+        A1 = np.abs(_shift_responses(2 * np.pi * fold1, px, order)) ** 2
+        A2 = np.abs(_shift_responses(2 * np.pi * fold2, py, order)) ** 2
+        nb = FOLD_BINS * FOLD_BINS
+
+        def bin_of(f1, f2):
+            return (np.minimum((f1 + 0.5) * FOLD_BINS, FOLD_BINS - 1).astype(np.int64) * FOLD_BINS
+                    + np.minimum((f2 + 0.5) * FOLD_BINS, FOLD_BINS - 1).astype(np.int64))
+
+        # The spectrum is one-sided (k stands for ±k): half of each weight at +q̄, half at -q̄,
+        # where a real field's cross-spectrum is the conjugate (D odd, E(-q) = conj E(q)).
+        plus, minus = bin_of(fold1, fold2), bin_of(-fold1, -fold2)
+
+        def binned(x, odd=False):
+            return 0.5 * (np.bincount(plus, weights=x, minlength=nb)
+                          + (-1 if odd else 1) * np.bincount(minus, weights=x, minlength=nb))
+
+        s_dd = np.stack([[binned(wk * D[a_] * D[b_]) for b_ in range(2)] for a_ in range(2)])
+        wDD = wk * D[:, None, :] * D[None, :, :]                                 # (2, 2, M)
+        noise = np.zeros((2, 2))
+        bias = np.zeros((2, 2))
+        scatter = np.zeros((2, 2))
+        for p1 in range(px.size):
+            for p2 in range(py.size):
+                E = R1[p1] * R2[p2] - 1.0
+                # the Jacobian the iteration meets: Σ ∇ref ∇(interpolated deformed)ᵀ at n + d
+                Hd = D @ (wk[:, None] * np.stack([(G1[p1] * R2[p2]).real,
+                                                  (R1[p1] * G2[p2]).real], -1))
+                Hi = np.linalg.inv(Hd)
+                b = -Hi @ (D @ (wk * E.imag))
+                curves[i, p1, p2] = b
+                bias += np.outer(b, b)
+                Nd = wDD @ (A1[p1] * A2[p2] + r)
+                noise += Hi @ Nd @ Hi.T
+                s_ee = binned(wk * np.abs(E) ** 2)
+                s_de = np.stack([binned(wk * D[a_] * E.imag) + 1j * binned(wk * D[a_] * E.real, True)
+                                 for a_ in range(2)])                      # i D conj(E)
+                V = nb * (np.einsum("abq,q->ab", s_dd, s_ee)
+                          + np.real(np.einsum("aq,bq->ab", s_de, s_de)))
+                scatter += Hi @ V @ Hi.T
+        n_ph = px.size * py.size
+        out["gradient"][i], out["noise"][i] = H1, noise / n_ph
+        out["bias"][i], out["scatter"][i] = bias / n_ph, scatter / n_ph
+    return CorrelationError(phases=(px, py), bias_curve=curves, **out)

@@ -19,19 +19,26 @@ exposure       the noise-free gray level of the paint under the predicted irradi
                mean and 99th percentile as a fraction of the range (max DN), and the fraction of
                pixels at or above saturation (min(full well, top DN)). Flagged when the 99th
                percentile is under 25 % (under-exposed) or over 95 % (saturating).
-interpolation  the correlation's interpolation floor against the sensor noise, at the footprint
-               of the region's median sample: e_DN = e (ρ_w - ρ_b) (E/π) dDN/dL std(f), with e
-               the RMS error of cubic B-spline interpolation of the box-pixel image of the unit-
-               variance pattern at a half-pixel motion (`vdo.model.speckle.interpolation_error`: the
-               speckle's content above the pixel's Nyquist frequency aliases, which no
-               interpolation undoes), against σ_n = sqrt(sensor.variance_dn) at the mean gray.
-               The error is a fixed gray-level pattern that moves with the motion, so the
-               correlation's displacement bias grows with e_DN / σ_n against the noise's √2 σ
-               (measured on the built-in joint, noise-free renders: bias at most 0.65 √2σ at
-               e_DN / σ_n ≈ 1, 2.5 √2σ at 3.3, up to 11 √2σ at 4.5-10; docs/exports.md). Flagged
-               when e_DN > 2 σ_n: the correlation's error is then bias-dominated, not what the
-               predicted σ says; finer pixels, or a speckle whose edges are soft at the pixel
-               scale, lower e.
+interpolation  what the lab's correlation measures against the noise alone, at the footprint of the
+               region's median sample (`vdo.model.speckle.correlation_error`): the B-spline
+               interpolant of [analysis] on the box-pixel image after the lens's blur
+               (`vdo.model.optics`: diffraction at the f-number, or f/8 assumed when the camera
+               has none, and the defocus at the median depth), for a patch of P = Ω |det A|
+               pixels and the sensor noise σ_n against the pattern's gray contrast. Reported:
+               `measured_over_noise` = σ_measured / σ_noise (its noise part alone, what an exact
+               interpolant would give) and `measured_over_bound` (against the Cramér-Rao bound
+               of one noisy image without the lens's blur, as vdo's σ), per image axis, and the bias's RMS over sub-pixel positions
+               (px). Also e_DN, the RMS interpolation error of the gray levels at a half-pixel
+               motion of the images as `vdo render` makes them (diffraction only for a camera
+               with an f_number), against σ_n (`interpolation_floor`; `vdo.dic.series` warns
+               when e_DN > INTERPOLATION_NOISE σ_n on its renders).
+
+Severity. Each finding carries one: "fail" (the measurement will not work as planned: the region
+leaves the depth of field, the paint saturates), "warn" (it works, worse than the bound says:
+dots finer than 3 px, under-exposure, a correlation whose error is more than
+INTERPOLATION_WARN x its noise part) and "advice" (dots coarser than 5 px waste resolution; the
+interpolation bias adds more than INTERPOLATION_ADVICE x to the noise part). σ_measured
+(`vdo.physics.measured`) accounts for the interpolation bias, so that check never fails a design.
 """
 
 from __future__ import annotations
@@ -42,7 +49,10 @@ import numpy as np
 
 SPECKLE_PX = (3.0, 5.0)
 EXPOSURE = (0.25, 0.95)
-INTERPOLATION_NOISE = 2.0  # flag when the interpolation error exceeds this many sensor-noise sigmas
+INTERPOLATION_NOISE = 2.0  # e_DN / σ_n above this: images as rendered are bias-dominated (vdo.dic.series)
+INTERPOLATION_WARN = 2.0    # σ_measured / σ_noise above this: the bias dominates ("warn")
+INTERPOLATION_ADVICE = 1.25  # above this: the bias adds visibly to the noise ("advice")
+SEVERITIES = ("fail", "warn", "advice")   # most severe first
 COC_PIXELS = 2.0
 PATTERN_VALUES = 4096     # pattern values drawn (evenly strided) for the gray-level distribution
 
@@ -87,32 +97,78 @@ def exposure(irradiance, weights, speckle, sensor, pattern) -> dict:
             "saturated_fraction": float(np.sum(w[dn.ravel() >= sat]) / np.sum(w)), "flags": flags}
 
 
-def interpolation_floor(footprints, irradiance, speckle, sensor, pattern) -> list[dict]:
-    """The interpolation check of the module docstring at K footprints A (K, 2, 2) px/m under
-    irradiances E (K,) W m^-2, for the [0, 1] `pattern`: one {"error_dn", "noise_dn", "ratio"}
-    per footprint, e_DN and σ_n in DN."""
+def _gray(speckle, sensor, pattern, irradiance) -> tuple[float, float]:
+    """(contrast, noise) in DN under irradiance E: the gray levels per unit of the pattern value f
+    (white minus black), and σ_n = sqrt(sensor.variance_dn) at the mean gray."""
+    f = np.asarray(pattern, dtype=np.float64)
+    radiance = irradiance / np.pi
+    contrast = float(sensor.mean_dn(radiance * speckle.white_albedo)
+                     - sensor.mean_dn(radiance * speckle.black_albedo))
+    mean = sensor.mean_dn(radiance * (speckle.black_albedo + (speckle.white_albedo
+                                                              - speckle.black_albedo) * f.mean()))
+    return contrast, float(math.sqrt(sensor.variance_dn(float(mean))))
+
+
+def interpolation_floor(footprints, irradiance, speckle, sensor, pattern, optics=None) -> list[dict]:
+    """The e_DN check of the module docstring at K footprints A (K, 2, 2) px/m under
+    irradiances E (K,) W m^-2, for the [0, 1] `pattern`, through the K `optics`
+    (`vdo.model.optics.OpticsBlur` or None): one {"error_dn", "noise_dn", "ratio"} per
+    footprint, e_DN and σ_n in DN."""
     from vdo.model.speckle import interpolation_error, normalise
 
     f = np.asarray(pattern, dtype=np.float64)
-    e = interpolation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)))
+    e = interpolation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)),
+                            optics=optics)
     out = []
     for e_k, E in zip(e, np.asarray(irradiance, dtype=float)):
-        radiance = E / np.pi
-        contrast = float(sensor.mean_dn(radiance * speckle.white_albedo)
-                         - sensor.mean_dn(radiance * speckle.black_albedo))   # DN per unit of f
-        mean = sensor.mean_dn(radiance * (speckle.black_albedo + (speckle.white_albedo
-                                                                  - speckle.black_albedo) * f.mean()))
-        noise = float(math.sqrt(sensor.variance_dn(float(mean))))
+        contrast, noise = _gray(speckle, sensor, f, E)
         error = float(e_k) * contrast * float(f.std())
         out.append({"error_dn": error, "noise_dn": noise, "ratio": error / noise})
     return out
 
 
+def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, pattern,
+                      interpolant: str = "cubic", noisy_reference: bool = True) -> list[dict]:
+    """The interpolation check of the module docstring: what the lab's correlation measures at K
+    footprints A (K, 2, 2) px/m, irradiances E (K,), patches of `pixels` (K,) pixels, through the
+    K `optics`. σ (in pattern stds) = σ_n / (contrast std f). One dict per footprint:
+    measured_over_noise and measured_over_bound (2,) per image axis, bias_px (2,) RMS over
+    sub-pixel positions, noise_rel σ, and the `vdo.model.speckle.CorrelationError` as "model"
+    (not JSON: `design_checks` drops it)."""
+    from vdo.model.speckle import INTERPOLANTS, correlation_error, normalise
+
+    f = np.asarray(pattern, dtype=np.float64)
+    model = correlation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)),
+                              order=INTERPOLANTS[interpolant], optics=optics,
+                              noisy_reference=noisy_reference)
+    sigma = np.array([_gray(speckle, sensor, f, E)[1] / (_gray(speckle, sensor, f, E)[0] * f.std())
+                      for E in np.asarray(irradiance, dtype=float)])
+    p = np.asarray(pixels, dtype=float)
+    total = np.diagonal(model.covariance(sigma, p), axis1=1, axis2=2)
+    noise = (sigma ** 2 / p)[:, None] * np.diagonal(model.noise, axis1=1, axis2=2)
+    over_bound = model.ratio(sigma, p, sharp=True)
+    bias = np.sqrt(np.diagonal(model.bias, axis1=1, axis2=2))
+    return [{"measured_over_noise": [float(x) for x in np.sqrt(total[k] / noise[k])],
+             "measured_over_bound": [float(x) for x in over_bound[k]],
+             "bias_px": [float(x) for x in bias[k]], "noise_rel": float(sigma[k]),
+             "patch_px": float(p[k]), "interpolant": interpolant, "model": (model, k)}
+            for k in range(len(p))]
+
+
+def _camera_optics(cam, spec, depth: float):
+    """The camera's `vdo.model.optics.OpticsBlur` at `depth` m (f/8 assumed without f_number)."""
+    from vdo.model.optics import optics_blur
+
+    return optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance, depth)
+
+
 def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[dict]:
-    """One row per (camera, region) with seen samples: the checks of the module docstring.
+    """One row per (camera, region) with seen samples: the checks of the module docstring, each
+    finding {"severity", "check", "message"} in "findings" (most severe first), their messages in
+    "flags" and the worst severity in "severity" (None when nothing was found).
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
     (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile."""
-    rows, footprints, irradiances = [], [], []
+    rows, footprints, irradiances, lens, rendered, pixels = [], [], [], [], [], []
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
         for k, region in enumerate(samples.region_names):
@@ -122,13 +178,17 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
             X = samples.points[seen]
             A = cam.sensitivity(X) @ T[seen]                                        # px/m
             density = np.sqrt(np.abs(np.linalg.det(A)))
-            pixels = samples.area[seen] * density ** 2
+            pixels_seen = samples.area[seen] * density ** 2
             depth = (X - cam.position) @ cam.optical_axis
             speckle_px = float(np.median(exp.speckle.dot_diameter * density))
-            flags = []
-            if not SPECKLE_PX[0] <= speckle_px <= SPECKLE_PX[1]:
-                flags.append(f"speckle dots {speckle_px:.1f} px (want {SPECKLE_PX[0]:g}-"
-                             f"{SPECKLE_PX[1]:g} px)")
+            found = []
+            if speckle_px < SPECKLE_PX[0]:
+                found.append(("warn", "speckle", f"speckle dots {speckle_px:.1f} px (want "
+                              f"{SPECKLE_PX[0]:g}-{SPECKLE_PX[1]:g} px): finer dots alias"))
+            elif speckle_px > SPECKLE_PX[1]:
+                found.append(("advice", "speckle", f"speckle dots {speckle_px:.1f} px (want "
+                              f"{SPECKLE_PX[0]:g}-{SPECKLE_PX[1]:g} px): coarser dots waste "
+                              f"resolution"))
             dof = None
             if spec.f_number is not None:
                 near, far = depth_of_field(cam.focal_length, spec.f_number, spec.focus_distance,
@@ -137,47 +197,86 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                        "f_number": spec.f_number, "focus_m": spec.focus_distance,
                        "circle_of_confusion_um": COC_PIXELS * cam.pixel_size * 1e6}
                 if depth.min() < near or depth.max() > far:
-                    flags.append(f"out of focus: depth {depth.min():.3f}-{depth.max():.3f} m "
-                                 f"leaves the depth of field {near:.3f}-"
-                                 f"{far:.3f} m")
-            expo = exposure(irradiance[seen], pixels, exp.speckle, exp.sensor, pattern)
+                    found.append(("fail", "depth of field", f"out of focus: depth "
+                                  f"{depth.min():.3f}-{depth.max():.3f} m leaves the depth of "
+                                  f"field {near:.3f}-{far:.3f} m"))
+            expo = exposure(irradiance[seen], pixels_seen, exp.speckle, exp.sensor, pattern)
+            for flag in expo["flags"]:
+                found.append(("fail" if flag.startswith("saturating") else "warn", "exposure", flag))
             median = int(np.argsort(density)[len(density) // 2])
             footprints.append(A[median])
             irradiances.append(float(irradiance[seen][median]))
+            lens.append(_camera_optics(cam, spec, float(depth[median])))
+            rendered.append(lens[-1] if spec.f_number is not None else None)
+            pixels.append(exp.evaluation.patch_size ** 2 * float(density[median]) ** 2)
             rows.append({
                 "camera": cam.name, "region": region,
                 "standoff_m": float(np.median(np.linalg.norm(X - cam.position, axis=1))),
                 "depth_min_m": float(depth.min()), "depth_max_m": float(depth.max()),
                 "mm_per_px": float(np.median(1e3 / density)), "speckle_px": speckle_px,
                 "depth_of_field": dof,
-                "fov_fill": float(pixels.sum() / (cam.width * cam.height)),
+                "fov_fill": float(pixels_seen.sum() / (cam.width * cam.height)),
                 "exposure": {k: v for k, v in expo.items() if k != "flags"},
-                "flags": flags + expo["flags"]})
+                "found": found})
     if rows:
-        floors = interpolation_floor(footprints, irradiances, exp.speckle, exp.sensor, pattern)
-        for row, interp in zip(rows, floors):
-            row["interpolation"] = interp
-            if interp["ratio"] > INTERPOLATION_NOISE:
-                row["flags"].append(f"interpolation floor: the correlation's interpolation error "
-                                    f"{interp['error_dn']:.0f} DN exceeds the sensor noise "
-                                    f"{interp['noise_dn']:.0f} DN ({interp['ratio']:.1f}x): "
-                                    f"displacement bias, not noise, will dominate (finer pixels "
-                                    f"or a softer speckle)")
+        floors = interpolation_floor(footprints, irradiances, exp.speckle, exp.sensor, pattern,
+                                     rendered)
+        measured = measurement_floor(footprints, irradiances, pixels, lens, exp.speckle,
+                                     exp.sensor, pattern, exp.analysis.interpolant,
+                                     exp.analysis.reference == "noisy")
+        for row, interp, meas, opt in zip(rows, floors, measured, lens):
+            meas.pop("model")
+            row["interpolation"] = interp | {"measured": meas, "optics": {
+                "f_number": opt.f_number, "f_number_assumed": opt.assumed,
+                "sigma_px": opt.sigma_px, "defocus_px": opt.defocus_px}}
+            worst = max(meas["measured_over_noise"])
+            if worst > INTERPOLATION_ADVICE:
+                lens_note = f"f/{opt.f_number:g}" + (" assumed" if opt.assumed else "")
+                row["found"].append((
+                    "warn" if worst > INTERPOLATION_WARN else "advice", "interpolation",
+                    f"interpolation bias: the {meas['interpolant']} correlation's error is "
+                    f"{worst:.1f}x its noise part ({max(meas['measured_over_bound']):.1f}x the "
+                    f"bound; bias {max(meas['bias_px']):.4f} px RMS, {lens_note}): finer pixels, "
+                    f"a softer speckle, a smaller aperture or the quintic interpolant lower it"))
+        for row in rows:
+            found = sorted(row.pop("found"), key=lambda f: SEVERITIES.index(f[0]))
+            row["findings"] = [{"severity": s, "check": c, "message": m} for s, c, m in found]
+            row["flags"] = [m for _, _, m in found]
+            row["severity"] = found[0][0] if found else None
     return rows
 
 
+def count_findings(rows: list[dict]) -> dict:
+    """{severity: number of findings} over the rows, every severity listed."""
+    return {s: sum(f["severity"] == s for r in rows for f in r["findings"]) for s in SEVERITIES}
+
+
 def print_checks(rows: list[dict]) -> None:
-    """The design-check table on the console (the CLI's)."""
-    wc = max([6] + [len(r["camera"]) for r in rows]) + 2
-    wr = max([6] + [len(r["region"]) for r in rows]) + 2
-    print(f"{'camera':<{wc}}{'region':<{wr}}{'stand-off m':>12}{'mm/px':>8}{'dot px':>8}"
-          f"{'DoF m':>14}{'FOV fill':>9}{'gray mean/p99':>15}{'sat':>6}{'interp/noise':>13}  flags")
-    for r in rows:
+    """The design-check table on the console (the CLI's): a count per severity, then the flagged
+    camera-region pairs, the worst first (by severity, then by the interpolation's
+    σ_measured / σ_noise), each with its findings."""
+    counts = count_findings(rows)
+    flagged = [r for r in rows if r["findings"]]
+    print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged; findings: "
+          + ", ".join(f"{n} {s}" for s, n in counts.items())
+          + " (all of them in summary.json and report.html)")
+    if not flagged:
+        return
+    flagged.sort(key=lambda r: (SEVERITIES.index(r["severity"]),
+                                -max(r["interpolation"]["measured"]["measured_over_noise"])))
+    wc = max([6] + [len(r["camera"]) for r in flagged]) + 2
+    wr = max([6] + [len(r["region"]) for r in flagged]) + 2
+    print(f"{'':<8}{'camera':<{wc}}{'region':<{wr}}{'stand-off m':>12}{'mm/px':>8}{'dot px':>8}"
+          f"{'DoF m':>14}{'FOV fill':>9}{'gray mean/p99':>15}{'sat':>6}{'meas/noise':>11}  findings")
+    for r in flagged:
         d = r["depth_of_field"]
         dof = "-" if d is None else f"{d['near_m']:.2f}-" + (f"{d['far_m']:.2f}" if d["far_m"]
                                                             else "inf")
         e = r["exposure"]
-        print(f"{r['camera']:<{wc}}{r['region']:<{wr}}{r['standoff_m']:>12.3f}{r['mm_per_px']:>8.3f}"
+        ratio = max(r["interpolation"]["measured"]["measured_over_noise"])
+        print(f"{r['severity'].upper():<8}{r['camera']:<{wc}}{r['region']:<{wr}}"
+              f"{r['standoff_m']:>12.3f}{r['mm_per_px']:>8.3f}"
               f"{r['speckle_px']:>8.2f}{dof:>14}{r['fov_fill']:>9.1%}"
               f"{e['mean_gray_fraction']:>8.0%}/{e['p99_gray_fraction']:<6.0%}"
-              f"{e['saturated_fraction']:>6.1%}{r['interpolation']['ratio']:>13.2f}  {'; '.join(r['flags'])}")
+              f"{e['saturated_fraction']:>6.1%}{ratio:>11.2f}  "
+              + "; ".join(f"[{f['severity']}] {f['message']}" for f in r["findings"]))

@@ -1,0 +1,124 @@
+"""Tests for vdo.model.optics: each MTF against a numerical transform of its point-spread function,
+the Gaussian fit of the Airy core by least squares, and the circle of confusion against the depth
+of field of vdo.physics.checks (a formula written independently)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import optimize
+from scipy.special import j1
+
+from vdo.model.optics import (AIRY_GAUSS, OpticsBlur, circle_of_confusion, defocus_mtf,
+                              diffraction_mtf, gaussian_mtf, optics_blur, working_f_number)
+from vdo.physics.checks import depth_of_field
+
+GRID = 1024            # samples per side of the numerical transforms
+MTF_TOL = 5e-3         # numerical MTF vs closed form: discretisation of the PSF/pupil on GRID
+
+
+def _radial_mtf(psf: np.ndarray, step: float, q_max: float):
+    """(q, |FFT(psf)| / FFT(psf)(0)) along the first axis at the transform's own frequencies
+    0 <= q <= q_max (cycles per unit)."""
+    otf = np.abs(np.fft.fft2(np.fft.ifftshift(psf)))
+    otf /= otf[0, 0]
+    freqs = np.fft.fftfreq(psf.shape[0], d=step)
+    keep = (freqs >= 0) & (freqs <= q_max)
+    return freqs[keep], otf[0, keep]
+
+
+def test_diffraction_mtf_is_the_pupils_autocorrelation():
+    # The OTF of an incoherent aberration-free system is the autocorrelation of the pupil; with
+    # the pupil of radius 1/(2 λ N) in frequency units, its cut-off is 1/(λN). Numerically: the
+    # pupil's indicator on a grid, autocorrelated by FFT.
+    lam_n = 1.0
+    step = 4.0 / GRID / lam_n                     # frequency step, the grid spans ±2/(λN)
+    f = (np.arange(GRID) - GRID // 2) * step
+    pupil = (np.hypot(f[:, None], f[None, :]) <= 0.5 / lam_n).astype(float)
+    auto = np.real(np.fft.ifft2(np.abs(np.fft.fft2(pupil)) ** 2))
+    auto = np.fft.fftshift(auto) / auto.max()
+    q = f[GRID // 2:GRID // 2 + int(1.0 / lam_n / step)]
+    numeric = auto[GRID // 2, GRID // 2:GRID // 2 + q.size]
+    assert np.max(np.abs(numeric - diffraction_mtf(q, 1.0, lam_n))) < MTF_TOL
+
+
+def test_defocus_mtf_is_the_transform_of_a_disc():
+    c = 1.0
+    step = 16.0 * c / GRID
+    x = (np.arange(GRID) - GRID // 2) * step
+    r = np.hypot(x[:, None], x[None, :])
+    sub = 8                                   # area-weighted edge: supersample the disc's rim
+    offs = (np.arange(sub) + 0.5) / sub - 0.5
+    disc = np.zeros_like(r)
+    for dy in offs:
+        for dx in offs:
+            disc += np.hypot(x[:, None] + dx * step, x[None, :] + dy * step) <= 0.5 * c
+    q, numeric = _radial_mtf(disc, step, 3.0 / c)
+    numeric = numeric / np.abs(np.sinc(q * step))     # the rim's supersampling box of one step
+    assert np.max(np.abs(numeric - np.abs(defocus_mtf(q, c)))) < MTF_TOL
+    # and the disc's std per axis is c / 4
+    std = np.sqrt(np.sum(disc * x[None, :] ** 2) / disc.sum())
+    assert std == pytest.approx(c / 4, rel=MTF_TOL)
+
+
+def test_airy_core_is_fit_by_a_gaussian_of_042_lambda_n():
+    # Least-squares fit of a Gaussian to the Airy intensity (2 J1(πr/λN) / (πr/λN))² within its
+    # first zero (1.22 λN): the fitted σ is 0.42 λN to two digits.
+    r = np.linspace(1e-6, 1.22, 400)
+    x = np.pi * r
+    airy = (2 * j1(x) / x) ** 2
+    (sigma,), _ = optimize.curve_fit(lambda r, s: np.exp(-r * r / (2 * s * s)), r, airy, p0=[0.4])
+    assert sigma == pytest.approx(AIRY_GAUSS, abs=0.01)
+
+
+def test_gaussian_mtf_is_the_transform_of_a_sampled_gaussian():
+    sigma = 1.0
+    step = 16.0 * sigma / GRID * 4
+    x = (np.arange(GRID) - GRID // 2) * step
+    psf = np.exp(-(x[:, None] ** 2 + x[None, :] ** 2) / (2 * sigma ** 2))
+    q, numeric = _radial_mtf(psf, step, 0.6 / sigma)
+    assert np.max(np.abs(numeric - gaussian_mtf(q, sigma))) < MTF_TOL
+
+
+@pytest.mark.parametrize("focal,n,focus", [(0.035, 8.0, 1.2), (0.012, 4.0, 0.6)])
+def test_circle_of_confusion_equals_the_limit_at_the_depth_of_field(focal, n, focus):
+    coc = 8.6e-6
+    near, far = depth_of_field(focal, n, focus, coc)
+    assert circle_of_confusion(focal, n, focus, near) == pytest.approx(coc, rel=1e-9)
+    assert circle_of_confusion(focal, n, focus, far) == pytest.approx(coc, rel=1e-9)
+    assert circle_of_confusion(focal, n, focus, focus) == 0.0
+
+
+def test_optics_blur_in_pixels():
+    pitch, focal, focus = 4.3e-6, 0.035, 1.0
+    blur = optics_blur(pitch, focal, 8.0, focus, depth=1.1, wavelength=0.55e-6)
+    n_w = working_f_number(8.0, focal, focus)
+    assert n_w == pytest.approx(8.0 * focus / (focus - focal))     # N (1 + m), m = f / (s - f)
+    assert blur.airy_px == pytest.approx(0.55e-6 * n_w / pitch)
+    assert blur.defocus_px == pytest.approx(circle_of_confusion(focal, 8.0, focus, 1.1) / pitch)
+    assert blur.sigma_px == pytest.approx(np.hypot(0.42 * blur.airy_px, blur.defocus_px / 4))
+    assumed = optics_blur(pitch, focal, None, None)
+    assert assumed.assumed and assumed.defocus_px == 0.0 and assumed.f_number == 8.0
+    # the product MTF: zero at and beyond the diffraction cut-off
+    assert float(blur.mtf(1.0 / blur.airy_px)) == pytest.approx(0.0, abs=1e-12)
+    assert float(OpticsBlur().mtf(0.7)) == 1.0
+
+
+def test_renders_blur_by_the_diffraction_of_the_cameras_f_number():
+    # An impulse through `vdo.render.diffraction_blur`: its second moment is the Airy core's
+    # Gaussian, 0.42 λ N_w / p pixels; a pinhole (no f_number) leaves the image as it is.
+    from types import SimpleNamespace
+
+    from vdo.render import diffraction_blur
+
+    camera = SimpleNamespace(pixel_size=3.45e-6, focal_length=0.05)
+    spec = SimpleNamespace(f_number=11.0, focus_distance=1.5)
+    image = np.zeros((65, 65), dtype=np.float32)
+    image[32, 32] = 1.0
+    out = diffraction_blur(image, camera, spec)
+    x = np.arange(65) - 32
+    std = np.sqrt(np.sum(out * x[None, :] ** 2) / out.sum())
+    n_w = 11.0 * (1 + 0.05 / (1.5 - 0.05))
+    assert std == pytest.approx(AIRY_GAUSS * 0.55e-6 * n_w / 3.45e-6, rel=1e-3)
+    assert out.sum() == pytest.approx(1.0, rel=1e-5)
+    assert diffraction_blur(image, camera, SimpleNamespace(f_number=None)) is image

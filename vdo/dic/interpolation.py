@@ -1,0 +1,189 @@
+"""σ_measured against correlation on synthesised images, over many patterns: the validation of
+`vdo.model.speckle.correlation_error` (the interpolation bias, its scatter and the noise through
+the interpolant) for sharp-edged dots, fine dots and a photograph-like texture, cubic and quintic.
+
+Images. A pattern tile of `SUB` texels per pixel is moved by whole texels (sub-pixel shifts
+d = j / SUB px along x) with its band-limited interpolant (an FFT phase ramp: the model's
+texel_filter = "ideal"), blurred by the optics' MTF (`vdo.model.optics.OpticsBlur`, applied in the
+Fourier domain, exact for the periodic tile), box-averaged over SUB x SUB texels per pixel, and
+given independent Gaussian noise in the reference and the deformed image.
+
+Correlation. Gauss-Newton for a translation on square subsets, the reference read at its pixel
+centres with its spline gradient, the deformed image interpolated by `vdo.dic.correlate.SplineImage`
+(the interpolant `vdo.dic.correlate` runs).
+
+Each seed is a new pattern (and new noise). The measured RMS error over seeds, subsets and shifts
+is compared with the prediction averaged over the first PREDICTION_SEEDS patterns; the 95 %
+interval of the ratio comes from resampling the seeds (bootstrap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vdo.dic.correlate import SplineImage
+from vdo.model.optics import OpticsBlur
+from vdo.model.speckle import INTERPOLANTS, correlation_error, generate_pattern, normalise
+
+SUB = 8                  # texels per pixel
+HALF = 10                # subset half-width, px (21 x 21 pixels)
+STRIDE = 11              # subset centres' spacing, px
+ITERATIONS = 8           # Gauss-Newton steps (converged to < 1e-8 px for these shifts)
+PREDICTION_SEEDS = 4     # patterns the prediction is averaged over
+BOOTSTRAP = 2000         # resamples of the seeds for the 95 % interval
+
+
+@dataclass(frozen=True)
+class BiasCase:
+    """One validation case: the pattern ("dots" sharp-edged, or "photo" photograph-like), its dot
+    diameter in pixels, the interpolant, the optics' λN/p (0: none) and the noise in pattern stds."""
+
+    name: str
+    pattern: str
+    dot_px: float
+    interpolant: str
+    airy_px: float = 0.0
+    noise: float = 0.0
+
+
+def photo_like_pattern(size: int, dot_texels: float, seed: int) -> np.ndarray:
+    """A photograph-like speckle tile in [0, 1] (periodic): sprayed droplets of log-normal
+    diameters (median `dot_texels`, σ_log 0.35) of varying darkness (0.55-1), ink spread by a
+    Gaussian of 0.12 dot, under a smooth shading of ±8 % (a 1/k² random field), plus film grain
+    (white, 2 % of the range). Not a binary pattern: what a camera photographs of a painted part."""
+    rng = np.random.default_rng(seed)
+    n = size
+    ink = np.zeros((n, n))
+    count = int(0.9 * n * n / (np.pi * (0.5 * dot_texels) ** 2))
+    diam = dot_texels * np.exp(0.35 * rng.standard_normal(count))
+    cx, cy = rng.uniform(0, n, count), rng.uniform(0, n, count)
+    dark = rng.uniform(0.55, 1.0, count)
+    for d, u, v, a in zip(diam, cx, cy, dark):
+        r = 0.5 * d
+        lo_x, hi_x = int(np.floor(u - r - 1)), int(np.ceil(u + r + 1))
+        lo_y, hi_y = int(np.floor(v - r - 1)), int(np.ceil(v + r + 1))
+        xs = np.arange(lo_x, hi_x + 1)
+        ys = np.arange(lo_y, hi_y + 1)
+        dist = np.hypot(xs[None, :] + 0.5 - u, ys[:, None] + 0.5 - v)
+        cover = np.clip(r + 0.5 - dist, 0.0, 1.0) * a
+        block = np.ix_(ys % n, xs % n)
+        ink[block] = np.maximum(ink[block], cover)
+    k = np.hypot(np.fft.fftfreq(n)[None, :], np.fft.fftfreq(n)[:, None])
+    spread = np.exp(-2 * np.pi ** 2 * (0.12 * dot_texels) ** 2 * k ** 2)
+    ink = np.real(np.fft.ifft2(np.fft.fft2(ink) * spread))
+    shade = np.real(np.fft.ifft2(np.fft.fft2(rng.standard_normal((n, n)))
+                                 / np.maximum(k * n, 1.0) ** 2))
+    shade = 1.0 + 0.08 * shade / np.abs(shade).max()
+    img = (1.0 - 0.9 * ink) * shade + 0.02 * rng.standard_normal((n, n))
+    return np.clip(img, 0.0, 1.0).astype(np.float32)
+
+
+def case_pattern(case: BiasCase, tile: int, seed: int) -> np.ndarray:
+    """The normalised pattern tile of a case for a seed (`tile` texels per side)."""
+    if case.pattern == "photo":
+        return normalise(photo_like_pattern(tile, case.dot_px * SUB, seed))
+    return normalise(generate_pattern(tile, 1.0, case.dot_px * SUB, 0.5, 0, seed=seed))
+
+
+def _images(f: np.ndarray, airy_px: float):
+    F = np.fft.fft2(f)
+    k = np.fft.fftfreq(f.shape[0])
+    if airy_px > 0:
+        F = F * OpticsBlur(airy_px=airy_px).mtf(np.hypot(k[None, :], k[:, None]) * SUB)
+
+    def image(s1, s2):
+        g = np.real(np.fft.ifft2(F * np.exp(-2j * np.pi * (k[None, :] * s1 + k[:, None] * s2))))
+        n = f.shape[0] // SUB
+        return g.reshape(n, SUB, n, SUB).mean(axis=(1, 3))
+    return image
+
+
+def measure(f: np.ndarray, case: BiasCase, shifts, rng) -> np.ndarray:
+    """Errors (n, 2) px of the subset correlations of the pattern f over `shifts` (texels)."""
+    order = INTERPOLANTS[case.interpolant]
+    image = _images(f, case.airy_px)
+    ref = image(0, 0)
+    n = ref.shape[0]
+    centres = range(HALF + 2, n - HALF - 2, STRIDE)
+    offsets = np.stack(np.meshgrid(np.arange(-HALF, HALF + 1), np.arange(-HALF, HALF + 1)), -1)
+    errors = []
+    for s1, s2 in shifts:
+        u = np.array([s1, s2], dtype=float) / SUB
+        r_img = ref + case.noise * rng.standard_normal(ref.shape)
+        d_img = image(s1, s2) + case.noise * rng.standard_normal(ref.shape)
+        reference, deformed = SplineImage(r_img, order=order), SplineImage(d_img, order=order)
+        for cx in centres:
+            for cy in centres:
+                x = (offsets + [cx, cy]).reshape(-1, 2).astype(float)
+                value, J = reference.value_and_gradient(x)
+                est = u.copy()
+                for _ in range(ITERATIONS):
+                    est -= np.linalg.solve(J.T @ J, J.T @ (deformed(x + est) - value))
+                errors.append(est - u)
+    return np.array(errors)
+
+
+def predict(f: np.ndarray, case: BiasCase) -> tuple[np.ndarray, np.ndarray]:
+    """(σ_measured (2,) px, the bound σ (2,) px) for the case's subsets on pattern f, RMS over
+    the shifts d = j / SUB along x."""
+    optics = [OpticsBlur(airy_px=case.airy_px)] if case.airy_px > 0 else None
+    model = correlation_error(f, 1.0 / SUB, np.eye(2)[None], order=INTERPOLANTS[case.interpolant],
+                              optics=optics, texel_filter="ideal",
+                              phases=(np.arange(SUB) / SUB, [0.0]))
+    p = (2 * HALF + 1) ** 2
+    measured = np.sqrt(np.diagonal(model.covariance(case.noise, p)[0]))
+    bound = np.sqrt(case.noise ** 2 * np.diagonal(model.bound[0]) / p)
+    return measured, bound
+
+
+@dataclass(frozen=True)
+class BiasRow:
+    """One case's result: measured and predicted σ (px, per axis x, y), their ratio with its 95 %
+    interval over seeds, and the bound's ratio (measured / (√2 bound) when noisy; None without
+    noise)."""
+
+    case: BiasCase
+    seeds: int
+    samples: int
+    measured_px: np.ndarray
+    predicted_px: np.ndarray
+    ratio: np.ndarray
+    ratio_95: np.ndarray          # (2, 2): [axis][low, high]
+    bound_ratio: np.ndarray | None
+
+
+def run_case(case: BiasCase, seeds: int, tile: int = 512, first_seed: int = 0) -> BiasRow:
+    """The case over `seeds` patterns of `tile` texels (module docstring)."""
+    shifts = [(j, 0) for j in range(SUB)]
+    per_seed, preds, bounds = [], [], []
+    for s in range(first_seed, first_seed + seeds):
+        f = case_pattern(case, tile, s)
+        per_seed.append(np.mean(measure(f, case, shifts, np.random.default_rng([s, 1])) ** 2, axis=0))
+        if len(preds) < PREDICTION_SEEDS:
+            m, b = predict(f, case)
+            preds.append(m ** 2)
+            bounds.append(b ** 2)
+    ms = np.array(per_seed)                                                   # (seeds, 2)
+    predicted = np.sqrt(np.mean(preds, axis=0))
+    measured = np.sqrt(ms.mean(axis=0))
+    rng = np.random.default_rng(12345)
+    boot = ms[rng.integers(0, seeds, size=(BOOTSTRAP, seeds))].mean(axis=1)    # (B, 2)
+    low, high = np.sqrt(np.percentile(boot, [2.5, 97.5], axis=0)) / predicted
+    bound = np.sqrt(np.mean(bounds, axis=0))
+    n = ((tile // SUB - 2 * HALF - 4 + STRIDE - 1) // STRIDE) ** 2 * SUB * seeds
+    return BiasRow(case, seeds, n, measured, predicted, measured / predicted,
+                   np.stack([low, high], axis=1),
+                   measured / (np.sqrt(2.0) * bound) if case.noise > 0 else None)
+
+
+DEFAULT_CASES = (
+    BiasCase("sharp 4 px dots, cubic", "dots", 4.0, "cubic", 0.0, 0.02),
+    BiasCase("sharp 4 px dots, quintic", "dots", 4.0, "quintic", 0.0, 0.02),
+    BiasCase("fine 1.5 px dots, cubic", "dots", 1.5, "cubic", 0.0, 0.02),
+    BiasCase("fine 2 px dots, quintic", "dots", 2.0, "quintic", 0.0, 0.02),
+    BiasCase("4 px dots at f/8 (λN/p = 1.28), cubic", "dots", 4.0, "cubic", 1.28, 0.02),
+    BiasCase("photo-like 4 px, cubic", "photo", 4.0, "cubic", 0.0, 0.02),
+    BiasCase("photo-like 4 px, quintic", "photo", 4.0, "quintic", 0.0, 0.02),
+)

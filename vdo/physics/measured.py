@@ -1,0 +1,292 @@
+"""σ_measured: the error the lab's processing will measure, per sample and world axis, beside the bound.
+
+The bound (`vdo.physics.predict`, Σ = C⁻¹, C = Σ_i C_i) is the Cramér-Rao bound of one noisy image,
+all views in one correlation, with a perfect interpolant. The lab's correlation differs per camera i
+(`vdo.model.speckle.correlation_error`, at the footprint of the camera's median sample of each
+region, after the lens's blur of `vdo.model.optics`, with the [analysis] interpolant and reference):
+its image-plane error has the covariance
+
+    Σ_i^meas = ν_i W_i⁻¹ + B_i,     ν_i = tr(σ² N̄ + V̄) / tr(σ² H_sharp⁻¹)      (px²)
+
+with W_i the camera's image-plane information over the patch (the bound's own, W_i = S_i⁺ᵀ C_i S_i⁺,
+S_i = ∂x/∂X the 2x3 sensitivity, S⁺ its pseudo-inverse: C_i = S_iᵀ W_i S_i exactly), ν_i the noise
+through the interpolant plus the bias's patch-to-patch scatter against the bound of the sharp
+(no-optics) image (so ν_i also carries the optics' loss of gradient), and B_i = <b bᵀ> the systematic
+bias (px², RMS over sub-pixel positions). ν_i ~ √2² for a smooth pattern and a noisy reference.
+Cameras' errors are independent (different sensors, different sub-pixel positions), and the
+correlation weights each view by its information W_i, so the estimate u = C⁻¹ Σ_i S_iᵀ W_i x_i has
+
+    Cov_meas = C⁻¹ [Σ_i (ν_i C_i + S_iᵀ W_i B_i W_i S_i)] C⁻¹                  (m²)
+
+σ_measured per axis is sqrt(diag Cov_meas), σ_max its largest eigenvalue's square root.
+
+Stereo pairs ([analysis] processing = "pairs"). Pair p = (a, b) measures with C_p = C_a + C_b and
+M_p = M_a + M_b (M_i the bracket above, per camera): Cov_p = C_p⁻¹ M_p C_p⁻¹. The candidate pairs at a
+sample are the declared [[stereo_pair]]s, or every two usable views whose viewing rays at the sample
+make an angle in [stereo_min_angle(lens), max_pair_angle] (the rule of `pair_candidates`). Merge:
+"best" keeps the pair of least σ_max; "fusion" averages the pairs' results with weights Cov_p⁻¹ and
+reports the true covariance, A Σ_full Aᵀ with A_p = (Σ_q Cov_q⁻¹)⁻¹ Cov_p⁻¹ and
+Cov(u_p, u_q) = C_p⁻¹ (Σ_{i ∈ p ∩ q} M_i) C_q⁻¹: pairs that share a camera share its noise and bias,
+which naive fusion (Σ Cov_p⁻¹)⁻¹ ignores (`fused_naive`, optimistic).
+Strain: σ_ε measured = σ_ε bound × σ_max,measured / σ_max,bound per sample (the bias is taken as a
+random error from subset to subset: its sub-pixel position changes with the displacement field).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vdo import objective
+from vdo.core.errors import ConfigError
+from vdo.physics import usable
+from vdo.physics.checks import measurement_floor
+from vdo.model.optics import optics_blur
+from vdo.physics.predict import samples_for_objective, settings, view_data
+from vdo.physics.strain import STRAIN_COMPONENTS
+
+DEFAULT_MAX_PAIR_ANGLE_DEG = 60.0   # beyond this the two views of a subset differ so much in
+#                                     foreshortening that stereo matching between them fails
+RANK_RTOL = 1e-10                   # eigenvalue ratio under which a pair's C_p counts as singular
+
+
+@dataclass(frozen=True, eq=False)
+class MeasuredFields:
+    """σ_measured per sample (m), beside the bound; +inf where unmeasured.
+
+    sigma_xyz (N, 3), sigma_max (N,): the processing of [analysis] (all views, or pairs merged)
+    ratio (N,): sigma_max / the bound's sigma_max (nan where either is unmeasured)
+    pair (N,) int: index into `pairs` of the pair serving the sample ("best"; -1 otherwise)
+    pairs: the candidate camera pairs (names), empty for all-views processing
+    fused_naive (N,): σ_max of inverse-variance fusion ignoring the shared cameras (pairs, "fusion")
+    per_camera: one dict per (camera, region) with nu, gamma, bias_px (2,) and f_number
+    """
+
+    sigma_xyz: np.ndarray
+    sigma_max: np.ndarray
+    ratio: np.ndarray
+    pair: np.ndarray
+    pairs: tuple
+    fused_naive: np.ndarray | None
+    per_camera: list
+
+
+def _pinv_sym(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(C⁻¹ (…, 3, 3), full rank (…,) bool) of symmetric PSD matrices; rank < 3 gives 0 and False."""
+    w, V = np.linalg.eigh(C)
+    ok = w[..., 0] > RANK_RTOL * np.maximum(w[..., -1], 1e-300)
+    inv_w = np.where(ok[..., None], 1.0 / np.where(w > 0, w, 1.0), 0.0)
+    return np.einsum("...ij,...j,...kj->...ik", V, inv_w, V), ok
+
+
+def _ratio(measured: np.ndarray, bound: np.ndarray) -> np.ndarray:
+    """measured / bound where both are finite, else nan."""
+    both = np.isfinite(measured) & np.isfinite(bound) & (bound > 0)
+    return np.where(both, measured / np.where(both, bound, 1.0), np.nan)
+
+
+def _sigma(cov: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    xyz = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    mx = np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[..., -1], 0.0))
+    return np.where(ok[..., None], xyz, np.inf), np.where(ok, mx, np.inf)
+
+
+def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
+    """(C_i (C, N, 3, 3) 1/m², M_i (C, N, 3, 3) 1/m², per_camera rows): each camera's information
+    over its clipped patch (as `predict`'s second pass) and the bracket ν_i C_i + S_iᵀ W_i B_i W_i S_i
+    of the module docstring, ν_i and B_i from `correlation_error` at the median footprint of the
+    camera's usable samples in each region."""
+    smp = samples_for_objective(exp, samples)
+    cams = objective.CameraParams.from_cameras(cameras)
+    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    phi = usable.patch_fractions(overlap, pred.usable)
+    vd = view_data(exp, smp, vis, illumination, speckle, phi)
+    C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(exp)))
+    M_i = np.zeros_like(C_i)
+    T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
+    rows, jobs = [], []
+    for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
+        for k, region in enumerate(samples.region_names):
+            seen = np.nonzero(pred.usable[i] & (samples.region == k))[0]
+            if seen.size == 0:
+                continue
+            X = samples.points[seen]
+            A = cam.sensitivity(X) @ T[seen]
+            density = np.sqrt(np.abs(np.linalg.det(A)))
+            m = int(np.argsort(density)[len(density) // 2])
+            depth = float((X[m] - cam.position) @ cam.optical_axis)
+            lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
+                               depth)
+            jobs.append((i, k, seen, A[m], float(illumination.irradiance[seen[m]]),
+                         exp.evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
+    if not jobs:
+        return C_i, M_i, rows
+    floors = measurement_floor([j[3] for j in jobs], [j[4] for j in jobs], [j[5] for j in jobs],
+                               [j[6] for j in jobs], exp.speckle, exp.sensor, speckle.pattern,
+                               exp.analysis.interpolant, exp.analysis.reference == "noisy")
+    for (i, k, seen, _, _, _, lens), floor in zip(jobs, floors):
+        model, j = floor["model"]
+        s2 = floor["noise_rel"] ** 2
+        p = floor["patch_px"]
+        nu = float(np.trace(s2 * model.noise[j] + model.scatter[j]) / np.trace(s2 * model.bound_sharp[j]))
+        gamma = float(np.trace(model.bound[j]) / np.trace(model.bound_sharp[j]))
+        B = model.bias[j]
+        S = cameras[i].sensitivity(samples.points[seen])                    # (n, 2, 3) px/m
+        Sp = np.linalg.pinv(S)                                               # (n, 3, 2)
+        W = np.einsum("nia,nij,njb->nab", Sp, C_i[i, seen], Sp)              # (n, 2, 2) 1/px²
+        WS = W @ S
+        M_i[i, seen] = nu * C_i[i, seen] + np.einsum("nai,ab,nbj->nij", WS, B, WS)
+        rows.append({"camera": cameras[i].name, "region": samples.region_names[k], "nu": nu,
+                     "optics_gradient_loss": gamma, "bias_px": [float(x) for x in np.sqrt(np.diag(B))],
+                     "patch_px": p, "f_number": lens.f_number, "f_number_assumed": lens.assumed,
+                     "optics_sigma_px": lens.sigma_px})
+    return C_i, M_i, rows
+
+
+def pair_candidates(exp, cameras, samples, usable_views, min_angle) -> tuple[list, np.ndarray]:
+    """([(a, b) camera indices], ok (P, N) bool): the stereo pairs the lab may use at each sample.
+    Declared [[stereo_pair]]s when the file has them ([analysis] pairs = "declared"), else every
+    two cameras (the rule): both usable views of the sample, and the angle between their viewing
+    rays at the sample within [min, max] with min = `min_angle`(the shorter focal length, m) in rad
+    (`vdo.constraints.stereo_min_angle`, the stereo rule of thumb per lens) and max = [analysis]
+    max_pair_angle_deg (default DEFAULT_MAX_PAIR_ANGLE_DEG)."""
+    names = [c.name for c in cameras]
+    X = samples.points
+    rays = np.stack([c.position for c in cameras])[:, None, :] - X[None]        # (C, N, 3)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    max_angle = exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
+        else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)                  # the file's value is in rad
+    if exp.analysis.pairs == "declared":
+        pairs = []
+        for spec in exp.stereo_pairs:
+            a, b = (names.index(n) for n in spec.cameras)
+            lo = spec.min_angle if spec.min_angle is not None else \
+                min_angle(min(cameras[a].focal_length, cameras[b].focal_length))
+            hi = spec.max_angle if spec.max_angle is not None else max_angle
+            pairs.append((a, b, lo, hi))
+    else:
+        pairs = [(a, b, min_angle(min(cameras[a].focal_length, cameras[b].focal_length)),
+                  max_angle) for a in range(len(cameras)) for b in range(a + 1, len(cameras))]
+    ok = np.zeros((len(pairs), len(X)), dtype=bool)
+    for p, (a, b, lo, hi) in enumerate(pairs):
+        angle = np.arccos(np.clip(np.einsum("nk,nk->n", rays[a], rays[b]), -1.0, 1.0))
+        ok[p] = usable_views[a] & usable_views[b] & (angle >= lo) & (angle <= hi)
+    return [(a, b) for a, b, _, _ in pairs], ok
+
+
+def all_views(C_i: np.ndarray, M_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Cov (N, 3, 3), ok (N,)): one correlation over all views, C⁻¹ (Σ M_i) C⁻¹, C = Σ C_i."""
+    Cinv, ok = _pinv_sym(C_i.sum(axis=0))
+    return Cinv @ M_i.sum(axis=0) @ Cinv, ok
+
+
+def merge_pairs(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge: str):
+    """Stereo-pair processing (module docstring) from per-camera C_i, M_i (C, N, 3, 3), the pairs
+    [(a, b)] and where each may serve, cand (P, N) bool. Returns (Cov (N, 3, 3), ok (N,), best
+    (N,) pair index or -1, naive (N,) σ_max of fusion ignoring shared cameras or None)."""
+    n = C_i.shape[1]
+    P = len(pairs)
+    cand = cand.copy()
+    Cp_inv = np.zeros((P, n, 3, 3))
+    cov_p = np.zeros((P, n, 3, 3))
+    for p, (a, b) in enumerate(pairs):
+        Cinv, ok = _pinv_sym(C_i[a] + C_i[b])
+        cand[p] &= ok
+        Cp_inv[p] = Cinv
+        cov_p[p] = Cinv @ (M_i[a] + M_i[b]) @ Cinv
+    served = cand.any(axis=0)
+    if merge == "best":
+        _, sig_p = _sigma(cov_p, cand)                                  # (P, N) σ_max per pair
+        best = np.argmin(sig_p, axis=0) if P else np.zeros(n, dtype=int)
+        cov = cov_p[best, np.arange(n)] if P else np.zeros((n, 3, 3))
+        return cov, served, np.where(served, best, -1), None
+    prec = np.where(cand[..., None, None],
+                    np.linalg.pinv(np.where(cand[..., None, None], cov_p, np.eye(3))), 0.0)
+    total_inv, ok = _pinv_sym(prec.sum(axis=0))
+    ok &= served
+    A = np.einsum("nij,pnjk->pnik", total_inv, prec)                    # (P, N, 3, 3)
+    cov = np.zeros((n, 3, 3))
+    for p, (a, b) in enumerate(pairs):
+        for q, (c, d) in enumerate(pairs):
+            shared = [i for i in (a, b) if i in (c, d)]
+            if not shared:
+                continue
+            both = cand[p] & cand[q]
+            cross = Cp_inv[p] @ sum(M_i[i] for i in shared) @ Cp_inv[q]
+            cov += np.where(both[:, None, None], A[p] @ cross @ np.swapaxes(A[q], -1, -2), 0.0)
+    naive = np.where(ok, np.sqrt(np.maximum(np.linalg.eigvalsh(total_inv)[..., -1], 0.0)), np.inf)
+    return cov, ok, np.full(n, -1), naive
+
+
+def measured_fields(exp, cameras, samples, vis, illumination, speckle, pred,
+                    min_angle=None) -> MeasuredFields:
+    """σ_measured of the module docstring for the processing in [analysis] (`min_angle`: the pair
+    rule's minimum angle per focal length, `pair_candidates`; needed for pairs). A declared pair
+    that no sample can use (no common usable view at an angle within its limits) is a
+    ConfigError naming the pair."""
+    C_i, M_i, rows = camera_terms(exp, cameras, samples, vis, illumination, speckle, pred)
+    bound = np.where(pred.measured, pred.sigma_max, np.inf)
+    if exp.analysis.processing == "all-views":
+        cov, ok = all_views(C_i, M_i)
+        xyz, mx = _sigma(cov, ok & pred.measured)
+        return MeasuredFields(xyz, mx, _ratio(mx, bound), np.full(len(bound), -1), (), None, rows)
+    pairs, cand = pair_candidates(exp, cameras, samples, pred.usable, min_angle)
+    if exp.analysis.pairs == "declared":
+        for (a, b), ok in zip(pairs, cand):
+            if not ok.any():
+                raise ConfigError(exp.path, f"stereo_pair [{cameras[a].name!r}, {cameras[b].name!r}]",
+                                  "the two cameras share no usable view of any region at an angle "
+                                  "within the pair's limits: pair processing covers only pairs "
+                                  "that both see a region")
+    cov, ok, best, naive = merge_pairs(C_i, M_i, pairs, cand, exp.analysis.merge)
+    xyz, mx = _sigma(cov, ok)
+    names = tuple((cameras[a].name, cameras[b].name) for a, b in pairs)
+    return MeasuredFields(xyz, mx, _ratio(mx, bound), best, names, naive, rows)
+
+
+def _stats(values_um: np.ndarray) -> dict:
+    """p50, p95 and max (µm or µε) over the finite values; None when there are none."""
+    v = values_um[np.isfinite(values_um)]
+    if not v.size:
+        return {"p50": None, "p95": None, "max": None}
+    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)),
+            "max": float(v.max())}
+
+
+def summary(exp, meas: MeasuredFields, samples, pred, strain_sigma=None) -> dict:
+    """summary.json's "measured": the processing, per region the area fraction with a finite
+    σ_measured (served: by some pair, or by >= 2 usable views), σ_measured (µm, per axis and max)
+    beside the bound's σ_max, their ratio per sample, the strain σ (µε) measured, which pair serves how much
+    of the region ("best"), and the per-camera terms (`camera_terms`)."""
+    a = exp.analysis
+    regions = {}
+    for k, name in enumerate(samples.region_names):
+        mask = samples.region == k
+        area = samples.area[mask]
+        r = {"served_fraction": float(area[np.isfinite(meas.sigma_max[mask])].sum() / area.sum()),
+             "sigma_measured_um": _stats(meas.sigma_max[mask] * 1e6),
+             "sigma_bound_um": _stats(np.where(pred.measured[mask], pred.sigma_max[mask], np.inf) * 1e6),
+             "sigma_measured_axis_um": {ax: _stats(meas.sigma_xyz[mask, j] * 1e6)
+                                        for j, ax in enumerate("xyz")},
+             "ratio": _stats(meas.ratio[mask])}
+        if strain_sigma is not None:
+            eps = strain_sigma[mask] * np.where(np.isfinite(meas.ratio[mask]), meas.ratio[mask],
+                                                np.inf)[:, None]
+            r["sigma_strain_measured_microstrain"] = {
+                f"eps_{c}": _stats(eps[:, j] * 1e6) for j, c in enumerate(STRAIN_COMPONENTS)}
+        if meas.pairs and a.merge == "best":
+            served = meas.pair[mask]
+            r["pairs"] = {f"{p[0]}+{p[1]}": round(float(area[served == i].sum() / area.sum()), 4)
+                          for i, p in enumerate(meas.pairs) if (served == i).any()}
+        if meas.fused_naive is not None:
+            r["sigma_fused_naive_um"] = _stats(meas.fused_naive[mask] * 1e6)
+        regions[name] = r
+    return {"processing": a.processing, "pairs": a.pairs if a.processing == "pairs" else None,
+            "merge": a.merge if a.processing == "pairs" else None, "interpolant": a.interpolant,
+            "reference": a.reference, "regions": regions, "per_camera": meas.per_camera,
+            "meaning": "sigma_measured: the error the lab's processing will measure (noise through "
+                       "the interpolant, the interpolation bias RMS over sub-pixel positions, the "
+                       "lens's blur); sigma_bound: the Cramér-Rao bound of one noisy image, all "
+                       "views (docs/theory.md)"}
