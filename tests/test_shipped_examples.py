@@ -52,13 +52,13 @@ def kind(path: str) -> str:
 def applicable(path: str) -> list[list[str]]:
     """The commands (argv after `vdo`, without --out) that apply to a shipped file."""
     if kind(path) == "validation":
-        return [["validate", path]]
+        return [["check", path], ["validate", path]]
     if kind(path) == "sweep":
-        return [["sweep", path]]
+        return [["check", path], ["sweep", path]]
     from vdo.config.experiment import load
 
     exp = load(ROOT / path)
-    out = [["evaluate", path], ["export", path, "--format", "opencv"]]
+    out = [["check", path], ["evaluate", path], ["export", path, "--format", "opencv"]]
     if exp.camera_specs:
         out.append(["render", path])
     if exp.load_path.active:
@@ -197,6 +197,9 @@ def test_command_runs_reduced(path, command, tmp_path, monkeypatch):
     monkeypatch.delenv("VDO_SET", raising=False)
     monkeypatch.setenv("VDO_SET", reduced(path))
     for k, argv in enumerate(GROUPS[(path, command)]):
+        if command == "check":   # reads and checks the file, writes nothing
+            assert main(argv) == 0, argv
+            continue
         out = tmp_path / ("store" if command == "sweep" else f"run{k}")
         full = [*argv, *FLAGS.get(command, []), "--out", str(out)]
         status = main(full)
