@@ -61,8 +61,11 @@ class Run:
 def check_interrupted(run: Run, signum, elapsed, parent: Path):
     assert run.proc.returncode == 128 + signum, run.err[-10:]
     assert elapsed < PROMPT_S
-    # after the signal, one line: the progress messages logged before it and tqdm bars aside
-    messages = [line for line in run.err[run.err_before_signal:] if line.strip() and "%|" not in line]
+    # after the signal, one line: the progress messages logged before it and the progress (tqdm
+    # bars on a terminal, `vdo.core.progress.PlainBar` lines off one, as here) aside
+    plain = re.compile(r"[\w ]+: \d+(/\d+)? \S+( \(\d+ %\))?, \d+ s(, ~\d+ s left)?( \[.*\])?")
+    messages = [line for line in run.err[run.err_before_signal:]
+                if line.strip() and "%|" not in line and not plain.fullmatch(line.strip())]
     assert messages == [f"vdo: interrupted by {signal.Signals(signum).name}"], run.err[-10:]
     assert not any("Traceback" in line or "Error" in line for line in run.err), run.err[-10:]
     assert sorted(p.name for p in parent.iterdir()) == [], "output or partial folder left"
