@@ -99,11 +99,15 @@ def test_design_drops_the_candidates_inside(tmp_path):
     path = write(tmp_path, keep_out('[0.7, -inf, -inf]', '[inf, inf, inf]'), DESIGN)
     exp = config.load(path)
     meshes = load_meshes(exp)
-    cams, mounts, *_ = design.candidate_cameras(exp, sample_regions(exp, meshes), meshes)
+    cams, mounts, *_, dropped = design.candidate_cameras(exp, sample_regions(exp, meshes), meshes)
     zone = np.array([c.position for c, m in zip(cams, mounts) if m == "ring"])
     assert len(zone) and np.all(zone[:, 0] < 0.7)
     assert set(np.round(zone[:, 0], 9)) == {0.3, 0.6}
     assert not np.any(config.inside_keep_out(exp.keep_outs, np.array([c.position for c in cams])) >= 0)
+    # counted per mount: the x = 0.9 column of the zone's grid (3 y x 2 heights), and the rail's
+    # positions with x > 0.7 (none: the rail runs over x in [-0.5, 0.5])
+    assert dropped["ring"]["positions in keep_out 'machine'"] == 3 * 2
+    assert "gantry" not in dropped or "positions in keep_out 'machine'" not in dropped["gantry"]
 
 
 def test_penalty_is_zero_outside_and_its_gradient_is_right():

@@ -82,7 +82,7 @@ import csv
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import jax
@@ -144,6 +144,7 @@ class Candidates:
     assigned: np.ndarray
     masked: np.ndarray
     path_lost: np.ndarray
+    dropped: dict = field(default_factory=dict)   # {mount: {reason: count}} of the dropped candidates
 
     @property
     def positions(self) -> np.ndarray:
@@ -258,7 +259,8 @@ def spots(exp: Experiment) -> list[tuple]:
 
 def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     """The candidate poses (module docstring) that keep their clearance: (cameras, mount names,
-    kinds, u, offsets, body index, target index, targets)."""
+    kinds, u, offsets, body index, target index, targets, dropped), dropped = {mount: {reason:
+    count}} of the candidate poses (positions, for a keep-out) left out and why."""
     aims = targets(samples)
     offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in exp.design.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
@@ -267,7 +269,7 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     for mount, kind, u, head, p in spots(exp):
         box = int(inside_keep_out(exp.keep_outs, p)[0])
         if box >= 0:
-            key = f"{mount or 'fixed'}: in keep_out {exp.keep_outs[box].name!r}"
+            key = (mount or "fixed", f"positions in keep_out {exp.keep_outs[box].name!r}")
             kept_out[key] = kept_out.get(key, 0) + 1
             continue
         for t, aim in enumerate(aims):
@@ -292,14 +294,19 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
             of = np.array([r[0] == name for r in rows])
             log.info("mount %s: %d candidate poses, %d dropped for clearance (closer than %g m to a "
                      "mesh)", name or "fixed", of.sum(), (of & ~clear).sum(), exp.optimize.clearance)
+            if (of & ~clear).any():
+                kept_out[(name or "fixed", "poses within the clearance")] = int((of & ~clear).sum())
         cams = [c for c, ok in zip(cams, clear) if ok]
         rows = [r for r, ok in zip(rows, clear) if ok]
-    for key, count in kept_out.items():
-        log.info("mount %s: %d candidate positions dropped", key, count)
+    dropped: dict = {}
+    for (name, reason), count in kept_out.items():
+        dropped.setdefault(name, {})[reason] = count
+        if "keep_out" in reason:
+            log.info("mount %s: %d candidate %s dropped", name, count, reason)
     mount, kind, u, head, b, t = zip(*rows) if rows else ((),) * 6
     return (cams, tuple(mount), tuple(kind), np.array(u, dtype=float),
             np.array(head, dtype=float).reshape(-1, 3), np.array(b, dtype=int),
-            np.array(t, dtype=int), aims)
+            np.array(t, dtype=int), aims, dropped)
 
 
 def judge(exp: Experiment, geometry: Geometry) -> Candidates:
@@ -307,11 +314,11 @@ def judge(exp: Experiment, geometry: Geometry) -> Candidates:
     progress bars when the module logger passes INFO (`vdo.core.progress`)."""
     samples = geometry.samples
     R = len(samples.region_names)
-    cams, mount, kind, u, heads, body, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
+    cams, mount, kind, u, heads, body, tg, aims, dropped = candidate_cameras(exp, samples, geometry.meshes)
     if not cams:
         return Candidates((), (), (), u, heads, body, tg, aims, np.zeros((0, len(samples), 6)),
                           np.zeros((0, len(samples)), np.float32), np.zeros((0, R), bool),
-                          np.zeros((0, R)), np.zeros(0))
+                          np.zeros((0, R)), np.zeros(0), dropped)
     scene = build_scene(list(geometry.meshes))
     vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=shown(log))
     bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
@@ -352,7 +359,7 @@ def judge(exp: Experiment, geometry: Geometry) -> Candidates:
         masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), TINY)
     log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(steps), steps)
     return Candidates(tuple(cams), mount, kind, u, heads, body, tg, aims, info, weight, assigned,
-                      masked, lost)
+                      masked, lost, dropped)
 
 
 class Scorer:
@@ -716,6 +723,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
                         "sensor_width_mm": b.sensor_width * 1e3,
                         "lenses_mm": [f * 1e3 for f in lenses(exp, b)]} for b in bodies(exp)],
             "targets_m": cand.targets.tolist(), "problems": issues, "statistics": stats,
+            "dropped_per_mount": cand.dropped,
             "constraint_violations": len(violated),
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],

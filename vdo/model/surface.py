@@ -281,11 +281,21 @@ def _orient(dev: Development, tri: np.ndarray, normals: np.ndarray) -> Developme
     return dev
 
 
+def _canonical(axis: np.ndarray) -> np.ndarray:
+    """The axis direction with v increasing upward: its z component positive (else x, else y)."""
+    for k in (2, 0, 1):
+        if abs(axis[k]) > 1e-6:
+            return axis if axis[k] > 0 else -axis
+    return axis
+
+
 def fit_cylinder(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray,
                  tolerance: float) -> Development | None:
     """The cylinder through the triangles (module docstring), or None when they are not on one
-    (a vertex farther than `tolerance` from it, or the normals not perpendicular to one axis)."""
+    (a vertex farther than `tolerance` from it, or the normals not perpendicular to one axis).
+    The axis points up (`_canonical`), so that a map's v runs up a vertical cylinder."""
     axis, lam = _axis_of(normals, areas)
+    axis = _canonical(axis)
     w = areas / areas.sum()
     if abs(w @ (normals @ axis)) > math.sin(FIT_ANGLE) or lam[1] < 1e-8:
         return None
