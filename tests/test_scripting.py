@@ -366,3 +366,24 @@ def test_new_camera_positions_compile_nothing_after_warm_up(which, camera, moves
     finally:
         _COMPILES["on"] = False
     assert _COMPILES["n"] == 0
+
+
+def test_fixed_pair_list_sizes_leave_the_fields_unchanged(beam):
+    """The padded lists (Geometry.sizes) give the fields of the bucketed ones, and a layout that
+    sees nothing (no pair) still works after a layout that set the sizes."""
+    from vdo import objective
+    from vdo.physics.predict import samples_for_objective, settings, view_data
+    state = vdo.layout_state(beam)
+    exp, samples = beam.experiment, beam.samples
+    smp = samples_for_objective(exp, samples)
+    cams = objective.CameraParams.from_cameras(state.cameras)
+    sizes: dict = {}
+    fixed = view_data(exp, smp, state.visibility, state.illumination, beam.speckle, sizes=sizes)
+    plain = view_data(exp, smp, state.visibility, state.illumination, beam.speckle)
+    assert sizes and fixed.n_blocks >= plain.n_blocks - plain.chunk
+    a = objective.fields(cams, smp, fixed, beam.speckle.table, settings(exp))
+    b = objective.fields(cams, smp, plain, beam.speckle.table, settings(exp))
+    np.testing.assert_allclose(np.asarray(a.information), np.asarray(b.information), rtol=1e-12, atol=0)
+    empty = objective.ViewData.from_dense(np.zeros((len(state.cameras), len(samples))), 1.0, 1.0, smp,
+                                          sizes=sizes)
+    assert empty.n_pairs == 0 and empty.n_blocks >= 1

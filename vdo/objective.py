@@ -306,7 +306,7 @@ class ViewData(eqx.Module):
         most = int(counts.max()) if counts.size else 0
         L = block if most >= block else max(8, 1 << max(most - 1, 0).bit_length())
         blocks = -(-counts // L)  # per camera
-        if sizes is not None and sizes.get(("blocks", L), (0, 0))[0] >= blocks.sum():
+        if sizes is not None and ("blocks", L) in sizes and sizes[("blocks", L)][0] >= blocks.sum():
             n_blocks, chunk = sizes[("blocks", L)]
         else:
             n_blocks = bucket(int(blocks.sum())) if sizes is None else \

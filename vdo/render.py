@@ -551,7 +551,8 @@ class RenderResult:
 
     @property
     def experiment(self):
-        return self.state.experiment
+        """The experiment rendered (its full-size cameras; `cameras` are scaled)."""
+        return self.state.geometry.experiment
 
     @property
     def cameras(self) -> list[Camera]:
