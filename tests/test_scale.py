@@ -1,0 +1,68 @@
+"""Scale: the generated large experiment of benchmarks/scale_case.py at reduced size; costs that
+follow the work (region boxes sharing planes split once, maps of hundreds of regions labelled by
+group) checked against closed forms."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from vdo import scene
+from vdo.config import experiment as config
+from vdo.outputs import maps
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+from scale_case import HALF_W, Z_HI, Z_LO, write_case  # noqa: E402
+
+# binary STL stores float32 vertices (0.9 m is 0.89999998): cut planes between them leave slivers
+# about 1e-7 m wide, ~5e-6 of a 67 mm segment's area
+STL_AREA_REL = 1e-5
+
+
+@pytest.fixture(scope="module")
+def girder(tmp_path_factory):
+    """A 2 m girder cut into 4 faces x 30 segments = 120 regions, 4 cameras, 40 mm samples."""
+    path = write_case(tmp_path_factory.mktemp("girder"), length_m=2.0, segments=30, cameras=4,
+                      spacing_mm=40)
+    exp = config.load(path)
+    meshes = scene.load_meshes(exp)
+    return exp, meshes, scene.sample_regions(exp, meshes)
+
+
+def test_region_areas_with_shared_planes(girder):
+    """Neighbouring regions share their box planes (each plane split at once): the area of every
+    region's faces is its face's width times the segment length (closed form), the girder stays
+    closed and its area unchanged."""
+    exp, meshes, _ = girder
+    assert len(exp.regions) == 120
+    seg = 2.0 / 30
+    width = {"front": Z_HI - Z_LO, "back": Z_HI - Z_LO, "top": 2 * HALF_W, "bottom": 2 * HALF_W}
+    g = next(m for m in meshes if m.name == "girder")
+    for spec in exp.regions:
+        faces = scene.region_faces(g, spec, 0.04, (exp.path, "region")).faces
+        area = g.trimesh.area_faces[faces].sum()
+        assert area == pytest.approx(seg * width[spec.name.split("_")[0]], rel=STL_AREA_REL), spec.name
+    mesh = trimesh.Trimesh(g.vertices, g.faces)
+    assert mesh.is_watertight
+    assert mesh.area == pytest.approx(trimesh.load(exp.meshes[0].path).area, rel=1e-12)   # as read
+
+
+def test_map_of_many_regions_labels_groups(girder, tmp_path):
+    """Past MAX_REGION_LABELS regions, one label per region group (its name and count) in each view
+    it fills, every region still outlined and its pixel box returned inside the image."""
+    exp, _, samples = girder
+    assert maps.region_groups(["front_000", "front_001", "joint", "back-12"]) == \
+        {"front": [0, 1], "joint": [2], "back": [3]}
+    lay = maps.layout(samples)
+    assert lay is maps.layout(samples)                      # shared by every map of these samples
+    assert len(lay.hulls) == 120
+    assert sorted(t for t, _ in lay.labels) == ["back (30)", "bottom (30)", "front (30)", "top (30)"]
+    path = tmp_path / "map.png"
+    boxes = maps.plot_unfolded(samples, samples.points[:, 0], path, "x", "m")
+    h, w = np.asarray(Image.open(path)).shape[:2]
+    assert len(boxes) == 120
+    for c0, r0, c1, r1 in boxes.values():
+        assert 0 <= c0 < c1 <= w and 0 <= r0 < r1 <= h
