@@ -156,7 +156,7 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     PNG's pixels, {name: (col0, row0, col1, row1)} with row 0 at the top."""
     values = np.asarray(values, dtype=float)
     lay = layout(samples)
-    panels, depth, cells, hulls = lay.panels, lay.depth, lay.cells, lay.hulls
+    panels, cells, hulls = lay.panels, lay.cells, lay.hulls
     lo = np.array([min(p.x0 for p in panels), min(p.y0 for p in panels)])
     hi = np.array([max(p.x0 + p.width for p in panels), max(p.y0 + p.height for p in panels)])
     margin = 0.06 * max(hi - lo)
