@@ -25,6 +25,8 @@ from vdo.state import prepare
 from vdo.search.loadpath import keyframe_steps
 from vdo.physics.visibility import compute_visibility
 
+SUM_ORDER_RTOL = 1e-12   # the same float64 sums taken in another order (entries vs all samples)
+
 DESIGN = """
 [design]
 max_cameras = {n}
@@ -76,7 +78,7 @@ def test_greedy_and_exchange_find_the_best_pair_which_is_symmetric(judged):
     order, _ = design.greedy(cand, scorer, feas, 2)
     chosen, score, _ = design.exchange(cand, scorer, feas, order)
     feasible = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
-                if not feas.conflict[p[0], p[1]]]
+                if not feas.conflicts(p[0], p[1])]
     exhaustive = {p: _pair_score(exp, geometry, [cand.cameras[i] for i in p]) for p in feasible}
     best = min(exhaustive, key=exhaustive.get)
     assert sorted(chosen) == sorted(best)
@@ -252,7 +254,7 @@ def test_the_inventory_counts_are_respected(plate_experiment):
     pick, score, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
     assert sorted(cand.body[pick]) == [0, 1]
     mixed = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
-             if cand.body[p[0]] != cand.body[p[1]] and not feas.conflict[p]]
+             if cand.body[p[0]] != cand.body[p[1]] and not feas.conflicts(*p)]
     best = min(mixed, key=lambda p: scorer.of(cand, p))
     assert sorted(pick) == sorted(best)
     cams = [cand.cameras[i] for i in pick]
@@ -311,3 +313,23 @@ def test_too_few_spots_for_a_region_are_named(plate_experiment):
     assert design.problems(exp, cand, geometry.samples) == [
         "region 'top' needs 3 cameras (min_cameras) but only 2 candidate spot(s) see it: add a "
         "mount in view of it"]
+
+
+def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, monkeypatch):
+    """Scorer.add corrects the base's sums at a candidate's stored entries only: equal to
+    Scorer.of, which sums every sample (checked against objective.score above), for every
+    candidate added to every base pair; judging in blocks of 2 candidates stores the same entries
+    as one block."""
+    exp, geometry, cand = judged
+    scorer = design.Scorer(exp, geometry.samples)
+    K = len(cand.cameras)
+    for base in [(), (0,), (1, 7)]:
+        rows = np.array([k for k in range(K) if k not in base])
+        fast = scorer.add(*cand.sums(list(base)), cand, rows)
+        whole = [scorer.of(cand, list(base) + [k]) for k in rows]
+        np.testing.assert_allclose(fast, whole, rtol=SUM_ORDER_RTOL)
+    assert cand.index.size < K * len(geometry.samples)          # only the pairs in view are stored
+    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 2 * len(geometry.samples))
+    small = design.judge(exp, geometry)
+    for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
+        np.testing.assert_array_equal(getattr(small, name), getattr(cand, name), err_msg=name)

@@ -21,12 +21,14 @@ path, the candidates are also ray cast at `[design] keyframes` of its steps
 (`vdo.search.loadpath.keyframe_steps`: the path's extremes first), the samples and moving meshes posed
 by `vdo.geometry.keyframes.at_step`, and C_i(n) and w_i(n) are zeroed where candidate i loses sample n at
 any of them (`vdo.search.loadpath.path_occlusion`, the worst case over the keyframes, as `vdo optimize`
-scores it). Stored as 6
-float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
-3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
-vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
-above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a sample seen once
-(the regularised C turned indefinite and the score NaN).
+scores it). The candidates are judged in blocks of PAIRS_PER_BLOCK (candidate, sample) pairs
+(`judge_block`; a block's dense arrays are freed before the next) and only the pairs with a
+non-zero weight or information are kept, sparsely (`Candidates`): 6 float64 entries, 1 float32
+weight and 1 int32 sample index per kept pair, 56 bytes (a camera sees a small part of a large
+specimen). Candidates that see no sample at rest (blind) are dropped. Not float32: C_i has
+rank 2 with its null vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves
+~1e8 along the ray, above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a
+sample seen once (the regularised C turned indefinite and the score NaN).
 
 Score. The information of a set S of cameras adds: C_S(n) = sum_{i in S} C_i(n), coverage
 k_S(n) = sum_{i in S} w_i(n). The set is scored as `vdo.objective.score` scores a layout:
@@ -39,8 +41,8 @@ over the scored regions ([optimize] regions, default all), q = 8, W = 1000, and 
 penalty P over EVERY region (a design must see the whole specimen, not only the scored part).
 This is the optimizer's own score, so selection and refinement minimise the same thing. It is not
 submodular (one camera alone gains nothing in sigma; pairs do), so lazy evaluation's bound does not
-hold: every step evaluates every feasible candidate, which the sums make cheap (one vectorised
-pass over candidates x samples per step).
+hold: every step evaluates every feasible candidate, which the sums make cheap (`Scorer.add`:
+the base's sums corrected at each candidate's stored entries, one vectorised pass over them).
 
 Selection. Greedy forward selection adds the feasible candidate with the lowest score, then
 exchange passes replace one selected camera by the best feasible candidate while that lowers the
@@ -84,6 +86,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
+import scipy.sparse
 from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 
@@ -96,33 +99,40 @@ from vdo.model.camera import Camera, look_at_angles
 from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_floor
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
-from vdo.geometry.keyframes import load_path_of
+from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
 from vdo.optimize import Problem, optimize
 from vdo.physics.predict import samples_for_objective, settings, view_data
-from vdo.core.progress import bar, shown
+from vdo.core.progress import bar
 from vdo.core.runfolder import run_folder
 from vdo.scene import build_scene, camera_body_points
 from vdo.state import Geometry, layout_state, prepare
+from vdo.state import bodies as bodies_of
 from vdo.physics.visibility import compute_visibility
 
 log = logging.getLogger(__name__)
 
 MERGE_TARGETS_M = 0.2   # region centres closer than this share one aim point
 SPOT_M = 0.2            # two optical centres closer than this are one physical spot
-BATCH = 256             # candidates per batch of the information and the score
+PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
+ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
+ANGLE_TOL = 1e-9             # rad: an axis angle this close to its limit meets it
 
 
 @dataclass(frozen=True, eq=False)
 class Candidates:
-    """K candidate cameras judged on N samples. info (K, N, 6) float64 1/m^2 (entries c00, c11,
-    c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
-    assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
-    mount (K,) names ("" for a [[camera]]'s own fixed position), kind (K,) "rail", "zone" or
-    "fixed", u (K,) (rail; NaN otherwise), offset (K, 3) m from the rail point, body (K,) index
-    into `bodies(exp)`, target (K,) index into `targets`; masked (K, R) the area fraction of each
-    region's samples the candidate would see but an obstacle hides (its obscuration); path_lost
-    (K,) the fraction of its usable samples at rest that the load path's keyframes take away."""
+    """K candidate cameras judged on N samples, stored sparsely: candidate k's entries are
+    `entries[indptr[k]:indptr[k + 1]]`, each a sample `index` (int32), the information `info`
+    (E, 6) float64 1/m^2 (entries c00, c11, c22, c01, c02, c12 of Omega w |det A| C_i) and the
+    soft weight `weight` (E,) float32 w; only pairs with a non-zero weight or information are
+    stored (a candidate sees a small part of a large specimen). samples N; assigned (K, R) the
+    regions each sees usably over at least assign_fraction of the area; mount (K,) names ("" for a
+    [[camera]]'s own fixed position), kind (K,) "rail", "zone" or "fixed", u (K,) (rail; NaN
+    otherwise), offset (K, 3) m from the rail point, body (K,) index into `bodies(exp)`, target
+    (K,) index into `targets`; masked (K, R) the area fraction of each region's samples the
+    candidate would see but an obstacle hides (its obscuration); path_lost (K,) the fraction of
+    its usable samples at rest that the load path's keyframes take away; pruned: how many blind
+    candidates (no sample in view at rest) were dropped."""
 
     cameras: tuple[Camera, ...]
     mount: tuple[str, ...]
@@ -132,19 +142,71 @@ class Candidates:
     body: np.ndarray
     target: np.ndarray
     targets: np.ndarray
-    info: np.ndarray
-    weight: np.ndarray
+    samples: int
+    indptr: np.ndarray
+    index: np.ndarray
+    entry_info: np.ndarray
+    entry_weight: np.ndarray
     assigned: np.ndarray
     masked: np.ndarray
     path_lost: np.ndarray
+    pruned: int = 0
 
     @property
     def positions(self) -> np.ndarray:
-        return np.array([c.position for c in self.cameras])
+        return np.array([c.position for c in self.cameras]).reshape(-1, 3)
 
     @property
     def axes(self) -> np.ndarray:
-        return np.array([c.optical_axis for c in self.cameras])
+        return np.array([c.optical_axis for c in self.cameras]).reshape(-1, 3)
+
+    @property
+    def row(self) -> np.ndarray:
+        """(E,) the candidate of each stored entry."""
+        return np.repeat(np.arange(len(self.cameras)), np.diff(self.indptr))
+
+    def information(self, rows) -> np.ndarray:
+        """Dense (len(rows), N, 6) information of the candidates `rows` (zero where not stored)."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=int))
+        out = np.zeros((len(rows), self.samples, 6))
+        for k, i in enumerate(rows):
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            out[k, self.index[s]] = self.entry_info[s]
+        return out
+
+    def weights(self, rows) -> np.ndarray:
+        """Dense (len(rows), N) float32 soft weights of the candidates `rows`."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=int))
+        out = np.zeros((len(rows), self.samples), np.float32)
+        for k, i in enumerate(rows):
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            out[k, self.index[s]] = self.entry_weight[s]
+        return out
+
+    @property
+    def info(self) -> np.ndarray:
+        """Dense (K, N, 6): every candidate's information (for small problems and tests; K x N x
+        48 bytes)."""
+        return self.information(range(len(self.cameras)))
+
+    @property
+    def weight(self) -> np.ndarray:
+        """Dense (K, N) float32 soft weights (for small problems and tests)."""
+        return self.weights(range(len(self.cameras)))
+
+    def sums(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 6) information and (N,) weights summed over the candidates `rows`."""
+        info, cover = np.zeros((self.samples, 6)), np.zeros(self.samples)
+        for i in rows:
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            info[self.index[s]] += self.entry_info[s]
+            cover[self.index[s]] += self.entry_weight[s]
+        return info, cover
+
+    def usable_counts(self) -> np.ndarray:
+        """(K,) how many samples each candidate sees usably (w >= USABLE_WEIGHT)."""
+        use = usable.usable_views(self.entry_weight)
+        return np.bincount(self.row[use], minlength=len(self.cameras))
 
 
 def bodies(exp: Experiment) -> tuple[BodySpec, ...]:
@@ -282,110 +344,240 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
             np.array(t, dtype=int), aims)
 
 
-def judge(exp: Experiment, geometry: Geometry) -> Candidates:
-    """Every candidate's information and weights on `geometry`'s samples (module docstring); with
-    progress bars when the module logger passes INFO (`vdo.core.progress`)."""
+@dataclass(frozen=True, eq=False)
+class Judging:
+    """What judging any block of candidates needs, built once per process (`judging`): the
+    experiment, the selection geometry, the candidates (`candidate_cameras`: cameras, mount names,
+    kinds, u, offsets, bodies, targets, aim points), the scene of the meshes and of the specimen
+    alone, the load path's keyframe steps with each step's moved samples and scene, the light on
+    the samples, the objective's samples and settings (pair terms in float64), and the (N, R)
+    sparse matrix of sample areas per region."""
+
+    exp: Experiment
+    geometry: Geometry
+    cams: tuple
+    mount: tuple
+    kind: tuple
+    u: np.ndarray
+    heads: np.ndarray
+    body: np.ndarray
+    target: np.ndarray
+    aims: np.ndarray
+    scene: object
+    bare: object
+    steps: tuple
+    moved: tuple
+    light: object
+    smp: object
+    settings: object
+    region_area: object
+
+
+def judging(exp: Experiment, geometry: Geometry) -> Judging:
+    """The `Judging` of `exp`'s candidates on `geometry` (ray-cast scenes built, keyframes moved)."""
     samples = geometry.samples
-    R = len(samples.region_names)
     cams, mount, kind, u, heads, body, tg, aims = candidate_cameras(exp, samples, geometry.meshes)
-    if not cams:
-        return Candidates((), (), (), u, heads, body, tg, aims, np.zeros((0, len(samples), 6)),
-                          np.zeros((0, len(samples)), np.float32), np.zeros((0, R), bool),
-                          np.zeros((0, R)), np.zeros(0))
     scene = build_scene(list(geometry.meshes))
-    vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=shown(log))
-    bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
-                              samples, exp.evaluation.incidence_limit).visible
-    hidden = bare & ~vis.visible
+    bare = build_scene([m for m in geometry.meshes if m.role == "specimen"])
     path = load_path_of(exp, list(geometry.meshes))
     steps = () if path is None else loadpath.keyframe_steps(path, exp.design.keyframes)
-    on_path = (np.ones((len(cams), len(samples)), bool) if not steps else
-               loadpath.path_occlusion(geometry, path, cams, steps) > 0)
+    moved = []
+    for step in steps:      # as `vdo.search.loadpath.path_occlusion`: every keyframe, meshes moved
+        g = at_step(geometry, path, step)
+        moved.append((g.samples, build_scene(list(g.meshes) + bodies_of(exp, []))))
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
-    smp = samples_for_objective(exp, samples)
-    st = replace(settings(exp), pair_dtype="float64")
-    K, N = len(cams), len(samples)
-    info = np.zeros((K, N, 6))
-    weight = np.zeros((K, N), np.float32)
-    batches = range(0, K, BATCH)
-    for s in bar(log, iterable=batches, desc="candidates", unit="batch", leave=False):
-        part = cams[s:s + BATCH]
-        pv = replace(vis, camera_names=vis.camera_names[s:s + BATCH],
-                     **{k: getattr(vis, k)[s:s + BATCH] for k in
-                        ("in_front", "in_image", "facing", "unoccluded")})
-        cp = objective.CameraParams.from_cameras(part)
-        views = view_data(exp, smp, pv, light, geometry.speckle)
-        C = np.asarray(objective.camera_information(cp, smp, views, geometry.speckle.table, st))
-        info[s:s + len(part)] = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
-        w = np.asarray(objective.geometry(cp, smp, st).weight)
-        weight[s:s + len(part)] = w * np.asarray(pv.unoccluded, float)
+    R = len(samples.region_names)
+    region_area = scipy.sparse.csr_matrix((samples.area, (np.arange(len(samples)), samples.region)),
+                                          shape=(len(samples), R))
+    return Judging(exp, geometry, tuple(cams), mount, kind, u, heads, body, tg, aims, scene, bare,
+                   steps, tuple(moved), light, samples_for_objective(exp, samples),
+                   replace(settings(exp), pair_dtype="float64"), region_area)
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """The judgement of candidates [start, stop) (`judge_block`): per candidate the number of
+    stored entries (counts), the entries (sample index int32, info (E, 6), weight (E,) float32,
+    candidate by candidate, samples ascending), assigned and masked (B, R), path_lost (B,), and
+    seen (B,) whether it has any entry at rest (before the load path)."""
+
+    start: int
+    counts: np.ndarray
+    index: np.ndarray
+    info: np.ndarray
+    weight: np.ndarray
+    assigned: np.ndarray
+    masked: np.ndarray
+    path_lost: np.ndarray
+    seen: np.ndarray
+
+
+def judge_block(j: Judging, start: int, stop: int) -> Block:
+    """Candidates [start, stop) of `j` judged on every sample (module docstring): one ray cast on
+    the whole scene, one on the specimen alone (obscuration), one per load-path keyframe; the
+    information and weights of the objective; then only the non-zero pairs kept."""
+    exp, samples = j.exp, j.geometry.samples
+    cams = list(j.cams[start:stop])
+    limit = exp.evaluation.incidence_limit
+    vis = compute_visibility(j.scene, cams, samples, limit, progress=False)
+    bare = compute_visibility(j.bare, cams, samples, limit, progress=False).visible
+    hidden = bare & ~vis.visible
+    cp = objective.CameraParams.from_cameras(cams)
+    views = view_data(exp, j.smp, vis, j.light, j.geometry.speckle)
+    C = np.asarray(objective.camera_information(cp, j.smp, views, j.geometry.speckle.table, j.settings))
+    info = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+    del C
+    weight = (np.asarray(objective.geometry(cp, j.smp, j.settings).weight)
+              * np.asarray(vis.unoccluded, float)).astype(np.float32)
+    seen = ((weight != 0) | (info != 0).any(axis=-1)).any(axis=1)
     at_rest = usable.usable_views(weight)
-    info *= on_path[..., None]
-    weight *= on_path
+    if j.steps:
+        on_path = np.ones(weight.shape, bool)
+        for moved_samples, scene in j.moved:
+            on_path &= compute_visibility(scene, cams, moved_samples, limit, progress=False).visible
+        info *= on_path[..., None]
+        weight *= on_path
     use = usable.usable_views(weight)
     lost = 1 - use.sum(1) / np.maximum(at_rest.sum(1), 1)
-    assigned, masked = np.zeros((K, R), bool), np.zeros((K, R))
-    for r in range(R):
-        m = samples.region == r
-        a = samples.area[m]
-        assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
-        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), 1e-30)
-    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(steps), steps)
-    return Candidates(tuple(cams), mount, kind, u, heads, body, tg, aims, info, weight, assigned,
-                      masked, lost)
+    area = np.asarray(j.region_area.sum(axis=0)).ravel()
+    assigned = (j.region_area.T @ use.T.astype(float)).T / np.maximum(area, 1e-300) \
+        >= exp.optimize.assign_fraction
+    masked = (j.region_area.T @ hidden.T.astype(float)).T / np.maximum(
+        (j.region_area.T @ bare.T.astype(float)).T, 1e-30)
+    keep = (weight != 0) | (info != 0).any(axis=-1)
+    rows, index = np.nonzero(keep)
+    return Block(start, keep.sum(1), index.astype(np.int32), info[rows, index], weight[rows, index],
+                 assigned, masked, lost, seen)
+
+
+def block_size(samples: int) -> int:
+    """Candidates per block: PAIRS_PER_BLOCK pairs (at least one candidate)."""
+    return max(1, PAIRS_PER_BLOCK // max(samples, 1))
+
+
+def collect(j: Judging, blocks: list[Block]) -> Candidates:
+    """The `Candidates` of `j` from its blocks (in any order), blind candidates (no sample in view
+    at rest) dropped."""
+    blocks = sorted(blocks, key=lambda b: b.start)
+    R = len(j.geometry.samples.region_names)
+    cat = (lambda f, empty: np.concatenate([f(b) for b in blocks]) if blocks else empty)
+    seen = cat(lambda b: b.seen, np.zeros(0, bool))
+    counts = cat(lambda b: b.counts, np.zeros(0, int))
+    keep = np.flatnonzero(seen)
+    pick = lambda seq: tuple(seq[i] for i in keep)                        # noqa: E731
+    return Candidates(
+        pick(j.cams), pick(j.mount), pick(j.kind), j.u[keep], j.heads[keep], j.body[keep],
+        j.target[keep], j.aims, len(j.geometry.samples),
+        np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64),
+        cat(lambda b: b.index, np.zeros(0, np.int32)), cat(lambda b: b.info, np.zeros((0, 6))),
+        cat(lambda b: b.weight, np.zeros(0, np.float32)),
+        cat(lambda b: b.assigned, np.zeros((0, R), bool))[keep],
+        cat(lambda b: b.masked, np.zeros((0, R)))[keep], cat(lambda b: b.path_lost, np.zeros(0))[keep],
+        pruned=int(len(seen) - len(keep)))
+
+
+def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None) -> Candidates:
+    """Every candidate's information and weights on `geometry`'s samples (module docstring), in
+    blocks of `block_size` candidates, stored sparsely; with progress bars when the module logger
+    passes INFO (`vdo.core.progress`)."""
+    j = judging(exp, geometry) if j is None else j
+    size = block_size(len(geometry.samples))
+    starts = range(0, len(j.cams), size)
+    blocks = [judge_block(j, s, min(s + size, len(j.cams)))
+              for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False)]
+    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
+    return collect(j, blocks)
 
 
 class Scorer:
-    """score(S) of the module docstring for sums of candidates' information and weights."""
+    """score(S) of the module docstring for sums of candidates' information and weights. Adding
+    one candidate changes only the samples it sees, so each candidate's score is the base set's
+    sums corrected at its stored entries: with T the base's largest sigma (information only lowers
+    sigma, so T bounds every sigma after the addition),
+
+        score(S + k) = T (G + sum_{n in k} [g'_n - g_n])^(1/q) + W (H + sum_{n in k} [h'_n - h_n]),
+
+    g_n = omega_n (sigma_n / T)^q, h_n = a_n max(0, k_region(n) - k_S(n))^2, G and H their sums
+    over all samples and the primes after the addition: the cost follows the stored entries, not
+    candidates x samples."""
 
     def __init__(self, exp: Experiment, samples):
         st = settings(exp)
         scored = np.ones(len(samples.region_names), bool) if exp.optimize.regions is None else \
             np.isin(samples.region_names, exp.optimize.regions)
         omega = samples.area * samples.region_importance[samples.region] * scored[samples.region]
-        area = samples.area / samples.area.sum()
         minimum = np.array([r.min_cameras or exp.evaluation.min_cameras for r in exp.regions])
         self.settings = st
-        self.omega = jnp.asarray(omega / omega.sum())
-        self.area = jnp.asarray(area)
-        self.minimum = jnp.asarray(minimum[samples.region], dtype=float)
-        self._batch = jax.jit(jax.vmap(self._one, in_axes=(0, 0)))
+        self.omega = omega / omega.sum()
+        self.area = samples.area / samples.area.sum()
+        self.minimum = minimum[samples.region].astype(float)
+        self._sigma = jax.jit(lambda e: objective._smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
+                              / st.sigma_unit)
 
-    def _one(self, info, cover):
-        """info (N, 6) float64, cover (N,) -> score."""
-        st = self.settings
-        sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
-        q = st.score_power
-        top = jnp.max(sigma)
-        agg = top * jnp.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
-        short = jnp.maximum(self.minimum - cover, 0.0)
-        return agg + st.coverage_weight * jnp.sum(self.area * short * short)
+    def sigma(self, info: np.ndarray) -> np.ndarray:
+        """(M,) smooth sigma_max / sigma_unit of (M, 6) information, in chunks of ENTRY_CHUNK
+        (the last one padded, so one compiled size)."""
+        out = np.empty(len(info))
+        for s in range(0, len(info), ENTRY_CHUNK):
+            part = info[s:s + ENTRY_CHUNK]
+            size = ENTRY_CHUNK if len(info) > ENTRY_CHUNK else 1 << max(len(part) - 1, 1).bit_length()
+            pad = np.zeros((size, 6))
+            pad[:len(part)] = part
+            out[s:s + len(part)] = np.asarray(self._sigma(jnp.asarray(pad)))[:len(part)]
+        return out
 
-    def add(self, base_info, base_cover, info, weight) -> np.ndarray:
-        """Scores of base + each candidate: base (N, 6), (N,); info (M, N, 6), weight (M, N)."""
-        out = []
-        for s in range(0, len(info), BATCH):
-            i = jnp.asarray(base_info[None] + info[s:s + BATCH])
-            c = jnp.asarray(base_cover[None] + weight[s:s + BATCH])
-            out.append(np.asarray(self._batch(i, c)))
-        return np.concatenate(out) if out else np.zeros(0)
+    def _score(self, sigma, cover) -> float:
+        q = self.settings.score_power
+        top = sigma.max()
+        short = np.maximum(self.minimum - cover, 0.0)
+        return float(top * np.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
+                     + self.settings.coverage_weight * np.sum(self.area * short * short))
+
+    def add(self, base_info, base_cover, cand: Candidates, rows) -> np.ndarray:
+        """Scores of base + each candidate of `rows`: base (N, 6), (N,)."""
+        rows = np.asarray(rows, dtype=int)
+        if rows.size == 0:
+            return np.zeros(0)
+        st, q = self.settings, self.settings.score_power
+        sigma = self.sigma(base_info)
+        top = sigma.max()
+        g = self.omega * (sigma / top) ** q
+        short = np.maximum(self.minimum - base_cover, 0.0)
+        h = self.area * short * short
+        lo, hi = cand.indptr[rows], cand.indptr[rows + 1]
+        dg, dh = np.zeros(len(rows)), np.zeros(len(rows))
+        # the entries of `rows` walked in chunks of about ENTRY_CHUNK, candidate by candidate
+        ends = np.cumsum(hi - lo)
+        first = 0
+        while first < len(rows):
+            last = int(np.searchsorted(ends, (ends[first - 1] if first else 0) + ENTRY_CHUNK, side="right"))
+            last = max(last, first + 1)
+            e = np.concatenate([np.arange(a, b) for a, b in zip(lo[first:last], hi[first:last])])
+            owner = np.repeat(np.arange(first, last), hi[first:last] - lo[first:last])
+            n = cand.index[e]
+            s2 = self.sigma(base_info[n] + cand.entry_info[e])
+            short2 = np.maximum(self.minimum[n] - (base_cover[n] + cand.entry_weight[e]), 0.0)
+            dg += np.bincount(owner, self.omega[n] * (s2 / top) ** q - g[n], minlength=len(rows))
+            dh += np.bincount(owner, self.area[n] * short2 * short2 - h[n], minlength=len(rows))
+            first = last
+        return (top * np.maximum(g.sum() + dg, 0.0) ** (1.0 / q)
+                + st.coverage_weight * (h.sum() + dh))
 
     def of(self, cand: Candidates, chosen) -> float:
-        chosen = list(chosen)
-        i = cand.info[chosen].sum(0)
-        c = cand.weight[chosen].sum(0)
-        return float(self._batch(jnp.asarray(i[None]), jnp.asarray(c[None]))[0])
+        info, cover = cand.sums(list(chosen))
+        return self._score(self.sigma(info), cover)
 
 
-def min_angles(exp: Experiment, cand: Candidates) -> np.ndarray:
-    """(K, K) minimum axis angle (rad) of each pair: [optimize] min_axis_angle_deg or the stereo
-    rule of thumb for the shorter lens (`vdo.constraints.stereo_min_angle`)."""
+def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
+    """(K,) minimum axis angle (rad) of candidate j with each candidate: [optimize]
+    min_axis_angle_deg or the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`)."""
     f = np.array([c.focal_length for c in cand.cameras])
     if exp.optimize.min_axis_angle is not None:
-        return np.full((len(f), len(f)), exp.optimize.min_axis_angle)
-    rule = {x: stereo_min_angle(x) for x in np.unique(f)}
-    lo = np.minimum(f[:, None], f[None])
-    return np.vectorize(rule.get)(lo)
+        return np.full(len(f), exp.optimize.min_axis_angle)
+    lens = np.unique(f)
+    rule = np.array([stereo_min_angle(x) for x in lens])
+    return rule[np.searchsorted(lens, np.minimum(f, f[j]))]
 
 
 class Feasibility:
@@ -393,31 +585,43 @@ class Feasibility:
     max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
     between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
     max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
-    pairs sharing that region)."""
+    pairs sharing that region). A candidate's conflicts with all others (K,) are found when it is
+    first selected and kept (never a K x K matrix)."""
 
     def __init__(self, exp: Experiment, cand: Candidates):
-        p, a = cand.positions, cand.axes
-        self.exclusive = np.linalg.norm(p[:, None] - p[None], axis=-1) < SPOT_M
-        share = (cand.assigned.astype(int) @ cand.assigned.T.astype(int)) > 0
-        angle = np.arccos(np.clip(a @ a.T, -1, 1))
-        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - 1e-9))
-        if exp.optimize.max_axis_angle is not None:
-            conflict |= share & (angle > exp.optimize.max_axis_angle + 1e-9)
-        for r, spec in enumerate(exp.regions):
-            if spec.max_axis_angle is not None:
-                on = cand.assigned[:, r]
-                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + 1e-9)
-        self.conflict = conflict
+        self.exp, self.cand = exp, cand
+        self.positions, self.axes = cand.positions, cand.axes
+        self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
+                        if spec.max_axis_angle is not None]
         self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
         self.body = cand.body
         self.counts = np.array([b.count for b in bodies(exp)])
+        self._rows: dict[int, np.ndarray] = {}
+
+    def row(self, j: int) -> np.ndarray:
+        """(K,) True where a candidate conflicts with candidate j."""
+        if j not in self._rows:
+            cand, opt = self.cand, self.exp.optimize
+            exclusive = np.linalg.norm(self.positions - self.positions[j], axis=1) < SPOT_M
+            share = (cand.assigned & cand.assigned[j]).any(axis=1)
+            angle = np.arccos(np.clip(self.axes @ self.axes[j], -1, 1))
+            conflict = exclusive | (share & (angle < min_angles(self.exp, cand, j) - ANGLE_TOL))
+            if opt.max_axis_angle is not None:
+                conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
+            for r, top in self.limited:
+                conflict |= cand.assigned[:, r] & cand.assigned[j, r] & (angle > top + ANGLE_TOL)
+            self._rows[j] = conflict
+        return self._rows[j]
+
+    def conflicts(self, i: int, j: int) -> bool:
+        return bool(self.row(j)[i])
 
     def allowed(self, chosen) -> np.ndarray:
         """(K,) True for the candidates compatible with every camera in `chosen` and whose body
         kind is not used up by `chosen`."""
         ok = self.alone.copy()
         for j in chosen:
-            ok &= ~self.conflict[j]
+            ok &= ~self.row(j)
         used = np.bincount(self.body[list(chosen)], minlength=len(self.counts))
         return ok & (used < self.counts)[self.body]
 
@@ -428,14 +632,11 @@ def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
     each addition (stops early when no feasible candidate is left); a progress bar when the module
     logger passes INFO."""
     chosen, scores = list(start), []
-    N = cand.info.shape[1]
     for _ in bar(log, iterable=range(n - len(chosen)), desc="greedy", leave=False):
         ok = np.flatnonzero(feas.allowed(chosen))
         if ok.size == 0:
             break
-        base_i = cand.info[chosen].sum(0) if chosen else np.zeros((N, 6))
-        base_c = cand.weight[chosen].sum(0) if chosen else np.zeros(N)
-        s = scorer.add(base_i, base_c, cand.info[ok], cand.weight[ok])
+        s = scorer.add(*cand.sums(chosen), cand, ok)
         best = int(np.argmin(s))
         chosen.append(int(ok[best]))
         scores.append(float(s[best]))
@@ -456,8 +657,7 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
             ok = ok[~np.isin(ok, chosen)]
             if ok.size == 0:
                 continue
-            s = scorer.add(cand.info[rest].sum(0),
-                           cand.weight[rest].sum(0), cand.info[ok], cand.weight[ok])
+            s = scorer.add(*cand.sums(rest), cand, ok)
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
                 chosen[slot], current = int(ok[best]), float(s[best])
@@ -512,7 +712,8 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     keyframes); fewer candidate spots (optical centres SPOT_M apart) seeing it than its
     min_cameras."""
     out, n = [], inventory(exp)
-    use = usable.usable_views(cand.weight) if len(cand.cameras) else np.zeros((0, len(samples)), bool)
+    use = usable.usable_views(cand.entry_weight)
+    owner, region = cand.row[use], samples.region[cand.index[use]]
     where = "[design] max_cameras" if exp.design.max_cameras else \
         ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
     for r, spec in enumerate(exp.regions):
@@ -520,8 +721,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
         if need > n:
             out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
                        f"has {n} ({where}): add {need - n} camera bod{'y' if need - n == 1 else 'ies'}")
-        m = samples.region == r
-        seeing = np.flatnonzero(use[:, m].any(axis=1))
+        seeing = np.unique(owner[region == r])
         if seeing.size == 0:
             moving = " over the load path's keyframes" if np.any(cand.path_lost > 0) else ""
             out.append(f"region {spec.name!r}: no candidate pose sees it{moving}: add a mount "
@@ -570,7 +770,8 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
         "per_lens_mm": {f"{x * 1e3:g}": int((f == x).sum()) for x in np.unique(f)},
         "per_region_assigned": {r.name: int(cand.assigned[:, k].sum())
                                 for k, r in enumerate(exp.regions)},
-        "usable_samples_mean": float(usable.usable_views(cand.weight).sum(1).mean()),
+        "usable_samples_mean": float(cand.usable_counts().mean()) if len(cand.cameras) else 0.0,
+        "blind_pruned": cand.pruned,
         "load_path_lost_mean": float(cand.path_lost.mean()),
         "chosen": [{"camera": f"d{k + 1}", "body": kinds[cand.body[i]].name,
                     "focal_mm": round(cand.cameras[i].focal_length * 1e3, 6),
@@ -599,15 +800,17 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     n_max = inventory(exp)
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
     cand = judge(exp, coarse)
-    K, N = cand.info.shape[:2]
+    K, N = len(cand.cameras), cand.samples
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
              d.sample_spacing * 1e3, time.perf_counter() - t0)
     issues = problems(exp, cand, coarse.samples)
     for msg in issues:
         log.warning(msg)
     if K == 0:
-        raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
-                                              "[[mount]] or [[rail]] clear of the meshes")
+        raise ConfigError(exp.path, "design", (
+            f"none of the {cand.pruned} candidate poses that keep their clearance sees a sample: add "
+            "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
+            "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
     scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
     order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
@@ -678,7 +881,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
 def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
     """One row per candidate: mount, pose, body, lens, samples it sees usably, regions assigned,
     the fraction of its view the load path takes away, selected."""
-    use = usable.usable_views(cand.weight).sum(1)
+    use = cand.usable_counts()
     names = [b.name for b in bodies(exp)]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
