@@ -38,8 +38,10 @@ class SceneMesh:
     vertices: np.ndarray   # (n, 3) float64, m
     faces: np.ndarray      # (m, 3) int
 
-    @property
+    @functools.cached_property
     def trimesh(self) -> trimesh.Trimesh:
+        """The mesh as trimesh, built once (its cached normals, centres and areas are shared by
+        every region that selects faces of it; do not modify it)."""
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
