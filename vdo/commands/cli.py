@@ -29,10 +29,10 @@ from vdo.core.memory import retain_freed_memory
 
 BUILTIN = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / "ten_cameras.toml"
 # per command: the module whose import is heavy (done inside `interrupts.held`)
-_MODULES = {"evaluate": "evaluate", "demo": "evaluate", "render": "render_command",
-            "validate": "validate_command",
-            "optimize": "optimize", "design": "design", "export": "formats.export", "sweep": "sweep",
-            "report": "html_report"}
+_MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate",
+            "render": "vdo.commands.render", "validate": "vdo.commands.validate",
+            "optimize": "vdo.optimize", "design": "vdo.design.select", "export": "vdo.formats.export",
+            "sweep": "vdo.commands.sweep", "report": "vdo.outputs.html_report"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
@@ -260,7 +260,7 @@ def _run(args) -> int:
 
         configure()
         if args.command in _MODULES:
-            importlib.import_module(f".{_MODULES[args.command]}", __package__)
+            importlib.import_module(_MODULES[args.command])
     handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
                "optimize": _optimize, "design": _design, "export": _export, "report": _report,
                "sweep": _sweep}[args.command]
