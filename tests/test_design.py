@@ -333,3 +333,24 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
     small = design.judge(exp, geometry)
     for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
         np.testing.assert_array_equal(getattr(small, name), getattr(cand, name), err_msg=name)
+
+
+def test_stored_pairs_equal_the_dense_information_and_weights(judged):
+    """The stored entries (`objective.pair_information` on the listed pairs) equal the dense
+    (candidates, samples) arrays of `objective.camera_information` and `objective.geometry`'s
+    weight times the ray cast's occlusion, zero wherever nothing is stored."""
+    exp, geometry, cand = judged
+    cams = list(cand.cameras)
+    vis = compute_visibility(build_scene(list(geometry.meshes)), cams, geometry.samples,
+                             exp.evaluation.incidence_limit, progress=False)
+    smp = samples_for_objective(exp, geometry.samples)
+    light = illuminate(build_scene(list(geometry.meshes)), exp.lights, geometry.samples,
+                       exp.render.ambient_radiance)
+    st = replace(settings(exp), pair_dtype="float64")
+    cp = objective.CameraParams.from_cameras(cams)
+    C = np.asarray(objective.camera_information(cp, smp, view_data(exp, smp, vis, light, geometry.speckle),
+                                                geometry.speckle.table, st))
+    dense = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+    w = np.asarray(objective.geometry(cp, smp, st).weight) * vis.unoccluded
+    np.testing.assert_allclose(cand.info, dense, rtol=SUM_ORDER_RTOL, atol=SUM_ORDER_RTOL * np.abs(dense).max())
+    np.testing.assert_allclose(cand.weight, w.astype(np.float32), rtol=0, atol=0)

@@ -424,30 +424,31 @@ def judge_block(j: Judging, start: int, stop: int) -> Block:
     hidden = bare & ~vis.visible
     cp = objective.CameraParams.from_cameras(cams)
     views = view_data(exp, j.smp, vis, j.light, j.geometry.speckle)
-    C = np.asarray(objective.camera_information(cp, j.smp, views, j.geometry.speckle.table, j.settings))
-    info = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
-    del C
-    weight = (np.asarray(objective.geometry(cp, j.smp, j.settings).weight)
-              * np.asarray(vis.unoccluded, float)).astype(np.float32)
-    seen = ((weight != 0) | (info != 0).any(axis=-1)).any(axis=1)
-    at_rest = usable.usable_views(weight)
+    cam, index, info, w = objective.pair_information(cp, views, j.geometry.speckle.table, j.settings)
+    order = np.lexsort((index, cam))                      # candidate by candidate, samples ascending
+    cam, index, info, weight = cam[order], index[order], info[order], w[order].astype(np.float32)
+    kept = (weight != 0) | (info != 0).any(axis=-1)
+    B, N, R = len(cams), len(samples), len(samples.region_names)
+    seen = np.bincount(cam[kept], minlength=B) > 0
+    at_rest = np.bincount(cam, usable.usable_views(weight), minlength=B)
     if j.steps:
-        on_path = np.ones(weight.shape, bool)
+        on_path = np.ones((B, N), bool)
         for moved_samples, scene in j.moved:
             on_path &= compute_visibility(scene, cams, moved_samples, limit, progress=False).visible
-        info *= on_path[..., None]
-        weight *= on_path
+        on = on_path[cam, index]
+        info *= on[:, None]
+        weight *= on
     use = usable.usable_views(weight)
-    lost = 1 - use.sum(1) / np.maximum(at_rest.sum(1), 1)
+    lost = 1 - np.bincount(cam, use, minlength=B) / np.maximum(at_rest, 1)
     area = np.asarray(j.region_area.sum(axis=0)).ravel()
-    assigned = (j.region_area.T @ use.T.astype(float)).T / np.maximum(area, 1e-300) \
-        >= exp.optimize.assign_fraction
+    region = samples.region[index]
+    seen_area = np.bincount(cam * R + region, samples.area[index] * use, minlength=B * R).reshape(B, R)
+    assigned = seen_area / np.maximum(area, 1e-300) >= exp.optimize.assign_fraction
     masked = (j.region_area.T @ hidden.T.astype(float)).T / np.maximum(
         (j.region_area.T @ bare.T.astype(float)).T, 1e-30)
     keep = (weight != 0) | (info != 0).any(axis=-1)
-    rows, index = np.nonzero(keep)
-    return Block(start, keep.sum(1), index.astype(np.int32), info[rows, index], weight[rows, index],
-                 assigned, masked, lost, seen)
+    return Block(start, np.bincount(cam[keep], minlength=B), index[keep].astype(np.int32), info[keep],
+                 weight[keep], assigned, masked, lost, seen)
 
 
 def block_size(samples: int) -> int:
