@@ -354,3 +354,51 @@ def test_stored_pairs_equal_the_dense_information_and_weights(judged):
     w = np.asarray(objective.geometry(cp, smp, st).weight) * vis.unoccluded
     np.testing.assert_allclose(cand.info, dense, rtol=SUM_ORDER_RTOL, atol=SUM_ORDER_RTOL * np.abs(dense).max())
     np.testing.assert_allclose(cand.weight, w.astype(np.float32), rtol=0, atol=0)
+
+
+SCALING_TOL = 0.15   # stored pairs grow as 1 / spacing^2 only up to the regions' edges
+
+
+def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fits(plate_experiment):
+    """Fewer candidates than PROBE: the estimate judges them all, so its stored pairs are the
+    judgement's and its stored bytes the arrays' own. A memory limit a quarter of the way from the
+    fixed part to the estimate is refused naming a spacing (at least 2x coarser) and a candidate
+    count; the estimate at that spacing fits within SCALING_TOL. A time limit half the estimate:
+    a spacing sqrt(2) coarser."""
+    exp = _experiment(plate_experiment)
+    geometry = prepare(exp)
+    j = design.judging(exp, geometry)
+    est = design.estimate(exp, j, design.Scorer(exp, geometry.samples))
+    cand = design.judge(exp, geometry, j)
+    assert est.probed == len(j.cams) and est.entries == cand.index.size
+    assert est.entries * design.ENTRY_BYTES == \
+        cand.index.nbytes + cand.entry_info.nbytes + cand.entry_weight.nbytes
+    room = 0.25 * (est.memory_bytes - est.fixed_bytes)
+    with pytest.raises(ConfigError) as err:
+        design.refuse(exp, est, est.fixed_bytes + room, None)
+    msg = str(err.value)
+    assert "design.sample_spacing_mm" in msg and "\n" not in msg
+    spacing = int(re.search(r"sample_spacing_mm of (\d+) or more", msg)[1])
+    assert spacing >= 2 * 50 and f"at most {int(est.candidates / 4):,} candidates" in msg
+    coarse = replace(exp, design=replace(exp.design, sample_spacing=spacing / 1e3))
+    g2 = prepare(replace(coarse, evaluation=replace(coarse.evaluation, sample_spacing=spacing / 1e3)))
+    est2 = design.estimate(coarse, design.judging(coarse, g2), design.Scorer(coarse, g2.samples))
+    assert est2.memory_bytes - est2.fixed_bytes <= room * (1 + SCALING_TOL)
+    total = est.judge_s + est.search_s
+    with pytest.raises(ConfigError, match=rf"sample_spacing_mm of {math.ceil(50 * math.sqrt(2))} or more"):
+        design.refuse(exp, est, math.inf, total / 2)
+    design.refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
+
+
+def test_design_refused_on_the_command_line_in_one_line(plate_experiment, tmp_path, capsys):
+    """`vdo design --memory-gb` below the estimate: exit 2, one line naming the file and the
+    field, no traceback, no output folder."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment)
+    out = tmp_path / "out"
+    assert main(["design", str(exp.path), "--out", str(out), "--memory-gb", "0.01", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0] and str(exp.path) in err[0]
+    assert "design" in err[0] and "GB" in err[0]
+    assert not out.exists()

@@ -133,7 +133,9 @@ def _optimize(exp, args) -> None:
 def _design(exp, args) -> None:
     from vdo.design.select import design
 
-    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine)   # logs its problems
+    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
+                    memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
+                    time_limit=args.time_limit)
     if not args.quiet:
         for c in result["curve"]:
             p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
@@ -217,6 +219,11 @@ def _parser() -> argparse.ArgumentParser:
     de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
+    de.add_argument("--memory-gb", type=float, default=None, metavar="GB",
+                    help="refuse, before the work, a design estimated to need more (default: the "
+                         "memory available)")
+    de.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                    help="refuse, before the work, a design estimated to take longer")
     de.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")

@@ -78,6 +78,8 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import os
+import resource
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -117,6 +119,14 @@ SPOT_M = 0.2            # two optical centres closer than this are one physical 
 PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
 ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
 ANGLE_TOL = 1e-9             # rad: an axis angle this close to its limit meets it
+PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
+ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
+STORE_COPIES = 2             # the blocks' pairs and their concatenation coexist once, at the end of judging
+PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a block: the ray casts'
+#                              flags (whole scene, specimen alone, keyframes) and their float copies
+CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
+SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+GB = 1e9
 
 
 @dataclass(frozen=True, eq=False)
@@ -668,6 +678,108 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
     return chosen, current, swaps
 
 
+@dataclass(frozen=True)
+class Estimate:
+    """What judging and selecting will take, estimated before the work (`estimate`): candidates
+    K, samples N, candidates probed P, stored pairs E (the probe's mean per candidate x K), peak
+    memory (bytes: the process so far, the stored pairs STORE_COPIES times, one block's working
+    arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
+    time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
+    greedy's n_max plus SEARCH_PASSES exchange passes of every count's cameras), seconds."""
+
+    candidates: int
+    samples: int
+    probed: int
+    entries: int
+    memory_bytes: float
+    fixed_bytes: float
+    judge_s: float
+    search_s: float
+
+    def line(self) -> str:
+        return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
+                f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
+                f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
+                f"{self.search_s:.0f} s search")
+
+
+def peak_rss() -> float:
+    """The process's peak resident memory so far (bytes; Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
+
+
+def available_memory() -> float:
+    """Bytes this process may still use: MemAvailable of /proc/meminfo plus what it holds now
+    (its peak so far); the physical memory where /proc is missing."""
+    try:
+        with open("/proc/meminfo") as fh:
+            free = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    return free + peak_rss()
+
+
+def score_passes(exp: Experiment) -> int:
+    """How many times the search scores every candidate: greedy's n_max steps plus SEARCH_PASSES
+    exchange passes over each count's cameras (count = min_cameras .. n_max)."""
+    n = inventory(exp)
+    return n + SEARCH_PASSES * sum(range(min(exp.design.min_cameras, n), n + 1))
+
+
+def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
+    """Judge PROBE candidates evenly spread over `j`'s list and time the score on their pairs;
+    scale to all candidates (the `Estimate` fields)."""
+    K, N = len(j.cams), len(j.geometry.samples)
+    pick = np.unique(np.linspace(0, K - 1, min(K, PROBE)).astype(int)) if K else np.zeros(0, int)
+    probe = replace(j, cams=tuple(j.cams[i] for i in pick), mount=tuple(j.mount[i] for i in pick),
+                    kind=tuple(j.kind[i] for i in pick), u=j.u[pick], heads=j.heads[pick],
+                    body=j.body[pick], target=j.target[pick])
+    t0 = time.perf_counter()
+    block = judge_block(probe, 0, len(pick)) if len(pick) else None
+    judge_s = (time.perf_counter() - t0) / max(len(pick), 1) * K
+    per = float(block.counts.sum()) / len(pick) if len(pick) else 0.0
+    entries = int(round(per * K))
+    search_s = 0.0
+    sample = collect(probe, [block]) if block is not None else None
+    if sample is not None and sample.index.size:
+        rows = np.arange(len(sample.cameras))
+        zero = (np.zeros((N, 6)), np.zeros(N))
+        scorer.add(*zero, sample, rows[:1])                                  # compiles
+        t0 = time.perf_counter()
+        scorer.add(*zero, sample, rows)
+        search_s = (time.perf_counter() - t0) / sample.index.size * entries * score_passes(exp)
+    fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
+    memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
+    return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s)
+
+
+def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:
+    """ConfigError naming the [design] sample_spacing_mm and the candidate count that would fit
+    when `est` needs more than `memory_limit` bytes or (with one) `time_limit` seconds. The stored
+    pairs and both times grow as candidates x samples, samples as 1 / spacing^2."""
+    over = []
+    if est.memory_bytes > memory_limit:
+        room = memory_limit - est.fixed_bytes
+        if room <= 0:
+            raise ConfigError(exp.path, "design", (
+                f"{est.line()}; but only {memory_limit / GB:.1f} GB is available and this process, one "
+                f"block of candidates and the {est.candidates:,} candidates' cameras already take "
+                f"{est.fixed_bytes / GB:.1f} GB: free memory, or far fewer candidates (zone_points, "
+                "zone_heights, rail_positions, lenses_mm, aim_offsets_deg)"))
+        over.append(((est.memory_bytes - est.fixed_bytes) / room, f"{memory_limit / GB:.1f} GB of memory"))
+    total = est.judge_s + est.search_s
+    if time_limit is not None and total > time_limit:
+        over.append((total / time_limit, f"the time limit of {time_limit:g} s"))
+    if not over:
+        return
+    ratio, what = max(over)
+    spacing = math.ceil(exp.design.sample_spacing * 1e3 * math.sqrt(ratio))
+    raise ConfigError(exp.path, "design.sample_spacing_mm", (
+        f"{est.line()}: more than {' and '.join(w for _, w in over)}; a sample_spacing_mm of {spacing} "
+        f"or more, or at most {int(est.candidates / ratio):,} candidates (fewer zone_points, "
+        "zone_heights, rail_positions, lenses_mm or aim_offsets_deg), fits"))
+
+
 def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
     """[[camera]] entries d1, d2, ... for the chosen candidates: rail + u + offset, zone or fixed
     mount + position, or position."""
@@ -789,19 +901,30 @@ def constraint_checks(exp: Experiment) -> list[dict]:
     return problem.check(problem.start)
 
 
-def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False) -> dict:
+def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
+           memory_limit: float | None = None, time_limit: float | None = None) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
     `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
-    constraints.json "before" holds every constraint check of the designed layout). Progress
-    and the chosen cameras: INFO lines and bars through the module logger; each problem found
-    (also in the result): a warning."""
+    constraints.json "before" holds every constraint check of the designed layout). Before the
+    work, the time and memory it will take are estimated (`estimate`, one INFO line) and a
+    problem that needs more than `memory_limit` bytes (default: `available_memory`) or
+    `time_limit` seconds is refused (`refuse`: ConfigError naming the spacing and the candidate
+    count that fit). Progress and the chosen cameras: INFO lines and bars through the module
+    logger; each problem found (also in the result): a warning."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
-    cand = judge(exp, coarse)
+    j = judging(exp, coarse)
+    scorer = Scorer(exp, coarse.samples)
+    est = estimate(exp, j, scorer)
+    log.info(est.line())
+    refuse(exp, est, available_memory() if memory_limit is None else memory_limit, time_limit)
+    t_judge = time.perf_counter()
+    cand = judge(exp, coarse, j)
     K, N = len(cand.cameras), cand.samples
+    judged_s = time.perf_counter() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
              d.sample_spacing * 1e3, time.perf_counter() - t0)
     issues = problems(exp, cand, coarse.samples)
@@ -812,7 +935,8 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             f"none of the {cand.pruned} candidate poses that keep their clearance sees a sample: add "
             "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
             "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
-    scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
+    feas = Feasibility(exp, cand)
+    t_search = time.perf_counter()
     order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
@@ -823,6 +947,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
                       **measures(state, exp)})
+    searched_s = time.perf_counter() - t_search
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
@@ -871,7 +996,13 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             "constraint_violations": len(violated),
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
-            "wall_s": wall})
+            "wall_s": wall,
+            "estimate": {"candidates": est.candidates, "samples": est.samples, "probed": est.probed,
+                         "entries": est.entries, "memory_gb": est.memory_bytes / GB,
+                         "judge_s": est.judge_s, "search_s": est.search_s},
+            "measured": {"candidates": K + cand.pruned, "blind_pruned": cand.pruned,
+                         "entries": int(cand.index.size), "peak_memory_gb": peak_rss() / GB,
+                         "judge_s": judged_s, "search_s": searched_s}})
         html_report.write_report(tmp)
         refined = optimize(final, tmp / "refine") if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
