@@ -402,3 +402,26 @@ def test_design_refused_on_the_command_line_in_one_line(plate_experiment, tmp_pa
     assert len(err) == 1 and "Traceback" not in err[0] and str(exp.path) in err[0]
     assert "design" in err[0] and "GB" in err[0]
     assert not out.exists()
+
+
+def test_candidates_judged_on_a_two_worker_local_cluster_equal_the_local_run(plate_experiment, tmp_path,
+                                                                             monkeypatch):
+    """Blocks of 3 candidates as tasks on a dask.distributed LocalCluster of 2 spawned worker
+    processes: the same stored pairs, regions and obscuration as the local judgement, and the same
+    selection."""
+    from distributed import Client, LocalCluster
+
+    exp = _experiment(plate_experiment)          # [evaluation] and [design] spacing both 50 mm
+    geometry = prepare(exp)
+    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 3 * len(geometry.samples))
+    local = design.judge(exp, geometry)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      local_directory=str(tmp_path / "dask")) as cluster, Client(cluster) as client:
+        remote = design.judge(exp, geometry, client=client, threads=1)
+    for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
+        np.testing.assert_array_equal(getattr(remote, name), getattr(local, name), err_msg=name)
+    picks = []
+    for cand in (local, remote):
+        scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+        picks.append(design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])[0])
+    assert picks[0] == picks[1]

@@ -131,11 +131,28 @@ def _optimize(exp, args) -> None:
 
 
 def _design(exp, args) -> None:
+    import shutil
+    import tempfile
+
+    from vdo.commands.sweep import connect_dask, cores
     from vdo.design.select import design
 
-    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
-                    memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
-                    time_limit=args.time_limit)
+    client = cluster = scratch = None
+    workers = args.workers or cores()
+    if args.dask:     # the candidates judged on Dask workers (spawned processes for "local")
+        scratch = Path(tempfile.mkdtemp(prefix="vdo-design-dask-"))
+        client, cluster = connect_dask(args.dask, workers, 30.0, scratch)
+    try:
+        result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
+                        memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
+                        time_limit=args.time_limit, client=client,
+                        threads=max(1, cores() // workers) if args.dask == "local" else None)
+    finally:
+        for c in (client, cluster):
+            if c is not None:
+                c.close()
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
     if not args.quiet:
         for c in result["curve"]:
             p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
@@ -224,6 +241,10 @@ def _parser() -> argparse.ArgumentParser:
                          "memory available)")
     de.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                     help="refuse, before the work, a design estimated to take longer")
+    de.add_argument("--dask", default=None, help="judge the candidates on a Dask scheduler's workers "
+                                                 "(its address), or 'local' for a LocalCluster")
+    de.add_argument("--workers", type=int, default=None,
+                    help="LocalCluster worker processes (default: one per core)")
     de.add_argument("--quiet", action="store_true")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")

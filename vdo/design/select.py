@@ -81,6 +81,7 @@ import math
 import os
 import resource
 import time
+import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -105,6 +106,7 @@ from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
 from vdo.optimize import Problem, optimize
 from vdo.physics.predict import samples_for_objective, settings, view_data
+from vdo.core.configure import configure
 from vdo.core.progress import bar
 from vdo.core.runfolder import run_folder
 from vdo.scene import build_scene, camera_body_points
@@ -487,15 +489,45 @@ def collect(j: Judging, blocks: list[Block]) -> Candidates:
         pruned=int(len(seen) - len(keep)))
 
 
-def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None) -> Candidates:
+_WORKER: dict = {}   # a Dask worker's Judging, built at its first block of a design run
+
+
+def remote_block(exp: Experiment, token: str, start: int, stop: int, threads: int | None) -> Block:
+    """`judge_block` on a Dask worker: the worker configures itself (`vdo.core.configure`, with
+    `threads` Dr.Jit threads) and builds the run's `Judging` (selection samples at [design]
+    sample_spacing_mm, candidates, scenes) at its first block of the run `token`, then keeps it.
+    The candidate list is deterministic, so every worker's list is the caller's."""
+    if _WORKER.get("token") != token:
+        configure(threads=threads)
+        _WORKER.clear()
+        spacing = exp.design.sample_spacing
+        geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
+        _WORKER.update(token=token, judging=judging(exp, geometry))
+    return judge_block(_WORKER["judging"], start, stop)
+
+
+def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=None,
+          threads: int | None = None) -> Candidates:
     """Every candidate's information and weights on `geometry`'s samples (module docstring), in
     blocks of `block_size` candidates, stored sparsely; with progress bars when the module logger
-    passes INFO (`vdo.core.progress`)."""
+    passes INFO (`vdo.core.progress`). With a dask.distributed `client`, the blocks are tasks on
+    its workers (`remote_block`; `geometry` must then be `exp` sampled at [design]
+    sample_spacing_mm, as `design` does) and come back in any order: the same result."""
     j = judging(exp, geometry) if j is None else j
     size = block_size(len(geometry.samples))
     starts = range(0, len(j.cams), size)
-    blocks = [judge_block(j, s, min(s + size, len(j.cams)))
-              for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False)]
+    if client is None:
+        blocks = [judge_block(j, s, min(s + size, len(j.cams)))
+                  for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False)]
+    else:
+        from distributed import as_completed
+
+        token = uuid.uuid4().hex
+        shared = client.scatter(exp, broadcast=True)
+        futures = [client.submit(remote_block, shared, token, s, min(s + size, len(j.cams)), threads,
+                                 key=f"vdo-design-{token}-{s}", pure=False) for s in starts]
+        blocks = [f.result() for f in bar(log, iterable=as_completed(futures), total=len(futures),
+                                          desc="candidates (dask)", unit="block", leave=False)]
     log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
     return collect(j, blocks)
 
@@ -902,7 +934,8 @@ def constraint_checks(exp: Experiment) -> list[dict]:
 
 
 def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
-           memory_limit: float | None = None, time_limit: float | None = None) -> dict:
+           memory_limit: float | None = None, time_limit: float | None = None, client=None,
+           threads: int | None = None) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
     `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
@@ -910,8 +943,9 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     work, the time and memory it will take are estimated (`estimate`, one INFO line) and a
     problem that needs more than `memory_limit` bytes (default: `available_memory`) or
     `time_limit` seconds is refused (`refuse`: ConfigError naming the spacing and the candidate
-    count that fit). Progress and the chosen cameras: INFO lines and bars through the module
-    logger; each problem found (also in the result): a warning."""
+    count that fit). With a dask.distributed `client` the candidates are judged on its workers
+    (`judge`; `threads` Dr.Jit threads each). Progress and the chosen cameras: INFO lines and
+    bars through the module logger; each problem found (also in the result): a warning."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
@@ -922,7 +956,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     log.info(est.line())
     refuse(exp, est, available_memory() if memory_limit is None else memory_limit, time_limit)
     t_judge = time.perf_counter()
-    cand = judge(exp, coarse, j)
+    cand = judge(exp, coarse, j, client=client, threads=threads)
     K, N = len(cand.cameras), cand.samples
     judged_s = time.perf_counter() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
