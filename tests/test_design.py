@@ -425,3 +425,16 @@ def test_candidates_judged_on_a_two_worker_local_cluster_equal_the_local_run(pla
         scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
         picks.append(design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])[0])
     assert picks[0] == picks[1]
+
+
+def test_sparse_scores_when_a_candidate_sees_the_worst_samples(judged):
+    """A base of every candidate but one leaves its worst samples to the one left out: the score
+    of adding it (the base's sum over the samples it does not see taken per band of g) equals
+    Scorer.of's sum over every sample, where G - sum_k g alone would lose the rest to rounding."""
+    exp, geometry, cand = judged
+    scorer = design.Scorer(exp, geometry.samples)
+    K = len(cand.cameras)
+    for k in range(K):
+        base = [i for i in range(K) if i != k]
+        fast = scorer.add(*cand.sums(base), cand, [k])[0]
+        assert fast == pytest.approx(scorer.of(cand, base + [k]), rel=SUM_ORDER_RTOL)

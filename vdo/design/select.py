@@ -129,6 +129,8 @@ PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a b
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
 GB = 1e9
+G_BAND_OCTAVES = 8           # the score's per-sample terms summed in bands a factor 2^8 wide (`Scorer.add`)
+G_BANDS = 140                # bands: g = omega (sigma / T)^q down to 2^-1120, below float64's smallest
 
 
 @dataclass(frozen=True, eq=False)
@@ -556,6 +558,9 @@ class Scorer:
         self.minimum = minimum[samples.region].astype(float)
         self._sigma = jax.jit(lambda e: objective._smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
                               / st.sigma_unit)
+        self._omega, self._area, self._minimum = (jnp.asarray(x) for x in (self.omega, self.area,
+                                                                           self.minimum))
+        self._terms = jax.jit(self._entry_terms)
 
     def sigma(self, info: np.ndarray) -> np.ndarray:
         """(M,) smooth sigma_max / sigma_unit of (M, 6) information, in chunks of ENTRY_CHUNK
@@ -576,8 +581,22 @@ class Scorer:
         return float(top * np.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
                      + self.settings.coverage_weight * np.sum(self.area * short * short))
 
+    def _entry_terms(self, index, info, weight, base_info, base_cover, h, top):
+        """Per entry (one chunk, jitted): g'_n after adding the entry's information to the base at
+        its sample n, and h'_n - h_n (class docstring)."""
+        st = self.settings
+        sig = objective._smooth_sigma_max(tuple(base_info[index, k] + info[:, k] for k in range(6)),
+                                          st) / st.sigma_unit
+        short = jnp.maximum(self._minimum[index] - (base_cover[index] + weight), 0.0)
+        return self._omega[index] * (sig / top) ** st.score_power, \
+            self._area[index] * short * short - h[index]
+
     def add(self, base_info, base_cover, cand: Candidates, rows) -> np.ndarray:
-        """Scores of base + each candidate of `rows`: base (N, 6), (N,)."""
+        """Scores of base + each candidate of `rows`: base (N, 6), (N,). The sum of g over the
+        samples a candidate does not see, G - sum_{n in k} g_n, is taken per band of g (a factor
+        2^G_BAND_OCTAVES wide; a band the candidate sees whole leaves exactly 0), so that a
+        candidate that sees the base's worst samples does not leave the rest to the rounding of
+        their difference."""
         rows = np.asarray(rows, dtype=int)
         if rows.size == 0:
             return np.zeros(0)
@@ -585,26 +604,35 @@ class Scorer:
         sigma = self.sigma(base_info)
         top = sigma.max()
         g = self.omega * (sigma / top) ** q
+        with np.errstate(divide="ignore"):
+            band = np.clip(-np.floor(np.log2(g) / G_BAND_OCTAVES), 0, G_BANDS - 1).astype(np.int64)
+        band_sum = np.bincount(band, g, minlength=G_BANDS)
+        band_count = np.bincount(band, minlength=G_BANDS)
         short = np.maximum(self.minimum - base_cover, 0.0)
         h = self.area * short * short
-        lo, hi = cand.indptr[rows], cand.indptr[rows + 1]
-        dg, dh = np.zeros(len(rows)), np.zeros(len(rows))
-        # the entries of `rows` walked in chunks of about ENTRY_CHUNK, candidate by candidate
-        ends = np.cumsum(hi - lo)
-        first = 0
-        while first < len(rows):
-            last = int(np.searchsorted(ends, (ends[first - 1] if first else 0) + ENTRY_CHUNK, side="right"))
-            last = max(last, first + 1)
-            e = np.concatenate([np.arange(a, b) for a, b in zip(lo[first:last], hi[first:last])])
-            owner = np.repeat(np.arange(first, last), hi[first:last] - lo[first:last])
-            n = cand.index[e]
-            s2 = self.sigma(base_info[n] + cand.entry_info[e])
-            short2 = np.maximum(self.minimum[n] - (base_cover[n] + cand.entry_weight[e]), 0.0)
-            dg += np.bincount(owner, self.omega[n] * (s2 / top) ** q - g[n], minlength=len(rows))
-            dh += np.bincount(owner, self.area[n] * short2 * short2 - h[n], minlength=len(rows))
-            first = last
-        return (top * np.maximum(g.sum() + dg, 0.0) ** (1.0 / q)
-                + st.coverage_weight * (h.sum() + dh))
+        lengths = cand.indptr[rows + 1] - cand.indptr[rows]
+        total = int(lengths.sum())
+        first = np.cumsum(lengths) - lengths                   # each row's first position among `total`
+        # the stored entries of `rows`, row after row: entry = indptr[row] + position within the row
+        entry = np.repeat(cand.indptr[rows] - first, lengths) + np.arange(total)
+        owner = np.repeat(np.arange(len(rows)), lengths)
+        base = tuple(jnp.asarray(x) for x in (base_info, base_cover, h))
+        new, dh = np.zeros(total), np.zeros(total)
+        for s in range(0, total, ENTRY_CHUNK):
+            e = entry[s:s + ENTRY_CHUNK]
+            m = len(e)
+            pad = lambda x: np.concatenate([x, np.zeros((ENTRY_CHUNK - m,) + x.shape[1:], x.dtype)])  # noqa: E731
+            a, b = self._terms(jnp.asarray(pad(cand.index[e])), jnp.asarray(pad(cand.entry_info[e])),
+                               jnp.asarray(pad(cand.entry_weight[e].astype(float))), *base, top)
+            new[s:s + m], dh[s:s + m] = np.asarray(a)[:m], np.asarray(b)[:m]
+        n = cand.index[entry]
+        cell = owner * G_BANDS + band[n]
+        seen_sum = np.bincount(cell, g[n], minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+        seen_count = np.bincount(cell, minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+        unseen = np.where(seen_count == band_count, 0.0, np.maximum(band_sum - seen_sum, 0.0)).sum(1)
+        seen_new = np.bincount(owner, new, minlength=len(rows))
+        dh = np.bincount(owner, dh, minlength=len(rows))
+        return top * (unseen + seen_new) ** (1.0 / q) + st.coverage_weight * (h.sum() + dh)
 
     def of(self, cand: Candidates, chosen) -> float:
         info, cover = cand.sums(list(chosen))
