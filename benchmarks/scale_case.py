@@ -83,7 +83,7 @@ def write_case(folder: Path, length_m: float = 6.0, segments: int = 60, cameras:
             name = f"{'front' if side < 0 else 'back'}_{k}"
             y0, y1 = sorted((side * SIDE_Y, side * (SIDE_Y + 1.2)))
             zones.append((name, side, (a + b) / 2))
-            out += ["[[mount]]", f'name = "{name}"', 'kind = "zone"', f"box_min_m = {_vec([a, y0, 0.4])}",
+            out += ["[[mount]]", f'name = "{name}"', 'kind = "zone"', f"box_min_m = {_vec([a, y0, 0.2])}",
                     f"box_max_m = {_vec([b, y1, 2.0])}", "", "[mount.tripod]", "legs = 3",
                     "spread_m = 0.45", "leg_diameter_m = 0.03", "column_diameter_m = 0.05", ""]
     for k, x in enumerate((-0.6 * h, 0.6 * h)):
