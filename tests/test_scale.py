@@ -66,3 +66,19 @@ def test_map_of_many_regions_labels_groups(girder, tmp_path):
     assert len(boxes) == 120
     for c0, r0, c1, r1 in boxes.values():
         assert 0 <= c0 < c1 <= w and 0 <= r0 < r1 <= h
+
+
+def test_load_path_changes_that_matter_are_named_with_their_thresholds():
+    """The issue's cases: sigma p95 2.06 -> 8.94 um with coverage still whole, a face losing 26 %
+    of its coverage; below the thresholds (x1.4, 4 points) nothing; unmeasured at a step: x inf."""
+    from vdo.search import loadpath
+
+    steps = ("rest", 1, 2)
+    p95 = np.array([[2.06, 1.0, 1.0, 3.0], [2.0, 1.0, 1.4, np.nan], [8.94, 1.0, 1.2, 3.0]]) * 1e-6
+    covered = np.array([[1.0, 1.0, 1.0, 1.0], [1.0, 0.74, 0.96, 1.0], [1.0, 0.9, 0.97, 1.0]])
+    got = loadpath.region_changes(("root", "bottom", "calm", "lost"), steps, covered, p95)
+    assert [(c["region"], c["kind"], c["step"]) for c in got] == [
+        ("root", "sigma", 2), ("bottom", "coverage", 1), ("lost", "sigma", 1)]
+    assert got[0]["ratio"] == pytest.approx(8.94 / 2.06) and got[1]["drop"] == pytest.approx(0.26)
+    assert got[2]["ratio"] == np.inf and got[2]["value_um"] is None
+    assert 1.4 < loadpath.SIGMA_RATIO and 0.04 < loadpath.COVERAGE_DROP
