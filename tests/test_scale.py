@@ -82,3 +82,23 @@ def test_load_path_changes_that_matter_are_named_with_their_thresholds():
     assert got[0]["ratio"] == pytest.approx(8.94 / 2.06) and got[1]["drop"] == pytest.approx(0.26)
     assert got[2]["ratio"] == np.inf and got[2]["value_um"] is None
     assert 1.4 < loadpath.SIGMA_RATIO and 0.04 < loadpath.COVERAGE_DROP
+
+
+def test_console_summary_of_many_regions_is_per_group(capsys):
+    """Past MAX_ROWS regions the console table has one row per region group: areas summed,
+    coverage area-weighted, the worst p95 (hand-computed here)."""
+    from vdo.commands import cli
+
+    def region(area, seen, p95):
+        return {"area_m2": area, "seen_by_1_or_more": seen, "seen_by_2_or_more": seen,
+                "seen_by_3_or_more": 0.0, "sensitivity_mpx_per_um": {"x": 1.0, "y": 2.0, "z": 3.0},
+                "sigma_max_um": {"p50": p95 / 2, "p95": p95}}
+
+    regions = {f"front_{k:03d}": region(0.1, 1.0, 1.0 + k / 100) for k in range(30)}
+    regions |= {f"top_{k:03d}": region(0.3 if k else 0.6, 0.0 if k else 1.0, 2.0) for k in range(20)}
+    cli._print_summary({"regions": regions})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("50 regions in 2 groups") and len(lines) == 4
+    front, top = lines[2].split(), lines[3].split()
+    assert front[:3] == ["front", "(30)", "3.000"] and front[-1].endswith("/1.29")
+    assert top[:4] == ["top", "(20)", "6.300", f"{100 * 0.6 / 6.3:.0f}%"]

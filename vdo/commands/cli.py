@@ -20,6 +20,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from vdo.core import interrupts
 from vdo.core.backend import BackendError
 from vdo.physics.checks import print_checks
@@ -36,10 +38,41 @@ _MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate"
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
+MAX_ROWS = 40   # console rows: past this many regions, one row per region group; flagged pairs
+
+
+def _grouped(regions: dict) -> dict:
+    """Per region group (`vdo.outputs.maps.region_groups`): area summed, coverage and sensitivity
+    area-weighted, sigma p50 the groups' median of its regions' p50 and p95 the worst p95."""
+    from vdo.outputs.maps import region_groups
+
+    names = list(regions)
+    out = {}
+    for group, members in region_groups(names).items():
+        rs = [regions[names[k]] for k in members]
+        a = np.array([r["area_m2"] for r in rs])
+        avg = lambda f: float(np.dot(a, [f(r) for r in rs]) / a.sum())          # noqa: E731
+        p50 = [r["sigma_max_um"]["p50"] for r in rs if r["sigma_max_um"]["p50"] is not None]
+        p95 = [r["sigma_max_um"]["p95"] for r in rs if r["sigma_max_um"]["p95"] is not None]
+        out[f"{group} ({len(rs)})"] = {
+            "area_m2": float(a.sum()),
+            **{f"seen_by_{m}_or_more": avg(lambda r: r[f"seen_by_{m}_or_more"]) for m in (1, 2, 3)},
+            "sensitivity_mpx_per_um": {x: avg(lambda r: r["sensitivity_mpx_per_um"][x]) for x in "xyz"},
+            "sigma_max_um": {"p50": float(np.median(p50)) if p50 else None,
+                             "p95": max(p95) if len(p95) == len(rs) else None}}
+    return out
+
+
 def _print_summary(summary: dict) -> None:
+    regions = summary["regions"]
+    grouped = len(regions) > MAX_ROWS
+    if grouped:
+        regions = _grouped(regions)
+        print(f"{len(summary['regions'])} regions in {len(regions)} groups (every region in summary.json): "
+              "area-weighted coverage and sensitivity, median p50 and worst p95")
     print(f"{'region':<22}{'area m2':>8}{'>=1':>6}{'>=2':>6}{'>=3':>6}"
           f"{'sens x/y/z mpx/um':>21}{'sigma p50/p95 um':>19}")
-    for name, r in summary["regions"].items():
+    for name, r in regions.items():
         sens = "/".join(f"{r['sensitivity_mpx_per_um'][a]:.1f}" for a in "xyz")
         sig = r["sigma_max_um"]
         sig = "-" if sig["p50"] is None else f"{sig['p50']:.2f}/{sig['p95']:.2f}"
@@ -67,7 +100,13 @@ def _evaluate(exp, args):
         print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged "
               "(all of them in summary.json and report.html)")
         if flagged:
-            print_checks(flagged)
+            print_checks(flagged[:MAX_ROWS])
+        if len(flagged) > MAX_ROWS:
+            per = {}
+            for r in flagged:
+                per[r["camera"]] = per.get(r["camera"], 0) + 1
+            print(f"... {len(flagged) - MAX_ROWS} more flagged pairs; flagged per camera: "
+                  + ", ".join(f"{c} {n}" for c, n in per.items()))
         print(f"wrote {Path(args.out).resolve()}")
 
 
