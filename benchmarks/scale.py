@@ -7,7 +7,9 @@ CPU time (user + sys; the machine may be shared, so wall time alone says little)
 resident memory. Writes scale.csv and scale.png into --out and prints the table.
 
 Run from the repository root:  python benchmarks/scale.py --out /tmp/scale [--quick]
-(--quick: the smallest case of each axis and the largest of samples and candidates only).
+[--axes samples regions ...] [--pick samples=0,3 regions=0,3]
+(--quick: the smallest case of each axis and the largest of samples and candidates only;
+--pick: these runs of an axis).
 """
 
 from __future__ import annotations
@@ -82,12 +84,17 @@ def main() -> None:
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--axes", nargs="*", default=list(AXES))
+    parser.add_argument("--pick", nargs="*", default=[], metavar="AXIS=I,J",
+                        help="run only these runs of an axis (indices into AXES[axis])")
     args = parser.parse_args()
+    pick = {a: [int(i) for i in v.split(",")] for a, v in (p.split("=") for p in args.pick)}
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for axis in args.axes:
         runs = AXES[axis]
-        if args.quick:
+        if axis in pick:
+            runs = [runs[i] for i in pick[axis]]
+        elif args.quick:
             runs = [runs[0], runs[-1]] if axis in ("samples", "candidates") else [runs[0]]
         for params in runs:
             with tempfile.TemporaryDirectory() as tmp:
