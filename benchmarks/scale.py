@@ -70,7 +70,9 @@ def run(axis: str, params: dict, folder: Path) -> dict:
         est, got = info.get("estimate", {}), info.get("measured", {})
         r |= {"samples": info.get("samples"), "candidates": got.get("candidates"),
               "stored_pairs": got.get("entries"), "estimate_gb": est.get("memory_gb"),
-              "estimate_s": (est.get("judge_s", 0) + est.get("search_s", 0)) or None}
+              "search_peak_gb": got.get("peak_memory_gb"), "judge_s": got.get("judge_s"),
+              "search_s": got.get("search_s"), "estimate_judge_s": est.get("judge_s"),
+              "estimate_search_s": est.get("search_s")}
     else:
         r = timed(["evaluate", str(path), "--out", str(out), "--overwrite", "--quiet"], folder)
         exp = config.load(path)
@@ -125,6 +127,7 @@ def plot(rows: list[dict], path: Path) -> None:
         axs[1, k].plot(x, [r["peak_gb"] for r in sel], "o-", color="C2", label="peak RSS")
         if axis == "candidates":
             axs[1, k].plot(x, [r["estimate_gb"] for r in sel], "^:", color="C3", label="estimated")
+            axs[1, k].plot(x, [r["search_peak_gb"] for r in sel], "v-", color="C4", label="peak to the search end")
             axs[1, k].legend(fontsize=7)
         axs[1, k].set_ylabel("GB")
         axs[1, k].set_xlabel(axes_x[axis])
