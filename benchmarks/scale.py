@@ -46,10 +46,11 @@ AXES = {   # axis: (case parameters of each run, the command)
 }
 
 
-def timed(args: list[str], cwd: Path) -> dict:
-    """Run `python -m vdo ARGS` under /usr/bin/time -v: wall s, cpu s (user + sys), peak RSS GB."""
+def timed(args: list[str], cwd: Path, root: Path = ROOT) -> dict:
+    """Run `python -m vdo ARGS` (the vdo of the checkout `root`) under /usr/bin/time -v: wall s,
+    cpu s (user + sys), peak RSS GB."""
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "vdo", *args]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONPATH=str(root))
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     err = proc.stderr
     field = lambda name: re.search(rf"{name}: (.+)", err)[1]          # noqa: E731
@@ -60,12 +61,12 @@ def timed(args: list[str], cwd: Path) -> dict:
             "error": "" if proc.returncode == 0 else err.strip().splitlines()[0][:200]}
 
 
-def run(axis: str, params: dict, folder: Path) -> dict:
+def run(axis: str, params: dict, folder: Path, root: Path = ROOT) -> dict:
     case = {**BASE, **params}
     path = write_case(folder, **case)
     out = folder / "out"
     if axis == "candidates":
-        r = timed(["design", str(path), "--out", str(out), "--overwrite", "--quiet"], folder)
+        r = timed(["design", str(path), "--out", str(out), "--overwrite", "--quiet"], folder, root)
         info = json.loads((out / "design.json").read_text()) if r["status"] == 0 else {}
         est, got = info.get("estimate", {}), info.get("measured", {})
         r |= {"samples": info.get("samples"), "candidates": got.get("candidates"),
@@ -74,10 +75,10 @@ def run(axis: str, params: dict, folder: Path) -> dict:
               "search_s": got.get("search_s"), "estimate_judge_s": est.get("judge_s"),
               "estimate_search_s": est.get("search_s")}
     else:
-        r = timed(["evaluate", str(path), "--out", str(out), "--overwrite", "--quiet"], folder)
+        r = timed(["evaluate", str(path), "--out", str(out), "--overwrite", "--quiet"], folder, root)
         exp = config.load(path)
         r |= {"samples": len(scene.sample_regions(exp, scene.load_meshes(exp)))}
-    return {"axis": axis, "regions": 4 * case["segments"], "cameras": case["cameras"],
+    return {"axis": axis, "root": str(root), "regions": 4 * case["segments"], "cameras": case["cameras"],
             "spacing_mm": case["spacing_mm"], **r}
 
 
@@ -85,6 +86,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--root", type=Path, default=ROOT,
+                        help="the checkout whose vdo runs (another release, for a before/after)")
     parser.add_argument("--axes", nargs="*", default=list(AXES))
     parser.add_argument("--pick", nargs="*", default=[], metavar="AXIS=I,J",
                         help="run only these runs of an axis (indices into AXES[axis])")
@@ -100,7 +103,7 @@ def main() -> None:
             runs = [runs[0], runs[-1]] if axis in ("samples", "candidates") else [runs[0]]
         for params in runs:
             with tempfile.TemporaryDirectory() as tmp:
-                rows.append(run(axis, params, Path(tmp)))
+                rows.append(run(axis, params, Path(tmp), args.root))
             print(json.dumps(rows[-1]), flush=True)
     keys = list(dict.fromkeys(k for r in rows for k in r))
     with open(args.out / "scale.csv", "w", newline="") as fh:
