@@ -119,7 +119,13 @@ def plot(rows: list[dict], path: Path) -> None:
     fig, axs = plt.subplots(2, len(present), figsize=(3.6 * len(present), 5.5), layout="constrained",
                             squeeze=False)
     for k, axis in enumerate(present):
-        sel = [r for r in rows if r["axis"] == axis and r["status"] == 0 and r.get(axes_x[axis])]
+        ok = [r for r in rows if r["axis"] == axis and r["status"] == 0 and r.get(axes_x[axis])]
+        sel = [r for r in ok if r.get("root", str(ROOT)) == str(ROOT)]
+        other = [r for r in ok if r not in sel]            # another checkout's (--root): before
+        if other:
+            axs[0, k].plot([r[axes_x[axis]] for r in other], [r["cpu_s"] for r in other], "kx",
+                           label="CPU, before (--root)")
+            axs[1, k].plot([r[axes_x[axis]] for r in other], [r["peak_gb"] for r in other], "kx")
         x = [r[axes_x[axis]] for r in sel]
         what = "design" if axis == "candidates" else "evaluate"
         axs[0, k].plot(x, [r["wall_s"] for r in sel], "o-", label="wall")

@@ -328,6 +328,10 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
         fast = scorer.add(*cand.sums(list(base)), cand, rows)
         whole = [scorer.of(cand, list(base) + [k]) for k in rows]
         np.testing.assert_allclose(fast, whole, rtol=SUM_ORDER_RTOL)
+        with monkeypatch.context() as m:                         # chunks that cut candidates' rows
+            m.setattr(design, "ENTRY_CHUNK", 37)
+            np.testing.assert_allclose(scorer.add(*cand.sums(list(base)), cand, rows), whole,
+                                       rtol=SUM_ORDER_RTOL)
     assert cand.index.size < K * len(geometry.samples)          # only the pairs in view are stored
     monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 2 * len(geometry.samples))
     small = design.judge(exp, geometry)

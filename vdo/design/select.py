@@ -611,28 +611,29 @@ class Scorer:
         band_count = np.bincount(band, minlength=G_BANDS)
         short = np.maximum(self.minimum - base_cover, 0.0)
         h = self.area * short * short
-        lengths = cand.indptr[rows + 1] - cand.indptr[rows]
-        total = int(lengths.sum())
-        first = np.cumsum(lengths) - lengths                   # each row's first position among `total`
-        # the stored entries of `rows`, row after row: entry = indptr[row] + position within the row
-        entry = np.repeat(cand.indptr[rows] - first, lengths) + np.arange(total)
-        owner = np.repeat(np.arange(len(rows)), lengths)
         base = tuple(jnp.asarray(x) for x in (base_info, base_cover, h))
-        new, dh = np.zeros(total), np.zeros(total)
+        seen_sum = np.zeros((len(rows), G_BANDS))
+        seen_count = np.zeros((len(rows), G_BANDS), np.int64)
+        seen_new, dh = np.zeros(len(rows)), np.zeros(len(rows))
+        # the stored entries of `rows`, row after row, ENTRY_CHUNK at a time: every per-entry
+        # array lives for one chunk (the stored pairs are the only thing as large as all of them)
+        ends = np.cumsum(cand.indptr[rows + 1] - cand.indptr[rows])
+        total = int(ends[-1])
         for s in range(0, total, ENTRY_CHUNK):
-            e = entry[s:s + ENTRY_CHUNK]
+            pos = np.arange(s, min(s + ENTRY_CHUNK, total))
+            owner = np.searchsorted(ends, pos, side="right")
+            e = cand.indptr[rows[owner]] + pos - (ends[owner] - (cand.indptr[rows + 1] - cand.indptr[rows])[owner])
             m = len(e)
             pad = lambda x: np.concatenate([x, np.zeros((ENTRY_CHUNK - m,) + x.shape[1:], x.dtype)])  # noqa: E731
-            a, b = self._terms(jnp.asarray(pad(cand.index[e])), jnp.asarray(pad(cand.entry_info[e])),
+            n = cand.index[e]
+            a, b = self._terms(jnp.asarray(pad(n)), jnp.asarray(pad(cand.entry_info[e])),
                                jnp.asarray(pad(cand.entry_weight[e].astype(float))), *base, top)
-            new[s:s + m], dh[s:s + m] = np.asarray(a)[:m], np.asarray(b)[:m]
-        n = cand.index[entry]
-        cell = owner * G_BANDS + band[n]
-        seen_sum = np.bincount(cell, g[n], minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
-        seen_count = np.bincount(cell, minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+            seen_new += np.bincount(owner, np.asarray(a)[:m], minlength=len(rows))
+            dh += np.bincount(owner, np.asarray(b)[:m], minlength=len(rows))
+            cell = owner * G_BANDS + band[n]
+            seen_sum += np.bincount(cell, g[n], minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+            seen_count += np.bincount(cell, minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
         unseen = np.where(seen_count == band_count, 0.0, np.maximum(band_sum - seen_sum, 0.0)).sum(1)
-        seen_new = np.bincount(owner, new, minlength=len(rows))
-        dh = np.bincount(owner, dh, minlength=len(rows))
         return top * (unseen + seen_new) ** (1.0 / q) + st.coverage_weight * (h.sum() + dh)
 
     def of(self, cand: Candidates, chosen) -> float:
