@@ -442,3 +442,15 @@ def test_sparse_scores_when_a_candidate_sees_the_worst_samples(judged):
         base = [i for i in range(K) if i != k]
         fast = scorer.add(*cand.sums(base), cand, [k])[0]
         assert fast == pytest.approx(scorer.of(cand, base + [k]), rel=SUM_ORDER_RTOL)
+
+
+def test_design_on_the_command_line_with_a_local_dask_cluster(plate_experiment, tmp_path):
+    """`vdo design --dask local --workers 2` (docs/scale.md) writes the layout of the local run."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment)
+    local, remote = tmp_path / "local", tmp_path / "dask"
+    assert main(["design", str(exp.path), "--out", str(local), "--quiet"]) == 0
+    assert main(["design", str(exp.path), "--out", str(remote), "--quiet", "--dask", "local",
+                 "--workers", "2"]) == 0
+    assert (remote / "layout.json").read_text() == (local / "layout.json").read_text()
