@@ -79,7 +79,7 @@ def main() -> None:
     order, _ = design.greedy(cand, scorer, feas, args.cameras)
     chosen, score, _ = design.exchange(cand, scorer, feas, order)
     t_design = time.perf_counter() - t0
-    print(f"{len(cand.cameras)} candidates x {cand.info.shape[1]} samples judged in {t_judge:.0f} s; "
+    print(f"{len(cand.cameras)} candidates x {cand.samples} samples judged in {t_judge:.0f} s; "
           f"design (judging + selection) {t_design:.0f} s", flush=True)
 
     rng = np.random.default_rng(args.seed)

@@ -25,6 +25,8 @@ from vdo.state import prepare
 from vdo.search.loadpath import keyframe_steps
 from vdo.physics.visibility import compute_visibility
 
+SUM_ORDER_RTOL = 1e-12   # the same float64 sums taken in another order (entries vs all samples)
+
 DESIGN = """
 [design]
 max_cameras = {n}
@@ -76,7 +78,7 @@ def test_greedy_and_exchange_find_the_best_pair_which_is_symmetric(judged):
     order, _ = design.greedy(cand, scorer, feas, 2)
     chosen, score, _ = design.exchange(cand, scorer, feas, order)
     feasible = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
-                if not feas.conflict[p[0], p[1]]]
+                if not feas.conflicts(p[0], p[1])]
     exhaustive = {p: _pair_score(exp, geometry, [cand.cameras[i] for i in p]) for p in feasible}
     best = min(exhaustive, key=exhaustive.get)
     assert sorted(chosen) == sorted(best)
@@ -252,7 +254,7 @@ def test_the_inventory_counts_are_respected(plate_experiment):
     pick, score, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
     assert sorted(cand.body[pick]) == [0, 1]
     mixed = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
-             if cand.body[p[0]] != cand.body[p[1]] and not feas.conflict[p]]
+             if cand.body[p[0]] != cand.body[p[1]] and not feas.conflicts(*p)]
     best = min(mixed, key=lambda p: scorer.of(cand, p))
     assert sorted(pick) == sorted(best)
     cams = [cand.cameras[i] for i in pick]
@@ -330,3 +332,144 @@ def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_exper
         assert c["coverage_of_measurable"] == pytest.approx(2 * c["coverage"], abs=1e-9)
     text = (tmp_path / "out" / "pareto.csv").read_text().splitlines()
     assert text[0].endswith("sigma_p95_um_top,sigma_p95_um_under")
+
+
+def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, monkeypatch):
+    """Scorer.add corrects the base's sums at a candidate's stored entries only: equal to
+    Scorer.of, which sums every sample (checked against objective.score above), for every
+    candidate added to every base pair; judging in blocks of 2 candidates stores the same entries
+    as one block."""
+    exp, geometry, cand = judged
+    scorer = design.Scorer(exp, geometry.samples)
+    K = len(cand.cameras)
+    for base in [(), (0,), (1, 7)]:
+        rows = np.array([k for k in range(K) if k not in base])
+        fast = scorer.add(*cand.sums(list(base)), cand, rows)
+        whole = [scorer.of(cand, list(base) + [k]) for k in rows]
+        np.testing.assert_allclose(fast, whole, rtol=SUM_ORDER_RTOL)
+        with monkeypatch.context() as m:                         # chunks that cut candidates' rows
+            m.setattr(design, "ENTRY_CHUNK", 37)
+            np.testing.assert_allclose(scorer.add(*cand.sums(list(base)), cand, rows), whole,
+                                       rtol=SUM_ORDER_RTOL)
+    assert cand.index.size < K * len(geometry.samples)          # only the pairs in view are stored
+    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 2 * len(geometry.samples))
+    small = design.judge(exp, geometry)
+    for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
+        np.testing.assert_array_equal(getattr(small, name), getattr(cand, name), err_msg=name)
+
+
+def test_stored_pairs_equal_the_dense_information_and_weights(judged):
+    """The stored entries (`objective.pair_information` on the listed pairs) equal the dense
+    (candidates, samples) arrays of `objective.camera_information` and `objective.geometry`'s
+    weight times the ray cast's occlusion, zero wherever nothing is stored."""
+    exp, geometry, cand = judged
+    cams = list(cand.cameras)
+    vis = compute_visibility(build_scene(list(geometry.meshes)), cams, geometry.samples,
+                             exp.evaluation.incidence_limit, progress=False)
+    smp = samples_for_objective(exp, geometry.samples)
+    light = illuminate(build_scene(list(geometry.meshes)), exp.lights, geometry.samples,
+                       exp.render.ambient_radiance)
+    st = replace(settings(exp), pair_dtype="float64")
+    cp = objective.CameraParams.from_cameras(cams)
+    C = np.asarray(objective.camera_information(cp, smp, view_data(exp, smp, vis, light, geometry.speckle),
+                                                geometry.speckle.table, st))
+    dense = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
+    w = np.asarray(objective.geometry(cp, smp, st).weight) * vis.unoccluded
+    np.testing.assert_allclose(cand.info, dense, rtol=SUM_ORDER_RTOL, atol=SUM_ORDER_RTOL * np.abs(dense).max())
+    np.testing.assert_allclose(cand.weight, w.astype(np.float32), rtol=0, atol=0)
+
+
+SCALING_TOL = 0.15   # stored pairs grow as 1 / spacing^2 only up to the regions' edges
+
+
+def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fits(plate_experiment):
+    """Fewer candidates than PROBE: the estimate judges them all, so its stored pairs are the
+    judgement's and its stored bytes the arrays' own. A memory limit a quarter of the way from the
+    fixed part to the estimate is refused naming a spacing (at least 2x coarser) and a candidate
+    count; the estimate at that spacing fits within SCALING_TOL. A time limit half the estimate:
+    a spacing sqrt(2) coarser."""
+    exp = _experiment(plate_experiment)
+    geometry = prepare(exp)
+    j = design.judging(exp, geometry)
+    est = design.estimate(exp, j, design.Scorer(exp, geometry.samples))
+    cand = design.judge(exp, geometry, j)
+    assert est.probed == len(j.cams) and est.entries == cand.index.size
+    assert est.entries * design.ENTRY_BYTES == \
+        cand.index.nbytes + cand.entry_info.nbytes + cand.entry_weight.nbytes
+    room = 0.25 * (est.memory_bytes - est.fixed_bytes)
+    with pytest.raises(ConfigError) as err:
+        design.refuse(exp, est, est.fixed_bytes + room, None)
+    msg = str(err.value)
+    assert "design.sample_spacing_mm" in msg and "\n" not in msg
+    spacing = int(re.search(r"sample_spacing_mm of (\d+) or more", msg)[1])
+    assert spacing >= 2 * 50 and f"at most {int(est.candidates / 4):,} candidates" in msg
+    coarse = replace(exp, design=replace(exp.design, sample_spacing=spacing / 1e3))
+    g2 = prepare(replace(coarse, evaluation=replace(coarse.evaluation, sample_spacing=spacing / 1e3)))
+    est2 = design.estimate(coarse, design.judging(coarse, g2), design.Scorer(coarse, g2.samples))
+    assert est2.memory_bytes - est2.fixed_bytes <= room * (1 + SCALING_TOL)
+    total = est.judge_s + est.search_s
+    with pytest.raises(ConfigError, match=rf"sample_spacing_mm of {math.ceil(50 * math.sqrt(2))} or more"):
+        design.refuse(exp, est, math.inf, total / 2)
+    design.refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
+
+
+def test_design_refused_on_the_command_line_in_one_line(plate_experiment, tmp_path, capsys):
+    """`vdo design --memory-gb` below the estimate: exit 2, one line naming the file and the
+    field, no traceback, no output folder."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment)
+    out = tmp_path / "out"
+    assert main(["design", str(exp.path), "--out", str(out), "--memory-gb", "0.01", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0] and str(exp.path) in err[0]
+    assert "design" in err[0] and "GB" in err[0]
+    assert not out.exists()
+
+
+def test_candidates_judged_on_a_two_worker_local_cluster_equal_the_local_run(plate_experiment, tmp_path,
+                                                                             monkeypatch):
+    """Blocks of 3 candidates as tasks on a dask.distributed LocalCluster of 2 spawned worker
+    processes: the same stored pairs, regions and obscuration as the local judgement, and the same
+    selection."""
+    from distributed import Client, LocalCluster
+
+    exp = _experiment(plate_experiment)          # [evaluation] and [design] spacing both 50 mm
+    geometry = prepare(exp)
+    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 3 * len(geometry.samples))
+    local = design.judge(exp, geometry)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                      local_directory=str(tmp_path / "dask")) as cluster, Client(cluster) as client:
+        remote = design.judge(exp, geometry, client=client, threads=1)
+    for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
+        np.testing.assert_array_equal(getattr(remote, name), getattr(local, name), err_msg=name)
+    picks = []
+    for cand in (local, remote):
+        scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+        picks.append(design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])[0])
+    assert picks[0] == picks[1]
+
+
+def test_sparse_scores_when_a_candidate_sees_the_worst_samples(judged):
+    """A base of every candidate but one leaves its worst samples to the one left out: the score
+    of adding it (the base's sum over the samples it does not see taken per band of g) equals
+    Scorer.of's sum over every sample, where G - sum_k g alone would lose the rest to rounding."""
+    exp, geometry, cand = judged
+    scorer = design.Scorer(exp, geometry.samples)
+    K = len(cand.cameras)
+    for k in range(K):
+        base = [i for i in range(K) if i != k]
+        fast = scorer.add(*cand.sums(base), cand, [k])[0]
+        assert fast == pytest.approx(scorer.of(cand, base + [k]), rel=SUM_ORDER_RTOL)
+
+
+def test_design_on_the_command_line_with_a_local_dask_cluster(plate_experiment, tmp_path):
+    """`vdo design --dask local --workers 2` (docs/scale.md) writes the layout of the local run."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment)
+    local, remote = tmp_path / "local", tmp_path / "dask"
+    assert main(["design", str(exp.path), "--out", str(local), "--quiet"]) == 0
+    assert main(["design", str(exp.path), "--out", str(remote), "--quiet", "--dask", "local",
+                 "--workers", "2"]) == 0
+    assert (remote / "layout.json").read_text() == (local / "layout.json").read_text()

@@ -255,3 +255,14 @@ for _ in range(10**9):
     assert child.returncode == 130 and err.strip() == "vdo: interrupted by SIGINT", err
     assert elapsed < GRACE_S - 0.3
     assert list(parent.iterdir()) == []
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT])
+def test_signal_during_optimize_start_up(plate, tmp_path, signum):
+    """`vdo optimize` before its search starts (no layout judged yet): the signal ends the run
+    at once, as for any command, instead of being held until the search's first step."""
+    parent = tmp_path / "runs"
+    parent.mkdir()
+    run = Run("optimize", plate, "--out", parent / "out", "--time-limit", 600)
+    run.wait_for(lambda: any("start-up:" in line for line in run.lines + run.err))
+    check_interrupted(run, signum, run.signal_and_wait(signum), parent)

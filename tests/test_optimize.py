@@ -271,13 +271,16 @@ def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, cap
     with caplog.at_level(logging.INFO, logger="vdo"):
         result = optimize(exp, out, time_limit=1e-3)
     lines = [r.getMessage() for r in caplog.records if r.name == "vdo.optimize"]
-    assert lines[0].endswith("time limit 0.001 s") and "free parameters" in lines[0]
+    assert lines[0].startswith("start-up: ")
+    assert lines[1].endswith("time limit 0.001 s") and "free parameters" in lines[1]
+    assert any(line.startswith("start-up took ") for line in lines)      # counted, and said apart
     assert any(line.startswith("search ended: time_limit after") for line in lines)
     assert lines[-1].startswith("best: start 1, score ")
     assert capsys.readouterr().out == ""
     assert result["status"] == "time_limit"
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["status"] == "time_limit" and summary["time_limit_s"] == 1e-3
+    assert summary["startup_s"] > 1e-3 and summary["search_wall_s"] == 0.0
     assert sorted(p.name for p in out.iterdir()) == FOLDER
     _layout_reloads(out)
 

@@ -1056,6 +1056,20 @@ def camera_information(cameras: CameraParams, samples: Samples, views: ViewData,
     return _sym_full(tuple(_per_pair_dense(e, views, c, n) for e in ent))
 
 
+def pair_information(cameras: CameraParams, views: ViewData, energy,
+                     settings: Settings = Settings()) -> tuple[np.ndarray, ...]:
+    """The listed pairs of `views` alone (padding dropped), in numpy: camera and sample indices
+    (P,), the 6 entries (c00, c11, c22, c01, c02, c12) of Omega w_i |det A_i| C_i (P, 6) in 1/m^2
+    and the soft weight w_i (P,) with the occlusion applied: what `camera_information` and
+    `geometry(...).weight` x occlusion give at these pairs (zero at every other pair), without
+    the (C, N) arrays."""
+    ent, w, _ = _pair_terms(cameras, views, energy, settings)
+    real = np.asarray(views.occlusion).reshape(-1) > 0
+    return (np.asarray(views.camera).reshape(-1)[real], np.asarray(views.sample).reshape(-1)[real],
+            np.stack([np.asarray(e, dtype=np.float64).reshape(-1) for e in ent], -1)[real],
+            np.asarray(w, dtype=np.float64).reshape(-1)[real])
+
+
 @eqx.filter_jit
 def information(cameras: CameraParams, samples: Samples, views: ViewData, energy,
                 settings: Settings = Settings()):

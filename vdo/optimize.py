@@ -1482,17 +1482,25 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     own = stop is None
     stop = Stop(time_limit) if own else stop
     stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
+    t_start = time.perf_counter()
+    # start-up: no layout judged yet, so SIGINT/SIGTERM end the run at once (`vdo.core.interrupts`),
+    # and its time counts against the limit
+    log.info("start-up: meshes, samples, the hand layout's ray cast and lighting, the compiled "
+             "programs (Ctrl-C ends the run here, writing nothing)")
+    problem = Problem(exp, user_objective=objective)
+    run = problem.run
+    run.stop = stop
+    opt = exp.optimize
+    planned = opt.starts * (opt.rounds + 1) * opt.max_steps
+    if "lens" in opt.free:
+        planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
+    log.info("%s samples, %d free parameters, %d camera pairs sharing a region; time limit %g s",
+             f"{len(problem.samples):,}", len(problem.param.theta0), len(problem.pairs), time_limit)
+    reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
+    startup = time.perf_counter() - t_start
+    log.info("start-up took %.0f s of the %g s time limit; the search has the rest (%.0f s)", startup,
+             time_limit, stop.left)
     with (stop_on_signals(stop) if own else contextlib.nullcontext()):
-        problem = Problem(exp, user_objective=objective)
-        run = problem.run
-        run.stop = stop
-        opt = exp.optimize
-        planned = opt.starts * (opt.rounds + 1) * opt.max_steps
-        if "lens" in opt.free:
-            planned += LENS_TRIALS * (opt.rounds + 1) * opt.max_steps
-        log.info("%s samples, %d free parameters, %d camera pairs sharing a region; time limit %g s",
-                 f"{len(problem.samples):,}", len(problem.param.theta0), len(problem.pairs), time_limit)
-        reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
         run.progress = _Progress(planned, stop)
         try:
             solve(problem)
@@ -1503,7 +1511,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
             run.progress.close()
     best = run.best
     final = best.problem
-    status = stop.reason or ("converged" if all(e == "converged" for e in run.ends) else "max_steps")
+    status = Status(stop.reason) if stop.reason else \
+        (Status.CONVERGED if all(e == Status.CONVERGED for e in run.ends) else Status.MAX_STEPS)
     log.info("search ended: %s after %.0f s; writing %s", status, time.perf_counter() - run.t0, out)
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
@@ -1535,7 +1544,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
         report.write_json(tmp / "optimizer.json", {
             "status": status, "converged": status == "converged",
             "time_limit_s": time_limit if math.isfinite(time_limit) else None,
-            "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0,
+            "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0, "startup_s": startup,
             "rounds": run.rounds, "starts": run.ends, "accepted_steps": len(run.history), "layouts_judged": len(run.verdicts),
             "best_start": best.start, "score_before": score_before, "score_after": score_after,
             "reachability": reach})
@@ -1543,7 +1552,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
         _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
         _write_moves(tmp / "moves.csv", problem, best)
         html_report.write_report(tmp)
-    return {"score_before": score_before["score_um"], "score_after": best.score,
+    return {"score_before": score_before["score_um"], "score_after": best.score, "startup_s": startup,
             "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}

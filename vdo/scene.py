@@ -44,8 +44,10 @@ class SceneMesh:
     vertices: np.ndarray   # (n, 3) float64, m
     faces: np.ndarray      # (m, 3) int
 
-    @property
+    @functools.cached_property
     def trimesh(self) -> trimesh.Trimesh:
+        """The mesh as trimesh, built once (its cached normals, centres and areas are shared by
+        every region that selects faces of it; do not modify it)."""
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
@@ -167,8 +169,11 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
     the plane -> 2), with one new vertex per cut edge, so a closed mesh stays closed and the
     surface is unchanged. Afterwards each triangle lies on one side of every such plane."""
     eps = 1e-9 * max(1.0, float(np.abs(vertices).max()))   # splitting keeps the extent
+    done = set()   # planes already split at: no triangle crosses them any more (the pieces of
+    # a later split lie inside their triangle), so regions that share a plane test it once
     for region in regions:
-        planes = [(k, c) for k in range(3) for c in (region.box_min[k], region.box_max[k]) if np.isfinite(c)]
+        planes = [(k, float(c)) for k in range(3) for c in (region.box_min[k], region.box_max[k])
+                  if np.isfinite(c) and (k, float(c)) not in done]
         tri = None   # the triangles and what the region could select of them, until a split
         for k, c in planes:
             if tri is None:
@@ -186,7 +191,10 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
                 log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
                          int(crossing.sum()), "xyz"[k], c)
                 vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
+                done.add((k, c))
                 tri = None
+            elif not crossing.any():
+                done.add((k, c))
     return vertices, faces
 
 

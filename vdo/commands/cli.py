@@ -20,6 +20,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from vdo.core import interrupts
 from vdo.core.backend import BackendError
 from vdo.physics.checks import print_checks
@@ -37,12 +39,43 @@ _MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate"
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
+MAX_ROWS = 40   # console rows: past this many regions, one row per region group; flagged pairs
+
+
+def _grouped(regions: dict) -> dict:
+    """Per region group (`vdo.outputs.maps.region_groups`): area summed, coverage and sensitivity
+    area-weighted, sigma p50 the groups' median of its regions' p50 and p95 the worst p95."""
+    from vdo.outputs.maps import region_groups
+
+    names = list(regions)
+    out = {}
+    for group, members in region_groups(names).items():
+        rs = [regions[names[k]] for k in members]
+        a = np.array([r["area_m2"] for r in rs])
+        avg = lambda f: float(np.dot(a, [f(r) for r in rs]) / a.sum())          # noqa: E731
+        p50 = [r["sigma_max_um"]["p50"] for r in rs if r["sigma_max_um"]["p50"] is not None]
+        p95 = [r["sigma_max_um"]["p95"] for r in rs if r["sigma_max_um"]["p95"] is not None]
+        out[f"{group} ({len(rs)})"] = {
+            "area_m2": float(a.sum()),
+            **{f"seen_by_{m}_or_more": avg(lambda r: r[f"seen_by_{m}_or_more"]) for m in (1, 2, 3)},
+            "sensitivity_mpx_per_um": {x: avg(lambda r: r["sensitivity_mpx_per_um"][x]) for x in "xyz"},
+            "sigma_max_um": {"p50": float(np.median(p50)) if p50 else None,
+                             "p95": max(p95) if len(p95) == len(rs) else None}}
+    return out
+
+
 def _print_summary(summary: dict) -> None:
-    m = summary.get("measured")
+    regions = summary["regions"]
+    grouped = len(regions) > MAX_ROWS
+    if grouped:
+        regions = _grouped(regions)
+        print(f"{len(summary['regions'])} regions in {len(regions)} groups (every region in summary.json): "
+              "area-weighted coverage and sensitivity, median p50 and worst p95")
+    m = None if grouped else summary.get("measured")
     print(f"{'region':<22}{'area m2':>8}{'>=1':>6}{'>=2':>6}{'>=3':>6}"
           f"{'sens x/y/z mpx/um':>21}{'bound p50/p95 um':>19}"
           + (f"{'measured p50/p95 um':>22}" if m else ""))
-    for name, r in summary["regions"].items():
+    for name, r in regions.items():
         sens = "/".join(f"{r['sensitivity_mpx_per_um'][a]:.1f}" for a in "xyz")
         sig = r["sigma_max_um"]
         sig = "-" if sig["p50"] is None else f"{sig['p50']:.2f}/{sig['p95']:.2f}"
@@ -209,9 +242,28 @@ def _speckle(exp, args) -> None:
 
 
 def _design(exp, args) -> None:
+    import shutil
+    import tempfile
+
+    from vdo.commands.sweep import connect_dask, cores
     from vdo.design.select import design
 
-    result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine)   # logs its problems
+    client = cluster = scratch = None
+    workers = args.workers or cores()
+    if args.dask:     # the candidates judged on Dask workers (spawned processes for "local")
+        scratch = Path(tempfile.mkdtemp(prefix="vdo-design-dask-"))
+        client, cluster = connect_dask(args.dask, workers, 30.0, scratch)
+    try:
+        result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
+                        memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
+                        time_limit=args.time_limit, client=client,
+                        threads=max(1, cores() // workers) if args.dask == "local" else None)
+    finally:
+        for c in (client, cluster):
+            if c is not None:
+                c.close()
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
     if not args.quiet:
         for c in result["curve"]:
             p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
@@ -322,6 +374,15 @@ def _parser() -> argparse.ArgumentParser:
     de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
+    de.add_argument("--memory-gb", type=float, default=None, metavar="GB",
+                    help="refuse, before the work, a design estimated to need more (default: the "
+                         "memory available)")
+    de.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
+                    help="refuse, before the work, a design estimated to take longer")
+    de.add_argument("--dask", default=None, help="judge the candidates on a Dask scheduler's workers "
+                                                 "(its address), or 'local' for a LocalCluster")
+    de.add_argument("--workers", type=int, default=None,
+                    help="LocalCluster worker processes (default: one per core)")
     de.add_argument("--quiet", action="store_true")
     sp = sub.add_parser("speckle", help="design the speckle per region; print-ready files (docs/speckle.md)")
     sp.add_argument("config", help="experiment TOML file (its cameras and [speckle] print_dpi)")

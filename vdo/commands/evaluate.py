@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 UM = 1e6            # m -> um
 MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
+MAX_WARNINGS = 10   # load-path warnings of each kind on the console; all of them in summary.json
 
 
 def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
@@ -51,10 +52,23 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
     if load_path is not None:
         log.info("load path: %d steps", len(load_path.steps))
         over_path = evaluate_load_path(geometry, load_path, progress=shown(log), rest=state)
-        for loss in over_path.losses:
+        for loss in over_path.losses[:MAX_WARNINGS]:
             log.warning("warning: camera %s loses region %s at step %s (sees %.0f %% of it, "
                         "%.0f %% at rest)", loss["camera"], loss["region"], loss["step"],
                         100 * loss["fraction"], 100 * loss["rest_fraction"])
+        for c in over_path.changes[:MAX_WARNINGS]:
+            if c["kind"] == "sigma":
+                log.warning("warning: region %s: sigma_max p95 %s at step %s, %.3g um at rest "
+                            "(x%.2g; warned from x%g)", c["region"], "unmeasured" if c["value_um"] is None
+                            else f"{c['value_um']:.3g} um", c["step"], c["rest_um"], c["ratio"],
+                            loadpath.SIGMA_RATIO)
+            else:
+                log.warning("warning: region %s: area seen by its min_cameras %.0f %% at step %s, "
+                            "%.0f %% at rest (warned from a drop of %.0f points)", c["region"],
+                            100 * c["value"], c["step"], 100 * c["rest"], 100 * loadpath.COVERAGE_DROP)
+        hidden = max(len(over_path.losses) - MAX_WARNINGS, 0) + max(len(over_path.changes) - MAX_WARNINGS, 0)
+        if hidden:
+            log.warning("warning: %d more load-path losses and changes in summary.json (load_path)", hidden)
     summary = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state))
     for line in warnings(summary):
         log.warning("warning: %s", line)

@@ -21,12 +21,14 @@ path, the candidates are also ray cast at `[design] keyframes` of its steps
 (`vdo.search.loadpath.keyframe_steps`: the path's extremes first), the samples and moving meshes posed
 by `vdo.geometry.keyframes.at_step`, and C_i(n) and w_i(n) are zeroed where candidate i loses sample n at
 any of them (`vdo.search.loadpath.path_occlusion`, the worst case over the keyframes, as `vdo optimize`
-scores it). Stored as 6
-float64 entries + 1 float32 weight per pair: candidates x samples x 52 bytes (1,666 candidates x
-3,372 samples on the built-in experiment: 290 MB). Not float32: C_i has rank 2 with its null
-vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves ~1e8 along the ray,
-above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a sample seen once
-(the regularised C turned indefinite and the score NaN).
+scores it). The candidates are judged in blocks of PAIRS_PER_BLOCK (candidate, sample) pairs
+(`judge_block`; a block's dense arrays are freed before the next) and only the pairs with a
+non-zero weight or information are kept, sparsely (`Candidates`): 6 float64 entries, 1 float32
+weight and 1 int32 sample index per kept pair, 56 bytes (a camera sees a small part of a large
+specimen). Candidates that see no sample at rest (blind) are dropped. Not float32: C_i has
+rank 2 with its null vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves
+~1e8 along the ray, above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a
+sample seen once (the regularised C turned indefinite and the score NaN).
 
 Score. The information of a set S of cameras adds: C_S(n) = sum_{i in S} C_i(n), coverage
 k_S(n) = sum_{i in S} w_i(n). The set is scored as `vdo.objective.score` scores a layout:
@@ -39,8 +41,8 @@ over the scored regions ([optimize] regions, default all), q = 8, W = 1000, and 
 penalty P over EVERY region (a design must see the whole specimen, not only the scored part).
 This is the optimizer's own score, so selection and refinement minimise the same thing. It is not
 submodular (one camera alone gains nothing in sigma; pairs do), so lazy evaluation's bound does not
-hold: every step evaluates every feasible candidate, which the sums make cheap (one vectorised
-pass over candidates x samples per step).
+hold: every step evaluates every feasible candidate, which the sums make cheap (`Scorer.add`:
+the base's sums corrected at each candidate's stored entries, one vectorised pass over them).
 
 Selection. Greedy forward selection adds the feasible candidate with the lowest score, then
 exchange passes replace one selected camera by the best feasible candidate while that lowers the
@@ -81,7 +83,10 @@ from __future__ import annotations
 import csv
 import logging
 import math
+import os
+import resource
 import time
+import uuid
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -89,6 +94,7 @@ import jax
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
+import scipy.sparse
 from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 
@@ -102,14 +108,16 @@ from vdo.model.camera import Camera, look_at_angles
 from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
-from vdo.geometry.keyframes import load_path_of
+from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
 from vdo.optimize import layout_checks, optimize
 from vdo.physics.predict import samples_for_objective, settings, view_data
-from vdo.core.progress import bar, shown
+from vdo.core.configure import configure
+from vdo.core.progress import bar
 from vdo.core.runfolder import run_folder
 from vdo.scene import build_scene, camera_body_points
 from vdo.state import Geometry, layout_state, prepare
+from vdo.state import bodies as bodies_of
 from vdo.physics.visibility import compute_visibility
 from vdo.core.tolerances import LIMIT_SLACK, TINY
 
@@ -117,19 +125,36 @@ log = logging.getLogger(__name__)
 
 MERGE_TARGETS_M = 0.2   # region centres closer than this share one aim point
 SPOT_M = 0.2            # two optical centres closer than this are one physical spot
-BATCH = 256             # candidates per batch of the information and the score
+PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
+ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
+ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
+PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
+PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
+ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
+STORE_COPIES = 2             # the blocks' pairs and their concatenation coexist once, at the end of judging
+PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a block: the ray casts'
+#                              flags (whole scene, specimen alone, keyframes) and their float copies
+CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
+SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+GB = 1e9
+G_BAND_OCTAVES = 8           # the score's per-sample terms summed in bands a factor 2^8 wide (`Scorer.add`)
+G_BANDS = 140                # bands: g = omega (sigma / T)^q down to 2^-1120, below float64's smallest
 
 
 @dataclass(frozen=True, eq=False)
 class Candidates:
-    """K candidate cameras judged on N samples. info (K, N, 6) float64 1/m^2 (entries c00, c11,
-    c22, c01, c02, c12 of Omega w |det A| C_i); weight (K, N) float32 soft weights w;
-    assigned (K, R) the regions each sees usably over at least assign_fraction of the area;
-    mount (K,) names ("" for a [[camera]]'s own fixed position), kind (K,) "rail", "zone" or
-    "fixed", u (K,) (rail; NaN otherwise), offset (K, 3) m from the rail point, body (K,) index
-    into `bodies(exp)`, target (K,) index into `targets`; masked (K, R) the area fraction of each
-    region's samples the candidate would see but an obstacle hides (its obscuration); path_lost
-    (K,) the fraction of its usable samples at rest that the load path's keyframes take away."""
+    """K candidate cameras judged on N samples, stored sparsely: candidate k's entries are
+    `entries[indptr[k]:indptr[k + 1]]`, each a sample `index` (int32), the information `info`
+    (E, 6) float64 1/m^2 (entries c00, c11, c22, c01, c02, c12 of Omega w |det A| C_i) and the
+    soft weight `weight` (E,) float32 w; only pairs with a non-zero weight or information are
+    stored (a candidate sees a small part of a large specimen). samples N; assigned (K, R) the
+    regions each sees usably over at least assign_fraction of the area; mount (K,) names ("" for a
+    [[camera]]'s own fixed position), kind (K,) "rail", "zone" or "fixed", u (K,) (rail; NaN
+    otherwise), offset (K, 3) m from the rail point, body (K,) index into `bodies(exp)`, target
+    (K,) index into `targets`; masked (K, R) the area fraction of each region's samples the
+    candidate would see but an obstacle hides (its obscuration); path_lost (K,) the fraction of
+    its usable samples at rest that the load path's keyframes take away; pruned: how many blind
+    candidates (no sample in view at rest) were dropped."""
 
     cameras: tuple[Camera, ...]
     mount: tuple[str, ...]
@@ -139,20 +164,72 @@ class Candidates:
     body: np.ndarray
     target: np.ndarray
     targets: np.ndarray
-    info: np.ndarray
-    weight: np.ndarray
+    samples: int
+    indptr: np.ndarray
+    index: np.ndarray
+    entry_info: np.ndarray
+    entry_weight: np.ndarray
     assigned: np.ndarray
     masked: np.ndarray
     path_lost: np.ndarray
-    dropped: dict = field(default_factory=dict)   # {mount: {reason: count}} of the dropped candidates
+    pruned: int = 0
+    dropped: dict = field(default_factory=dict)   # {mount: {reason: count}} of the poses left out
 
     @property
     def positions(self) -> np.ndarray:
-        return np.array([c.position for c in self.cameras])
+        return np.array([c.position for c in self.cameras]).reshape(-1, 3)
 
     @property
     def axes(self) -> np.ndarray:
-        return np.array([c.optical_axis for c in self.cameras])
+        return np.array([c.optical_axis for c in self.cameras]).reshape(-1, 3)
+
+    @property
+    def row(self) -> np.ndarray:
+        """(E,) the candidate of each stored entry."""
+        return np.repeat(np.arange(len(self.cameras)), np.diff(self.indptr))
+
+    def information(self, rows) -> np.ndarray:
+        """Dense (len(rows), N, 6) information of the candidates `rows` (zero where not stored)."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=int))
+        out = np.zeros((len(rows), self.samples, 6))
+        for k, i in enumerate(rows):
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            out[k, self.index[s]] = self.entry_info[s]
+        return out
+
+    def weights(self, rows) -> np.ndarray:
+        """Dense (len(rows), N) float32 soft weights of the candidates `rows`."""
+        rows = np.atleast_1d(np.asarray(rows, dtype=int))
+        out = np.zeros((len(rows), self.samples), np.float32)
+        for k, i in enumerate(rows):
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            out[k, self.index[s]] = self.entry_weight[s]
+        return out
+
+    @property
+    def info(self) -> np.ndarray:
+        """Dense (K, N, 6): every candidate's information (for small problems and tests; K x N x
+        48 bytes)."""
+        return self.information(range(len(self.cameras)))
+
+    @property
+    def weight(self) -> np.ndarray:
+        """Dense (K, N) float32 soft weights (for small problems and tests)."""
+        return self.weights(range(len(self.cameras)))
+
+    def sums(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 6) information and (N,) weights summed over the candidates `rows`."""
+        info, cover = np.zeros((self.samples, 6)), np.zeros(self.samples)
+        for i in rows:
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            info[self.index[s]] += self.entry_info[s]
+            cover[self.index[s]] += self.entry_weight[s]
+        return info, cover
+
+    def usable_counts(self) -> np.ndarray:
+        """(K,) how many samples each candidate sees usably (w >= USABLE_WEIGHT)."""
+        use = usable.usable_views(self.entry_weight)
+        return np.bincount(self.row[use], minlength=len(self.cameras))
 
 
 def bodies(exp: Experiment) -> tuple[BodySpec, ...]:
@@ -309,115 +386,309 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
             np.array(t, dtype=int), aims, dropped)
 
 
-def judge(exp: Experiment, geometry: Geometry) -> Candidates:
-    """Every candidate's information and weights on `geometry`'s samples (module docstring); with
-    progress bars when the module logger passes INFO (`vdo.core.progress`)."""
+@dataclass(frozen=True, eq=False)
+class Judging:
+    """What judging any block of candidates needs, built once per process (`judging`): the
+    experiment, the selection geometry, the candidates (`candidate_cameras`: cameras, mount names,
+    kinds, u, offsets, bodies, targets, aim points), the scene of the meshes and of the specimen
+    alone, the load path's keyframe steps with each step's moved samples and scene, the light on
+    the samples, the objective's samples and settings (pair terms in float64), and the (N, R)
+    sparse matrix of sample areas per region."""
+
+    exp: Experiment
+    geometry: Geometry
+    cams: tuple
+    mount: tuple
+    kind: tuple
+    u: np.ndarray
+    heads: np.ndarray
+    body: np.ndarray
+    target: np.ndarray
+    aims: np.ndarray
+    scene: object
+    bare: object
+    steps: tuple
+    moved: tuple
+    light: object
+    smp: object
+    settings: object
+    region_area: object
+    dropped: dict   # {mount: {reason: count}} of the poses `candidate_cameras` left out
+
+
+def judging(exp: Experiment, geometry: Geometry) -> Judging:
+    """The `Judging` of `exp`'s candidates on `geometry` (ray-cast scenes built, keyframes moved)."""
     samples = geometry.samples
-    R = len(samples.region_names)
     cams, mount, kind, u, heads, body, tg, aims, dropped = candidate_cameras(exp, samples, geometry.meshes)
-    if not cams:
-        return Candidates((), (), (), u, heads, body, tg, aims, np.zeros((0, len(samples), 6)),
-                          np.zeros((0, len(samples)), np.float32), np.zeros((0, R), bool),
-                          np.zeros((0, R)), np.zeros(0), dropped)
     scene = build_scene(list(geometry.meshes))
-    vis = compute_visibility(scene, cams, samples, exp.evaluation.incidence_limit, progress=shown(log))
-    bare = compute_visibility(build_scene([m for m in geometry.meshes if m.role == "specimen"]), cams,
-                              samples, exp.evaluation.incidence_limit).visible
-    hidden = bare & ~vis.visible
+    bare = build_scene([m for m in geometry.meshes if m.role == "specimen"])
     path = load_path_of(exp, list(geometry.meshes))
     steps = () if path is None else loadpath.keyframe_steps(path, exp.design.keyframes)
-    on_path = (np.ones((len(cams), len(samples)), bool) if not steps else
-               loadpath.path_occlusion(geometry, path, cams, steps) > 0)
+    moved = []
+    for step in steps:      # as `vdo.search.loadpath.path_occlusion`: every keyframe, meshes moved
+        g = at_step(geometry, path, step)
+        moved.append((g.samples, build_scene(list(g.meshes) + bodies_of(exp, []))))
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
-    smp = samples_for_objective(exp, samples)
-    st = replace(settings(exp), pair_dtype="float64")
-    K, N = len(cams), len(samples)
-    info = np.zeros((K, N, 6))
-    weight = np.zeros((K, N), np.float32)
-    batches = range(0, K, BATCH)
-    for s in bar(log, iterable=batches, desc="candidates", unit="batch", leave=False):
-        part = cams[s:s + BATCH]
-        pv = replace(vis, camera_names=vis.camera_names[s:s + BATCH],
-                     **{k: getattr(vis, k)[s:s + BATCH] for k in
-                        ("in_front", "in_image", "facing", "unoccluded")})
-        cp = objective.CameraParams.from_cameras(part)
-        views = view_data(exp, smp, pv, light, geometry.speckle)
-        C = np.asarray(objective.camera_information(cp, smp, views, geometry.speckle.table, st))
-        info[s:s + len(part)] = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
-        w = np.asarray(objective.geometry(cp, smp, st).weight)
-        weight[s:s + len(part)] = w * np.asarray(pv.unoccluded, float)
-    at_rest = usable.usable_views(weight)
-    info *= on_path[..., None]
-    weight *= on_path
+    R = len(samples.region_names)
+    region_area = scipy.sparse.csr_matrix((samples.area, (np.arange(len(samples)), samples.region)),
+                                          shape=(len(samples), R))
+    return Judging(exp, geometry, tuple(cams), mount, kind, u, heads, body, tg, aims, scene, bare,
+                   steps, tuple(moved), light, samples_for_objective(exp, samples),
+                   replace(settings(exp), pair_dtype="float64"), region_area, dropped)
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """The judgement of candidates [start, stop) (`judge_block`): per candidate the number of
+    stored entries (counts), the entries (sample index int32, info (E, 6), weight (E,) float32,
+    candidate by candidate, samples ascending), assigned and masked (B, R), path_lost (B,), and
+    seen (B,) whether it has any entry at rest (before the load path)."""
+
+    start: int
+    counts: np.ndarray
+    index: np.ndarray
+    info: np.ndarray
+    weight: np.ndarray
+    assigned: np.ndarray
+    masked: np.ndarray
+    path_lost: np.ndarray
+    seen: np.ndarray
+
+
+def judge_block(j: Judging, start: int, stop: int) -> Block:
+    """Candidates [start, stop) of `j` judged on every sample (module docstring): one ray cast on
+    the whole scene, one on the specimen alone (obscuration), one per load-path keyframe; the
+    information and weights of the objective; then only the non-zero pairs kept."""
+    exp, samples = j.exp, j.geometry.samples
+    cams = list(j.cams[start:stop])
+    limit = exp.evaluation.incidence_limit
+    vis = compute_visibility(j.scene, cams, samples, limit, progress=False)
+    bare = compute_visibility(j.bare, cams, samples, limit, progress=False).visible
+    hidden = bare & ~vis.visible
+    cp = objective.CameraParams.from_cameras(cams)
+    views = view_data(exp, j.smp, vis, j.light, j.geometry.speckle)
+    cam, index, info, w = objective.pair_information(cp, views, j.geometry.speckle.table, j.settings)
+    order = np.lexsort((index, cam))                      # candidate by candidate, samples ascending
+    cam, index, info, weight = cam[order], index[order], info[order], w[order].astype(np.float32)
+    kept = (weight != 0) | (info != 0).any(axis=-1)
+    B, N, R = len(cams), len(samples), len(samples.region_names)
+    seen = np.bincount(cam[kept], minlength=B) > 0
+    at_rest = np.bincount(cam, usable.usable_views(weight), minlength=B)
+    if j.steps:
+        on_path = np.ones((B, N), bool)
+        for moved_samples, scene in j.moved:
+            on_path &= compute_visibility(scene, cams, moved_samples, limit, progress=False).visible
+        on = on_path[cam, index]
+        info *= on[:, None]
+        weight *= on
     use = usable.usable_views(weight)
-    lost = 1 - use.sum(1) / np.maximum(at_rest.sum(1), 1)
-    assigned, masked = np.zeros((K, R), bool), np.zeros((K, R))
-    for r in range(R):
-        m = samples.region == r
-        a = samples.area[m]
-        assigned[:, r] = (use[:, m] * a).sum(1) / a.sum() >= exp.optimize.assign_fraction
-        masked[:, r] = (hidden[:, m] * a).sum(1) / np.maximum((bare[:, m] * a).sum(1), TINY)
-    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(steps), steps)
-    return Candidates(tuple(cams), mount, kind, u, heads, body, tg, aims, info, weight, assigned,
-                      masked, lost, dropped)
+    lost = 1 - np.bincount(cam, use, minlength=B) / np.maximum(at_rest, 1)
+    area = np.asarray(j.region_area.sum(axis=0)).ravel()
+    region = samples.region[index]
+    seen_area = np.bincount(cam * R + region, samples.area[index] * use, minlength=B * R).reshape(B, R)
+    assigned = seen_area / np.maximum(area, TINY) >= exp.optimize.assign_fraction
+    masked = (j.region_area.T @ hidden.T.astype(float)).T / np.maximum(
+        (j.region_area.T @ bare.T.astype(float)).T, TINY)
+    keep = (weight != 0) | (info != 0).any(axis=-1)
+    return Block(start, np.bincount(cam[keep], minlength=B), index[keep].astype(np.int32), info[keep],
+                 weight[keep], assigned, masked, lost, seen)
+
+
+def block_size(samples: int) -> int:
+    """Candidates per block: PAIRS_PER_BLOCK pairs (at least one candidate)."""
+    return max(1, PAIRS_PER_BLOCK // max(samples, 1))
+
+
+def collect(j: Judging, blocks: list[Block]) -> Candidates:
+    """The `Candidates` of `j` from its blocks (in any order), blind candidates (no sample in view
+    at rest) dropped."""
+    blocks = sorted(blocks, key=lambda b: b.start)
+    R = len(j.geometry.samples.region_names)
+    cat = (lambda f, empty: np.concatenate([f(b) for b in blocks]) if blocks else empty)
+    seen = cat(lambda b: b.seen, np.zeros(0, bool))
+    counts = cat(lambda b: b.counts, np.zeros(0, int))
+    keep = np.flatnonzero(seen)
+    pick = lambda seq: tuple(seq[i] for i in keep)                        # noqa: E731
+    return Candidates(
+        pick(j.cams), pick(j.mount), pick(j.kind), j.u[keep], j.heads[keep], j.body[keep],
+        j.target[keep], j.aims, len(j.geometry.samples),
+        np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64),
+        cat(lambda b: b.index, np.zeros(0, np.int32)), cat(lambda b: b.info, np.zeros((0, 6))),
+        cat(lambda b: b.weight, np.zeros(0, np.float32)),
+        cat(lambda b: b.assigned, np.zeros((0, R), bool))[keep],
+        cat(lambda b: b.masked, np.zeros((0, R)))[keep], cat(lambda b: b.path_lost, np.zeros(0))[keep],
+        pruned=int(len(seen) - len(keep)), dropped=j.dropped)
+
+
+_WORKER: dict = {}   # a Dask worker's Judging, built at its first block of a design run
+
+
+def remote_block(exp: Experiment, token: str, start: int, stop: int, threads: int | None) -> Block:
+    """`judge_block` on a Dask worker: the worker configures itself (`vdo.core.configure`, with
+    `threads` Dr.Jit threads) and builds the run's `Judging` (selection samples at [design]
+    sample_spacing_mm, candidates, scenes) at its first block of the run `token`, then keeps it.
+    The candidate list is deterministic, so every worker's list is the caller's."""
+    if _WORKER.get("token") != token:
+        configure(threads=threads)
+        _WORKER.clear()
+        spacing = exp.design.sample_spacing
+        geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
+        _WORKER.update(token=token, judging=judging(exp, geometry))
+    return judge_block(_WORKER["judging"], start, stop)
+
+
+def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=None,
+          threads: int | None = None) -> Candidates:
+    """Every candidate's information and weights on `geometry`'s samples (module docstring), in
+    blocks of `block_size` candidates, stored sparsely; with progress bars when the module logger
+    passes INFO (`vdo.core.progress`). With a dask.distributed `client`, the blocks are tasks on
+    its workers (`remote_block`; `geometry` must then be `exp` sampled at [design]
+    sample_spacing_mm, as `design` does) and come back in any order: the same result."""
+    j = judging(exp, geometry) if j is None else j
+    size = block_size(len(geometry.samples))
+    starts = range(0, len(j.cams), size)
+    if client is None:
+        blocks = [judge_block(j, s, min(s + size, len(j.cams)))
+                  for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False)]
+    else:
+        from distributed import as_completed
+
+        token = uuid.uuid4().hex
+        shared = client.scatter(exp, broadcast=True)
+        futures = [client.submit(remote_block, shared, token, s, min(s + size, len(j.cams)), threads,
+                                 key=f"vdo-design-{token}-{s}", pure=False) for s in starts]
+        blocks = [f.result() for f in bar(log, iterable=as_completed(futures), total=len(futures),
+                                          desc="candidates (dask)", unit="block", leave=False)]
+    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
+    return collect(j, blocks)
 
 
 class Scorer:
-    """score(S) of the module docstring for sums of candidates' information and weights."""
+    """score(S) of the module docstring for sums of candidates' information and weights. Adding
+    one candidate changes only the samples it sees, so each candidate's score is the base set's
+    sums corrected at its stored entries: with T the base's largest sigma (information only lowers
+    sigma, so T bounds every sigma after the addition),
+
+        score(S + k) = T (G + sum_{n in k} [g'_n - g_n])^(1/q) + W (H + sum_{n in k} [h'_n - h_n]),
+
+    g_n = omega_n (sigma_n / T)^q, h_n = a_n max(0, k_region(n) - k_S(n))^2, G and H their sums
+    over all samples and the primes after the addition: the cost follows the stored entries, not
+    candidates x samples."""
 
     def __init__(self, exp: Experiment, samples):
         st = settings(exp)
         scored = np.ones(len(samples.region_names), bool) if exp.optimize.regions is None else \
             np.isin(samples.region_names, exp.optimize.regions)
         omega = samples.area * samples.region_importance[samples.region] * scored[samples.region]
-        area = samples.area / samples.area.sum()
         minimum = np.array([r.min_cameras for r in exp.regions])
         self.settings = st
-        self.omega = jnp.asarray(omega / omega.sum())
-        self.area = jnp.asarray(area)
-        self.minimum = jnp.asarray(minimum[samples.region], dtype=float)
-        self._batch = jax.jit(jax.vmap(self._one, in_axes=(0, 0)))
+        self.omega = omega / omega.sum()
+        self.area = samples.area / samples.area.sum()
+        self.minimum = minimum[samples.region].astype(float)
+        self._sigma = jax.jit(lambda e: objective._smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
+                              / st.sigma_unit)
+        self._omega, self._area, self._minimum = (jnp.asarray(x) for x in (self.omega, self.area,
+                                                                           self.minimum))
+        self._terms = jax.jit(self._entry_terms)
 
-    def _one(self, info, cover):
-        """info (N, 6) float64, cover (N,) -> score."""
-        st = self.settings
-        sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
-        q = st.score_power
-        top = jnp.max(sigma)
-        agg = top * jnp.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
-        short = jnp.maximum(self.minimum - cover, 0.0)
-        return agg + st.coverage_weight * jnp.sum(self.area * short * short)
+    def sigma(self, info: np.ndarray) -> np.ndarray:
+        """(M,) smooth sigma_max / sigma_unit of (M, 6) information, in chunks of ENTRY_CHUNK
+        (the last one padded, so one compiled size)."""
+        out = np.empty(len(info))
+        for s in range(0, len(info), ENTRY_CHUNK):
+            part = info[s:s + ENTRY_CHUNK]
+            size = ENTRY_CHUNK if len(info) > ENTRY_CHUNK else 1 << max(len(part) - 1, 1).bit_length()
+            pad = np.zeros((size, 6))
+            pad[:len(part)] = part
+            out[s:s + len(part)] = np.asarray(self._sigma(jnp.asarray(pad)))[:len(part)]
+        return out
 
     def value(self, info, cover):
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
-        traceable JAX function, convex in both (`vdo.design.bound`)."""
-        return self._one(info, cover)
+        traceable JAX function, convex in both (`vdo.design.bound`); `_score` on the host."""
+        st = self.settings
+        sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
+        q, top = st.score_power, jnp.max(sigma)
+        short = jnp.maximum(self._minimum - cover, 0.0)
+        return top * jnp.sum(self._omega * (sigma / top) ** q) ** (1.0 / q) + \
+            st.coverage_weight * jnp.sum(self._area * short * short)
 
-    def add(self, base_info, base_cover, info, weight) -> np.ndarray:
-        """Scores of base + each candidate: base (N, 6), (N,); info (M, N, 6), weight (M, N)."""
-        out = []
-        for s in range(0, len(info), BATCH):
-            i = jnp.asarray(base_info[None] + info[s:s + BATCH])
-            c = jnp.asarray(base_cover[None] + weight[s:s + BATCH])
-            out.append(np.asarray(self._batch(i, c)))
-        return np.concatenate(out) if out else np.zeros(0)
+    def _score(self, sigma, cover) -> float:
+        q = self.settings.score_power
+        top = sigma.max()
+        short = np.maximum(self.minimum - cover, 0.0)
+        return float(top * np.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
+                     + self.settings.coverage_weight * np.sum(self.area * short * short))
+
+    def _entry_terms(self, index, info, weight, base_info, base_cover, h, top):
+        """Per entry (one chunk, jitted): g'_n after adding the entry's information to the base at
+        its sample n, and h'_n - h_n (class docstring)."""
+        st = self.settings
+        sig = objective._smooth_sigma_max(tuple(base_info[index, k] + info[:, k] for k in range(6)),
+                                          st) / st.sigma_unit
+        short = jnp.maximum(self._minimum[index] - (base_cover[index] + weight), 0.0)
+        return self._omega[index] * (sig / top) ** st.score_power, \
+            self._area[index] * short * short - h[index]
+
+    def add(self, base_info, base_cover, cand: Candidates, rows) -> np.ndarray:
+        """Scores of base + each candidate of `rows`: base (N, 6), (N,). The sum of g over the
+        samples a candidate does not see, G - sum_{n in k} g_n, is taken per band of g (a factor
+        2^G_BAND_OCTAVES wide; a band the candidate sees whole leaves exactly 0), so that a
+        candidate that sees the base's worst samples does not leave the rest to the rounding of
+        their difference."""
+        rows = np.asarray(rows, dtype=int)
+        if rows.size == 0:
+            return np.zeros(0)
+        st, q = self.settings, self.settings.score_power
+        sigma = self.sigma(base_info)
+        top = sigma.max()
+        g = self.omega * (sigma / top) ** q
+        with np.errstate(divide="ignore"):
+            band = np.clip(-np.floor(np.log2(g) / G_BAND_OCTAVES), 0, G_BANDS - 1).astype(np.int64)
+        band_sum = np.bincount(band, g, minlength=G_BANDS)
+        band_count = np.bincount(band, minlength=G_BANDS)
+        short = np.maximum(self.minimum - base_cover, 0.0)
+        h = self.area * short * short
+        base = tuple(jnp.asarray(x) for x in (base_info, base_cover, h))
+        seen_sum = np.zeros((len(rows), G_BANDS))
+        seen_count = np.zeros((len(rows), G_BANDS), np.int64)
+        seen_new, dh = np.zeros(len(rows)), np.zeros(len(rows))
+        # the stored entries of `rows`, row after row, ENTRY_CHUNK at a time: every per-entry
+        # array lives for one chunk (the stored pairs are the only thing as large as all of them)
+        ends = np.cumsum(cand.indptr[rows + 1] - cand.indptr[rows])
+        total = int(ends[-1])
+        for s in range(0, total, ENTRY_CHUNK):
+            pos = np.arange(s, min(s + ENTRY_CHUNK, total))
+            owner = np.searchsorted(ends, pos, side="right")
+            e = cand.indptr[rows[owner]] + pos - (ends[owner] - (cand.indptr[rows + 1] - cand.indptr[rows])[owner])
+            m = len(e)
+            pad = lambda x: np.concatenate([x, np.zeros((ENTRY_CHUNK - m,) + x.shape[1:], x.dtype)])  # noqa: E731
+            n = cand.index[e]
+            a, b = self._terms(jnp.asarray(pad(n)), jnp.asarray(pad(cand.entry_info[e])),
+                               jnp.asarray(pad(cand.entry_weight[e].astype(float))), *base, top)
+            seen_new += np.bincount(owner, np.asarray(a)[:m], minlength=len(rows))
+            dh += np.bincount(owner, np.asarray(b)[:m], minlength=len(rows))
+            cell = owner * G_BANDS + band[n]
+            seen_sum += np.bincount(cell, g[n], minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+            seen_count += np.bincount(cell, minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
+        unseen = np.where(seen_count == band_count, 0.0, np.maximum(band_sum - seen_sum, 0.0)).sum(1)
+        return top * (unseen + seen_new) ** (1.0 / q) + st.coverage_weight * (h.sum() + dh)
 
     def of(self, cand: Candidates, chosen) -> float:
-        chosen = list(chosen)
-        i = cand.info[chosen].sum(0)
-        c = cand.weight[chosen].sum(0)
-        return float(self._batch(jnp.asarray(i[None]), jnp.asarray(c[None]))[0])
+        info, cover = cand.sums(list(chosen))
+        return self._score(self.sigma(info), cover)
 
 
-def min_angles(exp: Experiment, cand: Candidates) -> np.ndarray:
-    """(K, K) minimum axis angle (rad) of each pair: [optimize] min_axis_angle_deg or the stereo
-    rule of thumb for the shorter lens (`vdo.constraints.stereo_min_angle`)."""
+def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
+    """(K,) minimum axis angle (rad) of candidate j with each candidate: [optimize]
+    min_axis_angle_deg or the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`)."""
     f = np.array([c.focal_length for c in cand.cameras])
     if exp.optimize.min_axis_angle is not None:
-        return np.full((len(f), len(f)), exp.optimize.min_axis_angle)
-    rule = {x: stereo_min_angle(x) for x in np.unique(f)}
-    lo = np.minimum(f[:, None], f[None])
-    return np.vectorize(rule.get)(lo)
+        return np.full(len(f), exp.optimize.min_axis_angle)
+    lens = np.unique(f)
+    rule = np.array([stereo_min_angle(x) for x in lens])
+    return rule[np.searchsorted(lens, np.minimum(f, f[j]))]
 
 
 class Feasibility:
@@ -425,31 +696,43 @@ class Feasibility:
     max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
     between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
     max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
-    pairs sharing that region)."""
+    pairs sharing that region). A candidate's conflicts with all others (K,) are found when it is
+    first selected and kept (never a K x K matrix)."""
 
     def __init__(self, exp: Experiment, cand: Candidates):
-        p, a = cand.positions, cand.axes
-        self.exclusive = np.linalg.norm(p[:, None] - p[None], axis=-1) < SPOT_M
-        share = (cand.assigned.astype(int) @ cand.assigned.T.astype(int)) > 0
-        angle = np.arccos(np.clip(a @ a.T, -1, 1))
-        conflict = self.exclusive | (share & (angle < min_angles(exp, cand) - LIMIT_SLACK))
-        if exp.optimize.max_axis_angle is not None:
-            conflict |= share & (angle > exp.optimize.max_axis_angle + LIMIT_SLACK)
-        for r, spec in enumerate(exp.regions):
-            if spec.max_axis_angle is not None:
-                on = cand.assigned[:, r]
-                conflict |= on[:, None] & on[None] & (angle > spec.max_axis_angle + LIMIT_SLACK)
-        self.conflict = conflict
+        self.exp, self.cand = exp, cand
+        self.positions, self.axes = cand.positions, cand.axes
+        self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
+                        if spec.max_axis_angle is not None]
         self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
         self.body = cand.body
         self.counts = np.array([b.count for b in bodies(exp)])
+        self._rows: dict[int, np.ndarray] = {}
+
+    def row(self, j: int) -> np.ndarray:
+        """(K,) True where a candidate conflicts with candidate j."""
+        if j not in self._rows:
+            cand, opt = self.cand, self.exp.optimize
+            exclusive = np.linalg.norm(self.positions - self.positions[j], axis=1) < SPOT_M
+            share = (cand.assigned & cand.assigned[j]).any(axis=1)
+            angle = np.arccos(np.clip(self.axes @ self.axes[j], -1, 1))
+            conflict = exclusive | (share & (angle < min_angles(self.exp, cand, j) - ANGLE_TOL))
+            if opt.max_axis_angle is not None:
+                conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
+            for r, top in self.limited:
+                conflict |= cand.assigned[:, r] & cand.assigned[j, r] & (angle > top + ANGLE_TOL)
+            self._rows[j] = conflict
+        return self._rows[j]
+
+    def conflicts(self, i: int, j: int) -> bool:
+        return bool(self.row(j)[i])
 
     def allowed(self, chosen) -> np.ndarray:
         """(K,) True for the candidates compatible with every camera in `chosen` and whose body
         kind is not used up by `chosen`."""
         ok = self.alone.copy()
         for j in chosen:
-            ok &= ~self.conflict[j]
+            ok &= ~self.row(j)
         used = np.bincount(self.body[list(chosen)], minlength=len(self.counts))
         return ok & (used < self.counts)[self.body]
 
@@ -460,14 +743,11 @@ def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
     each addition (stops early when no feasible candidate is left); a progress bar when the module
     logger passes INFO."""
     chosen, scores = list(start), []
-    N = cand.info.shape[1]
     for _ in bar(log, iterable=range(n - len(chosen)), desc="greedy", leave=False):
         ok = np.flatnonzero(feas.allowed(chosen))
         if ok.size == 0:
             break
-        base_i = cand.info[chosen].sum(0) if chosen else np.zeros((N, 6))
-        base_c = cand.weight[chosen].sum(0) if chosen else np.zeros(N)
-        s = scorer.add(base_i, base_c, cand.info[ok], cand.weight[ok])
+        s = scorer.add(*cand.sums(chosen), cand, ok)
         best = int(np.argmin(s))
         chosen.append(int(ok[best]))
         scores.append(float(s[best]))
@@ -488,8 +768,7 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
             ok = ok[~np.isin(ok, chosen)]
             if ok.size == 0:
                 continue
-            s = scorer.add(cand.info[rest].sum(0),
-                           cand.weight[rest].sum(0), cand.info[ok], cand.weight[ok])
+            s = scorer.add(*cand.sums(rest), cand, ok)
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
                 chosen[slot], current = int(ok[best]), float(s[best])
@@ -497,6 +776,119 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
         if not improved:
             break
     return chosen, current, swaps
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What judging and selecting will take, estimated before the work (`estimate`): candidates
+    K, samples N, candidates probed P, stored pairs E (the probe's mean per candidate x K), peak
+    memory (bytes: the process so far, the stored pairs STORE_COPIES times, one block's working
+    arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
+    time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
+    greedy's n_max plus SEARCH_PASSES exchange passes of every count's cameras), seconds."""
+
+    candidates: int
+    samples: int
+    probed: int
+    entries: int
+    memory_bytes: float
+    fixed_bytes: float
+    judge_s: float
+    search_s: float
+
+    def line(self) -> str:
+        return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
+                f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
+                f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
+                f"{self.search_s:.0f} s search")
+
+
+def peak_rss() -> float:
+    """The process's peak resident memory so far (bytes; Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
+
+
+def available_memory() -> float:
+    """Bytes this process may still use: MemAvailable of /proc/meminfo plus what it holds now
+    (its peak so far); the physical memory where /proc is missing."""
+    try:
+        with open("/proc/meminfo") as fh:
+            free = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    return free + peak_rss()
+
+
+def score_passes(exp: Experiment) -> int:
+    """How many times the search scores every candidate: greedy's n_max steps plus SEARCH_PASSES
+    exchange passes over each count's cameras (count = min_cameras .. n_max)."""
+    n = inventory(exp)
+    return n + SEARCH_PASSES * sum(range(min(exp.design.min_cameras, n), n + 1))
+
+
+def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
+    """Judge PROBE candidates evenly spread over `j`'s list and time the score on their pairs;
+    scale to all candidates (the `Estimate` fields)."""
+    K, N = len(j.cams), len(j.geometry.samples)
+    pick = np.unique(np.linspace(0, K - 1, min(K, PROBE)).astype(int)) if K else np.zeros(0, int)
+    probe = replace(j, cams=tuple(j.cams[i] for i in pick), mount=tuple(j.mount[i] for i in pick),
+                    kind=tuple(j.kind[i] for i in pick), u=j.u[pick], heads=j.heads[pick],
+                    body=j.body[pick], target=j.target[pick])
+    warm = min(len(pick), PROBE_WARM)      # the first few compile the programs: not timed
+    first = judge_block(probe, 0, warm) if warm else None
+    t0 = time.perf_counter()
+    rest = judge_block(probe, warm, len(pick)) if len(pick) > warm else None
+    judge_s = (time.perf_counter() - t0) / max(len(pick) - warm, 1) * K if rest is not None else 0.0
+    block = first if rest is None else replace(
+        rest, start=0, counts=np.concatenate([first.counts, rest.counts]),
+        index=np.concatenate([first.index, rest.index]), info=np.concatenate([first.info, rest.info]),
+        weight=np.concatenate([first.weight, rest.weight]),
+        assigned=np.concatenate([first.assigned, rest.assigned]),
+        masked=np.concatenate([first.masked, rest.masked]),
+        path_lost=np.concatenate([first.path_lost, rest.path_lost]),
+        seen=np.concatenate([first.seen, rest.seen]))
+    per = float(block.counts.sum()) / len(pick) if len(pick) else 0.0
+    entries = int(round(per * K))
+    search_s = 0.0
+    sample = collect(probe, [block]) if block is not None else None
+    if sample is not None and sample.index.size:
+        rows = np.arange(len(sample.cameras))
+        zero = (np.zeros((N, 6)), np.zeros(N))
+        scorer.add(*zero, sample, rows[:1])                                  # compiles
+        t0 = time.perf_counter()
+        scorer.add(*zero, sample, rows)
+        chunks = math.ceil(sample.index.size / ENTRY_CHUNK)    # a chunk costs the same, full or padded
+        search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
+    fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
+    memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
+    return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s)
+
+
+def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:
+    """ConfigError naming the [design] sample_spacing_mm and the candidate count that would fit
+    when `est` needs more than `memory_limit` bytes or (with one) `time_limit` seconds. The stored
+    pairs and both times grow as candidates x samples, samples as 1 / spacing^2."""
+    over = []
+    if est.memory_bytes > memory_limit:
+        room = memory_limit - est.fixed_bytes
+        if room <= 0:
+            raise ConfigError(exp.path, "design", (
+                f"{est.line()}; but only {memory_limit / GB:.1f} GB is available and this process, one "
+                f"block of candidates and the {est.candidates:,} candidates' cameras already take "
+                f"{est.fixed_bytes / GB:.1f} GB: free memory, or far fewer candidates (zone_points, "
+                "zone_heights, rail_positions, lenses_mm, aim_offsets_deg)"))
+        over.append(((est.memory_bytes - est.fixed_bytes) / room, f"{memory_limit / GB:.1f} GB of memory"))
+    total = est.judge_s + est.search_s
+    if time_limit is not None and total > time_limit:
+        over.append((total / time_limit, f"the time limit of {time_limit:g} s"))
+    if not over:
+        return
+    ratio, what = max(over)
+    spacing = math.ceil(exp.design.sample_spacing * 1e3 * math.sqrt(ratio))
+    raise ConfigError(exp.path, "design.sample_spacing_mm", (
+        f"{est.line()}: more than {' and '.join(w for _, w in over)}; a sample_spacing_mm of {spacing} "
+        f"or more, or at most {int(est.candidates / ratio):,} candidates (fewer zone_points, "
+        "zone_heights, rail_positions, lenses_mm or aim_offsets_deg), fits"))
 
 
 def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
@@ -532,10 +924,10 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
     if not len(cand.cameras):
         return np.zeros(len(samples), dtype=bool)
     spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
-    use = usable.usable_views(cand.weight)
-    seen = np.zeros((spot.max() + 1, len(samples)), dtype=bool)
-    np.logical_or.at(seen, spot, use)
-    return seen.sum(axis=0) >= need
+    owner = np.repeat(np.arange(len(cand.cameras)), np.diff(cand.indptr))
+    use = usable.usable_views(cand.entry_weight)
+    pairs = np.unique(spot[owner[use]].astype(np.int64) * len(samples) + cand.index[use])
+    return np.bincount(pairs % len(samples), minlength=len(samples)) >= need
 
 
 def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
@@ -573,7 +965,8 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     keyframes); fewer candidate spots (optical centres SPOT_M apart) seeing it than its
     min_cameras."""
     out, n = [], inventory(exp)
-    use = usable.usable_views(cand.weight) if len(cand.cameras) else np.zeros((0, len(samples)), bool)
+    use = usable.usable_views(cand.entry_weight)
+    owner, region = cand.row[use], samples.region[cand.index[use]]
     where = "[design] max_cameras" if exp.design.max_cameras else \
         ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
     for r, spec in enumerate(exp.regions):
@@ -581,8 +974,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
         if need > n:
             out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
                        f"has {n} ({where}): add {need - n} camera bod{'y' if need - n == 1 else 'ies'}")
-        m = samples.region == r
-        seeing = np.flatnonzero(use[:, m].any(axis=1))
+        seeing = np.unique(owner[region == r])
         if seeing.size == 0:
             moving = " over the load path's keyframes" if np.any(cand.path_lost > 0) else ""
             out.append(f"region {spec.name!r}: no candidate pose sees it{moving}: add a mount "
@@ -613,7 +1005,7 @@ def shortfalls(state, exp: Experiment) -> list[str]:
         need = spec.min_cameras
         m = smp.region == r
         seen = smp.area[m & (state.prediction.coverage >= need)].sum() / smp.area[m].sum()
-        if seen < 1 - 1e-9:
+        if seen < 1 - LIMIT_SLACK:
             out.append(f"region {spec.name!r}: the design sees {100 * seen:.1f} % of it by its "
                        f"min_cameras = {need} usable views (missing: more cameras or a mount in "
                        "view of the rest)")
@@ -631,7 +1023,8 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
         "per_lens_mm": {f"{x * 1e3:g}": int((f == x).sum()) for x in np.unique(f)},
         "per_region_assigned": {r.name: int(cand.assigned[:, k].sum())
                                 for k, r in enumerate(exp.regions)},
-        "usable_samples_mean": float(usable.usable_views(cand.weight).sum(1).mean()),
+        "usable_samples_mean": float(cand.usable_counts().mean()) if len(cand.cameras) else 0.0,
+        "blind_pruned": cand.pruned,
         "load_path_lost_mean": float(cand.path_lost.mean()),
         "chosen": [{"camera": f"d{k + 1}", "body": kinds[cand.body[i]].name,
                     "focal_mm": round(cand.cameras[i].focal_length * 1e3, 6),
@@ -641,32 +1034,48 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
                    for k, i in enumerate(chosen)]}
 
 
-def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False) -> dict:
+def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
+           memory_limit: float | None = None, time_limit: float | None = None, client=None,
+           threads: int | None = None) -> dict:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
     `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
-    constraints.json "before" holds every constraint check of the designed layout). Progress
-    and the chosen cameras: INFO lines and bars through the module logger; each problem found
-    (also in the result): a warning."""
+    constraints.json "before" holds every constraint check of the designed layout). Before the
+    work, the time and memory it will take are estimated (`estimate`, one INFO line) and a
+    problem that needs more than `memory_limit` bytes (default: `available_memory`) or
+    `time_limit` seconds is refused (`refuse`: ConfigError naming the spacing and the candidate
+    count that fit). With a dask.distributed `client` the candidates are judged on its workers
+    (`judge`; `threads` Dr.Jit threads each). Progress and the chosen cameras: INFO lines and
+    bars through the module logger; each problem found (also in the result): a warning."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
-    cand = judge(exp, coarse)
-    K, N = cand.info.shape[:2]
+    j = judging(exp, coarse)
+    scorer = Scorer(exp, coarse.samples)
+    est = estimate(exp, j, scorer)
+    log.info(est.line())
+    refuse(exp, est, available_memory() if memory_limit is None else memory_limit, time_limit)
+    t_judge = time.perf_counter()
+    cand = judge(exp, coarse, j, client=client, threads=threads)
+    K, N = len(cand.cameras), cand.samples
+    judged_s = time.perf_counter() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
              d.sample_spacing * 1e3, time.perf_counter() - t0)
     issues = problems(exp, cand, coarse.samples)
     for msg in issues:
         log.warning(msg)
     if K == 0:
-        raise ConfigError(exp.path, "design", "no candidate pose keeps its clearance: add a "
-                                              "[[mount]] or [[rail]] clear of the meshes")
-    scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
+        raise ConfigError(exp.path, "design", (
+            f"none of the {cand.pruned} candidate poses that keep their clearance sees a sample: add "
+            "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
+            "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
+    feas = Feasibility(exp, cand)
     can_measure = measurable(exp, cand, coarse.samples)
     log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
              "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
              / coarse.samples.area.sum(), exp.evaluation.min_cameras)
+    t_search = time.perf_counter()
     order, _ = greedy(cand, scorer, feas, n_max)
     curve = []
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
@@ -678,11 +1087,13 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
                       **measures(state, exp, can_measure)})
     relax_curve(exp, cand, scorer, feas, curve)
+    searched_s = time.perf_counter() - t_search
+    search_peak = peak_rss()      # what the estimate covers: judging and selection
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
         ok = [c for c in curve if c["sigma_p95_um"] is not None and
-              c["sigma_p95_um"] <= d.target_sigma_um and c["coverage"] >= 1 - 1e-9]
+              c["sigma_p95_um"] <= d.target_sigma_um and c["coverage"] >= 1 - LIMIT_SLACK]
         target = ok[0]["cameras"] if ok else None
         if target is None:
             reached = "unmeasured" if best["sigma_p95_um"] is None else f"{best['sigma_p95_um']:.4g} um"
@@ -728,7 +1139,14 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
             "gap_to_bound": best["gap"], "bound": best["bound"],
-            "wall_s": wall})
+            "wall_s": wall,
+            "estimate": {"candidates": est.candidates, "samples": est.samples, "probed": est.probed,
+                         "entries": est.entries, "memory_gb": est.memory_bytes / GB,
+                         "judge_s": est.judge_s, "search_s": est.search_s},
+            "measured": {"candidates": K + cand.pruned, "blind_pruned": cand.pruned,
+                         "entries": int(cand.index.size), "peak_memory_gb": search_peak / GB,
+                         "peak_memory_gb_with_final_judgement": peak_rss() / GB,
+                         "judge_s": judged_s, "search_s": searched_s}})
         html_report.write_report(tmp)
         refined = optimize(final, tmp / "refine") if refine else None
     return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
@@ -757,7 +1175,7 @@ def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibi
 def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
     """One row per candidate: mount, pose, body, lens, samples it sees usably, regions assigned,
     the fraction of its view the load path takes away, selected."""
-    use = usable.usable_views(cand.weight).sum(1)
+    use = cand.usable_counts()
     names = [b.name for b in bodies(exp)]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)

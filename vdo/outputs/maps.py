@@ -20,12 +20,14 @@ past the face's edge.
 
 from __future__ import annotations
 
+import re
 import textwrap
+import weakref
 from dataclasses import dataclass
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.collections import PolyCollection  # noqa: E402
+from matplotlib.collections import LineCollection, PolyCollection  # noqa: E402
 from scipy.spatial import ConvexHull, QhullError  # noqa: E402
 
 from vdo.scene import SurfaceSamples  # noqa: E402
@@ -41,6 +43,7 @@ VIEWS = (
 )
 NO_VALUE = "0.78"     # grey of samples without a value (NaN); white is where there is no surface
 OUTLIER_RATIO = 1.5   # a continuous scale stops at the 98th percentile when max > 1.5 x p98
+MAX_REGION_LABELS = 40  # more regions than this: one label per region group (`region_groups`)
 
 
 @dataclass(frozen=True)
@@ -152,7 +155,8 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     limits; samples without a value (NaN) are grey. Returns each region's bounding box in the
     PNG's pixels, {name: (col0, row0, col1, row1)} with row 0 at the top."""
     values = np.asarray(values, dtype=float)
-    sheet, view_of, panels, depth, cells = unfold(samples)
+    lay = layout(samples)
+    panels, cells, hulls = lay.panels, lay.cells, lay.hulls
     lo = np.array([min(p.x0 for p in panels), min(p.y0 for p in panels)])
     hi = np.array([max(p.x0 + p.width for p in panels), max(p.y0 + p.height for p in panels)])
     margin = 0.06 * max(hi - lo)
@@ -173,7 +177,7 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     width_in = min(4 + 6 * aspect, 18)
     dpi = 130
     fig, axes = plt.subplots(figsize=(width_in, 7), layout="constrained", dpi=dpi)
-    order = np.argsort(depth, kind="stable")              # nearer faces drawn last
+    order = lay.order                                      # nearer faces drawn last
     coll = PolyCollection(cells[order], array=np.ma.masked_invalid(values[order]), cmap=cmap_obj,
                           edgecolors="face", linewidths=0.2, antialiaseds=False)
     coll.set_clim(vmin, vmax)
@@ -186,21 +190,13 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
                   f"view from {'+' if sg > 0 else '−'}{'xyz'[ax]} ({p.name}):  "
                   f"→ {axis_label(h_axis)}   ↑ {axis_label(v_axis)}",
                   va="bottom", ha="left", fontsize=fs, color="0.2")
-    hulls = {}
-    for r, name in enumerate(samples.region_names):
-        mask = samples.region == r
-        if not mask.any():
-            continue
-        corners = cells[mask].reshape(-1, 2)
-        try:
-            ring = corners[ConvexHull(corners).vertices]
-        except QhullError:                                 # degenerate (a line of samples)
-            ring = corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]]
-        hulls[name] = ring
-        axes.add_patch(plt.Polygon(ring, closed=True, fill=False, lw=0.6, ec="0.15", ls="--"))
+    # every region's outline in one collection (one artist, whatever the number of regions)
+    axes.add_collection(LineCollection([np.vstack([r, r[:1]]) for r in hulls.values()], lw=0.6,
+                                       colors="0.15", linestyles="--"))
+    for text, ring in lay.labels:
         c = 0.5 * (ring.min(axis=0) + ring.max(axis=0))
         ext = ring.max(axis=0) - ring.min(axis=0)
-        axes.text(*c, name, ha="center", va="center", fontsize=fs - 1.5,
+        axes.text(*c, text, ha="center", va="center", fontsize=fs - 1.5,
                   rotation=90 if ext[1] > 1.5 * ext[0] else 0, color="0.1",
                   bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.6))
     # scale bar, bottom left
@@ -231,6 +227,76 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
                        float(px[:, 0].max()), float(fig_h - px[:, 1].min()))
     plt.close(fig)
     return boxes
+
+
+def region_groups(names) -> dict[str, list[int]]:
+    """Regions grouped by name with a trailing index removed ("front_012" and "front_013" ->
+    "front"; a name without one is its own group): {group: region indices}, in first-seen order."""
+    out: dict[str, list[int]] = {}
+    for r, name in enumerate(names):
+        out.setdefault(re.sub(r"[_\-. ]*\d+$", "", name) or name, []).append(r)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class MapLayout:
+    """What every map of one set of samples shares (`layout`): the unfolded cells (N, 4, 2) and
+    depth (N,) of `unfold`, the drawing order (nearer faces last), the panels, each region's
+    outline on the sheet (convex hull of its cells) and the labels to draw: (text, ring), one per
+    region up to MAX_REGION_LABELS regions, else one per region group (`region_groups`, its
+    name and region count, over the union of its members' rings)."""
+
+    cells: np.ndarray
+    depth: np.ndarray
+    order: np.ndarray
+    panels: list
+    hulls: dict
+    labels: list
+
+
+_LAYOUTS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def layout(samples: SurfaceSamples) -> MapLayout:
+    """The `MapLayout` of `samples`, computed once per samples object (every map of an evaluation
+    shares it)."""
+    if samples in _LAYOUTS:
+        return _LAYOUTS[samples]
+    _, _, panels, depth, cells = unfold(samples)
+    hulls = {}
+    for r, name in enumerate(samples.region_names):
+        mask = samples.region == r
+        if not mask.any():
+            continue
+        corners = cells[mask].reshape(-1, 2)
+        try:
+            hulls[name] = corners[ConvexHull(corners).vertices]
+        except QhullError:                                 # degenerate (a line of samples)
+            hulls[name] = corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]]
+    if len(hulls) <= MAX_REGION_LABELS:
+        labels = list(hulls.items())
+    else:
+        labels = []
+        names = list(samples.region_names)
+        for group, members in region_groups(names).items():
+            rings = [hulls[names[r]] for r in members if names[r] in hulls]
+            if rings:   # a group spread over several views is labelled in each view it fills
+                for view in _views_of_rings(rings, panels):
+                    labels.append((f"{group} ({len(members)})", np.vstack(view)))
+    out = MapLayout(cells, depth, np.argsort(depth, kind="stable"), panels, hulls, labels)
+    _LAYOUTS[samples] = out
+    return out
+
+
+def _views_of_rings(rings, panels) -> list[list[np.ndarray]]:
+    """The rings split by the panel that holds each one's centre (in panel order)."""
+    out = {}
+    for ring in rings:
+        c = ring.mean(axis=0)
+        k = next((i for i, p in enumerate(panels) if p.x0 - 1e-9 <= c[0] <= p.x0 + p.width + 1e-9
+                  and p.y0 - 1e-9 <= c[1] <= p.y0 + p.height + 1e-9), -1)
+        out.setdefault(k, []).append(ring)
+    return [out[k] for k in sorted(out)]
 
 
 def _extend(values: np.ndarray, vmin: float, vmax: float) -> str:

@@ -36,6 +36,8 @@ from vdo.core.tolerances import LIMIT_SLACK
 logger = logging.getLogger(__name__)
 
 SEEN_FRACTION = 0.5     # a camera sees a region when it sees at least this fraction of its area
+SIGMA_RATIO = 1.5       # a region's sigma_max p95 at a step this many times its p95 at rest: a change
+COVERAGE_DROP = 0.05    # its area fraction seen by its min_cameras this far below rest: a change
 
 
 @dataclass(frozen=True, eq=False)
@@ -51,6 +53,7 @@ class LoadPathResult:
     region_covered: np.ndarray    # (K, R) area fraction seen by >= the region's minimum cameras
     region_sigma_p95: np.ndarray  # (K, R) m over the measured samples (NaN if none)
     losses: tuple[dict, ...]      # {"camera", "region", "step", "rest_fraction", "fraction"}
+    changes: tuple[dict, ...] = ()  # `region_changes`
 
     @property
     def worst_coverage(self) -> np.ndarray:
@@ -76,14 +79,18 @@ def _region_stats(state: LayoutState, minimum: np.ndarray):
     seen = np.zeros((visible.shape[0], n_regions))
     cov = np.zeros(n_regions)
     p95 = np.full(n_regions, np.nan)
-    for r in range(n_regions):
-        mask = samples.region == r
-        total = area[mask].sum()
-        seen[:, r] = (visible[:, mask] * area[mask]).sum(axis=1) / total
-        cov[r] = area[mask & covered].sum() / total
-        finite = sigma[mask][np.isfinite(sigma[mask])]
-        if finite.size:
-            p95[r] = np.percentile(finite, 95)
+    region = samples.region
+    total = np.bincount(region, area, minlength=n_regions)
+    for c in range(visible.shape[0]):      # per camera, every region at once
+        seen[c] = np.bincount(region, area * visible[c], minlength=n_regions) / total
+    cov = np.bincount(region, area * covered, minlength=n_regions) / total
+    finite = np.isfinite(sigma)
+    order = np.lexsort((sigma[finite], region[finite]))        # by region, then sigma
+    values, owner = sigma[finite][order], region[finite][order]
+    start = np.searchsorted(owner, np.arange(n_regions))
+    count = np.bincount(owner, minlength=n_regions)
+    for r in np.flatnonzero(count):        # numpy's linear percentile of each region's sorted values
+        p95[r] = np.percentile(values[start[r]:start[r] + count[r]], 95)
     return seen, cov, p95, sigma
 
 
@@ -126,10 +133,38 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
                 losses.append({"camera": camera, "region": region, "step": steps[k],
                                "rest_fraction": float(seen_arr[0, c, r]),
                                "fraction": float(seen_arr[k, c, r])})
-                logger.warning("camera %s loses region %s at step %s (sees %.0f%% of it, %.0f%% at rest)",
-                               camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
+                logger.debug("camera %s loses region %s at step %s (sees %.0f%% of it, %.0f%% at rest)",
+                             camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
+    covered, p95 = np.array(covered), np.array(p95)
     return LoadPathResult(steps, camera_names, geometry.samples.region_names, np.array(coverage),
-                          np.array(sigma), seen_arr, np.array(covered), np.array(p95), tuple(losses))
+                          np.array(sigma), seen_arr, covered, p95, tuple(losses),
+                          region_changes(geometry.samples.region_names, steps, covered, p95))
+
+
+def region_changes(region_names, steps, covered: np.ndarray, p95: np.ndarray) -> tuple[dict, ...]:
+    """The changes over the load path that matter, per region, at the step where each is largest:
+    sigma_max p95 at least SIGMA_RATIO times its value at rest ({"kind": "sigma", "rest_um",
+    "value_um", "ratio"}; also a region measured at rest and unmeasured at a step, ratio inf),
+    and the area fraction seen by the region's min_cameras at least COVERAGE_DROP below rest
+    ({"kind": "coverage", "rest", "value", "drop"}). `covered`, `p95` (K, R), index 0 at rest."""
+    out = []
+    for r, region in enumerate(region_names):
+        rest, later = p95[0, r], p95[1:, r]
+        if np.isfinite(rest) and later.size:
+            ratio = np.where(np.isnan(later), np.inf, later / rest)
+            k = int(np.argmax(ratio))
+            if ratio[k] >= SIGMA_RATIO:
+                out.append({"region": region, "kind": "sigma", "step": steps[k + 1],
+                            "rest_um": float(rest * 1e6),
+                            "value_um": None if np.isnan(later[k]) else float(later[k] * 1e6),
+                            "ratio": float(ratio[k])})
+        drop = covered[0, r] - covered[1:, r]
+        if drop.size and drop.max() >= COVERAGE_DROP:
+            k = int(np.argmax(drop))
+            out.append({"region": region, "kind": "coverage", "step": steps[k + 1],
+                        "rest": float(covered[0, r]), "value": float(covered[k + 1, r]),
+                        "drop": float(drop[k])})
+    return tuple(out)
 
 
 def _motion(load_path: LoadPath, step: int) -> np.ndarray:
@@ -226,7 +261,8 @@ def summary(result: LoadPathResult) -> dict:
             "sigma_max_p95_um_max": None if worst is None else float(p95[worst] * 1e6),
             "sigma_max_p95_um_max_step": None if worst is None else result.steps[worst]}
     return {"steps": len(result.steps) - 1, "seen_fraction": SEEN_FRACTION,
-            "losses": list(result.losses), "regions": regions}
+            "losses": list(result.losses), "sigma_ratio": SIGMA_RATIO, "coverage_drop": COVERAGE_DROP,
+            "changes": list(result.changes), "regions": regions}
 
 
 def table(result: LoadPathResult) -> list[dict]:
