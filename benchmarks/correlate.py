@@ -40,7 +40,10 @@ ROOT = Path(__file__).resolve().parent.parent
 U_IMPOSED = np.array([23e-6, -17e-6, 11e-6])      # m: ~0.3 px in-plane at 69 µm per pixel
 
 PLATE = """
-title = "correlation benchmark plate"
+[experiment]
+name = "correlation benchmark plate"
+[evaluation]
+sample_spacing_mm = 20
 [[mesh]]
 name = "plate"
 file = "plate.stl"
@@ -49,9 +52,10 @@ unit = "mm"
 [[region]]
 name = "top"
 mesh = "plate"
-box_min_m = [-0.5, -0.5, -0.001]
-box_max_m = [0.5, 0.5, 0.001]
-spacing_mm = 20
+normal = [0, 0, 1]
+[[rail]]
+name = "overhead"
+control_points_m = [[-1.0, 0.0, 1.0], [1.0, 0.0, 1.0]]
 [speckle]
 dot_diameter_mm = 0.3
 texel_mm = 0.03
