@@ -12,7 +12,10 @@ import pytest
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_correlate import PATCH, STEREO, U_TRUE, pattern, render  # noqa: E402,F401
+import test_correlate  # noqa: E402
+from test_correlate import STEREO, U_TRUE, render  # noqa: E402
+
+pattern = test_correlate.pattern        # the module's fixture, shared
 
 from vdo.dic import correlate as correlate_module  # noqa: E402
 from vdo.dic.correlate import SplineImage, WindowedImage  # noqa: E402
@@ -54,7 +57,7 @@ def test_windowed_spline_is_the_whole_images_spline(order):
 
 
 @pytest.fixture(scope="module")
-def stereo_pair(pattern):  # noqa: F811
+def stereo_pair(pattern):
     cams = [replace(c, width=400, height=300, focal_length=2 * c.focal_length) for c in STEREO]
     return cams, [render(c, pattern) for c in cams], [render(c, pattern, U_TRUE) for c in cams]
 

@@ -55,10 +55,14 @@ def shift(a, b, centre, half=32):
     return warp[:, 2].astype(float)
 
 
-def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_path, caplog):
+@pytest.mark.parametrize("mode", ["sampled", "dic"])
+def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_path, caplog, mode):
+    from dataclasses import replace
+
     path = plate_experiment(cameras=CAMERA)
     (tmp_path / "motions.csv").write_text(MOTIONS)
     exp = config.load(path)
+    exp = replace(exp, render=replace(exp.render, mode=mode))
     out = tmp_path / "series"
     with caplog.at_level(logging.WARNING, logger="vdo"):
         summary = render_series(exp, out, tmp_path / "motions.csv")

@@ -54,6 +54,7 @@ from vdo.physics.glare import SATIN_ALPHA, SATIN_IOR
 log = logging.getLogger(__name__)
 
 BODY_ALBEDO = 0.05
+NEAR_CLIP_M = 1e-3    # the sensors' near-clip plane (m in front of the camera centre)
 
 
 def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool = True,
@@ -68,7 +69,7 @@ def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool 
     ox, oy = camera.mitsuba_principal_offset()
     film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
             "pixel_format": "luminance", "component_format": "float32"}
-    sensor = {"fov_axis": "x", "fov": camera.mitsuba_fov_deg(), "near_clip": 1e-3,
+    sensor = {"fov_axis": "x", "fov": camera.mitsuba_fov_deg(), "near_clip": NEAR_CLIP_M,
               "far_clip": 1e4, "to_world": _transform(camera.mitsuba_to_world()), "film": film,
               "sampler": {"type": "stratified", "sample_count": spp, "jitter": jitter}}
     if aperture_radius:
@@ -670,7 +671,7 @@ LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each li
                              # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
 AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
 SHADE_STRIDE = 8             # px between the nodes of the per-camera light map
-SHADE_TOLERANCE = 0.01       # a light-map cell whose corner values differ by more than this
+SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by more than this
                              # fraction (a shadow edge, a panel's rim) is computed at every pixel
 EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
                              # mean of EDGE_SUPERSAMPLE^2 sub-pixel rays, each with its own footprint
@@ -877,7 +878,7 @@ def _pixel_grid(u, v) -> np.ndarray:
 
 def _rays(camera: Camera, grid, step: float = 1.0):
     """Mitsuba ray differentials for the (distorted) pixels `grid` ((n, 2) array, or a pair of
-    Dr.Jit Floats (u, v)): from the camera centre through the pinhole pixel p =
+    Dr.Jit Floats (u, v)): from the near-clip plane through the pinhole pixel p =
     `Camera.undistorted_pixels`(u, v) and, as differentials, through p + ∂p/∂u and p + ∂p/∂v
     for a step of `step` pixels (central differences over ±step/2 for a distorted camera)."""
     import drjit as dr
@@ -902,10 +903,13 @@ def _rays(camera: Camera, grid, step: float = 1.0):
         else:
             px, py = grid
         pux, puy, pvx, pvy = step, 0.0, 0.0, step
+    # Each ray starts on the near-clip plane (the camera frame's z = NEAR_CLIP_M, as Mitsuba's
+    # perspective sensor), so that a camera's own body around its centre is not hit.
     o = mi.Point3f(*(float(c) for c in camera.position))
-    ray = mi.RayDifferential3f(o, dr.normalize(direction(px, py)))
-    ray.o_x = ray.o_y = o
-    ray.d_x, ray.d_y = direction(px + pux, py + puy), direction(px + pvx, py + pvy)
+    d, d_x, d_y = direction(px, py), direction(px + pux, py + puy), direction(px + pvx, py + pvy)
+    ray = mi.RayDifferential3f(o + NEAR_CLIP_M * d, dr.normalize(d))
+    ray.o_x, ray.o_y = o + NEAR_CLIP_M * d_x, o + NEAR_CLIP_M * d_y
+    ray.d_x, ray.d_y = d_x, d_y
     ray.has_differentials = True
     return ray
 

@@ -474,8 +474,18 @@ def pixel_points(patch: Patch, cameras: Sequence, index: int, margin_px: float =
     the rays of its pixels meet the patch, keeping those inside the patch and seen by every camera
     (as in `integration_points`). Each stands for exactly one pixel of that camera."""
     cam = cameras[index]
-    u, v = np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float),
-                       indexing="xy")
+    # Only the pixels of the patch's bounding box (its corners' pinhole projections, +1 px):
+    # a planar rectangle in front of the camera projects into their convex hull.
+    corners = patch.points(np.array([[0, 0], [patch.size[0], 0], [0, patch.size[1]], patch.size]))
+    cam_xyz = corners @ cam.R.T + cam.t
+    cols, rows = np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float)
+    if np.all(cam_xyz[:, 2] > 0):
+        px = cam_xyz @ cam.K.T
+        px = px[:, :2] / px[:, 2:]
+        lo, hi = np.floor(px.min(axis=0)) - 1, np.ceil(px.max(axis=0)) + 1
+        cols = cols[(cols >= lo[0]) & (cols <= hi[0])]
+        rows = rows[(rows >= lo[1]) & (rows <= hi[1])]
+    u, v = np.meshgrid(cols, rows, indexing="xy")
     f, (cx, cy) = cam.focal_px, cam.principal_point
     d = np.stack([(u - cx) / f, (v - cy) / f, np.ones_like(u)], -1).reshape(-1, 3) @ cam.R
     C = np.asarray(cam.position, dtype=float)

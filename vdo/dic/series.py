@@ -8,7 +8,9 @@ without it, from the experiment's `[load_path]`. The speckle moves with the surf
 coordinates from the rest vertices, `vdo.render.build_render_scene`); lights and camera bodies
 stay.
 
-Every image is rendered without the sampler's jitter (`vdo.render.render_camera`, as
+With `[render] mode = "dic"` every image is rendered in the DIC render mode
+(`vdo.render.render_camera_dic`: no Monte Carlo noise at all, docs/render.md); otherwise every
+image is rendered without the sampler's jitter (`vdo.render.render_camera`, as
 `vdo.dic.validate` renders): each pixel is the fixed sqrt(spp) x sqrt(spp) midpoint rule of its box
 and the lights' sampling is stratified the same way, with the same Mitsuba seed per camera at
 every step. A jittered render adds Monte Carlo noise that differs from image to image and is no
@@ -57,7 +59,8 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     from vdo.formats.calibration import file_stem
     from vdo.formats.export import default_pairs, write_all
     from vdo.geometry.keyframes import at_step, load_path_of
-    from vdo.render import build_render_scene, render_camera, render_seed, scaled_camera
+    from vdo.render import (build_dic_scene, build_render_scene, plan_render, render_camera,
+                            render_camera_dic, render_seed, render_settings, scaled_camera)
     from vdo.core.runfolder import run_folder
     from vdo.model.sensor import save_image
     from vdo.state import bodies, layout_state, prepare
@@ -68,6 +71,12 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     seed = rs.seed if seed is None else int(seed)
     if not (0 < scale <= 4) or spp < 1 or seed < 0:
         raise ConfigError(exp.path, "--scale/--spp/--seed", "need 0 < scale <= 4, spp >= 1, seed >= 0")
+    render_settings(exp, scale, spp, seed)                 # the mode, depth of field
+    dic = rs.mode == "dic"
+    try:
+        plan = plan_render([scaled_camera(c, scale) for c in exp.cameras()], rs.mode)
+    except MemoryError as err:
+        raise ConfigError(exp.path, "[render] scale", f"{err}: lower scale, or render fewer cameras") from None
     if poses_path is not None and not Path(poses_path).is_file():
         raise ConfigError(poses_path, "--series", "no such file: give a CSV of poses per step and "
                                                   "group (see vdo.geometry.keyframes)")
@@ -90,10 +99,12 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
         bar = progress_bar(log, total=len(steps) * len(cameras), desc="series", unit="image")
         for step in steps:
             posed = geometry.meshes if step == 0 else at_step(geometry, load_path, step).meshes
-            scene = build_render_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
-                                       geometry.speckle.pattern, posed)
+            build = build_dic_scene if dic else build_render_scene
+            scene = build(exp, geometry.meshes, geometry.region_faces, obstacles,
+                          geometry.speckle.pattern, posed)
             for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
-                linear = render_camera(scene, cam, spec, spp, render_seed(seed, i), jitter=False)
+                linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels) if dic else
+                          render_camera(scene, cam, spec, spp, render_seed(seed, i), jitter=False))
                 dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
                 stem = tmp / "images" / cam.name / f"{cam.name}_{step:04d}"
                 save_image(stem.with_suffix(".tif"), dn, exp.sensor.bit_depth)
