@@ -27,8 +27,9 @@ The certificate. For any w where f is convex and differentiable, with g = df/dw,
 
 and the linear minimisation over P is exact and cheap: P is the base polytope of a truncated
 partition matroid, so s takes candidates by increasing g_i while their body kind has room, until
-k are taken (`vertex`). The best of these over the iterates is a certified lower bound, whatever
-the convergence; it meets the relaxed optimum as the iterate reaches it.
+k are taken (`vertex`). The best of these over the iterates (and 0: the score, a power mean of sigmas plus a
+penalty, is non-negative) is a certified lower bound, whatever the convergence; it meets the
+relaxed optimum as the iterate reaches it.
 
 The iterates. Accelerated projected gradient (FISTA with backtracking on the Lipschitz estimate
 and a restart when the value rises) from the design's own selection (a vertex); the projection
@@ -74,7 +75,7 @@ SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (
 @dataclass(frozen=True)
 class Bound:
     """The relaxation for k cameras. value: certified lower bound on the score of every feasible
-    selection of k cameras (the best certificate over the iterates); relaxed: f at the best
+    selection of k cameras (the best certificate over the iterates, and 0); relaxed: f at the best
     iterate (>= the relaxed optimum >= value); weights (K,) that iterate; iterations made;
     converged: (relaxed - value) <= REL_TOL * value; seconds: wall time."""
 
@@ -172,7 +173,7 @@ def relaxation(value: Callable, info: np.ndarray, weight: np.ndarray, k: int, al
         x = vertex(-np.ones(K), k, allowed, body, counts)
     fx = float(only(*summed(x)))
     y, t, lipschitz = x.copy(), 1.0, 1.0
-    best, best_x, bound, it = fx, x, -np.inf, 0
+    best, best_x, bound, it = fx, x, 0.0, 0   # the score is >= 0: 0 bounds it before any step
     for it in range(1, max_iter + 1):
         fy, (gC, gc) = both(*summed(y))
         fy = float(fy)
