@@ -39,7 +39,8 @@ DOT_RADIUS_RTOL = 0.02
 
 
 def _plate(folder, extra=""):
-    cams = DOWN_CAMERA.format(name="wide", focal=24, u=0.45) + DOWN_CAMERA.format(name="long", focal=50, u=0.55)
+    cams = (DOWN_CAMERA.format(name="wide", focal=24, u=0.45)
+            + DOWN_CAMERA.format(name="long", focal=50, u=0.55))
     path = write_plate_experiment(folder, spacing=50, cameras=cams)
     path.write_text(path.read_text() + LIGHT + extra)
     return path
@@ -50,7 +51,7 @@ def designed(tmp_path_factory):
     folder = tmp_path_factory.mktemp("speckle")
     path = _plate(folder)
     out = folder / "out"
-    assert main([ "speckle", str(path), "--out", str(out), "--quiet"]) == 0
+    assert main(["speckle", str(path), "--out", str(out), "--quiet"]) == 0
     return path, out, json.loads((out / "speckle.json").read_text())
 
 

@@ -277,7 +277,8 @@ def _run(args) -> int:
         if args.command in _MODULES:
             importlib.import_module(f".{_MODULES[args.command]}", __package__)
     handler = {"evaluate": _evaluate, "demo": _evaluate, "render": _render, "validate": _validate,
-               "optimize": _optimize, "design": _design, "speckle": _speckle, "export": _export, "report": _report,
+               "optimize": _optimize, "design": _design, "speckle": _speckle, "export": _export,
+               "report": _report,
                "sweep": _sweep}[args.command]
     status = handler(loaded, args) or 0
     if args.command == "demo":

@@ -37,7 +37,8 @@ onto P is exact (`project`: w_i = clip(v_i - lambda - mu_b(i), 0, 1), the multip
 bisection). g comes from JAX on the per-sample function, g_i = sum_n <dF/dC_n, C_i(n)> + dF/dk_n
 w_i(n). Measured on the built-in experiment (1,666 candidates x 3,372 samples, 10 cameras,
 60 s wall on a loaded 2-core machine): Frank-Wolfe with exact line search reached f = 0.092 and a
-bound of 0.028, the accelerated gradient f = 0.080 and a bound of 0.050; a conic solver would need
+bound of 0.028, the accelerated gradient f = 0.080 and a bound of 0.050 (after 300 s: f = 0.073,
+bound 0.065); a conic solver would need
 one 3x3 linear matrix inequality and a power cone per sample, and the score's smooth sigma_max (a
 trace p-norm) has no compact conic form. The loop stops when the best value and the bound agree
 to REL_TOL, after MAX_ITER steps or at the time limit.
@@ -54,15 +55,12 @@ many cameras can lower the score by more than that fraction.
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass
 from typing import Callable
 
 import jax
 import numpy as np
-
-log = logging.getLogger(__name__)
 
 REL_TOL = 1e-3        # stop when (best value - bound) <= REL_TOL * bound
 MAX_ITER = 2000       # gradient steps at most per camera count

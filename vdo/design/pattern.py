@@ -48,6 +48,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
+from PIL import Image
 
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
@@ -242,8 +243,6 @@ def speckle(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
                      f"seamlessly; sigma_max p95 {'-' if s is None else f'{s:.3g}'} um, "
                      f"{len(j.flags[region])} flagged checks"]
             write_print(tmp / name, f, j.texel_mm, dpi, lines)
-            from PIL import Image
-
             Image.fromarray((f * 255).round().astype(np.uint8)).save(tmp / f"{name}_tile.png",
                                                                      dpi=(dpi, dpi))
             (tmp / f"{name}.toml").write_text(
