@@ -62,8 +62,10 @@ def test_the_print_is_at_physical_scale_with_a_ten_mm_bar(designed):
         dpi = im.info["dpi"][0]
         img = np.asarray(im.convert("L"))
     assert dpi == pytest.approx(600, rel=1e-3)
-    assert img.shape[1] == r["tile_texels"]                  # one printer dot per texel
-    margin = img[r["tile_texels"]:] < 128                    # below the tile: the bar and the text
+    side = r["tile_texels"] * r["print_repeats"]
+    assert img.shape[1] == side                              # one printer dot per texel
+    assert side * r["texel_mm"] >= pattern.SHEET_MM
+    margin = img[side:] < 128                                # below the tiles: the bar and the text
     n, labels, stats, _ = cv2.connectedComponentsWithStats(margin.astype(np.uint8), connectivity=8)
     widest = stats[1:, cv2.CC_STAT_WIDTH].max()
     assert widest == pytest.approx(pattern.SCALE_BAR_MM / pattern.MM_PER_INCH * 600, abs=2)
