@@ -184,4 +184,16 @@ def test_design_reports_the_gap(plate, tmp_path):
     for r in rows:
         assert float(r["bound"]) <= float(r["score"])
         assert float(r["gap"]) == pytest.approx(1 - float(r["bound"]) / float(r["score"]), abs=1e-4)
+    bounds = [float(r["bound"]) for r in rows]
+    assert bounds == sorted(bounds, reverse=True)       # a bound for more cameras bounds fewer
     assert (out / "pareto.png").is_file()
+
+
+def test_a_bound_for_more_cameras_bounds_fewer(plate):
+    """The best pair scores at least the bound of three cameras (adding one never raises the
+    score): exhaustive over the pairs within the body counts."""
+    exp, geometry, cand, scorer, feas = plate
+    three = bound.relaxation(scorer.value, cand.info, cand.weight, 3, feas.alone, feas.body, feas.counts)
+    pairs = [p for p in itertools.combinations(np.flatnonzero(feas.alone), 2)
+             if all(np.sum(cand.body[list(p)] == j) <= c for j, c in enumerate(feas.counts))]
+    assert three.value <= min(scorer.of(cand, p) for p in pairs)

@@ -57,7 +57,8 @@ def test_the_satin_lobe_is_mitsubas_roughplastic():
 
 
 def _satin_plate(folder, x):
-    path = write_plate_experiment(folder, spacing=20, cameras=DOWN_CAMERA.format(name="down", focal=24, u=0.5))
+    cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5)
+    path = write_plate_experiment(folder, spacing=20, cameras=cams)
     text = path.read_text().replace('role = "specimen"', 'role = "specimen"\nfinish = "satin"')
     path.write_text(text + PANEL.format(x=x))
     return config.load(path)

@@ -39,7 +39,8 @@ DOT_RADIUS_RTOL = 0.02
 
 
 def _plate(folder, extra=""):
-    cams = DOWN_CAMERA.format(name="wide", focal=24, u=0.45) + DOWN_CAMERA.format(name="long", focal=50, u=0.55)
+    cams = (DOWN_CAMERA.format(name="wide", focal=24, u=0.45)
+            + DOWN_CAMERA.format(name="long", focal=50, u=0.55))
     path = write_plate_experiment(folder, spacing=50, cameras=cams)
     path.write_text(path.read_text() + LIGHT + extra)
     return path
@@ -50,7 +51,7 @@ def designed(tmp_path_factory):
     folder = tmp_path_factory.mktemp("speckle")
     path = _plate(folder)
     out = folder / "out"
-    assert main([ "speckle", str(path), "--out", str(out), "--quiet"]) == 0
+    assert main(["speckle", str(path), "--out", str(out), "--quiet"]) == 0
     return path, out, json.loads((out / "speckle.json").read_text())
 
 
@@ -61,8 +62,10 @@ def test_the_print_is_at_physical_scale_with_a_ten_mm_bar(designed):
         dpi = im.info["dpi"][0]
         img = np.asarray(im.convert("L"))
     assert dpi == pytest.approx(600, rel=1e-3)
-    assert img.shape[1] == r["tile_texels"]                  # one printer dot per texel
-    margin = img[r["tile_texels"]:] < 128                    # below the tile: the bar and the text
+    side = r["tile_texels"] * r["print_repeats"]
+    assert img.shape[1] == side                              # one printer dot per texel
+    assert side * r["texel_mm"] >= pattern.SHEET_MM
+    margin = img[side:] < 128                                # below the tiles: the bar and the text
     n, labels, stats, _ = cv2.connectedComponentsWithStats(margin.astype(np.uint8), connectivity=8)
     widest = stats[1:, cv2.CC_STAT_WIDTH].max()
     assert widest == pytest.approx(pattern.SCALE_BAR_MM / pattern.MM_PER_INCH * 600, abs=2)

@@ -340,8 +340,8 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
         "type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
         "wrap_mode": "repeat", "filter_type": "bilinear"}})
     white = mi.load_dict(_diffuse(sp.white_albedo))
-    satin_speckled = mi.load_dict(_satin({"type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
-                                          "wrap_mode": "repeat", "filter_type": "bilinear"}))
+    satin_speckled = mi.load_dict(_satin({"type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]),
+                                          "raw": True, "wrap_mode": "repeat", "filter_type": "bilinear"}))
     satin_white = mi.load_dict(_satin({"type": "rgb", "value": float(sp.white_albedo)}))
     if white_regions:
         speckled = mi.load_dict(_diffuse(1.0))

@@ -1274,7 +1274,7 @@ class DesignSpec:
                          doc="load-path steps at which the candidates' occlusion is also judged (the "
                              "steps farthest from rest and from each other); a candidate counts where "
                              "it sees a sample at rest and at each (0: at rest only)")
-    bound_seconds: float = row("bound_s", Real(low=0), 30.0,
+    bound_seconds: float = row("bound_s", Real(low=0), 60.0,
                                doc="wall seconds per camera count for the bound on the best score "
                                    "(`vdo.design.bound`; 0: no bound)")
 

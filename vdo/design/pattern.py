@@ -27,7 +27,8 @@ Per region the chosen pattern has the fewest flagged (camera, region) checks, th
 sigma_max p95.
 
 Files (per region, names made safe): `<region>.png` and `<region>.pdf`, the tile at physical
-scale (print_dpi, the PNG's dpi set) with a 10 mm scale bar and the pattern's statistics below it;
+scale (print_dpi, the PNG's dpi set; repeated side by side to at least SHEET_MM) with a 10 mm
+scale bar and the pattern's statistics below it;
 `<region>_tile.png`, the bare tile, and `<region>.toml`, a [speckle] table pointing at it (the
 pattern for `vdo evaluate`, `vdo render` and `vdo optimize`); `speckle.json` with every
 candidate's judgement; `candidates.csv`.
@@ -48,6 +49,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
+from PIL import Image
 
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
@@ -68,6 +70,7 @@ TARGET_PX = 4.0         # the dot size each camera asks for: the middle of the 3
 TILE_DOTS = 24          # the tile spans at least this many of its largest dots
 TILE_TEXELS = (1024, 4096)   # tile side in texels (printer dots): at least, at most
 SCALE_BAR_MM = 10.0     # the scale bar's length on the printed sheet
+SHEET_MM = 150.0        # the printed sheet is at least this wide: the tile repeated side by side
 MIX_RATIO = SPECKLE_PX[1] / SPECKLE_PX[0]   # footprints further apart than this need two sizes
 
 
@@ -179,9 +182,17 @@ def safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_-]+", "_", name).strip("_") or "region"
 
 
+def repeats(tile_texels: int, texel_mm: float) -> int:
+    """How many tiles per side the printed sheet holds: at least SHEET_MM wide."""
+    return max(1, math.ceil(SHEET_MM / (tile_texels * texel_mm)))
+
+
 def write_print(path: Path, f: np.ndarray, texel_mm: float, dpi: float, lines: list[str]) -> None:
-    """`path`.png and `path`.pdf: the tile at physical scale (one texel per printer dot at `dpi`),
-    a SCALE_BAR_MM scale bar and `lines` of statistics below it."""
+    """`path`.png and `path`.pdf: the tile repeated `repeats` times per side at physical scale
+    (one texel per printer dot at `dpi`), a SCALE_BAR_MM scale bar and `lines` of statistics
+    below it."""
+    r = repeats(f.shape[1], texel_mm)
+    f = np.tile(f, (r, r))
     side_in = f.shape[1] * texel_mm / MM_PER_INCH
     margin_in = 0.25 + 0.17 * len(lines)
     fig = plt.figure(figsize=(side_in, side_in + margin_in))
@@ -236,14 +247,12 @@ def speckle(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
             f = tiles[j.dots_mm]
             tile_mm = j.tile * j.texel_mm
             s = j.sigma_p95_um[region]
-            lines = [f"{exp.name}: region {region}; dots {j.name}, black {100 * (1 - f.mean()):.1f} %, "
-                     f"gray std {f.std():.3f}",
-                     f"tile {tile_mm:.1f} mm ({j.tile} printer dots at {dpi:g} dpi), repeats "
-                     f"seamlessly; sigma_max p95 {'-' if s is None else f'{s:.3g}'} um, "
+            lines = [f"{exp.name}: region {region}",
+                     f"dots {j.name}, black {100 * (1 - f.mean()):.1f} %, gray std {f.std():.3f}",
+                     f"tile {tile_mm:.1f} mm ({j.tile} printer dots at {dpi:g} dpi), seamless",
+                     f"sigma_max p95 {'-' if s is None else f'{s:.3g}'} um, "
                      f"{len(j.flags[region])} flagged checks"]
             write_print(tmp / name, f, j.texel_mm, dpi, lines)
-            from PIL import Image
-
             Image.fromarray((f * 255).round().astype(np.uint8)).save(tmp / f"{name}_tile.png",
                                                                      dpi=(dpi, dpi))
             (tmp / f"{name}.toml").write_text(
@@ -263,6 +272,7 @@ def speckle(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
                   "footprints_mm_per_px": seen,
                   "regions": {r: {"dots_mm": list(j.dots_mm), "coverage": j.coverage,
                                   "texel_mm": j.texel_mm, "tile_texels": j.tile,
+                                  "print_repeats": repeats(j.tile, j.texel_mm),
                                   "sigma_p95_um": j.sigma_p95_um[r], "flags": j.flags[r],
                                   "files": [f"{safe(r)}.{x}" for x in ("png", "pdf", "toml")]
                                   + [f"{safe(r)}_tile.png"]}

@@ -1158,17 +1158,27 @@ def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibi
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
     rules dropped; [design] bound_s wall seconds per count): "bound", "gap" (1 - bound / score)
-    and "bound_converged"; None where bound_s = 0. Logs each gap."""
+    and "bound_converged"; None where bound_s = 0. The score never rises when a camera is added,
+    so the best k-camera score is at least the best (k+1)-camera score: each count's bound is the
+    largest of its own and those of larger counts (while the relaxation's count grows). Logs each
+    gap."""
     seconds = exp.design.bound_seconds
-    for c in bar(log, iterable=curve, desc="bound", leave=False):
-        if seconds <= 0:
+    if seconds <= 0:
+        for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
-            continue
-        b = bound.relaxation(scorer.value, cand.info, cand.weight, c["cameras"], feas.alone, feas.body,
-                             feas.counts, start=c["chosen"], time_limit=seconds)
-        c.update(bound=b.value, gap=b.gap(c["score"]), bound_converged=b.converged)
+        return
+    found = [bound.relaxation(scorer.value, cand.info, cand.weight, c["cameras"], feas.alone, feas.body,
+                              feas.counts, start=c["chosen"], time_limit=seconds)
+             for c in bar(log, iterable=curve, desc="bound", leave=False)]
+    value, later = [b.value for b in found], 0.0
+    for i in reversed(range(len(found))):
+        # adding a camera never raises the score, so a bound for k + 1 cameras (uncut) bounds k
+        value[i] = max(value[i], later)
+        later = value[i] if i == 0 or found[i].cameras > found[i - 1].cameras else 0.0
+    for c, b, v in zip(curve, found, value):
+        c.update(bound=v, gap=max(0.0, 1.0 - v / c["score"]), bound_converged=b.converged)
         log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
-                 "(%d steps, %s)", c["cameras"], c["score"], b.value, 100 * c["gap"], b.iterations,
+                 "(%d steps, %s)", c["cameras"], c["score"], v, 100 * c["gap"], b.iterations,
                  "converged" if b.converged else f"time limit {seconds:g} s")
 
 
