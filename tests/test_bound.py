@@ -197,3 +197,21 @@ def test_a_bound_for_more_cameras_bounds_fewer(plate):
     pairs = [p for p in itertools.combinations(np.flatnonzero(feas.alone), 2)
              if all(np.sum(cand.body[list(p)] == j) <= c for j, c in enumerate(feas.counts))]
     assert three.value <= min(scorer.of(cand, p) for p in pairs)
+
+
+def test_sparse_and_dense_candidates_give_one_relaxation(plate):
+    """The relaxation's linear map on the stored entries (`linear_maps` of the sparse
+    `Candidates`) and its adjoint equal those on the dense (K, N, 6) arrays, and so does the
+    bound."""
+    exp, geometry, cand, scorer, feas = plate
+    K, summed, pullback = bound.linear_maps(cand, None)
+    Kd, summed_d, pullback_d = bound.linear_maps(cand.info, cand.weight)
+    rng = np.random.default_rng(0)
+    w = rng.random(K)
+    for a, b in zip(summed(w), summed_d(w)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    gC, gc = rng.normal(size=(cand.samples, 6)), rng.normal(size=cand.samples)
+    np.testing.assert_allclose(pullback(gC, gc), pullback_d(gC, gc), rtol=1e-9)
+    sparse = bound.relaxation(scorer.value, cand, None, 2, feas.alone, feas.body, feas.counts)
+    dense = bound.relaxation(scorer.value, cand.info, cand.weight, 2, feas.alone, feas.body, feas.counts)
+    assert sparse.value == pytest.approx(dense.value, rel=1e-9)

@@ -143,26 +143,53 @@ def project(v: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
     return capped(hi)
 
 
-def relaxation(value: Callable, info: np.ndarray, weight: np.ndarray, k: int, allowed: np.ndarray,
+def linear_maps(info, weight):
+    """(K, summed, pullback) for candidates given densely, info (K, N, 6) and weight (K, N), or
+    stored sparsely (`info` a `vdo.design.select.Candidates`: indptr, index, entry_info,
+    entry_weight; `weight` None): summed(w) = (sum_k w_k C_k (N, 6), sum_k w_k w_k,n (N,)) and its
+    adjoint pullback(gC, gc) = (sum_n C_k,n : gC_n + w_k,n gc_n)_k (K,). The sparse form costs
+    the stored entries, not K x N."""
+    if weight is None:
+        K, N = len(info.indptr) - 1, info.samples
+        owner = np.repeat(np.arange(K), np.diff(info.indptr))
+        idx, ei, ew = info.index, info.entry_info, info.entry_weight.astype(float)
+
+        def summed(w):
+            we = np.asarray(w, float)[owner]
+            C = np.stack([np.bincount(idx, we * ei[:, c], minlength=N) for c in range(6)], axis=1)
+            return C, np.bincount(idx, we * ew, minlength=N)
+
+        def pullback(gC, gc):
+            gC, gc = np.asarray(gC), np.asarray(gc)
+            return np.bincount(owner, (ei * gC[idx]).sum(1) + ew * gc[idx], minlength=K)
+        return K, summed, pullback
+    weight = np.asarray(weight, dtype=float)
+
+    def summed(w):
+        nz = np.flatnonzero(w)
+        return np.tensordot(w[nz], info[nz], axes=1), w[nz] @ weight[nz]
+
+    def pullback(gC, gc):
+        return np.tensordot(info, np.asarray(gC), axes=([1, 2], [0, 1])) + weight @ np.asarray(gc)
+    return info.shape[0], summed, pullback
+
+
+def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
                body: np.ndarray, counts: np.ndarray, start=None, rel_tol: float = REL_TOL,
                max_iter: int = MAX_ITER, time_limit: float = 60.0) -> Bound:
     """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
     k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.select.Scorer.value`);
-    info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights;
+    info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights
+    (or info the sparsely stored `Candidates` and weight None, `linear_maps`);
     allowed (K,) the candidates a selection may hold at all; body (K,) their body kind, counts
     its inventory; start: indices of a feasible selection (the design's), else the vertex of the
     first candidates; time_limit in wall seconds. k is cut to `largest(...)` (no selection holds
     more)."""
     t0 = time.perf_counter()
     k = min(int(k), largest(allowed, body, counts))
-    K = info.shape[0]
-    weight = np.asarray(weight, dtype=float)
+    K, summed, pullback = linear_maps(info, weight)
     both = jax.jit(jax.value_and_grad(value, argnums=(0, 1)))
     only = jax.jit(value)
-
-    def summed(w):
-        nz = np.flatnonzero(w)
-        return np.tensordot(w[nz], info[nz], axes=1), w[nz] @ weight[nz]
 
     x = np.zeros(K)
     if start is not None and len(start):
@@ -175,7 +202,7 @@ def relaxation(value: Callable, info: np.ndarray, weight: np.ndarray, k: int, al
     for it in range(1, max_iter + 1):
         fy, (gC, gc) = both(*summed(y))
         fy = float(fy)
-        g = np.tensordot(info, np.asarray(gC), axes=([1, 2], [0, 1])) + weight @ np.asarray(gc)
+        g = pullback(gC, gc)
         bound = max(bound, fy + float(g @ (vertex(g, k, allowed, body, counts) - y)))
         if best - bound <= rel_tol * abs(bound) or time.perf_counter() - t0 > time_limit:
             break

@@ -1167,7 +1167,7 @@ def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibi
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
         return
-    found = [bound.relaxation(scorer.value, cand.info, cand.weight, c["cameras"], feas.alone, feas.body,
+    found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
                               feas.counts, start=c["chosen"], time_limit=seconds)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
     value, later = [b.value for b in found], 0.0
