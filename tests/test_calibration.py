@@ -77,15 +77,16 @@ def test_squares_too_small_at_the_render_scale():
     assert err.field == "calibration.pitch_mm" and "render scale" in err.message
 
 
-@pytest.mark.parametrize("path", [HOLED, STEEL])
-def test_generated_session_every_camera_sees_its_poses(path):
+@pytest.mark.parametrize("path,cameras", [(HOLED, None), (STEEL, None), (BEAM, ["cam1", "cam2"])])
+def test_generated_session_every_camera_sees_its_poses(path, cameras):
     """Each generated pose a camera is said to see projects inside its image (checked here with
-    cv2.projectPoints, not vdo's projection), and every stereo pair shares poses."""
+    cv2.projectPoints, not vdo's projection), and every stereo pair shares poses (the built-in
+    beam-column reduced to two of its cameras, and two other experiments)."""
     import cv2
 
     from vdo.calib.session import plan
 
-    planned = plan(load(path), 0.25)
+    planned = plan(with_calibration(path, cameras), 0.25)
     s = planned.session
     corners = s.target.points()
     for cam in planned.cameras:
@@ -359,3 +360,56 @@ def test_import_refuses_another_image_size(tmp_path):
     with pytest.raises(ConfigError) as err:
         import_cameras(path, "opencv", other)
     assert "image size" in err.value.field and "\n" not in str(err.value)
+
+
+# ---- step 4: Monte Carlo calibrations against the predicted covariance --------------------------
+MC_TRIALS = 50             # >= 50 independent calibrations (the issue's bar)
+MC_RATIO = (0.8, 1.25)     # observed scatter / predicted sigma; 1/sqrt(2 (50 - 1)) = 10 % sampling sd
+
+
+def test_monte_carlo_scatter_matches_covariance():
+    """50 calibrations of the holed plate's pair with independent corner noise: the scatter of
+    the calibrated parameters (median ratio and sqrt(NEES), pooled over the 24 parameters) and of
+    the triangulated displacement and strain of the test's motion against the sigma predicted
+    from sigma_det^2 (J^T J)^-1."""
+    from vdo.calib import montecarlo as mc
+    from vdo.calib import propagate as prop
+    from vdo.calib.session import plan
+
+    exp = with_calibration(HOLED, poses_per_camera=5, shared_poses=3)
+    planned = plan(exp, 1.0)
+    cams = list(planned.cameras)
+    samples = planned.geometry.samples
+    idx = prop.seen_samples(samples, cams, 4)
+    rig = tuple(c.name for c in cams)
+    res = mc.run(cams, planned.session, [rig], {rig: samples.points[idx]},
+                 {rig: prop.test_motion(exp, samples, idx)}, MC_TRIALS, 0, sigma_det=0.1)
+    r = res.rigs[0]
+    low, high = MC_RATIO
+    assert low < np.median(r.ratio) < high
+    assert low < np.sqrt(r.nees) < high
+    assert low < r.displacement_ratio < high
+    assert low < r.strain_ratio < high
+
+
+# ---- step 6: the planner ------------------------------------------------------------------------
+def test_vdo_calibrate_plan(tmp_path, capsys):
+    """`vdo calibrate --plan`: the curve falls with the number of images, at large sessions as
+    1/sqrt(images) (the covariance of n like views: J^T J grows as n) within 30 %, and the chosen
+    count is the first that reaches the target."""
+    import json
+
+    from vdo.commands.cli import main
+
+    out = tmp_path / "plan"     # docs/calibration.md's command
+    assert main(["calibrate", str(HOLED), "--plan", "--out", str(out)]) == 0
+    result = json.loads((out / "plan.json").read_text())
+    images, sigma = np.array(result["images"]), np.array(result["strain_sigma_p95"])
+    assert np.all(np.diff(sigma) < 0)
+    expected = np.sqrt(images[-2] / images[-1])
+    assert abs(sigma[-1] / sigma[-2] / expected - 1) < 0.3
+    chosen = result["chosen_poses_per_camera"]
+    target = result["target_strain_error"]
+    reached = [n for n, e in zip(result["poses_per_camera"], sigma) if e <= target]
+    assert chosen == (reached[0] if reached else None)
+    assert (out / "plan.png").is_file() and "poses per camera" in capsys.readouterr().out

@@ -184,3 +184,39 @@ def print_summary(summary: dict) -> None:
               f"{show(r['noise_displacement_um']):>12}"
               f"{show(r['calibration_strain_microstrain']):>15} ({show(r['calibration_strain_per_unit_strain'])})"
               f"{show(r['noise_strain_microstrain']):>17}")
+
+
+def plan_experiment(exp, out, overwrite: bool = False) -> dict:
+    """`vdo calibrate --plan`: the planner's curve and choice (`vdo.calib.planner`) into the run
+    folder `out`: plan.json (counts, images, strain sigma p95, the chosen count and its poses:
+    centres and front normals in metres) and plan.png (the diminishing-returns curve)."""
+    from dataclasses import replace
+
+    from vdo.calib.planner import plan_session, plot
+    from vdo.calib.session import plan
+    from vdo.core.runfolder import check_out, run_folder
+    from vdo.state import layout_state, prepare
+
+    check_out(out, overwrite)
+    geometry = prepare(exp)
+    plan(exp, 1.0, geometry)                     # the configured session's checks first
+    state = layout_state(geometry, predict_fields=False)
+    p = plan_session(exp, state.visibility.visible, geometry)
+    result = {"experiment": exp.name, "poses_per_camera": list(p.counts), "images": list(p.images),
+              "strain_sigma_p95": list(p.strain_p95), "target_strain_error": p.target,
+              "sigma_det_px": p.sigma_det, "chosen_poses_per_camera": p.chosen}
+    if p.chosen is not None:
+        spec = exp.calibration
+        share = spec.shared_poses / max(1, spec.poses_per_camera)
+        chosen = plan(exp, 1.0, geometry, replace(spec, poses_per_camera=p.chosen,
+                                                  shared_poses=max(1, round(share * p.chosen))))
+        s = chosen.session
+        result["chosen_session"] = {
+            "pitch_mm": s.target.pitch * 1e3,
+            "pose_centres_m": [pose.world(s.target.centre[None])[0].tolist() for pose in s.poses],
+            "pose_normals": [pose.front.tolist() for pose in s.poses],
+            "views": {n: list(v) for n, v in s.views.items()}}
+    with run_folder(out, overwrite) as tmp:
+        plot(p, tmp / "plan.png", f"{exp.name}: calibration session plan")
+        (tmp / "plan.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
+    return result

@@ -305,8 +305,18 @@ def _sweep(_, args) -> int:
 
 
 def _calibrate(exp, args) -> None:
-    from vdo.commands.calibrate import calibrate_experiment, print_summary
+    from vdo.commands.calibrate import calibrate_experiment, plan_experiment, print_summary
 
+    if args.plan:
+        result = plan_experiment(exp, Path(args.out), overwrite=args.overwrite)
+        if not args.quiet:
+            for n, k, e in zip(result["poses_per_camera"], result["images"], result["strain_sigma_p95"]):
+                print(f"{n:>4} poses per camera, {k:>5} images: calibration strain sigma p95 {e:.3g}")
+            chosen = result["chosen_poses_per_camera"]
+            print(f"target {result['target_strain_error']:g}: " + (
+                f"{chosen} poses per camera" if chosen else "not reached by any session tried"))
+            print(f"wrote {Path(args.out).resolve()}")
+        return
     summary = calibrate_experiment(exp, Path(args.out), scale=args.scale, spp=args.spp,
                                    overwrite=args.overwrite, time_limit=args.time_limit)
     if not args.quiet:
@@ -322,6 +332,8 @@ def _calibrate_parser(sub) -> None:
     ca.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
     ca.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
+    ca.add_argument("--plan", action="store_true", help="choose the number of poses that reaches "
+                                                        "[calibration] target_strain_error (plan.png)")
     ca.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                     help="stop the renders after this long (no output folder)")
     ca.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
