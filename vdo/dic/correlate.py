@@ -40,7 +40,7 @@ point): the number of camera-i pixels an integration point stands for, so that t
 the paper's sum over image pixels whatever the integration density (`Weights.PIXEL`; or
 `Weights.UNIFORM`, w = 1). With this weighting H = Σ w JᵀJ is on the pixel-noise scale and σ² H⁻¹ is
 the covariance for white pixel noise of variance σ² (in the continuum limit; spline interpolation of
-the noise makes the true value a few percent off, see tests/test_correlate.py).
+the noise makes the true value a few percent off, see tests/dic/test_correlate.py).
 
 Gauss–Newton on gray levels: J_ip = ∇f(x) · s_i(X) · N(ξ_p) with s_i = ∂x/∂X (`Camera.sensitivity`)
 and N the shape functions. Images are interpolated by cubic B-splines (`scipy.ndimage.spline_filter`
@@ -53,7 +53,7 @@ derivative (cubic weights and their derivatives on the 4 × 4 support). ∇f is 
   average): exact Gauss–Newton, J = ∇f_i^def(P_i(X + U)) s_i(X + U) N. Off the pixel grid the
   variance of spline-interpolated noise depends on the sub-pixel phase, E[∇n n] ≠ 0, and the mean
   estimate drifts by ~σ²-proportional amounts (measured ~0.002 px at σ = 0.02 of a 0.8 contrast;
-  see tests/test_correlate.py). (With the texture reference and the texture's own gradient, the sharp
+  see tests/dic/test_correlate.py). (With the texture reference and the texture's own gradient, the sharp
   speckle's spline misfit biased noise-free results by ~0.05 px, so that is not the default.)
 
 Integration: by default (`PixelIntegration`) each camera is integrated over its own reference pixel centres

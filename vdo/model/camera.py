@@ -1,6 +1,6 @@
 """The one camera model: a pinhole with square pixels, its pose, projection and Jacobians.
 
-Conventions (stated once, tested in tests/test_camera.py):
+Conventions (stated once, tested in tests/model/test_camera.py):
 
 * World frame: right-handed, z up, metres.
 * Camera frame: OpenCV, x right, y down, z forward (the optical axis).
@@ -225,7 +225,7 @@ def undistort(x_d, y_d, distortion, iterations: int = 20):
     """The normalised (x, y) whose distortion is (x_d, y_d): Newton's method on `distort` with
     `distortion_jacobian`, from (x_d, y_d) (NumPy arrays), a fixed number of steps (it converges
     quadratically where the distortion does not fold the image; checked against
-    cv2.undistortPoints to 1e-6 px in tests/test_distortion.py)."""
+    cv2.undistortPoints to 1e-6 px in tests/model/test_distortion.py)."""
     x, y = np.array(x_d, dtype=float), np.array(y_d, dtype=float)
     for _ in range(iterations):
         fx, fy = distort(x, y, distortion)

@@ -362,7 +362,7 @@ def pixel_averaged_std(pattern_normalised, texel_m: float, pixel_sides) -> np.nd
     For speed the spectrum is summed over blocks of b x b frequencies (b = side // 256, at least
     1), each at its weight's centroid: the sinc factors vary little over a block (16 cycles/m for
     a 1024-texel tile of 0.25 mm), and the centroid makes the error second order (2e-4 relative
-    against the full sum for footprints of 0.1-9 mm, `tests/test_photometry.py`)."""
+    against the full sum for footprints of 0.1-9 mm, `tests/physics/test_photometry.py`)."""
     w, ku, kv = _blocked_spectrum(pattern_normalised, texel_m, texel_filter=True)
     sides = np.asarray(pixel_sides, dtype=np.float64).reshape(-1, 2, 2)
     out = np.empty(len(sides))
@@ -531,7 +531,7 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
         err² = Σ_k Σ_m |F(k)|² sinc⁴(k'_u h) sinc⁴(k'_v h) sinc²(k'.a_1) sinc²(k'.a_2)
                |K_d1(ω_1) K_d2(ω_2) - 1|²,      k' = k + m / h, |m_u|, |m_v| <= TEXEL_IMAGES
 
-    (checked against map_coordinates on supersampled box-pixel images, tests/test_speckle.py).
+    (checked against map_coordinates on supersampled box-pixel images, tests/model/test_speckle.py).
     The half-pixel phase is the worst: about the largest error over sub-pixel motions. The
     spectrum is summed over blocks of side // 64 frequencies (`_blocked_spectrum`; 0.3 % off the
     full sum for the built-in 1024-texel tile): one FFT of the tile per call, then about 0.02 s

@@ -41,7 +41,7 @@ h/(2L) per edge crossing the square (a straight edge; a curved hole edge alterna
 it, and averages better). Measured on the holed plate (1 mm cells, 10 mm patch, 30 mm hole)
 against the exact area of the square off the disc: sigma / (sigma_far / sqrt(phi_exact)) - 1
 has median +0.2 % and 95 % of the samples within 1.7 % (`experiments/holed_plate/
-edge_profile.py`; `tests/test_edges.py` holds it to 2.5 %). When L <= h the patch is one cell and only a whole missing or hidden cell
+edge_profile.py`; `tests/physics/test_edges.py` holds it to 2.5 %). When L <= h the patch is one cell and only a whole missing or hidden cell
 clips it: sample more finely than the patch to see edges.
 
 Flags (per sample, from `flags`):

@@ -15,7 +15,7 @@ from vdo.config import experiment as config
 from vdo.physics import usable
 from vdo.state import layout_state, prepare
 
-HERE = Path(__file__).resolve().parent.parent / "experiments" / "holed_plate"
+HERE = Path(__file__).resolve().parents[2] / "experiments" / "holed_plate"
 HOLE_RADIUS, HOLE_Z = 0.015, 1.0
 RASTER_RTOL = 0.03     # sigma vs 1/sqrt(psi): the raster resolves the edge to h / K = 0.25 mm
 

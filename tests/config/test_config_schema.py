@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 
 from vdo.config import experiment as config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXPERIMENTS = sorted(p for p in (ROOT / "experiments").rglob("*.toml")
                      if "experiment" in tomllib.loads(p.read_text()) and "mesh" in tomllib.loads(p.read_text()))
 

@@ -13,7 +13,7 @@ import pytest
 
 from vdo.commands.cli import main
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Reached(AssertionError):

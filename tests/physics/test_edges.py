@@ -24,7 +24,7 @@ from vdo.physics.predict import predict, samples_for_objective, settings, view_d
 from vdo.scene import SurfaceSamples
 from vdo.state import layout_state, prepare
 
-HOLED = Path(__file__).resolve().parent.parent / "experiments" / "holed_plate"
+HOLED = Path(__file__).resolve().parents[2] / "experiments" / "holed_plate"
 HOLE_CENTRE, HOLE_RADIUS = np.array([0.0, 1.0]), 0.015     # (x, z), m
 
 

@@ -89,7 +89,7 @@ target_m = [0.0, 0.0, 0.0]
 def test_paper_orders_of_magnitude_on_the_joint(name, low, high):
     """Paper sec. 5.2: about 8 mpixel/um on the joint with its 3 cameras, about 30 with all 10.
     We check the best axis of the median joint sensitivity is within a factor 2 of that."""
-    path = Path(__file__).resolve().parent.parent / "experiments" / "beam_column" / name
+    path = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / name
     exp, samples, _, _, _, pred = run(path)
     joint = np.isin(samples.region, [k for k, r in enumerate(samples.region_names) if r.startswith("joint")])
     best_axis = np.median(pred.sensitivity[joint] * 1e-3, axis=0).max()

@@ -19,7 +19,7 @@ import pytest
 from vdo.core.errors import ConfigError
 from vdo.commands.sweep import _run_local, combinations, expand, load_sweep, pareto_front, split_path, sweep
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 HEIGHT = 1.5        # m, the rail above the plate's top face (z = 0)
 SENSOR = 15.0       # mm, square sensor
 

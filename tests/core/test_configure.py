@@ -13,7 +13,7 @@ import jax
 
 from vdo.core.configure import cache_dir, configure
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 SCRIPT = """
 import json, jax

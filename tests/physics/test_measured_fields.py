@@ -106,7 +106,7 @@ def _evaluate(tmp_path, source, extra, name, spacing_mm):
     return json.loads((tmp_path / name / "summary.json").read_text()), tmp_path / name
 
 
-EXPERIMENTS = __import__("pathlib").Path(__file__).resolve().parents[1] / "experiments"
+EXPERIMENTS = __import__("pathlib").Path(__file__).resolve().parents[2] / "experiments"
 THIRD_PLATE_CAMERA = """
 [[camera]]
 name = "top"

@@ -355,7 +355,7 @@ def test_series_pair_without_shared_view_is_one_clear_line(plate_experiment, tmp
 # bias is several sigma (docs/exports.md); vdo.physics.checks' interpolation floor flags that (tested in
 # test_checks / test_speckle), and at scale 1 it does not.
 # --------------------------------------------------------------------------------------------
-ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+ROOT = __import__("pathlib").Path(__file__).resolve().parents[2]
 N_SIGMA = 3.0                  # the issue's criterion: the whole error, on every axis
 BIAS_FLOOR_PX = 0.005          # the correlation's interpolation bias at the cameras' own pixels
                                # (docs/exports.md: measured 0.0006-0.0022 px at scale 1)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-EXPERIMENT = Path(__file__).resolve().parents[1] / "experiments" / "holed_plate" / "stereo.toml"
+EXPERIMENT = Path(__file__).resolve().parents[2] / "experiments" / "holed_plate" / "stereo.toml"
 
 
 def _state(tmp_path, text):

@@ -18,7 +18,7 @@ import pytest
 from conftest import DOWN_CAMERA
 from vdo.core.interrupts import GRACE_S
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PROMPT_S = GRACE_S + 1.5   # the watchdog's grace plus the process's own exit
 
 

@@ -14,7 +14,7 @@ from vdo import scene
 from vdo.config import experiment as config
 from vdo.outputs import maps
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from scale_case import HALF_W, Z_HI, Z_LO, write_case  # noqa: E402
 
 # binary STL stores float32 vertices (0.9 m is 0.89999998): cut planes between them leave slivers

@@ -19,7 +19,7 @@ from vdo.config.experiment import load
 from vdo.model.camera import Camera
 from vdo.scene import camera_body
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PLATE = ROOT / "experiments" / "holed_plate" / "stereo.toml"
 CLEARANCE_SAMPLING_M = 0.02   # the check measures to points 15 mm apart and 400 body points
 

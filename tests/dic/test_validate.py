@@ -225,7 +225,7 @@ def test_subset_case_errors_name_the_field(tmp_path):
     assert info.value.field == 'case "stereo".strain_window'
 
 
-SHIPPED = Path(__file__).resolve().parent.parent / "experiments" / "validation.toml"
+SHIPPED = Path(__file__).resolve().parents[2] / "experiments" / "validation.toml"
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from vdo.core.errors import ConfigError
 from vdo.core.interrupts import Interrupted
 from vdo.core.runfolder import check_out, inside, remove_stale_partials, run_folder
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture

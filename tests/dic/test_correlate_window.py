@@ -1,7 +1,7 @@
 """Correlation at full size: B-spline interpolation on windows (`SplineImage.around`,
 `WindowedImage`) against the whole image's spline and scipy's own B-splines (orders 3 and 5);
 subset correlation of many points, serial and in spawned processes, against the whole-image
-implementation and the imposed shift on images rendered independently (tests/test_correlate)."""
+implementation and the imposed shift on images rendered independently (tests/dic/test_correlate)."""
 
 import sys
 from dataclasses import replace

@@ -11,7 +11,7 @@ import pytest
 from vdo.config.experiment import load, parse
 from vdo.core.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 HOLED = ROOT / "experiments" / "holed_plate" / "stereo.toml"
 STEEL = ROOT / "experiments" / "steel_beam" / "four_point_bending.toml"
 BEAM = ROOT / "experiments" / "beam_column" / "three_cameras.toml"
