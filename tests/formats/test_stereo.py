@@ -127,7 +127,7 @@ def test_evaluate_warns_of_a_3_degree_pair(tmp_path, caplog):
     logger) and summary.json records it."""
     summary = evaluate(config.load(write(tmp_path, u=(0.485, 0.515))), tmp_path / "run")
     out = caplog.text
-    assert "warning: cameras a and b: optical axes 2.9 deg apart, below the minimum of 21.1 deg" in out
+    assert "warning: axis_angle not met: a and b: 2.864 deg, limit 21.11" in out
     entry = [e for e in summary["axis_angles"] if e["constraint"] == "axis_angle"][0]
     assert not entry["met"] and entry["value"] == pytest.approx(2 * math.degrees(math.atan(0.03 / 1.2)), rel=1e-6)
     saved = json.loads((tmp_path / "run" / "summary.json").read_text())

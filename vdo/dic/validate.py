@@ -343,6 +343,8 @@ class DeformedFaces:
     base: object        # vdo.scene.RegionFaces of the reference plate
     case: Case
 
+    development = None   # a plate: planar, uv by `uv` (the render scene asks)
+
     @property
     def faces(self):
         return self.base.faces

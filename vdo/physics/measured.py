@@ -88,6 +88,10 @@ def _ratio(measured: np.ndarray, bound: np.ndarray) -> np.ndarray:
 
 
 def _sigma(cov: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sigma per axis (..., 3), sigma_max (...)) of covariances (..., 3, 3); inf where not `ok`
+    (those matrices, possibly non-finite, are not decomposed)."""
+    ok = ok & np.isfinite(cov).all(axis=(-2, -1))
+    cov = np.where(ok[..., None, None], cov, 0.0)
     xyz = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
     mx = np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[..., -1], 0.0))
     return np.where(ok[..., None], xyz, np.inf), np.where(ok, mx, np.inf)
