@@ -324,11 +324,20 @@ def _calibrate(exp, args) -> None:
         print(f"wrote {Path(args.out).resolve()}")
 
 
+def _command(sub, name: str, help: str, config_help: str) -> argparse.ArgumentParser:
+    """A subcommand with the arguments most share: CONFIG, --out, --overwrite and --quiet."""
+    parser = sub.add_parser(name, help=help)
+    parser.add_argument("config", help=config_help)
+    parser.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    parser.add_argument("--quiet", action="store_true")
+    return parser
+
+
 def _calibrate_parser(sub) -> None:
-    ca = sub.add_parser("calibrate", help="render the calibration session, calibrate it, "
-                                          "and carry its uncertainty into strain (docs/calibration.md)")
-    ca.add_argument("config", help="experiment TOML file (its [calibration] table)")
-    ca.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    ca = _command(sub, "calibrate", "render the calibration session, calibrate it, "
+                                          "and carry its uncertainty into strain (docs/calibration.md)",
+                  "experiment TOML file (its [calibration] table)")
     ca.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
     ca.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
@@ -336,21 +345,14 @@ def _calibrate_parser(sub) -> None:
                                                         "[calibration] target_strain_error (plan.png)")
     ca.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
                     help="stop the renders after this long (no output folder)")
-    ca.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
-    ca.add_argument("--quiet", action="store_true")
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
-    ev = sub.add_parser("evaluate", help="coverage of the regions of interest by the cameras")
-    ev.add_argument("config", help="experiment TOML file")
-    ev.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
-    ev.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
-    ev.add_argument("--quiet", action="store_true")
-    rd = sub.add_parser("render", help="photo-realistic noisy images of every camera")
-    rd.add_argument("config", help="experiment TOML file")
-    rd.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    _command(sub, "evaluate", "coverage of the regions of interest by the cameras",
+                              "experiment TOML file")
+    rd = _command(sub, "render", "photo-realistic noisy images of every camera", "experiment TOML file")
     rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
     rd.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
@@ -365,26 +367,16 @@ def _parser() -> argparse.ArgumentParser:
     rd.add_argument("--cameras", type=lambda t: [n.strip() for n in t.split(",") if n.strip()],
                     default=None, metavar="A,B", help="render only these cameras (the others stay "
                                                       "in the scene as bodies)")
-    rd.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
-    rd.add_argument("--quiet", action="store_true")
-    va = sub.add_parser("validate", help="predicted vs measured (correlation) uncertainty on renders")
-    va.add_argument("config", help="validation TOML file (e.g. experiments/validation.toml)")
-    va.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
+    va = _command(sub, "validate", "predicted vs measured (correlation) uncertainty on renders",
+                                   "validation TOML file (e.g. experiments/validation.toml)")
     va.add_argument("--seeds", type=int, default=None,
                     help="noise seeds per case (default: [validation] seeds)")
-    va.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
-    va.add_argument("--quiet", action="store_true")
-    op = sub.add_parser("optimize", help="move the cameras along their rails under the constraints")
-    op.add_argument("config", help="experiment TOML file (its [optimize] table says what moves)")
-    op.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
-    op.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    op = _command(sub, "optimize", "move the cameras along their rails under the constraints",
+                                   "experiment TOML file (its [optimize] table says what moves)")
     op.add_argument("--time-limit", type=float, default=900.0, metavar="SECONDS",
                     help="end the search after this long and write the best layout so far (default 900)")
-    op.add_argument("--quiet", action="store_true")
-    de = sub.add_parser("design", help="choose camera poses and lenses from scratch (docs/design.md)")
-    de.add_argument("config", help="experiment TOML file (its [design] table says what to choose from)")
-    de.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
-    de.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
+    de = _command(sub, "design", "choose camera poses and lenses from scratch (docs/design.md)",
+                                 "experiment TOML file (its [design] table says what to choose from)")
     de.add_argument("--refine", action="store_true", help="then run vdo optimize on the design (refine/)")
     de.add_argument("--memory-gb", type=float, default=None, metavar="GB",
                     help="refuse, before the work, a design estimated to need more (default: the "
@@ -395,12 +387,8 @@ def _parser() -> argparse.ArgumentParser:
                                                  "(its address), or 'local' for a LocalCluster")
     de.add_argument("--workers", type=int, default=None,
                     help="LocalCluster worker processes (default: one per core)")
-    de.add_argument("--quiet", action="store_true")
-    sp = sub.add_parser("speckle", help="design the speckle per region; print-ready files (docs/speckle.md)")
-    sp.add_argument("config", help="experiment TOML file (its cameras and [speckle] print_dpi)")
-    sp.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
-    sp.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
-    sp.add_argument("--quiet", action="store_true")
+    _command(sub, "speckle", "design the speckle per region; print-ready files (docs/speckle.md)",
+                             "experiment TOML file (its cameras and [speckle] print_dpi)")
     ex = sub.add_parser("export", help="calibration files for DIC software (docs/exports.md)")
     ex.add_argument("source", help="experiment TOML file or run folder (with layout.json)")
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
