@@ -138,3 +138,16 @@ def test_depth_of_field_limits_bracket_the_focus():
     H = 0.05 ** 2 / (8.0 * 10e-6) + 0.05
     assert math.isinf(checks.depth_of_field(0.05, 8.0, 1.01 * H, 10e-6)[1])
     assert np.isfinite(checks.depth_of_field(0.05, 8.0, 0.99 * H, 10e-6)[1])
+
+
+def test_a_dark_pair_is_flagged_under_exposed_and_not_interpolated(plate_experiment):
+    # no light at all: zero contrast, so no interpolation figure (it would be 0/0) and no warning
+    # from numpy; the exposure check says why
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        row, _ = _rows(plate_experiment, ambient=0.0)
+    assert row["interpolation"] is None
+    assert [f["check"] for f in row["findings"]] == ["exposure"]
+    assert row["findings"][0]["message"].startswith("under-exposed")
+    assert math.isnan(checks._measured_over_noise(row))

@@ -170,7 +170,7 @@ def judge(exp: Experiment, state, dots_mm, dpi: float) -> tuple[Judged, np.ndarr
         px = [d / r["mm_per_px"] for d in dots_mm]
         if not any(SPECKLE_PX[0] <= p <= SPECKLE_PX[1] for p in px):
             flags[r["region"]].append(f"{r['camera']}: dots {'/'.join(f'{p:.1f}' for p in px)} px")
-        if r["interpolation"]["ratio"] > INTERPOLATION_NOISE:
+        if r["interpolation"] is not None and r["interpolation"]["ratio"] > INTERPOLATION_NOISE:
             flags[r["region"]].append(f"{r['camera']}: interpolation floor "
                                       f"{r['interpolation']['ratio']:.1f}x noise")
     sigma = {k: v["sigma_max_um"]["p95"] for k, v in summary["regions"].items()}

@@ -168,7 +168,7 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
     "flags" and the worst severity in "severity" (None when nothing was found).
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
     (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile."""
-    rows, footprints, irradiances, lens, rendered, pixels = [], [], [], [], [], []
+    rows, lit, footprints, irradiances, lens, rendered, pixels = [], [], [], [], [], [], []
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
         for k, region in enumerate(samples.region_names):
@@ -204,11 +204,6 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
             for flag in expo["flags"]:
                 found.append(("fail" if flag.startswith("saturating") else "warn", "exposure", flag))
             median = int(np.argsort(density)[len(density) // 2])
-            footprints.append(A[median])
-            irradiances.append(float(irradiance[seen][median]))
-            lens.append(_camera_optics(cam, spec, float(depth[median])))
-            rendered.append(lens[-1] if spec.f_number is not None else None)
-            pixels.append(exp.evaluation.patch_size ** 2 * float(density[median]) ** 2)
             rows.append({
                 "camera": cam.name, "region": region,
                 "standoff_m": float(np.median(np.linalg.norm(X - cam.position, axis=1))),
@@ -217,14 +212,22 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                 "depth_of_field": dof,
                 "fov_fill": float(pixels_seen.sum() / (cam.width * cam.height)),
                 "exposure": {k: v for k, v in expo.items() if k != "flags"},
-                "found": found})
-    if rows:
+                "found": found, "interpolation": None})
+            if not irradiance[seen][median] > 0:      # dark: no contrast, nothing to interpolate
+                continue
+            lit.append(rows[-1])
+            footprints.append(A[median])
+            irradiances.append(float(irradiance[seen][median]))
+            lens.append(_camera_optics(cam, spec, float(depth[median])))
+            rendered.append(lens[-1] if spec.f_number is not None else None)
+            pixels.append(exp.evaluation.patch_size ** 2 * float(density[median]) ** 2)
+    if lit:
         floors = interpolation_floor(footprints, irradiances, exp.speckle, exp.sensor, pattern,
                                      rendered)
         measured = measurement_floor(footprints, irradiances, pixels, lens, exp.speckle,
                                      exp.sensor, pattern, exp.analysis.interpolant,
                                      exp.analysis.reference == "noisy")
-        for row, interp, meas, opt in zip(rows, floors, measured, lens):
+        for row, interp, meas, opt in zip(lit, floors, measured, lens):
             meas.pop("model")
             row["interpolation"] = interp | {"measured": meas, "optics": {
                 "f_number": opt.f_number, "f_number_assumed": opt.assumed,
@@ -238,12 +241,20 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                     f"{worst:.1f}x its noise part ({max(meas['measured_over_bound']):.1f}x the "
                     f"bound; bias {max(meas['bias_px']):.4f} px RMS, {lens_note}): finer pixels, "
                     f"a softer speckle, a smaller aperture or the quintic interpolant lower it"))
-        for row in rows:
-            found = sorted(row.pop("found"), key=lambda f: SEVERITIES.index(f[0]))
-            row["findings"] = [{"severity": s, "check": c, "message": m} for s, c, m in found]
-            row["flags"] = [m for _, _, m in found]
-            row["severity"] = found[0][0] if found else None
+    for row in rows:
+        found = sorted(row.pop("found"), key=lambda f: SEVERITIES.index(f[0]))
+        row["findings"] = [{"severity": s, "check": c, "message": m} for s, c, m in found]
+        row["flags"] = [m for _, _, m in found]
+        row["severity"] = found[0][0] if found else None
     return rows
+
+
+def _measured_over_noise(row: dict) -> float:
+    """The row's worst σ_measured / σ_noise over the image axes; NaN for a dark pair (no light,
+    no contrast: nothing interpolated)."""
+    if row["interpolation"] is None:
+        return math.nan
+    return max(row["interpolation"]["measured"]["measured_over_noise"])
 
 
 def count_findings(rows: list[dict]) -> dict:
@@ -263,7 +274,7 @@ def print_checks(rows: list[dict]) -> None:
     if not flagged:
         return
     flagged.sort(key=lambda r: (SEVERITIES.index(r["severity"]),
-                                -max(r["interpolation"]["measured"]["measured_over_noise"])))
+                                -np.nan_to_num(_measured_over_noise(r))))
     wc = max([6] + [len(r["camera"]) for r in flagged]) + 2
     wr = max([6] + [len(r["region"]) for r in flagged]) + 2
     print(f"{'':<8}{'camera':<{wc}}{'region':<{wr}}{'stand-off m':>12}{'mm/px':>8}{'dot px':>8}"
@@ -273,7 +284,7 @@ def print_checks(rows: list[dict]) -> None:
         dof = "-" if d is None else f"{d['near_m']:.2f}-" + (f"{d['far_m']:.2f}" if d["far_m"]
                                                             else "inf")
         e = r["exposure"]
-        ratio = max(r["interpolation"]["measured"]["measured_over_noise"])
+        ratio = _measured_over_noise(r)
         print(f"{r['severity'].upper():<8}{r['camera']:<{wc}}{r['region']:<{wr}}"
               f"{r['standoff_m']:>12.3f}{r['mm_per_px']:>8.3f}"
               f"{r['speckle_px']:>8.2f}{dof:>14}{r['fov_fill']:>9.1%}"

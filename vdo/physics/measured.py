@@ -120,6 +120,8 @@ def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
             A = cam.sensitivity(X) @ T[seen]
             density = np.sqrt(np.abs(np.linalg.det(A)))
             m = int(np.argsort(density)[len(density) // 2])
+            if not illumination.irradiance[seen[m]] > 0:     # dark: sigma stays inf there
+                continue
             depth = float((X[m] - cam.position) @ cam.optical_axis)
             lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
                                depth)
