@@ -79,8 +79,8 @@ from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
 from vdo.model.camera import Camera, aim_point, holds_aim, intrinsic_matrix, rotation
-from vdo.config.experiment import Experiment
-from vdo.core.errors import ConfigError
+from vdo.config.experiment import Experiment, lens_catalogue_errors
+from vdo.core.errors import Collect, ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import panel_frame
 from vdo.search.obscuration import ObscurationRenderer
@@ -401,7 +401,9 @@ class Problem:
             self.scene_points, paths, reach=float(np.abs(self.body_local).max()) * 1.8
             + opt.clearance + CLEARANCE_MARGIN)
         self.near_trees = [cKDTree(p) for p in self.near_sets]
+        t0 = time.perf_counter()
         self.start = self.refresh(self.param.theta0)
+        self.refresh_s = time.perf_counter() - t0   # s: one layout's ray cast, lighting and views
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
         self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
@@ -1455,9 +1457,20 @@ def _perturbation(param: Parameterization, rng) -> np.ndarray:
 DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
 
 
+WRITE_S = 5.0   # s: kept at least for writing the run folder (figures, report) after the search
+
+
+def _wrap_up_s(problem: Problem, steps: int) -> float:
+    """Seconds kept from the time limit for what follows the search: the best layout judged
+    again for its summary and at each of the load path's `steps`, each about one hand-layout
+    refresh (`Problem.refresh_s`, measured at start-up, its compilations included: an upper
+    estimate), and the folder written (`WRITE_S`)."""
+    return (steps + 2) * problem.refresh_s + WRITE_S
+
+
 def optimize(exp: Experiment, out: Path, overwrite: bool = False,
              time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
-             objective=None) -> dict:
+             objective=None, started: float | None = None) -> dict:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
     constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
 
@@ -1469,20 +1482,29 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     micrometres): the penalties weigh ~1 at a clear violation. The returned and written
     score_before/score_after are then its values.
 
-    Anytime: the search ends when every round has run, after `time_limit` seconds (> 0), or on a
-    stop request (SIGINT/SIGTERM while it runs, unless the caller passes its own `stop`, which
-    it then owns); in every case the folder is written with the best layout judged so far
-    (feasible first, `Result.rank`), and optimizer.json says how the search ended. Progress:
-    INFO lines and a bar through the module logger (`vdo.core.progress`)."""
+    Anytime: the search ends when every round has run, when the time limit leaves only what
+    writing the result needs (`_wrap_up_s`), or on a stop request (SIGINT/SIGTERM while it runs,
+    unless the caller passes its own `stop`, which it then owns); in every case the folder is
+    written with the best layout judged so far (feasible first, `Result.rank`), and
+    optimizer.json says how the search ended. `time_limit` (s, > 0) counts the whole run from
+    `started` (a `time.perf_counter()` value, default now; the command line passes its own
+    start): start-up (meshes, samples, the hand layout's ray cast, lighting and checks) first,
+    then the search gets what is left; when start-up leaves nothing, the starting layout is
+    judged and written, with the reason. The log and optimizer.json give start-up and search
+    apart (`startup_s`, `search_s`). Progress: INFO lines and a bar through the module logger
+    (`vdo.core.progress`)."""
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
+    errors = Collect()   # the lens check of `vdo check`, for callers that skip the command line
+    errors.errors += lens_catalogue_errors(exp)
+    errors.raise_all()
     if objective is not None:
         check_objective(objective, exp)
     own = stop is None
+    t_start = time.perf_counter() if started is None else started
     stop = Stop(time_limit) if own else stop
-    stop.deadline = min(stop.deadline, time.perf_counter() + time_limit)
-    t_start = time.perf_counter()
+    stop.deadline = min(stop.deadline, t_start + time_limit)
     # start-up: no layout judged yet, so SIGINT/SIGTERM end the run at once (`vdo.core.interrupts`),
     # and its time counts against the limit
     log.info("start-up: meshes, samples, the hand layout's ray cast and lighting, the compiled "
@@ -1497,9 +1519,20 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     log.info("%s samples, %d free parameters, %d camera pairs sharing a region; time limit %g s",
              f"{len(problem.samples):,}", len(problem.param.theta0), len(problem.pairs), time_limit)
     reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
+    over_path = load_path_of(exp, problem.meshes)
+    kept = _wrap_up_s(problem, len(over_path.steps) if over_path is not None else 0)
+    stop.deadline -= kept   # the search ends in time for the result to be judged and written
     startup = time.perf_counter() - t_start
-    log.info("start-up took %.0f s of the %g s time limit; the search has the rest (%.0f s)", startup,
-             time_limit, stop.left)
+    log.info("start-up took %.0f s of the %g s time limit (%.0f s kept for writing the result); "
+             "the search has the rest (%.0f s)", startup, time_limit, kept, stop.left)
+    reason = None
+    if stop.left == 0:
+        reason = (f"start-up took {startup:.0f} s of the {time_limit:g} s time limit ({kept:.0f} s "
+                  "kept for writing the result): no time left to search, the starting layout is "
+                  f"judged and written; give --time-limit {math.ceil(startup + kept) + 60} or more "
+                  "to search")
+        log.warning(reason)
+    t_search = time.perf_counter()
     with (stop_on_signals(stop) if own else contextlib.nullcontext()):
         run.progress = _Progress(planned, stop)
         try:
@@ -1513,10 +1546,11 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     final = best.problem
     status = Status(stop.reason) if stop.reason else \
         (Status.CONVERGED if all(e == Status.CONVERGED for e in run.ends) else Status.MAX_STEPS)
-    log.info("search ended: %s after %.0f s; writing %s", status, time.perf_counter() - run.t0, out)
+    search = time.perf_counter() - t_search
+    log.info("search ended: %s after %.0f s (start-up %.0f s, search %.0f s); writing %s", status,
+             time.perf_counter() - t_start, startup, search, out)
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
-    over_path = load_path_of(exp, problem.meshes)
     if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
         log.info("judging the optimized layout over the %d steps of the load path", len(over_path.steps))
         after["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
@@ -1545,6 +1579,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
             "status": status, "converged": status == "converged",
             "time_limit_s": time_limit if math.isfinite(time_limit) else None,
             "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0, "startup_s": startup,
+            "search_s": search, "reason": reason,
             "rounds": run.rounds, "starts": run.ends, "accepted_steps": len(run.history), "layouts_judged": len(run.verdicts),
             "best_start": best.start, "score_before": score_before, "score_after": score_after,
             "reachability": reach})
@@ -1553,6 +1588,7 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
         _write_moves(tmp / "moves.csv", problem, best)
         html_report.write_report(tmp)
     return {"score_before": score_before["score_um"], "score_after": best.score, "startup_s": startup,
+            "search_s": search, "reason": reason,
             "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
             "violations": best.violations, "joint_p95_um": joint,
             "violated": [e for e in best.checks if not e["met"]]}

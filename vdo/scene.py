@@ -29,7 +29,8 @@ from vdo.core.backend import mitsuba
 from vdo.model import surface
 from vdo.model.camera import Camera
 from vdo.config.experiment import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
-from vdo.core.errors import ConfigError
+from vdo.core.errors import Collect, ConfigError
+from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY
 
 log = logging.getLogger(__name__)
 
@@ -51,28 +52,38 @@ class SceneMesh:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
-def load_meshes(exp: Experiment) -> list[SceneMesh]:
+def load_meshes(exp: Experiment, errors: Collect | None = None) -> list[SceneMesh]:
     """Read every [[mesh]] of the experiment, scaled to metres, and check it: readable content,
-    extents that fit the declared unit, no camera inside it. Specimen faces that cross a region's
-    box are split at the box (`split_at_boxes`), so a region's faces and area are exactly the part
-    inside its box."""
+    extents that fit the declared unit, no camera inside it (`cameras_inside`). Every mesh is
+    checked and every mistake reported together (`vdo.core.errors.Collect`). Specimen faces that
+    cross a region's box are split at the box (`split_at_boxes`), so a region's faces and area
+    are exactly the part inside its box. With `errors`, the mistakes are kept there instead of
+    raised, and the meshes that could be read are returned."""
+    own = errors is None
+    errors = Collect() if own else errors
     meshes = []
     for spec in exp.meshes:
-        field = f'mesh "{spec.name}".file'
-        loaded = _read_mesh(spec.path, (exp.path, field))
-        vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
-        faces = np.asarray(loaded.faces, dtype=np.int64)
-        if faces.min() < 0 or faces.max() >= len(vertices):
-            raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
-        if not np.all(np.isfinite(vertices)):
-            raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
-        _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
-        if spec.role == "specimen":
-            vertices, faces = split_at_boxes(vertices, faces,
-                                             [r for r in exp.regions if r.mesh == spec.name])
-        meshes.append(SceneMesh(spec.name, spec.role, vertices, faces))
-    _check_cameras_outside(exp, meshes)
+        with errors.check():
+            meshes.append(_load_mesh(exp, spec))
+    errors.errors += cameras_inside(exp, meshes)
+    if own:
+        errors.raise_all()
     return meshes
+
+
+def _load_mesh(exp: Experiment, spec) -> SceneMesh:
+    field = f'mesh "{spec.name}".file'
+    loaded = _read_mesh(spec.path, (exp.path, field))
+    vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
+    if not np.all(np.isfinite(vertices)):
+        raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
+    _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
+    if spec.role == "specimen":
+        vertices, faces = split_at_boxes(vertices, faces, [r for r in exp.regions if r.mesh == spec.name])
+    return SceneMesh(spec.name, spec.role, vertices, faces)
 
 
 MAX_MESH_EXTENT = 100.0      # m: a test setup larger than this is a unit mistake
@@ -131,33 +142,80 @@ def _check_extent(vertices: np.ndarray, spec, where) -> None:
                       + (f"; {hints[0]}" if hints else "; check the file's unit"))
 
 
-def _check_cameras_outside(exp: Experiment, meshes: list[SceneMesh]) -> None:
-    """ConfigError when a camera's optical centre lies inside a mesh: each of 14 rays from it (axes
-    and diagonals) first meets the mesh from behind (geometric normal, by the faces' winding, along
-    the ray), as from inside a closed surface. Only meshes whose bounding box holds a camera are
-    ray-cast (Mitsuba)."""
-    if not exp.camera_specs:
-        return
-    positions = np.array(camera_positions(exp))
+INSIDE_TURN_RAD = (0.3141, 0.2718, 0.1414)   # rad: the rays of `inside_mesh`, turned off the axes
+INSIDE_MIN_RAYS = 8       # of the 14 rays, at least this many must be clear for a point to be inside
+INSIDE_ON_SURFACE_M = 1e-6   # m: a ray that starts this close to a triangle starts on the surface
+INSIDE_CHUNK = 200_000    # (ray, triangle) pairs per block of `inside_mesh`
+
+
+def inside_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether each point lies inside the closed surface (`vertices` (n, 3) m, `faces`
+    (m, 3)), by the even-odd rule, whatever the faces' winding. From each point 14 rays (the axes
+    and the diagonals, turned by `INSIDE_TURN_RAD` so that they do not run along a CAD model's
+    edges) are intersected with every triangle (Möller-Trumbore: o + t d = (1 - u - v) a + u b
+    + v c, t > 0, u, v, 1 - u - v >= 0). A ray that passes within `BARYCENTRIC_SLACK` of a
+    triangle's edge, or starts on the surface (|t| <= `INSIDE_ON_SURFACE_M`), is ambiguous and not counted;
+    a point is inside when at least `INSIDE_MIN_RAYS` rays are clear and every clear one crosses
+    the surface an odd number of times (through a hole of an open mesh a ray crosses an even
+    number: such a point is not called inside)."""
+    from scipy.spatial.transform import Rotation
+
+    points = np.atleast_2d(np.asarray(points, dtype=float))
     dirs = np.array(list(np.ndindex(3, 3, 3)), dtype=float) - 1.0
     dirs = dirs[np.isin(np.count_nonzero(dirs, axis=1), (1, 3))]       # 6 axes + 8 diagonals
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dirs = Rotation.from_euler("xyz", INSIDE_TURN_RAD).apply(dirs / np.linalg.norm(dirs, axis=1)[:, None])
+    a, b, c = (np.asarray(vertices, dtype=float)[faces[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    out = np.zeros(len(points), dtype=bool)
+    step = max(1, INSIDE_CHUNK // len(dirs))
+    for p, point in enumerate(points):
+        crossings = np.zeros(len(dirs), dtype=int)
+        ambiguous = np.zeros(len(dirs), dtype=bool)
+        for lo in range(0, len(faces), step):
+            s_ = slice(lo, lo + step)
+            pvec = np.cross(dirs[:, None, :], e2[None, s_])                   # (R, T, 3)
+            det = np.einsum("tk,rtk->rt", e1[s_], pvec)
+            ok = np.abs(det) > TINY
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            tvec = point - a[s_]                                              # (T, 3)
+            u = np.einsum("tk,rtk->rt", tvec, pvec) * inv
+            qvec = np.cross(tvec, e1[s_])                                     # (T, 3)
+            v = np.einsum("rk,tk->rt", dirs, qvec) * inv
+            t = np.einsum("tk,tk->t", e2[s_], qvec)[None, :] * inv
+            w = 1.0 - u - v
+            within = ok & (u >= -BARYCENTRIC_SLACK) & (v >= -BARYCENTRIC_SLACK) & (w >= -BARYCENTRIC_SLACK)
+            edge = within & (np.minimum(np.minimum(u, v), w) <= BARYCENTRIC_SLACK)
+            on_surface = within & (np.abs(t) <= INSIDE_ON_SURFACE_M)
+            ambiguous |= ((edge & (t > -INSIDE_ON_SURFACE_M)) | on_surface).any(axis=1)
+            crossings += (within & (t > INSIDE_ON_SURFACE_M)).sum(axis=1)
+        clear = ~ambiguous
+        out[p] = clear.sum() >= INSIDE_MIN_RAYS and bool(np.all(crossings[clear] % 2 == 1))
+    return out
+
+
+def cameras_inside(exp: Experiment, meshes: list[SceneMesh]) -> list[ConfigError]:
+    """One `ConfigError` per (camera, mesh) whose optical centre lies inside the mesh
+    (`inside_mesh`), naming the camera's field that places it and the fix; only the cameras
+    within a mesh's bounding box are tested against it."""
+    if not exp.camera_specs:
+        return []
+    positions = np.array(camera_positions(exp))
+    errors = []
     for mesh in meshes:
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
         near = np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
         if not len(near):
             continue
-        mi = mitsuba()
-        origins, directions = np.repeat(positions[near], len(dirs), axis=0), np.tile(dirs, (len(near), 1))
-        ray = mi.Ray3f(mi.Point3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in origins.T)),
-                       mi.Vector3f(*(np.ascontiguousarray(c, dtype=np.float32) for c in directions.T)))
-        hit = build_scene([mesh]).ray_intersect(ray)
-        normal = np.stack([np.asarray(c, dtype=float) for c in (hit.n.x, hit.n.y, hit.n.z)], axis=1)
-        back = np.asarray(hit.is_valid(), dtype=bool) & (np.einsum("rk,rk->r", normal, directions) > 0)
-        for i in near[back.reshape(len(near), len(dirs)).all(axis=1)]:
-            raise ConfigError(exp.path, f'camera "{exp.camera_specs[i].name}"',
-                              f"its optical centre {np.round(positions[i], 4).tolist()} m lies inside "
-                              f"mesh {mesh.name!r}: move the camera out (position_m, or rail u / offset_m)")
+        for i in near[inside_mesh(positions[near], mesh.vertices, mesh.faces)]:
+            spec = exp.camera_specs[i]
+            fixed = spec.mount is not None and exp.mount(spec.mount).kind == "fixed"
+            field, fix = (("u", "move it out along its rail (u) or off it (offset_m)") if spec.rail else
+                          ("mount", "stand it on a mount outside the mesh") if fixed else
+                          ("position_m", "move it out of the mesh"))
+            errors.append(ConfigError(exp.path, f'camera "{spec.name}".{field}',
+                                      f"its optical centre {np.round(positions[i], 4).tolist()} m lies "
+                                      f"inside mesh {mesh.name!r}: {fix}"))
+    return errors
 
 
 def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np.ndarray, np.ndarray]:

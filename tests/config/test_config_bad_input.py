@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from vdo import scene
 from vdo.config import experiment as config
+from conftest import DOWN_CAMERA
 from vdo.core.errors import ConfigError
 
 
@@ -171,7 +172,7 @@ def test_camera_inside_a_mesh(plate_experiment):
         return edited(plate_experiment(extra_meshes=extra, files=[("block.stl", [100, 100, 100], [0, 0, 500])]),
                       ('rail = "overhead"\nu = 0.5', f"position_m = [0, 0, {z}]"))
     err = error(at(-0.005), meshes_of)                # inside the 10 mm plate
-    assert err.field == 'camera "down"' and "inside mesh 'plate'" in err.message
+    assert err.field == 'camera "down".position_m' and "inside mesh 'plate'" in err.message
     block = '[[mesh]]\nname = "block"\nfile = "block.stl"\nunit = "mm"\n'
     assert "inside mesh 'block'" in error(at(0.52, block), meshes_of).message
     assert len(meshes_of(at(0.6, block))) == 2        # just above the block: accepted
@@ -324,3 +325,78 @@ def test_config_errors_come_before_heavy_imports(tmp_path):
             "print(sorted(m for m in ('jax', 'mitsuba', 'drjit', 'matplotlib', 'trimesh') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code, str(bad)], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["ConfigError", "[]"]
+
+
+# --------------------------------------------------------------------------------------------
+# Geometric checks found together: a camera inside a mesh, a lens outside the catalogue
+# --------------------------------------------------------------------------------------------
+def test_inside_mesh_against_closed_forms():
+    """`scene.inside_mesh` against the closed-form insides of a convex (sphere) and a non-convex
+    (annulus: a ring with a hole) closed mesh, at random points kept clear of the faceting
+    error; the faces' winding does not matter; a box with a face missing holds no inside."""
+    rng = np.random.default_rng(3)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    p = rng.uniform(-1.3, 1.3, (120, 3))
+    r = np.linalg.norm(p, axis=1)
+    p, r = p[np.abs(r - 1.0) > 0.02], r[np.abs(r - 1.0) > 0.02]     # faceting: < 0.005 off the sphere
+    got = scene.inside_mesh(p, sphere.vertices, sphere.faces)
+    assert got.tolist() == (r < 1.0).tolist() and 0 < got.sum() < len(p)
+    assert scene.inside_mesh(p, sphere.vertices, sphere.faces[:, ::-1]).tolist() == got.tolist()
+    ring = trimesh.creation.annulus(r_min=0.5, r_max=1.0, height=0.4, sections=64)
+    q = rng.uniform([-1.1, -1.1, -0.3], [1.1, 1.1, 0.3], (150, 3))
+    rho = np.linalg.norm(q[:, :2], axis=1)
+    clear = (np.abs(rho - 0.5) > 0.01) & (np.abs(rho - 1.0) > 0.01) & (np.abs(np.abs(q[:, 2]) - 0.2) > 0.01)
+    q, rho = q[clear], rho[clear]
+    truth = (rho > 0.5) & (rho < 1.0) & (np.abs(q[:, 2]) < 0.2)
+    assert scene.inside_mesh(q, ring.vertices, ring.faces).tolist() == truth.tolist() and truth.any()
+    box = trimesh.creation.box(extents=[1, 1, 1])
+    open_top = box.faces[box.face_normals[:, 2] < 0.5]                    # the +z face removed
+    assert not scene.inside_mesh(np.zeros((1, 3)), box.vertices, open_top)[0]
+    assert scene.inside_mesh(np.zeros((1, 3)), box.vertices, box.faces)[0]
+
+
+def test_cameras_inside_two_meshes_are_reported_together(plate_experiment):
+    """Two cameras, one inside the plate and one inside a block: both errors in one raise
+    (ConfigErrors), one line each, naming the file, the camera's field, the mesh and the fix."""
+    from vdo.core.errors import ConfigErrors
+
+    cams = "".join(f'[[camera]]\nname = "{n}"\nsensor_mm = [22.2, 14.8]\npixels = [600, 400]\n'
+                   f"focal_mm = 24\nposition_m = {pos}\npan_deg = 0\ntilt_deg = -90\n\n"
+                   for n, pos in (("low", "[0.1, 0, -0.005]"), ("high", "[0, 0, 0.52]"),
+                                  ("fine", "[0, 0, 0.9]")))
+    block = '[[mesh]]\nname = "block"\nfile = "block.stl"\nunit = "mm"\n'
+    path = plate_experiment(cameras=cams, extra_meshes=block,
+                            files=[("block.stl", [100, 100, 100], [0, 0, 500])])
+    with pytest.raises(ConfigErrors) as info:
+        meshes_of(path)
+    errors = info.value.errors
+    assert [(e.field, e.file) for e in errors] == [('camera "low".position_m', str(path.resolve())),
+                                                   ('camera "high".position_m', str(path.resolve()))]
+    assert "inside mesh 'plate'" in errors[0].message and "inside mesh 'block'" in errors[1].message
+    assert all("move it out of the mesh" in e.message for e in errors)
+    assert str(info.value).splitlines() == [str(e) for e in errors]
+
+
+LENS_OPTIMIZE = '\n[optimize]\nfree = ["u", "pan", "tilt", "lens"]\nlenses_mm = [{lenses}]\n'
+
+
+def test_lens_outside_the_catalogue_is_refused(plate_experiment, tmp_path):
+    """With "lens" free, the lens choice swaps only to catalogue lenses: a moving camera whose
+    own lens is not listed would keep it in optimized.toml when no other wins. Refused before
+    any work, naming the camera's focal_mm and the fix; a listed lens (or a camera's own
+    lenses_mm that lists it) passes."""
+    from vdo.optimize import optimize
+
+    def exp(lenses, extra=""):
+        cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + extra + LENS_OPTIMIZE.format(lenses=lenses)
+        return config.load(plate_experiment(cameras=cams))
+
+    [err] = config.lens_catalogue_errors(exp("28, 50"))
+    assert err.field == 'camera "down".focal_mm'
+    assert "= 24 mm is not in the lens catalogue ([optimize] lenses_mm = [28, 50])" in err.message
+    assert "add 24 to [optimize] lenses_mm" in err.message
+    assert config.lens_catalogue_errors(exp("24, 50")) == []
+    assert config.lens_catalogue_errors(exp("28, 50", "lenses_mm = [24, 35]\n")) == []
+    with pytest.raises(ConfigError, match=r'camera "down".focal_mm: = 24 mm is not in'):
+        optimize(exp("28, 50"), tmp_path / "run")     # before any work: no folder, no start-up
+    assert not (tmp_path / "run").exists()

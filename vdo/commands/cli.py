@@ -96,8 +96,8 @@ def _print_summary(summary: dict) -> None:
 
 def _load(args):
     """The command's validated input (config or validation spec), before any heavy import; for
-    an experiment, its load path's files too (every step: `vdo.geometry.keyframes.check_load_path`),
-    so that a bad row stops the command before any work."""
+    an experiment, its meshes and load path's files too (`_experiment`), so that a camera inside
+    a mesh or a bad row stops the command before any work."""
     if args.command == "validate":
         from vdo.dic.validate import load
         return load(args.config)
@@ -116,16 +116,17 @@ def _load(args):
 
 
 def _experiment(path, series=None):
-    """The experiment of `path`, read and checked whole: its tables, meshes and load-path files
-    (every step, `vdo.geometry.keyframes.check_load_path`), and a --series POSES.csv."""
+    """The experiment of `path`, read and checked whole: its tables, then together
+    (`vdo.geometry.checks.check_experiment`) its meshes (no camera inside one), its load-path
+    files (every step) and a --series POSES.csv, and the lens catalogue of an optimize."""
     from vdo.config.experiment import load
-    from vdo.geometry.keyframes import check_load_path
+    from vdo.geometry.checks import check_experiment
 
     exp = load(path)
     if series not in (None, "load_path") and not Path(series).is_file():
         raise ConfigError(series, "--series", "no such file: give a CSV of poses per step and "
                                               "group (see vdo.geometry.keyframes)")
-    check_load_path(exp, None if series in (None, "load_path") else Path(series))
+    check_experiment(exp, None if series in (None, "load_path") else Path(series))
     return exp
 
 
@@ -212,10 +213,14 @@ def _validate(spec, args):
 def _optimize(exp, args) -> None:
     from vdo.optimize import optimize
 
-    result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit)
+    result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit,
+                      started=args.started)   # the limit counts the whole command
     if not args.quiet:
-        print(f"search: {result['status']}; score (smooth sigma_max percentile) "
+        print(f"search: {result['status']} (start-up {result['startup_s']:.0f} s, search "
+              f"{result['search_s']:.0f} s); score (smooth sigma_max percentile) "
               f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
+        if result["reason"]:
+            print(result["reason"])
         for name, r in result["score_regions_um"].items():   # the regions the score counts
             if r["scored"] and r["sigma_smooth_um"] is not None:
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
@@ -413,7 +418,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _run(args) -> int:
-    started = time.perf_counter()
+    started = args.started = time.perf_counter()
     if args.command == "demo":
         if not BUILTIN.is_file():
             raise ConfigError(BUILTIN, "", "the built-in experiment is not here; run vdo demo "
@@ -486,7 +491,8 @@ def main(argv=None) -> int:
                 os._exit(stop.exit_code)
             return stop.exit_code
         if isinstance(exc, ConfigError):
-            print(f"error: {exc}", file=sys.stderr)
+            for error in getattr(exc, "errors", (exc,)):   # `ConfigErrors`: every one, a line each
+                print(f"error: {error}", file=sys.stderr)
             return 2
         if isinstance(exc, BackendError):
             print(f"error: {exc}", file=sys.stderr)

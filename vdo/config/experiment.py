@@ -884,6 +884,34 @@ def inside_keep_out(keep_outs, points: np.ndarray) -> np.ndarray:
 KEEP_OUT_RAIL_POINTS = 201   # positions along a rail tested against the keep-out volumes
 
 
+SAME_LENS_REL = 1e-9   # relative: focal lengths this close are one lens (mm read as m, rounding)
+
+
+def lens_catalogue_errors(exp: Experiment) -> list[ConfigError]:
+    """With "lens" in [optimize] free, one `ConfigError` per moving camera (`[optimize] cameras`,
+    default all) whose focal_mm is not in its lens catalogue (its own lenses_mm, else [optimize]
+    lenses_mm): the lens choice only swaps to catalogue lenses, so when none wins the optimized
+    layout (optimized.toml) would keep a lens the catalogue does not list."""
+    if "lens" not in exp.optimize.free:
+        return []
+    moving = set(exp.optimize.cameras or [c.name for c in exp.camera_specs])
+    errors = []
+    for spec in exp.camera_specs:
+        catalogue = spec.lenses or exp.optimize.lenses
+        if spec.name not in moving or not catalogue or any(
+                math.isclose(spec.focal_length, f, rel_tol=SAME_LENS_REL) for f in catalogue):
+            continue
+        where = "its lenses_mm" if spec.lenses else "[optimize] lenses_mm"
+        listed = ", ".join(f"{f * 1e3:g}" for f in catalogue)
+        errors.append(ConfigError(exp.path, f'camera "{spec.name}".focal_mm',
+                                  f"= {spec.focal_length * 1e3:g} mm is not in the lens catalogue "
+                                  f"({where} = [{listed}]) that \"lens\" in [optimize] free chooses "
+                                  "from, so the optimized layout could keep a lens the catalogue "
+                                  f"does not list: add {spec.focal_length * 1e3:g} to {where}, or "
+                                  "start from a lens of the catalogue"))
+    return errors
+
+
 def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
     """ConfigError for a camera whose optical centre lies in a keep-out volume, and for a keep-out
     that holds every position of a camera's mount (a zone's box or floor corners at both heights,

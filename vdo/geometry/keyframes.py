@@ -492,13 +492,31 @@ def at_step(geometry, load_path: LoadPath, step: int):
     return replace(geometry, meshes=tuple(meshes), samples=moved)
 
 
+MISSING_STEPS_SHOWN = 10   # steps named in the one line of a displacement file that lacks some
+
+
+def _check_displaced_steps(file: Path, poses: Path | None, posed: set, displaced: set) -> None:
+    """ConfigError when the displacement `file` has no rows for a step that the pose file has:
+    at that step the specimen would stand undeformed while its supports move."""
+    missing = sorted(posed - displaced)
+    if not missing:
+        return
+    shown = ", ".join(map(str, missing[:MISSING_STEPS_SHOWN])) + (
+        f", ... ({len(missing)} steps)" if len(missing) > MISSING_STEPS_SHOWN else "")
+    raise ConfigError(file, "step", f"has no displacements at step {shown}, which the pose file "
+                                    f"{poses.name!r} has (the specimen would stand undeformed "
+                                    "there): add those steps (zeros where it does not deform), or "
+                                    "drop them from the pose file")
+
+
 def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
     """The experiment's `[load_path]` read from its CSV files, or None when it has none and no
     `poses` file is given. `poses` replaces the `[load_path]`'s pose file (`vdo render --series`).
     Groups are the experiment's `[[group]]` tables, and every mesh is also a group of its own name
     (pivot at the origin), so a pose file may move single meshes without declaring groups. Rows
-    are checked here, before any ray is cast. `meshes`: the experiment's SceneMeshes (needed for
-    the displacement nodes)."""
+    are checked here, before any ray is cast, and so is every step of the pose file found in the
+    displacement file (`_check_displaced_steps`). `meshes`: the experiment's SceneMeshes (needed
+    for the displacement nodes)."""
     spec = exp.load_path
     if not spec.active and poses is None:
         return None
@@ -517,6 +535,9 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
             displacements = read_vtk_displacements(spec.displacements, mesh.vertices, mesh.faces,
                                                    mesh.name, spec.unit, spec.displacement_array)
     table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
+    if displacements is not None:
+        _check_displaced_steps(spec.displacements, Path(poses) if poses is not None else None,
+                               {step for step, _ in table}, set(displacements))
     steps = sorted({step for step, _ in table} | set(displacements or {}))
     return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)
 
