@@ -285,6 +285,36 @@ def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, cap
     _layout_reloads(out)
 
 
+AFTER_STARTUP_S = 10.0   # s: judging the starting layout and writing the folder (measured: ~2 s)
+
+
+def test_a_limit_spent_by_start_up_ends_with_the_starting_layout_judged(tmp_path, caplog):
+    """The limit counts start-up, from the caller's `started`: a limit that start-up alone
+    spends leaves no search (no solver step, nothing compiled for it): the starting layout is
+    judged and written, the reason said in the log, optimizer.json and the result, start-up and
+    search given apart; the whole call ends within start-up + AFTER_STARTUP_S."""
+    import time
+
+    cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    out = tmp_path / "run"
+    started = time.perf_counter()
+    with caplog.at_level(logging.INFO, logger="vdo"):
+        result = optimize(exp, out, time_limit=0.5, started=started - 0.5)   # spent before the call
+    wall = time.perf_counter() - started
+    assert result["status"] == "time_limit" and result["reason"].startswith("start-up took ")
+    assert "no time left to search, the starting layout is judged and written" in result["reason"]
+    assert wall <= result["startup_s"] - 0.5 + AFTER_STARTUP_S
+    assert result["startup_s"] >= 0.5 and result["score_after"] == result["score_before"]
+    summary = json.loads((out / "optimizer.json").read_text())
+    assert summary["accepted_steps"] == 0 and summary["rounds"] == [] and summary["layouts_judged"] == 1
+    assert summary["reason"] == result["reason"] and summary["startup_s"] == result["startup_s"]
+    lines = [r.getMessage() for r in caplog.records if r.name == "vdo.optimize"]
+    assert any(line.startswith("search ended: time_limit after ") and "(start-up " in line for line in lines)
+    assert result["reason"] in lines
+    _layout_reloads(out)
+
+
 @pytest.mark.parametrize("limit", ["0", "-5"])
 def test_non_positive_time_limit_is_refused_in_one_line(tmp_path, capsys, limit):
     from vdo.commands.cli import main

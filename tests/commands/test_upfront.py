@@ -173,3 +173,44 @@ def test_series_poses_file_bad_step(beam_column, tmp_path, capsys, no_work):
                  str(tmp_path / "out")]) == 2
     err = one_line(capsys)
     assert err.startswith(f"error: {poses}: row 36: group 'plattform' is neither a [[group]] "), err
+
+
+# --------------------------------------------------------------------------------------------
+# Several geometric mistakes in one file: all of them, one line each, before any work
+# --------------------------------------------------------------------------------------------
+def test_geometric_mistakes_are_reported_together(plate_experiment, tmp_path, capsys, no_work):
+    """A camera inside the plate, a displacement file without step 2 of the pose file, and a
+    lens outside the [optimize] catalogue: every command that loads the file (and `vdo check`)
+    prints the three, one line each naming the file, the field and the fix, and exits 2
+    before the heavy work (`no_work`)."""
+    from conftest import DOWN_CAMERA
+
+    inside = DOWN_CAMERA.format(name="buried", focal=24, u=0.5).replace(
+        'rail = "overhead"\nu = 0.5', "position_m = [0.1, 0.1, -0.005]")
+    cams = (DOWN_CAMERA.format(name="down", focal=24, u=0.5) + inside
+            + '\n[optimize]\nfree = ["u", "pan", "tilt", "lens"]\nlenses_mm = [28, 50]\n'
+            + '\n[load_path]\nposes = "poses.csv"\ndisplacements = "u.csv"\ndeformed_mesh = "plate"\n')
+    path = plate_experiment(cameras=cams)
+    (path.parent / "poses.csv").write_text("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
+                                           + "".join(f"{k},plate,0,0,{k},0,0,0\n" for k in (1, 2, 3)))
+    (path.parent / "u.csv").write_text("step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm\n"
+                                       + "".join(f"{k},0.5,0.5,0,0,0,0.1\n" for k in (1, 3)))
+    for command in (["check"], ["evaluate"], ["optimize"], ["render", "--series"]):
+        out = [] if command == ["check"] else ["--out", str(tmp_path / "out")]
+        assert main([command[0], str(path), *command[1:], *out]) == 2, command
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert lines == [
+            f"error: {path.resolve()}: camera \"buried\".position_m: its optical centre [0.1, 0.1, -0.005] m "
+            "lies inside mesh 'plate': move it out of the mesh",
+            f"error: {path.parent / 'u.csv'}: step: has no displacements at step 2, which the pose file "
+            "'poses.csv' has (the specimen would stand undeformed there): add those steps (zeros where "
+            "it does not deform), or drop them from the pose file",
+            f"error: {path.resolve()}: camera \"down\".focal_mm: = 24 mm is not in the lens catalogue "
+            "([optimize] lenses_mm = [28, 50]) that \"lens\" in [optimize] free chooses from, so the "
+            "optimized layout could keep a lens the catalogue does not list: add 24 to [optimize] "
+            "lenses_mm, or start from a lens of the catalogue",
+            f"error: {path.resolve()}: camera \"buried\".focal_mm: = 24 mm is not in the lens catalogue "
+            "([optimize] lenses_mm = [28, 50]) that \"lens\" in [optimize] free chooses from, so the "
+            "optimized layout could keep a lens the catalogue does not list: add 24 to [optimize] "
+            "lenses_mm, or start from a lens of the catalogue"], command
+        assert not (tmp_path / "out").exists()
