@@ -94,9 +94,9 @@ def main() -> None:
             result = optimize(design.designed(exp, cand, pick), out, time_limit=left)
             found = config.load(out / "optimized.toml")
             j = judged(found)
-            rank = (result["violations"], np.inf if j["joint_p95_um"] is None else j["joint_p95_um"])
-            restarts.append({"status": result["status"], "violations": result["violations"], **j})
-            print(f"restart {len(restarts)}: {result['status']}, {result['violations']} violation(s), "
+            rank = (result.violations, np.inf if j["joint_p95_um"] is None else j["joint_p95_um"])
+            restarts.append({"status": result.status, "violations": result.violations, **j})
+            print(f"restart {len(restarts)}: {result.status}, {result.violations} violation(s), "
                   f"joint p95 {j['joint_p95_um']}", flush=True)
             if best is None or rank < best[0]:
                 best = (rank, j, result)

@@ -4,6 +4,7 @@ docs/examples runs reduced, its printed output checked against what it computed.
 
 from __future__ import annotations
 
+import json
 import re
 import runpy
 from pathlib import Path
@@ -41,8 +42,13 @@ def test_every_python_block_of_api_md_runs(tmp_path, monkeypatch, capsys):
         pytest.approx(moved.camera_specs[1].u)
     assert np.isfinite(np.asarray(namespace["gradient"])).all()
     result = namespace["result"]
-    assert result["violations"] == 0 and result["score_after"] <= result["score_before"]
+    assert result.violations == 0 and result.score_after_um <= result.score_before_um
     assert namespace["swept"]["done"] == 2
+    written = (tmp_path / "runs" / "api" / "loop" / "summary.json").read_text()   # byte for byte
+    assert json.dumps(namespace["judged"].to_json(), indent=2) + "\n" == written
+    written = json.loads(written)
+    top = namespace["judged"].regions["joint_top"]
+    assert top.sigma_max_um.p95 == written["regions"]["joint_top"]["sigma_max_um"]["p95"]
     assert (tmp_path / "runs" / "api" / "regions.csv").read_text().count("\n") == len(state.regions()) + 1
 
 
@@ -72,7 +78,7 @@ def test_custom_objective(tmp_path, capsys):
     out = capsys.readouterr().out
     assert run["gradient_error"] < 1e-4          # jax.grad against central differences
     result = run["result"]
-    assert result["violations"] == 0 and result["score_after"] < result["score_before"]
+    assert result.violations == 0 and result.score_after_um < result.score_before_um
     assert "max |grad - FD| / max |FD|" in out and "optimized: objective" in out
 
 

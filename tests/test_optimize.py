@@ -64,7 +64,7 @@ def test_camera_behind_a_bar_ends_with_a_clear_view(tmp_path):
     assert start and start[0]["value"] > 0.05                     # really masked at the start
     after = constraint(out, "obscuration", cameras=["a"])
     assert after[0]["value"] <= exp.optimize.max_obscuration
-    assert result["violations"] == 0, result["violated"]
+    assert result.violations == 0, result.violated
 
 
 def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
@@ -79,11 +79,20 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     assert [e for e in before if e["constraint"] == "axis_angle"][0]["value"] < 5
     assert angle["limit"] == pytest.approx(limit)
     assert angle["value"] >= limit - 1e-6 and angle["met"]
-    assert result["violations"] == 0, result["violated"]
+    assert result.violations == 0, result.violated
 
     # the run folder: files, moves along the rail in mm, and a layout that loads again
     names = sorted(p.name for p in out.iterdir())
     assert names == FOLDER
+    # the OptimizeResult is what the folder holds: summary_before/after.json byte for byte, and
+    # optimizer.json's status and starting score
+    for name, judged in (("summary_before.json", result.before), ("summary_after.json", result.after)):
+        assert (out / name).read_text() == json.dumps(judged.to_json(), indent=2) + "\n"
+    written = json.loads((out / "optimizer.json").read_text())
+    assert written["status"] == result.status == result.to_json()["status"]
+    assert written["score_before"]["score_um"] == result.score_before_um
+    assert written["score_after"]["regions"] == result.score_regions_um
+    assert result.after.regions["top"].sigma_max_um.p95 < result.before.regions["top"].sigma_max_um.p95
     moves = list(csv.DictReader((out / "moves.csv").open()))
     rail_length_mm = 2000.0
     for row, u0 in zip(moves, (0.48, 0.52)):
@@ -98,7 +107,7 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
     # the score in µm: the report's power mean of the fields' smooth sigma (numpy, float64 per
     # pair) is the optimizer's score (JAX, float32 per pair); one region: it equals the overall
     summary = json.loads((out / "optimizer.json").read_text())["score_after"]
-    assert summary["score_um"] == pytest.approx(result["score_after"], rel=1e-5)
+    assert summary["score_um"] == pytest.approx(result.score_after_um, rel=1e-5)
     assert summary["regions"]["top"]["sigma_smooth_um"] == pytest.approx(summary["sigma_smooth_um"], rel=1e-12)
     assert 0.1 < summary["sigma_smooth_um"] < 100   # micrometres, not metres or pixels
     # the penalty weight grows only after a round whose layout breaks a constraint, and a
@@ -156,10 +165,10 @@ def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_pa
     result = optimize(exp, tmp_path / "run")
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
     assert [e["cameras"] for e in before if not e["met"]] == [["cam1", "cam9"], ["cam2", "cam9"]]
-    assert result["violations"] == 0, result["violated"]
-    p95_before, p95_after = result["joint_p95_um"]
+    assert result.violations == 0, result.violated
+    p95_before, p95_after = result.joint_p95_um
     assert p95_after < 0.98 * p95_before
-    assert result["score_after"] < result["score_before"]
+    assert result.score_after_um < result.score_before_um
 
 
 LENS_SETTINGS = """
@@ -198,8 +207,8 @@ def test_lens_catalogue_keeps_the_longest_lens_that_still_holds_the_plate(tmp_pa
     moves = {row["camera"]: row for row in csv.DictReader((tmp_path / "run" / "moves.csv").open())}
     assert (moves["a"]["focal_mm_before"], moves["a"]["focal_mm_after"]) == ("24", "28")
     assert moves["b"]["focal_mm_after"] == "24"
-    assert result["violations"] == 0, result["violated"]
-    assert result["score_after"] < base["score_after"]
+    assert result.violations == 0, result.violated
+    assert result.score_after_um < base.score_after_um
     assert config.load(tmp_path / "run" / "optimized.toml").camera_specs[0].focal_length == pytest.approx(0.028)
 
 
@@ -250,7 +259,7 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
     handler = signal.getsignal(signal.SIGINT)   # Python's default, or SIG_IGN in a test worker
     result = optimize(exp, out)
     assert len(steps) == 2
-    assert result["status"] == "interrupted"
+    assert result.status == "interrupted"
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["status"] == "interrupted" and not summary["converged"]
     # the round in progress ended on the signal (or had just converged at that very step)
@@ -277,7 +286,7 @@ def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, cap
     assert any(line.startswith("search ended: time_limit after") for line in lines)
     assert lines[-1].startswith("best: start 1, score ")
     assert capsys.readouterr().out == ""
-    assert result["status"] == "time_limit"
+    assert result.status == "time_limit"
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["status"] == "time_limit" and summary["time_limit_s"] == 1e-3
     assert summary["startup_s"] > 1e-3 and summary["search_wall_s"] == 0.0
@@ -302,16 +311,16 @@ def test_a_limit_spent_by_start_up_ends_with_the_starting_layout_judged(tmp_path
     with caplog.at_level(logging.INFO, logger="vdo"):
         result = optimize(exp, out, time_limit=0.5, started=started - 0.5)   # spent before the call
     wall = time.perf_counter() - started
-    assert result["status"] == "time_limit" and result["reason"].startswith("start-up took ")
-    assert "no time left to search, the starting layout is judged and written" in result["reason"]
-    assert wall <= result["startup_s"] - 0.5 + AFTER_STARTUP_S
-    assert result["startup_s"] >= 0.5 and result["score_after"] == result["score_before"]
+    assert result.status == "time_limit" and result.reason.startswith("start-up took ")
+    assert "no time left to search, the starting layout is judged and written" in result.reason
+    assert wall <= result.startup_s - 0.5 + AFTER_STARTUP_S
+    assert result.startup_s >= 0.5 and result.score_after_um == result.score_before_um
     summary = json.loads((out / "optimizer.json").read_text())
     assert summary["accepted_steps"] == 0 and summary["rounds"] == [] and summary["layouts_judged"] == 1
-    assert summary["reason"] == result["reason"] and summary["startup_s"] == result["startup_s"]
+    assert summary["reason"] == result.reason and summary["startup_s"] == result.startup_s
     lines = [r.getMessage() for r in caplog.records if r.name == "vdo.optimize"]
     assert any(line.startswith("search ended: time_limit after ") and "(start-up " in line for line in lines)
-    assert result["reason"] in lines
+    assert result.reason in lines
     _layout_reloads(out)
 
 

@@ -75,9 +75,9 @@ def test_developed_hole_edge_keeps_its_length():
 
 
 def test_evaluate_draws_every_region_developed(tmp_path):
-    summary = evaluate(coarse(0.02), tmp_path / "run")
+    result = evaluate(coarse(0.02), tmp_path / "run")
     for name in ("junction", "nozzle", "shell"):
         assert (tmp_path / "run" / "maps" / f"developed_{name}.png").stat().st_size > 10_000
-        d = summary["developed"][name]
+        d = result.developed[name]
         assert d["kind"] == "cylinder" and d["area_distortion"] < 0.01
         assert set(d["cameras"]) <= {c.name for c in coarse().camera_specs}

@@ -173,7 +173,7 @@ def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_p
     cams[1] = cams[1].with_pose(cams[1].position + np.array([0.02, 0.0, 0.03]), cams[1].pan + 0.05,
                                 cams[1].tilt)
     state = vdo.layout_state(geometry, cams)
-    summary = vdo.write_evaluation(state, tmp_path / "run")
+    result = vdo.write_evaluation(state, tmp_path / "run")
     again = vdo.load(tmp_path / "run" / "config.toml")
     layout = json.loads((tmp_path / "run" / "layout.json").read_text())
     for cam, written in zip(again.cameras(), cams):
@@ -190,7 +190,7 @@ def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_p
     for name, region in fresh["regions"].items():
         assert written["regions"][name]["sigma_max_um"]["p95"] == pytest.approx(
             region["sigma_max_um"]["p95"], rel=1e-9, nan_ok=True)
-    assert summary["regions"].keys() == fresh["regions"].keys()
+    assert result.regions.keys() == fresh["regions"].keys()
 
 
 # ---- a script's own objective, with gradients -------------------------------------------------
@@ -249,11 +249,11 @@ def test_optimizer_minimises_a_user_objective(tmp_path):
         return jnp.sum(w * f.sigma_xyz[:, 2]) * 1e6 + 10.0 * jnp.sum(w * short ** 2)
 
     result = vdo.optimize_experiment(exp, tmp_path / "opt", objective=mean_sigma_z_um, time_limit=600)
-    assert result["violations"] == 0 and result["score_after"] < result["score_before"]
+    assert result.violations == 0 and result.score_after_um < result.score_before_um
     written = vdo.load(tmp_path / "opt" / "optimized.toml")
     again = MountModel(written)   # a fresh problem: its own ray cast at the optimized layout
     after = float(mean_sigma_z_um(again.fields(again.theta0)))
-    assert after == pytest.approx(result["score_after"], rel=1e-6)
+    assert after == pytest.approx(result.score_after_um, rel=1e-6)
     before = float(mean_sigma_z_um(MountModel(exp).fields(jnp.asarray(MountModel(exp).theta0))))
     assert after < before
     assert json.loads((tmp_path / "opt" / "optimizer.json").read_text())["score_after"]["objective"] == \

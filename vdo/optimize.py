@@ -1470,7 +1470,7 @@ def _wrap_up_s(problem: Problem, steps: int) -> float:
 
 def optimize(exp: Experiment, out: Path, overwrite: bool = False,
              time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
-             objective=None, started: float | None = None) -> dict:
+             objective=None, started: float | None = None) -> OptimizeResult:
     """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
     constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
 
@@ -1553,8 +1553,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     after = _summary(final, best.state)
     if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
         log.info("judging the optimized layout over the %d steps of the load path", len(over_path.steps))
-        after["load_path"] = loadpath.summary(loadpath.evaluate_load_path(
-            problem.geometry, over_path, best.state.cameras))
+        after = dataclasses.replace(after, load_path=loadpath.summary(loadpath.evaluate_load_path(
+            problem.geometry, over_path, best.state.cameras)))
     checks_before = problem.check(problem.start)
     score_before = _score_parts(problem, problem.start)
     score_after = _score_parts(final, best.state)
@@ -1569,8 +1569,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
         optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
         report.write_config(tmp / "optimized.toml", optimized)
         report.write_json(tmp / "layout.json", report.layout(best.state.cameras))
-        report.write_json(tmp / "summary_before.json", before)
-        report.write_json(tmp / "summary_after.json", after)
+        report.write_json(tmp / "summary_before.json", before.to_json())
+        report.write_json(tmp / "summary_after.json", after.to_json())
         report.write_json(tmp / "constraints.json", {
             "violations": best.violations,
             "violated": [e for e in best.checks if not e["met"]],
@@ -1587,19 +1587,51 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
         _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
         _write_moves(tmp / "moves.csv", problem, best)
         html_report.write_report(tmp)
-    return {"score_before": score_before["score_um"], "score_after": best.score, "startup_s": startup,
-            "search_s": search, "reason": reason,
-            "score_regions_um": score_after["regions"], "status": status, "reachability": reach,
-            "violations": best.violations, "joint_p95_um": joint,
-            "violated": [e for e in best.checks if not e["met"]]}
+    return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
+                          startup_s=startup, search_s=search, reason=reason,
+                          score_regions_um=score_after["regions"], reachability=reach,
+                          violations=best.violations, joint_p95_um=joint,
+                          violated=[e for e in best.checks if not e["met"]], before=before, after=after)
 
 
-def _summary(problem: Problem, state: State) -> dict:
+@dataclasses.dataclass(frozen=True)
+class OptimizeResult:
+    """What `optimize` returns: how the search ended, the score of the hand layout and of the best
+    one (µm, the smooth σ_max percentile plus the coverage term, `_score_parts`; the user's
+    objective's values when one was given), and the two layouts judged as `vdo evaluate` judges
+    them (`before`, `after`: summary_before.json and summary_after.json are their `to_json()`)."""
+
+    status: Status                              # how the search ended (optimizer.json "status")
+    score_before_um: float                      # score of the hand layout
+    score_after_um: float                       # score of the best layout kept
+    startup_s: float                            # s of the time limit spent before the search
+    search_s: float                             # s the search itself ran
+    reason: str | None                          # why it ended where it did, in words (None: all rounds ran)
+    score_regions_um: dict[str, dict]           # region -> `_score_parts` (µm and fractions), best layout
+    reachability: list[dict]                    # per region, `vdo.search.reachability.check`
+    violations: int                             # constraint checks the best layout breaks
+    joint_p95_um: tuple[float | None, float | None]   # worst σ_max p95 of the joint* regions, before/after
+    violated: list[dict]                        # those checks (constraints.json "violated")
+    before: report.EvaluationResult             # the hand layout
+    after: report.EvaluationResult              # the best layout (with its load path, when configured)
+
+    def to_json(self) -> dict:
+        """The figures as a JSON dict: score_before, score_after (µm), startup_s, score_regions_um,
+        status (its value), reachability, violations, joint_p95_um [before, after], violated."""
+        return {"score_before": self.score_before_um, "score_after": self.score_after_um,
+                "startup_s": self.startup_s, "search_s": self.search_s, "reason": self.reason,
+                "score_regions_um": self.score_regions_um,
+                "status": self.status.value, "reachability": self.reachability,
+                "violations": self.violations, "joint_p95_um": list(self.joint_p95_um),
+                "violated": self.violated}
+
+
+def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.physics.predict` (usable
     views, clipped patches) on the round's ray cast and lighting."""
     pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
                    problem.speckle, overlap=problem.geometry.overlap)
-    return report.summary(problem.exp, problem.samples, state.vis, pred)
+    return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 
 def _score_parts(problem: Problem, state: State) -> dict:
@@ -1633,9 +1665,9 @@ def _score_parts(problem: Problem, state: State) -> dict:
                 power=q, regions=regions)
 
 
-def _joint_p95(summary: dict):
-    values = [r["sigma_max_um"]["p95"] for name, r in summary["regions"].items()
-              if name.startswith("joint") and r["sigma_max_um"]["p95"] is not None]
+def _joint_p95(summary: report.EvaluationResult):
+    values = [r.sigma_max_um.p95 for name, r in summary.regions.items()
+              if name.startswith("joint") and r.sigma_max_um.p95 is not None]
     return max(values) if values else None
 
 

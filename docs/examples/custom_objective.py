@@ -85,8 +85,8 @@ def main(argv=None) -> dict:
     # 2. the optimizer on it, with the built-in constraints
     result = vdo.optimize_experiment(exp, args.out, overwrite=True, objective=out_of_plane_um,
                                      time_limit=600)
-    print(f"optimized: objective {result['score_before']:.4f} -> {result['score_after']:.4f}, "
-          f"{result['violations']} constraint violation(s), search {result['status']}")
+    print(f"optimized: objective {result.score_before_um:.4f} -> {result.score_after_um:.4f}, "
+          f"{result.violations} constraint violation(s), search {result.status}")
     moves = (args.out / "moves.csv").read_text().splitlines()
     print("\n".join(moves[:1 + len(exp.camera_specs)]))
     return {"gradient_error": error, "result": result,

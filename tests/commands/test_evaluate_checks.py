@@ -48,12 +48,12 @@ def test_evaluate_reports_clearance_axis_angle_and_a_blind_camera(tmp_path, capl
     away = (0.6, -1.5, 1.0)               # the right camera looks away from the plate
     exp = load(_plate(tmp_path, left, away))
     with caplog.at_level(logging.WARNING, logger="vdo"):
-        summary = evaluate(exp, tmp_path / "run")
-    assert summary["cameras_seeing_nothing"] == ["right"]
+        result = evaluate(exp, tmp_path / "run")
+    assert result.cameras_seeing_nothing == ["right"]
     assert any("camera right sees no region" in r.getMessage() for r in caplog.records)
 
     checks = json.loads((tmp_path / "run" / "constraints.json").read_text())
-    assert checks == summary["constraints"]
+    assert checks == result.constraints
     by = {(c["constraint"], tuple(c.get("cameras", ()))): c for c in checks["checks"]}
 
     # the axis angle of the [[stereo_pair]]: the closed form from positions and targets

@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from vdo.core.errors import ConfigError
-from vdo.commands.sweep import _run_local, combinations, expand, load_sweep, pareto_front, split_path, sweep
+from vdo.commands.sweep import (_run_local, combinations, expand, load_sweep, pareto_front, run_point,
+                                split_path, sweep)
 
 ROOT = Path(__file__).resolve().parents[2]
 HEIGHT = 1.5        # m, the rail above the plate's top face (z = 0)
@@ -279,6 +280,56 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     assert folders == set(after) - set(before)
     assert all((tmp_path / "killed" / "runs" / k / "summary.json").is_file() for k in folders)
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
+
+
+OPTIMIZE_SWEEP = """
+[sweep]
+experiment = "plate.toml"
+action = "optimize"
+
+[[axis]]
+path = "evaluation.sample_spacing_mm"
+values = [50]
+
+[[axis]]
+path = "optimize.starts"
+values = [1]
+
+[[axis]]
+path = "optimize.rounds"
+values = [1]
+
+[[axis]]
+path = "optimize.max_steps"
+values = [2]
+
+[[axis]]
+path = "render.ambient_radiance"
+values = [20.0]
+"""
+
+
+def test_an_optimize_point_reports_the_layout_its_run_folder_holds(plate_sweep, tmp_path):
+    """action = "optimize": the point's row and stored summary come from the result `optimize`
+    returns, in memory; they are what its run folder's summary_after.json and optimizer.json hold
+    (the summary byte for byte), as when they were read back from there."""
+    points = expand(load_sweep(plate_sweep(text=OPTIMIZE_SWEEP)), tmp_path / "store")
+    record = run_point(points[0])
+    assert record["status"] == "done", record["error"]
+    folder = Path(points[0].run_dir)
+    text = (folder / "summary_after.json").read_text()
+    assert json.dumps(record["summary"], indent=2) + "\n" == text
+    after, m = json.loads(text), record["metrics"]
+    assert (m["n_cameras"], m["n_samples"]) == (2, after["settings"]["n_samples"])
+    assert m["top.sigma_p95_um"] > 0        # measured somewhere: the numbers compared are numbers
+    for stat in ("p50", "p95", "max"):
+        assert m[f"top.sigma_{stat}_um"] == after["regions"]["top"]["sigma_max_um"][stat]
+    assert [m[f"top.seen_{k}"] for k in (1, 2, 3)] == [after["regions"]["top"][f"seen_by_{k}_or_more"]
+                                                      for k in (1, 2, 3)]
+    assert "top.eps_uu_p95_ue" not in m       # optimize's summaries hold no strain σ
+    optimizer = json.loads((folder / "optimizer.json").read_text())
+    assert m["score_before"] == optimizer["score_before"]["score_um"]
+    assert m["violations"] == json.loads((folder / "constraints.json").read_text())["violations"]
 
 
 def test_a_dead_worker_is_replaced(plate_sweep):

@@ -178,7 +178,7 @@ def test_design_reports_the_gap(plate, tmp_path):
     out = tmp_path / "design"
     result = design.design(exp, out)
     data = json.loads((out / "design.json").read_text())
-    assert data["gap_to_bound"] == pytest.approx(1 - data["bound"] / result["curve"][-1]["score"])
+    assert data["gap_to_bound"] == pytest.approx(1 - data["bound"] / result.curve[-1]["score"])
     rows = list(csv.DictReader(open(out / "pareto.csv")))
     assert [int(r["cameras"]) for r in rows] == [c["cameras"] for c in data["curve"]]
     for r in rows:

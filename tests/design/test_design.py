@@ -5,6 +5,7 @@ rule, and the bad inputs (messages naming the region, the best layout still writ
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import re
 from dataclasses import replace
@@ -133,7 +134,7 @@ def test_bad_inputs_name_the_region_and_still_write_the_layout(plate_experiment,
     exp = config.load(exp.path)
     out = tmp_path / "out"
     result = design.design(exp, out)
-    messages = " | ".join(result["problems"])
+    messages = " | ".join(result.problems)
     assert "region 'top' needs 3 cameras" in messages
     assert "region 'underside': no candidate pose sees it" in messages
     assert "target sigma_max p95 1e-06 um is not reached" in messages
@@ -213,7 +214,15 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert [c.mount for c in again.camera_specs] == ["stand", "stand"]
     for c in again.camera_specs:
         assert any(np.allclose(c.position, p) for p in expected)
-    assert result["statistics"]["per_mount_kind"]["zone"] == len(design.judge(exp, prepare(exp)).cameras)
+    assert result.statistics["per_mount_kind"]["zone"] == len(design.judge(exp, prepare(exp)).cameras)
+    # the DesignResult is what the folder holds: summary.json byte for byte, design.json's figures
+    assert (out / "summary.json").read_text() == json.dumps(result.summary.to_json(), indent=2) + "\n"
+    written = json.loads((out / "design.json").read_text())
+    assert (written["problems"], written["constraint_violations"]) == (result.problems, result.violations)
+    assert [c["score"] for c in written["curve"]] == [c["score"] for c in result.curve]
+    assert result.cameras == len(again.camera_specs) == result.curve[-1]["cameras"]
+    assert result.refined is None
+    assert json.loads(json.dumps(result.to_json()))["summary"] == json.loads((out / "summary.json").read_text())
     # a triangle floor: of the 3 x 3 grid on its bounding box, the points inside it, and its centroid
     floor = replace(exp.mounts[0], floor=np.array([[-1.0, -0.3], [1.0, -0.3], [-1.0, 0.3]]),
                     height=(1.2, 1.2))
@@ -323,7 +332,7 @@ def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_exper
     exp = _experiment(plate_experiment, n=2, regions='\n[[region]]\nname = "under"\nmesh = "plate"\n'
                                                      'normal = [0, 0, -1]\n[render]\nambient_radiance = 20\n')
     result = design.design(exp, tmp_path / "out")
-    for c in result["curve"]:
+    for c in result.curve:
         assert c["sigma_p95_um"] is None
         assert c["measurable_fraction"] == pytest.approx(0.5, abs=1e-9)
         assert c["sigma_p95_by_region_um"]["under"] is None

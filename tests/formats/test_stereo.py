@@ -125,10 +125,10 @@ def test_evaluate_warns_of_a_3_degree_pair(tmp_path, caplog):
     """Cameras 6 cm apart at 1.2 m, both aimed at the plate centre: 2.9 deg between their axes,
     below the 24 mm rule of thumb (21.1 deg): evaluate says so (a warning of the vdo.commands.evaluate
     logger) and summary.json records it."""
-    summary = evaluate(config.load(write(tmp_path, u=(0.485, 0.515))), tmp_path / "run")
+    result = evaluate(config.load(write(tmp_path, u=(0.485, 0.515))), tmp_path / "run")
     out = caplog.text
     assert "warning: axis_angle not met: a and b: 2.864 deg, limit 21.11" in out
-    entry = [e for e in summary["axis_angles"] if e["constraint"] == "axis_angle"][0]
+    entry = [e for e in result.axis_angles if e["constraint"] == "axis_angle"][0]
     assert not entry["met"] and entry["value"] == pytest.approx(2 * math.degrees(math.atan(0.03 / 1.2)), rel=1e-6)
     saved = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert saved["axis_angles"][0]["value"] == pytest.approx(entry["value"])
@@ -145,7 +145,7 @@ def test_optimizer_keeps_a_declared_pair_within_its_maximum(tmp_path):
     after = json.loads((tmp_path / "run" / "constraints.json").read_text())["after"]
     top = [e for e in after if e["constraint"] == "axis_angle_max"][0]
     assert top["limit"] == pytest.approx(20) and top["met"], top
-    assert result["violations"] == 0, result["violated"]
+    assert result.violations == 0, result.violated
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
     start = [e for e in before if e["constraint"] == "axis_angle_max"][0]["value"]
     assert start == pytest.approx(18, abs=0.05)

@@ -150,7 +150,7 @@ def test_usable_views_counts_sigma_and_summary_agree(holed, tmp_path):
     # the maps and report to draw)
     coarse = dataclasses.replace(exp, evaluation=dataclasses.replace(exp.evaluation,
                                                                      sample_spacing=2e-3))
-    summary = evaluate(coarse, tmp_path / "run")
+    result = evaluate(coarse, tmp_path / "run")
     from vtk import vtkXMLPolyDataReader
     from vtk.util.numpy_support import vtk_to_numpy
     reader = vtkXMLPolyDataReader()
@@ -163,13 +163,13 @@ def test_usable_views_counts_sigma_and_summary_agree(holed, tmp_path):
     median = np.median(sigma[finite])
     high = finite & (sigma > usable.OUTLIER_FACTOR * median)
     assert np.all(outlier[high] == 1)
-    reg = summary["regions"]["front"]
-    assert reg["sigma_max_um"]["max"] == pytest.approx(sigma[finite].max(), rel=1e-9)
+    reg = result.regions["front"]
+    assert reg.sigma_max_um.max == pytest.approx(sigma[finite].max(), rel=1e-9)
     plain = finite & (outlier == 0) & (edge_lim == 0)
-    assert reg["sigma_max_um"]["max_unflagged"] == pytest.approx(sigma[plain].max(), rel=1e-9)
-    assert reg["n_outliers"] == int(outlier.sum()) and reg["n_edge_limited"] == int(edge_lim.sum())
-    assert reg["seen_by_2_or_more"] == pytest.approx(np.mean(cov >= 2), rel=1e-9)
-    assert reg["sigma_max_um"]["max"] < old_max * 1e6 / 10
+    assert reg.sigma_max_um.max_unflagged == pytest.approx(sigma[plain].max(), rel=1e-9)
+    assert reg.n_outliers == int(outlier.sum()) and reg.n_edge_limited == int(edge_lim.sum())
+    assert reg.seen_by_2_or_more == pytest.approx(np.mean(cov >= 2), rel=1e-9)
+    assert reg.sigma_max_um.max < old_max * 1e6 / 10
     print(f"holed plate summary max: soft weights {old_max * 1e6:.3g} um -> usable views "
-          f"{reg['sigma_max_um']['max']:.3g} um (unflagged {reg['sigma_max_um']['max_unflagged']:.3g})")
-    (tmp_path / "summary.txt").write_text(json.dumps(reg))
+          f"{reg.sigma_max_um.max:.3g} um (unflagged {reg.sigma_max_um.max_unflagged:.3g})")
+    (tmp_path / "summary.txt").write_text(json.dumps(reg.to_json()))

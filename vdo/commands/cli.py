@@ -166,10 +166,10 @@ def check(paths) -> int:
 def _evaluate(exp, args):
     from vdo.commands.evaluate import evaluate
 
-    summary = evaluate(exp, Path(args.out), overwrite=args.overwrite)
+    result = evaluate(exp, Path(args.out), overwrite=args.overwrite)
     if not args.quiet:
-        _print_summary(summary)
-        print_checks(summary["design_checks"])
+        _print_summary(result.to_json())
+        print_checks(result.design_checks)
         print(f"wrote {Path(args.out).resolve()}")
 
 
@@ -216,21 +216,21 @@ def _optimize(exp, args) -> None:
     result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit,
                       started=args.started)   # the limit counts the whole command
     if not args.quiet:
-        print(f"search: {result['status']} (start-up {result['startup_s']:.0f} s, search "
-              f"{result['search_s']:.0f} s); score (smooth sigma_max percentile) "
-              f"{result['score_before']:.4g} -> {result['score_after']:.4g} um")
-        if result["reason"]:
-            print(result["reason"])
-        for name, r in result["score_regions_um"].items():   # the regions the score counts
+        print(f"search: {result.status} (start-up {result.startup_s:.0f} s, search "
+              f"{result.search_s:.0f} s); score (smooth sigma_max percentile) "
+              f"{result.score_before_um:.4g} -> {result.score_after_um:.4g} um")
+        if result.reason:
+            print(result.reason)
+        for name, r in result.score_regions_um.items():   # the regions the score counts
             if r["scored"] and r["sigma_smooth_um"] is not None:
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
                       + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
                          "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
                       + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
-        before, after = result["joint_p95_um"]
+        before, after = result.joint_p95_um
         if before is not None and after is not None:
             print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
-        for entry in result["violated"]:
+        for entry in result.violated:
             print(f"violated: {entry['constraint']} {entry.get('cameras', '')} "
                   f"{entry.get('region', '')}: {entry['value']:.4g} (limit {entry['limit']})")
         print(f"wrote {Path(args.out).resolve()}")
@@ -270,16 +270,16 @@ def _design(exp, args) -> None:
         if scratch is not None:
             shutil.rmtree(scratch, ignore_errors=True)
     if not args.quiet:
-        for c in result["curve"]:
+        for c in result.curve:
             p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
             print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
-        if result["target_count"] is not None:
-            print(f"smallest count meeting the target: {result['target_count']}")
-        if result["refined"] is not None:
-            before, after = result["refined"]["joint_p95_um"]
+        if result.target_count is not None:
+            print(f"smallest count meeting the target: {result.target_count}")
+        if result.refined is not None:
+            before, after = result.refined.joint_p95_um
             print(f"refined: joint sigma_max p95 {before} -> {after} um, "
-                  f"{result['refined']['violations']} constraint violation(s)")
-        print(f"wrote {Path(args.out).resolve()} ({result['wall_s']:.0f} s)")
+                  f"{result.refined.violations} constraint violation(s)")
+        print(f"wrote {Path(args.out).resolve()} ({result.wall_s:.0f} s)")
 
 
 def _export(_, args) -> None:

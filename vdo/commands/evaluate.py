@@ -4,6 +4,7 @@ every region of interest, written into a run folder."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -32,13 +33,14 @@ MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
 MAX_WARNINGS = 10   # load-path warnings of each kind on the console; all of them in summary.json
 
 
-def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
+def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> report.EvaluationResult:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
     component for the [analysis] settings, `vdo.physics.strain`); summary.json also holds the design
-    checks per camera and region (`vdo.physics.checks`). Progress and warnings go to the `vdo.commands.evaluate`
-    logger (`vdo.core.progress`)."""
+    checks per camera and region (`vdo.physics.checks`). Returns the judged layout
+    (`vdo.outputs.report.EvaluationResult`, whose `to_json()` is summary.json). Progress and
+    warnings go to the `vdo.commands.evaluate` logger (`vdo.core.progress`)."""
     geometry = prepare(exp)
     samples = geometry.samples
     log.info("%s samples on %d regions (%g mm spacing)", f"{len(samples):,}", len(exp.regions),
@@ -69,18 +71,18 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
         hidden = max(len(over_path.losses) - MAX_WARNINGS, 0) + max(len(over_path.changes) - MAX_WARNINGS, 0)
         if hidden:
             log.warning("warning: %d more load-path losses and changes in summary.json (load_path)", hidden)
-    summary = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state))
-    for line in warnings(summary):
+    result = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state))
+    for line in warnings(result):
         log.warning("warning: %s", line)
-    return summary
+    return result
 
 
-def warnings(summary: dict) -> list[str]:
+def warnings(result: report.EvaluationResult) -> list[str]:
     """What is wrong with the layout, one line each: a camera that sees no region usefully, and
     every constraint check it breaks (`vdo.optimize.layout_checks`), worst first."""
     out = [f"camera {name} sees no region (no usable view of any sample: aimed away, blocked "
-           "or out of range?)" for name in summary["cameras_seeing_nothing"]]
-    broken = sorted((c for c in summary["constraints"]["checks"] if not c["met"]),
+           "or out of range?)" for name in result.cameras_seeing_nothing]
+    broken = sorted((c for c in result.constraints["checks"] if not c["met"]),
                     key=lambda c: -c["excess"])
     for c in broken:
         who = " and ".join(c.get("cameras", [])) or "the layout"
@@ -98,8 +100,10 @@ def _shown(value) -> str:
 
 
 def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
-                     over_path: LoadPathResult | None = None, checked: list[dict] | None = None) -> dict:
-    """Write a judged layout into the run folder `out` (see `evaluate`); returns the summary.
+                     over_path: LoadPathResult | None = None,
+                     checked: list[dict] | None = None) -> report.EvaluationResult:
+    """Write a judged layout into the run folder `out` (see `evaluate`); returns it
+    (`vdo.outputs.report.EvaluationResult`: summary.json is its `to_json()`).
     With `over_path` (`vdo.search.loadpath`) also the load path: load_path.csv, load_path.png, the worst
     case over the steps in samples.vtp (coverage_worst, sigma_max_worst, worst_step) and in
     maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path".
@@ -108,30 +112,29 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
-    summary = report.state_summary(state)
-    summary["axis_angles"] = constraints.angle_checks(exp, list(cameras), vis, samples)
-    summary["design_checks"] = checks.design_checks(exp, list(cameras), samples, vis.visible,
-                                                    illumination.irradiance,
-                                                    state.geometry.speckle.pattern)
-    summary["cameras_seeing_nothing"] = [name for i, name in enumerate(vis.camera_names)
-                                         if not pred.usable[i].any()]
+    angles = constraints.angle_checks(exp, list(cameras), vis, samples)
+    design_checks = checks.design_checks(exp, list(cameras), samples, vis.visible,
+                                         illumination.irradiance, state.geometry.speckle.pattern)
+    judged = None
     if checked is not None:
-        broken = [c for c in checked if not c["met"]]
-        summary["constraints"] = {"violations": len(broken), "checks": checked}
-    summary["glare"] = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
-    for row in summary["glare"]:
+        judged = {"violations": sum(not c["met"] for c in checked), "checks": checked}
+    hot = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
+    for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)
     meas = measured.measured_fields(exp, list(cameras), samples, vis, illumination,
                                     state.geometry.speckle, pred, constraints.stereo_min_angle)
-    summary["measured"] = measured.summary(exp, meas, samples, pred, eps)
-    if over_path is not None:
-        summary["load_path"] = loadpath.summary(over_path)
+    result = dataclasses.replace(
+        report.state_evaluation(state),
+        axis_angles=angles, design_checks=design_checks,
+        cameras_seeing_nothing=[name for i, name in enumerate(vis.camera_names) if not pred.usable[i].any()],
+        constraints=judged, glare=hot, measured=measured.summary(exp, meas, samples, pred, eps),
+        load_path=None if over_path is None else loadpath.summary(over_path))
     with run_folder(out, overwrite) as tmp:
-        if checked is not None:
-            report.write_json(tmp / "constraints.json", summary["constraints"])
+        if judged is not None:
+            report.write_json(tmp / "constraints.json", judged)
         report.write_json(tmp / "layout.json", report.layout(cameras))
-        report.write_json(tmp / "summary.json", summary)
+        report.write_json(tmp / "summary.json", result.to_json())
         report.write_config(tmp / "config.toml", exp)
         sigma_um = np.where(pred.measured, pred.sigma_max * UM, np.nan)
         sigma_xyz_um = np.where(pred.measured[:, None], pred.sigma_xyz * UM, np.nan)
@@ -189,22 +192,22 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                 maps.plot_unfolded(samples, eps_ue[:, k], tmp / "maps" / f"sigma_strain_{c}.png",
                                    f"{exp.name}: strain uncertainty ε_{c} (face frame, "
                                    f"{exp.analysis.method} DIC)", "σ (µε)", cmap="magma_r")
-        meshes = {m.name: m for m in state.geometry.meshes}
+        meshes, developed = {m.name: m for m in state.geometry.meshes}, {}
         for r, (region, faces) in enumerate(zip(exp.regions, state.geometry.region_faces)):
             if faces.development is not None:
                 mesh = meshes[region.mesh]
-                developed = maps.plot_developed(
+                developed[region.name] = maps.plot_developed(
                     samples, r, faces, mesh.vertices, mesh.faces, sigma_um, pred.usable,
                     vis.camera_names, tmp / "maps" / f"developed_{region.name}.png",
                     f"{exp.name}: region {region.name!r} developed, σ_max and the usable views",
                     "σ_max (µm)")
-                summary.setdefault("developed", {})[region.name] = developed
-        if "developed" in summary:
-            report.write_json(tmp / "summary.json", summary)
+        if developed:
+            result = dataclasses.replace(result, developed=developed)
+            report.write_json(tmp / "summary.json", result.to_json())
         if over_path is not None:
             _write_load_path(tmp, exp, samples, over_path)
         html_report.write_report(tmp)
-    return summary
+    return result
 
 
 def _write_load_path(tmp: Path, exp: Experiment, samples, result: LoadPathResult) -> None:

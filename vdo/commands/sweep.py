@@ -444,33 +444,38 @@ def _local_worker(threads: int | None) -> None:
     _configure_worker(threads)
 
 
-def _evaluation_summary(exp) -> dict:
-    """`vdo evaluate`'s summary.json (`report.state_summary`) without writing a run folder."""
+def _evaluation(exp):
+    """`vdo evaluate`'s judged layout (`vdo.outputs.report.EvaluationResult`, summary.json's
+    regions and settings) without writing a run folder."""
     from vdo.outputs import report
     from vdo.state import layout_state, prepare
 
-    return report.state_summary(layout_state(prepare(exp)))
+    return report.state_evaluation(layout_state(prepare(exp)))
 
 
-def metrics(summary: dict) -> dict:
-    """A table row's numbers from a summary: camera and sample counts, and per region the
-    σ_max p50/p95/max (µm, None where no point is measured), the area fractions seen by
-    ≥ 1, 2, 3 usable views, and (when the summary has them) the strain σ p95 per face-frame
-    component (µε, `vdo.physics.strain`)."""
-    row = {"n_cameras": summary["settings"]["n_cameras"], "n_samples": summary["settings"]["n_samples"]}
-    for name, r in summary["regions"].items():
-        for stat in ("p50", "p95", "max"):
-            row[f"{name}.sigma_{stat}_um"] = r["sigma_max_um"][stat]
-        for m in (1, 2, 3):
-            row[f"{name}.seen_{m}"] = r[f"seen_by_{m}_or_more"]
-        for component, stats in r.get("sigma_strain_microstrain", {}).items():
-            row[f"{name}.{component}_p95_ue"] = stats["p95"]
+def metrics(result) -> dict:
+    """A table row's numbers from a judged layout (`vdo.outputs.report.EvaluationResult`): camera
+    and sample counts, and per region the σ_max p50/p95/max (µm, None where no point is measured),
+    the area fractions seen by ≥ 1, 2, 3 usable views, and (when it has them) the strain σ p95 per
+    face-frame component (µε, `vdo.physics.strain`)."""
+    row = {"n_cameras": result.settings.n_cameras, "n_samples": result.settings.n_samples}
+    for name, r in result.regions.items():
+        sigma = r.sigma_max_um
+        row |= {f"{name}.sigma_p50_um": sigma.p50, f"{name}.sigma_p95_um": sigma.p95,
+                f"{name}.sigma_max_um": sigma.max}
+        row |= {f"{name}.seen_1": r.seen_by_1_or_more, f"{name}.seen_2": r.seen_by_2_or_more,
+                f"{name}.seen_3": r.seen_by_3_or_more}
+        for component, stats in (r.sigma_strain_microstrain or {}).items():
+            row[f"{name}.{component}_p95_ue"] = stats.p95
     return row
 
 
 def run_point(point: Point) -> dict:
-    """Run the point's action; the record of what happened. Never raises for a failing point:
-    status "failed" with the error (the ConfigError line for a user mistake)."""
+    """Run the point's action; the record of what happened (a dict of JSON values: picklable, and
+    written as points/KEY.json): "metrics" (`metrics` of the judged layout, and for optimize its
+    scores and violations) and "summary" (the judged layout's summary.json, `to_json()` of the
+    result the action returned: after optimizing, summary_after.json). Never raises for a failing
+    point: status "failed" with the error (the ConfigError line for a user mistake)."""
     started, t0, cpu0 = time.time(), time.perf_counter(), time.process_time()
     record = {"status": "done", "error": "", "metrics": {}, "summary": None}
     try:
@@ -479,16 +484,16 @@ def run_point(point: Point) -> dict:
             from vdo.optimize import optimize
 
             result = optimize(exp, Path(point.run_dir), overwrite=True)
-            summary = json.loads((Path(point.run_dir) / "summary_after.json").read_text())
-            extra = {"score_before": result["score_before"], "score_after": result["score_after"],
-                     "violations": result["violations"]}
+            judged = result.after
+            extra = {"score_before": result.score_before_um, "score_after": result.score_after_um,
+                     "violations": result.violations}
         elif point.run_dir is not None:
             from vdo.commands.evaluate import evaluate
 
-            summary, extra = evaluate(exp, Path(point.run_dir), overwrite=True), {}
+            judged, extra = evaluate(exp, Path(point.run_dir), overwrite=True), {}
         else:
-            summary, extra = _evaluation_summary(exp), {}
-        record |= {"metrics": metrics(summary) | extra, "summary": summary}
+            judged, extra = _evaluation(exp), {}
+        record |= {"metrics": metrics(judged) | extra, "summary": judged.to_json()}
     except ConfigError as exc:
         record |= {"status": "failed", "error": str(exc)}
     except Exception as exc:  # a failing point is recorded; the sweep goes on

@@ -110,7 +110,7 @@ from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
-from vdo.optimize import layout_checks, optimize
+from vdo.optimize import OptimizeResult, layout_checks, optimize
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.core.configure import configure
 from vdo.core.progress import bar
@@ -937,9 +937,9 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     default everywhere): that area's fraction, the fraction of it seen by min_cameras, sigma_max
     p95 per region over its measured samples there (None for a region with none), and the worst
     of those (None only when no region has one)."""
-    summary = report.state_summary(state)
+    judged = report.state_evaluation(state)
     scored = exp.optimize.regions or [r.name for r in exp.regions]
-    p95 = [summary["regions"][r]["sigma_max_um"]["p95"] for r in scored]
+    p95 = [judged.regions[r].sigma_max_um.p95 for r in scored]
     smp, pred = state.samples, state.prediction
     need = np.array([r.min_cameras for r in exp.regions])[smp.region]
     covered = pred.coverage >= need
@@ -1036,7 +1036,7 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
 
 def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
            memory_limit: float | None = None, time_limit: float | None = None, client=None,
-           threads: int | None = None) -> dict:
+           threads: int | None = None) -> DesignResult:
     """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
     candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
     `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
@@ -1046,7 +1046,8 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     `time_limit` seconds is refused (`refuse`: ConfigError naming the spacing and the candidate
     count that fit). With a dask.distributed `client` the candidates are judged on its workers
     (`judge`; `threads` Dr.Jit threads each). Progress and the chosen cameras: INFO lines and
-    bars through the module logger; each problem found (also in the result): a warning."""
+    bars through the module logger; each problem found (also in the result): a warning.
+    Returns the `DesignResult`."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
@@ -1107,7 +1108,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     for msg in shortfalls(state, exp):
         issues.append(msg)
         log.warning(msg)
-    summary = report.state_summary(state)
+    summary = report.state_evaluation(state)
     checks = layout_checks(state)
     violated = [c for c in checks if not c["met"]]
     if violated:
@@ -1121,7 +1122,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
     with run_folder(out, overwrite) as tmp:
         report.write_config(tmp / "designed.toml", final)
         report.write_json(tmp / "layout.json", report.layout(list(state.cameras)))
-        report.write_json(tmp / "summary.json", summary)
+        report.write_json(tmp / "summary.json", summary.to_json())
         report.write_json(tmp / "constraints.json", {"violations": len(violated), "violated": violated,
                                                      "checks": checks})
         _write_candidates(tmp / "candidates.csv", exp, cand, best["chosen"])
@@ -1149,9 +1150,35 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
                          "judge_s": judged_s, "search_s": searched_s}})
         html_report.write_report(tmp)
         refined = optimize(final, tmp / "refine") if refine else None
-    return {"cameras": len(best["chosen"]), "problems": issues, "target_count": target,
-            "refined": refined, "statistics": stats, "violations": len(violated),
-            "curve": curve, "summary": summary, "wall_s": wall}
+    return DesignResult(cameras=len(best["chosen"]), problems=issues, target_count=target,
+                        refined=refined, statistics=stats, violations=len(violated), curve=curve,
+                        summary=summary, wall_s=wall)
+
+
+@dataclass(frozen=True)
+class DesignResult:
+    """What `design` returns: the designed layout's camera count, the problems found (the
+    warnings, in words), the smallest count meeting [design] target_sigma_um, the camera-count
+    curve (pareto.csv's rows, with each count's chosen candidates), the designed layout judged as
+    `vdo evaluate` judges it (`summary`: summary.json is its `to_json()`) and, with `refine`, the
+    `vdo.optimize.OptimizeResult` of optimizing it."""
+
+    cameras: int                           # cameras of the designed layout
+    problems: list[str]                    # design.json "problems"
+    target_count: int | None               # smallest count meeting the target (None: none, or no target)
+    refined: OptimizeResult | None         # out/refine (None without refine)
+    statistics: dict                       # design.json "statistics" (`statistics`)
+    violations: int                        # constraint checks the designed layout breaks
+    curve: list[dict]                      # per camera count: score, bound, σ p95 (µm), coverage, chosen, ...
+    summary: report.EvaluationResult       # the designed layout judged whole
+    wall_s: float                          # s, the whole design
+
+    def to_json(self) -> dict:
+        """The fields as a JSON dict, `summary` and `refined` as their `to_json()`."""
+        return {"cameras": self.cameras, "problems": self.problems, "target_count": self.target_count,
+                "refined": None if self.refined is None else self.refined.to_json(),
+                "statistics": self.statistics, "violations": self.violations, "curve": self.curve,
+                "summary": self.summary.to_json(), "wall_s": self.wall_s}
 
 
 def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve) -> None:

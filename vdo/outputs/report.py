@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -55,27 +56,145 @@ USABLE_MEANING = ("a camera counts (coverage, seen_by_*, cameras) where its soft
                   "outlier_factor x the region's median; max_unflagged leaves both out")
 
 
-def _percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> dict:
+@dataclass(frozen=True)
+class Percentiles:
+    """Percentiles of one field over a region's measured (finite) samples, in the field's unit (µm
+    for a displacement σ, µε for a strain σ); None where no sample is measured. `max_unflagged`:
+    the max over the samples not flagged as outliers or edge-limited (the max itself where no
+    flag applies)."""
+
+    p50: float | None
+    p95: float | None
+    max: float | None
+    max_unflagged: float | None
+
+    def to_json(self) -> dict:
+        """{"p50", "p95", "max", "max_unflagged"}, as summary.json holds them."""
+        return {"p50": self.p50, "p95": self.p95, "max": self.max, "max_unflagged": self.max_unflagged}
+
+
+@dataclass(frozen=True)
+class RegionSummary:
+    """One region of a judged layout (a row of summary.json's "regions"). Fractions are of the
+    region's area; a camera counts where its soft weight is >= usable_weight (`vdo.physics.usable`)."""
+
+    area_m2: float
+    importance: float                                # the region's weight in the score
+    n_samples: int
+    seen_by_1_or_more: float                         # area fraction with >= 1 usable view
+    seen_by_2_or_more: float
+    seen_by_3_or_more: float
+    cameras: dict[str, float]                        # camera -> area fraction it usably sees (4 digits)
+    sigma_max_um: Percentiles                        # µm, worst-direction displacement σ
+    n_outliers: int                                  # σ_max > outlier_factor x the region's median
+    n_edge_limited: int                              # < edge_fraction of the patch seen by >= 2 views
+    unmeasured_fraction: float                       # area fraction with < 2 usable views
+    sensitivity_mpx_per_um: dict[str, float]         # axis (x, y, z) -> area-weighted mean, mpixel/µm
+    sigma_axis_um: dict[str, Percentiles]            # axis (x, y, z) -> σ along it, µm
+    sigma_strain_microstrain: dict[str, Percentiles] | None = None   # eps_uu/vv/uv -> µε; None: no strain
+    sigma_dic_max_um: Percentiles | None = None      # µm, the [analysis] DIC's displacement σ
+
+    def to_json(self) -> dict:
+        """The region's row of summary.json (the strain keys only when computed)."""
+        out = {"area_m2": self.area_m2, "importance": self.importance, "n_samples": self.n_samples,
+               "seen_by_1_or_more": self.seen_by_1_or_more, "seen_by_2_or_more": self.seen_by_2_or_more,
+               "seen_by_3_or_more": self.seen_by_3_or_more, "cameras": dict(self.cameras),
+               "sigma_max_um": self.sigma_max_um.to_json(), "n_outliers": self.n_outliers,
+               "n_edge_limited": self.n_edge_limited, "unmeasured_fraction": self.unmeasured_fraction,
+               "sensitivity_mpx_per_um": dict(self.sensitivity_mpx_per_um),
+               "sigma_axis_um": {a: p.to_json() for a, p in self.sigma_axis_um.items()}}
+        if self.sigma_strain_microstrain is not None:
+            out["sigma_strain_microstrain"] = {c: p.to_json() for c, p in self.sigma_strain_microstrain.items()}
+        if self.sigma_dic_max_um is not None:
+            out["sigma_dic_max_um"] = self.sigma_dic_max_um.to_json()
+        return out
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """The settings a layout was judged with (summary.json's "settings", with the meanings of σ,
+    strain and usable views in words)."""
+
+    incidence_limit_deg: float
+    sample_spacing_mm: float
+    patch_mm: float                 # side of the DIC patch
+    n_samples: int
+    n_cameras: int
+    analysis: dict                  # the [analysis] table
+    usable_weight: float            # `vdo.physics.usable.USABLE_WEIGHT`
+    edge_fraction: float
+    outlier_factor: float
+
+    def to_json(self) -> dict:
+        return {"incidence_limit_deg": self.incidence_limit_deg, "sample_spacing_mm": self.sample_spacing_mm,
+                "patch_mm": self.patch_mm, "n_samples": self.n_samples, "n_cameras": self.n_cameras,
+                "sigma": SIGMA_MEANING, "analysis": self.analysis, "strain": STRAIN_MEANING,
+                "usable_weight": self.usable_weight, "edge_fraction": self.edge_fraction,
+                "outlier_factor": self.outlier_factor, "usable": USABLE_MEANING}
+
+
+SECTIONS = ("axis_angles", "design_checks", "cameras_seeing_nothing", "constraints", "glare",
+            "measured", "load_path", "developed")    # EvaluationResult's optional parts, JSON order
+
+
+@dataclass(frozen=True)
+class EvaluationResult:
+    """A judged layout: what `vdo evaluate` returns and writes as summary.json (`to_json`), and
+    what `vdo optimize` writes as summary_before.json / summary_after.json (regions only, and the
+    load path). The sections after `regions` are None where the producer did not judge them
+    (absent from the JSON); each holds the JSON of the module that computes it."""
+
+    experiment: str                                  # the experiment's name
+    config: str                                      # the experiment file's path
+    settings: EvaluationSettings
+    regions: dict[str, RegionSummary]                # in the file's order
+    axis_angles: list[dict] | None = None            # `vdo.constraints.angle_checks`
+    design_checks: list[dict] | None = None          # `vdo.physics.checks.design_checks`
+    cameras_seeing_nothing: list[str] | None = None  # cameras with no usable view of any sample
+    constraints: dict | None = None                  # {"violations": count, "checks": `layout_checks`}
+    glare: list[dict] | None = None                  # `vdo.physics.glare.hot_spots`
+    measured: dict | None = None                     # `vdo.physics.measured.summary`
+    load_path: dict | None = None                    # `vdo.search.loadpath.summary`
+    developed: dict | None = None                    # region -> `vdo.outputs.maps.plot_developed`
+
+    def to_json(self) -> dict:
+        """summary.json: experiment, config, settings, regions, then each section that is not None."""
+        out = {"experiment": self.experiment, "config": self.config, "settings": self.settings.to_json(),
+               "regions": {name: r.to_json() for name, r in self.regions.items()}}
+        return out | {k: getattr(self, k) for k in SECTIONS if getattr(self, k) is not None}
+
+
+def _percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> Percentiles:
     """p50, p95 and max over the measured (finite) values, and max_unflagged: the max over those
     not flagged as outliers or edge-limited."""
     finite = np.isfinite(values_um)
     if not finite.any():
-        return {"p50": None, "p95": None, "max": None, "max_unflagged": None}
+        return Percentiles(None, None, None, None)
     plain = values_um[finite] if flagged is None else values_um[finite & ~flagged]
-    return {"p50": float(np.percentile(values_um[finite], 50)),
-            "p95": float(np.percentile(values_um[finite], 95)),
-            "max": float(values_um[finite].max()),
-            "max_unflagged": float(plain.max()) if plain.size else None}
+    return Percentiles(p50=float(np.percentile(values_um[finite], 50)),
+                       p95=float(np.percentile(values_um[finite], 95)),
+                       max=float(values_um[finite].max()),
+                       max_unflagged=float(plain.max()) if plain.size else None)
+
+
+def state_evaluation(state: LayoutState) -> EvaluationResult:
+    """The per-region table of a judged layout (`evaluation` of its pieces)."""
+    return evaluation(state.experiment, state.samples, state.visibility, state.prediction, state.strain)
 
 
 def state_summary(state: LayoutState) -> dict:
-    """The per-region table of a judged layout (`summary` of its pieces)."""
-    return summary(state.experiment, state.samples, state.visibility, state.prediction,
-                   state.strain)
+    """`state_evaluation` as summary.json's dict."""
+    return state_evaluation(state).to_json()
 
 
 def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction,
             strain=None) -> dict:
+    """`evaluation` as summary.json's dict."""
+    return evaluation(exp, samples, vis, pred, strain).to_json()
+
+
+def evaluation(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction,
+               strain=None) -> EvaluationResult:
     """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 usable views
     (`vdo.physics.usable`), which cameras are usable views of it (fraction of its area), sigma_max
     p50/p95/max/max_unflagged (um, over the measured samples), the counts of outlier and
@@ -90,40 +209,34 @@ def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Pre
         area = samples.area[mask]
         total = float(area.sum())
         sens = pred.sensitivity[mask] * 1e-3
-        regions[name] = {
-            "area_m2": total,
-            "importance": float(samples.region_importance[k]),
-            "n_samples": int(mask.sum()),
-            **{f"seen_by_{m}_or_more": float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)},
-            "cameras": {cam: round(float(area[pred.usable[i, mask]].sum() / total), 4)
-                        for i, cam in enumerate(vis.camera_names) if pred.usable[i, mask].any()},
-            "sigma_max_um": _percentiles(pred.sigma_max[mask] * 1e6,
-                                         pred.outlier[mask] | pred.edge_limited[mask]),
-            "n_outliers": int(pred.outlier[mask].sum()),
-            "n_edge_limited": int(pred.edge_limited[mask].sum()),
-            "unmeasured_fraction": float(area[~pred.measured[mask]].sum() / total),
-            "sensitivity_mpx_per_um": {a: float(np.average(sens[:, j], weights=area))
-                                       for j, a in enumerate("xyz")},
-            "sigma_axis_um": {a: _percentiles(pred.sigma_xyz[mask, j] * 1e6)
-                              for j, a in enumerate("xyz")},
-        }
+        seen = [float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)]
+        strain_sigma = disp_sigma = None
         if strain is not None:
             eps, disp = strain
-            regions[name] |= {
-                "sigma_strain_microstrain": {f"eps_{c}": _percentiles(eps[mask, j] * 1e6)
-                                             for j, c in enumerate(STRAIN_COMPONENTS)},
-                "sigma_dic_max_um": _percentiles(disp[mask] * 1e6)}
+            strain_sigma = {f"eps_{c}": _percentiles(eps[mask, j] * 1e6)
+                            for j, c in enumerate(STRAIN_COMPONENTS)}
+            disp_sigma = _percentiles(disp[mask] * 1e6)
+        regions[name] = RegionSummary(
+            area_m2=total, importance=float(samples.region_importance[k]), n_samples=int(mask.sum()),
+            seen_by_1_or_more=seen[0], seen_by_2_or_more=seen[1], seen_by_3_or_more=seen[2],
+            cameras={cam: round(float(area[pred.usable[i, mask]].sum() / total), 4)
+                     for i, cam in enumerate(vis.camera_names) if pred.usable[i, mask].any()},
+            sigma_max_um=_percentiles(pred.sigma_max[mask] * 1e6,
+                                      pred.outlier[mask] | pred.edge_limited[mask]),
+            n_outliers=int(pred.outlier[mask].sum()),
+            n_edge_limited=int(pred.edge_limited[mask].sum()),
+            unmeasured_fraction=float(area[~pred.measured[mask]].sum() / total),
+            sensitivity_mpx_per_um={a: float(np.average(sens[:, j], weights=area))
+                                    for j, a in enumerate("xyz")},
+            sigma_axis_um={a: _percentiles(pred.sigma_xyz[mask, j] * 1e6) for j, a in enumerate("xyz")},
+            sigma_strain_microstrain=strain_sigma, sigma_dic_max_um=disp_sigma)
     ev = exp.evaluation
-    return {"experiment": exp.name, "config": str(exp.path),
-            "settings": {"incidence_limit_deg": math.degrees(ev.incidence_limit),
-                         "sample_spacing_mm": ev.sample_spacing * 1e3, "patch_mm": ev.patch_size * 1e3,
-                         "n_samples": len(samples), "n_cameras": len(vis.camera_names),
-                         "sigma": SIGMA_MEANING, "analysis": table_dict(exp.analysis),
-                         "strain": STRAIN_MEANING, "usable_weight": usable.USABLE_WEIGHT,
-                         "edge_fraction": usable.EDGE_FRACTION,
-                         "outlier_factor": usable.OUTLIER_FACTOR,
-                         "usable": USABLE_MEANING},
-            "regions": regions}
+    settings = EvaluationSettings(
+        incidence_limit_deg=math.degrees(ev.incidence_limit), sample_spacing_mm=ev.sample_spacing * 1e3,
+        patch_mm=ev.patch_size * 1e3, n_samples=len(samples), n_cameras=len(vis.camera_names),
+        analysis=table_dict(exp.analysis), usable_weight=usable.USABLE_WEIGHT,
+        edge_fraction=usable.EDGE_FRACTION, outlier_factor=usable.OUTLIER_FACTOR)
+    return EvaluationResult(experiment=exp.name, config=str(exp.path), settings=settings, regions=regions)
 
 
 def write_json(path: Path, data: dict) -> None:
