@@ -925,8 +925,9 @@ class SubsetResult:
     """`correlate_subsets`' answer for P subsets and n cameras: U (P, 4, 3) the Q4(1, 1) node
     displacements (m, world frame, node order of `Q4`), b, c (P, n) the brightness and contrast,
     iterations (P,), converged (P,), one_by_one (P,): the subsets solved by `correlate` itself
-    (a sample left the deformed spline's window, a camera saw the subset's plane edge-on or
-    from behind). `centre` is U at the subset centre, the mean of the four nodes."""
+    (one that meets an image's margin, a corner behind a camera, a camera with lens distortion,
+    a sample that left the deformed spline's window). `centre` is U at the subset centre, the
+    mean of the four nodes."""
 
     U: np.ndarray
     b: np.ndarray
@@ -969,9 +970,9 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     n_pts = len(points)
     if len(t_u) != n_pts or len(t_v) != n_pts:
         raise ValueError("correlate_subsets: expected one tangent_u and one tangent_v per point")
-    if not (np.all(np.abs(np.linalg.norm(t_u, axis=1) - 1) <= 1e-9)
-            and np.all(np.abs(np.linalg.norm(t_v, axis=1) - 1) <= 1e-9)
-            and np.all(np.abs(np.einsum("ka,ka->k", t_u, t_v)) <= 1e-9)):
+    if not (np.all(np.abs(np.linalg.norm(t_u, axis=1) - 1) <= LIMIT_SLACK)
+            and np.all(np.abs(np.linalg.norm(t_v, axis=1) - 1) <= LIMIT_SLACK)
+            and np.all(np.abs(np.einsum("ka,ka->k", t_u, t_v)) <= LIMIT_SLACK)):
         raise ValueError("correlate_subsets: every (tangent_u, tangent_v) must be orthonormal")
     if not size > 0:
         raise ValueError(f"correlate_subsets: expected a positive subset size, got {size!r}")
@@ -1037,7 +1038,8 @@ def _subset_pixels(cam, cameras, geometry, k, margin_px):
     du, dv = np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="xy")
     u = np.minimum(lo[:, None, 0] + du.ravel()[None], cam.width - 1)
     v = np.minimum(lo[:, None, 1] + dv.ravel()[None], cam.height - 1)
-    ok = (lo[:, None, 0] + du.ravel()[None] <= hi[:, None, 0]) & (lo[:, None, 1] + dv.ravel()[None] <= hi[:, None, 1])
+    ok = (lo[:, None, 0] + du.ravel()[None] <= hi[:, None, 0]) \
+        & (lo[:, None, 1] + dv.ravel()[None] <= hi[:, None, 1])
     # The ray of pixel q = (u, v, 1) is C + λ d, d = Rᵀ K⁻¹ q; on the plane (X - o)·n = 0:
     # λ = (o - C)·n / d·n, and ξ_a = (C - o)·t_a + λ d·t_a, each d·t linear in (u, v).
     Kinv_R = np.linalg.inv(cam.K).T @ cam.R                       # q Kinv_R = dᵀ
@@ -1119,14 +1121,13 @@ def _image_gradient_sensitivity(cam, X, grad):
 def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out):
     """`correlate_subsets` on the subsets k: writes out.U[k], b, c, iterations, converged,
     one_by_one."""
-    nc = len(cameras)
     nu, ndof = 12, 12 + 2 * len(cameras)
     size = geometry[3]
     cams = []
     one_by_one = np.zeros(len(k), bool)
     for cam, (ref, rspline, grads), dspline in zip(cameras, refs, defs):
         uv, w, X, xi, odd = _subset_pixels(cam, cameras, geometry, k, margin_px)
-        one_by_one |= odd | ~_inside(rspline, uv[..., 0], uv[..., 1], w)   # (not expected: the window is built around them)
+        one_by_one |= odd | ~_inside(rspline, uv[..., 0], uv[..., 1], w)     # (the window is built around them)
         a, b = xi[..., 0] / size, xi[..., 1] / size
         N = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], -1)      # Q4(1, 1)
         g = ref[uv[..., 1], uv[..., 0]]
@@ -1136,8 +1137,8 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
         jw[..., :nu] = ((N * w[..., None])[..., :, None] * G0[..., None, :]).reshape(g.shape + (nu,))
         jw[..., nu], jw[..., nu + 1] = w, w * g
         M = np.matmul(np.swapaxes(jw, 1, 2), jw)
-        cams.append(dict(cam=cam, spline=dspline, w=w, Xc=X @ cam.R.T + cam.t, N=N, Nt=np.ascontiguousarray(np.swapaxes(N, 1, 2)),
-                         g=g, G0=G0, M=M))
+        cams.append(dict(cam=cam, spline=dspline, w=w, Xc=X @ cam.R.T + cam.t, N=N,
+                         Nt=np.ascontiguousarray(np.swapaxes(N, 1, 2)), g=g, G0=G0, M=M))
 
     p = np.zeros((len(k), ndof))
     p[:, :nu] = U0.reshape(len(k), nu)
@@ -1145,12 +1146,11 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
 
     corners_c = [_corners(*(g[k] for g in geometry[:3]), size) @ c["cam"].R.T + c["cam"].t for c in cams]
 
-    def residuals(idx):
+    def sample(idx, pick):
         """Per camera f at R (X + N U) + t, the camera-frame position of every pixel of the
         subsets idx; and (len(idx),) whether all of them lie where the deformed spline is the
         whole image's: where the four displaced corners do (the pixels' N are convex weights, so
         their positions lie in the corners' hull, and so do their pinhole images)."""
-        pick = (lambda a: a) if len(idx) == len(k) else (lambda a: a[idx])
         fs, inside = [], np.ones(len(idx), bool)
         Un = p[idx, :nu].reshape(-1, 4, 3)
         for c, corner in zip(cams, corners_c):
@@ -1162,23 +1162,30 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
             inside &= _inside(sp, *image_point(cam.K, q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]))
             fs.append(ndimage.map_coordinates(sp.coeffs, [v - sp.origin[1], u - sp.origin[0]],
                                               order=sp.order, prefilter=False, mode="mirror"))
-        return fs, inside, pick
+        return fs, inside
+
+    def picker(idx):
+        return (lambda a: a) if len(idx) == len(k) else (lambda a: a[idx])
 
     # Initial b, c: least squares of f on [1, g] at U0 (`correlate`'s lstsq, normal equations).
-    fs, inside, pick = residuals(act)
+    # The first step samples f at the same U: these values serve it too.
+    pick = picker(act)
+    fs, inside = sample(act, pick)
     for i, c in enumerate(cams):
         w, g = pick(c["w"]), pick(c["g"])
         rhs = np.stack([np.sum(w * fs[i], 1), np.sum(w * g * fs[i], 1)], -1)
         p[act, nu + 2 * i: nu + 2 * i + 2] = np.linalg.solve(pick(c["M"])[:, 12:, 12:], rhs[..., None])[..., 0]
     one_by_one[act[~inside]] = True
-    act = act[inside]
+    act, fs, inside = act[inside], [f[inside] for f in fs], inside[inside]
 
     iterations = np.full(len(k), solver.max_iter)
     converged = np.zeros(len(k), bool)
     for it in range(1, solver.max_iter + 1):
         if not len(act):
             break
-        fs, inside, pick = residuals(act)
+        pick = picker(act)
+        if it > 1:
+            fs, inside = sample(act, pick)
         H = np.zeros((len(act), ndof, ndof))
         rhs = np.zeros((len(act), ndof))
         for i, c in enumerate(cams):
