@@ -1133,11 +1133,15 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
         g = ref[uv[..., 1], uv[..., 0]]
         cu, cv = uv[..., 0] - int(rspline.origin[0]), uv[..., 1] - int(rspline.origin[1])
         G0 = _image_gradient_sensitivity(cam, X, np.stack([grads[0][cv, cu], grads[1][cv, cu]], -1))
-        jw = np.empty(g.shape + (nu + 2,))                # w j, w = 0 or 1: M = Σ (w j)(w j)ᵀ
-        jw[..., :nu] = ((N * w[..., None])[..., :, None] * G0[..., None, :]).reshape(g.shape + (nu,))
-        jw[..., nu], jw[..., nu + 1] = w, w * g
-        M = np.matmul(np.swapaxes(jw, 1, 2), jw)
-        cams.append(dict(cam=cam, spline=dspline, w=w, Xc=X @ cam.R.T + cam.t, N=N,
+        # M = Σ (w j)(w j)ᵀ (w = 0 or 1), by blocks: w j = [w N ⊗ ∇g s, w, w g]
+        ju = ((N * w[..., None])[..., :, None] * G0[..., None, :]).reshape(g.shape + (nu,))
+        jbc = np.stack([w, w * g], -1)
+        M = np.empty((len(k), nu + 2, nu + 2))
+        M[:, :nu, :nu] = np.matmul(np.swapaxes(ju, 1, 2), ju)
+        M[:, :nu, nu:] = np.matmul(np.swapaxes(ju, 1, 2), jbc)
+        M[:, nu:, :nu] = np.swapaxes(M[:, :nu, nu:], 1, 2)
+        M[:, nu:, nu:] = np.matmul(np.swapaxes(jbc, 1, 2), jbc)
+        cams.append(dict(cam=cam, spline=dspline, w=w, on=w > 0, Xc=X @ cam.R.T + cam.t, N=N,
                          Nt=np.ascontiguousarray(np.swapaxes(N, 1, 2)), g=g, G0=G0, M=M))
 
     p = np.zeros((len(k), ndof))
@@ -1160,8 +1164,11 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
             u, v = image_point(cam.K, pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2])   # a pinhole
             q = pick(corner) + URt
             inside &= _inside(sp, *image_point(cam.K, q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]))
-            fs.append(ndimage.map_coordinates(sp.coeffs, [v - sp.origin[1], u - sp.origin[0]],
-                                              order=sp.order, prefilter=False, mode="mirror"))
+            on = pick(c["on"])                        # the pixels (not the box's padding)
+            f = np.zeros(u.shape)
+            f[on] = ndimage.map_coordinates(sp.coeffs, [v[on] - sp.origin[1], u[on] - sp.origin[0]],
+                                            order=sp.order, prefilter=False, mode="mirror")
+            fs.append(f)
         return fs, inside
 
     def picker(idx):
