@@ -12,7 +12,7 @@ subset of --subset pixels (a Q4 element: affine and more), both cameras at once
 point (`batched=False`, one process), timed on the first --today points. Reports points/s (wall
 and per CPU-second, the machine being shared), the error against the imposed U and the largest
 difference between the two on the points both solved.
-Run: .venv/bin/python benchmarks/correlate.py [--points 5000] [--workers 2] [--today 100]
+Run: .venv/bin/python benchmarks/correlate.py [--points 5000] [--workers 2] [--today 100] [--profile 20]
 """
 
 from __future__ import annotations
@@ -87,6 +87,8 @@ def main():
     parser.add_argument("--step", type=float, default=None, help="grid step, pixels (default: --subset)")
     parser.add_argument("--workers", type=int, default=2, help="threads of the batched solver")
     parser.add_argument("--today", type=int, default=100, help="points timed with today's per-point solver")
+    parser.add_argument("--profile", type=int, default=0, help="print this many lines of cProfile's "
+                                                               "tottime ranking of a batched 1-thread run")
     args = parser.parse_args()
     configure()
     import trimesh
@@ -137,6 +139,13 @@ def main():
               f"|error| median {np.median(err):.4f} px, max {err.max():.4f} px")
     today, batched = results["today's (per point)"], results["batched, 1 thread"][:args.today]
     print(f"batched - today's on the first {args.today} points: max |dU| {np.abs(batched - today).max():.2e} m")
+    if args.profile:
+        import cProfile
+        import pstats
+
+        profile = cProfile.Profile()
+        profile.runcall(correlate_points, cams, refs, defs, points, tu, tv, size)
+        pstats.Stats(profile).sort_stats("tottime").print_stats(args.profile)
 
 
 if __name__ == "__main__":
