@@ -77,6 +77,7 @@ Every choice is a small option object (`ImageReference`, `Q4`, `GridIntegration`
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Callable, Sequence
@@ -87,6 +88,8 @@ from scipy import ndimage
 from vdo.core.tolerances import LIMIT_SLACK
 from vdo.model.camera import image_point
 
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Patch", "SplineImage", "WindowedImage", "TextureSampler", "CorrelationResult", "integration_points", "pixel_points",
            "q4_shape_functions", "correlate", "ImageReference", "AverageReference", "TextureReference",
@@ -997,15 +1000,21 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
 
     def run(k):
         _solve_subsets(cameras, refs, defs, geometry, k, U0[k], solver, margin_px, out)
+        return len(k)
 
-    if workers > 1 and len(chunks) > 1:
-        from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import ThreadPoolExecutor
 
-        with ThreadPoolExecutor(min(int(workers), len(chunks))) as pool:
-            list(pool.map(run, chunks))
-    else:
-        for k in chunks:
-            run(k)
+    from vdo.core.progress import bar as progress_bar
+
+    bar = progress_bar(log, total=n_pts, desc="subsets", unit="subset")
+    pool = ThreadPoolExecutor(min(int(workers), len(chunks))) if workers > 1 and len(chunks) > 1 else None
+    try:
+        for done in (pool.map(run, chunks) if pool else map(run, chunks)):
+            bar.update(done)
+    finally:               # Ctrl-C: the chunks not started are dropped, the running ones end
+        if pool:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
     for k in np.flatnonzero(out.one_by_one):
         patch = Patch(origin=origin[k], t_u=t_u[k], t_v=t_v[k], size=(size, size))
         res = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
