@@ -68,6 +68,7 @@ def test_batched_subsets_are_the_per_point_solution(pattern, cameras, monkeypatc
     U0 = start_guesses(cameras, refs, defs, points)
     one = np.array([start_guess(cameras, refs, defs, X) for X in points])
     assert px_error(cameras, points, U0, one) < SAME_START_PX
+    assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
     monkeypatch.setattr(correlate_module, "SUBSET_CHUNK", 4)       # several chunks, several threads
     batched = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0)
     threads = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0, workers=2)

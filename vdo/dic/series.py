@@ -218,7 +218,7 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     if batched:
         from vdo.dic.correlate import correlate_subsets
 
-        U0 = start_guesses(cameras, references, deformed, points)
+        U0 = start_guesses(cameras, references, deformed, points, workers=workers)
         result = correlate_subsets(cameras, references, deformed, points, tangent_u, tangent_v,
                                    patch_size, U0, workers=workers)
         return result.centre, result.converged
@@ -269,10 +269,10 @@ def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v
     return out, converged
 
 
-def start_guesses(cameras, references, deformed, points, half: int = 24) -> np.ndarray:
+def start_guesses(cameras, references, deformed, points, half: int = 24, workers: int = 1) -> np.ndarray:
     """`start_guess` (N, 3) m for every point of `points` (N, 3): the phase correlations of all
-    points whose windows lie whole inside every image in one batched FFT per camera, the others
-    one at a time."""
+    points whose windows lie whole inside every image in one batched FFT per camera (`workers`
+    threads), the others one at a time."""
     from scipy import fft
 
     points = np.asarray(points, dtype=float).reshape(-1, 3)
@@ -288,8 +288,8 @@ def start_guesses(cameras, references, deformed, points, half: int = 24) -> np.n
         a, b = (np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))[v - half, u - half]
                 for img in (ref, dfm))
         a, b = ((x - x.mean(axis=(1, 2), keepdims=True)) * taper for x in (a, b))
-        spectrum = fft.rfft2(b) * np.conj(fft.rfft2(a))       # real windows: the half spectrum
-        peak = np.argmax(fft.irfft2(spectrum, s=(n, n)).reshape(len(points), -1), axis=1)
+        spectrum = fft.rfft2(b, workers=workers) * np.conj(fft.rfft2(a, workers=workers))  # real: half
+        peak = np.argmax(fft.irfft2(spectrum, s=(n, n), workers=workers).reshape(len(points), -1), axis=1)
         dv, du = ((k + n // 2) % n - n // 2 for k in np.divmod(peak, n))
         rows.append(np.asarray(cam.sensitivity(points)))
         rhs.append(np.stack([du, dv], -1))
