@@ -215,6 +215,8 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     points, tangent_u, tangent_v = (np.asarray(a, dtype=float) for a in (points, tangent_u, tangent_v))
     n = len(points)
     workers = max(1, min(int(workers), n))
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros(0, bool)
     if batched:
         from vdo.dic.correlate import correlate_subsets
 
