@@ -1,16 +1,18 @@
-"""Subset correlation at full resolution: points per second, windowed interpolation against
-today's whole-image spline, in one run.
+"""Subset correlation at full resolution: points per second, the batched solver against today's
+per-point one, in one run.
 
 Two 6000 x 4000 cameras (3.45 µm pixels, 50 mm lenses) look at a speckled plate 1 m away from
 ±12°, lit by a uniform sky; the images are rendered in the DIC render mode (`vdo.render`), the
 reference with the plate at rest and the deformed one with the plate translated by U (each camera
-moved by -U: the same images). Points on a grid over the plate's common view; per point a square
+moved by -U: the same images). Points on a full-field grid (--step pixels apart, default one
+subset: subsets side by side) over the middle of the plate's common view; per point a square
 subset of --subset pixels (a Q4 element: affine and more), both cameras at once
-(`vdo.dic.series.correlate_points`), with --workers spawned processes. "Today's" is the same
-solver with the spline of the whole image built for every point (WINDOW_MARGIN_PX set beyond the
-image), timed on --today points. Reports points/s (wall and per CPU-second, the machine being
-shared) and the error against the imposed U.
-Run: .venv/bin/python benchmarks/correlate.py [--points 400] [--workers 2] [--today 2]
+(`vdo.dic.series.correlate_points`): "batched" solves all points at once
+(`vdo.dic.correlate.correlate_subsets`, --workers threads), "today's" one `correlate` call per
+point (`batched=False`, one process), timed on the first --today points. Reports points/s (wall
+and per CPU-second, the machine being shared), the error against the imposed U and the largest
+difference between the two on the points both solved.
+Run: .venv/bin/python benchmarks/correlate.py [--points 5000] [--workers 2] [--today 100] [--profile 20]
 """
 
 from __future__ import annotations
@@ -31,7 +33,6 @@ os.environ.setdefault("VDO_VARIANT", "llvm_ad_rgb")
 from vdo import scene  # noqa: E402
 from vdo.config import experiment as config  # noqa: E402
 from vdo.core.configure import configure  # noqa: E402
-from vdo.dic import correlate as correlate_module  # noqa: E402
 from vdo.dic.series import correlate_points  # noqa: E402
 from vdo.model.speckle import pattern_for  # noqa: E402
 from vdo.render import build_dic_scene, render_camera_dic  # noqa: E402
@@ -81,10 +82,13 @@ def camera(name, x, pixels):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--pixels", type=int, nargs=2, default=(6000, 4000))
-    parser.add_argument("--points", type=int, default=400)
+    parser.add_argument("--points", type=int, default=5000)
     parser.add_argument("--subset", type=int, default=29, help="subset side, pixels")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--today", type=int, default=2, help="points timed with today's whole-image spline")
+    parser.add_argument("--step", type=float, default=None, help="grid step, pixels (default: --subset)")
+    parser.add_argument("--workers", type=int, default=2, help="threads of the batched solver")
+    parser.add_argument("--today", type=int, default=100, help="points timed with today's per-point solver")
+    parser.add_argument("--profile", type=int, default=0, help="print this many lines of cProfile's "
+                                                               "tottime ranking of a batched 1-thread run")
     args = parser.parse_args()
     configure()
     import trimesh
@@ -107,35 +111,41 @@ def main():
     mm_per_px = 1.0 / (cams[0].focal_px) * 1e3 / np.cos(np.radians(12))
     size = args.subset * mm_per_px * 1e-3
     n = int(np.ceil(np.sqrt(args.points)))
-    half = 0.3 * min(args.pixels) * mm_per_px * 1e-3
-    g = np.linspace(-half, half, n)
-    points = np.array([[a, b, 0.0] for a in g for b in g])[:args.points]
+    step = (args.step or args.subset) * mm_per_px * 1e-3
+    g = (np.arange(n) - (n - 1) / 2) * step
+    points = np.array([[a, b, 0.0] for b in g for a in g])[:args.points]
     tu, tv = np.tile([1.0, 0, 0], (len(points), 1)), np.tile([0, 1.0, 0], (len(points), 1))
     print(f"cpu threads {len(os.sched_getaffinity(0))}, load average {os.getloadavg()[0]:.1f}; "
-          f"{len(points)} points, subsets {args.subset} px ({size * 1e3:.2f} mm), 2 cameras")
+          f"{len(points)} points {args.step or args.subset:g} px apart, subsets {args.subset} px "
+          f"({size * 1e3:.2f} mm), 2 cameras")
 
-    def run(pts, workers):
+    def run(pts, workers, batched):
         t0, c0 = time.perf_counter(), time.process_time()
-        ch0 = os.times()
-        U, ok = correlate_points(cams, refs, defs, pts, tu[:len(pts)], tv[:len(pts)], size, workers=workers)
-        ch1 = os.times()
-        wall = time.perf_counter() - t0
-        cpu = time.process_time() - c0 + (ch1.children_user - ch0.children_user) + (
-            ch1.children_system - ch0.children_system)
+        U, ok = correlate_points(cams, refs, defs, pts, tu[:len(pts)], tv[:len(pts)], size, workers=workers,
+                                 batched=batched)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         err = np.array([np.abs(np.einsum("nij,nj->ni", c.sensitivity(pts), U - U_IMPOSED)).max(axis=1)
                         for c in cams]).max(axis=0)
-        return wall, cpu, ok, err
+        return U, wall, cpu, ok, err
 
-    for label, pts, workers in (("windowed, 1 process", points[: max(1, len(points) // 4)], 1),
-                                (f"windowed, {args.workers} processes", points, args.workers)):
-        wall, cpu, ok, err = run(pts, workers)
-        print(f"{label:<26} {len(pts)} points: {wall:.1f} s wall, {cpu:.1f} s CPU: {len(pts) / wall:.1f} "
-              f"points/s wall, {len(pts) / cpu:.1f} per CPU-s; converged {ok.mean():.0%}, "
+    results = {}
+    for label, pts, workers, batched in (("today's (per point)", points[:args.today], 1, False),
+                                         ("batched, 1 thread", points, 1, True),
+                                         (f"batched, {args.workers} threads", points, args.workers, True)):
+        U, wall, cpu, ok, err = run(pts, workers, batched)
+        results[label] = U
+        print(f"{label:<22} {len(pts):>6} points: {wall:6.2f} s wall, {cpu:6.2f} s CPU: {len(pts) / wall:7.1f} "
+              f"points/s wall, {len(pts) / cpu:7.1f} per CPU-s; converged {ok.mean():.0%}, "
               f"|error| median {np.median(err):.4f} px, max {err.max():.4f} px")
-    correlate_module.WINDOW_MARGIN_PX = 10 ** 7                 # today's: the whole image's spline
-    wall, cpu, ok, err = run(points[: args.today], 1)
-    print(f"{'today (whole-image spline)':<26} {args.today} points: {wall:.1f} s wall, {cpu:.1f} s CPU: "
-          f"{args.today / wall:.3f} points/s wall, {args.today / cpu:.3f} per CPU-s; |error| max {err.max():.4f} px")
+    today, batched = results["today's (per point)"], results["batched, 1 thread"][:args.today]
+    print(f"batched - today's on the first {args.today} points: max |dU| {np.abs(batched - today).max():.2e} m")
+    if args.profile:
+        import cProfile
+        import pstats
+
+        profile = cProfile.Profile()
+        profile.runcall(correlate_points, cams, refs, defs, points, tu, tv, size)
+        pstats.Stats(profile).sort_stats("tottime").print_stats(args.profile)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Correlation at full size: B-spline interpolation on windows (`SplineImage.around`,
 `WindowedImage`) against the whole image's spline and scipy's own B-splines (orders 3 and 5);
-subset correlation of many points, serial and in spawned processes, against the whole-image
-implementation and the imposed shift on images rendered independently (tests/dic/test_correlate)."""
+subset correlation of many points, batched and one `correlate` per point in spawned processes,
+against the whole-image implementation and the imposed shift on images rendered independently (tests/dic/test_correlate)."""
 
 import sys
 from dataclasses import replace
@@ -72,7 +72,7 @@ def test_subset_points_recover_the_shift_serial_pooled_and_as_today(stereo_pair,
     assert ok.all()
     px = [np.abs(np.einsum("nij,nj->ni", c.sensitivity(points), U - U_TRUE)).max() for c in cams]
     assert max(px) < SHIFT_TOL_PX
-    pooled, ok2 = correlate_points(cams, refs, defs, points, tu, tv, size, workers=2)
+    pooled, ok2 = correlate_points(cams, refs, defs, points, tu, tv, size, workers=2, batched=False)
     assert ok2.all() and np.max(np.abs(pooled - U)) < SAME_U_TOL
     monkeypatch.setattr(correlate_module, "WINDOW_MARGIN_PX", 10 ** 6)     # the whole image: today's
     whole, _ = correlate_points(cams, refs, defs, points, tu, tv, size)

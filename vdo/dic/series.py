@@ -197,20 +197,33 @@ def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarr
 
 
 def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
-                     patch_size: float, workers: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                     patch_size: float, workers: int = 1, batched: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The displacement (N, 3) m that vdo's own correlation (`vdo.dic.correlate`, as `vdo.dic.validate`
     uses it: each camera against its own reference image, integrated on its reference pixel
-    centres, B-spline interpolation on windows around each patch) measures at `points` (N, 3)
+    centres, B-spline interpolation of windows around the patches) measures at `points` (N, 3)
     from the `references` to the `deformed` images (gray levels, one per camera): per point a
     square patch of side `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a
     bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
-    centre (the mean of its four nodes), starting from `start_guess`. With `workers` > 1 the
-    points are shared among that many processes (spawned: Dr.Jit and JAX do not survive a fork),
-    each given the images once, in contiguous chunks (neighbouring points, one image window).
+    centre (the mean of its four nodes), starting from `start_guesses`.
+
+    `batched` (default): all points at once (`vdo.dic.correlate.correlate_subsets`, the same
+    iteration vectorised over the points), shared among `workers` threads. Otherwise one
+    `correlate` call per point (the reference implementation), the points shared among `workers`
+    processes (spawned: Dr.Jit and JAX do not survive a fork), each given the images once, in
+    contiguous chunks (neighbouring points, one image window).
     Returns (U, converged (N,) bool)."""
     points, tangent_u, tangent_v = (np.asarray(a, dtype=float) for a in (points, tangent_u, tangent_v))
     n = len(points)
     workers = max(1, min(int(workers), n))
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros(0, bool)
+    if batched:
+        from vdo.dic.correlate import correlate_subsets
+
+        U0 = start_guesses(cameras, references, deformed, points, workers=workers)
+        result = correlate_subsets(cameras, references, deformed, points, tangent_u, tangent_v,
+                                   patch_size, U0, workers=workers)
+        return result.centre, result.converged
     if workers == 1:
         return _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
     import multiprocessing
@@ -256,6 +269,37 @@ def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v
         out[k] = result.U.mean(axis=0)
         converged[k] = result.converged
     return out, converged
+
+
+def start_guesses(cameras, references, deformed, points, half: int = 24, workers: int = 1) -> np.ndarray:
+    """`start_guess` (N, 3) m for every point of `points` (N, 3): the phase correlations of all
+    points whose windows lie whole inside every image in one batched FFT per camera (`workers`
+    threads), the others one at a time."""
+    from scipy import fft
+
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    whole = np.full(len(points), len(cameras) >= 2)     # fewer: `start_guess` answers 0
+    rows, rhs = [], []
+    taper = np.outer(*(2 * [np.hanning(2 * half + 1)]))
+    for cam, ref, dfm in zip(cameras, references, deformed):
+        uv = np.rint(cam.project(points)).astype(int)
+        u, v = uv[:, 0], uv[:, 1]
+        whole &= np.minimum.reduce([u, v, cam.width - 1 - u, cam.height - 1 - v]) >= half
+        u, v = np.clip(u, half, cam.width - 1 - half), np.clip(v, half, cam.height - 1 - half)
+        n = 2 * half + 1
+        a, b = (np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))[v - half, u - half]
+                for img in (ref, dfm))
+        a, b = ((x - x.mean(axis=(1, 2), keepdims=True)) * taper for x in (a, b))
+        spectrum = fft.rfft2(b, workers=workers) * np.conj(fft.rfft2(a, workers=workers))  # real: half
+        peak = np.argmax(fft.irfft2(spectrum, s=(n, n), workers=workers).reshape(len(points), -1), axis=1)
+        dv, du = ((k + n // 2) % n - n // 2 for k in np.divmod(peak, n))
+        rows.append(np.asarray(cam.sensitivity(points)))
+        rhs.append(np.stack([du, dv], -1))
+    S, d = np.concatenate(rows, axis=1), np.concatenate(rhs, axis=1).astype(float)
+    U0 = np.einsum("kij,kj->ki", np.linalg.pinv(S), d)
+    for k in np.flatnonzero(~whole):
+        U0[k] = start_guess(cameras, references, deformed, points[k], half)
+    return U0
 
 
 def start_guess(cameras, references, deformed, X, half: int = 24) -> np.ndarray:
