@@ -566,36 +566,46 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
 # --------------------------------------------------------------------------------------------
 INTERPOLANTS = {"cubic": 3, "quintic": 5}   # B-spline interpolants the lab may run, by order
 PHASES = 8                  # sub-pixel positions per axis over which the bias is averaged (d = j / 8)
+PHASE_TWIN_TOL = 1e-12     # sub-pixel positions d and 1 - d closer than this are twins (mod 1)
 FOLD_BINS = 32              # bins per axis of the folded pixel spectrum (scatter of the bias)
 _ALIAS_TERMS = 4            # |l| <= this in the Poisson sums of the spline's responses
 
 
-def _spline_sums(omega: np.ndarray, order: int):
-    """(β̂(ω + 2πl) for |l| <= _ALIAS_TERMS (..., L), l): the B-spline's spectrum at the aliases."""
-    l = np.arange(-_ALIAS_TERMS, _ALIAS_TERMS + 1)
-    return np.sinc(omega[..., None] / (2 * np.pi) + l) ** (order + 1), l
+class _SplineSpectrum:
+    """The B-spline's spectrum at the aliases of the frequencies ω (M,), computed once and shared
+    by its responses: s_l = β̂(ω + 2πl) = sinc^(order+1)(ω/2π + l) for |l| <= _ALIAS_TERMS, with
+    sin(π(x + l)) = ±sin(πx) (the power order + 1 is even, so the sign drops out)."""
 
+    def __init__(self, omega: np.ndarray, order: int):
+        self.l = np.arange(-_ALIAS_TERMS, _ALIAS_TERMS + 1)
+        self.omega = np.asarray(omega, dtype=np.float64)
+        x = self.omega[:, None] / (2 * np.pi) + self.l                      # (M, L)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = np.sin(np.pi * self.omega / (2 * np.pi))[:, None] / (np.pi * x)
+        v = np.where(x == 0.0, 1.0, v)
+        v2 = v * v
+        self.s = v2 * v2 if order == 3 else v2 * v2 * v2                    # orders 3 and 5
+        self.total = self.s.sum(-1)
 
-def _shift_responses(omega: np.ndarray, phases: np.ndarray, order: int) -> np.ndarray:
-    """R_d(ω) (n_phases, M) of `_spline_shift_response` for every phase d at once."""
-    s, l = _spline_sums(omega, order)
-    return np.einsum("ml,pl->pm", s, np.exp(2j * np.pi * np.outer(phases, l))) / s.sum(-1)
+    def _weighted(self, s: np.ndarray, phases) -> np.ndarray:
+        """Σ_l s_l exp(2πi l d) / Σ_l β̂(ω + 2πl) (P, M), as two real products (BLAS)."""
+        angle = 2 * np.pi * np.outer(self.l, phases)                        # (L, P)
+        return ((s @ np.cos(angle)) + 1j * (s @ np.sin(angle))).T / self.total
 
+    def shift(self, phases: np.ndarray) -> np.ndarray:
+        """R_d(ω) (P, M): the spline's value at n + d of the samples of exp(iωx), divided by
+        exp(iω(n + d)): Σ_l β̂(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl), for every phase d."""
+        return self._weighted(self.s, phases)
 
-def _derivative_shift_responses(omega: np.ndarray, phases: np.ndarray, order: int) -> np.ndarray:
-    """R'_d(ω) (n_phases, M): the spline's derivative at n + d of the samples of exp(iωx), divided
-    by i exp(iω(n + d)): Σ_l β̂(ω + 2πl)(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)."""
-    s, l = _spline_sums(omega, order)
-    s = s * (omega[..., None] + 2 * np.pi * l)
-    return np.einsum("ml,pl->pm", s, np.exp(2j * np.pi * np.outer(phases, l))) / \
-        _spline_sums(omega, order)[0].sum(-1)
+    def derivative(self) -> np.ndarray:
+        """D(ω) (M,): the spline's derivative at the sample points of exp(iωx), divided by
+        i exp(iωn): Σ_l β̂(ω + 2πl)(ω + 2πl) / Σ_l β̂(ω + 2πl) (real; ω itself for ω << π)."""
+        return (self.s * (self.omega[:, None] + 2 * np.pi * self.l)).sum(-1) / self.total
 
-
-def _derivative_response(omega: np.ndarray, order: int) -> np.ndarray:
-    """D(ω): the spline's derivative at the sample points of exp(iωx), divided by i exp(iωn):
-    Σ_l β̂(ω + 2πl)(ω + 2πl) / Σ_l β̂(ω + 2πl) (real; ω itself for a band-limited ω << π)."""
-    s, l = _spline_sums(omega, order)
-    return (s * (omega[..., None] + 2 * np.pi * l)).sum(-1) / s.sum(-1)
+    def derivative_shift(self, phases: np.ndarray) -> np.ndarray:
+        """R'_d(ω) (P, M): the spline's derivative at n + d of the samples of exp(iωx), divided
+        by i exp(iω(n + d)): Σ_l β̂(ω + 2πl)(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)."""
+        return self._weighted(self.s * (self.omega[:, None] + 2 * np.pi * self.l), phases)
 
 
 @dataclass(frozen=True, eq=False)
@@ -642,6 +652,36 @@ class CorrelationError:
         return np.sqrt(np.diagonal(self.covariance(sigma, pixels), axis1=1, axis2=2) / crb)
 
 
+def _phase_pairs(px: np.ndarray, py: np.ndarray) -> list[tuple]:
+    """The sub-pixel positions (p₁, p₂) to compute, each with its twin and the count it stands
+    for. The spline is symmetric, so the responses at 1 - d are the conjugates of those at d
+    (R₁₋d = conj R_d, the same for R'): at (1 - d₁, 1 - d₂) E is conj E, the bias is -b and the
+    noise and scatter terms are equal. Where both grids hold 1 - d for every d (mod 1, within
+    `PHASE_TWIN_TOL`), one of each twin pair is computed and counted twice (about half the work);
+    otherwise every pair once."""
+    def twin_index(grid):
+        out = []
+        for d in grid:
+            j = np.nonzero(np.abs(((1.0 - d) - grid + 0.5) % 1.0 - 0.5) < PHASE_TWIN_TOL)[0]
+            if j.size == 0:
+                return None
+            out.append(int(j[0]))
+        return out
+
+    t1, t2 = twin_index(px), twin_index(py)
+    if t1 is None or t2 is None:
+        return [(p1, p2, None, 1) for p1 in range(px.size) for p2 in range(py.size)]
+    pairs, done = [], set()
+    for p1 in range(px.size):
+        for p2 in range(py.size):
+            if (p1, p2) in done:
+                continue
+            twin = (t1[p1], t2[p2])
+            done.update({(p1, p2), twin})
+            pairs.append((p1, p2, None, 1) if twin == (p1, p2) else (p1, p2, twin, 2))
+    return pairs
+
+
 def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int = 3,
                       optics=None, noisy_reference: bool = True,
                       texel_filter: str = "bilinear", phases=None) -> CorrelationError:
@@ -655,7 +695,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     lands in the image at q_j = k.a_j cycles per pixel, ω = 2πq, with the weight
     w(k) = |F(k)|² T(k) sinc²(q₁) sinc²(q₂) MTF²(|q|) (T the texel filter: bilinear sinc⁴ per axis,
     box sinc²). With R_d(ω) the spline's shift response (the interpolated over the true value,
-    `_spline_shift_response`), D(ω) its derivative response (`_derivative_response`),
+    `_spline_shift_response`), D(ω) its derivative response (`_SplineSpectrum.derivative`),
     E = R_{d₁}(ω₁) R_{d₂}(ω₂) - 1 the interpolation error and ω̄ the frequency folded into
     [-π, π) (where the sampled noise lives), over a patch of P pixels and for a pattern with
     independent random phases:
@@ -697,6 +737,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
            for k in ("gradient", "noise", "bias", "scatter", "bound", "bound_sharp")}
     curves = np.empty((len(sides), px.size, py.size, 2))
     r = 1.0 if noisy_reference else 0.0
+    pairs = _phase_pairs(px, py)
     for i, (a, opt) in enumerate(zip(sides, optics)):
         q1, q2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
         wk = weight * (np.sinc(q1) * np.sinc(q2)) ** 2
@@ -708,15 +749,16 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         big = wk >= 1e-9 * wk.sum()
         q1, q2, wk = q1[big], q2[big], wk[big]
         om1, om2 = 2 * np.pi * q1, 2 * np.pi * q2
-        D = np.stack([_derivative_response(om1, order), _derivative_response(om2, order)])  # (2, M)
+        sp1, sp2 = _SplineSpectrum(om1, order), _SplineSpectrum(om2, order)
+        D = np.stack([sp1.derivative(), sp2.derivative()])                             # (2, M)
         H1 = np.einsum("m,am,bm->ab", wk, D, D)
         qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
         out["bound"][i] = np.linalg.inv(np.einsum("m,am,bm->ab", wk * (om1 ** 2 + om2 ** 2), qn, qn))
-        R1, R2 = _shift_responses(om1, px, order), _shift_responses(om2, py, order)
-        G1, G2 = _derivative_shift_responses(om1, px, order), _derivative_shift_responses(om2, py, order)
+        R1, R2 = sp1.shift(px), sp2.shift(py)
+        G1, G2 = sp1.derivative_shift(px), sp2.derivative_shift(py)
         fold1, fold2 = (q1 + 0.5) % 1.0 - 0.5, (q2 + 0.5) % 1.0 - 0.5
-        A1 = np.abs(_shift_responses(2 * np.pi * fold1, px, order)) ** 2
-        A2 = np.abs(_shift_responses(2 * np.pi * fold2, py, order)) ** 2
+        A1 = np.abs(_SplineSpectrum(2 * np.pi * fold1, order).shift(px)) ** 2
+        A2 = np.abs(_SplineSpectrum(2 * np.pi * fold2, order).shift(py)) ** 2
         nb = FOLD_BINS * FOLD_BINS
 
         def bin_of(f1, f2):
@@ -736,24 +778,25 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         noise = np.zeros((2, 2))
         bias = np.zeros((2, 2))
         scatter = np.zeros((2, 2))
-        for p1 in range(px.size):
-            for p2 in range(py.size):
-                E = R1[p1] * R2[p2] - 1.0
-                # the Jacobian the iteration meets: Σ ∇ref ∇(interpolated deformed)ᵀ at n + d
-                Hd = D @ (wk[:, None] * np.stack([(G1[p1] * R2[p2]).real,
-                                                  (R1[p1] * G2[p2]).real], -1))
-                Hi = np.linalg.inv(Hd)
-                b = -Hi @ (D @ (wk * E.imag))
-                curves[i, p1, p2] = b
-                bias += np.outer(b, b)
-                Nd = wDD @ (A1[p1] * A2[p2] + r)
-                noise += Hi @ Nd @ Hi.T
-                s_ee = binned(wk * np.abs(E) ** 2)
-                s_de = np.stack([binned(wk * D[a_] * E.imag) + 1j * binned(wk * D[a_] * E.real, True)
-                                 for a_ in range(2)])                      # i D conj(E)
-                V = nb * (np.einsum("abq,q->ab", s_dd, s_ee)
-                          + np.real(np.einsum("aq,bq->ab", s_de, s_de)))
-                scatter += Hi @ V @ Hi.T
+        for p1, p2, twin, count in pairs:
+            E = R1[p1] * R2[p2] - 1.0
+            # the Jacobian the iteration meets: Σ ∇ref ∇(interpolated deformed)ᵀ at n + d
+            Hd = D @ (wk[:, None] * np.stack([(G1[p1] * R2[p2]).real,
+                                              (R1[p1] * G2[p2]).real], -1))
+            Hi = np.linalg.inv(Hd)
+            b = -Hi @ (D @ (wk * E.imag))
+            curves[i, p1, p2] = b
+            if twin is not None:
+                curves[i, twin[0], twin[1]] = -b
+            bias += count * np.outer(b, b)
+            Nd = wDD @ (A1[p1] * A2[p2] + r)
+            noise += count * Hi @ Nd @ Hi.T
+            s_ee = binned(wk * np.abs(E) ** 2)
+            s_de = np.stack([binned(wk * D[a_] * E.imag) + 1j * binned(wk * D[a_] * E.real, True)
+                             for a_ in range(2)])                      # i D conj(E)
+            V = nb * (np.einsum("abq,q->ab", s_dd, s_ee)
+                      + np.real(np.einsum("aq,bq->ab", s_de, s_de)))
+            scatter += count * Hi @ V @ Hi.T
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
         out["bias"][i], out["scatter"][i] = bias / n_ph, scatter / n_ph
