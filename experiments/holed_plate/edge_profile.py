@@ -26,6 +26,7 @@ sys.path.insert(0, str(HERE.parent.parent))
 
 from vdo.config import experiment as config  # noqa: E402
 from vdo.commands.evaluate import evaluate  # noqa: E402
+from vdo.core.configure import configure  # noqa: E402
 
 CENTRE, RADIUS = np.array([0.0, 1.0]), 0.015   # hole centre (x, z) and radius, m (make_meshes.py)
 
@@ -43,8 +44,9 @@ def main() -> None:
     parser.add_argument("--out", required=True, type=Path)
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args()
+    configure()
     exp = config.load(HERE / "stereo.toml")
-    evaluate(exp, args.out, overwrite=args.overwrite, quiet=True)
+    evaluate(exp, args.out, overwrite=args.overwrite)
 
     from vtk import vtkXMLPolyDataReader
     from vtk.util.numpy_support import vtk_to_numpy
