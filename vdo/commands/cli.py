@@ -112,6 +112,9 @@ def _load(args):
         if args.series is not None:
             raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
                                                         "renders every camera (drop one of them)")
+    if getattr(args, "calibration", None):
+        from vdo.calib.importer import with_imported
+        exp = with_imported(exp, args.calibration)
     return exp
 
 
@@ -355,8 +358,12 @@ def _calibrate_parser(sub) -> None:
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
-    _command(sub, "evaluate", "coverage of the regions of interest by the cameras",
-                              "experiment TOML file")
+    ev = _command(sub, "evaluate", "coverage of the regions of interest by the cameras",
+                                   "experiment TOML file")
+    ev.add_argument("--calibration", nargs="+", metavar="FILE", default=None,
+                    help="a lab's calibration files (OpenCV .yml, MatchID .caldat, DICe or VIC-3D "
+                         ".xml): their cameras replace the experiment's of the same names "
+                         "(docs/calibration.md)")
     rd = _command(sub, "render", "photo-realistic noisy images of every camera", "experiment TOML file")
     rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
