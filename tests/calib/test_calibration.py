@@ -442,11 +442,24 @@ def test_evaluate_calibration_bad_input_is_one_line(tmp_path, capsys):
 # ---- step 4: Monte Carlo calibrations against the predicted covariance --------------------------
 MC_TRIALS = 50             # >= 50 independent calibrations (the issue's bar)
 MC_RATIO = (0.8, 1.25)     # observed scatter / predicted sigma; 1/sqrt(2 (50 - 1)) = 10 % sampling sd
+MC_FAMILY = 0.05           # chance that any of the P parameters' ratios leaves its interval
+
+
+def ratio_interval(trials: int, parameters: int) -> tuple[float, float]:
+    """The interval that holds all `parameters` ratios sample sd / true sd of `trials` normal
+    draws with probability 1 - MC_FAMILY (Bonferroni: each sqrt(chi2_{n-1, q} / (n - 1)), q =
+    MC_FAMILY / 2P and 1 - q; at 50 trials one ratio's 95 % interval is [0.80, 1.20], 24 ratios'
+    [0.70, 1.32], so a single parameter at 0.75 is no evidence against the covariance)."""
+    from scipy.stats import chi2
+
+    n, q = trials - 1, MC_FAMILY / 2 / parameters
+    return tuple(float(np.sqrt(chi2.ppf(x, n) / n)) for x in (q, 1 - q))
 
 
 def test_monte_carlo_scatter_matches_covariance():
     """50 calibrations of the holed plate's pair with independent corner noise: the scatter of
-    the calibrated parameters (median ratio and sqrt(NEES), pooled over the 24 parameters) and of
+    the calibrated parameters (median ratio and sqrt(NEES), pooled over the 24 parameters; every
+    ratio within the interval of 24 ratios at this trial count, `ratio_interval`) and of
     the triangulated displacement and strain of the test's motion against the sigma predicted
     from sigma_det^2 (J^T J)^-1."""
     from vdo.calib import montecarlo as mc
@@ -464,6 +477,8 @@ def test_monte_carlo_scatter_matches_covariance():
     r = res.rigs[0]
     low, high = MC_RATIO
     assert low < np.median(r.ratio) < high
+    every = ratio_interval(MC_TRIALS, len(r.ratio))
+    assert np.all((every[0] < r.ratio) & (r.ratio < every[1])), dict(zip(r.parameters, r.ratio.round(3)))
     assert low < np.sqrt(r.nees) < high
     assert low < r.displacement_ratio < high
     assert low < r.strain_ratio < high
