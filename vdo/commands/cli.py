@@ -172,8 +172,24 @@ def _evaluate(exp, args):
     result = evaluate(exp, Path(args.out), overwrite=args.overwrite)
     if not args.quiet:
         _print_summary(result.to_json())
+        if result.calibration is not None:
+            _print_calibration(result.calibration)
         print_checks(result.design_checks)
         print(f"wrote {Path(args.out).resolve()}")
+
+
+def _print_calibration(cal: dict) -> None:
+    """Per region, p95 of the calibration-induced displacement and strain sigma (systematic)
+    beside the image noise's (random), `vdo evaluate` with a [calibration] table."""
+    def show(d):
+        return "-" if d["p95"] is None else f"{d['p95']:.3g}"
+
+    print(f"calibration ({cal['images']} images, corners {cal['sigma_det_px']:g} px): p95 per region, "
+          "calibration systematic, noise random per step")
+    print(f"{'region':<22}{'calib u um':>12}{'noise u um':>12}{'calib strain ue':>17}{'noise strain ue':>17}")
+    for name, r in cal["regions"].items():
+        print(f"{name:<22}{show(r['calibration_displacement_um']):>12}{show(r['noise_displacement_um']):>12}"
+              f"{show(r['calibration_strain_microstrain']):>17}{show(r['noise_strain_microstrain']):>17}")
 
 
 def _pairs(names):
