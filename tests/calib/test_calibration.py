@@ -484,6 +484,39 @@ def test_monte_carlo_scatter_matches_covariance():
     assert low < r.strain_ratio < high
 
 
+LINEAR = 0.2     # sigmas: the even (second-order) part of the estimate's error at this noise
+
+
+def test_calibration_is_linear_in_the_corner_noise():
+    """The covariance sigma^2 (J^T J)^-1 is the first-order one: calibrating the pair's corners
+    with noise +n and -n, the even part (theta(+n) + theta(-n)) / 2 - theta_true stays within
+    LINEAR sigmas of every parameter (it would add about LINEAR^2 = 4 % to a variance), while
+    the odd part is of the order of one sigma (the noise does move the estimate)."""
+    from vdo.calib import montecarlo as mc
+    from vdo.calib import propagate as prop
+    from vdo.calib.session import plan
+    from vdo.calib.solve import Observation, calibrate, simulate
+
+    exp = with_calibration(HOLED, poses_per_camera=5, shared_poses=3)
+    planned = plan(exp, 1.0)
+    cams = list(planned.cameras)
+    names = tuple(c.name for c in cams)
+    sizes = {c.name: (c.width, c.height) for c in cams}
+    clean = simulate(cams, planned.session, 0.0, np.random.default_rng(0))
+    noisy = simulate(cams, planned.session, 0.1, np.random.default_rng(5))
+    theta = {}
+    for sign in (1.0, -1.0):
+        obs = [Observation(c.camera, c.pose, c.corners + sign * (n.corners - c.corners))
+               for c, n in zip(clean, noisy)]
+        r = prop.rig(calibrate(list(names), sizes, obs, planned.session.target, 0.1), names, cams)
+        theta[sign] = r.theta
+    sigma = np.sqrt(np.diag(r.covariance))
+    even = ((theta[1.0] + theta[-1.0]) / 2 - mc.true_theta(r, cams)) / sigma
+    odd = (theta[1.0] - theta[-1.0]) / 2 / sigma
+    assert np.abs(even).max() < LINEAR
+    assert 0.3 < np.sqrt((odd ** 2).mean()) < 3
+
+
 # ---- step 6: the planner ------------------------------------------------------------------------
 def test_vdo_calibrate_plan(tmp_path, capsys):
     """`vdo calibrate --plan`: the curve falls with the number of images, at large sessions as
