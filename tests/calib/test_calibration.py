@@ -428,7 +428,8 @@ def test_evaluate_calibration_bad_input_is_one_line(tmp_path, capsys):
         for key, value in (("camera_matrix", K), ("distortion_coefficients", d), ("R", R), ("t", t)):
             fs.write(key, value)
         fs.release()
-    cases = [(tmp_path / "missing.yml", "--calibration"), (broken, "image_width"),
+    (tmp_path / "notes.txt").write_text("not a calibration\n")
+    cases = [(tmp_path / "missing.yml", "--calibration"), (tmp_path / "missing.xml", "no such file"), (broken, "image_width"),
              (tmp_path / "other_size.yml", "image size"), (tmp_path / "stranger.yml", 'camera "stranger"'),
              (tmp_path / "notes.txt", "--calibration")]
     for path, field in cases:

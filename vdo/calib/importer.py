@@ -165,9 +165,7 @@ def _read(path: Path, fmt: str, bases: dict) -> list:
 
     import cv2
 
-    if not path.is_file():
-        raise ConfigError(path, "--calibration", "no such file: give a calibration file written by "
-                                                 "vdo export or the lab's software (docs/calibration.md)")
+    existing(path)
     try:
         return {"opencv": _opencv, "dice": _dice, "vic3d": _vic3d}[fmt](path) if fmt != "matchid" \
             else _matchid(path, bases)
@@ -181,11 +179,19 @@ def _read(path: Path, fmt: str, bases: dict) -> list:
                                      "file as vdo export writes it (docs/exports.md)") from None
 
 
+def existing(path: Path) -> None:
+    """Refuse (one line) a calibration file that is not there."""
+    if not path.is_file():
+        raise ConfigError(path, "--calibration", "no such file: give a calibration file written by "
+                                                 "vdo export or the lab's software (docs/calibration.md)")
+
+
 def format_of(path) -> str:
     """The format of calibration file `path` (`FORMATS`) by its name and, for XML, its content:
     .yml/.yaml OpenCV (one camera's file; not a stereo_ file), .caldat MatchID, .xml DICe (a
     ParameterList) or VIC-3D."""
     path = Path(path)
+    existing(path)
     suffix = path.suffix.lower()
     if suffix in (".yml", ".yaml"):
         if path.name.startswith("stereo_"):
@@ -194,7 +200,7 @@ def format_of(path) -> str:
         return "opencv"
     if suffix == ".caldat":
         return "matchid"
-    if suffix == ".xml" and path.is_file():
+    if suffix == ".xml":
         head = path.read_text(errors="replace")[:4096]
         return "dice" if "ParameterList" in head else "vic3d"
     raise ConfigError(path, "--calibration", "is not a calibration file vdo reads: give OpenCV "
