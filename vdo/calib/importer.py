@@ -9,6 +9,11 @@ sensor's pixel size comes from the experiment's camera of the same name (calibra
 hold pixels, not millimetres), and a file whose image size disagrees with that camera's is
 refused (`ConfigError`). vdo models square pixels without skew: fx and fy must agree within
 `SQUARE_PIXELS`.
+
+`vdo evaluate CONFIG --calibration FILE ...` (`with_imported`): the files' cameras replace the
+experiment's cameras of the same names (placed by position and angles: off their rail or mount),
+the format told by the file (`format_of`); the calibration frame is the CAD frame (vdo's exports),
+except a MatchID file's, which is its first camera's: it is placed at that camera's configured pose.
 """
 
 from __future__ import annotations
@@ -75,6 +80,11 @@ def _opencv(path: Path):
 
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
+        for key in ("camera_name", "image_width", "image_height", "camera_matrix",
+                    "distortion_coefficients", "R", "t"):
+            if fs.getNode(key).empty():
+                raise ConfigError(path, key, "is missing: give the camera's file as vdo export "
+                                             "(opencv) writes it (docs/exports.md)")
         name = fs.getNode("camera_name").string()
         size = (int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real()))
         K, d = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat().ravel()
@@ -148,6 +158,55 @@ def _matchid(path: Path, bases: dict):
     return out
 
 
+def _read(path: Path, fmt: str, bases: dict) -> list:
+    """The file's entries (name, K, distortion, R, t, size); a file that is missing or lacks a
+    value raises the one-line `ConfigError` naming it."""
+    import xml.etree.ElementTree as ET
+
+    import cv2
+
+    existing(path)
+    try:
+        return {"opencv": _opencv, "dice": _dice, "vic3d": _vic3d}[fmt](path) if fmt != "matchid" \
+            else _matchid(path, bases)
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError, ET.ParseError, cv2.error,
+            UnicodeDecodeError) as exc:
+        if isinstance(exc, ConfigError):
+            raise
+        what = f"no value {exc.args[0]!r}" if isinstance(exc, KeyError) else \
+            (str(exc).strip().splitlines() or [type(exc).__name__])[-1]
+        raise ConfigError(path, fmt, f"cannot be read in the {fmt} format ({what}): give the "
+                                     "file as vdo export writes it (docs/exports.md)") from None
+
+
+def existing(path: Path) -> None:
+    """Refuse (one line) a calibration file that is not there."""
+    if not path.is_file():
+        raise ConfigError(path, "--calibration", "no such file: give a calibration file written by "
+                                                 "vdo export or the lab's software (docs/calibration.md)")
+
+
+def format_of(path) -> str:
+    """The format of calibration file `path` (`FORMATS`) by its name and, for XML, its content:
+    .yml/.yaml OpenCV (one camera's file; not a stereo_ file), .caldat MatchID, .xml DICe (a
+    ParameterList) or VIC-3D."""
+    path = Path(path)
+    existing(path)
+    suffix = path.suffix.lower()
+    if suffix in (".yml", ".yaml"):
+        if path.name.startswith("stereo_"):
+            raise ConfigError(path, "--calibration", "is an OpenCV stereo file: give the cameras' "
+                                                     "own <camera>.yml files instead")
+        return "opencv"
+    if suffix == ".caldat":
+        return "matchid"
+    if suffix == ".xml":
+        head = path.read_text(errors="replace")[:4096]
+        return "dice" if "ParameterList" in head else "vic3d"
+    raise ConfigError(path, "--calibration", "is not a calibration file vdo reads: give OpenCV "
+                                             ".yml, MatchID .caldat, DICe or VIC-3D .xml")
+
+
 def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> list:
     """The cameras of the calibration file `path` in format `fmt` (`FORMATS`) as vdo Cameras,
     each based on the experiment's camera of the same name in `cameras` (module docstring)."""
@@ -156,8 +215,7 @@ def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> 
         raise ConfigError(path, "format", f"must be one of {', '.join(FORMATS)} (got {fmt!r})")
     bases = {c.name: c for c in cameras}
     frame = np.eye(4) if frame is None else np.asarray(frame, dtype=float)
-    entries = {"opencv": _opencv, "dice": _dice, "vic3d": _vic3d}[fmt](path) if fmt != "matchid" \
-        else _matchid(path, bases)
+    entries = _read(path, fmt, bases)
     out = []
     for name, K, d, R, t, size in entries:
         if name not in bases:
@@ -166,3 +224,26 @@ def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> 
         out.append(as_camera(bases[name], np.asarray(K, dtype=float), d, np.asarray(R, dtype=float),
                              np.asarray(t, dtype=float), size, frame, path, name))
     return out
+
+
+def with_imported(exp, paths):
+    """The experiment `exp` with its cameras replaced by those of the calibration files `paths`
+    (module docstring); the specs keep everything but the lens and pose (body, aperture, focus)."""
+    bases = {c.name: c for c in exp.cameras()}
+    specs = {s.name: s for s in exp.camera_specs}
+    for p in paths:
+        path = Path(p)
+        fmt = format_of(path)
+        frame = None
+        if fmt == "matchid":
+            first = path.stem.split("_", 1)[0]
+            if first in bases:
+                frame = np.eye(4)
+                frame[:3, :3], frame[:3, 3] = bases[first].R.T, bases[first].position
+        for cam in import_cameras(path, fmt, bases.values(), frame):
+            specs[cam.name] = replace(
+                specs[cam.name], focal_length=cam.focal_length, rail=None, mount=None, u=None,
+                offset=np.zeros(3), position=np.asarray(cam.position, dtype=float), target=None,
+                pan=cam.pan, tilt=cam.tilt, roll=cam.roll, principal_offset_px=tuple(
+                    float(v) for v in cam.principal_offset_px), distortion=cam.distortion)
+    return exp.with_cameras([specs[s.name] for s in exp.camera_specs])

@@ -203,6 +203,21 @@ def initial(cameras, sizes, observations, target):
     return intr, ext, poses, reference
 
 
+def damped_step(scaled: np.ndarray, rhs: np.ndarray, damping: float) -> np.ndarray | None:
+    """The Levenberg-Marquardt step (A + damping diag(A)) x = -g in Jacobi-scaled form: with
+    D = diag(A), S = D^-1/2 A D^-1/2 (unit diagonal) and rhs = -D^-1/2 g, the solution of
+    (S + damping I) y = rhs by Cholesky, x = D^-1/2 y (y is returned; None when S + damping I is
+    not positive definite in floating point: the step is refused and the damping raised). A
+    Cholesky of the small SPD system, not np.linalg.solve: numpy's threaded LU took 30-50 ms of
+    CPU per 100 x 100 solve on a loaded 2-core machine, scipy's Cholesky 0.07 ms."""
+    from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+    try:
+        return cho_solve(cho_factor(scaled + damping * np.eye(len(rhs))), rhs)
+    except LinAlgError:
+        return None
+
+
 def calibrate(cameras: list[str], sizes: dict, observations: list[Observation], target,
               sigma_det: float | None = None) -> Calibration:
     """The joint calibration of `cameras` (names, each with `sizes` (W, H)) from the detected
@@ -276,12 +291,15 @@ def calibrate(cameras: list[str], sizes: dict, observations: list[Observation], 
         J = jac(theta)
         A = (J.T @ J).toarray()
         g = J.T @ r
-        diag = np.diag(A).copy()
+        d = np.sqrt(np.diag(A))
+        scaled, rhs = A / d[:, None] / d[None, :], -g / d
         while True:
-            step = np.linalg.solve(A + damping * np.diag(diag), -g)
-            r_new = residual(theta + step).ravel()
-            if r_new @ r_new <= cost:
-                break
+            y = damped_step(scaled, rhs, damping)
+            if y is not None:
+                step = y / d
+                r_new = residual(theta + step).ravel()
+                if r_new @ r_new <= cost:
+                    break
             damping *= 10.0
             if damping > 1e12:
                 step = np.zeros_like(theta)

@@ -220,3 +220,55 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
         plot(p, tmp / "plan.png", f"{exp.name}: calibration session plan")
         (tmp / "plan.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
     return result
+
+
+def evaluation_plan(exp, geometry):
+    """`vdo evaluate`'s calibration session (`vdo.calib.session.plan` at scale 1) when the file
+    has a [calibration] table, else None and no work; built and checked before the ray cast, so
+    that a session that cannot calibrate stops evaluate in one line before its heavy work."""
+    if not exp.has("calibration"):
+        return None
+    from vdo.calib.session import plan
+
+    return plan(exp, 1.0, geometry)
+
+
+def evaluation_errors(planned, state) -> tuple[dict, object]:
+    """The calibration-induced errors `vdo evaluate` gives beside the image noise: the planned
+    session's corners simulated without noise at the true cameras, calibrated with
+    sigma_det = [calibration] detection_sigma_px (default `vdo.calib.planner.DEFAULT_SIGMA_DET_PX`),
+    the covariance sigma_det^2 (J^T J)^-1 carried into every sample seen by a calibrated pair
+    (`vdo.calib.propagate.sample_errors`). Returns (summary.json's "calibration": the session, the
+    detection noise and per region `region_table`, the `SampleErrors`)."""
+    from vdo.calib.planner import DEFAULT_SIGMA_DET_PX
+    from vdo.calib.propagate import sample_errors
+    from vdo.calib.solve import calibrate, simulate
+
+    exp, samples = state.experiment, state.samples
+    cams = list(planned.cameras)
+    session = planned.session
+    given = exp.calibration.detection_sigma_px
+    sigma = given or DEFAULT_SIGMA_DET_PX
+    obs = simulate(cams, session, 0.0, np.random.default_rng(exp.calibration.seed))
+    cal = calibrate([c.name for c in cams], {c.name: (c.width, c.height) for c in cams}, obs,
+                    session.target, sigma)
+    errors = sample_errors(cal, exp, cams, samples, state.visibility.visible, session.pairs)
+    eps, sigma_dic = state.strain
+    out = {"sigma_det_px": sigma,
+           "sigma_det_from": "detection_sigma_px" if given else "default (no detection_sigma_px)",
+           "target": session.target.description(), "poses": len(session.poses),
+           "images": sum(len(v) for v in session.views.values()),
+           "pairs": [f"{a}:{b}" for a, b in errors.pairs],
+           "regions": region_table(exp, samples, errors, sigma_dic, eps[:, 0])}
+    return out, errors
+
+
+def write_evaluation_map(folder, exp, samples, errors) -> None:
+    """maps/calibration_strain.png of `vdo evaluate`: the calibration-induced strain sigma at the
+    test's strain (systematic), when any sample is seen by a calibrated pair."""
+    from vdo.outputs import maps
+
+    if np.isfinite(errors.strain).any():
+        maps.plot_unfolded(samples, errors.strain * 1e6, folder / "maps" / "calibration_strain.png",
+                           f"{exp.name}: calibration-induced strain sigma at strain "
+                           f"{exp.calibration.strain:g} (microstrain, systematic)", "microstrain")

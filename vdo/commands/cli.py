@@ -112,6 +112,9 @@ def _load(args):
         if args.series is not None:
             raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
                                                         "renders every camera (drop one of them)")
+    if getattr(args, "calibration", None):
+        from vdo.calib.importer import with_imported
+        exp = with_imported(exp, args.calibration)
     return exp
 
 
@@ -169,8 +172,24 @@ def _evaluate(exp, args):
     result = evaluate(exp, Path(args.out), overwrite=args.overwrite)
     if not args.quiet:
         _print_summary(result.to_json())
+        if result.calibration is not None:
+            _print_calibration(result.calibration)
         print_checks(result.design_checks)
         print(f"wrote {Path(args.out).resolve()}")
+
+
+def _print_calibration(cal: dict) -> None:
+    """Per region, p95 of the calibration-induced displacement and strain sigma (systematic)
+    beside the image noise's (random), `vdo evaluate` with a [calibration] table."""
+    def show(d):
+        return "-" if d["p95"] is None else f"{d['p95']:.3g}"
+
+    print(f"calibration ({cal['images']} images, corners {cal['sigma_det_px']:g} px): p95 per region, "
+          "calibration systematic, noise random per step")
+    print(f"{'region':<22}{'calib u um':>12}{'noise u um':>12}{'calib strain ue':>17}{'noise strain ue':>17}")
+    for name, r in cal["regions"].items():
+        print(f"{name:<22}{show(r['calibration_displacement_um']):>12}{show(r['noise_displacement_um']):>12}"
+              f"{show(r['calibration_strain_microstrain']):>17}{show(r['noise_strain_microstrain']):>17}")
 
 
 def _pairs(names):
@@ -355,8 +374,12 @@ def _calibrate_parser(sub) -> None:
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vdo", description="Virtual design of multi-camera DIC tests")
     sub = parser.add_subparsers(dest="command", required=True)
-    _command(sub, "evaluate", "coverage of the regions of interest by the cameras",
-                              "experiment TOML file")
+    ev = _command(sub, "evaluate", "coverage of the regions of interest by the cameras",
+                                   "experiment TOML file")
+    ev.add_argument("--calibration", nargs="+", metavar="FILE", default=None,
+                    help="a lab's calibration files (OpenCV .yml, MatchID .caldat, DICe or VIC-3D "
+                         ".xml): their cameras replace the experiment's of the same names "
+                         "(docs/calibration.md)")
     rd = _command(sub, "render", "photo-realistic noisy images of every camera", "experiment TOML file")
     rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")

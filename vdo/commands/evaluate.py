@@ -24,6 +24,7 @@ from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import LoadPathResult, evaluate_load_path
 from vdo.core.progress import shown
 from vdo.optimize import layout_checks
+from vdo.commands.calibrate import evaluation_errors, evaluation_plan, write_evaluation_map
 from vdo.state import LayoutState, layout_state, prepare
 
 log = logging.getLogger(__name__)
@@ -49,6 +50,7 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> report.Eval
         log.warning("note: no [[light]] and no [render] ambient_radiance: the images would be "
                     "black, so the uncertainty is not predicted (sigma = inf)")
     load_path = load_path_of(exp, geometry.meshes)     # its files are checked before any ray
+    calibration = evaluation_plan(exp, geometry)        # None without [calibration]: no work
     state = layout_state(geometry, progress=shown(log))
     over_path = None
     if load_path is not None:
@@ -71,7 +73,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> report.Eval
         hidden = max(len(over_path.losses) - MAX_WARNINGS, 0) + max(len(over_path.changes) - MAX_WARNINGS, 0)
         if hidden:
             log.warning("warning: %d more load-path losses and changes in summary.json (load_path)", hidden)
-    result = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state))
+    result = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state),
+                              calibration=calibration)
     for line in warnings(result):
         log.warning("warning: %s", line)
     return result
@@ -101,14 +104,17 @@ def _shown(value) -> str:
 
 def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                      over_path: LoadPathResult | None = None,
-                     checked: list[dict] | None = None) -> report.EvaluationResult:
+                     checked: list[dict] | None = None, calibration=None) -> report.EvaluationResult:
     """Write a judged layout into the run folder `out` (see `evaluate`); returns it
     (`vdo.outputs.report.EvaluationResult`: summary.json is its `to_json()`).
     With `over_path` (`vdo.search.loadpath`) also the load path: load_path.csv, load_path.png, the worst
     case over the steps in samples.vtp (coverage_worst, sigma_max_worst, worst_step) and in
     maps/coverage_worst.png, maps/sigma_max_worst.png, and summary.json's "load_path".
     `checked`, the constraint checks of the layout (`vdo.optimize.layout_checks`), go into
-    constraints.json and summary.json's "constraints" (None: not judged)."""
+    constraints.json and summary.json's "constraints" (None: not judged). `calibration`, the
+    planned calibration session (`vdo.commands.calibrate.evaluation_plan`), adds summary.json's
+    "calibration" (per region the calibration-induced errors beside the image noise's) and
+    maps/calibration_strain.png."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
@@ -124,12 +130,16 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
             log.warning("camera %s: %s", row["camera"], flag)
     meas = measured.measured_fields(exp, list(cameras), samples, vis, illumination,
                                     state.geometry.speckle, pred, constraints.stereo_min_angle)
+    calibration_summary = None
+    if calibration is not None:
+        calibration_summary, calibration_errors = evaluation_errors(calibration, state)
     result = dataclasses.replace(
         report.state_evaluation(state),
         axis_angles=angles, design_checks=design_checks,
         cameras_seeing_nothing=[name for i, name in enumerate(vis.camera_names) if not pred.usable[i].any()],
         constraints=judged, glare=hot, measured=measured.summary(exp, meas, samples, pred, eps),
-        load_path=None if over_path is None else loadpath.summary(over_path))
+        load_path=None if over_path is None else loadpath.summary(over_path),
+        calibration=calibration_summary)
     with run_folder(out, overwrite) as tmp:
         if judged is not None:
             report.write_json(tmp / "constraints.json", judged)
@@ -201,6 +211,8 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                     vis.camera_names, tmp / "maps" / f"developed_{region.name}.png",
                     f"{exp.name}: region {region.name!r} developed, σ_max and the usable views",
                     "σ_max (µm)")
+        if calibration is not None:
+            write_evaluation_map(tmp, exp, samples, calibration_errors)
         if developed:
             result = dataclasses.replace(result, developed=developed)
             report.write_json(tmp / "summary.json", result.to_json())

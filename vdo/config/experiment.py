@@ -1307,6 +1307,7 @@ class DesignSpec:
                                    "(`vdo.design.bound`; 0: no bound)")
 
 
+ON_REQUEST = ("calibration",)      # tables whose presence asks for work: written back only when given
 TARGET_KINDS = ("checkerboard",)   # what `vdo calibrate` renders and detects (OpenCV)
 
 
@@ -1565,6 +1566,12 @@ class Experiment:
     calibration: CalibrationSpec = table(
         "calibration", CalibrationSpec, check=_check_calibration, default=CalibrationSpec(),
         doc="The calibration session `vdo calibrate` renders and calibrates (docs/calibration.md).")
+    given: frozenset = field(default=frozenset(), repr=False)   # the ON_REQUEST tables the file gives
+
+    def has(self, key: str) -> bool:
+        """Whether the file gives table `key` (for the tables whose presence asks for work, e.g.
+        [calibration]: `vdo evaluate` then adds the calibration-induced errors)."""
+        return key in self.given
 
     def __post_init__(self):
         """The defaults that depend on another table, resolved once here: a Q4 element defaults
@@ -1692,11 +1699,14 @@ class Experiment:
         return parse(data, self.path)
 
     def to_dict(self) -> dict:
-        """The experiment as a TOML-ready dict: every table, defaults filled, absolute paths;
+        """The experiment as a TOML-ready dict: every table (an `ON_REQUEST` one only when given),
+        defaults filled, absolute paths;
         ``parse(e.to_dict(), e.path)`` gives back `e` (to 12 significant digits)."""
         out = {"experiment": _write(self, rows_of(Experiment))}
         for sec in sections():
             value = getattr(self, sec.attr)
+            if sec.key in ON_REQUEST and not self.has(sec.key):
+                continue
             if sec.array:
                 if value:
                     out[sec.key] = [_write(item, sec.rows) for item in value]
@@ -1952,7 +1962,7 @@ def parse(data: dict, path: Path) -> Experiment:
     for sec in secs:
         values[sec.attr], tables[sec.key] = _read_section(top, sec, path)
     _resolve_mounts(values, tables, path)
-    exp = Experiment(path=path, **values)
+    exp = Experiment(path=path, **values, given=frozenset(k for k in ON_REQUEST if top.has(k)))
     _check_references(exp, tables)
     _check_keep_outs(exp, tables)
     return exp

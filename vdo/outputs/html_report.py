@@ -202,6 +202,25 @@ def _regions_table(summary: dict) -> str:
     return _table(rows)
 
 
+def _calibration_table(summary: dict) -> str:
+    """Per region, p50 / p95 of the calibration-induced errors (systematic: the same in every load
+    step) beside the image noise's (random, per step), from summary.json's "calibration"."""
+    cal = summary["calibration"]
+    keys = (("calibration_displacement_um", "calibration u (µm)"),
+            ("noise_displacement_um", "noise u (µm)"),
+            ("calibration_strain_microstrain", "calibration strain (µε)"),
+            ("noise_strain_microstrain", "noise strain (µε)"),
+            ("calibration_strain_per_unit_strain", "calibration strain per unit strain"))
+    rows = [{"region": name, **{f"{label} p50 / p95": [r[k]["p50"], r[k]["p95"]] for k, label in keys}}
+            for name, r in cal.get("regions", {}).items()]
+    level = next(iter(cal.get("regions", {}).values()), {})
+    caption = (f"at the test's strain {level.get('test_strain', '?')} and displacement "
+               f"{level.get('test_displacement_mm', '?')} mm; calibration of {cal.get('images')} "
+               f"images, corner noise {cal.get('sigma_det_px')} px ({cal.get('sigma_det_from')}); "
+               "pairs " + ", ".join(cal.get("pairs", [])))
+    return _table(rows, caption)
+
+
 SHOWN_JSON = ("summary.json", "summary_before.json", "summary_after.json", "constraints.json",
               "layout.json", "design.json")
 COMPARED = (("sigma_max_um", "p95", "σ_max p95 (µm)"), ("sigma_max_um", "max", "σ_max max (µm)"),
@@ -351,6 +370,9 @@ def write_report(run_dir, static_figures: bool = True) -> Path:
         shown.add(run_dir / "pareto.png")
     if summary is not None:
         body.append("<h2>Regions</h2>" + _regions_table(summary))
+        if isinstance(summary.get("calibration"), dict):
+            body.append("<h2>Calibration-induced errors beside the image noise</h2>"
+                        + _calibration_table(summary))
         body.append(_json_section("summary.json", summary))
     layout = run_dir / "layout.json"
     cams = _read_json(layout, []) if layout.is_file() else None

@@ -134,7 +134,7 @@ class EvaluationSettings:
 
 
 SECTIONS = ("axis_angles", "design_checks", "cameras_seeing_nothing", "constraints", "glare",
-            "measured", "load_path", "developed")    # EvaluationResult's optional parts, JSON order
+            "measured", "load_path", "developed", "calibration")   # EvaluationResult's optional parts, JSON order
 
 
 @dataclass(frozen=True)
@@ -156,6 +156,7 @@ class EvaluationResult:
     measured: dict | None = None                     # `vdo.physics.measured.summary`
     load_path: dict | None = None                    # `vdo.search.loadpath.summary`
     developed: dict | None = None                    # region -> `vdo.outputs.maps.plot_developed`
+    calibration: dict | None = None                  # `vdo.commands.calibrate.evaluation_errors`
 
     def to_json(self) -> dict:
         """summary.json: experiment, config, settings, regions, then each section that is not None."""
