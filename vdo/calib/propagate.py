@@ -95,20 +95,36 @@ def _ray(intr, ext, uv):
     return -R.T @ ext[3:], direction @ R
 
 
+def _normal_terms(theta, pixels_i, si, se) -> tuple[np.ndarray, np.ndarray]:
+    """One camera's part of the least-squares intersection: (P_i (N, 3, 3), P_i C_i (N, 3)),
+    P_i = I - d_i d_i^T / |d_i|^2 for its rays through `pixels_i` (N, 2)."""
+    C, d = _ray(theta[si], None if se is None else theta[se], pixels_i)
+    P = np.eye(3) - np.einsum("ni,nj->nij", d, d) / np.einsum("ni,ni->n", d, d)[:, None, None]
+    return P, P @ C
+
+
+def _intersect(A: np.ndarray, b: np.ndarray, world) -> np.ndarray:
+    """World points (N, 3): X = A^-1 b for the (N, 3, 3) symmetric sums A, by the adjugate
+    (A^-1 = adj A / det A; rows of the adjugate are cross products of A's columns), then
+    R_0^T (X - t_0)."""
+    c0, c1, c2 = A[:, :, 0], A[:, :, 1], A[:, :, 2]
+    adj = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=1)   # (N, 3, 3)
+    det = np.einsum("ni,ni->n", c0, adj[:, 0])
+    X = np.einsum("nij,nj->ni", adj, b) / det[:, None]
+    R0, t0 = world
+    return (X - t0) @ R0
+
+
 def triangulate(theta, pixels, slices: dict, names, world) -> np.ndarray:
     """World points (N, 3) from `pixels` (N, k, 2), column i of camera names[i] (module
     docstring)."""
     A = np.zeros((len(pixels), 3, 3))
     b = np.zeros((len(pixels), 3))
     for i, n in enumerate(names):
-        si, se = slices[n]
-        C, d = _ray(theta[si], None if se is None else theta[se], pixels[:, i])
-        P = np.eye(3) - np.einsum("ni,nj->nij", d, d) / np.einsum("ni,ni->n", d, d)[:, None, None]
+        P, PC = _normal_terms(theta, pixels[:, i], *slices[n])
         A += P
-        b += P @ C
-    X = np.linalg.solve(A, b[..., None])[..., 0]
-    R0, t0 = world
-    return (X - t0) @ R0
+        b += PC
+    return _intersect(A, b, world)
 
 
 def _pixels(cameras, X):
@@ -123,16 +139,24 @@ def points(r: Rig, theta: np.ndarray, cameras, X: np.ndarray) -> np.ndarray:
 def point_jacobian(r: Rig, cameras, X: np.ndarray) -> np.ndarray:
     """dX/dtheta (N, 3, P) at world points X (N, 3), the pixels those of the true `cameras`
     (vdo Cameras in `r.names` order): central differences with steps `FD_STEP` x the parameter's
-    sigma."""
+    sigma. A parameter moves one camera's rays only, so the other cameras' terms of the
+    intersection are computed once."""
     pixels = _pixels(cameras, X)
     step = FD_STEP * np.sqrt(np.diag(r.covariance))
+    terms = [_normal_terms(r.theta, pixels[:, i], *r.slices[n]) for i, n in enumerate(r.names)]
+    A, b = sum(t[0] for t in terms), sum(t[1] for t in terms)
     out = np.empty((len(X), 3, len(r.theta)))
-    for p in range(len(r.theta)):
-        up, down = r.theta.copy(), r.theta.copy()
-        up[p] += step[p]
-        down[p] -= step[p]
-        out[:, :, p] = (triangulate(up, pixels, r.slices, r.names, r.world)
-                        - triangulate(down, pixels, r.slices, r.names, r.world)) / (2 * step[p])
+    for i, n in enumerate(r.names):
+        si, se = r.slices[n]
+        A_rest, b_rest = A - terms[i][0], b - terms[i][1]
+        for p in [*range(si.start, si.stop), *(range(se.start, se.stop) if se is not None else [])]:
+            ends = []
+            for sign in (1.0, -1.0):
+                theta = r.theta.copy()
+                theta[p] += sign * step[p]
+                P, PC = _normal_terms(theta, pixels[:, i], si, se)
+                ends.append(_intersect(A_rest + P, b_rest + PC, r.world))
+            out[:, :, p] = (ends[0] - ends[1]) / (2 * step[p])
     return out
 
 
