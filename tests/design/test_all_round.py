@@ -83,7 +83,7 @@ def selection(tmp_path_factory):
     exp = config.load(write_cylinder(tmp_path_factory.mktemp("allround")))
     geometry = prepare(exp)
     cand = design.judge(exp, geometry)
-    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand, geometry.samples)
     order, _ = design.greedy(cand, scorer, feas, 6)
     chosen, score, _ = design.exchange(cand, scorer, feas, order)
     return exp, geometry, cand, scorer, chosen, score
@@ -124,3 +124,22 @@ def test_equal_spacing_beats_a_cluster_and_the_far_ring_in_coverage_and_sigma(se
     # twice the distance, the same lens: sigma ~ (mm per pixel) / sqrt(pixels in a patch) ~ d^2,
     # four times (incidence and perspective differ a little between the rings)
     assert sigma_far / sigma == pytest.approx(4, rel=0.2)
+
+
+def test_neighbours_around_the_cylinder_share_it_and_keep_their_axis_angle(selection):
+    """No candidate sees half the wall (assign_fraction 0.5), so none is assigned it; yet of the
+    arc of half-width ~70 deg one near spot sees, its neighbour 30 deg away sees (140 - 30) / 140
+    = 79 %: they share the wall, and with a 40 deg minimum axis angle they conflict; spots 90 deg
+    apart (36 % in common) or opposite (nothing) do not."""
+    from dataclasses import replace
+
+    exp, geometry, cand, scorer, chosen, score = selection
+    assert not cand.assigned[:, 0].any()
+    strict = replace(exp, optimize=replace(exp.optimize, min_axis_angle=math.radians(40)))
+    feas = design.Feasibility(strict, cand, geometry.samples)
+    index = {c: i for i, c in enumerate(cand.cameras)}
+    near = [index[c] for c in cand.cameras if np.hypot(*c.position[:2]) < (NEAR + FAR) / 2]
+    near.sort(key=lambda i: np.degrees(np.arctan2(cand.positions[i, 1], cand.positions[i, 0])) % 360)
+    assert feas.conflicts(near[1], near[0]) and feas.conflicts(near[11], near[0])
+    assert not feas.conflicts(near[3], near[0]) and not feas.conflicts(near[6], near[0])
+    assert not design.Feasibility(strict, cand).conflicts(near[1], near[0])    # assigned alone: no pair

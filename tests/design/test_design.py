@@ -55,7 +55,8 @@ def _pair_score(exp, geometry, cams):
     from the candidates' stored sums: the per-sample information C and coverage k of
     `objective.sample_fields`, sigma_n = sqrt((tr Sigma^p)^(1/p)) of Sigma = (C + I/prior^2)^-1
     by numpy's eigenvalues (not the invariants the score uses), then
-    exp(sum omega ln(sigma / sigma_unit) + kappa sum a max(0, m - k)^2) sigma_unit units."""
+    exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
+    Huber function of half a view."""
     scene = build_scene(list(geometry.meshes))
     smp = samples_for_objective(exp, geometry.samples)
     vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
@@ -71,9 +72,10 @@ def _pair_score(exp, geometry, cams):
     omega = area * geometry.samples.region_importance[geometry.samples.region]
     need = np.array([r.min_cameras for r in exp.regions])[geometry.samples.region]
     short = np.maximum(need - np.asarray(f.coverage), 0.0)
+    huber = np.where(short > 0.5, short - 0.25, short ** 2)       # s^2 / (2 x 0.5) below half a view
     kappa = math.log(st.prior_sigma / st.sigma_unit)
     return float(np.exp(np.sum(omega / omega.sum() * np.log(sigma))
-                        + kappa * np.sum(area / area.sum() * short ** 2)))
+                        + kappa * np.sum(area / area.sum() * huber)))
 
 
 def test_candidates_information_adds_to_the_layouts(judged):

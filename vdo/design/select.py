@@ -35,12 +35,14 @@ k_S(n) = sum_{i in S} w_i(n). The set is scored by the geometric mean of sigma, 
 coverage deficit:
 
     score(S) = exp( sum_n omega_n ln(sigma_n / 1 um) + kappa P ) um,
-    P = sum_n' a_n' max(0, k_region(n') - k_S(n'))^2 / sum_n' a_n',
+    P = sum_n' a_n' h(max(0, k_region(n') - k_S(n'))) / sum_n' a_n',
 
 sigma_n the smooth sigma_max of the regularised C_S (`vdo.objective`), omega = area x importance
 over the scored regions ([optimize] regions, default all) normalised to sum 1, and the coverage
 penalty P over EVERY region (a design must see the whole specimen, not only the scored part),
-kappa = ln(prior_sigma / 1 um) = ln 1000 (`coverage_weight`). Why not the optimizer's power mean
+kappa = ln(prior_sigma / 1 um) = ln 1000 (`coverage_weight`), h the views missing at a sample
+smoothed (`views_short`: Huber, linear beyond half a view, so that a second view counts about as
+much as a first). Why not the optimizer's power mean
 (q = 8, `vdo.objective.score`): a sample no camera pair measures sits at the prior's sigma (1 mm),
 (1000 / 0.3)^8 ~ 1e28 times a measured sample's term, so while any sample of the specimen is
 unmeasured (one that no candidate can measure, or the part an all-round layout cannot reach yet)
@@ -61,7 +63,8 @@ score. Feasible with the selected set:
 * the inventory: no more cameras of a body kind than its count;
 * one camera per spot: no two optical centres closer than SPOT_M (a body and its clearance);
 * axis angles: two cameras that share a region (each sees at least `[optimize]
-  assign_fraction` of its area with usable weight) keep their optical axes at least `[optimize]
+  assign_fraction` of its area with usable weight, or the area of it both see usably is at least
+  that fraction of the smaller area either sees: all-round regions, `Feasibility`) keep their optical axes at least `[optimize]
   min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens,
   and at most `[optimize]` or that region's `max_axis_angle_deg` where set;
 * clearance from the meshes (above, per candidate);
@@ -147,6 +150,7 @@ PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a b
 #                              flags (whole scene, specimen alone, keyframes) and their float copies
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+SHORT_SMOOTH = 0.5           # views: the coverage penalty is quadratic below this deficit, linear above (`views_short`)
 GB = 1e9
 
 
@@ -583,7 +587,7 @@ class Scorer:
         score(S + k) = exp( L + sum_{n in k} omega_n [ln sigma'_n - ln sigma_n]
                             + kappa (H + sum_{n in k} [h'_n - h_n]) ) sigma_unit,
 
-    L = sum_n omega_n ln(sigma_n / sigma_unit), h_n = a_n max(0, k_region(n) - k_S(n))^2, H their
+    L = sum_n omega_n ln(sigma_n / sigma_unit), h_n = a_n h(max(0, k_region(n) - k_S(n))) (`views_short`), H their
     sum and the primes after the addition: each correction is a difference of logarithms at one
     sample (no cancellation against the whole sum), and the cost follows the stored entries, not
     candidates x samples."""
@@ -624,12 +628,12 @@ class Scorer:
         sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
         short = jnp.maximum(self._minimum - cover, 0.0)
         return jnp.exp(jnp.sum(self._omega * jnp.log(sigma))
-                       + self.kappa * jnp.sum(self._area * short * short))
+                       + self.kappa * jnp.sum(self._area * views_short(short, jnp)))
 
     def _score(self, sigma, cover) -> float:
         short = np.maximum(self.minimum - cover, 0.0)
         return float(np.exp(np.sum(self.omega * np.log(sigma))
-                            + self.kappa * np.sum(self.area * short * short)))
+                            + self.kappa * np.sum(self.area * views_short(short, np))))
 
     def _entry_terms(self, index, info, weight, base_info, base_cover, base_log, h):
         """Per entry (one chunk, jitted): omega_n (ln sigma'_n - ln sigma_n) after adding the
@@ -639,7 +643,7 @@ class Scorer:
                                           st) / st.sigma_unit
         short = jnp.maximum(self._minimum[index] - (base_cover[index] + weight), 0.0)
         return self._omega[index] * (jnp.log(sig) - base_log[index]), \
-            self._area[index] * short * short - h[index]
+            self._area[index] * views_short(short, jnp) - h[index]
 
     def add(self, base_info, base_cover, cand: Candidates, rows) -> np.ndarray:
         """Scores of base + each candidate of `rows`: base (N, 6), (N,)."""
@@ -648,7 +652,7 @@ class Scorer:
             return np.zeros(0)
         log_sigma = np.log(self.sigma(base_info))
         short = np.maximum(self.minimum - base_cover, 0.0)
-        h = self.area * short * short
+        h = self.area * views_short(short, np)
         base = tuple(jnp.asarray(x) for x in (base_info, base_cover, log_sigma, h))
         dl, dh = np.zeros(len(rows)), np.zeros(len(rows))
         # the stored entries of `rows`, row after row, ENTRY_CHUNK at a time: every per-entry
@@ -670,6 +674,16 @@ class Scorer:
     def of(self, cand: Candidates, chosen) -> float:
         info, cover = cand.sums(list(chosen))
         return self._score(self.sigma(info), cover)
+
+
+def views_short(short, xp):
+    """The coverage penalty's cost of `short` views missing at a sample (module docstring): the
+    Huber function, s^2 / (2 SHORT_SMOOTH) up to SHORT_SMOOTH views, s - SHORT_SMOOTH / 2 beyond:
+    convex and smooth (the bound's gradient steps), and as linear as that allows, so that a
+    sample's second view lowers it about as much as its first (a squared deficit rewarded the
+    first view three times the second and spread two cameras over disjoint views). xp: numpy or
+    jax.numpy."""
+    return xp.where(short > SHORT_SMOOTH, short - SHORT_SMOOTH / 2, short * short / (2 * SHORT_SMOOTH))
 
 
 def coverage_weight(st: objective.Settings) -> float:
@@ -696,11 +710,24 @@ class Feasibility:
     max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
     between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
     max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
-    pairs sharing that region). A candidate's conflicts with all others (K,) are found when it is
-    first selected and kept (never a K x K matrix)."""
+    pairs sharing that region). Two candidates share a region when both are assigned it or, with
+    the `samples` the candidates were judged on, when the area of it that both see usably is at
+    least [optimize] assign_fraction of the smaller area either sees (`vdo.constraints.sharing`'s
+    rule: around a closed surface no candidate is assigned it, yet neighbours see the same part).
+    A candidate's conflicts with all others (K,) are found when it is first selected and kept
+    (never a K x K matrix)."""
 
-    def __init__(self, exp: Experiment, cand: Candidates):
+    def __init__(self, exp: Experiment, cand: Candidates, samples=None):
         self.exp, self.cand = exp, cand
+        self._seen = self._region_area = self._alone = None
+        if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
+            use = usable.usable_views(cand.entry_weight)
+            self._seen = scipy.sparse.csr_matrix(
+                (np.ones(int(use.sum())), (cand.row[use], cand.index[use])), shape=(len(cand.cameras), cand.samples))
+            self._region_area = scipy.sparse.csr_matrix(
+                (samples.area, (np.arange(len(samples)), samples.region)),
+                shape=(len(samples), len(samples.region_names)))
+            self._alone = (self._seen @ self._region_area).toarray()
         self.positions, self.axes = cand.positions, cand.axes
         self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
                         if spec.max_axis_angle is not None]
@@ -714,15 +741,26 @@ class Feasibility:
         if j not in self._rows:
             cand, opt = self.cand, self.exp.optimize
             exclusive = np.linalg.norm(self.positions - self.positions[j], axis=1) < SPOT_M
-            share = (cand.assigned & cand.assigned[j]).any(axis=1)
+            shared = self.shared(j)
+            share = shared.any(axis=1)
             angle = np.arccos(np.clip(self.axes @ self.axes[j], -1, 1))
             conflict = exclusive | (share & (angle < min_angles(self.exp, cand, j) - ANGLE_TOL))
             if opt.max_axis_angle is not None:
                 conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
             for r, top in self.limited:
-                conflict |= cand.assigned[:, r] & cand.assigned[j, r] & (angle > top + ANGLE_TOL)
+                conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
             self._rows[j] = conflict
         return self._rows[j]
+
+    def shared(self, j: int) -> np.ndarray:
+        """(K, R) True where a candidate shares region r with candidate j (class docstring)."""
+        out = self.cand.assigned & self.cand.assigned[j]
+        if self._seen is None:
+            return out
+        mine = np.asarray(self._seen[j].todense()).ravel()
+        common = (self._seen @ self._region_area.multiply(mine[:, None]).tocsr()).toarray()
+        smaller = np.minimum(self._alone, self._alone[j])
+        return out | ((smaller > 0) & (common >= self.exp.optimize.assign_fraction * smaller))
 
     def conflicts(self, i: int, j: int) -> bool:
         return bool(self.row(j)[i])
@@ -1070,7 +1108,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             f"none of the {cand.pruned} candidate poses that keep their clearance sees a sample: add "
             "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
             "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
-    feas = Feasibility(exp, cand)
+    feas = Feasibility(exp, cand, coarse.samples)
     can_measure = measurable(exp, cand, coarse.samples)
     log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
              "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
