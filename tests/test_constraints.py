@@ -214,3 +214,71 @@ def test_in_image_fraction_of_a_distorted_camera_counts_what_opencv_projects_ins
         jnp.asarray(K)[None], jnp.eye(3)[None], jnp.zeros((1, 3)), jnp.asarray([W]), jnp.asarray([H]),
         np.array([0]), jnp.asarray(X)[None], jnp.ones((1, len(X))), jnp.asarray([1e-3]), jnp.asarray(dist)[None])
     assert float(frac[0]) == pytest.approx(exact, abs=0.5 / len(X))
+
+
+ROUND_CAMERA = """
+[[camera]]
+name = "c{deg}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 16
+position_m = [{x:.6f}, {y:.6f}, 0.0]
+target_m = [0, 0, 0]
+"""
+
+
+def test_cameras_around_a_cylinder_share_it_with_their_neighbours_only(tmp_path):
+    """Three cameras 1 m from the axis of a cylinder (r = 0.1 m) at 0, 60 and 180 deg, incidence
+    limit 75 deg: each sees an arc of half-width alpha (closed form below, ~70 deg), 39 % of the
+    wall, so none is assigned it (assign_fraction 0.5) and the optimizer formed no pair. Of the
+    arc one sees, its neighbour at 60 deg sees (2 alpha - 60) / (2 alpha) ~ 57 %: they share the
+    wall (one pair, its axis angle checked); at 120 and 180 deg apart, 14 % and nothing: no pair."""
+    import textwrap
+
+    import trimesh
+
+    from vdo.config import experiment as config
+    from vdo.state import layout_state, prepare
+
+    radius, distance, limit = 0.1, 1.0, math.radians(75)
+    trimesh.creation.cylinder(radius=radius, height=0.3, sections=128).export(tmp_path / "cyl.stl")
+    cams = "".join(ROUND_CAMERA.format(deg=d, x=distance * math.cos(math.radians(d)),
+                                       y=distance * math.sin(math.radians(d))) for d in (0, 60, 180))
+    (tmp_path / "cyl.toml").write_text(textwrap.dedent("""
+        [experiment]
+        name = "three around a cylinder"
+        [evaluation]
+        sample_spacing_mm = 10
+        incidence_limit_deg = 75
+        [[mesh]]
+        name = "cyl"
+        file = "cyl.stl"
+        role = "specimen"
+        [[region]]
+        name = "wall"
+        mesh = "cyl"
+        near_axis_m = [[0, 0, 0], [0, 0, 1]]
+        within_m = 0.11
+        box_min_m = [-1, -1, -0.149]
+        box_max_m = [1, 1, 0.149]
+        """) + cams)
+    exp = config.load(tmp_path / "cyl.toml")
+    state = layout_state(prepare(exp))
+    smp, vis = state.samples, state.visibility
+    # alpha: the wall point at angle psi from a camera is seen at incidence
+    # acos((D cos psi - r) / |D - r n|), n = (cos psi, sin psi); 75 deg at psi = alpha
+    psi = np.linspace(0, math.pi / 2, 200001)
+    incidence = np.arccos((distance * np.cos(psi) - radius)
+                          / np.hypot(distance - radius * np.cos(psi), radius * np.sin(psi)))
+    alpha = math.degrees(psi[np.searchsorted(incidence, limit)])
+    assert not constraints.assignments(vis, smp, exp.optimize.assign_fraction).any()
+    shared = constraints.sharing(vis, smp, exp.optimize.assign_fraction)
+    assert shared[0, 1, 0] and shared[1, 0, 0]
+    assert not shared[0, 2, 0] and not shared[1, 2, 0]
+    seen = np.asarray(vis.visible, dtype=float) * smp.area
+    fraction = (seen[0] @ np.asarray(vis.visible[1], dtype=float)) / seen[0].sum()
+    assert fraction == pytest.approx((2 * alpha - 60) / (2 * alpha), abs=0.05)
+    pairs, low, _ = constraints.angle_limits(exp, list(state.cameras),
+                                             constraints.assignments(vis, smp, 0.5), shared)
+    np.testing.assert_array_equal(pairs, [[0, 1]])
+    assert low[0] == pytest.approx(constraints.stereo_min_angle(0.016))

@@ -1,7 +1,8 @@
 """Practical constraints on a camera layout (paper sec. 3): smooth penalties for the optimizer in
 JAX, and exact checks for the report.
 
-* axis angle:   two cameras assigned a common region keep their optical axes at least a minimum
+* axis angle:   two cameras that share a region (`sharing`: both assigned it, or most of what
+                the one sees of it the other sees too) keep their optical axes at least a minimum
                 angle apart; by default the stereo-DIC rule of thumb for the shorter lens of the
                 two: 35 deg up to 12 mm, 25 deg at 17 mm, 15 deg from 35 mm, linear in between;
                 and at most a maximum where one is set: `[optimize] max_axis_angle_deg` for every
@@ -57,6 +58,29 @@ def assignments(vis: Visibility, samples: SurfaceSamples, fraction: float) -> np
     return seen >= fraction
 
 
+def sharing(vis: Visibility, samples: SurfaceSamples, fraction: float) -> np.ndarray:
+    """(C, C, R) True where cameras i != j share region r: both are assigned it (`assignments`),
+    or the area of r that both see is at least `fraction` of the smaller of the areas of r that
+    each sees. The second rule forms the pairs of an all-round layout: around a closed surface
+    (a ring, a nozzle) no camera sees `fraction` of the region, so none is assigned it, yet
+    neighbours see the same part of it; two cameras facing each other across it see disjoint
+    parts and share nothing."""
+    visible = np.asarray(vis.visible, dtype=float)
+    assigned = assignments(vis, samples, fraction)
+    C, R = len(visible), len(samples.region_names)
+    out = np.zeros((C, C, R), dtype=bool)
+    for r in range(R):
+        mask = samples.region == r
+        seen = visible[:, mask] * samples.area[mask]          # (C, N_r) area each camera sees
+        common = seen @ visible[:, mask].T                     # (C, C) area both see
+        alone = np.diag(common)
+        smaller = np.minimum(alone[:, None], alone[None, :])
+        out[:, :, r] = (assigned[:, None, r] & assigned[None, :, r]) | (
+            (smaller > 0) & (common >= fraction * smaller))
+    out[np.arange(C), np.arange(C)] = False
+    return out
+
+
 def shared_pairs(assigned: np.ndarray) -> np.ndarray:
     """(K, 2) camera pairs i < j assigned at least one common region."""
     n = len(assigned)
@@ -85,9 +109,11 @@ def axis_angle_penalty(axes, pairs, min_angles, max_angles=None):
     return total + jnp.sum(over ** 2)
 
 
-def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs of cameras assigned a
-    common region (`assigned` (C, R), `shared_pairs`) with [optimize] min_axis_angle_deg (or the
+def angle_limits(exp, cameras, assigned: np.ndarray,
+                 shared: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs of cameras that share a
+    region (`shared` (C, C, R), `sharing`; without it, the pairs assigned a common region:
+    `assigned` (C, R), `shared_pairs`) with [optimize] min_axis_angle_deg (or the
     rule of thumb for the shorter lens) and as maximum the least of [optimize]
     max_axis_angle_deg and the max_axis_angle_deg of the regions they share (+inf when none is
     set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
@@ -102,8 +128,10 @@ def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.nda
                            for r in exp.regions])
     top = math.inf if opt.max_axis_angle is None else opt.max_axis_angle
     limits = {}
-    for i, j in shared_pairs(assigned):
-        common = np.asarray(assigned[i]) & np.asarray(assigned[j])
+    if shared is None:
+        shared = np.asarray(assigned)[:, None, :] & np.asarray(assigned)[None, :, :]
+    for i, j in zip(*np.nonzero(np.triu(shared.any(axis=-1), 1))):
+        common = shared[i, j]
         limits[(int(i), int(j))] = (opt.min_axis_angle if opt.min_axis_angle is not None else rule(i, j),
                                     min(top, float(region_max[common].min(initial=math.inf))))
     for pair in exp.stereo_pairs:
@@ -118,10 +146,12 @@ def angle_limits(exp, cameras, assigned: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def angle_checks(exp, cameras, vis: Visibility, samples: SurfaceSamples) -> list[dict]:
     """The axis-angle checks of a layout as `vdo evaluate` reports them: the pairs of cameras
-    that share a region (each sees at least [optimize] assign_fraction of it) and the declared
+    that share a region (`sharing`, [optimize] assign_fraction) and the declared
     stereo pairs, each with an "axis_angle" entry (the minimum) and, where a maximum applies, an
     "axis_angle_max" entry (`check`'s entries: value, limit, met, excess)."""
-    pairs, low, high = angle_limits(exp, cameras, assignments(vis, samples, exp.optimize.assign_fraction))
+    fraction = exp.optimize.assign_fraction
+    pairs, low, high = angle_limits(exp, cameras, assignments(vis, samples, fraction),
+                                    sharing(vis, samples, fraction))
     out = []
     for (i, j), lo, hi, angle in zip(pairs, low, high, axis_angles(cameras, pairs)):
         about = dict(cameras=[cameras[i].name, cameras[j].name])

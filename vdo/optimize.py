@@ -406,8 +406,10 @@ class Problem:
         self.refresh_s = time.perf_counter() - t0   # s: one layout's ray cast, lighting and views
         self.assigned = (constraints.assignments(self.start.vis, self.samples, opt.assign_fraction)
                          if reference is None else reference.assigned)
+        self.shared = (constraints.sharing(self.start.vis, self.samples, opt.assign_fraction)
+                       if reference is None else reference.shared)
         self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
-            exp, self.cams0, self.assigned)
+            exp, self.cams0, self.assigned, self.shared)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
@@ -769,7 +771,8 @@ def layout_checks(state: LayoutState) -> list[dict]:
     exp, geometry, samples = state.experiment, state.geometry, state.samples
     opt, cameras = exp.optimize, list(state.cameras)
     assigned = constraints.assignments(state.visibility, samples, opt.assign_fraction)
-    pairs, min_angles, max_angles = constraints.angle_limits(exp, cameras, assigned)
+    pairs, min_angles, max_angles = constraints.angle_limits(
+        exp, cameras, assigned, constraints.sharing(state.visibility, samples, opt.assign_fraction))
     tree = cKDTree(_surface_points(list(geometry.meshes), spacing=CLEARANCE_SPACING))
     lit_without = unobstructed_lighting(geometry).lit if exp.lights else None
     specs = {s.name: s for s in exp.camera_specs}

@@ -52,7 +52,12 @@ def judged(plate_experiment):
 
 
 def _pair_score(exp, geometry, cams):
-    """objective.score of a layout of these cameras, computed from its own ray cast."""
+    """The design's score of a layout of these cameras, computed from its own ray cast and not
+    from the candidates' stored sums: the per-sample information C and coverage k of
+    `objective.sample_fields`, sigma_n = sqrt((tr Sigma^p)^(1/p)) of Sigma = (C + I/prior^2)^-1
+    by numpy's eigenvalues (not the invariants the score uses), then
+    exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
+    Huber function of half a view."""
     scene = build_scene(list(geometry.meshes))
     smp = samples_for_objective(exp, geometry.samples)
     vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
@@ -60,8 +65,18 @@ def _pair_score(exp, geometry, cams):
     light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
     views = view_data(exp, smp, vis, light, geometry.speckle)
     st = replace(settings(exp), pair_dtype="float64")
-    return float(objective.score(objective.CameraParams.from_cameras(cams), smp, views,
-                                 geometry.speckle.table, st))
+    f = objective.sample_fields(objective.CameraParams.from_cameras(cams), smp, views,
+                                geometry.speckle.table, st)
+    mu = 1.0 / np.linalg.eigvalsh(np.asarray(f.information) + np.eye(3) / st.prior_sigma ** 2)
+    sigma = np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit
+    area = np.asarray(geometry.samples.area)
+    omega = area * geometry.samples.region_importance[geometry.samples.region]
+    need = np.array([r.min_cameras for r in exp.regions])[geometry.samples.region]
+    short = np.maximum(need - np.asarray(f.coverage), 0.0)
+    huber = np.where(short > 0.5, short - 0.25, short ** 2)       # s^2 / (2 x 0.5) below half a view
+    kappa = math.log(st.prior_sigma / st.sigma_unit)
+    return float(np.exp(np.sum(omega / omega.sum() * np.log(sigma))
+                        + kappa * np.sum(area / area.sum() * huber)))
 
 
 def test_candidates_information_adds_to_the_layouts(judged):
@@ -251,7 +266,7 @@ def test_the_inventory_counts_are_respected(plate_experiment):
     """Two body kinds of one sensor size, 300 x 200 and 1200 x 800 pixels, one of each: every
     candidate carries one of them; once a kind is used its candidates are no longer allowed; the
     selected pair is the best of all feasible mixed pairs (exhaustive), and its score from the
-    candidates equals `objective.score` of those two cameras ray cast anew."""
+    candidates equals the design's score of those two cameras ray cast anew (`_pair_score`)."""
     exp = _experiment(plate_experiment, n=2, regions=BODIES.format(small=1, large=1))
     geometry = prepare(exp)
     cand = design.judge(exp, geometry)
@@ -345,7 +360,7 @@ def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_exper
 
 def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, monkeypatch):
     """Scorer.add corrects the base's sums at a candidate's stored entries only: equal to
-    Scorer.of, which sums every sample (checked against objective.score above), for every
+    Scorer.of, which sums every sample (checked against `_pair_score` above), for every
     candidate added to every base pair; judging in blocks of 2 candidates stores the same entries
     as one block."""
     exp, geometry, cand = judged
@@ -461,8 +476,8 @@ def test_candidates_judged_on_a_two_worker_local_cluster_equal_the_local_run(pla
 
 def test_sparse_scores_when_a_candidate_sees_the_worst_samples(judged):
     """A base of every candidate but one leaves its worst samples to the one left out: the score
-    of adding it (the base's sum over the samples it does not see taken per band of g) equals
-    Scorer.of's sum over every sample, where G - sum_k g alone would lose the rest to rounding."""
+    of adding it (the base's log-sum corrected at the samples it sees) equals Scorer.of's sum over
+    every sample."""
     exp, geometry, cand = judged
     scorer = design.Scorer(exp, geometry.samples)
     K = len(cand.cameras)

@@ -31,18 +31,31 @@ rank 2 with its null vector along the ray, and float32 rounding of entries ~1e15
 sample seen once (the regularised C turned indefinite and the score NaN).
 
 Score. The information of a set S of cameras adds: C_S(n) = sum_{i in S} C_i(n), coverage
-k_S(n) = sum_{i in S} w_i(n). The set is scored as `vdo.objective.score` scores a layout:
+k_S(n) = sum_{i in S} w_i(n). The set is scored by the geometric mean of sigma, inflated by the
+coverage deficit:
 
-    score(S) = ( sum_n omega_n sigma_n^q / sum_n omega_n )^(1/q) / 1 um + W P,
-    P = sum_n' a_n' max(0, k_region(n') - k_S(n'))^2 / sum_n' a_n'
+    score(S) = exp( sum_n omega_n ln(sigma_n / 1 um) + kappa P ) um,
+    P = sum_n' a_n' h(max(0, k_region(n') - k_S(n'))) / sum_n' a_n',
 
 sigma_n the smooth sigma_max of the regularised C_S (`vdo.objective`), omega = area x importance
-over the scored regions ([optimize] regions, default all), q = 8, W = 1000, and the coverage
-penalty P over EVERY region (a design must see the whole specimen, not only the scored part).
-This is the optimizer's own score, so selection and refinement minimise the same thing. It is not
-submodular (one camera alone gains nothing in sigma; pairs do), so lazy evaluation's bound does not
-hold: every step evaluates every feasible candidate, which the sums make cheap (`Scorer.add`:
-the base's sums corrected at each candidate's stored entries, one vectorised pass over them).
+over the scored regions ([optimize] regions, default all) normalised to sum 1, and the coverage
+penalty P over EVERY region (a design must see the whole specimen, not only the scored part),
+kappa = ln(prior_sigma / 1 um) = ln 1000 (`coverage_weight`), h the views missing at a sample
+smoothed (`views_short`: Huber, linear beyond half a view, so that a second view counts about as
+much as a first). Why not the optimizer's power mean
+(q = 8, `vdo.objective.score`): a sample no camera pair measures sits at the prior's sigma (1 mm),
+(1000 / 0.3)^8 ~ 1e28 times a measured sample's term, so while any sample of the specimen is
+unmeasured (one that no candidate can measure, or the part an all-round layout cannot reach yet)
+the power mean is flat in every measured sigma, to float64's last digit, and the selection only
+adds views (the pressure vessel: 7 designed cameras at sigma p95 2.2-8x the hand layout's, 8 mm
+lenses). In the logarithm every sample counts by its ratio: a second view of an area a (sigma from
+1 mm to ~1 um: ln 1000 ~ 6.9, plus kappa from P) competes with halving sigma on ~20 a of
+measured area (ln 2 each), and a sample that no selection can measure adds a constant. The score
+is convex in (C_S, k_S) (`vdo.design.bound`). It is not submodular (one camera alone gains
+nothing in sigma; pairs do), so lazy evaluation's bound does not hold: every step evaluates every
+feasible candidate, which the sums make cheap (`Scorer.add`: the base's log-sum corrected at each
+candidate's stored entries, one vectorised pass over them). `vdo design --refine` then minimises
+the optimizer's own score (`vdo optimize`), which weighs the worst samples (q = 8).
 
 Selection. Greedy forward selection adds the feasible candidate with the lowest score, then
 exchange passes replace one selected camera by the best feasible candidate while that lowers the
@@ -50,7 +63,8 @@ score. Feasible with the selected set:
 * the inventory: no more cameras of a body kind than its count;
 * one camera per spot: no two optical centres closer than SPOT_M (a body and its clearance);
 * axis angles: two cameras that share a region (each sees at least `[optimize]
-  assign_fraction` of its area with usable weight) keep their optical axes at least `[optimize]
+  assign_fraction` of its area with usable weight, or the area of it both see usably is at least
+  that fraction of the smaller area either sees: all-round regions, `Feasibility`) keep their optical axes at least `[optimize]
   min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens,
   and at most `[optimize]` or that region's `max_axis_angle_deg` where set;
 * clearance from the meshes (above, per candidate);
@@ -136,9 +150,8 @@ PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a b
 #                              flags (whole scene, specimen alone, keyframes) and their float copies
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+SHORT_SMOOTH = 0.5           # views: the coverage penalty is quadratic below this deficit, linear above (`views_short`)
 GB = 1e9
-G_BAND_OCTAVES = 8           # the score's per-sample terms summed in bands a factor 2^8 wide (`Scorer.add`)
-G_BANDS = 140                # bands: g = omega (sigma / T)^q down to 2^-1120, below float64's smallest
 
 
 @dataclass(frozen=True, eq=False)
@@ -564,15 +577,19 @@ def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=
 
 
 class Scorer:
-    """score(S) of the module docstring for sums of candidates' information and weights. Adding
-    one candidate changes only the samples it sees, so each candidate's score is the base set's
-    sums corrected at its stored entries: with T the base's largest sigma (information only lowers
-    sigma, so T bounds every sigma after the addition),
+    """score(S) of the module docstring for sums of candidates' information and weights:
 
-        score(S + k) = T (G + sum_{n in k} [g'_n - g_n])^(1/q) + W (H + sum_{n in k} [h'_n - h_n]),
+        score(S) = exp( sum_n omega_n ln(sigma_n / sigma_unit) + kappa P ) sigma_unit,
 
-    g_n = omega_n (sigma_n / T)^q, h_n = a_n max(0, k_region(n) - k_S(n))^2, G and H their sums
-    over all samples and the primes after the addition: the cost follows the stored entries, not
+    omega_n normalised to sum 1. Adding one candidate changes only the samples it sees, so each
+    candidate's score is the base set's sums corrected at its stored entries,
+
+        score(S + k) = exp( L + sum_{n in k} omega_n [ln sigma'_n - ln sigma_n]
+                            + kappa (H + sum_{n in k} [h'_n - h_n]) ) sigma_unit,
+
+    L = sum_n omega_n ln(sigma_n / sigma_unit), h_n = a_n h(max(0, k_region(n) - k_S(n))) (`views_short`), H their
+    sum and the primes after the addition: each correction is a difference of logarithms at one
+    sample (no cancellation against the whole sum), and the cost follows the stored entries, not
     candidates x samples."""
 
     def __init__(self, exp: Experiment, samples):
@@ -585,6 +602,7 @@ class Scorer:
         self.omega = omega / omega.sum()
         self.area = samples.area / samples.area.sum()
         self.minimum = minimum[samples.region].astype(float)
+        self.kappa = coverage_weight(st)
         self._sigma = jax.jit(lambda e: objective._smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
                               / st.sigma_unit)
         self._omega, self._area, self._minimum = (jnp.asarray(x) for x in (self.omega, self.area,
@@ -608,51 +626,35 @@ class Scorer:
         traceable JAX function, convex in both (`vdo.design.bound`); `_score` on the host."""
         st = self.settings
         sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
-        q, top = st.score_power, jnp.max(sigma)
         short = jnp.maximum(self._minimum - cover, 0.0)
-        return top * jnp.sum(self._omega * (sigma / top) ** q) ** (1.0 / q) + \
-            st.coverage_weight * jnp.sum(self._area * short * short)
+        return jnp.exp(jnp.sum(self._omega * jnp.log(sigma))
+                       + self.kappa * jnp.sum(self._area * views_short(short, jnp)))
 
     def _score(self, sigma, cover) -> float:
-        q = self.settings.score_power
-        top = sigma.max()
         short = np.maximum(self.minimum - cover, 0.0)
-        return float(top * np.sum(self.omega * (sigma / top) ** q) ** (1.0 / q)
-                     + self.settings.coverage_weight * np.sum(self.area * short * short))
+        return float(np.exp(np.sum(self.omega * np.log(sigma))
+                            + self.kappa * np.sum(self.area * views_short(short, np))))
 
-    def _entry_terms(self, index, info, weight, base_info, base_cover, h, top):
-        """Per entry (one chunk, jitted): g'_n after adding the entry's information to the base at
-        its sample n, and h'_n - h_n (class docstring)."""
+    def _entry_terms(self, index, info, weight, base_info, base_cover, base_log, h):
+        """Per entry (one chunk, jitted): omega_n (ln sigma'_n - ln sigma_n) after adding the
+        entry's information to the base at its sample n, and h'_n - h_n (class docstring)."""
         st = self.settings
         sig = objective._smooth_sigma_max(tuple(base_info[index, k] + info[:, k] for k in range(6)),
                                           st) / st.sigma_unit
         short = jnp.maximum(self._minimum[index] - (base_cover[index] + weight), 0.0)
-        return self._omega[index] * (sig / top) ** st.score_power, \
-            self._area[index] * short * short - h[index]
+        return self._omega[index] * (jnp.log(sig) - base_log[index]), \
+            self._area[index] * views_short(short, jnp) - h[index]
 
     def add(self, base_info, base_cover, cand: Candidates, rows) -> np.ndarray:
-        """Scores of base + each candidate of `rows`: base (N, 6), (N,). The sum of g over the
-        samples a candidate does not see, G - sum_{n in k} g_n, is taken per band of g (a factor
-        2^G_BAND_OCTAVES wide; a band the candidate sees whole leaves exactly 0), so that a
-        candidate that sees the base's worst samples does not leave the rest to the rounding of
-        their difference."""
+        """Scores of base + each candidate of `rows`: base (N, 6), (N,)."""
         rows = np.asarray(rows, dtype=int)
         if rows.size == 0:
             return np.zeros(0)
-        st, q = self.settings, self.settings.score_power
-        sigma = self.sigma(base_info)
-        top = sigma.max()
-        g = self.omega * (sigma / top) ** q
-        with np.errstate(divide="ignore"):
-            band = np.clip(-np.floor(np.log2(g) / G_BAND_OCTAVES), 0, G_BANDS - 1).astype(np.int64)
-        band_sum = np.bincount(band, g, minlength=G_BANDS)
-        band_count = np.bincount(band, minlength=G_BANDS)
+        log_sigma = np.log(self.sigma(base_info))
         short = np.maximum(self.minimum - base_cover, 0.0)
-        h = self.area * short * short
-        base = tuple(jnp.asarray(x) for x in (base_info, base_cover, h))
-        seen_sum = np.zeros((len(rows), G_BANDS))
-        seen_count = np.zeros((len(rows), G_BANDS), np.int64)
-        seen_new, dh = np.zeros(len(rows)), np.zeros(len(rows))
+        h = self.area * views_short(short, np)
+        base = tuple(jnp.asarray(x) for x in (base_info, base_cover, log_sigma, h))
+        dl, dh = np.zeros(len(rows)), np.zeros(len(rows))
         # the stored entries of `rows`, row after row, ENTRY_CHUNK at a time: every per-entry
         # array lives for one chunk (the stored pairs are the only thing as large as all of them)
         ends = np.cumsum(cand.indptr[rows + 1] - cand.indptr[rows])
@@ -663,20 +665,32 @@ class Scorer:
             e = cand.indptr[rows[owner]] + pos - (ends[owner] - (cand.indptr[rows + 1] - cand.indptr[rows])[owner])
             m = len(e)
             pad = lambda x: np.concatenate([x, np.zeros((ENTRY_CHUNK - m,) + x.shape[1:], x.dtype)])  # noqa: E731
-            n = cand.index[e]
-            a, b = self._terms(jnp.asarray(pad(n)), jnp.asarray(pad(cand.entry_info[e])),
-                               jnp.asarray(pad(cand.entry_weight[e].astype(float))), *base, top)
-            seen_new += np.bincount(owner, np.asarray(a)[:m], minlength=len(rows))
+            a, b = self._terms(jnp.asarray(pad(cand.index[e])), jnp.asarray(pad(cand.entry_info[e])),
+                               jnp.asarray(pad(cand.entry_weight[e].astype(float))), *base)
+            dl += np.bincount(owner, np.asarray(a)[:m], minlength=len(rows))
             dh += np.bincount(owner, np.asarray(b)[:m], minlength=len(rows))
-            cell = owner * G_BANDS + band[n]
-            seen_sum += np.bincount(cell, g[n], minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
-            seen_count += np.bincount(cell, minlength=len(rows) * G_BANDS).reshape(-1, G_BANDS)
-        unseen = np.where(seen_count == band_count, 0.0, np.maximum(band_sum - seen_sum, 0.0)).sum(1)
-        return top * (unseen + seen_new) ** (1.0 / q) + st.coverage_weight * (h.sum() + dh)
+        return np.exp(np.sum(self.omega * log_sigma) + dl + self.kappa * (h.sum() + dh))
 
     def of(self, cand: Candidates, chosen) -> float:
         info, cover = cand.sums(list(chosen))
         return self._score(self.sigma(info), cover)
+
+
+def views_short(short, xp):
+    """The coverage penalty's cost of `short` views missing at a sample (module docstring): the
+    Huber function, s^2 / (2 SHORT_SMOOTH) up to SHORT_SMOOTH views, s - SHORT_SMOOTH / 2 beyond:
+    convex and smooth (the bound's gradient steps), and as linear as that allows, so that a
+    sample's second view lowers it about as much as its first (a squared deficit rewarded the
+    first view three times the second and spread two cameras over disjoint views). xp: numpy or
+    jax.numpy."""
+    return xp.where(short > SHORT_SMOOTH, short - SHORT_SMOOTH / 2, short * short / (2 * SHORT_SMOOTH))
+
+
+def coverage_weight(st: objective.Settings) -> float:
+    """kappa of the score (module docstring): ln(prior_sigma / sigma_unit), so that a sample's
+    whole area one camera short of its region's min_cameras raises the score's logarithm as much
+    as a sample of the same weight going from a 1 um to an unmeasured sigma (the prior, 1 mm)."""
+    return math.log(st.prior_sigma / st.sigma_unit)
 
 
 def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
@@ -696,11 +710,24 @@ class Feasibility:
     max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
     between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
     max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
-    pairs sharing that region). A candidate's conflicts with all others (K,) are found when it is
-    first selected and kept (never a K x K matrix)."""
+    pairs sharing that region). Two candidates share a region when both are assigned it or, with
+    the `samples` the candidates were judged on, when the area of it that both see usably is at
+    least [optimize] assign_fraction of the smaller area either sees (`vdo.constraints.sharing`'s
+    rule: around a closed surface no candidate is assigned it, yet neighbours see the same part).
+    A candidate's conflicts with all others (K,) are found when it is first selected and kept
+    (never a K x K matrix)."""
 
-    def __init__(self, exp: Experiment, cand: Candidates):
+    def __init__(self, exp: Experiment, cand: Candidates, samples=None):
         self.exp, self.cand = exp, cand
+        self._seen = self._region_area = self._alone = None
+        if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
+            use = usable.usable_views(cand.entry_weight)
+            self._seen = scipy.sparse.csr_matrix(
+                (np.ones(int(use.sum())), (cand.row[use], cand.index[use])), shape=(len(cand.cameras), cand.samples))
+            self._region_area = scipy.sparse.csr_matrix(
+                (samples.area, (np.arange(len(samples)), samples.region)),
+                shape=(len(samples), len(samples.region_names)))
+            self._alone = (self._seen @ self._region_area).toarray()
         self.positions, self.axes = cand.positions, cand.axes
         self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
                         if spec.max_axis_angle is not None]
@@ -714,15 +741,26 @@ class Feasibility:
         if j not in self._rows:
             cand, opt = self.cand, self.exp.optimize
             exclusive = np.linalg.norm(self.positions - self.positions[j], axis=1) < SPOT_M
-            share = (cand.assigned & cand.assigned[j]).any(axis=1)
+            shared = self.shared(j)
+            share = shared.any(axis=1)
             angle = np.arccos(np.clip(self.axes @ self.axes[j], -1, 1))
             conflict = exclusive | (share & (angle < min_angles(self.exp, cand, j) - ANGLE_TOL))
             if opt.max_axis_angle is not None:
                 conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
             for r, top in self.limited:
-                conflict |= cand.assigned[:, r] & cand.assigned[j, r] & (angle > top + ANGLE_TOL)
+                conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
             self._rows[j] = conflict
         return self._rows[j]
+
+    def shared(self, j: int) -> np.ndarray:
+        """(K, R) True where a candidate shares region r with candidate j (class docstring)."""
+        out = self.cand.assigned & self.cand.assigned[j]
+        if self._seen is None:
+            return out
+        mine = np.asarray(self._seen[j].todense()).ravel()
+        common = (self._seen @ self._region_area.multiply(mine[:, None]).tocsr()).toarray()
+        smaller = np.minimum(self._alone, self._alone[j])
+        return out | ((smaller > 0) & (common >= self.exp.optimize.assign_fraction * smaller))
 
     def conflicts(self, i: int, j: int) -> bool:
         return bool(self.row(j)[i])
@@ -1071,7 +1109,7 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
             f"none of the {cand.pruned} candidate poses that keep their clearance sees a sample: add "
             "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
             "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
-    feas = Feasibility(exp, cand)
+    feas = Feasibility(exp, cand, coarse.samples)
     can_measure = measurable(exp, cand, coarse.samples)
     log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
              "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
