@@ -237,6 +237,11 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert [c["score"] for c in written["curve"]] == [c["score"] for c in result.curve]
     assert result.cameras == len(again.camera_specs) == result.curve[-1]["cameras"]
     assert result.refined is None
+    # each designed camera carries the lenses the design chose from, so that --refine's lens
+    # choice (even with another [optimize] catalogue) keeps to them: no lens outside a catalogue
+    assert all(c.lenses == design.lenses(exp) for c in again.camera_specs)
+    free = replace(again, optimize=replace(again.optimize, free=("pan", "tilt", "lens"), lenses=(0.5,)))
+    assert config.lens_catalogue_errors(free) == []
     assert json.loads(json.dumps(result.to_json()))["summary"] == json.loads((out / "summary.json").read_text())
     # a triangle floor: of the 3 x 3 grid on its bounding box, the points inside it, and its centroid
     floor = replace(exp.mounts[0], floor=np.array([[-1.0, -0.3], [1.0, -0.3], [-1.0, 0.3]]),

@@ -931,7 +931,8 @@ def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: floa
 
 def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
     """[[camera]] entries d1, d2, ... for the chosen candidates: rail + u + offset, zone or fixed
-    mount + position, or position."""
+    mount + position, or position; each with its body's lens catalogue (`lenses`) as lenses_mm,
+    so that `--refine` chooses among the lenses the design chose from."""
     kinds = bodies(exp)
     out = []
     for k, i in enumerate(chosen):
@@ -939,6 +940,7 @@ def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
         on_rail = cand.kind[i] == "rail"
         out.append(CameraSpec(name=f"d{k + 1}", sensor_width=body.sensor_width,
                               pixels=tuple(body.pixels), focal_length=c.focal_length,
+                              lenses=lenses(exp, body),   # what the design chose from: --refine too
                               rail=mount if on_rail else None, mount=None if on_rail else mount,
                               u=float(cand.u[i]) if on_rail else None,
                               offset=np.array(cand.offset[i]),
