@@ -139,3 +139,22 @@ def raycast(path):
     state = layout_state(prepare(exp), predict_fields=False)
     samples, cams, sc, vis = state.samples, list(state.cameras), state.scene, state.visibility
     return exp, samples, cams, sc, vis
+
+
+# The sweep tests' rig (tests/commands/test_sweep.py, also used by other files):
+HEIGHT = 1.5        # m, the rail above the plate's top face (z = 0)
+SENSOR = 15.0       # mm, square sensor
+
+# Two cameras looking straight down from x = -0.3 and x = +0.3 m (rail u = 0.35, 0.65):
+# square footprints of side SENSOR / f * HEIGHT on the 1 m x 1 m plate.
+CAMERAS = "".join(f"""
+[[camera]]
+name = "{name}"
+sensor_mm = [{SENSOR}, {SENSOR}]
+pixels = [300, 300]
+focal_mm = 24
+rail = "overhead"
+u = {u}
+pan_deg = 0
+tilt_deg = -90
+""" for name, u in (("left", 0.35), ("right", 0.65)))

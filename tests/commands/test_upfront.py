@@ -95,7 +95,7 @@ def test_validation_file_bad_case_deep_in_the_list(tmp_path, capsys, no_work, ba
 # A sweep: 12 points, the last three bad
 # --------------------------------------------------------------------------------------------
 def test_sweep_bad_point_deep_in_the_list(plate_experiment, tmp_path, capsys, monkeypatch):
-    from test_sweep import CAMERAS, HEIGHT
+    from conftest import CAMERAS, HEIGHT
 
     for name in ("_run_local", "_run_dask", "plot"):
         forbid(monkeypatch, "vdo.commands.sweep", name)

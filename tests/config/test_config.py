@@ -101,7 +101,7 @@ def test_vdo_set_writes_fields_over_the_file(plate_experiment, monkeypatch):
     """VDO_SET gives the experiment that the file edited by hand gives: a table's field, a field
     of every [[camera]], a table the file lacks; items for a validation file's tables are left
     alone; a malformed item is one line naming VDO_SET."""
-    from test_sweep import CAMERAS
+    from conftest import CAMERAS
 
     path = plate_experiment(spacing=25, cameras=CAMERAS)
     text = path.read_text()
