@@ -158,8 +158,9 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
 def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_path):
     """The hand layout of the built-in experiment breaks the stereo-angle rule (cam9 against
     cam1 and cam2); one feasibility round and one penalty round of 15 steps each must end with
-    every constraint met and a lower joint sigma_max p95 than the hand layout."""
-    exp = config.load(EXPERIMENTS / "ten_cameras.toml")
+    every constraint met and a lower joint sigma_max p95 than the hand layout (samples every
+    25 mm: the same two broken pairs as at the file's 10 mm, in a third of the time)."""
+    exp = config.load(EXPERIMENTS / "ten_cameras.toml").with_settings(evaluation={"sample_spacing_mm": 25})
     exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1,
                                                                 max_steps=15))
     result = optimize(exp, tmp_path / "run")
