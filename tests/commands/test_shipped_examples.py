@@ -6,7 +6,8 @@ up) passes its up-front checks, and each command that applies to it runs on it, 
   the same way, from the file's own values: the sample spacings (`[evaluation]`, `[design]`)
   `SPACING_FACTOR` times the file's, one optimizer start, round and `OPTIMIZE_STEPS` steps, the
   design search's candidates thinned (`DESIGN`) and its curve ended at one camera more than the
-  file's `min_cameras`, validation renders at `VALIDATION_SPP` spp;
+  file's `min_cameras`, validation renders at `VALIDATION_SPP` spp, a load path at every
+  `LOAD_PATH_EVERY`-th step (all rows still checked);
 * flags that the commands already have: `--seeds 2` (validate), `--scale 0.05 --spp 1` (render),
   `--time-limit 1` (optimize), `--workers 1` (sweep), a fresh `--out` in the test's folder.
 
@@ -36,6 +37,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 SPACING_FACTOR = 3          # sample spacings x 3: about 9x fewer samples
 OPTIMIZE_STEPS = 2          # BFGS steps of the one start and round
+LOAD_PATH_EVERY = 8         # a load path judged and rendered at every 8th step and the last
 VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
 DESIGN = "design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1"
 # per command: the flags that shorten it (a flag given in the docs is replaced)
@@ -159,6 +161,8 @@ def reduced(path: str) -> str:
     spacing = min(e.evaluation.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
     design = min(e.design.sample_spacing for e in experiments) * 1e3 * SPACING_FACTOR
     settings.append(f"evaluation.sample_spacing_mm = {spacing:g}; design.sample_spacing_mm = {design:g}")
+    if kind(path) == "experiment" and experiments[0].load_path.active:
+        settings.append(f"load_path.every = {LOAD_PATH_EVERY}")
     if all("design" in read_toml(e.path) for e in experiments):
         settings.append(f"design.max_cameras = {max(e.design.min_cameras for e in experiments) + 1}")
     return "; ".join(settings)

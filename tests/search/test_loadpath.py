@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -178,3 +179,18 @@ def test_evaluate_over_the_load_path_names_the_loss_and_writes_the_worst_case(pl
     assert np.all(arrays["coverage_worst"][hidden] == 0)
     assert np.all(arrays["worst_step"][hidden] >= 0)
     assert (out / "load_path.png").is_file() and (out / "maps" / "coverage_worst.png").is_file()
+
+
+def test_every_kth_step_and_the_last_are_judged():
+    """[load_path] every = k keeps every k-th step of the files and the last one, after every row
+    was checked."""
+    from vdo.config.experiment import load
+    from vdo.geometry.keyframes import check_load_path
+
+    path = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / "ten_cameras.toml"
+    exp = load(path)
+    every = check_load_path(exp).steps
+    for k in (1, 4, 7):
+        kept = check_load_path(exp.with_settings(load_path={"every": k})).steps
+        assert kept == tuple(sorted(set(every[::k]) | {every[-1]}))
+    assert len(check_load_path(exp.with_settings(load_path={"every": 100})).steps) == 2

@@ -1182,6 +1182,9 @@ class LoadPathSpec:
     displacement_array: str | None = row("displacement_array", Text(), None, shown="auto",
                                          doc="the VTK point array of displacements (default: the one "
                                              "3-component array, or the one named displacement, U, ...)")
+    every: int = row("every", Whole(low=1), 1,
+                     doc="judge and render every every-th step of the files and the last one (a "
+                         "quicker look at a long series; every row of every step is still checked)")
 
     @property
     def active(self) -> bool:

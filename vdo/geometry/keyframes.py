@@ -516,7 +516,8 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
     (pivot at the origin), so a pose file may move single meshes without declaring groups. Rows
     are checked here, before any ray is cast, and so is every step of the pose file found in the
     displacement file (`_check_displaced_steps`). `meshes`: the experiment's SceneMeshes (needed
-    for the displacement nodes)."""
+    for the displacement nodes). With `[load_path] every = k`, the steps kept are every k-th of the
+    files' and the last (all rows checked first)."""
     spec = exp.load_path
     if not spec.active and poses is None:
         return None
@@ -539,6 +540,8 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
         _check_displaced_steps(spec.displacements, Path(poses) if poses is not None else None,
                                {step for step, _ in table}, set(displacements))
     steps = sorted({step for step, _ in table} | set(displacements or {}))
+    if spec.every > 1 and steps:      # every every-th step, and the last
+        steps = sorted(set(steps[::spec.every]) | {steps[-1]})
     return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)
 
 
