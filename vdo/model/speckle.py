@@ -573,6 +573,8 @@ KEYS = "keys"               # the `order` of Keys' cubic convolution (not a B-sp
 KEYS_A = -0.5               # Keys' parameter a: -0.5, the one whose interpolant is exact to 2nd order
 INTERPOLANTS = {"cubic": 3, "quintic": 5, "keys": KEYS}   # interpolants the lab may run: the
                             # B-splines by their order, Keys' kernel by KEYS
+INTERPOLANT_NAMES = {"cubic": "cubic B-spline", "quintic": "quintic B-spline",
+                     "keys": "Keys cubic (a = -0.5)"}   # how outputs name them
 PHASES = 8                  # sub-pixel positions per axis over which the bias is averaged (d = j / 8)
 PHASE_TWIN_TOL = 1e-12     # sub-pixel positions d and 1 - d closer than this are twins (mod 1)
 FOLD_BINS = 32              # bins per axis of the folded pixel spectrum (scatter of the bias)
