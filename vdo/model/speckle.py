@@ -658,8 +658,8 @@ class _KeysSpectrum:
     def _sum(self, phases, derivative: bool) -> np.ndarray:
         d = np.asarray(phases, dtype=np.float64)
         taps = keys_kernel(d[:, None] - self.TAPS, derivative=derivative)          # (P, 4)
-        arg = self.omega[None, None, :] * (self.TAPS[None, :, None] - d[:, None, None])
-        out = np.einsum("pj,pjm->pm", taps, np.cos(arg)) + 1j * np.einsum("pj,pjm->pm", taps, np.sin(arg))
+        ramp = np.exp(1j * np.outer(self.TAPS, self.omega))                        # (4, M)
+        out = (taps @ ramp) * np.exp(-1j * np.outer(d, self.omega))                # (P, M)
         return -1j * out if derivative else out
 
     def shift(self, phases: np.ndarray) -> np.ndarray:
