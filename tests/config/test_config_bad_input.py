@@ -105,6 +105,8 @@ TYPES = [
     ('[[camera]]', '[sensor]\nbit_depth = 12.0\n[[camera]]', "sensor.bit_depth", "integer"),
     ('[[camera]]', '[sensor]\nbit_depth = 20\n[[camera]]', "sensor.bit_depth", "8..16"),
     ('[[region]]', '[region]', "region", "needs at least one [[region]] table"),
+    ('[[camera]]', '[analysis]\ninterpolant = "lanczos"\n[[camera]]', "analysis.interpolant",
+     "cubic, quintic, keys"),
 ]
 
 

@@ -7,7 +7,7 @@ ramp, the model's texel_filter="ideal"), blurred by the optics' MTF (`OpticsBlur
 the Fourier domain: exact for the periodic tile) and box-averaged over 8 x 8 texels per pixel.
 Correlation: Gauss-Newton for a translation on 21 x 21 pixel subsets, the reference read at its
 pixel centres with its spline gradient, the deformed image interpolated by `SplineImage` (cubic
-or quintic), as `vdo.dic.correlate` does. The measured RMS error over subsets and sub-pixel
+or quintic B-spline, or Keys' cubic convolution), as `vdo.dic.correlate` does. The measured RMS error over subsets and sub-pixel
 positions is compared with the prediction (bias + its patch-to-patch scatter + noise).
 """
 
@@ -18,7 +18,7 @@ import pytest
 
 from vdo.dic.interpolation import HALF, SUB, BiasCase, measure, run_case
 from vdo.model.optics import OpticsBlur
-from vdo.model.speckle import correlation_error, generate_pattern, normalise
+from vdo.model.speckle import KEYS, correlation_error, generate_pattern, normalise
 
 TILE = 1024         # texels per side: a 128 x 128 pixel image
 RATIO_BAND = (0.85, 1.15)   # measured / predicted RMS: ~800 correlated samples, ~4 % sampling error
@@ -30,11 +30,13 @@ RATIO_BAND = (0.85, 1.15)   # measured / predicted RMS: ~800 correlated samples,
     (1.5, 3, 0.0, 0.0),       # fine dots: aliasing dominates
     (1.5, 5, 1.0, 0.0),       # fine dots through f/8-like diffraction (λN/p = 1)
     (4.0, 3, 1.0, 0.03),
+    (4.0, KEYS, 0.0, 0.0),    # Keys' cubic convolution: ~7x the cubic B-spline's bias
+    (4.0, KEYS, 1.0, 0.03),
 ])
 def test_predicted_error_matches_correlation_on_sharp_dots(dot_px, order, airy_px, noise):
     f = normalise(generate_pattern(TILE, 1.0, dot_px * SUB, 0.5, 0, seed=7))
     shifts = [(j, 0) for j in range(SUB)]                       # d = j/8 px along x
-    case = BiasCase("test", "dots", dot_px, {3: "cubic", 5: "quintic"}[order], airy_px, noise)
+    case = BiasCase("test", "dots", dot_px, {3: "cubic", 5: "quintic", KEYS: "keys"}[order], airy_px, noise)
     errors = measure(f, case, shifts, np.random.default_rng(0))
     optics = [OpticsBlur(airy_px=airy_px)] if airy_px > 0 else None
     model = correlation_error(f, 1.0 / SUB, np.eye(2)[None], order=order, optics=optics,

@@ -19,6 +19,7 @@ from vdo.outputs import report
 from vdo.physics import strain
 from vdo.core import vtp
 from vdo.config.experiment import Experiment
+from vdo.model.speckle import INTERPOLANT_NAMES
 from vdo.core.runfolder import run_folder
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import LoadPathResult, evaluate_load_path
@@ -195,7 +196,7 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
             maps.plot_unfolded(samples, arrays["sigma_measured_max"],
                                tmp / "maps" / "sigma_measured_max.png",
                                f"{exp.name}: measured displacement error, worst direction "
-                               f"({exp.analysis.processing}, {exp.analysis.interpolant} spline)",
+                               f"({exp.analysis.processing}, {INTERPOLANT_NAMES[exp.analysis.interpolant]})",
                                "σ_measured (µm)", cmap="magma_r")
             eps_ue = np.where(np.isfinite(eps), eps * 1e6, np.nan)
             for k, c in enumerate(strain.STRAIN_COMPONENTS):

@@ -733,8 +733,9 @@ class Analysis:
                               doc="subset shape function")
     strain_window: int = row("strain_window", Whole(low=2), 15,
                              doc="subset centres per side of the strain plane fit (virtual gauge)")
-    interpolant: str = row("interpolant", Text(choices=("cubic", "quintic")), "cubic",
-                           doc="the correlation's B-spline interpolant (σ_measured's bias and noise)")
+    interpolant: str = row("interpolant", Text(choices=("cubic", "quintic", "keys")), "cubic",
+                           doc="the correlation's interpolant: cubic or quintic B-spline, or keys "
+                               "(Keys' bicubic convolution, a = -0.5) (σ_measured's bias and noise)")
     reference: str = row("reference", Text(choices=("noisy", "noise-free")), "noisy",
                          doc="noisy: a recorded reference image; noise-free: a synthetic one")
     processing: str = row("processing", Text(choices=("all-views", "pairs")), "all-views",

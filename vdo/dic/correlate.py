@@ -45,7 +45,9 @@ the noise makes the true value a few percent off, see tests/dic/test_correlate.p
 Gauss–Newton on gray levels: J_ip = ∇f(x) · s_i(X) · N(ξ_p) with s_i = ∂x/∂X (`Camera.sensitivity`)
 and N the shape functions. Images are interpolated by cubic B-splines (`scipy.ndimage.spline_filter`
 once per image, `map_coordinates(order=3, prefilter=False)`); the gradient is the spline's exact
-derivative (cubic weights and their derivatives on the 4 × 4 support). ∇f is taken from
+derivative (cubic weights and their derivatives on the 4 × 4 support). `order` picks the quintic
+B-spline (5) or Keys' cubic convolution (`KEYS`: the samples weighed by k(x - m) directly, no
+prefilter; ∇f from k'). ∇f is taken from
 * the reference image at its own pixel centres (`Gradient.REFERENCE`, default for images):
   a modified Gauss–Newton, J = c_i ∇f_i^ref(x) s_i(X) N, fixed but for c_i. At pixel centres the
   noise gradient is uncorrelated with the noise itself, so this has no noise-induced bias;
@@ -87,6 +89,7 @@ from scipy import ndimage
 
 from vdo.core.tolerances import LIMIT_SLACK
 from vdo.model.camera import image_point
+from vdo.model.speckle import KEYS, keys_kernel
 
 
 log = logging.getLogger(__name__)
@@ -188,7 +191,7 @@ def _visible(cam, patch, X, margin_px, min_cos):
 # --------------------------------------------------------------------------------------------
 # Interpolation
 # --------------------------------------------------------------------------------------------
-SPLINE_ORDER = 3                # cubic B-splines (an odd order: 3 or 5)
+SPLINE_ORDER = 3                # cubic B-splines (an odd order: 3 or 5; or KEYS, Keys' kernel)
 WINDOW_MARGIN_PX = 24           # coefficients computed this far beyond the points' support: the
                                 # crop's mirror boundary changes them by |z|^24 of the contrast
                                 # (z = -0.268 cubic: 2e-14; z = -0.430 quintic: 2e-9)
@@ -208,7 +211,10 @@ def _bspline(x, order: int):
 
 class SplineImage:
     """B-spline interpolant (odd `order`, default SPLINE_ORDER: cubic) of a gray image, evaluated
-    at vdo pixel coordinates x = (u, v) = (column, row), pixel centres at integers.
+    at vdo pixel coordinates x = (u, v) = (column, row), pixel centres at integers. `order` = KEYS:
+    Keys' cubic convolution (`vdo.model.speckle.keys_kernel`, a = -0.5; OpenCV's INTER_CUBIC is
+    the same kernel with a = -0.75): no prefilter, the 4 × 4 taps weigh the samples themselves,
+    the gradient from the kernel's derivative.
 
     The coefficients are computed once, on the whole image or, with `window` = (row0, row1,
     col0, col1), on that crop only (`SplineImage.around` picks it around a set of points): the
@@ -220,9 +226,9 @@ class SplineImage:
         img = np.asarray(image)
         if img.ndim != 2:
             raise ValueError(f"image: expected a 2-D gray image, got shape {img.shape}")
-        if order not in (3, 5):
-            raise ValueError(f"order: expected an odd spline order 3 or 5, got {order}")
-        self.order = int(order)
+        if order not in (3, 5, KEYS):
+            raise ValueError(f"order: expected an odd spline order 3 or 5, or {KEYS!r}, got {order}")
+        self.order = order if order == KEYS else int(order)
         self.image_shape = img.shape
         r0, r1, c0, c1 = window if window is not None else (0, img.shape[0], 0, img.shape[1])
         r0, c0 = max(0, int(r0)), max(0, int(c0))
@@ -235,9 +241,10 @@ class SplineImage:
         m = WINDOW_MARGIN_PX
         self._valid = (c0 + (m if c0 > 0 else -1.0), (c1 - 1) - (m if c1 < img.shape[1] else -1.0),
                        r0 + (m if r0 > 0 else -1.0), (r1 - 1) - (m if r1 < img.shape[0] else -1.0))
-        self.coeffs = ndimage.spline_filter(np.asarray(img[r0:r1, c0:c1], dtype=np.float64),
-                                            order=self.order, mode="mirror")
-        self._pad = self.order
+        crop = np.asarray(img[r0:r1, c0:c1], dtype=np.float64)
+        self.coeffs = crop if order == KEYS else ndimage.spline_filter(crop, order=self.order,
+                                                                       mode="mirror")
+        self._pad = 3 if order == KEYS else self.order
         self._padded = None
 
     @classmethod
@@ -245,7 +252,7 @@ class SplineImage:
         """The spline on the crop that covers the pixel points (..., 2) plus `margin` px (for
         later moves) plus WINDOW_MARGIN_PX."""
         x = np.asarray(points, dtype=float).reshape(-1, 2)
-        pad = margin + WINDOW_MARGIN_PX + order
+        pad = margin + WINDOW_MARGIN_PX + (3 if order == KEYS else order)
         lo, hi = np.floor(x.min(axis=0) - pad), np.ceil(x.max(axis=0) + pad) + 1
         return cls(image, (lo[1], hi[1], lo[0], hi[0]), order)
 
@@ -272,15 +279,36 @@ class SplineImage:
 
     def __call__(self, x) -> np.ndarray:
         x = self._local(x)
-        return ndimage.map_coordinates(self.coeffs, [x[..., 1], x[..., 0]], order=self.order,
-                                       prefilter=False, mode="mirror")
+        return self.sample_local(x[..., 1], x[..., 0])
+
+    def sample_local(self, rows, cols) -> np.ndarray:
+        """The interpolant at (rows, cols) of the window (the coordinates less `origin`)."""
+        if self.order != KEYS:
+            return ndimage.map_coordinates(self.coeffs, [rows, cols], order=self.order,
+                                           prefilter=False, mode="mirror")
+        rows, cols = np.asarray(rows, dtype=float), np.asarray(cols, dtype=float)
+        shape = rows.shape
+        fu, fv = np.floor(cols.reshape(-1)), np.floor(rows.reshape(-1))
+        wu, _ = self._weights(cols.reshape(-1) - fu)
+        wv, _ = self._weights(rows.reshape(-1) - fv)
+        taps = self._taps() + self._pad
+        C = self._cp[(fv.astype(np.int64)[:, None] + taps)[:, :, None],
+                     (fu.astype(np.int64)[:, None] + taps)[:, None, :]]
+        return np.einsum("nrc,nc,nr->n", C, wu, wv).reshape(shape)
+
+    def _taps(self) -> np.ndarray:
+        """The offsets from floor(x) of the coefficients a point weighs: -(order - 1)/2 ..
+        (order + 1)/2 (-1 .. 2 for Keys' kernel)."""
+        n = 3 if self.order == KEYS else self.order
+        return np.arange(-(n - 1) // 2, (n + 1) // 2 + 1)
 
     def _weights(self, t):
         """B-spline weights of the order + 1 coefficients floor(x) - (order - 1)/2 ..
         floor(x) + (order + 1)/2 and their derivatives (β_n' (x) = β_{n-1}(x + ½) - β_{n-1}(x - ½)),
-        for t = x - floor(x)."""
-        k = np.arange(-(self.order - 1) // 2, (self.order + 1) // 2 + 1)
-        d = t[:, None] - k[None, :]
+        for t = x - floor(x); Keys' kernel: k(t - j) and k'(t - j), j = -1 .. 2."""
+        d = t[:, None] - self._taps()[None, :]
+        if self.order == KEYS:
+            return keys_kernel(d), keys_kernel(d, derivative=True)
         w = _bspline(d, self.order)
         dw = _bspline(d + 0.5, self.order - 1) - _bspline(d - 0.5, self.order - 1)
         return w, dw
@@ -295,7 +323,7 @@ class SplineImage:
         fu, fv = np.floor(u), np.floor(v)
         wu, dwu = self._weights(u - fu)
         wv, dwv = self._weights(v - fv)
-        taps = np.arange(-(self.order - 1) // 2, (self.order + 1) // 2 + 1) + self._pad
+        taps = self._taps() + self._pad
         cols = fu.astype(np.int64)[:, None] + taps
         rows = fv.astype(np.int64)[:, None] + taps
         C = self._cp[rows[:, :, None], cols[:, None, :]]          # (N, rows, cols)
@@ -319,7 +347,7 @@ class WindowedImage:
     def __init__(self, image, margin: float = 8.0, order: int = SPLINE_ORDER):
         self.image = np.asarray(image)
         self.margin = float(margin)
-        self.order = int(order)
+        self.order = order if order == KEYS else int(order)
         self.spline: SplineImage | None = None
 
     def _at(self, x) -> SplineImage:
@@ -1175,8 +1203,7 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
             inside &= _inside(sp, *image_point(cam.K, q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]))
             on = pick(c["on"])                        # the pixels (not the box's padding)
             f = np.zeros(u.shape)
-            f[on] = ndimage.map_coordinates(sp.coeffs, [v[on] - sp.origin[1], u[on] - sp.origin[0]],
-                                            order=sp.order, prefilter=False, mode="mirror")
+            f[on] = sp.sample_local(v[on] - sp.origin[1], u[on] - sp.origin[0])
             fs.append(f)
         return fs, inside
 

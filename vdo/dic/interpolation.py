@@ -1,6 +1,7 @@
 """σ_measured against correlation on synthesised images, over many patterns: the validation of
 `vdo.model.speckle.correlation_error` (the interpolation bias, its scatter and the noise through
-the interpolant) for sharp-edged dots, fine dots and a photograph-like texture, cubic and quintic.
+the interpolant) for sharp-edged dots, fine dots and a photograph-like texture, cubic and quintic
+B-splines and Keys' bicubic convolution.
 
 Images. A pattern tile of `SUB` texels per pixel is moved by whole texels (sub-pixel shifts
 d = j / SUB px along x) with its band-limited interpolant (an FFT phase ramp: the model's
@@ -186,4 +187,8 @@ DEFAULT_CASES = (
     BiasCase("4 px dots at f/8 (λN/p = 1.28), cubic", "dots", 4.0, "cubic", 1.28, 0.02),
     BiasCase("photo-like 4 px, cubic", "photo", 4.0, "cubic", 0.0, 0.02),
     BiasCase("photo-like 4 px, quintic", "photo", 4.0, "quintic", 0.0, 0.02),
+    BiasCase("sharp 4 px dots, keys", "dots", 4.0, "keys", 0.0, 0.02),
+    BiasCase("fine 2 px dots, keys", "dots", 2.0, "keys", 0.0, 0.02),
+    BiasCase("4 px dots at f/8 (λN/p = 1.28), keys", "dots", 4.0, "keys", 1.28, 0.02),
+    BiasCase("photo-like 4 px, keys", "photo", 4.0, "keys", 0.0, 0.02),
 )

@@ -496,7 +496,7 @@ INTERPOLATION_ORDER = 3        # the cubic B-spline of `vdo.dic.correlate.Spline
 TEXEL_IMAGES = 2               # texel-grid images k + m / h, |m| <= this, per axis
 
 
-def _spline_shift_response(omega: np.ndarray, phase: float, order: int, terms: int = 4) -> np.ndarray:
+def _spline_shift_response(omega: np.ndarray, phase: float, order, terms: int = 4) -> np.ndarray:
     """K_d(ω): what B-spline interpolation (of `order`, through the samples) of the samples of
     exp(iωx) returns at x = n + d, divided by exp(iωn) (ω in radians per pixel, any frequency,
     also above Nyquist). By Poisson summation over the cardinal spline η̂(ω) = β̂(ω) / Σ_l β̂(ω + 2πl),
@@ -505,7 +505,12 @@ def _spline_shift_response(omega: np.ndarray, phase: float, order: int, terms: i
         K_d(ω) = Σ_l β̂(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)     (|l| <= terms)
 
     K_0 = 1 (the spline passes through its samples); a band-limited ω gives K_d = exp(iωd), the
-    exact shifted value, only approximately: |K_d(ω) - exp(iωd)| is the interpolation error."""
+    exact shifted value, only approximately: |K_d(ω) - exp(iωd)| is the interpolation error.
+    `order` = KEYS: Keys' kernel, K_d(ω) = Σ_j k(d - j) exp(iωj) (`_KeysSpectrum`)."""
+    if order == KEYS:
+        omega = np.asarray(omega, dtype=np.float64)
+        return _KeysSpectrum(omega.reshape(-1)).shift(np.array([phase]))[0].reshape(omega.shape) \
+            * np.exp(1j * omega * phase)
     l = np.arange(-terms, terms + 1)
     s = np.sinc(omega[..., None] / (2 * np.pi) + l) ** (order + 1)
     return (s * np.exp(2j * np.pi * l * phase)).sum(-1) / s.sum(-1)
@@ -564,7 +569,12 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
 # --------------------------------------------------------------------------------------------
 # What an interpolating correlation measures: noise through the interpolant, and its bias
 # --------------------------------------------------------------------------------------------
-INTERPOLANTS = {"cubic": 3, "quintic": 5}   # B-spline interpolants the lab may run, by order
+KEYS = "keys"               # the `order` of Keys' cubic convolution (not a B-spline: no prefilter)
+KEYS_A = -0.5               # Keys' parameter a: -0.5, the one whose interpolant is exact to 2nd order
+INTERPOLANTS = {"cubic": 3, "quintic": 5, "keys": KEYS}   # interpolants the lab may run: the
+                            # B-splines by their order, Keys' kernel by KEYS
+INTERPOLANT_NAMES = {"cubic": "cubic B-spline", "quintic": "quintic B-spline",
+                     "keys": "Keys cubic (a = -0.5)"}   # how outputs name them
 PHASES = 8                  # sub-pixel positions per axis over which the bias is averaged (d = j / 8)
 PHASE_TWIN_TOL = 1e-12     # sub-pixel positions d and 1 - d closer than this are twins (mod 1)
 FOLD_BINS = 32              # bins per axis of the folded pixel spectrum (scatter of the bias)
@@ -606,6 +616,68 @@ class _SplineSpectrum:
         """R'_d(ω) (P, M): the spline's derivative at n + d of the samples of exp(iωx), divided
         by i exp(iω(n + d)): Σ_l β̂(ω + 2πl)(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)."""
         return self._weighted(self.s * (self.omega[:, None] + 2 * np.pi * self.l), phases)
+
+
+def keys_kernel(x, a: float | None = None, derivative: bool = False) -> np.ndarray:
+    """Keys' cubic convolution kernel k(x) (a = KEYS_A unless given; support |x| < 2), or k'(x):
+
+        k(x) = (a + 2)|x|³ - (a + 3)|x|² + 1          |x| <= 1
+               a|x|³ - 5a|x|² + 8a|x| - 4a            1 < |x| < 2
+
+    k(0) = 1, k(±1) = k(±2) = 0: the interpolant f(x) = Σ_m f_m k(x - m) passes through its
+    samples, with no prefilter; k' is continuous (k'(±1) = ±a from both pieces)."""
+    a = KEYS_A if a is None else float(a)
+    x = np.asarray(x, dtype=np.float64)
+    t = np.abs(x)
+    if derivative:
+        inner = 3 * (a + 2) * t * t - 2 * (a + 3) * t
+        outer = 3 * a * t * t - 10 * a * t + 8 * a
+        return np.sign(x) * np.where(t <= 1.0, inner, np.where(t < 2.0, outer, 0.0))
+    inner = ((a + 2) * t - (a + 3)) * t * t + 1.0
+    outer = ((a * t - 5 * a) * t + 8 * a) * t - 4 * a
+    return np.where(t <= 1.0, inner, np.where(t < 2.0, outer, 0.0))
+
+
+class _KeysSpectrum:
+    """Keys' kernel's responses at the frequencies ω (M,), the interface of `_SplineSpectrum`.
+    The interpolant of the samples exp(iωm) at x = n + d (0 <= d < 1) sums the four taps
+    m = n + j, j = -1 .. 2:
+
+        f(n + d)  = Σ_j exp(iω(n + j)) k(d - j)
+        R_d(ω)  = f(n + d) / exp(iω(n + d))        = Σ_j k(d - j) exp(iω(j - d))
+        R'_d(ω) = f'(n + d) / (i exp(iω(n + d)))   = -i Σ_j k'(d - j) exp(iω(j - d))
+        D(ω)    = R'_0(ω) = -2 k'(1) sin ω = sin ω  (a = -0.5: the central difference)
+
+    k is even and k' odd, so R_{1-d} = conj R_d and R'_{1-d} = conj R'_d (`_phase_pairs`)."""
+
+    TAPS = np.arange(-1, 3)
+
+    def __init__(self, omega: np.ndarray):
+        self.omega = np.asarray(omega, dtype=np.float64)
+
+    def _sum(self, phases, derivative: bool) -> np.ndarray:
+        d = np.asarray(phases, dtype=np.float64)
+        taps = keys_kernel(d[:, None] - self.TAPS, derivative=derivative)          # (P, 4)
+        ramp = np.exp(1j * np.outer(self.TAPS, self.omega))                        # (4, M)
+        out = (taps @ ramp) * np.exp(-1j * np.outer(d, self.omega))                # (P, M)
+        return -1j * out if derivative else out
+
+    def shift(self, phases: np.ndarray) -> np.ndarray:
+        """R_d(ω) (P, M) for every phase d."""
+        return self._sum(phases, False)
+
+    def derivative(self) -> np.ndarray:
+        """D(ω) (M,): the derivative response at the sample points (real)."""
+        return self._sum(np.zeros(1), True)[0].real
+
+    def derivative_shift(self, phases: np.ndarray) -> np.ndarray:
+        """R'_d(ω) (P, M) for every phase d."""
+        return self._sum(phases, True)
+
+
+def _responses(omega: np.ndarray, order):
+    """The interpolant's responses at ω: `_KeysSpectrum` for KEYS, else `_SplineSpectrum`."""
+    return _KeysSpectrum(omega) if order == KEYS else _SplineSpectrum(omega, order)
 
 
 @dataclass(frozen=True, eq=False)
@@ -682,10 +754,11 @@ def _phase_pairs(px: np.ndarray, py: np.ndarray) -> list[tuple]:
     return pairs
 
 
-def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int = 3,
+def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int | str = 3,
                       optics=None, noisy_reference: bool = True,
                       texel_filter: str = "bilinear", phases=None) -> CorrelationError:
-    """The error of a B-spline (`order` 3 or 5) interpolating correlation of a translation on the
+    """The error of an interpolating correlation of a translation (`order`: 3 or 5, the B-spline;
+    KEYS, Keys' cubic convolution, `_KeysSpectrum`) on the
     box-pixel image of the pattern f̂ at K footprints `pixel_sides` (K, 2, 2) m (as
     `pixel_averaged_std`), after the optics' MTF (`optics`: K `vdo.model.optics.OpticsBlur`, or
     None for none). The correlation (`vdo.dic.correlate`) reads the reference at its pixel centres
@@ -694,8 +767,8 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     Every pattern frequency k (cycles/m, with its texel images k + m/h as `interpolation_error`)
     lands in the image at q_j = k.a_j cycles per pixel, ω = 2πq, with the weight
     w(k) = |F(k)|² T(k) sinc²(q₁) sinc²(q₂) MTF²(|q|) (T the texel filter: bilinear sinc⁴ per axis,
-    box sinc²). With R_d(ω) the spline's shift response (the interpolated over the true value,
-    `_spline_shift_response`), D(ω) its derivative response (`_SplineSpectrum.derivative`),
+    box sinc²). With R_d(ω) the interpolant's shift response (the interpolated over the true value,
+    `_SplineSpectrum.shift`, `_KeysSpectrum.shift`), D(ω) its derivative response (`.derivative`),
     E = R_{d₁}(ω₁) R_{d₂}(ω₂) - 1 the interpolation error and ω̄ the frequency folded into
     [-π, π) (where the sampled noise lives), over a patch of P pixels and for a pattern with
     independent random phases:
@@ -713,7 +786,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
     band-limited interpolant: no texel filter, no texel images)."""
     if order not in INTERPOLANTS.values():
-        raise ValueError(f"order: expected one of {sorted(INTERPOLANTS.values())}, got {order!r}")
+        raise ValueError(f"order: expected one of {list(INTERPOLANTS.values())}, got {order!r}")
     f = np.asarray(pattern_normalised)
     w, ku, kv = _blocked_spectrum(f, texel_m, texel_filter=False, block=max(1, min(f.shape) // 256))
     m = np.arange(-TEXEL_IMAGES, TEXEL_IMAGES + 1) / texel_m
@@ -749,7 +822,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         big = wk >= 1e-9 * wk.sum()
         q1, q2, wk = q1[big], q2[big], wk[big]
         om1, om2 = 2 * np.pi * q1, 2 * np.pi * q2
-        sp1, sp2 = _SplineSpectrum(om1, order), _SplineSpectrum(om2, order)
+        sp1, sp2 = _responses(om1, order), _responses(om2, order)
         D = np.stack([sp1.derivative(), sp2.derivative()])                             # (2, M)
         H1 = np.einsum("m,am,bm->ab", wk, D, D)
         qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
@@ -757,8 +830,8 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         R1, R2 = sp1.shift(px), sp2.shift(py)
         G1, G2 = sp1.derivative_shift(px), sp2.derivative_shift(py)
         fold1, fold2 = (q1 + 0.5) % 1.0 - 0.5, (q2 + 0.5) % 1.0 - 0.5
-        A1 = np.abs(_SplineSpectrum(2 * np.pi * fold1, order).shift(px)) ** 2
-        A2 = np.abs(_SplineSpectrum(2 * np.pi * fold2, order).shift(py)) ** 2
+        A1 = np.abs(_responses(2 * np.pi * fold1, order).shift(px)) ** 2
+        A2 = np.abs(_responses(2 * np.pi * fold2, order).shift(py)) ** 2
         nb = FOLD_BINS * FOLD_BINS
 
         def bin_of(f1, f2):
