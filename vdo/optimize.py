@@ -327,8 +327,6 @@ def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 
-
-
 def _joint_p95(summary: report.EvaluationResult):
     values = [r.sigma_max_um.p95 for name, r in summary.regions.items()
               if name.startswith("joint") and r.sigma_max_um.p95 is not None]

@@ -24,7 +24,6 @@ from vdo.core.errors import ConfigError
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle (`Parameterization`)
 
 
-
 # --------------------------------------------------------------------------------------------
 # Parameterisation
 # --------------------------------------------------------------------------------------------
