@@ -1,7 +1,7 @@
 """vdo's optimizer against a derivative-free baseline on the built-in experiment.
 
 Both search the same parameters (rail u via logit, pan, tilt of every camera) and judge a layout
-the same way (`vdo.optimize.judge`): the ray cast, the lights and the predicted uncertainty are
+the same way (`vdo.search.solver.judge`): the ray cast, the lights and the predicted uncertainty are
 recomputed at the layout, the score is `vdo.objective.score` there, every constraint is checked
 exactly, and layouts are ranked feasible first, by score, else by fewest violations and least
 total excess (`Result.rank`). vdo runs its gradient-based rounds (BFGS with frozen visibility,
@@ -27,7 +27,8 @@ import numpy as np
 
 from vdo.config import experiment as config
 from vdo.core.configure import configure
-from vdo.optimize import Problem, judge, solve
+from vdo.search.problem import Problem
+from vdo.search.solver import judge, solve
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,6 +1,6 @@
 """What tripods ([mount.tripod]) add to one visibility refresh of `vdo optimize` on the steel beam.
 
-A refresh (`vdo.optimize.Problem.refresh`) is `layout_state` without the prediction (the ray cast
+A refresh (`vdo.search.problem.Problem.refresh`) is `layout_state` without the prediction (the ray cast
 of every camera and sample, the lighting cast again where a camera or tripod may be in the way)
 plus the same ray cast against the obstacles alone. Both are timed here on the hand layout of
 experiments/steel_beam/four_point_bending.toml, with its tripods and with them removed, in the

@@ -16,7 +16,9 @@ import pytest
 from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo.config import experiment as config
 from vdo.constraints import stereo_min_angle
-from vdo.optimize import MU0, Parameterization, optimize
+from vdo.optimize import optimize
+from vdo.search.parameterisation import Parameterization
+from vdo.search.solver import MU0
 
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments" / "beam_column"
 
@@ -242,12 +244,12 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
     import os
     import signal
 
-    from vdo import optimize as opt_module
+    from vdo.search.anytime import Progress
 
     cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     steps = []
-    original = opt_module._Progress.step
+    original = Progress.step
 
     def step(self, where, best):
         steps.append(where)
@@ -255,7 +257,7 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
             os.kill(os.getpid(), signal.SIGINT)   # delivered to this (main) thread at once
         original(self, where, best)
 
-    monkeypatch.setattr(opt_module._Progress, "step", step)
+    monkeypatch.setattr(Progress, "step", step)
     out = tmp_path / "run"
     handler = signal.getsignal(signal.SIGINT)   # Python's default, or SIG_IGN in a test worker
     result = optimize(exp, out)
@@ -274,7 +276,8 @@ def test_sigint_mid_round_stops_after_the_step_and_writes_the_best_layout(tmp_pa
 def test_time_limit_ends_the_search_with_a_complete_folder(tmp_path, caplog, capsys):
     """With a time limit shorter than one round the search stops on time: the folder is complete,
     optimizer.json says "time_limit", and the layout (the best judged so far) reloads. Its
-    progress lines go to the `vdo.optimize` logger (INFO), never to stdout."""
+    log lines go to the `vdo.optimize` logger and its progress line to `vdo.search.anytime` (INFO),
+    never to stdout."""
     cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
     exp = experiment(tmp_path, cams, ["a", "b"])
     out = tmp_path / "run"
@@ -348,7 +351,7 @@ def test_local_clearance_and_shadow_sets_match_every_point_and_pair_near_the_anc
     import jax.numpy as jnp
 
     from vdo import constraints
-    from vdo.optimize import CLEARANCE_MARGIN, LOCAL_MOVE, SHADOW_MARGIN, Problem
+    from vdo.search.problem import CLEARANCE_MARGIN, LOCAL_MOVE, SHADOW_MARGIN, Problem
 
     bar = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\n'
     light = ('[[light]]\nname = "panel"\nposition_m = [0.0, 0.0, 2.0]\ntarget_m = [0, 0, 0]\n'
@@ -392,7 +395,7 @@ def test_rejected_step_backtracks_to_the_parabola_minimum_within_its_bounds():
     import equinox as eqx
     import optimistix as optx
 
-    from vdo.optimize import RememberingArmijo
+    from vdo.search.bfgs import RememberingArmijo
 
     search = RememberingArmijo()
     y = jnp.zeros(1)
@@ -413,7 +416,7 @@ def test_rejected_step_backtracks_to_the_parabola_minimum_within_its_bounds():
 def test_bfgs_started_from_the_exact_inverse_hessian_lands_on_the_minimum_in_one_step():
     """On a quadratic ½ yᵀA y - bᵀy, BFGS given A⁻¹ by `with_inverse_hessian` takes the Newton
     step A⁻¹ b on its first move (accepted, the minimum); from the identity it does not."""
-    from vdo.optimize import BFGS, with_inverse_hessian
+    from vdo.search.bfgs import BFGS, with_inverse_hessian
 
     rng = np.random.default_rng(0)
     M = rng.normal(size=(5, 5))

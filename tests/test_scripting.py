@@ -214,7 +214,7 @@ def _masked_objective(mask):
 def test_gradient_of_a_user_objective_matches_finite_differences(path):
     import jax
     import jax.numpy as jnp
-    from vdo.optimize import MountModel
+    from vdo.search.problem import MountModel
     model = MountModel(vdo.load(path).with_settings(evaluation={"sample_spacing_mm": 40}), float64=True)
     theta, focal = jnp.asarray(model.theta0), jnp.asarray(model.focal0_mm)
     first = model.fields(theta)
@@ -239,7 +239,7 @@ def test_optimizer_minimises_a_user_objective(tmp_path):
     user's objective, judged afresh at the written layout (a new ray cast), is below the start's."""
     import json
     import jax.numpy as jnp
-    from vdo.optimize import MountModel
+    from vdo.search.problem import MountModel
     exp = vdo.load(BEAM.parent / "three_cameras.toml").with_settings(
         evaluation={"sample_spacing_mm": 40}, optimize={"starts": 1, "rounds": 2, "max_steps": 15})
 

@@ -14,7 +14,7 @@ from conftest import PLATE_TOML, write_box
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
 from vdo.design import select as design
-from vdo.optimize import Parameterization
+from vdo.search.parameterisation import Parameterization
 
 OUTER = [[-2.0, -2.0], [2.0, -2.0], [2.0, 2.0], [-2.0, 2.0]]
 HOLE = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]

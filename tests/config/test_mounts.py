@@ -13,7 +13,7 @@ from conftest import PLATE_TOML, write_box
 from vdo.config import experiment as config
 from vdo.outputs import report
 from vdo.core.errors import ConfigError
-from vdo.optimize import Parameterization
+from vdo.search.parameterisation import Parameterization
 
 MOUNTS = """
 [[mount]]

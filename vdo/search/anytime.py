@@ -1,0 +1,99 @@
+"""Anytime search: a `Stop` request (time limit, SIGINT/SIGTERM via `stop_on_signals`) checked
+between solver steps and rounds, and the one progress line (`Progress`) over the planned steps."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import signal
+import threading
+import time
+
+
+from vdo.core.progress import bar
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# Stopping early, and what a run shares
+# --------------------------------------------------------------------------------------------
+class Stop:
+    """A request to end the search early, checked between solver steps and between rounds (never
+    inside a JAX or Dr.Jit call): `request` sets it (a signal handler, a caller), and so does the
+    clock once `time_limit` seconds have passed since it was made. `reason` is None,
+    "time_limit" or "interrupted"."""
+
+    def __init__(self, time_limit: float = math.inf):
+        self.deadline = time.perf_counter() + time_limit
+        self.reason: str | None = None
+
+    def request(self, reason: str = "interrupted") -> None:
+        if self.reason is None:
+            self.reason = reason
+
+    def __call__(self) -> bool:
+        """True once a stop was requested or the time limit has passed."""
+        if self.reason is None and time.perf_counter() >= self.deadline:
+            self.reason = "time_limit"
+        return self.reason is not None
+
+    @property
+    def left(self) -> float:
+        """Seconds to the time limit (inf without one)."""
+        return max(self.deadline - time.perf_counter(), 0.0)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Stop):
+    """While inside: SIGINT (Ctrl-C) and SIGTERM request `stop` instead of raising; a second
+    SIGINT raises KeyboardInterrupt as usual. The previous handlers come back on exit. Outside the
+    main thread (where Python delivers no signals) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def handler(signum, frame):
+        if signum == signal.SIGINT and stop.reason == "interrupted":
+            raise KeyboardInterrupt
+        stop.request("interrupted")
+        log.warning("%s: stopping after the current step; the best layout so far will be written "
+                    "(Ctrl-C again to abort without writing)", signal.Signals(signum).name)
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+class Progress:
+    """One progress line (tqdm) over the planned solver steps: start, round, step, the best
+    score so far (µm; feasible layouts first) and the time left, the least of the time limit
+    and the steps left at the mean time per step so far (refreshes and checks included)."""
+
+    def __init__(self, planned: int | None, stop: Stop | None = None):
+        self.planned, self.stop, self.done = planned, stop, 0
+        self.t0 = time.perf_counter()
+        self.bar = bar(log, total=planned, desc="optimize", unit="step", disable=planned is None,
+                       bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
+
+    def left(self) -> float:
+        rate = (time.perf_counter() - self.t0) / max(self.done, 1)
+        est = rate * max((self.planned or 0) - self.done, 0)
+        return min(est, self.stop.left) if self.stop is not None else est
+
+    def step(self, where: str, best: "Result | None") -> None:
+        self.done += 1
+        if best is None:
+            text = "no layout judged yet"
+        else:
+            text = f"best {best.score:.4g} µm" + ("" if best.violations == 0 else
+                                                  f" ({best.violations} violation(s))")
+        self.bar.set_postfix_str(f"{where}, {text}, ~{self.left():.0f} s left", refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
