@@ -34,6 +34,7 @@ log-spaced grid of l; `g_iso_lookup` and `g_aniso_lookup` interpolate log g line
 
 from __future__ import annotations
 
+import hashlib
 import math
 import numbers
 import os
@@ -724,6 +725,10 @@ class CorrelationError:
         return np.sqrt(np.diagonal(self.covariance(sigma, pixels), axis1=1, axis2=2) / crb)
 
 
+MODEL_CACHE_SIZE = 4096      # footprints whose `correlation_error` terms are kept (about 2 kB each)
+_MODEL_CACHE: dict = {}      # (pattern digest, settings, footprint, optics) -> that footprint's terms
+
+
 def _phase_pairs(px: np.ndarray, py: np.ndarray) -> list[tuple]:
     """The sub-pixel positions (p₁, p₂) to compute, each with its twin and the count it stands
     for. The spline is symmetric, so the responses at 1 - d are the conjugates of those at d
@@ -784,7 +789,10 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     (docs/theory.md, "What the lab measures"); `phases` = (d₁ values, d₂ values) replaces that
     grid (e.g. ([0, 1/8, ...], [0]) for shifts along x only).
     `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
-    band-limited interpolant: no texel filter, no texel images)."""
+    band-limited interpolant: no texel filter, no texel images).
+    Each footprint's terms are kept (`MODEL_CACHE_SIZE` of them, keyed by the pattern's digest, the
+    settings, the footprint and the optics), so the design checks and σ_measured, which meet the
+    same footprints, compute them once per process."""
     if order not in INTERPOLANTS.values():
         raise ValueError(f"order: expected one of {list(INTERPOLANTS.values())}, got {order!r}")
     f = np.asarray(pattern_normalised)
@@ -811,7 +819,15 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     curves = np.empty((len(sides), px.size, py.size, 2))
     r = 1.0 if noisy_reference else 0.0
     pairs = _phase_pairs(px, py)
+    common = (hashlib.blake2b(np.ascontiguousarray(f, dtype=np.float64).tobytes(),
+                              digest_size=16).hexdigest(), float(texel_m), order, noisy_reference,
+              texel_filter, px.tobytes(), py.tobytes())
     for i, (a, opt) in enumerate(zip(sides, optics)):
+        key = common + (a.tobytes(), opt)
+        if key in _MODEL_CACHE:
+            for name, value in _MODEL_CACHE[key].items():
+                (curves if name == "bias_curve" else out[name])[i] = value
+            continue
         q1, q2 = qu * a[0, 0] + qv * a[1, 0], qu * a[0, 1] + qv * a[1, 1]
         wk = weight * (np.sinc(q1) * np.sinc(q2)) ** 2
         qn = np.stack([q1, q2]) / np.maximum(np.hypot(q1, q2), 1e-300)
@@ -873,4 +889,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
         out["bias"][i], out["scatter"][i] = bias / n_ph, scatter / n_ph
+        if len(_MODEL_CACHE) >= MODEL_CACHE_SIZE:
+            _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))          # the oldest entry first
+        _MODEL_CACHE[key] = {**{k: v[i].copy() for k, v in out.items()}, "bias_curve": curves[i].copy()}
     return CorrelationError(phases=(px, py), bias_curve=curves, **out)
