@@ -28,12 +28,14 @@ from vdo.physics.visibility import compute_visibility
 
 SUM_ORDER_RTOL = 1e-12   # the same float64 sums taken in another order (entries vs all samples)
 
+# the bound on the best score (tests/design/test_bound.py checks it) gets 2 s per camera count here
 DESIGN = """
 [design]
 max_cameras = {n}
 rail_positions = 9
 offset_m = [0, 0, 0]
 sample_spacing_mm = 50
+bound_s = 2
 {extra}
 """
 
