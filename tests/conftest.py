@@ -18,28 +18,6 @@ def pytest_configure(config):
     configure()
 
 
-# The longest test files (minutes each on 2 cores), handed to the pytest-xdist workers first:
-# with a file per worker (--dist loadfile) they would otherwise start last and leave one worker
-# running alone at the end.
-LONGEST_FIRST = ("tests/test_optimize.py", "tests/test_api_docs.py", "tests/test_scripting.py",
-                 "tests/commands/test_shipped_examples.py", "tests/calib/test_calibration.py",
-                 "tests/commands/test_sweep.py", "tests/design/test_design.py",
-                 "tests/physics/test_measured_fields.py", "tests/dic/test_validate.py")
-
-
-def pytest_collection_modifyitems(config, items):
-    """`LONGEST_FIRST`'s files at the head of the collection, in that order (stable otherwise)."""
-    root = Path(__file__).resolve().parent.parent
-    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
-
-    def key(item):
-        path = Path(str(item.fspath)).resolve()
-        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.as_posix()
-        return rank.get(name, len(rank))
-
-    items.sort(key=key)
-
-
 def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""
     box = trimesh.creation.box(extents=np.asarray(extents, dtype=float) * unit_scale)
