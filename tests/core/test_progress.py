@@ -97,3 +97,25 @@ def test_a_terminal_gets_the_tqdm_bar_and_a_quiet_logger_nothing(shown):
         quiet.update()
     quiet.close()
     assert stream.getvalue() == ""
+
+
+def test_the_optimizer_line_says_its_own_time_left_once(monkeypatch, capsys):
+    """`vdo optimize` off a terminal: 10 steps of a planned 100 in 1 s each under a time limit of
+    30 s: the steps left at the mean rate would take 90 s, the limit leaves ~20 s; each plain
+    line says "s left" once, the lesser figure (the search stops at the limit)."""
+    from vdo.search import anytime
+
+    monkeypatch.setattr(logging.getLogger(anytime.__name__), "level", logging.INFO)
+    now = [0.0]
+    monkeypatch.setattr(anytime.time, "perf_counter", lambda: now[0])
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    stop = anytime.Stop(time_limit=30.0)
+    bar = anytime.Progress(100, stop)
+    for k in range(10):
+        now[0] += 1.0
+        bar.step(f"start 1 round 1/3, step {k + 1}/100", None)
+    bar.close()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines and all(line.count("s left") == 1 for line in lines)
+    assert lines[0] == ("optimize: 10/100 step (10 %), 10 s, ~20 s left "
+                        "[start 1 round 1/3, step 10/100, no layout judged yet]")

@@ -10,7 +10,8 @@ writes each record above the bars instead of through them.
 When the stream is not a terminal (a log file, a pipe, CI), a redrawn bar would write a carriage
 return per update, thousands of them on one line; there `bar` returns a `PlainBar` instead: whole
 lines, one every `PLAIN_FRACTION` of the total or `PLAIN_SECONDS`, whichever comes first, each with
-the count, the elapsed time and the time left (elapsed / n x (total - n)), and one when it closes.
+the count, the elapsed time and the time left (elapsed / n x (total - n), or the caller's own
+estimate in `PlainBar.left_s`), and one when it closes.
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ class PlainBar:
     """tqdm's interface (iteration, update, set_postfix[_str], close, a context manager) as
     plain lines: "desc: n/total unit (p %), elapsed s, ~left s left [postfix]", written when the
     count crosses a multiple of `PLAIN_FRACTION` x total or `PLAIN_SECONDS` have passed since the
-    last line, and once on close. Without a total: every `PLAIN_SECONDS`, no time left."""
+    last line, and once on close. Without a total: every `PLAIN_SECONDS`, no time left. A caller
+    that knows the time left better (a time limit, uneven steps) sets `left_s` (s)."""
 
     def __init__(self, iterable=None, total=None, initial=0, desc="", unit="it", file=None,
                  **_drawing_options):   # bar_format, leave, dynamic_ncols ...: a line has no bar
@@ -66,6 +68,7 @@ class PlainBar:
             total = len(iterable)
         self.iterable, self.total, self.n, self.desc, self.unit = iterable, total, initial, desc, unit
         self.file, self.postfix = file, ""
+        self.left_s: float | None = None
         self.t0 = self.last_time = time.monotonic()
         self.last_tenth, self.last_n = self._tenth(), initial
         self.closed = False
@@ -81,7 +84,9 @@ class PlainBar:
         if self.total:
             text += f" ({100 * self.n / self.total:.0f} %)"
         text += f", {elapsed:.0f} s"
-        if self.total and self.n > 0:
+        if self.left_s is not None:
+            text += f", ~{self.left_s:.0f} s left"
+        elif self.total and self.n > 0:
             text += f", ~{elapsed / self.n * max(self.total - self.n, 0):.0f} s left"
         return text + (f" [{self.postfix}]" if self.postfix else "")
 

@@ -11,7 +11,7 @@ import threading
 import time
 
 
-from vdo.core.progress import bar
+from vdo.core.progress import PlainBar, bar
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +92,11 @@ class Progress:
         else:
             text = f"best {best.score:.4g} µm" + ("" if best.violations == 0 else
                                                   f" ({best.violations} violation(s))")
-        self.bar.set_postfix_str(f"{where}, {text}, ~{self.left():.0f} s left", refresh=False)
+        if isinstance(self.bar, PlainBar):      # the line's own "time left" is this estimate
+            self.bar.left_s = self.left()
+            self.bar.set_postfix_str(f"{where}, {text}", refresh=False)
+        else:
+            self.bar.set_postfix_str(f"{where}, {text}, ~{self.left():.0f} s left", refresh=False)
         self.bar.update(1)
 
     def close(self) -> None:
