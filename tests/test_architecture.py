@@ -96,12 +96,14 @@ def test_imports_run_down(path, name, package):
 
 
 def test_the_config_stops_at_the_door():
-    """Reading and validating an experiment (one with a rail) imports no JAX, Mitsuba, Dr.Jit or
-    matplotlib: `vdo check` and every command's up-front validation stay light."""
+    """Reading and validating an experiment (one with a rail) and every field of a validation
+    file imports no JAX, Mitsuba, Dr.Jit or matplotlib: `vdo check` and every command's up-front
+    validation stay light."""
     import subprocess
     import sys
     code = ("import sys; from vdo.config.experiment import load; "
             "load('experiments/beam_column/ten_cameras.toml'); "
+            "from vdo.config import validation; validation.load('experiments/validation.toml'); "
             "print(sorted(m for m in ('jax', 'mitsuba', 'drjit', 'matplotlib') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=ROOT.parent)

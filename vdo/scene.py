@@ -311,14 +311,6 @@ class SurfaceSamples:
         return len(self.points)
 
 
-def face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(t_u, t_v) with t_u x t_v = normal; t_v follows world z on vertical faces, else world y."""
-    up = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    t_v = up - normal * (up @ normal)
-    t_v /= np.linalg.norm(t_v)
-    return np.cross(t_v, normal), t_v
-
-
 NEAR_FIELDS = {"near_point_m": "a point", "near_axis_m": "an axis", "near_mesh": "mesh",
                "region_file": "the region mesh"}
 
@@ -466,7 +458,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     tolerance = max(0.25 * spacing, 1e-4)
     depth = tri.reshape(-1, 3) @ normal
     if np.ptp(depth) <= tolerance and np.linalg.norm(normal) > 0.5:
-        t_u, t_v = face_frame(normal)
+        t_u, t_v = surface.face_frame(normal)
         flat = tri.reshape(-1, 3)
         ou, ov = (flat @ t_u).min(), (flat @ t_v).min()
         origin = ou * t_u + ov * t_v + depth.mean() * normal
@@ -486,7 +478,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
                     "over its surface; samples carry their true area, but its maps are distorted "
                     "by as much): split it into flatter regions", where[0], where[1],
                     100 * dev.distortion.area_p95, 100 * dev.distortion.angle_p95)
-    t_u, t_v = face_frame(normal) if np.linalg.norm(normal) > 0.5 else (np.eye(3)[0], np.eye(3)[1])
+    t_u, t_v = surface.face_frame(normal) if np.linalg.norm(normal) > 0.5 else (np.eye(3)[0], np.eye(3)[1])
     return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=tri.reshape(-1, 3).mean(0),
                        development=dev, selector=selector)
 

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from vdo.dic import validate as V
+from vdo.geometry.plate import plate_geometry
 from vdo.physics.lighting import illuminate
 from vdo.physics.predict import predict
 from vdo.scene import SceneMesh, SurfaceSamples, build_scene, region_faces, sample_region
@@ -53,7 +54,7 @@ seed = 21
 
 def _cut_plate(setup):
     """The case's plate with its -t_u side moved in to the patch's edge (u = 0 of the patch)."""
-    g = V.plate_geometry(setup.case)
+    g = plate_geometry(setup.case)
     verts = np.array(setup.plate.vertices, dtype=float)
     shift = setup.case.plate_margin * g["t_u"]
     verts[[0, 3]] += shift                   # plate corners p0 and p0 + ph t_v are the -t_u side
@@ -68,7 +69,7 @@ def _predicted_sigma(setup, clip):
     n = len(part["points"])
     samples = SurfaceSamples(**part, region=np.zeros(n, dtype=int), region_names=("patch",),
                              region_importance=np.ones(1))
-    g = V.plate_geometry(setup.case)
+    g = plate_geometry(setup.case)
     x0 = g["origin"] + (PHI * L - L / 2) * g["t_u"] + (L / 2) * g["t_v"]
     k = int(np.argmin(np.linalg.norm(samples.points - x0, axis=1)))
     assert np.linalg.norm(samples.points[k] - x0) < 1e-9

@@ -22,6 +22,7 @@ import pytest
 
 from vdo.dic import validate as V
 from vdo.commands.validate import validate_cases
+from vdo.core import tolerances
 from vdo.core.errors import ConfigError
 
 SEEDS = 160
@@ -248,10 +249,10 @@ def test_sizes_equal_to_the_patch_up_to_rounding_fit(subset_setup):
     density = np.ones(len(samples))
     strain.check_regions(Analysis(element=side), samples, density, SHIPPED)
     with pytest.raises(ConfigError) as err:
-        strain.check_regions(Analysis(element=side * (1 + 10 * strain.SIZE_TOLERANCE)), samples,
+        strain.check_regions(Analysis(element=side * (1 + 10 * tolerances.SIZE_TOLERANCE)), samples,
                              density, SHIPPED)
     assert err.value.field == "analysis.element_mm"
-    assert f"relative tolerance {strain.SIZE_TOLERANCE:g}" in str(err.value)
+    assert f"relative tolerance {tolerances.SIZE_TOLERANCE:g}" in str(err.value)
 
 
 def test_shipped_subset_case_is_predicted_as_subset_dic(subset_setup):

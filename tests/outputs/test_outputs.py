@@ -14,7 +14,8 @@ from vdo.config import experiment as config
 from vdo.commands.cli import main
 from vdo.outputs.maps import unfold
 from vdo.core.runfolder import run_folder
-from vdo.scene import SurfaceSamples, face_frame
+from vdo.model.surface import face_frame
+from vdo.scene import SurfaceSamples
 
 
 @pytest.fixture(scope="module")

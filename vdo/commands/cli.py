@@ -101,8 +101,13 @@ def _load(args):
     an experiment, its meshes and load path's files too (`_experiment`), so that a camera inside
     a mesh or a bad row stops the command before any work."""
     if args.command == "validate":
-        from vdo.dic.validate import load
-        return load(args.config)
+        from vdo.config import validation
+
+        spec = validation.load(args.config)     # every field of every case: no heavy import
+        from vdo.geometry.plate import check_cases
+
+        check_cases(spec)                       # the cameras (JAX): still before any render
+        return spec
     exp = _experiment(args.config, getattr(args, "series", None))
     if getattr(args, "cameras", None) is not None:
         names = [c.name for c in exp.camera_specs]

@@ -33,3 +33,15 @@ weight): x / max(d, TINY)."""
 SMOOTH_SQRT = 1e-12
 """Added under a square root that JAX differentiates (m^2 or rad^2): sqrt(x + SMOOTH_SQRT) has a
 finite gradient at x = 0."""
+
+SIZE_TOLERANCE = 1e-6
+"""Relative: a size may exceed the side it must fit in by this fraction and still fit (`fits`).
+Sides are sums of float coordinates (a patch of side w measured back as 0.005999999999999998 m
+for 6 mm), so an equal size must not be refused; 1e-6 is far above float64 rounding (1e-16
+relative) and far below any size a user chooses (a micrometre per metre)."""
+
+
+def fits(size: float, side: float) -> bool:
+    """Whether a size (m) fits in a side (m): size <= side (1 + SIZE_TOLERANCE), so that sizes
+    equal up to rounding fit."""
+    return size <= side * (1.0 + SIZE_TOLERANCE)

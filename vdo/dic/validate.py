@@ -46,17 +46,17 @@ from pathlib import Path
 import numpy as np
 
 from vdo.physics import strain
-from vdo.physics.strain import SIZE_TOLERANCE, fits
+from vdo.geometry.plate import cameras_of, check_cases, deform, plate_geometry, undeform
 from vdo.model.camera import Camera, look_at_angles
-from vdo.config.experiment import (Analysis, SENSOR_FIELDS, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
-                     SpeckleSpec, Table, as_numbers, read_toml, with_overrides)
+from vdo.config import validation
+from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec)
+from vdo.config.validation import Case, ValidationSpec
 from vdo.dic.correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
 from vdo.physics.predict import SpeckleModel
 from vdo.render import build_render_scene, expose, noise_free_dn, render_linear, render_seed, sensor_dict
-from vdo.scene import SceneMesh, SurfaceSamples, face_frame, region_faces
-from vdo.model.sensor import SensorModel
+from vdo.scene import SceneMesh, SurfaceSamples, region_faces
 from vdo.physics.usable import patch_overlap
 from vdo.model.speckle import gradient_energy_table, normalise, pattern_for
 from vdo.state import Geometry, layout_state
@@ -69,272 +69,19 @@ UM = 1e6
 SQRT2 = math.sqrt(2.0)
 BAND = (0.8, 1.25)       # the requirement on every ratio (`ValidationResult.passed`)
 
-# --------------------------------------------------------------------------------------------
-# The validation file
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class CameraCase:
-    """A camera aimed at the patch centre from `polar` (rad, from world +z) and `azimuth` (rad,
-    from +x toward +y), `distance` (m) away."""
-
-    name: str
-    polar: float
-    azimuth: float
-    distance: float
-    focal_length: float      # m
-    pixel_size: float        # m
-    pixels: tuple[int, int]  # width, height
-
-
-@dataclass(frozen=True)
-class Case:
-    name: str
-    description: str
-    patch: tuple[float, float]          # m, the correlated patch (centred on the plate)
-    plate_margin: float                 # m of speckled plate beyond the patch on every side
-    tilt: float                         # rad, plate normal turned from +z toward -y
-    displacement: np.ndarray            # (3,) m, world frame
-    cameras: tuple[CameraCase, ...]
-    speckle: SpeckleSpec
-    edge_blur: float                    # m, std of a Gaussian softening of the painted pattern
-    sensor: SensorModel
-    ambient_radiance: float
-    spp: int
-    seed: int                           # base of the noise seeds
-    strain: np.ndarray | None = None    # (3,) imposed (eps_uu, eps_vv, eps_uv) in the face frame
-    q4_mesh: tuple[int, int] = (1, 1)   # strain cases: Q4 mesh of the patch, centre element read
-    subsets: tuple[float, float, int] | None = None   # subset-DIC strain: (side m, step m, window n)
-
-
-@dataclass(frozen=True)
-class ValidationSpec:
-    path: Path
-    name: str
-    seeds: int
-    cases: tuple[Case, ...]
-
-
-_CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg", "dot_mm",
-                "texel_mm", "edge_blur_mm", "coverage", "strokes", "speckle_seed", "tile_texels", "white_albedo",
-                "black_albedo", "cameras", "focal_mm", "pixel_um", "pixels", "distance_mm",
-                "ambient_radiance", "spp", "sensor", "displacement_um", "seed",
-                "strain_microstrain", "q4_mesh", "subset_mm", "step_mm", "strain_window")
-_CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
-                  "pixels")
-
 
 def load(path) -> ValidationSpec:
-    """Read and validate a validation file; ConfigError (file, field, message) on any mistake."""
-    return parse(read_toml(path), Path(path))
-
-
-def parse(data: dict, path) -> ValidationSpec:
-    """Validate an already-parsed validation document that came from `path`.
-
-    `[defaults]` holds any case field (but name); each `[[case]]` inherits it and overrides it
-    (a case's `sensor` table is merged key by key over the defaults' one). The environment's
-    VDO_SET items for `validation` and `defaults` are written in first
-    (`vdo.config.experiment.with_overrides`)."""
-    path = Path(path).resolve()
-    data = with_overrides(data, ("validation", "defaults"))
-    top = Table(data, "", path, ("validation", "defaults", "case"))
-    head = Table(top.raw("validation", {}), "validation", path, ("name", "seeds"))
-    name = head.string("name", "vdo validation")
-    seeds = head.integer("seeds", 200, low=2)
-    defaults = top.raw("defaults", {})
-    Table(defaults, "defaults", path, tuple(f for f in _CASE_FIELDS if f != "name"))
-    items = top.raw("case")
-    if not isinstance(items, list) or not items:
-        raise ConfigError(path, "case", "needs at least one [[case]] table")
-    cases, names = [], set()
-    for i, item in enumerate(items):
-        if not isinstance(item, dict):
-            raise ConfigError(path, f"case[{i}]", "must be a table")
-        label = item.get("name")
-        where = f'case "{label}"' if isinstance(label, str) else f"case[{i}]"
-        merged = {**defaults, **item}
-        if isinstance(defaults.get("sensor"), dict) and isinstance(item.get("sensor"), dict):
-            merged["sensor"] = {**defaults["sensor"], **item["sensor"]}
-        case = _case(Table(merged, where, path, _CASE_FIELDS), path, where)
-        if case.name in names:
-            raise ConfigError(path, where, "name is used twice; names must be unique")
-        names.add(case.name)
-        cases.append(case)
-    return ValidationSpec(path=path, name=name, seeds=seeds, cases=tuple(cases))
-
-
-def _pixels(t: Table, key, default=None):
-    value = t.raw(key, default)
-    arr = as_numbers(value)
-    if arr is None or arr.shape != (2,) or np.any(arr != np.round(arr)) or np.any(arr < 16) \
-            or np.any(arr > 4096):
-        raise t.error(key, f"must be two whole numbers [width, height] in 16..4096 (got {value!r})")
-    return int(arr[0]), int(arr[1])
-
-
-def _case(t: Table, path: Path, where: str) -> Case:
-    name = t.string("name")
-    patch = t.vector("patch_mm", 2, positive=True) * 1e-3
-    dot = t.number("dot_mm", positive=True) * 1e-3
-    texel = t.number("texel_mm", 0.025, positive=True) * 1e-3
-    tile = t.integer("tile_texels", 1024, low=64)
-    if dot < 3 * texel:
-        raise t.error("texel_mm", f"must be at most a third of dot_mm ({dot * 1e3:g} mm)")
-    if dot > tile * texel / 4:
-        raise t.error("dot_mm", f"must be at most a quarter of the pattern tile "
-                                f"({tile * texel * 1e3:g} mm = tile_texels x texel_mm)")
-    margin = t.number("plate_margin_mm", 10.0, positive=True) * 1e-3
-    if np.any(patch + 2 * margin > tile * texel * 4):
-        raise t.error("patch_mm", "the plate is more than 4 pattern tiles wide; raise tile_texels")
-    if np.any(patch > tile * texel):
-        raise t.error("patch_mm", f"the correlated patch is larger than one pattern tile "
-                                  f"({tile * texel * 1e3:g} mm): the pattern would repeat inside it")
-    white = t.number("white_albedo", 0.8, low=0.0, high=1.0)
-    black = t.number("black_albedo", 0.05, low=0.0, high=1.0)
-    if black >= white:
-        raise t.error("black_albedo", "must be less than white_albedo")
-    speckle = SpeckleSpec(dot_diameter=dot, coverage=t.number("coverage", 0.5, low=0.05, high=0.95),
-                          strokes=t.integer("strokes", 0, low=0), texel=texel, tile_texels=tile,
-                          seed=t.integer("speckle_seed", 1, low=0), white_albedo=white,
-                          black_albedo=black)
-
-    sensor_table = Table(t.raw("sensor", {}), f"{where}.sensor", path, SENSOR_FIELDS)
-    try:
-        sensor = SensorModel(**{k: sensor_table.raw(k) for k in SENSOR_FIELDS if sensor_table.has(k)})
-    except ValueError as exc:
-        fld, _, message = str(exc).partition(": ")
-        raise sensor_table.error(fld.removeprefix("SensorModel."), message) from None
-
-    common = dict(focal=t.number("focal_mm", None, positive=True) if t.has("focal_mm") else None,
-                  pixel=t.number("pixel_um", None, positive=True) if t.has("pixel_um") else None,
-                  pixels=_pixels(t, "pixels") if t.has("pixels") else None,
-                  distance=t.number("distance_mm", None, positive=True) if t.has("distance_mm") else None)
-    raw_cameras = t.raw("cameras")
-    if not isinstance(raw_cameras, list) or not raw_cameras:
-        raise t.error("cameras", "must be a list of camera tables, e.g. "
-                                 "[{polar_deg = 12.5, azimuth_deg = 0}, ...]")
-    cameras = []
-    for k, raw in enumerate(raw_cameras):
-        ct = Table(raw, f"{where}.cameras[{k}]", path, _CAMERA_FIELDS)
-        cam_name = ct.string("name", f"cam{k + 1}")
-        values = {}
-        for key, label, scale in (("focal", "focal_mm", 1e-3), ("pixel", "pixel_um", 1e-6),
-                                  ("distance", "distance_mm", 1e-3)):
-            if ct.has(label):
-                values[key] = ct.number(label, positive=True) * scale
-            elif common[key] is not None:
-                values[key] = common[key] * scale
-            else:
-                raise ct.error(label, f"is required (here or as {label} of the case or [defaults])")
-        pixels = _pixels(ct, "pixels") if ct.has("pixels") else common["pixels"]
-        if pixels is None:
-            raise ct.error("pixels", "is required (here or as pixels of the case or [defaults])")
-        cameras.append(CameraCase(name=cam_name, polar=math.radians(ct.number("polar_deg", low=0.0, high=85.0)),
-                                  azimuth=math.radians(ct.number("azimuth_deg", 0.0)),
-                                  distance=values["distance"], focal_length=values["focal"],
-                                  pixel_size=values["pixel"], pixels=pixels))
-    if len({c.name for c in cameras}) != len(cameras):
-        raise t.error("cameras", "camera names must be unique")
-    case = Case(name=name, description=t.raw("description", "") or "", patch=(float(patch[0]), float(patch[1])),
-                plate_margin=margin, tilt=math.radians(t.number("tilt_deg", 0.0, low=0.0, high=80.0)),
-                displacement=t.vector("displacement_um", 3) * 1e-6, cameras=tuple(cameras),
-                speckle=speckle, edge_blur=t.number("edge_blur_mm", 0.0, low=0.0, high=dot * 1e3 / 2) * 1e-3,
-                sensor=sensor,
-                ambient_radiance=t.number("ambient_radiance", 1.0, positive=True),
-                spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0),
-                **_strain_fields(t, len(cameras)))
-    _check_geometry(case, t, path, where)
-    return case
-
-
-def _strain_fields(t: Table, n_cameras: int) -> dict:
-    """A strain case: `strain_microstrain` = [eps_uu, eps_vv, eps_uv] (tensor shear) imposed on the
-    plate in its face frame, correlated with a `q4_mesh` = [nx, ny] mesh (default [1, 1]), or by
-    subset DIC: `subset_mm`, `step_mm`, `strain_window` (n x n translation subsets centred in the
-    patch, strain from their plane fit)."""
-    subset_keys = ("subset_mm", "step_mm", "strain_window")
-    if not t.has("strain_microstrain"):
-        for key in ("q4_mesh",) + subset_keys:
-            if t.has(key):
-                raise t.error(key, "only applies to a strain case (strain_microstrain)")
-        return {}
-    subsets = None
-    if any(t.has(k) for k in subset_keys):
-        if t.has("q4_mesh"):
-            raise t.error("q4_mesh", "give either q4_mesh (global DIC) or subset_mm, step_mm and "
-                                     "strain_window (subset DIC)")
-        side = t.number("subset_mm", positive=True) * 1e-3
-        step = t.number("step_mm", positive=True) * 1e-3
-        n = t.integer("strain_window", low=2)
-        patch = t.vector("patch_mm", 2) * 1e-3
-        if not fits((n - 1) * step + side, min(patch)):
-            raise t.error("strain_window", f"the window ((n - 1) step + subset = "
-                                           f"{((n - 1) * step + side) * 1e3:g} mm) is larger than "
-                                           f"the patch ({min(patch) * 1e3:g} mm; relative tolerance "
-                                           f"{SIZE_TOLERANCE:g})")
-        subsets = (side, step, n)
-    if n_cameras < 2:
-        raise t.error("strain_microstrain", "a strain case needs at least two cameras")
-    strain = t.vector("strain_microstrain", 3) * 1e-6
-    if np.any(np.abs(strain) > 0.02):
-        raise t.error("strain_microstrain", "must be small strains (|eps| <= 20000 microstrain)")
-    mesh = as_numbers(t.raw("q4_mesh", [1, 1]))
-    if mesh is None or mesh.shape != (2,) or np.any(mesh != np.round(mesh)) or np.any(mesh < 1) \
-            or np.any(mesh > 9):
-        raise t.error("q4_mesh", f"must be two whole numbers [nx, ny] in 1..9 (got {t.raw('q4_mesh')!r})")
-    return {"strain": strain, "q4_mesh": (int(mesh[0]), int(mesh[1])), "subsets": subsets}
-
-
-def _check_geometry(case: Case, t: Table, path: Path, where: str) -> None:
-    """Every camera sees the whole patch (corners displaced by U) in front of it, at an incidence
-    below 80 deg, at least 4 pixels inside its image; the imposed displacement is sub-pixel."""
-    g = plate_geometry(case)
-    for k, cam in enumerate(cameras_of(case)):
-        ray = g["centre"] - cam.position
-        incidence = math.degrees(math.acos(abs(ray @ g["normal"]) / np.linalg.norm(ray)))
-        field_name = f"{where}.cameras[{k}]"
-        if incidence > 80:
-            raise ConfigError(path, field_name, f"sees the plate at {incidence:.0f} deg incidence; "
-                                                "keep it below 80 deg")
-        corners = np.concatenate([g["corners"], deform(case, g["corners"])])
-        x = cam.project(corners)
-        if np.any(x < 4) or np.any(x[:, 0] > cam.width - 5) or np.any(x[:, 1] > cam.height - 5):
-            raise ConfigError(path, field_name, f"does not see the whole patch with a 4-pixel "
-                                                f"margin (corners at {np.round(x[:4]).tolist()} in a "
-                                                f"{cam.width}x{cam.height} image): enlarge pixels, "
-                                                "move it away or shrink patch_mm")
-        shift = np.linalg.norm(cam.sensitivity(g["centre"]) @ case.displacement)
-        if shift >= 1.0:
-            raise t.error("displacement_um", f"moves the patch by {shift:.2f} px in camera "
-                                             f"{cam.name!r}; validation needs a sub-pixel shift")
+    """Read a validation file (`vdo.config.validation.load`: every field of every case) and check
+    every case's geometry (`vdo.geometry.plate.check_cases`); ConfigError (file, field, message)
+    on any mistake, before any render."""
+    spec = validation.load(path)
+    check_cases(spec)
+    return spec
 
 
 # --------------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------------
-def strain_tensor(case: Case) -> np.ndarray:
-    """The imposed in-plane strain as a world 3x3 displacement gradient T E Tᵀ (T = [t_u t_v],
-    E the symmetric 2x2 of (eps_uu, eps_vv, eps_uv)); zeros for a translation case."""
-    if case.strain is None:
-        return np.zeros((3, 3))
-    g = plate_geometry(case)
-    T = np.stack([g["t_u"], g["t_v"]], axis=1)
-    e = case.strain
-    return T @ np.array([[e[0], e[2]], [e[2], e[1]]]) @ T.T
-
-
-def deform(case: Case, points) -> np.ndarray:
-    """Deformed positions X + U + F X (the patch centre is the world origin), metres."""
-    points = np.asarray(points, dtype=float)
-    return points + case.displacement + points @ strain_tensor(case).T
-
-
-def undeform(case: Case, points) -> np.ndarray:
-    """The reference position of deformed points (inverse of `deform`)."""
-    points = np.asarray(points, dtype=float)
-    return np.linalg.solve(np.eye(3) + strain_tensor(case), (points - case.displacement).T).T
-
-
 @dataclass(frozen=True, eq=False)
 class DeformedFaces:
     """The plate region's faces after the deformation: every point keeps the uv of its reference
@@ -351,41 +98,6 @@ class DeformedFaces:
 
     def uv(self, points) -> np.ndarray:
         return self.base.uv(undeform(self.case, points))
-
-
-def plate_geometry(case: Case) -> dict:
-    """The plate's frame: normal n = (0, -sin tilt, cos tilt), the face frame (t_u, t_v) that
-    vdo.scene gives such a face, the patch corners and the plate's 4 vertices (world, m)."""
-
-    n = np.array([0.0, -math.sin(case.tilt), math.cos(case.tilt)])
-    t_u, t_v = face_frame(n)
-    w, h = case.patch
-    centre = np.zeros(3)
-    origin = centre - 0.5 * w * t_u - 0.5 * h * t_v
-    corners = np.array([origin, origin + w * t_u, origin + w * t_u + h * t_v, origin + h * t_v])
-    m = case.plate_margin
-    pw, ph = w + 2 * m, h + 2 * m
-    p0 = centre - 0.5 * pw * t_u - 0.5 * ph * t_v
-    plate = np.array([p0, p0 + pw * t_u, p0 + pw * t_u + ph * t_v, p0 + ph * t_v])
-    return dict(normal=n, t_u=t_u, t_v=t_v, centre=centre, origin=origin, corners=corners,
-                plate=plate)
-
-
-def cameras_of(case: Case) -> list:
-    """The case's vdo Cameras, each aimed at the patch centre (the world origin)."""
-
-    out = []
-    for c in case.cameras:
-        d = np.array([math.sin(c.polar) * math.cos(c.azimuth), math.sin(c.polar) * math.sin(c.azimuth),
-                      math.cos(c.polar)])
-        pos = c.distance * d
-        if c.polar < 1e-9:
-            pan, tilt = 0.0, -math.pi / 2
-        else:
-            pan, tilt = look_at_angles(pos, np.zeros(3))
-        out.append(Camera(name=c.name, width=c.pixels[0], height=c.pixels[1], pixel_size=c.pixel_size,
-                          focal_length=c.focal_length, position=pos, pan=pan, tilt=tilt))
-    return out
 
 
 @dataclass(eq=False)
@@ -408,7 +120,7 @@ def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
     face), ambient light only, the DIC patch side sqrt(patch area) (Ω = the correlated area);
     the strain analysis is the case's: subset DIC with its subset, step and window for a
     subset case, else global DIC with the patch's shorter side as element (it fits the region,
-    the patch itself, up to rounding: `vdo.physics.strain.SIZE_TOLERANCE`)."""
+    the patch itself, up to rounding: `vdo.core.tolerances.SIZE_TOLERANCE`)."""
     g = plate_geometry(case)
     region = RegionSpec(name="patch", mesh="plate", normal=g["normal"],
                         box_min=np.full(3, -np.inf), box_max=np.full(3, np.inf),

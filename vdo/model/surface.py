@@ -43,6 +43,14 @@ MERGE_DIGITS = 9                  # vertices equal to 1 nm (metres) are one vert
 LARGE_DISTORTION = 0.1            # warn above 10 % area or angle distortion (p95 over the area)
 
 
+def face_frame(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(t_u, t_v) with t_u x t_v = normal; t_v follows world z on vertical faces, else world y."""
+    up = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    t_v = up - normal * (up @ normal)
+    t_v /= np.linalg.norm(t_v)
+    return np.cross(t_v, normal), t_v
+
+
 # --------------------------------------------------------------------------------------------
 # Distances
 # --------------------------------------------------------------------------------------------

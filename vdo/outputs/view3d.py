@@ -22,7 +22,8 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection, Poly3DCollection
 from vdo.outputs import maps
 from vdo.core import vtp
 from vdo.core.errors import ConfigError
-from vdo.scene import SurfaceSamples, face_frame
+from vdo.model.surface import face_frame
+from vdo.scene import SurfaceSamples
 
 log = logging.getLogger(__name__)
 

@@ -39,16 +39,13 @@ import math
 
 import numpy as np
 
+from vdo.core.tolerances import SIZE_TOLERANCE, fits
+
 STRAIN_COMPONENTS = ("uu", "vv", "uv")        # ε_uu, ε_vv, ε_uv (tensor shear) in the face frame
 Q4_INTERIOR = 12.0 * math.sqrt(3.0) - 18.0    # F h^4 at an interior element's centre
 AFFINE_PATCH = 12.0                           # F L^4 of an affine patch / isolated element
 Q4_INTERIOR_NODE = 3.0                        # var(node) = 3 Σ_u / h^2 (interior node)
 SHAPE_FUNCTIONS = ("zero", "affine")
-# relative: a size may exceed the side it must fit in by this fraction and still fit. Sides are
-# sums of float coordinates (a patch of side w measured back as 0.005999999999999998 m for 6 mm),
-# so an equal size must not be refused; 1e-6 is far above float64 rounding (1e-16 relative) and
-# far below any size a user chooses (a micrometre per metre).
-SIZE_TOLERANCE = 1e-6
 
 
 def mass_matrix_1d(n_elements: int, h: float) -> np.ndarray:
@@ -163,12 +160,6 @@ def analysis_factors(analysis, density: np.ndarray):
     Fs = np.full(density.shape, np.nan)
     Fs[ok] = vsg_factor(S[ok], s[ok], analysis.strain_window)
     return Fs, 1.0 / S ** 2
-
-
-def fits(size: float, side: float) -> bool:
-    """Whether a size (m) fits in a side (m): size <= side (1 + SIZE_TOLERANCE), so that sizes
-    equal up to rounding fit."""
-    return size <= side * (1.0 + SIZE_TOLERANCE)
 
 
 def check_regions(analysis, samples, density: np.ndarray, path) -> None:
