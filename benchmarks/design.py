@@ -6,7 +6,7 @@ x lenses judged in one ray cast, greedy forward selection + exchange passes on t
 score), timed from the experiment to the selected layout (judging included). The baseline, given
 the same wall time: random feasible layouts of the same size (each camera uniform among the
 candidates compatible with those already drawn: one per spot, minimum axis angle, obscuration;
-so a random rail position, aim and lens), each handed to `vdo.optimize.optimize` (every camera
+so a random rail position, aim and lens), each handed to `vdo.commands.optimize.optimize` (every camera
 free on its mount, its time limit the wall time left), keeping the best result (no constraint
 violated first, then joint sigma_max p95). The candidates the baseline draws from are judged
 outside its time (a head start for the baseline). Both winners are judged whole (camera bodies
@@ -32,7 +32,7 @@ from vdo.config import experiment as config
 from vdo.design import select as design
 from vdo.outputs import report
 from vdo.core.configure import configure
-from vdo.optimize import optimize
+from vdo.commands.optimize import optimize
 from vdo.state import layout_state, prepare
 
 

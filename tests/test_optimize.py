@@ -16,7 +16,7 @@ import pytest
 from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo.config import experiment as config
 from vdo.constraints import stereo_min_angle
-from vdo.optimize import optimize
+from vdo.commands.optimize import optimize
 from vdo.search.parameterisation import Parameterization
 from vdo.search.solver import MU0
 

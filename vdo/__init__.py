@@ -44,7 +44,7 @@ _EXPORTS = {
     "RenderResult": ("vdo.render", "RenderResult"),
     "render_experiment": ("vdo.commands.render", "render_experiment"),
     "write_render": ("vdo.commands.render", "write_render"),
-    "optimize_experiment": ("vdo.optimize", "optimize"),
+    "optimize_experiment": ("vdo.commands.optimize", "optimize"),
     "EvaluationResult": ("vdo.outputs.report", "EvaluationResult"),
     "OptimizeResult": ("vdo.optimize", "OptimizeResult"),
     "DesignResult": ("vdo.design.select", "DesignResult"),

@@ -51,27 +51,24 @@ callback, so JAX's persistent compilation cache can serve it to the next run.
 The pieces live in `vdo.search`: `parameterisation` (θ <-> camera specs), `problem` (`Problem`,
 the penalties, `Run`, `MountModel`), `solver` (rounds, starts, `judge`, `choose_lenses`), `bfgs`
 (the step) and `anytime` (`Stop`, `stop_on_signals`, the progress line); this module runs them
-(start-up, time limit, outputs) and holds the constraint verdict shared with `vdo evaluate` and
+(start-up, time limit, the result `optimize_layout` returns; `vdo.commands.optimize` writes its run
+folder) and holds the constraint verdict shared with `vdo evaluate` and
 `vdo design` (`layout_checks`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
 import logging
 import math
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib.pyplot as plt
 from scipy.spatial import cKDTree
 
 from vdo import constraints
-from vdo.outputs import html_report
 from vdo.search import loadpath
 from vdo import objective
 from vdo.search import reachability
@@ -79,12 +76,12 @@ from vdo.outputs import report
 from vdo.config.experiment import Experiment, lens_catalogue_errors
 from vdo.core.errors import Collect, ConfigError
 from vdo.geometry.keyframes import load_path_of
+from vdo.model.camera import Camera
 from vdo.search.status import Status
 from vdo.physics.predict import predict
-from vdo.core.runfolder import run_folder
 from vdo.state import LayoutState, unobstructed_lighting
 from vdo.search.anytime import Progress, Stop, stop_on_signals
-from vdo.search.problem import (CLEARANCE_SPACING, PENALTIES, Problem, State, clearances, light_lost,
+from vdo.search.problem import (CLEARANCE_SPACING, Problem, State, clearances, light_lost,
                                 obstacle_visibility, score_parts, surface_points)
 from vdo.search.solver import LENS_TRIALS, Result, choose_lenses, solve
 
@@ -161,31 +158,30 @@ def _wrap_up_s(problem: Problem, steps: int) -> float:
     return (steps + 2) * problem.refresh_s + WRITE_S
 
 
-def optimize(exp: Experiment, out: Path, overwrite: bool = False,
-             time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
-             objective=None, started: float | None = None) -> OptimizeResult:
-    """Optimize the layout and write optimized.toml, layout.json, summary_before/after.json,
-    constraints.json, optimizer.json, history.csv, convergence.png and moves.csv into `out`.
+def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
+                    objective=None, started: float | None = None) -> OptimizeResult:
+    """Optimize the layout; returns the `OptimizeResult` that `vdo.commands.optimize` writes as
+    optimized.toml, layout.json, summary_before/after.json, constraints.json, optimizer.json,
+    history.csv, convergence.png and moves.csv (`write_optimization`; this function writes nothing).
 
     `objective`: a user's function of `vdo.objective.SampleFields` returning a JAX scalar,
     minimised instead of the built-in score with the same constraints, penalty rounds,
     visibility refreshes, starts, lens choice and anytime stop (`MountModel` documents the
     fields' variables); refused in one line when it is not traceable or not a scalar
     (`check_objective`). Scale it like the built-in score (a few units at a good layout, e.g.
-    micrometres): the penalties weigh ~1 at a clear violation. The returned and written
+    micrometres): the penalties weigh ~1 at a clear violation. The returned (and written)
     score_before/score_after are then its values.
 
     Anytime: the search ends when every round has run, when the time limit leaves only what
     writing the result needs (`_wrap_up_s`), or on a stop request (SIGINT/SIGTERM while it runs,
-    unless the caller passes its own `stop`, which it then owns); in every case the folder is
-    written with the best layout judged so far (feasible first, `Result.rank`), and
-    optimizer.json says how the search ended. `time_limit` (s, > 0) counts the whole run from
-    `started` (a `time.perf_counter()` value, default now; the command line passes its own
-    start): start-up (meshes, samples, the hand layout's ray cast, lighting and checks) first,
-    then the search gets what is left; when start-up leaves nothing, the starting layout is
-    judged and written, with the reason. The log and optimizer.json give start-up and search
-    apart (`startup_s`, `search_s`). Progress: INFO lines and a bar through the module logger
-    (`vdo.core.progress`)."""
+    unless the caller passes its own `stop`, which it then owns); in every case the result holds
+    the best layout judged so far (feasible first, `Result.rank`), and its `status` says how the
+    search ended. `time_limit` (s, > 0) counts the whole run from `started` (a
+    `time.perf_counter()` value, default now; the command line passes its own start): start-up
+    (meshes, samples, the hand layout's ray cast, lighting and checks) first, then the search
+    gets what is left; when start-up leaves nothing, the starting layout is judged and returned,
+    with the reason. The log and the result give start-up and search apart (`startup_s`,
+    `search_s`). Progress: INFO lines and a bar through the module logger (`vdo.core.progress`)."""
     if not time_limit > 0:
         raise ConfigError("command line", "--time-limit",
                           f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
@@ -240,8 +236,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     status = Status(stop.reason) if stop.reason else \
         (Status.CONVERGED if all(e == Status.CONVERGED for e in run.ends) else Status.MAX_STEPS)
     search = time.perf_counter() - t_search
-    log.info("search ended: %s after %.0f s (start-up %.0f s, search %.0f s); writing %s", status,
-             time.perf_counter() - t_start, startup, search, out)
+    log.info("search ended: %s after %.0f s (start-up %.0f s, search %.0f s)", status,
+             time.perf_counter() - t_start, startup, search)
     before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
@@ -258,33 +254,18 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
     joint = _joint_p95(before), _joint_p95(after)
     log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
              score_before["score_um"], score_after["score_um"], best.violations)
-    with run_folder(out, overwrite) as tmp:
-        optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
-        report.write_config(tmp / "optimized.toml", optimized)
-        report.write_json(tmp / "layout.json", report.layout(best.state.cameras))
-        report.write_json(tmp / "summary_before.json", before.to_json())
-        report.write_json(tmp / "summary_after.json", after.to_json())
-        report.write_json(tmp / "constraints.json", {
-            "violations": best.violations,
-            "violated": [e for e in best.checks if not e["met"]],
-            "after": best.checks, "before": checks_before})
-        report.write_json(tmp / "optimizer.json", {
-            "status": status, "converged": status == "converged",
-            "time_limit_s": time_limit if math.isfinite(time_limit) else None,
-            "search_wall_s": run.history[-1]["wall_s"] if run.history else 0.0, "startup_s": startup,
-            "search_s": search, "reason": reason,
-            "rounds": run.rounds, "starts": run.ends, "accepted_steps": len(run.history), "layouts_judged": len(run.verdicts),
-            "best_start": best.start, "score_before": score_before, "score_after": score_after,
-            "reachability": reach})
-        _write_history(tmp / "history.csv", run.history)
-        _plot_history(tmp / "convergence.png", run.history, run.verdicts, exp.name)
-        _write_moves(tmp / "moves.csv", problem, best)
-        html_report.write_report(tmp)
     return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
                           startup_s=startup, search_s=search, reason=reason,
                           score_regions_um=score_after["regions"], reachability=reach,
                           violations=best.violations, joint_p95_um=joint,
-                          violated=[e for e in best.checks if not e["met"]], before=before, after=after)
+                          violated=[e for e in best.checks if not e["met"]], before=before, after=after,
+                          optimized=final.exp.with_cameras(final.param.specs_at(best.theta)),
+                          cameras=tuple(best.state.cameras), checks_before=checks_before,
+                          checks_after=best.checks, moves=_moves(problem, best),
+                          record=SearchRecord(
+                              time_limit_s=time_limit, rounds=run.rounds, starts=run.ends,
+                              history=run.history, verdicts=run.verdicts, best_start=best.start,
+                              score_before=score_before, score_after=score_after))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -307,6 +288,12 @@ class OptimizeResult:
     violated: list[dict]                        # those checks (constraints.json "violated")
     before: report.EvaluationResult             # the hand layout
     after: report.EvaluationResult              # the best layout (with its load path, when configured)
+    optimized: Experiment                       # the experiment with the best layout (optimized.toml)
+    cameras: tuple[Camera, ...]                 # the best layout's cameras (layout.json)
+    checks_before: list[dict]                   # every constraint check of the hand layout
+    checks_after: list[dict]                    # every constraint check of the best layout
+    moves: tuple[CameraMove, ...]               # per camera, hand layout -> best layout (moves.csv)
+    record: SearchRecord                        # what the search did (optimizer.json, history.csv)
 
     def to_json(self) -> dict:
         """The figures as a JSON dict: score_before, score_after (µm), startup_s, score_regions_um,
@@ -317,6 +304,37 @@ class OptimizeResult:
                 "status": self.status.value, "reachability": self.reachability,
                 "violations": self.violations, "joint_p95_um": list(self.joint_p95_um),
                 "violated": self.violated}
+
+
+@dataclasses.dataclass(frozen=True)
+class SearchRecord:
+    """What the search did, as optimizer.json, history.csv and convergence.png give it: the time
+    limit (s, inf: none), the rounds (optimistix's statistics per round) and how each start
+    ended, the accepted solver steps (`history`: start, round, wall_s, score and each penalty)
+    and the judged layouts (`verdicts`: start, wall_s, exact score, violations), the start that
+    won and the score's parts of the hand and the best layout (`score_parts`, µm)."""
+
+    time_limit_s: float                         # s, the run's limit
+    rounds: list[dict]                          # per round of the search
+    starts: list                                # per start, how its last round ended (`Status`)
+    history: list[dict]                         # per accepted solver step
+    verdicts: list[dict]                        # per judged layout
+    best_start: int                             # the start whose layout won (0: the hand layout)
+    score_before: dict                          # `score_parts` of the hand layout
+    score_after: dict                           # `score_parts` of the best layout
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraMove:
+    """One camera before (the hand layout) and after (the best layout), with its mount's name
+    (rail or zone, "" for none) and, on a rail, its arc length along the bar (m) before and after
+    (None off a rail)."""
+
+    before: Camera
+    after: Camera
+    mount: str
+    rail_before_m: float | None
+    rail_after_m: float | None
 
 
 def _summary(problem: Problem, state: State) -> report.EvaluationResult:
@@ -333,61 +351,14 @@ def _joint_p95(summary: report.EvaluationResult):
     return max(values) if values else None
 
 
-def _write_history(path, history):
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, ["step", "start", "round", "wall_s", "score", *PENALTIES])
-        writer.writeheader()
-        for i, row in enumerate(history):
-            writer.writerow({"step": i, **row})
-
-
-def _plot_history(path, history, verdicts, name):
-    """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin
-    line) and the exact score of each judged layout (markers: filled where it meets every
-    constraint; each round's end, and the checkpoints within rounds), per start; layouts judged
-    without a solve (lens screening) as crosses."""
-    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
-    solved = sorted({h["start"] for h in history})
-    for s in solved:
-        rows = [h for h in history if h["start"] == s]
-        line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
-                        label=f"start {s + 1}: accepted steps")
-        for feasible in (True, False):
-            v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
-            ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
-                    color=line.get_color(), mfc=line.get_color() if feasible else "white",
-                    label=f"start {s + 1}: judged layout, {'feasible' if feasible else 'violates a constraint'}")
-    screened = [r for r in verdicts if r["start"] not in solved]
-    if screened:
-        ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
-                label="lens options screened at the best layout")
-    scores = [r["score"] for r in verdicts] + [h["score"] for h in history]
-    if scores and max(scores) > 10 * min(scores):   # e.g. from unmeasured points to a few µm
-        ax.set_yscale("log")
-    ax.set_xlabel("wall time (s)")
-    ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
-    ax.set_title(f"{name}: convergence")
-    if verdicts:
-        ax.legend(fontsize=7)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def _write_moves(path, problem: Problem, best: Result):
-    """Per camera: its mount (rail or zone), rail position (mm along the bar), pan, tilt (deg),
-    focal length (mm) and optical centre (m), before (`problem`, the hand layout) and after (`best`)."""
+def _moves(problem: Problem, best: Result) -> tuple[CameraMove, ...]:
+    """Per camera its `CameraMove` from the hand layout (`problem`) to the best one (`best`)."""
     u0, u1 = problem.param.u(problem.param.theta0), best.problem.param.u(best.theta)
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(["camera", "mount", "rail_position_mm_before", "rail_position_mm_after",
-                         "pan_deg_before", "pan_deg_after", "tilt_deg_before", "tilt_deg_after",
-                         "focal_mm_before", "focal_mm_after", "x_m_before", "y_m_before", "z_m_before",
-                         "x_m_after", "y_m_after", "z_m_after"])
-        for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
-            rail = problem.param.rails[i]
-            along = [f"{rail.arc_length(u) * 1e3:.1f}" if rail else "" for u in (u0[i], u1[i])]
-            writer.writerow([a.name, rail.name if rail else problem.exp.camera_specs[i].mount or "", *along,
-                             f"{math.degrees(a.pan):.2f}", f"{math.degrees(b.pan):.2f}",
-                             f"{math.degrees(a.tilt):.2f}", f"{math.degrees(b.tilt):.2f}",
-                             f"{a.focal_length * 1e3:g}", f"{b.focal_length * 1e3:g}",
-                             *(f"{v:.4f}" for v in (*a.position, *b.position))])
+    moves = []
+    for i, (a, b) in enumerate(zip(problem.cams0, best.state.cameras)):
+        rail = problem.param.rails[i]
+        moves.append(CameraMove(before=a, after=b,
+                                mount=rail.name if rail else problem.exp.camera_specs[i].mount or "",
+                                rail_before_m=rail.arc_length(u0[i]) if rail else None,
+                                rail_after_m=rail.arc_length(u1[i]) if rail else None))
+    return tuple(moves)

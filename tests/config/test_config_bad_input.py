@@ -387,7 +387,7 @@ def test_lens_outside_the_catalogue_is_refused(plate_experiment, tmp_path):
     own lens is not listed would keep it in optimized.toml when no other wins. Refused before
     any work, naming the camera's focal_mm and the fix; a listed lens (or a camera's own
     lenses_mm that lists it) passes."""
-    from vdo.optimize import optimize
+    from vdo.commands.optimize import optimize
 
     def exp(lenses, extra=""):
         cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + extra + LENS_OPTIMIZE.format(lenses=lenses)

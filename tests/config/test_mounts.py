@@ -151,7 +151,7 @@ def test_non_positive_lens_in_the_catalogue_is_refused(tmp_path):
 def test_optimized_zone_camera_stays_in_its_zone_and_reloads(tmp_path):
     """A short optimization of the tripod camera alone: it ends inside its zone, and the written
     layout (mount + position) loads again with the same pose."""
-    from vdo.optimize import optimize
+    from vdo.commands.optimize import optimize
 
     extra = '\n[render]\nambient_radiance = 1.0\n\n[optimize]\ncameras = ["t"]\nstarts = 1\nrounds = 1\nmax_steps = 6\n'
     exp = config.load(write(tmp_path, extra=extra))

@@ -16,6 +16,7 @@ from scipy.optimize import linprog, minimize
 
 from vdo.config import experiment as config
 from vdo.design import bound
+from vdo.commands.design import design as design_run
 from vdo.design import select as design
 from vdo.state import prepare
 
@@ -176,7 +177,7 @@ def test_design_reports_the_gap(plate, tmp_path):
     score at every count and the gap is 1 - bound / score."""
     exp = plate[0]
     out = tmp_path / "design"
-    result = design.design(exp, out)
+    result = design_run(exp, out)
     data = json.loads((out / "design.json").read_text())
     assert data["gap_to_bound"] == pytest.approx(1 - data["bound"] / result.curve[-1]["score"])
     rows = list(csv.DictReader(open(out / "pareto.csv")))

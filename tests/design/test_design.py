@@ -16,6 +16,7 @@ import pytest
 from conftest import SLIDING_SHUTTER
 from vdo import objective
 from vdo.config import experiment as config
+from vdo.commands.design import design as design_run
 from vdo.design import select as design
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -150,7 +151,7 @@ def test_bad_inputs_name_the_region_and_still_write_the_layout(plate_experiment,
     exp.path.write_text(text)
     exp = config.load(exp.path)
     out = tmp_path / "out"
-    result = design.design(exp, out)
+    result = design_run(exp, out)
     messages = " | ".join(result.problems)
     assert "region 'top' needs 3 cameras" in messages
     assert "region 'underside': no candidate pose sees it" in messages
@@ -226,7 +227,7 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert sorted(map(tuple, grid)) == sorted(map(tuple, expected))
     assert {k for _, k, *_ in spots} == {"zone"}
     out = tmp_path / "out"
-    result = design.design(exp, out)
+    result = design_run(exp, out)
     again = config.load(out / "designed.toml")
     assert [c.mount for c in again.camera_specs] == ["stand", "stand"]
     for c in again.camera_specs:
@@ -353,7 +354,7 @@ def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_exper
     own, and counts the coverage of that area alone."""
     exp = _experiment(plate_experiment, n=2, regions='\n[[region]]\nname = "under"\nmesh = "plate"\n'
                                                      'normal = [0, 0, -1]\n[render]\nambient_radiance = 20\n')
-    result = design.design(exp, tmp_path / "out")
+    result = design_run(exp, tmp_path / "out")
     for c in result.curve:
         assert c["sigma_p95_um"] is None
         assert c["measurable_fraction"] == pytest.approx(0.5, abs=1e-9)

@@ -17,7 +17,7 @@ from vdo import constraints
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
 from vdo.commands.evaluate import evaluate
-from vdo.optimize import optimize
+from vdo.commands.optimize import optimize
 
 TAIL = """
 [render]

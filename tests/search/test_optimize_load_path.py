@@ -23,7 +23,7 @@ from vdo.search import loadpath
 from vdo.model.camera import look_at_angles
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import keyframe_steps, path_occlusion
-from vdo.optimize import optimize
+from vdo.commands.optimize import optimize
 from vdo.state import prepare
 
 SHUTTER_EDGE = 0.35   # m: the shutter's near edge at step 2

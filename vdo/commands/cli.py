@@ -33,7 +33,7 @@ BUILTIN = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / 
 # per command: the module whose import is heavy (done inside `interrupts.held`)
 _MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate",
             "render": "vdo.commands.render", "validate": "vdo.commands.validate",
-            "optimize": "vdo.optimize", "design": "vdo.design.select", "export": "vdo.commands.export",
+            "optimize": "vdo.commands.optimize", "design": "vdo.commands.design", "export": "vdo.commands.export",
             "sweep": "vdo.commands.sweep", "report": "vdo.outputs.html_report",
             "calibrate": "vdo.commands.calibrate"}
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
@@ -237,7 +237,7 @@ def _validate(spec, args):
 
 
 def _optimize(exp, args) -> None:
-    from vdo.optimize import optimize
+    from vdo.commands.optimize import optimize
 
     result = optimize(exp, Path(args.out), overwrite=args.overwrite, time_limit=args.time_limit,
                       started=args.started)   # the limit counts the whole command
@@ -277,7 +277,7 @@ def _design(exp, args) -> None:
     import tempfile
 
     from vdo.commands.sweep import connect_dask, cores
-    from vdo.design.select import design
+    from vdo.commands.design import design
 
     client = cluster = scratch = None
     workers = args.workers or cores()

@@ -481,7 +481,7 @@ def run_point(point: Point) -> dict:
     try:
         exp = parse(point.config, Path(point.base))
         if point.action == "optimize":
-            from vdo.optimize import optimize
+            from vdo.commands.optimize import optimize
 
             result = optimize(exp, Path(point.run_dir), overwrite=True)
             judged = result.after

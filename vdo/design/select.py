@@ -94,7 +94,6 @@ region the design leaves short of its min_cameras; the best layout is written al
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import os
@@ -102,18 +101,14 @@ import resource
 import time
 import uuid
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import matplotlib.pyplot as plt
 import numpy as np
 import scipy.sparse
-from matplotlib.ticker import MaxNLocator
 from scipy.spatial import cKDTree
 
 from vdo.design import bound
-from vdo.outputs import html_report
 from vdo.search import loadpath
 from vdo import objective
 from vdo.outputs import report
@@ -124,11 +119,10 @@ from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
-from vdo.optimize import OptimizeResult, layout_checks, optimize
+from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.core.configure import configure
 from vdo.core.progress import bar
-from vdo.core.runfolder import run_folder
 from vdo.scene import build_scene, camera_body_points
 from vdo.state import Geometry, layout_state, prepare
 from vdo.state import bodies as bodies_of
@@ -1074,20 +1068,20 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
                    for k, i in enumerate(chosen)]}
 
 
-def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
-           memory_limit: float | None = None, time_limit: float | None = None, client=None,
-           threads: int | None = None) -> DesignResult:
-    """Design a layout (module docstring) and write designed.toml, layout.json, summary.json,
-    candidates.csv, pareto.csv, pareto.png, design.json and report.html into `out`; with
-    `refine`, also `vdo.optimize.optimize` of designed.toml into out/refine (its
-    constraints.json "before" holds every constraint check of the designed layout). Before the
-    work, the time and memory it will take are estimated (`estimate`, one INFO line) and a
-    problem that needs more than `memory_limit` bytes (default: `available_memory`) or
-    `time_limit` seconds is refused (`refuse`: ConfigError naming the spacing and the candidate
-    count that fit). With a dask.distributed `client` the candidates are judged on its workers
-    (`judge`; `threads` Dr.Jit threads each). Progress and the chosen cameras: INFO lines and
-    bars through the module logger; each problem found (also in the result): a warning.
-    Returns the `DesignResult`."""
+def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | None = None,
+                  time_limit: float | None = None, client=None, threads: int | None = None) -> DesignResult:
+    """Design a layout (module docstring); returns the `DesignResult` that `vdo.commands.design`
+    writes as designed.toml, layout.json, summary.json, constraints.json, candidates.csv,
+    pareto.csv, pareto.png, design.json and report.html (this function writes nothing). With
+    `refine`, also `vdo.optimize.optimize_layout` of the designed layout (`DesignResult.refined`,
+    written into out/refine; its constraints.json "before" holds every constraint check of the
+    designed layout). Before the work, the time and memory it will take are estimated
+    (`estimate`, one INFO line) and a problem that needs more than `memory_limit` bytes (default:
+    `available_memory`) or `time_limit` seconds is refused (`refuse`: ConfigError naming the
+    spacing and the candidate count that fit). With a dask.distributed `client` the candidates
+    are judged on its workers (`judge`; `threads` Dr.Jit threads each). Progress and the chosen
+    cameras: INFO lines and bars through the module logger; each problem found (also in the
+    result): a warning."""
     t0 = time.perf_counter()
     d = exp.design
     n_max = inventory(exp)
@@ -1159,40 +1153,16 @@ def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = F
         log.info("%s: %s, %g mm, %s %s at %s m, sees %s", c["camera"], c["body"], c["focal_mm"], c["kind"],
                  c["mount"], c["position_m"], ", ".join(c["regions"]) or "no region whole")
     wall = time.perf_counter() - t0
-    with run_folder(out, overwrite) as tmp:
-        report.write_config(tmp / "designed.toml", final)
-        report.write_json(tmp / "layout.json", report.layout(list(state.cameras)))
-        report.write_json(tmp / "summary.json", summary.to_json())
-        report.write_json(tmp / "constraints.json", {"violations": len(violated), "violated": violated,
-                                                     "checks": checks})
-        _write_candidates(tmp / "candidates.csv", exp, cand, best["chosen"])
-        _write_curve(tmp / "pareto.csv", curve)
-        _plot_curve(tmp / "pareto.png", curve, d.target_sigma_um, exp.name)
-        report.write_json(tmp / "design.json", {
-            "candidates": K, "samples": N, "selection_spacing_mm": d.sample_spacing * 1e3,
-            "lenses_mm": [f * 1e3 for f in lenses(exp)], "inventory": n_max,
-            "bodies": [{"name": b.name, "count": b.count, "pixels": list(b.pixels),
-                        "sensor_width_mm": b.sensor_width * 1e3,
-                        "lenses_mm": [f * 1e3 for f in lenses(exp, b)]} for b in bodies(exp)],
-            "targets_m": cand.targets.tolist(), "problems": issues, "statistics": stats,
-            "dropped_per_mount": cand.dropped,
-            "constraint_violations": len(violated),
-            "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": target,
-            "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
-            "gap_to_bound": best["gap"], "bound": best["bound"],
-            "wall_s": wall,
-            "estimate": {"candidates": est.candidates, "samples": est.samples, "probed": est.probed,
-                         "entries": est.entries, "memory_gb": est.memory_bytes / GB,
-                         "judge_s": est.judge_s, "search_s": est.search_s},
-            "measured": {"candidates": K + cand.pruned, "blind_pruned": cand.pruned,
-                         "entries": int(cand.index.size), "peak_memory_gb": search_peak / GB,
-                         "peak_memory_gb_with_final_judgement": peak_rss() / GB,
-                         "judge_s": judged_s, "search_s": searched_s}})
-        html_report.write_report(tmp)
-        refined = optimize(final, tmp / "refine") if refine else None
+    final_peak = peak_rss()       # before the refinement, as the figures above
+    refined = optimize_layout(final) if refine else None
     return DesignResult(cameras=len(best["chosen"]), problems=issues, target_count=target,
                         refined=refined, statistics=stats, violations=len(violated), curve=curve,
-                        summary=summary, wall_s=wall)
+                        summary=summary, wall_s=wall,
+                        record=DesignRecord(experiment=exp, designed=final, cameras=tuple(state.cameras),
+                                            checks=checks, candidates=cand, inventory=n_max,
+                                            estimate=est, judge_s=judged_s, search_s=searched_s,
+                                            peak_memory_bytes=search_peak,
+                                            final_peak_memory_bytes=final_peak))
 
 
 @dataclass(frozen=True)
@@ -1201,7 +1171,8 @@ class DesignResult:
     warnings, in words), the smallest count meeting [design] target_sigma_um, the camera-count
     curve (pareto.csv's rows, with each count's chosen candidates), the designed layout judged as
     `vdo evaluate` judges it (`summary`: summary.json is its `to_json()`) and, with `refine`, the
-    `vdo.optimize.OptimizeResult` of optimizing it."""
+    `vdo.optimize.OptimizeResult` of optimizing it; `record`: the rest of what `vdo.commands.design`
+    writes (`DesignRecord`)."""
 
     cameras: int                           # cameras of the designed layout
     problems: list[str]                    # design.json "problems"
@@ -1212,6 +1183,7 @@ class DesignResult:
     curve: list[dict]                      # per camera count: score, bound, σ p95 (µm), coverage, chosen, ...
     summary: report.EvaluationResult       # the designed layout judged whole
     wall_s: float                          # s, the whole design
+    record: DesignRecord                   # what the run folder is written from
 
     def to_json(self) -> dict:
         """The fields as a JSON dict, `summary` and `refined` as their `to_json()`."""
@@ -1219,6 +1191,28 @@ class DesignResult:
                 "refined": None if self.refined is None else self.refined.to_json(),
                 "statistics": self.statistics, "violations": self.violations, "curve": self.curve,
                 "summary": self.summary.to_json(), "wall_s": self.wall_s}
+
+
+@dataclass(frozen=True)
+class DesignRecord:
+    """What the run folder of `vdo design` holds besides `DesignResult`'s figures: the experiment
+    designed for, the designed one (designed.toml) and its cameras (layout.json), every
+    constraint check of the designed layout (constraints.json), the judged candidates
+    (candidates.csv), the inventory, the up-front estimate and the measured seconds (judging,
+    selection) and peak resident memory (bytes: of judging and selection, and with the final
+    judgement) of design.json."""
+
+    experiment: Experiment
+    designed: Experiment
+    cameras: tuple[Camera, ...]
+    checks: list[dict]
+    candidates: Candidates
+    inventory: int                          # cameras the inventory holds
+    estimate: Estimate
+    judge_s: float                          # s, judging the candidates
+    search_s: float                         # s, selection and bounds
+    peak_memory_bytes: float                # peak resident memory of judging and selection
+    final_peak_memory_bytes: float          # the same, the final judgement included
 
 
 def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve) -> None:
@@ -1247,76 +1241,3 @@ def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibi
         log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
                  "(%d steps, %s)", c["cameras"], c["score"], v, 100 * c["gap"], b.iterations,
                  "converged" if b.converged else f"time limit {seconds:g} s")
-
-
-def _write_candidates(path, exp: Experiment, cand: Candidates, chosen):
-    """One row per candidate: mount, pose, body, lens, samples it sees usably, regions assigned,
-    the fraction of its view the load path takes away, selected."""
-    use = cand.usable_counts()
-    names = [b.name for b in bodies(exp)]
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["candidate", "mount", "kind", "u", "x_m", "y_m", "z_m", "pan_deg", "tilt_deg",
-                    "body", "focal_mm", "target", "usable_samples", "regions_assigned",
-                    "load_path_lost", "selected"])
-        for i, c in enumerate(cand.cameras):
-            w.writerow([i, cand.mount[i], cand.kind[i], "" if math.isnan(cand.u[i]) else f"{cand.u[i]:.4f}",
-                        *(f"{x:.4f}" for x in c.position),
-                        f"{math.degrees(c.pan):.2f}", f"{math.degrees(c.tilt):.2f}",
-                        names[cand.body[i]], f"{c.focal_length * 1e3:g}", int(cand.target[i]),
-                        int(use[i]), int(cand.assigned[i].sum()), f"{cand.path_lost[i]:.3f}",
-                        int(i in chosen)])
-
-
-def _write_curve(path, curve):
-    regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
-    show = lambda v: "" if v is None else f"{v:.5g}"
-    with open(path, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "lenses_mm",
-                    "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
-                   + [f"sigma_p95_um_{r}" for r in regions])
-        for c in curve:
-            w.writerow([c["cameras"], f"{c['score']:.6g}",
-                        "" if c["bound"] is None else f"{c['bound']:.6g}",
-                        "" if c["gap"] is None else f"{c['gap']:.4f}",
-                        show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"],
-                        c["bodies"], f"{c['measurable_fraction']:.4f}",
-                        f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
-                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
-
-
-def _plot_curve(path, curve, target, name):
-    """Top: sigma_max p95 and coverage per camera count; bottom: the design's score and the
-    relaxation's bound on any selection's score per count (`relax_curve`)."""
-    fig, (ax, low) = plt.subplots(2, 1, figsize=(6, 6.5), layout="constrained", sharex=True,
-                                  height_ratios=(3, 2))
-    n = [c["cameras"] for c in curve]
-    s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
-    ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
-    for k, r in enumerate(curve[0]["sigma_p95_by_region_um"] if curve else ()):
-        ax.semilogy(n, [np.nan if c["sigma_p95_by_region_um"][r] is None else c["sigma_p95_by_region_um"][r]
-                        for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
-    if target is not None:
-        ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_ylabel("σ_max p95 (µm)")
-    ax2 = ax.twinx()
-    ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
-    if curve:
-        ax2.plot(n, [100 * c["coverage_of_measurable"] for c in curve], "^:", color="C1", alpha=0.6,
-                 label=f"coverage of the measurable {100 * curve[0]['measurable_fraction']:.0f} %")
-    ax2.set_ylabel("area seen by its min_cameras (%)")
-    ax2.set_ylim(0, 105)
-    ax.set_title(f"{name}: cameras needed")
-    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
-    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
-    low.semilogy(n, [c["score"] for c in curve], "o-", label="design's score")
-    bounds = [np.nan if c["bound"] is None or c["bound"] <= 0 else c["bound"] for c in curve]
-    if not np.all(np.isnan(bounds)):
-        low.semilogy(n, bounds, "v--", color="C2", label="bound: no selection scores lower")
-    low.set_xlabel("cameras")
-    low.set_ylabel("score")
-    low.legend(fontsize=8)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)

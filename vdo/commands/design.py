@@ -1,0 +1,152 @@
+"""`vdo design` as a command: the selection of `vdo.design.select` (`design_layout`) and its run
+folder (`write_design`): designed.toml, layout.json, summary.json, constraints.json,
+candidates.csv, pareto.csv, pareto.png, design.json, report.html and, with refine, the
+`vdo optimize` folder refine/."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.ticker import MaxNLocator
+
+from vdo.commands.optimize import write_optimization
+from vdo.config.experiment import Experiment
+from vdo.core.runfolder import run_folder
+from vdo.design.select import GB, Candidates, DesignResult, bodies, design_layout, lenses
+from vdo.outputs import html_report, report
+
+
+def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
+           memory_limit: float | None = None, time_limit: float | None = None, client=None,
+           threads: int | None = None) -> DesignResult:
+    """Design a layout (`vdo.design.select.design_layout`, the arguments as there) and write its
+    run folder into `out` (`write_design`). Returns the `DesignResult`."""
+    result = design_layout(exp, refine=refine, memory_limit=memory_limit, time_limit=time_limit,
+                           client=client, threads=threads)
+    write_design(result, out, overwrite)
+    return result
+
+
+def write_design(result: DesignResult, out: Path, overwrite: bool = False) -> None:
+    """The run folder of `vdo design` from its result (atomic, `vdo.core.runfolder`): designed.toml,
+    layout.json, summary.json, constraints.json (every constraint check of `vdo optimize`),
+    candidates.csv, pareto.csv, pareto.png, design.json (candidates, inventory, the curve and its
+    bound, problems, statistics, the estimate against what was measured), report.html and, when
+    the result was refined, refine/ (`vdo.commands.optimize.write_optimization`)."""
+    rec = result.record
+    exp, cand, est, curve = rec.experiment, rec.candidates, rec.estimate, result.curve
+    d = exp.design
+    best = curve[-1]
+    violated = [c for c in rec.checks if not c["met"]]
+    with run_folder(out, overwrite) as tmp:
+        report.write_config(tmp / "designed.toml", rec.designed)
+        report.write_json(tmp / "layout.json", report.layout(list(rec.cameras)))
+        report.write_json(tmp / "summary.json", result.summary.to_json())
+        report.write_json(tmp / "constraints.json", {"violations": len(violated), "violated": violated,
+                                                     "checks": rec.checks})
+        write_candidates(tmp / "candidates.csv", exp, cand, best["chosen"])
+        write_curve(tmp / "pareto.csv", curve)
+        plot_curve(tmp / "pareto.png", curve, d.target_sigma_um, exp.name)
+        report.write_json(tmp / "design.json", {
+            "candidates": len(cand.cameras), "samples": cand.samples,
+            "selection_spacing_mm": d.sample_spacing * 1e3,
+            "lenses_mm": [f * 1e3 for f in lenses(exp)], "inventory": rec.inventory,
+            "bodies": [{"name": b.name, "count": b.count, "pixels": list(b.pixels),
+                        "sensor_width_mm": b.sensor_width * 1e3,
+                        "lenses_mm": [f * 1e3 for f in lenses(exp, b)]} for b in bodies(exp)],
+            "targets_m": cand.targets.tolist(), "problems": result.problems, "statistics": result.statistics,
+            "dropped_per_mount": cand.dropped,
+            "constraint_violations": result.violations,
+            "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": result.target_count,
+            "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
+            "gap_to_bound": best["gap"], "bound": best["bound"],
+            "wall_s": result.wall_s,
+            "estimate": {"candidates": est.candidates, "samples": est.samples, "probed": est.probed,
+                         "entries": est.entries, "memory_gb": est.memory_bytes / GB,
+                         "judge_s": est.judge_s, "search_s": est.search_s},
+            "measured": {"candidates": len(cand.cameras) + cand.pruned, "blind_pruned": cand.pruned,
+                         "entries": int(cand.index.size), "peak_memory_gb": rec.peak_memory_bytes / GB,
+                         "peak_memory_gb_with_final_judgement": rec.final_peak_memory_bytes / GB,
+                         "judge_s": rec.judge_s, "search_s": rec.search_s}})
+        html_report.write_report(tmp)
+        if result.refined is not None:
+            write_optimization(result.refined, tmp / "refine")
+
+
+def write_candidates(path, exp: Experiment, cand: Candidates, chosen):
+    """One row per candidate: mount, pose, body, lens, samples it sees usably, regions assigned,
+    the fraction of its view the load path takes away, selected."""
+    use = cand.usable_counts()
+    names = [b.name for b in bodies(exp)]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["candidate", "mount", "kind", "u", "x_m", "y_m", "z_m", "pan_deg", "tilt_deg",
+                    "body", "focal_mm", "target", "usable_samples", "regions_assigned",
+                    "load_path_lost", "selected"])
+        for i, c in enumerate(cand.cameras):
+            w.writerow([i, cand.mount[i], cand.kind[i], "" if math.isnan(cand.u[i]) else f"{cand.u[i]:.4f}",
+                        *(f"{x:.4f}" for x in c.position),
+                        f"{math.degrees(c.pan):.2f}", f"{math.degrees(c.tilt):.2f}",
+                        names[cand.body[i]], f"{c.focal_length * 1e3:g}", int(cand.target[i]),
+                        int(use[i]), int(cand.assigned[i].sum()), f"{cand.path_lost[i]:.3f}",
+                        int(i in chosen)])
+
+
+def write_curve(path, curve):
+    """pareto.csv: per camera count its score, bound and gap, sigma_max p95 (µm; overall and per
+    scored region), coverage, swaps, lenses, bodies and the measurable area's figures."""
+    regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
+    show = lambda v: "" if v is None else f"{v:.5g}"
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "lenses_mm",
+                    "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+                   + [f"sigma_p95_um_{r}" for r in regions])
+        for c in curve:
+            w.writerow([c["cameras"], f"{c['score']:.6g}",
+                        "" if c["bound"] is None else f"{c['bound']:.6g}",
+                        "" if c["gap"] is None else f"{c['gap']:.4f}",
+                        show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"],
+                        c["bodies"], f"{c['measurable_fraction']:.4f}",
+                        f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
+                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
+
+
+def plot_curve(path, curve, target, name):
+    """Top: sigma_max p95 and coverage per camera count; bottom: the design's score and the
+    relaxation's bound on any selection's score per count (`relax_curve`)."""
+    fig, (ax, low) = plt.subplots(2, 1, figsize=(6, 6.5), layout="constrained", sharex=True,
+                                  height_ratios=(3, 2))
+    n = [c["cameras"] for c in curve]
+    s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
+    ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    for k, r in enumerate(curve[0]["sigma_p95_by_region_um"] if curve else ()):
+        ax.semilogy(n, [np.nan if c["sigma_p95_by_region_um"][r] is None else c["sigma_p95_by_region_um"][r]
+                        for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
+    if target is not None:
+        ax.axhline(target, ls="--", color="k", lw=0.8, label=f"target {target:g} µm")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_ylabel("σ_max p95 (µm)")
+    ax2 = ax.twinx()
+    ax2.plot(n, [100 * c["coverage"] for c in curve], "s:", color="C1", label="coverage")
+    if curve:
+        ax2.plot(n, [100 * c["coverage_of_measurable"] for c in curve], "^:", color="C1", alpha=0.6,
+                 label=f"coverage of the measurable {100 * curve[0]['measurable_fraction']:.0f} %")
+    ax2.set_ylabel("area seen by its min_cameras (%)")
+    ax2.set_ylim(0, 105)
+    ax.set_title(f"{name}: cameras needed")
+    lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
+    low.semilogy(n, [c["score"] for c in curve], "o-", label="design's score")
+    bounds = [np.nan if c["bound"] is None or c["bound"] <= 0 else c["bound"] for c in curve]
+    if not np.all(np.isnan(bounds)):
+        low.semilogy(n, bounds, "v--", color="C2", label="bound: no selection scores lower")
+    low.set_xlabel("cameras")
+    low.set_ylabel("score")
+    low.legend(fontsize=8)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
