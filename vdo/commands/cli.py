@@ -263,7 +263,7 @@ def _optimize(exp, args) -> None:
 
 
 def _speckle(exp, args) -> None:
-    from vdo.design.pattern import speckle
+    from vdo.commands.speckle import speckle
 
     result = speckle(exp, Path(args.out), overwrite=args.overwrite)
     for region, r in result["regions"].items():

@@ -26,7 +26,7 @@ tile at least TILE_DOTS of its largest dots across) and judged on the whole layo
 Per region the chosen pattern has the fewest flagged (camera, region) checks, then the lowest
 sigma_max p95.
 
-Files (per region, names made safe): `<region>.png` and `<region>.pdf`, the tile at physical
+Files (written by `vdo.commands.speckle` from `design_speckle`'s result; per region, names made safe): `<region>.png` and `<region>.pdf`, the tile at physical
 scale (print_dpi, the PNG's dpi set; repeated side by side to at least SHEET_MM) with a 10 mm
 scale bar and the pattern's statistics below it;
 `<region>_tile.png`, the bare tile, and `<region>.toml`, a [speckle] table pointing at it (the
@@ -39,22 +39,16 @@ Bad input: a dot size the cameras need that is below MIN_DOT_TEXELS printer dots
 
 from __future__ import annotations
 
-import csv
 import logging
 import math
 import re
-import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
-from PIL import Image
 
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar
-from vdo.core.runfolder import run_folder
 from vdo.model.speckle import MIN_DOT_TEXELS, generate_pattern, gradient_energy_table, normalise
 from vdo.outputs import report
 from vdo.physics.checks import INTERPOLATION_NOISE, SPECKLE_PX, design_checks
@@ -187,36 +181,9 @@ def repeats(tile_texels: int, texel_mm: float) -> int:
     return max(1, math.ceil(SHEET_MM / (tile_texels * texel_mm)))
 
 
-def write_print(path: Path, f: np.ndarray, texel_mm: float, dpi: float, lines: list[str]) -> None:
-    """`path`.png and `path`.pdf: the tile repeated `repeats` times per side at physical scale
-    (one texel per printer dot at `dpi`), a SCALE_BAR_MM scale bar and `lines` of statistics
-    below it."""
-    r = repeats(f.shape[1], texel_mm)
-    f = np.tile(f, (r, r))
-    side_in = f.shape[1] * texel_mm / MM_PER_INCH
-    margin_in = 0.25 + 0.17 * len(lines)
-    fig = plt.figure(figsize=(side_in, side_in + margin_in))
-    h = side_in + margin_in
-    ax = fig.add_axes((0, margin_in / h, 1, side_in / h))
-    ax.imshow(f > 0.5, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-    ax.set_axis_off()
-    bar_ax = fig.add_axes((0, 0, 1, margin_in / h))
-    bar_ax.set_xlim(0, side_in * MM_PER_INCH)
-    bar_ax.set_ylim(0, margin_in * MM_PER_INCH)
-    bar_ax.set_axis_off()
-    top = margin_in * MM_PER_INCH
-    bar_ax.add_patch(plt.Rectangle((1, top - 3), SCALE_BAR_MM, 1.5, facecolor="k", linewidth=0))
-    bar_ax.text(SCALE_BAR_MM + 2, top - 2.3, f"{SCALE_BAR_MM:g} mm", fontsize=6, va="center")
-    for i, text in enumerate(lines):
-        bar_ax.text(1, top - 6 - 4.3 * i, text, fontsize=6, va="center")
-    for ext in ("png", "pdf"):
-        fig.savefig(path.with_suffix(f".{ext}"), dpi=dpi)
-    plt.close(fig)
-
-
-def speckle(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
-    """Design the speckle per region (module docstring) and write its files into `out`."""
-    t0 = time.perf_counter()
+def design_speckle(exp: Experiment) -> SpeckleResult:
+    """Design the speckle per region (module docstring); returns the `SpeckleResult` that
+    `vdo.commands.speckle` writes (this function writes nothing)."""
     dpi = exp.speckle.print_dpi
     spacing = exp.design.sample_spacing
     geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
@@ -241,44 +208,21 @@ def speckle(exp: Experiment, out: Path, overwrite: bool = False) -> dict:
             s = j.sigma_p95_um[region]
             return (len(j.flags[region]), math.inf if s is None else s)
         chosen[region] = min(judged, key=rank)
-    with run_folder(out, overwrite) as tmp:
-        for region, j in chosen.items():
-            name = safe(region)
-            f = tiles[j.dots_mm]
-            tile_mm = j.tile * j.texel_mm
-            s = j.sigma_p95_um[region]
-            lines = [f"{exp.name}: region {region}",
-                     f"dots {j.name}, black {100 * (1 - f.mean()):.1f} %, gray std {f.std():.3f}",
-                     f"tile {tile_mm:.1f} mm ({j.tile} printer dots at {dpi:g} dpi), seamless",
-                     f"sigma_max p95 {'-' if s is None else f'{s:.3g}'} um, "
-                     f"{len(j.flags[region])} flagged checks"]
-            write_print(tmp / name, f, j.texel_mm, dpi, lines)
-            Image.fromarray((f * 255).round().astype(np.uint8)).save(tmp / f"{name}_tile.png",
-                                                                     dpi=(dpi, dpi))
-            (tmp / f"{name}.toml").write_text(
-                f"# the speckle designed for region {region!r}: paste into the experiment\n"
-                f"[speckle]\nimage = \"{name}_tile.png\"\ntexel_mm = {j.texel_mm!r}\n"
-                f"dot_diameter_mm = {min(j.dots_mm)!r}\ncoverage = {j.coverage!r}\n"
-                f"white_albedo = {exp.speckle.white_albedo!r}\nblack_albedo = {exp.speckle.black_albedo!r}\n")
-        with open(tmp / "candidates.csv", "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["dots_mm", "region", "sigma_p95_um", "flags", "chosen"])
-            for j in judged:
-                for region in seen:
-                    s = j.sigma_p95_um[region]
-                    w.writerow([j.name, region, "" if s is None else f"{s:.5g}", len(j.flags[region]),
-                                int(chosen[region] is j)])
-        result = {"print_dpi": dpi, "selection_spacing_mm": spacing * 1e3,
-                  "footprints_mm_per_px": seen,
-                  "regions": {r: {"dots_mm": list(j.dots_mm), "coverage": j.coverage,
-                                  "texel_mm": j.texel_mm, "tile_texels": j.tile,
-                                  "print_repeats": repeats(j.tile, j.texel_mm),
-                                  "sigma_p95_um": j.sigma_p95_um[r], "flags": j.flags[r],
-                                  "files": [f"{safe(r)}.{x}" for x in ("png", "pdf", "toml")]
-                                  + [f"{safe(r)}_tile.png"]}
-                              for r, j in chosen.items()},
-                  "candidates": [{"dots_mm": list(j.dots_mm), "sigma_p95_um": j.sigma_p95_um,
-                                  "flags": j.flags} for j in judged],
-                  "wall_s": time.perf_counter() - t0}
-        report.write_json(tmp / "speckle.json", result)
-    return result
+    return SpeckleResult(experiment=exp, print_dpi=dpi, spacing_m=spacing, footprints_mm_per_px=seen,
+                         judged=tuple(judged), tiles=tiles, chosen=chosen)
+
+
+@dataclass(frozen=True)
+class SpeckleResult:
+    """What `design_speckle` returns: the experiment, its print resolution (dpi) and selection
+    spacing (m), the cameras' footprints per region (mm per pixel, `footprints`), every candidate
+    judged (`Judged`), each candidate's tile (gray levels in [0, 1], by its dots_mm) and the
+    pattern chosen per region."""
+
+    experiment: Experiment
+    print_dpi: float
+    spacing_m: float
+    footprints_mm_per_px: dict                  # region -> camera -> mm per pixel
+    judged: tuple[Judged, ...]
+    tiles: dict[tuple, np.ndarray]              # dots_mm -> tile
+    chosen: dict[str, Judged]                   # region -> its pattern
