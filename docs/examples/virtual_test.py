@@ -186,8 +186,8 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     from vdo.config import experiment as config
     from vdo.geometry.keyframes import at_step, load_path_of
     from vdo.render import noise_free_dn, scaled_camera
-    from vdo.dic.series import (correlate_points, correlate_series, render_series, series_cameras,
-                            series_image)
+    from vdo.commands.series import render_series
+    from vdo.dic.series import correlate_points, correlate_series, series_cameras, series_image
     from vdo.state import layout_state, prepare
 
     out = Path(out)

@@ -15,7 +15,7 @@ from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
 from vdo.render import scaled_camera
 from vdo.geometry.keyframes import load_path_of
-from vdo.dic.series import render_series
+from vdo.commands.series import render_series
 
 CAMERA = """
 [[camera]]

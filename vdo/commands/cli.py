@@ -208,7 +208,7 @@ def _render(exp, args):
     from vdo.commands.render import render_experiment
 
     if args.series is not None:
-        from vdo.dic.series import render_series
+        from vdo.commands.series import render_series
 
         poses = None if args.series == "load_path" else args.series
         summary = render_series(exp, Path(args.out), poses, scale=args.scale, spp=args.spp,

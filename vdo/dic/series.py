@@ -19,7 +19,8 @@ part of the camera (measured on the built-in joint: 34 DN at 16 spp against a se
 design; without jitter the images of two steps differ by the motion and the sensor noise only
 (and a deterministic quadrature error of a few DN that moves with the pixel grid).
 
-The run folder (atomic, `vdo.core.runfolder`):
+The run folder (atomic, `vdo.core.runfolder`), written by `vdo.commands.series` image by image as
+`series_images` renders them (a long series is never held in memory):
 
     images/<camera>/<camera>_<step:04d>.tif  16-bit TIFF (DN, the sensor's bit depth), step 0000
                                              the reference; sensor noise drawn independently per
@@ -34,35 +35,83 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vdo.core.errors import ConfigError
 
+if TYPE_CHECKING:   # annotations only: the heavy modules are imported where they are used
+    from vdo.config.experiment import Experiment
+    from vdo.geometry.keyframes import LoadPath
+    from vdo.model.camera import Camera
+    from vdo.state import Geometry
+
 log = logging.getLogger(__name__)
 
 
-def render_series(exp, out, poses_path=None, scale: float | None = None, spp: int | None = None,
-                  seed: int | None = None, overwrite: bool = False, pairs=None) -> dict:
-    """Render step 0 and every step of the load path for every camera into the run folder `out`
+@dataclass(frozen=True)
+class SeriesImage:
+    """One image of a series: the (scaled) camera, the step (0: the reference), the sensor's
+    image in DN (H, W) and the linear radiance before the sensor (H, W)."""
+
+    camera: Camera
+    step: int
+    dn: np.ndarray
+    linear: np.ndarray
+
+
+@dataclass(frozen=True)
+class SeriesPlan:
+    """Everything a series needs before its first image (`plan_series`): the experiment, the
+    poses file (None: the experiment's [load_path]), the render settings (scale, spp, seed, DIC
+    mode and its tile size), the prepared geometry and load path, the scaled cameras and the
+    camera bodies, the stereo pairs of the calibration files, the interpolation floor per camera
+    and region at this scale (`_interpolation_at_scale`), the steps (0 and the load path's) and
+    when the work began (`time.perf_counter()`, for series.json's total_seconds). Its images
+    come one at a time from `series_images`."""
+
+    experiment: Experiment
+    poses_path: Path | None
+    scale: float
+    spp: int
+    seed: int
+    dic: bool                      # [render] mode = "dic"
+    tile_pixels: int | None        # the DIC render's tile (`vdo.render.plan_render`)
+    geometry: Geometry
+    load_path: LoadPath
+    cameras: list[Camera]
+    obstacles: list
+    stereo: list                   # `vdo.formats.export.StereoPair`s
+    interpolation: list[dict]      # per camera and region, `_interpolation_at_scale`
+    steps: list[int]
+    started: float
+
+    def to_json(self) -> dict:
+        """series.json, with total_seconds counted from `started` to now."""
+        return {"experiment": self.experiment.name, "config": str(self.experiment.path),
+                "poses": None if self.poses_path is None else str(self.poses_path),
+                "scale": self.scale, "spp": self.spp, "seed": self.seed, "jitter": False, "steps": self.steps,
+                "cameras": [c.name for c in self.cameras],
+                "stereo_pairs": [[pair.first.name, pair.second.name] for pair in self.stereo],
+                "interpolation": self.interpolation,
+                "total_seconds": round(time.perf_counter() - self.started, 3)}
+
+
+def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | None = None,
+                seed: int | None = None, pairs=None) -> SeriesPlan:
+    """The `SeriesPlan` of rendering step 0 and every step of the load path for every camera
     (module docstring). `scale`, `spp`, `seed` default to the config's [render] section; `pairs`:
     the stereo pairs of the calibration files as (first, second) names (default: cameras
     assigned a common region), checked to share a field of view before anything is rendered.
-    Returns the series.json dict. Progress goes to the `vdo.dic.series` logger (`vdo.core.progress`)."""
-    from vdo.core.progress import bar as progress_bar
-
-    from vdo.outputs import html_report
-    from vdo.outputs import report
-    from vdo.formats.calibration import file_stem
-    from vdo.formats.export import default_pairs, write_all
-    from vdo.geometry.keyframes import at_step, load_path_of
-    from vdo.render import (build_dic_scene, build_render_scene, plan_render, render_camera,
-                            render_camera_dic, render_seed, render_settings, scaled_camera)
-    from vdo.core.runfolder import run_folder
-    from vdo.model.sensor import save_image
+    Bad input is refused (`ConfigError`) before the geometry is prepared."""
+    from vdo.formats.export import default_pairs
+    from vdo.geometry.keyframes import load_path_of
+    from vdo.render import plan_render, render_settings, scaled_camera
     from vdo.state import bodies, layout_state, prepare
 
     rs = exp.render
@@ -92,43 +141,32 @@ def render_series(exp, out, poses_path=None, scale: float | None = None, spp: in
     vis = state.visibility
     stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
     floor = _interpolation_at_scale(exp, cameras, state, scale)
-    steps = [0, *load_path.steps]
-    with run_folder(out, overwrite) as tmp:
-        for cam in cameras:
-            (tmp / "images" / file_stem(cam.name, exp.path)).mkdir(parents=True)
-        bar = progress_bar(log, total=len(steps) * len(cameras), desc="series", unit="image")
-        for step in steps:
-            posed = geometry.meshes if step == 0 else at_step(geometry, load_path, step).meshes
-            build = build_dic_scene if dic else build_render_scene
-            scene = build(exp, geometry.meshes, geometry.region_faces, obstacles,
-                          geometry.speckle.pattern, posed)
-            for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
-                linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels) if dic else
-                          render_camera(scene, cam, spec, spp, render_seed(seed, i), jitter=False))
-                dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
-                stem = tmp / "images" / cam.name / f"{cam.name}_{step:04d}"
-                save_image(stem.with_suffix(".tif"), dn, exp.sensor.bit_depth)
-                if exp.render.exr:
-                    from vdo.core.backend import mitsuba
+    return SeriesPlan(experiment=exp, poses_path=poses_path, scale=scale, spp=spp, seed=seed, dic=dic,
+                      tile_pixels=plan.tile_pixels, geometry=geometry, load_path=load_path, cameras=cameras,
+                      obstacles=obstacles, stereo=stereo, interpolation=floor, steps=[0, *load_path.steps],
+                      started=started)
 
-                    mitsuba().Bitmap(linear[..., None]).write(str(stem.with_suffix(".exr")))
-                bar.update()
-        bar.close()
-        report.write_json(tmp / "layout.json", report.layout(cameras))
-        report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, stereo, tmp / "calibration", exp.path)
-        if poses_path is not None:
-            shutil.copyfile(poses_path, tmp / "poses.csv")
-        summary = {"experiment": exp.name, "config": str(exp.path),
-                   "poses": None if poses_path is None else str(poses_path),
-                   "scale": scale, "spp": spp, "seed": seed, "jitter": False, "steps": steps,
-                   "cameras": [c.name for c in cameras],
-                   "stereo_pairs": [[pair.first.name, pair.second.name] for pair in stereo],
-                   "interpolation": floor,
-                   "total_seconds": round(time.perf_counter() - started, 3)}
-        (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
-        html_report.write_report(tmp)
-    return summary
+
+def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
+    """The images of a series, step by step (the scene posed once per step) and camera by camera,
+    one at a time, so that the caller writes each before the next is rendered: DIC render mode
+    (`vdo.render.render_camera_dic`) or the sampled render without jitter, the camera's own
+    Mitsuba seed at every step; the sensor noise drawn with default_rng([seed, camera, step])."""
+    from vdo.geometry.keyframes import at_step
+    from vdo.render import (build_dic_scene, build_render_scene, render_camera, render_camera_dic,
+                            render_seed)
+
+    exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
+    for step in plan.steps:
+        posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step).meshes
+        build = build_dic_scene if plan.dic else build_render_scene
+        scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
+                      geometry.speckle.pattern, posed)
+        for i, (cam, spec) in enumerate(zip(plan.cameras, exp.camera_specs)):
+            linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels) if plan.dic else
+                      render_camera(scene, cam, spec, plan.spp, render_seed(seed, i), jitter=False))
+            dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
+            yield SeriesImage(camera=cam, step=step, dn=dn, linear=linear)
 
 
 def _interpolation_at_scale(exp, cameras, state, scale: float) -> list[dict]:
