@@ -108,3 +108,18 @@ def test_the_config_stops_at_the_door():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=ROOT.parent)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_only_commands_write_run_folders():
+    """Only the command modules (vdo/commands/) import `vdo.core.runfolder.run_folder`: every
+    layer below computes and returns a typed result, and its command writes it. (The module
+    that defines it, vdo/core/runfolder.py, is the one other place it may be named.)"""
+    wrong = []
+    for path, name, package in _modules():
+        if _unit(name) == "commands" or name == "vdo.core.runfolder":
+            continue
+        for line, module, names in _imports(path, package):
+            if module == "vdo.core.runfolder" and "run_folder" in names or \
+                    module == "vdo.core" and "runfolder" in names:
+                wrong.append(f"{path.relative_to(ROOT.parent)}:{line} imports run_folder")
+    assert not wrong, "write run folders in vdo/commands/ only:\n" + "\n".join(wrong)
