@@ -33,6 +33,7 @@ from typing import Any, Callable
 import numpy as np
 
 from vdo.core.errors import ConfigError
+from vdo.core.tolerances import TINY
 from vdo.model import nurbs
 from vdo.model.sensor import ALIGNMENTS, SensorModel
 
@@ -833,10 +834,13 @@ class MountSpec:
         """Whether the zone is a box or a convex floor polygon without holes."""
         return self.floor is None or (not self.floor_holes and _is_convex(self.floor))
 
-    def inside(self, xy: np.ndarray, tol: float = 1e-9) -> bool:
-        """Whether the floor point xy (m) lies on the zone's floor (a box zone: its x, y range)."""
+    def inside(self, xy: np.ndarray, tol: float = 1e-9):
+        """Whether the floor point xy (m) lies on the zone's floor (a box zone: its x, y range);
+        xy (2,): a bool, xy (M, 2): a bool array (M,)."""
         if self.floor is None:
-            return bool(np.all(xy >= self.low[:2] - tol) and np.all(xy <= self.high[:2] + tol))
+            xy = np.asarray(xy, dtype=float)
+            on = np.all((xy >= self.low[:2] - tol) & (xy <= self.high[:2] + tol), axis=-1)
+            return bool(on) if xy.ndim == 1 else on
         return inside_floor(self.floor, xy, tol, self.floor_holes or ())
 
     @property
@@ -1039,31 +1043,45 @@ def _is_simple(poly: np.ndarray) -> bool:
     return True
 
 
-def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> bool:
-    """Even-odd rule: a ray from xy along +x crosses the polygon's edges an odd number of times."""
-    a, b = poly, np.roll(poly, -1, axis=0)
-    x, y = float(xy[0]), float(xy[1])
-    straddle = (a[:, 1] > y) != (b[:, 1] > y)
+FLOOR_CHUNK = 4096   # points per vectorised batch of `inside_floor` ((points, edges) temporaries)
+
+
+def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Even-odd rule: a ray from each point xy (..., 2) along +x crosses the polygon's edges an
+    odd number of times; bool (...)."""
+    a, b = poly, np.roll(poly, -1, axis=0)                     # (E, 2) edges a -> b
+    x, y = xy[..., 0, None], xy[..., 1, None]
+    straddle = (a[:, 1] > y) != (b[:, 1] > y)                  # (..., E)
     with np.errstate(divide="ignore", invalid="ignore"):
         cross = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-    return bool(np.count_nonzero(straddle & (cross > x)) % 2)
+    return np.count_nonzero(straddle & (cross > x), axis=-1) % 2 == 1
 
 
-def _edge_distance(poly: np.ndarray, xy: np.ndarray) -> float:
-    """Distance (m) from xy to the polygon's boundary."""
+def _edge_distance(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Distance (m) from each point xy (..., 2) to the polygon's boundary; (...)."""
     a, b = poly, np.roll(poly, -1, axis=0)
     d = b - a
-    t = np.clip(np.einsum("ij,ij->i", np.asarray(xy) - a, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0, 1)
-    return float(np.min(np.linalg.norm(a + t[:, None] * d - xy, axis=1)))
+    rel = xy[..., None, :] - a                                 # (..., E, 2)
+    t = np.clip(np.einsum("...ij,ij->...i", rel, d) / np.maximum(np.einsum("ij,ij->i", d, d), TINY),
+                0, 1)
+    return np.min(np.linalg.norm(rel - t[..., None] * d, axis=-1), axis=-1)
 
 
-def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9, holes=()) -> bool:
+def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9, holes=()):
     """Whether the point xy (m) lies on the floor polygon `floor` (any simple polygon; within
-    `tol` of its edge counts as on it) and in none of `holes` (strictly inside one: off)."""
-    xy = np.asarray(xy, dtype=float)[:2]
-    if not (_in_polygon(floor, xy) or _edge_distance(floor, xy) <= tol):
-        return False
-    return not any(_in_polygon(h, xy) and _edge_distance(h, xy) > tol for h in holes)
+    `tol` of its edge counts as on it) and in none of `holes` (strictly inside one: off). xy (2,)
+    gives a bool, xy (M, 2) a bool array (M,), computed `FLOOR_CHUNK` points at a time."""
+    xy = np.asarray(xy, dtype=float)[..., :2]
+    if xy.ndim == 1:
+        return bool(inside_floor(floor, xy[None], tol, holes)[0])
+    out = np.empty(len(xy), dtype=bool)
+    for k in range(0, len(xy), FLOOR_CHUNK):
+        p = xy[k:k + FLOOR_CHUNK]
+        on = _in_polygon(floor, p) | (_edge_distance(floor, p) <= tol)
+        for h in holes:
+            on &= ~(_in_polygon(h, p) & (_edge_distance(h, p) > tol))
+        out[k:k + FLOOR_CHUNK] = on
+    return out
 
 
 def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:

@@ -316,7 +316,7 @@ def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
                 else np.array([(lo[2] + hi[2]) / 2]))
     xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
     if zone.floor is not None:
-        xy = np.vstack([p for p in xy if zone.inside(p)] or np.zeros((0, 2)))
+        xy = xy[zone.inside(xy)]
         centre = zone.floor.mean(axis=0)
         xy = np.vstack([xy, centre]) if zone.inside(centre) else xy
     return np.array([[x, y, z] for x, y in xy for z in axes[2]])

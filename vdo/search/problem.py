@@ -287,7 +287,7 @@ class Problem:
                         for k in range(3)]
                 grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
                 if zone.floor is not None:   # the grid points over the polygon, and its corners
-                    keep = [zone.inside(g[:2], tol=0.05) for g in grid]
+                    keep = zone.inside(grid[:, :2], tol=0.05)
                     corners = [[*v, z] for v in zone.floor for z in (lo[2], hi[2])]
                     grid = np.vstack([grid[keep], corners])
                 out.append(grid)

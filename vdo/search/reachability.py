@@ -46,7 +46,7 @@ def mount_positions(exp: Experiment, spec, camera, moving: bool, positions: int 
             centre = zone.floor.mean(axis=0)      # (those of the corners and holes' corners on the floor)
             corners = np.vstack([zone.floor, *(zone.floor_holes or ())])
             floor = np.vstack([corners + 1e-3 * (centre - corners), centre])
-            floor = np.array([p for p in floor if zone.inside(p)]).reshape(-1, 2)
+            floor = floor[zone.inside(floor)]
             return f"zone {spec.mount}", np.array([[*xy, z] for xy in floor for z in axes[2]])
         return f"zone {spec.mount}", np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     label = f"fixed mount {spec.mount}" if spec.mount else "fixed position"
