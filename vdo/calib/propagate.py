@@ -23,12 +23,16 @@ and displacements scale together).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from vdo.calib.solve import Calibration, rodrigues, rvec
+from vdo.core.progress import bar
 from vdo.model.camera import distort, distortion_jacobian
+
+log = logging.getLogger(__name__)
 
 UNDISTORT_STEPS = 8      # Newton steps from the distorted point (quadratic convergence)
 FD_STEP = 1e-2           # central-difference step of dX/dtheta, in sigmas of each parameter
@@ -75,9 +79,10 @@ def rig(cal: Calibration, names, true_cameras) -> Rig:
                world=(true.R, true.t))
 
 
-def _ray(intr, ext, uv):
-    """(centre (3,), directions (N, 3)) in the reference frame of pixels uv (N, 2) through a
-    camera with intrinsics `intr` and extrinsics `ext` (None: the reference)."""
+def _camera_rays(intr, uv) -> np.ndarray:
+    """Directions (N, 3) in the camera's frame (z = 1) of pixels uv (N, 2) through a camera with
+    intrinsics `intr` (fx, fy, cx, cy, k1, k2, p1, p2, k3): the distortion inverted by
+    `UNDISTORT_STEPS` Newton steps."""
     fx, fy, cx, cy = intr[:4]
     dist = tuple(intr[4:9])
     xd, yd = (uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy
@@ -88,19 +93,29 @@ def _ray(intr, ext, uv):
         a, b, c, d = distortion_jacobian(x, y, dist)
         det = a * d - b * c
         x, y = x - (d * rx - b * ry) / det, y - (a * ry - c * rx) / det
-    direction = np.stack([x, y, np.ones_like(x)], axis=-1)
+    return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+
+def _in_reference(ext, direction) -> tuple[np.ndarray, np.ndarray]:
+    """(centre (3,), directions (N, 3)) in the reference frame of camera-frame `direction`s of a
+    camera with extrinsics `ext` (rvec, t; None: the reference camera)."""
     if ext is None:
         return np.zeros(3), direction
     R = rodrigues(ext[:3])
     return -R.T @ ext[3:], direction @ R
 
 
+def _terms(C, d) -> tuple[np.ndarray, np.ndarray]:
+    """(P (N, 3, 3), P C (N, 3)), P = I - d d^T / |d|^2, of rays from C along d (N, 3)."""
+    P = np.eye(3) - np.einsum("ni,nj->nij", d, d) / np.einsum("ni,ni->n", d, d)[:, None, None]
+    return P, P @ C
+
+
 def _normal_terms(theta, pixels_i, si, se) -> tuple[np.ndarray, np.ndarray]:
     """One camera's part of the least-squares intersection: (P_i (N, 3, 3), P_i C_i (N, 3)),
     P_i = I - d_i d_i^T / |d_i|^2 for its rays through `pixels_i` (N, 2)."""
-    C, d = _ray(theta[si], None if se is None else theta[se], pixels_i)
-    P = np.eye(3) - np.einsum("ni,nj->nij", d, d) / np.einsum("ni,ni->n", d, d)[:, None, None]
-    return P, P @ C
+    return _terms(*_in_reference(None if se is None else theta[se],
+                                 _camera_rays(theta[si], pixels_i)))
 
 
 def _intersect(A: np.ndarray, b: np.ndarray, world) -> np.ndarray:
@@ -140,7 +155,8 @@ def point_jacobian(r: Rig, cameras, X: np.ndarray) -> np.ndarray:
     """dX/dtheta (N, 3, P) at world points X (N, 3), the pixels those of the true `cameras`
     (vdo Cameras in `r.names` order): central differences with steps `FD_STEP` x the parameter's
     sigma. A parameter moves one camera's rays only, so the other cameras' terms of the
-    intersection are computed once."""
+    intersection are computed once; an extrinsic parameter moves them rigidly, so its camera's
+    undistorted directions are too."""
     pixels = _pixels(cameras, X)
     step = FD_STEP * np.sqrt(np.diag(r.covariance))
     terms = [_normal_terms(r.theta, pixels[:, i], *r.slices[n]) for i, n in enumerate(r.names)]
@@ -149,12 +165,17 @@ def point_jacobian(r: Rig, cameras, X: np.ndarray) -> np.ndarray:
     for i, n in enumerate(r.names):
         si, se = r.slices[n]
         A_rest, b_rest = A - terms[i][0], b - terms[i][1]
+        directions = _camera_rays(r.theta[si], pixels[:, i])
+        ext = None if se is None else r.theta[se]
         for p in [*range(si.start, si.stop), *(range(se.start, se.stop) if se is not None else [])]:
             ends = []
             for sign in (1.0, -1.0):
                 theta = r.theta.copy()
                 theta[p] += sign * step[p]
-                P, PC = _normal_terms(theta, pixels[:, i], si, se)
+                if si.start <= p < si.stop:     # intrinsics: the rays bend
+                    P, PC = _terms(*_in_reference(ext, _camera_rays(theta[si], pixels[:, i])))
+                else:                           # extrinsics: the same rays, moved
+                    P, PC = _terms(*_in_reference(theta[se], directions))
                 ends.append(_intersect(A_rest + P, b_rest + PC, r.world))
             out[:, :, p] = (ends[0] - ends[1]) / (2 * step[p])
     return out
@@ -279,7 +300,8 @@ def sample_errors(cal: Calibration, exp, cameras, samples, visible: np.ndarray, 
     index = {c.name: i for i, c in enumerate(cameras)}
     pitch_sigma = exp.calibration.pitch_tolerance / cal.pitch
     used = []
-    for a, b in pairs:
+    for a, b in bar(log, iterable=pairs, desc="propagating the calibration", unit="pair",
+                     disable=len(pairs) < 2):
         if cal.reference[a] != cal.reference[b]:
             continue
         names = (a, b) if cal.reference[a] == a or cal.reference[b] != b else (b, a)

@@ -72,6 +72,7 @@ def calibrate_experiment(exp, out, scale: float | None = None, spp: int | None =
     deadline = None if time_limit is None else time.monotonic() + time_limit
     rendered = render_session(exp, session, scale, spp, deadline)
     images = rendered.exposed(exp.sensor, exp.calibration.seed, 0)
+    log.info("detecting the target in %d images", len(images))
     observations, missed = detect_all(images, session.target, exp.sensor.max_dn)
     for name, k in missed:
         log.warning("camera %s, pose %d: the target was not found in the image; image dropped", name, k)
@@ -82,6 +83,7 @@ def calibrate_experiment(exp, out, scale: float | None = None, spp: int | None =
                                                        f"camera {name!r}'s images: check the lights "
                                                        "and the poses (tilt_deg, distances_m)")
     sizes = {c.name: (c.width, c.height) for c in rendered.cameras}
+    log.info("calibrating %d cameras jointly from %d images", len(names), len(observations))
     cal = calibrate(names, sizes, observations, session.target, exp.calibration.detection_sigma_px)
     truth = versus_truth(cal, rendered.cameras, session.pairs)
     state = layout_state(planned.geometry, list(planned.cameras))
