@@ -152,8 +152,9 @@ def solve(problem: Problem, starts: int | None = None, first_label: int = 0) -> 
             theta, state, result = _backtrack(problem, result, outcome.theta, start, judged)
             record["violations"] = result.violations
             best = min(best, result, key=lambda r: r.rank)
-            log.info("  start %d %s: score %.4g µm, %d violation(s) %s%s", start + 1, name, result.score,
-                     result.violations, _violated(result),
+            violated = _violated(result)
+            log.info("  start %d %s: score %.4g µm, %d violation(s)%s%s", start + 1, name, result.score,
+                     result.violations, f" ({violated})" if violated else "",
                      "" if outcome.status in ("converged", "max_steps") else f" (ended: {outcome.reason})")
 
         # from a layout that violates a constraint: the penalties alone, until it meets them all
