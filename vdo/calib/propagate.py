@@ -166,14 +166,13 @@ def point_jacobian(r: Rig, cameras, X: np.ndarray) -> np.ndarray:
         si, se = r.slices[n]
         A_rest, b_rest = A - terms[i][0], b - terms[i][1]
         directions = _camera_rays(r.theta[si], pixels[:, i])
-        ext = None if se is None else r.theta[se]
         for p in [*range(si.start, si.stop), *(range(se.start, se.stop) if se is not None else [])]:
             ends = []
             for sign in (1.0, -1.0):
                 theta = r.theta.copy()
                 theta[p] += sign * step[p]
                 if si.start <= p < si.stop:     # intrinsics: the rays bend
-                    P, PC = _terms(*_in_reference(ext, _camera_rays(theta[si], pixels[:, i])))
+                    P, PC = _normal_terms(theta, pixels[:, i], si, se)
                 else:                           # extrinsics: the same rays, moved
                     P, PC = _terms(*_in_reference(theta[se], directions))
                 ends.append(_intersect(A_rest + P, b_rest + PC, r.world))
