@@ -306,6 +306,7 @@ class SurfaceSamples:
     region_importance: np.ndarray  # (R,)
     region_period: np.ndarray | None = None  # (R,) u period of a ring closed around its axis, m (0: none)
     region_cell: np.ndarray | None = None    # (R,) grid spacing in (u, v), m (None: sqrt(area))
+    region_turn: np.ndarray | None = None    # (R,) developed angle of a closed cone ring, rad (0: none)
 
     def __len__(self):
         return len(self.points)
@@ -567,13 +568,15 @@ class SurfaceRaster:
     """Which points of a fine grid lie on a region's surface: the grid of spacing h / K in the
     region's (u, v) (fine point (m_u, m_v) at ((m + 1/2) h / K), so that cell (i, j) of the sample
     grid holds the fine points i K .. i K + K - 1 along each axis. `mask[a, b]` is fine point
-    (offset[0] + a, offset[1] + b); a ring's mask is padded by `pad` wrapped columns each side."""
+    (offset[0] + a, offset[1] + b); a ring's mask is padded by `pad` wrapped columns each side, a
+    closed cone's by its points near the seam continued across it (`surface.across_seam`)."""
 
     mask: np.ndarray        # (Nu, Nv) bool
     offset: np.ndarray      # (2,) int: the fine index of mask[0, 0]
     fine: int               # K
     cell: float             # h, m
-    around: int             # cells around a ring (0: not a ring)
+    around: int             # cells around a cylinder ring (0: not one)
+    turn: float = 0.0       # developed angle of a closed cone ring, rad, signed as u (0: not one)
 
 
 def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: int = 2) -> SurfaceRaster:
@@ -597,10 +600,13 @@ def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: 
         pad = pad_cells * fine
         m = np.concatenate([m, m[m[:, 0] < pad] + [around * fine, 0],
                             m[m[:, 0] >= around * fine - pad] - [around * fine, 0]])
+    turn = dev.flip * dev.turn if dev is not None else 0.0
+    if turn:
+        m = np.concatenate([m, surface.across_seam_grid(m, h / fine, turn, pad_cells * h)[0].astype(m.dtype)])
     lo = m.min(axis=0)
     mask = np.zeros(tuple(m.max(axis=0) - lo + 1), dtype=bool)
     mask[m[:, 0] - lo[0], m[:, 1] - lo[1]] = True
-    return SurfaceRaster(mask, lo, fine, h, around)
+    return SurfaceRaster(mask, lo, fine, h, around, turn)
 
 
 def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
@@ -649,7 +655,9 @@ def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | No
                           region_period=period,
                           region_cell=np.array([spacing if rf.development is None else
                                                 ring_spacing(rf.development.period, spacing)
-                                                for rf in faces]))
+                                                for rf in faces]),
+                          region_turn=np.array([0.0 if rf.development is None else
+                                                rf.development.flip * rf.development.turn for rf in faces]))
 
 
 # --------------------------------------------------------------------------------------------

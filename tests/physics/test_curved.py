@@ -17,6 +17,7 @@ from vdo import objective
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
 from vdo.physics import strain
+from vdo.outputs.maps import developed_outline
 from vdo.physics.lighting import photometry
 from vdo.physics.predict import settings, sigmas
 from vdo.scene import load_meshes, sample_regions
@@ -258,3 +259,45 @@ def test_a_ring_is_textured_without_a_seam(tmp_path):
     assert np.ptp(u, axis=1).max() < 1.01 * width
     # the full turn, plus at most the faces across the seam, which keep their corners together
     assert 2 * math.pi * RADIUS * (1 - 1e-3) <= np.ptp(u) <= 2 * math.pi * RADIUS + 1.01 * width
+
+
+@pytest.mark.parametrize("spacing_mm, patch_mm", [(4, 20), (8, 12)])   # kd-tree cells; surface raster
+def test_a_closed_cone_has_no_edge_at_its_seam(tmp_path, spacing_mm, patch_mm):
+    """A full cone ring (the lateral surface of a cone, 0.03-0.17 m below its apex, half-angle
+    atan(1/2): developed into a sector of 2 pi sin alpha = 161 deg) is cut open at a seam to be
+    developed, but the surface has no edge there: away from the ring's two rims the whole DIC
+    patch lies on the region, so the fraction of the patch on the region's cells (the overlap's
+    row sum) is 1 at the seam as everywhere else (within what the cells, square in the developed
+    plane and turned by the seam's angle, resolve). Without the cells continued across the seam
+    the samples beside it lost up to half their patch."""
+    r, h = 0.1, 0.2
+    path = write_cylinder(tmp_path, patch_mm=patch_mm, region="""
+        box_min_m = [-1, -1, 0.03]
+        box_max_m = [1, 1, 0.17]""")
+    text = path.read_text().replace("sample_spacing_mm = 4", f"sample_spacing_mm = {spacing_mm}")
+    path.write_text(text)
+    trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
+    geometry = prepare(config.load(path))
+    dev = geometry.region_faces[0].development
+    assert dev.kind == "cone" and dev.turn == pytest.approx(2 * math.pi * math.sin(math.atan(r / h)), rel=1e-4)
+    pts, L = geometry.samples.points, patch_mm * 1e-3
+    z = pts[:, 2]
+    margin = L + spacing_mm * 1e-3      # the patch and the cells it touches clear of both rims
+    inner = (z > 0.03 + margin) & (z < 0.17 - margin)
+    phi = np.mod(np.arctan2(pts @ dev.e2, pts @ dev.e1), 2 * math.pi)
+    slant_r = (h - z) * math.tan(dev.half_angle)               # radius of each sample's circle
+    seam = inner & (np.minimum(phi, 2 * math.pi - phi) * slant_r < L)
+    assert seam.sum() > 10
+    share = np.asarray(geometry.overlap.sum(axis=1)).ravel()
+    assert share[inner & ~seam] == pytest.approx(1.0, abs=0.02)
+    assert share[seam] == pytest.approx(1.0, abs=0.1)
+    # the developed map draws the ring's outline at its two rims only, and the seam as two rays
+    mesh = geometry.meshes[0]
+    outline = developed_outline(geometry.samples, 0, geometry.region_faces[0], mesh.vertices, mesh.faces)
+    s_cells = np.linalg.norm(geometry.samples.uv, axis=1)
+    s_edges = np.linalg.norm(outline.outline.mean(axis=1), axis=1)
+    h = geometry.samples.region_cell[0]
+    assert np.all((s_edges < s_cells.min() + 1.5 * h) | (s_edges > s_cells.max() - 1.5 * h))
+    rays = outline.seam[:, 1] - outline.seam[:, 0]
+    between = math.acos(rays[0] @ rays[1] / np.linalg.norm(rays[0]) / np.linalg.norm(rays[1]))
+    assert between == pytest.approx(dev.turn, abs=1e-9)

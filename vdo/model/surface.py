@@ -151,7 +151,9 @@ class Development:
     `e2` = axis x e1, signed `radius`; kind "cone": `centre` is the apex, `half_angle` alpha;
     kind "general": `faces_uv` (T, 3, 2), the developed corners of the region's faces `faces`
     (indices into the mesh) and the mesh triangles `triangles` (T, 3, 3) to locate points.
-    `period` is the u period of a full ring (m; 0 when the region is not closed around its axis)."""
+    `period` is the u period of a full cylinder ring (m; 0 when the region is not closed around
+    its axis); `turn` the developed angle of a full cone ring, 2 pi sin alpha (rad; 0 when not
+    closed): the ring continues across its seam rotated by +-turn about the apex (`across_seam`)."""
 
     kind: str
     centre: np.ndarray | None = None
@@ -161,6 +163,7 @@ class Development:
     radius: float = 0.0
     half_angle: float = 0.0
     period: float = 0.0
+    turn: float = 0.0
     triangles: np.ndarray | None = None
     faces_uv: np.ndarray | None = None
     distortion: Distortion | None = None
@@ -220,6 +223,47 @@ class Development:
         l12 = np.linalg.solve(g, rhs[..., None])[..., 0]
         uv = self.faces_uv[face]
         return uv[:, 0] + l12[:, :1] * (uv[:, 1] - uv[:, 0]) + l12[:, 1:] * (uv[:, 2] - uv[:, 0])
+
+
+def across_seam(uv: np.ndarray, turn: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the points of a closed cone ring near its seam lie when the development is continued
+    across the seam: (indices (M,) into uv, their images (M, 2) m). The developed ring is the
+    sector psi in [0, |turn|] about the apex (the origin of (u, v) = s (sin psi, -cos psi), u
+    mirrored when turn < 0); a point within `reach` (m, along its circle) of the start edge
+    reappears at psi + |turn|, one within `reach` of the end edge at psi - |turn|. The images keep
+    at least half the gap 2 pi - |turn| away from the sector's other edge, so that a cone whose
+    development nearly closes (half-angle near 90 deg) does not overlap itself."""
+    uv = np.asarray(uv, float)
+    sign, theta = math.copysign(1.0, turn), abs(turn)
+    s = np.hypot(uv[:, 0], uv[:, 1])
+    half_gap = (2 * math.pi - theta) / 2
+    psi = np.mod(np.arctan2(sign * uv[:, 0], -uv[:, 1]) + half_gap, 2 * math.pi) - half_gap
+    band = np.minimum(reach / np.maximum(s, 1e-300), half_gap)
+    start = np.flatnonzero(psi < band)
+    end = np.flatnonzero(theta - psi < band)
+    idx = np.concatenate([start, end])
+    moved = np.concatenate([psi[start] + theta, psi[end] - theta])
+    return idx, np.stack([sign * s[idx] * np.sin(moved), -s[idx] * np.cos(moved)], axis=-1)
+
+
+def across_seam_grid(cells: np.ndarray, step: float, turn: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The grid version of `across_seam`: of the grid points beside a closed cone ring's seam (integer
+    indices, point (i + 1/2) step), the ones that continue the cells `cells` (M, 2) across it,
+    each with the index into `cells` of the cell it continues: (grid points (G, 2), owners (G,)).
+    Pulled, not pushed: each grid point next to a pushed image is taken back across the seam and
+    kept when it lands in a cell, so that the turned grid leaves no holes."""
+    cells = np.asarray(cells, np.int64)
+    _, image = across_seam((cells + 0.5) * step, turn, reach)
+    near = np.round(image / step - 0.5).astype(np.int64)
+    ring = np.array([[di, dj] for di in (-1, 0, 1) for dj in (-1, 0, 1)])
+    grid = np.unique((near[:, None, :] + ring[None]).reshape(-1, 2), axis=0)
+    back_idx, back = across_seam((grid + 0.5) * step, turn, 2 * reach)
+    landed = np.round(back / step - 0.5).astype(np.int64)
+    lookup = {tuple(c): k for k, c in enumerate(cells)}
+    owner = np.array([lookup.get(tuple(c), -1) for c in landed], dtype=np.int64)
+    inside = {tuple(c) for c in cells}
+    keep = (owner >= 0) & np.array([tuple(c) not in inside for c in grid[back_idx]], dtype=bool)
+    return grid[back_idx][keep], owner[keep]
 
 
 def face_distortion(tri: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -365,7 +409,8 @@ def fit_cone(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     spread = np.abs(np.angle(np.exp(1j * (corner[:, :, None] - corner[:, None, :])))).max()
     reference, closed = _gap_reference(np.arctan2(rel @ e2, rel @ e1), e1, e2, float(spread))
     e1, e2 = _frame(axis, reference)
-    dev = Development("cone", centre=apex, axis=axis, e1=e1, e2=e2, half_angle=alpha)
+    dev = Development("cone", centre=apex, axis=axis, e1=e1, e2=e2, half_angle=alpha,
+                      turn=2 * math.pi * math.sin(alpha) if closed else 0.0)
     dev = _orient(dev, tri, normals)
     return Development(**{**dev.__dict__, "distortion": distortion_of(tri, dev.triangles_uv(tri))})
 

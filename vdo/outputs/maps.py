@@ -20,6 +20,7 @@ past the face's edge.
 
 from __future__ import annotations
 
+import math
 import re
 import textwrap
 import weakref
@@ -314,11 +315,13 @@ def _extend(values: np.ndarray, vmin: float, vmax: float) -> str:
 class DevelopedOutline:
     """A curved region's lines in its developed plane (m): `outline` the edges of the union of
     its samples' grid cells (the sampled surface's edge), `holes` its mesh's free edges (holes and
-    open ends that the region's faces border), `seam` the u of a ring's seam (None when open)."""
+    open ends that the region's faces border), `seam` the lines where a closed ring was cut open
+    to be developed (a cylinder's u = 0 and u = period, a cone's rays at psi = 0 and psi = turn;
+    None when the region is not closed)."""
 
     outline: np.ndarray      # (E, 2, 2)
     holes: np.ndarray        # (F, 2, 2)
-    seam: float | None
+    seam: np.ndarray | None  # (S, 2, 2)
 
 
 def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices: np.ndarray,
@@ -326,8 +329,10 @@ def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices
     """The `DevelopedOutline` of region `region` (its `vdo.scene.RegionFaces` `faces`, whose
     development gives the map) on a mesh (vertices (V, 3) m, faces (F, 3)). Cell edges: a side of
     the square cell (i, j) (uv = (i + 1/2, j + 1/2) h) not shared with another cell of the region
-    (ring neighbours across the seam count). Free edges: edges used by one face of the whole mesh
-    (corners merged to 1 nm), of the region's faces, developed with their face."""
+    (a cylinder ring's neighbours across the seam count; along a cone ring's seam, where the
+    square cells meet turned, no cell edge within a cell of the seam is drawn: the seam's rays are).
+    Free edges: edges used by one face of the whole mesh (corners merged to 1 nm), of the region's
+    faces, developed with their face."""
     from vdo.model.surface import merged
     from vdo.scene import ring_spacing
 
@@ -340,6 +345,7 @@ def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices
     ij = np.round(samples.uv[mask] / h - 0.5).astype(np.int64)
     n_around = int(round(period / h)) if period else 0
     cells = {tuple(c) for c in ij}
+    turn = dev.flip * dev.turn if dev is not None else 0.0
     lines = []
     for (i, j) in cells:
         for di, dj, a, b in ((1, 0, (1, 0), (1, 1)), (-1, 0, (0, 0), (0, 1)),
@@ -347,6 +353,13 @@ def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices
             k = (i + di) % n_around if n_around else i + di
             if (k, j + dj) not in cells:
                 lines.append([[(i + a[0]) * h, (j + a[1]) * h], [(i + b[0]) * h, (j + b[1]) * h]])
+    lines = np.array(lines).reshape(-1, 2, 2)
+    if turn:
+        mid = lines.mean(axis=1)
+        s_mid = np.hypot(mid[:, 0], mid[:, 1])
+        psi = np.mod(np.arctan2(math.copysign(1.0, turn) * mid[:, 0], -mid[:, 1]) + math.pi - abs(turn) / 2,
+                     2 * math.pi) - math.pi + abs(turn) / 2
+        lines = lines[np.minimum(np.abs(psi), np.abs(abs(turn) - psi)) * s_mid >= h]
     tri_all = np.asarray(mesh_vertices, float)[np.asarray(mesh_faces)]
     _, f_all = merged(tri_all)
     edges = np.sort(np.stack([f_all[:, [0, 1]], f_all[:, [1, 2]], f_all[:, [2, 0]]], axis=1), axis=2)
@@ -363,7 +376,16 @@ def developed_outline(samples: SurfaceSamples, region: int, faces, mesh_vertices
         holes[..., 0] = np.mod(holes[..., 0], period)
         wrapped = np.abs(holes[:, 0, 0] - holes[:, 1, 0]) > period / 2
         holes = holes[~wrapped]
-    return DevelopedOutline(np.array(lines).reshape(-1, 2, 2), holes, 0.0 if period else None)
+    uv = samples.uv[mask]
+    seam = None
+    if period:
+        v0, v1 = uv[:, 1].min() - h / 2, uv[:, 1].max() + h / 2
+        seam = np.array([[[0.0, v0], [0.0, v1]], [[period, v0], [period, v1]]])
+    elif turn:
+        s0, s1 = np.hypot(uv[:, 0], uv[:, 1]).min() - h / 2, np.hypot(uv[:, 0], uv[:, 1]).max() + h / 2
+        rays = [np.array([np.sign(turn) * math.sin(a), -math.cos(a)]) for a in (0.0, abs(turn))]
+        seam = np.array([[s0 * r, s1 * r] for r in rays])
+    return DevelopedOutline(lines, holes, seam)
 
 
 def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, mesh_faces,
@@ -380,7 +402,6 @@ def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, m
     mask = samples.region == region
     dev = faces.development
     outline = developed_outline(samples, region, faces, mesh_vertices, mesh_faces)
-    period = dev.period if dev is not None else 0.0
     h = float(samples.region_cell[region]) if samples.region_cell is not None else \
         float(np.sqrt(np.median(samples.area[mask])))
     uv = samples.uv[mask]
@@ -409,8 +430,7 @@ def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, m
         if len(outline.holes):
             ax.add_collection(LineCollection(outline.holes, colors="tab:blue", linewidths=1.6 * width))
         if outline.seam is not None:
-            ax.axvline(outline.seam, color="0.3", ls=":", lw=width)
-            ax.axvline(period, color="0.3", ls=":", lw=width)
+            ax.add_collection(LineCollection(outline.seam, colors="0.3", linestyles=":", linewidths=width))
         ax.set_xlim(lo[0] - 0.02 * ext.max(), hi[0] + 0.02 * ext.max())
         ax.set_ylim(lo[1] - 0.02 * ext.max(), hi[1] + 0.02 * ext.max())
         ax.set_aspect("equal")
@@ -432,7 +452,8 @@ def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, m
     cbar = fig.colorbar(coll, ax=main, shrink=0.8)
     cbar.set_label(f"{label}; scale {vmin:.4g} – {vmax:.4g} ({how})", fontsize=8)
     fig.text(0.01, 0.005, "black: region outline   blue: hole / free edges"
-             + ("   dotted: the ring's seam (u wraps)" if period else ""), fontsize=8, color="0.3")
+             + ("   dotted: the ring's seam (the map continues across it)" if outline.seam is not None
+                else ""), fontsize=8, color="0.3")
     fractions = {}
     for col, i in enumerate(shown):
         ax = fig.add_subplot(grid[1, col])

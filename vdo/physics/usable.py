@@ -60,6 +60,7 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
+from vdo.model.surface import across_seam, across_seam_grid
 from vdo.scene import SurfaceSamples
 
 USABLE_WEIGHT = 0.5    # a view counts when its soft weight w_i >= this
@@ -99,6 +100,9 @@ def raster_overlap(samples: SurfaceSamples, region: int, patch_size: float,
     hi = np.ceil(centre + half - 0.5 - 1e-9).astype(np.int64)
     whole = np.prod(hi - lo, axis=1).astype(float)
     lookup = {tuple(c): k for k, c in enumerate(ij)}
+    if raster.turn:      # a closed cone's cells continue across its seam
+        for c, k in zip(*across_seam_grid(ij, h, raster.turn, 2 * h)):
+            lookup.setdefault(tuple(c), k)
     rows, cols, vals = [], [], []
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
@@ -127,6 +131,7 @@ def patch_overlap(samples: SurfaceSamples, patch_size: float, rasters=None) -> s
     rows, cols, vals = [], [], []
     periods = samples.region_period if samples.region_period is not None else \
         np.zeros(len(samples.region_names))
+    turns = samples.region_turn if samples.region_turn is not None else np.zeros(len(samples.region_names))
     for r in np.unique(samples.region):
         if rasters is not None and rasters[r] is not None and L <= FINE_PATCH_CELLS * rasters[r].cell:
             for out, part in zip((rows, cols, vals), raster_overlap(samples, r, L, rasters[r])):
@@ -137,24 +142,29 @@ def patch_overlap(samples: SurfaceSamples, patch_size: float, rasters=None) -> s
         period = float(periods[r])
         h = float(np.sqrt(np.median(samples.area[idx]))) if samples.region_cell is None \
             else float(samples.region_cell[r])
+        owner, cells = np.arange(len(idx)), uv      # the cells: a closed cone's continue across its seam
+        if turns[r] != 0:
+            ghost, image = across_seam(uv, float(turns[r]), L + h)
+            owner, cells = np.concatenate([owner, ghost]), np.concatenate([uv, image])
         if period > 0:        # a ring: u wraps at the period
             uv = uv - [0.0, uv[:, 1].min()]
+            cells = uv
             box = [period, 2 * (float(uv[:, 1].max()) + L + h) + 1.0]
             tree = cKDTree(np.mod(uv, box), boxsize=box)
         else:
-            tree = cKDTree(uv)
+            tree = cKDTree(cells)
         # cells overlapping the square: centres within (L + h)/2 in the max norm (minus rounding)
         pairs = tree.query_ball_point(np.mod(uv, box) if period > 0 else uv,
                                       r=(L + h) / 2 * (1 - 1e-12), p=np.inf)
         counts = np.fromiter((len(p) for p in pairs), dtype=np.int64, count=len(pairs))
         a = np.repeat(np.arange(len(idx)), counts)
         b = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs]) if len(pairs) else a
-        d = np.abs(uv[a] - uv[b])                                    # (K, 2)
+        d = np.abs(uv[a] - cells[b])                                 # (K, 2)
         if period > 0:
             d[:, 0] = np.minimum(d[:, 0], period - d[:, 0])
         overlap = np.clip((L + h) / 2 - d, 0.0, min(L, h))         # 1D overlap per axis
         rows.append(idx[a])
-        cols.append(idx[b])
+        cols.append(idx[owner[b]])
         vals.append(overlap.prod(axis=1) / L ** 2)
     n = len(samples)
     return scipy.sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
