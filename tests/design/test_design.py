@@ -16,7 +16,7 @@ import pytest
 from conftest import SLIDING_SHUTTER
 from vdo import objective
 from vdo.config import experiment as config
-from vdo.commands.design import design as design_run
+from vdo.commands.design import curve_line, design as design_run
 from vdo.design import select as design
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
@@ -364,6 +364,13 @@ def test_the_curve_is_over_the_measurable_area_with_sigma_per_region(plate_exper
         assert c["coverage_of_measurable"] == pytest.approx(2 * c["coverage"], abs=1e-9)
     text = (tmp_path / "out" / "pareto.csv").read_text().splitlines()
     assert text[0].endswith("sigma_p95_um_top,sigma_p95_um_under")
+    # the console names the unmeasured region and gives sigma over the measured area
+    for c in result.curve:
+        line = curve_line(c, ["top", "under"])
+        assert "under: none of it measured" in line
+        if c["sigma_p95_measurable_um"] is not None:
+            assert f"sigma_max p95 {c['sigma_p95_measurable_um']:.3f} um over the measured area" in line
+        assert f"coverage {100 * c['coverage']:.1f} % ({100 * c['coverage_of_measurable']:.1f} %" in line
 
 
 def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, monkeypatch):

@@ -277,7 +277,7 @@ def _design(exp, args) -> None:
     import tempfile
 
     from vdo.commands.sweep import connect_dask, cores
-    from vdo.commands.design import design
+    from vdo.commands.design import curve_line, design
 
     client = cluster = scratch = None
     workers = args.workers or cores()
@@ -297,8 +297,7 @@ def _design(exp, args) -> None:
             shutil.rmtree(scratch, ignore_errors=True)
     if not args.quiet:
         for c in result.curve:
-            p95 = "unmeasured" if c["sigma_p95_um"] is None else f"{c['sigma_p95_um']:.3f} um"
-            print(f"{c['cameras']:3d} cameras: sigma_max p95 {p95}, coverage {100 * c['coverage']:.1f} %")
+            print(curve_line(c, exp.optimize.regions or [r.name for r in exp.regions]))
         if result.target_count is not None:
             print(f"smallest count meeting the target: {result.target_count}")
         if result.refined is not None:

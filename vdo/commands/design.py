@@ -116,6 +116,26 @@ def write_curve(path, curve):
                        + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
 
 
+def curve_line(c: dict, scored=None) -> str:
+    """One count of the camera-count curve for the console: sigma_max p95 of the worst scored
+    region, or, while a scored region has no measured sample, over the area that is measured
+    with the unmeasured regions named; then the coverage (of all the regions' area and of what
+    the candidate spots can measure)."""
+    by = c["sigma_p95_by_region_um"]
+    scored = list(by) if scored is None else list(scored)
+    if c["sigma_p95_um"] is not None:
+        worst = max((r for r in scored if by.get(r) is not None), key=lambda r: by[r], default=None)
+        sigma = f"sigma_max p95 {c['sigma_p95_um']:.3f} um" + (f" (worst: {worst})" if worst else "")
+    else:
+        none = [r for r in scored if by.get(r) is None]
+        over = c["sigma_p95_measurable_um"]
+        sigma = ("no region measured" if over is None else
+                 f"sigma_max p95 {over:.3f} um over the measured area") + \
+            f" ({', '.join(none)}: none of it measured)"
+    return (f"{c['cameras']:3d} cameras: {sigma}, coverage {100 * c['coverage']:.1f} % "
+            f"({100 * c['coverage_of_measurable']:.1f} % of the measurable)")
+
+
 def plot_curve(path, curve, target, name):
     """Top: sigma_max p95 and coverage per camera count; bottom: the design's score and the
     relaxation's bound on any selection's score per count (`relax_curve`)."""
@@ -124,6 +144,15 @@ def plot_curve(path, curve, target, name):
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
     ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    ax.semilogy(n, [np.nan if c["sigma_p95_measurable_um"] is None else c["sigma_p95_measurable_um"]
+                    for c in curve], "x-", color="C0", alpha=0.45, lw=0.8,
+                label="σ_max p95 over the measured area")
+    for c in curve:     # a count that leaves a region unmeasured says so under its point
+        none = [r for r, v in c["sigma_p95_by_region_um"].items() if v is None]
+        if none:
+            ax.annotate("unmeasured:\n" + "\n".join(none), (c["cameras"], 0.97),
+                        xycoords=("data", "axes fraction"), ha="center", va="top", fontsize=7,
+                        color="0.3", bbox=dict(boxstyle="round", fc="white", ec="0.7", lw=0.5))
     for k, r in enumerate(curve[0]["sigma_p95_by_region_um"] if curve else ()):
         ax.semilogy(n, [np.nan if c["sigma_p95_by_region_um"][r] is None else c["sigma_p95_by_region_um"][r]
                         for c in curve], ".--", lw=0.8, color=f"C{k + 2}", label=f"{r} (measurable area)")
