@@ -117,6 +117,7 @@ from vdo.model.camera import Camera, look_at_angles
 from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
+from vdo.geometry import obstacles
 from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
 from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
@@ -136,6 +137,7 @@ SPOT_M = 0.2            # two optical centres closer than this are one physical 
 PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
 ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
 ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
+HARDWARE_CHUNK = 256          # candidates' hardware bounds tested against one camera's lines at once
 PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
 PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
 ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
@@ -708,8 +710,11 @@ class Feasibility:
     the `samples` the candidates were judged on, when the area of it that both see usably is at
     least [optimize] assign_fraction of the smaller area either sees (`vdo.constraints.sharing`'s
     rule: around a closed surface no candidate is assigned it, yet neighbours see the same part).
-    A candidate's conflicts with all others (K,) are found when it is first selected and kept
-    (never a K x K matrix)."""
+    With the `samples`, two candidates also conflict when one's hardware (body, and tripod on a
+    zone with a [mount.tripod]; `vdo.geometry.obstacles`) hides more than [optimize]
+    max_obscuration of the area of a region the other is assigned that the other sees usably (a
+    camera on a tripod in front of another's lens). A candidate's conflicts with all others (K,)
+    are found when it is first selected and kept (never a K x K matrix)."""
 
     def __init__(self, exp: Experiment, cand: Candidates, samples=None):
         self.exp, self.cand = exp, cand
@@ -729,6 +734,9 @@ class Feasibility:
         self.body = cand.body
         self.counts = np.array([b.count for b in bodies(exp)])
         self._rows: dict[int, np.ndarray] = {}
+        self._samples = samples
+        self._hardware: dict[int, obstacles.Hardware] = {}
+        self._bounds = None   # every candidate's hardware bounding sphere: (centres (K, 3), radii (K,))
 
     def row(self, j: int) -> np.ndarray:
         """(K,) True where a candidate conflicts with candidate j."""
@@ -743,8 +751,54 @@ class Feasibility:
                 conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
             for r, top in self.limited:
                 conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
+            if self._samples is not None:
+                conflict |= self.hides(j)
             self._rows[j] = conflict
         return self._rows[j]
+
+    def hardware(self, k: int) -> obstacles.Hardware:
+        """Candidate k's body and tripod (`vdo.geometry.obstacles.hardware`)."""
+        if k not in self._hardware:
+            tripods = {m.name: m.tripod for m in self.exp.mounts}     # rails stand on no tripod
+            self._hardware[k] = obstacles.hardware(self.cand.cameras[k], tripods.get(self.cand.mount[k]))
+        return self._hardware[k]
+
+    def hides(self, j: int) -> np.ndarray:
+        """(K,) True where candidate j's hardware hides more than max_obscuration of an assigned
+        region's usable area from a candidate, or that candidate's hardware hides as much from j
+        (class docstring)."""
+        cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
+        K, R = cand.assigned.shape
+        use = usable.usable_views(cand.entry_weight)
+        rows, index = cand.row[use], cand.index[use]
+        area = smp.area[index]
+        # j's hardware in front of every other candidate's lines of sight
+        lost = obstacles.hidden(self.positions[rows], smp.points[index], self.hardware(j)) & (rows != j)
+        hidden = np.bincount(rows[lost] * R + smp.region[index[lost]], weights=area[lost],
+                             minlength=K * R).reshape(K, R)
+        frac = hidden / np.maximum(self._alone, TINY)
+        out = (cand.assigned & (frac > limit)).any(axis=1)
+        # every other candidate's hardware in front of j's lines of sight
+        mine = rows == j
+        lines = (self.positions[j], smp.points[index[mine]])
+        seen = np.bincount(smp.region[index[mine]], weights=area[mine], minlength=R)
+        mine_assigned = cand.assigned[j]
+        if self._bounds is None:
+            every = [self.hardware(k) for k in range(K)]
+            self._bounds = (np.array([h.bound_centre for h in every]), np.array([h.bound_radius for h in every]))
+        near = np.zeros(K, dtype=bool)
+        for lo in range(0, K, HARDWARE_CHUNK):   # (chunk, lines) distances from each bounding centre
+            centre, radius = (b[lo:lo + HARDWARE_CHUNK] for b in self._bounds)
+            d = obstacles.point_segment_distance(centre[:, None], lines[0], lines[1][None])
+            near[lo:lo + HARDWARE_CHUNK] = (d < radius[:, None]).any(axis=1) if d.size else False
+        for k in np.flatnonzero(near & ~out):
+            if k == j:
+                continue
+            lost = obstacles.hidden(np.broadcast_to(lines[0], lines[1].shape), lines[1], self.hardware(k))
+            if lost.any():
+                part = np.bincount(smp.region[index[mine]][lost], weights=area[mine][lost], minlength=R)
+                out[k] = bool((mine_assigned & (part > limit * np.maximum(seen, TINY))).any())
+        return out
 
     def shared(self, j: int) -> np.ndarray:
         """(K, R) True where a candidate shares region r with candidate j (class docstring)."""

@@ -1,0 +1,66 @@
+"""A camera's hardware as an obstacle in closed form (`vdo.geometry.obstacles`), checked against
+Mitsuba's ray test on the meshes the scene builds for the same body and tripod
+(`vdo.scene.camera_body`, `vdo.scene.tripod`): every sight line the meshes stop is hidden, and a
+line called hidden that the meshes let through passes within the stand-ins' overshoot of them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from vdo.config.experiment import TripodSpec
+from vdo.geometry import obstacles
+from vdo.model.camera import Camera, look_at_angles
+from vdo.scene import build_scene, camera_body, mitsuba, tripod
+
+OVERSHOOT_M = 0.03   # the body's spheres overshoot the box by ~1.5 cm; a capsule's ends by its radius
+LINES = 4000
+
+
+def camera_at(position, target, focal_mm=25.0):
+    pan, tilt = look_at_angles(np.asarray(position, float), np.asarray(target, float))
+    return Camera(name="c", width=2448, height=2048, pixel_size=3.45e-6, focal_length=focal_mm * 1e-3,
+                  position=np.asarray(position, float), pan=pan, tilt=tilt, roll=0.0)
+
+
+@pytest.mark.parametrize("on_tripod", [False, True])
+def test_hidden_lines_match_the_meshes(on_tripod):
+    cam = camera_at([0.3, -1.2, 1.3], [0.0, 0.0, 0.9])
+    spec = TripodSpec() if on_tripod else None
+    meshes = [camera_body(cam)] + (tripod(cam, spec) if on_tripod else [])
+    whole = trimesh.util.concatenate([trimesh.Trimesh(m.vertices, m.faces, process=False) for m in meshes])
+    hw = obstacles.hardware(cam, spec)
+    rng = np.random.default_rng(3)
+    # sight lines from a second camera's spot behind and beside it, past the first (and down
+    # its tripod) to the specimen beyond
+    start = np.array([0.9, -2.6, 1.1]) + rng.normal(0, 0.3, (LINES, 3))
+    near = cam.position + np.c_[rng.normal(0, 0.15, (LINES, 2)),
+                                rng.uniform(-1.2 if on_tripod else -0.2, 0.2, LINES)]
+    end = start + 1.6 * (near - start)
+    hidden = obstacles.hidden(start, end, hw)
+    direction = end - start
+    length = np.linalg.norm(direction, axis=1)
+    mi = mitsuba()
+    ray = mi.Ray3f(mi.Point3f(*start.T), mi.Vector3f(*(direction / length[:, None]).T))
+    ray.maxt = mi.Float(length)
+    stopped = np.asarray(build_scene(meshes).ray_test(ray), dtype=bool)
+    assert stopped.sum() > 50 and (hidden & ~stopped).sum() > 0     # both kinds of line occur
+    assert np.all(hidden[stopped])                                   # the meshes stop -> hidden
+    surface = trimesh.sample.sample_surface(whole, 40000, seed=1)[0]
+    extra = np.flatnonzero(hidden & ~stopped)
+    gap = np.array([obstacles.point_segment_distance(surface, start[i], end[i]).min() for i in extra])
+    assert gap.max() < OVERSHOOT_M
+
+
+def test_segment_distance_against_a_dense_search():
+    rng = np.random.default_rng(0)
+    a0, a1, b0, b1 = (rng.normal(size=(200, 3)) for _ in range(4))
+    b1[:20] = b0[:20] + 0.5 * (a1[:20] - a0[:20])                   # parallel pairs too
+    t = np.linspace(0, 1, 401)
+    pa = a0[:, None] + t[None, :, None] * (a1 - a0)[:, None]
+    pb = b0[:, None] + t[None, :, None] * (b1 - b0)[:, None]
+    dense = np.linalg.norm(pa[:, :, None] - pb[:, None], axis=-1).min(axis=(1, 2))
+    exact = obstacles.segment_distance(a0, a1, b0, b1)
+    assert np.all(exact <= dense + 1e-12)
+    assert exact == pytest.approx(dense, abs=5e-3)
