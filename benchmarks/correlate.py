@@ -36,6 +36,7 @@ from vdo.core.configure import configure  # noqa: E402
 from vdo.dic.series import correlate_points  # noqa: E402
 from vdo.model.speckle import pattern_for  # noqa: E402
 from vdo.render import build_dic_scene, render_camera_dic  # noqa: E402
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent
 U_IMPOSED = np.array([23e-6, -17e-6, 11e-6])      # m: ~0.3 px in-plane at 69 µm per pixel
@@ -101,7 +102,7 @@ def main():
     exp = config.load(folder / "plate.toml")
     meshes = scene.load_meshes(exp)
     ds = build_dic_scene(exp, meshes, scene.all_region_faces(exp, meshes), (), pattern_for(exp.speckle))
-    cams = exp.cameras()
+    cams = cameras_of(exp)
     t0, c0 = time.perf_counter(), time.process_time()
     refs = [render_camera_dic(ds, c).astype(np.float64) * 4000 for c in cams]
     defs = [render_camera_dic(ds, replace(c, position=np.asarray(c.position) - U_IMPOSED)).astype(np.float64)

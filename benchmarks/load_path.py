@@ -22,6 +22,7 @@ import vdo
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import evaluate_load_path, keyframe_steps, path_occlusion
 from vdo.state import layout_state
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -53,7 +54,7 @@ def main() -> None:
     residual = np.max(np.abs(np.polyval([b, a], counts) - seconds) / np.asarray(seconds))
     print(f"fit t = a + b K        a = {a:.2f} s, b = {b:.3f} s per keyframe "
           f"(largest deviation from the line {100 * residual:.0f} %)")
-    cameras = exp.cameras()
+    cameras = cameras_of(exp)
     t0 = time.perf_counter()
     layout_state(geometry, cameras, predict_fields=False)
     rest = time.perf_counter() - t0

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo import objective as ob
-from vdo.model.camera import distort, distortion_jacobian, look_at_angles, rotation
+from vdo.model.camera import distort, distortion_jacobian, rotation
+from vdo.model.pose import look_at_angles
 from vdo.core.configure import configure
 from vdo.core.memory import retain_freed_memory
 from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise

@@ -29,6 +29,7 @@ from vdo.core.configure import configure  # noqa: E402
 from vdo.render import (build_dic_scene, build_render_scene, camera_sensor, expose,  # noqa: E402
                         render_camera, render_camera_dic, render_linear, render_seed, scaled_camera)
 from vdo.model.speckle import pattern_for  # noqa: E402
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -51,7 +52,7 @@ def main():
     exp = config.load(args.config)
     t0 = time.perf_counter()
     meshes = scene.load_meshes(exp)
-    full = exp.cameras()
+    full = cameras_of(exp)
     bodies = [scene.camera_body(c) for c, s in zip(full, exp.camera_specs) if s.body]
     sc = build_render_scene(exp, meshes, scene.all_region_faces(exp, meshes), bodies,
                             pattern_for(exp.speckle))
@@ -114,7 +115,7 @@ def dic_benchmark(args):
 
     exp = config.load(args.config)
     meshes = scene.load_meshes(exp)
-    full = exp.cameras()
+    full = cameras_of(exp)
     bodies = [scene.camera_body(c) for c, s in zip(full, exp.camera_specs) if s.body]
     faces = scene.all_region_faces(exp, meshes)
     pattern = pattern_for(exp.speckle)

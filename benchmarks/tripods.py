@@ -17,7 +17,7 @@ from pathlib import Path
 
 from vdo.config import experiment as config
 from vdo.core.configure import configure
-from vdo.scene import build_scene
+from vdo.scene import build_scene, cameras_of
 from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
 from vdo.physics.visibility import compute_visibility
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def refresh_seconds(exp, geometry, unobstructed, repeats: int) -> tuple[list[float], int]:
     """Wall times of `repeats` refreshes of the hand layout, and the number of moving obstacles."""
-    cameras = exp.cameras()
+    cameras = cameras_of(exp)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -19,6 +19,7 @@ from vdo import scene
 from vdo.config import experiment as config
 from vdo.physics import visibility
 from vdo.core.configure import configure
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -77,7 +78,7 @@ def main():
     exp = config.load(args.config)
     meshes = scene.load_meshes(exp)
     samples = scene.sample_regions(exp, meshes, spacing=args.spacing_mm * 1e-3)
-    cameras = exp.cameras()
+    cameras = cameras_of(exp)
     bodies = [scene.camera_body(c) for c in cameras]
     sc = scene.build_scene(meshes + bodies)
     n_tri = sum(len(m.faces) for m in meshes + bodies)

@@ -8,6 +8,7 @@ draws the same floors.
 from __future__ import annotations
 
 import ast
+import math
 from pathlib import Path
 
 import pytest
@@ -108,6 +109,39 @@ def test_the_config_stops_at_the_door():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=ROOT.parent)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_the_config_builds_no_camera_and_no_rail():
+    """`vdo/config/` imports (at the top or inside a function) neither `vdo.model.camera` nor
+    `vdo.model.rail`, the JAX modules: cameras are built by `vdo.scene.cameras_of`."""
+    heavy = ("vdo.model.camera", "vdo.model.rail")
+    wrong = [f"{path.name}:{line} imports {module if module in heavy else module + '.' + n}"
+             for path, name, package in _modules() if _unit(name) == "config"
+             for line, module, names in _imports(path, package)
+             for n in names or ("",)
+             if module in heavy or module == "vdo.model" and f"vdo.model.{n}" in heavy]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_a_moved_camera_reaims_without_jax():
+    """Editing cameras with `Experiment.with_camera` (a move along a rail, with the re-aim at the
+    aim point, and a turn) stays in NumPy: no JAX, Mitsuba or Dr.Jit is imported, and the edits
+    took (the re-aim's geometry is checked in tests/test_scripting.py)."""
+    import json
+    import subprocess
+    import sys
+    code = ("import json, sys; from vdo.config.experiment import load; "
+            "e = load('experiments/beam_column/three_cameras.toml'); "
+            "m = e.with_camera('cam1', u=0.3, centre=[0.0, 0.0, 0.5]).with_camera('cam2', pan_deg=10); "
+            "print(json.dumps([sorted(k for k in ('jax', 'mitsuba', 'drjit') if k in sys.modules), "
+            "[c.u for c in m.camera_specs[:1]] + [c.pan for c in m.camera_specs[:2]], "
+            "[c.pan for c in e.camera_specs[:1]]]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT.parent)
+    heavy, (u, pan_moved, pan_turned), (pan_before,) = json.loads(out.stdout)
+    assert heavy == [], out.stderr
+    assert u == 0.3 and pan_turned == pytest.approx(math.radians(10))
+    assert pan_moved != pytest.approx(pan_before)   # re-aimed after the move
 
 
 def test_only_commands_write_run_folders():

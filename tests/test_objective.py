@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from vdo import objective as ob
-from vdo.model.camera import intrinsic_matrix, look_at_angles, project, rotation, sensitivity
+from vdo.model.camera import intrinsic_matrix, project, rotation, sensitivity
+from vdo.model.pose import look_at_angles
 from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise
 
 GAUSS = ob.GaussianFieldEnergy(0.6e-3)  # smooth closed-form G

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from vdo.core.backend import mitsuba
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.render import sensor_dict
 
 MARKER = np.array([0.05, -0.03, 0.02])

@@ -19,7 +19,7 @@ from conftest import write_box
 from vdo.config import experiment as config
 from vdo.physics import lighting
 from vdo.core.errors import ConfigError
-from vdo.scene import TRIPOD_SECTIONS, tripod_cylinders
+from vdo.scene import TRIPOD_SECTIONS, cameras_of, tripod_cylinders
 from vdo.state import layout_state, prepare
 from vdo.physics.visibility import EPSILON
 
@@ -227,7 +227,7 @@ def test_a_camera_is_not_hidden_by_its_own_tripod(tmp_path, tilt):
 def test_tripod_geometry_follows_the_mount_table(tmp_path, legs):
     exp = config.load(write(tmp_path, legs=legs))
     spec = exp.mount("floor").tripod
-    stand = exp.cameras()[1]
+    stand = cameras_of(exp)[1]
     parts = tripod_cylinders(stand, spec)
     assert len(parts) == legs + 1
     top = parts[0][0]
@@ -294,7 +294,7 @@ def test_render_shows_the_other_cameras_tripod(tmp_path):
 
     exp = config.load(write(tmp_path))
     geometry = prepare(exp)
-    viewer, stand = exp.cameras()
+    viewer, stand = cameras_of(exp)
     images = []
     for cams in ([viewer, stand], [viewer]):
         sc = build_render_scene(exp, list(geometry.meshes), list(geometry.region_faces), bodies(exp, cams))
@@ -352,7 +352,7 @@ def test_the_run_in_3d_draws_each_tripod(tmp_path):
     report.write_config(run / "config.toml", exp)
     drawn = {name: (v, f) for name, _, v, f in view3d.load(run).meshes}
     assert set(drawn) == {"wall", "tripod:stand"}
-    parts = tripods(exp, exp.cameras())
+    parts = tripods(exp, cameras_of(exp))
     vertices, faces = drawn["tripod:stand"]
     np.testing.assert_allclose(vertices, np.vstack([p.vertices for p in parts]), atol=1e-9)
     assert len(faces) == sum(len(p.faces) for p in parts) and faces.max() == len(vertices) - 1

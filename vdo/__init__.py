@@ -31,6 +31,7 @@ _EXPORTS = {
     "Experiment": ("vdo.config.experiment", "Experiment"),
     "ConfigError": ("vdo.core.errors", "ConfigError"),
     "Camera": ("vdo.model.camera", "Camera"),
+    "cameras_of": ("vdo.scene", "cameras_of"),
     "prepare": ("vdo.state", "prepare"),
     "layout_state": ("vdo.state", "layout_state"),
     "Geometry": ("vdo.state", "Geometry"),

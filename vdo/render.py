@@ -50,6 +50,7 @@ import numpy as np
 from vdo.model.camera import Camera, image_point
 from vdo.model.speckle import normalise, pattern_for
 from vdo.physics.glare import SATIN_ALPHA, SATIN_IOR
+from vdo.scene import cameras_of
 
 log = logging.getLogger(__name__)
 
@@ -614,7 +615,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     scale, spp, seed = render_settings(exp, scale, spp, seed)
     dic = exp.render.mode == "dic"
     started = time.perf_counter()
-    cameras = [scaled_camera(c, scale) for c in exp.cameras()]
+    cameras = [scaled_camera(c, scale) for c in cameras_of(exp)]
     try:
         plan = plan_render(cameras, exp.render.mode)
     except MemoryError as err:

@@ -1,5 +1,6 @@
-"""The physical scene: meshes in metres, regions of interest and their samples, camera bodies and
-the tripods under them, and the Mitsuba scene built from them.
+"""The physical scene: meshes in metres, regions of interest and their samples, the configured
+cameras (`cameras_of`), their bodies and the tripods under them, and the Mitsuba scene built from
+them.
 
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory, so a
 user's CAD export and the built-in example take the same path.
@@ -658,6 +659,24 @@ def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | No
                                                 for rf in faces]),
                           region_turn=np.array([0.0 if rf.development is None else
                                                 rf.development.flip * rf.development.turn for rf in faces]))
+
+
+# --------------------------------------------------------------------------------------------
+# The cameras
+# --------------------------------------------------------------------------------------------
+def cameras_of(exp: Experiment) -> list[Camera]:
+    """The configured cameras of `exp` (`vdo.model.camera.Camera`), in [[camera]] order: optical
+    centres from rails and positions (`camera_positions`), aimed at target_m or by pan and tilt
+    (`CameraSpec.angles`), pixel pitch = sensor width / pixel columns."""
+    out = []
+    for spec, position in zip(exp.camera_specs, camera_positions(exp)):
+        pan, tilt = spec.angles(position)
+        width, height = spec.pixels
+        out.append(Camera(name=spec.name, width=width, height=height,
+                          pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
+                          position=position, pan=pan, tilt=tilt, roll=spec.roll,
+                          principal_offset_px=spec.principal_offset_px, distortion=spec.distortion))
+    return out
 
 
 # --------------------------------------------------------------------------------------------

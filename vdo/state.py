@@ -33,7 +33,7 @@ from vdo.core.errors import ConfigError
 from vdo.physics.lighting import Illumination, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
-                    load_meshes, sample_regions, surface_raster, tripods)
+                       cameras_of, load_meshes, sample_regions, surface_raster, tripods)
 from vdo.physics.usable import FINE_PATCH_CELLS, patch_overlap
 from vdo.physics.visibility import Visibility, compute_visibility
 
@@ -194,7 +194,7 @@ def experiment_with_cameras(exp: Experiment, cameras) -> Experiment:
     `body = false`; a camera of `exp` absent from `cameras` is dropped. `exp` itself when every
     camera is as it configures them."""
     cameras = tuple(cameras)
-    configured = {c.name: c for c in exp.cameras()}
+    configured = {c.name: c for c in cameras_of(exp)}
     specs = {s.name: s for s in exp.camera_specs}
     out = []
     for cam in cameras:
@@ -318,8 +318,8 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
     exp = geometry.experiment
     if isinstance(cameras, Experiment):
         check_geometry(geometry, cameras)
-        exp, cameras = cameras, cameras.cameras()
-    cameras = tuple(exp.cameras() if cameras is None else cameras)
+        exp, cameras = cameras, cameras_of(cameras)
+    cameras = tuple(cameras_of(exp) if cameras is None else cameras)
     obstacles = bodies(exp, cameras)
     scene = build_scene(list(geometry.meshes) + obstacles)
     vis = compute_visibility(scene, list(cameras), geometry.samples,

@@ -10,6 +10,7 @@ import pytest
 
 from vdo.config.experiment import load, parse
 from vdo.core.errors import ConfigError
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parents[2]
 HOLED = ROOT / "experiments" / "holed_plate" / "stereo.toml"
@@ -160,7 +161,7 @@ def test_written_images_calibrate_in_opencv(tmp_path, path, distortion):
     session = planned.session
     images = render_session(exp, session, RENDER_SCALE, spp=4)
     write(images.exposed(exp.sensor, 0, 0), session, tmp_path, exp.sensor, "png", "msb")
-    for cam in exp.cameras():
+    for cam in cameras_of(exp):
         truth = scaled_camera(cam, RENDER_SCALE)
         rms, K, dist, sigma, size, found = opencv_calibrate(tmp_path, cam.name)
         assert size == (truth.width, truth.height)
@@ -334,7 +335,7 @@ def test_import_round_trip(tmp_path, fmt):
     if fmt != "vic3d":          # VIC-3D's file holds no tangential terms
         data["camera"][1]["distortion"] = [0.03, 0.0, 0.001, -0.0005, 0.0]
     exp = parse(data, exp.path)
-    cams = exp.cameras()
+    cams = cameras_of(exp)
     written = WRITERS[fmt](cams, [StereoPair(cams[0], cams[1])], tmp_path, exp.path)
     frame = np.eye(4)
     if fmt == "matchid":        # its frame is the first camera's: place it where that camera is
@@ -352,7 +353,7 @@ def test_import_refuses_another_image_size(tmp_path):
     from vdo.calib.importer import import_cameras
     from vdo.formats.opencv import write
 
-    cams = load(STEEL).cameras()
+    cams = cameras_of(load(STEEL))
     path = write(cams[:1], [], tmp_path, STEEL)[0]
     from dataclasses import replace
 
@@ -375,7 +376,7 @@ def exported(tmp_path, fmt):
     if fmt != "vic3d":
         data["camera"][1]["distortion"] = [0.03, 0.0, 0.001, -0.0005, 0.0]
     exp = parse(data, STEEL)
-    cams = exp.cameras()
+    cams = cameras_of(exp)
     written = WRITERS[fmt](cams, [StereoPair(cams[0], cams[1])], tmp_path, exp.path)
     files = [p for p in written if not p.name.startswith("stereo_")][:1 if fmt != "opencv" else None]
     return exp, files
@@ -398,9 +399,9 @@ def test_evaluate_calibration_import_round_trip(tmp_path, fmt):
             continue
         moved = moved.with_camera(c.name, position_m=(c.position + [0.0, -0.05, 0.1]).tolist(),
                                   target_m=[0.1, 0.0, 1.0], focal_mm=12)
-    imported = with_imported(moved, files).cameras()
+    imported = cameras_of(with_imported(moved, files))
     X = np.random.default_rng(1).uniform([-0.3, -0.1, 0.7], [0.3, 0.1, 1.1], (200, 3))
-    for mine, theirs in zip(imported, exp.cameras()):
+    for mine, theirs in zip(imported, cameras_of(exp)):
         assert mine.name == theirs.name
         assert np.abs(mine.project(X) - theirs.project(X)).max() < ROUND_TRIP_PX
 

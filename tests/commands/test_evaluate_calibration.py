@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from vdo.config.experiment import load, parse
+from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parents[2]
 PLATE = ROOT / "experiments" / "holed_plate" / "stereo.toml"
@@ -56,12 +57,12 @@ def test_evaluate_gives_calibration_errors_with_imported_cameras(tmp_path, capsy
     exp = load(config)
     lab = exp.with_camera("left", position_m=[-0.142, -0.686, 1.0])
     (tmp_path / "lab").mkdir()
-    files = write(lab.cameras(), [], tmp_path / "lab", config)
+    files = write(cameras_of(lab), [], tmp_path / "lab", config)
     out = tmp_path / "run"
     assert main(["evaluate", str(config), "--out", str(out), "--calibration", *map(str, files)]) == 0
     assert "calib strain ue" in capsys.readouterr().out
     layout = {c["name"]: c for c in json.loads((out / "layout.json").read_text())["cameras"]}
-    for cam in lab.cameras():
+    for cam in cameras_of(lab):
         np.testing.assert_allclose(layout[cam.name]["position_m"], cam.position, atol=1e-9)
     summary = json.loads((out / "summary.json").read_text())
     cal = summary["calibration"]

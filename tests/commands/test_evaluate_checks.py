@@ -17,7 +17,7 @@ from vdo.commands import cli
 from vdo.commands.evaluate import evaluate
 from vdo.config.experiment import load
 from vdo.model.camera import Camera
-from vdo.scene import camera_body
+from vdo.scene import camera_body, cameras_of
 
 ROOT = Path(__file__).resolve().parents[2]
 PLATE = ROOT / "experiments" / "holed_plate" / "stereo.toml"
@@ -65,7 +65,7 @@ def test_evaluate_reports_clearance_axis_angle_and_a_blind_camera(tmp_path, capl
     assert by[("axis_angle_max", ("left", "right"))]["met"] == (expected <= 35 + 1e-6)
 
     # the clearance of the left camera: trimesh's exact distance from its body to the meshes
-    cam = next(c for c in exp.cameras() if c.name == "left")
+    cam = next(c for c in cameras_of(exp) if c.name == "left")
     body = camera_body(cam)
     points = trimesh.sample.sample_surface_even(
         trimesh.Trimesh(body.vertices, body.faces, process=False), 300, seed=1)[0]

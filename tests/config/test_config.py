@@ -8,7 +8,7 @@ import trimesh
 from vdo.config import experiment as config
 from vdo.commands.cli import main
 from vdo.core.errors import ConfigError
-from vdo.scene import load_meshes, sample_regions
+from vdo.scene import cameras_of, load_meshes, sample_regions
 
 
 def broken(plate_experiment, old, new):
@@ -92,7 +92,7 @@ def test_defaults_and_units_are_resolved(plate_experiment):
     exp = config.load(plate_experiment())
     assert exp.meshes[0].scale == 0.001
     assert exp.evaluation.incidence_limit == pytest.approx(math.radians(75))
-    cam = exp.cameras()[0]
+    cam = cameras_of(exp)[0]
     assert cam.pixel_size == pytest.approx(22.2e-3 / 600)
     assert cam.position.tolist() == pytest.approx([0.0, 0.0, 1.5])
 

@@ -166,7 +166,7 @@ def test_absurd_values(plate_experiment, old, new, field, words):
 def test_coincident_cameras(plate_experiment):
     err = error(plate_experiment(cameras=two_cameras(0.5)))
     assert err.field == 'camera "b"' and "cannot share one pose" in err.message
-    assert len(config.load(plate_experiment(cameras=two_cameras(0.51))).cameras()) == 2   # 2 cm apart
+    assert len(scene.cameras_of(config.load(plate_experiment(cameras=two_cameras(0.51))))) == 2   # 2 cm apart
 
 
 def test_camera_inside_a_mesh(plate_experiment):

@@ -15,7 +15,7 @@ from vdo import constraints
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
 from vdo.design import select as design
-from vdo.scene import load_meshes, sample_regions
+from vdo.scene import cameras_of, load_meshes, sample_regions
 
 ZONE = """
 [[mount]]
@@ -132,10 +132,10 @@ def test_penalty_is_zero_outside_and_its_gradient_is_right():
 def test_exact_check_measures_the_depth(tmp_path):
     path = write(tmp_path, keep_out("[0.5, 0.15, 0.9]", "[0.7, 0.3, 1.1]"))
     exp = config.load(path)
-    entries = constraints.keep_out_checks(exp.cameras(), exp.keep_outs)
+    entries = constraints.keep_out_checks(cameras_of(exp), exp.keep_outs)
     t = next(e for e in entries if e["cameras"] == ["t"])
     assert t["value"] == pytest.approx(-0.05) and t["met"]      # y = 0.1: 5 cm short of the box's y = 0.15
     moved = [c if c.name != "t" else type(c)(**{**c.__dict__, "position": np.array([0.6, 0.2, 1.0])})
-             for c in exp.cameras()]
+             for c in cameras_of(exp)]
     inside = next(e for e in constraints.keep_out_checks(moved, exp.keep_outs) if e["cameras"] == ["t"])
     assert inside["value"] == pytest.approx(0.05) and not inside["met"]   # 5 cm inside (y = 0.15 face)

@@ -19,6 +19,7 @@ import trimesh
 from vdo.config import experiment as config
 from vdo.design import select as design
 from vdo.state import layout_state, prepare
+from vdo.scene import cameras_of
 
 RADIUS, HEIGHT = 0.1, 0.3
 NEAR, FAR, SPOTS = 0.8, 1.6, 12
@@ -111,7 +112,7 @@ def test_six_cameras_around_a_cylinder_stand_equally_spaced_on_the_near_ring(sel
 
 def test_equal_spacing_beats_a_cluster_and_the_far_ring_in_coverage_and_sigma(selection):
     exp, geometry, cand, scorer, chosen, score = selection
-    by_name = {c.name: c for c in exp.cameras()}
+    by_name = {c.name: c for c in cameras_of(exp)}
     designed = [cand.cameras[i] for i in chosen]
     cluster = [by_name[f"near{k}"] for k in range(6)]                 # 0..150 deg: one side
     far = [by_name[f"far{k}"] for k in range(0, SPOTS, 2)]           # equally spaced, far

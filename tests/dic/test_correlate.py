@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.dic.correlate import (AverageReference, Gradient, ImageReference, Patch, PixelIntegration, Q4,
                            Solver, SplineImage, TextureReference, correlate, integration_points)
 from vdo.model.speckle import generate_pattern

@@ -15,6 +15,7 @@ from vdo.config import experiment as config
 from vdo.outputs import report
 from vdo.core.errors import ConfigError
 from vdo.commands.export import export
+from vdo.scene import cameras_of
 
 CAMERAS = """
 [[camera]]
@@ -61,7 +62,7 @@ MM = 1e3
 @pytest.fixture
 def experiment(plate_experiment):
     path = plate_experiment(cameras=CAMERAS)
-    return path, {c.name: c for c in config.load(path).cameras()}
+    return path, {c.name: c for c in cameras_of(config.load(path))}
 
 
 def plate_points(n=200, seed=3):
@@ -237,7 +238,7 @@ def run_folder(path, tmp_path):
     exp = config.load(path)
     run = tmp_path / "run"
     run.mkdir()
-    report.write_json(run / "layout.json", report.layout(exp.cameras()))
+    report.write_json(run / "layout.json", report.layout(cameras_of(exp)))
     report.write_config(run / "config.toml", exp)
     return run
 
@@ -301,7 +302,7 @@ def test_unsafe_camera_name_is_refused(plate_experiment, tmp_path):
     run.mkdir()
     exp = config.load(plate_experiment(cameras=CAMERAS))
     report.write_config(run / "config.toml", exp)
-    layout = report.layout(exp.cameras())
+    layout = report.layout(cameras_of(exp))
     layout["cameras"][0]["name"] = "../away"
     (run / "layout.json").write_text(json.dumps(layout))
     with pytest.raises(ConfigError, match="cannot name an export file"):

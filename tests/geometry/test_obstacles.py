@@ -11,7 +11,8 @@ import trimesh
 
 from vdo.config.experiment import TripodSpec
 from vdo.geometry import obstacles
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.scene import build_scene, camera_body, mitsuba, tripod
 
 OVERSHOOT_M = 0.03   # the body's spheres overshoot the box by ~1.5 cm; a capsule's ends by its radius

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from vdo.model.camera import (PARAMETERS, Camera, look_at_angles, parameter_jacobian, project,
-                        rotation, rotation_derivatives)
+from vdo.model.camera import PARAMETERS, Camera, parameter_jacobian, project, rotation, rotation_derivatives
+from vdo.model.pose import look_at_angles
 
 RNG = np.random.default_rng(7)
 

@@ -15,7 +15,7 @@ from vdo.commands.cli import main
 from vdo.outputs.maps import unfold
 from vdo.core.runfolder import run_folder
 from vdo.model.surface import face_frame
-from vdo.scene import SurfaceSamples
+from vdo.scene import SurfaceSamples, cameras_of
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +82,7 @@ def test_layout_reprojects_visible_samples_with_opencv(run):
 def test_resolved_config_reloads_to_the_same_cameras(run):
     path, out = run
     original, resolved = config.load(path), config.load(out / "config.toml")
-    for a, b in zip(original.cameras(), resolved.cameras()):
+    for a, b in zip(cameras_of(original), cameras_of(resolved)):
         np.testing.assert_allclose(a.K, b.K)
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.t, b.t, atol=1e-12)

@@ -6,6 +6,7 @@ import pytest
 
 from conftest import DOWN_CAMERA, raycast
 from vdo.physics import visibility
+from vdo.scene import cameras_of
 
 H = 1.5          # camera height above the plate (m)
 CELL = 0.01      # sample spacing (m)
@@ -43,7 +44,7 @@ def test_incidence_limit_is_a_circle(plate_experiment):
     r_max = H * np.tan(np.radians(25))
     assert vis.in_image[0].all()
     assert_matches_away_from_edges(vis.visible[0], r < r_max, np.abs(r - r_max))
-    np.testing.assert_allclose(visibility.incidence_angles(exp.cameras()[0], samples), np.arctan2(r, H),
+    np.testing.assert_allclose(visibility.incidence_angles(cameras_of(exp)[0], samples), np.arctan2(r, H),
                                atol=1e-12)
 
 

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from vdo.model.camera import Camera, look_at_angles, rotation
+from vdo.model.camera import Camera, rotation
+from vdo.model.pose import look_at_angles
 from vdo.search.obscuration import ObscurationRenderer, camera_theta
 from vdo.scene import SceneMesh
 

@@ -20,11 +20,12 @@ import pytest
 from conftest import PLATE_TOML, SLIDING_SHUTTER, aimed_camera, write_box
 from vdo.config import experiment as config
 from vdo.search import loadpath
-from vdo.model.camera import look_at_angles
+from vdo.model.pose import look_at_angles
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import keyframe_steps, path_occlusion
 from vdo.commands.optimize import optimize
 from vdo.state import prepare
+from vdo.scene import cameras_of
 
 SHUTTER_EDGE = 0.35   # m: the shutter's near edge at step 2
 RAIL_HEIGHT, SHUTTER_HEIGHT = 1.2, 0.9
@@ -65,7 +66,7 @@ def test_path_occlusion_hides_the_views_the_geometry_says(tmp_path):
     exp = experiment(tmp_path, True)
     geometry = prepare(exp)
     load_path = load_path_of(exp, geometry.meshes)
-    cam = exp.cameras()[0]
+    cam = cameras_of(exp)[0]
     near, far = (cam.with_pose([x, 0.0, RAIL_HEIGHT], *look_at_angles([x, 0.0, RAIL_HEIGHT], [0, 0, 0]))
                  for x in (0.2, 0.5))
     every = path_occlusion(geometry, load_path, [near, far], fraction=1.0)

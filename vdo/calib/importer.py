@@ -27,6 +27,7 @@ import numpy as np
 
 from vdo.core.errors import ConfigError
 from vdo.formats.calibration import MM
+from vdo.scene import cameras_of
 
 SQUARE_PIXELS = 1e-9     # relative difference of fx and fy accepted as square pixels
 FORMATS = ("opencv", "vic3d", "dice", "matchid")
@@ -229,7 +230,7 @@ def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> 
 def with_imported(exp, paths):
     """The experiment `exp` with its cameras replaced by those of the calibration files `paths`
     (module docstring); the specs keep everything but the lens and pose (body, aperture, focus)."""
-    bases = {c.name: c for c in exp.cameras()}
+    bases = {c.name: c for c in cameras_of(exp)}
     specs = {s.name: s for s in exp.camera_specs}
     for p in paths:
         path = Path(p)

@@ -29,6 +29,7 @@ import numpy as np
 
 from vdo.calib.target import MARGIN_PITCHES, Target
 from vdo.core.errors import ConfigError
+from vdo.scene import cameras_of
 
 EDGE_PX = 4.0                # the pattern's outline stays this far inside the image
 MAX_VIEW_ANGLE_DEG = 70.0    # a print seen more obliquely than this is not detected reliably
@@ -301,7 +302,7 @@ def plan(exp, scale: float, geometry=None, spec=None) -> Planned:
 
     spec = spec or exp.calibration
     geometry = geometry or prepare(exp)
-    cameras = tuple(exp.cameras())
+    cameras = tuple(cameras_of(exp))
     distances = {}
     for cam in cameras:
         d = working_distance(cam, geometry.samples.points)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from vdo.core.errors import ConfigError
 from vdo.formats.export import FORMATS, camera_from_layout, default_pairs
+from vdo.scene import cameras_of
 
 
 def sources(source: Path):
@@ -30,7 +31,7 @@ def sources(source: Path):
         return config.load(source / "config.toml"), cameras, layout
     if source.is_file():
         exp = config.load(source)
-        return exp, exp.cameras(), source
+        return exp, cameras_of(exp), source
     raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
 
 

@@ -35,6 +35,7 @@ import numpy as np
 from vdo.core.errors import ConfigError
 from vdo.core.tolerances import TINY
 from vdo.model import nurbs
+from vdo.model.pose import aim_point, holds_aim, look_at_angles
 from vdo.model.sensor import ALIGNMENTS, SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
@@ -547,8 +548,9 @@ class RegionSpec:
 
 @dataclass(frozen=True, eq=False)
 class RailSpec:
-    """A bar cameras slide along: a clamped NURBS curve (see `vdo.model.rail.Rail`, built by
-    `Experiment.rail`). `control_points` (n, 3) in metres, `weights` (n,)."""
+    """A bar cameras slide along: a clamped NURBS curve (`point` evaluates it in NumPy;
+    `vdo.model.rail.Rail` in JAX, for its derivative). `control_points` (n, 3) in metres,
+    `weights` (n,)."""
 
     name: str = row("name", Text(name=True), doc="unique")
     control_points: np.ndarray = row("control_points_m", Points(2), unit="m",
@@ -556,6 +558,10 @@ class RailSpec:
     degree: int = row("degree", Whole(low=1), 1, doc="B-spline degree p < n (1 = polyline)")
     weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="all 1",
                                      doc="NURBS weights, one per control point")
+
+    def point(self, u) -> np.ndarray:
+        """C(u) in metres (u.shape + (3,)), u in [0, 1] (`vdo.model.nurbs.point`)."""
+        return nurbs.point(self.control_points, self.degree, self.weights, u)
 
 
 def _sensor_width_row():
@@ -572,7 +578,8 @@ def _pixels_row():
 
 @dataclass(frozen=True, eq=False)
 class CameraSpec:
-    """A camera as written in the file; `Experiment.cameras()` resolves its pose."""
+    """A camera as written in the file; `camera_positions` and `angles` resolve its pose,
+    `vdo.scene.cameras_of` builds the `vdo.model.camera.Camera`."""
 
     name: str = row("name", Text(name=True), doc="unique; names the camera's output files")
     sensor_width: float = _sensor_width_row()
@@ -611,6 +618,11 @@ class CameraSpec:
     distortion: tuple[float, ...] = row(
         "distortion", Vector(5, as_tuple=True, letters=("k1", "k2", "p1", "p2", "k3")),
         [0.0, 0.0, 0.0, 0.0, 0.0], doc="Brown-Conrady lens distortion, OpenCV's order and units")
+
+    def angles(self, position) -> tuple[float, float]:
+        """(pan, tilt) in radians of this camera with its optical centre at `position` (m): toward
+        target_m (`vdo.model.pose.look_at_angles`), else pan_deg and tilt_deg."""
+        return look_at_angles(position, self.target) if self.target is not None else (self.pan, self.tilt)
 
 
 def _sensor_mm_row() -> Row:
@@ -926,8 +938,7 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
     mounts = {m.name: m for m in exp.mounts}
     for spec, t in zip(exp.camera_specs, tables["camera"]):
         if spec.rail is not None:
-            rail = exp.rail(spec.rail)
-            track = np.array([rail.position(u, xp=np) for u in np.linspace(0, 1, KEEP_OUT_RAIL_POINTS)]) + spec.offset
+            track = exp.rail(spec.rail).point(np.linspace(0, 1, KEEP_OUT_RAIL_POINTS)) + spec.offset
             where, field, what = inside_keep_out(exp.keep_outs, track), "rail", f"rail {spec.rail!r}"
         elif spec.mount is not None and mounts[spec.mount].kind == "zone":
             zone = mounts[spec.mount]
@@ -944,7 +955,7 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
                                  f"({box.box_min.tolist()} to {box.box_max.tolist()} m): camera "
                                  f"{spec.name!r} has nowhere to stand; shrink the keep-out or move the mount")
         own = spec.position if spec.rail is None else \
-            exp.rail(spec.rail).position(spec.u, xp=np) + spec.offset
+            exp.rail(spec.rail).point(spec.u) + spec.offset
         if own is not None:
             k = int(inside_keep_out(exp.keep_outs, own)[0])
             if k >= 0:
@@ -1610,29 +1621,9 @@ class Experiment:
         """The zone or fixed [[mount]] called `name`."""
         return next(m for m in self.mounts if m.name == name)
 
-    def rail(self, name: str):
-        """The `vdo.model.rail.Rail` (JAX-evaluated NURBS) of the [[rail]] called `name`."""
-        from vdo.model.rail import Rail
-        spec = next(r for r in self.rails if r.name == name)
-        return Rail(name=spec.name, control_points=spec.control_points, degree=spec.degree,
-                    weights=spec.weights)
-
-    def cameras(self) -> list:
-        """The configured cameras (`vdo.model.camera.Camera`) with poses resolved from rails, positions
-        and targets."""
-        from vdo.model.camera import Camera, look_at_angles
-        positions = camera_positions(self)
-        out = []
-        for spec, position in zip(self.camera_specs, positions):
-            pan, tilt = look_at_angles(position, spec.target) if spec.target is not None \
-                else (spec.pan, spec.tilt)
-            width, height = spec.pixels
-            out.append(Camera(name=spec.name, width=width, height=height,
-                              pixel_size=spec.sensor_width / width, focal_length=spec.focal_length,
-                              position=position, pan=pan, tilt=tilt, roll=spec.roll,
-                              principal_offset_px=spec.principal_offset_px,
-                              distortion=spec.distortion))
-        return out
+    def rail(self, name: str) -> RailSpec:
+        """The [[rail]] called `name`."""
+        return next(r for r in self.rails if r.name == name)
 
     def with_cameras(self, specs) -> "Experiment":
         """This experiment with other `CameraSpec`s (SI units, unchecked: for code that builds
@@ -1654,11 +1645,10 @@ class Experiment:
         Likewise `target_m` replaces pan and tilt, and `pan_deg` or `tilt_deg` replaces a target
         (the other angle is kept). A camera aimed with `target_m` keeps looking at its target
         when it moves. One aimed with pan and tilt re-aims as `vdo optimize` does: after the
-        move it looks at its `vdo.model.camera.aim_point`, the point of its old optical axis at
+        move it looks at its `vdo.model.pose.aim_point`, the point of its old optical axis at
         the depth of `centre` (m; the regions' centroid, `Geometry.centre`; `Geometry.with_camera`
         passes it), with its roll kept (a camera whose axis is vertical keeps its angles,
         `holds_aim`). Giving pan/tilt or a target with the move aims it as given."""
-        from vdo.model.camera import aim_point, holds_aim, look_at_angles
         where = f'camera "{name}"'
         data = self.to_dict()
         entries = data["camera"]
@@ -1678,26 +1668,26 @@ class Experiment:
             drop |= {"rail", "u", "offset_m"}
         if "target_m" in fields:
             drop |= {"pan_deg", "tilt_deg"}
+        position = camera_positions(self)[index]
+        pan, tilt = self.camera_specs[index].angles(position)
         if "pan_deg" in fields or "tilt_deg" in fields:
-            old = self.cameras()[index]
-            entry.setdefault("pan_deg", math.degrees(old.pan))
-            entry.setdefault("tilt_deg", math.degrees(old.tilt))
+            entry.setdefault("pan_deg", math.degrees(pan))
+            entry.setdefault("tilt_deg", math.degrees(tilt))
             drop.add("target_m")
         if "sensor_mm" in fields:
             drop.add("sensor_width_mm")
         entry = {k: v for k, v in entry.items() if k not in drop - set(fields)} | fields
         moved = any(k in fields for k in self.PLACEMENT)
         reaim = moved and not any(k in fields for k in self.AIM) and "target_m" not in entry
-        old = self.cameras()[index] if reaim else None
         data["camera"] = entries[:index] + [entry] + entries[index + 1:]
         edited = parse(data, self.path)
-        if reaim and holds_aim(old) and centre is None:
+        if reaim and holds_aim(tilt) and centre is None:
             raise ConfigError(self.path, where, "moves, and a camera aimed with pan and tilt re-aims "
                                                 "at the depth of the regions' centre: pass centre="
                                                 "geometry.centre (or call geometry.with_camera), or "
                                                 "give pan_deg + tilt_deg or target_m")
-        if reaim and holds_aim(old):
-            pan, tilt = look_at_angles(edited.cameras()[index].position, aim_point(old, centre))
+        if reaim and holds_aim(tilt):
+            pan, tilt = look_at_angles(camera_positions(edited)[index], aim_point(position, pan, tilt, centre))
             entry = entry | {"pan_deg": math.degrees(pan), "tilt_deg": math.degrees(tilt)}
             data["camera"] = entries[:index] + [entry] + entries[index + 1:]
             edited = parse(data, self.path)
@@ -1756,8 +1746,7 @@ def camera_positions(exp: Experiment) -> list[np.ndarray]:
     out = []
     for spec in exp.camera_specs:
         if spec.rail is not None:
-            rail = next(r for r in exp.rails if r.name == spec.rail)
-            out.append(nurbs.point(rail.control_points, rail.degree, rail.weights, spec.u) + spec.offset)
+            out.append(exp.rail(spec.rail).point(spec.u) + spec.offset)
         else:
             out.append(np.asarray(spec.position, dtype=float))
     return out

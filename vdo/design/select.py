@@ -113,7 +113,8 @@ from vdo.search import loadpath
 from vdo import objective
 from vdo.outputs import report
 from vdo.physics import usable
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.config.experiment import BodySpec, CameraSpec, Experiment, inside_keep_out
 from vdo.constraints import stereo_min_angle
 from vdo.core.errors import ConfigError
@@ -124,7 +125,7 @@ from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.core.configure import configure
 from vdo.core.progress import bar
-from vdo.scene import build_scene, camera_body_points
+from vdo.scene import build_scene, camera_body_points, cameras_of
 from vdo.state import Geometry, layout_state, prepare
 from vdo.state import bodies as bodies_of
 from vdo.physics.visibility import compute_visibility
@@ -332,7 +333,7 @@ def spots(exp: Experiment) -> list[tuple]:
     d = exp.design
     heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
     grid = np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1 else [0.5]
-    out = [(r.name, "rail", float(u), h, exp.rail(r.name).position(u, xp=np) + h)
+    out = [(r.name, "rail", float(u), h, exp.rail(r.name).point(u) + h)
            for r in exp.rails for u in grid for h in heads]
     zero = np.zeros(3)
     for m in exp.mounts:
@@ -1170,7 +1171,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
                  leave=False):
         chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
-        state = layout_state(coarse, designed(exp, cand, chosen).cameras())
+        state = layout_state(coarse, cameras_of(designed(exp, cand, chosen)))
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),

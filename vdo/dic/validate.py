@@ -47,7 +47,8 @@ import numpy as np
 
 from vdo.physics import strain
 from vdo.geometry.plate import cameras_of, check_cases, deform, plate_geometry, undeform
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.config import validation
 from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec)
 from vdo.config.validation import Case, ValidationSpec

@@ -15,7 +15,8 @@ import numpy as np
 
 from vdo.config.validation import Case, ValidationSpec
 from vdo.core.errors import ConfigError
-from vdo.model.camera import Camera, look_at_angles
+from vdo.model.camera import Camera
+from vdo.model.pose import look_at_angles
 from vdo.model.surface import face_frame
 
 MAX_INCIDENCE_DEG = 80.0  # a camera sees the plate at most this far from its normal

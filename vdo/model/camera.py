@@ -12,12 +12,12 @@ Conventions (stated once, tested in tests/model/test_camera.py):
   r^2 = x^2 + y^2, x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2),
   y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y, then (u, v) = K (x_d, y_d, 1).
   Zero by default (a pinhole).
-* Orientation from (pan, tilt, roll), radians: the optical axis is
-  z_c = (cos tilt cos pan, cos tilt sin pan, sin tilt), i.e. pan is the azimuth from world +x toward
-  +y and tilt the elevation (negative looks down). With roll = 0 the image x axis is horizontal,
-  x_0 = (sin pan, -cos pan, 0), and y_0 = z_c x x_0 points down the image. Roll turns the image
-  axes about z_c: x_c = cos(roll) x_0 + sin(roll) y_0, y_c = -sin(roll) x_0 + cos(roll) y_0.
-  This is well defined looking straight down (tilt = -90 deg), where pan sets the image heading.
+* Orientation from (pan, tilt, roll), radians, as `vdo.model.pose` states it (NumPy there, for the
+  config; the same functions in JAX here): the optical axis is
+  z_c = (cos tilt cos pan, cos tilt sin pan, sin tilt), pan the azimuth from world +x toward +y,
+  tilt the elevation (negative looks down); with roll = 0 the image x axis is horizontal and roll
+  turns the image axes about z_c. This is well defined looking straight down (tilt = -90 deg),
+  where pan sets the image heading.
 * Mitsuba's `perspective` sensor looks along +z with +x to the image *left* and +y up, and its film
   pixel (0, 0) is the top-left *corner*; `mitsuba_to_world` and `mitsuba_principal_offset` are the
   only place that converts (diag(-1, -1, 1) on the camera axes, half a pixel on the film).
@@ -32,7 +32,6 @@ bundles one configured camera for the rest of the program.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -40,31 +39,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo.core.configure import require_x64
+from vdo.model import pose
 
 
 # --------------------------------------------------------------------------------------------
 # Orientation
 # --------------------------------------------------------------------------------------------
-def _axes(pan, tilt, roll, xp=jnp):
-    cp, sp, ct, st = xp.cos(pan), xp.sin(pan), xp.cos(tilt), xp.sin(tilt)
-    cr, sr = xp.cos(roll), xp.sin(roll)
-    z = xp.stack([ct * cp, ct * sp, st], axis=-1)
-    x0 = xp.stack([sp, -cp, xp.zeros_like(sp)], axis=-1)
-    y0 = xp.stack([st * cp, st * sp, -ct], axis=-1)
-    return x0, y0, z, cr[..., None], sr[..., None]
-
-
 def rotation(pan, tilt, roll, xp=jnp):
-    """R (world -> camera), rows x_c, y_c, z_c as in the module docstring. Shape (..., 3, 3).
-    `xp`: the array module (NumPy for host callers: `Camera.R`)."""
-    x0, y0, z, cr, sr = _axes(pan, tilt, roll, xp)
-    return xp.stack([cr * x0 + sr * y0, -sr * x0 + cr * y0, z], axis=-2)
+    """R (world -> camera), `vdo.model.pose.rotation` in JAX by default (traceable). Shape
+    (..., 3, 3). `xp`: the array module (NumPy for host callers: `Camera.R`)."""
+    return pose.rotation(pan, tilt, roll, xp)
 
 
 def rotation_derivatives(pan, tilt, roll):
     """dR/dpan, dR/dtilt, dR/droll in closed form, each (..., 3, 3)."""
     cp, sp, ct, st = jnp.cos(pan), jnp.sin(pan), jnp.cos(tilt), jnp.sin(tilt)
-    x0, y0, z, cr, sr = _axes(pan, tilt, roll)
+    x0, y0, z, cr, sr = pose.axes(pan, tilt, roll, jnp)
     zero = jnp.zeros_like(sp)
     dz_dp = jnp.stack([-ct * sp, ct * cp, zero], -1)
     dz_dt = jnp.stack([-st * cp, -st * sp, ct], -1)
@@ -77,31 +67,6 @@ def rotation_derivatives(pan, tilt, roll):
     d_tilt = jnp.stack([sr * dy0_dt, cr * dy0_dt, dz_dt], -2)
     d_roll = jnp.stack([y, -x, jnp.zeros_like(z)], -2)
     return d_pan, d_tilt, d_roll
-
-
-def look_at_angles(position, target):
-    """(pan, tilt) in radians that point the optical axis from `position` at `target`."""
-    d = np.asarray(target, dtype=float) - np.asarray(position, dtype=float)
-    return float(np.arctan2(d[1], d[0])), float(np.arctan2(d[2], np.hypot(d[0], d[1])))
-
-
-MIN_AIM_DEPTH = 0.1   # m: the least depth of an aim point along the optical axis (`aim_point`)
-VERTICAL_COS = 1e-3   # |cos tilt| below this: the axis is vertical, its heading undefined (`holds_aim`)
-
-
-def aim_point(camera: "Camera", centre) -> np.ndarray:
-    """The point a camera keeps in the middle of its image when it moves on its mount (the rule of
-    `vdo optimize`): the point of its optical axis z at the depth of `centre` (m, the regions'
-    centroid), a = P + max((centre - P) . z, MIN_AIM_DEPTH) z, in metres."""
-    z = camera.optical_axis
-    depth = max(float((np.asarray(centre, dtype=float) - camera.position) @ z), MIN_AIM_DEPTH)
-    return np.asarray(camera.position, dtype=float) + depth * z
-
-
-def holds_aim(camera: "Camera") -> bool:
-    """Whether a moved camera re-aims at its `aim_point` (its axis is not vertical, where the
-    heading is undefined: then pan, tilt and roll stay as they are)."""
-    return abs(math.cos(camera.tilt)) > VERTICAL_COS
 
 
 # --------------------------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from vdo.outputs import maps
 from vdo.core import vtp
 from vdo.core.errors import ConfigError
 from vdo.model.surface import face_frame
-from vdo.scene import SurfaceSamples
+from vdo.scene import SurfaceSamples, cameras_of
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +173,7 @@ def load(run_dir) -> Scene3D:
                     log.info("mesh %s simplified from %d to %d faces", m.name, len(m.faces), len(f))
                 sc.meshes.append((m.name, m.role, v, f))
             on_tripods = any(m.tripod is not None for m in exp.mounts)
-            for cam in exp.cameras() if on_tripods else ():     # each camera's tripod, one mesh
+            for cam in cameras_of(exp) if on_tripods else ():     # each camera's tripod, one mesh
                 parts = tripods(exp, [cam])
                 if parts:
                     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])

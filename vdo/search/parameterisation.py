@@ -17,7 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.special import expit
 
-from vdo.model.camera import Camera, aim_point, holds_aim
+from vdo.model.camera import Camera
+from vdo.model.pose import aim_point, holds_aim
+from vdo.model.rail import Rail
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 
@@ -100,17 +102,19 @@ class Parameterization:
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
-            aims.append(aim_point(cam, centre))
+            aims.append(aim_point(cam.position, cam.pan, cam.tilt, centre))
         self.theta0 = np.array(theta, dtype=float)
         self.scale = np.array(scale, dtype=float)   # the solver works in units of these
         self.aims = np.array(aims)
-        self.rails = [exp.rail(s.rail) if s.rail else None for s in exp.camera_specs]
+        rails = {r.name: Rail(name=r.name, control_points=r.control_points, degree=r.degree,
+                              weights=r.weights) for r in exp.rails}      # in JAX: d(position)/du
+        self.rails = [rails[s.rail] if s.rail else None for s in exp.camera_specs]
 
     @staticmethod
     def _aimed(idx: dict, cam: Camera) -> bool:
         """Aim-relative angles: the position free and the axis not vertical (where the heading is
         undefined)."""
-        return Parameterization.moves(idx) and holds_aim(cam)
+        return Parameterization.moves(idx) and holds_aim(cam.tilt)
 
     @classmethod
     def moves(cls, idx: dict) -> bool:

@@ -34,7 +34,8 @@ from vdo.search.obscuration import ObscurationRenderer
 from vdo.objective import bucket
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
-from vdo.scene import SceneMesh, build_scene, camera_body, camera_body_points, camera_body_spheres
+from vdo.scene import (SceneMesh, build_scene, camera_body, camera_body_points, camera_body_spheres,
+                       cameras_of)
 from vdo.physics.visibility import Visibility, compute_visibility
 from vdo.search.parameterisation import Parameterization
 from vdo.search.bfgs import BFGS
@@ -142,7 +143,7 @@ class Problem:
             keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
-        self.param = Parameterization(exp, exp.cameras(), self.geometry.centre)
+        self.param = Parameterization(exp, cameras_of(exp), self.geometry.centre)
         self.cams0 = self.param.cameras
         self.run = reference.run if reference is not None else Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
@@ -590,7 +591,7 @@ class MountModel:
     "cam.z": logit of the fraction of a zone's box along that axis (over a floor polygon
     "cam.w1", ...: softmax logits of its corners against the first, and "cam.z"); "cam.pan",
     "cam.tilt" (rad): offsets from the direction to the camera's aim point when its position is
-    free (`vdo.model.camera.aim_point`: sliding keeps the same point in the middle of the image),
+    free (`vdo.model.pose.aim_point`: sliding keeps the same point in the middle of the image),
     else absolute; "cam.roll" (rad). `theta0` is the configured layout. focal_mm (C,) the focal
     length of every camera in mm, a continuous variable (default the configured lenses).
 

@@ -24,9 +24,9 @@ import logging
 
 import numpy as np
 
-from vdo.model.camera import look_at_angles
+from vdo.model.pose import look_at_angles
 from vdo.config.experiment import Experiment
-from vdo.scene import SurfaceSamples, build_scene
+from vdo.scene import SurfaceSamples, build_scene, cameras_of
 from vdo.physics.visibility import compute_visibility
 
 log = logging.getLogger(__name__)
@@ -35,9 +35,7 @@ log = logging.getLogger(__name__)
 def mount_positions(exp: Experiment, spec, camera, moving: bool, positions: int = 9) -> tuple[str, np.ndarray]:
     """(mount label, (K, 3) optical centres in metres) the sweep tries for one camera."""
     if moving and spec.rail is not None:
-        rail = exp.rail(spec.rail)
-        grid = np.linspace(0, 1, positions)
-        return f"rail {spec.rail}", rail.position(grid, xp=np) + spec.offset
+        return f"rail {spec.rail}", exp.rail(spec.rail).point(np.linspace(0, 1, positions)) + spec.offset
     if moving and spec.mount is not None and exp.mount(spec.mount).kind == "zone":
         zone = exp.mount(spec.mount)
         per_axis = max(2, round(positions ** (1 / 2)))
@@ -62,7 +60,7 @@ def check(exp: Experiment, meshes, samples: SurfaceSamples, positions: int = 9) 
     """Per region: name, min_cameras, best coverage (area fraction, module docstring), the
     cameras that can see some of it and their mounts, and whether it falls short (below
     `assign_fraction`); each shortfall is logged as a warning."""
-    cameras = exp.cameras()
+    cameras = cameras_of(exp)
     moving = set(exp.optimize.cameras or [c.name for c in cameras])
     sweeps = [mount_positions(exp, spec, cam, cam.name in moving and "u" in exp.optimize.free, positions)
               for spec, cam in zip(exp.camera_specs, cameras)]

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from vdo.model.camera import aim_point
+from vdo.model.pose import aim_point
 from vdo.search.status import Status
 from vdo.search.parameterisation import Parameterization, perturbation
 from vdo.search.bfgs import with_inverse_hessian
@@ -202,7 +202,7 @@ def choose_lenses(problem: Problem, best: Result) -> Result:
         if zone is not None and Parameterization.moves(problem.param.index[c]):
             # in a zone, step along the axis so that the regions keep their size in the image
             cam = current.state.cameras[c]
-            aim = aim_point(cam, centre)
+            aim = aim_point(cam.position, cam.pan, cam.tilt, centre)
             depth = float((aim - cam.position) @ cam.optical_axis)
             ratio = focal / current.problem.exp.camera_specs[c].focal_length
             moved = np.clip(aim - ratio * depth * cam.optical_axis, zone.low, zone.high)
