@@ -14,7 +14,9 @@ table go in the table's `check` function, checks across tables in `_check_refere
 
 Everything is validated before any work starts. A user mistake raises `ConfigError` naming the file,
 the field (``camera "cam3".focal_mm``) and what is expected. This module imports only NumPy and the
-light `sensor` module, so a config error comes before any heavy import (JAX, Mitsuba).
+light model modules (`sensor`, `nurbs` for the rails, `pose` to aim and re-aim cameras), so a config
+error comes before any heavy import (JAX, Mitsuba), and editing a camera (`with_camera`) needs none:
+it builds no `vdo.model.camera.Camera` (`vdo.scene.cameras_of` does) and no JAX rail.
 """
 
 from __future__ import annotations
