@@ -161,7 +161,7 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
 def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_path):
     """The hand layout of the built-in experiment breaks the stereo-angle rule (cam9 against
     cam1 and cam2); one feasibility round and one penalty round of 15 steps each must end with
-    every constraint met and a lower joint sigma_max p95 than the hand layout (samples every
+    every constraint met and a lower sigma_max p95 of the worst scored (joint) region than the hand layout (samples every
     25 mm: the same two broken pairs as at the file's 10 mm, in a third of the time)."""
     exp = config.load(EXPERIMENTS / "ten_cameras.toml").with_settings(evaluation={"sample_spacing_mm": 25})
     exp = dataclasses.replace(exp, optimize=dataclasses.replace(exp.optimize, rounds=1, starts=1,
@@ -170,7 +170,7 @@ def test_builtin_ten_camera_layout_gets_better_and_meets_every_constraint(tmp_pa
     before = json.loads((tmp_path / "run" / "constraints.json").read_text())["before"]
     assert [e["cameras"] for e in before if not e["met"]] == [["cam1", "cam9"], ["cam2", "cam9"]]
     assert result.violations == 0, result.violated
-    p95_before, p95_after = result.joint_p95_um
+    p95_before, p95_after = result.worst_p95_um   # the scored regions: joint_top, _bottom, _front
     assert p95_after < 0.98 * p95_before
     assert result.score_after_um < result.score_before_um
 

@@ -251,13 +251,14 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
         score_before["score_um"] = problem.exact_score(problem.start)
         score_after["score_um"] = best.score
         score_before["objective"] = score_after["objective"] = getattr(objective, "__name__", "user")
-    joint = _joint_p95(before), _joint_p95(after)
+    scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
+    worst = _worst_p95(before, scored), _worst_p95(after, scored)
     log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
              score_before["score_um"], score_after["score_um"], best.violations)
     return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
                           startup_s=startup, search_s=search, reason=reason,
                           score_regions_um=score_after["regions"], reachability=reach,
-                          violations=best.violations, joint_p95_um=joint,
+                          violations=best.violations, worst_p95_um=worst,
                           violated=[e for e in best.checks if not e["met"]], before=before, after=after,
                           optimized=final.exp.with_cameras(final.param.specs_at(best.theta)),
                           cameras=tuple(best.state.cameras), checks_before=checks_before,
@@ -284,7 +285,7 @@ class OptimizeResult:
     score_regions_um: dict[str, dict]           # region -> `score_parts` (µm and fractions), best layout
     reachability: list[dict]                    # per region, `vdo.search.reachability.check`
     violations: int                             # constraint checks the best layout breaks
-    joint_p95_um: tuple[float | None, float | None]   # worst σ_max p95 of the joint* regions, before/after
+    worst_p95_um: tuple[float | None, float | None]   # σ_max p95 of the worst scored region, before/after
     violated: list[dict]                        # those checks (constraints.json "violated")
     before: report.EvaluationResult             # the hand layout
     after: report.EvaluationResult              # the best layout (with its load path, when configured)
@@ -297,12 +298,12 @@ class OptimizeResult:
 
     def to_json(self) -> dict:
         """The figures as a JSON dict: score_before, score_after (µm), startup_s, score_regions_um,
-        status (its value), reachability, violations, joint_p95_um [before, after], violated."""
+        status (its value), reachability, violations, worst_p95_um [before, after], violated."""
         return {"score_before": self.score_before_um, "score_after": self.score_after_um,
                 "startup_s": self.startup_s, "search_s": self.search_s, "reason": self.reason,
                 "score_regions_um": self.score_regions_um,
                 "status": self.status.value, "reachability": self.reachability,
-                "violations": self.violations, "joint_p95_um": list(self.joint_p95_um),
+                "violations": self.violations, "worst_p95_um": list(self.worst_p95_um),
                 "violated": self.violated}
 
 
@@ -345,10 +346,11 @@ def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 
-def _joint_p95(summary: report.EvaluationResult):
-    values = [r.sigma_max_um.p95 for name, r in summary.regions.items()
-              if name.startswith("joint") and r.sigma_max_um.p95 is not None]
-    return max(values) if values else None
+def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
+    """σ_max p95 (µm) of the worst of the `scored` regions ([optimize] regions, default all);
+    None when one of them has no measured sample."""
+    values = [summary.regions[name].sigma_max_um.p95 for name in scored]
+    return None if any(v is None for v in values) else max(values)
 
 
 def _moves(problem: Problem, best: Result) -> tuple[CameraMove, ...]:

@@ -253,9 +253,9 @@ def _optimize(exp, args) -> None:
                       + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
                          "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
                       + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
-        before, after = result.joint_p95_um
-        if before is not None and after is not None:
-            print(f"joint sigma_max p95: {before:.3f} -> {after:.3f} um")
+        before, after = result.worst_p95_um
+        show = lambda v: "unmeasured" if v is None else f"{v:.3f} um"
+        print(f"sigma_max p95 of the worst scored region: {show(before)} -> {show(after)}")
         for entry in result.violated:
             print(f"violated: {entry['constraint']} {entry.get('cameras', '')} "
                   f"{entry.get('region', '')}: {entry['value']:.4g} (limit {entry['limit']})")
@@ -301,8 +301,8 @@ def _design(exp, args) -> None:
         if result.target_count is not None:
             print(f"smallest count meeting the target: {result.target_count}")
         if result.refined is not None:
-            before, after = result.refined.joint_p95_um
-            print(f"refined: joint sigma_max p95 {before} -> {after} um, "
+            before, after = (("unmeasured" if v is None else f"{v:.3f} um") for v in result.refined.worst_p95_um)
+            print(f"refined: sigma_max p95 of the worst scored region {before} -> {after}, "
                   f"{result.refined.violations} constraint violation(s)")
         print(f"wrote {Path(args.out).resolve()} ({result.wall_s:.0f} s)")
 

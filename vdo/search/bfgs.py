@@ -44,8 +44,10 @@ class RememberingArmijo(optx.AbstractSearch):
     slope: float = 0.1
 
     def init(self, y, f_info_struct):
-        del y, f_info_struct
-        return _SearchState(jnp.array(1.0))
+        del f_info_struct
+        # strongly typed, like the step size every step returns: a weakly typed 1.0 would make
+        # the first step's state differ from the later ones' and compile the step twice
+        return _SearchState(jnp.ones((), dtype=jax.tree_util.tree_leaves(y)[0].dtype))
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         predicted = f_info.compute_grad_dot(jax.tree_util.tree_map(lambda a, b: a - b, y_eval, y))
