@@ -439,3 +439,31 @@ def test_bfgs_started_from_the_exact_inverse_hessian_lands_on_the_minimum_in_one
     np.testing.assert_allclose(two_steps(with_inverse_hessian(start, np.linalg.inv(np.asarray(A)))),
                                minimum, rtol=1e-10, atol=1e-12)
     assert np.abs(np.asarray(two_steps(start)) - minimum).max() > 1e-2
+
+
+def test_the_solver_step_compiles_once_for_the_first_and_the_later_steps():
+    """The state BFGS's init returns has the same types (shapes, dtypes, weak types) as the one
+    each step returns, so one jit-compiled step serves the whole solve: counted by JAX's own
+    compilation events around three jitted steps (a weakly typed first step size made it two)."""
+    import equinox as eqx
+    import jax.monitoring
+
+    from vdo.search.bfgs import BFGS
+
+    fn = lambda y, args: (jnp.sum((y - args) ** 2) + jnp.sum(y ** 4), None)
+    solver = BFGS(rtol=1e-9, atol=1e-9)
+    f_struct = jax.ShapeDtypeStruct((), jnp.float64)
+    step = eqx.filter_jit(lambda y, args, state: solver.step(fn, y, args, {}, state, frozenset())[:2])
+    y, args = jnp.zeros(4), jnp.arange(4.0)
+    init = eqx.filter_jit(lambda y, args: solver.init(fn, y, args, {}, f_struct, None, frozenset()))
+    state = init(y, args)     # both jitted, as `vdo.search.problem.Run.programs` has them
+    compiles = []
+    listener = lambda event, duration, **kw: compiles.append(event) \
+        if event == "/jax/core/compile/backend_compile_duration" and kw.get("fun_name") == "jit(<lambda>)" else None
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        for _ in range(3):
+            y, state = step(y, args, state)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert len(compiles) == 1
