@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+from dataclasses import replace
 
 import jax.numpy as jnp
 import numpy as np
@@ -132,12 +133,20 @@ def plate(tmp_path_factory):
     return exp, geometry, cand, design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
 
 
-@pytest.mark.parametrize("k", [2, 3])
-def test_no_selection_beats_the_bound(plate, k):
+@pytest.mark.parametrize("k, aimed", [(2, False), (3, False), (2, True)])
+def test_no_selection_beats_the_bound(plate, k, aimed):
     """Every k-subset of the candidates within the body counts (pairwise rules ignored: a superset
     of the selections the design may make), scored whole: none scores below the bound; the
-    design's own greedy + exchange selection scores at or above its best."""
+    design's own greedy + exchange selection scores at or above its best. `aimed`: with a
+    [design] target_sigma_um at the median sigma of a pair, whose term keeps the score convex."""
     exp, geometry, cand, scorer, feas = plate
+    if aimed:
+        sigma = scorer.sigma(cand.sums([0, 17])[0]) * scorer.settings.sigma_unit
+        measured = sigma[sigma < 0.1 * scorer.settings.prior_sigma]
+        assert measured.size > 10
+        exp = replace(exp, design=replace(exp.design, target_sigma_um=float(np.median(measured)) * 1e6))
+        scorer = design.Scorer(exp, geometry.samples)
+        assert scorer.log_target is not None
     K = len(cand.cameras)
     assert K == 18 and sorted(np.bincount(cand.body)) == [9, 9]
     b = bound.relaxation(scorer.value, cand.info, cand.weight, k, feas.alone, feas.body, feas.counts)

@@ -78,7 +78,11 @@ def _pair_score(exp, geometry, cams):
     short = np.maximum(need - np.asarray(f.coverage), 0.0)
     huber = np.where(short > 0.5, short - 0.25, short ** 2)       # s^2 / (2 x 0.5) below half a view
     kappa = math.log(st.prior_sigma / st.sigma_unit)
-    return float(np.exp(np.sum(omega / omega.sum() * np.log(sigma))
+    cost = np.log(sigma)
+    if exp.design.target_sigma_um is not None:      # the target's term: (ln sigma/sigma_t)^2 above it
+        excess = np.log(sigma * st.sigma_unit / (exp.design.target_sigma_um * 1e-6))
+        cost = cost + np.where(excess > 0, excess, 0.0) ** 2
+    return float(np.exp(np.sum(omega / omega.sum() * cost)
                         + kappa * np.sum(area / area.sum() * huber)))
 
 
@@ -395,6 +399,31 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
     small = design.judge(exp, geometry)
     for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
         np.testing.assert_array_equal(getattr(small, name), getattr(cand, name), err_msg=name)
+
+
+def test_the_target_term_matches_its_closed_form_and_the_sparse_sums(plate_experiment):
+    """With [design] target_sigma_um at the median sigma of one pair's measured samples (a lit
+    plate), the score equals `_pair_score`'s independent computation with the term
+    max(0, ln(sigma / sigma_t))^2 added per sample, rises above the score without a target, and
+    Scorer.add still equals Scorer.of for every candidate added to a base."""
+    exp = _experiment(plate_experiment, regions="\n[render]\nambient_radiance = 20\n")
+    geometry = prepare(exp)
+    cand = design.judge(exp, geometry)
+    plain = design.Scorer(exp, geometry.samples)
+    sigma = plain.sigma(cand.sums([2, 6])[0]) * plain.settings.sigma_unit
+    measured = sigma[sigma < 0.1 * plain.settings.prior_sigma]
+    assert measured.size > 50
+    aimed = replace(exp, design=replace(exp.design, target_sigma_um=float(np.median(measured)) * 1e6))
+    scorer = design.Scorer(aimed, geometry.samples)
+    for pair in [(0, 8), (2, 6), (3, 4)]:
+        cams = [cand.cameras[i] for i in pair]
+        assert scorer.of(cand, pair) == pytest.approx(_pair_score(aimed, geometry, cams), rel=1e-4)
+        assert scorer.of(cand, pair) >= plain.of(cand, pair)
+    assert scorer.of(cand, (2, 6)) > 1.01 * plain.of(cand, (2, 6))
+    for base in [(), (1, 7)]:
+        rows = np.array([k for k in range(len(cand.cameras)) if k not in base])
+        np.testing.assert_allclose(scorer.add(*cand.sums(list(base)), cand, rows),
+                                   [scorer.of(cand, list(base) + [k]) for k in rows], rtol=SUM_ORDER_RTOL)
 
 
 def test_stored_pairs_equal_the_dense_information_and_weights(judged):
