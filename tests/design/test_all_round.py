@@ -44,7 +44,7 @@ def write_cylinder(tmp_path):
     cams = "".join(CAMERA.format(name=f"{ring}{k}", x=d * math.cos(math.radians(30 * k)),
                                  y=d * math.sin(math.radians(30 * k)))
                    for ring, d in (("far", FAR), ("near", NEAR)) for k in range(SPOTS))
-    text = textwrap.dedent(f"""
+    text = textwrap.dedent("""
         [experiment]
         name = "cylinder seen all round"
         [evaluation]

@@ -9,9 +9,12 @@ import math
 import signal
 import threading
 import time
-
+from typing import TYPE_CHECKING
 
 from vdo.core.progress import PlainBar, bar
+
+if TYPE_CHECKING:   # annotations only: the solver imports this module
+    from vdo.search.solver import Result
 
 log = logging.getLogger(__name__)
 

@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import math
 import time
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -40,6 +41,9 @@ from vdo.physics.visibility import Visibility, compute_visibility
 from vdo.search.parameterisation import Parameterization
 from vdo.search.bfgs import BFGS
 from vdo.search.anytime import Progress, Stop
+
+if TYPE_CHECKING:   # annotations only: the solver imports this module
+    from vdo.search.solver import Result
 
 PENALTIES = ("angle", "fov", "clearance", "obscuration", "shadow")   # the keys of `Problem.terms` besides score
 # Back-off: the penalties aim this far inside each limit, so that the penalty solution, which
