@@ -9,14 +9,18 @@ import math
 import signal
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from vdo.core.progress import PlainBar, bar
 
-if TYPE_CHECKING:   # annotations only: the solver imports this module
-    from vdo.search.solver import Result
-
 log = logging.getLogger(__name__)
+
+
+class Best(Protocol):
+    """What the progress line reads of the best result so far (`vdo.search.solver.Result`)."""
+
+    score: float
+    violations: int
 
 
 # --------------------------------------------------------------------------------------------
@@ -88,7 +92,7 @@ class Progress:
         est = rate * max((self.planned or 0) - self.done, 0)
         return min(est, self.stop.left) if self.stop is not None else est
 
-    def step(self, where: str, best: "Result | None") -> None:
+    def step(self, where: str, best: Best | None) -> None:
         self.done += 1
         if best is None:
             text = "no layout judged yet"
