@@ -56,11 +56,12 @@ is convex in (C_S, k_S) (`vdo.design.bound`).
 With `[design] target_sigma_um` sigma_t, a sample above the target costs more, quadratically in
 the logarithm of its excess:
 
-    ln(sigma_n / 1 um)  ->  ln(sigma_n / 1 um) + max(0, ln(sigma_n / sigma_t))^2,
+    ln(sigma_n / 1 um)  ->  ln(sigma_n / 1 um) + kappa max(0, ln(sigma_n / sigma_t))^2,
 
 so that a region's worst samples are no longer traded for typical ones (the geometric mean alone
 let the steel beam's 4-camera design leave 30 % of one end at 2.3 um p95, against a 0.3 um
-target). The term is 0 at or below the target, 0.48 at twice it, 4.2 at 7.7 times; it is convex
+target). The weight is the coverage penalty's kappa: a sample at e times the target costs as much
+as one view missing there; the term is 0 at or below the target, 3.3 at twice it. It is convex
 (a convex increasing function of ln sigma, itself convex in C_S), so the score stays convex and the
 bound holds. Samples that no selection can measure add a constant, as before.
 
@@ -635,11 +636,11 @@ class Scorer:
         return out
 
     def cost(self, log_sigma, xp):
-        """A sample's term: ln(sigma / 1 um), plus max(0, ln(sigma / sigma_t))^2 with a target
-        (module docstring); xp: numpy or jax.numpy."""
+        """A sample's term: ln(sigma / 1 um), plus kappa max(0, ln(sigma / sigma_t))^2 with a
+        target (module docstring); xp: numpy or jax.numpy."""
         if self.log_target is None:
             return log_sigma
-        return log_sigma + xp.maximum(log_sigma - self.log_target, 0.0) ** 2
+        return log_sigma + self.kappa * xp.maximum(log_sigma - self.log_target, 0.0) ** 2
 
     def value(self, info, cover):
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
