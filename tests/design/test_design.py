@@ -541,3 +541,17 @@ def test_design_on_the_command_line_with_a_local_dask_cluster(plate_experiment, 
     assert main(["design", str(exp.path), "--out", str(remote), "--quiet", "--dask", "local",
                  "--workers", "2"]) == 0
     assert (remote / "layout.json").read_text() == (local / "layout.json").read_text()
+
+
+def test_a_target_met_in_sigma_but_not_in_coverage_says_so(plate_experiment, tmp_path):
+    """Only the top is scored ([optimize] regions) and the underside, which no candidate sees, is
+    never covered: a target every count's sigma meets is reported as met on sigma, with the
+    coverage that keeps the count from being named, not as 'not reached'."""
+    exp = _experiment(plate_experiment, n=2, extra="target_sigma_um = 1000",
+                      regions='\n[[region]]\nname = "under"\nmesh = "plate"\nnormal = [0, 0, -1]\n'
+                              '[render]\nambient_radiance = 20\n[optimize]\nregions = ["top"]\n')
+    result = design_run(exp, tmp_path / "out")
+    assert result.target_count is None
+    met = [p for p in result.problems if p.startswith("target sigma_max p95 1000 um")]
+    assert len(met) == 1 and "is reached on region(s) 'top' from 2 cameras" in met[0]
+    assert f"at most {100 * max(c['coverage'] for c in result.curve):.1f} % of the area" in met[0]
