@@ -79,9 +79,10 @@ def _pair_score(exp, geometry, cams):
     huber = np.where(short > 0.5, short - 0.25, short ** 2)       # s^2 / (2 x 0.5) below half a view
     kappa = math.log(st.prior_sigma / st.sigma_unit)
     cost = np.log(sigma)
-    if exp.design.target_sigma_um is not None:   # the target's term: kappa (ln sigma/sigma_t)^2 above it
+    if exp.design.target_sigma_um is not None:   # the target's term: kappa g(ln sigma/sigma_t) above it
         excess = np.log(sigma * st.sigma_unit / (exp.design.target_sigma_um * 1e-6))
-        cost = cost + kappa * np.where(excess > 0, excess, 0.0) ** 2
+        x = np.maximum(excess, 0.0)
+        cost = cost + kappa * np.where(x > 1, 2 * x - 1, x * x)     # square up to e times, then linear
     return float(np.exp(np.sum(omega / omega.sum() * cost)
                         + kappa * np.sum(area / area.sum() * huber)))
 
@@ -404,7 +405,7 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
 def test_the_target_term_matches_its_closed_form_and_the_sparse_sums(plate_experiment):
     """With [design] target_sigma_um at the median sigma of one pair's measured samples (a lit
     plate), the score equals `_pair_score`'s independent computation with the term
-    kappa max(0, ln(sigma / sigma_t))^2 added per sample, rises above the score without a target, and
+    kappa g(max(0, ln(sigma / sigma_t))) added per sample (g: square up to 1, then linear), rises above the score without a target, and
     Scorer.add still equals Scorer.of for every candidate added to a base."""
     exp = _experiment(plate_experiment, regions="\n[render]\nambient_radiance = 20\n")
     geometry = prepare(exp)

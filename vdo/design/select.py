@@ -56,14 +56,16 @@ is convex in (C_S, k_S) (`vdo.design.bound`).
 With `[design] target_sigma_um` sigma_t, a sample above the target costs more, quadratically in
 the logarithm of its excess:
 
-    ln(sigma_n / 1 um)  ->  ln(sigma_n / 1 um) + kappa max(0, ln(sigma_n / sigma_t))^2,
+    ln(sigma_n / 1 um)  ->  ln(sigma_n / 1 um) + kappa g(max(0, ln(sigma_n / sigma_t))),
 
-so that a region's worst samples are no longer traded for typical ones (the geometric mean alone
-let the steel beam's 4-camera design leave 30 % of one end at 2.3 um p95, against a 0.3 um
-target). The weight is the coverage penalty's kappa: a sample at e times the target costs as much
-as one view missing there; the term is 0 at or below the target, 3.3 at twice it. It is convex
-(a convex increasing function of ln sigma, itself convex in C_S), so the score stays convex and the
-bound holds. Samples that no selection can measure add a constant, as before.
+g(x) = x^2 up to x = 1 and 2x - 1 beyond (`target_excess`), so that a region's worst samples are
+no longer traded for typical ones (the geometric mean alone let the steel beam's 4-camera design
+leave 30 % of one end at 2.3 um p95, against a 0.3 um target). The weight is the coverage
+penalty's kappa: a sample at e times the target costs as much as one view missing there; the term
+is 0 at or below the target, 3.3 at twice it. Beyond e times it grows linearly in ln sigma, so an
+unmeasured sample (the prior's 1 mm) adds a bounded constant and the score's exponent stays finite
+for any target. It is convex (a convex increasing function of ln sigma, itself convex in C_S), so
+the score stays convex and the bound holds.
 
 It is not submodular (one camera alone gains
 nothing in sigma; pairs do), so lazy evaluation's bound does not hold: every step evaluates every
@@ -152,6 +154,7 @@ SPOT_M = 0.2            # two optical centres closer than this are one physical 
 PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
 ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
 ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
+TARGET_BEND = 1.0             # ln(sigma / target) where the target's term turns from square to linear
 HARDWARE_CHUNK = 256          # candidates' hardware bounds tested against one camera's lines at once
 PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
 PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
@@ -636,11 +639,11 @@ class Scorer:
         return out
 
     def cost(self, log_sigma, xp):
-        """A sample's term: ln(sigma / 1 um), plus kappa max(0, ln(sigma / sigma_t))^2 with a
+        """A sample's term: ln(sigma / 1 um), plus kappa g(max(0, ln(sigma / sigma_t))) with a
         target (module docstring); xp: numpy or jax.numpy."""
         if self.log_target is None:
             return log_sigma
-        return log_sigma + self.kappa * xp.maximum(log_sigma - self.log_target, 0.0) ** 2
+        return log_sigma + self.kappa * target_excess(xp.maximum(log_sigma - self.log_target, 0.0), xp)
 
     def value(self, info, cover):
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
@@ -706,6 +709,12 @@ def views_short(short, xp):
     first view three times the second and spread two cameras over disjoint views). xp: numpy or
     jax.numpy."""
     return xp.where(short > SHORT_SMOOTH, short - SHORT_SMOOTH / 2, short * short / (2 * SHORT_SMOOTH))
+
+
+def target_excess(x, xp):
+    """g(x) of the target's term (module docstring) for x = max(0, ln(sigma / sigma_t)) >= 0: x^2
+    up to TARGET_BEND and linear beyond (slope 2 TARGET_BEND): convex, increasing, smooth."""
+    return xp.where(x > TARGET_BEND, 2 * TARGET_BEND * x - TARGET_BEND ** 2, x * x)
 
 
 def coverage_weight(st: objective.Settings) -> float:
