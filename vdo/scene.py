@@ -637,11 +637,13 @@ def check_sample_count(exp: Experiment, meshes: list[SceneMesh], faces: list[Reg
                           f"{fits:g} or more")
 
 
-def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None) -> SurfaceSamples:
-    """Samples on every region of the experiment, at `spacing` (m; default from the config)."""
+def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None,
+                   faces: list[RegionFaces] | None = None) -> SurfaceSamples:
+    """Samples on every region of the experiment, at `spacing` (m; default from the config), on
+    the regions' `faces` (`all_region_faces` at that spacing; found here when not given)."""
     spacing = exp.evaluation.sample_spacing if spacing is None else spacing
     by_name = {m.name: m for m in meshes}
-    faces = all_region_faces(exp, meshes, spacing)
+    faces = all_region_faces(exp, meshes, spacing) if faces is None else faces
     check_sample_count(exp, [by_name[r.mesh] for r in exp.regions], faces, spacing)
     parts = []
     for index, (region, rf) in enumerate(zip(exp.regions, faces)):

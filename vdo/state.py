@@ -276,8 +276,8 @@ def _first_difference(table: str, a, b) -> str | None:
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     """Read the meshes (unless given), sample the regions and build the speckle model."""
     meshes = load_meshes(exp) if meshes is None else meshes
-    samples = sample_regions(exp, meshes)
     faces = tuple(all_region_faces(exp, meshes))
+    samples = sample_regions(exp, meshes, faces=list(faces))
     spacing, patch = exp.evaluation.sample_spacing, exp.evaluation.patch_size
     by_name = {m.name: m for m in meshes}
     rasters = [surface_raster(by_name[r.mesh], rf, spacing) if patch <= FINE_PATCH_CELLS * spacing else None
