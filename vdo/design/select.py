@@ -753,11 +753,13 @@ class Feasibility:
 
     def __init__(self, exp: Experiment, cand: Candidates, samples=None):
         self.exp, self.cand = exp, cand
-        self._seen = self._region_area = self._alone = None
+        self._seen = self._region_area = self._alone = self._sight = None
         if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
             use = usable.usable_views(cand.entry_weight)
+            # the usable entries as sight lines: candidate, sample, its area (`hides`)
+            self._sight = (cand.row[use], cand.index[use], samples.area[cand.index[use]])
             self._seen = scipy.sparse.csr_matrix(
-                (np.ones(int(use.sum())), (cand.row[use], cand.index[use])), shape=(len(cand.cameras), cand.samples))
+                (np.ones(int(use.sum())), self._sight[:2]), shape=(len(cand.cameras), cand.samples))
             self._region_area = scipy.sparse.csr_matrix(
                 (samples.area, (np.arange(len(samples)), samples.region)),
                 shape=(len(samples), len(samples.region_names)))
@@ -770,6 +772,7 @@ class Feasibility:
         self.counts = np.array([b.count for b in bodies(exp)])
         self._rows: dict[int, np.ndarray] = {}
         self._samples = samples
+        self._tripods = {m.name: m.tripod for m in exp.mounts}     # rails stand on no tripod
         self._hardware: dict[int, obstacles.Hardware] = {}
         self._bounds = None   # every candidate's hardware bounding sphere: (centres (K, 3), radii (K,))
 
@@ -794,8 +797,7 @@ class Feasibility:
     def hardware(self, k: int) -> obstacles.Hardware:
         """Candidate k's body and tripod (`vdo.geometry.obstacles.hardware`)."""
         if k not in self._hardware:
-            tripods = {m.name: m.tripod for m in self.exp.mounts}     # rails stand on no tripod
-            self._hardware[k] = obstacles.hardware(self.cand.cameras[k], tripods.get(self.cand.mount[k]))
+            self._hardware[k] = obstacles.hardware(self.cand.cameras[k], self._tripods.get(self.cand.mount[k]))
         return self._hardware[k]
 
     def hides(self, j: int) -> np.ndarray:
@@ -804,9 +806,7 @@ class Feasibility:
         (class docstring)."""
         cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
         K, R = cand.assigned.shape
-        use = usable.usable_views(cand.entry_weight)
-        rows, index = cand.row[use], cand.index[use]
-        area = smp.area[index]
+        rows, index, area = self._sight
         # j's hardware in front of every other candidate's lines of sight
         lost = obstacles.hidden(self.positions[rows], smp.points[index], self.hardware(j)) & (rows != j)
         hidden = np.bincount(rows[lost] * R + smp.region[index[lost]], weights=area[lost],
