@@ -556,3 +556,50 @@ def test_a_target_met_in_sigma_but_not_in_coverage_says_so(plate_experiment, tmp
     met = [p for p in result.problems if p.startswith("target sigma_max p95 1000 um")]
     assert len(met) == 1 and "is reached on region(s) 'top' from 2 cameras" in met[0]
     assert f"at most {100 * max(c['coverage'] for c in result.curve):.1f} % of the area" in met[0]
+
+
+def test_a_camera_body_under_another_on_the_same_spot_is_a_conflict(plate_experiment):
+    """Candidates at two heights over each rail position (offset 0.3 m up and down): the lower
+    camera's body sits in the upper one's view of the plate. `Feasibility.hides` must call a
+    pair a conflict exactly when Mitsuba's ray test, from the one camera's optical centre to the
+    samples it sees usably, against the other camera's body mesh, hides more than
+    max_obscuration of a region the first is assigned (either way round)."""
+    from vdo.scene import camera_body, mitsuba
+
+    path = plate_experiment(spacing=50)
+    path.write_text(path.read_text() + "\n[render]\nambient_radiance = 20\n"
+                    + DESIGN.format(n=2, extra="").replace("offset_m = [0, 0, 0]", "offset_m = [0, 0, 0.3]"))
+    exp = config.load(path)
+    geometry = prepare(exp)
+    cand = design.judge(exp, geometry)
+    feas = design.Feasibility(exp, cand, geometry.samples)
+    smp, limit, mi = geometry.samples, exp.optimize.max_obscuration, mitsuba()
+    use = cand.entry_weight >= 0.5
+    R = len(smp.region_names)
+
+    def hides(j, k):
+        """Does camera j's body hide more than the limit of a region assigned to k? (ray test)"""
+        mine = use & (cand.row == k)
+        X = smp.points[cand.index[mine]]
+        C = cand.cameras[k].position
+        d = X - C
+        length = np.linalg.norm(d, axis=1)
+        ray = mi.Ray3f(mi.Point3f(*np.tile(C, (len(X), 1)).T), mi.Vector3f(*(d / length[:, None]).T))
+        ray.maxt = mi.Float(length)
+        lost = np.asarray(build_scene([camera_body(cand.cameras[j])]).ray_test(ray), dtype=bool)
+        region, area = smp.region[cand.index[mine]], smp.area[cand.index[mine]]
+        frac = np.bincount(region[lost], area[lost], minlength=R) / np.maximum(
+            np.bincount(region, area, minlength=R), 1e-30)
+        return bool((cand.assigned[k] & (frac > limit)).any())
+
+    heights = np.round(cand.positions[:, 2], 3)
+    assert len(np.unique(heights)) == 2
+    checked = conflicts = 0
+    for j in range(0, len(cand.cameras), 3):
+        row = feas.hides(j)
+        for k in range(len(cand.cameras)):
+            if k != j:
+                expected = hides(j, k) or hides(k, j)
+                assert row[k] == expected, (j, k)
+                checked, conflicts = checked + 1, conflicts + expected
+    assert conflicts >= 2 and checked > 20        # both answers occur
