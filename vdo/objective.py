@@ -1063,11 +1063,19 @@ def pair_information(cameras: CameraParams, views: ViewData, energy,
     and the soft weight w_i (P,) with the occlusion applied: what `camera_information` and
     `geometry(...).weight` x occlusion give at these pairs (zero at every other pair), without
     the (C, N) arrays."""
-    ent, w, _ = _pair_terms(cameras, views, energy, settings)
+    ent, w = _pair_entries(cameras, views, energy, settings)
     real = np.asarray(views.occlusion).reshape(-1) > 0
     return (np.asarray(views.camera).reshape(-1)[real], np.asarray(views.sample).reshape(-1)[real],
             np.stack([np.asarray(e, dtype=np.float64).reshape(-1) for e in ent], -1)[real],
             np.asarray(w, dtype=np.float64).reshape(-1)[real])
+
+
+@eqx.filter_jit
+def _pair_entries(cameras, views, energy, settings):
+    """`_pair_terms`' entries and weights as one compiled program (`pair_information`: run op by
+    op, its ~100 operations each compiled and dispatched alone)."""
+    ent, w, _ = _pair_terms(cameras, views, energy, settings)
+    return ent, w
 
 
 @eqx.filter_jit
