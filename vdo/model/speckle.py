@@ -44,6 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.fft
+import scipy.sparse
 from scipy.special import i0e, i1e, j0
 
 __all__ = [
@@ -579,6 +580,7 @@ INTERPOLANT_NAMES = {"cubic": "cubic B-spline", "quintic": "quintic B-spline",
 PHASES = 8                  # sub-pixel positions per axis over which the bias is averaged (d = j / 8)
 PHASE_TWIN_TOL = 1e-12     # sub-pixel positions d and 1 - d closer than this are twins (mod 1)
 FOLD_BINS = 32              # bins per axis of the folded pixel spectrum (scatter of the bias)
+PHASE_CHUNK = 8             # sub-pixel positions computed together (`correlation_error`: (8, M) arrays)
 _ALIAS_TERMS = 4            # |l| <= this in the Poisson sums of the spline's responses
 
 
@@ -858,34 +860,42 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         # where a real field's cross-spectrum is the conjugate (D odd, E(-q) = conj E(q)).
         plus, minus = bin_of(fold1, fold2), bin_of(-fold1, -fold2)
 
-        def binned(x, odd=False):
-            return 0.5 * (np.bincount(plus, weights=x, minlength=nb)
-                          + (-1 if odd else 1) * np.bincount(minus, weights=x, minlength=nb))
-
-        s_dd = np.stack([[binned(wk * D[a_] * D[b_]) for b_ in range(2)] for a_ in range(2)])
-        wDD = wk * D[:, None, :] * D[None, :, :]                                 # (2, 2, M)
+        # binning as sparse (nb, M) matrices: even and odd parts of the two half weights
+        cols = np.arange(q1.size)
+        Bp, Bm = (scipy.sparse.csr_matrix((np.full(q1.size, 0.5), (rows, cols)), shape=(nb, q1.size))
+                  for rows in (plus, minus))
+        even, odd = (Bp + Bm).tocsr(), (Bp - Bm).tocsr()
+        s_dd = np.stack([[even @ (wk * D[a_] * D[b_]) for b_ in range(2)] for a_ in range(2)])
+        Dw = D * wk                                                              # (2, M)
+        wDD = (wk * D[:, None, :] * D[None, :, :]).reshape(4, -1)                # (4, M)
         noise = np.zeros((2, 2))
         bias = np.zeros((2, 2))
         scatter = np.zeros((2, 2))
-        for p1, p2, twin, count in pairs:
-            E = R1[p1] * R2[p2] - 1.0
+        # the sub-pixel positions PHASE_CHUNK at a time, as (c, M) arrays
+        for s in range(0, len(pairs), PHASE_CHUNK):
+            part = pairs[s:s + PHASE_CHUNK]
+            i1, i2 = (np.array([p[k] for p in part]) for k in (0, 1))
+            count = np.array([p[3] for p in part], dtype=float)
+            R1c, R2c = R1[i1], R2[i2]
+            E = R1c * R2c - 1.0
             # the Jacobian the iteration meets: Σ ∇ref ∇(interpolated deformed)ᵀ at n + d
-            Hd = D @ (wk[:, None] * np.stack([(G1[p1] * R2[p2]).real,
-                                              (R1[p1] * G2[p2]).real], -1))
+            Hd = np.stack([(G1[i1] * R2c).real @ Dw.T, (R1c * G2[i2]).real @ Dw.T], -1)  # (c, a, b)
             Hi = np.linalg.inv(Hd)
-            b = -Hi @ (D @ (wk * E.imag))
-            curves[i, p1, p2] = b
-            if twin is not None:
-                curves[i, twin[0], twin[1]] = -b
-            bias += count * np.outer(b, b)
-            Nd = wDD @ (A1[p1] * A2[p2] + r)
-            noise += count * Hi @ Nd @ Hi.T
-            s_ee = binned(wk * np.abs(E) ** 2)
-            s_de = np.stack([binned(wk * D[a_] * E.imag) + 1j * binned(wk * D[a_] * E.real, True)
-                             for a_ in range(2)])                      # i D conj(E)
-            V = nb * (np.einsum("abq,q->ab", s_dd, s_ee)
-                      + np.real(np.einsum("aq,bq->ab", s_de, s_de)))
-            scatter += count * Hi @ V @ Hi.T
+            b = -np.einsum("cab,cb->ca", Hi, E.imag @ Dw.T)
+            for k, (p1, p2, twin, _) in enumerate(part):
+                curves[i, p1, p2] = b[k]
+                if twin is not None:
+                    curves[i, twin[0], twin[1]] = -b[k]
+            bias += np.einsum("c,ca,cb->ab", count, b, b)
+            Nd = ((A1[i1] * A2[i2] + r) @ wDD.T).reshape(-1, 2, 2)
+            noise += np.einsum("c,cab,cbd,ced->ae", count, Hi, Nd, Hi)
+            s_ee = (even @ (wk * np.abs(E) ** 2).T).T                            # (c, nb)
+            re = [(even @ (wk * D[a_] * E.imag).T).T for a_ in range(2)]          # i D conj(E)
+            im = [(odd @ (wk * D[a_] * E.real).T).T for a_ in range(2)]
+            V = nb * (np.einsum("abq,cq->cab", s_dd, s_ee)
+                      + np.stack([np.stack([np.sum(re[a_] * re[b_] - im[a_] * im[b_], -1)
+                                            for b_ in range(2)], -1) for a_ in range(2)], -2))
+            scatter += np.einsum("c,cab,cbd,ced->ae", count, Hi, V, Hi)
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
         out["bias"][i], out["scatter"][i] = bias / n_ph, scatter / n_ph
