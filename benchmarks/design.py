@@ -30,6 +30,9 @@ import numpy as np
 
 from vdo.config import experiment as config
 from vdo.design import select as design
+from vdo.design.candidates import judge
+from vdo.design.feasibility import Feasibility
+from vdo.design.score import Scorer
 from vdo.outputs import report
 from vdo.core.configure import configure
 from vdo.commands.optimize import optimize
@@ -73,9 +76,9 @@ def main() -> None:
     t0 = time.perf_counter()
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation,
                                                      sample_spacing=exp.design.sample_spacing)))
-    cand = design.judge(exp, coarse)
+    cand = judge(exp, coarse)
     t_judge = time.perf_counter() - t0
-    scorer, feas = design.Scorer(exp, coarse.samples), design.Feasibility(exp, cand)
+    scorer, feas = Scorer(exp, coarse.samples), Feasibility(exp, cand)
     order, _ = design.greedy(cand, scorer, feas, args.cameras)
     chosen, score, _ = design.exchange(cand, scorer, feas, order)
     t_design = time.perf_counter() - t0

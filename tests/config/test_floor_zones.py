@@ -13,7 +13,7 @@ from matplotlib.path import Path as MplPath
 from conftest import PLATE_TOML, write_box
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
-from vdo.design import select as design
+from vdo.design.candidates import zone_grid
 from vdo.search.parameterisation import Parameterization
 from vdo.scene import cameras_of
 
@@ -87,7 +87,7 @@ def test_bad_floors_are_named(tmp_path, outer, hole, field, words):
 
 def test_design_candidates_stand_on_the_ring(tmp_path):
     exp = config.load(write(tmp_path, extra="\n[design]\nmax_cameras = 2\nzone_points = 9\nzone_heights = 1\n"))
-    grid = design.zone_grid(exp.mount("ring"), exp.design.zone_points, exp.design.zone_heights)
+    grid = zone_grid(exp.mount("ring"), exp.design.zone_points, exp.design.zone_heights)
     xs = np.linspace(-2, 2, 9)
     expected = [(x, y) for x in xs for y in xs if max(abs(x), abs(y)) >= 1.0]   # hole edges count as floor
     assert sorted(map(tuple, np.round(grid[:, :2], 9))) == sorted(expected)

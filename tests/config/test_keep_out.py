@@ -14,7 +14,7 @@ from conftest import PLATE_TOML, write_box
 from vdo import constraints
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
-from vdo.design import select as design
+from vdo.design.candidates import candidate_cameras
 from vdo.scene import cameras_of, load_meshes, sample_regions
 
 ZONE = """
@@ -99,7 +99,7 @@ def test_design_drops_the_candidates_inside(tmp_path):
     path = write(tmp_path, keep_out('[0.7, -inf, -inf]', '[inf, inf, inf]'), DESIGN)
     exp = config.load(path)
     meshes = load_meshes(exp)
-    cams, mounts, *_, dropped = design.candidate_cameras(exp, sample_regions(exp, meshes), meshes)
+    cams, mounts, *_, dropped = candidate_cameras(exp, sample_regions(exp, meshes), meshes)
     zone = np.array([c.position for c, m in zip(cams, mounts) if m == "ring"])
     assert len(zone) and np.all(zone[:, 0] < 0.7)
     assert set(np.round(zone[:, 0], 9)) == {0.3, 0.6}

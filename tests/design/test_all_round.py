@@ -17,7 +17,10 @@ import pytest
 import trimesh
 
 from vdo.config import experiment as config
-from vdo.design import select as design
+from vdo.design.candidates import judge
+from vdo.design.feasibility import Feasibility
+from vdo.design.score import Scorer
+from vdo.design.select import exchange, greedy
 from vdo.state import layout_state, prepare
 from vdo.scene import cameras_of
 
@@ -83,10 +86,10 @@ def write_cylinder(tmp_path):
 def selection(tmp_path_factory):
     exp = config.load(write_cylinder(tmp_path_factory.mktemp("allround")))
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
-    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand, geometry.samples)
-    order, _ = design.greedy(cand, scorer, feas, 6)
-    chosen, score, _ = design.exchange(cand, scorer, feas, order)
+    cand = judge(exp, geometry)
+    scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand, geometry.samples)
+    order, _ = greedy(cand, scorer, feas, 6)
+    chosen, score, _ = exchange(cand, scorer, feas, order)
     return exp, geometry, cand, scorer, chosen, score
 
 
@@ -137,10 +140,10 @@ def test_neighbours_around_the_cylinder_share_it_and_keep_their_axis_angle(selec
     exp, geometry, cand, scorer, chosen, score = selection
     assert not cand.assigned[:, 0].any()
     strict = replace(exp, optimize=replace(exp.optimize, min_axis_angle=math.radians(40)))
-    feas = design.Feasibility(strict, cand, geometry.samples)
+    feas = Feasibility(strict, cand, geometry.samples)
     index = {c: i for i, c in enumerate(cand.cameras)}
     near = [index[c] for c in cand.cameras if np.hypot(*c.position[:2]) < (NEAR + FAR) / 2]
     near.sort(key=lambda i: np.degrees(np.arctan2(cand.positions[i, 1], cand.positions[i, 0])) % 360)
     assert feas.conflicts(near[1], near[0]) and feas.conflicts(near[11], near[0])
     assert not feas.conflicts(near[3], near[0]) and not feas.conflicts(near[6], near[0])
-    assert not design.Feasibility(strict, cand).conflicts(near[1], near[0])    # assigned alone: no pair
+    assert not Feasibility(strict, cand).conflicts(near[1], near[0])    # assigned alone: no pair

@@ -18,7 +18,10 @@ from scipy.optimize import linprog, minimize
 from vdo.config import experiment as config
 from vdo.design import bound
 from vdo.commands.design import design as design_run
-from vdo.design import select as design
+from vdo.design.candidates import judge
+from vdo.design.feasibility import Feasibility
+from vdo.design.score import Scorer
+from vdo.design.select import exchange, greedy
 from vdo.state import prepare
 
 # scipy's SLSQP stops at ftol 1e-12 on these small problems; its solution agrees to about this
@@ -129,8 +132,8 @@ def plate(tmp_path_factory):
     path.write_text(path.read_text() + PLATE_DESIGN)
     exp = config.load(path)
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
-    return exp, geometry, cand, design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+    cand = judge(exp, geometry)
+    return exp, geometry, cand, Scorer(exp, geometry.samples), Feasibility(exp, cand)
 
 
 @pytest.mark.parametrize("k, aimed", [(2, False), (3, False), (2, True)])
@@ -145,7 +148,7 @@ def test_no_selection_beats_the_bound(plate, k, aimed):
         measured = sigma[sigma < 0.1 * scorer.settings.prior_sigma]
         assert measured.size > 10
         exp = replace(exp, design=replace(exp.design, target_sigma_um=float(np.median(measured)) * 1e6))
-        scorer = design.Scorer(exp, geometry.samples)
+        scorer = Scorer(exp, geometry.samples)
         assert scorer.log_target is not None
     K = len(cand.cameras)
     assert K == 18 and sorted(np.bincount(cand.body)) == [9, 9]
@@ -155,7 +158,7 @@ def test_no_selection_beats_the_bound(plate, k, aimed):
                if all(np.sum(cand.body[list(s)] == j) <= c for j, c in enumerate(feas.counts)))
     assert b.value <= best
     assert b.value <= b.relaxed <= best * (1 + 1e-9)
-    chosen, score, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, k)[0])
+    chosen, score, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, k)[0])
     assert score >= best * (1 - 1e-9)
     assert 0 <= b.gap(score) < 1
 

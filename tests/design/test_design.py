@@ -17,7 +17,11 @@ from conftest import SLIDING_SHUTTER
 from vdo import objective
 from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
-from vdo.design import select as design
+from vdo.design.budget import ENTRY_BYTES, estimate, refuse
+from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
+from vdo.design.feasibility import Feasibility
+from vdo.design.score import Scorer
+from vdo.design.select import exchange, greedy, problems
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
@@ -51,7 +55,7 @@ def _experiment(plate_experiment, n=2, extra="", regions="", spacing=50, cameras
 def judged(plate_experiment):
     exp = _experiment(plate_experiment)
     geometry = prepare(exp)
-    return exp, geometry, design.judge(exp, geometry)
+    return exp, geometry, judge(exp, geometry)
 
 
 def _pair_score(exp, geometry, cams):
@@ -90,7 +94,7 @@ def _pair_score(exp, geometry, cams):
 def test_candidates_information_adds_to_the_layouts(judged):
     exp, geometry, cand = judged
     assert len(cand.cameras) == 9 * 1          # 9 rail positions x 1 target x 1 lens (24 mm)
-    scorer = design.Scorer(exp, geometry.samples)
+    scorer = Scorer(exp, geometry.samples)
     for pair in [(0, 8), (2, 6), (3, 4)]:
         cams = [cand.cameras[i] for i in pair]
         assert scorer.of(cand, pair) == pytest.approx(_pair_score(exp, geometry, cams), rel=1e-4)
@@ -98,9 +102,9 @@ def test_candidates_information_adds_to_the_layouts(judged):
 
 def test_greedy_and_exchange_find_the_best_pair_which_is_symmetric(judged):
     exp, geometry, cand = judged
-    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
-    order, _ = design.greedy(cand, scorer, feas, 2)
-    chosen, score, _ = design.exchange(cand, scorer, feas, order)
+    scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand)
+    order, _ = greedy(cand, scorer, feas, 2)
+    chosen, score, _ = exchange(cand, scorer, feas, order)
     feasible = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
                 if not feas.conflicts(p[0], p[1])]
     exhaustive = {p: _pair_score(exp, geometry, [cand.cameras[i] for i in p]) for p in feasible}
@@ -120,10 +124,10 @@ def test_minimum_axis_angle_is_respected(plate_experiment):
     only pairs wider than the free choice are allowed, and the selection keeps to them."""
     free = _experiment(plate_experiment)
     geometry = prepare(free)
-    cand = design.judge(free, geometry)
-    scorer = design.Scorer(free, geometry.samples)
-    feas = design.Feasibility(free, cand)
-    chosen, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    cand = judge(free, geometry)
+    scorer = Scorer(free, geometry.samples)
+    feas = Feasibility(free, cand)
+    chosen, _, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])
     angle = lambda pair: abs(math.degrees(math.atan(cand.cameras[pair[0]].position[0] / 1.5)
                                           - math.atan(cand.cameras[pair[1]].position[0] / 1.5)))
     widest = 2 * math.degrees(math.atan(1 / 1.5))
@@ -131,8 +135,8 @@ def test_minimum_axis_angle_is_respected(plate_experiment):
     limit = (angle(chosen) + widest) / 2
     free.path.write_text(free.path.read_text() + f"\n[optimize]\nmin_axis_angle_deg = {limit}\n")
     exp = config.load(free.path)
-    feas = design.Feasibility(exp, cand)
-    bound, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    feas = Feasibility(exp, cand)
+    bound, _, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])
     assert len(bound) == 2 and angle(bound) >= limit
     a = cand.axes
     assert math.degrees(math.acos(np.clip(a[bound[0]] @ a[bound[1]], -1, 1))) == \
@@ -189,14 +193,14 @@ def test_obscuration_by_an_obstacle_matches_the_shadow_geometry(plate_experiment
     path.write_text(path.read_text() + DESIGN.format(n=2, extra="sample_spacing_mm = 25")
                     .replace("sample_spacing_mm = 50\n", ""))
     exp = config.load(path)
-    cand = design.judge(exp, prepare(exp))
+    cand = judge(exp, prepare(exp))
     for i, c in enumerate(cand.cameras):
         expected = float(np.clip(c.position[0] - 0.1, 0.0, 1.0))
         assert cand.masked[i, 0] == pytest.approx(expected, abs=0.05), c.position[0]
-    feas = design.Feasibility(exp, cand)
+    feas = Feasibility(exp, cand)
     assert np.array_equal(feas.alone, ~(cand.assigned[:, 0] & (cand.masked[:, 0] > 0.01)))
-    scorer = design.Scorer(exp, prepare(exp).samples)
-    chosen, _, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    scorer = Scorer(exp, prepare(exp).samples)
+    chosen, _, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])
     assert len(chosen) == 2 and all(cand.masked[i, 0] <= 0.01 for i in chosen)
 
 
@@ -226,18 +230,18 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     exp = _experiment(plate_experiment, n=2, cameras=ZONE + ON_ZONE,
                       extra="zone_points = 3\nzone_heights = 2\nkeyframes = 0")
     exp = replace(exp, rails=())
-    spots = design.spots(exp)
-    grid = np.array([p for *_, p in spots])
+    found = spots(exp)
+    grid = np.array([p for *_, p in found])
     expected = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-0.3, 0, 0.3) for z in (1.2, 1.6)])
     assert sorted(map(tuple, grid)) == sorted(map(tuple, expected))
-    assert {k for _, k, *_ in spots} == {"zone"}
+    assert {k for _, k, *_ in found} == {"zone"}
     out = tmp_path / "out"
     result = design_run(exp, out)
     again = config.load(out / "designed.toml")
     assert [c.mount for c in again.camera_specs] == ["stand", "stand"]
     for c in again.camera_specs:
         assert any(np.allclose(c.position, p) for p in expected)
-    assert result.statistics["per_mount_kind"]["zone"] == len(design.judge(exp, prepare(exp)).cameras)
+    assert result.statistics["per_mount_kind"]["zone"] == len(judge(exp, prepare(exp)).cameras)
     # the DesignResult is what the folder holds: summary.json byte for byte, design.json's figures
     assert (out / "summary.json").read_text() == json.dumps(result.summary.to_json(), indent=2) + "\n"
     written = json.loads((out / "design.json").read_text())
@@ -247,14 +251,14 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert result.refined is None
     # each designed camera carries the lenses the design chose from, so that --refine's lens
     # choice (even with another [optimize] catalogue) keeps to them: no lens outside a catalogue
-    assert all(c.lenses == design.lenses(exp) for c in again.camera_specs)
+    assert all(c.lenses == lenses(exp) for c in again.camera_specs)
     free = replace(again, optimize=replace(again.optimize, free=("pan", "tilt", "lens"), lenses=(0.5,)))
     assert config.lens_catalogue_errors(free) == []
     assert json.loads(json.dumps(result.to_json()))["summary"] == json.loads((out / "summary.json").read_text())
     # a triangle floor: of the 3 x 3 grid on its bounding box, the points inside it, and its centroid
     floor = replace(exp.mounts[0], floor=np.array([[-1.0, -0.3], [1.0, -0.3], [-1.0, 0.3]]),
                     height=(1.2, 1.2))
-    pts = design.zone_grid(floor, 3, 2)
+    pts = zone_grid(floor, 3, 2)
     inside = [(-1, -0.3), (0, -0.3), (1, -0.3), (-1, 0), (0, 0), (-1, 0.3)]
     assert sorted(map(tuple, np.round(pts[:, :2], 9))) == sorted(inside + [(round(-1 / 3, 9), -0.1)])
     assert np.all(pts[:, 2] == 1.2)
@@ -282,13 +286,13 @@ def test_the_inventory_counts_are_respected(plate_experiment):
     candidates equals the design's score of those two cameras ray cast anew (`_pair_score`)."""
     exp = _experiment(plate_experiment, n=2, regions=BODIES.format(small=1, large=1))
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
+    cand = judge(exp, geometry)
     assert len(cand.cameras) == 9 * 2                  # 9 rail positions x 2 bodies x 1 lens
     assert [(c.width, c.height) for c in cand.cameras] == [(300, 200), (1200, 800)] * 9
-    scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
+    scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand)
     assert not np.any(feas.allowed([0]) & (cand.body == 0))
     assert not np.any(feas.allowed([1]) & (cand.body == 1))
-    pick, score, _ = design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])
+    pick, score, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])
     assert sorted(cand.body[pick]) == [0, 1]
     mixed = [p for p in itertools.combinations(range(len(cand.cameras)), 2)
              if cand.body[p[0]] != cand.body[p[1]] and not feas.conflicts(*p)]
@@ -327,8 +331,8 @@ def test_candidates_lose_what_the_load_path_hides(plate_experiment):
     assert keyframe_steps(lp, 1) == (7,)            # the farthest from rest
     assert keyframe_steps(lp, 2) == (1, 7)          # then the other extreme of the slide
     geometry = prepare(exp)
-    moving = design.judge(exp, geometry)
-    still = design.judge(replace(exp, design=replace(exp.design, keyframes=0)), geometry)
+    moving = judge(exp, geometry)
+    still = judge(replace(exp, design=replace(exp.design, keyframes=0)), geometry)
     x = geometry.samples.points[:, 0]
     for i, c in enumerate(moving.cameras):
         cross = (c.position[0] + x) / 2
@@ -345,9 +349,9 @@ def test_too_few_spots_for_a_region_are_named(plate_experiment):
     exp = replace(exp, design=replace(exp.design, rail_positions=2),
                   regions=(replace(exp.regions[0], min_cameras=3),))
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
+    cand = judge(exp, geometry)
     assert sorted(c.position[0] for c in cand.cameras) == [-1.0, 1.0]
-    assert design.problems(exp, cand, geometry.samples) == [
+    assert problems(exp, cand, geometry.samples) == [
         "region 'top' needs 3 cameras (min_cameras) but only 2 candidate spot(s) see it: add a "
         "mount in view of it"]
 
@@ -384,7 +388,7 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
     candidate added to every base pair; judging in blocks of 2 candidates stores the same entries
     as one block."""
     exp, geometry, cand = judged
-    scorer = design.Scorer(exp, geometry.samples)
+    scorer = Scorer(exp, geometry.samples)
     K = len(cand.cameras)
     for base in [(), (0,), (1, 7)]:
         rows = np.array([k for k in range(K) if k not in base])
@@ -392,12 +396,12 @@ def test_sparse_scores_equal_whole_sums_and_blocks_equal_one_judgement(judged, m
         whole = [scorer.of(cand, list(base) + [k]) for k in rows]
         np.testing.assert_allclose(fast, whole, rtol=SUM_ORDER_RTOL)
         with monkeypatch.context() as m:                         # chunks that cut candidates' rows
-            m.setattr(design, "ENTRY_CHUNK", 37)
+            m.setattr("vdo.design.score.ENTRY_CHUNK", 37)
             np.testing.assert_allclose(scorer.add(*cand.sums(list(base)), cand, rows), whole,
                                        rtol=SUM_ORDER_RTOL)
     assert cand.index.size < K * len(geometry.samples)          # only the pairs in view are stored
-    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 2 * len(geometry.samples))
-    small = design.judge(exp, geometry)
+    monkeypatch.setattr("vdo.design.candidates.PAIRS_PER_BLOCK", 2 * len(geometry.samples))
+    small = judge(exp, geometry)
     for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
         np.testing.assert_array_equal(getattr(small, name), getattr(cand, name), err_msg=name)
 
@@ -409,13 +413,13 @@ def test_the_target_term_matches_its_closed_form_and_the_sparse_sums(plate_exper
     Scorer.add still equals Scorer.of for every candidate added to a base."""
     exp = _experiment(plate_experiment, regions="\n[render]\nambient_radiance = 20\n")
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
-    plain = design.Scorer(exp, geometry.samples)
+    cand = judge(exp, geometry)
+    plain = Scorer(exp, geometry.samples)
     sigma = plain.sigma(cand.sums([2, 6])[0]) * plain.settings.sigma_unit
     measured = sigma[sigma < 0.1 * plain.settings.prior_sigma]
     assert measured.size > 50
     aimed = replace(exp, design=replace(exp.design, target_sigma_um=float(np.median(measured)) * 1e6))
-    scorer = design.Scorer(aimed, geometry.samples)
+    scorer = Scorer(aimed, geometry.samples)
     for pair in [(0, 8), (2, 6), (3, 4)]:
         cams = [cand.cameras[i] for i in pair]
         assert scorer.of(cand, pair) == pytest.approx(_pair_score(aimed, geometry, cams), rel=1e-4)
@@ -459,27 +463,27 @@ def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fit
     a spacing sqrt(2) coarser."""
     exp = _experiment(plate_experiment)
     geometry = prepare(exp)
-    j = design.judging(exp, geometry)
-    est = design.estimate(exp, j, design.Scorer(exp, geometry.samples))
-    cand = design.judge(exp, geometry, j)
+    j = judging(exp, geometry)
+    est = estimate(exp, j, Scorer(exp, geometry.samples))
+    cand = judge(exp, geometry, j)
     assert est.probed == len(j.cams) and est.entries == cand.index.size
-    assert est.entries * design.ENTRY_BYTES == \
+    assert est.entries * ENTRY_BYTES == \
         cand.index.nbytes + cand.entry_info.nbytes + cand.entry_weight.nbytes
     room = 0.25 * (est.memory_bytes - est.fixed_bytes)
     with pytest.raises(ConfigError) as err:
-        design.refuse(exp, est, est.fixed_bytes + room, None)
+        refuse(exp, est, est.fixed_bytes + room, None)
     msg = str(err.value)
     assert "design.sample_spacing_mm" in msg and "\n" not in msg
     spacing = int(re.search(r"sample_spacing_mm of (\d+) or more", msg)[1])
     assert spacing >= 2 * 50 and f"at most {int(est.candidates / 4):,} candidates" in msg
     coarse = replace(exp, design=replace(exp.design, sample_spacing=spacing / 1e3))
     g2 = prepare(replace(coarse, evaluation=replace(coarse.evaluation, sample_spacing=spacing / 1e3)))
-    est2 = design.estimate(coarse, design.judging(coarse, g2), design.Scorer(coarse, g2.samples))
+    est2 = estimate(coarse, judging(coarse, g2), Scorer(coarse, g2.samples))
     assert est2.memory_bytes - est2.fixed_bytes <= room * (1 + SCALING_TOL)
     total = est.judge_s + est.search_s
     with pytest.raises(ConfigError, match=rf"sample_spacing_mm of {math.ceil(50 * math.sqrt(2))} or more"):
-        design.refuse(exp, est, math.inf, total / 2)
-    design.refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
+        refuse(exp, est, math.inf, total / 2)
+    refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
 
 
 def test_design_refused_on_the_command_line_in_one_line(plate_experiment, tmp_path, capsys):
@@ -505,17 +509,17 @@ def test_candidates_judged_on_a_two_worker_local_cluster_equal_the_local_run(pla
 
     exp = _experiment(plate_experiment)          # [evaluation] and [design] spacing both 50 mm
     geometry = prepare(exp)
-    monkeypatch.setattr(design, "PAIRS_PER_BLOCK", 3 * len(geometry.samples))
-    local = design.judge(exp, geometry)
+    monkeypatch.setattr("vdo.design.candidates.PAIRS_PER_BLOCK", 3 * len(geometry.samples))
+    local = judge(exp, geometry)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                       local_directory=str(tmp_path / "dask")) as cluster, Client(cluster) as client:
-        remote = design.judge(exp, geometry, client=client, threads=1)
+        remote = judge(exp, geometry, client=client, threads=1)
     for name in ("indptr", "index", "entry_info", "entry_weight", "assigned", "masked", "path_lost"):
         np.testing.assert_array_equal(getattr(remote, name), getattr(local, name), err_msg=name)
     picks = []
     for cand in (local, remote):
-        scorer, feas = design.Scorer(exp, geometry.samples), design.Feasibility(exp, cand)
-        picks.append(design.exchange(cand, scorer, feas, design.greedy(cand, scorer, feas, 2)[0])[0])
+        scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand)
+        picks.append(exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])[0])
     assert picks[0] == picks[1]
 
 
@@ -524,7 +528,7 @@ def test_sparse_scores_when_a_candidate_sees_the_worst_samples(judged):
     of adding it (the base's log-sum corrected at the samples it sees) equals Scorer.of's sum over
     every sample."""
     exp, geometry, cand = judged
-    scorer = design.Scorer(exp, geometry.samples)
+    scorer = Scorer(exp, geometry.samples)
     K = len(cand.cameras)
     for k in range(K):
         base = [i for i in range(K) if i != k]
@@ -571,8 +575,8 @@ def test_a_camera_body_under_another_on_the_same_spot_is_a_conflict(plate_experi
                     + DESIGN.format(n=2, extra="").replace("offset_m = [0, 0, 0]", "offset_m = [0, 0, 0.3]"))
     exp = config.load(path)
     geometry = prepare(exp)
-    cand = design.judge(exp, geometry)
-    feas = design.Feasibility(exp, cand, geometry.samples)
+    cand = judge(exp, geometry)
+    feas = Feasibility(exp, cand, geometry.samples)
     smp, limit, mi = geometry.samples, exp.optimize.max_obscuration, mitsuba()
     use = cand.entry_weight >= 0.5
     R = len(smp.region_names)

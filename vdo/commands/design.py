@@ -16,7 +16,9 @@ from matplotlib.ticker import MaxNLocator
 from vdo.commands.optimize import write_optimization
 from vdo.config.experiment import Experiment
 from vdo.core.runfolder import run_folder
-from vdo.design.select import GB, Candidates, DesignResult, bodies, design_layout, lenses
+from vdo.design.budget import GB
+from vdo.design.candidates import Candidates, bodies, lenses
+from vdo.design.select import DesignResult, design_layout
 from vdo.outputs import html_report, report
 
 

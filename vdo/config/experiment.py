@@ -1303,7 +1303,7 @@ class BodySpec:
 @dataclass(frozen=True, eq=False)
 class DesignSpec:
     """What `vdo design` may choose: the camera bodies ([[body]], or [design]'s one sensor), the
-    lens catalogue, where candidates stand on the mounts and how they aim (`vdo.design.select`)."""
+    lens catalogue, where candidates stand on the mounts and how they aim (`vdo.design.candidates`)."""
 
     max_cameras: int | None = row("max_cameras", Whole(low=1), None,
                                   shown="the [[body]] counts, else the [[camera]] count",
@@ -1592,7 +1592,7 @@ class Experiment:
         "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
         doc="A moving test: `vdo evaluate` judges every step (`vdo.geometry.keyframes`, docs/load_path.md).")
     design: DesignSpec = table("design", DesignSpec, check=_check_design, default=DesignSpec(),
-                               doc="What `vdo design` chooses from (`vdo.design.select`).")
+                               doc="What `vdo design` chooses from (`vdo.design.candidates`).")
     bodies: tuple[BodySpec, ...] = table(
         "body", BodySpec, array=True, check=_check_body, extra=(_sensor_mm_row(),), default=(),
         doc="`vdo design`'s inventory of camera bodies, e.g. 6 of a 5 MP sensor and 4 of a 12 MP "

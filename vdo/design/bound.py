@@ -2,11 +2,11 @@
 
 The relaxation. Give each candidate i a weight w_i in [0, 1] instead of a yes/no, with sum_i w_i =
 k and, per body kind b, sum_{i of kind b} w_i <= count_b (the inventory). The per-sample
-information and coverage of `vdo.design.select` are linear in w:
+information and coverage of `vdo.design.candidates` are linear in w:
 
     C_n(w) = sum_i w_i C_i(n)   (3x3, 1/m^2),      k_n(w) = sum_i w_i w_i(n),
 
-and the score of `vdo.design.select.Scorer` is convex in (C, k):
+and the score of `vdo.design.score.Scorer` is convex in (C, k):
 
 * sigma_n = sqrt((tr Sigma_n^p)^(1/p)), Sigma_n = (C_n + I/prior^2)^-1, equals
   c Phi(C_n)^(-1/2) with Phi(M) = (tr M^-p / 3)^(-1/p) Kiefer's information function, concave and
@@ -145,7 +145,7 @@ def project(v: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
 
 def linear_maps(info, weight):
     """(K, summed, pullback) for candidates given densely, info (K, N, 6) and weight (K, N), or
-    stored sparsely (`info` a `vdo.design.select.Candidates`: indptr, index, entry_info,
+    stored sparsely (`info` a `vdo.design.candidates.Candidates`: indptr, index, entry_info,
     entry_weight; `weight` None): summed(w) = (sum_k w_k C_k (N, 6), sum_k w_k w_k,n (N,)) and its
     adjoint pullback(gC, gc) = (sum_n C_k,n : gC_n + w_k,n gc_n)_k (K,). The sparse form costs
     the stored entries, not K x N."""
@@ -178,7 +178,7 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
                body: np.ndarray, counts: np.ndarray, start=None, rel_tol: float = REL_TOL,
                max_iter: int = MAX_ITER, time_limit: float = 60.0) -> Bound:
     """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
-    k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.select.Scorer.value`);
+    k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.score.Scorer.value`);
     info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights
     (or info the sparsely stored `Candidates` and weight None, `linear_maps`);
     allowed (K,) the candidates a selection may hold at all; body (K,) their body kind, counts

@@ -6,7 +6,7 @@ mount with a `[mount.tripod]`, the tripod's legs and column are capsules around 
 camera's optical centre C to a surface point X is hidden when the segment CX passes within a
 sphere's radius of its centre, or within a capsule's radius of its axis segment (the capsule's
 rounded ends overshoot a cylinder by at most its radius, 1–2 cm). `vdo design` uses this to keep
-a selected camera out of another's view (`vdo.design.select.Feasibility`); the layout's own
+a selected camera out of another's view (`vdo.design.feasibility.Feasibility`); the layout's own
 ray cast against the meshes stays the judge (`constraints.json`).
 """
 

@@ -1,0 +1,153 @@
+"""What a design will take, estimated before the work (`estimate`), and its refusal when that
+does not fit (`refuse`). PROBE candidates, evenly spread over the list, are judged
+(`vdo.design.candidates.judge_block`) and the score (`vdo.design.score.Scorer.add`) is timed on
+their stored pairs; both scale to all K candidates:
+
+    entries E = (pairs stored per probed candidate) x K,
+    memory = peak so far + one block's working arrays (PAIR_BYTES per pair)
+             + K CAMERA_BYTES + STORE_COPIES E ENTRY_BYTES  (bytes),
+    judging = (probe s per candidate) x K,  search = (score s per stored pair) x E x score passes,
+
+the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes of every count's
+cameras (`score_passes`). The stored pairs and both times grow as candidates x samples, samples
+as 1 / spacing^2, so a refusal names the [design] sample_spacing_mm and the candidate count that
+fit.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import resource
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from vdo.design.candidates import Judging, block_size, collect, inventory, judge_block
+from vdo.design.score import ENTRY_CHUNK, Scorer
+from vdo.config.experiment import Experiment
+from vdo.core.errors import ConfigError
+
+PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
+PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
+ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
+STORE_COPIES = 2             # the blocks' pairs and their concatenation coexist once, at the end of judging
+PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a block: the ray casts'
+#                              flags (whole scene, specimen alone, keyframes) and their float copies
+CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
+SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+GB = 1e9
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """What judging and selecting will take, estimated before the work (`estimate`): candidates
+    K, samples N, candidates probed P, stored pairs E (the probe's mean per candidate x K), peak
+    memory (bytes: the process so far, the stored pairs STORE_COPIES times, one block's working
+    arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
+    time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
+    greedy's n_max plus SEARCH_PASSES exchange passes of every count's cameras), seconds."""
+
+    candidates: int
+    samples: int
+    probed: int
+    entries: int
+    memory_bytes: float
+    fixed_bytes: float
+    judge_s: float
+    search_s: float
+
+    def line(self) -> str:
+        return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
+                f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
+                f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
+                f"{self.search_s:.0f} s search")
+
+
+def peak_rss() -> float:
+    """The process's peak resident memory so far (bytes; Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
+
+
+def available_memory() -> float:
+    """Bytes this process may still use: MemAvailable of /proc/meminfo plus what it holds now
+    (its peak so far); the physical memory where /proc is missing."""
+    try:
+        with open("/proc/meminfo") as fh:
+            free = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("MemAvailable:"))
+    except (OSError, StopIteration):
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    return free + peak_rss()
+
+
+def score_passes(exp: Experiment) -> int:
+    """How many times the search scores every candidate: greedy's n_max steps plus SEARCH_PASSES
+    exchange passes over each count's cameras (count = min_cameras .. n_max)."""
+    n = inventory(exp)
+    return n + SEARCH_PASSES * sum(range(min(exp.design.min_cameras, n), n + 1))
+
+
+def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
+    """Judge PROBE candidates evenly spread over `j`'s list and time the score on their pairs;
+    scale to all candidates (the `Estimate` fields)."""
+    K, N = len(j.cams), len(j.geometry.samples)
+    pick = np.unique(np.linspace(0, K - 1, min(K, PROBE)).astype(int)) if K else np.zeros(0, int)
+    probe = replace(j, cams=tuple(j.cams[i] for i in pick), mount=tuple(j.mount[i] for i in pick),
+                    kind=tuple(j.kind[i] for i in pick), u=j.u[pick], heads=j.heads[pick],
+                    body=j.body[pick], target=j.target[pick])
+    warm = min(len(pick), PROBE_WARM)      # the first few compile the programs: not timed
+    first = judge_block(probe, 0, warm) if warm else None
+    t0 = time.perf_counter()
+    rest = judge_block(probe, warm, len(pick)) if len(pick) > warm else None
+    judge_s = (time.perf_counter() - t0) / max(len(pick) - warm, 1) * K if rest is not None else 0.0
+    block = first if rest is None else replace(
+        rest, start=0, counts=np.concatenate([first.counts, rest.counts]),
+        index=np.concatenate([first.index, rest.index]), info=np.concatenate([first.info, rest.info]),
+        weight=np.concatenate([first.weight, rest.weight]),
+        assigned=np.concatenate([first.assigned, rest.assigned]),
+        masked=np.concatenate([first.masked, rest.masked]),
+        path_lost=np.concatenate([first.path_lost, rest.path_lost]),
+        seen=np.concatenate([first.seen, rest.seen]))
+    per = float(block.counts.sum()) / len(pick) if len(pick) else 0.0
+    entries = int(round(per * K))
+    search_s = 0.0
+    sample = collect(probe, [block]) if block is not None else None
+    if sample is not None and sample.index.size:
+        rows = np.arange(len(sample.cameras))
+        zero = (np.zeros((N, 6)), np.zeros(N))
+        scorer.add(*zero, sample, rows[:1])                                  # compiles
+        t0 = time.perf_counter()
+        scorer.add(*zero, sample, rows)
+        chunks = math.ceil(sample.index.size / ENTRY_CHUNK)    # a chunk costs the same, full or padded
+        search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
+    fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
+    memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
+    return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s)
+
+
+def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:
+    """ConfigError naming the [design] sample_spacing_mm and the candidate count that would fit
+    when `est` needs more than `memory_limit` bytes or (with one) `time_limit` seconds. The stored
+    pairs and both times grow as candidates x samples, samples as 1 / spacing^2."""
+    over = []
+    if est.memory_bytes > memory_limit:
+        room = memory_limit - est.fixed_bytes
+        if room <= 0:
+            raise ConfigError(exp.path, "design", (
+                f"{est.line()}; but only {memory_limit / GB:.1f} GB is available and this process, one "
+                f"block of candidates and the {est.candidates:,} candidates' cameras already take "
+                f"{est.fixed_bytes / GB:.1f} GB: free memory, or far fewer candidates (zone_points, "
+                "zone_heights, rail_positions, lenses_mm, aim_offsets_deg)"))
+        over.append(((est.memory_bytes - est.fixed_bytes) / room, f"{memory_limit / GB:.1f} GB of memory"))
+    total = est.judge_s + est.search_s
+    if time_limit is not None and total > time_limit:
+        over.append((total / time_limit, f"the time limit of {time_limit:g} s"))
+    if not over:
+        return
+    ratio, what = max(over)
+    spacing = math.ceil(exp.design.sample_spacing * 1e3 * math.sqrt(ratio))
+    raise ConfigError(exp.path, "design.sample_spacing_mm", (
+        f"{est.line()}: more than {' and '.join(w for _, w in over)}; a sample_spacing_mm of {spacing} "
+        f"or more, or at most {int(est.candidates / ratio):,} candidates (fewer zone_points, "
+        "zone_heights, rail_positions, lenses_mm or aim_offsets_deg), fits"))

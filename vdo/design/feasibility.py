@@ -1,0 +1,166 @@
+"""Which candidate cameras may join a selected set (`Feasibility`), for the selection of
+`vdo.design.select`.
+
+Feasible with the selected set:
+* the inventory: no more cameras of a body kind than its count;
+* one camera per spot: no two optical centres closer than SPOT_M (`vdo.design.candidates`; a
+  body and its clearance);
+* axis angles: two cameras that share a region (each sees at least `[optimize]
+  assign_fraction` of its area with usable weight, or the area of it both see usably is at least
+  that fraction of the smaller area either sees: all-round regions, `Feasibility`) keep their optical axes at least `[optimize]
+  min_axis_angle_deg` apart, by default `vdo.constraints.stereo_min_angle` of the shorter lens,
+  and at most `[optimize]` or that region's `max_axis_angle_deg` where set;
+* clearance from the meshes (per candidate: `vdo.design.candidates`);
+* obscuration: no obstacle hides more than `[optimize] max_obscuration` of a region the
+  candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
+  on the whole scene: a second ray cast).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+
+from vdo.design.candidates import SPOT_M, Candidates, bodies
+from vdo.physics import usable
+from vdo.config.experiment import Experiment
+from vdo.constraints import stereo_min_angle
+from vdo.geometry import obstacles
+from vdo.core.tolerances import LIMIT_SLACK, TINY
+
+ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
+HARDWARE_CHUNK = 256          # candidates' hardware bounds tested against one camera's lines at once
+
+
+def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
+    """(K,) minimum axis angle (rad) of candidate j with each candidate: [optimize]
+    min_axis_angle_deg or the stereo rule of thumb for the shorter lens
+    (`vdo.constraints.stereo_min_angle`)."""
+    f = np.array([c.focal_length for c in cand.cameras])
+    if exp.optimize.min_axis_angle is not None:
+        return np.full(len(f), exp.optimize.min_axis_angle)
+    lens = np.unique(f)
+    rule = np.array([stereo_min_angle(x) for x in lens])
+    return rule[np.searchsorted(lens, np.minimum(f, f[j]))]
+
+
+class Feasibility:
+    """Which candidates may join a selected set: no obstacle hides more than [optimize]
+    max_obscuration of a region the candidate is assigned; one per spot; the minimum axis angle
+    between cameras sharing a region (module docstring) and the maximum where one is set ([optimize]
+    max_axis_angle_deg for every pair sharing a region, a region's max_axis_angle_deg for the
+    pairs sharing that region). Two candidates share a region when both are assigned it or, with
+    the `samples` the candidates were judged on, when the area of it that both see usably is at
+    least [optimize] assign_fraction of the smaller area either sees (`vdo.constraints.sharing`'s
+    rule: around a closed surface no candidate is assigned it, yet neighbours see the same part).
+    With the `samples`, two candidates also conflict when one's hardware (body, and tripod on a
+    zone with a [mount.tripod]; `vdo.geometry.obstacles`) hides more than [optimize]
+    max_obscuration of the area of a region the other is assigned that the other sees usably (a
+    camera on a tripod in front of another's lens). A candidate's conflicts with all others (K,)
+    are found when it is first selected and kept (never a K x K matrix)."""
+
+    def __init__(self, exp: Experiment, cand: Candidates, samples=None):
+        self.exp, self.cand = exp, cand
+        self._seen = self._region_area = self._alone = self._sight = None
+        if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
+            use = usable.usable_views(cand.entry_weight)
+            # the usable entries as sight lines: candidate, sample, its area (`hides`)
+            self._sight = (cand.row[use], cand.index[use], samples.area[cand.index[use]])
+            self._seen = scipy.sparse.csr_matrix(
+                (np.ones(int(use.sum())), self._sight[:2]), shape=(len(cand.cameras), cand.samples))
+            self._region_area = scipy.sparse.csr_matrix(
+                (samples.area, (np.arange(len(samples)), samples.region)),
+                shape=(len(samples), len(samples.region_names)))
+            self._alone = (self._seen @ self._region_area).toarray()
+        self.positions, self.axes = cand.positions, cand.axes
+        self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
+                        if spec.max_axis_angle is not None]
+        self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
+        self.body = cand.body
+        self.counts = np.array([b.count for b in bodies(exp)])
+        self._rows: dict[int, np.ndarray] = {}
+        self._samples = samples
+        self._tripods = {m.name: m.tripod for m in exp.mounts}     # rails stand on no tripod
+        self._hardware: dict[int, obstacles.Hardware] = {}
+        self._bounds = None   # every candidate's hardware bounding sphere: (centres (K, 3), radii (K,))
+
+    def row(self, j: int) -> np.ndarray:
+        """(K,) True where a candidate conflicts with candidate j."""
+        if j not in self._rows:
+            cand, opt = self.cand, self.exp.optimize
+            exclusive = np.linalg.norm(self.positions - self.positions[j], axis=1) < SPOT_M
+            shared = self.shared(j)
+            share = shared.any(axis=1)
+            angle = np.arccos(np.clip(self.axes @ self.axes[j], -1, 1))
+            conflict = exclusive | (share & (angle < min_angles(self.exp, cand, j) - ANGLE_TOL))
+            if opt.max_axis_angle is not None:
+                conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
+            for r, top in self.limited:
+                conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
+            if self._samples is not None:
+                conflict |= self.hides(j)
+            self._rows[j] = conflict
+        return self._rows[j]
+
+    def hardware(self, k: int) -> obstacles.Hardware:
+        """Candidate k's body and tripod (`vdo.geometry.obstacles.hardware`)."""
+        if k not in self._hardware:
+            self._hardware[k] = obstacles.hardware(self.cand.cameras[k], self._tripods.get(self.cand.mount[k]))
+        return self._hardware[k]
+
+    def hides(self, j: int) -> np.ndarray:
+        """(K,) True where candidate j's hardware hides more than max_obscuration of an assigned
+        region's usable area from a candidate, or that candidate's hardware hides as much from j
+        (class docstring)."""
+        cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
+        K, R = cand.assigned.shape
+        rows, index, area = self._sight
+        # j's hardware in front of every other candidate's lines of sight
+        lost = obstacles.hidden(self.positions[rows], smp.points[index], self.hardware(j)) & (rows != j)
+        hidden = np.bincount(rows[lost] * R + smp.region[index[lost]], weights=area[lost],
+                             minlength=K * R).reshape(K, R)
+        frac = hidden / np.maximum(self._alone, TINY)
+        out = (cand.assigned & (frac > limit)).any(axis=1)
+        # every other candidate's hardware in front of j's lines of sight
+        mine = rows == j
+        lines = (self.positions[j], smp.points[index[mine]])
+        seen = np.bincount(smp.region[index[mine]], weights=area[mine], minlength=R)
+        mine_assigned = cand.assigned[j]
+        if self._bounds is None:
+            every = [self.hardware(k) for k in range(K)]
+            self._bounds = (np.array([h.bound_centre for h in every]), np.array([h.bound_radius for h in every]))
+        near = np.zeros(K, dtype=bool)
+        for lo in range(0, K, HARDWARE_CHUNK):   # (chunk, lines) distances from each bounding centre
+            centre, radius = (b[lo:lo + HARDWARE_CHUNK] for b in self._bounds)
+            d = obstacles.point_segment_distance(centre[:, None], lines[0], lines[1][None])
+            near[lo:lo + HARDWARE_CHUNK] = (d < radius[:, None]).any(axis=1) if d.size else False
+        for k in np.flatnonzero(near & ~out):
+            if k == j:
+                continue
+            lost = obstacles.hidden(np.broadcast_to(lines[0], lines[1].shape), lines[1], self.hardware(k))
+            if lost.any():
+                part = np.bincount(smp.region[index[mine]][lost], weights=area[mine][lost], minlength=R)
+                out[k] = bool((mine_assigned & (part > limit * np.maximum(seen, TINY))).any())
+        return out
+
+    def shared(self, j: int) -> np.ndarray:
+        """(K, R) True where a candidate shares region r with candidate j (class docstring)."""
+        out = self.cand.assigned & self.cand.assigned[j]
+        if self._seen is None:
+            return out
+        mine = np.asarray(self._seen[j].todense()).ravel()
+        common = (self._seen @ self._region_area.multiply(mine[:, None]).tocsr()).toarray()
+        smaller = np.minimum(self._alone, self._alone[j])
+        return out | ((smaller > 0) & (common >= self.exp.optimize.assign_fraction * smaller))
+
+    def conflicts(self, i: int, j: int) -> bool:
+        return bool(self.row(j)[i])
+
+    def allowed(self, chosen) -> np.ndarray:
+        """(K,) True for the candidates compatible with every camera in `chosen` and whose body
+        kind is not used up by `chosen`."""
+        ok = self.alone.copy()
+        for j in chosen:
+            ok &= ~self.row(j)
+        used = np.bincount(self.body[list(chosen)], minlength=len(self.counts))
+        return ok & (used < self.counts)[self.body]
