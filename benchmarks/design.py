@@ -36,6 +36,7 @@ from vdo.design.score import Scorer
 from vdo.outputs import report
 from vdo.core.configure import configure
 from vdo.commands.optimize import optimize
+from vdo.optimize import layout_checks
 from vdo.state import layout_state, prepare
 
 
@@ -105,7 +106,7 @@ def main() -> None:
                 best = (rank, j, result)
     t_base = time.perf_counter() - t0
     mine = judged(design.designed(exp, cand, chosen))
-    mine_violations = sum(not c["met"] for c in design.constraint_checks(design.designed(exp, cand, chosen)))
+    mine_violations = sum(not c["met"] for c in layout_checks(layout_state(prepare(design.designed(exp, cand, chosen)))))
     print(f"baseline: {len(restarts)} restart(s) of vdo.optimize in {t_base:.0f} s\n")
     print("| layout | wall s | joint σ_max p95 (µm) | joint area seen by ≥ 3 "
           "| area seen by min_cameras | constraint violations |")
