@@ -498,26 +498,6 @@ INTERPOLATION_ORDER = 3        # the cubic B-spline of `vdo.dic.correlate.Spline
 TEXEL_IMAGES = 2               # texel-grid images k + m / h, |m| <= this, per axis
 
 
-def _spline_shift_response(omega: np.ndarray, phase: float, order, terms: int = 4) -> np.ndarray:
-    """K_d(ω): what B-spline interpolation (of `order`, through the samples) of the samples of
-    exp(iωx) returns at x = n + d, divided by exp(iωn) (ω in radians per pixel, any frequency,
-    also above Nyquist). By Poisson summation over the cardinal spline η̂(ω) = β̂(ω) / Σ_l β̂(ω + 2πl),
-    β̂(ω) = sinc^(order+1)(ω / 2π):
-
-        K_d(ω) = Σ_l β̂(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl)     (|l| <= terms)
-
-    K_0 = 1 (the spline passes through its samples); a band-limited ω gives K_d = exp(iωd), the
-    exact shifted value, only approximately: |K_d(ω) - exp(iωd)| is the interpolation error.
-    `order` = KEYS: Keys' kernel, K_d(ω) = Σ_j k(d - j) exp(iωj) (`_KeysSpectrum`)."""
-    if order == KEYS:
-        omega = np.asarray(omega, dtype=np.float64)
-        return _KeysSpectrum(omega.reshape(-1)).shift(np.array([phase]))[0].reshape(omega.shape) \
-            * np.exp(1j * omega * phase)
-    l = np.arange(-terms, terms + 1)
-    s = np.sinc(omega[..., None] / (2 * np.pi) + l) ** (order + 1)
-    return (s * np.exp(2j * np.pi * l * phase)).sum(-1) / s.sum(-1)
-
-
 def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
                         order: int = INTERPOLATION_ORDER, phase=(0.5, 0.5),
                         optics=None) -> np.ndarray:
@@ -533,7 +513,8 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
     filtered by bilinear interpolation (sinc²(k_u h) sinc²(k_v h)), so it has energy at every
     k + m/h; the box pixel multiplies by sinc(k.a_1) sinc(k.a_2); sampling at the pixel centres
     aliases whatever lies above the pixel Nyquist frequency, which no interpolation can undo.
-    With ω_j = 2π k.a_j and K_d the spline's shift response (`_spline_shift_response`),
+    With ω_j = 2π k.a_j and K_d(ω) the interpolant's shift response (`_SplineSpectrum.shift`:
+    K_d(ω) = Σ_l β̂(ω + 2πl) exp(2πi l d) / Σ_l β̂(ω + 2πl), β̂(ω) = sinc^(order+1)(ω / 2π), |l| <= _ALIAS_TERMS),
 
         err² = Σ_k Σ_m |F(k)|² sinc⁴(k'_u h) sinc⁴(k'_v h) sinc²(k'.a_1) sinc²(k'.a_2)
                |K_d1(ω_1) K_d2(ω_2) - 1|²,      k' = k + m / h, |m_u|, |m_v| <= TEXEL_IMAGES
@@ -562,8 +543,8 @@ def interpolation_error(pattern_normalised, texel_m: float, pixel_sides,
         box = (np.sinc(k1) * np.sinc(k2)) ** 2
         if opt is not None:
             box = box * opt.mtf(np.hypot(k1, k2)) ** 2
-        K = (_spline_shift_response(2 * np.pi * k1, phase[0], order)
-             * _spline_shift_response(2 * np.pi * k2, phase[1], order))
+        K = (_responses(2 * np.pi * k1.ravel(), order).shift(np.array([phase[0]]))[0]
+             * _responses(2 * np.pi * k2.ravel(), order).shift(np.array([phase[1]]))[0]).reshape(k1.shape)
         out[i] = math.sqrt(float(np.sum(weight * box * np.abs(K - 1.0) ** 2)))
     return out
 
