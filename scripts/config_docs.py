@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from vdo.config.experiment import markdown
+from vdo.config.reference import markdown
 
 if __name__ == "__main__":
     Path(__file__).resolve().parents[1].joinpath("docs", "config.md").write_text(markdown())

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import vdo
-from vdo.config.experiment import parse, read_toml
+from vdo.config.experiment import parse
+from vdo.config.reader import read_toml
 from vdo.scene import cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -17,6 +17,7 @@ import pytest
 
 from conftest import write_box
 from vdo.config import experiment as config
+from vdo.config.mounts import TripodSpec
 from vdo.physics import lighting
 from vdo.core.errors import ConfigError
 from vdo.scene import TRIPOD_SECTIONS, cameras_of, tripod_cylinders
@@ -257,7 +258,7 @@ def test_tripod_table_round_trips(tmp_path):
     assert dataclasses.asdict(exp.mount("floor").tripod)["leg_diameter"] == pytest.approx(0.04)
     text = tmp_path / "defaults.toml"
     text.write_text(write(tmp_path).read_text().replace(TRIPOD.format(legs=3), "tripod = {}\n"))
-    assert config.load(text).mount("floor").tripod == config.TripodSpec()
+    assert config.load(text).mount("floor").tripod == TripodSpec()
 
 
 @pytest.mark.parametrize("old, new, field, words", [

@@ -29,7 +29,9 @@ import trimesh
 from vdo.core.backend import mitsuba
 from vdo.model import surface
 from vdo.model.camera import Camera
-from vdo.config.experiment import IMAGE_MAGIC, UNITS, Experiment, RegionSpec, TripodSpec, camera_positions
+from vdo.config.experiment import UNITS, Experiment, RegionSpec, camera_positions
+from vdo.config.mounts import TripodSpec
+from vdo.config.schema import IMAGE_MAGIC
 from vdo.core.errors import Collect, ConfigError
 from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY
 

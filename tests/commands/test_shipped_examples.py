@@ -2,7 +2,7 @@
 up) passes its up-front checks, and each command that applies to it runs on it, as does every
 `vdo ...` command shown in a code block of README.md and docs/*.md, in a reduced form:
 
-* the environment variable VDO_SET (`vdo.config.experiment.with_overrides`) coarsens every file
+* the environment variable VDO_SET (`vdo.config.reader.with_overrides`) coarsens every file
   the same way, from the file's own values: the sample spacings (`[evaluation]`, `[design]`)
   `SPACING_FACTOR` times the file's, one optimizer start, round and `OPTIMIZE_STEPS` steps, the
   design search's candidates thinned and its bound given 1 s per count (`DESIGN`) and its curve
@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vdo.config.experiment import read_toml
+from vdo.config.reader import read_toml
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "experiments").glob("**/*.toml"))

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from vdo import scene
 from vdo.config import experiment as config
+from vdo.config.schema import NAME_PATTERN
 from conftest import DOWN_CAMERA
 from vdo.core.errors import ConfigError
 
@@ -55,7 +56,7 @@ BAD_NAMES = ["../../evil_cam", "a/b", "a\\\\b", "..", ".hidden", "-x", "cam\\u00
 def test_names_used_in_paths_are_restricted(plate_experiment, table, old, bad):
     err = error(edited(plate_experiment(), (old, f'name = "{bad}"')))
     assert err.field == f"{table}[0].name"
-    assert config.NAME_PATTERN in err.message and "names output files" in err.message
+    assert NAME_PATTERN in err.message and "names output files" in err.message
 
 
 def test_experiment_name_is_a_title_without_separators(plate_experiment):

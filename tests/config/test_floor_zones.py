@@ -12,6 +12,7 @@ from matplotlib.path import Path as MplPath
 
 from conftest import PLATE_TOML, write_box
 from vdo.config import experiment as config
+from vdo.config.mounts import inside_floor
 from vdo.core.errors import ConfigError
 from vdo.design.candidates import zone_grid
 from vdo.search.parameterisation import Parameterization
@@ -57,9 +58,9 @@ def test_point_in_floor_matches_matplotlib():
     points = rng.uniform(-2.5, 2.5, size=(2000, 2))
     outer, hole, ell = (np.array(p, float) for p in (OUTER, HOLE, L_SHAPE))
     ring = MplPath(outer).contains_points(points) & ~MplPath(hole).contains_points(points)
-    ours = np.array([config.inside_floor(outer, p, holes=(hole,)) for p in points])
+    ours = np.array([inside_floor(outer, p, holes=(hole,)) for p in points])
     assert ring.sum() > 500 and np.array_equal(ours, ring)
-    ours = np.array([config.inside_floor(ell, p) for p in points])
+    ours = np.array([inside_floor(ell, p) for p in points])
     assert np.array_equal(ours, MplPath(ell).contains_points(points))
 
 

@@ -13,6 +13,7 @@ import pytest
 from conftest import PLATE_TOML, write_box
 from vdo import constraints
 from vdo.config import experiment as config
+from vdo.config.mounts import inside_keep_out
 from vdo.core.errors import ConfigError
 from vdo.design.candidates import candidate_cameras
 from vdo.scene import cameras_of, load_meshes, sample_regions
@@ -103,7 +104,7 @@ def test_design_drops_the_candidates_inside(tmp_path):
     zone = np.array([c.position for c, m in zip(cams, mounts) if m == "ring"])
     assert len(zone) and np.all(zone[:, 0] < 0.7)
     assert set(np.round(zone[:, 0], 9)) == {0.3, 0.6}
-    assert not np.any(config.inside_keep_out(exp.keep_outs, np.array([c.position for c in cams])) >= 0)
+    assert not np.any(inside_keep_out(exp.keep_outs, np.array([c.position for c in cams])) >= 0)
     # counted per mount: the x = 0.9 column of the zone's grid (3 y x 2 heights), and the rail's
     # positions with x > 0.7 (none: the rail runs over x in [-0.5, 0.5])
     assert dropped["ring"]["positions in keep_out 'machine'"] == 3 * 2

@@ -181,7 +181,7 @@ def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
     """A pentagon floor zone: θ0 reproduces the configured position (mean value coordinates),
     any θ stays over the polygon (half-plane test) and within the heights, and the derivative
     matches finite differences."""
-    from vdo.config.experiment import inside_floor
+    from vdo.config.mounts import inside_floor
 
     exp = config.load(write(tmp_path, MOUNTS + FLOOR, FLOOR_CAMERA))
     param = Parameterization(exp, cameras_of(exp), np.zeros(3))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from vdo.config.experiment import TripodSpec
+from vdo.config.mounts import TripodSpec
 from vdo.geometry import obstacles
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles

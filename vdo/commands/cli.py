@@ -142,7 +142,7 @@ def _experiment(path, series=None):
 
 def kind_of(path) -> str:
     """'validation', 'sweep' or 'experiment': which file `path` is, by its top tables."""
-    from vdo.config.experiment import read_toml
+    from vdo.config.reader import read_toml
 
     data = read_toml(path)
     return "validation" if "validation" in data or "case" in data else \

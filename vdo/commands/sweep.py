@@ -49,7 +49,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import Experiment, Table, parse, read_toml, sections, with_overrides
+from vdo.config.experiment import Experiment, parse, sections
+from vdo.config.reader import Table, read_toml, with_overrides
 from vdo.core.errors import ConfigError
 from vdo.core.progress import bar as progress_bar
 from vdo.core.tolerances import LIMIT_SLACK

@@ -6,14 +6,17 @@ read with the unit they declare. Relative paths are relative to the TOML file.
 
 The schema is the table of `Row`s attached to the fields of the parsed dataclasses (`Experiment`,
 `CameraSpec`, ...): each row gives the TOML key, its type (a `Kind`: check + conversion), the unit
-in the file, the default and the documentation. The same rows read a file (`parse`), write one back
-(`Experiment.to_dict`, so ``parse(e.to_dict()) == e``) and generate docs/config.md (`markdown`).
-Defaults live in the rows only. Adding a field is one `row(...)` line in its dataclass; adding a table
-is one dataclass plus one `table(...)` line in `Experiment`; checks that involve several fields of a
-table go in the table's `check` function, checks across tables in `_check_references`.
+in the file, the default and the documentation (the machinery: `vdo.config.schema`). The same rows
+read a file (`parse`, with `vdo.config.reader`), write one back (`Experiment.to_dict`, so
+``parse(e.to_dict()) == e``) and generate docs/config.md (`vdo.config.reference.markdown`). The
+tables of where cameras stand ([[rail]], [[mount]], [[keep_out]]) and their floor geometry live in
+`vdo.config.mounts`. Defaults live in the rows only. Adding a field is one `row(...)` line in its
+dataclass; adding a table is one dataclass plus one `table(...)` line in `Experiment`; checks that
+involve several fields of a table go in the table's `check` function, checks across tables in
+`_check_references`.
 
 Everything is validated before any work starts. A user mistake raises `ConfigError` naming the file,
-the field (``camera "cam3".focal_mm``) and what is expected. This module imports only NumPy and the
+the field (``camera "cam3".focal_mm``) and what is expected. The package imports only NumPy and the
 light model modules (`sensor`, `nurbs` for the rails, `pose` to aim and re-aim cameras), so a config
 error comes before any heavy import (JAX, Mitsuba), and editing a camera (`with_camera`) needs none:
 it builds no `vdo.model.camera.Camera` (`vdo.scene.cameras_of` does) and no JAX rail.
@@ -22,451 +25,30 @@ it builds no `vdo.model.camera.Camera` (`vdo.scene.cameras_of` does) and no JAX 
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import functools
 import math
-import os
-import re
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable
 
 import numpy as np
 
+from vdo.config.mounts import (KEEP_OUT_RAIL_POINTS, KeepOutSpec, MountSpec, RailSpec, check_keep_out,
+                               check_mount, check_rail, inside_keep_out, resolve_mounts)
+from vdo.config.reader import Table, read_section, read_toml, with_overrides
+from vdo.config.schema import (File, Flag, Numbers, Points, Real, Row, Section, Text, Vector, Whole, Words,
+                               row, rows_of, table, unknown_field, write_rows)
 from vdo.core.errors import ConfigError
-from vdo.core.tolerances import TINY
-from vdo.model import nurbs
 from vdo.model.pose import aim_point, holds_aim, look_at_angles
 from vdo.model.sensor import ALIGNMENTS, SensorModel
 
 SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
 ROLES = ("specimen", "obstacle")
-NAME_PATTERN = r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}"   # names that become parts of file names
-NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not starting with '.' or "
-             "'-'; at most 64 characters), as it names output files")
 MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float image)
 FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
-MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
 COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
 MAX_ANGLE_DEG = 360.0              # a camera angle beyond ±360° is radians or a typo
 ANGLE_WHY = "an angle in degrees (a value in radians? multiply by 57.3)"
-IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
-               b"MM\x00*": "TIFF", b"BM": "BMP"}
-_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
-_SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
-
-
-class _Required:
-    def __repr__(self):
-        return "required"
-
-
-REQUIRED = _Required()
-
-
-class _Bad(Exception):
-    """A value that does not fit its Kind; `Table` turns it into a ConfigError naming the field
-    (with `key`, the key inside a nested table: ``mount "left".tripod.legs``)."""
-
-    def __init__(self, message: str, key: str = ""):
-        super().__init__(message)
-        self.key = key
-
-
-# --------------------------------------------------------------------------------------------
-# Kinds: how one TOML value is checked, converted to the attribute value and written back.
-# `scale` converts file units to SI (mm -> m, deg -> rad); ranges are in file units.
-# --------------------------------------------------------------------------------------------
-def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
-
-
-def _tidy(x: float) -> float:
-    return float(f"{x:.{_SIGNIFICANT}g}")
-
-
-def _show(value) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-class Kind:
-    doc = ""
-
-    def read(self, value, scale: float, base: Path):
-        raise NotImplementedError
-
-    def write(self, value, scale: float):
-        return value
-
-
-@dataclass(frozen=True)
-class Text(Kind):
-    """A string: one of `choices`, a name (NAME_PATTERN) or free text without control characters."""
-
-    choices: tuple[str, ...] | None = None
-    name: bool = False
-    empty: bool = False
-    title: bool = False
-
-    @property
-    def doc(self):
-        return ", ".join(self.choices) if self.choices else ("name" if self.name else "string")
-
-    def read(self, value, scale, base):
-        if not isinstance(value, str) or not (value or self.empty):
-            raise _Bad(f"must be a{'' if self.empty else ' non-empty'} string (got {_show(value)})")
-        if self.choices is not None and value not in self.choices:
-            raise _Bad(f"must be one of {', '.join(self.choices)} (got {_show(value)})")
-        if self.name and not re.fullmatch(NAME_PATTERN, value):
-            raise _Bad(f"{NAME_RULE} (got {_show(value)})")
-        if (self.name or self.title) and not value.isprintable():
-            raise _Bad(f"must not contain control characters (got {_show(value)})")
-        if self.title and (len(value) > 200 or "/" in value or "\\" in value):
-            raise _Bad(f"must be a title of at most 200 characters without '/' or '\\' (got {_show(value)})")
-        return value
-
-
-@dataclass(frozen=True)
-class Flag(Kind):
-    doc = "true/false"
-
-    def read(self, value, scale, base):
-        if not isinstance(value, bool):
-            raise _Bad(f"must be true or false (got {_show(value)})")
-        return value
-
-
-@dataclass(frozen=True)
-class Real(Kind):
-    """A finite number; `positive`, then [low, high] (file units; `why` explains the range)."""
-
-    low: float | None = None
-    high: float | None = None
-    positive: bool = False
-    why: str = ""
-
-    @property
-    def doc(self):
-        if self.low is not None and self.high is not None:
-            return f"{self.low:g} to {self.high:g}"
-        if self.low is not None:
-            return f"≥ {self.low:g}"
-        return "> 0" if self.positive else "number"
-
-    def read(self, value, scale, base):
-        if not _is_number(value) or not math.isfinite(value):
-            raise _Bad(f"must be a finite number (got {_show(value)})")
-        if self.positive and value <= 0:
-            raise _Bad(f"must be positive (got {_show(value)})")
-        if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
-            raise _Bad(f"must lie in [{self.low}, {self.high}] (got {_show(value)})"
-                       + (f": {self.why}" if self.why else ""))
-        return float(value) * scale
-
-    def write(self, value, scale):
-        return _tidy(value / scale)
-
-
-@dataclass(frozen=True)
-class Whole(Kind):
-    """A TOML integer (not a float, not a boolean) in [low, high]."""
-
-    low: int | None = None
-    high: int | None = None
-
-    @property
-    def doc(self):
-        if self.high is not None:
-            return f"integer {self.low}–{self.high}"
-        return f"integer ≥ {self.low}" if self.low is not None else "integer"
-
-    def read(self, value, scale, base):
-        bad = isinstance(value, bool) or not isinstance(value, int)
-        if bad or (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
-            bounds = f" >= {self.low}" if self.high is None else f" in {self.low}..{self.high}"
-            raise _Bad(f"must be an integer{bounds if self.low is not None else ''} (got {_show(value)})")
-        return value
-
-
-@dataclass(frozen=True)
-class Vector(Kind):
-    """A list of `length` numbers: an array in SI units, or a tuple when `as_tuple`. `whole`:
-    TOML integers; `finite=False` admits ±inf (never NaN)."""
-
-    length: int
-    positive: bool = False
-    whole: bool = False
-    finite: bool = True
-    as_tuple: bool = False
-    letters: str = ""
-
-    @property
-    def doc(self):
-        return f"[{', '.join(self.letters)}]" if self.letters else f"{self.length} numbers"
-
-    def read(self, value, scale, base):
-        if self.whole:
-            ok = isinstance(value, list) and len(value) == self.length and all(
-                isinstance(x, int) and not isinstance(x, bool) for x in value)
-            if not ok:
-                raise _Bad(f"must be {self.length} whole numbers [{', '.join(self.letters)}] "
-                           f"(got {_show(value)})")
-        ok = isinstance(value, list) and len(value) == self.length and all(
-            _is_number(x) and not math.isnan(x) and (math.isfinite(x) or not self.finite) for x in value)
-        if not ok:
-            raise _Bad(f"must be a list of {self.length} {'finite ' if self.finite else ''}numbers "
-                       f"(got {_show(value)})")
-        if not self.whole and any(math.isfinite(x) and abs(x) > MAX_COORDINATE for x in value):
-            raise _Bad(f"has a value beyond ±{MAX_COORDINATE:g} (got {_show(value)})")
-        if self.positive and any(x <= 0 for x in value):
-            raise _Bad(f"must be positive (got {_show(value)})")
-        if self.as_tuple:
-            return tuple(value) if self.whole else tuple(float(x) * scale for x in value)
-        return np.array(value, dtype=float) * scale
-
-    def write(self, value, scale):
-        if self.whole:
-            return list(value)
-        return [_tidy(float(x) / scale) for x in value]
-
-
-@dataclass(frozen=True)
-class Points(Kind):
-    """A list of at least `minimum` points of `dims` coordinates ([x, y, z] or [x, y]): an
-    (n, dims) array."""
-
-    minimum: int = 2
-    dims: int = 3
-
-    @property
-    def doc(self):
-        return "[[x, y, z], …]" if self.dims == 3 else "[[x, y], …]"
-
-    def read(self, value, scale, base):
-        ok = isinstance(value, list) and len(value) >= self.minimum and all(
-            isinstance(p, list) and len(p) == self.dims and all(
-                _is_number(x) and math.isfinite(x) and abs(x) <= MAX_COORDINATE for x in p)
-            for p in value)
-        if not ok:
-            axes = "[x, y, z]" if self.dims == 3 else "[x, y]"
-            raise _Bad(f"must be a list of at least {self.minimum} {axes} points in metres "
-                       f"(each coordinate within ±{MAX_COORDINATE:g})")
-        return np.array(value, dtype=float) * scale
-
-    def write(self, value, scale):
-        return [[_tidy(float(x) / scale) for x in p] for p in value]
-
-
-@dataclass(frozen=True)
-class Polygons(Kind):
-    """A list of polygons, each a list of at least 3 [x, y] points (m): a tuple of (n, 2) arrays."""
-
-    doc = "[[[x, y], …], …]"
-
-    def read(self, value, scale, base):
-        if not isinstance(value, list) or not value:
-            raise _Bad(f"must be a non-empty list of polygons, each a list of at least 3 [x, y] points "
-                       f"(got {_show(value)})")
-        return tuple(Points(3, dims=2).read(p, scale, base) for p in value)
-
-    def write(self, value, scale):
-        return [Points(3, dims=2).write(p, scale) for p in value]
-
-
-@dataclass(frozen=True)
-class Numbers(Kind):
-    """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
-
-    as_set: bool = False
-    what: str = "numbers"
-    doc = "list of numbers > 0"
-
-    def read(self, value, scale, base):
-        if not isinstance(value, list) or not all(_is_number(x) and math.isfinite(x) and x > 0 for x in value):
-            raise _Bad(f"must be a list of {self.what}, each > 0 (got {_show(value)})")
-        out = [float(x) * scale for x in value]
-        return tuple(sorted(set(out))) if self.as_set else tuple(out)
-
-    def write(self, value, scale):
-        return [_tidy(x / scale) for x in value]
-
-
-@dataclass(frozen=True)
-class Words(Kind):
-    """A list of strings (a tuple): some of `choices`, or names of other tables (`what`)."""
-
-    choices: tuple[str, ...] | None = None
-    what: str = "names"
-    nonempty: bool = False
-
-    @property
-    def doc(self):
-        return f"list of {', '.join(self.choices)}" if self.choices else f"list of {self.what}"
-
-    def read(self, value, scale, base):
-        ok = isinstance(value, list) and all(isinstance(x, str) for x in value) \
-            and (value or not self.nonempty)
-        if self.choices is not None:
-            if not ok or not value or not set(value) <= set(self.choices):
-                raise _Bad(f"must list some of {', '.join(self.choices)} (got {_show(value)})")
-        elif not ok:
-            raise _Bad(f"must be a {'non-empty ' if self.nonempty else ''}list of {self.what}")
-        twice = sorted({x for x in value if value.count(x) > 1})
-        if twice:
-            raise _Bad(f"lists {', '.join(map(repr, twice))} more than once")
-        return tuple(value)
-
-    def write(self, value, scale):
-        return list(value)
-
-
-@dataclass(frozen=True)
-class File(Kind):
-    """A path to an existing, readable file with one of `suffixes`, relative to the config file;
-    `magic`: the first bytes must be one of these image formats."""
-
-    suffixes: tuple[str, ...]
-    what: str
-    kinds: str
-    magic: bool = False
-    doc = "path"
-
-    def read(self, value, scale, base):
-        if not isinstance(value, str) or not value or "\x00" in value:
-            raise _Bad(f"must be a non-empty string (got {_show(value)})")
-        path = (base / value).resolve()
-        if not path.is_file():
-            raise _Bad(f"{self.what} file {str(path)!r} does not exist; give a path to "
-                       f"{self.kinds} file, relative to the config file")
-        if not os.access(path, os.R_OK):
-            raise _Bad(f"{self.what} file {str(path)!r} is not readable")
-        if path.suffix.lower() not in self.suffixes:
-            raise _Bad(f"{path.name!r} is not {self.kinds} file (by its suffix)")
-        if self.magic:
-            with open(path, "rb") as fh:
-                head = fh.read(8)
-            if not any(head.startswith(m) for m in IMAGE_MAGIC):
-                raise _Bad(f"{path.name!r} is not an image: its content is not "
-                           f"{', '.join(sorted(set(IMAGE_MAGIC.values())))}")
-        return path
-
-    def write(self, value, scale):
-        return str(value)
-
-
-@dataclass(frozen=True)
-class SubTable(Kind):
-    """A table nested in another (`[mount.tripod]` under a `[[mount]]`), read into `cls` by
-    `cls`'s own schema rows; absent keys take their defaults, unknown keys are refused."""
-
-    cls: type
-    doc = "table"
-
-    def read(self, value, scale, base):
-        if not isinstance(value, dict):
-            raise _Bad(f"must be a table of {', '.join(r.key for r in rows_of(self.cls))} "
-                       f"(got {_show(value)})")
-        rows = rows_of(self.cls)
-        known = tuple(r.key for r in rows)
-        for key in value:
-            if key not in known:
-                raise _Bad(_unknown_field(key, known), key=key if key.isprintable() else repr(key))
-        values = {}
-        for r in rows:
-            if r.key in value:
-                try:
-                    values[r.attr] = r.kind.read(value[r.key], r.scale, base)
-                except _Bad as exc:
-                    raise _Bad(str(exc), key=f"{r.key}.{exc.key}" if exc.key else r.key) from None
-        return self.cls(**values)
-
-    def write(self, value, scale):
-        return _write(value, rows_of(self.cls))
-
-
-# --------------------------------------------------------------------------------------------
-# Rows and tables
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Row:
-    """One schema row: TOML `key` -> dataclass attribute `attr` (filled from the field's name).
-
-    `default` is in file units (REQUIRED, or None: absent). `either`: another key that may stand in
-    for a required one (checked by the table's check). `when`: attributes (space-separated) one of
-    which must be set for this key to apply (written only then). `shown`: the default as the docs show it."""
-
-    key: str
-    kind: Kind
-    default: Any = REQUIRED
-    unit: str = ""
-    doc: str = ""
-    either: str = ""
-    when: str = ""
-    shown: str = ""
-    attr: str = ""
-
-    @property
-    def scale(self) -> float:
-        return _UNIT_SCALE[self.unit]
-
-
-@dataclass(frozen=True)
-class Section:
-    """A TOML table ([key]) or array of tables ([[key]], each with a unique name) read into `cls`.
-    `check(t, values)` checks several fields together and may complete `values` before `cls(**values)`;
-    `extra`: keys accepted in the file that are not attributes (read by `check`)."""
-
-    key: str
-    cls: type
-    array: bool = False
-    required: bool = False
-    check: Callable | None = None
-    extra: tuple[Row, ...] = ()
-    rows: tuple[Row, ...] | None = None
-    doc: str = ""
-    attr: str = ""
-
-
-def row(key, kind, default=REQUIRED, *, unit="", doc="", either="", when="", shown=""):
-    """A dataclass field described by a schema row; its default is the row's default in SI units."""
-    spec = Row(key, kind, default, unit, doc, either, when, shown)
-    meta = {"vdo.row": spec}
-    if default is REQUIRED:
-        return field(metadata=meta)
-    if default is None:
-        return field(default=None, metadata=meta)
-    value = kind.read(default, spec.scale, Path("."))
-    if isinstance(value, np.ndarray):
-        return field(default_factory=value.copy, metadata=meta)
-    return field(default=value, metadata=meta)
-
-
-def table(key, cls, *, array=False, required=False, check=None, extra=(), rows=None, doc="",
-          default=dataclasses.MISSING):
-    """A dataclass field holding a parsed table (`cls`) or a tuple of them (`array`)."""
-    return field(default=default, metadata={"vdo.table": Section(key, cls, array, required, check,
-                                                                  tuple(extra), rows, doc)})
-
-
-@functools.cache
-def rows_of(cls) -> tuple[Row, ...]:
-    """The schema rows of a dataclass, in field order, with `attr` filled in."""
-    return tuple(replace(f.metadata["vdo.row"], attr=f.name) for f in dataclasses.fields(cls)
-                 if "vdo.row" in f.metadata)
-
-
-@functools.cache
-def sections() -> tuple[Section, ...]:
-    """The tables of an experiment file (besides [experiment]), in `Experiment` field order."""
-    out = []
-    for f in dataclasses.fields(Experiment):
-        if "vdo.table" in f.metadata:
-            sec = f.metadata["vdo.table"]
-            out.append(replace(sec, attr=f.name, rows=sec.rows or rows_of(sec.cls)))
-    return tuple(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -546,24 +128,6 @@ class RegionSpec:
                                ("near_mesh", self.near_mesh), ("region_file", self.region_file))
                 if v is not None]
         return keys[0] if keys else None
-
-
-@dataclass(frozen=True, eq=False)
-class RailSpec:
-    """A bar cameras slide along: a clamped NURBS curve (`point` evaluates it in NumPy;
-    `vdo.model.rail.Rail` in JAX, for its derivative). `control_points` (n, 3) in metres,
-    `weights` (n,)."""
-
-    name: str = row("name", Text(name=True), doc="unique")
-    control_points: np.ndarray = row("control_points_m", Points(2), unit="m",
-                                     doc="at least 2, consecutive points distinct")
-    degree: int = row("degree", Whole(low=1), 1, doc="B-spline degree p < n (1 = polyline)")
-    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="all 1",
-                                     doc="NURBS weights, one per control point")
-
-    def point(self, u) -> np.ndarray:
-        """C(u) in metres (u.shape + (3,)), u in [0, 1] (`vdo.model.nurbs.point`)."""
-        return nurbs.point(self.control_points, self.degree, self.weights, u)
 
 
 def _sensor_width_row():
@@ -774,135 +338,6 @@ def _check_analysis(t: Table, v: dict) -> None:
             v[px] = None
 
 
-MOUNT_NEEDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"),
-               "fixed": ("position_m",)}
-ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a convex floor polygon
-MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
-                  "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
-                  "position_m": "position_m = [1.0, 0.0, 1.5]", "height_m": "height_m = [1.2, 1.8]",
-                  "floor_m": "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]"}
-
-
-@dataclass(frozen=True)
-class TripodSpec:
-    """The tripod a zone mount's camera stands on (`vdo.scene.tripod`): a top casting `head_m`
-    below the underside of the camera body, `legs` straight legs from it to feet on the floor
-    (z = `floor_z_m`) spaced evenly on a circle of radius `spread_m` around the point below it,
-    the first at `azimuth_deg` from the camera's pan, and a centre column hanging
-    `column_length_m` below it. Legs and column are cylinders that move with the camera: they
-    hide the other cameras' views and cast shadows."""
-
-    legs: int = row("legs", Whole(low=3), 3, doc="number of legs")
-    spread: float = row("spread_m", Real(positive=True), 0.45, unit="m",
-                        doc="radius of the circle of the feet, around the point below the head")
-    leg_diameter: float = row("leg_diameter_m", Real(positive=True), 0.03, unit="m",
-                              doc="diameter of a leg")
-    column_diameter: float = row("column_diameter_m", Real(positive=True), 0.05, unit="m",
-                                 doc="diameter of the centre column")
-    column_length: float = row("column_length_m", Real(positive=True), 0.35, unit="m",
-                               doc="the centre column's length below the top casting (cut at the floor)")
-    head: float = row("head_m", Real(positive=True), 0.1, unit="m",
-                      doc="height of the tripod head: from the underside of the camera body to the "
-                          "top casting where the legs meet")
-    floor_z: float = row("floor_z_m", Real(), 0.0, unit="m",
-                         doc="height of the floor the feet stand on (below the zone)")
-    azimuth: float = row("azimuth_deg", Real(), 180.0, unit="deg",
-                         doc="direction of the first leg from the camera's pan (180: one leg back, "
-                             "the others spread in front, out of the view)")
-
-
-@dataclass(frozen=True, eq=False)
-class MountSpec:
-    """Where a camera stands. kind "rail": a NURBS curve (as a [[rail]]; read into `rails`);
-    "zone": anywhere in the axis-aligned box [box_min, box_max] (m), e.g. a tripod on a floor
-    area with its height range in z (a zero extent holds that axis), or anywhere above the convex
-    polygon `floor` ((n, 2) m, counter-clockwise) within `height` (m); "fixed": at `position` (m)."""
-
-    name: str = row("name", Text(name=True), doc="unique among mounts and rails")
-    kind: str = row("kind", Text(choices=tuple(MOUNT_NEEDS)), doc="rail, zone or fixed")
-    control_points: np.ndarray | None = row("control_points_m", Points(2), None, unit="m",
-                                            shown="rail", doc="a rail mount's control points")
-    degree: int | None = row("degree", Whole(low=1), None, shown="rail: 1", doc="a rail mount's degree")
-    weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="rail: all 1",
-                                     doc="a rail mount's NURBS weights")
-    box_min: np.ndarray | None = row("box_min_m", Vector(3, letters="xyz"), None, unit="m",
-                                     shown="zone", doc="a box zone's lower corner")
-    box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
-                                     shown="zone", doc="a box zone's upper corner")
-    floor: np.ndarray | None = row("floor_m", Points(3, dims=2), None, unit="m", shown="zone",
-                                   doc="or a floor polygon, any simple one (with height_m)")
-    height: tuple[float, float] | None = row("height_m", Vector(2, as_tuple=True, letters=("low", "high")),
-                                             None, unit="m", shown="zone", doc="the polygon zone's heights")
-    floor_holes: tuple[np.ndarray, ...] | None = row(
-        "floor_holes_m", Polygons(), None, unit="m", shown="none",
-        doc="polygons cut out of the floor polygon (a ring around the specimen: one hole)")
-    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
-                                      shown="fixed", doc="a fixed mount's optical centre")
-    tripod: TripodSpec | None = row("tripod", SubTable(TripodSpec), None, shown="none",
-                                    doc="a zone's tripod as the table [mount.tripod] (fields below; "
-                                        "`tripod = {}` takes the defaults): its legs and column "
-                                        "occlude the other cameras and cast shadows")
-
-    @property
-    def convex(self) -> bool:
-        """Whether the zone is a box or a convex floor polygon without holes."""
-        return self.floor is None or (not self.floor_holes and _is_convex(self.floor))
-
-    def inside(self, xy: np.ndarray, tol: float = 1e-9):
-        """Whether the floor point xy (m) lies on the zone's floor (a box zone: its x, y range);
-        xy (2,): a bool, xy (M, 2): a bool array (M,)."""
-        if self.floor is None:
-            xy = np.asarray(xy, dtype=float)
-            on = np.all((xy >= self.low[:2] - tol) & (xy <= self.high[:2] + tol), axis=-1)
-            return bool(on) if xy.ndim == 1 else on
-        return inside_floor(self.floor, xy, tol, self.floor_holes or ())
-
-    @property
-    def low(self) -> np.ndarray:
-        """The zone's lower bounding corner (m)."""
-        return self.box_min if self.floor is None else np.array([*self.floor.min(0), self.height[0]])
-
-    @property
-    def high(self) -> np.ndarray:
-        """The zone's upper bounding corner (m)."""
-        return self.box_max if self.floor is None else np.array([*self.floor.max(0), self.height[1]])
-
-
-@dataclass(frozen=True, eq=False)
-class KeepOutSpec:
-    """A volume no camera may stand in (the specimen's surroundings, a machine, a walkway): the
-    box [box_min, box_max] (m). A camera's optical centre inside one is refused; design drops the
-    candidate poses inside one; optimize keeps the cameras out."""
-
-    name: str = row("name", Text(name=True), doc="unique")
-    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), unit="m",
-                              doc="lower corner (±inf allowed)")
-    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), unit="m",
-                              doc="upper corner (±inf allowed)")
-
-    def contains(self, points: np.ndarray) -> np.ndarray:
-        """(N,) whether points (N, 3) (m) lie strictly inside the box."""
-        p = np.atleast_2d(np.asarray(points, float))
-        return np.all((p > self.box_min) & (p < self.box_max), axis=1)
-
-
-def _check_keep_out(t: Table, v: dict) -> None:
-    if np.any(v["box_min"] >= v["box_max"]):
-        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
-
-
-def inside_keep_out(keep_outs, points: np.ndarray) -> np.ndarray:
-    """(N,) index of the first keep-out volume holding each point (N, 3), -1 where none does."""
-    p = np.atleast_2d(np.asarray(points, float))
-    out = np.full(len(p), -1)
-    for k, box in reversed(list(enumerate(keep_outs))):
-        out[box.contains(p)] = k
-    return out
-
-
-KEEP_OUT_RAIL_POINTS = 201   # positions along a rail tested against the keep-out volumes
-
-
 SAME_LENS_REL = 1e-9   # relative: focal lengths this close are one lens (mm read as m, rounding)
 
 
@@ -966,191 +401,6 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
                               f"{np.round(own, 4).tolist()} lies in keep_out {box.name!r} "
                                             f"({box.box_min.tolist()} to {box.box_max.tolist()} m): "
                                             "move the camera out of it")
-
-
-def _check_mount(t: Table, v: dict) -> None:
-    kind = v["kind"]
-    floor = kind == "zone" and t.has("floor_m")
-    if t.has("floor_holes_m") and not floor:
-        raise t.error("floor_holes_m", "applies to a zone with floor_m (a floor polygon)")
-    needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
-    allowed = needs + (("degree", "weights") if kind == "rail" else ())
-    for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
-        if t.has(key) and key not in allowed:
-            raise t.error(key, f"does not apply to a {kind} mount{' with floor_m' if floor else ''} "
-                               f"(it takes {', '.join(allowed)})")
-    for key in needs:
-        if not t.has(key):
-            raise t.error(key, f"is required for a {kind} mount, e.g. {MOUNT_EXAMPLES[key]}")
-    if t.has("tripod") and kind != "zone":
-        raise t.error("tripod", f"only a zone mount stands on a tripod (this one is {kind}): move "
-                                "[mount.tripod] under a zone mount or drop it")
-    if kind == "rail":
-        v["degree"] = v["degree"] or 1
-        _check_rail(t, v)
-    elif floor:
-        corners = v["floor"]
-        x, y = corners[:, 0], corners[:, 1]
-        area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-        if abs(area) < 1e-6:
-            raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
-        corners = corners if area > 0 else corners[::-1]
-        if not _is_simple(corners):
-            raise t.error("floor_m", "must be a simple polygon: two of its edges cross (list the "
-                                     "corners in order around the area)")
-        for k, hole in enumerate(v["floor_holes"] or ()):
-            if not _is_simple(hole) or abs(_signed_area(hole)) < 1e-6:
-                raise t.error("floor_holes_m", f"hole {k} must be a simple polygon with an area")
-            if not all(inside_floor(corners, p) for p in hole):
-                raise t.error("floor_holes_m", f"hole {k} must lie inside floor_m")
-        if v["height"][1] < v["height"][0]:
-            raise t.error("height_m", f"must be [low, high] with low <= high (got {list(v['height'])})")
-        v["floor"] = corners
-    elif kind == "zone":
-        lo, hi = v["box_min"], v["box_max"]
-        if np.any(hi < lo):
-            raise t.error("box_max_m", f"must be >= box_min_m on every axis (got {hi.tolist()} "
-                                       f"against {lo.tolist()})")
-        if hi[0] <= lo[0] or hi[1] <= lo[1]:
-            raise t.error("box_max_m", "the zone has no floor area: give it an extent in both x "
-                                       "and y (box_min_m < box_max_m), or use a rail or fixed mount")
-    tripod = v.get("tripod")
-    if tripod is not None:
-        lowest = float(v["height"][0] if floor else v["box_min"][2])
-        if tripod.floor_z + tripod.head >= lowest:
-            raise t.error("tripod.floor_z_m", f"= {tripod.floor_z:g} m leaves no room for the tripod "
-                                              f"under the zone's lowest camera height {lowest:g} m "
-                                              f"(head_m = {tripod.head:g} m): lower floor_z_m or "
-                                              "raise the zone")
-
-
-def _signed_area(poly: np.ndarray) -> float:
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-
-
-def _is_convex(poly: np.ndarray) -> bool:
-    """Whether the counter-clockwise polygon turns left (or goes straight) at every corner."""
-    edges = np.roll(poly, -1, axis=0) - poly
-    turn = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-    return bool(np.all(turn >= -1e-12))
-
-
-def _is_simple(poly: np.ndarray) -> bool:
-    """Whether no two non-adjacent edges of the polygon cross or touch (orientation tests)."""
-    a, b = poly, np.roll(poly, -1, axis=0)
-    n = len(poly)
-
-    def orient(p, q, r):
-        return np.sign((q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1])
-                       - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0]))
-    for i in range(n):
-        j = np.arange(i + 2, n)
-        j = j[(j + 1) % n != i]
-        if not len(j):
-            continue
-        o1, o2 = orient(a[i], b[i], a[j]), orient(a[i], b[i], b[j])
-        o3, o4 = orient(a[j], b[j], a[i]), orient(a[j], b[j], b[i])
-        if np.any((o1 != o2) & (o3 != o4)):
-            return False
-    return True
-
-
-FLOOR_CHUNK = 4096   # points per vectorised batch of `inside_floor` ((points, edges) temporaries)
-
-
-def _in_polygon(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Even-odd rule: a ray from each point xy (..., 2) along +x crosses the polygon's edges an
-    odd number of times; bool (...)."""
-    a, b = poly, np.roll(poly, -1, axis=0)                     # (E, 2) edges a -> b
-    x, y = xy[..., 0, None], xy[..., 1, None]
-    straddle = (a[:, 1] > y) != (b[:, 1] > y)                  # (..., E)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cross = a[:, 0] + (y - a[:, 1]) * (b[:, 0] - a[:, 0]) / (b[:, 1] - a[:, 1])
-    return np.count_nonzero(straddle & (cross > x), axis=-1) % 2 == 1
-
-
-def _edge_distance(poly: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Distance (m) from each point xy (..., 2) to the polygon's boundary; (...)."""
-    a, b = poly, np.roll(poly, -1, axis=0)
-    d = b - a
-    rel = xy[..., None, :] - a                                 # (..., E, 2)
-    t = np.clip(np.einsum("...ij,ij->...i", rel, d) / np.maximum(np.einsum("ij,ij->i", d, d), TINY),
-                0, 1)
-    return np.min(np.linalg.norm(rel - t[..., None] * d, axis=-1), axis=-1)
-
-
-def inside_floor(floor: np.ndarray, xy: np.ndarray, tol: float = 1e-9, holes=()):
-    """Whether the point xy (m) lies on the floor polygon `floor` (any simple polygon; within
-    `tol` of its edge counts as on it) and in none of `holes` (strictly inside one: off). xy (2,)
-    gives a bool, xy (M, 2) a bool array (M,), computed `FLOOR_CHUNK` points at a time."""
-    xy = np.asarray(xy, dtype=float)[..., :2]
-    if xy.ndim == 1:
-        return bool(inside_floor(floor, xy[None], tol, holes)[0])
-    out = np.empty(len(xy), dtype=bool)
-    for k in range(0, len(xy), FLOOR_CHUNK):
-        p = xy[k:k + FLOOR_CHUNK]
-        on = _in_polygon(floor, p) | (_edge_distance(floor, p) <= tol)
-        for h in holes:
-            on &= ~(_in_polygon(h, p) & (_edge_distance(h, p) > tol))
-        out[k:k + FLOOR_CHUNK] = on
-    return out
-
-
-def _resolve_mounts(values: dict, tables: dict, path: Path) -> None:
-    """Rail mounts become rails (a camera on one sits on that rail); a camera on a fixed mount
-    takes its position, one in a zone its position_m (default: the zone's centre), checked to be
-    inside. Runs before the Experiment is built, so the parsed experiment has one form."""
-    rails = {r.name for r in values["rails"]}
-    clash = rails & {m.name for m in values["mounts"]}
-    if clash:
-        raise ConfigError(path, "mount", f"{sorted(clash)[0]!r} names both a [[rail]] and a "
-                                         "[[mount]]; rename one")
-    as_rails = [m for m in values["mounts"] if m.kind == "rail"]
-    values["rails"] = values["rails"] + tuple(
-        RailSpec(name=m.name, control_points=m.control_points, degree=m.degree, weights=m.weights)
-        for m in as_rails)
-    mounts = {m.name: m for m in values["mounts"] if m.kind != "rail"}
-    values["mounts"] = tuple(mounts.values())
-    rail_names = rails | {m.name for m in as_rails}
-    specs = []
-    for spec, t in zip(values["camera_specs"], tables["camera"]):
-        name = spec.mount
-        if name is not None and name in rail_names:
-            if not t.has("u"):
-                raise t.error("u", "is required for a camera on a rail mount (0 to 1)")
-            if not 0.0 <= spec.u <= 1.0:
-                raise t.error("u", f"= {spec.u} is off rail mount {name!r}: the rail parameter runs "
-                                   "from 0 to 1")
-            spec = replace(spec, rail=name, mount=None)
-        elif name is not None:
-            mount = mounts.get(name)
-            if mount is None:
-                known = sorted(rail_names | set(mounts))
-                raise t.error("mount", f"no [[mount]] or [[rail]] named {name!r} (known: "
-                                       f"{', '.join(known) or 'none'})")
-            if t.has("u") or np.any(spec.offset != 0):
-                raise t.error("u" if t.has("u") else "offset_m", "only applies to a camera on a rail")
-            if mount.kind == "fixed":
-                if spec.position is not None and np.linalg.norm(spec.position - mount.position) > 1e-6:
-                    raise t.error("position_m", f"differs from fixed mount {name!r} at "
-                                                f"{mount.position.tolist()}; drop position_m")
-                spec = replace(spec, position=mount.position)
-            else:
-                centre = (mount.low + mount.high) / 2
-                if mount.floor is not None:
-                    centre[:2] = mount.floor.mean(axis=0)
-                if spec.position is None and not mount.inside(centre[:2]):
-                    raise t.error("position_m", f"is required on zone {name!r}: its centroid "
-                                                f"{np.round(centre, 4).tolist()} is not on its floor (a ring)")
-                position = centre if spec.position is None else spec.position
-                if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
-                        or not mount.inside(position[:2])):
-                    raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
-                                                f"({mount.low.tolist()} to {mount.high.tolist()})")
-                spec = replace(spec, position=position)
-        specs.append(spec)
-    values["camera_specs"] = tuple(specs)
 
 
 STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
@@ -1485,23 +735,6 @@ def _check_region(t: Table, v: dict) -> None:
         raise t.error("box_max_m", "must be greater than box_min_m on every axis")
 
 
-def _check_rail(t: Table, v: dict) -> None:
-    points = v["control_points"]
-    if v["degree"] >= len(points):
-        raise t.error("degree", f"must be less than the number of control points ({len(points)})")
-    gaps = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    if np.any(gaps < 1e-6):
-        i = int(np.argmax(gaps < 1e-6))
-        raise t.error("control_points_m", f"points {i} and {i + 1} coincide: a rail needs distinct "
-                                          "consecutive control points (remove the repeated one)")
-    if v["weights"] is None:
-        v["weights"] = np.ones(len(points))
-    elif len(v["weights"]) != len(points):
-        raise t.error("weights", f"must be a list of {len(points)} numbers > 0, one per control point")
-    else:
-        v["weights"] = np.asarray(v["weights"], dtype=float)
-
-
 def _check_light(t: Table, v: dict) -> None:
     if np.linalg.norm(v["target"] - v["position"]) < 1e-6:
         raise t.error("target_m", "must differ from position_m (the panel faces the target)")
@@ -1552,7 +785,7 @@ class Experiment:
             "selection is one face; a curved one must be one connected piece of surface, developed "
             "onto the plane (docs/curved.md).")
     rails: tuple[RailSpec, ...] = table(
-        "rail", RailSpec, array=True, check=_check_rail,
+        "rail", RailSpec, array=True, check=check_rail,
         doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
             "the first control point, `u = 1` the last.")
     camera_specs: tuple[CameraSpec, ...] = table(
@@ -1574,12 +807,12 @@ class Experiment:
                                doc="The DIC analysis strain uncertainties are predicted for "
                                    "(docs/theory.md, strain).")
     mounts: tuple[MountSpec, ...] = table(
-        "mount", MountSpec, array=True, check=_check_mount, default=(),
+        "mount", MountSpec, array=True, check=check_mount, default=(),
         doc="Where cameras can stand: a rail, a zone (a box, or a floor polygon with a height "
             "range: a tripod) or a fixed point. Cameras name one with `mount`; rail mounts are "
             "written back as [[rail]].")
     keep_outs: tuple[KeepOutSpec, ...] = table(
-        "keep_out", KeepOutSpec, array=True, check=_check_keep_out, default=(),
+        "keep_out", KeepOutSpec, array=True, check=check_keep_out, default=(),
         doc="A box no camera may stand in: cameras inside one are refused, design drops the "
             "candidates inside one, optimize keeps its cameras out.")
     stereo_pairs: tuple[StereoPairSpec, ...] = table(
@@ -1661,7 +894,7 @@ class Experiment:
         known = tuple(r.key for r in rows_of(CameraSpec)) + ("sensor_mm",)
         for key in fields:
             if key not in known:
-                raise ConfigError(self.path, f"{where}.{key}", _unknown_field(key, known))
+                raise ConfigError(self.path, f"{where}.{key}", unknown_field(key, known))
         entry = {k: v for k, v in entries[index].items() if k not in fields}
         drop = set()
         if "rail" in fields or "mount" in fields:
@@ -1716,31 +949,28 @@ class Experiment:
         """The experiment as a TOML-ready dict: every table (an `ON_REQUEST` one only when given),
         defaults filled, absolute paths;
         ``parse(e.to_dict(), e.path)`` gives back `e` (to 12 significant digits)."""
-        out = {"experiment": _write(self, rows_of(Experiment))}
+        out = {"experiment": write_rows(self, rows_of(Experiment))}
         for sec in sections():
             value = getattr(self, sec.attr)
             if sec.key in ON_REQUEST and not self.has(sec.key):
                 continue
             if sec.array:
                 if value:
-                    out[sec.key] = [_write(item, sec.rows) for item in value]
+                    out[sec.key] = [write_rows(item, sec.rows) for item in value]
             else:
-                out[sec.key] = _write(value, sec.rows)
+                out[sec.key] = write_rows(value, sec.rows)
         return out
 
 
-def table_dict(obj) -> dict:
-    """One parsed table (e.g. `exp.analysis`) as its TOML dict, in file units."""
-    return _write(obj, rows_of(type(obj)))
-
-
-def _write(obj, rows) -> dict:
-    out = {}
-    for r in rows:
-        value = getattr(obj, r.attr)
-        if value is not None and not (r.when and all(getattr(obj, w) is None for w in r.when.split())):
-            out[r.key] = r.kind.write(value, r.scale)
-    return out
+@functools.cache
+def sections() -> tuple[Section, ...]:
+    """The tables of an experiment file (besides [experiment]), in `Experiment` field order."""
+    out = []
+    for f in dataclasses.fields(Experiment):
+        if "vdo.table" in f.metadata:
+            sec = f.metadata["vdo.table"]
+            out.append(replace(sec, attr=f.name, rows=sec.rows or rows_of(sec.cls)))
+    return tuple(out)
 
 
 def camera_positions(exp: Experiment) -> list[np.ndarray]:
@@ -1754,212 +984,9 @@ def camera_positions(exp: Experiment) -> list[np.ndarray]:
     return out
 
 
-# --------------------------------------------------------------------------------------------
-# Reading with clear errors
-# --------------------------------------------------------------------------------------------
-def _unknown_field(key: str, allowed) -> str:
-    """The message for a key no schema row has: the nearest known one, else all of them."""
-    close = difflib.get_close_matches(key, allowed, n=1)
-    return "unknown field; " + (f"did you mean {close[0]!r}?" if close else f"known fields: {', '.join(allowed)}")
-
-
-class Table:
-    """One TOML table being read: every key must be known, every value checked."""
-
-    def __init__(self, data, where: str, file: Path, allowed: tuple[str, ...]):
-        self.file, self.where = file, where
-        if not isinstance(data, dict):
-            raise ConfigError(file, where, "must be a table")
-        for key in data:
-            if key not in allowed:
-                raise ConfigError(file, self._field(key), _unknown_field(key, allowed))
-        self.data = data
-
-    def _field(self, key):
-        key = key if key.isprintable() else repr(key)
-        return f"{self.where}.{key}" if self.where and key else (key or self.where)
-
-    def error(self, key, message):
-        return ConfigError(self.file, self._field(key), message)
-
-    def has(self, key):
-        return key in self.data
-
-    def raw(self, key, default=REQUIRED):
-        if key not in self.data:
-            if default is REQUIRED:
-                raise self.error(key, "is required")
-            return default
-        return self.data[key]
-
-    def read(self, key, kind: Kind, scale: float = 1.0):
-        """The value at `key` (present) checked and converted by `kind`."""
-        try:
-            return kind.read(self.data[key], scale, self.file.parent)
-        except _Bad as exc:
-            raise self.error(f"{key}.{exc.key}" if exc.key else key, str(exc)) from None
-
-    def get(self, r: Row, default=None):
-        """The attribute value of schema row `r`: read from the file, else `default` (the
-        dataclass default), else an error when the row is required."""
-        if r.key in self.data:
-            return self.read(r.key, r.kind, r.scale)
-        if r.default is REQUIRED and not (r.either and self.has(r.either)):
-            raise self.error(r.key, "is required")
-        return default
-
-    # The helpers below read fields that have no schema row (validate.py's cases, sweep files).
-    def _value(self, key, default, kind):
-        return self.read(key, kind) if key in self.data else self.raw(key, default)
-
-    def string(self, key, default=REQUIRED, choices=None):
-        return self._value(key, default, Text(tuple(choices) if choices else None))
-
-    def number(self, key, default=REQUIRED, low=None, high=None, positive=False):
-        return self._value(key, default, Real(low, high, positive))
-
-    def integer(self, key, default=REQUIRED, low=None):
-        return self._value(key, default, Whole(low))
-
-    def boolean(self, key, default=REQUIRED):
-        return self._value(key, default, Flag())
-
-    def vector(self, key, length, default=REQUIRED, positive=False):
-        return self._value(key, default, Vector(length, positive))
-
-
-def as_numbers(value):
-    """`value` (a number or a rectangular list of lists of numbers) as a float array; None when it
-    holds anything else (strings, booleans, NaN or inf, ragged or too deep nesting)."""
-    try:
-        arr = np.asarray(value, dtype=object)
-    except (ValueError, RecursionError):
-        return None
-    if not all(_is_number(x) and math.isfinite(x) for x in arr.flat):
-        return None
-    return arr.astype(float)
-
-
-def read_toml(path) -> dict:
-    """The parsed TOML document at `path`; ConfigError when it is missing, unreadable, not UTF-8
-    text or invalid."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(path, "", "file not found") from None
-    except OSError as exc:
-        raise ConfigError(path, "", f"cannot be read ({exc.strerror})") from None
-    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
-        raise ConfigError(path, "", "is UTF-16 text; save it as UTF-8 (TOML files are UTF-8)")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise ConfigError(path, "", f"is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
-                                    "save it as UTF-8 (TOML files are UTF-8)") from None
-    try:
-        return tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(path, "", f"is not valid TOML ({exc})") from None
-    except RecursionError:
-        raise ConfigError(path, "", "is not valid TOML for vdo: arrays or tables nested too deep") from None
-
-
-OVERRIDE_VARIABLE = "VDO_SET"   # environment: field values written over the files vdo reads
-
-
-def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
-    """`data` (a parsed TOML document) with the fields of the environment variable VDO_SET
-    written in, for a quick, coarse run of any file without editing it (the test of the shipped
-    examples runs them so). VDO_SET holds `TABLE.FIELD = VALUE` items separated by ';', VALUE in
-    TOML syntax, e.g. `evaluation.sample_spacing_mm = 60; optimize.starts = 1`;
-    `TABLE.*.FIELD` sets FIELD on every table of an array of tables ([[camera]]). Only the items
-    whose TABLE is one of `tables` apply (a validation file reads `validation` and `defaults`,
-    an experiment its own tables), so one VDO_SET serves every kind of file; an item the file's
-    table does not take is refused by the file's own checks. ConfigError (naming VDO_SET) for an
-    item that is not of that form."""
-    import copy
-    import os
-    import tomllib
-
-    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
-    if not text:
-        return data
-    data = copy.deepcopy(data)
-    for item in filter(None, (part.strip() for part in text.split(";"))):
-        path, eq, value = item.partition("=")
-        tokens = path.strip().split(".")
-        try:
-            parsed = tomllib.loads(f"v = {value.strip()}")["v"] if eq else None
-        except tomllib.TOMLDecodeError:
-            parsed = None
-        if parsed is None or len(tokens) not in (2, 3) or not all(tokens) or \
-                (len(tokens) == 3 and tokens[1] != "*"):
-            raise ConfigError(OVERRIDE_VARIABLE, item, "write TABLE.FIELD = VALUE or "
-                                                       "TABLE.*.FIELD = VALUE (VALUE in TOML), "
-                                                       "items separated by ';'")
-        if tokens[0] not in tables:
-            continue
-        if len(tokens) == 2:
-            table = data.setdefault(tokens[0], {})
-            if isinstance(table, dict):
-                table[tokens[1]] = parsed
-        else:
-            for table in data.get(tokens[0], []):
-                if isinstance(table, dict):
-                    table[tokens[2]] = parsed
-    return data
-
-
 def load(path) -> Experiment:
     """Read and validate an experiment file. Raises ConfigError on any user mistake."""
     return parse(read_toml(path), Path(path))
-
-
-def _read_section(top: Table, sec: Section, path: Path):
-    """The value of one table (or the tuple of an array of tables) of the experiment file."""
-    defaults = {f.name: f.default if f.default is not dataclasses.MISSING else
-                (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
-                for f in dataclasses.fields(sec.cls)}
-    allowed = tuple(r.key for r in sec.rows + sec.extra)
-
-    def one(data, where):
-        t = Table(data, where, path, allowed)
-        values = {r.attr: t.get(r, defaults[r.attr]) for r in sec.rows}
-        for r in sec.rows:
-            if r.when and t.has(r.key) and all(values[w] is None for w in r.when.split()):
-                other = " or ".join(o.key for o in sec.rows if o.attr in r.when.split())
-                raise t.error(r.key, f"only applies together with {other}")
-        if sec.check is not None:
-            sec.check(t, values)
-        try:
-            return sec.cls(**values), t
-        except ValueError as exc:      # SensorModel names the field: "SensorModel.<field>: ..."
-            name, _, message = str(exc).partition(": ")
-            raise t.error(name.rpartition(".")[2], message) from None
-
-    if not sec.array:
-        if not top.has(sec.key) and not sec.required:
-            return sec.cls(), ()
-        value, t = one(top.raw(sec.key), sec.key)
-        return value, (t,)
-    items = top.raw(sec.key, REQUIRED if sec.required else [])
-    if not isinstance(items, list) or (sec.required and not items):
-        raise ConfigError(path, sec.key, f"needs at least one [[{sec.key}]] table")
-    values, tables, names = [], [], set()
-    for i, item in enumerate(items):
-        name = item.get("name") if isinstance(item, dict) else None
-        ok = isinstance(name, str) and re.fullmatch(NAME_PATTERN, name)
-        where = f'{sec.key} "{name}"' if ok else f"{sec.key}[{i}]"
-        value, t = one(item, where)
-        key = getattr(value, "name", None)      # unnamed tables (stereo pairs) are checked later
-        if key is not None and key in names:
-            raise ConfigError(path, where, "name is used twice; names must be unique")
-        names.add(key)
-        values.append(value)
-        tables.append(t)
-    return tuple(values), tuple(tables)
 
 
 def parse(data: dict, path: Path) -> Experiment:
@@ -1973,8 +1000,8 @@ def parse(data: dict, path: Path) -> Experiment:
     values = {r.attr: head.get(r, r.default) for r in rows_of(Experiment)}
     tables = {}
     for sec in secs:
-        values[sec.attr], tables[sec.key] = _read_section(top, sec, path)
-    _resolve_mounts(values, tables, path)
+        values[sec.attr], tables[sec.key] = read_section(top, sec, path)
+    resolve_mounts(values, tables, path)
     exp = Experiment(path=path, **values, given=frozenset(k for k in ON_REQUEST if top.has(k)))
     _check_references(exp, tables)
     _check_keep_outs(exp, tables)
@@ -2060,63 +1087,3 @@ def _check_references(exp: Experiment, tables: dict) -> None:
                 "", f"has its optical centre {gap[i, j] * 1e3:.3g} mm from camera "
                     f"{exp.camera_specs[a].name!r}'s ({np.round(p[b], 4).tolist()} m): two cameras "
                     "cannot share one pose; move or remove one")
-
-
-# --------------------------------------------------------------------------------------------
-# docs/config.md
-# --------------------------------------------------------------------------------------------
-_DOC_HEAD = """\
-# The experiment file
-
-<!-- Generated from the schema in vdo/config/experiment.py by scripts/config_docs.py; do not edit by hand. -->
-
-One TOML file (UTF-8) describes one experiment. Lengths are **metres** unless the field's name says
-`_mm`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
-Every field is checked before any work starts; an unknown field is an error (with the nearest
-known name). Names of meshes, regions, rails, cameras and lights become parts of file names: they
-must match `{pattern}` (letters, digits, `_`, `.`, `-`; at most 64 characters).
-`experiments/beam_column/ten_cameras.toml` is a complete example.
-"""
-
-
-def _doc_value(value) -> str:
-    if isinstance(value, bool):
-        return str(value).lower()
-    if isinstance(value, str):
-        return f'"{value}"'
-    if isinstance(value, float):
-        return f"{value:g}"
-    if isinstance(value, list):
-        return "[" + ", ".join(_doc_value(x) for x in value) + "]"
-    return str(value)
-
-
-def _doc_table(title: str, rows, doc: str) -> str:
-    lines = [f"## {title}", ""]
-    if doc:
-        lines += [doc, ""]
-    lines += ["| field | type | unit | default | meaning |", "| --- | --- | --- | --- | --- |"]
-    for r in rows:
-        default = r.shown or ("required" if r.default is REQUIRED else
-                              "none" if r.default is None else _doc_value(r.default))
-        unit = "°" if r.unit == "deg" else r.unit
-        lines.append(f"| `{r.key}` | {r.kind.doc} | {unit} | {default} | {r.doc} |")
-    return "\n".join(lines) + "\n"
-
-
-def markdown() -> str:
-    """docs/config.md: the schema as tables, generated from the rows."""
-    parts = [_DOC_HEAD.format(pattern=NAME_PATTERN),
-             _doc_table("`[experiment]`", rows_of(Experiment), "")]
-    for sec in sections():
-        title = f"`[[{sec.key}]]`" if sec.array else f"`[{sec.key}]`"
-        rows = []
-        for r in sec.rows:
-            rows += [x for x in sec.extra if x.key == r.either] + [r]
-        parts.append(_doc_table(title, rows, sec.doc + (" Optional." if not sec.required and sec.array
-                                                        else "")))
-        for r in sec.rows:
-            if isinstance(r.kind, SubTable):
-                doc = " ".join((r.kind.cls.__doc__ or "").split())
-                parts.append(_doc_table(f"`[{sec.key}.{r.key}]`", rows_of(r.kind.cls), doc))
-    return "\n".join(parts)

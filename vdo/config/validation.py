@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import (SENSOR_FIELDS, SpeckleSpec, Table, as_numbers, read_toml,
-                                   with_overrides)
+from vdo.config.experiment import SENSOR_FIELDS, SpeckleSpec
+from vdo.config.reader import Table, as_numbers, read_toml, with_overrides
 from vdo.core.errors import ConfigError
 from vdo.core.tolerances import SIZE_TOLERANCE, fits
 from vdo.model.sensor import SensorModel
@@ -83,7 +83,7 @@ def parse(data: dict, path) -> ValidationSpec:
     `[defaults]` holds any case field (but name); each `[[case]]` inherits it and overrides it
     (a case's `sensor` table is merged key by key over the defaults' one). The environment's
     VDO_SET items for `validation` and `defaults` are written in first
-    (`vdo.config.experiment.with_overrides`)."""
+    (`vdo.config.reader.with_overrides`)."""
     path = Path(path).resolve()
     data = with_overrides(data, ("validation", "defaults"))
     top = Table(data, "", path, ("validation", "defaults", "case"))

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from vdo.model.camera import Camera
-from vdo.config.experiment import NAME_PATTERN
+from vdo.config.schema import NAME_PATTERN
 from vdo.core.errors import ConfigError
 
 MM = 1e3   # millimetres per metre: the exports' length unit
-_SAFE = re.compile(NAME_PATTERN)     # the names the config accepts (`vdo.config.experiment`)
+_SAFE = re.compile(NAME_PATTERN)     # the names the config accepts (`vdo.config.schema`)
 
 
 def file_stem(name: str, source) -> str:

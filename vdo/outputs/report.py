@@ -12,7 +12,8 @@ import tomli_w
 
 from vdo.physics import usable
 from vdo.model.camera import Camera
-from vdo.config.experiment import Experiment, table_dict
+from vdo.config.experiment import Experiment
+from vdo.config.schema import table_dict
 from vdo.physics.predict import Prediction
 from vdo.scene import SurfaceSamples
 from vdo.state import LayoutState
