@@ -1,4 +1,4 @@
-"""Write docs/config.md from the schema in vdo/config/experiment.py (run from the repository root)."""
+"""Write docs/config.md from the schema of vdo/config/ (`vdo.config.reference.markdown`; run from the repository root)."""
 
 from pathlib import Path
 
