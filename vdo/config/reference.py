@@ -13,7 +13,7 @@ from vdo.config.schema import NAME_PATTERN, REQUIRED, SubTable, rows_of
 _DOC_HEAD = """\
 # The experiment file
 
-<!-- Generated from the schema in vdo/config/experiment.py by scripts/config_docs.py; do not edit by hand. -->
+<!-- Generated from the schema in vdo/config/ by scripts/config_docs.py; do not edit by hand. -->
 
 One TOML file (UTF-8) describes one experiment. Lengths are **metres** unless the field's name says
 `_mm`; angles are **degrees** (`_deg`). Relative paths are relative to the TOML file.
