@@ -81,9 +81,9 @@ from vdo.search.status import Status
 from vdo.physics.predict import predict
 from vdo.state import LayoutState, unobstructed_lighting
 from vdo.search.anytime import Progress, Stop, stop_on_signals
-from vdo.search.problem import (CLEARANCE_SPACING, Problem, State, clearances, light_lost,
+from vdo.search.problem import (CLEARANCE_SPACING, Problem, Result, State, clearances, light_lost,
                                 obstacle_visibility, score_parts, surface_points)
-from vdo.search.solver import LENS_TRIALS, Result, choose_lenses, solve
+from vdo.search.solver import LENS_TRIALS, choose_lenses, solve
 
 log = logging.getLogger(__name__)
 

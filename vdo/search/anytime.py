@@ -17,7 +17,7 @@ log = logging.getLogger(__name__)
 
 
 class Best(Protocol):
-    """What the progress line reads of the best result so far (`vdo.search.solver.Result`)."""
+    """What the progress line reads of the best result so far (`vdo.search.problem.Result`)."""
 
     score: float
     violations: int

@@ -16,7 +16,6 @@ import dataclasses
 import functools
 import math
 import time
-from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
@@ -42,8 +41,6 @@ from vdo.search.parameterisation import Parameterization
 from vdo.search.bfgs import BFGS
 from vdo.search.anytime import Progress, Stop
 
-if TYPE_CHECKING:   # annotations only: the solver imports this module
-    from vdo.search.solver import Result
 
 PENALTIES = ("angle", "fov", "clearance", "obscuration", "shadow")   # the keys of `Problem.terms` besides score
 # Back-off: the penalties aim this far inside each limit, so that the penalty solution, which
@@ -532,7 +529,7 @@ class Run:
         self.obscuration = ObscurationTerm(n_cameras, max_obscuration)
         self.history: list[dict] = []
         self.verdicts: list[dict] = []
-        self.best: "Result | None" = None
+        self.best: Result | None = None
         self.t0 = time.perf_counter()
         self.stop = Stop()
         self.blocks = None   # (block, blocks, chunk) of every pair list
@@ -678,3 +675,21 @@ def score_parts(problem: Problem, state: State) -> dict:
     coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
     return dict(score_um=overall + coverage, sigma_smooth_um=overall, coverage_um=coverage,
                 power=q, regions=regions)
+
+
+@dataclasses.dataclass
+class Result:
+    """A judged layout of `problem` (the lenses it was built with) at θ."""
+
+    theta: np.ndarray
+    state: State
+    score: float
+    checks: list
+    violations: int
+    start: int
+    problem: Problem
+
+    @property
+    def rank(self):
+        """Feasible first, by score; else fewest violations, then least total excess."""
+        return (self.violations, sum(e["excess"] for e in self.checks), self.score)

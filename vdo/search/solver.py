@@ -18,7 +18,7 @@ from vdo.model.pose import aim_point
 from vdo.search.status import Status
 from vdo.search.parameterisation import Parameterization, perturbation
 from vdo.search.bfgs import with_inverse_hessian
-from vdo.search.problem import LOCAL_MOVE, Problem, State
+from vdo.search.problem import LOCAL_MOVE, Problem, Result, State
 
 MU0 = 10.0   # penalty weight of the first round (score in µm, penalties ~1 at a clear violation)
 FEASIBILITY_ROUNDS = 3    # at most this many feasibility rounds (penalties only) per start
@@ -34,24 +34,6 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------------
 # The solver loop
 # --------------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class Result:
-    """A judged layout of `problem` (the lenses it was built with) at θ."""
-
-    theta: np.ndarray
-    state: State
-    score: float
-    checks: list
-    violations: int
-    start: int
-    problem: "Problem"
-
-    @property
-    def rank(self):
-        """Feasible first, by score; else fewest violations, then least total excess."""
-        return (self.violations, sum(e["excess"] for e in self.checks), self.score)
-
-
 def judge(problem: Problem, theta, state: State, start: int) -> Result:
     """The exact verdict on a refreshed layout: score and every constraint checked."""
     checks = problem.check(state)
