@@ -845,10 +845,10 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         cols = np.arange(q1.size)
         Bp, Bm = (scipy.sparse.csr_matrix((np.full(q1.size, 0.5), (rows, cols)), shape=(nb, q1.size))
                   for rows in (plus, minus))
-        even, odd = (Bp + Bm).tocsr(), (Bp - Bm).tocsr()
-        s_dd = np.stack([[even @ (wk * D[a_] * D[b_]) for b_ in range(2)] for a_ in range(2)])
+        even, odd = Bp + Bm, Bp - Bm
         Dw = D * wk                                                              # (2, M)
-        wDD = (wk * D[:, None, :] * D[None, :, :]).reshape(4, -1)                # (4, M)
+        wDD = (Dw[:, None, :] * D[None, :, :]).reshape(4, -1)                    # (4, M)
+        s_dd = (even @ wDD.T).T.reshape(2, 2, nb)
         noise = np.zeros((2, 2))
         bias = np.zeros((2, 2))
         scatter = np.zeros((2, 2))
@@ -870,12 +870,12 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
             bias += np.einsum("c,ca,cb->ab", count, b, b)
             Nd = ((A1[i1] * A2[i2] + r) @ wDD.T).reshape(-1, 2, 2)
             noise += np.einsum("c,cab,cbd,ced->ae", count, Hi, Nd, Hi)
-            s_ee = (even @ (wk * np.abs(E) ** 2).T).T                            # (c, nb)
-            re = [(even @ (wk * D[a_] * E.imag).T).T for a_ in range(2)]          # i D conj(E)
-            im = [(odd @ (wk * D[a_] * E.real).T).T for a_ in range(2)]
+            s_ee = (even @ (wk * (E.real ** 2 + E.imag ** 2)).T).T                # (c, nb)
+            # i D conj(E), (2, c, nb): real part even, imaginary part odd in q̄
+            re, im = ((B @ (Dw[:, None, :] * x).reshape(-1, x.shape[-1]).T).T.reshape(2, -1, nb)
+                      for B, x in ((even, E.imag), (odd, E.real)))
             V = nb * (np.einsum("abq,cq->cab", s_dd, s_ee)
-                      + np.stack([np.stack([np.sum(re[a_] * re[b_] - im[a_] * im[b_], -1)
-                                            for b_ in range(2)], -1) for a_ in range(2)], -2))
+                      + np.einsum("acq,bcq->cab", re, re) - np.einsum("acq,bcq->cab", im, im))
             scatter += np.einsum("c,cab,cbd,ced->ae", count, Hi, V, Hi)
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
