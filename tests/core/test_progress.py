@@ -119,3 +119,24 @@ def test_the_optimizer_line_says_its_own_time_left_once(monkeypatch, capsys):
     assert lines and all(line.count("s left") == 1 for line in lines)
     assert lines[0] == ("optimize: 10/100 step (10 %), 10 s, ~20 s left "
                         "[start 1 round 1/3, step 10/100, no layout judged yet]")
+
+
+def test_hidden_silences_an_inner_bar_and_restores_the_level(shown):
+    """`hidden`: a bar of the named logger writes nothing inside the block, the logger's own
+    level comes back after it (also when the block raises), and other loggers keep theirs."""
+    inner = logging.getLogger("vdo.test_progress.inner")
+    stream = io.StringIO()
+    with pytest.raises(KeyError):
+        with progress.hidden(LOG.name):
+            quiet = progress.bar(LOG, total=4, file=stream)
+            for _ in range(4):
+                quiet.update()
+            quiet.close()
+            assert inner.getEffectiveLevel() >= logging.WARNING    # a child follows its parent
+            raise KeyError
+    assert stream.getvalue() == "" and LOG.level == logging.INFO
+    loud = progress.bar(LOG, total=4, file=stream)
+    for _ in range(4):
+        loud.update()
+    loud.close()
+    assert "4/4" in stream.getvalue()

@@ -8,11 +8,21 @@ less than `MAX_VIEW_ANGLE_DEG`.
 
 Generated poses (`generate`): for each camera, `poses_per_camera` poses at its working distance
 (the median depth of the region samples inside its field, or [calibration] distances_m, cycled),
-their centres spread over the field on a Fibonacci lattice (the whole field, less the target's
-half size), each tilted by up to tilt_deg about an axis that turns by the golden angle from pose
-to pose, and turned in-plane by up to `ROLL_DEG`; for each stereo pair, `shared_poses` poses about
+their centres spread over the field by the R2 sequence (the whole field, less the target's half
+size), each tilted by up to tilt_deg about an axis that turns by the golden angle from pose to
+pose, and turned in-plane by up to `ROLL_DEG` (a draw seeded by [calibration] seed, the camera or
+pair and the pose's index); for each stereo pair, `shared_poses` poses about
 the point the two optical axes pass closest to, facing the bisector of the two viewing
 directions, tilted by up to half tilt_deg, so that both cameras see them (extrinsics).
+
+Every pose depends on its index k alone, never on the count: the session of n poses per camera is
+the first n poses of every larger one (nested sessions). Adding a pose adds rows to the
+calibration's least squares, so J^T J only grows and the parameters' covariance
+sigma_det^2 (J^T J)^-1 only shrinks (Loewner order): the planner's curve (`vdo.calib.planner`)
+falls with every image added. The R2 sequence (k alpha_1, k alpha_2) mod 1 with
+alpha_i = phi_2^-i, phi_2 = 1.32471795724... the plastic number (the real root of
+x^3 = x + 1), spreads every prefix evenly (Roberts 2018), which a Fibonacci lattice, whose
+points move with n, does not.
 
 `check` refuses, before anything is rendered, a session that cannot calibrate: a target larger
 than a camera's field, a camera that sees fewer than `MIN_VIEWS` poses, a camera whose views are
@@ -38,6 +48,7 @@ MIN_NORMAL_SPREAD_DEG = 5.0  # views whose target normals all lie within this ar
 MIN_SQUARE_PX = 8.0          # smallest pitch in pixels the detectors find reliably
 ROLL_DEG = 15.0              # largest in-plane turn of a generated pose
 GOLDEN = math.pi * (3.0 - math.sqrt(5.0))   # golden angle, rad
+PLASTIC = 1.324717957244746    # the plastic number phi_2, the real root of x^3 = x + 1
 
 
 @dataclass(frozen=True)
@@ -138,27 +149,35 @@ def auto_pitch(spec, cameras, distances: dict) -> float:
     return max(step, math.floor(pitch / step) * step)
 
 
-def _lattice(k: int, n: int) -> tuple[float, float]:
-    """Point k of an n-point Fibonacci lattice on [-1, 1]^2 (evenly spread for any n)."""
-    a = (k + 0.5) / n
-    b = (k * (math.sqrt(5) - 1) / 2) % 1.0
+def spread(k: int) -> tuple[float, float]:
+    """Point k of the R2 sequence on [-1, 1]^2, started at the centre: 2 ((1/2 + k alpha) mod 1)
+    - 1 with alpha = (1/phi_2, 1/phi_2^2) (module docstring); every prefix is evenly spread."""
+    a = (0.5 + k / PLASTIC) % 1.0
+    b = (0.5 + k / PLASTIC ** 2) % 1.0
     return 2 * a - 1, 2 * b - 1
 
 
-def _camera_poses(target: Target, camera, distances, count: int, tilt: float, rng) -> list[Pose]:
+def _roll(seed: int, owner: int, k: int) -> float:
+    """The in-plane turn of pose k of camera or pair `owner`, rad: uniform in +-ROLL_DEG, drawn
+    from a generator seeded by (seed, owner, k) alone, so that sessions nest."""
+    return math.radians(ROLL_DEG) * float(np.random.default_rng([seed, 7, owner, k]).uniform(-1, 1))
+
+
+def _camera_poses(target: Target, camera, distances, count: int, tilt: float, seed: int,
+                  owner: int) -> list[Pose]:
     half = 0.5 * math.hypot(*target.size)
     out = []
     axes = camera.R
     for k in range(count):
         d = distances[k % len(distances)]
-        a, b = _lattice(k, count)
+        a, b = spread(k)
         # the centre's room in normalised coordinates: the field less the target's half size
         room_x = max(0.0, camera.width / 2 / camera.focal_px - half / d)
         room_y = max(0.0, camera.height / 2 / camera.focal_px - half / d)
         ray = np.array([a * room_x, b * room_y, 1.0])
         centre = camera.position + d * (axes.T @ ray)
         t = tilt * (0.5 + 0.5 * ((k * 0.618034) % 1.0))
-        out.append(facing(target, centre, axes, t, k * GOLDEN, math.radians(ROLL_DEG) * rng.uniform(-1, 1)))
+        out.append(facing(target, centre, axes, t, k * GOLDEN, _roll(seed, owner, k)))
     return out
 
 
@@ -176,7 +195,8 @@ def _closest_point(a, b) -> np.ndarray:
     return 0.5 * (p + s * u + q + t * v)
 
 
-def _pair_poses(target: Target, a, b, da: float, db: float, count: int, tilt: float, rng) -> list[Pose]:
+def _pair_poses(target: Target, a, b, da: float, db: float, count: int, tilt: float, seed: int,
+                owner: int) -> list[Pose]:
     centre = _closest_point(a, b)
     if centre is None:
         centre = 0.5 * (a.position + da * a.optical_axis + b.position + db * b.optical_axis)
@@ -192,10 +212,10 @@ def _pair_poses(target: Target, a, b, da: float, db: float, count: int, tilt: fl
     room = max(room, 0.0)
     out = []
     for k in range(count):
-        u, v = _lattice(k, count) if count > 1 else (0.0, 0.0)
+        u, v = spread(k)
         c = centre + room * (u * axes[0] + v * axes[1])
         t = 0.5 * tilt * (0.5 + 0.5 * ((k * 0.618034) % 1.0))
-        out.append(facing(target, c, axes, t, k * GOLDEN, math.radians(ROLL_DEG) * rng.uniform(-1, 1)))
+        out.append(facing(target, c, axes, t, k * GOLDEN, _roll(seed, owner, k)))
     return out
 
 
@@ -204,7 +224,6 @@ def build(spec, cameras, distances: dict, pairs, path) -> Session:
     `pairs` as name tuples): explicit poses, or generated ones (module docstring). Not checked:
     `check` does that."""
     target = Target(spec.target, spec.rows, spec.columns, auto_pitch(spec, cameras, distances))
-    rng = np.random.default_rng([spec.seed, 7])
     by_name = {c.name: c for c in cameras}
     if spec.pose_centres is not None:
         poses = []
@@ -217,12 +236,12 @@ def build(spec, cameras, distances: dict, pairs, path) -> Session:
             poses.append(facing(target, centre, axes, 0.0, 0.0, 0.0))
     else:
         poses = []
-        for cam in cameras:
+        for i, cam in enumerate(cameras):
             ds = spec.distances or (distances[cam.name],)
-            poses += _camera_poses(target, cam, ds, spec.poses_per_camera, spec.tilt, rng)
-        for a, b in pairs:
+            poses += _camera_poses(target, cam, ds, spec.poses_per_camera, spec.tilt, spec.seed, i)
+        for j, (a, b) in enumerate(pairs):
             poses += _pair_poses(target, by_name[a], by_name[b], distances[a], distances[b],
-                                 spec.shared_poses, spec.tilt, rng)
+                                 spec.shared_poses, spec.tilt, spec.seed, len(cameras) + j)
     views = {c.name: [k for k, p in enumerate(poses) if sees(c, target, p)] for c in cameras}
     return Session(target=target, poses=tuple(poses), views=views, pairs=tuple(pairs))
 

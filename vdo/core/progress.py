@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
+from contextlib import contextmanager
 
 PLAIN_FRACTION = 0.1      # a plain progress line every tenth of the total ...
 PLAIN_SECONDS = 30.0      # ... or every 30 s, whichever comes first
@@ -33,6 +34,22 @@ def bar(log: logging.Logger, **tqdm_options):
     """A progress bar on stderr (or `file`), disabled unless `log` passes INFO records:
     `shown_bar`."""
     return shown_bar(shown(log), **tqdm_options)
+
+
+@contextmanager
+def hidden(*names: str):
+    """Hide the progress bars (and INFO lines) of the loggers `names` for the block: a loop
+    that calls a function with its own bar many times draws one bar of its own instead."""
+    loggers = [logging.getLogger(n) for n in names]
+    levels = [g.level for g in loggers]
+    for g in loggers:
+        if g.getEffectiveLevel() < logging.WARNING:
+            g.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        for g, level in zip(loggers, levels):
+            g.setLevel(level)
 
 
 def shown_bar(show: bool, **tqdm_options):

@@ -565,6 +565,21 @@ PHASE_CHUNK = 8             # sub-pixel positions computed together (`correlatio
 _ALIAS_TERMS = 4            # |l| <= this in the Poisson sums of the spline's responses
 
 
+def _by_twins(at, phases) -> np.ndarray:
+    """at(phases) (P, M) for responses with R_{1-d} = conj R_d (`_SplineSpectrum`,
+    `_KeysSpectrum`): computed at the phases d <= 1/2 only, their twins 1 - d in (1/2, 1) taken
+    as the conjugates (3 of the 8 grid phases). Phases outside [0, 1) are computed as given."""
+    d = np.atleast_1d(np.asarray(phases, dtype=np.float64))
+    flip = (d > 0.5) & (d < 1.0)
+    canon = np.where(flip, 1.0 - d, d)
+    unique, index = np.unique(canon, return_inverse=True)
+    if len(unique) == len(d):
+        return at(d)
+    out = at(unique)[index]
+    out[flip] = np.conj(out[flip])
+    return out
+
+
 class _SplineSpectrum:
     """The B-spline's spectrum at the aliases of the frequencies ω (M,), computed once and shared
     by its responses: s_l = β̂(ω + 2πl) = sinc^(order+1)(ω/2π + l) for |l| <= _ALIAS_TERMS, with
@@ -582,9 +597,12 @@ class _SplineSpectrum:
         self.total = self.s.sum(-1)
 
     def _weighted(self, s: np.ndarray, phases) -> np.ndarray:
-        """Σ_l s_l exp(2πi l d) / Σ_l β̂(ω + 2πl) (P, M), as two real products (BLAS)."""
-        angle = 2 * np.pi * np.outer(self.l, phases)                        # (L, P)
-        return ((s @ np.cos(angle)) + 1j * (s @ np.sin(angle))).T / self.total
+        """Σ_l s_l exp(2πi l d) / Σ_l β̂(ω + 2πl) (P, M), as two real products (BLAS); s is
+        real, so the phase 1 - d is the conjugate of d (`_by_twins`)."""
+        def at(d):
+            angle = 2 * np.pi * np.outer(self.l, d)                         # (L, P)
+            return ((s @ np.cos(angle)) + 1j * (s @ np.sin(angle))).T / self.total
+        return _by_twins(at, phases)
 
     def shift(self, phases: np.ndarray) -> np.ndarray:
         """R_d(ω) (P, M): the spline's value at n + d of the samples of exp(iωx), divided by
@@ -640,11 +658,12 @@ class _KeysSpectrum:
         self.omega = np.asarray(omega, dtype=np.float64)
 
     def _sum(self, phases, derivative: bool) -> np.ndarray:
-        d = np.asarray(phases, dtype=np.float64)
-        taps = keys_kernel(d[:, None] - self.TAPS, derivative=derivative)          # (P, 4)
-        ramp = np.exp(1j * np.outer(self.TAPS, self.omega))                        # (4, M)
-        out = (taps @ ramp) * np.exp(-1j * np.outer(d, self.omega))                # (P, M)
-        return -1j * out if derivative else out
+        def at(d):
+            taps = keys_kernel(d[:, None] - self.TAPS, derivative=derivative)      # (P, 4)
+            ramp = np.exp(1j * np.outer(self.TAPS, self.omega))                    # (4, M)
+            out = (taps @ ramp) * np.exp(-1j * np.outer(d, self.omega))            # (P, M)
+            return -1j * out if derivative else out
+        return _by_twins(at, phases)
 
     def shift(self, phases: np.ndarray) -> np.ndarray:
         """R_d(ω) (P, M) for every phase d."""
