@@ -522,13 +522,17 @@ def test_calibration_is_linear_in_the_corner_noise():
 
 
 # ---- step 6: the planner ------------------------------------------------------------------------
-def test_vdo_calibrate_plan(tmp_path, capsys):
+PLAN_SPACING_MM = 4        # the holed plate's samples at 4 mm (the file: 1 mm), ~16x fewer
+def test_vdo_calibrate_plan(tmp_path, capsys, monkeypatch):
     """`vdo calibrate --plan`: the curve falls with the number of images, at large sessions as
     1/sqrt(images) (the covariance of n like views: J^T J grows as n) within 30 %, and the chosen
-    count is the first that reaches the target."""
+    count is the first that reaches the target. Samples at PLAN_SPACING_MM (the propagation's
+    cost follows the samples; the curve's shape does not)."""
     import json
 
     from vdo.commands.cli import main
+
+    monkeypatch.setenv("VDO_SET", f"evaluation.sample_spacing_mm = {PLAN_SPACING_MM}")
 
     out = tmp_path / "plan"     # docs/calibration.md's command
     assert main(["calibrate", str(HOLED), "--plan", "--out", str(out)]) == 0

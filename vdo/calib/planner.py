@@ -4,10 +4,7 @@ For each candidate count n of generated poses per camera (`COUNTS`, shared poses
 alike), the session is built and checked as `vdo calibrate` would (`vdo.calib.session.plan`), its
 corners simulated without noise at the true cameras, calibrated with sigma_det = [calibration]
 detection_sigma_px (default `DEFAULT_SIGMA_DET_PX`), and the covariance sigma_det^2 (J^T J)^-1
-propagated into the samples seen by a stereo pair (`vdo.calib.propagate.sample_errors`): at most
-`PLAN_SAMPLES` of them, evenly strided through the samples (region by region, so each region
-keeps its share of the area; the p95 of 4,000 draws has a standard error of about
-sqrt(0.05 x 0.95 / 4000) = 0.3 % in probability, measured below 1 % in sigma). The
+propagated into every sample seen by a stereo pair (`vdo.calib.propagate.sample_errors`). The
 plan is the smallest n whose strain sigma (p95 over the samples, at the test's strain) is at most
 [calibration] target_strain_error; the curve of that sigma against the number of images shows
 the diminishing returns (about 1/sqrt(images) once the parameters are constrained). The sessions
@@ -25,7 +22,6 @@ import numpy as np
 log = logging.getLogger(__name__)
 COUNTS = (3, 4, 6, 8, 12, 16, 24, 32)     # poses per camera tried
 DEFAULT_SIGMA_DET_PX = 0.05               # corner detection noise when none is configured (px)
-PLAN_SAMPLES = 4000                       # samples the curve's p95 is taken over (module docstring)
 
 
 @dataclass(frozen=True)
@@ -54,7 +50,6 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
     sigma = spec.detection_sigma_px or DEFAULT_SIGMA_DET_PX
     counts, images, p95 = [], [], []
     base_shared = spec.shared_poses / max(1, spec.poses_per_camera)
-    visible = strided(visible, PLAN_SAMPLES)
     for n in bar(log, iterable=COUNTS, desc="planning the session", unit="session"):
         trial = replace(spec, poses_per_camera=n, shared_poses=max(1, round(base_shared * n)))
         try:
@@ -82,18 +77,6 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
     return Plan(counts=tuple(counts), images=tuple(images), strain_p95=tuple(p95),
                 chosen=reached[0] if reached else None, target=spec.target_strain_error,
                 sigma_det=sigma)
-
-
-def strided(visible: np.ndarray, most: int) -> np.ndarray:
-    """`visible` (C, N) kept at no more than `most` evenly strided samples among those seen by
-    at least two cameras (False elsewhere)."""
-    seen = np.flatnonzero(visible.sum(axis=0) >= 2)
-    if len(seen) <= most:
-        return visible
-    keep = seen[np.linspace(0, len(seen) - 1, most).round().astype(int)]
-    out = np.zeros_like(visible)
-    out[:, keep] = visible[:, keep]
-    return out
 
 
 def plot(p: Plan, path, title: str) -> None:
