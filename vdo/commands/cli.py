@@ -276,7 +276,7 @@ def _design(exp, args) -> None:
     import shutil
     import tempfile
 
-    from vdo.commands.sweep import connect_dask, cores
+    from vdo.core.parallel import connect_dask, cores
     from vdo.commands.design import curve_line, design
 
     client = cluster = scratch = None

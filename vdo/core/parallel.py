@@ -1,0 +1,183 @@
+"""Running many independent tasks: a local pool of spawned processes, or a Dask cluster.
+
+`run_tasks(fn, items, ...)` calls ``fn(item)`` for every item on `workers` local processes (a
+``ProcessPoolExecutor`` with the ``spawn`` start method, so that no worker inherits the caller's
+JAX, Mitsuba or thread state) or, given a ``dask.distributed`` Client, as tasks on its workers; it
+yields ``(item, result)`` as the tasks finish (in any order). A task that returns no result is not
+raised: its result is a `Failure` (the exception's line and traceback, or what happened to its
+worker), so that the caller decides whether one failure ends the run (`vdo.calib.montecarlo`) or
+is recorded while the others go on (`vdo sweep`).
+
+Each worker sets itself up once, before its first task (`configure_worker`: `vdo.core.configure`
+with `threads` Dr.Jit threads, and one XLA:CPU thread when `threads` is 1), so that the workers
+of one machine share its cores instead of each taking all of them. A local worker also leaves
+when the process that started it is gone (a killed run leaves no worker computing). A task whose
+local worker process dies (killed, out of memory) is tried again in a fresh pool, `MAX_ATTEMPTS`
+times in all; on Dask the scheduler retries lost workers itself and a task it gives up on
+(``KilledWorker``) is a `Failure`.
+
+When the caller stops iterating (an error, Ctrl-C, a time limit), the pool is shut down: queued
+tasks are cancelled and the running ones are awaited (local), or every unfinished task is
+cancelled (Dask). `fn` and the items must be picklable: `fn` a module's top-level function.
+
+dask and distributed are imported only inside the functions that need them.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import threading
+import time
+import traceback
+import uuid
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Iterator, Sequence
+
+from vdo.core.errors import ConfigError
+
+MAX_ATTEMPTS = 3           # a task whose local worker process dies is tried this many times
+WATCH_S = 0.5              # a local worker checks this often whether its parent is gone
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A task that returned no result: `error` one line ("ValueError: message", or what happened
+    to its worker), `traceback` the worker's traceback text ("" when the task raised nothing)."""
+
+    error: str
+    traceback: str = ""
+
+
+def cores() -> int:
+    """The CPU cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def configure_worker(threads: int | None) -> None:
+    """Set up a worker process once, before its first task (`vdo.core.configure`): float64 in
+    JAX, the compilation cache, freed memory kept in the heap, and `threads` CPU threads for
+    Dr.Jit (and one for XLA:CPU when `threads` is 1; None: all the cores)."""
+    if threads == 1:
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                                   + " --xla_cpu_multi_thread_eigen=false").strip()
+    from vdo.core.configure import configure
+
+    configure(threads=threads)
+
+
+def _local_worker(threads: int | None) -> None:
+    """Initializer of the local pool's workers: leave when the parent process is gone, then
+    `configure_worker`."""
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(WATCH_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="vdo-parent-watch").start()
+    configure_worker(threads)
+
+
+def call(fn: Callable, item):
+    """``fn(item)`` in a worker, or the `Failure` of the exception it raised (a KeyboardInterrupt
+    is not caught: it ends the run)."""
+    try:
+        return fn(item)
+    except Exception as exc:
+        return Failure(f"{type(exc).__name__}: {exc}", traceback.format_exc())
+
+
+def run_tasks(fn: Callable, items: Iterable, *, workers: int | None = None, threads: int | None = None,
+              client=None, keys: Sequence[str] | None = None, name: str = "vdo") -> Iterator[tuple]:
+    """Yield ``(item, fn(item))`` for every item as the tasks finish, a `Failure` in place of a
+    result that did not come (module docstring). Without `client`: a local pool of `workers`
+    spawned processes (default: one per core, never more than there are items); with a
+    ``distributed.Client``: its workers, each task under the Dask key ``keys[i]`` (default
+    ``{name}-<random>-{i}``). `threads`: each worker's CPU threads (`configure_worker`)."""
+    items = list(items)
+    if not items:
+        return
+    if client is not None:
+        if keys is None:
+            token = uuid.uuid4().hex[:12]
+            keys = [f"{name}-{token}-{i}" for i in range(len(items))]
+        yield from _dask(fn, items, client, threads, list(keys), name)
+    else:
+        yield from _local(fn, items, workers or cores(), threads)
+
+
+def _local(fn, items: list, workers: int, threads: int | None):
+    attempts = Counter()
+    pending = list(range(len(items)))
+    while pending:
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
+                                   mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_local_worker, initargs=(threads,))
+        try:
+            futures = {pool.submit(call, fn, items[i]): i for i in pending}
+            pending = []
+            for future in as_completed(futures):
+                i = futures[future]
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    attempts[i] += 1
+                    if attempts[i] < MAX_ATTEMPTS:
+                        pending.append(i)
+                        continue
+                    result = Failure(f"its worker process died {MAX_ATTEMPTS} times (out of memory?)")
+                yield items[i], result
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _dask(fn, items: list, client, threads: int | None, keys: list, name: str):
+    from distributed import as_completed as dask_completed
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class Setup(WorkerPlugin):
+        def setup(self, worker):
+            configure_worker(threads)
+
+    client.register_plugin(Setup(), name=f"{name}-setup")
+    futures = {client.submit(call, fn, item, key=key, pure=False): i
+               for i, (item, key) in enumerate(zip(items, keys))}
+    try:
+        for future in dask_completed(futures):
+            try:
+                result = future.result()
+            except Exception as exc:  # KilledWorker, a worker lost for good: the task failed
+                result = Failure(f"Dask: {type(exc).__name__}: {exc}")
+            yield items[futures[future]], result
+    finally:
+        unfinished = [f for f in futures if not f.done()]
+        if unfinished:
+            client.cancel(unfinished)
+
+
+def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
+    """(a dask.distributed Client on `address`, its LocalCluster or None): "local" starts a
+    LocalCluster of `workers` spawned processes with one task each (scratch files in `scratch`);
+    ConfigError (field --dask) when the scheduler cannot be reached within `timeout` s."""
+    from distributed import Client, LocalCluster
+
+    if address == "local":
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               dashboard_address=None, local_directory=str(scratch),
+                               silence_logs=logging.ERROR)
+        return Client(cluster), cluster
+    try:
+        return Client(address, timeout=f"{timeout}s"), None
+    except Exception as exc:  # refused, timed out, or something else answering: one line each
+        why = (type(exc).__name__ if isinstance(exc, (OSError, TimeoutError))
+               else f"what answered is not a Dask scheduler: {type(exc).__name__}")
+        raise ConfigError("--dask", "", f"cannot reach the Dask scheduler at {address!r} within "
+                                        f"{timeout:g} s ({why}); check the address "
+                                        "(tcp://HOST:PORT) and that the scheduler runs") from None
