@@ -155,8 +155,12 @@ def run_trials(task: Trials) -> TrialResults:
     """Calibrate trials task.start..task.stop - 1 (module docstring): trial t's corners are
     `simulate`d with the generator default_rng([seed, t]), or its images exposed with
     `SessionImages.exposed(sensor, seed, t)` and detected; so a trial's result does not depend on
-    the task that computes it."""
+    the task that computes it. NumPy and SciPy run on one OpenBLAS thread here
+    (`vdo.core.parallel.blas_threads`): the covariance's inverse came out different in its last
+    bits with 1 and 2 threads, and the 4-camera calibration took 6.5 s with 2 threads on 2 loaded
+    cores, 0.69 s with 1."""
     from vdo.calib.detect import detect_all
+    from vdo.core.parallel import blas_threads
 
     cameras = list(task.cameras)
     by_name = {c.name: c for c in cameras}
@@ -164,26 +168,27 @@ def run_trials(task: Trials) -> TrialResults:
     sizes = {c.name: (c.width, c.height) for c in cameras}
     out = {key: {r: [] for r in task.rigs} for key in ("theta", "covariance", "displacement", "strain")}
     slices, corners, found = {}, [], []
-    for t in range(task.start, task.stop):
-        if task.deadline is not None and time.time() > task.deadline:
-            raise TimeoutError(f"trial {t} would start past the time limit")
-        if task.images is None:
-            obs = simulate(cameras, task.session, task.sigma_det, np.random.default_rng([task.seed, t]))
-        else:
-            obs, _ = detect_all(task.images.exposed(task.sensor, task.seed, t), task.session.target,
-                                task.sensor.max_dn)
-            found.append(frozenset((o.camera, o.pose) for o in obs))
-            corners.append(np.stack([o.corners for o in obs]))
-        cal = calibrate(names, sizes, obs, task.session.target,
-                        task.sigma_det if task.images is None else 1.0)
-        for r_names in task.rigs:
-            r = prop.rig(cal, r_names, cameras)
-            cams = [by_name[n] for n in r_names]
-            eu, ee = prop.measured_errors(r, r.theta, cams, task.points[r_names], task.motions[r_names])
-            for key, value in (("theta", r.theta), ("covariance", r.covariance),
-                               ("displacement", eu), ("strain", ee)):
-                out[key][r_names].append(value)
-            slices[r_names] = r.slices
+    with blas_threads(1):
+        for t in range(task.start, task.stop):
+            if task.deadline is not None and time.time() > task.deadline:
+                raise TimeoutError(f"trial {t} would start past the time limit")
+            if task.images is None:
+                obs = simulate(cameras, task.session, task.sigma_det, np.random.default_rng([task.seed, t]))
+            else:
+                obs, _ = detect_all(task.images.exposed(task.sensor, task.seed, t), task.session.target,
+                                    task.sensor.max_dn)
+                found.append(frozenset((o.camera, o.pose) for o in obs))
+                corners.append(np.stack([o.corners for o in obs]))
+            cal = calibrate(names, sizes, obs, task.session.target,
+                            task.sigma_det if task.images is None else 1.0)
+            for r_names in task.rigs:
+                r = prop.rig(cal, r_names, cameras)
+                cams = [by_name[n] for n in r_names]
+                eu, ee = prop.measured_errors(r, r.theta, cams, task.points[r_names], task.motions[r_names])
+                for key, value in (("theta", r.theta), ("covariance", r.covariance),
+                                   ("displacement", eu), ("strain", ee)):
+                    out[key][r_names].append(value)
+                slices[r_names] = r.slices
     stacked = {key: {r: np.stack(v) for r, v in d.items()} for key, d in out.items()}
     return TrialResults(start=task.start, stop=task.stop, slices=slices, corners=tuple(corners),
                         found=tuple(found), **stacked)
@@ -211,7 +216,9 @@ def run(cameras, session, rigs, points: dict, motions: dict, trials: int, seed: 
     Where: in this process (default), on a local pool of `workers` >= 2 spawned processes, or on
     the workers of a dask.distributed `client` (`vdo.core.parallel.run_tasks`), the trials split
     into `chunks`; the result is the same to the last bit wherever the trials ran (each trial's
-    noise comes from its own seed, and the trials are gathered in their order)."""
+    noise comes from its own seed, and the trials are gathered in their order) on the same kind
+    of machine, provided the workers' OpenBLAS started with this process's thread count (a local
+    pool's do; for Dask workers, `vdo.core.parallel.blas_environment`)."""
     from vdo.core.progress import bar
 
     started = time.perf_counter()

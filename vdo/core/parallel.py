@@ -20,19 +20,28 @@ When the caller stops iterating (an error, Ctrl-C, a time limit), the pool is sh
 tasks are cancelled and the running ones are awaited (local), or every unfinished task is
 cancelled (Dask). `fn` and the items must be picklable: `fn` a module's top-level function.
 
+`blas_threads(n)` runs a block with n OpenBLAS threads, so that small solves are not slowed by
+threads fighting over loaded cores, and so that the block computes the same in every process that
+started with the same OpenBLAS thread count: a local worker inherits this process's; a Dask
+worker starts with 1 unless its environment says otherwise (`blas_environment`).
+
 dask and distributed are imported only inside the functions that need them.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import multiprocessing
 import os
+import shutil
+import tempfile
 import threading
 import time
 import traceback
 import uuid
 from collections import Counter
+from contextlib import contextmanager
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -162,16 +171,17 @@ def _dask(fn, items: list, client, threads: int | None, keys: list, name: str):
             client.cancel(unfinished)
 
 
-def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
+def connect_dask(address: str, workers: int, timeout: float, scratch: Path, env: dict | None = None):
     """(a dask.distributed Client on `address`, its LocalCluster or None): "local" starts a
-    LocalCluster of `workers` spawned processes with one task each (scratch files in `scratch`);
-    ConfigError (field --dask) when the scheduler cannot be reached within `timeout` s."""
+    LocalCluster of `workers` spawned processes with one task each (scratch files in `scratch`,
+    the environment variables `env` set in the workers); ConfigError (field --dask) when the
+    scheduler cannot be reached within `timeout` s."""
     from distributed import Client, LocalCluster
 
     if address == "local":
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=None, local_directory=str(scratch),
-                               silence_logs=logging.ERROR)
+                               silence_logs=logging.ERROR, **({"env": env} if env else {}))
         return Client(cluster), cluster
     try:
         return Client(address, timeout=f"{timeout}s"), None
@@ -181,3 +191,77 @@ def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
         raise ConfigError("--dask", "", f"cannot reach the Dask scheduler at {address!r} within "
                                         f"{timeout:g} s ({why}); check the address "
                                         "(tcp://HOST:PORT) and that the scheduler runs") from None
+
+
+@contextmanager
+def dask_client(address: str | None, workers: int, timeout: float = 30.0, prefix: str = "vdo-dask-",
+                env: dict | None = None):
+    """A Client for the time of the block (`connect_dask`; "local": a LocalCluster of `workers`
+    processes with the environment variables `env`, its scratch in a temporary folder removed
+    after), or None when `address` is None. The client (and the cluster) are closed when the
+    block ends, however it ends."""
+    if address is None:
+        yield None
+        return
+    scratch = Path(tempfile.mkdtemp(prefix=prefix))
+    client = cluster = None
+    try:
+        client, cluster = connect_dask(address, workers, timeout, scratch, env)
+        yield client
+    finally:
+        for c in (client, cluster):
+            if c is not None:
+                c.close()
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _openblas_controls() -> list[tuple]:
+    """(get, set) thread-count functions of every OpenBLAS this process has loaded (numpy's and
+    SciPy's each bundle one; their symbols may carry a "scipy_" prefix and a "64_" suffix), found
+    in /proc/self/maps; empty where that does not exist (not Linux) or no OpenBLAS is loaded."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = sorted({line.split()[-1] for line in fh
+                            if len(line.split()) >= 6 and "openblas" in line.split()[-1].lower()})
+    except OSError:
+        return []
+    controls, seen = [], set()
+    for path in paths:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix in ("openblas", "scipy_openblas"):
+            for suffix in ("", "64_"):
+                get = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+                put = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+                address = get is not None and ctypes.cast(get, ctypes.c_void_p).value
+                if put is not None and address and address not in seen:
+                    seen.add(address)
+                    controls.append((get, put))
+    return controls
+
+
+def blas_environment() -> dict:
+    """{"OPENBLAS_NUM_THREADS": this process's OpenBLAS thread count}, for worker processes that
+    must compute as this one does ({} when no OpenBLAS is found). OpenBLAS' results depend on the
+    thread count it started with, even inside `blas_threads` (a 300 x 300 product differed in its
+    last bits between a process started with 2 threads and set to 1 and one started with 1), and
+    a Dask worker starts with 1 unless told."""
+    counts = [get() for get, _ in _openblas_controls()]
+    return {"OPENBLAS_NUM_THREADS": str(max(counts))} if counts else {}
+
+
+@contextmanager
+def blas_threads(count: int):
+    """Run the block with `count` threads in every loaded OpenBLAS (module docstring), the
+    earlier counts restored after it. Other BLAS libraries (MKL, Accelerate) are left alone."""
+    controls = _openblas_controls()
+    before = [get() for get, _ in controls]
+    for _, put in controls:
+        put(count)
+    try:
+        yield
+    finally:
+        for (_, put), n in zip(controls, before):
+            put(n)
