@@ -155,12 +155,32 @@ def run_trials(task: Trials) -> TrialResults:
     """Calibrate trials task.start..task.stop - 1 (module docstring): trial t's corners are
     `simulate`d with the generator default_rng([seed, t]), or its images exposed with
     `SessionImages.exposed(sensor, seed, t)` and detected; so a trial's result does not depend on
-    the task that computes it. NumPy and SciPy run on one OpenBLAS thread here
-    (`vdo.core.parallel.blas_threads`): the covariance's inverse came out different in its last
-    bits with 1 and 2 threads, and the 4-camera calibration took 6.5 s with 2 threads on 2 loaded
-    cores, 0.69 s with 1."""
-    from vdo.calib.detect import detect_all
+    the task that computes it. OpenCV, NumPy and SciPy run on one thread here, the earlier
+    counts restored after: OpenCV's threaded calibrateCamera (the start values) sums over the
+    views in an order that varies from call to call, so that the same corners gave calibrations
+    that differed in their last bits (up to 6e-5 of a parameter's sigma over 4 trials), and the
+    covariance's inverse differed in its last bits with 1 and 2 OpenBLAS threads
+    (`vdo.core.parallel.blas_threads`); on one thread a trial is a function of its seed alone.
+    It is faster too: the 4-camera calibration took 6.5 s with 2 OpenBLAS threads on 2 loaded
+    cores, 0.69 s with 1. (OpenCV's count is set here and not in `vdo.calib.solve.initial`: set
+    and reset there at every calibration, it slowed SciPy's threaded Cholesky of the planner's
+    calibrations twentyfold, 1.2 -> 25 s in `vdo calibrate --plan` on 2 loaded cores.)"""
+    import cv2
+
     from vdo.core.parallel import blas_threads
+
+    opencv = cv2.getNumThreads()
+    cv2.setNumThreads(0)
+    try:
+        with blas_threads(1):
+            return _trials(task)
+    finally:
+        cv2.setNumThreads(opencv)
+
+
+def _trials(task: Trials) -> TrialResults:
+    """The calibrations of `run_trials`."""
+    from vdo.calib.detect import detect_all
 
     cameras = list(task.cameras)
     by_name = {c.name: c for c in cameras}
@@ -168,27 +188,26 @@ def run_trials(task: Trials) -> TrialResults:
     sizes = {c.name: (c.width, c.height) for c in cameras}
     out = {key: {r: [] for r in task.rigs} for key in ("theta", "covariance", "displacement", "strain")}
     slices, corners, found = {}, [], []
-    with blas_threads(1):
-        for t in range(task.start, task.stop):
-            if task.deadline is not None and time.time() > task.deadline:
-                raise TimeoutError(f"trial {t} would start past the time limit")
-            if task.images is None:
-                obs = simulate(cameras, task.session, task.sigma_det, np.random.default_rng([task.seed, t]))
-            else:
-                obs, _ = detect_all(task.images.exposed(task.sensor, task.seed, t), task.session.target,
-                                    task.sensor.max_dn)
-                found.append(frozenset((o.camera, o.pose) for o in obs))
-                corners.append(np.stack([o.corners for o in obs]))
-            cal = calibrate(names, sizes, obs, task.session.target,
-                            task.sigma_det if task.images is None else 1.0)
-            for r_names in task.rigs:
-                r = prop.rig(cal, r_names, cameras)
-                cams = [by_name[n] for n in r_names]
-                eu, ee = prop.measured_errors(r, r.theta, cams, task.points[r_names], task.motions[r_names])
-                for key, value in (("theta", r.theta), ("covariance", r.covariance),
-                                   ("displacement", eu), ("strain", ee)):
-                    out[key][r_names].append(value)
-                slices[r_names] = r.slices
+    for t in range(task.start, task.stop):
+        if task.deadline is not None and time.time() > task.deadline:
+            raise TimeoutError(f"trial {t} would start past the time limit")
+        if task.images is None:
+            obs = simulate(cameras, task.session, task.sigma_det, np.random.default_rng([task.seed, t]))
+        else:
+            obs, _ = detect_all(task.images.exposed(task.sensor, task.seed, t), task.session.target,
+                                task.sensor.max_dn)
+            found.append(frozenset((o.camera, o.pose) for o in obs))
+            corners.append(np.stack([o.corners for o in obs]))
+        cal = calibrate(names, sizes, obs, task.session.target,
+                        task.sigma_det if task.images is None else 1.0)
+        for r_names in task.rigs:
+            r = prop.rig(cal, r_names, cameras)
+            cams = [by_name[n] for n in r_names]
+            eu, ee = prop.measured_errors(r, r.theta, cams, task.points[r_names], task.motions[r_names])
+            for key, value in (("theta", r.theta), ("covariance", r.covariance),
+                               ("displacement", eu), ("strain", ee)):
+                out[key][r_names].append(value)
+            slices[r_names] = r.slices
     stacked = {key: {r: np.stack(v) for r, v in d.items()} for key, d in out.items()}
     return TrialResults(start=task.start, stop=task.stop, slices=slices, corners=tuple(corners),
                         found=tuple(found), **stacked)

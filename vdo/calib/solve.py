@@ -172,30 +172,18 @@ def _as4(R, t) -> np.ndarray:
 
 def initial(cameras, sizes, observations, target):
     """Start values: per camera cv2.calibrateCamera; extrinsics and poses chained through shared
-    poses (module docstring). Returns (intrinsics, extrinsics 4x4, poses 4x4, reference).
-
-    OpenCV runs on one thread here: its threaded calibrateCamera sums over the views in an order
-    that varies from call to call, so that the same corners gave start values, and after the
-    adjustment calibrations, that differed in the last bits (up to 6e-5 of a parameter's sigma
-    over 4 Monte Carlo trials); on one thread a calibration is a function of its corners alone,
-    the same in every process (`vdo.calib.montecarlo` on a pool or Dask gives the serial result
-    to the last bit), and no slower (0.04-0.2 s per rig either way)."""
+    poses (module docstring). Returns (intrinsics, extrinsics 4x4, poses 4x4, reference)."""
     import cv2
 
     obj = target.points().astype(np.float32)
     intr, view = {}, {}
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(0)
-    try:
-        for name in cameras:
-            mine = [o for o in observations if o.camera == name]
-            _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-                [obj] * len(mine), [o.corners.astype(np.float32) for o in mine], sizes[name], None, None)
-            intr[name] = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.ravel()[:5]])
-            for o, r, t in zip(mine, rvecs, tvecs):
-                view[(name, o.pose)] = _as4(cv2.Rodrigues(r)[0], t)
-    finally:
-        cv2.setNumThreads(threads)
+    for name in cameras:
+        mine = [o for o in observations if o.camera == name]
+        _, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+            [obj] * len(mine), [o.corners.astype(np.float32) for o in mine], sizes[name], None, None)
+        intr[name] = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.ravel()[:5]])
+        for o, r, t in zip(mine, rvecs, tvecs):
+            view[(name, o.pose)] = _as4(cv2.Rodrigues(r)[0], t)
     reference = _groups(cameras, observations)
     ext = {c: np.eye(4) for c in cameras if reference[c] == c}     # camera <- reference
     changed = True

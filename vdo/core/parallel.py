@@ -16,9 +16,9 @@ local worker process dies (killed, out of memory) is tried again in a fresh pool
 times in all; on Dask the scheduler retries lost workers itself and a task it gives up on
 (``KilledWorker``) is a `Failure`.
 
-When the caller stops iterating (an error, Ctrl-C, a time limit), the pool is shut down: queued
-tasks are cancelled and the running ones are awaited (local), or every unfinished task is
-cancelled (Dask). `fn` and the items must be picklable: `fn` a module's top-level function.
+When the caller stops iterating (an error, Ctrl-C, a time limit), the pool is shut down at once:
+queued tasks are cancelled, and a running one is not awaited (its worker leaves when it ends, or
+when this process does), or every unfinished task is cancelled (Dask). `fn` and the items must be picklable: `fn` a module's top-level function.
 
 `blas_threads(n)` runs a block with n OpenBLAS threads, so that small solves are not slowed by
 threads fighting over loaded cores, and so that the block computes the same in every process that
@@ -129,6 +129,7 @@ def _local(fn, items: list, workers: int, threads: int | None):
         pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
                                    mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_local_worker, initargs=(threads,))
+        ended = False
         try:
             futures = {pool.submit(call, fn, items[i]): i for i in pending}
             pending = []
@@ -143,8 +144,9 @@ def _local(fn, items: list, workers: int, threads: int | None):
                         continue
                     result = Failure(f"its worker process died {MAX_ATTEMPTS} times (out of memory?)")
                 yield items[i], result
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            ended = True
+        finally:   # stopped early (Ctrl-C, an error): no wait for the running tasks; each worker
+            pool.shutdown(wait=ended, cancel_futures=True)   # leaves after its task or with us
 
 
 def _dask(fn, items: list, client, threads: int | None, keys: list, name: str):
