@@ -172,3 +172,21 @@ def test_the_docs_command(tmp_path, monkeypatch):
     ratios = [p["ratio"] for p in result["rigs"]["left:right"]["parameters"].values()]
     assert len(ratios) == 24 and min(ratios) > 0
     assert (out / "montecarlo.png").is_file() and (out / "config.toml").is_file()
+
+
+def test_time_limit_is_one_line_and_no_folder(tmp_path, capsys):
+    """`--time-limit` shorter than the session's planning: the first trial does not start, one
+    line says so, exit status 1, nothing written."""
+    import tomli_w
+
+    from vdo.commands.cli import main
+
+    path = tmp_path / "pair.toml"
+    path.write_text(tomli_w.dumps(small_pair().to_dict()))
+    out = tmp_path / "mc"
+    assert main(["calibrate", str(path), "--montecarlo", "5", "--workers", "1", "--time-limit", "0.01",
+                 "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: the Monte Carlo ran past its time limit after 0 of 5 trials (--time-limit "
+                   "0.01 s); nothing written"]
+    assert not out.exists()

@@ -356,7 +356,7 @@ def _calibrate_flags(args) -> None:
                                                     "runs the calibrations in this process")
 
 
-def _calibrate(exp, args) -> None:
+def _calibrate(exp, args) -> int | None:
     from vdo.commands.calibrate import calibrate_experiment, plan_experiment, print_summary
 
     if args.montecarlo is not None:
@@ -365,10 +365,14 @@ def _calibrate(exp, args) -> None:
 
         workers = args.workers or cores()
         env = blas_environment()      # Dask workers compute as this process: the same result
-        with dask_client(args.dask, workers, prefix="vdo-montecarlo-dask-", env=env) as client:
-            summary = montecarlo_experiment(exp, Path(args.out), args.montecarlo, workers=workers,
-                                            client=client, overwrite=args.overwrite,
-                                            time_limit=args.time_limit)
+        try:
+            with dask_client(args.dask, workers, prefix="vdo-montecarlo-dask-", env=env) as client:
+                summary = montecarlo_experiment(exp, Path(args.out), args.montecarlo, workers=workers,
+                                                client=client, overwrite=args.overwrite,
+                                                time_limit=args.time_limit)
+        except TimeoutError as exc:      # --time-limit: one line, no output folder
+            print(f"error: {exc} (--time-limit {args.time_limit:g} s); nothing written", file=sys.stderr)
+            return 1
         if not args.quiet:
             print_montecarlo(summary)
             print(f"wrote {Path(args.out).resolve()}")
