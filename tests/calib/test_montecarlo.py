@@ -190,3 +190,42 @@ def test_time_limit_is_one_line_and_no_folder(tmp_path, capsys):
     assert err == ["error: the Monte Carlo ran past its time limit after 0 of 5 trials (--time-limit "
                    "0.01 s); nothing written"]
     assert not out.exists()
+
+
+def test_nearest_branch_is_the_same_rotation():
+    """A rotation vector near |r| = pi that points away from the true one moves to the other
+    branch: the same rotation (OpenCV's Rodrigues), now beside the truth, and its covariance
+    carried by the branch map's Jacobian (checked by central differences); the intrinsics and
+    translation and a vector on the truth's side are left alone."""
+    import cv2
+
+    from vdo.calib import montecarlo as mc
+    from vdo.calib import propagate as prop
+
+    rng = np.random.default_rng(3)
+    axis = np.array([0.0, -0.68, -0.73]) / np.linalg.norm([0.0, -0.68, -0.73])
+    truth = np.r_[np.zeros(9), np.zeros(9), np.pi * axis, [0.5, 0.0, 0.1]]
+    estimate = truth.copy()
+    estimate[18:21] = -(np.pi - 0.01) * axis + 1e-3 * rng.normal(size=3)     # the other branch
+    A = rng.normal(size=(24, 24))
+    cov = A @ A.T * 1e-6
+    slices = {"a": (slice(0, 9), None), "b": (slice(9, 18), slice(18, 24))}
+    r = prop.Rig(names=("a", "b"), theta=estimate, covariance=cov, slices=slices,
+                 world=(np.eye(3), np.zeros(3)))
+    theta, moved = mc.nearest_branch(r, truth)
+    rot = cv2.Rodrigues
+    assert np.allclose(rot(theta[18:21])[0], rot(estimate[18:21])[0], atol=1e-12)
+    assert np.linalg.norm(theta[18:21] - truth[18:21]) < 0.05
+    assert np.array_equal(np.delete(theta, range(18, 21)), np.delete(estimate, range(18, 21)))
+
+    def branch(v):
+        return v * (1 - 2 * np.pi / np.linalg.norm(v))
+
+    h = 1e-6
+    J = np.stack([(branch(estimate[18:21] + h * e) - branch(estimate[18:21] - h * e)) / (2 * h)
+                  for e in np.eye(3)], axis=1)
+    T = np.eye(24)
+    T[18:21, 18:21] = J
+    assert np.allclose(moved, T @ cov @ T.T, rtol=1e-6, atol=1e-16)
+    same, kept = mc.nearest_branch(prop.Rig(("a", "b"), truth, cov, slices, r.world), truth)
+    assert np.array_equal(same, truth) and np.array_equal(kept, cov)

@@ -101,6 +101,31 @@ def true_theta(r: prop.Rig, cameras) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def nearest_branch(r: prop.Rig, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, covariance) of the rig `r` with each camera's rotation vector on the branch of the
+    true one `truth` (`true_theta`). A rotation by angle a about n is also one by a - 2 pi about
+    n: r and r' = r (1 - 2 pi / |r|) are the same rotation, and near a = pi (a camera turned
+    half round against the reference, as cam3 of experiments/beam_column/three_cameras.toml)
+    calibrations land on either, which is no error. A rotation vector that points away from the
+    true one (r . r_true < 0) moves to the other branch, its covariance with it through the
+    Jacobian dr'/dr = (1 - 2 pi / |r|) I + 2 pi r r^T / |r|^3 (at |r| = pi the reflection
+    -I + 2 n n^T, so the rotation's sigmas keep their size)."""
+    theta, cov = r.theta.copy(), r.covariance.copy()
+    for _, ext in r.slices.values():
+        if ext is None:
+            continue
+        rot = slice(ext.start, ext.start + 3)
+        v = theta[rot]
+        norm = float(np.linalg.norm(v))
+        if norm == 0.0 or float(v @ truth[rot]) >= 0.0:
+            continue
+        T = np.eye(len(theta))
+        T[rot, rot] = (1 - 2 * np.pi / norm) * np.eye(3) + 2 * np.pi * np.outer(v, v) / norm ** 3
+        theta[rot] = v * (1 - 2 * np.pi / norm)
+        cov = T @ cov @ T.T
+    return theta, cov
+
+
 def parameter_names(r: prop.Rig) -> tuple:
     out = []
     for name in r.names:
@@ -204,7 +229,8 @@ def _trials(task: Trials) -> TrialResults:
             r = prop.rig(cal, r_names, cameras)
             cams = [by_name[n] for n in r_names]
             eu, ee = prop.measured_errors(r, r.theta, cams, task.points[r_names], task.motions[r_names])
-            for key, value in (("theta", r.theta), ("covariance", r.covariance),
+            theta, covariance = nearest_branch(r, true_theta(r, cams))
+            for key, value in (("theta", theta), ("covariance", covariance),
                                ("displacement", eu), ("strain", ee)):
                 out[key][r_names].append(value)
             slices[r_names] = r.slices
