@@ -18,7 +18,8 @@ times in all; on Dask the scheduler retries lost workers itself and a task it gi
 
 When the caller stops iterating (an error, Ctrl-C, a time limit), the pool is shut down at once:
 queued tasks are cancelled, and a running one is not awaited (its worker leaves when it ends, or
-when this process does), or every unfinished task is cancelled (Dask). `fn` and the items must be picklable: `fn` a module's top-level function.
+when this process does), or every unfinished task is cancelled (Dask). `fn` and the items must
+be picklable: `fn` a module's top-level function.
 
 `blas_threads(n)` runs a block with n OpenBLAS threads, so that small solves are not slowed by
 threads fighting over loaded cores, and so that the block computes the same in every process that
