@@ -7,7 +7,11 @@ sqrt(NEES), and the 95 % interval of a ratio for the trial count (sample sd over
 sqrt(chi2_{n-1, q} / (n - 1)), q = 0.025, 0.975), of one and (Bonferroni, q = 0.025 / P) of all P
 ratios at once.
 
-Run from the repository root:  python benchmarks/calibration_montecarlo.py [--trials 200]
+With `--workers W` (W >= 2) each rig's trials also run on a local pool of W spawned processes
+(`run(..., workers=W)`, `vdo.core.parallel`) in the same run: the wall times serial and pooled
+(start-up of the pool included) and whether the two results are the same to the last bit.
+
+Run from the repository root:  python benchmarks/calibration_montecarlo.py [--trials 200] [--workers 2]
 """
 
 from __future__ import annotations
@@ -59,6 +63,8 @@ def main() -> None:
     ap.add_argument("--poses", type=int, default=5, help="poses per camera")
     ap.add_argument("--shared", type=int, default=3, help="shared poses per pair")
     ap.add_argument("--rigs", nargs="+", type=int, default=[2, 4])
+    ap.add_argument("--workers", type=int, default=1,
+                    help="also run the trials on a local pool of this many processes (>= 2)")
     args = ap.parse_args()
     import vdo
 
@@ -73,13 +79,23 @@ def main() -> None:
         samples = planned.geometry.samples
         idx = prop.seen_samples(samples, cams, 4)
         rig = tuple(c.name for c in cams)
+        inputs = (cams, planned.session, [rig], {rig: samples.points[idx]},
+                  {rig: prop.test_motion(exp, samples, idx)}, args.trials, 0)
         started = time.perf_counter()
-        res = mc.run(cams, planned.session, [rig], {rig: samples.points[idx]},
-                     {rig: prop.test_motion(exp, samples, idx)}, args.trials, 0, sigma_det=args.sigma)
+        res = mc.run(*inputs, sigma_det=args.sigma)
+        serial = time.perf_counter() - started
         r = res.rigs[0]
         outside = int(np.sum((r.ratio < low) | (r.ratio > high)))
         print(f"\n{n_cam} cameras ({', '.join(rig)}), {len(planned.session.poses)} poses, "
-              f"{len(r.parameters)} parameters, {time.perf_counter() - started:.0f} s")
+              f"{len(r.parameters)} parameters, {serial:.1f} s serial")
+        if args.workers > 1:
+            started = time.perf_counter()
+            pooled = mc.run(*inputs, sigma_det=args.sigma, workers=args.workers).rigs[0]
+            wall = time.perf_counter() - started
+            same = all(np.array_equal(getattr(r, f), getattr(pooled, f)) for f in
+                       ("observed", "predicted", "nees", "displacement_observed", "strain_observed"))
+            print(f"{args.workers} workers: {wall:.1f} s wall (pool start-up included), "
+                  f"{serial / wall:.2f}x the serial run; the same result to the last bit: {same}")
         print(f"{'parameter':18s} {'predicted':>11s} {'observed':>11s} {'ratio':>6s}")
         for name, p, o, q in zip(r.parameters, r.predicted, r.observed, r.ratio):
             flag = "" if low <= q <= high else "  *"

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from vdo.commands import sweep as sw
 from vdo.config.experiment import load, parse
+from vdo.core.parallel import configure_worker, cores
 
 ROOT = Path(__file__).resolve().parent.parent
 BASE = ROOT / "experiments" / "beam_column" / "three_cameras.toml"
@@ -73,17 +74,17 @@ def main():
 
     exp = load(BASE)
     first = parse(points[0].config, BASE)
-    sw._configure_worker(None)
+    configure_worker(None)
     here, here_cpu = [], []
     for _ in range(4):                                   # the first call compiles
         start, cpu = time.perf_counter(), time.process_time()
-        sw._evaluation_summary(first)
+        sw._evaluation(first)
         here.append(time.perf_counter() - start)
         here_cpu.append(time.process_time() - cpu)
     one = statistics.median(here[1:])
     print(f"base experiment       {exp.path.name} ({len(exp.camera_specs)} cameras), "
           f"{args.spacing_mm:g} mm spacing, {len(points)} points")
-    print(f"cpu cores             {sw.cores()}")
+    print(f"cpu cores             {cores()}")
     print(f"one evaluation here   {one:.2f} s warm, {statistics.median(here_cpu[1:]):.2f} CPU s "
           f"(median of 3; first call {here[0]:.1f} s)")
     print(f"{'workers':>7} {'wall s':>7} {'start-up s':>10} {'first pt s':>10} "

@@ -1,4 +1,6 @@
-"""`vdo calibrate CONFIG --out DIR`: the lab's calibration session rendered and calibrated.
+"""`vdo calibrate CONFIG --out DIR`: the lab's calibration session rendered and calibrated
+(`--plan`: how many poses, `plan_experiment`; `--montecarlo N`: N simulated calibrations against
+the covariance each predicts, `montecarlo_experiment`).
 
 Order: the session is built and checked (`vdo.calib.session.plan`: one-line errors before any
 render), the target images rendered (`vdo.calib.images`), exposed with the sensor's noise, the
@@ -222,6 +224,153 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
         plot(p, tmp / "plan.png", f"{exp.name}: calibration session plan")
         (tmp / "plan.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
     return result
+
+
+MC_SAMPLES = 8        # samples per rig whose triangulated displacement and strain the Monte Carlo checks
+
+
+def montecarlo_rigs(exp, planned) -> tuple[dict, list[tuple]]:
+    """The rigs `vdo calibrate --montecarlo` checks: each stereo pair of the session and, with
+    more than two cameras calibrated together, the whole rig; each rig's names start with its
+    group's reference camera (`vdo.calib.propagate.rig`), read from one calibration of the
+    noise-free corners. Returns (rig -> its label, "a:b" or "all"; the rigs)."""
+    from vdo.calib.solve import calibrate, simulate
+
+    cams = list(planned.cameras)
+    names = [c.name for c in cams]
+    obs = simulate(cams, planned.session, 0.0, np.random.default_rng(exp.calibration.seed))
+    reference = calibrate(names, {c.name: (c.width, c.height) for c in cams}, obs,
+                          planned.session.target, 1.0).reference
+    labels = {}
+    for a, b in planned.session.pairs:
+        if reference[a] == reference[b]:
+            labels[(a, b) if reference[a] == a or reference[b] != b else (b, a)] = f"{a}:{b}"
+    group = [n for n in names if reference[n] == reference[names[0]]]
+    if len(group) > 2 and len(group) == len(names):
+        labels[tuple(group)] = "all"
+    return labels, list(labels)
+
+
+def montecarlo_experiment(exp, out, trials: int, workers: int | None = None, client=None,
+                          overwrite: bool = False, time_limit: float | None = None) -> dict:
+    """`vdo calibrate --montecarlo N`: N calibrations of the experiment's planned session
+    (`vdo.calib.session.plan` at full size) from corners simulated with independent
+    N(0, sigma_det^2) noise, sigma_det = [calibration] detection_sigma_px (default
+    `vdo.calib.planner.DEFAULT_SIGMA_DET_PX`), on `workers` local processes or the workers of a
+    Dask `client` (`vdo.calib.montecarlo.run`: the same result wherever it runs). Per rig
+    (`montecarlo_rigs`) the observed scatter over the predicted sigma of every parameter, of the
+    displacement and strain of the test's motion at up to MC_SAMPLES samples seen by the rig, and
+    sqrt(NEES), beside the 95 % interval of one ratio and of all the rig's parameter ratios at
+    once (Bonferroni, `ratio_interval`). The run folder `out`: montecarlo.json, montecarlo.png
+    (the ratios per parameter in the intervals' bands), config.toml. Returns the json dict."""
+    from vdo.calib import montecarlo as mc
+    from vdo.calib import propagate as prop
+    from vdo.calib.planner import DEFAULT_SIGMA_DET_PX
+    from vdo.calib.session import plan
+    from vdo.core.runfolder import check_out, run_folder
+    from vdo.outputs import report
+
+    check_out(out, overwrite)
+    deadline = None if time_limit is None else time.monotonic() + time_limit
+    planned = plan(exp, 1.0)
+    labels, rigs = montecarlo_rigs(exp, planned)
+    if not rigs:
+        from vdo.core.errors import ConfigError
+
+        raise ConfigError(exp.path, "stereo_pair", "no stereo pair is calibrated together (no "
+                                                   "shared pose): raise [calibration] shared_poses")
+    by_name = {c.name: c for c in planned.cameras}
+    samples = planned.geometry.samples
+    points, motions = {}, {}
+    for r in list(rigs):
+        idx = prop.seen_samples(samples, [by_name[n] for n in r], MC_SAMPLES)
+        if len(idx) == 0:
+            log.warning("rig %s sees no region sample in every image: left out", labels[r])
+            rigs.remove(r)
+            continue
+        points[r], motions[r] = samples.points[idx], prop.test_motion(exp, samples, idx)
+    given = exp.calibration.detection_sigma_px
+    sigma = given or DEFAULT_SIGMA_DET_PX
+    log.info("Monte Carlo: %d calibrations of %d poses, corners sigma %g px, rigs %s", trials,
+             len(planned.session.poses), sigma, ", ".join(labels[r] for r in rigs))
+    result = mc.run(list(planned.cameras), planned.session, rigs, points, motions, trials,
+                    exp.calibration.seed, sigma_det=sigma, deadline=deadline, workers=workers,
+                    client=client)
+    one = mc.ratio_interval(trials)
+    summary = {"experiment": exp.name, "config": str(exp.path), "trials": trials,
+               "seed": exp.calibration.seed, "sigma_det_px": sigma,
+               "sigma_det_from": "detection_sigma_px" if given else "default (no detection_sigma_px)",
+               "poses": len(planned.session.poses), "confidence": 0.95, "interval_one_ratio": list(one),
+               "workers": "dask" if client is not None else (workers or 1),
+               "seconds": round(result.seconds, 3), "rigs": {}}
+    for r in result.rigs:
+        every = mc.ratio_interval(trials, len(r.parameters))
+        ratio = r.ratio
+        summary["rigs"][labels[r.names]] = {
+            "cameras": list(r.names),
+            "parameters": {name: {"predicted": p, "observed": o, "ratio": q}
+                           for name, p, o, q in zip(r.parameters, r.predicted, r.observed, ratio)},
+            "ratio_median": float(np.median(ratio)), "ratio_min": float(ratio.min()),
+            "ratio_max": float(ratio.max()),
+            "outside_one_ratio_interval": int(np.sum((ratio < one[0]) | (ratio > one[1]))),
+            "interval_all_ratios": list(every),
+            "all_inside": bool(np.all((ratio >= every[0]) & (ratio <= every[1]))),
+            "sqrt_nees": float(np.sqrt(r.nees)), "displacement_ratio": r.displacement_ratio,
+            "strain_ratio": r.strain_ratio, "samples": int(len(r.strain_predicted))}
+    with run_folder(out, overwrite) as tmp:
+        plot_montecarlo(summary, tmp / "montecarlo.png", f"{exp.name}: {trials} calibrations, "
+                                                         f"corners sigma {sigma:g} px")
+        report.write_config(tmp / "config.toml", exp)
+        (tmp / "montecarlo.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+    return summary
+
+
+def plot_montecarlo(summary: dict, path, title: str) -> None:
+    """montecarlo.png: per rig, each parameter's ratio observed / predicted sigma (dots), then
+    sqrt(NEES), the displacement and the strain ratio (diamonds), in the bands of the 95 %
+    interval of one ratio (dark) and of all the rig's parameter ratios at once (light)."""
+    import matplotlib.pyplot as plt
+
+    rigs = summary["rigs"]
+    one = summary["interval_one_ratio"]
+    widest = max(len(r["parameters"]) for r in rigs.values())
+    fig, axes = plt.subplots(len(rigs), 1, figsize=(max(8.0, 0.22 * widest + 3), 3.2 * len(rigs)),
+                             squeeze=False, constrained_layout=True)
+    for ax, (label, r) in zip(axes[:, 0], rigs.items()):
+        names = list(r["parameters"])
+        ratios = [p["ratio"] for p in r["parameters"].values()]
+        extra = {"sqrt(NEES)": r["sqrt_nees"], "displacement": r["displacement_ratio"],
+                 "strain": r["strain_ratio"]}
+        x = np.arange(len(names))
+        x_extra = len(names) + 1 + np.arange(len(extra))
+        ax.axhspan(*r["interval_all_ratios"], color="C0", alpha=0.12,
+                   label=f"95 % of all {len(names)} ratios at once")
+        ax.axhspan(*one, color="C0", alpha=0.25, label="95 % of one ratio")
+        ax.axhline(1.0, color="k", lw=0.8)
+        ax.plot(x, ratios, "o", color="C3", ms=4, label="parameter")
+        ax.plot(x_extra, list(extra.values()), "D", color="C2", ms=5)
+        ax.set_xticks(list(x) + list(x_extra), names + list(extra), rotation=90, fontsize=7)
+        ax.set_ylabel("observed / predicted sigma")
+        ax.set_title(f"rig {label}", fontsize=9)
+        ax.grid(alpha=0.3, axis="y")
+        ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def print_montecarlo(summary: dict) -> None:
+    """The console lines of `vdo calibrate --montecarlo`: per rig the parameter ratios' median
+    and range, whether all lie in their Bonferroni interval, sqrt(NEES), displacement and strain."""
+    low, high = summary["interval_one_ratio"]
+    print(f"{summary['trials']} calibrations, corners sigma {summary['sigma_det_px']:g} px, "
+          f"{summary['seconds']:.1f} s; 95 % interval of one ratio [{low:.3f}, {high:.3f}]")
+    for label, r in summary["rigs"].items():
+        lo, hi = r["interval_all_ratios"]
+        print(f"rig {label}: {len(r['parameters'])} parameters, ratio median {r['ratio_median']:.3f} "
+              f"({r['ratio_min']:.3f}-{r['ratio_max']:.3f}), all inside [{lo:.3f}, {hi:.3f}]: "
+              f"{'yes' if r['all_inside'] else 'no'}; sqrt(NEES) {r['sqrt_nees']:.3f}, "
+              f"displacement {r['displacement_ratio']:.3f}, strain {r['strain_ratio']:.3f}")
 
 
 def evaluation_plan(exp, geometry):

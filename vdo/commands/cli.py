@@ -108,6 +108,8 @@ def _load(args):
 
         check_cases(spec)                       # the cameras (JAX): still before any render
         return spec
+    if args.command == "calibrate":
+        _calibrate_flags(args)
     exp = _experiment(args.config, getattr(args, "series", None))
     if getattr(args, "cameras", None) is not None:
         names = [c.name for c in exp.camera_specs]
@@ -276,7 +278,7 @@ def _design(exp, args) -> None:
     import shutil
     import tempfile
 
-    from vdo.commands.sweep import connect_dask, cores
+    from vdo.core.parallel import connect_dask, cores
     from vdo.commands.design import curve_line, design
 
     client = cluster = scratch = None
@@ -334,9 +336,47 @@ def _sweep(_, args) -> int:
     return 1 if result["failed"] else 0
 
 
-def _calibrate(exp, args) -> None:
+def _calibrate_flags(args) -> None:
+    """`vdo calibrate`'s flags that go together, checked before the experiment is read."""
+    if args.montecarlo is None:
+        for flag, value in (("--workers", args.workers), ("--dask", args.dask)):
+            if value is not None:
+                raise ConfigError(args.config, flag, "runs the --montecarlo trials: add "
+                                                     "--montecarlo N or drop it")
+        return
+    if args.plan:
+        raise ConfigError(args.config, "--montecarlo", "and --plan are two different runs: give "
+                                                       "one of them")
+    if args.montecarlo < 2:
+        raise ConfigError(args.config, "--montecarlo", f"needs at least 2 calibrations (got "
+                                                       f"{args.montecarlo}): the scatter is a sample "
+                                                       "standard deviation; 50 or more make a check")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(args.config, "--workers", f"must be at least 1 (got {args.workers}); 1 "
+                                                    "runs the calibrations in this process")
+
+
+def _calibrate(exp, args) -> int | None:
     from vdo.commands.calibrate import calibrate_experiment, plan_experiment, print_summary
 
+    if args.montecarlo is not None:
+        from vdo.commands.calibrate import montecarlo_experiment, print_montecarlo
+        from vdo.core.parallel import blas_environment, cores, dask_client
+
+        workers = args.workers or cores()
+        env = blas_environment()      # Dask workers compute as this process: the same result
+        try:
+            with dask_client(args.dask, workers, prefix="vdo-montecarlo-dask-", env=env) as client:
+                summary = montecarlo_experiment(exp, Path(args.out), args.montecarlo, workers=workers,
+                                                client=client, overwrite=args.overwrite,
+                                                time_limit=args.time_limit)
+        except TimeoutError as exc:      # --time-limit: one line, no output folder
+            print(f"error: {exc} (--time-limit {args.time_limit:g} s); nothing written", file=sys.stderr)
+            return 1
+        if not args.quiet:
+            print_montecarlo(summary)
+            print(f"wrote {Path(args.out).resolve()}")
+        return
     if args.plan:
         result = plan_experiment(exp, Path(args.out), overwrite=args.overwrite)
         if not args.quiet:
@@ -373,8 +413,17 @@ def _calibrate_parser(sub) -> None:
     ca.add_argument("--spp", type=int, default=None, help="samples per pixel (default: [render] spp)")
     ca.add_argument("--plan", action="store_true", help="choose the number of poses that reaches "
                                                         "[calibration] target_strain_error (plan.png)")
+    ca.add_argument("--montecarlo", type=int, default=None, metavar="N",
+                    help="N calibrations of simulated corners against the covariance each predicts "
+                         "(montecarlo.json, montecarlo.png)")
+    ca.add_argument("--workers", type=int, default=None,
+                    help="--montecarlo: worker processes (default: one per core; 1: this process)")
+    ca.add_argument("--dask", default=None, metavar="ADDRESS",
+                    help="--montecarlo: on a Dask scheduler's workers, or 'local' for a LocalCluster "
+                         "of --workers processes")
     ca.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
-                    help="stop the renders after this long (no output folder)")
+                    help="stop the renders (or the --montecarlo calibrations) after this long "
+                         "(no output folder)")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -19,7 +19,8 @@ per point, pending ones included) is rewritten atomically after every point; ``f
 at the end; ``runs/KEY/`` holds a point's run folder when the action writes one.
 
 Points run in a local pool of spawned processes (one per core by default) or on a Dask cluster
-(``dask.distributed``); each worker sets itself up once (`_configure_worker`).
+(``dask.distributed``), through `vdo.core.parallel.run_tasks`; each worker sets itself up once
+(`vdo.core.parallel.configure_worker`).
 """
 
 from __future__ import annotations
@@ -31,18 +32,14 @@ import itertools
 import json
 import logging
 import math
-import multiprocessing
 import os
 import re
 import shutil
 import socket
 import textwrap
-import threading
 import time
 import traceback
 from collections import Counter
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -52,6 +49,7 @@ import numpy as np
 from vdo.config.experiment import Experiment, parse, sections
 from vdo.config.reader import Table, read_toml, with_overrides
 from vdo.core.errors import ConfigError
+from vdo.core.parallel import Failure, connect_dask, cores, run_tasks
 from vdo.core.progress import bar as progress_bar
 from vdo.core.tolerances import LIMIT_SLACK
 
@@ -65,7 +63,6 @@ METRICS = (("sigma_p50_um", "σ_max p50 (µm)"), ("sigma_p95_um", "σ_max p95 (�
            ("sigma_max_um", "σ_max max (µm)"), ("seen_1", "area seen by ≥ 1 camera"),
            ("seen_2", "area seen by ≥ 2 cameras"), ("seen_3", "area seen by ≥ 3 cameras"))
 EXPERIMENT_TABLES = ("experiment",) + tuple(s.key for s in sections())
-MAX_ATTEMPTS = 3           # a point whose worker process dies is tried this many times
 
 
 def vdo_version() -> str:
@@ -418,33 +415,6 @@ def check_points(spec: SweepSpec, points: list[Point]) -> None:
 # --------------------------------------------------------------------------------------------
 # One point (runs in a worker)
 # --------------------------------------------------------------------------------------------
-def _configure_worker(threads: int | None) -> None:
-    """Set up a worker process once, before its first point (`vdo.core.configure`): float64 in JAX,
-    the compilation cache, freed memory kept in the heap, and `threads` CPU threads for Dr.Jit
-    (and one for XLA:CPU when `threads` is 1), so that the workers of one machine share its
-    cores instead of each taking all of them."""
-    if threads == 1:
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                                   + " --xla_cpu_multi_thread_eigen=false").strip()
-    from vdo.core.configure import configure
-
-    configure(threads=threads)
-
-
-def _local_worker(threads: int | None) -> None:
-    """Initializer of the local pool's workers: leave when the sweep process is gone (a killed
-    sweep must not leave its workers computing), then `_configure_worker`."""
-    parent = os.getppid()
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True, name="vdo-parent-watch").start()
-    _configure_worker(threads)
-
-
 def _evaluation(exp):
     """`vdo evaluate`'s judged layout (`vdo.outputs.report.EvaluationResult`, summary.json's
     regions and settings) without writing a run folder."""
@@ -514,78 +484,27 @@ def _failure(message: str) -> dict:
 
 
 # --------------------------------------------------------------------------------------------
-# Execution: a local pool of spawned processes, or Dask
+# Execution: a local pool of spawned processes, or Dask (`vdo.core.parallel`)
 # --------------------------------------------------------------------------------------------
-def cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+def _records(results):
+    """(point, record) from `run_tasks`' (point, record or Failure)."""
+    for point, result in results:
+        if isinstance(result, Failure):
+            result = _failure(result.error) | ({"traceback": result.traceback} if result.traceback else {})
+        yield point, result
 
 
 def _run_local(points: list[Point], workers: int, threads: int | None):
-    """Yield (point, record) as points finish in a spawn pool. A point whose worker process
-    dies is tried again in a fresh pool, MAX_ATTEMPTS times in all."""
-    attempts = Counter()
-    pending = list(points)
-    while pending:
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
-                                   mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_local_worker, initargs=(threads,))
-        try:
-            futures = {pool.submit(run_point, p): p for p in pending}
-            pending = []
-            for future in as_completed(futures):
-                point = futures[future]
-                try:
-                    yield point, future.result()
-                except BrokenProcessPool:
-                    attempts[point.key] += 1
-                    if attempts[point.key] >= MAX_ATTEMPTS:
-                        yield point, _failure(f"its worker process died {MAX_ATTEMPTS} times "
-                                           "(out of memory?)")
-                    else:
-                        pending.append(point)
-        finally:
-            pool.shutdown(wait=True, cancel_futures=True)
-
-
-def connect_dask(address: str, workers: int, timeout: float, scratch: Path):
-    """A dask.distributed Client on `address` ("local": a LocalCluster of `workers` spawned
-    processes with one task each); ConfigError when the scheduler cannot be reached."""
-    from distributed import Client, LocalCluster
-
-    if address == "local":
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               dashboard_address=None, local_directory=str(scratch),
-                               silence_logs=logging.ERROR)
-        return Client(cluster), cluster
-    try:
-        return Client(address, timeout=f"{timeout}s"), None
-    except Exception as exc:  # refused, timed out, or something else answering: one line each
-        why = (type(exc).__name__ if isinstance(exc, (OSError, TimeoutError))
-               else f"what answered is not a Dask scheduler: {type(exc).__name__}")
-        raise ConfigError("--dask", "", f"cannot reach the Dask scheduler at {address!r} within "
-                                        f"{timeout:g} s ({why}); check the address "
-                                        "(tcp://HOST:PORT) and that the scheduler runs") from None
+    """Yield (point, record) as points finish in a local pool of spawned processes (a point
+    whose worker process dies is tried again in a fresh pool, `vdo.core.parallel.MAX_ATTEMPTS`
+    times in all)."""
+    yield from _records(run_tasks(run_point, points, workers=workers, threads=threads))
 
 
 def _run_dask(points: list[Point], client, threads: int | None):
     """Yield (point, record) as points finish on the Dask workers."""
-    from distributed import as_completed as dask_completed
-    from distributed.diagnostics.plugin import WorkerPlugin
-
-    class Setup(WorkerPlugin):
-        def setup(self, worker):
-            _configure_worker(threads)
-
-    client.register_plugin(Setup(), name="vdo-sweep-setup")
-    futures = {}
-    for p in points:
-        futures[client.submit(run_point, p, key=f"vdo-point-{p.key}", pure=False)] = p
-    for future in dask_completed(futures):
-        point = futures[future]
-        try:
-            yield point, future.result()
-        except Exception as exc:  # KilledWorker, a worker lost for good: the point failed
-            yield point, _failure(f"Dask: {type(exc).__name__}: {exc}")
+    yield from _records(run_tasks(run_point, points, client=client, threads=threads,
+                                  keys=[f"vdo-point-{p.key}" for p in points], name="vdo-sweep"))
 
 
 # --------------------------------------------------------------------------------------------
