@@ -76,8 +76,12 @@ def calibrate_experiment(exp, out, scale: float | None = None, spp: int | None =
     images = rendered.exposed(exp.sensor, exp.calibration.seed, 0)
     log.info("detecting the target in %d images", len(images))
     observations, missed = detect_all(images, session.target, exp.sensor.max_dn)
+    by_camera: dict = {}
     for name, k in missed:
-        log.warning("camera %s, pose %d: the target was not found in the image; image dropped", name, k)
+        by_camera.setdefault(name, []).append(str(k))
+    for name, poses in by_camera.items():     # one line per camera (summary.json lists them all)
+        log.warning("camera %s: the target was not found in %d image(s), dropped (poses %s)",
+                    name, len(poses), ", ".join(poses))
     names = [c.name for c in rendered.cameras]
     for name in names:
         if sum(o.camera == name for o in observations) < 3:

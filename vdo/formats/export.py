@@ -43,15 +43,17 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
                          assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
     limit = exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
         else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)
-    kept = []
+    kept, dropped = [], []
     for pair in pairs:
         angle = math.acos(float(np.clip(pair.first.optical_axis @ pair.second.optical_axis, -1, 1)))
         if angle <= limit:
             kept.append(pair)
         else:
-            log.info("stereo pair %s:%s not exported: optical axes %.0f deg apart, above the %.0f "
-                     "deg of the pair rule ([analysis] max_pair_angle_deg; --pairs overrides)",
-                     pair.first.name, pair.second.name, math.degrees(angle), math.degrees(limit))
+            dropped.append(f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.0f}")
+    if dropped:       # one line, however many pairs (45 of them on a 10-camera rig)
+        log.info("%d stereo pair(s) not exported: optical axes more than %.0f deg apart "
+                 "([analysis] max_pair_angle_deg; --pairs overrides): %s", len(dropped),
+                 math.degrees(limit), ", ".join(dropped))
     return kept
 
 
