@@ -77,10 +77,9 @@ def main() -> None:
         planned = plan(exp, 1.0)
         cams = list(planned.cameras)
         samples = planned.geometry.samples
-        idx = prop.seen_samples(samples, cams, 4)
+        X, motion = prop.probe(exp, samples, cams, 4)
         rig = tuple(c.name for c in cams)
-        inputs = (cams, planned.session, [rig], {rig: samples.points[idx]},
-                  {rig: prop.test_motion(exp, samples, idx)}, args.trials, 0)
+        inputs = (cams, planned.session, [rig], {rig: X}, {rig: motion}, args.trials, 0)
         started = time.perf_counter()
         res = mc.run(*inputs, sigma_det=args.sigma)
         serial = time.perf_counter() - started

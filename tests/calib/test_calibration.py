@@ -474,10 +474,9 @@ def test_monte_carlo_scatter_matches_covariance():
     planned = plan(exp, 1.0)
     cams = list(planned.cameras)
     samples = planned.geometry.samples
-    idx = prop.seen_samples(samples, cams, 4)
+    X, motion = prop.probe(exp, samples, cams, 4)
     rig = tuple(c.name for c in cams)
-    res = mc.run(cams, planned.session, [rig], {rig: samples.points[idx]},
-                 {rig: prop.test_motion(exp, samples, idx)}, MC_TRIALS, 0, sigma_det=0.1)
+    res = mc.run(cams, planned.session, [rig], {rig: X}, {rig: motion}, MC_TRIALS, 0, sigma_det=0.1)
     r = res.rigs[0]
     low, high = MC_RATIO
     assert low < np.median(r.ratio) < high

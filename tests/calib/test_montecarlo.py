@@ -39,10 +39,9 @@ def pair():
     planned = plan(exp, 1.0)
     cams = list(planned.cameras)
     samples = planned.geometry.samples
-    idx = prop.seen_samples(samples, cams, 4)
+    X, motion = prop.probe(exp, samples, cams, 4)
     rig = tuple(c.name for c in cams)
-    args = (cams, planned.session, [rig], {rig: samples.points[idx]},
-            {rig: prop.test_motion(exp, samples, idx)}, TRIALS, 0)
+    args = (cams, planned.session, [rig], {rig: X}, {rig: motion}, TRIALS, 0)
     return args, mc.run(*args, sigma_det=0.1)
 
 

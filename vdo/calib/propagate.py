@@ -272,6 +272,13 @@ def test_motion(exp, samples, idx: np.ndarray) -> Motion:
                   strain=exp.calibration.strain, gauge=exp.evaluation.patch_size / 2)
 
 
+def probe(exp, samples, cameras, count: int) -> tuple[np.ndarray, Motion]:
+    """Where a rig of `cameras` is checked: up to `count` samples it sees (`seen_samples`) and
+    the test's motion there (`test_motion`): (X (n, 3) m, Motion); n may be 0."""
+    idx = seen_samples(samples, cameras, count)
+    return samples.points[idx], test_motion(exp, samples, idx)
+
+
 @dataclass(frozen=True)
 class SampleErrors:
     """Per sample of the experiment, the calibration-induced 1-sigma errors through the best

@@ -287,12 +287,10 @@ def montecarlo_experiment(exp, out, trials: int, workers: int | None = None, cli
     samples = planned.geometry.samples
     points, motions = {}, {}
     for r in list(rigs):
-        idx = prop.seen_samples(samples, [by_name[n] for n in r], MC_SAMPLES)
-        if len(idx) == 0:
+        points[r], motions[r] = prop.probe(exp, samples, [by_name[n] for n in r], MC_SAMPLES)
+        if len(points[r]) == 0:
             log.warning("rig %s sees no region sample in every image: left out", labels[r])
             rigs.remove(r)
-            continue
-        points[r], motions[r] = samples.points[idx], prop.test_motion(exp, samples, idx)
     given = exp.calibration.detection_sigma_px
     sigma = given or DEFAULT_SIGMA_DET_PX
     log.info("Monte Carlo: %d calibrations of %d poses, corners sigma %g px, rigs %s", trials,
