@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from vdo.dic.correlate import SplineImage, WindowedImage
+from vdo.dic.images import SplineImage, WindowedImage
 from vdo.model import speckle
 from vdo.model.speckle import KEYS
 
