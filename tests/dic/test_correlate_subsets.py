@@ -17,7 +17,8 @@ import test_correlate  # noqa: E402
 from test_correlate import DOT, PATCH, STEREO, TEXEL, U_TRUE, render  # noqa: E402
 
 from vdo.dic import subsets as subsets_module  # noqa: E402
-from vdo.dic.correlate import ImageReference, Patch, Q4, correlate  # noqa: E402
+from vdo.dic.correlate import ImageReference, Q4, correlate  # noqa: E402
+from vdo.dic.patch import Patch  # noqa: E402
 from vdo.dic.subsets import correlate_subsets  # noqa: E402
 from vdo.dic.series import correlate_points, start_guess, start_guesses  # noqa: E402
 from vdo.model.speckle import generate_pattern  # noqa: E402

@@ -12,7 +12,7 @@
 * `TextureSampler`: a speckle pattern array on a patch's face coordinates ξ (metres), mapped as
   `vdo.render` maps it (bilinear between texel centres, periodic).
 
-The lowest module of `vdo.dic`: it imports nothing of the package.
+With `vdo.dic.patch`, the lowest module of `vdo.dic`: it imports nothing of the package.
 """
 
 from __future__ import annotations

@@ -296,7 +296,8 @@ def _pool_chunk(points, tangent_u, tangent_v, patch_size):
 
 
 def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size):
-    from vdo.dic.correlate import ImageReference, Patch, Q4, correlate
+    from vdo.dic.correlate import ImageReference, Q4, correlate
+    from vdo.dic.patch import Patch
 
     half = patch_size / 2
     out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)

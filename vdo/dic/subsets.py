@@ -12,7 +12,8 @@ and the step is the batched scaled eigen pseudo-inverse. The subsets it cannot b
 margin, a corner behind a camera, lens distortion, a sample that left the deformed window) are
 handed to `correlate` itself (`SubsetResult.one_by_one`).
 
-Above `vdo.dic.correlate` (which it calls) and `vdo.dic.images`; used by `vdo.dic.series`.
+Above `vdo.dic.correlate` (which it calls), `vdo.dic.patch` and `vdo.dic.images`; used by
+`vdo.dic.series`.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ from typing import Sequence
 import numpy as np
 
 from vdo.core.tolerances import LIMIT_SLACK
-from vdo.dic.correlate import ImageReference, Patch, Q4, Solver, correlate
+from vdo.dic.correlate import ImageReference, Q4, Solver, correlate
 from vdo.dic.images import SPLINE_ORDER, SplineImage
+from vdo.dic.patch import Patch
 from vdo.model.camera import image_point
 
 log = logging.getLogger(__name__)
@@ -70,7 +72,7 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
 
     The same Gauss–Newton iteration, step for step and point for point, vectorised over the
     points: each camera's integration points are its reference pixel centres on the patch seen
-    by every camera `margin_px` inside its image (`pixel_points`); J = [c_i ∇g_i s_i N, -1, -g_i]
+    by every camera `margin_px` inside its image (`vdo.dic.patch.pixel_points`); J = [c_i ∇g_i s_i N, -1, -g_i]
     with ∇g_i the reference spline's gradient at its pixel centres (the B-spline's derivative
     stencil there), so that per camera M_i = Σ_p j_p j_pᵀ, j = [∇g s ⊗ N, 1, g] (14 × 14), is
     summed once and H = Σ_i D_i M_i D_i, D_i = diag(c_i 1₁₂, -1, -1), at every step; only the
@@ -184,7 +186,7 @@ def _subset_pixels(cam, cameras, geometry, k, margin_px):
     xi[:, :, 1] = np.where(ok, xi[:, :, 1], 0.0)
     ok &= np.all((xi >= 0) & (xi <= size), axis=-1)
     X = origin[:, None, :] + xi[..., :1] * t_u[:, None, :] + xi[..., 1:2] * t_v[:, None, :]
-    # `vdo.dic.correlate._visible` in every camera. Each of its conditions holds on a convex part
+    # `vdo.dic.patch._visible` in every camera. Each of its conditions holds on a convex part
     # of the plane (in front; |cos| >= min_cos is |(X - C)·n| = const >= min_cos |X - C|, a disc;
     # inside the image margin, for a pinhole): where all four corners pass with LIMIT_SLACK to spare, every pixel
     # does. The other subsets go to `correlate` (a pixel centre exactly on the integer margin is
@@ -204,7 +206,7 @@ def _corners(origin, t_u, t_v, size):
 
 
 def _visible_margin(cam, X, normal, margin_px, slack, min_cos: float = 0.05):
-    """`vdo.dic.correlate._visible` for points X (K, M, 3) on planes of normals (K, 3), each
+    """`vdo.dic.patch._visible` for points X (K, M, 3) on planes of normals (K, 3), each
     condition met with `slack` (pixels, cos) to spare."""
     ray = X - np.asarray(cam.position, dtype=float)
     cos = np.abs(np.einsum("kma,ka->km", ray, normal)) / np.sqrt(np.sum(ray * ray, axis=-1))
