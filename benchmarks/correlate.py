@@ -8,7 +8,7 @@ moved by -U: the same images). Points on a full-field grid (--step pixels apart,
 subset: subsets side by side) over the middle of the plate's common view; per point a square
 subset of --subset pixels (a Q4 element: affine and more), both cameras at once
 (`vdo.dic.series.correlate_points`): "batched" solves all points at once
-(`vdo.dic.correlate.correlate_subsets`, --workers threads), "today's" one `correlate` call per
+(`vdo.dic.subsets.correlate_subsets`, --workers threads), "today's" one `correlate` call per
 point (`batched=False`, one process), timed on the first --today points. Reports points/s (wall
 and per CPU-second, the machine being shared), the error against the imposed U and the largest
 difference between the two on the points both solved.

@@ -18,7 +18,7 @@ from test_render import down_camera, light, table  # noqa: E402
 from vdo import scene  # noqa: E402
 from vdo.config import experiment as config  # noqa: E402
 from vdo.core.errors import ConfigError  # noqa: E402
-from vdo.dic.correlate import SplineImage  # noqa: E402
+from vdo.dic.images import SplineImage  # noqa: E402
 from vdo.model.speckle import (gradient_energy_table, g_iso_lookup, normalise,  # noqa: E402
                                pattern_for, pixel_averaged_std)
 from vdo.render import (SpeckleTable, build_dic_scene, build_render_scene, render_camera,  # noqa: E402

@@ -17,8 +17,10 @@ import pytest
 
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
-from vdo.dic.correlate import (AverageReference, Gradient, ImageReference, Patch, PixelIntegration, Q4,
-                           Solver, SplineImage, TextureReference, correlate, integration_points)
+from vdo.dic.correlate import (AverageReference, Gradient, ImageReference, PixelIntegration, Q4, Solver,
+                               TextureReference, correlate)
+from vdo.dic.images import SplineImage
+from vdo.dic.patch import Patch, integration_points
 from vdo.model.speckle import generate_pattern
 
 TEXEL = 25e-6                    # 4 texels per pixel footprint

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from vdo.dic.correlate import SplineImage, WindowedImage
+from vdo.dic.images import SplineImage, WindowedImage
 from vdo.model import speckle
 from vdo.model.speckle import KEYS
 
@@ -87,8 +87,10 @@ def test_keys_subsets_are_the_per_point_solution_and_recover_the_shift():
     from test_correlate import DOT, STEREO, TEXEL, U_TRUE, render
     from test_correlate_subsets import SAME_U_M, SHIFT_TOL_PX, SUBSET, grid, px_error
 
-    from vdo.dic.correlate import ImageReference, Patch, Q4, correlate, correlate_subsets
+    from vdo.dic.correlate import ImageReference, Q4, correlate
+    from vdo.dic.patch import Patch
     from vdo.dic.series import start_guesses
+    from vdo.dic.subsets import correlate_subsets
     from vdo.model.speckle import generate_pattern
 
     cameras = [replace(c, width=240, height=180, focal_length=2 * c.focal_length) for c in STEREO]

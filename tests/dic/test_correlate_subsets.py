@@ -1,4 +1,4 @@
-"""Many subsets at once (`vdo.dic.correlate.correlate_subsets`, `vdo.dic.series.start_guesses`)
+"""Many subsets at once (`vdo.dic.subsets.correlate_subsets`, `vdo.dic.series.start_guesses`)
 against the per-point solver (`correlate`, today's implementation) on the same points and images,
 and against the imposed displacement of images rendered independently (tests/dic/test_correlate's
 little renderer): a translation, an affine field, and a sub-pixel translation of a smooth speckle
@@ -16,8 +16,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_correlate  # noqa: E402
 from test_correlate import DOT, PATCH, STEREO, TEXEL, U_TRUE, render  # noqa: E402
 
-from vdo.dic import correlate as correlate_module  # noqa: E402
-from vdo.dic.correlate import ImageReference, Patch, Q4, correlate, correlate_subsets  # noqa: E402
+from vdo.dic import subsets as subsets_module  # noqa: E402
+from vdo.dic.correlate import ImageReference, Q4, correlate  # noqa: E402
+from vdo.dic.patch import Patch  # noqa: E402
+from vdo.dic.subsets import correlate_subsets  # noqa: E402
 from vdo.dic.series import correlate_points, start_guess, start_guesses  # noqa: E402
 from vdo.model.speckle import generate_pattern  # noqa: E402
 
@@ -69,7 +71,7 @@ def test_batched_subsets_are_the_per_point_solution(pattern, cameras, monkeypatc
     one = np.array([start_guess(cameras, refs, defs, X) for X in points])
     assert px_error(cameras, points, U0, one) < SAME_START_PX
     assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
-    monkeypatch.setattr(correlate_module, "SUBSET_CHUNK", 4)       # several chunks, several threads
+    monkeypatch.setattr(subsets_module, "SUBSET_CHUNK", 4)       # several chunks, several threads
     batched = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0)
     threads = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0, workers=2)
     assert np.array_equal(batched.U, threads.U)

@@ -17,8 +17,8 @@ from test_correlate import STEREO, U_TRUE, render  # noqa: E402
 
 pattern = test_correlate.pattern        # the module's fixture, shared
 
-from vdo.dic import correlate as correlate_module  # noqa: E402
-from vdo.dic.correlate import SplineImage, WindowedImage  # noqa: E402
+from vdo.dic import images as images_module  # noqa: E402
+from vdo.dic.images import SplineImage, WindowedImage  # noqa: E402
 from vdo.dic.series import correlate_points  # noqa: E402
 
 WINDOW_TOL = 1e-9            # gray levels: windowed against whole-image coefficients (|z|^24)
@@ -74,6 +74,6 @@ def test_subset_points_recover_the_shift_serial_pooled_and_as_today(stereo_pair,
     assert max(px) < SHIFT_TOL_PX
     pooled, ok2 = correlate_points(cams, refs, defs, points, tu, tv, size, workers=2, batched=False)
     assert ok2.all() and np.max(np.abs(pooled - U)) < SAME_U_TOL
-    monkeypatch.setattr(correlate_module, "WINDOW_MARGIN_PX", 10 ** 6)     # the whole image: today's
+    monkeypatch.setattr(images_module, "WINDOW_MARGIN_PX", 10 ** 6)     # the whole image: today's
     whole, _ = correlate_points(cams, refs, defs, points, tu, tv, size)
     assert np.max(np.abs(whole - U)) < 1e-9 * np.abs(U_TRUE).max() + SAME_U_TOL

@@ -10,7 +10,7 @@ Fourier domain, exact for the periodic tile), box-averaged over SUB x SUB texels
 given independent Gaussian noise in the reference and the deformed image.
 
 Correlation. Gauss-Newton for a translation on square subsets, the reference read at its pixel
-centres with its spline gradient, the deformed image interpolated by `vdo.dic.correlate.SplineImage`
+centres with its spline gradient, the deformed image interpolated by `vdo.dic.images.SplineImage`
 (the interpolant `vdo.dic.correlate` runs).
 
 Each seed is a new pattern (and new noise). The measured RMS error over seeds, subsets and shifts
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vdo.dic.correlate import SplineImage
+from vdo.dic.images import SplineImage
 from vdo.model.optics import OpticsBlur
 from vdo.model.speckle import INTERPOLANTS, correlation_error, generate_pattern, normalise
 

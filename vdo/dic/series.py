@@ -245,7 +245,7 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
     centre (the mean of its four nodes), starting from `start_guesses`.
 
-    `batched` (default): all points at once (`vdo.dic.correlate.correlate_subsets`, the same
+    `batched` (default): all points at once (`vdo.dic.subsets.correlate_subsets`, the same
     iteration vectorised over the points), shared among `workers` threads. Otherwise one
     `correlate` call per point (the reference implementation), the points shared among `workers`
     processes (spawned: Dr.Jit and JAX do not survive a fork), each given the images once, in
@@ -257,7 +257,7 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0, bool)
     if batched:
-        from vdo.dic.correlate import correlate_subsets
+        from vdo.dic.subsets import correlate_subsets
 
         U0 = start_guesses(cameras, references, deformed, points, workers=workers)
         result = correlate_subsets(cameras, references, deformed, points, tangent_u, tangent_v,
@@ -296,7 +296,8 @@ def _pool_chunk(points, tangent_u, tangent_v, patch_size):
 
 
 def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size):
-    from vdo.dic.correlate import ImageReference, Patch, Q4, correlate
+    from vdo.dic.correlate import ImageReference, Q4, correlate
+    from vdo.dic.patch import Patch
 
     half = patch_size / 2
     out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)

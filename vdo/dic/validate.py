@@ -52,7 +52,8 @@ from vdo.model.pose import look_at_angles
 from vdo.config import validation
 from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec)
 from vdo.config.validation import Case, ValidationSpec
-from vdo.dic.correlate import ImageReference, PixelIntegration, Patch, Q4, Translation, correlate
+from vdo.dic.correlate import ImageReference, PixelIntegration, Q4, Translation, correlate
+from vdo.dic.patch import Patch
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
 from vdo.physics.predict import SpeckleModel
@@ -108,7 +109,7 @@ class Setup:
     case: Case
     experiment: Experiment
     cameras: list
-    patch: object                   # vdo.dic.correlate.Patch
+    patch: object                   # vdo.dic.patch.Patch
     plate: object                   # vdo.scene.SceneMesh
     region: object                  # vdo.scene.RegionFaces
     pattern: np.ndarray
@@ -337,7 +338,7 @@ def noise_free_check(setup: Setup):
 
 def subset_patches(setup: Setup) -> list:
     """The n x n subsets of a subset-DIC case, centred in the patch on a grid of `step`, as
-    `vdo.dic.correlate.Patch`es; index k = j n + i, i along t_u."""
+    `vdo.dic.patch.Patch`es; index k = j n + i, i along t_u."""
     side, step, n = setup.case.subsets
     p = setup.patch
     offsets = (np.arange(n) - (n - 1) / 2) * step + p.size[0] / 2 - side / 2, \
@@ -392,7 +393,7 @@ def _centre_displacement(setup: Setup, results) -> np.ndarray:
     U = results[0].U
     if setup.case.strain is None:
         return U
-    from vdo.dic.correlate import q4_shape_functions
+    from vdo.dic.patch import q4_shape_functions
     nx, ny = setup.case.q4_mesh
     N = q4_shape_functions(setup.patch.size[None] / 2, setup.patch.size, nx, ny)
     return np.asarray(N @ U)[0]

@@ -494,7 +494,7 @@ def pattern_for(spec) -> np.ndarray:
                             spec.strokes, spec.seed)
 
 
-INTERPOLATION_ORDER = 3        # the cubic B-spline of `vdo.dic.correlate.SplineImage`
+INTERPOLATION_ORDER = 3        # the cubic B-spline of `vdo.dic.images.SplineImage`
 TEXEL_IMAGES = 2               # texel-grid images k + m / h, |m| <= this, per axis
 
 

@@ -1,0 +1,345 @@
+"""Many square subsets at once: `correlate_subsets`, the subset (pairs) correlation of a
+full-field grid, and its answer `SubsetResult`.
+
+Subset k is the Q4(1, 1) patch of side `size` centred on points[k], correlated as
+`vdo.dic.correlate.correlate(..., ImageReference(references), model=Q4(1, 1))` correlates it:
+the same modified Gauss–Newton steps (each camera's reference pixel centres on the subset, J from
+the reference spline's gradient there, brightness and contrast per camera solved alongside), here
+vectorised over chunks of SUBSET_CHUNK subsets: the per-camera normal matrices M_i (14 × 14) are
+summed once, only the residual is sampled per step (one `map_coordinates` call per camera on one
+window of B-spline coefficients per image, `vdo.dic.images.SplineImage.around` all the subsets),
+and the step is the batched scaled eigen pseudo-inverse. The subsets it cannot batch (an image's
+margin, a corner behind a camera, lens distortion, a sample that left the deformed window) are
+handed to `correlate` itself (`SubsetResult.one_by_one`).
+
+Above `vdo.dic.correlate` (which it calls), `vdo.dic.patch` and `vdo.dic.images`; used by
+`vdo.dic.series`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from vdo.core.tolerances import LIMIT_SLACK
+from vdo.dic.correlate import ImageReference, Q4, Solver, correlate
+from vdo.dic.images import SPLINE_ORDER, SplineImage
+from vdo.dic.patch import Patch
+from vdo.model.camera import image_point
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SUBSET_CHUNK", "DEFORMED_MARGIN_PX", "SubsetResult", "correlate_subsets"]
+
+
+SUBSET_CHUNK = 64       # subsets solved together: (chunk, pixels, 14) arrays of a few MB
+DEFORMED_MARGIN_PX = 8.0    # the deformed images' splines reach this far beyond the starting
+                            # subsets (`WindowedImage`'s margin); a subset that moves further is
+                            # handed to `correlate`
+
+
+@dataclass(eq=False)
+class SubsetResult:
+    """`correlate_subsets`' answer for P subsets and n cameras: U (P, 4, 3) the Q4(1, 1) node
+    displacements (m, world frame, node order of `Q4`), b, c (P, n) the brightness and contrast,
+    iterations (P,), converged (P,), one_by_one (P,): the subsets solved by `correlate` itself
+    (one that meets an image's margin, a corner behind a camera, a camera with lens distortion,
+    a sample that left the deformed spline's window). `centre` is U at the subset centre, the
+    mean of the four nodes."""
+
+    U: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    one_by_one: np.ndarray
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.U.mean(axis=1)
+
+
+def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequence, points, tangent_u,
+                      tangent_v, size: float, U0=None, *, solver: Solver = Solver(),
+                      order: int = SPLINE_ORDER, margin_px: float = 3.0, workers: int = 1) -> SubsetResult:
+    """Subset k, for every k at once, as `correlate(cameras, deformed, patch_k,
+    ImageReference(references), model=Q4(1, 1), U0=U0[k], solver=solver, order=order)` solves it,
+    with patch_k the square of side `size` (m) centred on points[k] (P, 3) in the plane of
+    (tangent_u[k], tangent_v[k]) (P, 3) each, U0 (P, 3) or (P, 4, 3) (default 0).
+
+    The same Gauss–Newton iteration, step for step and point for point, vectorised over the
+    points: each camera's integration points are its reference pixel centres on the patch seen
+    by every camera `margin_px` inside its image (`vdo.dic.patch.pixel_points`); J = [c_i ∇g_i s_i N, -1, -g_i]
+    with ∇g_i the reference spline's gradient at its pixel centres (the B-spline's derivative
+    stencil there), so that per camera M_i = Σ_p j_p j_pᵀ, j = [∇g s ⊗ N, 1, g] (14 × 14), is
+    summed once and H = Σ_i D_i M_i D_i, D_i = diag(c_i 1₁₂, -1, -1), at every step; only the
+    residual r = f(P_i(X + N U)) - b_i - c_i g_i is sampled per step, one `map_coordinates` call
+    per camera over every active subset's pixels, on the B-spline coefficients of one window per
+    image (`SplineImage.around` all the subsets). The step is `correlate`'s scaled eigen
+    pseudo-inverse (`vdo.dic.correlate._pinv_solve`), batched; a subset stops when max |ΔU| <
+    `solver.tol`, as `correlate` stops.
+    Subsets that `correlate` would treat otherwise (SubsetResult.one_by_one) are solved by it.
+    `workers` threads share the chunks of SUBSET_CHUNK subsets (NumPy and SciPy release the GIL
+    in the heavy calls)."""
+    cameras = list(cameras)
+    nc = len(cameras)
+    if nc == 0 or len(references) != nc or len(deformed) != nc:
+        raise ValueError("correlate_subsets: expected one reference and one deformed image per camera")
+    points, t_u, t_v = (np.asarray(a, dtype=float).reshape(-1, 3) for a in (points, tangent_u, tangent_v))
+    n_pts = len(points)
+    if len(t_u) != n_pts or len(t_v) != n_pts:
+        raise ValueError("correlate_subsets: expected one tangent_u and one tangent_v per point")
+    if not (np.all(np.abs(np.linalg.norm(t_u, axis=1) - 1) <= LIMIT_SLACK)
+            and np.all(np.abs(np.linalg.norm(t_v, axis=1) - 1) <= LIMIT_SLACK)
+            and np.all(np.abs(np.einsum("ka,ka->k", t_u, t_v)) <= LIMIT_SLACK)):
+        raise ValueError("correlate_subsets: every (tangent_u, tangent_v) must be orthonormal")
+    if not size > 0:
+        raise ValueError(f"correlate_subsets: expected a positive subset size, got {size!r}")
+    U0 = np.zeros((n_pts, 3)) if U0 is None else np.asarray(U0, dtype=float)
+    U0 = np.broadcast_to(U0.reshape(n_pts, -1, 3), (n_pts, 4, 3)).copy()
+    half = size / 2
+    origin = points - half * t_u - half * t_v
+    corners = _corners(origin, t_u, t_v, size)
+    refs, defs = [], []
+    for cam, ref, dfm in zip(cameras, references, deformed):
+        ref, dfm = np.asarray(ref, dtype=float), np.asarray(dfm, dtype=float)
+        on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])
+        spline = SplineImage.around(ref, on_image(corners), 1.0, order)
+        refs.append((ref, spline, spline.pixel_gradients()))
+        defs.append(SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order))
+    shape = (n_pts,)
+    out = SubsetResult(U=U0.copy(), b=np.zeros((n_pts, nc)), c=np.zeros((n_pts, nc)),
+                       iterations=np.zeros(shape, int), converged=np.zeros(shape, bool),
+                       one_by_one=np.zeros(shape, bool))
+    chunks = [np.arange(k, min(k + SUBSET_CHUNK, n_pts)) for k in range(0, n_pts, SUBSET_CHUNK)]
+    geometry = (origin, t_u, t_v, size)
+
+    def run(k):
+        _solve_subsets(cameras, refs, defs, geometry, k, U0[k], solver, margin_px, out)
+        return len(k)
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vdo.core.progress import bar as progress_bar
+
+    bar = progress_bar(log, total=n_pts, desc="subsets", unit="subset")
+    pool = ThreadPoolExecutor(min(int(workers), len(chunks))) if workers > 1 and len(chunks) > 1 else None
+    try:
+        for done in (pool.map(run, chunks) if pool else map(run, chunks)):
+            bar.update(done)
+    finally:               # Ctrl-C: the chunks not started are dropped, the running ones end
+        if pool:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+    for k in np.flatnonzero(out.one_by_one):
+        patch = Patch(origin=origin[k], t_u=t_u[k], t_v=t_v[k], size=(size, size))
+        res = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
+                        U0=U0[k], solver=solver, order=order)
+        out.U[k], out.b[k], out.c[k] = res.U, res.b, res.c
+        out.iterations[k], out.converged[k] = res.iterations, res.converged
+    return out
+
+
+def _subset_pixels(cam, cameras, geometry, k, margin_px):
+    """`pixel_points` of camera `cam` for the subsets k at once, on each subset's box of pixels
+    (the bounding box of its corners' projections, +1 px, as `pixel_points` scans it), padded to
+    the largest box: pixel (u, v) (K, M, 2) int, weight (K, M) (1 for a pixel of `pixel_points`,
+    0 otherwise), X (K, M, 3) and ξ (K, M, 2) where its ray meets the subset's plane; and (K,)
+    the subsets left to `correlate` (a corner behind the camera, where `pixel_points` scans the
+    whole image, or fewer than 4 pixels, where it raises; one that meets an image's margin; a
+    camera with lens distortion)."""
+    origin, t_u, t_v, size = *(a[k] for a in geometry[:3]), geometry[3]
+    normal = np.cross(t_u, t_v)
+    corners = _corners(origin, t_u, t_v, size)
+    cam_xyz = corners @ cam.R.T + cam.t
+    behind = ~np.all(cam_xyz[..., 2] > 0, axis=1)
+    px = cam_xyz @ cam.K.T
+    px = px[..., :2] / np.where(behind[:, None, None], 1.0, px[..., 2:])
+    lo = np.maximum(np.floor(px.min(axis=1)) - 1, 0)
+    hi = np.minimum(np.ceil(px.max(axis=1)) + 1, [cam.width - 1, cam.height - 1])
+    lo = np.where(behind[:, None], 0, lo)
+    hi = np.where(behind[:, None], lo, hi)
+    n_u, n_v = np.maximum((hi - lo + 1).max(axis=0), 1).astype(int)
+    du, dv = np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="xy")
+    u = np.minimum(lo[:, None, 0] + du.ravel()[None], cam.width - 1)
+    v = np.minimum(lo[:, None, 1] + dv.ravel()[None], cam.height - 1)
+    ok = (lo[:, None, 0] + du.ravel()[None] <= hi[:, None, 0]) \
+        & (lo[:, None, 1] + dv.ravel()[None] <= hi[:, None, 1])
+    # The ray of pixel q = (u, v, 1) is C + λ d, d = Rᵀ K⁻¹ q; on the plane (X - o)·n = 0:
+    # λ = (o - C)·n / d·n, and ξ_a = (C - o)·t_a + λ d·t_a, each d·t linear in (u, v).
+    Kinv_R = np.linalg.inv(cam.K).T @ cam.R                       # q Kinv_R = dᵀ
+    C = np.asarray(cam.position, dtype=float)
+    rows = np.stack([t_u, t_v, normal], 1) @ Kinv_R.T             # (K, 3, 3): d·t_u, d·t_v, d·n per q
+    lin = lambda r: r[:, 0:1] * u + r[:, 1:2] * v + r[:, 2:3]
+    dn = lin(rows[:, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = np.einsum("ka,ka->k", origin - C, normal)[:, None] / dn
+    ok &= np.isfinite(lam) & (lam > 0)
+    lam = np.where(ok, lam, 0.0)
+    co = C - origin
+    xi = np.stack([np.einsum("ka,ka->k", co, t_u)[:, None] + lam * lin(rows[:, 0]),
+                   np.einsum("ka,ka->k", co, t_v)[:, None] + lam * lin(rows[:, 1])], -1)
+    xi[:, :, 0] = np.where(ok, xi[:, :, 0], 0.0)
+    xi[:, :, 1] = np.where(ok, xi[:, :, 1], 0.0)
+    ok &= np.all((xi >= 0) & (xi <= size), axis=-1)
+    X = origin[:, None, :] + xi[..., :1] * t_u[:, None, :] + xi[..., 1:2] * t_v[:, None, :]
+    # `vdo.dic.patch._visible` in every camera. Each of its conditions holds on a convex part
+    # of the plane (in front; |cos| >= min_cos is |(X - C)·n| = const >= min_cos |X - C|, a disc;
+    # inside the image margin, for a pinhole): where all four corners pass with LIMIT_SLACK to spare, every pixel
+    # does. The other subsets go to `correlate` (a pixel centre exactly on the integer margin is
+    # in or out by the rounding of `pixel_points`' own arithmetic).
+    edge = np.zeros(len(k), bool)
+    for other in cameras:
+        edge |= ~_visible_margin(other, corners, normal, margin_px, LIMIT_SLACK).all(axis=1)
+        edge |= other.distortion_array is not None
+    count = ok.sum(axis=1)
+    return np.stack([u, v], -1).astype(np.int64), ok.astype(float), X, xi, behind | edge | (count < 4)
+
+
+def _corners(origin, t_u, t_v, size):
+    """The corners (K, 4, 3) of the squares origin + [0, size]² in (t_u, t_v), in Q4 node order."""
+    return origin[:, None, :] + np.array([0.0, size, 0.0, size])[None, :, None] * t_u[:, None, :] \
+        + np.array([0.0, 0.0, size, size])[None, :, None] * t_v[:, None, :]
+
+
+def _visible_margin(cam, X, normal, margin_px, slack, min_cos: float = 0.05):
+    """`vdo.dic.patch._visible` for points X (K, M, 3) on planes of normals (K, 3), each
+    condition met with `slack` (pixels, cos) to spare."""
+    ray = X - np.asarray(cam.position, dtype=float)
+    cos = np.abs(np.einsum("kma,ka->km", ray, normal)) / np.sqrt(np.sum(ray * ray, axis=-1))
+    pc = X @ cam.R.T + cam.t
+    x, y = image_point(cam.K, pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2], cam.distortion_array)
+    m = margin_px + slack
+    return ((pc[..., 2] > 0) & (cos >= min_cos + slack) & (x >= m) & (x <= cam.width - 1 - m)
+            & (y >= m) & (y <= cam.height - 1 - m))
+
+
+def _image_gradient_sensitivity(cam, X, grad):
+    """∇f · s (K, M, 3) with s = ∂x/∂X (`Camera.sensitivity`) at X (K, M, 3) for a pinhole:
+    s = ∂x/∂p R, ∂u/∂p = [f_x, s, -(f_x x + s y)/z] / z, ∂v/∂p = [0, f_y, -f_y y / z] / z (p = (x, y, z)
+    the camera-frame point)."""
+    pc = X @ cam.R.T + cam.t
+    fx, sk, fy = cam.K[0, 0], cam.K[0, 1], cam.K[1, 1]
+    zi = 1.0 / pc[..., 2]
+    a = grad[..., 0] * fx * zi
+    b = (grad[..., 0] * sk + grad[..., 1] * fy) * zi
+    c = -(a * pc[..., 0] + b * pc[..., 1]) * zi
+    return np.stack([a, b, c], -1) @ cam.R
+
+
+def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out):
+    """`correlate_subsets` on the subsets k: writes out.U[k], b, c, iterations, converged,
+    one_by_one."""
+    nu, ndof = 12, 12 + 2 * len(cameras)
+    size = geometry[3]
+    cams = []
+    one_by_one = np.zeros(len(k), bool)
+    for cam, (ref, rspline, grads), dspline in zip(cameras, refs, defs):
+        uv, w, X, xi, odd = _subset_pixels(cam, cameras, geometry, k, margin_px)
+        one_by_one |= odd | ~rspline.covers_each(uv[..., 0], uv[..., 1], w)     # (the window is built around them)
+        a, b = xi[..., 0] / size, xi[..., 1] / size
+        N = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], -1)      # Q4(1, 1)
+        g = ref[uv[..., 1], uv[..., 0]]
+        cu, cv = uv[..., 0] - int(rspline.origin[0]), uv[..., 1] - int(rspline.origin[1])
+        G0 = _image_gradient_sensitivity(cam, X, np.stack([grads[0][cv, cu], grads[1][cv, cu]], -1))
+        # M = Σ (w j)(w j)ᵀ (w = 0 or 1), by blocks: w j = [w N ⊗ ∇g s, w, w g]
+        ju = ((N * w[..., None])[..., :, None] * G0[..., None, :]).reshape(g.shape + (nu,))
+        jbc = np.stack([w, w * g], -1)
+        M = np.empty((len(k), nu + 2, nu + 2))
+        M[:, :nu, :nu] = np.matmul(np.swapaxes(ju, 1, 2), ju)
+        M[:, :nu, nu:] = np.matmul(np.swapaxes(ju, 1, 2), jbc)
+        M[:, nu:, :nu] = np.swapaxes(M[:, :nu, nu:], 1, 2)
+        M[:, nu:, nu:] = np.matmul(np.swapaxes(jbc, 1, 2), jbc)
+        cams.append(dict(cam=cam, spline=dspline, w=w, on=w > 0, Xc=X @ cam.R.T + cam.t, N=N,
+                         Nt=np.ascontiguousarray(np.swapaxes(N, 1, 2)), g=g, G0=G0, M=M))
+
+    p = np.zeros((len(k), ndof))
+    p[:, :nu] = U0.reshape(len(k), nu)
+    act = np.flatnonzero(~one_by_one)
+
+    corners_c = [_corners(*(g[k] for g in geometry[:3]), size) @ c["cam"].R.T + c["cam"].t for c in cams]
+
+    def sample(idx, pick):
+        """Per camera f at R (X + N U) + t, the camera-frame position of every pixel of the
+        subsets idx; and (len(idx),) whether all of them lie where the deformed spline is the
+        whole image's: where the four displaced corners do (the pixels' N are convex weights, so
+        their positions lie in the corners' hull, and so do their pinhole images)."""
+        fs, inside = [], np.ones(len(idx), bool)
+        Un = p[idx, :nu].reshape(-1, 4, 3)
+        for c, corner in zip(cams, corners_c):
+            cam, sp = c["cam"], c["spline"]
+            URt = Un @ cam.R.T
+            pc = pick(c["Xc"]) + np.matmul(pick(c["N"]), URt)
+            u, v = image_point(cam.K, pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2])   # a pinhole
+            q = pick(corner) + URt
+            inside &= sp.covers_each(*image_point(cam.K, q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]))
+            on = pick(c["on"])                        # the pixels (not the box's padding)
+            f = np.zeros(u.shape)
+            f[on] = sp.sample_local(v[on] - sp.origin[1], u[on] - sp.origin[0])
+            fs.append(f)
+        return fs, inside
+
+    def picker(idx):
+        return (lambda a: a) if len(idx) == len(k) else (lambda a: a[idx])
+
+    # Initial b, c: least squares of f on [1, g] at U0 (`correlate`'s lstsq, normal equations).
+    # The first step samples f at the same U: these values serve it too.
+    pick = picker(act)
+    fs, inside = sample(act, pick)
+    for i, c in enumerate(cams):
+        w, g = pick(c["w"]), pick(c["g"])
+        rhs = np.stack([np.sum(w * fs[i], 1), np.sum(w * g * fs[i], 1)], -1)
+        p[act, nu + 2 * i: nu + 2 * i + 2] = np.linalg.solve(pick(c["M"])[:, 12:, 12:], rhs[..., None])[..., 0]
+    one_by_one[act[~inside]] = True
+    act, fs, inside = act[inside], [f[inside] for f in fs], inside[inside]
+
+    iterations = np.full(len(k), solver.max_iter)
+    converged = np.zeros(len(k), bool)
+    for it in range(1, solver.max_iter + 1):
+        if not len(act):
+            break
+        pick = picker(act)
+        if it > 1:
+            fs, inside = sample(act, pick)
+        H = np.zeros((len(act), ndof, ndof))
+        rhs = np.zeros((len(act), ndof))
+        for i, c in enumerate(cams):
+            ib = nu + 2 * i
+            b, cc = p[act, ib], p[act, ib + 1]
+            g = pick(c["g"])
+            rw = (fs[i] - b[:, None] - cc[:, None] * g) * pick(c["w"])
+            s = np.concatenate([np.matmul(pick(c["Nt"]), rw[..., None] * pick(c["G0"])).reshape(-1, nu),
+                                rw.sum(1)[:, None], np.sum(rw * g, 1)[:, None]], 1)
+            D = np.concatenate([np.repeat(cc[:, None], nu, 1), -np.ones((len(act), 2))], 1)
+            sel = np.r_[0:nu, ib, ib + 1]
+            H[:, sel[:, None], sel[None, :]] += D[:, :, None] * pick(c["M"]) * D[:, None, :]
+            rhs[:, sel] -= D * s
+        dp = _pinv_solve_many(H, rhs, solver.rcond, nu)
+        p[act] += dp
+        done = np.max(np.abs(dp[:, :nu]), axis=1) < solver.tol
+        converged[act[done]] = True
+        iterations[act[done]] = it
+        one_by_one[act[~inside]] = True      # a sample outside the window: `correlate` redoes it
+        act = act[~done & inside]
+
+    out.U[k] = p[:, :nu].reshape(-1, 4, 3)
+    out.b[k], out.c[k] = p[:, nu::2], p[:, nu + 1::2]
+    out.iterations[k], out.converged[k], out.one_by_one[k] = iterations, converged, one_by_one
+
+
+def _pinv_solve_many(H, rhs, rcond, nu):
+    """`vdo.dic.correlate._pinv_solve`(H_k) @ rhs_k for a stack H (K, n, n), rhs (K, n): the same
+    scaling (one scale for the U dofs, Jacobi for the rest) and the same dropped eigen-directions."""
+    diag = np.clip(np.diagonal(H, axis1=1, axis2=2), 0, None)
+    d = np.sqrt(diag)
+    d[:, :nu] = np.sqrt(diag[:, :nu].mean(axis=1))[:, None]
+    d = np.where(d > 0, d, 1.0)
+    Hs = H / d[:, :, None] / d[:, None, :]
+    lam, V = np.linalg.eigh(0.5 * (Hs + np.swapaxes(Hs, 1, 2)))
+    keep = lam > rcond * lam.max(axis=1, keepdims=True)
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    y = np.einsum("kji,kj->ki", V, rhs / d) * inv
+    return np.einsum("kij,kj->ki", V, y) / d
