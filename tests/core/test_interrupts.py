@@ -20,6 +20,8 @@ from vdo.core.interrupts import GRACE_S
 
 ROOT = Path(__file__).resolve().parents[2]
 PROMPT_S = GRACE_S + 1.5   # the watchdog's grace plus the process's own exit
+SETTLE_S = 0.2             # stderr quiet this long before the signal ...
+SETTLE_MAX_S = 1.0         # ... or this long at most (progress lines may keep coming)
 
 
 class Run:
@@ -48,7 +50,19 @@ class Run:
             assert time.monotonic() < end, "marker never came"
             time.sleep(0.01)
 
+    def settle(self):
+        """Let the reader catch up with what the command already wrote: wait until stderr has
+        been quiet for SETTLE_S (at most SETTLE_MAX_S). On a loaded machine the lines logged just
+        before the marker could otherwise be read after the signal and count as said after it."""
+        end = time.monotonic() + SETTLE_MAX_S
+        seen, quiet_since = len(self.err), time.monotonic()
+        while time.monotonic() < end and time.monotonic() - quiet_since < SETTLE_S:
+            time.sleep(0.01)
+            if len(self.err) != seen:
+                seen, quiet_since = len(self.err), time.monotonic()
+
     def signal_and_wait(self, signum):
+        self.settle()
         self.err_before_signal = len(self.err)   # what the command logged before (vdo.commands.cli)
         self.proc.send_signal(signum)
         sent = time.monotonic()
@@ -111,7 +125,7 @@ def test_signal_mid_computation(plate, tmp_path, signum):
     parent = tmp_path / "runs"
     parent.mkdir()
     run = Run("evaluate", plate, "--out", parent / "out")
-    run.wait_for(lambda: any("samples on" in line for line in run.lines + run.err))
+    run.wait_for(lambda: any("samples on" in line for line in run.err))
     check_interrupted(run, signum, run.signal_and_wait(signum), parent)
 
 
