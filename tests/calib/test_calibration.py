@@ -545,3 +545,55 @@ def test_vdo_calibrate_plan(tmp_path, capsys, monkeypatch):
     reached = [n for n, e in zip(result["poses_per_camera"], sigma) if e <= target]
     assert chosen == (reached[0] if reached else None)
     assert (out / "plan.png").is_file() and "poses per camera" in capsys.readouterr().out
+
+
+def _in_lab_frame(path: Path, Rg: np.ndarray, tg_mm: np.ndarray) -> None:
+    """Rewrite a vdo OpenCV camera file (R, t: CAD frame -> camera, t in mm) as a lab would
+    have it in its own frame X_lab = Rg X_cad + tg: R_lab = R Rg^T, t_lab = t - R Rg^T tg
+    (read and written with OpenCV's FileStorage alone)."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    nodes = {}
+    for key in fs.root().keys():
+        node = fs.getNode(key)
+        nodes[key] = node.string() if node.isString() else \
+            (node.real() if node.isReal() or node.isInt() else node.mat())
+    fs.release()
+    R_lab = nodes["R"] @ Rg.T
+    nodes["t"] = nodes["t"] - (R_lab @ tg_mm)[:, None]
+    nodes["R"] = R_lab
+    out = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for key, value in nodes.items():
+        out.write(key, int(value) if key.startswith("image_") else value)
+    out.release()
+
+
+def test_a_lab_frame_is_placed_by_its_anchor_camera(tmp_path, capsys):
+    """`--calibration-anchor`: OpenCV files in a lab's own frame (a rigid motion away from the
+    CAD frame) import at the CAD poses within ROUND_TRIP_PX once one camera anchors the frame;
+    without the anchor they stand elsewhere. An anchor that names no camera is one line."""
+    import cv2
+
+    from vdo.calib.importer import with_imported
+    from vdo.commands.cli import main
+    from vdo.formats.export import FORMATS as WRITERS
+
+    exp = load(HOLED)
+    cams = cameras_of(exp)
+    written = WRITERS["opencv"](cams, [], tmp_path, exp.path)
+    files = [p for p in written if not p.name.startswith("stereo_")]
+    Rg = cv2.Rodrigues(np.array([0.3, -0.2, 1.1]))[0]
+    for p in files:
+        _in_lab_frame(p, Rg, np.array([120.0, -40.0, 900.0]))
+    X = np.random.default_rng(1).uniform([-0.1, -0.1, -0.02], [0.1, 0.1, 0.02], (200, 3))
+    placed = cameras_of(with_imported(exp, files, anchor=cams[1].name))
+    loose = cameras_of(with_imported(exp, files))
+    for mine, theirs, off in zip(placed, cams, loose):
+        assert np.abs(mine.project(X) - theirs.project(X)).max() < ROUND_TRIP_PX
+        assert np.linalg.norm(off.position - theirs.position) > 0.1
+    assert main(["evaluate", str(HOLED), "--out", str(tmp_path / "x"), "--calibration",
+                 *map(str, files), "--calibration-anchor", "nobody"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--calibration-anchor" in err[0] and "nobody" in err[0]
+    assert not (tmp_path / "x").exists()

@@ -227,16 +227,40 @@ def import_cameras(path, fmt: str, cameras, frame: np.ndarray | None = None) -> 
     return out
 
 
-def with_imported(exp, paths):
+def anchor_frame(paths, bases: dict, anchor: str) -> np.ndarray:
+    """The calibration frame placed so that camera `anchor` stands at its CAD pose: with the
+    file's R_cal, t_cal (calibration frame -> camera) and the experiment's R_cad, t_cad, the
+    frame X_cad = R_f X_cal + t_f has R_f = R_cad^T R_cal and t_f = R_cad^T (t_cal - t_cad)
+    (then R_cad X_cad + t_cad = R_cal X_cal + t_cal for every point). One line naming
+    --calibration-anchor when no file holds that camera."""
+    if anchor not in bases:
+        raise ConfigError("--calibration-anchor", "", f"no camera of the experiment is named "
+                                                      f"{anchor!r}: give one of {', '.join(bases)}")
+    for p in paths:
+        for cam in import_cameras(Path(p), format_of(Path(p)), bases.values()):
+            if cam.name == anchor:
+                cad = bases[anchor]
+                frame = np.eye(4)
+                frame[:3, :3] = cad.R.T @ cam.R
+                frame[:3, 3] = cad.R.T @ (cam.t - cad.t)
+                return frame
+    raise ConfigError("--calibration-anchor", "", f"camera {anchor!r} is in none of the "
+                                                  "calibration files: name a camera they hold")
+
+
+def with_imported(exp, paths, anchor: str | None = None):
     """The experiment `exp` with its cameras replaced by those of the calibration files `paths`
-    (module docstring); the specs keep everything but the lens and pose (body, aperture, focus)."""
+    (module docstring); the specs keep everything but the lens and pose (body, aperture, focus).
+    `anchor`: a camera's name; the files' common frame is placed so that this camera stands at
+    its CAD pose (`anchor_frame`: a lab's calibration in its own frame, e.g. its first camera's)."""
     bases = {c.name: c for c in cameras_of(exp)}
     specs = {s.name: s for s in exp.camera_specs}
+    common = None if anchor is None else anchor_frame(paths, bases, anchor)
     for p in paths:
         path = Path(p)
         fmt = format_of(path)
-        frame = None
-        if fmt == "matchid":
+        frame = common
+        if fmt == "matchid" and common is None:
             first = path.stem.split("_", 1)[0]
             if first in bases:
                 frame = np.eye(4)

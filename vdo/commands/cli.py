@@ -123,7 +123,10 @@ def _load(args):
                                                         "renders every camera (drop one of them)")
     if getattr(args, "calibration", None):
         from vdo.calib.importer import with_imported
-        exp = with_imported(exp, args.calibration)
+        exp = with_imported(exp, args.calibration, getattr(args, "calibration_anchor", None))
+    elif getattr(args, "calibration_anchor", None):
+        raise ConfigError(args.config, "--calibration-anchor", "places --calibration's files: "
+                                                               "add --calibration FILE ...")
     return exp
 
 
@@ -435,6 +438,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="a lab's calibration files (OpenCV .yml, MatchID .caldat, DICe or VIC-3D "
                          ".xml): their cameras replace the experiment's of the same names "
                          "(docs/calibration.md)")
+    ev.add_argument("--calibration-anchor", default=None, metavar="CAMERA",
+                    help="the calibration files share a frame of their own (a lab's, e.g. its "
+                         "first camera's): place it so that CAMERA stands at its pose in the "
+                         "experiment file (default: the files' frame is the CAD frame)")
     rd = _command(sub, "render", "photo-realistic noisy images of every camera", "experiment TOML file")
     rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
