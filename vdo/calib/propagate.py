@@ -272,6 +272,12 @@ def test_motion(exp, samples, idx: np.ndarray) -> Motion:
                   strain=exp.calibration.strain, gauge=exp.evaluation.patch_size / 2)
 
 
+def reference_first(reference: dict, a: str, b: str) -> tuple[str, str]:
+    """The pair (a, b) in `rig`'s order: the group's reference camera first when it is one of
+    the two (`reference` camera -> its group's reference, `Calibration.reference`)."""
+    return (a, b) if reference[a] == a or reference[b] != b else (b, a)
+
+
 def probe(exp, samples, cameras, count: int) -> tuple[np.ndarray, Motion]:
     """Where a rig of `cameras` is checked: up to `count` samples it sees (`seen_samples`) and
     the test's motion there (`test_motion`): (X (n, 3) m, Motion); n may be 0."""
@@ -310,7 +316,7 @@ def sample_errors(cal: Calibration, exp, cameras, samples, visible: np.ndarray, 
                      disable=len(pairs) < 2):
         if cal.reference[a] != cal.reference[b]:
             continue
-        names = (a, b) if cal.reference[a] == a or cal.reference[b] != b else (b, a)
+        names = reference_first(cal.reference, a, b)
         idx = np.flatnonzero(visible[index[a]] & visible[index[b]])
         used.append((a, b))
         if len(idx) == 0:

@@ -238,6 +238,7 @@ def montecarlo_rigs(exp, planned) -> tuple[dict, list[tuple]]:
     more than two cameras calibrated together, the whole rig; each rig's names start with its
     group's reference camera (`vdo.calib.propagate.rig`), read from one calibration of the
     noise-free corners. Returns (rig -> its label, "a:b" or "all"; the rigs)."""
+    from vdo.calib import propagate as prop
     from vdo.calib.solve import calibrate, simulate
 
     cams = list(planned.cameras)
@@ -248,7 +249,7 @@ def montecarlo_rigs(exp, planned) -> tuple[dict, list[tuple]]:
     labels = {}
     for a, b in planned.session.pairs:
         if reference[a] == reference[b]:
-            labels[(a, b) if reference[a] == a or reference[b] != b else (b, a)] = f"{a}:{b}"
+            labels[prop.reference_first(reference, a, b)] = f"{a}:{b}"
     group = [n for n in names if reference[n] == reference[names[0]]]
     if len(group) > 2 and len(group) == len(names):
         labels[tuple(group)] = "all"

@@ -278,28 +278,16 @@ def _speckle(exp, args) -> None:
 
 
 def _design(exp, args) -> None:
-    import shutil
-    import tempfile
-
-    from vdo.core.parallel import connect_dask, cores
+    from vdo.core.parallel import cores, dask_client
     from vdo.commands.design import curve_line, design
 
-    client = cluster = scratch = None
     workers = args.workers or cores()
-    if args.dask:     # the candidates judged on Dask workers (spawned processes for "local")
-        scratch = Path(tempfile.mkdtemp(prefix="vdo-design-dask-"))
-        client, cluster = connect_dask(args.dask, workers, 30.0, scratch)
-    try:
+    # the candidates judged on Dask workers (spawned processes for "local")
+    with dask_client(args.dask, workers, 30.0, prefix="vdo-design-dask-") as client:
         result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
                         memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
                         time_limit=args.time_limit, client=client,
                         threads=max(1, cores() // workers) if args.dask == "local" else None)
-    finally:
-        for c in (client, cluster):
-            if c is not None:
-                c.close()
-        if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
     if not args.quiet:
         for c in result.curve:
             print(curve_line(c, exp.optimize.regions or [r.name for r in exp.regions]))
