@@ -228,3 +228,18 @@ def test_nearest_branch_is_the_same_rotation():
     assert np.allclose(moved, T @ cov @ T.T, rtol=1e-6, atol=1e-16)
     same, kept = mc.nearest_branch(prop.Rig(("a", "b"), truth, cov, slices, r.world), truth)
     assert np.array_equal(same, truth) and np.array_equal(kept, cov)
+
+
+def test_a_session_whose_rigs_see_no_sample_is_one_line(tmp_path, capsys, monkeypatch):
+    """The pressure vessel seen all round: its only rig calibrated together (all six cameras)
+    has no region sample in every image. One line naming the file and the fix, no folder
+    (it used to end in a traceback while drawing an empty figure)."""
+    from vdo.commands.cli import main
+
+    monkeypatch.setenv("VDO_SET", "calibration.poses_per_camera = 6; calibration.shared_poses = 3")
+    path = Path(__file__).resolve().parents[2] / "experiments" / "pressure_vessel" / "all_round.toml"
+    out = tmp_path / "mc"
+    assert main(["calibrate", str(path), "--montecarlo", "5", "--workers", "1", "--out", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line.lower()]
+    assert len(err) == 1 and "all_round.toml" in err[0] and "stereo_pair" in err[0]
+    assert not out.exists()

@@ -278,10 +278,10 @@ def montecarlo_experiment(exp, out, trials: int, workers: int | None = None, cli
     check_out(out, overwrite)
     deadline = None if time_limit is None else time.monotonic() + time_limit
     planned = plan(exp, 1.0)
+    from vdo.core.errors import ConfigError
+
     labels, rigs = montecarlo_rigs(exp, planned)
     if not rigs:
-        from vdo.core.errors import ConfigError
-
         raise ConfigError(exp.path, "stereo_pair", "no stereo pair is calibrated together (no "
                                                    "shared pose): raise [calibration] shared_poses")
     by_name = {c.name: c for c in planned.cameras}
@@ -292,6 +292,10 @@ def montecarlo_experiment(exp, out, trials: int, workers: int | None = None, cli
         if len(points[r]) == 0:
             log.warning("rig %s sees no region sample in every image: left out", labels[r])
             rigs.remove(r)
+    if not rigs:        # e.g. all round: no region sample lies in every image of the whole rig
+        raise ConfigError(exp.path, "stereo_pair", f"no rig of the session ({', '.join(labels.values())}) "
+                                                   "sees a region sample in all its cameras' images: "
+                                                   "name stereo pairs that share a view of a region")
     given = exp.calibration.detection_sigma_px
     sigma = given or DEFAULT_SIGMA_DET_PX
     log.info("Monte Carlo: %d calibrations of %d poses, corners sigma %g px, rigs %s", trials,
