@@ -597,3 +597,18 @@ def test_a_lab_frame_is_placed_by_its_anchor_camera(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--calibration-anchor" in err[0] and "nobody" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_plan_whose_pairs_share_no_sample_is_one_line(tmp_path, capsys, monkeypatch):
+    """`vdo calibrate --plan` on the pressure vessel seen all round: its sessions calibrate, but
+    no calibrated pair sees a region sample with both cameras. One line saying so (it used to
+    say that no session passed the checks), no folder."""
+    from vdo.commands.cli import main
+
+    monkeypatch.setenv("VDO_SET", "calibration.poses_per_camera = 6; calibration.shared_poses = 3")
+    path = ROOT / "experiments" / "pressure_vessel" / "all_round.toml"
+    out = tmp_path / "plan"
+    assert main(["calibrate", str(path), "--plan", "--out", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "stereo_pair" in err[0] and "share" in err[0]
+    assert not out.exists()

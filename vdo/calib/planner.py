@@ -49,6 +49,7 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
     spec = exp.calibration
     sigma = spec.detection_sigma_px or DEFAULT_SIGMA_DET_PX
     counts, images, p95 = [], [], []
+    unseen = False                # a session calibrated, but no pair saw a sample with both cameras
     base_shared = spec.shared_poses / max(1, spec.poses_per_camera)
     for n in bar(log, iterable=COUNTS, desc="planning the session", unit="session"):
         trial = replace(spec, poses_per_camera=n, shared_poses=max(1, round(base_shared * n)))
@@ -65,11 +66,16 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
             errors = sample_errors(cal, exp, cams, geometry.samples, visible, planned.session.pairs)
         finite = errors.strain[np.isfinite(errors.strain)]
         if len(finite) == 0:
+            unseen = True
             continue
         counts.append(n)
         images.append(sum(len(v) for v in planned.session.views.values()))
         p95.append(float(np.percentile(finite, 95)))
         log.info("%d poses per camera: %d images, strain sigma p95 %.3g", n, images[-1], p95[-1])
+    if not counts and unseen:     # e.g. all round: the pairs' cameras share no region sample
+        raise ConfigError(exp.path, "stereo_pair", "no calibrated stereo pair sees a region sample "
+                                                   "with both cameras: name stereo pairs that share "
+                                                   "a view of a region")
     if not counts:
         raise ConfigError(exp.path, "calibration", "no session of the planner's sizes passes the "
                                                    "checks: see vdo calibrate's message for one")
