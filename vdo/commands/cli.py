@@ -241,6 +241,9 @@ def _validate(spec, args):
     return 0 if summary["passed"] and summary["noise_free_passed"] else 1
 
 
+_SCORED = {"bound": "sigma_max", "measured": "sigma_measured max"}   # [optimize] score, as printed
+
+
 def _optimize(exp, args) -> None:
     from vdo.commands.optimize import optimize
 
@@ -248,7 +251,7 @@ def _optimize(exp, args) -> None:
                       started=args.started)   # the limit counts the whole command
     if not args.quiet:
         print(f"search: {result.status} (start-up {result.startup_s:.0f} s, search "
-              f"{result.search_s:.0f} s); score (smooth sigma_max percentile) "
+              f"{result.search_s:.0f} s); score (smooth {_SCORED[exp.optimize.score]} percentile) "
               f"{result.score_before_um:.4g} -> {result.score_after_um:.4g} um")
         if result.reason:
             print(result.reason)

@@ -518,6 +518,11 @@ class OptimizeSpec:
     assign_fraction: float = row("assign_fraction", Real(0.01, 1.0), 0.5,
                                  doc="a camera is assigned the regions it sees this much of in the "
                                      "starting layout")
+    score: str = row(
+        "score", Text(choices=("bound", "measured")), "bound",
+        doc='what the score\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '
+            "correlation measures ([analysis] interpolant and reference: each camera's information "
+            "divided by its error over the bound, refreshed every round; docs/theory.md)")
     starts: int = row("starts", Whole(low=1), 3, doc="multi-start: the hand layout + perturbed copies")
     rounds: int = row("rounds", Whole(low=1), 3,
                       doc="penalty rounds, each ending with a visibility refresh")

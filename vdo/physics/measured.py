@@ -97,23 +97,18 @@ def _sigma(cov: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[..., None], xyz, np.inf), np.where(ok, mx, np.inf)
 
 
-def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
-    """(C_i (C, N, 3, 3) 1/m², M_i (C, N, 3, 3) 1/m², per_camera rows): each camera's information
-    over its clipped patch (as `predict`'s second pass) and the bracket ν_i C_i + S_iᵀ W_i B_i W_i S_i
-    of the module docstring, ν_i and B_i from `correlation_error` at the median footprint of the
-    camera's usable samples in each region."""
-    smp = samples_for_objective(exp, samples)
-    cams = objective.CameraParams.from_cameras(cameras)
-    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
-    phi = usable.patch_fractions(overlap, pred.usable)
-    vd = view_data(exp, smp, vis, illumination, speckle, phi)
-    C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(exp)))
-    M_i = np.zeros_like(C_i)
+def region_floors(exp, cameras, samples, views, illumination, speckle) -> list[tuple]:
+    """What the lab's correlation measures for each camera in each region it views: one
+    (i, k, seen, floor, lens) per (camera i, region k) with samples in `views` (C, N) bool, lit at
+    the camera's median footprint, where `seen` are those samples, `floor` the
+    `vdo.physics.checks.measurement_floor` row at that median footprint (its "model" the
+    `vdo.model.speckle.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
+    there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
-    rows, jobs = [], []
+    jobs = []
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
-        for k, region in enumerate(samples.region_names):
-            seen = np.nonzero(pred.usable[i] & (samples.region == k))[0]
+        for k in range(len(samples.region_names)):
+            seen = np.nonzero(np.asarray(views[i]) & (samples.region == k))[0]
             if seen.size == 0:
                 continue
             X = samples.points[seen]
@@ -128,15 +123,58 @@ def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
             jobs.append((i, k, seen, A[m], float(illumination.irradiance[seen[m]]),
                          exp.evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
     if not jobs:
-        return C_i, M_i, rows
+        return []
     floors = measurement_floor([j[3] for j in jobs], [j[4] for j in jobs], [j[5] for j in jobs],
                                [j[6] for j in jobs], exp.speckle, exp.sensor, speckle.pattern,
                                exp.analysis.interpolant, exp.analysis.reference == "noisy")
-    for (i, k, seen, _, _, _, lens), floor in zip(jobs, floors):
+    return [(i, k, seen, floor, lens) for (i, k, seen, *_, lens), floor in zip(jobs, floors)]
+
+
+def _nu(floor) -> float:
+    """ν of the module docstring: tr(σ² N̄ + V̄) / tr(σ² H_sharp⁻¹), the noise through the
+    interpolant and the bias's scatter against the sharp image's bound."""
+    model, j = floor["model"]
+    s2 = floor["noise_rel"] ** 2
+    return float(np.trace(s2 * model.noise[j] + model.scatter[j]) / np.trace(s2 * model.bound_sharp[j]))
+
+
+def noise_inflation(exp, cameras, samples, views, illumination, speckle) -> np.ndarray:
+    """(C, N) √κ per (camera, sample): the factor on the sensor noise that turns the bound's
+    per-camera information C_i into the information of what the lab measures, C_i / κ, with
+
+        κ = tr(Σ_meas) / tr(Σ_bound) = ν + P tr(B) / (σ² tr(H_sharp⁻¹))     (image plane, px²)
+
+    per (camera, region) at the camera's median footprint (`region_floors`; ν, B, P pixels and σ
+    of the module docstring); 1 where a camera views none of the region. Scoring on C = Σ_i C_i/κ_i
+    is the all-views σ_measured when each camera's measured covariance is a multiple of its bound
+    (isotropic bias); otherwise its trace-equivalent. `views` (C, N) bool: the samples the
+    median is taken over."""
+    scale = np.ones(np.shape(views))
+    for i, _, seen, floor, _ in region_floors(exp, cameras, samples, views, illumination, speckle):
         model, j = floor["model"]
-        s2 = floor["noise_rel"] ** 2
-        p = floor["patch_px"]
-        nu = float(np.trace(s2 * model.noise[j] + model.scatter[j]) / np.trace(s2 * model.bound_sharp[j]))
+        s2, p = floor["noise_rel"] ** 2, floor["patch_px"]
+        kappa = _nu(floor) + p * float(np.trace(model.bias[j])) / (s2 * float(np.trace(model.bound_sharp[j])))
+        scale[i, seen] = math.sqrt(kappa)
+    return scale
+
+
+def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
+    """(C_i (C, N, 3, 3) 1/m², M_i (C, N, 3, 3) 1/m², per_camera rows): each camera's information
+    over its clipped patch (as `predict`'s second pass) and the bracket ν_i C_i + S_iᵀ W_i B_i W_i S_i
+    of the module docstring, ν_i and B_i from `correlation_error` at the median footprint of the
+    camera's usable samples in each region (`region_floors`)."""
+    smp = samples_for_objective(exp, samples)
+    cams = objective.CameraParams.from_cameras(cameras)
+    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    phi = usable.patch_fractions(overlap, pred.usable)
+    vd = view_data(exp, smp, vis, illumination, speckle, phi)
+    C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(exp)))
+    M_i = np.zeros_like(C_i)
+    rows = []
+    for i, k, seen, floor, lens in region_floors(exp, cameras, samples, pred.usable, illumination,
+                                                 speckle):
+        model, j = floor["model"]
+        nu = _nu(floor)
         gamma = float(np.trace(model.bound[j]) / np.trace(model.bound_sharp[j]))
         B = model.bias[j]
         S = cameras[i].sensitivity(samples.points[seen])                    # (n, 2, 3) px/m
@@ -146,8 +184,8 @@ def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
         M_i[i, seen] = nu * C_i[i, seen] + np.einsum("nai,ab,nbj->nij", WS, B, WS)
         rows.append({"camera": cameras[i].name, "region": samples.region_names[k], "nu": nu,
                      "optics_gradient_loss": gamma, "bias_px": [float(x) for x in np.sqrt(np.diag(B))],
-                     "patch_px": p, "f_number": lens.f_number, "f_number_assumed": lens.assumed,
-                     "optics_sigma_px": lens.sigma_px})
+                     "patch_px": floor["patch_px"], "f_number": lens.f_number,
+                     "f_number_assumed": lens.assumed, "optics_sigma_px": lens.sigma_px})
     return C_i, M_i, rows
 
 

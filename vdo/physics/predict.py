@@ -64,21 +64,24 @@ def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective
 
 def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
               illumination: Illumination, speckle: SpeckleModel,
-              patch_fraction: np.ndarray | None = None, sizes: dict | None = None) -> objective.ViewData:
+              patch_fraction: np.ndarray | None = None, sizes: dict | None = None,
+              noise_scale: np.ndarray | None = None) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
     the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
     unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
     away, as occluded), exact for these cameras. With `patch_fraction` (C, N) (`vdo.physics.usable`:
     phi_i, the usable fraction of each camera's patch) the occlusion is multiplied by it, so
     that the patch area becomes Omega phi_i. `sizes`: fixed list sizes across layouts
-    (`objective.ViewData.from_dense`)."""
+    (`objective.ViewData.from_dense`). `noise_scale` (C, N): a factor on each pair's noise
+    (`vdo.physics.measured.noise_inflation`: the information of what the lab measures)."""
     pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
     occlusion = np.asarray(vis.unoccluded, dtype=float)
     if patch_fraction is not None:
         occlusion = occlusion * patch_fraction
-    return objective.ViewData.from_dense(occlusion, np.asarray(pho.contrast),
-                                         np.asarray(pho.noise), samples, sizes=sizes)
+    noise = np.asarray(pho.noise) if noise_scale is None else np.asarray(pho.noise) * noise_scale
+    return objective.ViewData.from_dense(occlusion, np.asarray(pho.contrast), noise, samples,
+                                         sizes=sizes)
 
 
 @dataclass(frozen=True, eq=False)

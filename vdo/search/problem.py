@@ -32,6 +32,7 @@ from vdo.config.experiment import Experiment
 from vdo.physics.lighting import panel_frame
 from vdo.search.obscuration import ObscurationRenderer
 from vdo.objective import bucket
+from vdo.physics import measured
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
 from vdo.scene import (SceneMesh, build_scene, camera_body, camera_body_points, camera_body_spheres,
@@ -314,8 +315,13 @@ class Problem:
             load_path, steps, fraction = self.path
             held = loadpath.path_occlusion(self.geometry, load_path, cams, steps, fraction) > 0
             scored = dataclasses.replace(vis, unoccluded=vis.unoccluded & held)
+        scale = None
+        if self.exp.optimize.score == "measured":   # the lab's error over the bound, this round's
+            scale = measured.noise_inflation(self.exp, cams, self.samples, scored.visible, illum,
+                                             self.speckle)
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     self.run.padded(view_data(self.exp, self.obj_samples, scored, illum, self.speckle)))
+                     self.run.padded(view_data(self.exp, self.obj_samples, scored, illum, self.speckle,
+                                               noise_scale=scale)))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
@@ -652,7 +658,8 @@ def score_parts(problem: Problem, state: State) -> dict:
     (Σ ω σ^q / Σ ω)^(1/q) of the smooth σ_max over the region's samples, ω = area, q =
     `score_power`), plus the coverage term (µm; 0 when every sample has its minimum camera count),
     and the area fraction that is unmeasured (fewer than two usable views: its σ counts as the
-    prior, `Settings.prior_sigma`, 1 mm, so a few percent of it dominates the power mean)."""
+    prior, `Settings.prior_sigma`, 1 mm, so a few percent of it dominates the power mean). `sigma`:
+    which σ it scores ([optimize] score: "bound" or "measured", `Problem.refresh`)."""
     st = problem.settings
     f = objective.fields(objective.CameraParams.from_cameras(state.cameras), problem.obj_samples,
                          state.views, problem.speckle.table, st)
@@ -674,7 +681,7 @@ def score_parts(problem: Problem, state: State) -> dict:
     overall = mean(omega, sigma)
     coverage = float(st.coverage_weight * np.sum(omega * short ** 2) / np.sum(omega))
     return dict(score_um=overall + coverage, sigma_smooth_um=overall, coverage_um=coverage,
-                power=q, regions=regions)
+                power=q, regions=regions, sigma=problem.exp.optimize.score)
 
 
 @dataclasses.dataclass
