@@ -50,6 +50,11 @@ from vdo.physics.strain import STRAIN_COMPONENTS
 DEFAULT_MAX_PAIR_ANGLE_DEG = 60.0   # beyond this the two views of a subset differ so much in
 #                                     foreshortening that stereo matching between them fails
 RANK_RTOL = 1e-10                   # eigenvalue ratio under which a pair's C_p counts as singular
+# `noise_inflation` snaps each footprint to a lattice so that the optimizer's refreshes, whose
+# cameras move a little each round, find its correlation model in the cache (~0.3 s each to compute)
+SNAP_OCTAVE = 1.0 / 16              # singular values of the footprint: log2 steps (4.4 %)
+SNAP_ANGLE = math.radians(7.5)      # rad: the footprint's two rotation angles
+SNAP_DEPTH = 1.0 / 32               # the depth (defocus): log2 steps (2.2 %)
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,13 +102,30 @@ def _sigma(cov: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[..., None], xyz, np.inf), np.where(ok, mx, np.inf)
 
 
-def region_floors(exp, cameras, samples, views, illumination, speckle) -> list[tuple]:
+def _snap(A: np.ndarray) -> np.ndarray:
+    """The 2x2 footprint A = R(u) diag(s) F R(v)ᵀ (R a rotation, F = diag(1, ±1)) with log2 s on
+    SNAP_OCTAVE steps and the angles u, v on SNAP_ANGLE steps."""
+    U, s, Vt = np.linalg.svd(A)
+    if np.linalg.det(U) < 0:
+        U, Vt = U @ np.diag([1.0, -1.0]), np.diag([1.0, -1.0]) @ Vt
+    F = np.diag([1.0, np.sign(np.linalg.det(Vt))])
+    step = lambda x, q: q * round(x / q)
+    turn = lambda a: np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    u = step(math.atan2(U[1, 0], U[0, 0]), SNAP_ANGLE)
+    v = step(math.atan2(Vt[0, 1], Vt[0, 0]), SNAP_ANGLE)       # F R(v)ᵀ's first row: (cos v, sin v)
+    s = 2.0 ** np.array([step(math.log2(x), SNAP_OCTAVE) for x in s])
+    return turn(u) @ np.diag(s) @ F @ turn(v).T
+
+
+def region_floors(exp, cameras, samples, views, illumination, speckle,
+                  snap: bool = False) -> list[tuple]:
     """What the lab's correlation measures for each camera in each region it views: one
     (i, k, seen, floor, lens) per (camera i, region k) with samples in `views` (C, N) bool, lit at
     the camera's median footprint, where `seen` are those samples, `floor` the
     `vdo.physics.checks.measurement_floor` row at that median footprint (its "model" the
     `vdo.model.speckle.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
-    there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m."""
+    there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m.
+    `snap`: the footprint and the depth on the lattice of `_snap` and SNAP_DEPTH."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     jobs = []
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
@@ -118,9 +140,13 @@ def region_floors(exp, cameras, samples, views, illumination, speckle) -> list[t
             if not illumination.irradiance[seen[m]] > 0:     # dark: sigma stays inf there
                 continue
             depth = float((X[m] - cam.position) @ cam.optical_axis)
+            footprint = A[m]
+            if snap:
+                footprint = _snap(footprint)
+                depth = 2.0 ** (SNAP_DEPTH * round(math.log2(depth) / SNAP_DEPTH))
             lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
                                depth)
-            jobs.append((i, k, seen, A[m], float(illumination.irradiance[seen[m]]),
+            jobs.append((i, k, seen, footprint, float(illumination.irradiance[seen[m]]),
                          exp.evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
     if not jobs:
         return []
@@ -138,7 +164,8 @@ def _nu(floor) -> float:
     return float(np.trace(s2 * model.noise[j] + model.scatter[j]) / np.trace(s2 * model.bound_sharp[j]))
 
 
-def noise_inflation(exp, cameras, samples, views, illumination, speckle) -> np.ndarray:
+def noise_inflation(exp, cameras, samples, views, illumination, speckle,
+                    snap: bool = True) -> np.ndarray:
     """(C, N) √κ per (camera, sample): the factor on the sensor noise that turns the bound's
     per-camera information C_i into the information of what the lab measures, C_i / κ, with
 
@@ -148,9 +175,12 @@ def noise_inflation(exp, cameras, samples, views, illumination, speckle) -> np.n
     of the module docstring); 1 where a camera views none of the region. Scoring on C = Σ_i C_i/κ_i
     is the all-views σ_measured when each camera's measured covariance is a multiple of its bound
     (isotropic bias); otherwise its trace-equivalent. `views` (C, N) bool: the samples the
-    median is taken over."""
+    median is taken over. `snap` (default): the footprints on a lattice (`region_floors`), κ
+    within a few percent of the exact footprint's, so that a camera that moved a little finds its
+    model in the cache."""
     scale = np.ones(np.shape(views))
-    for i, _, seen, floor, _ in region_floors(exp, cameras, samples, views, illumination, speckle):
+    for i, _, seen, floor, _ in region_floors(exp, cameras, samples, views, illumination, speckle,
+                                              snap):
         model, j = floor["model"]
         s2, p = floor["noise_rel"] ** 2, floor["patch_px"]
         kappa = _nu(floor) + p * float(np.trace(model.bias[j])) / (s2 * float(np.trace(model.bound_sharp[j])))
