@@ -118,6 +118,8 @@ def test_best_pair_scatter_matches_the_pair_prediction_not_all_views(quad, spec)
     assert len(info["pairs_used"]) == 1 and info["noise_free_ok"]
     a, b = info["pairs_used"][0].split("+")
     assert {a, b} in ({"a", "c"}, {"b", "d"})            # two opposite cameras, 40° apart
+    # the noise-free check in the cameras that measure (the pair's), within 0.01 px
+    assert set(info["noise_free_error_px"]) == {a, b}
     assert [r["axis"] for r in rows] == ["x", "y", "z"]
     for r in rows:
         assert agrees(interval(r["sigma_measured_um"], r["sigma_predicted_um"], BEST_SEEDS)), r
