@@ -139,7 +139,7 @@ class Setup:
     pattern: np.ndarray | None
     reference_linear: list = field(default_factory=list)
     deformed_linear: list = field(default_factory=list)
-    pairs: tuple = ()               # pair cases: the serving pairs (camera indices), `serving_pairs`
+    pairs: tuple = ()               # pair cases: the pairs the merge uses (camera indices)
     pair_weights: np.ndarray | None = None   # (P, 3, 3) A_p of the merge, `predict_pairs`
 
 
