@@ -107,6 +107,10 @@ def _load(args):
         from vdo.geometry.plate import check_cases
 
         check_cases(spec)                       # the cameras (JAX): still before any render
+        if any(c.processing == "pairs" for c in spec.cases):
+            from vdo.dic.validate import check_pairs
+
+            check_pairs(spec)                   # the stereo pairs' rule at each patch: no render
         return spec
     if args.command == "calibrate":
         _calibrate_flags(args)

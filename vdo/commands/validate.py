@@ -29,7 +29,7 @@ from vdo.dic.validate import BAND, STRAIN_AXES, UM, ValidationResult, Validation
 
 CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
               "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
-              "sigma_linear_um", "unit"]
+              "sigma_linear_um", "unit", "processing", "sigma_predicted_all_views_um"]
 CONVENTION = ("sigma_predicted_um: vdo.physics.predict, the Cramer-Rao bound for ONE noisy image against a "
               "noise-free reference, for the correlated patch. sigma_measured_um: standard "
               "deviation over the seeds of the correlated displacement, reference and deformed "
@@ -42,7 +42,12 @@ CONVENTION = ("sigma_predicted_um: vdo.physics.predict, the Cramer-Rao bound for
               "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
               "on the plate, Q4 correlation): axis eps_uu, eps_vv, eps_uv (tensor shear, face "
               "frame) at the centre of the middle element, vdo.physics.strain's prediction, and the *_um "
-              "columns in microstrain (unit column).")
+              "columns in microstrain (unit column). processing: all-views (one correlation over "
+              "every camera) or pairs (best|fusion): each stereo pair correlated on its own and the "
+              "pairs' displacements merged as vdo.physics.measured.pair_merge defines it; "
+              "sigma_predicted_um is then the bound of the merged displacement "
+              "(vdo.physics.measured.merge_pairs) and sigma_predicted_all_views_um the all-views "
+              "bound of the same cameras (equal to sigma_predicted_um for all-views cases).")
 
 
 

@@ -14,8 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import SENSOR_FIELDS, SpeckleSpec
+from vdo.config.experiment import SENSOR_FIELDS, Analysis, SpeckleSpec
 from vdo.config.reader import Table, as_numbers, read_toml, with_overrides
+from vdo.config.schema import rows_of
 from vdo.core.errors import ConfigError
 from vdo.core.tolerances import SIZE_TOLERANCE, fits
 from vdo.model.sensor import SensorModel
@@ -53,6 +54,11 @@ class Case:
     strain: np.ndarray | None = None    # (3,) imposed (eps_uu, eps_vv, eps_uv) in the face frame
     q4_mesh: tuple[int, int] = (1, 1)   # strain cases: Q4 mesh of the patch, centre element read
     subsets: tuple[float, float, int] | None = None   # subset-DIC strain: (side m, step m, window n)
+    processing: str = "all-views"       # [analysis] processing: "all-views" or "pairs"
+    pairs: str = "auto"                 # [analysis] pairs: "auto" (the pair rule) or "declared"
+    merge: str = "best"                 # [analysis] merge: "best" or "fusion"
+    max_pair_angle: float | None = None  # rad, [analysis] max_pair_angle_deg (auto pairs)
+    stereo_pairs: tuple[tuple[str, str], ...] = ()   # declared pairs, by camera name
 
 
 @dataclass(frozen=True)
@@ -67,7 +73,11 @@ _CASE_FIELDS = ("name", "description", "patch_mm", "plate_margin_mm", "tilt_deg"
                 "texel_mm", "edge_blur_mm", "coverage", "strokes", "speckle_seed", "tile_texels", "white_albedo",
                 "black_albedo", "cameras", "focal_mm", "pixel_um", "pixels", "distance_mm",
                 "ambient_radiance", "spp", "sensor", "displacement_um", "seed",
-                "strain_microstrain", "q4_mesh", "subset_mm", "step_mm", "strain_window")
+                "strain_microstrain", "q4_mesh", "subset_mm", "step_mm", "strain_window",
+                "processing", "pairs", "merge", "max_pair_angle_deg", "stereo_pairs")
+# the pair-processing fields of a case: the experiment's [analysis] rows (same keys, choices, units)
+_PAIR_ROWS = {r.key: r for r in rows_of(Analysis)
+              if r.key in ("processing", "pairs", "merge", "max_pair_angle_deg")}
 _CAMERA_FIELDS = ("name", "polar_deg", "azimuth_deg", "distance_mm", "focal_mm", "pixel_um",
                   "pixels")
 
@@ -191,8 +201,47 @@ def _case(t: Table, path: Path, where: str) -> Case:
                 sensor=sensor,
                 ambient_radiance=t.number("ambient_radiance", 1.0, positive=True),
                 spp=t.integer("spp", 64, low=1), seed=t.integer("seed", 0, low=0),
-                **_strain_fields(t, len(cameras)))
+                **_strain_fields(t, len(cameras)), **_pair_fields(t, cameras))
     return case
+
+
+def _pair_fields(t: Table, cameras) -> dict:
+    """Stereo-pair processing of a displacement case, with the keys and choices of the
+    experiment's [analysis] (`processing`, `pairs`, `merge`, `max_pair_angle_deg`) and, for
+    declared pairs, `stereo_pairs` = [["cam1", "cam2"], ...] by camera name."""
+    v = {r.attr: t.get(r, r.default) for r in _PAIR_ROWS.values()}
+    if v["processing"] == "pairs":
+        if len(cameras) < 2:
+            raise t.error("processing", f'"pairs" needs at least two cameras (the case has '
+                                        f'{len(cameras)}); use processing = "all-views"')
+        if t.has("strain_microstrain"):
+            raise t.error("processing", 'pair processing applies to displacement cases; remove '
+                                        'strain_microstrain or use processing = "all-views"')
+    elif v["pairs"] == "declared":
+        raise t.error("pairs", 'declared pairs need processing = "pairs"')
+    if v["pairs"] != "declared":
+        if t.has("stereo_pairs"):
+            raise t.error("stereo_pairs", 'declared pairs need pairs = "declared"')
+        return {**v, "stereo_pairs": ()}
+    names = [c.name for c in cameras]
+    raw = t.raw("stereo_pairs", None)
+    if not isinstance(raw, list) or not raw:
+        raise t.error("stereo_pairs", 'pairs = "declared" needs stereo_pairs = [["cam1", "cam2"], ...] '
+                                      f'(cameras: {", ".join(names)})')
+    declared = []
+    for k, pair in enumerate(raw):
+        if not (isinstance(pair, list) and len(pair) == 2 and all(isinstance(n, str) for n in pair)
+                and pair[0] != pair[1]):
+            raise t.error(f"stereo_pairs[{k}]", f'must name two different cameras, e.g. '
+                                                f'["{names[0]}", "{names[1]}"] (got {pair!r})')
+        unknown = [n for n in pair if n not in names]
+        if unknown:
+            raise t.error(f"stereo_pairs[{k}]", f"no camera named {unknown[0]!r} in this case "
+                                                f"(cameras: {', '.join(names)})")
+        if tuple(sorted(pair)) in {tuple(sorted(p)) for p in declared}:
+            raise t.error(f"stereo_pairs[{k}]", f"the pair {pair!r} is declared twice")
+        declared.append((pair[0], pair[1]))
+    return {**v, "stereo_pairs": tuple(declared)}
 
 
 def _strain_fields(t: Table, n_cameras: int) -> dict:

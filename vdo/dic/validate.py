@@ -27,6 +27,18 @@ The model's one-camera information is rank 2 (`predict` reports +inf), so its in
 limit of adding a vanishingly weak second view: a probe camera 35x and 55x farther away, whose information
 is ~1e-7 of the first (`_predict_sigma`, checked to converge).
 
+Pair cases (`processing = "pairs"`, the experiment's [analysis] keys): the cameras are processed as
+stereo pairs, as a lab does with stereo DIC software. The pairs that serve the patch are those of
+`vdo.physics.measured.pair_candidates` (the declared `stereo_pairs`, or every two cameras whose rays
+make an angle in [stereo_min_angle(lens), max_pair_angle_deg]) at every prediction sample of the
+patch (`serving_pairs`). Each pair is correlated on its own (two cameras, the same global
+correlation), and the pairs' displacements are merged as `vdo.physics.measured.pair_merge` defines
+it, u = Σ_p A_p u_p ("best": the pair of least σ_max; "fusion": A_p = (Σ_q Cov_q⁻¹)⁻¹ Cov_p⁻¹), with
+the patch's per-camera information C_i (`camera_information`) and Cov_p = (C_a + C_b)⁻¹ (the bound:
+M_i = C_i). The prediction is `vdo.physics.measured.merge_pairs`' covariance of that merged
+estimate (pairs sharing a camera share its noise), reported beside the all-views bound of the
+same cameras (`PairPrediction`); the same √2 and ratio.
+
 Strain cases (`strain_microstrain` = [eps_uu, eps_vv, eps_uv] in the plate's face frame): the
 deformed plate is also strained homogeneously about the patch centre (X -> X + U + T E Tᵀ X, its
 texture strained with it: `DeformedFaces`), correlated with a Q4 mesh of the patch (`q4_mesh`),
@@ -45,18 +57,21 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.physics import strain
+from vdo import objective
+from vdo.constraints import stereo_min_angle
+from vdo.physics import measured, strain
 from vdo.geometry.plate import cameras_of, check_cases, deform, plate_geometry, undeform
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
 from vdo.config import validation
-from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec)
+from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
+                                   StereoPairSpec)
 from vdo.config.validation import Case, ValidationSpec
 from vdo.dic.correlate import ImageReference, PixelIntegration, Q4, Translation, correlate
 from vdo.dic.patch import Patch
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
-from vdo.physics.predict import SpeckleModel
+from vdo.physics.predict import SpeckleModel, samples_for_objective, settings, view_data
 from vdo.render import build_render_scene, expose, noise_free_dn, render_linear, render_seed, sensor_dict
 from vdo.scene import SceneMesh, SurfaceSamples, region_faces
 from vdo.physics.usable import patch_overlap
@@ -78,7 +93,16 @@ def load(path) -> ValidationSpec:
     on any mistake, before any render."""
     spec = validation.load(path)
     check_cases(spec)
+    check_pairs(spec)
     return spec
+
+
+def check_pairs(spec: ValidationSpec) -> None:
+    """Every pair case's pairs by the pair rule at its patch (`serving_pairs`): ConfigError (file,
+    case field, fix) when a declared pair does not serve the patch, or no pair does; no render."""
+    for case in spec.cases:
+        if case.processing == "pairs":
+            serving_pairs(build_setup(case, spec.path, painted=False))
 
 
 # --------------------------------------------------------------------------------------------
@@ -112,9 +136,11 @@ class Setup:
     patch: object                   # vdo.dic.patch.Patch
     plate: object                   # vdo.scene.SceneMesh
     region: object                  # vdo.scene.RegionFaces
-    pattern: np.ndarray
+    pattern: np.ndarray | None
     reference_linear: list = field(default_factory=list)
     deformed_linear: list = field(default_factory=list)
+    pairs: tuple = ()               # pair cases: the pairs the merge uses (camera indices)
+    pair_weights: np.ndarray | None = None   # (P, 3, 3) A_p of the merge, `predict_pairs`
 
 
 def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
@@ -135,29 +161,32 @@ def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
                                             patch_size=math.sqrt(w * h), min_cameras=1),
                       speckle=case.speckle, sensor=case.sensor,
                       render=RenderSpec(spp=case.spp, ambient_radiance=case.ambient_radiance),
-                      analysis=analysis_of(case))
+                      analysis=analysis_of(case),
+                      stereo_pairs=tuple(StereoPairSpec(cameras=p) for p in case.stereo_pairs))
 
 
 def analysis_of(case: Case) -> Analysis:
     """The `[analysis]` of a case (`experiment_for`): subset DIC (subset, step and window in
     metres, sizes in pixels unset) for a subset case, else global DIC, element = the patch's
-    shorter side."""
+    shorter side; the case's processing (all views, or stereo pairs and their merge)."""
     if case.subsets is not None:
         side, step, n = case.subsets
         return Analysis(method="subset", subset=side, subset_px=None, step=step, step_px=None,
                         strain_window=n)
-    return Analysis(element=min(case.patch))
+    return Analysis(element=min(case.patch), processing=case.processing, pairs=case.pairs,
+                    merge=case.merge, max_pair_angle=case.max_pair_angle)
 
 
-def build_setup(case: Case, path: Path) -> Setup:
-
+def build_setup(case: Case, path: Path, painted: bool = True) -> Setup:
+    """The case's experiment, plate, region, patch and cameras; with `painted`, its speckle
+    pattern too (False: the geometry only, for the checks before any render)."""
     g = plate_geometry(case)
     exp = experiment_for(case, path)
     plate = SceneMesh("plate", "specimen", g["plate"], np.array([[0, 1, 2], [0, 2, 3]]))
     rf = region_faces(plate, exp.regions[0], exp.evaluation.sample_spacing, (path, case.name))
     patch = Patch(origin=g["origin"], t_u=g["t_u"], t_v=g["t_v"], size=np.array(case.patch))
     return Setup(case=case, experiment=exp, cameras=cameras_of(case), patch=patch, plate=plate,
-                 region=rf, pattern=case_pattern(case))
+                 region=rf, pattern=case_pattern(case) if painted else None)
 
 
 def case_pattern(case: Case) -> np.ndarray:
@@ -316,6 +345,108 @@ def predict_sigma(setup: Setup) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+# Pair processing
+# --------------------------------------------------------------------------------------------
+def serving_pairs(setup: Setup) -> tuple[tuple[int, int], ...]:
+    """The stereo pairs (camera indices) that serve the whole correlated patch: those of
+    `vdo.physics.measured.pair_candidates` (the experiment's rule: the declared pairs, or every two
+    cameras whose rays make an angle in [stereo_min_angle(the shorter lens), max_pair_angle]) at
+    every one of the 5 x 5 prediction samples (every camera sees the whole patch:
+    `vdo.geometry.plate.check_cases`). ConfigError (file, case field, fix) when a declared pair
+    does not serve, or no pair does; cheap (no render)."""
+    case = setup.case
+    samples = _samples(setup)
+    seen = np.ones((len(setup.cameras), len(samples.points)), dtype=bool)
+    pairs, cand = measured.pair_candidates(setup.experiment, setup.cameras, samples, seen,
+                                           stereo_min_angle)
+    serve = cand.all(axis=1)
+    where = f'case "{case.name}"'
+    hi = math.degrees(setup.experiment.analysis.max_pair_angle
+                      or math.radians(measured.DEFAULT_MAX_PAIR_ANGLE_DEG))
+    centre = setup.patch.points(setup.patch.size / 2)
+
+    def rule(a: int, b: int) -> str:
+        ra, rb = (setup.cameras[i].position - centre for i in (a, b))
+        angle = math.degrees(math.acos(np.clip(ra @ rb / np.linalg.norm(ra) / np.linalg.norm(rb), -1, 1)))
+        lo = math.degrees(stereo_min_angle(min(setup.cameras[i].focal_length for i in (a, b))))
+        return (f"{setup.cameras[a].name!r} and {setup.cameras[b].name!r}: {angle:.1f} deg between "
+                f"their rays at the patch centre, the rule [{lo:.1f}, {hi:g}] deg")
+
+    for k, (a, b) in enumerate(pairs):
+        if case.pairs == "declared" and not serve[k]:
+            raise ConfigError(setup.experiment.path, f"{where}.stereo_pairs[{k}]",
+                              f"not a stereo pair by the pair rule over the whole patch ({rule(a, b)}): "
+                              "declare cameras further apart or closer, or set max_pair_angle_deg")
+    if not serve.any():
+        raise ConfigError(setup.experiment.path, f"{where}.processing",
+                          "no two cameras make a stereo pair by the pair rule over the whole patch "
+                          f"(e.g. {rule(*pairs[0])}): move the cameras, set max_pair_angle_deg, "
+                          'or use processing = "all-views"')
+    return tuple(p for p, ok in zip(pairs, serve) if ok)
+
+
+def camera_information(setup: Setup, speckle, n: int = 5) -> np.ndarray:
+    """(C, n², 3, 3) 1/m², each camera's information at the n x n samples of the patch (each with
+    Ω = the patch area): `vdo.objective.camera_information` with the views of `_prediction`'s
+    second pass (every usable view keeps the whole patch); their sum is `_prediction`'s C."""
+    exp = setup.experiment
+    samples = _samples(setup, n)
+    geometry = Geometry(exp, (setup.plate,), samples, speckle, (setup.region,),
+                        patch_overlap(samples, exp.evaluation.patch_size))
+    state = layout_state(geometry, setup.cameras, clip_patch=False)
+    smp = samples_for_objective(exp, samples)
+    views = view_data(exp, smp, state.visibility, state.illumination, speckle,
+                      state.prediction.usable.astype(float))
+    return np.asarray(objective.camera_information(objective.CameraParams.from_cameras(setup.cameras),
+                                                   smp, views, speckle.table, settings(exp)))
+
+
+@dataclass(frozen=True, eq=False)
+class PairPrediction:
+    """The bound (one noisy image) of a pair case's merged displacement: `covariance` (3, 3) m²,
+    beside the all-views bound of the same cameras, `all_views` (3, 3) m². `weights` (P, 3, 3):
+    A_p of u = Σ_p A_p u_p over `pairs`; `naive` (3, 3) m²: what fusion ignoring the shared cameras
+    would claim, (Σ_p Cov_p⁻¹)⁻¹ ("fusion"; else None)."""
+
+    pairs: tuple[tuple[int, int], ...]
+    weights: np.ndarray
+    covariance: np.ndarray
+    all_views: np.ndarray
+    naive: np.ndarray | None
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """(3,) m, per world axis."""
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def sigma_all_views(self) -> np.ndarray:
+        """(3,) m, per world axis, all views in one correlation."""
+        return np.sqrt(np.diag(self.all_views))
+
+
+def predict_pairs(setup: Setup, pairs) -> PairPrediction:
+    """The merge of `pairs` (camera indices) per the case's rule with the patch's per-camera
+    information C_i (the mean over the 5 x 5 samples, `camera_information`) and M_i = C_i (the
+    bound): `vdo.physics.measured.pair_merge` (weights) and `merge_pairs` (covariance)."""
+    C = camera_information(setup, speckle_model_of(setup)).mean(axis=1, keepdims=True)  # (C, 1, 3, 3)
+    cand = np.ones((len(pairs), 1), dtype=bool)
+    m = measured.pair_merge(C, C, list(pairs), cand, setup.case.merge)
+    cov, ok, _, _ = measured.merge_pairs(C, C, list(pairs), cand, setup.case.merge)
+    cov_all, ok_all = measured.all_views(C, C)
+    if not (ok[0] and ok_all[0]):
+        raise RuntimeError(f"case {setup.case.name!r}: the pairs leave the patch unmeasured")
+    return PairPrediction(tuple(pairs), m.weights[:, 0], cov[0], cov_all[0],
+                          None if m.naive is None else m.naive[0])
+
+
+def merged_displacement(weights: np.ndarray, U_pairs) -> np.ndarray:
+    """The pairs' merged displacement u = Σ_p A_p u_p (m): `weights` (P, 3, 3) the A_p of
+    `vdo.physics.measured.pair_merge` (`PairPrediction.weights`), `U_pairs` (P, 3) the pairs' own."""
+    return np.einsum("pij,pj->i", np.asarray(weights), np.asarray(U_pairs))
+
+
+# --------------------------------------------------------------------------------------------
 # Correlation
 # --------------------------------------------------------------------------------------------
 def noise_free_images(setup: Setup, deformed: bool) -> list:
@@ -325,14 +456,17 @@ def noise_free_images(setup: Setup, deformed: bool) -> list:
 
 
 def noise_free_check(setup: Setup):
-    """Correlate the noise-free renders. Returns (the CorrelationResults: one, or one per subset;
-    per-camera error of the measured displacement at the patch centre projected into each image,
-    (n_cameras, 2) px)."""
+    """Correlate the noise-free renders. Returns (the CorrelationResults: one, one per subset or
+    one per pair; per-camera error of the measured displacement at the patch centre projected into
+    each image, (n_cameras, 2) px, NaN for a camera that no pair of a pair case uses: a pair's
+    weak depth would show in a camera that does not measure)."""
 
     results = _correlate(setup, noise_free_images(setup, True), noise_free_images(setup, False))
     centre = setup.patch.points(setup.patch.size / 2)
     err = _centre_displacement(setup, results) - (deform(setup.case, centre) - centre)
-    px = np.array([cam.sensitivity(centre) @ err for cam in setup.cameras])
+    used = {i for pair in setup.pairs for i in pair} if setup.pairs else range(len(setup.cameras))
+    px = np.array([cam.sensitivity(centre) @ err if i in used else np.full(2, np.nan)
+                   for i, cam in enumerate(setup.cameras)])
     return results, px
 
 
@@ -351,6 +485,11 @@ def _correlate(setup: Setup, deformed, references, xi=None) -> list:
     """The case's correlation(s) of `deformed` against `references`: one global correlation
     (translation or Q4), or one translation per subset. `xi`: the points of an earlier call."""
     case = setup.case
+    if setup.pairs:         # each stereo pair on its own: two cameras, one translation
+        return [correlate([setup.cameras[a], setup.cameras[b]], [deformed[a], deformed[b]],
+                          setup.patch, ImageReference([references[a], references[b]]),
+                          integration=PixelIntegration(None if xi is None else xi[k]))
+                for k, (a, b) in enumerate(setup.pairs)]
     reference = ImageReference(references)
     if case.subsets is None:
         return [correlate(setup.cameras, deformed, setup.patch, reference, model=_model(case),
@@ -370,8 +509,11 @@ def _subset_fit(setup: Setup, results) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _estimate(setup: Setup, results) -> np.ndarray:
-    """U (translation) or the strain (eps_uu, eps_vv, eps_uv) from the correlation results."""
+    """U (translation; the pairs' merge Σ_p A_p U_p in a pair case) or the strain (eps_uu, eps_vv,
+    eps_uv) from the correlation results."""
     case = setup.case
+    if setup.pairs:
+        return merged_displacement(setup.pair_weights, [r.U for r in results])
     if case.strain is None:
         return results[0].U
     if case.subsets is None:
@@ -387,7 +529,9 @@ def _model(case: Case) -> Translation | Q4:
 
 def _centre_displacement(setup: Setup, results) -> np.ndarray:
     """The measured displacement at the patch centre: U itself (translation), the Q4 field
-    interpolated there, or the subsets' plane fit's value there (their mean)."""
+    interpolated there, the subsets' plane fit's value there (their mean), or the pairs' merge."""
+    if setup.pairs:
+        return _estimate(setup, results)
     if setup.case.subsets is not None:
         return _subset_fit(setup, results)[0]
     U = results[0].U
@@ -440,18 +584,32 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> CaseResult:
     `progress`: called with 1 after each seed."""
     t0 = time.perf_counter()
     setup = build_setup(case, path)
+    pair_pred = None
+    if case.processing == "pairs":
+        pair_pred = predict_pairs(setup, serving_pairs(setup))
+        # only the pairs the merge uses are correlated ("best": one)
+        used = np.flatnonzero(np.any(pair_pred.weights != 0, axis=(1, 2)))
+        setup.pairs = tuple(pair_pred.pairs[k] for k in used)
+        setup.pair_weights = pair_pred.weights[used]
     render_case(setup)
     t_render = time.perf_counter() - t0
     res0, px_err = noise_free_check(setup)
     sigma_dn = noise_sigma_dn(setup)
     cov = res0[0].covariance(sigma_dn)
-    if case.strain is None:
+    processing = "all-views" if pair_pred is None else f"pairs ({case.merge})"
+    if pair_pred is not None:
+        sigma_pred, truth, scale, unit, names = pair_pred.sigma, case.displacement, UM, "um", AXES
+        reported, sigma_all = axes_reported(case), pair_pred.sigma_all_views
+        # the one pair used: its own linear propagation; fused pairs share cameras, whose
+        # cross-covariances correlate does not propagate
+        sigma_lin = np.sqrt(np.diag(cov)) if len(setup.pairs) == 1 else np.full(3, np.nan)
+    elif case.strain is None:
         sigma_pred, truth, scale, unit, names = predict_sigma(setup), case.displacement, UM, "um", AXES
-        reported = axes_reported(case)
+        reported, sigma_all = axes_reported(case), None
         sigma_lin = np.sqrt(np.diag(cov))
     else:
         sigma_pred, truth, scale, unit = predict_strain_sigma(setup), case.strain, 1e6, "microstrain"
-        names, reported = STRAIN_AXES, [0, 1, 2]
+        names, reported, sigma_all = STRAIN_AXES, [0, 1, 2], None
         if case.subsets is None:
             G = np.array([measured_strain(setup, e.reshape(-1, 3)) for e in np.eye(len(cov))]).T
             sigma_lin = np.sqrt(np.diag(G @ cov @ G.T))
@@ -478,16 +636,29 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> CaseResult:
                      "sigma_expected_um": expected * scale, "ratio_ci95_low": lo, "ratio_ci95_high": hi,
                      "bias_um": err[:, a].mean() * scale,
                      "rms_error_um": math.sqrt(np.mean(err[:, a] ** 2)) * scale,
-                     "sigma_linear_um": sigma_lin[a] * scale, "unit": unit})
+                     "sigma_linear_um": sigma_lin[a] * scale, "unit": unit,
+                     "processing": processing,
+                     "sigma_predicted_all_views_um": (sigma_pred if sigma_all is None
+                                                      else sigma_all)[a] * scale})
     centre = setup.patch.points(setup.patch.size / 2)
-    return CaseResult(rows=rows, estimates=estimates, setup=setup,
+    return CaseResult(rows=rows, estimates=estimates, setup=setup, pairs=pair_pred,
                       info={"case": case.name, "cameras": len(case.cameras),
                      "noise_dn": sigma_dn,
-                     "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)},
-                     "noise_free_ok": bool(np.all(np.abs(px_err) < 0.01)),
+                     "noise_free_error_px": {c.name: px_err[i].tolist() for i, c in enumerate(setup.cameras)
+                                             if np.all(np.isfinite(px_err[i]))},
+                     "noise_free_ok": bool(np.all(np.abs(px_err[np.isfinite(px_err)]) < 0.01)),
                      **({} if case.strain is None else {"noise_free_strain_error_microstrain": (
                          (_estimate(setup, res0) - case.strain) * 1e6).tolist()}),
-                     "pixels_per_camera": [int(len(x)) for x in res0[0].xi],
+                     "pixels_per_camera": pixels_per_camera(setup, res0),
+                     **({} if pair_pred is None else {
+                         "processing": processing,
+                         "pairs_serving": [f"{setup.cameras[a].name}+{setup.cameras[b].name}"
+                                           for a, b in pair_pred.pairs],
+                         "pairs_used": [f"{setup.cameras[a].name}+{setup.cameras[b].name}"
+                                        for a, b in setup.pairs],
+                         "pair_weights": setup.pair_weights.round(6).tolist(),
+                         **({} if pair_pred.naive is None else {
+                             "sigma_fused_naive_um": (np.sqrt(np.diag(pair_pred.naive)) * UM).tolist()})}),
                      "speckle_px": [float(case.speckle.dot_diameter * np.sqrt(np.abs(np.linalg.det(
                          c.sensitivity(centre) @ setup.patch.tangents)))) for c in setup.cameras],
                      "shift_px": [float(np.linalg.norm(c.sensitivity(centre) @ case.displacement))
@@ -497,16 +668,29 @@ def run_case(case: Case, path: Path, seeds: int, progress=None) -> CaseResult:
 
 
 
+def pixels_per_camera(setup: Setup, results) -> list[int]:
+    """The pixels each camera correlates (in its first pair, for a pair case; 0 for a camera that
+    serves no pair)."""
+    if not setup.pairs:
+        return [int(len(x)) for x in results[0].xi]
+    counts = [0] * len(setup.cameras)
+    for (a, b), r in reversed(list(zip(setup.pairs, results))):
+        counts[a], counts[b] = int(len(r.xi[0])), int(len(r.xi[1]))
+    return counts
+
+
 @dataclass(frozen=True, eq=False)
 class CaseResult:
     """One case's outcome (`run_case`): `rows` per reported axis (predicted, measured, ratio, ...;
     the *_um columns in `unit`), `estimates` (seeds, 3) the measured U (m) or strain, `setup` the
-    case's cameras, patch and noise-free renders, `info` the diagnostics of summary.json."""
+    case's cameras, patch and noise-free renders, `info` the diagnostics of summary.json, `pairs`
+    the pair-mode prediction of a pair case (else None)."""
 
     rows: list
     estimates: np.ndarray
     setup: Setup
     info: dict
+    pairs: PairPrediction | None = None
 
 
 @dataclass(frozen=True, eq=False)

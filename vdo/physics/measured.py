@@ -256,10 +256,31 @@ def all_views(C_i: np.ndarray, M_i: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return Cinv @ M_i.sum(axis=0) @ Cinv, ok
 
 
-def merge_pairs(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge: str):
-    """Stereo-pair processing (module docstring) from per-camera C_i, M_i (C, N, 3, 3), the pairs
-    [(a, b)] and where each may serve, cand (P, N) bool. Returns (Cov (N, 3, 3), ok (N,), best
-    (N,) pair index or -1, naive (N,) σ_max of fusion ignoring shared cameras or None)."""
+@dataclass(frozen=True, eq=False)
+class PairMerge:
+    """How pair processing merges the pairs' estimates at each sample (module docstring): the
+    merged displacement is u = Σ_p A_p u_p, u_p the estimate of pair p alone.
+
+    weights (P, N, 3, 3): A_p; "best": the identity for the pair of least σ_max, 0 for the others;
+        "fusion": (Σ_q Cov_q⁻¹)⁻¹ Cov_p⁻¹ over the candidate pairs, 0 for the others
+    served (N,) bool: some candidate pair of full rank serves the sample
+    best (N,) int: index of the serving pair ("best"), -1 otherwise
+    pair_inverse (P, N, 3, 3): C_p⁻¹ (m²), C_p = C_a + C_b
+    naive (N, 3, 3): the covariance (m²) that fusion ignoring the shared cameras would claim,
+        (Σ_p Cov_p⁻¹)⁻¹ (valid where `served`; "fusion"), else None
+    """
+
+    weights: np.ndarray
+    served: np.ndarray
+    best: np.ndarray
+    pair_inverse: np.ndarray
+    naive: np.ndarray | None
+
+
+def pair_merge(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge: str) -> PairMerge:
+    """The merging weights of stereo-pair processing (`PairMerge`) from per-camera C_i, M_i
+    (C, N, 3, 3), the pairs [(a, b)] and where each may serve, cand (P, N) bool; each pair's
+    covariance is Cov_p = C_p⁻¹ M_p C_p⁻¹ (module docstring)."""
     n = C_i.shape[1]
     P = len(pairs)
     cand = cand.copy()
@@ -273,25 +294,37 @@ def merge_pairs(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge
     served = cand.any(axis=0)
     if merge == "best":
         _, sig_p = _sigma(cov_p, cand)                                  # (P, N) σ_max per pair
-        best = np.argmin(sig_p, axis=0) if P else np.zeros(n, dtype=int)
-        cov = cov_p[best, np.arange(n)] if P else np.zeros((n, 3, 3))
-        return cov, served, np.where(served, best, -1), None
+        best = np.where(served, np.argmin(sig_p, axis=0) if P else 0, -1)
+        A = np.zeros((P, n, 3, 3))
+        A[best[served], np.flatnonzero(served)] = np.eye(3)
+        return PairMerge(A, served, best, Cp_inv, None)
     prec = np.where(cand[..., None, None],
                     np.linalg.pinv(np.where(cand[..., None, None], cov_p, np.eye(3))), 0.0)
     total_inv, ok = _pinv_sym(prec.sum(axis=0))
     ok &= served
     A = np.einsum("nij,pnjk->pnik", total_inv, prec)                    # (P, N, 3, 3)
-    cov = np.zeros((n, 3, 3))
+    return PairMerge(A, ok, np.full(n, -1), Cp_inv, total_inv)
+
+
+def merge_pairs(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge: str):
+    """Stereo-pair processing (module docstring) from per-camera C_i, M_i (C, N, 3, 3), the pairs
+    [(a, b)] and where each may serve, cand (P, N) bool. Returns (Cov (N, 3, 3), ok (N,), best
+    (N,) pair index or -1, naive (N,) σ_max of fusion ignoring shared cameras or None): the
+    covariance of u = Σ_p A_p u_p (`pair_merge`), Σ_{p,q} A_p Cov(u_p, u_q) A_qᵀ with
+    Cov(u_p, u_q) = C_p⁻¹ (Σ_{i ∈ p ∩ q} M_i) C_q⁻¹."""
+    m = pair_merge(C_i, M_i, pairs, cand, merge)
+    A, Cp_inv = m.weights, m.pair_inverse
+    cov = np.zeros((C_i.shape[1], 3, 3))
     for p, (a, b) in enumerate(pairs):
         for q, (c, d) in enumerate(pairs):
             shared = [i for i in (a, b) if i in (c, d)]
             if not shared:
                 continue
-            both = cand[p] & cand[q]
             cross = Cp_inv[p] @ sum(M_i[i] for i in shared) @ Cp_inv[q]
-            cov += np.where(both[:, None, None], A[p] @ cross @ np.swapaxes(A[q], -1, -2), 0.0)
-    naive = np.where(ok, np.sqrt(np.maximum(np.linalg.eigvalsh(total_inv)[..., -1], 0.0)), np.inf)
-    return cov, ok, np.full(n, -1), naive
+            cov += A[p] @ cross @ np.swapaxes(A[q], -1, -2)
+    naive = None if m.naive is None else \
+        np.where(m.served, np.sqrt(np.maximum(np.linalg.eigvalsh(m.naive)[..., -1], 0.0)), np.inf)
+    return cov, m.served, m.best, naive
 
 
 def measured_fields(exp, cameras, samples, vis, illumination, speckle, pred,
