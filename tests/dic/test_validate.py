@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from small_plate import DEFAULTS
 from vdo.dic import validate as V
 from vdo.commands.validate import validate_cases
 from vdo.core import tolerances
@@ -32,20 +33,7 @@ TOML = """
 name = "test"
 seeds = 4
 
-[defaults]
-patch_mm = [6, 5]
-plate_margin_mm = 4
-dot_mm = 0.35
-texel_mm = 0.0125
-tile_texels = 1024
-edge_blur_mm = 0.06
-focal_mm = 25
-pixel_um = 5
-pixels = [120, 90]
-distance_mm = 500
-spp = 64
-displacement_um = [31, -23, 37]
-
+""" + DEFAULTS + """
 [[case]]
 name = "stereo"
 cameras = [{name = "left", polar_deg = 12.5, azimuth_deg = 180}, {name = "right", polar_deg = 12.5, azimuth_deg = 0}]

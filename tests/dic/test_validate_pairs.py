@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from small_plate import DEFAULTS
 from vdo.core.errors import ConfigError
 from vdo.dic import validate as V
 from vdo.physics.measured import merge_pairs, pair_merge
@@ -42,20 +43,7 @@ TOML = """
 name = "pairs"
 seeds = 4
 
-[defaults]
-patch_mm = [6, 5]
-plate_margin_mm = 4
-dot_mm = 0.35
-texel_mm = 0.0125
-tile_texels = 1024
-edge_blur_mm = 0.06
-focal_mm = 25
-pixel_um = 5
-pixels = [120, 90]
-distance_mm = 500
-spp = 64
-displacement_um = [31, -23, 37]
-
+""" + DEFAULTS + """
 [[case]]
 name = "quad_best"
 cameras = [{name = "a", polar_deg = 20, azimuth_deg = 0}, {name = "b", polar_deg = 20, azimuth_deg = 90},
