@@ -1,5 +1,5 @@
-"""The design checks' speckle models per footprint: `vdo.model.speckle.interpolation_error` (the
-interpolation floor) and `vdo.model.speckle.correlation_error` (what the lab's correlation
+"""The design checks' speckle models per footprint: `vdo.model.interpolant.interpolation_error` (the
+interpolation floor) and `vdo.model.interpolant.correlation_error` (what the lab's correlation
 measures: bias, noise and scatter over 8 x 8 sub-pixel positions), on the built-in experiment's
 pattern, at footprints spread like the camera-region pairs of `vdo evaluate` (2.5-5 px per mm).
 
@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from vdo.config.experiment import load
-from vdo.model import speckle
+from vdo.model import interpolant, speckle
 
 
 def footprints(k: int) -> np.ndarray:
@@ -43,13 +43,13 @@ def main(argv=None) -> None:
     f = speckle.normalise(speckle.pattern_for(exp.speckle))
     sides = footprints(args.footprints)
     texel = exp.speckle.texel
-    speckle.interpolation_error(f, texel, sides[:1])          # imports and first calls
-    one_ie = timed(lambda: speckle.interpolation_error(f, texel, sides[:1]))
-    batch_ie = timed(lambda: speckle.interpolation_error(f, texel, sides)) / len(sides)
-    speckle.correlation_error(f, texel, footprints(1) * 1.01)   # warm-up on another footprint
-    one_ce = timed(lambda: speckle.correlation_error(f, texel, sides[:1]))
-    batch_ce = timed(lambda: speckle.correlation_error(f, texel, sides[1:])) / (len(sides) - 1)
-    again_ce = timed(lambda: speckle.correlation_error(f, texel, sides)) / len(sides)
+    interpolant.interpolation_error(f, texel, sides[:1])          # imports and first calls
+    one_ie = timed(lambda: interpolant.interpolation_error(f, texel, sides[:1]))
+    batch_ie = timed(lambda: interpolant.interpolation_error(f, texel, sides)) / len(sides)
+    interpolant.correlation_error(f, texel, footprints(1) * 1.01)   # warm-up on another footprint
+    one_ce = timed(lambda: interpolant.correlation_error(f, texel, sides[:1]))
+    batch_ce = timed(lambda: interpolant.correlation_error(f, texel, sides[1:])) / (len(sides) - 1)
+    again_ce = timed(lambda: interpolant.correlation_error(f, texel, sides)) / len(sides)
     print(f"pattern {f.shape[0]} x {f.shape[1]} texels, {len(sides)} footprints\n")
     print("| model | one footprint alone (ms) | per footprint in a batch (ms) | cached (ms) |")
     print("|---|---|---|---|")

@@ -66,13 +66,14 @@ def test_speckle_flags(plate_experiment):
 
 def test_interpolation_floor(plate_experiment):
     """9 mm dots of 1 mm texels have edges sharp at the 2.3 mm pixel: the interpolation error
-    (`vdo.model.speckle.interpolation_error`, checked in test_speckle.py) is several times the sensor
+    (`vdo.model.interpolant.interpolation_error`, checked in test_speckle.py) is several times the sensor
     noise; 11 mm dots of 3.66 mm texels are soft at the pixel scale. The gray levels from the
     sensor model: linear 0.8 (white) and 0.05 (black) at E = π L, L = 1. The measured/noise ratio
     is `correlation_error`'s (checked against correlation in test_measured.py) at the same σ and
     patch: the sharp pattern's is larger, and only it is flagged."""
     from vdo.model.optics import optics_blur
-    from vdo.model.speckle import correlation_error, interpolation_error, normalise
+    from vdo.model.speckle import normalise
+    from vdo.model.interpolant import correlation_error, interpolation_error
 
     sharp, exp = _rows(plate_experiment)
     soft, _ = _rows(plate_experiment, dot=11.0, texel=3.66)

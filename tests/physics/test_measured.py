@@ -1,4 +1,4 @@
-"""The predicted error of an interpolating correlation (`vdo.model.speckle.correlation_error`)
+"""The predicted error of an interpolating correlation (`vdo.model.interpolant.correlation_error`)
 against correlation on synthesised images.
 
 Images (`vdo.dic.interpolation`): a sharp-edged dot pattern (`generate_pattern`, no softening) of 8 texels per pixel is
@@ -18,7 +18,8 @@ import pytest
 
 from vdo.dic.interpolation import HALF, SUB, BiasCase, measure, run_case
 from vdo.model.optics import OpticsBlur
-from vdo.model.speckle import KEYS, correlation_error, generate_pattern, normalise
+from vdo.model.speckle import generate_pattern, normalise
+from vdo.model.interpolant import KEYS, correlation_error
 
 TILE = 1024         # texels per side: a 128 x 128 pixel image
 RATIO_BAND = (0.85, 1.15)   # measured / predicted RMS: ~800 correlated samples, ~4 % sampling error

@@ -1,5 +1,5 @@
 """σ_measured against correlation on synthesised images, over many patterns: the validation of
-`vdo.model.speckle.correlation_error` (the interpolation bias, its scatter and the noise through
+`vdo.model.interpolant.correlation_error` (the interpolation bias, its scatter and the noise through
 the interpolant) for sharp-edged dots, fine dots and a photograph-like texture, cubic and quintic
 B-splines and Keys' bicubic convolution.
 
@@ -26,7 +26,8 @@ import numpy as np
 
 from vdo.dic.images import SplineImage
 from vdo.model.optics import OpticsBlur
-from vdo.model.speckle import INTERPOLANTS, correlation_error, generate_pattern, normalise
+from vdo.model.speckle import generate_pattern, normalise
+from vdo.model.interpolant import INTERPOLANTS, correlation_error
 
 SUB = 8                  # texels per pixel
 HALF = 10                # subset half-width, px (21 x 21 pixels)

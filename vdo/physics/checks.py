@@ -20,7 +20,7 @@ exposure       the noise-free gray level of the paint under the predicted irradi
                pixels at or above saturation (min(full well, top DN)). Flagged when the 99th
                percentile is under 25 % (under-exposed) or over 95 % (saturating).
 interpolation  what the lab's correlation measures against the noise alone, at the footprint of the
-               region's median sample (`vdo.model.speckle.correlation_error`): the B-spline
+               region's median sample (`vdo.model.interpolant.correlation_error`): the B-spline
                interpolant of [analysis] on the box-pixel image after the lens's blur
                (`vdo.model.optics`: diffraction at the f-number, or f/8 assumed when the camera
                has none, and the defocus at the median depth), for a patch of P = Ω |det A|
@@ -114,7 +114,8 @@ def interpolation_floor(footprints, irradiance, speckle, sensor, pattern, optics
     irradiances E (K,) W m^-2, for the [0, 1] `pattern`, through the K `optics`
     (`vdo.model.optics.OpticsBlur` or None): one {"error_dn", "noise_dn", "ratio"} per
     footprint, e_DN and σ_n in DN."""
-    from vdo.model.speckle import interpolation_error, normalise
+    from vdo.model.speckle import normalise
+    from vdo.model.interpolant import interpolation_error
 
     f = np.asarray(pattern, dtype=np.float64)
     e = interpolation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)),
@@ -133,9 +134,10 @@ def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, p
     footprints A (K, 2, 2) px/m, irradiances E (K,), patches of `pixels` (K,) pixels, through the
     K `optics`. σ (in pattern stds) = σ_n / (contrast std f). One dict per footprint:
     measured_over_noise and measured_over_bound (2,) per image axis, bias_px (2,) RMS over
-    sub-pixel positions, noise_rel σ, and the `vdo.model.speckle.CorrelationError` as "model"
+    sub-pixel positions, noise_rel σ, and the `vdo.model.interpolant.CorrelationError` as "model"
     (not JSON: `design_checks` drops it)."""
-    from vdo.model.speckle import INTERPOLANTS, correlation_error, normalise
+    from vdo.model.speckle import normalise
+    from vdo.model.interpolant import INTERPOLANTS, correlation_error
 
     f = np.asarray(pattern, dtype=np.float64)
     model = correlation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)),

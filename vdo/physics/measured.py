@@ -2,7 +2,7 @@
 
 The bound (`vdo.physics.predict`, Σ = C⁻¹, C = Σ_i C_i) is the Cramér-Rao bound of one noisy image,
 all views in one correlation, with a perfect interpolant. The lab's correlation differs per camera i
-(`vdo.model.speckle.correlation_error`, at the footprint of the camera's median sample of each
+(`vdo.model.interpolant.correlation_error`, at the footprint of the camera's median sample of each
 region, after the lens's blur of `vdo.model.optics`, with the [analysis] interpolant and reference):
 its image-plane error has the covariance
 
@@ -123,7 +123,7 @@ def region_floors(exp, cameras, samples, views, illumination, speckle,
     (i, k, seen, floor, lens) per (camera i, region k) with samples in `views` (C, N) bool, lit at
     the camera's median footprint, where `seen` are those samples, `floor` the
     `vdo.physics.checks.measurement_floor` row at that median footprint (its "model" the
-    `vdo.model.speckle.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
+    `vdo.model.interpolant.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
     there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m.
     `snap`: the footprint and the depth on the lattice of `_snap` and SNAP_DEPTH."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
