@@ -168,7 +168,7 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
     with pytest.raises(MemoryError):
         plan_render(cams, "sampled", available=kept + 20 * 2 ** 20)
     # Through render_images: refused before any geometry work, one line naming the field.
-    monkeypatch.setattr("vdo.render.available_memory", lambda: kept)
+    monkeypatch.setattr("vdo.rendering.dic.available_memory", lambda: kept)
     with pytest.raises(ConfigError, match=r"\[render\] scale.*GiB.*lower scale") as err:
         render_images(exp, scale=1.0)
     assert "\n" not in str(err.value)

@@ -1,0 +1,495 @@
+"""The DIC render mode: one primary ray per pixel, the speckle averaged over the pixel's footprint
+(docs/render.md, "The DIC render mode"; `vdo.render.render_images` with mode "dic")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vdo.model.camera import Camera
+from vdo.model.speckle import pattern_for
+from vdo.rendering.scene import NEAR_CLIP_M, SPECKLED_SUFFIX, build_render_scene
+
+
+# --------------------------------------------------------------------------------------------
+# The DIC render mode: one primary ray per pixel, the speckle averaged over the pixel's footprint
+# --------------------------------------------------------------------------------------------
+RENDER_MODES = ("sampled", "dic")
+SAT_PAD_TEXELS = 64          # texels of wrapped pattern around the tile in the summed-area table;
+                             # a footprint is clamped to a half-extent of SAT_PAD_TEXELS - 2
+MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): below it, the box's
+                             # corner differences lose digits and its average is the point value
+FOOTPRINT_SPLIT = 2          # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
+LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each light panel (a
+                             # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
+AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
+SHADE_STRIDE = 8             # px between the nodes of the per-camera light map
+SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by more than this
+                             # fraction (a shadow edge, a panel's rim) is computed at every pixel
+EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
+                             # mean of EDGE_SUPERSAMPLE^2 sub-pixel rays, each with its own footprint
+TILE_PIXELS = 1 << 20        # pixels per tile of a DIC-mode render (fewer when memory is short)
+MIN_TILE_PIXELS = 1 << 14    # below this a tile's fixed costs dominate: refuse instead
+TILE_BYTES_PER_PIXEL = 150   # peak working set of a DIC tile per pixel (115 measured with
+                             # ru_maxrss on a 1920 x 1280 plate render, plus a margin)
+SAMPLED_BYTES_PER_PIXEL = 80 # Mitsuba's film and wavefront per pixel, any spp (59 measured at
+                             # 16 and 64 spp on 614k px, plus a margin)
+DISTORTION_BYTES_PER_PIXEL = 48   # the resampling map (H, W, 2) float64 and its spline copies
+IMAGE_BYTES_PER_PIXEL = 6    # what render_images keeps per pixel and camera: float32 + 16-bit DN
+
+
+@dataclass(frozen=True, eq=False)
+class SpeckleTable:
+    """Summed-area table of a [0, 1] speckle tile for exact box averages of its bilinear texture.
+
+    The texture (`build_render_scene`'s bitmap, bilinear, periodic) in texel coordinates
+    x = u W_t, y = v H_t is f = g * box, g(x, y) = pattern[floor y mod H_t, floor x mod W_t] the
+    nearest-texel image and box the unit square centred at 0. With G the antiderivative of g
+    (bilinear between the integer corners S[j, i] = sum of g over [0, i) x [0, j)), the
+    antiderivative of f is H(x, y) = sum_ij S[j, i] B2(x - i) B2(y - j), B2 the quadratic
+    B-spline (3 x 3 taps), so that
+
+        ∫∫_[x0, x1] x [y0, y1] f = H(x1, y1) - H(x0, y1) - H(x1, y0) + H(x0, y0)   (texel^2)
+
+    exactly. `table` holds S of g - mean over the tile padded by `pad` wrapped texels
+    (row/column k is corner k - pad), so any box whose centre lies in the tile and whose
+    half-extent is at most pad - 2 is read without wrapping."""
+
+    table: np.ndarray       # (H_t + 2 pad + 1, W_t + 2 pad + 1) float64
+    mean: float
+    pad: int
+    shape: tuple[int, int]  # (H_t, W_t)
+
+    @classmethod
+    def of(cls, pattern, pad: int = SAT_PAD_TEXELS) -> "SpeckleTable":
+        g = np.asarray(pattern, dtype=np.float64)
+        mean = float(g.mean())
+        tiled = np.pad(g - mean, pad, mode="wrap")
+        table = np.zeros((tiled.shape[0] + 1, tiled.shape[1] + 1))
+        table[1:, 1:] = tiled.cumsum(0).cumsum(1)
+        return cls(table, mean, int(pad), g.shape)
+
+    def box_average(self, x0, x1, y0, y1) -> np.ndarray:
+        """The mean of the bilinear texture f over the boxes [x0, x1] x [y0, y1] (texels, any
+        position: each box is moved by whole tiles to centre it in the tile); numpy reference of
+        what the DIC render computes with Dr.Jit."""
+        x0, x1, y0, y1 = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (x0, x1, y0, y1)))
+        h, w = self.shape
+        sx = np.floor((x0 + x1) / 2 / w) * w
+        sy = np.floor((y0 + y1) / 2 / h) * h
+        total = 0.0
+        for xs, ys, sign in ((x1, y1, 1), (x0, y1, -1), (x1, y0, -1), (x0, y0, 1)):
+            total = total + sign * self._antiderivative(xs - sx, ys - sy)
+        return self.mean + total / ((x1 - x0) * (y1 - y0))
+
+    def _antiderivative(self, x, y):
+        rx, ry = np.rint(x), np.rint(y)
+        wx, wy = _b2_weights(x - rx), _b2_weights(y - ry)
+        ix, iy = rx.astype(np.int64) + self.pad, ry.astype(np.int64) + self.pad
+        return sum(wy[a] * wx[b] * self.table[iy + a - 1, ix + b - 1]
+                   for a in range(3) for b in range(3))
+
+
+def _b2_weights(t):
+    """Quadratic B-spline weights of the corners round(x) - 1, round(x), round(x) + 1 for
+    t = x - round(x) in [-1/2, 1/2]."""
+    return (0.5 * (0.5 - t) ** 2, 0.75 - t * t, 0.5 * (0.5 + t) ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class DicScene:
+    """What the DIC render mode needs of an experiment: the render scene with white regions
+    (`build_render_scene(white_regions=True)`), the registry ids of the speckled shapes, the
+    speckle's summed-area table and tile size, the paint's albedos and the lights."""
+
+    scene: object
+    speckled_ids: tuple[int, ...]
+    table: SpeckleTable
+    tile: tuple[int, int]          # (W_t, H_t) texels of the pattern tile
+    black: float
+    white: float
+    lights: tuple                  # per light (centre, e_u w, e_v h, normal, radiance)
+    ambient: float
+
+
+def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=None) -> DicScene:
+    """The `DicScene` of `exp` (arguments as `build_render_scene`)."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+    from vdo.physics.lighting import panel_frame
+
+    mi = mitsuba()
+    sp = exp.speckle
+    pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
+    scene = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True)
+    ids = tuple(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in scene.shapes()
+                if s.id().endswith(SPECKLED_SUFFIX))
+    lights = []
+    for light in exp.lights:
+        n, e1, e2 = panel_frame(light)
+        w, h = light.size
+        lights.append((np.asarray(light.position, float), e1 * w, e2 * h, n, float(light.radiance)))
+    return DicScene(scene, ids, SpeckleTable.of(pattern), (pattern.shape[1], pattern.shape[0]),
+                    float(sp.black_albedo), float(sp.white_albedo), tuple(lights),
+                    float(exp.render.ambient_radiance))
+
+
+def available_memory() -> int:
+    """Bytes this process may still allocate: MemAvailable of /proc/meminfo (Linux), else the
+    physical memory (os.sysconf)."""
+    import os
+
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+@dataclass(frozen=True)
+class RenderPlan:
+    """The memory a render needs (`plan_render`): `tile_pixels` per DIC tile, `kept` bytes of
+    the finished images, `working` bytes of the largest camera's render, `available` bytes."""
+
+    mode: str
+    tile_pixels: int
+    kept: int
+    working: int
+    available: int
+
+    @property
+    def needed(self) -> int:
+        return self.kept + self.working
+
+
+def plan_render(cameras, mode: str, available: int | None = None) -> RenderPlan:
+    """The memory of rendering `cameras` (already scaled) in `mode`, before anything is rendered:
+    every finished image is kept (IMAGE_BYTES_PER_PIXEL per pixel); one camera renders at a time,
+    the sampled mode with its whole film (SAMPLED_BYTES_PER_PIXEL, plus
+    DISTORTION_BYTES_PER_PIXEL for a distorted camera), the DIC mode in tiles of TILE_PIXELS
+    (TILE_BYTES_PER_PIXEL each), split into smaller tiles (down to MIN_TILE_PIXELS) when that
+    does not fit in `available` bytes (default `available_memory`). Raises MemoryError with the
+    bytes it would need when even that does not fit."""
+    available = available_memory() if available is None else int(available)
+    kept = sum(c.width * c.height for c in cameras) * IMAGE_BYTES_PER_PIXEL
+    tile = TILE_PIXELS
+    if mode == "dic":
+        room = available - kept
+        while tile > MIN_TILE_PIXELS and tile * TILE_BYTES_PER_PIXEL > room:
+            tile //= 2
+        working = tile * TILE_BYTES_PER_PIXEL
+    else:
+        working = max((c.width * c.height * (SAMPLED_BYTES_PER_PIXEL
+                                             + (DISTORTION_BYTES_PER_PIXEL if c.distorted else 0))
+                       for c in cameras), default=0)
+    plan = RenderPlan(mode, tile, kept, working, available)
+    if plan.needed > available:
+        raise MemoryError(f"the render needs {plan.needed / 2 ** 30:.2f} GiB ({kept / 2 ** 30:.2f} GiB "
+                          f"of images, {working / 2 ** 30:.2f} GiB to render one camera); "
+                          f"{available / 2 ** 30:.2f} GiB available")
+    return plan
+
+
+def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
+                      tile_pixels: int = TILE_PIXELS) -> np.ndarray:
+    """One camera's (H, W) float32 linear image in the DIC render mode, in tiles of at most
+    `tile_pixels` pixels (whole rows; `plan_render` chooses). Per pixel (u, v) of the (distorted) image:
+
+    * one primary ray through the pinhole pixel p = `Camera.undistorted_pixels`(u, v), with ray
+      differentials through p + ∂p/∂u and p + ∂p/∂v (central differences over ±½ px): Mitsuba's
+      `compute_uv_partials` gives the footprint's sides a = ∂(x, y)/∂u, b = ∂(x, y)/∂v in texels;
+    * on a speckled region, the albedo ρ = ρ_b + (ρ_w - ρ_b) f̄ with f̄ the mean of the bilinear
+      texture over the footprint parallelogram c + [-½, ½] a + [-½, ½] b, cut into
+      FOOTPRINT_SPLIT^2 parts, each replaced by the axis-aligned box of the same second moments
+      (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly with the
+      `SpeckleTable` (exact for a footprint aligned with the texture axes);
+    * the light reaching the hit (`_shade`: each panel by a LIGHT_POINTS^2 midpoint rule with a
+      shadow ray per point, the ambient sky by AMBIENT_POINTS^2 BSDF-sampled directions) from a
+      light map per camera: computed at the nodes every SHADE_STRIDE pixels and interpolated
+      bilinearly, except in a cell whose corners see another shape than the pixel or differ by more
+      than SHADE_TOLERANCE, where it is computed at the pixel;
+    * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere).
+
+    `progress`: called with the number of rows done after each tile."""
+    rows = max(1, tile_pixels // camera.width)
+    out = np.empty((camera.height, camera.width), dtype=np.float32)
+    for r0 in range(0, camera.height, rows):
+        r1 = min(camera.height, r0 + rows)
+        out[r0:r1] = _dic_tile(dscene, camera, r0, r1)
+        if progress is not None:
+            progress(r1 - r0)
+    return out
+
+
+def _pixel_grid(u, v) -> np.ndarray:
+    return np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1).reshape(-1, 2)
+
+
+def _rays(camera: Camera, grid, step: float = 1.0):
+    """Mitsuba ray differentials for the (distorted) pixels `grid` ((n, 2) array, or a pair of
+    Dr.Jit Floats (u, v)): from the near-clip plane through the pinhole pixel p =
+    `Camera.undistorted_pixels`(u, v) and, as differentials, through p + ∂p/∂u and p + ∂p/∂v
+    for a step of `step` pixels (central differences over ±step/2 for a distorted camera)."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    M = camera.R.T @ np.linalg.inv(camera.K)          # world direction of a homogeneous pixel
+
+    def direction(x, y):
+        return mi.Vector3f(*(float(M[k, 0]) * x + float(M[k, 1]) * y + float(M[k, 2]) for k in range(3)))
+
+    if camera.distorted:
+        at = camera.undistorted_pixels
+        du, dv = np.array([step / 2, 0.0]), np.array([0.0, step / 2])
+        p, pu, pv = at(grid), at(grid + du) - at(grid - du), at(grid + dv) - at(grid - dv)
+        px, py, pux, puy, pvx, pvy = (mi.Float(np.ascontiguousarray(a[:, k], dtype=np.float32))
+                                      for a in (p, pu, pv) for k in range(2))
+    else:
+        if isinstance(grid, np.ndarray):
+            px, py = (mi.Float(np.ascontiguousarray(grid[:, k], dtype=np.float32)) for k in range(2))
+        else:
+            px, py = grid
+        pux, puy, pvx, pvy = step, 0.0, 0.0, step
+    # Each ray starts on the near-clip plane (the camera frame's z = NEAR_CLIP_M, as Mitsuba's
+    # perspective sensor), so that a camera's own body around its centre is not hit.
+    o = mi.Point3f(*(float(c) for c in camera.position))
+    d, d_x, d_y = direction(px, py), direction(px + pux, py + puy), direction(px + pvx, py + pvy)
+    ray = mi.RayDifferential3f(o + NEAR_CLIP_M * d, dr.normalize(d))
+    ray.o_x, ray.o_y = o + NEAR_CLIP_M * d_x, o + NEAR_CLIP_M * d_y
+    ray.d_x, ray.d_y = d_x, d_y
+    ray.has_differentials = True
+    return ray
+
+
+def _footprint_albedo(dscene: DicScene, si):
+    """ρ at each hit (Dr.Jit Float): the footprint-averaged speckle albedo on the speckled
+    shapes (`render_camera_dic`), 1 elsewhere."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    F = mi.Float64
+    t = dscene.table
+    (wt, ht), pad = dscene.tile, t.pad
+    flat = F(np.ascontiguousarray(t.table.ravel()))
+    stride = t.table.shape[1]
+    x, y = F(si.uv.x) * wt, F(si.uv.y) * ht
+    x, y = x - dr.floor(x / wt) * wt, y - dr.floor(y / ht) * ht
+    ax, ay = F(si.duv_dx.x) * wt, F(si.duv_dx.y) * ht
+    bx, by = F(si.duv_dy.x) * wt, F(si.duv_dy.y) * ht
+    extent = dr.maximum(dr.abs(ax) + dr.abs(bx), dr.abs(ay) + dr.abs(by)) / 2
+    k = dr.minimum(1.0, (pad - 3) / dr.maximum(extent, 1e-30))        # clamp huge footprints
+    ax, ay, bx, by = ax * k, ay * k, bx * k, by * k
+    n = FOOTPRINT_SPLIT
+    hx = dr.maximum(0.5 * dr.sqrt(ax * ax + bx * bx) / n, MIN_HALF_TEXELS)
+    hy = dr.maximum(0.5 * dr.sqrt(ay * ay + by * by) / n, MIN_HALF_TEXELS)
+
+    def antiderivative(px, py):
+        rx, ry = dr.round(px), dr.round(py)
+        wx, wy = _b2_weights(px - rx), _b2_weights(py - ry)
+        ix, iy = mi.Int32(rx) + pad - 1, mi.Int32(ry) + pad - 1
+        total = F(0.0)
+        for a in range(3):
+            row = (iy + a) * stride + ix
+            total += wy[a] * (wx[0] * dr.gather(F, flat, row) + wx[1] * dr.gather(F, flat, row + 1)
+                              + wx[2] * dr.gather(F, flat, row + 2))
+        return total
+
+    acc = F(0.0)
+    for i in range(n):
+        for j in range(n):
+            oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
+            cx, cy = x + oi * ax + oj * bx, y + oi * ay + oj * by
+            acc += (antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
+                    - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
+    f = t.mean + acc / (n * n * 4 * hx * hy)
+    rho = dscene.black + (dscene.white - dscene.black) * mi.Float(f)
+    shape = dr.reinterpret_array(mi.UInt32, si.shape)
+    speckled = mi.Bool(False)
+    for sid in dscene.speckled_ids:
+        speckled |= shape == sid
+    return dr.select(si.is_valid() & speckled, rho, 1.0)
+
+
+SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
+
+
+def _quadrature(dscene: DicScene):
+    """The lights' quadrature: points P (Q, 3), panel normals (Q, 3) and weights L A / LIGHT_POINTS^2
+    (Q,), LIGHT_POINTS^2 midpoints per panel."""
+    q = LIGHT_POINTS
+    mid = (np.arange(q) + 0.5) / q - 0.5
+    P, N, w = [], [], []
+    for c, e1, e2, normal, radiance in dscene.lights:
+        for a in mid:
+            for b in mid:
+                P.append(c + a * e1 + b * e2)
+                N.append(normal)
+                w.append(radiance * float(np.linalg.norm(np.cross(e1, e2))) / (q * q))
+    return np.array(P).reshape(-1, 3), np.array(N).reshape(-1, 3), np.array(w)
+
+
+def _shade(dscene: DicScene, si) -> np.ndarray:
+    """The light reflected towards the camera at each hit ((n,) float64, luminance), the integral
+    of `_register_integrator`'s estimator by quadrature: Σ over lights and the LIGHT_POINTS^2
+    midpoints P of each panel of f(ω_i, ω_o) cosθ_s L cosθ_l (A / LIGHT_POINTS^2) / r^2 where P is
+    visible (shadow ray), plus the ambient sky through AMBIENT_POINTS^2 stratum-centre BSDF
+    samples that escape. 0 where the ray missed. Every (hit, point) pair is one lane of a batch
+    of at most SHADE_LANES (small kernels, compiled once)."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    n = dr.width(si)
+    dr.eval(si)
+    P, normals, weights = _quadrature(dscene)
+    m = AMBIENT_POINTS if dscene.ambient > 0 else 0
+    mid = (np.arange(m) + 0.5) / max(m, 1)
+    samples = np.stack(np.meshgrid(mid, mid), -1).reshape(-1, 2)
+    Q = len(P) + len(samples)
+    out = np.zeros(n)
+    if Q == 0:
+        return out
+    table = [mi.Point3f(*(np.ascontiguousarray(x[:, k]) for k in range(3))) for x in (P, normals)]
+    w_light = mi.Float(weights) if len(P) else None
+    S = mi.Point2f(*(np.ascontiguousarray(samples[:, k]) for k in range(2))) if m else None
+    ctx = mi.BSDFContext()
+    chunk = max(1, SHADE_LANES // Q)
+    for start in range(0, n, chunk):
+        count = min(chunk, n - start)
+        total = mi.Float(0.0)
+        if len(P):
+            lane = dr.arange(mi.UInt32, count * len(P))
+            hit = dr.gather(type(si), si, start + lane // len(P))
+            k = lane % len(P)
+            point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
+            d = point - hit.p
+            dist2 = dr.squared_norm(d)
+            d = d * dr.rsqrt(dist2)
+            cos_l = -dr.dot(d, mi.Vector3f(normal))
+            ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0)
+            ok &= ~dscene.scene.ray_test(hit.spawn_ray_to(point), ok)
+            f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
+            value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, w_light, k) * cos_l / dist2), 0.0))
+            total = dr.block_sum(value, len(P))
+        if m:
+            lane = dr.arange(mi.UInt32, count * len(samples))
+            hit = dr.gather(type(si), si, start + lane // len(samples))
+            valid = hit.is_valid()
+            bs, w = hit.bsdf().sample(ctx, hit, 0.5, dr.gather(mi.Point2f, S, lane % len(samples)), valid)
+            ok = valid & (bs.pdf > 0)
+            ok &= ~dscene.scene.ray_test(hit.spawn_ray(hit.to_world(bs.wo)), ok)
+            value = mi.luminance(dr.select(ok, w * (dscene.ambient / len(samples)), 0.0))
+            total = total + dr.block_sum(value, len(samples))
+        out[start:start + count] = np.array(total, dtype=np.float64)
+    return out
+
+
+def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0):
+    """Primary hits (with uv partials over a footprint of `step` pixels) of the pixels `grid`
+    (`_rays`)."""
+    ray = _rays(camera, grid, step)
+    si = dscene.scene.ray_intersect(ray)
+    si.compute_uv_partials(ray)
+    return si
+
+
+def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int) -> np.ndarray:
+    """Rows r0 .. r1 - 1 of `render_camera_dic`'s image, (r1 - r0, W) float32."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    W, h = camera.width, r1 - r0
+    u, v = np.arange(W, dtype=float), np.arange(r0, r1, dtype=float)
+    # The light map's nodes: every SHADE_STRIDE px, and the last column and row of the tile.
+    s = SHADE_STRIDE
+    xs = np.unique(np.r_[np.arange(0, W, s), W - 1]).astype(float)
+    ys = np.unique(np.r_[np.arange(r0, r1, s), r1 - 1]).astype(float)
+    node_si = _cast(dscene, camera, _pixel_grid(xs, ys))
+    node_light = mi.Float(_shade(dscene, node_si))
+    node_ids = dr.reinterpret_array(mi.UInt32, node_si.shape)
+    dr.eval(node_ids)
+    del node_si
+    index = dr.arange(mi.UInt32, W * h)
+    col, row = index % W, index // W
+    pixel = (mi.Float(col), mi.Float(row + r0))
+    si = _cast(dscene, camera, _pixel_grid(u, v) if camera.distorted else pixel)
+    rho = _footprint_albedo(dscene, si)
+    emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
+    ids = dr.reinterpret_array(mi.UInt32, si.shape)
+    # Bilinear in the cell (nodes cx, cx + 1 and cy, cy + 1; the last cell may be narrower).
+    nx, ny = len(xs), len(ys)
+    cx = dr.minimum(col // s, max(nx - 2, 0))
+    cy = dr.minimum(row // s, max(ny - 2, 0))
+    cx1, cy1 = dr.minimum(cx + 1, nx - 1), dr.minimum(cy + 1, ny - 1)
+    X, Y = mi.Float(xs), mi.Float(ys - r0)
+    x0, x1 = dr.gather(mi.Float, X, cx), dr.gather(mi.Float, X, cx1)
+    y0, y1 = dr.gather(mi.Float, Y, cy), dr.gather(mi.Float, Y, cy1)
+    fx = dr.select(x1 > x0, (pixel[0] - x0) / dr.maximum(x1 - x0, 1.0), 0.0)
+    fy = dr.select(y1 > y0, (mi.Float(row) - y0) / dr.maximum(y1 - y0, 1.0), 0.0)
+    corners = [cy * nx + cx, cy * nx + cx1, cy1 * nx + cx, cy1 * nx + cx1]
+    L = [dr.gather(mi.Float, node_light, k) for k in corners]
+    same = mi.Bool(True)
+    for k in corners:
+        same &= dr.gather(mi.UInt32, node_ids, k) == ids
+    lo = dr.minimum(dr.minimum(L[0], L[1]), dr.minimum(L[2], L[3]))
+    hi = dr.maximum(dr.maximum(L[0], L[1]), dr.maximum(L[2], L[3]))
+    smooth = same & (hi <= lo * (1 + SHADE_TOLERANCE))
+    light = (1 - fy) * ((1 - fx) * L[0] + fx * L[1]) + fy * ((1 - fx) * L[2] + fx * L[3])
+    value = emitted + rho * light
+    dr.eval(value, smooth, ids, rho, emitted)
+    value, smooth = np.array(value, dtype=np.float64), np.array(smooth)
+    ids_np = np.array(ids).reshape(h, W)
+    rough = np.flatnonzero(~smooth)
+    if len(rough):
+        grid = np.column_stack([u[rough % W], v[rough // W]])
+        value[rough] = (np.array(dr.gather(mi.Float, emitted, mi.UInt32(rough)), dtype=np.float64)
+                        + np.array(dr.gather(mi.Float, rho, mi.UInt32(rough)), dtype=np.float64)
+                        * _shade(dscene, _cast(dscene, camera, grid)))
+    del si
+    edges = np.flatnonzero(_silhouette(ids_np))
+    if len(edges):
+        value[edges] = _supersampled(dscene, camera, np.column_stack([u[edges % W], v[edges // W]]))
+    return value.astype(np.float32).reshape(h, W)
+
+
+def _silhouette(ids: np.ndarray) -> np.ndarray:
+    """(h, w) bool: pixels with a 4-neighbour (within the tile) that sees another shape."""
+    out = np.zeros(ids.shape, dtype=bool)
+    dy, dx = ids[1:] != ids[:-1], ids[:, 1:] != ids[:, :-1]
+    out[1:] |= dy
+    out[:-1] |= dy
+    out[:, 1:] |= dx
+    out[:, :-1] |= dx
+    return out
+
+
+def _supersampled(dscene: DicScene, camera: Camera, grid: np.ndarray) -> np.ndarray:
+    """(n,) the mean of EDGE_SUPERSAMPLE^2 sub-pixel values (stratum centres, each ray with the
+    footprint of its stratum, its albedo and its light computed at the ray) of the pixels `grid`."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    k = EDGE_SUPERSAMPLE
+    mid = (np.arange(k) + 0.5) / k - 0.5
+    offsets = np.stack(np.meshgrid(mid, mid), -1).reshape(-1, 2)
+    sub = (grid[:, None, :] + offsets[None]).reshape(-1, 2)
+    si = _cast(dscene, camera, sub, 1.0 / k)
+    value = mi.luminance(si.emitter(dscene.scene).eval(si)) * 1.0
+    rho = _footprint_albedo(dscene, si)
+    dr.eval(value, rho)
+    total = np.array(value, dtype=np.float64) + np.array(rho, dtype=np.float64) * _shade(dscene, si)
+    return total.reshape(len(grid), k * k).mean(axis=1)

@@ -1,0 +1,437 @@
+"""The Mitsuba side of the renders: the sensor for a vdo camera, the render scene, one camera's
+image and its exposure (`vdo.render` is the public face; `vdo.render.render_images` renders every
+camera of an experiment).
+
+`sensor_dict` is the only place a vdo `Camera` becomes a Mitsuba sensor; the frame conversion
+itself lives in `Camera.mitsuba_to_world` / `mitsuba_principal_offset`.
+
+The render scene (`build_render_scene`):
+
+* each region of interest is its own mesh, textured with the speckle albedo
+  ρ = ρ_b + (ρ_w - ρ_b) f (f the [0, 1] pattern, `vdo.model.speckle.pattern_for`), mapped at physical scale: a
+  point with face coordinates (u, v) in metres (`vdo.scene.RegionFaces.uv`, the samples' uv) has
+  texture coordinates (u / T_u, v / T_v), T = texel x pattern size, wrap mode repeat. Mitsuba's
+  bitmap has v = 0 on its top row, so the pattern's row i covers v in [i, i+1) texels
+  (`pattern_value` reads it the same way);
+* a specimen [[mesh]] with finish = "satin": the same paint under Mitsuba's roughplastic coat
+  (GGX, `vdo.physics.glare`'s roughness and index), whose specular lobe gives the hot spots;
+* the rest of the specimen is white paint (ρ_w); obstacles are diffuse of their `albedo`, or a rough
+  conductor (aluminium, α = 0.2) when `metal`; camera bodies are dark (ρ = 0.05);
+* each [[light]] is a one-sided rectangle area emitter of its radiance, facing its target (the
+  frame of `vdo.physics.lighting.panel_frame`); [render] ambient_radiance is a constant environment;
+* the integrator is `vdo_panels` (`_register_integrator`): direct illumination only, no
+  interreflection, with one sample on *every* panel per camera sample (Mitsuba's `direct` picks one
+  emitter at random: 10 % pixel noise at 64 spp with 4 panels). So the renders and the photometric
+  model of `vdo.physics.lighting` describe the same light transport: they agree up to Monte Carlo noise,
+  the panel quadrature and ambient occlusion (which the model ignores).
+
+Each camera is rendered with a box filter into a linear float luminance film (bit-identical for a
+seed), then `SensorModel.expose` adds shot and read noise and quantises, with the generator
+`numpy.random.default_rng([seed, camera_index])`. Mitsuba's own seed for camera i is
+seed * 1009 + i.
+
+Scale. `scale` s < 1 renders round(s W) x round(s H) pixels of the same view (`scaled_camera`: same
+field of view; pixel pitch and K scaled by s' = round(s W) / W). The linear value stays the
+radiance, *not* multiplied by 1/s'^2: the small image stands for the same sensor (same full well,
+same exposure level per pixel), so brightness, contrast and noise in DN are those `vdo.physics.lighting`
+predicts for the full-size camera, at any scale; only the sampling of the surface changes. (Scaling
+by 1/s'^2, "bigger pixels collect more light", would saturate a 1/8-scale preview 64 times over.)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from vdo.model.camera import Camera, image_point
+from vdo.model.speckle import pattern_for
+from vdo.physics.glare import SATIN_ALPHA, SATIN_IOR
+
+
+BODY_ALBEDO = 0.05
+NEAR_CLIP_M = 1e-3    # the sensors' near-clip plane (m in front of the camera centre)
+
+
+def sensor_dict(camera: Camera, spp: int = 16, scale: float = 1.0, jitter: bool = True,
+                aperture_radius: float | None = None, focus_distance: float | None = None) -> dict:
+    """Mitsuba sensor dict for `camera`: linear float luminance film, box filter (bit-identical
+    renders for a seed; a Gaussian filter with several threads differs by ~4e-7 from the order
+    of atomic adds), stratified sampler. `scale` < 1 renders a smaller image
+    of the same view (pixel pitch / scale). With `aperture_radius` (m) a thin lens focused at
+    `focus_distance` (m) gives depth of field (Mitsuba's thinlens has no principal-point offset).
+    The sensor is the camera's pinhole part: `render_camera` adds its lens distortion."""
+    width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    ox, oy = camera.mitsuba_principal_offset()
+    film = {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+            "pixel_format": "luminance", "component_format": "float32"}
+    sensor = {"fov_axis": "x", "fov": camera.mitsuba_fov_deg(), "near_clip": NEAR_CLIP_M,
+              "far_clip": 1e4, "to_world": _transform(camera.mitsuba_to_world()), "film": film,
+              "sampler": {"type": "stratified", "sample_count": spp, "jitter": jitter}}
+    if aperture_radius:
+        if camera.principal_offset_px != (0.0, 0.0):
+            raise ValueError(f"camera {camera.name!r}: a thin lens cannot have a principal-point offset")
+        return sensor | {"type": "thinlens", "aperture_radius": aperture_radius,
+                         "focus_distance": focus_distance}
+    return sensor | {"type": "perspective", "principal_point_offset_x": ox,
+                     "principal_point_offset_y": oy}
+
+
+def _transform(matrix: np.ndarray):
+    from vdo.core.backend import mitsuba
+
+    return mitsuba().ScalarTransform4f(np.asarray(matrix, dtype=float))
+
+
+# --------------------------------------------------------------------------------------------
+# Cameras at a render scale
+# --------------------------------------------------------------------------------------------
+def scaled_camera(camera: Camera, scale: float) -> Camera:
+    """The camera that `sensor_dict(camera, scale=scale)` renders: round(s W) x round(s H) pixels,
+    the same horizontal field of view, pixel pitch x W / W', principal offset x W' / W. Its K is the
+    full-size K with f and c scaled by s' = W' / W (c = (W' - 1)/2 + s' offset)."""
+    width, height = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
+    s = width / camera.width
+    return replace(camera, width=width, height=height, pixel_size=camera.pixel_size / s,
+                   principal_offset_px=(camera.principal_offset_px[0] * s,
+                                        camera.principal_offset_px[1] * s))
+
+
+# --------------------------------------------------------------------------------------------
+# Lens distortion: render a wider pinhole image, resample it onto the distorted pixels
+# --------------------------------------------------------------------------------------------
+DISTORTION_MARGIN_PX = 3   # pinhole pixels kept beyond the distorted image's footprint (cubic spline)
+
+
+def undistorted_canvas(camera: Camera, rows_per_chunk: int = 256) -> tuple[Camera, np.ndarray]:
+    """Mitsuba has no lens distortion. For a camera with distortion: the pinhole camera to render
+    instead (same pose and focal length, distortion zero, W + 2 m_x by H + 2 m_y pixels with the
+    principal point moved by (m_x, m_y), so the principal offset and a thin lens stay valid) and,
+    for every pixel (u, v) of the distorted image, where it lies in that render:
+    (u', v') = `Camera.undistorted_pixels`(u, v) + (m_x, m_y), an (H, W, 2) array. The margins
+    m cover the furthest undistorted pixel plus `DISTORTION_MARGIN_PX`."""
+    where = np.empty((camera.height, camera.width, 2))
+    u = np.arange(camera.width, dtype=float)
+    for r0 in range(0, camera.height, rows_per_chunk):
+        rows = np.arange(r0, min(r0 + rows_per_chunk, camera.height), dtype=float)
+        grid = np.stack(np.broadcast_arrays(u[None, :], rows[:, None]), axis=-1)
+        where[r0:r0 + len(rows)] = camera.undistorted_pixels(grid)
+    ray = np.linalg.solve(camera.K, np.stack([where[..., 0], where[..., 1], np.ones(where.shape[:2])],
+                                             axis=-1).reshape(-1, 3).T)     # same K without distortion
+    back = np.stack(image_point(camera.K, ray[0], ray[1], camera.distortion_array), -1)
+    grid = np.stack(np.meshgrid(u, np.arange(camera.height, dtype=float)), -1).reshape(-1, 2)
+    if not np.all(np.abs(back - grid) < 1e-6):     # NaN or not converged: the distortion folds
+        raise ValueError(f"camera {camera.name!r}: the lens distortion {camera.distortion} cannot be "
+                         "inverted over the image (it folds the image): check its coefficients")
+    over = [max(0.0, -where[..., k].min(), where[..., k].max() - (n - 1))
+            for k, n in ((0, camera.width), (1, camera.height))]
+    mx, my = (math.ceil(o) + DISTORTION_MARGIN_PX for o in over)
+    wide = replace(camera, width=camera.width + 2 * mx, height=camera.height + 2 * my,
+                   distortion=(0.0,) * 5)
+    return wide, where + np.array([mx, my], dtype=float)
+
+
+def resample(linear: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """The pinhole render `linear` (H', W') read at `where` (H, W, 2) pixel coordinates (u', v'),
+    by cubic B-spline interpolation (the inverse mapping of each output pixel), clipped at 0
+    (radiance). float32 (H, W)."""
+    from scipy import ndimage
+
+    out = ndimage.map_coordinates(np.asarray(linear, dtype=np.float64),
+                                  [where[..., 1], where[..., 0]], order=3, mode="nearest")
+    return np.maximum(out, 0.0).astype(np.float32)
+
+
+def render_camera(scene, camera: Camera, spec, spp: int, seed: int, jitter: bool = True) -> np.ndarray:
+    """One camera's (H, W) float32 linear image: `render_linear` through `camera_sensor`, and for a
+    camera with lens distortion the wider pinhole render resampled onto the distorted pixels
+    (`undistorted_canvas`, `resample`). `jitter`: the stratified sampler's random offsets within
+    each stratum (False: stratum centres, a fixed sqrt(spp) x sqrt(spp) midpoint rule per pixel
+    and per light, as `vdo.dic.validate` and `vdo.dic.series` render). A camera with an f_number
+    also gets the lens's diffraction (`diffraction_blur`); its defocus is Mitsuba's thin lens."""
+    if not camera.distorted:
+        return diffraction_blur(render_linear(scene, camera_sensor(camera, spec, spp, jitter), seed),
+                                camera, spec)
+    wide, where = undistorted_canvas(camera)
+    return resample(diffraction_blur(render_linear(scene, camera_sensor(wide, spec, spp, jitter),
+                                                   seed), wide, spec), where)
+
+
+def diffraction_blur(linear: np.ndarray, camera: Camera, spec) -> np.ndarray:
+    """The image blurred by the diffraction of a lens at the spec's f_number: a Gaussian of std
+    0.42 λ N_w / p pixels (`vdo.model.optics`: the Airy core's fit, N_w the working f-number at
+    the focus distance, p the camera's pixel pitch, scaled with the render). Mitsuba's thin lens
+    models defocus only. Unchanged for a pinhole (no f_number)."""
+    if spec is None or spec.f_number is None:
+        return linear
+    from scipy import ndimage
+
+    from vdo.model.optics import optics_blur
+
+    sigma = optics_blur(camera.pixel_size, camera.focal_length, spec.f_number,
+                        spec.focus_distance).sigma_px
+    return ndimage.gaussian_filter(np.asarray(linear), sigma, mode="nearest").astype(np.float32)
+
+
+def camera_sensor(camera: Camera, spec, spp: int, jitter: bool = True) -> dict:
+    """`sensor_dict` for an already scaled camera and its CameraSpec (thin lens when the spec has
+    f_number: aperture radius f / (2N), focused at focus_distance)."""
+    if spec is not None and spec.f_number is not None:
+        return sensor_dict(camera, spp=spp, jitter=jitter,
+                           aperture_radius=camera.focal_length / (2 * spec.f_number),
+                           focus_distance=spec.focus_distance)
+    return sensor_dict(camera, spp=spp, jitter=jitter)
+
+
+# --------------------------------------------------------------------------------------------
+# Speckle texture
+# --------------------------------------------------------------------------------------------
+def pattern_value(pattern: np.ndarray, texel: float, uv: np.ndarray) -> np.ndarray:
+    """f at face coordinates uv (..., 2) in metres, nearest texel, as the render maps it:
+    column = floor(u / texel) mod width, row = floor(v / texel) mod height."""
+    uv = np.asarray(uv, dtype=float)
+    col = np.floor(uv[..., 0] / texel).astype(np.int64) % pattern.shape[1]
+    row = np.floor(uv[..., 1] / texel).astype(np.int64) % pattern.shape[0]
+    return np.asarray(pattern)[row, col]
+
+
+# --------------------------------------------------------------------------------------------
+# The render scene
+# --------------------------------------------------------------------------------------------
+def _mi_mesh(name, vertices, faces, bsdf, uv=None):
+    from vdo.scene import SceneMesh, mitsuba_mesh
+
+    return mitsuba_mesh(SceneMesh(name, "render", vertices, faces), bsdf, uv)
+
+
+def _submesh(vertices, faces):
+    used, inverse = np.unique(faces.ravel(), return_inverse=True)
+    return vertices[used], inverse.reshape(faces.shape)
+
+
+def _satin(reflectance: dict) -> dict:
+    """A satin paint: Mitsuba's roughplastic (GGX coat of `vdo.physics.glare`'s roughness and
+    index over the diffuse `reflectance`)."""
+    return {"type": "roughplastic", "distribution": "ggx", "alpha": SATIN_ALPHA, "int_ior": SATIN_IOR,
+            "ext_ior": 1.0, "nonlinear": False, "diffuse_reflectance": reflectance}
+
+
+def _diffuse(albedo):
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": float(albedo)}}
+
+
+def light_emitter(light) -> dict:
+    """A one-sided rectangle area emitter of the light's radiance, facing its target."""
+    from vdo.physics.lighting import panel_frame
+
+    n, e1, e2 = panel_frame(light)
+    w, h = light.size
+    M = np.eye(4)
+    M[:3, 0], M[:3, 1], M[:3, 2], M[:3, 3] = e1 * w / 2, e2 * h / 2, n, light.position
+    return {"type": "rectangle", "to_world": _transform(M),
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": float(light.radiance)}}}
+
+
+_PANEL_INTEGRATOR = "vdo_panels"
+SPECKLED_SUFFIX = "_speckled"     # the render scene's ids of the speckled region shapes
+
+
+def _register_integrator() -> str:
+    """Register (once) `vdo_panels`, a direct-illumination integrator that samples every light.
+
+    Mitsuba's `direct` integrator picks one emitter at random per sample, so with 4 panels and a sky
+    a point lit by one panel gets the right mean from a 1-in-5 lottery: 50 % Monte Carlo noise per
+    pixel at 4 spp, 10 % at 64 spp, far above the sensor noise. This one, for each camera ray's
+    first hit: (1) adds the radiance of an emitter or the sky seen directly; (2) for *each* light,
+    one point P uniform on its rectangle (stratified over the pixel's samples) and a shadow ray:
+    f(ω_i, ω_o) cosθ_s L cosθ_l A / r^2 when P is visible (f from the hit's BSDF, so textures and
+    the rough conductor work); (3) with an ambient sky, one BSDF-sampled direction and a shadow
+    ray: weight x L_amb when it escapes. This is the estimator of exactly the integral in
+    `vdo.physics.lighting` (direct light only, no interreflection), with the noise of the cosθ/r^2
+    variation over one panel (about 1 % per sample) instead of the emitter lottery."""
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    if _PANEL_INTEGRATOR in getattr(_register_integrator, "done", set()):
+        return _PANEL_INTEGRATOR
+    import drjit as dr
+
+    class PanelDirect(mi.SamplingIntegrator):
+        def __init__(self, props):
+            super().__init__(props)
+            self.lights = []
+            for k in range(props.get("light_count", 0)):
+                self.lights.append([props.get(f"light{k}_{c}") for c in "cuvnLA"])
+            self.ambient = props.get("ambient", 0.0)
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            si = scene.ray_intersect(mi.Ray3f(ray), active)
+            valid = mi.Bool(active) & si.is_valid()
+            result = mi.Spectrum(0.0)
+            result += si.emitter(scene, mi.Bool(active)).eval(si, mi.Bool(active))
+            ctx = mi.BSDFContext()
+            bsdf = si.bsdf(ray)
+            for c, u, v, n, radiance, area in self.lights:
+                s = sampler.next_2d(valid)
+                P = mi.Point3f(c) + (s.x - 0.5) * mi.Vector3f(u) + (s.y - 0.5) * mi.Vector3f(v)
+                d = P - si.p
+                dist2 = dr.squared_norm(d)
+                d = d * dr.rsqrt(dist2)
+                cos_l = -dr.dot(d, mi.Vector3f(n))
+                ok = valid & (cos_l > 0) & (dr.dot(d, si.n) > 0)
+                ok &= ~scene.ray_test(si.spawn_ray_to(P), ok)
+                f = bsdf.eval(ctx, si, si.to_local(d), ok)
+                result += dr.select(ok, f * (radiance * area) * cos_l / dist2, 0.0)
+            if self.ambient > 0:
+                bs, weight = bsdf.sample(ctx, si, sampler.next_1d(valid), sampler.next_2d(valid), valid)
+                ok = valid & (bs.pdf > 0)
+                ok &= ~scene.ray_test(si.spawn_ray(si.to_world(bs.wo)), ok)
+                result += dr.select(ok, weight * self.ambient, 0.0)
+            return result, mi.Bool(True), []
+
+    mi.register_integrator(_PANEL_INTEGRATOR, lambda props: PanelDirect(props))
+    _register_integrator.done = {_PANEL_INTEGRATOR}
+    return _PANEL_INTEGRATOR
+
+
+def _integrator_dict(lights, ambient: float) -> dict:
+    from vdo.physics.lighting import panel_frame
+
+    out = {"type": _register_integrator(), "light_count": len(lights), "ambient": float(ambient)}
+    for k, light in enumerate(lights):
+        n, e1, e2 = panel_frame(light)
+        w, h = light.size
+        for key, value in (("c", light.position), ("u", e1 * w), ("v", e2 * h), ("n", n)):
+            out[f"light{k}_{key}"] = [float(x) for x in value]
+        out[f"light{k}_L"] = float(light.radiance)
+        out[f"light{k}_A"] = float(w * h)
+    return out
+
+
+def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=None,
+                       white_regions: bool = False):
+    """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
+    experiment's SceneMeshes at rest (vdo.scene.load_meshes), `region_faces` one RegionFaces per
+    region, `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
+    `vdo.model.speckle.pattern_for(exp.speckle)`). `posed` are the same meshes at a step of the load
+    path (`vdo.geometry.keyframes.at_step`): their vertices are rendered, while the texture coordinates
+    come from the rest vertices, so the speckle moves with the surface (`vdo.dic.series`).
+    `white_regions`: the regions are white (ρ = 1, texture coordinates kept) for the DIC render
+    mode, which multiplies in the speckle itself (`build_dic_scene`); their shapes' ids end in
+    SPECKLED_SUFFIX either way."""
+    at = {m.name: m.vertices for m in (posed or meshes)}
+
+    def moved(name, faces):
+        """The vertices of `faces` of mesh `name` at the step (the order `_submesh` gives)."""
+        return _submesh(at[name], faces)[0]
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    sp = exp.speckle
+    pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
+    albedo = (sp.black_albedo + (sp.white_albedo - sp.black_albedo) * pattern).astype(np.float32)
+    tile = np.array([pattern.shape[1], pattern.shape[0]]) * sp.texel       # (T_u, T_v) metres
+    speckled = mi.load_dict({"type": "diffuse", "reflectance": {
+        "type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]), "raw": True,
+        "wrap_mode": "repeat", "filter_type": "bilinear"}})
+    white = mi.load_dict(_diffuse(sp.white_albedo))
+    satin_speckled = mi.load_dict(_satin({"type": "bitmap", "bitmap": mi.Bitmap(albedo[..., None]),
+                                          "raw": True, "wrap_mode": "repeat", "filter_type": "bilinear"}))
+    satin_white = mi.load_dict(_satin({"type": "rgb", "value": float(sp.white_albedo)}))
+    if white_regions:
+        speckled = mi.load_dict(_diffuse(1.0))
+        satin_speckled = mi.load_dict(_satin({"type": "rgb", "value": 1.0}))
+    spec_of = {m.name: m for m in exp.meshes}
+    shapes = {}
+    for mesh in meshes:
+        spec = spec_of.get(mesh.name)
+        faces = np.asarray(mesh.faces)
+        if mesh.role == "specimen":
+            satin = spec is not None and spec.finish == "satin"
+            taken = np.zeros(len(faces), dtype=bool)
+            for region, rf in zip(exp.regions, region_faces):
+                if region.mesh != mesh.name:
+                    continue
+                fresh = ~taken[rf.faces]
+                sel = rf.faces[fresh]
+                taken[sel] = True
+                if len(sel) == 0:
+                    continue
+                if rf.development is not None:   # a curved region: corners of its own per face,
+                    # so that a ring's seam does not smear the texture (texture coordinates per face)
+                    uv = rf.development.triangles_uv(mesh.vertices[faces[rf.faces]])[fresh]
+                    soup = np.arange(3 * len(sel)).reshape(-1, 3)
+                    shapes[f"region:{region.name}"] = _mi_mesh(
+                        f"region:{region.name}", at[mesh.name][faces[sel]].reshape(-1, 3), soup,
+                        speckled, uv=uv.reshape(-1, 2) / tile)
+                    continue
+                v, f = _submesh(mesh.vertices, faces[sel])
+                shapes[f"region:{region.name}"] = _mi_mesh(f"region:{region.name}",
+                                                           moved(mesh.name, faces[sel]), f,
+                                                           satin_speckled if satin else speckled,
+                                                           uv=rf.uv(v) / tile)
+            rest = faces[~taken]
+            if len(rest):
+                _, f = _submesh(mesh.vertices, rest)
+                shapes[f"paint:{mesh.name}"] = _mi_mesh(f"paint:{mesh.name}", moved(mesh.name, rest),
+                                                        f, satin_white if satin else white)
+        else:
+            if spec is not None and spec.metal:
+                bsdf = {"type": "roughconductor", "material": "Al", "alpha": 0.2}
+            else:
+                bsdf = _diffuse(spec.albedo if spec is not None else 0.5)
+            shapes[mesh.name] = _mi_mesh(mesh.name, at[mesh.name], faces, mi.load_dict(bsdf))
+    dark = mi.load_dict(_diffuse(BODY_ALBEDO))
+    for body in bodies:
+        shapes[body.name] = _mi_mesh(body.name, body.vertices, body.faces, dark)
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    for i, (name, shape) in enumerate(shapes.items()):
+        scene[f"shape_{i:04d}" + (SPECKLED_SUFFIX if name.startswith("region:") else "")] = shape
+    for i, light in enumerate(exp.lights):
+        scene[f"light_{i:03d}"] = light_emitter(light)
+    if exp.render.ambient_radiance > 0:
+        scene["ambient"] = {"type": "constant",
+                            "radiance": {"type": "rgb", "value": float(exp.render.ambient_radiance)}}
+    return mi.load_dict(scene)
+
+
+def lit_scene(exp, shapes: dict):
+    """A Mitsuba scene of the given shapes (name -> `mi.Mesh`) lit by the experiment's [[light]]
+    panels and ambient radiance with the `vdo_panels` integrator, as `build_render_scene` lights
+    the specimen (`vdo.calib.images` renders the calibration target in it)."""
+    from vdo.core.backend import mitsuba
+
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    for i, shape in enumerate(shapes.values()):
+        scene[f"shape_{i:04d}"] = shape
+    for i, light in enumerate(exp.lights):
+        scene[f"light_{i:03d}"] = light_emitter(light)
+    if exp.render.ambient_radiance > 0:
+        scene["ambient"] = {"type": "constant",
+                            "radiance": {"type": "rgb", "value": float(exp.render.ambient_radiance)}}
+    return mitsuba().load_dict(scene)
+
+def render_linear(scene, sensor: dict, seed: int) -> np.ndarray:
+    """One render of `scene` through the sensor dict: (H, W) float32 linear radiance."""
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    image = mi.render(scene, sensor=mi.load_dict(sensor), seed=int(seed) & 0xFFFFFFFF)
+    return np.array(image, dtype=np.float32).reshape(image.shape[0], image.shape[1])
+
+
+def render_seed(seed: int, camera_index: int) -> int:
+    """Mitsuba's seed for camera `camera_index` of a render with `seed`."""
+    return (int(seed) * 1009 + int(camera_index)) & 0xFFFFFFFF
+
+
+def expose(linear: np.ndarray, sensor, seed: int, camera_index: int) -> np.ndarray:
+    """`sensor.expose` with the generator numpy.random.default_rng([seed, camera_index])."""
+    return sensor.expose(linear, np.random.default_rng([int(seed), int(camera_index)]))
+
+
+def noise_free_dn(linear: np.ndarray, sensor) -> np.ndarray:
+    """The expected DN of a linear image (no noise, no rounding), clipped to [0, max DN]."""
+    return np.clip(sensor.mean_dn(np.asarray(linear, dtype=np.float64)), 0.0, sensor.max_dn)
