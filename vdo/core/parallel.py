@@ -55,12 +55,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
+from vdo.core import interrupts
 from vdo.core.errors import ConfigError
 
 MAX_ATTEMPTS = 3           # a task whose local worker process dies is tried this many times
 WATCH_S = 0.5              # a local worker checks this often whether its parent is gone
-
-
 _SHARED: list = []         # a local worker's `shared` object of `run_tasks` (none: empty)
 
 
@@ -231,12 +230,14 @@ def dask_client(address: str | None, workers: int, timeout: float = 30.0, prefix
                 env: dict | None = None):
     """A Client for the time of the block (`connect_dask`; "local": a LocalCluster of `workers`
     processes with the environment variables `env`, its scratch in a temporary folder removed
-    after), or None when `address` is None. The client (and the cluster) are closed when the
+    after, also by an interrupt that ends the process at once: `vdo.core.interrupts.register`),
+    or None when `address` is None. The client (and the cluster) are closed when the
     block ends, however it ends."""
     if address is None:
         yield None
         return
     scratch = Path(tempfile.mkdtemp(prefix=prefix))
+    interrupts.register(scratch)        # removed too when an interrupt ends the process at once
     client = cluster = None
     try:
         client, cluster = connect_dask(address, workers, timeout, scratch, env)
@@ -246,6 +247,7 @@ def dask_client(address: str | None, workers: int, timeout: float = 30.0, prefix
             if c is not None:
                 c.close()
         shutil.rmtree(scratch, ignore_errors=True)
+        interrupts.unregister(scratch)
 
 
 def _openblas_controls() -> list[tuple]:
