@@ -63,7 +63,7 @@ def test_pool_and_dask_write_the_serial_run_folder(plate_experiment, tmp_path, c
 
 
 def error_lines(capsys) -> list[str]:
-    return [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    return error_lines_of(capsys.readouterr().err)
 
 
 @pytest.mark.parametrize("config, flags, words", [
@@ -92,3 +92,24 @@ def test_unreachable_dask_scheduler_is_one_line(tmp_path, capsys, monkeypatch):
     assert len(lines) == 1 and "cannot reach the Dask scheduler at 'tcp://127.0.0.1:9' within 2 s" in lines[0]
     assert not out.exists()
     assert time.perf_counter() - started < 30
+
+
+def test_a_failed_task_is_one_line_and_status_1(tmp_path, capsys, monkeypatch):
+    """What `vdo.search.loadpath` raises when a step fails on its worker (TaskFailed, the worker's
+    traceback kept on it) is one line on the command line, exit status 1, no traceback."""
+    from vdo.core.parallel import Failure, TaskFailed
+
+    def failing(exp, args):
+        raise TaskFailed("load path step 9", Failure("ValueError: operands could not be broadcast",
+                                                     "Traceback (most recent call last):\n  ...\n"))
+
+    monkeypatch.setattr(cli, "_evaluate", failing)
+    out = tmp_path / "run"
+    assert cli.main(["evaluate", str(WITH_PATH), "--out", str(out), "--workers", "2"]) == 1
+    err = capsys.readouterr().err
+    assert error_lines_of(err) == ["error: load path step 9: ValueError: operands could not be broadcast"]
+    assert "Traceback" not in err and not out.exists()
+
+
+def error_lines_of(text: str) -> list[str]:
+    return [line for line in text.splitlines() if line.startswith("error")]
