@@ -5,7 +5,8 @@ Order of work, so that mistakes and interrupts cost nothing: SIGINT/SIGTERM hand
 (`vdo.core.interrupts`), then the arguments, the output folder (`vdo.core.runfolder.check_out`) and the
 config file, all before JAX, Mitsuba or matplotlib are imported (this module imports them only
 inside the commands); then `vdo.core.configure.configure()` and the work. Exit status: 0 done, 1 a
-check that failed (`validate`), 2 a user mistake (one line naming file and field), 3 Mitsuba
+check that failed (`validate`) or a worker's task that failed (one line naming it:
+`vdo.core.parallel.TaskFailed`), 2 a user mistake (one line naming file and field), 3 Mitsuba
 could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
 """
 
@@ -26,6 +27,7 @@ from vdo.core import interrupts
 from vdo.core.backend import BackendError
 from vdo.physics.checks import print_checks
 from vdo.core.errors import ConfigError
+from vdo.core.parallel import TaskFailed
 from vdo.core.runfolder import check_out
 from vdo.core.memory import retain_freed_memory
 
@@ -39,6 +41,7 @@ _MODULES = {"evaluate": "vdo.commands.evaluate", "demo": "vdo.commands.evaluate"
 _OWN_FOLDER = {"sweep"}     # commands whose --out is a store they check themselves (resumable)
 
 
+DASK_CONNECT_S = 30.0   # --dask ADDRESS: a scheduler not reached within this long is one error line
 MAX_ROWS = 40   # console rows: past this many regions, one row per region group; flagged pairs
 
 
@@ -115,6 +118,8 @@ def _load(args):
     if args.command == "calibrate":
         _calibrate_flags(args)
     exp = _experiment(args.config, getattr(args, "series", None))
+    if args.command == "evaluate":
+        _evaluate_flags(args, exp)
     if getattr(args, "cameras", None) is not None:
         names = [c.name for c in exp.camera_specs]
         unknown = [n for n in args.cameras if n not in names]
@@ -182,10 +187,29 @@ def check(paths) -> int:
     return 0
 
 
+def _evaluate_flags(args, exp) -> None:
+    """`vdo evaluate`'s --workers and --dask, checked before any work: they run the load path's
+    steps, so the experiment must have one."""
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(args.config, "--workers", f"must be at least 1 (got {args.workers}); 1 "
+                                                    "judges the load path's steps in this process")
+    if not exp.load_path.active:
+        for flag, value in (("--workers", args.workers), ("--dask", args.dask)):
+            if value is not None:
+                raise ConfigError(args.config, flag, "runs the load path's steps, and the "
+                                                     "experiment has no [load_path]: drop it")
+
+
 def _evaluate(exp, args):
     from vdo.commands.evaluate import evaluate
+    from vdo.core.parallel import blas_environment, cores, dask_client
 
-    result = evaluate(exp, Path(args.out), overwrite=args.overwrite)
+    workers = getattr(args, "workers", None)        # `vdo demo`: neither flag
+    dask = getattr(args, "dask", None)
+    # Dask workers compute as this process (their OpenBLAS thread count): the same result
+    with dask_client(dask, workers or cores(), DASK_CONNECT_S, prefix="vdo-evaluate-dask-",
+                     env=blas_environment()) as client:
+        result = evaluate(exp, Path(args.out), overwrite=args.overwrite, workers=workers, client=client)
     if not args.quiet:
         _print_summary(result.to_json())
         if result.calibration is not None:
@@ -290,7 +314,7 @@ def _design(exp, args) -> None:
 
     workers = args.workers or cores()
     # the candidates judged on Dask workers (spawned processes for "local")
-    with dask_client(args.dask, workers, 30.0, prefix="vdo-design-dask-") as client:
+    with dask_client(args.dask, workers, DASK_CONNECT_S, prefix="vdo-design-dask-") as client:
         result = design(exp, Path(args.out), overwrite=args.overwrite, refine=args.refine,   # logs its problems
                         memory_limit=None if args.memory_gb is None else args.memory_gb * 1e9,
                         time_limit=args.time_limit, client=client,
@@ -437,6 +461,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="the calibration files share a frame of their own (a lab's, e.g. its "
                          "first camera's): place it so that CAMERA stands at its pose in the "
                          "experiment file (default: the files' frame is the CAD frame)")
+    ev.add_argument("--workers", type=int, default=None,
+                    help="judge the load path's steps on this many spawned processes (default: "
+                         "this process; with --dask local: the LocalCluster's, default one per core)")
+    ev.add_argument("--dask", default=None, metavar="ADDRESS",
+                    help="judge the load path's steps on a Dask scheduler's workers, or 'local' "
+                         "for a LocalCluster of --workers processes")
     rd = _command(sub, "render", "photo-realistic noisy images of every camera", "experiment TOML file")
     rd.add_argument("--scale", type=float, default=None, help="image size relative to the sensor "
                                                               "(default: [render] scale)")
@@ -577,6 +607,9 @@ def main(argv=None) -> int:
         if isinstance(exc, BackendError):
             print(f"error: {exc}", file=sys.stderr)
             return 3
+        if isinstance(exc, TaskFailed):     # a worker's task: one line (its traceback at DEBUG)
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
         raise
     finally:
         restore()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -22,14 +23,28 @@ from vdo.design.select import DesignResult, design_layout
 from vdo.outputs import html_report, report
 
 
+def block_store(out: Path) -> Path:
+    """Where `vdo design --out OUT` keeps its judged candidate blocks until OUT is written: the
+    hidden folder .OUT.vdo-design-blocks beside OUT, so that a run interrupted before OUT
+    appears (it is written whole or not at all) resumes from them when started again with the
+    same OUT (`vdo.design.candidates.BlockStore`)."""
+    out = Path(out).expanduser().resolve()
+    return out.parent / f".{out.name}.vdo-design-blocks"
+
+
 def design(exp: Experiment, out: Path, overwrite: bool = False, refine: bool = False,
            memory_limit: float | None = None, time_limit: float | None = None, client=None,
            threads: int | None = None) -> DesignResult:
     """Design a layout (`vdo.design.select.design_layout`, the arguments as there) and write its
-    run folder into `out` (`write_design`). Returns the `DesignResult`."""
+    run folder into `out` (`write_design`). Resumable: the judged candidate blocks are kept in
+    `block_store(out)` until the run folder is written, and a run started again with the same
+    experiment and `out` after an interruption judges only the blocks not kept there. Returns
+    the `DesignResult`."""
+    store = block_store(out)
     result = design_layout(exp, refine=refine, memory_limit=memory_limit, time_limit=time_limit,
-                           client=client, threads=threads)
+                           client=client, threads=threads, store=store)
     write_design(result, out, overwrite)
+    shutil.rmtree(store, ignore_errors=True)
     return result
 
 

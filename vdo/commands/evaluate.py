@@ -35,14 +35,17 @@ MPX_PER_UM = 1e-3   # pixel/m -> mpixel/um (= pixel/mm)
 MAX_WARNINGS = 10   # load-path warnings of each kind on the console; all of them in summary.json
 
 
-def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> report.EvaluationResult:
+def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int | None = None,
+             client=None) -> report.EvaluationResult:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
     component for the [analysis] settings, `vdo.physics.strain`); summary.json also holds the design
     checks per camera and region (`vdo.physics.checks`). Returns the judged layout
     (`vdo.outputs.report.EvaluationResult`, whose `to_json()` is summary.json). Progress and
-    warnings go to the `vdo.commands.evaluate` logger (`vdo.core.progress`)."""
+    warnings go to the `vdo.commands.evaluate` logger (`vdo.core.progress`). The load path's
+    steps run in this process, or on `workers` >= 2 spawned processes, or on a dask.distributed
+    `client`'s workers (`vdo.search.loadpath.evaluate_load_path`): the same files."""
     geometry = prepare(exp)
     samples = geometry.samples
     log.info("%s samples on %d regions (%g mm spacing)", f"{len(samples):,}", len(exp.regions),
@@ -56,7 +59,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False) -> report.Eval
     over_path = None
     if load_path is not None:
         log.info("load path: %d steps", len(load_path.steps))
-        over_path = evaluate_load_path(geometry, load_path, progress=shown(log), rest=state)
+        over_path = evaluate_load_path(geometry, load_path, progress=shown(log), rest=state,
+                                       workers=workers, client=client)
         for loss in over_path.losses[:MAX_WARNINGS]:
             log.warning("warning: camera %s loses region %s at step %s (sees %.0f %% of it, "
                         "%.0f %% at rest)", loss["camera"], loss["region"], loss["step"],

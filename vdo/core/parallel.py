@@ -6,7 +6,13 @@ JAX, Mitsuba or thread state) or, given a ``dask.distributed`` Client, as tasks 
 yields ``(item, result)`` as the tasks finish (in any order). A task that returns no result is not
 raised: its result is a `Failure` (the exception's line and traceback, or what happened to its
 worker), so that the caller decides whether one failure ends the run (`vdo.calib.montecarlo`) or
-is recorded while the others go on (`vdo sweep`).
+is recorded while the others go on (`vdo sweep`); `TaskFailed` is the one-line error of a
+caller that ends.
+
+What every task needs alike (a geometry, a load path) goes to each worker once, not with every
+task: `run_tasks(..., shared=obj)` calls ``fn(obj, item)``, `obj` pickled into each local
+worker's start-up arguments, or scattered to every Dask worker once (``Client.scatter``,
+broadcast) and handed to each task as a reference.
 
 Each worker sets itself up once, before its first task (`configure_worker`: `vdo.core.configure`
 with `threads` Dr.Jit threads, and one XLA:CPU thread when `threads` is 1), so that the workers
@@ -49,10 +55,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Sequence
 
+from vdo.core import interrupts
 from vdo.core.errors import ConfigError
 
 MAX_ATTEMPTS = 3           # a task whose local worker process dies is tried this many times
 WATCH_S = 0.5              # a local worker checks this often whether its parent is gone
+_SHARED: list = []         # a local worker's `shared` object of `run_tasks` (none: empty)
+
+
+class TaskFailed(RuntimeError):
+    """A task that returned no result, for a caller whose run ends with it: one line naming the
+    task (`what`, e.g. "load path step 7") and its `Failure`'s error, the worker's traceback kept
+    in `traceback`. The command line prints the line and exits with status 1."""
+
+    def __init__(self, what: str, failure: "Failure"):
+        self.what, self.traceback = what, failure.traceback
+        super().__init__(f"{what}: {failure.error}")
 
 
 @dataclass(frozen=True)
@@ -81,9 +99,10 @@ def configure_worker(threads: int | None) -> None:
     configure(threads=threads)
 
 
-def _local_worker(threads: int | None) -> None:
+def _local_worker(threads: int | None, shared: tuple = ()) -> None:
     """Initializer of the local pool's workers: leave when the parent process is gone, then
-    `configure_worker`."""
+    `configure_worker`, and keep `run_tasks`' `shared` object (a tuple of it, or empty)."""
+    _SHARED[:] = shared
     parent = os.getppid()
 
     def watch():
@@ -95,44 +114,52 @@ def _local_worker(threads: int | None) -> None:
     configure_worker(threads)
 
 
-def call(fn: Callable, item):
-    """``fn(item)`` in a worker, or the `Failure` of the exception it raised (a KeyboardInterrupt
-    is not caught: it ends the run)."""
+def call(fn: Callable, item, shared: tuple = ()):
+    """``fn(*shared, item)`` in a worker, or the `Failure` of the exception it raised (a
+    KeyboardInterrupt is not caught: it ends the run)."""
     try:
-        return fn(item)
+        return fn(*shared, item)
     except Exception as exc:
         return Failure(f"{type(exc).__name__}: {exc}", traceback.format_exc())
 
 
+def _call_local(fn: Callable, item):
+    """`call` in a local worker, with the `shared` object its initializer kept."""
+    return call(fn, item, tuple(_SHARED))
+
+
 def run_tasks(fn: Callable, items: Iterable, *, workers: int | None = None, threads: int | None = None,
-              client=None, keys: Sequence[str] | None = None, name: str = "vdo") -> Iterator[tuple]:
+              client=None, keys: Sequence[str] | None = None, name: str = "vdo",
+              shared=None) -> Iterator[tuple]:
     """Yield ``(item, fn(item))`` for every item as the tasks finish, a `Failure` in place of a
     result that did not come (module docstring). Without `client`: a local pool of `workers`
     spawned processes (default: one per core, never more than there are items); with a
     ``distributed.Client``: its workers, each task under the Dask key ``keys[i]`` (default
-    ``{name}-<random>-{i}``). `threads`: each worker's CPU threads (`configure_worker`)."""
+    ``{name}-<random>-{i}``). `threads`: each worker's CPU threads (`configure_worker`).
+    `shared` (not None): sent to each worker once and passed first, ``fn(shared, item)``."""
     items = list(items)
     if not items:
         return
+    extra = () if shared is None else (shared,)
     if client is not None:
         if keys is None:
             token = uuid.uuid4().hex[:12]
             keys = [f"{name}-{token}-{i}" for i in range(len(items))]
-        yield from _dask(fn, items, client, threads, list(keys), name)
+        yield from _dask(fn, items, client, threads, list(keys), name, extra)
     else:
-        yield from _local(fn, items, workers or cores(), threads)
+        yield from _local(fn, items, workers or cores(), threads, extra)
 
 
-def _local(fn, items: list, workers: int, threads: int | None):
+def _local(fn, items: list, workers: int, threads: int | None, shared: tuple):
     attempts = Counter()
     pending = list(range(len(items)))
     while pending:
         pool = ProcessPoolExecutor(max_workers=min(workers, len(pending)),
                                    mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_local_worker, initargs=(threads,))
+                                   initializer=_local_worker, initargs=(threads, shared))
         ended = False
         try:
-            futures = {pool.submit(call, fn, items[i]): i for i in pending}
+            futures = {pool.submit(_call_local, fn, items[i]): i for i in pending}
             pending = []
             for future in as_completed(futures):
                 i = futures[future]
@@ -150,7 +177,7 @@ def _local(fn, items: list, workers: int, threads: int | None):
             pool.shutdown(wait=ended, cancel_futures=True)   # leaves after its task or with us
 
 
-def _dask(fn, items: list, client, threads: int | None, keys: list, name: str):
+def _dask(fn, items: list, client, threads: int | None, keys: list, name: str, shared: tuple):
     from distributed import as_completed as dask_completed
     from distributed.diagnostics.plugin import WorkerPlugin
 
@@ -159,7 +186,9 @@ def _dask(fn, items: list, client, threads: int | None, keys: list, name: str):
             configure_worker(threads)
 
     client.register_plugin(Setup(), name=f"{name}-setup")
-    futures = {client.submit(call, fn, item, key=key, pure=False): i
+    # a scattered object's reference, resolved on the worker (inside the tuple too)
+    scattered = [client.scatter(s, broadcast=True, hash=False) for s in shared]
+    futures = {client.submit(call, fn, item, tuple(scattered), key=key, pure=False): i
                for i, (item, key) in enumerate(zip(items, keys))}
     try:
         for future in dask_completed(futures):
@@ -201,12 +230,14 @@ def dask_client(address: str | None, workers: int, timeout: float = 30.0, prefix
                 env: dict | None = None):
     """A Client for the time of the block (`connect_dask`; "local": a LocalCluster of `workers`
     processes with the environment variables `env`, its scratch in a temporary folder removed
-    after), or None when `address` is None. The client (and the cluster) are closed when the
+    after, also by an interrupt that ends the process at once: `vdo.core.interrupts.register`),
+    or None when `address` is None. The client (and the cluster) are closed when the
     block ends, however it ends."""
     if address is None:
         yield None
         return
     scratch = Path(tempfile.mkdtemp(prefix=prefix))
+    interrupts.register(scratch)        # removed too when an interrupt ends the process at once
     client = cluster = None
     try:
         client, cluster = connect_dask(address, workers, timeout, scratch, env)
@@ -216,6 +247,7 @@ def dask_client(address: str | None, workers: int, timeout: float = 30.0, prefix
             if c is not None:
                 c.close()
         shutil.rmtree(scratch, ignore_errors=True)
+        interrupts.unregister(scratch)
 
 
 def _openblas_controls() -> list[tuple]:

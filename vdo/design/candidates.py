@@ -30,14 +30,26 @@ specimen). Candidates that see no sample at rest (blind) are dropped. Not float3
 rank 2 with its null vector along the ray, and float32 rounding of entries ~1e15 1/m^2 leaves
 ~1e8 along the ray, above the prior 1/prior_sigma^2 = 1e6 that alone fixes that direction for a
 sample seen once (the regularised C turned indefinite and the score NaN).
+
+Resumable. With a `BlockStore` (`vdo design` keeps one beside its output folder), each judged
+block is written to disk as it comes (`KEY/START.npz`, atomically), KEY a digest of what the
+judgement reads: the experiment, the size and time of every file it names, the block size and
+vdo's version. A run interrupted after some blocks, started again with the same experiment and
+output folder, loads those blocks (bit for bit what was judged) and judges only the others, so it
+ends with the layout of an uninterrupted run; the store is removed once the run folder is written.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
+import os
 import uuid
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
+from importlib import metadata
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse
@@ -421,6 +433,62 @@ def judge_block(j: Judging, start: int, stop: int) -> Block:
                  weight[keep], assigned, masked, lost, seen)
 
 
+def _named_files(value, out: list) -> list:
+    """(path, size, mtime_ns) of every existing file an experiment's dict names, in its order."""
+    if isinstance(value, dict):
+        for v in value.values():
+            _named_files(v, out)
+    elif isinstance(value, (list, tuple)):
+        for v in value:
+            _named_files(v, out)
+    elif isinstance(value, str) and os.path.isabs(value) and os.path.isfile(value):
+        info = os.stat(value)
+        out.append((value, info.st_size, info.st_mtime_ns))
+    return out
+
+
+@dataclass(frozen=True)
+class BlockStore:
+    """Judged blocks kept in `folder` (module docstring, "Resumable"): `folder/key/START.npz`."""
+
+    folder: Path
+    key: str
+
+    @classmethod
+    def of(cls, folder: Path, exp: Experiment, size: int, count: int) -> "BlockStore":
+        """The store in `folder` for `exp`'s `count` candidates judged in blocks of `size`: its
+        key the SHA-256 of the experiment's canonical JSON, the files it names (size, mtime),
+        `size`, `count` and vdo's version."""
+        data = exp.to_dict()
+        try:
+            version = metadata.version("vdo")
+        except metadata.PackageNotFoundError:
+            version = "unknown"
+        text = json.dumps([data, _named_files(data, []), size, count, version], sort_keys=True,
+                          default=str)
+        return cls(Path(folder), hashlib.sha256(text.encode()).hexdigest()[:24])
+
+    def path(self, start: int) -> Path:
+        return self.folder / self.key / f"{start}.npz"
+
+    def load(self, start: int) -> "Block | None":
+        """The block that starts at candidate `start`, or None when not stored (or unreadable)."""
+        try:
+            with np.load(self.path(start)) as f:
+                return Block(start=int(f["start"]), **{k.name: f[k.name] for k in fields(Block)
+                                                       if k.name != "start"})
+        except (OSError, KeyError, ValueError):
+            return None
+
+    def save(self, block: "Block") -> None:
+        """Write `block` atomically (a temporary file renamed over the final one)."""
+        target = self.path(block.start)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(f".{target.stem}.{os.getpid()}.npz")
+        np.savez(tmp, **{k.name: getattr(block, k.name) for k in fields(Block)})
+        os.replace(tmp, target)
+
+
 def block_size(samples: int) -> int:
     """Candidates per block: PAIRS_PER_BLOCK pairs (at least one candidate)."""
     return max(1, PAIRS_PER_BLOCK // max(samples, 1))
@@ -465,27 +533,43 @@ def remote_block(exp: Experiment, token: str, start: int, stop: int, threads: in
 
 
 def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=None,
-          threads: int | None = None) -> Candidates:
+          threads: int | None = None, store: Path | None = None) -> Candidates:
     """Every candidate's information and weights on `geometry`'s samples (module docstring), in
     blocks of `block_size` candidates, stored sparsely; with progress bars when the module logger
     passes INFO (`vdo.core.progress`). With a dask.distributed `client`, the blocks are tasks on
     its workers (`remote_block`; `geometry` must then be `exp` sampled at [design]
     sample_spacing_mm, as `vdo.design.select.design_layout` does) and come back in any order:
-    the same result."""
+    the same result. With `store` (a folder), each judged block is kept there and the blocks
+    found there for this experiment are not judged again (`BlockStore`)."""
     j = judging(exp, geometry) if j is None else j
     size = block_size(len(geometry.samples))
-    starts = range(0, len(j.cams), size)
+    kept = None if store is None else BlockStore.of(store, exp, size, len(j.cams))
+    blocks, starts = [], []
+    for s in range(0, len(j.cams), size):
+        block = None if kept is None else kept.load(s)
+        if block is None:
+            starts.append(s)
+        else:
+            blocks.append(block)
+    if blocks:
+        log.info("resumed: %d of %d candidate blocks judged before (%s)", len(blocks),
+                 len(blocks) + len(starts), kept.folder)
     if client is None:
-        blocks = [judge_block(j, s, min(s + size, len(j.cams)))
-                  for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False)]
-    else:
+        for s in bar(log, iterable=starts, desc="candidates", unit="block", leave=False):
+            blocks.append(judge_block(j, s, min(s + size, len(j.cams))))
+            if kept is not None:
+                kept.save(blocks[-1])
+    elif starts:
         from distributed import as_completed
 
         token = uuid.uuid4().hex
         shared = client.scatter(exp, broadcast=True)
         futures = [client.submit(remote_block, shared, token, s, min(s + size, len(j.cams)), threads,
                                  key=f"vdo-design-{token}-{s}", pure=False) for s in starts]
-        blocks = [f.result() for f in bar(log, iterable=as_completed(futures), total=len(futures),
-                                          desc="candidates (dask)", unit="block", leave=False)]
+        for f in bar(log, iterable=as_completed(futures), total=len(futures),
+                     desc="candidates (dask)", unit="block", leave=False):
+            blocks.append(f.result())
+            if kept is not None:
+                kept.save(blocks[-1])
     log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
     return collect(j, blocks)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -243,7 +244,8 @@ def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
 
 
 def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | None = None,
-                  time_limit: float | None = None, client=None, threads: int | None = None) -> DesignResult:
+                  time_limit: float | None = None, client=None, threads: int | None = None,
+                  store: Path | None = None) -> DesignResult:
     """Design a layout (module docstring); returns the `DesignResult` that `vdo.commands.design`
     writes as designed.toml, layout.json, summary.json, constraints.json, candidates.csv,
     pareto.csv, pareto.png, design.json and report.html (this function writes nothing). With
@@ -254,7 +256,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     `memory_limit` bytes (default: `vdo.design.budget.available_memory`) or `time_limit` seconds
     is refused (`vdo.design.budget.refuse`: ConfigError naming the spacing and the candidate count
     that fit). With a dask.distributed `client` the candidates are judged on its workers
-    (`vdo.design.candidates.judge`; `threads` Dr.Jit threads each). Progress and the chosen
+    (`vdo.design.candidates.judge`; `threads` Dr.Jit threads each). With `store` (a folder) the
+    judged candidate blocks are kept there, and those of an interrupted run of the same
+    experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the chosen
     cameras: INFO lines and bars through the module logger; each problem found (also in the
     result): a warning."""
     t0 = time.perf_counter()
@@ -267,7 +271,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     log.info(est.line())
     refuse(exp, est, available_memory() if memory_limit is None else memory_limit, time_limit)
     t_judge = time.perf_counter()
-    cand = judge(exp, coarse, j, client=client, threads=threads)
+    cand = judge(exp, coarse, j, client=client, threads=threads, store=store)
     K, N = len(cand.cameras), cand.samples
     judged_s = time.perf_counter() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",

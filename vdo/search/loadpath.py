@@ -8,7 +8,10 @@ the σ_max p95. A camera **loses** a region at the first step where it sees less
 `SEEN_FRACTION` of the region's area after having seen at least that much at rest.
 
 The cost is one ray cast, one lighting pass and one prediction per step: linear in the number of
-steps (`benchmarks/load_path.py`).
+steps (`benchmarks/load_path.py`). The steps are independent: `evaluate_load_path` runs them in
+this process, on a local pool of spawned processes or on a Dask cluster
+(`vdo.core.parallel.run_tasks`, `vdo evaluate --workers N | --dask ADDRESS`), with the same
+arrays to the last bit: each step is judged from the rest geometry alone (`judge_step`).
 
 For the optimizer and the design search (`path_occlusion`, `scored_path`): a view (camera i,
 sample n) **holds over the path** when camera i sees sample n (in front, in the image, facing it
@@ -22,10 +25,11 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from vdo.core.parallel import Failure, TaskFailed, cores, run_tasks
 from vdo.core.progress import shown_bar
 from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
 from vdo.scene import build_scene
@@ -94,34 +98,83 @@ def _region_stats(state: LayoutState, minimum: np.ndarray):
     return seen, cov, p95, sigma
 
 
+@dataclass(frozen=True, eq=False)
+class StepJudgement:
+    """The cameras judged at one step (or at rest): what `LoadPathResult` keeps of it."""
+
+    camera_names: tuple[str, ...]
+    coverage: np.ndarray       # (N,) cameras that see each sample
+    seen: np.ndarray           # (C, R) area fraction of each region each camera sees
+    covered: np.ndarray        # (R,) area fraction seen by >= the region's minimum cameras
+    p95: np.ndarray            # (R,) m, sigma_max p95 over the measured samples (NaN if none)
+    sigma: np.ndarray          # (N,) m, +inf where unmeasured
+
+
+@dataclass(frozen=True, eq=False)
+class PathShared:
+    """What every step of a load-path run needs (`vdo.core.parallel.run_tasks`' `shared`, sent
+    to each worker once): the geometry at rest, its pair-list sizes those the rest state left
+    (`vdo.state.Geometry.sizes`), the load path and the cameras (None: the experiment's)."""
+
+    geometry: Geometry
+    load_path: LoadPath
+    cameras: tuple | None
+
+
+def _judgement(state: LayoutState) -> StepJudgement:
+    minimum = np.array([r.min_cameras for r in state.geometry.experiment.regions])
+    seen, covered, p95, sigma = _region_stats(state, minimum)
+    return StepJudgement(tuple(state.visibility.camera_names), state.prediction.coverage, seen,
+                         covered, p95, sigma)
+
+
+def judge_step(shared: PathShared, step: int) -> StepJudgement:
+    """The cameras judged at `step` of the load path (`at_step`, `layout_state` without the
+    strain fields), on a copy of the rest geometry's pair-list sizes: each step's arrays depend
+    on that step alone, the same to the last bit in any process and after any other step."""
+    rest = replace(shared.geometry, sizes=dict(shared.geometry.sizes))
+    moved = at_step(rest, shared.load_path, step)
+    cameras = None if shared.cameras is None else list(shared.cameras)
+    return _judgement(layout_state(moved, cameras, strain_fields=False))
+
+
 def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
-                       progress: bool = False, rest: LayoutState | None = None) -> LoadPathResult:
+                       progress: bool = False, rest: LayoutState | None = None,
+                       workers: int | None = None, client=None) -> LoadPathResult:
     """Judge `cameras` (default: the experiment's) at rest and at every step of `load_path`,
     each distinct geometry once (`LoadPath.step_key`: a step that returns to an earlier pose
     reuses its judgement). `rest`: the state at rest when already computed
-    (`layout_state(geometry, cameras)`)."""
-    exp = geometry.experiment
-    minimum = np.array([r.min_cameras for r in exp.regions])
+    (`layout_state(geometry, cameras)`).
+
+    Where: in this process (default; `workers` 1 too), on a local pool of `workers` >= 2 spawned
+    processes, or on the workers of a dask.distributed `client` (`vdo.core.parallel.run_tasks`):
+    the rest state here, then one task per distinct step, the geometry, the load path and the
+    cameras sent to each worker once (`PathShared`). The arrays are the same to the
+    last bit wherever the steps ran (`judge_step`) on the same kind of machine, provided the
+    workers' OpenBLAS started with this process's thread count (a local pool's do; for Dask
+    workers, `vdo.core.parallel.blas_environment`). A step whose task fails ends the run:
+    `vdo.core.parallel.TaskFailed` naming the step. Progress counts the distinct geometries."""
     steps = ("rest",) + tuple(load_path.steps)
-    judged = {}   # step key -> (coverage, seen, covered, p95, sigma)
-    coverage, sigma, seen, covered, p95 = [], [], [], [], []
-    for step in shown_bar(progress, iterable=steps, desc="load path", unit="step"):
-        key = () if step == "rest" else load_path.step_key(step)
-        if key not in judged:
-            if key == () and rest is not None:
-                state = rest
-            else:
-                moved = geometry if key == () else at_step(geometry, load_path, step)
-                state = layout_state(moved, cameras, strain_fields=False)
-            judged[key] = (state.prediction.coverage, *_region_stats(state, minimum))
-            camera_names = state.visibility.camera_names
-        cov, s, c, p, sig = judged[key]
-        coverage.append(cov)
-        sigma.append(sig)
-        seen.append(s)
-        covered.append(c)
-        p95.append(p)
-    seen_arr = np.array(seen)
+    first: dict = {}                       # step key -> the first step with it (rest: ())
+    for step in load_path.steps:
+        first.setdefault(load_path.step_key(step), step)
+    todo = [step for key, step in first.items() if key != ()]
+    counter = shown_bar(progress, total=len(todo) + 1, desc="load path", unit="pose")
+    try:
+        if rest is None:
+            rest = layout_state(geometry, cameras, strain_fields=False)
+        judged = {(): _judgement(rest)}
+        counter.update()
+        shared = PathShared(replace(geometry, sizes=dict(geometry.sizes)), load_path,
+                            None if cameras is None else tuple(cameras))
+        for step, judgement in _judge(shared, todo, workers, client):
+            judged[load_path.step_key(step)] = judgement
+            counter.update()
+    finally:
+        counter.close()
+    per_step = [judged[() if step == "rest" else load_path.step_key(step)] for step in steps]
+    camera_names = per_step[0].camera_names
+    seen_arr = np.array([j.seen for j in per_step])
     losses = []
     for c, camera in enumerate(camera_names):
         for r, region in enumerate(geometry.samples.region_names):
@@ -135,10 +188,32 @@ def evaluate_load_path(geometry: Geometry, load_path: LoadPath, cameras=None,
                                "fraction": float(seen_arr[k, c, r])})
                 logger.debug("camera %s loses region %s at step %s (sees %.0f%% of it, %.0f%% at rest)",
                              camera, region, steps[k], 100 * seen_arr[k, c, r], 100 * seen_arr[0, c, r])
-    covered, p95 = np.array(covered), np.array(p95)
-    return LoadPathResult(steps, camera_names, geometry.samples.region_names, np.array(coverage),
-                          np.array(sigma), seen_arr, covered, p95, tuple(losses),
+    covered, p95 = np.array([j.covered for j in per_step]), np.array([j.p95 for j in per_step])
+    return LoadPathResult(steps, camera_names, geometry.samples.region_names,
+                          np.array([j.coverage for j in per_step]), np.array([j.sigma for j in per_step]),
+                          seen_arr, covered, p95, tuple(losses),
                           region_changes(geometry.samples.region_names, steps, covered, p95))
+
+
+def _judge(shared: PathShared, steps: list[int], workers: int | None, client):
+    """(step, `StepJudgement`) for each of `steps`, in this process or as tasks
+    (`evaluate_load_path`); in this process in step order, as tasks as they finish."""
+    if client is None and (workers or 1) <= 1:
+        for step in steps:
+            yield step, judge_step(shared, step)
+        return
+    count = max(1, sum(client.nthreads().values())) if client is not None else workers
+    threads = None if client is not None else max(1, cores() // count)
+    results = run_tasks(judge_step, steps, workers=count, threads=threads, client=client,
+                        name="vdo-load-path", shared=shared)
+    try:
+        for step, result in results:
+            if isinstance(result, Failure):
+                logger.debug("load path step %s failed on its worker:\n%s", step, result.traceback)
+                raise TaskFailed(f"load path step {step}", result)
+            yield step, result
+    finally:
+        results.close()          # stops the pool (or cancels the Dask tasks) when ended early
 
 
 def region_changes(region_names, steps, covered: np.ndarray, p95: np.ndarray) -> tuple[dict, ...]:
