@@ -1,7 +1,8 @@
 """The load path's steps as tasks (`vdo.search.loadpath.evaluate_load_path` with `workers` or a
 Dask `client`, through `vdo.core.parallel.run_tasks`): the shipped beam-column experiment, coarse
-(40 mm samples, every 4th step: 7 steps, each a distinct pose), judged in this process, on a
-local pool of 2 spawned processes and on a Dask LocalCluster of 2 workers. Every per-step array,
+(40 mm samples, every 4th step: 7 steps, each a distinct pose), judged in this process and on a
+Dask LocalCluster of 2 workers (the local pool of spawned processes writes the same run folder:
+tests/commands/test_evaluate_parallel.py). Every per-step array,
 the losses and changes, summary.json's "load_path" and load_path.csv's rows are the same to the
 last bit; a step that fails on a worker ends the run with one line naming that step."""
 
@@ -55,13 +56,6 @@ def test_serial_path_is_worth_comparing(judged):
     assert len(serial.steps) == 8 and len({load_path.step_key(s) for s in load_path.steps}) == 7
     changed = serial.sigma_max[1:] != serial.sigma_max[:1]
     assert changed.any() and np.isfinite(serial.sigma_max).any()
-
-
-def test_local_pool_of_two_is_the_serial_run_to_the_last_bit(judged):
-    from vdo.search.loadpath import evaluate_load_path
-
-    geometry, load_path, rest, serial = judged
-    assert_identical(serial, evaluate_load_path(geometry, load_path, rest=rest, workers=2))
 
 
 def test_dask_local_cluster_is_the_serial_run_and_a_failed_step_is_one_line(judged):
