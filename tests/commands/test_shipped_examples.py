@@ -9,7 +9,8 @@ up) passes its up-front checks, and each command that applies to it runs on it, 
   ended at one camera more than the file's `min_cameras`, validation renders at `VALIDATION_SPP` spp, a load path at every
   `LOAD_PATH_EVERY`-th step (all rows still checked);
 * flags that the commands already have: `--seeds 2` (validate), `--scale 0.05 --spp 1` (render),
-  `--time-limit 1` (optimize), `--workers 1` (sweep), a fresh `--out` in the test's folder.
+  `--time-limit 1` (optimize), `--workers 1 --max-points SWEEP_POINTS` (sweep), a fresh `--out` in
+  the test's folder.
 
 A command is applicable to an experiment when the file has what it needs: evaluate (and `vdo report`
 on its folder) and export always, render when it has cameras, render --series with a
@@ -37,13 +38,14 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 SPACING_FACTOR = 4          # sample spacings x 4: about 16x fewer samples
 OPTIMIZE_STEPS = 2          # BFGS steps of the one start and round
+SWEEP_POINTS = 4            # a sweep runs its first points (`--max-points`), the rest stay pending
 LOAD_PATH_EVERY = 8         # a load path judged and rendered at every 8th step and the last
 VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
 DESIGN = ("design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1; "
           "design.bound_s = 1")
 # per command: the flags that shorten it (a flag given in the docs is replaced)
 FLAGS = {"validate": ["--seeds", "2"], "render": ["--scale", "0.05", "--spp", "1"],
-         "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1"]}
+         "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1", "--max-points", str(SWEEP_POINTS)]}
 REPLACED = {"--out": 1, "--seeds": 1, "--scale": 1, "--spp": 1, "--time-limit": 1, "--workers": 1,
             "--overwrite": 0, "--quiet": 0}
 

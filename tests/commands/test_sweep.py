@@ -167,6 +167,25 @@ def test_every_point_invalid_fails_the_sweep(plate_sweep, tmp_path):
         sweep(load_sweep(file), tmp_path / "out")
 
 
+def test_a_trial_of_a_few_points_then_the_rest(plate_sweep, tmp_path):
+    """--max-points 2 on the four-point plate sweep: the first two in the table's order run, the
+    other two are pending; the second run computes those two alone and the table equals one
+    uninterrupted run's (on the same points, in-process: workers=1)."""
+    spec = load_sweep(plate_sweep())
+    with pytest.raises(ConfigError, match=r"--max-points: must be at least 1 \(got 0\)"):
+        sweep(spec, tmp_path / "bad", max_points=0)
+    assert not (tmp_path / "bad").exists()
+    trial = sweep(spec, tmp_path / "out", workers=1, max_points=2)
+    assert (trial["points"], trial["done"], trial["pending"], trial["computed"]) == (4, 2, 2, 2)
+    assert [r["status"] for r in read_table(tmp_path / "out" / "results.csv")] == \
+        ["done", "done", "pending", "pending"]
+    rest = sweep(spec, tmp_path / "out", workers=1)
+    assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
+    whole = sweep(spec, tmp_path / "whole", workers=1)
+    assert without_times(read_table(tmp_path / "out" / "results.csv")) == \
+        without_times(read_table(tmp_path / "whole" / "results.csv"))
+
+
 def test_refuses_a_folder_that_is_not_a_sweep(plate_sweep, tmp_path):
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "thesis.tex").write_text("keep me")

@@ -350,11 +350,13 @@ def _report(_, args) -> None:
 def _sweep(_, args) -> int:
     from vdo.commands.sweep import load_sweep, sweep
 
-    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask)
+    result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
+                   max_points=args.max_points)
     for r in [r for r in result["rows"] if r["status"] == "failed"][:5]:
         print(f"point {r['index']} failed: {r['error']}", file=sys.stderr)
+    pending = f", {result['pending']} pending (run it again to finish)" if result["pending"] else ""
     print(f"{result['points']} points: {result['done']} done ({result['reused']} stored before), "
-          f"{result['failed']} failed; wrote {result['results']}")
+          f"{result['failed']} failed{pending}; wrote {result['results']}")
     return 1 if result["failed"] else 0
 
 
@@ -518,6 +520,9 @@ def _parser() -> argparse.ArgumentParser:
     sw.add_argument("--out", required=True, help="sweep folder: new, or an earlier run's to resume")
     sw.add_argument("--workers", type=int, default=None, help="worker processes (default: one per core)")
     sw.add_argument("--dask", default=None, help="Dask scheduler address, or 'local' for a LocalCluster")
+    sw.add_argument("--max-points", type=int, default=None, metavar="N",
+                    help="run at most N of the points still to run (a trial; run again without it "
+                         "to finish: stored points are kept)")
     sw.add_argument("--quiet", action="store_true")
     ck = sub.add_parser("check", help="validate experiment, validation or sweep files without computing")
     ck.add_argument("files", nargs="+", help="TOML files")

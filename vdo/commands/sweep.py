@@ -565,16 +565,22 @@ def write_table(path: Path, rows: list[dict]) -> None:
 # The command
 # --------------------------------------------------------------------------------------------
 def sweep(spec: SweepSpec, out, workers: int | None = None, dask: str | None = None,
-          connect_timeout: float = 5.0) -> dict:
+          connect_timeout: float = 5.0, max_points: int | None = None) -> dict:
     """Run every point of `spec` not yet stored in `out` (on `workers` local processes, default
     one per core, or on the Dask scheduler at `dask`, "local" for a LocalCluster of `workers`
-    processes); write results.csv and figures/. Returns the counts (points, done, failed,
-    reused: stored before, computed: run now), the rows and the output paths. Progress goes to
-    the `vdo.commands.sweep` logger (`vdo.core.progress`)."""
+    processes), or the first `max_points` of them (a trial: the rest stay "pending" in
+    results.csv, and running again completes the store); write results.csv and figures/.
+    Returns the counts (points, done, failed, pending, reused: stored before, computed: run
+    now), the rows and the output paths. Progress goes to the `vdo.commands.sweep` logger
+    (`vdo.core.progress`)."""
+    if max_points is not None and max_points < 1:
+        raise ConfigError(spec.path, "--max-points", f"must be at least 1 (got {max_points}); "
+                                                     "leave it out to run every point")
     out = open_store(out)
     points = expand(spec, out)
     check_points(spec, points)
-    return run_sweep(spec, points, out, spec.path.read_text(), workers, dask, connect_timeout)
+    return run_sweep(spec, points, out, spec.path.read_text(), workers, dask, connect_timeout,
+                     max_points)
 
 
 def sweep_variants(variants, out, action: str = "evaluate", workers: int | None = None,
@@ -625,12 +631,13 @@ def sweep_variants(variants, out, action: str = "evaluate", workers: int | None 
 
 
 def run_sweep(spec: SweepSpec, points: list[Point], out: Path, source: str, workers: int | None,
-              dask: str | None, connect_timeout: float) -> dict:
-    """Run the `points` not yet stored in the store `out` (`open_store`) and write results.csv and
-    figures/ (`sweep`, `sweep_variants`); `source` is kept as sweep.toml."""
+              dask: str | None, connect_timeout: float, max_points: int | None = None) -> dict:
+    """Run the `points` not yet stored in the store `out` (`open_store`), at most `max_points`
+    of them in their order, and write results.csv and figures/ (`sweep`, `sweep_variants`);
+    `source` is kept as sweep.toml."""
     records = {p.key: load_record(out, p.key) for p in points}
     finished = {k for k, r in records.items() if r and r["status"] == "done"}
-    todo = list({p.key: p for p in points if p.key not in finished}.values())
+    todo = list({p.key: p for p in points if p.key not in finished}.values())[:max_points]
     workers = max(1, min(workers or cores(), len(todo) or 1))
     threads = max(1, cores() // workers) if dask in (None, "local") else None
     several = len(spec.experiments) > 1
@@ -686,7 +693,7 @@ def run_sweep(spec: SweepSpec, points: list[Point], out: Path, source: str, work
     write_report(out)
     status = Counter(r["status"] for r in rows)
     return {"points": len(points), "done": status["done"], "failed": status["failed"],
-            "computed": len(todo), "reused": sum(p.key in finished for p in points),
+            "pending": status["pending"], "computed": len(todo), "reused": sum(p.key in finished for p in points),
             "rows": rows, "results": out / "results.csv", "figures": figures, "out": out}
 
 
