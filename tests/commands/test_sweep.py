@@ -181,7 +181,7 @@ def test_a_trial_of_a_few_points_then_the_rest(plate_sweep, tmp_path):
         ["done", "done", "pending", "pending"]
     rest = sweep(spec, tmp_path / "out", workers=1)
     assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
-    whole = sweep(spec, tmp_path / "whole", workers=1)
+    sweep(spec, tmp_path / "whole", workers=1)
     assert without_times(read_table(tmp_path / "out" / "results.csv")) == \
         without_times(read_table(tmp_path / "whole" / "results.csv"))
 

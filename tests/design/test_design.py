@@ -568,7 +568,8 @@ def test_a_camera_body_under_another_on_the_same_spot_is_a_conflict(plate_experi
     pair a conflict exactly when Mitsuba's ray test, from the one camera's optical centre to the
     samples it sees usably, against the other camera's body mesh, hides more than
     max_obscuration of a region the first is assigned (either way round)."""
-    from vdo.scene import camera_body, mitsuba
+    from vdo.core.backend import mitsuba
+    from vdo.scene import camera_body
 
     path = plate_experiment(spacing=50)
     path.write_text(path.read_text() + "\n[render]\nambient_radiance = 20\n"

@@ -10,10 +10,11 @@ import pytest
 import trimesh
 
 from vdo.config.mounts import TripodSpec
+from vdo.core.backend import mitsuba
 from vdo.geometry import obstacles
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
-from vdo.scene import build_scene, camera_body, mitsuba, tripod
+from vdo.scene import build_scene, camera_body, tripod
 
 OVERSHOOT_M = 0.03   # the body's spheres overshoot the box by ~1.5 cm; a capsule's ends by its radius
 LINES = 4000

@@ -1,0 +1,1 @@
+"""The scene's parts below `vdo.scene`: meshes, regions of interest and their samples, camera hardware."""

@@ -1,0 +1,276 @@
+"""The scene's triangle meshes (`SceneMesh`, world metres): the [[mesh]] files read and checked
+(readable content, extents that fit the declared unit, no camera inside a mesh: `inside_mesh`, by
+the even-odd rule), and a specimen's faces split at its regions' boxes (`split_at_boxes`).
+
+Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory
+(`vdo.scene.mitsuba_mesh`), so a user's CAD export and the built-in example take the same path.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from vdo.config.experiment import UNITS, Experiment, camera_positions
+from vdo.config.schema import IMAGE_MAGIC
+from vdo.core.errors import Collect, ConfigError
+from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class SceneMesh:
+    """A triangle mesh in world metres. `role` is "specimen", "obstacle" or "camera" (a camera's
+    body or a part of its tripod)."""
+
+    name: str
+    role: str
+    vertices: np.ndarray   # (n, 3) float64, m
+    faces: np.ndarray      # (m, 3) int
+
+    @functools.cached_property
+    def trimesh(self) -> trimesh.Trimesh:
+        """The mesh as trimesh, built once (its cached normals, centres and areas are shared by
+        every region that selects faces of it; do not modify it)."""
+        return trimesh.Trimesh(self.vertices, self.faces, process=False)
+
+
+def load_meshes(exp: Experiment, errors: Collect | None = None) -> list[SceneMesh]:
+    """Read every [[mesh]] of the experiment, scaled to metres, and check it: readable content,
+    extents that fit the declared unit, no camera inside it (`cameras_inside`). Every mesh is
+    checked and every mistake reported together (`vdo.core.errors.Collect`). Specimen faces that
+    cross a region's box are split at the box (`split_at_boxes`), so a region's faces and area
+    are exactly the part inside its box. With `errors`, the mistakes are kept there instead of
+    raised, and the meshes that could be read are returned."""
+    own = errors is None
+    errors = Collect() if own else errors
+    meshes = []
+    for spec in exp.meshes:
+        with errors.check():
+            meshes.append(_load_mesh(exp, spec))
+    errors.errors += cameras_inside(exp, meshes)
+    if own:
+        errors.raise_all()
+    return meshes
+
+
+def _load_mesh(exp: Experiment, spec) -> SceneMesh:
+    field = f'mesh "{spec.name}".file'
+    loaded = read_mesh(spec.path, (exp.path, field))
+    vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
+    faces = np.asarray(loaded.faces, dtype=np.int64)
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
+    if not np.all(np.isfinite(vertices)):
+        raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
+    _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
+    if spec.role == "specimen":
+        vertices, faces = split_at_boxes(vertices, faces, [r for r in exp.regions if r.mesh == spec.name])
+    return SceneMesh(spec.name, spec.role, vertices, faces)
+
+
+MAX_MESH_EXTENT = 100.0      # m: a test setup larger than this is a unit mistake
+NOT_MESHES = {**IMAGE_MAGIC, b"%PDF": "PDF", b"PK\x03\x04": "ZIP", b"\x1f\x8b": "gzip"}
+
+
+def read_mesh(path, where) -> trimesh.Trimesh:
+    """The triangles of an STL, OBJ or PLY file; ConfigError saying what is wrong with the file."""
+    name, fmt = path.name, path.suffix.lstrip(".").upper()
+    data = path.read_bytes()
+    if not data:
+        raise ConfigError(*where, f"{name!r} is empty (0 bytes)")
+    for magic, kind in NOT_MESHES.items():
+        if data.startswith(magic):
+            raise ConfigError(*where, f"{name!r} is a {kind} file, not an {fmt} mesh")
+    if fmt == "STL":
+        count = int.from_bytes(data[80:84], "little") if len(data) >= 84 else 0
+        binary = len(data) >= 84 and len(data) == 84 + 50 * count
+        if not binary and not data.lstrip()[:5].lower() == b"solid":
+            if len(data) < 84:
+                raise ConfigError(*where, f"{name!r} is neither ASCII STL (which starts with 'solid') "
+                                          f"nor binary STL (84-byte header; the file has {len(data)} bytes)")
+            raise ConfigError(*where, f"{name!r} is not a valid binary STL: its header announces {count} "
+                                      f"triangles ({84 + 50 * count} bytes) but the file has {len(data)} "
+                                      "bytes (truncated or not an STL)")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except ModuleNotFoundError:       # trimesh's text fallback for content it cannot parse
+        raise ConfigError(*where, f"cannot read {name!r} as {fmt}: the content is not a valid "
+                                  f"{fmt} mesh") from None
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise ConfigError(*where, f"cannot read {name!r} as a mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ConfigError(*where, f"{name!r} holds no triangles")
+    return loaded
+
+
+def _check_extent(vertices: np.ndarray, spec, where) -> None:
+    """ConfigError when the mesh spans more than MAX_MESH_EXTENT metres, with the likely cause:
+    a stray vertex far from the others, or a length unit that is not the file's."""
+    extent = float(np.ptp(vertices, axis=0).max())
+    if extent <= MAX_MESH_EXTENT:
+        return
+    centre = np.median(vertices, axis=0)
+    far = np.linalg.norm(vertices - centre, axis=1)
+    core = float(np.ptp(vertices[far <= np.quantile(far, 0.99)], axis=0).max())
+    if core <= MAX_MESH_EXTENT:
+        worst = vertices[np.argmax(far)]
+        raise ConfigError(*where, f"a vertex of {spec.path.name!r} lies at {np.round(worst, 3).tolist()} m, "
+                                  f"far from the rest of the mesh (which spans {core:.3g} m): a corrupt "
+                                  "vertex? fix the file")
+    hints = [f'is the mesh in {unit}? set unit = "{unit}"' for unit in ("mm", "cm", "in")
+             if UNITS[unit] < spec.scale and extent * UNITS[unit] / spec.scale <= MAX_MESH_EXTENT]
+    raise ConfigError(*where, f"{spec.path.name!r} spans {extent:.4g} m with unit = \"{spec.unit}\" "
+                              f"(at most {MAX_MESH_EXTENT:g} m expected)"
+                      + (f"; {hints[0]}" if hints else "; check the file's unit"))
+
+
+INSIDE_TURN_RAD = (0.3141, 0.2718, 0.1414)   # rad: the rays of `inside_mesh`, turned off the axes
+INSIDE_MIN_RAYS = 8       # of the 14 rays, at least this many must be clear for a point to be inside
+INSIDE_ON_SURFACE_M = 1e-6   # m: a ray that starts this close to a triangle starts on the surface
+INSIDE_CHUNK = 200_000    # (ray, triangle) pairs per block of `inside_mesh`
+
+
+def inside_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(P,) bool: whether each point lies inside the closed surface (`vertices` (n, 3) m, `faces`
+    (m, 3)), by the even-odd rule, whatever the faces' winding. From each point 14 rays (the axes
+    and the diagonals, turned by `INSIDE_TURN_RAD` so that they do not run along a CAD model's
+    edges) are intersected with every triangle (Möller-Trumbore: o + t d = (1 - u - v) a + u b
+    + v c, t > 0, u, v, 1 - u - v >= 0). A ray that passes within `BARYCENTRIC_SLACK` of a
+    triangle's edge, or starts on the surface (|t| <= `INSIDE_ON_SURFACE_M`), is ambiguous and not counted;
+    a point is inside when at least `INSIDE_MIN_RAYS` rays are clear and every clear one crosses
+    the surface an odd number of times (through a hole of an open mesh a ray crosses an even
+    number: such a point is not called inside)."""
+    from scipy.spatial.transform import Rotation
+
+    points = np.atleast_2d(np.asarray(points, dtype=float))
+    dirs = np.array(list(np.ndindex(3, 3, 3)), dtype=float) - 1.0
+    dirs = dirs[np.isin(np.count_nonzero(dirs, axis=1), (1, 3))]       # 6 axes + 8 diagonals
+    dirs = Rotation.from_euler("xyz", INSIDE_TURN_RAD).apply(dirs / np.linalg.norm(dirs, axis=1)[:, None])
+    a, b, c = (np.asarray(vertices, dtype=float)[faces[:, k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    out = np.zeros(len(points), dtype=bool)
+    step = max(1, INSIDE_CHUNK // len(dirs))
+    for p, point in enumerate(points):
+        crossings = np.zeros(len(dirs), dtype=int)
+        ambiguous = np.zeros(len(dirs), dtype=bool)
+        for lo in range(0, len(faces), step):
+            s_ = slice(lo, lo + step)
+            pvec = np.cross(dirs[:, None, :], e2[None, s_])                   # (R, T, 3)
+            det = np.einsum("tk,rtk->rt", e1[s_], pvec)
+            ok = np.abs(det) > TINY
+            inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+            tvec = point - a[s_]                                              # (T, 3)
+            u = np.einsum("tk,rtk->rt", tvec, pvec) * inv
+            qvec = np.cross(tvec, e1[s_])                                     # (T, 3)
+            v = np.einsum("rk,tk->rt", dirs, qvec) * inv
+            t = np.einsum("tk,tk->t", e2[s_], qvec)[None, :] * inv
+            w = 1.0 - u - v
+            within = ok & (u >= -BARYCENTRIC_SLACK) & (v >= -BARYCENTRIC_SLACK) & (w >= -BARYCENTRIC_SLACK)
+            edge = within & (np.minimum(np.minimum(u, v), w) <= BARYCENTRIC_SLACK)
+            on_surface = within & (np.abs(t) <= INSIDE_ON_SURFACE_M)
+            ambiguous |= ((edge & (t > -INSIDE_ON_SURFACE_M)) | on_surface).any(axis=1)
+            crossings += (within & (t > INSIDE_ON_SURFACE_M)).sum(axis=1)
+        clear = ~ambiguous
+        out[p] = clear.sum() >= INSIDE_MIN_RAYS and bool(np.all(crossings[clear] % 2 == 1))
+    return out
+
+
+def cameras_inside(exp: Experiment, meshes: list[SceneMesh]) -> list[ConfigError]:
+    """One `ConfigError` per (camera, mesh) whose optical centre lies inside the mesh
+    (`inside_mesh`), naming the camera's field that places it and the fix; only the cameras
+    within a mesh's bounding box are tested against it."""
+    if not exp.camera_specs:
+        return []
+    positions = np.array(camera_positions(exp))
+    errors = []
+    for mesh in meshes:
+        lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+        near = np.flatnonzero(np.all((positions >= lo) & (positions <= hi), axis=1))
+        if not len(near):
+            continue
+        for i in near[inside_mesh(positions[near], mesh.vertices, mesh.faces)]:
+            spec = exp.camera_specs[i]
+            fixed = spec.mount is not None and exp.mount(spec.mount).kind == "fixed"
+            field, fix = (("u", "move it out along its rail (u) or off it (offset_m)") if spec.rail else
+                          ("mount", "stand it on a mount outside the mesh") if fixed else
+                          ("position_m", "move it out of the mesh"))
+            errors.append(ConfigError(exp.path, f'camera "{spec.name}".{field}',
+                                      f"its optical centre {np.round(positions[i], 4).tolist()} m lies "
+                                      f"inside mesh {mesh.name!r}: {fix}"))
+    return errors
+
+
+def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh with every triangle that crosses a face plane of a region box split along it.
+
+    A plane x_k = c of a region's box is used only where it crosses a triangle that the region
+    could select (its normal within the tolerance, overlapping the box); it then splits every
+    triangle of the mesh that it crosses (one vertex alone on one side -> 3 triangles, a vertex on
+    the plane -> 2), with one new vertex per cut edge, so a closed mesh stays closed and the
+    surface is unchanged. Afterwards each triangle lies on one side of every such plane."""
+    eps = 1e-9 * max(1.0, float(np.abs(vertices).max()))   # splitting keeps the extent
+    done = set()   # planes already split at: no triangle crosses them any more (the pieces of
+    # a later split lie inside their triangle), so regions that share a plane test it once
+    for region in regions:
+        planes = [(k, float(c)) for k in range(3) for c in (region.box_min[k], region.box_max[k])
+                  if np.isfinite(c) and (k, float(c)) not in done]
+        tri = None   # the triangles and what the region could select of them, until a split
+        for k, c in planes:
+            if tri is None:
+                tri = vertices[faces]
+                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                length = np.linalg.norm(normals, axis=1)
+                facing = (np.ones(len(tri), dtype=bool) if region.normal is None else
+                          normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300))
+                selectable = facing & np.all((tri.max(axis=1) >= region.box_min)
+                                             & (tri.min(axis=1) <= region.box_max), axis=1)
+            offset = tri[..., k] - c
+            side = np.sign(np.where(np.abs(offset) < eps, 0.0, offset))
+            crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
+            if np.any(crossing & selectable):
+                log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
+                         int(crossing.sum()), "xyz"[k], c)
+                vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
+                done.add((k, c))
+                tri = None
+            elif not crossing.any():
+                done.add((k, c))
+    return vertices, faces
+
+
+def _split_plane(vertices, faces, side, crossing, k, c):
+    new_vertices, cache, out = [vertices], {}, [faces[~crossing]]
+    count = len(vertices)
+
+    def cut(a, b):
+        nonlocal count
+        key = (min(a, b), max(a, b))
+        if key not in cache:
+            p, q = vertices[key[0]], vertices[key[1]]
+            point = p + (q - p) * ((c - p[k]) / (q[k] - p[k]))
+            point[k] = c
+            new_vertices.append(point[None])
+            cache[key], count = count, count + 1
+        return cache[key]
+
+    pieces = []
+    for f, s in zip(faces[crossing], side[crossing]):
+        zero = np.flatnonzero(s == 0)
+        if len(zero):                                   # a vertex on the plane: 2 triangles
+            r = int(zero[0])
+            a, b, d = f[r], f[(r + 1) % 3], f[(r + 2) % 3]
+            p = cut(b, d)
+            pieces += [(a, b, p), (a, p, d)]
+        else:                                           # one vertex alone on its side: 3
+            r = next(i for i in range(3) if s[i] != s[(i + 1) % 3] and s[i] != s[(i + 2) % 3])
+            a, b, d = f[r], f[(r + 1) % 3], f[(r + 2) % 3]
+            p, q = cut(a, b), cut(a, d)
+            pieces += [(a, p, q), (p, b, d), (p, d, q)]
+    out.append(np.array(pieces, dtype=np.int64).reshape(-1, 3))
+    return np.concatenate(new_vertices), np.concatenate(out)

@@ -1,0 +1,206 @@
+"""The faces of a region of interest and their frame (`RegionFaces`). Regions are patches of a
+specimen mesh chosen by selectors (`RegionSelector`: a normal cone, a box, a distance band to a
+point, an axis or a mesh). A planar patch (the paper's elementary surface) has its parametric
+frame (t_u, t_v): a point X = O + u t_u + v t_v, (u, v) in metres, the face normal
+n = t_u x t_v. A curved patch is developed onto the plane (`vdo.model.surface`). The samples on
+these faces are `vdo.meshes.samples`'.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import trimesh
+
+from vdo.config.experiment import Experiment, RegionSpec
+from vdo.core.errors import ConfigError
+from vdo.meshes.mesh import SceneMesh, read_mesh
+from vdo.model import surface
+
+log = logging.getLogger(__name__)
+
+
+NEAR_FIELDS = {"near_point_m": "a point", "near_axis_m": "an axis", "near_mesh": "mesh",
+               "region_file": "the region mesh"}
+
+
+@dataclass(frozen=True, eq=False)
+class RegionSelector:
+    """What a region selects, as predicates: the normal cone per face, the box and the distance
+    band [beyond, within] per point (m). `distance(points)` is the distance to the near_* point,
+    axis or surface (None without one)."""
+
+    region: RegionSpec
+    distance: Callable[[np.ndarray], np.ndarray] | None = None
+    within: float = math.inf
+
+    def facing(self, normals: np.ndarray) -> np.ndarray:
+        if self.region.normal is None:
+            return np.ones(len(normals), dtype=bool)
+        return normals @ self.region.normal >= np.cos(self.region.normal_tolerance)
+
+    def in_box(self, points: np.ndarray) -> np.ndarray:
+        return np.all((points >= self.region.box_min) & (points <= self.region.box_max), axis=1)
+
+    def in_band(self, points: np.ndarray, slack: np.ndarray | float = 0.0) -> np.ndarray:
+        """Points within [beyond - slack, within + slack] of the selector (all True without one).
+        A distance is 1-Lipschitz, so a triangle of circumradius r about its centroid c has a point
+        in the band only if c is in the band widened by r."""
+        if self.distance is None:
+            return np.ones(len(points), dtype=bool)
+        d = self.distance(points)
+        return (d <= self.within + slack) & (d >= self.region.beyond - slack)
+
+    def keep(self, points: np.ndarray) -> np.ndarray:
+        """(N,) the points the region keeps of those on its selected faces: in the box and band."""
+        return self.in_box(points) & self.in_band(points)
+
+
+def region_selector(exp: Experiment, region: RegionSpec, meshes: list[SceneMesh],
+                    spacing: float) -> RegionSelector:
+    """The `RegionSelector` of `region`: the near_mesh's surface from `meshes`, the region_file
+    read in the specimen mesh's unit; a region file's band defaults to `spacing` (m)."""
+    field = f'region "{region.name}".region_file'
+    if region.near_point is not None:
+        distance = lambda x: np.linalg.norm(x - region.near_point, axis=1)
+    elif region.near_axis is not None:
+        distance = lambda x: surface.distance_to_line(x, *region.near_axis)
+    elif region.near_mesh is not None:
+        other = next(m for m in meshes if m.name == region.near_mesh)
+        distance = lambda x: surface.distance_to_mesh(x, other.vertices, other.faces)
+    elif region.region_file is not None:
+        scale = next(m.scale for m in exp.meshes if m.name == region.mesh)
+        loaded = read_mesh(region.region_file, (exp.path, field))
+        v, f = np.asarray(loaded.vertices, float) * scale, np.asarray(loaded.faces)
+        distance = lambda x: surface.distance_to_mesh(x, v, f)
+    else:
+        return RegionSelector(region)
+    within = region.within if region.within is not None else spacing
+    return RegionSelector(region, distance, within)
+
+
+@dataclass(frozen=True, eq=False)
+class RegionFaces:
+    """The faces of one region of interest and its frame (metres).
+
+    Planar (`development` None): a point X of the face has parametric coordinates
+    uv = ((X - origin) . t_u, (X - origin) . t_v), the same (u, v) that `sample_region` gives its
+    samples (so a texture mapped with these uv lines up with the samples). t_u x t_v = normal
+    (outward): seen from outside the face, u runs right and v up. Curved: uv is the
+    `vdo.model.surface.Development`'s and `normal` the area-weighted mean normal. `selector`
+    keeps the samples in the region's box and distance band."""
+
+    faces: np.ndarray      # (T,) indices into the mesh's faces
+    normal: np.ndarray     # (3,)
+    t_u: np.ndarray        # (3,)
+    t_v: np.ndarray        # (3,)
+    origin: np.ndarray     # (3,) a point of the face's plane with uv = (0, 0)
+    development: surface.Development | None = None
+    selector: RegionSelector | None = None
+
+    def uv(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) parametric coordinates of points (..., 3) on the face, m."""
+        if self.development is not None:
+            return self.development.uv(points)
+        rel = np.asarray(points, dtype=float) - self.origin
+        return np.stack([rel @ self.t_u, rel @ self.t_v], axis=-1)
+
+
+def _nothing_selected(mesh: SceneMesh, region: RegionSpec, selector: RegionSelector, tm, where):
+    """ConfigError naming what the selection would need: the box misses the mesh, no face faces
+    the normal, or the distance band holds no face (with the distances the faces have)."""
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    hint = ""
+    if np.any(region.box_min > hi) or np.any(region.box_max < lo):
+        hint = (f"; the box misses the mesh, which spans {np.round(lo, 3).tolist()} to "
+                f"{np.round(hi, 3).tolist()} m")
+        size = np.where(np.isfinite(region.box_max - region.box_min), region.box_max - region.box_min, 0)
+        if np.ptp(mesh.vertices, axis=0).max() > 100 * max(size.max(), 1e-9):
+            hint += ": is the mesh's unit right (unit = \"mm\" for a CAD export in mm)?"
+        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check normal, "
+                                  f"box_min_m and box_max_m (metres, world frame){hint}")
+    near = region.near
+    if near is not None:
+        ok = selector.facing(tm.face_normals) & selector.in_box(tm.triangles_center)
+        if ok.any():
+            d = selector.distance(tm.triangles_center[ok])
+            limited = [w for w, on in (("box", np.isfinite(region.box_min).any() or np.isfinite(region.box_max).any()),
+                                       ("normal cone", region.normal is not None)) if on]
+            within = f" (in the {' and '.join(limited)})" if limited else ""
+            raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: its faces{within} "
+                                      f"lie {d.min():.4g} to {d.max():.4g} m from "
+                                      f"{NEAR_FIELDS[near]} ({near}); set within_m / beyond_m to "
+                                      "include some of that range")
+    if region.normal is not None:
+        best = float(np.degrees(np.arccos(np.clip((tm.face_normals @ region.normal).max(), -1, 1))))
+        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: the closest face normal is "
+                                  f"{best:.1f} deg from normal (tolerance "
+                                  f"{np.degrees(region.normal_tolerance):g} deg); check normal, "
+                                  "normal_tolerance_deg, box_min_m and box_max_m (metres, world frame)")
+    raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check box_min_m and box_max_m "
+                              "(metres, world frame)")
+
+
+def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                 tm: trimesh.Trimesh | None = None, selector: RegionSelector | None = None) -> RegionFaces:
+    """The faces that `region` selects on `mesh` and their frame; ConfigError (at `where`) when
+    none is selected. A selection whose faces are coplanar (tolerance max(spacing / 4, 0.1 mm))
+    is a planar face; otherwise it must be one connected piece of surface, developed by
+    `vdo.model.surface.fit_development` (same tolerance for the fit). `selector`: the region's
+    `RegionSelector` (needed for near_mesh and region_file; built here for the others)."""
+    tm = mesh.trimesh if tm is None else tm
+    if selector is None:
+        if region.near_mesh is not None or region.region_file is not None:
+            raise ValueError("a region that selects by a mesh needs its RegionSelector")
+        selector = region_selector(None, region, [], spacing)
+    centroids = tm.triangles_center
+    radius = np.linalg.norm(tm.triangles - centroids[:, None], axis=2).max(axis=1)
+    chosen = selector.facing(tm.face_normals) & selector.in_box(centroids) & (tm.area_faces > 0)
+    if selector.distance is not None and chosen.any():
+        chosen[chosen] = selector.in_band(centroids[chosen], radius[chosen])
+    faces = np.flatnonzero(chosen)
+    if len(faces) == 0:
+        _nothing_selected(mesh, region, selector, tm, where)
+    normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])
+    normal /= max(np.linalg.norm(normal), 1e-300)
+    tri = tm.triangles[faces]                                   # (T, 3, 3)
+    tolerance = max(0.25 * spacing, 1e-4)
+    depth = tri.reshape(-1, 3) @ normal
+    if np.ptp(depth) <= tolerance and np.linalg.norm(normal) > 0.5:
+        t_u, t_v = surface.face_frame(normal)
+        flat = tri.reshape(-1, 3)
+        ou, ov = (flat @ t_u).min(), (flat @ t_v).min()
+        origin = ou * t_u + ov * t_v + depth.mean() * normal
+        return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=origin, selector=selector)
+    vertices, merged_faces = surface.merged(tri)
+    pieces = surface.components(merged_faces, len(vertices))
+    count = int(pieces.max()) + 1
+    if count > 1:
+        raise ConfigError(*where, f"selects faces that are not coplanar (depth spread "
+                                  f"{np.ptp(depth) * 1e3:.1f} mm) and not one connected surface "
+                                  f"({count} separate pieces): a region must be one planar face or "
+                                  "one connected curved patch; narrow its box, normal_tolerance_deg "
+                                  "or distance band")
+    dev = surface.fit_development(tri, tm.face_normals[faces], tm.area_faces[faces], tolerance)
+    if dev.distortion.large:
+        log.warning("%s: %s: developed with distortion %.0f %% in area and %.0f %% in angle (p95 "
+                    "over its surface; samples carry their true area, but its maps are distorted "
+                    "by as much): split it into flatter regions", where[0], where[1],
+                    100 * dev.distortion.area_p95, 100 * dev.distortion.angle_p95)
+    t_u, t_v = surface.face_frame(normal) if np.linalg.norm(normal) > 0.5 else (np.eye(3)[0], np.eye(3)[1])
+    return RegionFaces(faces=faces, normal=normal, t_u=t_u, t_v=t_v, origin=tri.reshape(-1, 3).mean(0),
+                       development=dev, selector=selector)
+
+
+def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
+                     spacing: float | None = None) -> list[RegionFaces]:
+    """`region_faces` for every region of the experiment, in config order."""
+    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+    by_name = {m.name: m for m in meshes}
+    return [region_faces(by_name[r.mesh], r, spacing, (exp.path, f'region "{r.name}"'),
+                         selector=region_selector(exp, r, meshes, spacing))
+            for r in exp.regions]

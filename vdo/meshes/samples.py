@@ -1,0 +1,210 @@
+"""Surface samples on the regions of interest (`SurfaceSamples`). A planar patch (the paper's
+elementary surface) is sampled on a regular grid of spacing h in its own parametric frame
+(t_u, t_v): a sample at X = O + u t_u + v t_v carries the area h^2, the face normal
+n = t_u x t_v, and (u, v) in metres. A curved patch is developed onto the plane
+(`vdo.model.surface`) and sampled on the same grid there; each sample carries its cell's surface
+area, its face's normal and its own tangent frame (`sample_region`). `surface_raster`: which
+points of a finer grid lie on a region's surface.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vdo.config.experiment import Experiment, RegionSpec
+from vdo.core.errors import ConfigError
+from vdo.meshes.mesh import SceneMesh
+from vdo.meshes.regions import RegionFaces, all_region_faces, region_faces
+from vdo.model import surface
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceSamples:
+    """Area-uniform samples on the regions of interest (N of them). Lengths in metres."""
+
+    points: np.ndarray       # (N, 3)
+    normals: np.ndarray      # (N, 3) outward unit normals
+    tangent_u: np.ndarray    # (N, 3) unit, with tangent_v: the face's parametric frame
+    tangent_v: np.ndarray    # (N, 3)
+    uv: np.ndarray           # (N, 2) parametric coordinates on the face, m
+    area: np.ndarray         # (N,) m^2 carried by each sample
+    region: np.ndarray       # (N,) index into region_names
+    region_names: tuple[str, ...]
+    region_importance: np.ndarray  # (R,)
+    region_period: np.ndarray | None = None  # (R,) u period of a ring closed around its axis, m (0: none)
+    region_cell: np.ndarray | None = None    # (R,) grid spacing in (u, v), m (None: sqrt(area))
+    region_turn: np.ndarray | None = None    # (R,) developed angle of a closed cone ring, rad (0: none)
+
+    def __len__(self):
+        return len(self.points)
+
+
+def _grid_points(uv_tri: np.ndarray, spacing: float):
+    """Grid points (i + 1/2, j + 1/2) spacing inside the 2D triangles uv_tri (T, 3, 2): (triangle
+    index t, barycentric l1, l2 (K, 1) each, grid index ij (K, 2))."""
+    lo = np.floor(uv_tri.min(axis=1) / spacing - 0.5).astype(int)             # (T, 2)
+    size = np.ceil(uv_tri.max(axis=1) / spacing - 0.5).astype(int) - lo + 1   # (T, 2)
+    a, e1, e2 = uv_tri[:, 0], uv_tri[:, 1] - uv_tri[:, 0], uv_tri[:, 2] - uv_tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    size[np.abs(det) < 1e-18] = 0                                              # degenerate: none
+    count = size.prod(axis=1)
+    t = np.repeat(np.arange(len(uv_tri)), count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    ij = lo[t] + np.stack([k // size[t, 1], k % size[t, 1]], axis=1)
+    q = (ij + 0.5) * spacing - a[t]
+    l1 = (q[:, 0] * e2[t, 1] - q[:, 1] * e2[t, 0]) / det[t]                   # barycentric (l1, l2):
+    l2 = (e1[t, 0] * q[:, 1] - e1[t, 1] * q[:, 0]) / det[t]                   # q = l1 e1 + l2 e2
+    tol = 1e-9  # grid points on an edge shared by two triangles must not be lost to rounding
+    inside = (l1 >= -tol) & (l2 >= -tol) & (l1 + l2 <= 1 + tol)
+    return t[inside], l1[inside, None], l2[inside, None], ij[inside]
+
+
+def ring_spacing(period: float, spacing: float) -> float:
+    """The grid spacing of a region closed around its axis: the largest h' <= h that divides the
+    period 2 pi R into whole cells, so that the grid closes on itself."""
+    return period / math.ceil(period / spacing - 1e-9) if period > 0 else spacing
+
+
+def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
+                  rf: RegionFaces | None = None) -> dict:
+    """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
+    found by `region_faces`), in the region's (u, v): each stands for its cell of the grid.
+
+    Planar: the cell's area h^2 and the face frame. Curved (developed): the grid lies in the
+    developed plane; a sample on face T carries the surface area of its cell, h^2 A_T / A'_T (the
+    face's area on the surface over its developed area: 1 for an exact development but for the
+    chord of a facet against its arc), the face's normal n and the tangent frame t_u = the unit
+    image of the developed u direction on the face (J = E D^-1, E the face's edge vectors, D the
+    developed ones), projected off n, and t_v = n x t_u. A ring closed around its axis is sampled
+    at `ring_spacing` and its grid index wraps at the period. Samples outside the region's box
+    and distance band are dropped."""
+    tm = mesh.trimesh
+    rf = region_faces(mesh, region, spacing, where, tm) if rf is None else rf
+    tri = tm.triangles[rf.faces]                                # (T, 3, 3)
+    dev = rf.development
+    if dev is not None:
+        spacing = ring_spacing(dev.period, spacing)
+    uv_tri = rf.uv(tri) if dev is None else dev.triangles_uv(tri)   # (T, 3, 2)
+    t, l1, l2, ij = _grid_points(uv_tri, spacing)
+    points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
+    if dev is not None and dev.period > 0:
+        ij[:, 0] = np.mod(ij[:, 0], round(dev.period / spacing))
+    _, first = np.unique(ij, axis=0, return_index=True)        # points on shared edges once
+    t, ij, pts = t[first], ij[first], points[first]
+    if rf.selector is not None and (rf.selector.distance is not None or dev is not None):
+        keep = rf.selector.keep(pts)
+        t, ij, pts = t[keep], ij[keep], pts[keep]
+    if len(pts) == 0:
+        raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
+    n = len(pts)
+    if dev is None:
+        return dict(points=pts, normals=np.tile(rf.normal, (n, 1)), tangent_u=np.tile(rf.t_u, (n, 1)),
+                    tangent_v=np.tile(rf.t_v, (n, 1)), uv=(ij + 0.5) * spacing,
+                    area=np.full(n, spacing**2))
+    E = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=-1)      # (T, 3, 2)
+    D = np.stack([uv_tri[:, 1] - uv_tri[:, 0], uv_tri[:, 2] - uv_tri[:, 0]], axis=-1)
+    det = np.linalg.det(D)
+    J = E @ np.linalg.inv(np.where(np.abs(det)[:, None, None] > 1e-300, D, np.eye(2)))
+    normal = tm.face_normals[rf.faces]
+    t_u = J[:, :, 0] - normal * np.einsum("ij,ij->i", J[:, :, 0], normal)[:, None]
+    t_u /= np.linalg.norm(t_u, axis=1, keepdims=True)
+    t_v = np.cross(normal, t_u)
+    ratio = tm.area_faces[rf.faces] / np.maximum(np.abs(det) / 2, 1e-300)
+    return dict(points=pts, normals=normal[t], tangent_u=t_u[t], tangent_v=t_v[t],
+                uv=(ij + 0.5) * spacing, area=spacing**2 * ratio[t])
+
+
+RASTER_MAX = 4_000_000      # fine points of one region's surface raster (4 MB of booleans)
+RASTER_FINE = 8             # fine points per cell side at most
+
+
+@dataclass(frozen=True, eq=False)
+class SurfaceRaster:
+    """Which points of a fine grid lie on a region's surface: the grid of spacing h / K in the
+    region's (u, v) (fine point (m_u, m_v) at ((m + 1/2) h / K), so that cell (i, j) of the sample
+    grid holds the fine points i K .. i K + K - 1 along each axis. `mask[a, b]` is fine point
+    (offset[0] + a, offset[1] + b); a ring's mask is padded by `pad` wrapped columns each side, a
+    closed cone's by its points near the seam continued across it (`surface.across_seam`)."""
+
+    mask: np.ndarray        # (Nu, Nv) bool
+    offset: np.ndarray      # (2,) int: the fine index of mask[0, 0]
+    fine: int               # K
+    cell: float             # h, m
+    around: int             # cells around a cylinder ring (0: not one)
+    turn: float = 0.0       # developed angle of a closed cone ring, rad, signed as u (0: not one)
+
+
+def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: int = 2) -> SurfaceRaster:
+    """The `SurfaceRaster` of a region from its own triangles (not from its samples): the fine
+    points inside its (developed) triangles, and in its box and distance band, as `sample_region`
+    decides for a sample. K = RASTER_FINE, fewer when the region would exceed RASTER_MAX."""
+    tm = mesh.trimesh
+    tri = tm.triangles[rf.faces]
+    dev = rf.development
+    h = ring_spacing(dev.period, spacing) if dev is not None else spacing
+    uv_tri = rf.uv(tri) if dev is None else dev.triangles_uv(tri)
+    cells = float(tm.area_faces[rf.faces].sum()) / h ** 2
+    fine = int(max(2, min(RASTER_FINE, math.floor(math.sqrt(RASTER_MAX / max(cells, 1.0))))))
+    t, l1, l2, m = _grid_points(uv_tri, h / fine)
+    if rf.selector is not None and (rf.selector.distance is not None or dev is not None):
+        points = (1 - l1 - l2) * tri[t, 0] + l1 * tri[t, 1] + l2 * tri[t, 2]
+        m = m[rf.selector.keep(points)]
+    around = int(round(dev.period / h)) if dev is not None and dev.period > 0 else 0
+    if around:
+        m[:, 0] = np.mod(m[:, 0], around * fine)
+        pad = pad_cells * fine
+        m = np.concatenate([m, m[m[:, 0] < pad] + [around * fine, 0],
+                            m[m[:, 0] >= around * fine - pad] - [around * fine, 0]])
+    turn = dev.flip * dev.turn if dev is not None else 0.0
+    if turn:
+        m = np.concatenate([m, surface.across_seam_grid(m, h / fine, turn, pad_cells * h)[0].astype(m.dtype)])
+    lo = m.min(axis=0)
+    mask = np.zeros(tuple(m.max(axis=0) - lo + 1), dtype=bool)
+    mask[m[:, 0] - lo[0], m[:, 1] - lo[1]] = True
+    return SurfaceRaster(mask, lo, fine, h, around, turn)
+
+
+MAX_SAMPLES = 2_000_000     # surface samples: ~1 GB of visibility and uncertainty arrays for 10 cameras
+
+
+def check_sample_count(exp: Experiment, meshes: list[SceneMesh], faces: list[RegionFaces],
+                       spacing: float) -> None:
+    """ConfigError before sampling when the regions' area A would give more than MAX_SAMPLES
+    samples at spacing h (N = A / h^2), with the smallest spacing that fits."""
+    area = sum(float(m.trimesh.area_faces[rf.faces].sum()) for m, rf in zip(meshes, faces))
+    count = area / spacing**2
+    if count > MAX_SAMPLES:
+        fits = math.ceil(math.sqrt(area / MAX_SAMPLES) * 1e4) / 10
+        raise ConfigError(exp.path, "evaluation.sample_spacing_mm",
+                          f"= {spacing * 1e3:g} mm gives about {count:,.0f} samples on the regions' "
+                          f"{area:.3g} m² (at most {MAX_SAMPLES:,}): raise sample_spacing_mm to "
+                          f"{fits:g} or more")
+
+
+def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None,
+                   faces: list[RegionFaces] | None = None) -> SurfaceSamples:
+    """Samples on every region of the experiment, at `spacing` (m; default from the config), on
+    the regions' `faces` (`all_region_faces` at that spacing; found here when not given)."""
+    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+    by_name = {m.name: m for m in meshes}
+    faces = all_region_faces(exp, meshes, spacing) if faces is None else faces
+    check_sample_count(exp, [by_name[r.mesh] for r in exp.regions], faces, spacing)
+    parts = []
+    for index, (region, rf) in enumerate(zip(exp.regions, faces)):
+        part = sample_region(by_name[region.mesh], region, spacing,
+                             (exp.path, f'region "{region.name}"'), rf)
+        part["region"] = np.full(len(part["points"]), index)
+        parts.append(part)
+    merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    period = np.array([0.0 if rf.development is None else rf.development.period for rf in faces])
+    return SurfaceSamples(**merged, region_names=tuple(r.name for r in exp.regions),
+                          region_importance=np.array([r.importance for r in exp.regions]),
+                          region_period=period,
+                          region_cell=np.array([spacing if rf.development is None else
+                                                ring_spacing(rf.development.period, spacing)
+                                                for rf in faces]),
+                          region_turn=np.array([0.0 if rf.development is None else
+                                                rf.development.flip * rf.development.turn for rf in faces]))
