@@ -216,7 +216,7 @@ def _masked_objective(mask):
 def test_gradient_of_a_user_objective_matches_finite_differences(path):
     import jax
     import jax.numpy as jnp
-    from vdo.search.problem import MountModel
+    from vdo.search.mountmodel import MountModel
     model = MountModel(vdo.load(path).with_settings(evaluation={"sample_spacing_mm": 40}), float64=True)
     theta, focal = jnp.asarray(model.theta0), jnp.asarray(model.focal0_mm)
     first = model.fields(theta)

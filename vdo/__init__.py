@@ -57,7 +57,7 @@ _EXPORTS = {
     # scripting (docs/api.md): edits, regions, your own objective, sweeps from Python
     "RegionStats": ("vdo.state", "RegionStats"),
     "write_csv": ("vdo.core.table", "write_csv"),
-    "MountModel": ("vdo.search.problem", "MountModel"),
+    "MountModel": ("vdo.search.mountmodel", "MountModel"),
     "SampleFields": ("vdo.objective", "SampleFields"),
     "sweep_variants": ("vdo.commands.sweep", "sweep_variants"),
     "warm_up": ("vdo.state", "warm_up"),

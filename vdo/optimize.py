@@ -49,7 +49,8 @@ shadow sets to sizes fixed per run (`Run.size`); without tracked obscuration it 
 callback, so JAX's persistent compilation cache can serve it to the next run.
 
 The pieces live in `vdo.search`: `parameterisation` (θ <-> camera specs), `problem` (`Problem`,
-the penalties, `Run`, `MountModel`), `solver` (rounds, starts, `judge`, `choose_lenses`), `bfgs`
+the penalties, `Run`), `mountmodel` (`MountModel`), `obstruction` (clearances, light lost),
+`solver` (rounds, starts, `judge`, `choose_lenses`), `bfgs`
 (the step) and `anytime` (`Stop`, `stop_on_signals`, the progress line); this module runs them
 (start-up, time limit, the result `optimize_layout` returns; `vdo.commands.optimize` writes its run
 folder) and holds the constraint verdict shared with `vdo evaluate` and
@@ -81,8 +82,8 @@ from vdo.search.status import Status
 from vdo.physics.predict import predict
 from vdo.state import LayoutState, unobstructed_lighting
 from vdo.search.anytime import Progress, Stop, stop_on_signals
-from vdo.search.problem import (CLEARANCE_SPACING, Problem, Result, State, clearances, light_lost,
-                                obstacle_visibility, score_parts, surface_points)
+from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
+from vdo.search.problem import CLEARANCE_SPACING, Problem, Result, State, score_parts
 from vdo.search.solver import LENS_TRIALS, choose_lenses, solve
 
 log = logging.getLogger(__name__)

@@ -275,3 +275,47 @@ def _drjit():
     import drjit as dr
 
     return dr
+
+
+# --------------------------------------------------------------------------------------------
+# Obscuration: one JAX function whose set of renderers changes between rounds
+# --------------------------------------------------------------------------------------------
+class ObscurationTerm:
+    """P_obscuration(poses) = Σ_k (o_k / m)^2 over the tracked (camera, region) pairs, with its
+    gradient w.r.t. each camera's (x, y, z, pan, tilt) from Mitsuba; poses is (C, 5)."""
+
+    def __init__(self, n_cameras: int, limit: float):
+        self.n, self.limit = n_cameras, max(limit, 1e-3)
+        self.tracked: list[tuple[int, ObscurationRenderer]] = []
+        self._cache = (None, None)
+
+        def host(poses):
+            poses = np.asarray(poses, dtype=float)
+            key = poses.tobytes()
+            if self._cache[0] != key:
+                value, grad = 0.0, np.zeros((self.n, 5))
+                for c, renderer in self.tracked:
+                    o, do = renderer.value_and_grad(poses[c])
+                    value += (o / self.limit) ** 2
+                    grad[c] += 2 * o / self.limit ** 2 * do
+                self._cache = (key, (np.float64(value), grad))
+            return self._cache[1]
+
+        shapes = (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((n_cameras, 5), jnp.float64))
+
+        @jax.custom_jvp
+        def penalty(poses):
+            return jax.pure_callback(host, shapes, poses)[0]
+
+        @penalty.defjvp
+        def penalty_jvp(primals, tangents):
+            value, grad = jax.pure_callback(host, shapes, primals[0])
+            return value, jnp.sum(grad * tangents[0])
+
+        self.penalty = penalty
+
+    def track(self, renderers: list[tuple[int, ObscurationRenderer]]) -> None:
+        """Differentiate these (camera, renderer) pairs from now on (the cache of the last
+        evaluation is dropped with the old set)."""
+        self.tracked = list(renderers)
+        self._cache = (None, None)

@@ -7,8 +7,8 @@ pair lists frozen by a refresh), the objective
 (`Problem.terms`; `vdo.objective.score` and the penalties of `vdo.constraints`, each but
 P_obscuration 0 exactly where its constraint holds with a back-off margin), the score in physical
 units (`score_parts`), what the starts and lens trials of one run share (`Run`: the compiled
-programs, the obscuration term, the history) and `MountModel`, the same for a script's own
-objective."""
+programs, the obscuration term, the history); `vdo.search.mountmodel.MountModel` is the same for a
+script's own objective."""
 
 from __future__ import annotations
 
@@ -21,23 +21,21 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from vdo import constraints
 from vdo.search import loadpath
 from vdo import objective
-from vdo.model.camera import Camera, intrinsic_matrix, rotation
+from vdo.model.camera import intrinsic_matrix, rotation
 from vdo.config.experiment import Experiment
 from vdo.physics.lighting import panel_frame
-from vdo.search.obscuration import ObscurationRenderer
+from vdo.search.obscuration import ObscurationRenderer, ObscurationTerm
+from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
 from vdo.objective import bucket
 from vdo.physics import measured
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.state import bodies, layout_state, prepare, unobstructed_lighting
-from vdo.scene import (SceneMesh, build_scene, camera_body, camera_body_points, camera_body_spheres,
-                       cameras_of)
-from vdo.physics.visibility import Visibility, compute_visibility
+from vdo.scene import SceneMesh, camera_body_points, camera_body_spheres, cameras_of
 from vdo.search.parameterisation import Parameterization
 from vdo.search.bfgs import BFGS
 from vdo.search.anytime import Progress, Stop
@@ -55,50 +53,6 @@ LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body
                    # within this distance of the anchor layout (`Problem.local`)
 PATH_SLACK = 0.05  # m: the farthest an optical centre can be from the nearest point of `Problem._paths`
 SIZE_PROBES = 1024  # path points per camera from which `Problem._size_local_sets` counts the shadow pairs
-
-
-# --------------------------------------------------------------------------------------------
-# Obscuration: one JAX function whose set of renderers changes between rounds
-# --------------------------------------------------------------------------------------------
-class ObscurationTerm:
-    """P_obscuration(poses) = Σ_k (o_k / m)^2 over the tracked (camera, region) pairs, with its
-    gradient w.r.t. each camera's (x, y, z, pan, tilt) from Mitsuba; poses is (C, 5)."""
-
-    def __init__(self, n_cameras: int, limit: float):
-        self.n, self.limit = n_cameras, max(limit, 1e-3)
-        self.tracked: list[tuple[int, ObscurationRenderer]] = []
-        self._cache = (None, None)
-
-        def host(poses):
-            poses = np.asarray(poses, dtype=float)
-            key = poses.tobytes()
-            if self._cache[0] != key:
-                value, grad = 0.0, np.zeros((self.n, 5))
-                for c, renderer in self.tracked:
-                    o, do = renderer.value_and_grad(poses[c])
-                    value += (o / self.limit) ** 2
-                    grad[c] += 2 * o / self.limit ** 2 * do
-                self._cache = (key, (np.float64(value), grad))
-            return self._cache[1]
-
-        shapes = (jax.ShapeDtypeStruct((), jnp.float64), jax.ShapeDtypeStruct((n_cameras, 5), jnp.float64))
-
-        @jax.custom_jvp
-        def penalty(poses):
-            return jax.pure_callback(host, shapes, poses)[0]
-
-        @penalty.defjvp
-        def penalty_jvp(primals, tangents):
-            value, grad = jax.pure_callback(host, shapes, primals[0])
-            return value, jnp.sum(grad * tangents[0])
-
-        self.penalty = penalty
-
-    def track(self, renderers: list[tuple[int, ObscurationRenderer]]) -> None:
-        """Differentiate these (camera, renderer) pairs from now on (the cache of the last
-        evaluation is dropped with the old set)."""
-        self.tracked = list(renderers)
-        self._cache = (None, None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -481,50 +435,6 @@ class Problem:
                                       self.obj_samples, self.speckle.table))
 
 
-def surface_points(meshes, spacing: float) -> np.ndarray:
-    """Points on every mesh surface about `spacing` apart (plus the vertices), for clearance."""
-    pts = []
-    for m in meshes:
-        tm = m.trimesh
-        count = int(min(max(tm.area / spacing**2, 100), 200_000))
-        sampled, _ = trimesh.sample.sample_surface_even(tm, count, seed=0)
-        pts += [sampled, m.vertices]
-    return np.vstack(pts)
-
-
-def clearances(cameras, tree) -> np.ndarray:
-    """Distance (m) from each camera body to the nearest mesh point and to the other bodies."""
-    bodies = [camera_body(c) for c in cameras]
-    dense = [trimesh.sample.sample_surface_even(b.trimesh, 400, seed=0)[0] for b in bodies]
-    out = np.array([tree.query(d)[0].min() for d in dense])
-    for i, di in enumerate(dense):
-        for j, dj in enumerate(dense):
-            if i != j:
-                out[i] = min(out[i], cKDTree(dj).query(di)[0].min())
-    return out
-
-
-def light_lost(lit_without_cameras, lit, samples) -> np.ndarray:
-    """Per region, the area fraction where the camera bodies hide more than 1 % of a light:
-    `lit_without_cameras` and `lit` (L, N) the light each sample gets without and with the bodies
-    (None: no light, nothing lost)."""
-    if lit_without_cameras is None:
-        return np.zeros(len(samples.region_names))
-    lost = ((lit_without_cameras - lit) > 0.01).any(axis=0)
-    return np.array([(samples.area[(samples.region == r) & lost]).sum() / samples.area[samples.region == r].sum()
-                     for r in range(len(samples.region_names))])
-
-
-def obstacle_visibility(geometry, cameras) -> Visibility:
-    """The ray cast of `cameras` against the obstacles alone (machine, mounts, camera bodies and
-    tripods, not the specimen): what hides a region that the specimen itself does not (the
-    obscuration check)."""
-    exp = geometry.experiment
-    obstacles = build_scene([m for m in geometry.meshes if m.role != "specimen"] + bodies(exp, cameras))
-    return compute_visibility(obstacles, cameras, geometry.samples, exp.evaluation.incidence_limit,
-                              progress=False)
-
-
 # --------------------------------------------------------------------------------------------
 # What the starts and lens trials of one run share
 # --------------------------------------------------------------------------------------------
@@ -587,74 +497,6 @@ class Run:
             chunk = views.chunk
             self.blocks = (L, -(-int(1.25 * B) // chunk) * chunk, chunk)
         return views.padded(self.blocks[1], self.blocks[2])
-
-
-# --------------------------------------------------------------------------------------------
-# A script's own objective: the mount variables -> differentiable per-sample fields
-# --------------------------------------------------------------------------------------------
-class MountModel:
-    """The mount variables of an experiment and the per-sample fields they give, differentiable
-    with JAX: what `vdo optimize` moves, built from its `Problem` (the same parameterisation,
-    samples, speckle, lighting and ray cast).
-
-    theta (P,), the optimizer's unconstrained variables (`Parameterization`), one per free
-    parameter ([optimize] free) of each moving camera ([optimize] cameras), named in `names`:
-    "cam.u": logit of the rail parameter (u = sigmoid(θ), 0..1 along the rail); "cam.x", "cam.y",
-    "cam.z": logit of the fraction of a zone's box along that axis (over a floor polygon
-    "cam.w1", ...: softmax logits of its corners against the first, and "cam.z"); "cam.pan",
-    "cam.tilt" (rad): offsets from the direction to the camera's aim point when its position is
-    free (`vdo.model.pose.aim_point`: sliding keeps the same point in the middle of the image),
-    else absolute; "cam.roll" (rad). `theta0` is the configured layout. focal_mm (C,) the focal
-    length of every camera in mm, a continuous variable (default the configured lenses).
-
-    `fields(theta, focal_mm, views)` is traceable: `jax.grad(lambda t: f(model.fields(t)))`
-    works for any JAX function f of the `vdo.objective.SampleFields`. The ray-cast occlusion and
-    the lighting are frozen at the layout `views` was cast at (default the configured one;
-    `refresh(theta)` casts them at θ), as within one round of `vdo optimize`. `float64`: the
-    per-pair work in float64 (for checks against finite differences; the optimizer's float32
-    pairs carry ~1e-7 relative rounding)."""
-
-    def __init__(self, exp: Experiment, float64: bool = False):
-        self.problem = problem = Problem(exp)
-        if float64:
-            problem.settings = dataclasses.replace(problem.settings, pair_dtype="float64")
-        self.theta0 = problem.param.theta0.copy()
-        self.names = [""] * len(self.theta0)
-        for cam, idx in zip(problem.cams0, problem.param.index):
-            for name, k in idx.items():
-                self.names[k] = f"{cam.name}.{name}"
-        self.focal0_mm = np.array([c.focal_length * 1e3 for c in problem.cams0])
-        self.pixel_size = jnp.asarray([c.pixel_size for c in problem.cams0])
-        self.views = problem.start.views
-
-    def camera_params(self, theta, focal_mm=None) -> objective.CameraParams:
-        """The cameras at (θ, focal_mm) as `vdo.objective.CameraParams` (traceable)."""
-        data = self.problem.data
-        pos, pan, tilt, roll = self.problem.param.poses(jnp.asarray(theta), data["held"])
-        f = data["focal_px"] if focal_mm is None else jnp.asarray(focal_mm) * 1e-3 / self.pixel_size
-        size = data["size"]
-        return objective.CameraParams(pos, pan, tilt, roll, f, data["cx"], data["cy"], size[:, 0],
-                                      size[:, 1], data["distortion"])
-
-    def fields(self, theta, focal_mm=None, views=None) -> objective.SampleFields:
-        """The per-sample fields at (θ, focal_mm) (`vdo.objective.sample_fields`), traceable."""
-        p = self.problem
-        return objective.sample_fields(self.camera_params(theta, focal_mm), p.obj_samples,
-                                       self.views if views is None else views, p.speckle.table,
-                                       p.settings)
-
-    def refresh(self, theta) -> objective.ViewData:
-        """The ray cast and lighting at θ, as the frozen `views` of `fields`."""
-        return self.problem.refresh(np.asarray(theta, dtype=float)).views
-
-    def cameras_at(self, theta) -> list[Camera]:
-        """The `vdo.model.camera.Camera`s at θ (configured lenses)."""
-        return self.problem.param.cameras_at(np.asarray(theta, dtype=float))
-
-    def experiment_at(self, theta) -> Experiment:
-        """The experiment with its cameras at θ (rail parameter, zone position, pan/tilt/roll),
-        e.g. for `vdo.layout_state` or writing with `vdo.write_evaluation`."""
-        return self.problem.exp.with_cameras(self.problem.param.specs_at(np.asarray(theta, dtype=float)))
 
 
 def score_parts(problem: Problem, state: State) -> dict:
