@@ -119,7 +119,7 @@ def angle_limits(exp, cameras, assigned: np.ndarray,
     set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
     when they are (min: the pair's, or the rule of thumb; max: the pair's, or that minimum +
     STEREO_SPAN_DEG)."""
-    from vdo.config.experiment import STEREO_SPAN_DEG
+    from vdo.config.procedure import STEREO_SPAN_DEG
 
     opt = exp.optimize
     index = {c.name: i for i, c in enumerate(cameras)}

@@ -28,7 +28,8 @@ import numpy as np
 
 from vdo.physics import strain
 from vdo.model.camera import Camera
-from vdo.config.experiment import CameraSpec, Experiment
+from vdo.config.experiment import Experiment
+from vdo.config.rig import CameraSpec
 from vdo.config.mounts import inside_floor
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import Illumination, illuminate, relight

@@ -229,7 +229,7 @@ def test_sizes_equal_to_the_patch_up_to_rounding_fit(subset_setup):
     rounding (the samples' extent plus one sample's side, closed form: the patch side); an
     element of exactly the patch side fits, one larger by 10x the named tolerance is refused, and
     the message states the tolerance."""
-    from vdo.config.experiment import Analysis
+    from vdo.config.procedure import Analysis
     from vdo.physics import strain
 
     samples = V._samples(subset_setup, 5)

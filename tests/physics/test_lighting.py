@@ -9,7 +9,7 @@ import pytest
 
 from vdo import scene
 from vdo.physics import lighting
-from vdo.config.experiment import LightSpec, SpeckleSpec
+from vdo.config.rig import LightSpec, SpeckleSpec
 from vdo.scene import SceneMesh, SurfaceSamples
 from vdo.model.sensor import SensorModel
 

@@ -40,7 +40,7 @@ def test_pixel_averaged_std_matches_a_direct_box_average(side_texels, skew):
 def test_block_summed_spectrum_matches_the_full_sum():
     """A 1024-texel tile is summed over 4 x 4 frequency blocks: within 5e-4 of the full sum over
     every frequency, for parallelogram footprints of 0.1 to 9 mm."""
-    from vdo.config.experiment import SpeckleSpec
+    from vdo.config.rig import SpeckleSpec
     from vdo.model.speckle import pattern_for
 
     sp = SpeckleSpec()

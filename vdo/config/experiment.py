@@ -9,8 +9,11 @@ The schema is the table of `Row`s attached to the fields of the parsed dataclass
 in the file, the default and the documentation (the machinery: `vdo.config.schema`). The same rows
 read a file (`parse`, with `vdo.config.reader`), write one back (`Experiment.to_dict`, so
 ``parse(e.to_dict()) == e``) and generate docs/config.md (`vdo.config.reference.markdown`). The
-tables of where cameras stand ([[rail]], [[mount]], [[keep_out]]) and their floor geometry live in
-`vdo.config.mounts`. Defaults live in the rows only. Adding a field is one `row(...)` line in its
+tables live by domain: what stands in the lab ([[mesh]], [[region]], [[camera]], [[body]],
+[[light]], [speckle], [evaluation], [render], [sensor]) in `vdo.config.rig`; what is done with it
+([analysis], [[stereo_pair]], [[group]], [load_path], [optimize], [design], [calibration]) in
+`vdo.config.procedure`; where cameras stand ([[rail]], [[mount]], [[keep_out]]) and their floor
+geometry in `vdo.config.mounts`. Defaults live in the rows only. Adding a field is one `row(...)` line in its
 dataclass; adding a table is one dataclass plus one `table(...)` line in `Experiment`; checks that
 involve several fields of a table go in the table's `check` function, checks across tables in
 `_check_references`.
@@ -34,308 +37,25 @@ import numpy as np
 
 from vdo.config.mounts import (KEEP_OUT_RAIL_POINTS, KeepOutSpec, MountSpec, RailSpec, check_keep_out,
                                check_mount, check_rail, inside_keep_out, resolve_mounts)
+from vdo.config.procedure import (Analysis, CalibrationSpec, DesignSpec, GroupSpec, LoadPathSpec,
+                                  ON_REQUEST, OptimizeSpec, StereoPairSpec, check_analysis,
+                                  check_calibration, check_design, check_load_path, check_optimize,
+                                  check_stereo_pair)
+from vdo.config.rig import (BodySpec, CameraSpec, Evaluation, LightSpec, MeshSpec, RegionSpec,
+                            RenderSpec, SpeckleSpec, check_body, check_camera, check_light,
+                            check_region, check_speckle, sensor_mm_row, sensor_rows)
 from vdo.config.reader import Table, read_section, read_toml, with_overrides
-from vdo.config.schema import (File, Flag, Numbers, Points, Real, Row, Section, Text, Vector, Whole, Words,
-                               row, rows_of, table, unknown_field, write_rows)
+from vdo.config.schema import Section, Text, row, rows_of, table, unknown_field, write_rows
 from vdo.core.errors import ConfigError
 from vdo.model.pose import aim_point, holds_aim, look_at_angles
-from vdo.model.sensor import ALIGNMENTS, SensorModel
+from vdo.model.sensor import SensorModel
 
-SENSOR_FIELDS = tuple(f.name for f in dataclasses.fields(SensorModel))   # the [sensor] table
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
-ROLES = ("specimen", "obstacle")
-MAX_CAMERA_PIXELS = 100e6          # per camera (1.2 GB per linear RGB float image)
-FOCAL_RANGE_MM = (0.5, 5000.0)     # shortest fisheye .. longest telephoto lenses made
 COINCIDENT_M = 1e-3                # two optical centres closer than this are one pose
-MAX_ANGLE_DEG = 360.0              # a camera angle beyond ±360° is radians or a typo
-ANGLE_WHY = "an angle in degrees (a value in radians? multiply by 57.3)"
 
 
 # --------------------------------------------------------------------------------------------
 # The tables
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class MeshSpec:
-    """A mesh file and how it looks: diffuse paint of `albedo`, or bare metal when `metal`."""
-
-    name: str = row("name", Text(name=True), doc="unique")
-    path: Path = row("file", File((".stl", ".obj", ".ply"), "mesh", "an STL, OBJ or PLY"), doc="STL, OBJ or PLY")
-    unit: str = row("unit", Text(choices=tuple(UNITS)), "m", doc="unit of the file's coordinates")
-    role: str = row("role", Text(choices=ROLES), "obstacle",
-                    doc="regions of interest lie on specimen meshes; every mesh occludes")
-    albedo: float = row("albedo", Real(0.0, 1.0), 0.5, doc="diffuse reflectance for renders")
-    metal: bool = row("metal", Flag(), False, doc="render as rough metal instead of paint")
-    finish: str = row("finish", Text(choices=("matte", "satin")), "matte",
-                      doc="a specimen's paint: matte, or satin (a specular coat: renders and the "
-                          "hot-spot check, `vdo.physics.glare`)")
-
-    @property
-    def scale(self) -> float:
-        """Metres per mesh unit."""
-        return UNITS[self.unit]
-
-
-@dataclass(frozen=True, eq=False)
-class RegionSpec:
-    """A region of interest: a patch of the surface of `mesh`, every selector given applying at
-    once: faces whose normal is within `normal_tolerance` of `normal` (when given), the part
-    inside the box [box_min, box_max] (metres; faces that cross the box are split at it when the
-    meshes are loaded), and the part at a distance in [beyond, within] (metres) of a point, of an
-    axis (the line through two points), of another mesh, or of a separate region mesh
-    (`region_file`, in the specimen mesh's unit). Without any selector the whole mesh is the
-    region. A planar selection is one face; a curved one is developed (`vdo.model.surface`)."""
-
-    name: str = row("name", Text(name=True), doc="unique")
-    mesh: str = row("mesh", Text(name=True), doc="a specimen mesh")
-    normal: np.ndarray | None = row("normal", Vector(3, letters="xyz"), None, shown="any",
-                                    doc="faces whose outward normal (world frame; normalised) is "
-                                        "within normal_tolerance_deg of this")
-    box_min: np.ndarray = row("box_min_m", Vector(3, finite=False, letters="xyz"), [-math.inf] * 3,
-                              unit="m", shown="unbounded",
-                              doc="the region is the part of the selected faces inside this box "
-                                  "(faces crossing it are split at it; ±inf allowed)")
-    box_max: np.ndarray = row("box_max_m", Vector(3, finite=False, letters="xyz"), [math.inf] * 3,
-                              unit="m", shown="unbounded", doc="upper corner of the box")
-    importance: float = row("importance", Real(positive=True), 1.0,
-                            doc="weight in the score (the joint matters most)")
-    normal_tolerance: float = row("normal_tolerance_deg", Real(0.0, 89.0), 5.0, unit="deg",
-                                  doc="faces whose normal is within this of `normal`")
-    max_axis_angle: float | None = row(
-        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
-        doc="largest angle between the optical axes of two cameras that share this region")
-    min_cameras: int | None = row("min_cameras", Whole(low=1), None, shown="[evaluation] min_cameras",
-                                  doc="coverage requirement on this region")
-    near_point: np.ndarray | None = row("near_point_m", Vector(3, letters="xyz"), None, unit="m",
-                                        shown="none", doc="select by the distance to this point")
-    near_axis: np.ndarray | None = row("near_axis_m", Points(2), None, unit="m", shown="none",
-                                       doc="select by the distance to the line through these 2 points")
-    near_mesh: str | None = row("near_mesh", Text(name=True), None, shown="none",
-                                doc="select by the distance to this [[mesh]]'s surface")
-    region_file: Path | None = row("region_file", File((".stl", ".obj", ".ply"), "region mesh",
-                                                       "an STL, OBJ or PLY"), None, shown="none",
-                                   doc="select the part of the mesh within within_m of this "
-                                       "surface (same unit as the specimen mesh)")
-    within: float | None = row("within_m", Real(positive=True), None, unit="m",
-                               shown="sample spacing for region_file",
-                               doc="largest distance to the near_* point, axis or mesh")
-    beyond: float = row("beyond_m", Real(low=0.0), 0.0, unit="m",
-                        doc="smallest distance to the near_* point, axis or mesh")
-
-    @property
-    def near(self) -> str | None:
-        """The distance selector's field name, or None."""
-        keys = [k for k, v in (("near_point_m", self.near_point), ("near_axis_m", self.near_axis),
-                               ("near_mesh", self.near_mesh), ("region_file", self.region_file))
-                if v is not None]
-        return keys[0] if keys else None
-
-
-def _sensor_width_row():
-    """The sensor width row, shared by a camera and a body of the design inventory."""
-    return row("sensor_width_mm", Real(positive=True), unit="mm", either="sensor_mm",
-               shown="or sensor_mm", doc="sensor width")
-
-
-def _pixels_row():
-    """The pixel count row, shared by a camera and a body of the design inventory."""
-    return row("pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"),
-               doc=f"whole numbers, at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx")
-
-
-@dataclass(frozen=True, eq=False)
-class CameraSpec:
-    """A camera as written in the file; `camera_positions` and `angles` resolve its pose,
-    `vdo.scene.cameras_of` builds the `vdo.model.camera.Camera`."""
-
-    name: str = row("name", Text(name=True), doc="unique; names the camera's output files")
-    sensor_width: float = _sensor_width_row()
-    pixels: tuple[int, int] = _pixels_row()
-    focal_length: float = row("focal_mm", Real(*FOCAL_RANGE_MM, positive=True,
-                                               why="the focal lengths of real lenses"), unit="mm",
-                              doc="lens focal length")
-    rail: str | None = row("rail", Text(name=True), None, shown="either rail + u",
-                           doc="the [[rail]] the camera sits on")
-    mount: str | None = row("mount", Text(name=True), None, shown="or mount",
-                            doc="the [[mount]] the camera stands on (a rail mount takes u, a zone "
-                                "position_m, default its centre; a fixed mount nothing)")
-    u: float | None = row("u", Real(), None, when="rail mount", doc="position on the rail, 0 to 1")
-    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
-                             when="rail mount", doc="from the rail point to the optical centre")
-    position: np.ndarray | None = row("position_m", Vector(3, letters="xyz"), None, unit="m",
-                                      shown="or this", doc="optical centre")
-    target: np.ndarray | None = row("target_m", Vector(3, letters="xyz"), None, unit="m",
-                                    shown="either this", doc="aim the optical axis at a point")
-    pan: float | None = row("pan_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), None, unit="deg", shown="or pan + tilt",
-                            doc="azimuth from +x toward +y")
-    tilt: float | None = row("tilt_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), None, unit="deg", shown="or pan + tilt",
-                             doc="elevation (negative looks down)")
-    roll: float = row("roll_deg", Real(-MAX_ANGLE_DEG, MAX_ANGLE_DEG, why=ANGLE_WHY), 0.0, unit="deg", doc="0 keeps the image x axis horizontal")
-    principal_offset_px: tuple[float, float] = row(
-        "principal_offset_px", Vector(2, as_tuple=True, letters=("dx", "dy")), [0.0, 0.0],
-        doc="principal point offset from the image centre")
-    body: bool = row("body", Flag(), True, doc="the camera's body occludes the other cameras' views")
-    f_number: float | None = row("f_number", Real(positive=True), None, shown="none",
-                                 doc="with focus_m: thin lens with depth of field in renders")
-    focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
-                                       doc="focus distance, with f_number")
-    lenses: tuple[float, ...] = row(
-        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm", shown="none",
-        doc="the lenses this body takes, for \"lens\" in [optimize] free (default: [optimize] lenses_mm)")
-    distortion: tuple[float, ...] = row(
-        "distortion", Vector(5, as_tuple=True, letters=("k1", "k2", "p1", "p2", "k3")),
-        [0.0, 0.0, 0.0, 0.0, 0.0], doc="Brown-Conrady lens distortion, OpenCV's order and units")
-
-    def angles(self, position) -> tuple[float, float]:
-        """(pan, tilt) in radians of this camera with its optical centre at `position` (m): toward
-        target_m (`vdo.model.pose.look_at_angles`), else pan_deg and tilt_deg."""
-        return look_at_angles(position, self.target) if self.target is not None else (self.pan, self.tilt)
-
-
-def _sensor_mm_row() -> Row:
-    return Row("sensor_mm", Vector(2, positive=True, letters="wh"), None, "mm",
-               "sensor size (instead of sensor_width_mm); pixels must be square within 1 %",
-               shown="or sensor_width_mm")
-
-
-@dataclass(frozen=True)
-class Evaluation:
-    """[evaluation]: how the regions are sampled and what a camera sees."""
-
-    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 10.0, unit="mm",
-                                doc="grid spacing of the surface samples on each region")
-    incidence_limit: float = row("incidence_limit_deg", Real(1.0, 89.9), 75.0, unit="deg",
-                                 doc="a camera sees a point only when the angle between the normal "
-                                     "and the direction to the camera is below this")
-    patch_size: float = row("patch_mm", Real(positive=True), 10.0, unit="mm",
-                            doc="side of the DIC measurement patch (Ω = side²) used by the uncertainty")
-    min_cameras: int = row("min_cameras", Whole(low=1), 2,
-                           doc="coverage requirement per point (a region may override it)")
-
-
-@dataclass(frozen=True, eq=False)
-class LightSpec:
-    """A rectangular LED panel: a one-sided diffuse area emitter of `radiance` (W sr^-1 m^-2,
-    any consistent unit: the sensor's photons_per_unit maps it to electrons) centred at `position`
-    and facing `target`, `size` (width, height) in metres."""
-
-    name: str = row("name", Text(name=True), doc="unique")
-    position: np.ndarray = row("position_m", Vector(3, letters="xyz"), unit="m", doc="panel centre")
-    target: np.ndarray = row("target_m", Vector(3, letters="xyz"), unit="m", doc="the panel faces it")
-    size: tuple[float, float] = row("size_m", Vector(2, positive=True, as_tuple=True, letters="wh"),
-                                    unit="m", doc="panel width and height")
-    radiance: float = row("radiance", Real(positive=True),
-                          doc="emitted radiance (any unit consistent with [sensor] photons_per_unit)")
-
-
-@dataclass(frozen=True)
-class SpeckleSpec:
-    """The paint on the regions of interest: generated dots + strokes, or a user image."""
-
-    dot_diameter: float = row("dot_diameter_mm", Real(positive=True), 2.0, unit="mm",
-                              doc="black dots on white paint")
-    coverage: float = row("coverage", Real(0.01, 0.95), 0.5, doc="black area fraction")
-    strokes: int = row("strokes", Whole(low=0), 10, doc="random brush strokes per tile")
-    texel: float = row("texel_mm", Real(positive=True), 0.25, unit="mm",
-                       doc="pattern resolution on the surface (at most a third of the dot diameter)")
-    tile_texels: int = row("tile_texels", Whole(low=64), 1024,
-                           doc="the pattern tile repeats seamlessly every tile_texels × texel_mm")
-    seed: int = row("seed", Whole(low=0), 1, doc="random seed of the pattern")
-    image: Path | None = row("image", File((".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"), "pattern",
-                                           "an image (PNG, JPEG, TIFF or BMP)", magic=True), None, shown="none",
-                             doc="a photo of a real pattern instead (at texel_mm per pixel)")
-    white_albedo: float = row("white_albedo", Real(0.0, 1.0), 0.8, doc="reflectance of the white paint")
-    black_albedo: float = row("black_albedo", Real(0.0, 1.0), 0.05,
-                              doc="reflectance of the black paint (below white_albedo)")
-    print_dpi: float = row("print_dpi", Real(positive=True), 600.0,
-                           doc="printer resolution of `vdo speckle`'s print-ready patterns (dots per inch)")
-
-
-def _sensor_rows() -> tuple[Row, ...]:
-    """[sensor]: `SensorModel`'s fields; it keeps the defaults and checks the ranges itself."""
-    defaults = {f.name: f.default for f in dataclasses.fields(SensorModel)}
-    kinds = {"bit_depth": Whole()}
-    docs = {"quantum_efficiency": ("fraction of photons converted to electrons, in (0, 1]", ""),
-            "full_well_e": ("full-well capacity, electrons > 0", ""),
-            "read_noise_e": ("read noise, electrons rms ≥ 0", ""),
-            "bit_depth": ("A/D converter resolution, 8 to 16 bits", ""),
-            "gain_dn_per_e": ("system gain, DN per electron > 0", "full well → top DN"),
-            "offset_dn": ("dark offset, DN in [0, 2^bit_depth − 1)", "2^(bit_depth − 7)"),
-            "photons_per_unit": ("photons per pixel per unit of the linear render value, > 0",
-                                 "a linear value of 1 fills 70 % of the full well")}
-    return tuple(Row(name, kinds.get(name, Real()), defaults[name], doc=docs[name][0],
-                     shown=docs[name][1], attr=name) for name in SENSOR_FIELDS)
-
-
-@dataclass(frozen=True)
-class RenderSpec:
-    """[render]: settings of `vdo render`."""
-
-    spp: int = row("spp", Whole(low=1), 16, doc="samples per pixel")
-    scale: float = row("scale", Real(positive=True, high=4.0), 1.0,
-                       doc="image size relative to the sensor's pixel counts")
-    seed: int = row("seed", Whole(low=0), 0, doc="render noise seed")
-    ambient_radiance: float = row("ambient_radiance", Real(low=0.0), 0.0,
-                                  doc="uniform environment light, same unit as [[light]] radiance")
-    image_format: str = row("image_format", Text(choices=("png", "tiff")), "png",
-                            doc="tiff: 16-bit above 8-bit depth")
-    exr: bool = row("exr", Flag(), False, doc="also write the linear float images")
-    bit_alignment: str = row("bit_alignment", Text(choices=ALIGNMENTS), "msb",
-                             doc="16-bit files: msb (counts shifted to the top bits, as most DIC "
-                                 "software expects) or raw (counts as they are)")
-    mode: str = row("mode", Text(choices=("sampled", "dic")), "sampled",
-                    doc="sampled: spp path samples per pixel (the reference); dic: one ray per "
-                        "pixel, the speckle averaged over the pixel's footprint, for full-size "
-                        "images (docs/render.md)")
-
-
-@dataclass(frozen=True)
-class Analysis:
-    """The DIC analysis the strain uncertainty is predicted for (`vdo.physics.strain`): global DIC with Q4
-    elements of side `element` (m), or subset DIC with square subsets of side `subset` (m) or
-    `subset_px` pixels on a grid of `step` (m) or `step_px` pixels, shape function "zero" or
-    "affine", strain from a plane fit over `strain_window` x `strain_window` subset centres.
-    Pixels are those of the finest camera at each sample (`vdo.physics.strain.sizes`)."""
-
-    method: str = row("method", Text(choices=("global", "subset")), "global",
-                      doc="global (finite-element) or subset (local) DIC")
-    element: float | None = row("element_mm", Real(positive=True), None, unit="mm",
-                                shown="[evaluation] patch_mm", doc="Q4 element side (global DIC)")
-    subset: float | None = row("subset_mm", Real(positive=True), None, unit="mm", shown="none",
-                               doc="subset side in mm (or subset_px)")
-    subset_px: float | None = row("subset_px", Real(positive=True), 29.0,
-                                  doc="subset side in pixels (unless subset_mm)")
-    step: float | None = row("step_mm", Real(positive=True), None, unit="mm", shown="none",
-                             doc="subset grid step in mm (or step_px)")
-    step_px: float | None = row("step_px", Real(positive=True), 7.0,
-                                doc="subset grid step in pixels (unless step_mm)")
-    shape_function: str = row("shape_function", Text(choices=("zero", "affine")), "affine",
-                              doc="subset shape function")
-    strain_window: int = row("strain_window", Whole(low=2), 15,
-                             doc="subset centres per side of the strain plane fit (virtual gauge)")
-    interpolant: str = row("interpolant", Text(choices=("cubic", "quintic", "keys")), "cubic",
-                           doc="the correlation's interpolant: cubic or quintic B-spline, or keys "
-                               "(Keys' bicubic convolution, a = -0.5) (σ_measured's bias and noise)")
-    reference: str = row("reference", Text(choices=("noisy", "noise-free")), "noisy",
-                         doc="noisy: a recorded reference image; noise-free: a synthetic one")
-    processing: str = row("processing", Text(choices=("all-views", "pairs")), "all-views",
-                          doc="all views in one correlation, or stereo pairs merged per point")
-    pairs: str = row("pairs", Text(choices=("auto", "declared")), "auto",
-                     doc="pairs: auto (any two usable views with the angle between their rays "
-                         "in [lens minimum, max_pair_angle_deg]) or the [[stereo_pair]] tables")
-    merge: str = row("merge", Text(choices=("best", "fusion")), "best",
-                     doc="pairs at a point: the best one, or inverse-variance fusion")
-    max_pair_angle: float | None = row("max_pair_angle_deg", Real(1.0, 180.0), None, unit="deg",
-                                       shown="60", doc="largest angle between a pair's rays (auto)")
-
-
-def _check_analysis(t: Table, v: dict) -> None:
-    if v["pairs"] == "declared" and v["processing"] != "pairs":
-        raise t.error("pairs", 'declared pairs need processing = "pairs"')
-    for mm, px in (("subset", "subset_px"), ("step", "step_px")):
-        if t.has(f"{mm}_mm") and t.has(px):
-            raise t.error(px, f"give the size once: {px} or {mm}_mm")
-        if v[mm] is not None:
-            v[px] = None
 
 
 SAME_LENS_REL = 1e-9   # relative: focal lengths this close are one lens (mm read as m, rounding)
@@ -403,370 +123,9 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
                                             "move the camera out of it")
 
 
-STEREO_SPAN_DEG = 20.0            # a declared pair's default max_angle_deg = its min + this
-
-
-@dataclass(frozen=True)
-class StereoPairSpec:
-    """A declared stereo pair: two cameras whose optical axes must make an angle in
-    [min_angle, max_angle] (rad). min_angle None: the stereo rule of thumb for the shorter lens
-    (`vdo.constraints.stereo_min_angle`); max_angle None: that minimum + STEREO_SPAN_DEG."""
-
-    cameras: tuple[str, ...] = row("cameras", Words(what="two camera names", nonempty=True),
-                                   doc='the two cameras, e.g. ["left", "right"]')
-    min_angle: float | None = row("min_angle_deg", Real(0.0, 180.0), None, unit="deg",
-                                  shown="by lens", doc="smallest angle between the optical axes")
-    max_angle: float | None = row("max_angle_deg", Real(0.0, 180.0), None, unit="deg",
-                                  shown=f"min + {STEREO_SPAN_DEG:g}", doc="largest angle between the optical axes")
-
-
-def _check_stereo_pair(t: Table, v: dict) -> None:
-    if len(v["cameras"]) != 2:
-        raise t.error("cameras", f'must name two different cameras, e.g. ["left", "right"] '
-                                 f"(got {list(v['cameras'])!r})")
-    _check_angles(t, v, "min_angle_deg", "max_angle_deg", "min_angle", "max_angle")
-
-
-def _check_angles(t: Table, v: dict, low_key, high_key, low, high) -> None:
-    if v[low] is not None and v[high] is not None and v[high] < v[low]:
-        raise t.error(high_key, f"= {math.degrees(v[high]):g} is below {low_key} = "
-                                f"{math.degrees(v[low]):g}: the maximum must be at least the minimum")
-
-
-@dataclass(frozen=True, eq=False)
-class GroupSpec:
-    """Meshes that move together along the load path (a hexapod's platform with its
-    end-effector, a crosshead). Every mesh is also a group of its own name."""
-
-    name: str = row("name", Text(name=True), doc="unique; not the name of a mesh")
-    meshes: tuple[str, ...] = row("meshes", Words(what="mesh names", nonempty=True),
-                                  doc="the [[mesh]] names that move together")
-    pivot: np.ndarray = row("pivot_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.0], unit="m",
-                            doc="the point the group's rotations turn about")
-
-
-@dataclass(frozen=True)
-class LoadPathSpec:
-    """The steps of a moving test (`vdo.geometry.keyframes`): rigid poses of groups per step, and
-    optionally nodal displacements of one specimen mesh per step."""
-
-    poses: Path | None = row("poses", File((".csv",), "pose", "a CSV"), None, shown="none",
-                             doc="CSV: step, group, x_mm, y_mm, z_mm, rx_deg, ry_deg, rz_deg")
-    displacements: Path | None = row("displacements", File((".csv", ".vtu", ".vtp", ".pvd"), "displacement",
-                                                           "a CSV, .vtu, .vtp or .pvd"), None,
-                                     shown="none", doc="CSV: step, x_m, y_m, z_m, ux_mm, uy_mm, uz_mm; or "
-                                                       "VTK XML nodal displacements (.vtu/.vtp, one step; "
-                                                       ".pvd, one file per step)")
-    deformed_mesh: str | None = row("deformed_mesh", Text(name=True), None, shown="none",
-                                    doc="the specimen mesh the displacements apply to")
-    unit: str | None = row("unit", Text(choices=tuple(UNITS)), None, shown="none",
-                           doc="length unit of a VTK file's points and displacements (required for VTK)")
-    displacement_array: str | None = row("displacement_array", Text(), None, shown="auto",
-                                         doc="the VTK point array of displacements (default: the one "
-                                             "3-component array, or the one named displacement, U, ...)")
-    every: int = row("every", Whole(low=1), 1,
-                     doc="judge and render every every-th step of the files and the last one (a "
-                         "quicker look at a long series; every row of every step is still checked)")
-
-    @property
-    def active(self) -> bool:
-        return self.poses is not None or self.displacements is not None
-
-
-def _check_load_path(t: Table, v: dict) -> None:
-    if (v["displacements"] is None) != (v["deformed_mesh"] is None):
-        raise t.error("deformed_mesh", "give displacements and deformed_mesh together (the file's "
-                                       "nodes are that mesh's vertices)")
-    vtk = v["displacements"] is not None and v["displacements"].suffix.lower() != ".csv"
-    if vtk and v["unit"] is None:
-        raise t.error("unit", "a VTK file carries no length unit: give unit = \"mm\" or \"m\" (its "
-                              "points and displacements)")
-    if not vtk and (v["unit"] is not None or v["displacement_array"] is not None):
-        raise t.error("unit" if v["unit"] is not None else "displacement_array",
-                      "is for a VTK displacement file (a CSV names its units in its header)")
-
-
-@dataclass(frozen=True)
-class OptimizeSpec:
-    """What `vdo optimize` may move and the practical constraints it enforces."""
-
-    free: tuple[str, ...] = row(
-        "free", Words(choices=("u", "pan", "tilt", "roll", "lens")), ["u", "pan", "tilt"],
-        doc='parameters that move per camera (add "roll" to free it, otherwise cameras stay '
-            'horizontal; add "lens" to choose each moving camera\'s lens from lenses_mm)')
-    lenses: tuple[float, ...] = row(
-        "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm",
-        doc='the lens catalogue for "lens" in free: a greedy outer loop tries each other lens on each '
-            "moving camera and keeps it when the result is better (feasible first, then by score)")
-    cameras: tuple[str, ...] | None = row("cameras", Words(what="camera names"), None, shown="all",
-                                          doc="names of the cameras that move")
-    regions: tuple[str, ...] | None = row(
-        "regions", Words(what="region names", nonempty=True), None, shown="all",
-        doc="regions whose uncertainty and coverage enter the score (constraints apply everywhere)")
-    min_axis_angle: float | None = row(
-        "min_axis_angle_deg", Real(0.0, 90.0), None, unit="deg", shown="by lens",
-        doc="minimum angle between the optical axes of two cameras sharing a region; default 35° up "
-            "to 12 mm, 25° at 17 mm, 15° from 35 mm (the shorter lens of the pair)")
-    max_axis_angle: float | None = row(
-        "max_axis_angle_deg", Real(0.0, 180.0), None, unit="deg", shown="none",
-        doc="largest angle between the optical axes of two cameras sharing a region (off by default "
-            "for multi-view; declared stereo pairs have their own)")
-    clearance: float = row("clearance_m", Real(low=0.0), 0.05, unit="m",
-                           doc="camera bodies keep this distance from every mesh and each other")
-    max_obscuration: float = row("max_obscuration", Real(0.0, 1.0), 0.01,
-                                 doc="largest fraction of an assigned region's image an obstacle may mask")
-    assign_fraction: float = row("assign_fraction", Real(0.01, 1.0), 0.5,
-                                 doc="a camera is assigned the regions it sees this much of in the "
-                                     "starting layout")
-    score: str = row(
-        "score", Text(choices=("bound", "measured")), "bound",
-        doc='what the score\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '
-            "correlation measures ([analysis] interpolant and reference: each camera's information "
-            "divided by its error over the bound, refreshed every round; docs/theory.md)")
-    starts: int = row("starts", Whole(low=1), 3, doc="multi-start: the hand layout + perturbed copies")
-    rounds: int = row("rounds", Whole(low=1), 3,
-                      doc="penalty rounds, each ending with a visibility refresh")
-    max_steps: int = row("max_steps", Whole(low=1), 40, doc="BFGS steps per round")
-    seed: int = row("seed", Whole(low=0), 0, doc="perturbation of the extra starts")
-    load_path: bool = row(
-        "load_path", Flag(), True,
-        doc="with a [load_path]: score the views that hold over the test (seen at rest and at "
-            "load_path_fraction of the keyframes), not at rest alone (docs/theory.md)")
-    load_path_fraction: float = row(
-        "load_path_fraction", Real(high=1.0, positive=True), 1.0,
-        doc="fraction q (0 < q <= 1) of the keyframes at which a view must be seen to count; 1 = "
-            "every one (the worst case)")
-    load_path_keyframes: int = row(
-        "load_path_keyframes", Whole(low=1), 4,
-        doc="keyframes each visibility refresh casts: the extremes of the path first, then evenly "
-            "spaced (all steps when the path has no more); the result is judged over every step")
-
-
-@dataclass(frozen=True, eq=False)
-class BodySpec:
-    """A kind of camera body in `vdo design`'s inventory: its sensor and how many are available."""
-
-    name: str = row("name", Text(name=True), doc="unique, e.g. \"5MP\"")
-    sensor_width: float = _sensor_width_row()
-    pixels: tuple[int, int] = _pixels_row()
-    count: int = row("count", Whole(low=1), doc="how many bodies of this kind are available")
-    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
-                                    unit="mm", shown="[design] lenses_mm",
-                                    doc="the lenses this body takes")
-
-
-@dataclass(frozen=True, eq=False)
-class DesignSpec:
-    """What `vdo design` may choose: the camera bodies ([[body]], or [design]'s one sensor), the
-    lens catalogue, where candidates stand on the mounts and how they aim (`vdo.design.candidates`)."""
-
-    max_cameras: int | None = row("max_cameras", Whole(low=1), None,
-                                  shown="the [[body]] counts, else the [[camera]] count",
-                                  doc="the most cameras to place (the inventory)")
-    min_cameras: int = row("min_cameras", Whole(low=1), 2, doc="fewest cameras on the Pareto curve")
-    sensor_width: float | None = row("sensor_width_mm", Real(positive=True), None, unit="mm",
-                                     shown="the first [[camera]]'s", doc="sensor width of the bodies")
-    pixels: tuple[int, int] | None = row(
-        "pixels", Vector(2, positive=True, whole=True, as_tuple=True, letters="WH"), None,
-        shown="the first [[camera]]'s", doc="pixel counts of the bodies")
-    lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
-                                    unit="mm", shown="the [[camera]] lenses", doc="the lens catalogue")
-    target_sigma_um: float | None = row("target_sigma_um", Real(positive=True), None, shown="none",
-                                        doc="sigma_max p95 (µm) to reach on the scored regions: the "
-                                            "smallest camera count that does is reported")
-    rail_positions: int = row("rail_positions", Whole(low=1), 12,
-                              doc="candidate positions per rail, evenly spread in u")
-    offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",
-                             doc="from the rail point to a candidate's optical centre (also tried mirrored below the bar)")
-    aim_offsets: tuple[float, ...] = row("aim_offsets_deg", Numbers(as_set=True, what="angles in deg"),
-                                         [], unit="deg", shown="none",
-                                         doc="extra aims: each region target's pan and tilt +- these")
-    sample_spacing: float = row("sample_spacing_mm", Real(positive=True), 20.0, unit="mm",
-                                doc="sample spacing for the selection (the result is judged at [evaluation]'s)")
-    zone_points: int = row("zone_points", Whole(low=1), 3,
-                           doc="candidate positions per horizontal axis of a zone [[mount]] (a grid; "
-                               "in a floor polygon, the grid points inside it)")
-    zone_heights: int = row("zone_heights", Whole(low=1), 3,
-                            doc="candidate heights per zone, evenly spread over its height range")
-    keyframes: int = row("keyframes", Whole(low=0), 3,
-                         doc="load-path steps at which the candidates' occlusion is also judged (the "
-                             "steps farthest from rest and from each other); a candidate counts where "
-                             "it sees a sample at rest and at each (0: at rest only)")
-    bound_seconds: float = row("bound_s", Real(low=0), 60.0,
-                               doc="wall seconds per camera count for the bound on the best score "
-                                   "(`vdo.design.bound`; 0: no bound)")
-
-
-ON_REQUEST = ("calibration",)      # tables whose presence asks for work: written back only when given
-TARGET_KINDS = ("checkerboard",)   # what `vdo calibrate` renders and detects (OpenCV)
-
-
-@dataclass(frozen=True, eq=False)
-class CalibrationSpec:
-    """[calibration]: the lab's calibration session that `vdo calibrate` renders, calibrates and
-    propagates (`vdo.calib`, docs/calibration.md): the target, its poses, the detection noise."""
-
-    target: str = row("target", Text(choices=TARGET_KINDS), "checkerboard",
-                      doc="checkerboard (inner corners: findChessboardCorners + cornerSubPix)")
-    rows: int = row("rows", Whole(low=3, high=60), 7,
-                    doc="inner corners per column; rows + columns odd (one odd, one even) so "
-                        "that the board's orientation is unambiguous")
-    columns: int = row("columns", Whole(low=3, high=60), 10, doc="inner corners per row")
-    pitch: float | None = row("pitch_mm", Real(positive=True), None, unit="mm",
-                              shown="the target spans field_fill of the narrowest field",
-                              doc="square side")
-    pitch_tolerance: float = row("pitch_tolerance_mm", Real(low=0.0), 0.0, unit="mm",
-                                 doc="the maker's pitch tolerance (1 sigma): a scale error of the "
-                                     "whole calibration, shared by every load step")
-    flatness: float = row("flatness_mm", Real(low=0.0), 0.0, unit="mm",
-                          doc="the maker's flatness tolerance: the rendered target bows by this "
-                              "much at its centre (the calibration assumes it flat)")
-    field_fill: float = row("field_fill", Real(0.1, 1.0), 0.5,
-                            doc="fraction of a camera's field width the target spans at the "
-                                "working distance (generated poses, automatic pitch)")
-    poses_per_camera: int = row("poses_per_camera", Whole(low=3, high=500), 12,
-                                doc="generated poses per camera (intrinsics), spread over its field")
-    shared_poses: int = row("shared_poses", Whole(low=0, high=500), 6,
-                            doc="generated poses per stereo pair seen by both cameras (extrinsics)")
-    distances: tuple[float, ...] | None = row(
-        "distances_m", Numbers(what="distances in metres"), None, unit="m",
-        shown="each camera's working distance", doc="target distances from the camera, cycled")
-    tilt: float = row("tilt_deg", Real(0.0, 60.0), 30.0, unit="deg",
-                      doc="largest tilt of a generated pose away from facing the camera")
-    pose_centres: np.ndarray | None = row("pose_centres_m", Points(minimum=1), None, unit="m",
-                                          shown="none (generated)",
-                                          doc="explicit poses: where the target's centre is")
-    pose_normals: np.ndarray | None = row("pose_normals", Points(minimum=1), None, shown="none",
-                                          when="pose_centres",
-                                          doc="explicit poses: the target's front normal, one per centre")
-    detection_sigma_px: float | None = row(
-        "detection_sigma_px", Real(positive=True), None, shown="from the residuals",
-        doc="corner/dot detection noise (px, 1 sigma) of the covariance sigma^2 (J^T J)^-1")
-    strain: float = row("strain", Real(positive=True, high=0.5), 0.002,
-                        doc="the test's strain level (calibration-induced error is also given per unit)")
-    displacement: float = row("displacement_mm", Real(positive=True), 1.0, unit="mm",
-                              doc="the test's displacement level")
-    target_strain_error: float = row("target_strain_error", Real(positive=True), 1e-5,
-                                     doc="`vdo calibrate --plan`: calibration-induced strain error "
-                                         "(1 sigma, p95 over samples) to reach at the test's level")
-    seed: int = row("seed", Whole(low=0), 0, doc="seed of the generated poses and the images' noise")
-
-
-def _check_calibration(t: Table, v: dict) -> None:
-    if (v["rows"] + v["columns"]) % 2 == 0:
-        raise t.error("columns", f"rows = {v['rows']} and columns = {v['columns']} have the same "
-                                 "parity: make one odd and one even (a board that looks the same "
-                                 "turned by 180 deg has no defined corner order)")
-    centres, normals = v["pose_centres"], v["pose_normals"]
-    if (centres is None) != (normals is None):
-        raise t.error("pose_normals", "explicit poses need pose_centres_m and pose_normals together")
-    if centres is not None:
-        if len(normals) != len(centres):
-            raise t.error("pose_normals", f"must hold one normal per centre ({len(centres)})")
-        length = np.linalg.norm(normals, axis=1)
-        if np.any(length < 1e-9):
-            raise t.error("pose_normals", f"normal {int(np.argmin(length))} is zero")
-        v["pose_normals"] = normals / length[:, None]
-    if v["pitch"] is not None and v["pitch_tolerance"] >= 0.1 * v["pitch"]:
-        raise t.error("pitch_tolerance_mm", "must be below a tenth of pitch_mm")
-
-
 # --------------------------------------------------------------------------------------------
 # Checks across the fields of one table: check(t, values) raises t.error or completes values
 # --------------------------------------------------------------------------------------------
-def _sensor_size(t: Table, v: dict) -> None:
-    """A camera's or body's sensor: sensor_mm or sensor_width_mm (once), square pixels, at most
-    MAX_CAMERA_PIXELS; sets v["sensor_width"] from sensor_mm."""
-    if t.has("sensor_mm") == t.has("sensor_width_mm"):
-        raise t.error("sensor_mm", "give the sensor size once: sensor_mm = [width, height] or "
-                                   "sensor_width_mm")
-    width_px, height_px = v["pixels"]
-    if width_px * height_px > MAX_CAMERA_PIXELS:
-        raise t.error("pixels", f"{width_px} x {height_px} is {width_px * height_px / 1e6:.4g} Mpx; "
-                                f"at most {MAX_CAMERA_PIXELS / 1e6:g} Mpx per camera")
-    if t.has("sensor_mm"):
-        sensor = t.get(_sensor_mm_row())
-        pitch_w, pitch_h = sensor[0] / width_px, sensor[1] / height_px
-        if abs(pitch_w - pitch_h) > 0.01 * pitch_w:
-            raise t.error("sensor_mm", f"gives non-square pixels ({pitch_w * 1e6:.3f} x "
-                                       f"{pitch_h * 1e6:.3f} um); vdo models square pixels: check "
-                                       "the sensor size and pixel counts")
-        v["sensor_width"] = float(sensor[0])
-
-
-def _check_camera(t: Table, v: dict) -> None:
-    _sensor_size(t, v)
-    if t.has("f_number") != t.has("focus_m"):
-        raise t.error("f_number", "depth of field needs both f_number and focus_m")
-    if t.has("mount"):
-        if t.has("rail"):
-            raise t.error("mount", "give either rail or mount, not both")
-    elif t.has("rail") == t.has("position_m"):
-        raise t.error("rail", "give either rail (with u), mount or position_m, not several or none")
-    if t.has("rail"):
-        if not t.has("u"):
-            raise t.error("u", "is required for a camera on a rail (0 to 1)")
-        if not 0.0 <= v["u"] <= 1.0:
-            raise t.error("u", f"= {v['u']} is off rail {v['rail']!r}: the rail parameter runs "
-                               "from 0 to 1")
-    if t.has("target_m") == (t.has("pan_deg") or t.has("tilt_deg")):
-        raise t.error("target_m", "aim the camera with either target_m or pan_deg + tilt_deg")
-    if t.has("pan_deg") != t.has("tilt_deg"):
-        raise t.error("pan_deg", "give both pan_deg and tilt_deg")
-
-
-def _check_region(t: Table, v: dict) -> None:
-    if v["normal"] is not None:
-        if np.linalg.norm(v["normal"]) < 1e-9:
-            raise t.error("normal", "must be a non-zero vector")
-        v["normal"] = v["normal"] / np.linalg.norm(v["normal"])
-    near = [k for k in ("near_point_m", "near_axis_m", "near_mesh", "region_file") if t.has(k)]
-    if len(near) > 1:
-        raise t.error(near[1], f"give one distance selector per region (also {near[0]}); "
-                               "intersect several with a box or a normal instead")
-    if near[:1] and near[0] != "region_file" and v["within"] is None:
-        raise t.error("within_m", f"is required with {near[0]}: the largest distance (m)")
-    if (v["within"] is not None or v["beyond"] > 0) and not near:
-        raise t.error("within_m" if v["within"] is not None else "beyond_m",
-                      "applies to a distance selector: add near_point_m, near_axis_m, near_mesh or "
-                      "region_file")
-    if v["near_axis"] is not None:
-        axis = v["near_axis"]
-        if len(axis) != 2 or np.linalg.norm(axis[1] - axis[0]) < 1e-9:
-            raise t.error("near_axis_m", "must be 2 distinct points [[x, y, z], [x, y, z]] on the axis")
-    if v["within"] is not None and v["beyond"] >= v["within"]:
-        raise t.error("beyond_m", f"must be less than within_m ({v['within']:g} m)")
-    if np.any(v["box_min"] >= v["box_max"]):
-        raise t.error("box_max_m", "must be greater than box_min_m on every axis")
-
-
-def _check_light(t: Table, v: dict) -> None:
-    if np.linalg.norm(v["target"] - v["position"]) < 1e-6:
-        raise t.error("target_m", "must differ from position_m (the panel faces the target)")
-
-
-def _check_speckle(t: Table, v: dict) -> None:
-    if v["black_albedo"] >= v["white_albedo"]:
-        raise t.error("black_albedo", "must be less than white_albedo")
-    if v["image"] is None and v["dot_diameter"] < 3 * v["texel"]:
-        raise t.error("texel_mm", f"must be at most a third of the dot diameter "
-                                  f"({v['dot_diameter'] * 1e3:g} mm) to draw round dots")
-
-
-def _check_optimize(t: Table, v: dict) -> None:
-    _check_angles(t, v, "min_axis_angle_deg", "max_axis_angle_deg", "min_axis_angle", "max_axis_angle")
-
-
-def _check_body(t: Table, v: dict) -> None:
-    _sensor_size(t, v)
-
-
-def _check_design(t: Table, v: dict) -> None:
-    if (v["sensor_width"] is None) != (v["pixels"] is None):
-        raise t.error("pixels", "give the bodies' sensor_width_mm and pixels together (or neither: "
-                                "the first [[camera]]'s)")
-    if v["max_cameras"] is not None and v["max_cameras"] < v["min_cameras"]:
-        raise t.error("max_cameras", f"= {v['max_cameras']} is below min_cameras = {v['min_cameras']}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -784,7 +143,7 @@ class Experiment:
     meshes: tuple[MeshSpec, ...] = table("mesh", MeshSpec, array=True, required=True,
                                          doc='At least one with `role = "specimen"`.')
     regions: tuple[RegionSpec, ...] = table(
-        "region", RegionSpec, array=True, required=True, check=_check_region,
+        "region", RegionSpec, array=True, required=True, check=check_region,
         doc="A patch of interest on a specimen mesh, chosen by a normal, a box, a distance to a "
             "point, an axis, another mesh or a region mesh (all that are given apply). A planar "
             "selection is one face; a curved one must be one connected piece of surface, developed "
@@ -794,21 +153,21 @@ class Experiment:
         doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
             "the first control point, `u = 1` the last.")
     camera_specs: tuple[CameraSpec, ...] = table(
-        "camera", CameraSpec, array=True, required=True, check=_check_camera, extra=(_sensor_mm_row(),),
+        "camera", CameraSpec, array=True, required=True, check=check_camera, extra=(sensor_mm_row(),),
         doc="Place a camera with `rail` + `u` (+ `offset_m`) or `position_m`; aim it with `target_m` "
             "or `pan_deg` + `tilt_deg`. Two cameras may not share one optical centre.")
     evaluation: Evaluation = table("evaluation", Evaluation)
     description: str = row("description", Text(empty=True), "", doc="free text")
-    lights: tuple[LightSpec, ...] = table("light", LightSpec, array=True, check=_check_light,
+    lights: tuple[LightSpec, ...] = table("light", LightSpec, array=True, check=check_light,
                                           doc="A rectangular LED panel.", default=())
-    speckle: SpeckleSpec = table("speckle", SpeckleSpec, check=_check_speckle, default=SpeckleSpec(),
+    speckle: SpeckleSpec = table("speckle", SpeckleSpec, check=check_speckle, default=SpeckleSpec(),
                                  doc="The paint on the regions of interest (`vdo render`).")
-    sensor: SensorModel = table("sensor", SensorModel, rows=_sensor_rows(), default=SensorModel(),
+    sensor: SensorModel = table("sensor", SensorModel, rows=sensor_rows(), default=SensorModel(),
                                 doc="EMVA 1288 sensor model (`vdo.model.sensor.SensorModel`).")
     render: RenderSpec = table("render", RenderSpec, default=RenderSpec())
-    optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=_check_optimize,
+    optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=check_optimize,
                                    default=OptimizeSpec(), doc="What `vdo optimize` may move.")
-    analysis: Analysis = table("analysis", Analysis, check=_check_analysis, default=Analysis(),
+    analysis: Analysis = table("analysis", Analysis, check=check_analysis, default=Analysis(),
                                doc="The DIC analysis strain uncertainties are predicted for "
                                    "(docs/theory.md, strain).")
     mounts: tuple[MountSpec, ...] = table(
@@ -821,23 +180,23 @@ class Experiment:
         doc="A box no camera may stand in: cameras inside one are refused, design drops the "
             "candidates inside one, optimize keeps its cameras out.")
     stereo_pairs: tuple[StereoPairSpec, ...] = table(
-        "stereo_pair", StereoPairSpec, array=True, check=_check_stereo_pair, default=(),
+        "stereo_pair", StereoPairSpec, array=True, check=check_stereo_pair, default=(),
         doc="Two cameras used as a stereo pair: their axes keep an angle in [min, max].")
     groups: tuple[GroupSpec, ...] = table(
         "group", GroupSpec, array=True, default=(),
         doc="Meshes that move rigidly together along the load path.")
     load_path: LoadPathSpec = table(
-        "load_path", LoadPathSpec, check=_check_load_path, default=LoadPathSpec(),
+        "load_path", LoadPathSpec, check=check_load_path, default=LoadPathSpec(),
         doc="A moving test: `vdo evaluate` judges every step (`vdo.geometry.keyframes`, docs/load_path.md).")
-    design: DesignSpec = table("design", DesignSpec, check=_check_design, default=DesignSpec(),
+    design: DesignSpec = table("design", DesignSpec, check=check_design, default=DesignSpec(),
                                doc="What `vdo design` chooses from (`vdo.design.candidates`).")
     bodies: tuple[BodySpec, ...] = table(
-        "body", BodySpec, array=True, check=_check_body, extra=(_sensor_mm_row(),), default=(),
+        "body", BodySpec, array=True, check=check_body, extra=(sensor_mm_row(),), default=(),
         doc="`vdo design`'s inventory of camera bodies, e.g. 6 of a 5 MP sensor and 4 of a 12 MP "
             "one; without any, [design] sensor_width_mm + pixels (or the first [[camera]]'s) and "
             "max_cameras.")
     calibration: CalibrationSpec = table(
-        "calibration", CalibrationSpec, check=_check_calibration, default=CalibrationSpec(),
+        "calibration", CalibrationSpec, check=check_calibration, default=CalibrationSpec(),
         doc="The calibration session `vdo calibrate` renders and calibrates (docs/calibration.md).")
     given: frozenset = field(default=frozenset(), repr=False)   # the ON_REQUEST tables the file gives
 

@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.config.experiment import SENSOR_FIELDS, Analysis, SpeckleSpec
+from vdo.config.rig import SENSOR_FIELDS, SpeckleSpec
+from vdo.config.procedure import Analysis
 from vdo.config.reader import Table, as_numbers, read_toml, with_overrides
 from vdo.config.schema import rows_of
 from vdo.core.errors import ConfigError

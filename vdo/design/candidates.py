@@ -60,7 +60,8 @@ from vdo import objective
 from vdo.physics import usable
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
-from vdo.config.experiment import BodySpec, Experiment
+from vdo.config.experiment import Experiment
+from vdo.config.rig import BodySpec
 from vdo.config.mounts import inside_keep_out
 from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate

@@ -45,7 +45,8 @@ from vdo.design.score import Scorer
 from vdo.outputs import report
 from vdo.physics import usable
 from vdo.model.camera import Camera
-from vdo.config.experiment import CameraSpec, Experiment
+from vdo.config.experiment import Experiment
+from vdo.config.rig import CameraSpec
 from vdo.core.errors import ConfigError
 from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.core.progress import bar

@@ -64,8 +64,9 @@ from vdo.geometry.plate import cameras_of, check_cases, deform, plate_geometry, 
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
 from vdo.config import validation
-from vdo.config.experiment import (Analysis, Evaluation, Experiment, MeshSpec, RegionSpec, RenderSpec,
-                                   StereoPairSpec)
+from vdo.config.experiment import Experiment
+from vdo.config.rig import Evaluation, MeshSpec, RegionSpec, RenderSpec
+from vdo.config.procedure import Analysis, StereoPairSpec
 from vdo.config.validation import Case, ValidationSpec
 from vdo.dic.correlate import ImageReference, PixelIntegration, Q4, Translation, correlate
 from vdo.dic.patch import Patch

@@ -350,7 +350,7 @@ def read_vtk_displacements(file: Path, vertices: np.ndarray, faces: np.ndarray, 
     the fit of its nearest nodes."""
     from scipy.spatial import cKDTree
 
-    from vdo.config.experiment import UNITS
+    from vdo.config.rig import UNITS
     from vdo.core.vtkxml import read_points
 
     file = Path(file)

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from vdo.config.experiment import UNITS, Experiment, camera_positions
+from vdo.config.experiment import Experiment, camera_positions
+from vdo.config.rig import UNITS
 from vdo.config.schema import IMAGE_MAGIC
 from vdo.core.errors import Collect, ConfigError
 from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY

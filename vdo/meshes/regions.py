@@ -16,7 +16,8 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-from vdo.config.experiment import Experiment, RegionSpec
+from vdo.config.experiment import Experiment
+from vdo.config.rig import RegionSpec
 from vdo.core.errors import ConfigError
 from vdo.meshes.mesh import SceneMesh, read_mesh
 from vdo.model import surface

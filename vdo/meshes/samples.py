@@ -14,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vdo.config.experiment import Experiment, RegionSpec
+from vdo.config.experiment import Experiment
+from vdo.config.rig import RegionSpec
 from vdo.core.errors import ConfigError
 from vdo.meshes.mesh import SceneMesh
 from vdo.meshes.regions import RegionFaces, all_region_faces, region_faces

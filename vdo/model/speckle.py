@@ -486,7 +486,7 @@ def g_aniso_lookup(table: GradientEnergyTable, l_par, l_perp):
 
 
 def pattern_for(spec) -> np.ndarray:
-    """The [0, 1] pattern tile of a `vdo.config.experiment.SpeckleSpec`: the user's image when it names one,
+    """The [0, 1] pattern tile of a `vdo.config.rig.SpeckleSpec`: the user's image when it names one,
     else a generated tile of `tile_texels` texels of `texel` metres."""
     if spec.image is not None:
         return load_pattern(spec.image)

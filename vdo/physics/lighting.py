@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vdo.core.backend import mitsuba
-from vdo.config.experiment import LightSpec, SpeckleSpec
+from vdo.config.rig import LightSpec, SpeckleSpec
 from vdo.scene import SurfaceSamples
 from vdo.model.sensor import SensorModel
 from vdo.core.tolerances import RAY_OFFSET_M
