@@ -156,7 +156,7 @@ def reduced(path: str) -> str:
     if kind(path) == "validation":
         return "; ".join(settings)
     if kind(path) == "sweep":
-        from vdo.commands.sweep import load_sweep
+        from vdo.config.sweep import load_sweep
 
         experiments = [load(base) for _, base in load_sweep(ROOT / path).experiments]
     else:
@@ -195,7 +195,8 @@ def test_upfront_checks(path):
 
         assert load_validation(ROOT / path).cases
     elif kind(path) == "sweep":
-        from vdo.commands.sweep import check_points, expand, load_sweep
+        from vdo.commands.sweep import check_points
+        from vdo.config.sweep import expand, load_sweep
 
         spec = load_sweep(ROOT / path)
         check_points(spec, expand(spec))

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from vdo.core.errors import ConfigError
-from vdo.commands.sweep import (_run_local, combinations, expand, load_sweep, pareto_front, run_point,
-                                split_path, sweep)
+from vdo.commands.sweep import _run_local, pareto_front, run_point, sweep
+from vdo.config.sweep import combinations, expand, load_sweep, split_path
 
 ROOT = Path(__file__).resolve().parents[2]
 from conftest import CAMERAS, HEIGHT, SENSOR  # noqa: E402  (the two rail cameras over the plate)

@@ -177,7 +177,7 @@ def check(paths) -> int:
             spec = load_validation(path)
             print(f"ok: {path}: validation file, {len(spec.cases)} cases")
         elif kind == "sweep":
-            from vdo.commands.sweep import expand, load_sweep
+            from vdo.config.sweep import expand, load_sweep
             points = expand(load_sweep(path))
             print(f"ok: {path}: sweep file, {len(points)} points")
         else:
@@ -348,7 +348,8 @@ def _report(_, args) -> None:
 
 
 def _sweep(_, args) -> int:
-    from vdo.commands.sweep import load_sweep, sweep
+    from vdo.commands.sweep import sweep
+    from vdo.config.sweep import load_sweep
 
     result = sweep(load_sweep(args.sweep), args.out, workers=args.workers, dask=args.dask,
                    max_points=args.max_points)
