@@ -73,6 +73,9 @@ def both(plate_experiment):
 
 
 def test_each_candidates_information_is_the_bounds_over_its_own_kappa(both):
+    # Every stored (candidate, sample) information is the bound's over κ of that candidate and
+    # region, κ from noise_inflation on the candidate alone (its own ray cast, its own spec as
+    # the design writes it): judging a block changes nothing, and no candidate is left at κ = 1.
     exp, geometry, j, bound, meas = both
     assert np.array_equal(bound.indptr, meas.indptr) and np.array_equal(bound.index, meas.index)
     np.testing.assert_array_equal(bound.entry_weight, meas.entry_weight)   # the weights stay
