@@ -141,7 +141,7 @@ def test_the_switch_changes_the_chosen_pair(both):
 
 def test_blocks_and_cache_state_change_nothing(both, monkeypatch):
     exp, geometry, j, _, meas = both
-    monkeypatch.setattr("vdo.model.speckle._MODEL_CACHE", {})               # cold
+    monkeypatch.setattr("vdo.model.interpolant._MODEL_CACHE", {})               # cold
     monkeypatch.setattr("vdo.design.candidates.PAIRS_PER_BLOCK", 2 * len(geometry.samples))
     cold = judge(exp, geometry, j)                                          # blocks of 2, cold
     for name, value in _entries(meas).items():
