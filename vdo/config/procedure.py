@@ -245,6 +245,11 @@ class DesignSpec:
     bound_seconds: float = row("bound_s", Real(low=0), 60.0,
                                doc="wall seconds per camera count for the bound on the best score "
                                    "(`vdo.design.bound`; 0: no bound)")
+    score: str = row(
+        "score", Text(choices=("bound", "measured")), "bound",
+        doc='what the selection\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '
+            "correlation measures ([analysis] interpolant and reference: each candidate's information "
+            "divided by its error over the bound in each region; docs/design.md)")
 
 
 ON_REQUEST = ("calibration",)      # tables whose presence asks for work: written back only when given

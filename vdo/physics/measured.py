@@ -102,30 +102,35 @@ def _sigma(cov: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(ok[..., None], xyz, np.inf), np.where(ok, mx, np.inf)
 
 
-def _snap(A: np.ndarray) -> np.ndarray:
+def _snap(A: np.ndarray, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> np.ndarray:
     """The 2x2 footprint A = R(u) diag(s) F R(v)ᵀ (R a rotation, F = diag(1, ±1)) with log2 s on
-    SNAP_OCTAVE steps and the angles u, v on SNAP_ANGLE steps."""
+    `lattice` = (octave, angle) steps: log2 s on octave steps and the angles u, v on angle steps
+    (rad); angle None: diag(s), the rotations and F dropped (the pattern's statistics do not turn
+    with v or F; u, the anisotropy's direction against the pixel grid, moves κ by a few percent)."""
+    octave, angle = lattice
     U, s, Vt = np.linalg.svd(A)
+    if angle is None:
+        return np.diag(2.0 ** np.array([octave * round(math.log2(x) / octave) for x in s]))
     if np.linalg.det(U) < 0:
         U, Vt = U @ np.diag([1.0, -1.0]), np.diag([1.0, -1.0]) @ Vt
     F = np.diag([1.0, np.sign(np.linalg.det(Vt))])
     step = lambda x, q: q * round(x / q)
     turn = lambda a: np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    u = step(math.atan2(U[1, 0], U[0, 0]), SNAP_ANGLE)
-    v = step(math.atan2(Vt[0, 1], Vt[0, 0]), SNAP_ANGLE)       # F R(v)ᵀ's first row: (cos v, sin v)
-    s = 2.0 ** np.array([step(math.log2(x), SNAP_OCTAVE) for x in s])
+    u = step(math.atan2(U[1, 0], U[0, 0]), angle)
+    v = step(math.atan2(Vt[0, 1], Vt[0, 0]), angle)            # F R(v)ᵀ's first row: (cos v, sin v)
+    s = 2.0 ** np.array([step(math.log2(x), octave) for x in s])
     return turn(u) @ np.diag(s) @ F @ turn(v).T
 
 
 def region_floors(exp, cameras, samples, views, illumination, speckle,
-                  snap: bool = False) -> list[tuple]:
+                  snap: bool = False, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> list[tuple]:
     """What the lab's correlation measures for each camera in each region it views: one
     (i, k, seen, floor, lens) per (camera i, region k) with samples in `views` (C, N) bool, lit at
     the camera's median footprint, where `seen` are those samples, `floor` the
     `vdo.physics.checks.measurement_floor` row at that median footprint (its "model" the
     `vdo.model.interpolant.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
     there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m.
-    `snap`: the footprint and the depth on the lattice of `_snap` and SNAP_DEPTH."""
+    `snap`: the footprint and the depth on the lattice of `_snap` (`lattice`) and SNAP_DEPTH."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     jobs = []
     for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
@@ -142,7 +147,7 @@ def region_floors(exp, cameras, samples, views, illumination, speckle,
             depth = float((X[m] - cam.position) @ cam.optical_axis)
             footprint = A[m]
             if snap:
-                footprint = _snap(footprint)
+                footprint = _snap(footprint, lattice)
                 depth = 2.0 ** (SNAP_DEPTH * round(math.log2(depth) / SNAP_DEPTH))
             lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
                                depth)
@@ -165,7 +170,7 @@ def _nu(floor) -> float:
 
 
 def noise_inflation(exp, cameras, samples, views, illumination, speckle,
-                    snap: bool = True) -> np.ndarray:
+                    snap: bool = True, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> np.ndarray:
     """(C, N) √κ per (camera, sample): the factor on the sensor noise that turns the bound's
     per-camera information C_i into the information of what the lab measures, C_i / κ, with
 
@@ -177,10 +182,10 @@ def noise_inflation(exp, cameras, samples, views, illumination, speckle,
     (isotropic bias); otherwise its trace-equivalent. `views` (C, N) bool: the samples the
     median is taken over. `snap` (default): the footprints on a lattice (`region_floors`), κ
     within a few percent of the exact footprint's, so that a camera that moved a little finds its
-    model in the cache."""
+    model in the cache; `lattice` (`_snap`): coarser for many cameras (`vdo design`'s candidates)."""
     scale = np.ones(np.shape(views))
     for i, _, seen, floor, _ in region_floors(exp, cameras, samples, views, illumination, speckle,
-                                              snap):
+                                              snap, lattice):
         model, j = floor["model"]
         s2, p = floor["noise_rel"] ** 2, floor["patch_px"]
         kappa = _nu(floor) + p * float(np.trace(model.bias[j])) / (s2 * float(np.trace(model.bound_sharp[j])))
