@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from vdo.commands import sweep as sw
+from vdo.config.sweep import expand, load_sweep
 from vdo.config.experiment import load, parse
 from vdo.core.parallel import configure_worker, cores
 
@@ -69,8 +70,8 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     file = out / "bench-sweep.toml"
     file.write_text(SWEEP.format(base=BASE, spacing=args.spacing_mm))
-    spec = sw.load_sweep(file)
-    points = sw.expand(spec)
+    spec = load_sweep(file)
+    points = expand(spec)
 
     exp = load(BASE)
     first = parse(points[0].config, BASE)

@@ -15,6 +15,7 @@ import pytest
 from conftest import PLATE_TOML, aimed_camera, write_box
 from vdo import constraints
 from vdo.config import experiment as config
+from vdo.config import procedure
 from vdo.core.errors import ConfigError
 from vdo.commands.evaluate import evaluate
 from vdo.commands.optimize import optimize
@@ -76,7 +77,7 @@ def test_declared_pair_limits_and_defaults(tmp_path):
     pairs, low, high = constraints.angle_limits(exp, cams, np.zeros((2, 1), dtype=bool))
     assert pairs.tolist() == [[0, 1]]
     assert math.degrees(low[0]) == pytest.approx(math.degrees(constraints.stereo_min_angle(0.024)))
-    assert math.degrees(high[0] - low[0]) == pytest.approx(config.STEREO_SPAN_DEG)
+    assert math.degrees(high[0] - low[0]) == pytest.approx(procedure.STEREO_SPAN_DEG)
     exp = config.load(write(tmp_path, optimize_extra="max_axis_angle_deg = 40",
                             pairs='[[stereo_pair]]\ncameras = ["b", "a"]\nmin_angle_deg = 15\nmax_angle_deg = 35'))
     both = np.ones((2, 1), dtype=bool)          # both cameras assigned the one region
