@@ -22,6 +22,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 COUNTS = (3, 4, 6, 8, 12, 16, 24, 32)     # poses per camera tried
 DEFAULT_SIGMA_DET_PX = 0.05               # corner detection noise when none is configured (px)
+_UNSHARED = ("no calibrated stereo pair sees a region sample with both cameras: name stereo pairs "
+             "that share a view of a region")
 
 
 @dataclass(frozen=True)
@@ -38,14 +40,27 @@ class Plan:
     sigma_det: float
 
 
-def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
-    """The curve and the chosen count (module docstring). `visible` (C, N) from the ray cast."""
+def shared_pairs(pairs, names, visible: np.ndarray) -> list:
+    """The pairs of `pairs` (camera names) whose two cameras both see at least one sample
+    (`visible` (C, N) from the ray cast, rows in the order of `names`)."""
+    row = {n: i for i, n in enumerate(names)}
+    return [(a, b) for a, b in pairs if np.any(visible[row[a]] & visible[row[b]])]
+
+
+def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
+    """The curve and the chosen count (module docstring). `visible` (C, N) from the ray cast,
+    rows in the order of `vdo.scene.cameras_of(exp)`; `pairs` the stereo pairs to calibrate
+    (`vdo.calib.session.stereo_names`). Raises ConfigError before any calibration when no pair's
+    cameras see a common sample."""
     from vdo.calib.propagate import sample_errors
     from vdo.calib.session import plan
     from vdo.calib.solve import calibrate, simulate
     from vdo.core.errors import ConfigError
     from vdo.core.progress import bar, hidden
+    from vdo.scene import cameras_of
 
+    if not shared_pairs(pairs, [c.name for c in cameras_of(exp)], visible):
+        raise ConfigError(exp.path, "stereo_pair", _UNSHARED)
     spec = exp.calibration
     sigma = spec.detection_sigma_px or DEFAULT_SIGMA_DET_PX
     counts, images, p95 = [], [], []
@@ -54,7 +69,7 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
     for n in bar(log, iterable=COUNTS, desc="planning the session", unit="session"):
         trial = replace(spec, poses_per_camera=n, shared_poses=max(1, round(base_shared * n)))
         try:
-            planned = plan(exp, 1.0, geometry, trial)
+            planned = plan(exp, 1.0, geometry, trial, pairs)
         except ConfigError as exc:
             log.info("%d poses per camera: %s", n, exc.message)
             continue
@@ -72,10 +87,8 @@ def plan_session(exp, visible: np.ndarray, geometry) -> Plan:
         images.append(sum(len(v) for v in planned.session.views.values()))
         p95.append(float(np.percentile(finite, 95)))
         log.info("%d poses per camera: %d images, strain sigma p95 %.3g", n, images[-1], p95[-1])
-    if not counts and unseen:     # e.g. all round: the pairs' cameras share no region sample
-        raise ConfigError(exp.path, "stereo_pair", "no calibrated stereo pair sees a region sample "
-                                                   "with both cameras: name stereo pairs that share "
-                                                   "a view of a region")
+    if not counts and unseen:     # pairs that share samples but were not calibrated together
+        raise ConfigError(exp.path, "stereo_pair", _UNSHARED)
     if not counts:
         raise ConfigError(exp.path, "calibration", "no session of the planner's sizes passes the "
                                                    "checks: see vdo calibrate's message for one")

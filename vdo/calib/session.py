@@ -301,22 +301,25 @@ class Planned:
     geometry: object
 
 
-def stereo_names(exp, cameras, geometry) -> list[tuple[str, str]]:
+def stereo_names(exp, cameras, geometry, visibility=None) -> list[tuple[str, str]]:
     """The stereo pairs to calibrate: the declared [[stereo_pair]]s, else the cameras assigned a
-    common region (`vdo.formats.export.default_pairs`, a ray cast)."""
+    common region (`vdo.formats.export.default_pairs`, on `visibility`: the layout's ray cast,
+    cast here when not given)."""
     if exp.stereo_pairs:
         return [tuple(p.cameras) for p in exp.stereo_pairs]
     from vdo.formats.export import default_pairs
     from vdo.state import layout_state
 
-    state = layout_state(geometry, cameras, predict_fields=False)
+    if visibility is None:
+        visibility = layout_state(geometry, cameras, predict_fields=False).visibility
     return [(p.first.name, p.second.name)
-            for p in default_pairs(exp, cameras, state.visibility, geometry.samples)]
+            for p in default_pairs(exp, cameras, visibility, geometry.samples)]
 
 
-def plan(exp, scale: float, geometry=None, spec=None) -> Planned:
+def plan(exp, scale: float, geometry=None, spec=None, pairs=None) -> Planned:
     """The experiment's calibration session, built and checked (`build`, `check`) with `spec`
-    (default [calibration]); raises ConfigError before anything is rendered."""
+    (default [calibration]) and `pairs` (default `stereo_names`); raises ConfigError before
+    anything is rendered."""
     from vdo.state import prepare
 
     spec = spec or exp.calibration
@@ -330,7 +333,7 @@ def plan(exp, scale: float, geometry=None, spec=None) -> Planned:
                               "sees no region sample, so it has no working distance for the "
                               "calibration target: aim it at a region or give [calibration] distances_m")
         distances[cam.name] = d
-    pairs = stereo_names(exp, cameras, geometry)
+    pairs = stereo_names(exp, cameras, geometry) if pairs is None else pairs
     session = build(spec, cameras, distances, pairs, exp.path)
     check(session, spec, cameras, distances, scale, exp.path)
     return Planned(session=session, cameras=cameras, distances=distances, geometry=geometry)

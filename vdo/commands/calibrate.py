@@ -201,15 +201,17 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
     from dataclasses import replace
 
     from vdo.calib.planner import plan_session, plot
-    from vdo.calib.session import plan
+    from vdo.calib.session import plan, stereo_names
     from vdo.core.runfolder import check_out, run_folder
+    from vdo.scene import cameras_of
     from vdo.state import layout_state, prepare
 
     check_out(out, overwrite)
     geometry = prepare(exp)
-    plan(exp, 1.0, geometry)                     # the configured session's checks first
     state = layout_state(geometry, predict_fields=False)
-    p = plan_session(exp, state.visibility.visible, geometry)
+    pairs = stereo_names(exp, tuple(cameras_of(exp)), geometry, state.visibility)
+    plan(exp, 1.0, geometry, pairs=pairs)        # the configured session's checks first
+    p = plan_session(exp, state.visibility.visible, geometry, pairs)
     result = {"experiment": exp.name, "poses_per_camera": list(p.counts), "images": list(p.images),
               "strain_sigma_p95": list(p.strain_p95), "target_strain_error": p.target,
               "sigma_det_px": p.sigma_det, "chosen_poses_per_camera": p.chosen}
@@ -217,7 +219,8 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
         spec = exp.calibration
         share = spec.shared_poses / max(1, spec.poses_per_camera)
         chosen = plan(exp, 1.0, geometry, replace(spec, poses_per_camera=p.chosen,
-                                                  shared_poses=max(1, round(share * p.chosen))))
+                                                  shared_poses=max(1, round(share * p.chosen))),
+                      pairs)
         s = chosen.session
         result["chosen_session"] = {
             "pitch_mm": s.target.pitch * 1e3,
