@@ -167,23 +167,10 @@ def test_every_point_invalid_fails_the_sweep(plate_sweep, tmp_path):
         sweep(load_sweep(file), tmp_path / "out")
 
 
-def test_a_trial_of_a_few_points_then_the_rest(plate_sweep, tmp_path):
-    """--max-points 2 on the four-point plate sweep: the first two in the table's order run, the
-    other two are pending; the second run computes those two alone and the table equals one
-    uninterrupted run's (on the same points, in-process: workers=1)."""
-    spec = load_sweep(plate_sweep())
+def test_max_points_below_one_is_one_line(plate_sweep, tmp_path):
     with pytest.raises(ConfigError, match=r"--max-points: must be at least 1 \(got 0\)"):
-        sweep(spec, tmp_path / "bad", max_points=0)
+        sweep(load_sweep(plate_sweep()), tmp_path / "bad", max_points=0)
     assert not (tmp_path / "bad").exists()
-    trial = sweep(spec, tmp_path / "out", workers=1, max_points=2)
-    assert (trial["points"], trial["done"], trial["pending"], trial["computed"]) == (4, 2, 2, 2)
-    assert [r["status"] for r in read_table(tmp_path / "out" / "results.csv")] == \
-        ["done", "done", "pending", "pending"]
-    rest = sweep(spec, tmp_path / "out", workers=1)
-    assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
-    sweep(spec, tmp_path / "whole", workers=1)
-    assert without_times(read_table(tmp_path / "out" / "results.csv")) == \
-        without_times(read_table(tmp_path / "whole" / "results.csv"))
 
 
 def test_refuses_a_folder_that_is_not_a_sweep(plate_sweep, tmp_path):
@@ -222,9 +209,10 @@ def done_files(folder: Path) -> dict:
     return out
 
 
-def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
+def test_kill_resume_trial_dask_and_closed_form(plate_sweep, tmp_path):
     """One uninterrupted run on a Dask LocalCluster; one run on the local pool killed midway
-    (SIGKILL) and resumed: the same table, no finished point recomputed. The resumed run also
+    (SIGKILL) and resumed, and a trial of two points then the rest: the same table, no finished
+    point recomputed. The resumed run also
     writes the run folders of the points it computes (`vdo evaluate`'s summary), the others
     came from the summary without a run folder: the same numbers."""
     spec = load_sweep(plate_sweep())
@@ -284,6 +272,17 @@ def test_kill_resume_dask_and_closed_form(plate_sweep, tmp_path):
     assert folders == set(after) - set(before)
     assert all((tmp_path / "killed" / "runs" / k / "summary.json").is_file() for k in folders)
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
+
+    # 5. a trial of two points (--max-points 2): the first two in the table's order run, the
+    # other two stay pending; the second run computes those two alone, and the table is the
+    # uninterrupted one
+    trial = sweep(spec, tmp_path / "trial", workers=1, max_points=2)
+    assert (trial["points"], trial["done"], trial["pending"], trial["computed"]) == (4, 2, 2, 2)
+    assert [r["status"] for r in read_table(tmp_path / "trial" / "results.csv")] == \
+        ["done", "done", "pending", "pending"]
+    rest = sweep(spec, tmp_path / "trial", workers=1)
+    assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
+    assert without_times(read_table(tmp_path / "trial" / "results.csv")) == without_times(table)
 
 
 OPTIMIZE_SWEEP = """
