@@ -82,14 +82,14 @@ def write_print(path: Path, f: np.ndarray, texel_mm: float, dpi: float, lines: l
     (one texel per printer dot at `dpi`), a SCALE_BAR_MM scale bar and `lines` of statistics
     below it."""
     r = repeats(f.shape[1], texel_mm)
-    f = np.tile(f, (r, r))
-    side_in = f.shape[1] * texel_mm / MM_PER_INCH
+    dots = np.where(np.tile(f, (r, r)) > 0.5, 255, 0).astype(np.uint8)
+    side_in = dots.shape[1] * texel_mm / MM_PER_INCH
     margin_in = 0.25 + 0.17 * len(lines)
-    fig = plt.figure(figsize=(side_in, side_in + margin_in))
     h = side_in + margin_in
-    ax = fig.add_axes((0, margin_in / h, 1, side_in / h))
-    ax.imshow(f > 0.5, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
-    ax.set_axis_off()
+    fig = plt.figure(figsize=(side_in, h), dpi=dpi)
+    # the tiles placed pixel for pixel (no resampling): one texel per printer dot at `dpi`
+    fig.figimage(np.repeat(dots[:, :, None], 3, axis=2), xo=0,
+                 yo=round(fig.bbox.height) - dots.shape[0], origin="upper")
     bar_ax = fig.add_axes((0, 0, 1, margin_in / h))
     bar_ax.set_xlim(0, side_in * MM_PER_INCH)
     bar_ax.set_ylim(0, margin_in * MM_PER_INCH)
