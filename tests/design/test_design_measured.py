@@ -40,6 +40,8 @@ target_m = [0, 0, 0]
 size_m = [0.5, 0.5]
 radiance = 60
 """
+WRITTEN_RTOL = 1e-3  # a designed layout judged from its written file (poses rounded as written)
+#                     against the curve's judgement of the candidate poses themselves
 SAME_RTOL = 1e-9    # of a pair's largest entry: the same float64 products (noise scaled before or
 #                     after), rounding only
 
@@ -168,3 +170,45 @@ def test_a_bad_score_is_one_line(plate_experiment):
     message = str(err.value)
     assert "\n" not in message
     assert re.search(r"design\.score.*bound.*measured", message), message
+
+
+
+def test_the_curve_and_the_target_read_sigma_measured(tmp_path, caplog, monkeypatch):
+    """The holed plate's design with score = "measured": every count of the curve carries
+    σ_measured p95 (worst scored region and per region) beside the bound's, pareto.csv too, and
+    it is what `vdo evaluate` reports for that layout (the last count's is the written one; the
+    [evaluation] and [design] spacings are the same here). A target between the bound's σ and
+    σ_measured is judged on σ_measured: not reached, said in one line naming σ_measured."""
+    import csv
+    import json
+    import logging
+    from pathlib import Path
+
+    from vdo.commands.cli import main
+    from vdo.commands.design import design
+
+    target = 0.6     # µm: between the bound's p95 and σ_measured's for this rail (checked below)
+    monkeypatch.setenv("VDO_SET", 'design.score = "measured"; evaluation.sample_spacing_mm = 8; '
+                                  "design.sample_spacing_mm = 8; design.rail_positions = 11; "
+                                  f"design.lenses_mm = [16, 50]; design.bound_s = 0; "
+                                  f"design.target_sigma_um = {target}")
+    exp = config.load(Path(__file__).resolve().parents[2] / "experiments" / "holed_plate" / "design.toml")
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        result = design(exp, tmp_path / "design")
+    last = result.curve[-1]
+    assert all(c["sigma_measured_p95_um"] is not None for c in result.curve)
+    assert last["sigma_p95_um"] < target < last["sigma_measured_p95_um"]
+    assert result.target_count is None
+    assert any(f"target sigma_measured p95 {target:g} um is not reached" in r.getMessage()
+               for r in caplog.records)
+    rows = list(csv.DictReader(open(tmp_path / "design" / "pareto.csv")))
+    assert [float(r["sigma_measured_p95_um"]) for r in rows] == \
+        pytest.approx([c["sigma_measured_p95_um"] for c in result.curve], rel=1e-4)
+    assert main(["evaluate", str(tmp_path / "design" / "designed.toml"), "--out",
+                 str(tmp_path / "judged"), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "judged" / "summary.json").read_text())
+    for region, value in last["sigma_measured_p95_by_region_um"].items():
+        judged = summary["measured"]["regions"][region]
+        assert value == pytest.approx(judged["sigma_measured_um"]["p95"], rel=WRITTEN_RTOL)
+        assert last["sigma_p95_by_region_um"][region] == \
+            pytest.approx(judged["sigma_bound_um"]["p95"], rel=WRITTEN_RTOL)

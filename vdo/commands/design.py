@@ -115,14 +115,18 @@ def write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 
 def write_curve(path, curve):
     """pareto.csv: per camera count its score, bound and gap, sigma_max p95 (µm; overall and per
-    scored region), coverage, swaps, lenses, bodies and the measurable area's figures."""
+    scored region), coverage, swaps, lenses, bodies and the measurable area's figures; with
+    [design] score = "measured" then σ_measured p95 (µm; the worst scored region, then per region)."""
     regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
+    meas = bool(curve) and "sigma_measured_p95_um" in curve[0]    # [design] score = "measured"
     show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "lenses_mm",
                     "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
-                   + [f"sigma_p95_um_{r}" for r in regions])
+                   + [f"sigma_p95_um_{r}" for r in regions]
+                   + (["sigma_measured_p95_um"] + [f"sigma_measured_p95_um_{r}" for r in regions]
+                      if meas else []))
         for c in curve:
             w.writerow([c["cameras"], f"{c['score']:.6g}",
                         "" if c["bound"] is None else f"{c['bound']:.6g}",
@@ -130,14 +134,18 @@ def write_curve(path, curve):
                         show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"],
                         c["bodies"], f"{c['measurable_fraction']:.4f}",
                         f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
-                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions])
+                       + [show(c["sigma_p95_by_region_um"][r]) for r in regions]
+                       + ([show(c["sigma_measured_p95_um"])]
+                          + [show(c["sigma_measured_p95_by_region_um"][r]) for r in regions]
+                          if meas else []))
 
 
 def curve_line(c: dict, scored=None) -> str:
     """One count of the camera-count curve for the console: sigma_max p95 of the worst scored
     region, or, while a scored region has no measured sample, over the area that is measured
     with the unmeasured regions named; then the coverage (of all the regions' area and of what
-    the candidate spots can measure)."""
+    the candidate spots can measure); σ_measured p95 of the worst scored region beside the bound
+    when the design scores it."""
     by = c["sigma_p95_by_region_um"]
     scored = list(by) if scored is None else list(scored)
     if c["sigma_p95_um"] is not None:
@@ -149,18 +157,26 @@ def curve_line(c: dict, scored=None) -> str:
         sigma = ("no region measured" if over is None else
                  f"sigma_max p95 {over:.3f} um over the measured area") + \
             f" ({', '.join(none)}: none of it measured)"
+    if "sigma_measured_p95_um" in c:      # [design] score = "measured"
+        m = c["sigma_measured_p95_um"]
+        sigma += ", sigma_measured p95 " + ("unserved" if m is None else f"{m:.3f} um")
     return (f"{c['cameras']:3d} cameras: {sigma}, coverage {100 * c['coverage']:.1f} % "
             f"({100 * c['coverage_of_measurable']:.1f} % of the measurable)")
 
 
 def plot_curve(path, curve, target, name):
-    """Top: sigma_max p95 and coverage per camera count; bottom: the design's score and the
+    """Top: sigma_max p95 (and σ_measured p95 when the design scores it) and coverage per camera
+    count; bottom: the design's score and the
     relaxation's bound on any selection's score per count (`relax_curve`)."""
     fig, (ax, low) = plt.subplots(2, 1, figsize=(6, 6.5), layout="constrained", sharex=True,
                                   height_ratios=(3, 2))
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
     ax.semilogy(n, s, "o-", label="σ_max p95, worst scored region")
+    if curve and "sigma_measured_p95_um" in curve[0]:     # [design] score = "measured"
+        ax.semilogy(n, [np.nan if c["sigma_measured_p95_um"] is None else c["sigma_measured_p95_um"]
+                        for c in curve], "D-", color="C3",
+                    label="σ_measured p95, worst scored region (scored)")
     ax.semilogy(n, [np.nan if c["sigma_p95_measurable_um"] is None else c["sigma_p95_measurable_um"]
                     for c in curve], "x-", color="C0", alpha=0.45, lw=0.8,
                 label="σ_max p95 over the measured area")

@@ -222,8 +222,9 @@ class DesignSpec:
     lenses: tuple[float, ...] = row("lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [],
                                     unit="mm", shown="the [[camera]] lenses", doc="the lens catalogue")
     target_sigma_um: float | None = row("target_sigma_um", Real(positive=True), None, shown="none",
-                                        doc="sigma_max p95 (µm) to reach on the scored regions: the "
-                                            "smallest camera count that does is reported")
+                                        doc="sigma_max p95 (µm) to reach on the scored regions (σ_measured's "
+                                            "with score = \"measured\"): the smallest camera count "
+                                            "that does is reported")
     rail_positions: int = row("rail_positions", Whole(low=1), 12,
                               doc="candidate positions per rail, evenly spread in u")
     offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",

@@ -43,7 +43,8 @@ from vdo.design.candidates import SPOT_M, Candidates, bodies, inventory, judge, 
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
 from vdo.outputs import report
-from vdo.physics import usable
+from vdo.physics import measured, usable
+from vdo.constraints import stereo_min_angle
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
 from vdo.config.rig import CameraSpec
@@ -140,13 +141,23 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
     return np.bincount(pairs % len(samples), minlength=len(samples)) >= need
 
 
+def sigma_key(exp: Experiment) -> str:
+    """The curve's σ that the target and the figures read: σ_measured's p95 with [design] score =
+    "measured", else the bound's."""
+    return "sigma_measured_p95_um" if exp.design.score == "measured" else "sigma_p95_um"
+
+
 def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
     """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
     region is unmeasured), the area fraction of all regions seen by their region's min_cameras
     usable views, and over the area that can be measured at all (`can_measure`, `measurable`;
     default everywhere): that area's fraction, the fraction of it seen by min_cameras, sigma_max
     p95 per region over its measured samples there (None for a region with none), and the worst
-    of those (None only when no region has one)."""
+    of those (None only when no region has one). With [design] score = "measured" also
+    σ_measured (`vdo.physics.measured.measured_fields`, the [analysis] processing): p95 per region
+    over its served samples ("sigma_measured_p95_by_region_um") and of the worst scored region
+    ("sigma_measured_p95_um", None when a scored region is served nowhere), the figure the
+    target and the curve then read (`sigma_key`)."""
     judged = report.state_evaluation(state)
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     p95 = [judged.regions[r].sigma_max_um.p95 for r in scored]
@@ -161,7 +172,19 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
         by_region[name] = float(np.percentile(pred.sigma_max[m] * 1e6, 95)) if m.any() else None
     values = [by_region[r] for r in scored if by_region[r] is not None]
     area = float(smp.area[can].sum())
-    return {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
+    out = {}
+    if exp.design.score == "measured":
+        meas = measured.measured_fields(exp, list(state.cameras), smp, state.visibility,
+                                        state.illumination, state.geometry.speckle, pred,
+                                        stereo_min_angle)
+        by_meas = {}
+        for r, name in enumerate(smp.region_names):
+            m = (smp.region == r) & np.isfinite(meas.sigma_max)
+            by_meas[name] = float(np.percentile(meas.sigma_max[m] * 1e6, 95)) if m.any() else None
+        worst = [by_meas[r] for r in scored]
+        out = {"sigma_measured_p95_um": None if any(v is None for v in worst) else max(worst),
+               "sigma_measured_p95_by_region_um": by_meas}
+    return out | {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
             "coverage": float(seen),
             "measurable_fraction": area / float(smp.area.sum()),
             "coverage_of_measurable": float(smp.area[can & covered].sum() / area) if area > 0 else 0.0,
@@ -307,21 +330,23 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
-        ok = [c for c in curve if c["sigma_p95_um"] is not None and
-              c["sigma_p95_um"] <= d.target_sigma_um and c["coverage"] >= 1 - LIMIT_SLACK]
+        key = sigma_key(exp)
+        name = "sigma_measured" if key != "sigma_p95_um" else "sigma_max"
+        ok = [c for c in curve if c[key] is not None and
+              c[key] <= d.target_sigma_um and c["coverage"] >= 1 - LIMIT_SLACK]
         target = ok[0]["cameras"] if ok else None
-        sharp = [c for c in curve if c["sigma_p95_um"] is not None and c["sigma_p95_um"] <= d.target_sigma_um]
+        sharp = [c for c in curve if c[key] is not None and c[key] <= d.target_sigma_um]
         scored = ", ".join(repr(r) for r in (exp.optimize.regions or [r.name for r in exp.regions]))
         if target is None and sharp:     # sigma is met, the coverage of every region is not
-            issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is reached on region(s) "
-                          f"{scored} from {sharp[0]['cameras']} cameras ({sharp[0]['sigma_p95_um']:.4g} um), "
+            issues.append(f"target {name} p95 {d.target_sigma_um:g} um is reached on region(s) "
+                          f"{scored} from {sharp[0]['cameras']} cameras ({sharp[0][key]:.4g} um), "
                           f"but no count sees every region by its min_cameras (at most "
                           f"{100 * max(c['coverage'] for c in curve):.1f} % of the area; the region(s) "
                           "short are named below)")
             log.warning(issues[-1])
         elif target is None:
-            reached = "unmeasured" if best["sigma_p95_um"] is None else f"{best['sigma_p95_um']:.4g} um"
-            issues.append(f"target sigma_max p95 {d.target_sigma_um:g} um is not reached on "
+            reached = "unmeasured" if best[key] is None else f"{best[key]:.4g} um"
+            issues.append(f"target {name} p95 {d.target_sigma_um:g} um is not reached on "
                           f"region(s) {scored} with {len(best['chosen'])} cameras (best: {reached}; "
                           "missing: more cameras, longer lenses or closer mounts)")
             log.warning(issues[-1])
