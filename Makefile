@@ -13,10 +13,8 @@ demo: setup
 # XLA's LLVM backend at -O0: the suite compiles ~3,300 programs and runs most of them a few times;
 # on a cold cache this took the suite from 14 min 12 s to 12 min 27 s, warm it costs ~1 min
 # (benchmarks/README.md, "Test suite"); the numbers tested are the same at any optimisation level
-# and XLA's loop emitters instead of its fusion emitters: on a cold cache test_objective,
-# test_scripting and test_design compiled in 26 s instead of 111 s (one process, 804 programs)
 test: setup
-	XLA_FLAGS="$${XLA_FLAGS:-} --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false" OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -q -n auto --maxprocesses=4 --dist loadfile
+	XLA_FLAGS="$${XLA_FLAGS:-} --xla_backend_optimization_level=0" OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -q -n auto --maxprocesses=4 --dist loadfile
 
 bench: setup
 	.venv/bin/python benchmarks/visibility.py

@@ -473,14 +473,6 @@ def test_hand_written_pair_backward_matches_autodiff(energy_kind, lens, small_ta
     assert np.max(np.abs(hand - auto) / scale) < 1e-9
 
 
-# Another pair layout adds each sample's pair terms in another order (float64 rounding, 1e-16
-# relative per term), and the score and its gradient invert each sample's 3 x 3 information,
-# which amplifies it by the condition number; measured (value, gradient): 0 and 5e-12 with XLA's
-# fusion emitters (its default), 1.3e-11 and 3.9e-11 with its loop emitters (`make test`'s
-# --xla_cpu_use_fusion_emitters=false); a wrong block or chunk is off by O(1)
-LAYOUT_RTOL = 1e-10
-
-
 def test_block_and_chunk_sizes_do_not_change_value_or_gradient(small_table):
     """The pair list's layout (pairs per block, blocks per chunk of both passes) is a
     performance choice only: many small chunks give the one-chunk value and gradient."""
@@ -493,9 +485,9 @@ def test_block_and_chunk_sizes_do_not_change_value_or_gradient(small_table):
     assert one.camera.size // (one.block * one.chunk) == 1
     assert many.camera.size // (many.block * many.chunk) > 10
     (v1, g1), (v2, g2) = (ob.score_and_grad(cam, smp, vd, small_table, st) for vd in (one, many))
-    assert abs(float(v2) / float(v1) - 1.0) < LAYOUT_RTOL
+    assert abs(float(v2) / float(v1) - 1.0) < 1e-12
     flat = [np.concatenate([np.ravel(x) for x in jax.tree.leaves(g)]) for g in (g1, g2)]
-    assert np.max(np.abs(flat[1] - flat[0])) < LAYOUT_RTOL * np.max(np.abs(flat[0]))
+    assert np.max(np.abs(flat[1] - flat[0])) < 1e-10 * np.max(np.abs(flat[0]))  # rounding only
 
 
 @pytest.mark.parametrize("energy_kind", ["gauss", "table"])
