@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from vdo import objective as ob
+from vdo.information import blocks
 from vdo.model.camera import intrinsic_matrix, project, rotation, sensitivity
 from vdo.model.pose import look_at_angles
 from vdo.model.speckle import generate_pattern, gradient_energy_table, normalise
@@ -439,25 +440,25 @@ def test_weights_fall_smoothly_to_zero_at_the_incidence_limit():
 # --------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("energy_kind, lens", [("gauss", None), ("table", None), ("gauss", "distorted")])
 def test_hand_written_pair_backward_matches_autodiff(energy_kind, lens, small_table):
-    """`_block_vjp` against jax.vjp of the same per-pair forward, for random cotangents (with
-    lens distortion, its coefficients are constants: zero cotangent from both)."""
+    """`vdo.information.blocks.block_vjp` against jax.vjp of the same per-pair forward, for random
+    cotangents (with lens distortion, its coefficients are constants: zero cotangent from both)."""
     cam, smp, vd = two_plane_scene(300, distortion=None if lens is None else LENSES)
     energy = GAUSS if energy_kind == "gauss" else small_table
     st = ob.Settings(image_margin_px=40.0, incidence_ramp=math.radians(20.0))
-    ctab, sq, occ, kc, one = ob._pair_inputs(cam, vd, st, jnp.float64)
+    ctab, sq, occ, kc, one = blocks.pair_inputs(cam, vd, st, jnp.float64)
     rng = np.random.default_rng(3)
     c_ent = tuple(jnp.asarray(rng.normal(size=occ.shape)) for _ in range(6))
     c_w = jnp.asarray(rng.normal(size=occ.shape))
 
     def forward(ctab):
-        ent, w, _ = ob._block_forward(ob._block_columns(ctab, sq[0].dtype), sq, occ, kc, one,
-                                      energy, st)
+        ent, w, _ = blocks.block_forward(blocks.block_columns(ctab, sq[0].dtype), sq, occ, kc, one,
+                                         energy, st)
         return ent, w
 
     (ent, w), vjp = jax.vjp(forward, ctab)
     assert np.sum((np.asarray(w) > 0) & (np.asarray(w) < 1)) >= 5  # soft weights take part
     auto = np.asarray(vjp((c_ent, c_w))[0])
-    hand = np.asarray(ob._block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st))
+    hand = np.asarray(blocks.block_vjp(ctab, sq, occ, kc, one, c_ent, c_w, energy, st))
     # R is a rotation: what counts of dL/dR is the skew part of dL/dR R^T (dR = W R, W skew)
     Rb = np.asarray(ctab[:, :9]).reshape(-1, 3, 3)
 

@@ -128,7 +128,7 @@ def distortion_curvature(x, y, distortion):
     dd/dy) (the Jacobian is symmetric, so these are the third derivatives of one potential):
     da/dx = 6 x L' + 4 x^3 L'' + 6 p2, da/dy = 2 y L' + 4 x^2 y L'' + 2 p1,
     db/dy = 2 x L' + 4 x y^2 L'' + 2 p2, dd/dy = 6 y L' + 4 y^3 L'' + 6 p1, with L' as in
-    `distortion_jacobian` and L'' = 2 k2 + 6 k3 r^2. For the reverse pass of `vdo.objective`."""
+    `distortion_jacobian` and L'' = 2 k2 + 6 k3 r^2. For the reverse pass of `vdo.information.blocks`."""
     k1, k2, p1, p2, k3 = _coefficients(distortion)
     r2 = x * x + y * y
     slope = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3)
