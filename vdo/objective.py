@@ -107,6 +107,7 @@ from vdo.information.tensor import GaussianFieldEnergy, TableEnergy, gradient_te
 from vdo.information.views import PAIR_HEADROOM, ViewData, bucket
 
 __all__ = [
+    "smooth_sigma_max",
     "CameraParams",
     "Samples",
     "ViewData",
@@ -141,7 +142,7 @@ def _sym_full(e):
                       jnp.stack([c02, c12, c22], -1)], -2)
 
 
-def _smooth_sigma_max(ent, st: Settings, keep=lambda x: x):
+def smooth_sigma_max(ent, st: Settings, keep=lambda x: x):
     """sqrt of the trace p-norm (tr Sigma^p)^(1/p) of Sigma_reg = (C + I/prior^2)^-1 (m), from the
     invariants of C alone (no inverse, no eigen-decomposition): with e1, e2, e3 the elementary
     symmetric functions of C's eigenvalues nu, Sigma's eigenvalues mu = 1/nu have
@@ -249,7 +250,7 @@ def _score(cameras, samples, views, energy, settings):
     ones = jax.lax.stop_gradient(samples.area / samples.area)  # runtime 1.0 per sample
     keep = lambda x: materialise(x, ones)
     *ent, cov = keep(sums)
-    sigma = _smooth_sigma_max(ent, settings, keep) / settings.sigma_unit
+    sigma = smooth_sigma_max(ent, settings, keep) / settings.sigma_unit
     omega = samples.area * samples.importance[samples.region]
     omega = omega / omega.sum()
     q = settings.score_power
@@ -321,7 +322,7 @@ def fields(cameras: CameraParams, samples: Samples, views: ViewData, energy,
     sigma_max = jnp.where(measured, jnp.sqrt(1.0 / (lam_safe[:, 0] * scale)), inf)
     sigma_xyz = jnp.where(measured[:, None], jnp.sqrt(var_axis), inf)
     return Fields(sensitivity=sens, sigma_max=sigma_max, sigma_xyz=sigma_xyz,
-                  sigma_max_smooth=_smooth_sigma_max(ent, settings),
+                  sigma_max_smooth=smooth_sigma_max(ent, settings),
                   coverage=per_sample(w, views.sample, n), measured=measured,
                   weights=_per_pair_dense(w, views, c, n), information=C)
 
@@ -367,6 +368,6 @@ def sample_fields(cameras: CameraParams, samples: Samples, views: ViewData, ener
     tc = jnp.trace(reg, axis1=-2, axis2=-1)   # scaled to trace 1 before the inverse
     sigma_xyz = jnp.sqrt(jnp.diagonal(jnp.linalg.inv(reg / tc[:, None, None]), axis1=-2, axis2=-1)
                          / tc[:, None])
-    return SampleFields(information=C, sigma_xyz=sigma_xyz, sigma_max=_smooth_sigma_max(ent, settings),
+    return SampleFields(information=C, sigma_xyz=sigma_xyz, sigma_max=smooth_sigma_max(ent, settings),
                         coverage=cov, area=samples.area, region=samples.region,
                         importance=samples.importance, min_cameras=samples.min_cameras)

@@ -93,7 +93,7 @@ class Scorer:
         self.kappa = coverage_weight(st)
         target = exp.design.target_sigma_um
         self.log_target = None if target is None else math.log(target * 1e-6 / st.sigma_unit)
-        self._sigma = jax.jit(lambda e: objective._smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
+        self._sigma = jax.jit(lambda e: objective.smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
                               / st.sigma_unit)
         self._omega, self._area, self._minimum = (jnp.asarray(x) for x in (self.omega, self.area,
                                                                            self.minimum))
@@ -122,7 +122,7 @@ class Scorer:
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
         traceable JAX function, convex in both (`vdo.design.bound`); `_score` on the host."""
         st = self.settings
-        sigma = objective._smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
+        sigma = objective.smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
         short = jnp.maximum(self._minimum - cover, 0.0)
         return jnp.exp(jnp.sum(self._omega * self.cost(jnp.log(sigma), jnp))
                        + self.kappa * jnp.sum(self._area * views_short(short, jnp)))
@@ -137,7 +137,7 @@ class Scorer:
         entry's information to the base at its sample n (c = `cost`), and h'_n - h_n (class
         docstring)."""
         st = self.settings
-        sig = objective._smooth_sigma_max(tuple(base_info[index, k] + info[:, k] for k in range(6)),
+        sig = objective.smooth_sigma_max(tuple(base_info[index, k] + info[:, k] for k in range(6)),
                                           st) / st.sigma_unit
         short = jnp.maximum(self._minimum[index] - (base_cover[index] + weight), 0.0)
         return self._omega[index] * (self.cost(jnp.log(sig), jnp) - base_cost[index]), \
