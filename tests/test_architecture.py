@@ -2,7 +2,8 @@
 
 A module may import a module of its own package, or of a package (or top-level module) on a
 lower floor; never one above. Inner (function-level) imports count as much as top-level ones.
-No private name (leading underscore) is imported from another module. docs/architecture.md
+No private name (leading underscore) is imported from another module, nor read through one
+(`module._name`). docs/architecture.md
 draws the same floors.
 """
 from __future__ import annotations
@@ -96,6 +97,29 @@ def test_imports_run_down(path, name, package):
             private = [n for n in names if n.startswith("_") and n != "__version__"]
             if private:
                 wrong.append(f"{path.name}:{line} imports private {private} from {module}")
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("path,name,package", list(_modules()), ids=lambda x: str(x))
+def test_no_private_name_is_read_through_another_module(path, name, package):
+    """`module._name` on an imported vdo module is the private import by another door."""
+    tree = ast.parse(path.read_text())
+    aliases = {}                  # local name -> the vdo module it is bound to
+    for _, module, names in _imports(path, package):
+        for n in names:
+            folder = ROOT.parent / module.replace(".", "/")
+            if (folder / f"{n}.py").is_file() or (folder / n / "__init__.py").is_file():
+                aliases[n] = f"{module}.{n}"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.startswith("vdo.") and a.asname:
+                    aliases[a.asname] = a.name
+    wrong = [f"{path.name}:{node.lineno} reads {aliases[node.value.id]}.{node.attr}"
+             for node in ast.walk(tree)
+             if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name)
+             and node.value.id in aliases and aliases[node.value.id] != name
+             and node.attr.startswith("_") and not node.attr.startswith("__")]
     assert not wrong, "\n".join(wrong)
 
 
