@@ -201,6 +201,8 @@ def test_the_curve_and_the_target_read_sigma_measured(tmp_path, caplog, monkeypa
     assert result.target_count is None
     assert any(f"target sigma_measured p95 {target:g} um is not reached" in r.getMessage()
                for r in caplog.records)
+    # trimesh's "only got n/m samples" (its even sampling of the clearance points) stays off
+    assert not [r.getMessage() for r in caplog.records if r.name.startswith("trimesh")]
     rows = list(csv.DictReader(open(tmp_path / "design" / "pareto.csv")))
     assert [float(r["sigma_measured_p95_um"]) for r in rows] == \
         pytest.approx([c["sigma_measured_p95_um"] for c in result.curve], rel=1e-4)

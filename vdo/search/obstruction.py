@@ -5,6 +5,8 @@ against the obstacles alone (`obstacle_visibility`, the obscuration check)."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
@@ -14,21 +16,34 @@ from vdo.scene import build_scene, camera_body
 from vdo.state import bodies
 
 
+def _spread(tm, count: int) -> np.ndarray:
+    """Up to `count` points spread evenly over the surface of `tm` (trimesh's rejection sampling,
+    seed 0). It returns fewer than asked where it rejects points too close to others, and logs a
+    warning for that; fewer is what the callers want (points about evenly spaced), so the
+    warning is kept off the user's console."""
+    sampler = logging.getLogger("trimesh.sample")
+    level = sampler.level
+    sampler.setLevel(logging.ERROR)
+    try:
+        return trimesh.sample.sample_surface_even(tm, count, seed=0)[0]
+    finally:
+        sampler.setLevel(level)
+
+
 def surface_points(meshes, spacing: float) -> np.ndarray:
     """Points on every mesh surface about `spacing` apart (plus the vertices), for clearance."""
     pts = []
     for m in meshes:
         tm = m.trimesh
         count = int(min(max(tm.area / spacing**2, 100), 200_000))
-        sampled, _ = trimesh.sample.sample_surface_even(tm, count, seed=0)
-        pts += [sampled, m.vertices]
+        pts += [_spread(tm, count), m.vertices]
     return np.vstack(pts)
 
 
 def clearances(cameras, tree) -> np.ndarray:
     """Distance (m) from each camera body to the nearest mesh point and to the other bodies."""
     bodies = [camera_body(c) for c in cameras]
-    dense = [trimesh.sample.sample_surface_even(b.trimesh, 400, seed=0)[0] for b in bodies]
+    dense = [_spread(b.trimesh, 400) for b in bodies]
     out = np.array([tree.query(d)[0].min() for d in dense])
     for i, di in enumerate(dense):
         for j, dj in enumerate(dense):
