@@ -467,3 +467,45 @@ def test_the_solver_step_compiles_once_for_the_first_and_the_later_steps():
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
     assert len(compiles) == 1
+
+
+COMPILE_LIMIT_S = 30.0   # the run's time limit in the test below
+COMPILE_SLACK_S = 5.0    # past it: one poll of the stop request and the run folder's writing
+
+
+def test_time_limit_holds_while_the_solver_compiles(tmp_path, monkeypatch):
+    """The solver's first call compiles its programs, minutes for a large layout on a loaded
+    machine (the scale benchmark: 2 x 2.5 min, past a 300 s limit). Simulated here by a first
+    call that does not return: the run still ends at its time limit, with the starting layout
+    as its result and the round's reason saying what was running."""
+    import threading
+    import time
+
+    from vdo.search.problem import Run
+
+    released = threading.Event()
+    real = Run.programs
+
+    def programs(self, problem):
+        init, step = real(self, problem)
+
+        def stuck(*args):
+            released.wait(120)
+            raise RuntimeError("released at the end of the test")
+
+        return init, stuck
+
+    monkeypatch.setattr(Run, "programs", programs)
+    cams = aimed_camera("a", 0.48) + aimed_camera("b", 0.52)
+    exp = experiment(tmp_path, cams, ["a", "b"])
+    started = time.perf_counter()
+    try:
+        result = optimize(exp, tmp_path / "run", time_limit=COMPILE_LIMIT_S)
+    finally:
+        released.set()
+    assert time.perf_counter() - started < COMPILE_LIMIT_S + COMPILE_SLACK_S
+    assert result.status == "time_limit"
+    assert result.score_after_um == result.score_before_um
+    written = json.loads((tmp_path / "run" / "optimizer.json").read_text())
+    assert any("while the solver's programs compiled" in r["reason"] for r in written["rounds"]), \
+        written["rounds"]

@@ -1,5 +1,6 @@
 """Anytime search: a `Stop` request (time limit, SIGINT/SIGTERM via `stop_on_signals`) checked
-between solver steps and rounds, and the one progress line (`Progress`) over the planned steps."""
+between solver steps and rounds and while a program compiles (`until_stopped`), and the one
+progress line (`Progress`) over the planned steps."""
 
 from __future__ import annotations
 
@@ -50,6 +51,35 @@ class Stop:
     def left(self) -> float:
         """Seconds to the time limit (inf without one)."""
         return max(self.deadline - time.perf_counter(), 0.0)
+
+
+POLL_S = 0.1     # how often a wait (`until_stopped`) looks at the stop request (s)
+
+
+def until_stopped(stop: Stop, fn):
+    """fn() run in a worker thread and waited for while `stop` allows: (True, its value), or
+    (False, None) once the stop request comes first (the time limit, Ctrl-C or SIGTERM: the main
+    thread keeps receiving signals while it waits, every POLL_S). For what cannot be interrupted
+    from inside, a program's first call that compiles it: XLA's compilation is not cancellable,
+    so the thread is left to finish on its own (a daemon: it does not hold the process at exit)
+    and its result is dropped. An exception in fn is raised here."""
+    box: dict = {}
+
+    def work():
+        try:
+            box["value"] = fn()
+        except BaseException as exc:      # handed to the waiting thread
+            box["error"] = exc
+
+    worker = threading.Thread(target=work, name="vdo-compile", daemon=True)
+    worker.start()
+    while worker.is_alive():
+        worker.join(timeout=min(POLL_S, max(stop.left, 1e-3)))
+        if worker.is_alive() and stop():
+            return False, None
+    if "error" in box:
+        raise box["error"]
+    return True, box["value"]
 
 
 @contextlib.contextmanager

@@ -17,6 +17,7 @@ import optimistix as optx
 from vdo.model.pose import aim_point
 from vdo.search.status import Status
 from vdo.search.parameterisation import Parameterization, perturbation
+from vdo.search.anytime import until_stopped
 from vdo.search.bfgs import with_inverse_hessian
 from vdo.search.problem import LOCAL_MOVE, Problem, Result, State
 
@@ -276,7 +277,13 @@ def _round(problem: Problem, theta, views, weights, max_steps: int, where: str,
         return RoundOutcome(np.asarray(theta), run.stop.reason, "stopped before the round", None, ())
     # the first step of a solve accepts its start: there, its gradient is dJ/dy at norm 1
     init, step = run.programs(problem)
-    _, probe = step(y, args(1.0), init(y, args(1.0)))
+    # the first call compiles the programs (minutes for a large layout on a loaded machine): it
+    # runs aside, so that the time limit and Ctrl-C hold while XLA compiles
+    done, first = until_stopped(run.stop, lambda: step(y, args(1.0), init(y, args(1.0))))
+    if not done:
+        return RoundOutcome(np.asarray(theta), Status(run.stop.reason),
+                            "stop request while the solver's programs compiled", None, ())
+    _, probe = first
     grad = np.asarray(probe.f_info.grad)
     if not np.all(np.isfinite(grad)):
         return RoundOutcome(np.asarray(theta), "failed", "non-finite gradient at the round's start",
