@@ -123,13 +123,16 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
-    angles = constraints.angle_checks(exp, list(cameras), vis, samples)
-    design_checks = checks.design_checks(exp, list(cameras), samples, vis.visible,
+    angles = constraints.angle_checks(exp.regions, exp.optimize, exp.stereo_pairs, list(cameras),
+                                      vis, samples)
+    design_checks = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor,
+                                         exp.analysis, list(cameras), samples, vis.visible,
                                          illumination.irradiance, state.geometry.speckle.pattern)
     judged = None
     if checked is not None:
         judged = {"violations": sum(not c["met"] for c in checked), "checks": checked}
-    hot = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
+    hot = glare.hot_spots(exp.meshes, exp.regions, exp.lights, exp.speckle, exp.sensor,
+                          list(cameras), samples, vis.visible, illumination)
     for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)

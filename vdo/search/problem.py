@@ -120,7 +120,7 @@ class Problem:
         self.shared = (constraints.sharing(self.start.vis, self.samples, opt.assign_fraction)
                        if reference is None else reference.shared)
         self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
-            exp, self.cams0, self.assigned, self.shared)
+            exp.regions, opt, exp.stereo_pairs, self.cams0, self.assigned, self.shared)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
