@@ -343,8 +343,10 @@ class CameraMove:
 def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.physics.predict` (usable
     views, clipped patches) on the round's ray cast and lighting."""
-    pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
-                   problem.speckle, overlap=problem.geometry.overlap)
+    exp = problem.exp
+    pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(state.cameras),
+                   problem.samples, state.vis, state.illumination, problem.speckle,
+                   overlap=problem.geometry.overlap)
     return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 

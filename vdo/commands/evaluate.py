@@ -136,7 +136,9 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)
-    meas = measured.measured_fields(exp, list(cameras), samples, vis, illumination,
+    meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
+                                    exp.sensor, exp.analysis, exp.stereo_pairs, exp.path,
+                                    list(cameras), samples, vis, illumination,
                                     state.geometry.speckle, pred, constraints.stereo_min_angle)
     calibration_summary = None
     if calibration is not None:
@@ -145,7 +147,8 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
         report.state_evaluation(state),
         axis_angles=angles, design_checks=design_checks,
         cameras_seeing_nothing=[name for i, name in enumerate(vis.camera_names) if not pred.usable[i].any()],
-        constraints=judged, glare=hot, measured=measured.summary(exp, meas, samples, pred, eps),
+        constraints=judged, glare=hot,
+        measured=measured.summary(exp.analysis, meas, samples, pred, eps),
         load_path=None if over_path is None else loadpath.summary(over_path),
         calibration=calibration_summary)
     with run_folder(out, overwrite) as tmp:

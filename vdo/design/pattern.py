@@ -154,8 +154,8 @@ def judge(exp: Experiment, state, dots_mm, dpi: float) -> tuple[Judged, np.ndarr
     spec = replace(exp.speckle, dot_diameter=min(dots_mm) * 1e-3, texel=texel * 1e-3, image=None)
     e = replace(exp, speckle=spec)
     sm = model(f, texel, dots_mm)
-    pred = predict(e, list(state.cameras), state.samples, state.visibility, state.illumination, sm,
-                   overlap=state.geometry.overlap)
+    pred = predict(e.regions, e.evaluation, e.speckle, e.sensor, list(state.cameras), state.samples,
+                   state.visibility, state.illumination, sm, overlap=state.geometry.overlap)
     summary = report.summary(e, state.samples, state.visibility, pred)
     rows = design_checks(e.camera_specs, e.evaluation, e.speckle, e.sensor, e.analysis,
                          list(state.cameras), state.samples, state.visibility.visible,
