@@ -3,13 +3,14 @@
 A module may import a module of its own package, or of a package (or top-level module) on a
 lower floor; never one above. Inner (function-level) imports count as much as top-level ones.
 No private name (leading underscore) is imported from another module, nor read through one
-(`module._name`). docs/architecture.md
-draws the same floors.
+(`module._name`). Below `vdo.state` (the physics and the constraints) functions take the tables
+they read, not the whole `Experiment`. docs/architecture.md draws the same floors.
 """
 from __future__ import annotations
 
 import ast
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -184,3 +185,42 @@ def test_only_commands_write_run_folders():
                     module == "vdo.core" and "runfolder" in names:
                 wrong.append(f"{path.relative_to(ROOT.parent)}:{line} imports run_folder")
     assert not wrong, "write run folders in vdo/commands/ only:\n" + "\n".join(wrong)
+
+
+def _takes_the_experiment(node: ast.AST) -> list[str]:
+    """The parameters of a function (def or lambda) that hold the whole experiment: named `exp`
+    or annotated `Experiment` (a name, an attribute or a string)."""
+    a = node.args
+    params = a.posonlyargs + a.args + a.kwonlyargs + [p for p in (a.vararg, a.kwarg) if p]
+    return [p.arg for p in params if p.arg == "exp" or p.annotation is not None
+            and re.search(r"\bExperiment\b", ast.unparse(p.annotation))]
+
+
+def test_the_physics_takes_tables_not_the_experiment():
+    """Below `vdo.state` (vdo/physics/ and vdo/constraints.py) a function takes the tables it
+    reads (`evaluation`, `analysis`, `regions`, ...), not the whole `Experiment`: no parameter
+    named `exp` nor annotated `Experiment`. The experiment stops at the door."""
+    wrong = []
+    for path, name, _ in _modules():
+        if _unit(name) not in ("physics", "constraints"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                for arg in _takes_the_experiment(node):
+                    function = getattr(node, "name", "<lambda>")
+                    wrong.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} {function}({arg})")
+    assert not wrong, "take the tables, not the experiment:\n" + "\n".join(wrong)
+
+
+def test_the_experiment_rule_sees_a_parameter():
+    """The rule above finds `exp` and an `Experiment` annotation wherever the parameter stands."""
+    code = ("def a(exp): pass\n"
+            "def b(x, *, e: Experiment): pass\n"
+            "def c(x, e: 'vdo.config.experiment.Experiment' = None): pass\n"
+            "f = lambda exp: exp\n"
+            "def d(evaluation, exps, experiment_path): pass\n")
+    found = [(getattr(n, "name", "<lambda>"), _takes_the_experiment(n))
+             for n in ast.walk(ast.parse(code))
+             if isinstance(n, (ast.FunctionDef, ast.Lambda))]
+    assert sorted(found) == [("<lambda>", ["exp"]), ("a", ["exp"]), ("b", ["e"]), ("c", ["e"]),
+                             ("d", [])]

@@ -278,7 +278,7 @@ def test_cameras_around_a_cylinder_share_it_with_their_neighbours_only(tmp_path)
     seen = np.asarray(vis.visible, dtype=float) * smp.area
     fraction = (seen[0] @ np.asarray(vis.visible[1], dtype=float)) / seen[0].sum()
     assert fraction == pytest.approx((2 * alpha - 60) / (2 * alpha), abs=0.05)
-    pairs, low, _ = constraints.angle_limits(exp, list(state.cameras),
+    pairs, low, _ = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, list(state.cameras),
                                              constraints.assignments(vis, smp, 0.5), shared)
     np.testing.assert_array_equal(pairs, [[0, 1]])
     assert low[0] == pytest.approx(constraints.stereo_min_angle(0.016))

@@ -351,14 +351,15 @@ def test_fixed_pair_list_sizes_leave_the_fields_unchanged(beam):
     from vdo.physics.predict import samples_for_objective, settings, view_data
     state = vdo.layout_state(beam)
     exp, samples = beam.experiment, beam.samples
-    smp = samples_for_objective(exp, samples)
+    smp = samples_for_objective(exp.regions, samples)
     cams = objective.CameraParams.from_cameras(state.cameras)
     sizes: dict = {}
-    fixed = view_data(exp, smp, state.visibility, state.illumination, beam.speckle, sizes=sizes)
-    plain = view_data(exp, smp, state.visibility, state.illumination, beam.speckle)
+    fixed = view_data(exp.speckle, exp.sensor, smp, state.visibility, state.illumination, beam.speckle,
+                      sizes=sizes)
+    plain = view_data(exp.speckle, exp.sensor, smp, state.visibility, state.illumination, beam.speckle)
     assert sizes and fixed.n_blocks >= plain.n_blocks - plain.chunk
-    a = objective.fields(cams, smp, fixed, beam.speckle.table, settings(exp))
-    b = objective.fields(cams, smp, plain, beam.speckle.table, settings(exp))
+    a = objective.fields(cams, smp, fixed, beam.speckle.table, settings(exp.evaluation))
+    b = objective.fields(cams, smp, plain, beam.speckle.table, settings(exp.evaluation))
     np.testing.assert_allclose(np.asarray(a.information), np.asarray(b.information), rtol=1e-12, atol=0)
     empty = objective.ViewData.from_dense(np.zeros((len(state.cameras), len(samples))), 1.0, 1.0, smp,
                                           sizes=sizes)

@@ -28,6 +28,7 @@ starting layout: what the person who placed it by hand meant it to watch.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 import numpy as np
@@ -38,6 +39,10 @@ from vdo.objective import smoothstep
 from vdo.scene import SurfaceSamples
 from vdo.physics.visibility import Visibility
 from vdo.core.tolerances import CHECK_MET_REL, IN_FRONT_M, LIMIT_SLACK, SMOOTH_SQRT, TINY
+
+if TYPE_CHECKING:
+    from vdo.config.procedure import OptimizeSpec, StereoPairSpec
+    from vdo.config.rig import RegionSpec
 
 
 def stereo_min_angle(focal_length: float) -> float:
@@ -109,7 +114,8 @@ def axis_angle_penalty(axes, pairs, min_angles, max_angles=None):
     return total + jnp.sum(over ** 2)
 
 
-def angle_limits(exp, cameras, assigned: np.ndarray,
+def angle_limits(regions: tuple[RegionSpec, ...], optimize: OptimizeSpec,
+                 stereo_pairs: tuple[StereoPairSpec, ...], cameras, assigned: np.ndarray,
                  shared: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(pairs (K, 2), min_angles (K,), max_angles (K,)) in rad: the pairs of cameras that share a
     region (`shared` (C, C, R), `sharing`; without it, the pairs assigned a common region:
@@ -118,14 +124,15 @@ def angle_limits(exp, cameras, assigned: np.ndarray,
     max_axis_angle_deg and the max_axis_angle_deg of the regions they share (+inf when none is
     set); then the declared [[stereo_pair]]s, added when not shared and overriding the limits
     when they are (min: the pair's, or the rule of thumb; max: the pair's, or that minimum +
-    STEREO_SPAN_DEG)."""
+    STEREO_SPAN_DEG). The tables: [[region]], [optimize] and the declared `stereo_pairs`
+    ([[stereo_pair]])."""
     from vdo.config.procedure import STEREO_SPAN_DEG
 
-    opt = exp.optimize
+    opt = optimize
     index = {c.name: i for i, c in enumerate(cameras)}
     rule = lambda i, j: stereo_min_angle(min(cameras[i].focal_length, cameras[j].focal_length))
     region_max = np.array([math.inf if r.max_axis_angle is None else r.max_axis_angle
-                           for r in exp.regions])
+                           for r in regions])
     top = math.inf if opt.max_axis_angle is None else opt.max_axis_angle
     limits = {}
     if shared is None:
@@ -134,7 +141,7 @@ def angle_limits(exp, cameras, assigned: np.ndarray,
         common = shared[i, j]
         limits[(int(i), int(j))] = (opt.min_axis_angle if opt.min_axis_angle is not None else rule(i, j),
                                     min(top, float(region_max[common].min(initial=math.inf))))
-    for pair in exp.stereo_pairs:
+    for pair in stereo_pairs:
         i, j = sorted(index[n] for n in pair.cameras)
         low = pair.min_angle if pair.min_angle is not None else rule(i, j)
         high = pair.max_angle if pair.max_angle is not None else low + math.radians(STEREO_SPAN_DEG)
@@ -144,13 +151,17 @@ def angle_limits(exp, cameras, assigned: np.ndarray,
             np.array([limits[k][1] for k in keys]))
 
 
-def angle_checks(exp, cameras, vis: Visibility, samples: SurfaceSamples) -> list[dict]:
+def angle_checks(regions: tuple[RegionSpec, ...], optimize: OptimizeSpec,
+                 stereo_pairs: tuple[StereoPairSpec, ...], cameras, vis: Visibility,
+                 samples: SurfaceSamples) -> list[dict]:
     """The axis-angle checks of a layout as `vdo evaluate` reports them: the pairs of cameras
     that share a region (`sharing`, [optimize] assign_fraction) and the declared
     stereo pairs, each with an "axis_angle" entry (the minimum) and, where a maximum applies, an
-    "axis_angle_max" entry (`check`'s entries: value, limit, met, excess)."""
-    fraction = exp.optimize.assign_fraction
-    pairs, low, high = angle_limits(exp, cameras, assignments(vis, samples, fraction),
+    "axis_angle_max" entry (`check`'s entries: value, limit, met, excess). The tables as
+    `angle_limits` takes them."""
+    fraction = optimize.assign_fraction
+    pairs, low, high = angle_limits(regions, optimize, stereo_pairs, cameras,
+                                    assignments(vis, samples, fraction),
                                     sharing(vis, samples, fraction))
     out = []
     for (i, j), lo, hi, angle in zip(pairs, low, high, axis_angles(cameras, pairs)):

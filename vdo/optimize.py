@@ -100,7 +100,8 @@ def layout_checks(state: LayoutState) -> list[dict]:
     opt, cameras = exp.optimize, list(state.cameras)
     assigned = constraints.assignments(state.visibility, samples, opt.assign_fraction)
     pairs, min_angles, max_angles = constraints.angle_limits(
-        exp, cameras, assigned, constraints.sharing(state.visibility, samples, opt.assign_fraction))
+        exp.regions, opt, exp.stereo_pairs, cameras, assigned,
+        constraints.sharing(state.visibility, samples, opt.assign_fraction))
     tree = cKDTree(surface_points(list(geometry.meshes), spacing=CLEARANCE_SPACING))
     lit_without = unobstructed_lighting(geometry).lit if exp.lights else None
     specs = {s.name: s for s in exp.camera_specs}
@@ -342,8 +343,10 @@ class CameraMove:
 def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.physics.predict` (usable
     views, clipped patches) on the round's ray cast and lighting."""
-    pred = predict(problem.exp, list(state.cameras), problem.samples, state.vis, state.illumination,
-                   problem.speckle, overlap=problem.geometry.overlap)
+    exp = problem.exp
+    pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(state.cameras),
+                   problem.samples, state.vis, state.illumination, problem.speckle,
+                   overlap=problem.geometry.overlap)
     return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 

@@ -284,7 +284,7 @@ def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     by_name = {m.name: m for m in meshes}
     rasters = [surface_raster(by_name[r.mesh], rf, spacing) if patch <= FINE_PATCH_CELLS * spacing else None
                for r, rf in zip(exp.regions, faces)]
-    return Geometry(exp, tuple(meshes), samples, speckle_model(exp), faces,
+    return Geometry(exp, tuple(meshes), samples, speckle_model(exp.speckle), faces,
                     patch_overlap(samples, patch, rasters))
 
 
@@ -338,8 +338,9 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
         density = strain.pixel_density(list(cameras), vis.visible, samples.points, samples.tangent_u,
                                        samples.tangent_v)
         strain.check_regions(exp.analysis, samples, density, exp.path)
-    prediction = predict(exp, list(cameras), samples, vis, illumination, geometry.speckle,
-                         clip_patch=clip_patch, overlap=geometry.overlap, sizes=geometry.sizes)
+    prediction = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(cameras), samples,
+                         vis, illumination, geometry.speckle, clip_patch=clip_patch,
+                         overlap=geometry.overlap, sizes=geometry.sizes)
     fields = None if density is None else strain.analysis_fields(
         exp.analysis, density, samples, prediction.information, prediction.measured,
         exp.evaluation.patch_size ** 2)

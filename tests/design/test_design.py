@@ -66,12 +66,12 @@ def _pair_score(exp, geometry, cams):
     exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
     Huber function of half a view."""
     scene = build_scene(list(geometry.meshes))
-    smp = samples_for_objective(exp, geometry.samples)
+    smp = samples_for_objective(exp.regions, geometry.samples)
     vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
                              progress=False)
     light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
-    views = view_data(exp, smp, vis, light, geometry.speckle)
-    st = replace(settings(exp), pair_dtype="float64")
+    views = view_data(exp.speckle, exp.sensor, smp, vis, light, geometry.speckle)
+    st = replace(settings(exp.evaluation), pair_dtype="float64")
     f = objective.sample_fields(objective.CameraParams.from_cameras(cams), smp, views,
                                 geometry.speckle.table, st)
     mu = 1.0 / np.linalg.eigvalsh(np.asarray(f.information) + np.eye(3) / st.prior_sigma ** 2)
@@ -439,13 +439,13 @@ def test_stored_pairs_equal_the_dense_information_and_weights(judged):
     cams = list(cand.cameras)
     vis = compute_visibility(build_scene(list(geometry.meshes)), cams, geometry.samples,
                              exp.evaluation.incidence_limit, progress=False)
-    smp = samples_for_objective(exp, geometry.samples)
+    smp = samples_for_objective(exp.regions, geometry.samples)
     light = illuminate(build_scene(list(geometry.meshes)), exp.lights, geometry.samples,
                        exp.render.ambient_radiance)
-    st = replace(settings(exp), pair_dtype="float64")
+    st = replace(settings(exp.evaluation), pair_dtype="float64")
     cp = objective.CameraParams.from_cameras(cams)
-    C = np.asarray(objective.camera_information(cp, smp, view_data(exp, smp, vis, light, geometry.speckle),
-                                                geometry.speckle.table, st))
+    views = view_data(exp.speckle, exp.sensor, smp, vis, light, geometry.speckle)
+    C = np.asarray(objective.camera_information(cp, smp, views, geometry.speckle.table, st))
     dense = C[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
     w = np.asarray(objective.geometry(cp, smp, st).weight) * vis.unoccluded
     np.testing.assert_allclose(cand.info, dense, rtol=SUM_ORDER_RTOL, atol=SUM_ORDER_RTOL * np.abs(dense).max())

@@ -86,8 +86,9 @@ def test_each_candidates_information_is_the_bounds_over_its_own_kappa(both):
         vis = compute_visibility(j.scene, [cam], samples, exp.evaluation.incidence_limit,
                                  progress=False)
         alone = exp.with_cameras(camera_specs(exp, bound, [k]))          # as the design writes it
-        scale = measured.noise_inflation(alone, [cam], samples, vis.visible, j.light,
-                                         geometry.speckle, lattice=KAPPA_LATTICE)[0]
+        scale = measured.noise_inflation(alone.camera_specs, alone.evaluation, alone.speckle,
+                                         alone.sensor, alone.analysis, [cam], samples, vis.visible,
+                                         j.light, geometry.speckle, lattice=KAPPA_LATTICE)[0]
         s = slice(bound.indptr[k], bound.indptr[k + 1])
         kappa = scale[bound.index[s]] ** 2
         want = bound.entry_info[s] / kappa[:, None]

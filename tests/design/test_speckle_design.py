@@ -103,10 +103,10 @@ def test_the_written_pattern_is_used_by_an_experiment(designed):
     assert exp.speckle.image is not None
     exp = replace(exp, evaluation=replace(exp.evaluation, sample_spacing=exp.design.sample_spacing))
     geometry = prepare(exp)
-    model = speckle_model(exp)
+    model = speckle_model(exp.speckle)
     state = layout_state(geometry, predict_fields=False)
-    pred = predict(exp, list(state.cameras), state.samples, state.visibility, state.illumination,
-                   model, overlap=geometry.overlap)
+    pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(state.cameras), state.samples,
+                   state.visibility, state.illumination, model, overlap=geometry.overlap)
     p95 = report.summary(exp, state.samples, state.visibility, pred)["regions"]["top"]["sigma_max_um"]["p95"]
     # the PNG holds 8-bit grays of the float tile: sigma within a fraction of a percent
     assert p95 == pytest.approx(data["regions"]["top"]["sigma_p95_um"], rel=5e-3)

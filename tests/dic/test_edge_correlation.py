@@ -77,7 +77,8 @@ def _predicted_sigma(setup, clip):
     vis = compute_visibility(blockers, setup.cameras, samples, exp.evaluation.incidence_limit,
                              progress=False)
     illum = illuminate(blockers, (), samples, exp.render.ambient_radiance)
-    pred = predict(exp, setup.cameras, samples, vis, illum, V.speckle_model_of(setup), clip_patch=clip)
+    pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, setup.cameras, samples, vis, illum,
+                   V.speckle_model_of(setup), clip_patch=clip)
     return pred.sigma_xyz[k], pred.patch_fraction[k]
 
 

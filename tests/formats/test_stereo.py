@@ -74,26 +74,29 @@ def test_declared_pair_limits_and_defaults(tmp_path):
     with angles: its own; the global maximum applies to the other shared pairs."""
     exp = config.load(write(tmp_path, pairs='[[stereo_pair]]\ncameras = ["a", "b"]'))
     cams = cameras_of(exp)
-    pairs, low, high = constraints.angle_limits(exp, cams, np.zeros((2, 1), dtype=bool))
+    pairs, low, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cams,
+                                                np.zeros((2, 1), dtype=bool))
     assert pairs.tolist() == [[0, 1]]
     assert math.degrees(low[0]) == pytest.approx(math.degrees(constraints.stereo_min_angle(0.024)))
     assert math.degrees(high[0] - low[0]) == pytest.approx(procedure.STEREO_SPAN_DEG)
     exp = config.load(write(tmp_path, optimize_extra="max_axis_angle_deg = 40",
                             pairs='[[stereo_pair]]\ncameras = ["b", "a"]\nmin_angle_deg = 15\nmax_angle_deg = 35'))
     both = np.ones((2, 1), dtype=bool)          # both cameras assigned the one region
-    _, low, high = constraints.angle_limits(exp, cameras_of(exp), both)
+    _, low, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp),
+                                            both)
     assert np.degrees([low[0], high[0]]) == pytest.approx([15, 35])
     exp = config.load(write(tmp_path, optimize_extra="max_axis_angle_deg = 40"))
-    _, _, high = constraints.angle_limits(exp, cameras_of(exp), both)
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp), both)
     assert math.degrees(high[0]) == pytest.approx(40)
     # a region's own maximum applies to the pairs sharing it, the least of the limits wins
     path = write(tmp_path, optimize_extra="max_axis_angle_deg = 40")
     path.write_text(path.read_text().replace('normal = [0, 0, 1]', 'normal = [0, 0, 1]\nmax_axis_angle_deg = 30'))
     exp = config.load(path)
     assert exp.regions[0].max_axis_angle == pytest.approx(math.radians(30))
-    _, _, high = constraints.angle_limits(exp, cameras_of(exp), both)
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp), both)
     assert math.degrees(high[0]) == pytest.approx(30)
-    _, _, high = constraints.angle_limits(exp, cameras_of(exp), np.array([[True], [False]]))
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp),
+                                          np.array([[True], [False]]))
     assert len(high) == 0                         # no common region: no pair
 
 

@@ -30,7 +30,8 @@ def _rows(plate_experiment, dot=9.0, ambient=1.0, lens="", texel=1.0):
     path = plate_experiment(spacing=50, cameras=CAMERA.format(dot=dot, ambient=ambient, lens=lens, texel=texel))
     exp, samples, cams, scene, vis = raycast(path)
     illum = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
-    rows = checks.design_checks(exp, cams, samples, vis.visible, illum.irradiance,
+    rows = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor,
+                                exp.analysis, cams, samples, vis.visible, illum.irradiance,
                                 pattern_for(exp.speckle))
     assert [r["region"] for r in rows] == ["top"]
     return rows[0], exp

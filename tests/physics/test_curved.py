@@ -128,7 +128,7 @@ def test_sigma_and_strain_match_the_exact_cylinder(cylinder_state):
     chosen = np.flatnonzero(ok)[:: max(1, ok.sum() // 12)]
     assert len(chosen) >= 8
     cams = objective.CameraParams.from_cameras(list(state.cameras))
-    st = settings(exp)
+    st = settings(exp.evaluation)
     pho = photometry(state.illumination, exp.speckle, exp.sensor, state.geometry.speckle.mean,
                      state.geometry.speckle.std, len(state.cameras))
     contrast, noise = np.asarray(pho.contrast)[:, :1], np.asarray(pho.noise)[:, :1]

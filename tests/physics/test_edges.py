@@ -100,8 +100,10 @@ def holed(tmp_path_factory):
     samples, cams, sp = geometry.samples, list(state.cameras), geometry.speckle
     vis, illum = state.visibility, state.illumination
     return dict(root=root, exp=exp, samples=samples, cams=cams, vis=vis, illum=illum, speckle=sp,
-                clipped=predict(exp, cams, samples, vis, illum, sp),
-                whole=predict(exp, cams, samples, vis, illum, sp, clip_patch=False))
+                clipped=predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, cams, samples, vis,
+                                illum, sp),
+                whole=predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, cams, samples, vis, illum,
+                              sp, clip_patch=False))
 
 
 def test_sigma_near_the_hole_follows_one_over_sqrt_of_the_clipped_area(holed):
@@ -134,9 +136,10 @@ def test_usable_views_counts_sigma_and_summary_agree(holed, tmp_path):
     sigma of metres."""
     exp, s, cams, vis, illum, sp = (holed[k] for k in ("exp", "samples", "cams", "vis", "illum",
                                                         "speckle"))
-    smp = samples_for_objective(exp, s)
+    smp = samples_for_objective(exp.regions, s)
     raw = objective.fields(objective.CameraParams.from_cameras(cams), smp,
-                           view_data(exp, smp, vis, illum, sp), sp.table, settings(exp))
+                           view_data(exp.speckle, exp.sensor, smp, vis, illum, sp), sp.table,
+                           settings(exp.evaluation))
     w = np.asarray(raw.weights)
     edge = ((w > 0) & (w < usable.USABLE_WEIGHT)).any(axis=0)
     assert edge.sum() > 20

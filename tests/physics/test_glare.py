@@ -73,8 +73,9 @@ def test_a_satin_plate_facing_a_panel_is_flagged_and_moving_the_light_clears_it(
     (tmp_path / "b").mkdir()
     facing = _satin_plate(tmp_path / "a", 0.3)
     state = layout_state(prepare(facing), predict_fields=False)
-    rows = glare.hot_spots(facing, list(state.cameras), state.samples, state.visibility.visible,
-                           state.illumination)
+    rows = glare.hot_spots(facing.meshes, facing.regions, facing.lights, facing.speckle,
+                           facing.sensor, list(state.cameras), state.samples,
+                           state.visibility.visible, state.illumination)
     assert len(rows) == 1 and rows[0]["flags"]
     assert rows[0]["hot_spot_fraction"] > glare.HOT_SPOT_FRACTION
     smp = state.samples
@@ -86,13 +87,14 @@ def test_a_satin_plate_facing_a_panel_is_flagged_and_moving_the_light_clears_it(
 
     moved = _satin_plate(tmp_path / "b", -1.2)
     state = layout_state(prepare(moved), predict_fields=False)
-    rows = glare.hot_spots(moved, list(state.cameras), state.samples, state.visibility.visible,
+    rows = glare.hot_spots(moved.meshes, moved.regions, moved.lights, moved.speckle, moved.sensor,
+                           list(state.cameras), state.samples, state.visibility.visible,
                            state.illumination)
     assert len(rows) == 1 and not rows[0]["flags"]
     assert rows[0]["hot_spot_fraction"] <= glare.HOT_SPOT_FRACTION
 
     matte = config.load(write_plate_experiment(tmp_path / "a", spacing=20))
-    assert glare.satin_samples(matte, state.samples).sum() == 0
+    assert glare.satin_samples(matte.meshes, matte.regions, state.samples).sum() == 0
 
 
 # the render integrates each panel with one light sample per pixel sample (RENDER_SPP stratified

@@ -24,7 +24,9 @@ BAR = '[[mesh]]\nname = "bar"\nfile = "bar.stl"\nunit = "mm"\nrole = "obstacle"\
 def run(path):
     exp, samples, cams, sc, vis = raycast(path)
     illum = lighting.illuminate(sc, exp.lights, samples, exp.render.ambient_radiance)
-    return exp, samples, cams, vis, illum, predict(exp, cams, samples, vis, illum, speckle_model(exp))
+    pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, cams, samples, vis, illum,
+                   speckle_model(exp.speckle))
+    return exp, samples, cams, vis, illum, pred
 
 
 def test_sensitivity_of_one_camera_is_its_projection_jacobian(plate_experiment):

@@ -68,21 +68,24 @@ def test_scored_sigma_follows_sigma_measured(experiment, monkeypatch):
     g = prepare(exp)
     state = layout_state(g)
     cams, smp, pred = list(state.cameras), g.samples, state.prediction
-    meas = measured.measured_fields(exp, cams, smp, state.visibility, state.illumination,
-                                    g.speckle, pred, stereo_min_angle)
-    scale = measured.noise_inflation(exp, cams, smp, state.visibility.visible, state.illumination,
+    meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
+                                    exp.sensor, exp.analysis, exp.stereo_pairs, exp.path, cams, smp,
+                                    state.visibility, state.illumination, g.speckle, pred,
+                                    stereo_min_angle)
+    tables = (exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis)
+    scale = measured.noise_inflation(*tables, cams, smp, state.visibility.visible, state.illumination,
                                      g.speckle)
-    exact = measured.noise_inflation(exp, cams, smp, state.visibility.visible, state.illumination,
+    exact = measured.noise_inflation(*tables, cams, smp, state.visibility.visible, state.illumination,
                                      g.speckle, snap=False)
     assert np.abs(np.log(scale / exact)).max() < SNAP_KAPPA     # the footprint lattice
     phi = usable.patch_fractions(usable.patch_overlap(smp, exp.evaluation.patch_size), pred.usable)
-    osmp = samples_for_objective(exp, smp)
+    osmp = samples_for_objective(exp.regions, smp)
 
     def sigma(noise_scale):
-        vd = view_data(exp, osmp, state.visibility, state.illumination, g.speckle, phi,
-                       noise_scale=noise_scale)
+        vd = view_data(exp.speckle, exp.sensor, osmp, state.visibility, state.illumination, g.speckle,
+                       phi, noise_scale=noise_scale)
         f = objective.fields(objective.CameraParams.from_cameras(cams), osmp, vd, g.speckle.table,
-                             settings(exp))
+                             settings(exp.evaluation))
         return np.where(np.asarray(f.measured), np.asarray(f.sigma_max), np.inf)
 
     scored, bound = sigma(scale), sigma(None)

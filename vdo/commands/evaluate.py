@@ -123,17 +123,22 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
-    angles = constraints.angle_checks(exp, list(cameras), vis, samples)
-    design_checks = checks.design_checks(exp, list(cameras), samples, vis.visible,
+    angles = constraints.angle_checks(exp.regions, exp.optimize, exp.stereo_pairs, list(cameras),
+                                      vis, samples)
+    design_checks = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor,
+                                         exp.analysis, list(cameras), samples, vis.visible,
                                          illumination.irradiance, state.geometry.speckle.pattern)
     judged = None
     if checked is not None:
         judged = {"violations": sum(not c["met"] for c in checked), "checks": checked}
-    hot = glare.hot_spots(exp, list(cameras), samples, vis.visible, illumination)
+    hot = glare.hot_spots(exp.meshes, exp.regions, exp.lights, exp.speckle, exp.sensor,
+                          list(cameras), samples, vis.visible, illumination)
     for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)
-    meas = measured.measured_fields(exp, list(cameras), samples, vis, illumination,
+    meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
+                                    exp.sensor, exp.analysis, exp.stereo_pairs, exp.path,
+                                    list(cameras), samples, vis, illumination,
                                     state.geometry.speckle, pred, constraints.stereo_min_angle)
     calibration_summary = None
     if calibration is not None:
@@ -142,7 +147,8 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
         report.state_evaluation(state),
         axis_angles=angles, design_checks=design_checks,
         cameras_seeing_nothing=[name for i, name in enumerate(vis.camera_names) if not pred.usable[i].any()],
-        constraints=judged, glare=hot, measured=measured.summary(exp, meas, samples, pred, eps),
+        constraints=judged, glare=hot,
+        measured=measured.summary(exp.analysis, meas, samples, pred, eps),
         load_path=None if over_path is None else loadpath.summary(over_path),
         calibration=calibration_summary)
     with run_folder(out, overwrite) as tmp:

@@ -381,8 +381,8 @@ def judging(exp: Experiment, geometry: Geometry) -> Judging:
     region_area = scipy.sparse.csr_matrix((samples.area, (np.arange(len(samples)), samples.region)),
                                           shape=(len(samples), R))
     return Judging(exp, geometry, tuple(cams), mount, kind, u, heads, body, tg, aims, scene, bare,
-                   steps, tuple(moved), light, samples_for_objective(exp, samples),
-                   replace(settings(exp), pair_dtype="float64"), region_area, dropped)
+                   steps, tuple(moved), light, samples_for_objective(exp.regions, samples),
+                   replace(settings(exp.evaluation), pair_dtype="float64"), region_area, dropped)
 
 
 @dataclass(frozen=True, eq=False)
@@ -413,10 +413,10 @@ def inflation(exp: Experiment, cams, samples, visible, light, speckle) -> np.nda
     `vdo evaluate` then assumes for the designed layout)."""
     if exp.design.score != "measured":
         return None
-    specs = [CameraSpec(name=c.name, sensor_width=c.pixel_size * c.width, pixels=(c.width, c.height),
-                        focal_length=c.focal_length) for c in cams]
-    return measured.noise_inflation(exp.with_cameras(specs), cams, samples, visible, light, speckle,
-                                    lattice=KAPPA_LATTICE)
+    specs = tuple(CameraSpec(name=c.name, sensor_width=c.pixel_size * c.width,
+                             pixels=(c.width, c.height), focal_length=c.focal_length) for c in cams)
+    return measured.noise_inflation(specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis,
+                                    cams, samples, visible, light, speckle, lattice=KAPPA_LATTICE)
 
 
 def judge_block(j: Judging, start: int, stop: int) -> Block:
@@ -430,7 +430,7 @@ def judge_block(j: Judging, start: int, stop: int) -> Block:
     bare = compute_visibility(j.bare, cams, samples, limit, progress=False).visible
     hidden = bare & ~vis.visible
     cp = objective.CameraParams.from_cameras(cams)
-    views = view_data(exp, j.smp, vis, j.light, j.geometry.speckle,
+    views = view_data(exp.speckle, exp.sensor, j.smp, vis, j.light, j.geometry.speckle,
                       noise_scale=inflation(exp, cams, samples, vis.visible, j.light,
                                             j.geometry.speckle))
     cam, index, info, w = objective.pair_information(cp, views, j.geometry.speckle.table, j.settings)

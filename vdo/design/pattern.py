@@ -154,10 +154,11 @@ def judge(exp: Experiment, state, dots_mm, dpi: float) -> tuple[Judged, np.ndarr
     spec = replace(exp.speckle, dot_diameter=min(dots_mm) * 1e-3, texel=texel * 1e-3, image=None)
     e = replace(exp, speckle=spec)
     sm = model(f, texel, dots_mm)
-    pred = predict(e, list(state.cameras), state.samples, state.visibility, state.illumination, sm,
-                   overlap=state.geometry.overlap)
+    pred = predict(e.regions, e.evaluation, e.speckle, e.sensor, list(state.cameras), state.samples,
+                   state.visibility, state.illumination, sm, overlap=state.geometry.overlap)
     summary = report.summary(e, state.samples, state.visibility, pred)
-    rows = design_checks(e, list(state.cameras), state.samples, state.visibility.visible,
+    rows = design_checks(e.camera_specs, e.evaluation, e.speckle, e.sensor, e.analysis,
+                         list(state.cameras), state.samples, state.visibility.visible,
                          state.illumination.irradiance, f)
     flags: dict = {r: [] for r in state.samples.region_names}
     for r in rows:
@@ -188,7 +189,8 @@ def design_speckle(exp: Experiment) -> SpeckleResult:
     spacing = exp.design.sample_spacing
     geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
     state = layout_state(geometry, predict_fields=False)
-    rows = design_checks(exp, list(state.cameras), state.samples, state.visibility.visible,
+    rows = design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis,
+                         list(state.cameras), state.samples, state.visibility.visible,
                          state.illumination.irradiance, geometry.speckle.pattern)
     seen = footprints(rows)
     if not seen:

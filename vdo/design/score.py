@@ -81,7 +81,7 @@ class Scorer:
     candidates x samples."""
 
     def __init__(self, exp: Experiment, samples):
-        st = settings(exp)
+        st = settings(exp.evaluation)
         scored = np.ones(len(samples.region_names), bool) if exp.optimize.regions is None else \
             np.isin(samples.region_names, exp.optimize.regions)
         omega = samples.area * samples.region_importance[samples.region] * scored[samples.region]

@@ -174,7 +174,9 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     area = float(smp.area[can].sum())
     out = {}
     if exp.design.score == "measured":
-        meas = measured.measured_fields(exp, list(state.cameras), smp, state.visibility,
+        meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
+                                        exp.sensor, exp.analysis, exp.stereo_pairs, exp.path,
+                                        list(state.cameras), smp, state.visibility,
                                         state.illumination, state.geometry.speckle, pred,
                                         stereo_min_angle)
         by_meas = {}

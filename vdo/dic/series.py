@@ -178,8 +178,10 @@ def _interpolation_at_scale(exp, cameras, state, scale: float) -> list[dict]:
     from vdo.physics import checks
 
     rows = [{"camera": r["camera"], "region": r["region"], "mm_per_px": r["mm_per_px"], **r["interpolation"]}
-            for r in checks.design_checks(exp, cameras, state.samples, state.visibility.visible,
-                                          state.illumination.irradiance, state.geometry.speckle.pattern)
+            for r in checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor,
+                                          exp.analysis, cameras, state.samples,
+                                          state.visibility.visible, state.illumination.irradiance,
+                                          state.geometry.speckle.pattern)
             if r["interpolation"] is not None]
     flagged = [r for r in rows if r["ratio"] > checks.INTERPOLATION_NOISE]
     if flagged:

@@ -358,8 +358,8 @@ def serving_pairs(setup: Setup) -> tuple[tuple[int, int], ...]:
     case = setup.case
     samples = _samples(setup)
     seen = np.ones((len(setup.cameras), len(samples.points)), dtype=bool)
-    pairs, cand = measured.pair_candidates(setup.experiment, setup.cameras, samples, seen,
-                                           stereo_min_angle)
+    pairs, cand = measured.pair_candidates(setup.experiment.analysis, setup.experiment.stereo_pairs,
+                                           setup.cameras, samples, seen, stereo_min_angle)
     serve = cand.all(axis=1)
     where = f'case "{case.name}"'
     hi = math.degrees(setup.experiment.analysis.max_pair_angle
@@ -395,11 +395,11 @@ def camera_information(setup: Setup, speckle, n: int = 5) -> np.ndarray:
     geometry = Geometry(exp, (setup.plate,), samples, speckle, (setup.region,),
                         patch_overlap(samples, exp.evaluation.patch_size))
     state = layout_state(geometry, setup.cameras, clip_patch=False)
-    smp = samples_for_objective(exp, samples)
-    views = view_data(exp, smp, state.visibility, state.illumination, speckle,
+    smp = samples_for_objective(exp.regions, samples)
+    views = view_data(exp.speckle, exp.sensor, smp, state.visibility, state.illumination, speckle,
                       state.prediction.usable.astype(float))
     return np.asarray(objective.camera_information(objective.CameraParams.from_cameras(setup.cameras),
-                                                   smp, views, speckle.table, settings(exp)))
+                                                   smp, views, speckle.table, settings(exp.evaluation)))
 
 
 @dataclass(frozen=True, eq=False)

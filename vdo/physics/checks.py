@@ -44,8 +44,14 @@ interpolation bias adds more than INTERPOLATION_ADVICE x to the noise part). σ_
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from vdo.config.procedure import Analysis
+    from vdo.config.rig import CameraSpec, Evaluation, SpeckleSpec
+    from vdo.model.sensor import SensorModel
 
 SPECKLE_PX = (3.0, 5.0)
 EXPOSURE = (0.25, 0.95)
@@ -164,15 +170,19 @@ def _camera_optics(cam, spec, depth: float):
     return optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance, depth)
 
 
-def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[dict]:
+def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
+                  speckle: SpeckleSpec, sensor: SensorModel, analysis: Analysis,
+                  cameras, samples, visible, irradiance, pattern) -> list[dict]:
     """One row per (camera, region) with seen samples: the checks of the module docstring, each
     finding {"severity", "check", "message"} in "findings" (most severe first), their messages in
     "flags" and the worst severity in "severity" (None when nothing was found).
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
-    (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile."""
+    (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile. The tables: the cameras'
+    [[camera]] specs (f-number, focus), [evaluation] (the patch), [speckle], [sensor] and
+    [analysis] (the interpolant and the reference)."""
     rows, lit, footprints, irradiances, lens, rendered, pixels = [], [], [], [], [], [], []
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
-    for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
+    for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
         for k, region in enumerate(samples.region_names):
             seen = np.asarray(visible[i]) & (samples.region == k)
             if not seen.any():
@@ -182,7 +192,7 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
             density = np.sqrt(np.abs(np.linalg.det(A)))
             pixels_seen = samples.area[seen] * density ** 2
             depth = (X - cam.position) @ cam.optical_axis
-            speckle_px = float(np.median(exp.speckle.dot_diameter * density))
+            speckle_px = float(np.median(speckle.dot_diameter * density))
             found = []
             if speckle_px < SPECKLE_PX[0]:
                 found.append(("warn", "speckle", f"speckle dots {speckle_px:.1f} px (want "
@@ -202,7 +212,7 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
                     found.append(("fail", "depth of field", f"out of focus: depth "
                                   f"{depth.min():.3f}-{depth.max():.3f} m leaves the depth of "
                                   f"field {near:.3f}-{far:.3f} m"))
-            expo = exposure(irradiance[seen], pixels_seen, exp.speckle, exp.sensor, pattern)
+            expo = exposure(irradiance[seen], pixels_seen, speckle, sensor, pattern)
             for flag in expo["flags"]:
                 found.append(("fail" if flag.startswith("saturating") else "warn", "exposure", flag))
             median = int(np.argsort(density)[len(density) // 2])
@@ -222,13 +232,11 @@ def design_checks(exp, cameras, samples, visible, irradiance, pattern) -> list[d
             irradiances.append(float(irradiance[seen][median]))
             lens.append(_camera_optics(cam, spec, float(depth[median])))
             rendered.append(lens[-1] if spec.f_number is not None else None)
-            pixels.append(exp.evaluation.patch_size ** 2 * float(density[median]) ** 2)
+            pixels.append(evaluation.patch_size ** 2 * float(density[median]) ** 2)
     if lit:
-        floors = interpolation_floor(footprints, irradiances, exp.speckle, exp.sensor, pattern,
-                                     rendered)
-        measured = measurement_floor(footprints, irradiances, pixels, lens, exp.speckle,
-                                     exp.sensor, pattern, exp.analysis.interpolant,
-                                     exp.analysis.reference == "noisy")
+        floors = interpolation_floor(footprints, irradiances, speckle, sensor, pattern, rendered)
+        measured = measurement_floor(footprints, irradiances, pixels, lens, speckle, sensor,
+                                     pattern, analysis.interpolant, analysis.reference == "noisy")
         for row, interp, meas, opt in zip(lit, floors, measured, lens):
             meas.pop("model")
             row["interpolation"] = interp | {"measured": meas, "optics": {

@@ -28,9 +28,15 @@ above HOT_SPOT_FRACTION.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from vdo.physics.lighting import panel_frame, panel_points
+
+if TYPE_CHECKING:
+    from vdo.config.rig import LightSpec, MeshSpec, RegionSpec, SpeckleSpec
+    from vdo.model.sensor import SensorModel
 
 SATIN_ALPHA = 0.1      # GGX roughness of a satin coat (semi-gloss: a lobe of about 6 deg)
 SATIN_IOR = 1.5        # refractive index of the coat (clear lacquer)
@@ -92,27 +98,32 @@ def specular_radiance(lights, lit, points, normals, camera_positions) -> np.ndar
     return out
 
 
-def satin_samples(exp, samples) -> np.ndarray:
-    """(N,) True for the samples of regions on a [[mesh]] with finish = "satin"."""
-    finish = {m.name: m.finish for m in exp.meshes}
-    satin = np.array([finish.get(r.mesh) == "satin" for r in exp.regions])
+def satin_samples(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
+                  samples) -> np.ndarray:
+    """(N,) True for the samples of regions on a [[mesh]] with finish = "satin" (`meshes` and
+    `regions` the experiment's [[mesh]] and [[region]] tables)."""
+    finish = {m.name: m.finish for m in meshes}
+    satin = np.array([finish.get(r.mesh) == "satin" for r in regions])
     return satin[samples.region] if len(satin) else np.zeros(len(samples.region), bool)
 
 
-def hot_spots(exp, cameras, samples, visible, illumination) -> list[dict]:
+def hot_spots(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
+              lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
+              cameras, samples, visible, illumination) -> list[dict]:
     """The hot-spot check (module docstring): one row per (camera, satin region) with seen samples,
     {"camera", "region", "hot_spot_fraction", "saturated_fraction", "max_specular_ratio", "flags"};
-    max_specular_ratio the largest L_s / ((rho_w - rho_b) E / pi) over the seen samples."""
-    satin = satin_samples(exp, samples)
+    max_specular_ratio the largest L_s / ((rho_w - rho_b) E / pi) over the seen samples. The
+    tables: [[mesh]] and [[region]] (which are satin, `satin_samples`), [[light]], [speckle] (the
+    paint's albedos) and [sensor]."""
+    satin = satin_samples(meshes, regions, samples)
     if not satin.any() or not cameras:
         return []
     idx = np.flatnonzero(satin)
-    sp, sensor = exp.speckle, exp.sensor
     E = illumination.irradiance[idx]
-    Ls = specular_radiance(exp.lights, illumination.lit[:, idx], samples.points[idx], samples.normals[idx],
+    Ls = specular_radiance(lights, illumination.lit[:, idx], samples.points[idx], samples.normals[idx],
                            [c.position for c in cameras])
-    white = sp.white_albedo * E / np.pi
-    contrast = (sp.white_albedo - sp.black_albedo) * E / np.pi
+    white = speckle.white_albedo * E / np.pi
+    contrast = (speckle.white_albedo - speckle.black_albedo) * E / np.pi
     saturated = white[None] + Ls >= sensor.saturation_linear()
     washed = Ls > contrast[None]
     ratio = Ls / np.maximum(contrast[None], 1e-300)

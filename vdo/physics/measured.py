@@ -40,10 +40,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from vdo import objective
+from vdo.config.procedure import Analysis, StereoPairSpec
+from vdo.config.rig import CameraSpec, Evaluation, RegionSpec, SpeckleSpec
 from vdo.core.errors import ConfigError
 from vdo.physics import usable
 from vdo.physics.checks import measurement_floor
 from vdo.model.optics import optics_blur
+from vdo.model.sensor import SensorModel
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.physics.strain import STRAIN_COMPONENTS
 
@@ -122,7 +125,9 @@ def _snap(A: np.ndarray, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> np.ndarr
     return turn(u) @ np.diag(s) @ F @ turn(v).T
 
 
-def region_floors(exp, cameras, samples, views, illumination, speckle,
+def region_floors(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
+                  speckle_spec: SpeckleSpec, sensor: SensorModel, analysis: Analysis,
+                  cameras, samples, views, illumination, speckle,
                   snap: bool = False, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> list[tuple]:
     """What the lab's correlation measures for each camera in each region it views: one
     (i, k, seen, floor, lens) per (camera i, region k) with samples in `views` (C, N) bool, lit at
@@ -130,10 +135,12 @@ def region_floors(exp, cameras, samples, views, illumination, speckle,
     `vdo.physics.checks.measurement_floor` row at that median footprint (its "model" the
     `vdo.model.interpolant.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
     there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m.
-    `snap`: the footprint and the depth on the lattice of `_snap` (`lattice`) and SNAP_DEPTH."""
+    `snap`: the footprint and the depth on the lattice of `_snap` (`lattice`) and SNAP_DEPTH.
+    The tables: the cameras' [[camera]] specs (f-number, focus), [evaluation] (the patch),
+    [speckle], [sensor] and [analysis] (the interpolant and the reference)."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     jobs = []
-    for i, (cam, spec) in enumerate(zip(cameras, exp.camera_specs)):
+    for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
         for k in range(len(samples.region_names)):
             seen = np.nonzero(np.asarray(views[i]) & (samples.region == k))[0]
             if seen.size == 0:
@@ -152,12 +159,12 @@ def region_floors(exp, cameras, samples, views, illumination, speckle,
             lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
                                depth)
             jobs.append((i, k, seen, footprint, float(illumination.irradiance[seen[m]]),
-                         exp.evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
+                         evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
     if not jobs:
         return []
     floors = measurement_floor([j[3] for j in jobs], [j[4] for j in jobs], [j[5] for j in jobs],
-                               [j[6] for j in jobs], exp.speckle, exp.sensor, speckle.pattern,
-                               exp.analysis.interpolant, exp.analysis.reference == "noisy")
+                               [j[6] for j in jobs], speckle_spec, sensor, speckle.pattern,
+                               analysis.interpolant, analysis.reference == "noisy")
     return [(i, k, seen, floor, lens) for (i, k, seen, *_, lens), floor in zip(jobs, floors)]
 
 
@@ -169,7 +176,9 @@ def _nu(floor) -> float:
     return float(np.trace(s2 * model.noise[j] + model.scatter[j]) / np.trace(s2 * model.bound_sharp[j]))
 
 
-def noise_inflation(exp, cameras, samples, views, illumination, speckle,
+def noise_inflation(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
+                    speckle_spec: SpeckleSpec, sensor: SensorModel, analysis: Analysis,
+                    cameras, samples, views, illumination, speckle,
                     snap: bool = True, lattice: tuple = (SNAP_OCTAVE, SNAP_ANGLE)) -> np.ndarray:
     """(C, N) √κ per (camera, sample): the factor on the sensor noise that turns the bound's
     per-camera information C_i into the information of what the lab measures, C_i / κ, with
@@ -182,10 +191,12 @@ def noise_inflation(exp, cameras, samples, views, illumination, speckle,
     (isotropic bias); otherwise its trace-equivalent. `views` (C, N) bool: the samples the
     median is taken over. `snap` (default): the footprints on a lattice (`region_floors`), κ
     within a few percent of the exact footprint's, so that a camera that moved a little finds its
-    model in the cache; `lattice` (`_snap`): coarser for many cameras (`vdo design`'s candidates)."""
+    model in the cache; `lattice` (`_snap`): coarser for many cameras (`vdo design`'s candidates).
+    The tables as `region_floors` takes them."""
     scale = np.ones(np.shape(views))
-    for i, _, seen, floor, _ in region_floors(exp, cameras, samples, views, illumination, speckle,
-                                              snap, lattice):
+    for i, _, seen, floor, _ in region_floors(camera_specs, evaluation, speckle_spec, sensor,
+                                              analysis, cameras, samples, views, illumination,
+                                              speckle, snap, lattice):
         model, j = floor["model"]
         s2, p = floor["noise_rel"] ** 2, floor["patch_px"]
         kappa = _nu(floor) + p * float(np.trace(model.bias[j])) / (s2 * float(np.trace(model.bound_sharp[j])))
@@ -193,21 +204,25 @@ def noise_inflation(exp, cameras, samples, views, illumination, speckle,
     return scale
 
 
-def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
+def camera_terms(regions: tuple[RegionSpec, ...], camera_specs: tuple[CameraSpec, ...],
+                 evaluation: Evaluation, speckle_spec: SpeckleSpec, sensor: SensorModel,
+                 analysis: Analysis, cameras, samples, vis, illumination, speckle, pred):
     """(C_i (C, N, 3, 3) 1/m², M_i (C, N, 3, 3) 1/m², per_camera rows): each camera's information
     over its clipped patch (as `predict`'s second pass) and the bracket ν_i C_i + S_iᵀ W_i B_i W_i S_i
     of the module docstring, ν_i and B_i from `correlation_error` at the median footprint of the
-    camera's usable samples in each region (`region_floors`)."""
-    smp = samples_for_objective(exp, samples)
+    camera's usable samples in each region (`region_floors`). The tables: [[region]] (as
+    `vdo.physics.predict.predict` takes it) and those of `region_floors`."""
+    smp = samples_for_objective(regions, samples)
     cams = objective.CameraParams.from_cameras(cameras)
-    overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+    overlap = usable.patch_overlap(samples, evaluation.patch_size)
     phi = usable.patch_fractions(overlap, pred.usable)
-    vd = view_data(exp, smp, vis, illumination, speckle, phi)
-    C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(exp)))
+    vd = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, phi)
+    C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(evaluation)))
     M_i = np.zeros_like(C_i)
     rows = []
-    for i, k, seen, floor, lens in region_floors(exp, cameras, samples, pred.usable, illumination,
-                                                 speckle):
+    for i, k, seen, floor, lens in region_floors(camera_specs, evaluation, speckle_spec, sensor,
+                                                 analysis, cameras, samples, pred.usable,
+                                                 illumination, speckle):
         model, j = floor["model"]
         nu = _nu(floor)
         gamma = float(np.trace(model.bound[j]) / np.trace(model.bound_sharp[j]))
@@ -224,9 +239,10 @@ def camera_terms(exp, cameras, samples, vis, illumination, speckle, pred):
     return C_i, M_i, rows
 
 
-def pair_candidates(exp, cameras, samples, usable_views, min_angle) -> tuple[list, np.ndarray]:
+def pair_candidates(analysis: Analysis, stereo_pairs: tuple[StereoPairSpec, ...], cameras,
+                    samples, usable_views, min_angle) -> tuple[list, np.ndarray]:
     """([(a, b) camera indices], ok (P, N) bool): the stereo pairs the lab may use at each sample.
-    Declared [[stereo_pair]]s when the file has them ([analysis] pairs = "declared"), else every
+    The declared `stereo_pairs` ([[stereo_pair]]) when [analysis] pairs = "declared", else every
     two cameras (the rule): both usable views of the sample, and the angle between their viewing
     rays at the sample within [min, max] with min = `min_angle`(the shorter focal length, m) in rad
     (`vdo.constraints.stereo_min_angle`, the stereo rule of thumb per lens) and max = [analysis]
@@ -235,11 +251,11 @@ def pair_candidates(exp, cameras, samples, usable_views, min_angle) -> tuple[lis
     X = samples.points
     rays = np.stack([c.position for c in cameras])[:, None, :] - X[None]        # (C, N, 3)
     rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    max_angle = exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
+    max_angle = analysis.max_pair_angle if analysis.max_pair_angle is not None \
         else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)                  # the file's value is in rad
-    if exp.analysis.pairs == "declared":
+    if analysis.pairs == "declared":
         pairs = []
-        for spec in exp.stereo_pairs:
+        for spec in stereo_pairs:
             a, b = (names.index(n) for n in spec.cameras)
             lo = spec.min_angle if spec.min_angle is not None else \
                 min_angle(min(cameras[a].focal_length, cameras[b].focal_length))
@@ -332,27 +348,32 @@ def merge_pairs(C_i: np.ndarray, M_i: np.ndarray, pairs, cand: np.ndarray, merge
     return cov, m.served, m.best, naive
 
 
-def measured_fields(exp, cameras, samples, vis, illumination, speckle, pred,
+def measured_fields(regions: tuple[RegionSpec, ...], camera_specs: tuple[CameraSpec, ...],
+                    evaluation: Evaluation, speckle_spec: SpeckleSpec, sensor: SensorModel,
+                    analysis: Analysis, stereo_pairs: tuple[StereoPairSpec, ...], path,
+                    cameras, samples, vis, illumination, speckle, pred,
                     min_angle=None) -> MeasuredFields:
     """σ_measured of the module docstring for the processing in [analysis] (`min_angle`: the pair
     rule's minimum angle per focal length, `pair_candidates`; needed for pairs). A declared pair
     that no sample can use (no common usable view at an angle within its limits) is a
-    ConfigError naming the pair."""
-    C_i, M_i, rows = camera_terms(exp, cameras, samples, vis, illumination, speckle, pred)
+    ConfigError naming the pair and the experiment file `path`. The tables: those of
+    `camera_terms`, and the declared `stereo_pairs` ([[stereo_pair]])."""
+    C_i, M_i, rows = camera_terms(regions, camera_specs, evaluation, speckle_spec, sensor, analysis,
+                                  cameras, samples, vis, illumination, speckle, pred)
     bound = np.where(pred.measured, pred.sigma_max, np.inf)
-    if exp.analysis.processing == "all-views":
+    if analysis.processing == "all-views":
         cov, ok = all_views(C_i, M_i)
         xyz, mx = _sigma(cov, ok & pred.measured)
         return MeasuredFields(xyz, mx, _ratio(mx, bound), np.full(len(bound), -1), (), None, rows)
-    pairs, cand = pair_candidates(exp, cameras, samples, pred.usable, min_angle)
-    if exp.analysis.pairs == "declared":
+    pairs, cand = pair_candidates(analysis, stereo_pairs, cameras, samples, pred.usable, min_angle)
+    if analysis.pairs == "declared":
         for (a, b), ok in zip(pairs, cand):
             if not ok.any():
-                raise ConfigError(exp.path, f"stereo_pair [{cameras[a].name!r}, {cameras[b].name!r}]",
+                raise ConfigError(path, f"stereo_pair [{cameras[a].name!r}, {cameras[b].name!r}]",
                                   "the two cameras share no usable view of any region at an angle "
                                   "within the pair's limits: pair processing covers only pairs "
                                   "that both see a region")
-    cov, ok, best, naive = merge_pairs(C_i, M_i, pairs, cand, exp.analysis.merge)
+    cov, ok, best, naive = merge_pairs(C_i, M_i, pairs, cand, analysis.merge)
     xyz, mx = _sigma(cov, ok)
     names = tuple((cameras[a].name, cameras[b].name) for a, b in pairs)
     return MeasuredFields(xyz, mx, _ratio(mx, bound), best, names, naive, rows)
@@ -367,12 +388,13 @@ def _stats(values_um: np.ndarray) -> dict:
             "max": float(v.max())}
 
 
-def summary(exp, meas: MeasuredFields, samples, pred, strain_sigma=None) -> dict:
+def summary(analysis: Analysis, meas: MeasuredFields, samples, pred, strain_sigma=None) -> dict:
     """summary.json's "measured": the processing, per region the area fraction with a finite
     σ_measured (served: by some pair, or by >= 2 usable views), σ_measured (µm, per axis and max)
     beside the bound's σ_max, their ratio per sample, the strain σ (µε) measured, which pair serves how much
-    of the region ("best"), and the per-camera terms (`camera_terms`)."""
-    a = exp.analysis
+    of the region ("best"), and the per-camera terms (`camera_terms`); `analysis` the [analysis]
+    table."""
+    a = analysis
     regions = {}
     for k, name in enumerate(samples.region_names):
         mask = samples.region == k

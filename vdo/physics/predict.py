@@ -15,7 +15,8 @@ import numpy as np
 from vdo import objective
 from vdo.physics import usable
 from vdo.model.camera import Camera
-from vdo.config.experiment import Experiment
+from vdo.config.rig import Evaluation, RegionSpec, SpeckleSpec
+from vdo.model.sensor import SensorModel
 from vdo.physics.lighting import Illumination, pattern_stats, photometry
 from vdo.scene import SurfaceSamples
 from vdo.model.speckle import GradientEnergyTable, gradient_energy_table, normalise, pattern_for
@@ -36,34 +37,37 @@ class SpeckleModel:
     table: GradientEnergyTable
 
 
-def speckle_model(exp: Experiment) -> SpeckleModel:
-    pattern = pattern_for(exp.speckle)
+def speckle_model(speckle_spec: SpeckleSpec) -> SpeckleModel:
+    """The model of the [speckle] table's pattern."""
+    pattern = pattern_for(speckle_spec)
     mean, std = pattern_stats(pattern)
-    table = gradient_energy_table(normalise(pattern), exp.speckle.texel,
-                                  l_max=max(50 * exp.speckle.dot_diameter, 0.05))
+    table = gradient_energy_table(normalise(pattern), speckle_spec.texel,
+                                  l_max=max(50 * speckle_spec.dot_diameter, 0.05))
     return SpeckleModel(pattern, mean, std, table)
 
 
-def settings(exp: Experiment) -> objective.Settings:
-    """The objective's settings for an experiment. The score's per-pair work in float32 (the
-    per-sample sums, the score and the report fields in float64): on the 10-camera x 100k-sample
-    benchmark, value within 4e-8 and gradient within 8e-6 of float64 and value + gradient ~1.5x
-    faster (`vdo.objective.Settings.pair_dtype`, `benchmarks/README.md`)."""
-    return objective.Settings(patch_area=exp.evaluation.patch_size ** 2,
-                              incidence_limit=exp.evaluation.incidence_limit,
+def settings(evaluation: Evaluation) -> objective.Settings:
+    """The objective's settings for an experiment's [evaluation] table. The score's per-pair work
+    in float32 (the per-sample sums, the score and the report fields in float64): on the
+    10-camera x 100k-sample benchmark, value within 4e-8 and gradient within 8e-6 of float64 and
+    value + gradient ~1.5x faster (`vdo.objective.Settings.pair_dtype`, `benchmarks/README.md`)."""
+    return objective.Settings(patch_area=evaluation.patch_size ** 2,
+                              incidence_limit=evaluation.incidence_limit,
                               pair_dtype="float32")
 
 
-def samples_for_objective(exp: Experiment, samples: SurfaceSamples) -> objective.Samples:
-    minimum = [r.min_cameras for r in exp.regions]
+def samples_for_objective(regions: tuple[RegionSpec, ...],
+                          samples: SurfaceSamples) -> objective.Samples:
+    """The samples as `vdo.objective` takes them, with each [[region]]'s min_cameras."""
+    minimum = [r.min_cameras for r in regions]
     return objective.Samples(*(jnp.asarray(a) for a in (
         samples.points, samples.normals, samples.tangent_u, samples.tangent_v, samples.area,
         samples.region)), jnp.asarray(samples.region_importance, dtype=float),
         jnp.asarray(minimum, dtype=float))
 
 
-def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
-              illumination: Illumination, speckle: SpeckleModel,
+def view_data(speckle_spec: SpeckleSpec, sensor: SensorModel, samples: objective.Samples,
+              vis: Visibility, illumination: Illumination, speckle: SpeckleModel,
               patch_fraction: np.ndarray | None = None, sizes: dict | None = None,
               noise_scale: np.ndarray | None = None) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
@@ -73,8 +77,9 @@ def view_data(exp: Experiment, samples: objective.Samples, vis: Visibility,
     phi_i, the usable fraction of each camera's patch) the occlusion is multiplied by it, so
     that the patch area becomes Omega phi_i. `sizes`: fixed list sizes across layouts
     (`objective.ViewData.from_dense`). `noise_scale` (C, N): a factor on each pair's noise
-    (`vdo.physics.measured.noise_inflation`: the information of what the lab measures)."""
-    pho = photometry(illumination, exp.speckle, exp.sensor, speckle.mean, speckle.std,
+    (`vdo.physics.measured.noise_inflation`: the information of what the lab measures).
+    `speckle_spec` and `sensor`: the [speckle] and [sensor] tables."""
+    pho = photometry(illumination, speckle_spec, sensor, speckle.mean, speckle.std,
                      len(vis.camera_names))
     occlusion = np.asarray(vis.unoccluded, dtype=float)
     if patch_fraction is not None:
@@ -104,7 +109,8 @@ class Prediction:
     outlier: np.ndarray       # (N,) bool
 
 
-def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
+def predict(regions: tuple[RegionSpec, ...], evaluation: Evaluation, speckle_spec: SpeckleSpec,
+            sensor: SensorModel, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
             illumination: Illumination, speckle: SpeckleModel,
             clip_patch: bool = True, overlap=None, sizes: dict | None = None) -> Prediction:
     """The report fields with the usable-view definition and the clipped patch of `vdo.physics.usable`:
@@ -115,23 +121,24 @@ def predict(exp: Experiment, cameras: list[Camera], samples: SurfaceSamples, vis
     `overlap`: `usable.patch_overlap(samples, patch_size)` when already known (it depends on the
     samples' parametric cells only, not on the cameras or on a keyframe's motion). `sizes`: the
     pair lists' fixed sizes for these samples (`objective.ViewData.from_dense`): a new layout
-    then compiles nothing.
+    then compiles nothing. `regions`, `evaluation`, `speckle_spec`, `sensor`: the experiment's
+    [[region]], [evaluation], [speckle] and [sensor] tables.
 
     Curved surfaces: where the normals over a sample's patch spread by more than
     CURVED_PATCH_SPREAD (`vdo.physics.usable.patch_normal_spread`), its information is the sum over
     the patch's own cells, each with its own normal, frame and view
     (`vdo.physics.usable.surface_patch_information`), instead of the centre's view times phi_i."""
-    smp = samples_for_objective(exp, samples)
+    smp = samples_for_objective(regions, samples)
     cams = objective.CameraParams.from_cameras(cameras)
-    st = settings(exp)
-    first_views = view_data(exp, smp, vis, illumination, speckle, sizes=sizes)
+    st = settings(evaluation)
+    first_views = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, sizes=sizes)
     first = objective.fields(cams, smp, first_views, speckle.table, st)
     use = usable.usable_views(np.asarray(first.weights))
     if overlap is None:
-        overlap = usable.patch_overlap(samples, exp.evaluation.patch_size)
+        overlap = usable.patch_overlap(samples, evaluation.patch_size)
     phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
-    f = objective.fields(cams, smp, view_data(exp, smp, vis, illumination, speckle, phi, sizes),
-                         speckle.table, st)
+    f = objective.fields(cams, smp, view_data(speckle_spec, sensor, smp, vis, illumination, speckle,
+                                              phi, sizes), speckle.table, st)
     information = np.asarray(f.information)
     f_measured, f_sigma_max, f_sigma_xyz = (np.array(x) for x in (f.measured, f.sigma_max, f.sigma_xyz))
     curved = np.flatnonzero(usable.patch_normal_spread(overlap, samples.normals) > CURVED_PATCH_SPREAD) \

@@ -93,8 +93,8 @@ class Problem:
         self.lit_without_cameras = self.unobstructed.lit if exp.lights else None
         self.meshes, self.samples = list(self.geometry.meshes), self.geometry.samples
         self.faces, self.speckle = list(self.geometry.region_faces), self.geometry.speckle
-        self.settings = settings(exp)
-        self.obj_samples = samples_for_objective(exp, self.samples)
+        self.settings = settings(exp.evaluation)
+        self.obj_samples = samples_for_objective(exp.regions, self.samples)
         if opt.regions is not None:   # only the named regions enter the score
             keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
@@ -120,7 +120,7 @@ class Problem:
         self.shared = (constraints.sharing(self.start.vis, self.samples, opt.assign_fraction)
                        if reference is None else reference.shared)
         self.pairs, self.min_angles, self.max_angles = constraints.angle_limits(
-            exp, self.cams0, self.assigned, self.shared)
+            exp.regions, opt, exp.stereo_pairs, self.cams0, self.assigned, self.shared)
         # the cameras with a body (the ray cast and the lighting see only those)
         self.bodied = np.array([i for i, s in enumerate(exp.camera_specs) if s.body], dtype=int)
         spheres = [camera_body_spheres(self.cams0[i].focal_length) for i in self.bodied]
@@ -275,12 +275,14 @@ class Problem:
         scale = None
         if self.exp.optimize.score == "measured":   # the lab's error over the bound, this round's
             t0 = time.perf_counter()
-            scale = measured.noise_inflation(self.exp, cams, self.samples, scored.visible, illum,
+            e = self.exp
+            scale = measured.noise_inflation(e.camera_specs, e.evaluation, e.speckle, e.sensor,
+                                             e.analysis, cams, self.samples, scored.visible, illum,
                                              self.speckle)
             self.kappa_s = time.perf_counter() - t0
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
-                     self.run.padded(view_data(self.exp, self.obj_samples, scored, illum, self.speckle,
-                                               noise_scale=scale)))
+                     self.run.padded(view_data(self.exp.speckle, self.exp.sensor, self.obj_samples,
+                                               scored, illum, self.speckle, noise_scale=scale)))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to
