@@ -18,6 +18,21 @@ def pytest_configure(config):
     configure()
 
 
+def read_vtp(path):
+    """(points (N, 3), vertex count, {name: array}) of a samples.vtp, read by VTK's own XML reader
+    (imported here only: the rest of the suite runs without VTK loaded)."""
+    from vtk import vtkXMLPolyDataReader
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    data = reader.GetOutput()
+    pd = data.GetPointData()
+    arrays = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)) for i in range(pd.GetNumberOfArrays())}
+    return vtk_to_numpy(data.GetPoints().GetData()), data.GetNumberOfVerts(), arrays
+
+
 def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""
     box = trimesh.creation.box(extents=np.asarray(extents, dtype=float) * unit_scale)

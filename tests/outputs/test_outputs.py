@@ -6,10 +6,8 @@ import cv2
 import numpy as np
 import pytest
 import trimesh
-from vtk import vtkXMLPolyDataReader
-from vtk.util.numpy_support import vtk_to_numpy
 
-from conftest import DOWN_CAMERA, write_plate_experiment
+from conftest import DOWN_CAMERA, read_vtp, write_plate_experiment
 from vdo.config import experiment as config
 from vdo.commands.cli import main
 from vdo.outputs.maps import unfold
@@ -27,16 +25,6 @@ def run(tmp_path_factory):
     out = folder / "run"
     assert main(["evaluate", str(path), "--out", str(out), "--quiet"]) == 0
     return path, out
-
-
-def read_vtp(path):
-    reader = vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    data = reader.GetOutput()
-    pd = data.GetPointData()
-    arrays = {pd.GetArrayName(i): vtk_to_numpy(pd.GetArray(i)) for i in range(pd.GetNumberOfArrays())}
-    return vtk_to_numpy(data.GetPoints().GetData()), data.GetNumberOfVerts(), arrays
 
 
 def test_run_folder_contents(run):

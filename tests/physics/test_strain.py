@@ -145,7 +145,7 @@ def test_evaluate_writes_strain_sigma_and_design_checks(plate_experiment, tmp_pa
     import json
 
     from conftest import DOWN_CAMERA
-    from test_outputs import read_vtp
+    from conftest import read_vtp
     from vdo.commands.cli import main
 
     cams = DOWN_CAMERA.format(name="a", focal=24, u=0.4) + DOWN_CAMERA.format(name="b", focal=35, u=0.6)
