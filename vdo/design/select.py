@@ -147,6 +147,16 @@ def sigma_key(exp: Experiment) -> str:
     return "sigma_measured_p95_um" if exp.design.score == "measured" else "sigma_p95_um"
 
 
+def _region_p95(samples, sigma_m: np.ndarray, keep: np.ndarray) -> dict:
+    """Per region name: the p95 (µm) of `sigma_m` (m) over its samples where `keep`, None where
+    none is kept."""
+    out = {}
+    for r, name in enumerate(samples.region_names):
+        m = (samples.region == r) & keep
+        out[name] = float(np.percentile(sigma_m[m] * 1e6, 95)) if m.any() else None
+    return out
+
+
 def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
     """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
     region is unmeasured), the area fraction of all regions seen by their region's min_cameras
@@ -166,10 +176,7 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     covered = pred.coverage >= need
     seen = smp.area[covered].sum() / smp.area.sum()
     can = np.ones(len(smp), dtype=bool) if can_measure is None else np.asarray(can_measure, bool)
-    by_region = {}
-    for r, name in enumerate(smp.region_names):
-        m = (smp.region == r) & can & pred.measured
-        by_region[name] = float(np.percentile(pred.sigma_max[m] * 1e6, 95)) if m.any() else None
+    by_region = _region_p95(smp, pred.sigma_max, can & pred.measured)
     values = [by_region[r] for r in scored if by_region[r] is not None]
     area = float(smp.area[can].sum())
     out = {}
@@ -179,10 +186,7 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
                                         list(state.cameras), smp, state.visibility,
                                         state.illumination, state.geometry.speckle, pred,
                                         stereo_min_angle)
-        by_meas = {}
-        for r, name in enumerate(smp.region_names):
-            m = (smp.region == r) & np.isfinite(meas.sigma_max)
-            by_meas[name] = float(np.percentile(meas.sigma_max[m] * 1e6, 95)) if m.any() else None
+        by_meas = _region_p95(smp, meas.sigma_max, np.isfinite(meas.sigma_max))
         worst = [by_meas[r] for r in scored]
         out = {"sigma_measured_p95_um": None if any(v is None for v in worst) else max(worst),
                "sigma_measured_p95_by_region_um": by_meas}
