@@ -26,7 +26,8 @@ from functools import cached_property
 
 import numpy as np
 
-from vdo.physics import strain
+from vdo.physics import measured as measured_model, strain
+from vdo.constraints import stereo_min_angle
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
 from vdo.config.rig import CameraSpec
@@ -91,6 +92,17 @@ class LayoutState:
     @property
     def samples(self) -> SurfaceSamples:
         return self.geometry.samples
+
+    @cached_property
+    def measured(self) -> "measured_model.MeasuredFields":
+        """σ_measured of this layout for the experiment's [analysis] processing
+        (`vdo.physics.measured.measured_fields`, with `experiment`'s tables): what `vdo evaluate`
+        writes and `vdo design` scores its curve with."""
+        e = self.experiment
+        return measured_model.measured_fields(
+            e.regions, e.camera_specs, e.evaluation, e.speckle, e.sensor, e.analysis,
+            e.stereo_pairs, e.path, list(self.cameras), self.samples, self.visibility,
+            self.illumination, self.geometry.speckle, self._predicted(), stereo_min_angle)
 
     # -- for scripts: the fields in named units, per region ----------------------------------
     def _predicted(self) -> Prediction:

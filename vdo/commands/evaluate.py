@@ -136,10 +136,7 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)
-    meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
-                                    exp.sensor, exp.analysis, exp.stereo_pairs, exp.path,
-                                    list(cameras), samples, vis, illumination,
-                                    state.geometry.speckle, pred, constraints.stereo_min_angle)
+    meas = state.measured
     calibration_summary = None
     if calibration is not None:
         calibration_summary, calibration_errors = evaluation_errors(calibration, state)

@@ -43,8 +43,7 @@ from vdo.design.candidates import SPOT_M, Candidates, bodies, inventory, judge, 
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
 from vdo.outputs import report
-from vdo.physics import measured, usable
-from vdo.constraints import stereo_min_angle
+from vdo.physics import usable
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
 from vdo.config.rig import CameraSpec
@@ -164,7 +163,7 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     default everywhere): that area's fraction, the fraction of it seen by min_cameras, sigma_max
     p95 per region over its measured samples there (None for a region with none), and the worst
     of those (None only when no region has one). With [design] score = "measured" also
-    σ_measured (`vdo.physics.measured.measured_fields`, the [analysis] processing): p95 per region
+    σ_measured (`LayoutState.measured`, the [analysis] processing): p95 per region
     over its served samples ("sigma_measured_p95_by_region_um") and of the worst scored region
     ("sigma_measured_p95_um", None when a scored region is served nowhere), the figure the
     target and the curve then read (`sigma_key`)."""
@@ -181,11 +180,7 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     area = float(smp.area[can].sum())
     out = {}
     if exp.design.score == "measured":
-        meas = measured.measured_fields(exp.regions, exp.camera_specs, exp.evaluation, exp.speckle,
-                                        exp.sensor, exp.analysis, exp.stereo_pairs, exp.path,
-                                        list(state.cameras), smp, state.visibility,
-                                        state.illumination, state.geometry.speckle, pred,
-                                        stereo_min_angle)
+        meas = state.measured
         by_meas = _region_p95(smp, meas.sigma_max, np.isfinite(meas.sigma_max))
         worst = [by_meas[r] for r in scored]
         out = {"sigma_measured_p95_um": None if any(v is None for v in worst) else max(worst),
