@@ -100,9 +100,12 @@ def main():
     (folder / "plate.toml").write_text(textwrap.dedent(PLATE) + camera("left", -x, args.pixels)
                                        + camera("right", x, args.pixels))
     exp = config.load(folder / "plate.toml")
-    meshes = scene.load_meshes(exp)
-    ds = build_dic_scene(exp, meshes, scene.all_region_faces(exp, meshes), (), pattern_for(exp.speckle))
-    cams = cameras_of(exp)
+    meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                               rails=exp.rails, mounts=exp.mounts, path=exp.path)
+    faces = scene.all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                   spacing=exp.evaluation.sample_spacing, path=exp.path)
+    ds = build_dic_scene(exp, meshes, faces, (), pattern_for(exp.speckle))
+    cams = cameras_of(exp.camera_specs, exp.rails)
     t0, c0 = time.perf_counter(), time.process_time()
     refs = [render_camera_dic(ds, c).astype(np.float64) * 4000 for c in cams]
     defs = [render_camera_dic(ds, replace(c, position=np.asarray(c.position) - U_IMPOSED)).astype(np.float64)

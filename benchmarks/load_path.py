@@ -54,7 +54,7 @@ def main() -> None:
     residual = np.max(np.abs(np.polyval([b, a], counts) - seconds) / np.asarray(seconds))
     print(f"fit t = a + b K        a = {a:.2f} s, b = {b:.3f} s per keyframe "
           f"(largest deviation from the line {100 * residual:.0f} %)")
-    cameras = cameras_of(exp)
+    cameras = cameras_of(exp.camera_specs, exp.rails)
     t0 = time.perf_counter()
     layout_state(geometry, cameras, predict_fields=False)
     rest = time.perf_counter() - t0

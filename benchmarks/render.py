@@ -51,11 +51,13 @@ def main():
 
     exp = config.load(args.config)
     t0 = time.perf_counter()
-    meshes = scene.load_meshes(exp)
-    full = cameras_of(exp)
+    meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                               rails=exp.rails, mounts=exp.mounts, path=exp.path)
+    full = cameras_of(exp.camera_specs, exp.rails)
     bodies = [scene.camera_body(c) for c, s in zip(full, exp.camera_specs) if s.body]
-    sc = build_render_scene(exp, meshes, scene.all_region_faces(exp, meshes), bodies,
-                            pattern_for(exp.speckle))
+    faces = scene.all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                   spacing=exp.evaluation.sample_spacing, path=exp.path)
+    sc = build_render_scene(exp, meshes, faces, bodies, pattern_for(exp.speckle))
     t_scene = time.perf_counter() - t0
     index = [c.name for c in full].index(args.camera)
     cam, spec = scaled_camera(full[index], args.scale), exp.camera_specs[index]
@@ -114,10 +116,12 @@ def dic_benchmark(args):
     import numpy as np
 
     exp = config.load(args.config)
-    meshes = scene.load_meshes(exp)
-    full = cameras_of(exp)
+    meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                               rails=exp.rails, mounts=exp.mounts, path=exp.path)
+    full = cameras_of(exp.camera_specs, exp.rails)
     bodies = [scene.camera_body(c) for c, s in zip(full, exp.camera_specs) if s.body]
-    faces = scene.all_region_faces(exp, meshes)
+    faces = scene.all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                   spacing=exp.evaluation.sample_spacing, path=exp.path)
     pattern = pattern_for(exp.speckle)
     index = [c.name for c in full].index(args.camera)
     cam, spec = full[index], exp.camera_specs[index]

@@ -77,7 +77,10 @@ def run(axis: str, params: dict, folder: Path, root: Path = ROOT) -> dict:
     else:
         r = timed(["evaluate", str(path), "--out", str(out), "--overwrite", "--quiet"], folder, root)
         exp = config.load(path)
-        r |= {"samples": len(scene.sample_regions(exp, scene.load_meshes(exp)))}
+        meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                                   rails=exp.rails, mounts=exp.mounts, path=exp.path)
+        r |= {"samples": len(scene.sample_regions(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                                  spacing=exp.evaluation.sample_spacing, path=exp.path))}
     return {"axis": axis, "root": str(root), "regions": 4 * case["segments"], "cameras": case["cameras"],
             "spacing_mm": case["spacing_mm"], **r}
 

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def refresh_seconds(exp, geometry, unobstructed, repeats: int) -> tuple[list[float], int]:
     """Wall times of `repeats` refreshes of the hand layout, and the number of moving obstacles."""
-    cameras = cameras_of(exp)
+    cameras = cameras_of(exp.camera_specs, exp.rails)
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -76,9 +76,11 @@ def main():
     configure()
 
     exp = config.load(args.config)
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes, spacing=args.spacing_mm * 1e-3)
-    cameras = cameras_of(exp)
+    meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                               rails=exp.rails, mounts=exp.mounts, path=exp.path)
+    samples = scene.sample_regions(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                   spacing=args.spacing_mm * 1e-3, path=exp.path)
+    cameras = cameras_of(exp.camera_specs, exp.rails)
     bodies = [scene.camera_body(c) for c in cameras]
     sc = scene.build_scene(meshes + bodies)
     n_tri = sum(len(m.faces) for m in meshes + bodies)

@@ -33,6 +33,21 @@ def read_vtp(path):
     return vtk_to_numpy(data.GetPoints().GetData()), data.GetNumberOfVerts(), arrays
 
 
+def mesh_tables(exp) -> dict:
+    """The tables of `exp` that `vdo.scene.load_meshes` reads, as its keyword arguments:
+    ``load_meshes(**mesh_tables(exp))``."""
+    return dict(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                rails=exp.rails, mounts=exp.mounts, path=exp.path)
+
+
+def region_tables(exp, spacing=None) -> dict:
+    """The tables of `exp` that `vdo.scene.all_region_faces` and `sample_regions` read, at its
+    sample spacing unless `spacing` (m), as their keyword arguments:
+    ``sample_regions(meshes, **region_tables(exp))``."""
+    return dict(mesh_specs=exp.meshes, regions=exp.regions, path=exp.path,
+                spacing=exp.evaluation.sample_spacing if spacing is None else spacing)
+
+
 def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""
     box = trimesh.creation.box(extents=np.asarray(extents, dtype=float) * unit_scale)

@@ -102,7 +102,7 @@ def test_narrow_stereo_pair_opens_to_the_minimum_angle(tmp_path):
         assert float(row["rail_position_mm_before"]) == pytest.approx(u0 * rail_length_mm, abs=0.1)
     reloaded = config.load(out / "optimized.toml")
     layout = json.loads((out / "layout.json").read_text())["cameras"]
-    for cam, saved in zip(cameras_of(reloaded), layout):
+    for cam, saved in zip(cameras_of(reloaded.camera_specs, reloaded.rails), layout):
         np.testing.assert_allclose(cam.R, saved["R"], atol=1e-9)
         np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
     history = list(csv.DictReader((out / "history.csv").open()))
@@ -131,7 +131,7 @@ def test_rail_cameras_are_aimed_at_their_hand_aim_point_as_they_slide():
     keeps its aim point on the optical axis; a pan offset turns the heading by that angle; with
     u held the angles are absolute."""
     exp = config.load(EXPERIMENTS / "ten_cameras.toml")
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     param = Parameterization(exp, cams, np.zeros(3))
     for hand, rebuilt in zip(cams, param.cameras_at(param.theta0)):
         np.testing.assert_allclose(rebuilt.position, hand.position, atol=1e-12)
@@ -227,7 +227,7 @@ def _layout_reloads(out):
     """optimized.toml loads again and gives the cameras of layout.json."""
     reloaded = config.load(out / "optimized.toml")
     layout = json.loads((out / "layout.json").read_text())["cameras"]
-    for cam, saved in zip(cameras_of(reloaded), layout):
+    for cam, saved in zip(cameras_of(reloaded.camera_specs, reloaded.rails), layout):
         np.testing.assert_allclose(cam.R, saved["R"], atol=1e-9)
         np.testing.assert_allclose(cam.t, saved["t"], atol=1e-9)
     return reloaded

@@ -13,6 +13,7 @@ import pytest
 import trimesh
 
 from vdo.commands.evaluate import evaluate
+from conftest import mesh_tables, region_tables
 from vdo.config import experiment as config
 from vdo.outputs.maps import developed_outline
 from vdo.scene import all_region_faces, load_meshes, sample_regions
@@ -42,8 +43,8 @@ def coarse(spacing=0.016):
 
 def test_regions_are_the_cylinders_they_are():
     exp = coarse()
-    meshes = load_meshes(exp)
-    faces = all_region_faces(exp, meshes)
+    meshes = load_meshes(**mesh_tables(exp))
+    faces = all_region_faces(meshes, **region_tables(exp))
     by_name = dict(zip((r.name for r in exp.regions), faces))
     script = load_script()
     assert by_name["junction"].development.kind == "cylinder"
@@ -56,9 +57,9 @@ def test_regions_are_the_cylinders_they_are():
 
 def test_developed_hole_edge_keeps_its_length():
     exp = coarse()
-    meshes = {m.name: m for m in load_meshes(exp)}
-    samples = sample_regions(exp, list(meshes.values()))
-    faces = all_region_faces(exp, list(meshes.values()))
+    meshes = {m.name: m for m in load_meshes(**mesh_tables(exp))}
+    samples = sample_regions(list(meshes.values()), **region_tables(exp))
+    faces = all_region_faces(list(meshes.values()), **region_tables(exp))
     shell = meshes["shell"]
     outline = developed_outline(samples, 0, faces[0], shell.vertices, shell.faces)
     developed = np.linalg.norm(outline.holes[:, 1] - outline.holes[:, 0], axis=1).sum()

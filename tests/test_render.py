@@ -22,6 +22,7 @@ from vdo.commands.cli import main
 from vdo.render import build_render_scene, camera_sensor, expose, render_linear, scaled_camera
 from vdo.commands.render import render_experiment
 from vdo.model.speckle import pattern_for
+from conftest import mesh_tables, region_tables
 from vdo.scene import SurfaceSamples, cameras_of
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -59,8 +60,8 @@ def table(name, **values):
 
 
 def setup(exp, pattern=None):
-    meshes = scene.load_meshes(exp)
-    rf = scene.all_region_faces(exp, meshes)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    rf = scene.all_region_faces(meshes, **region_tables(exp))
     return meshes, build_render_scene(exp, meshes, rf, (), pattern)
 
 
@@ -104,7 +105,7 @@ def test_flat_field_noise_follows_the_emva_variance_line(plate_experiment):
     exp = replace(exp, render=replace(exp.render, ambient_radiance=1.0))
     sensor = exp.sensor
     _, sc = setup(exp, pattern=np.ones((16, 16), np.float32))
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     base = render_linear(sc, camera_sensor(cam, exp.camera_specs[0], 4), 0)   # = 0.8 x 1.0
     assert base.mean() == pytest.approx(exp.speckle.white_albedo, rel=2e-3)
     means, variances = [], []
@@ -129,7 +130,7 @@ def test_rendered_dots_have_the_configured_size(plate_experiment):
                     tile_texels=512, seed=5)
             + table("render", ambient_radiance=1.0))
     exp = config.load(plate_experiment(cameras=text))
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     assert cam.focal_px == pytest.approx(f_px)
     _, sc = setup(exp)
     image = render_linear(sc, camera_sensor(cam, exp.camera_specs[0], 4), 0)
@@ -158,7 +159,7 @@ def test_photometry_predicts_the_render(plate_experiment):
                     tile_texels=256, seed=2))
     exp = config.load(plate_experiment(cameras=text))
     meshes, sc = setup(exp)
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     linear = render_linear(sc, camera_sensor(cam, exp.camera_specs[0], 16), 0)
     pattern = pattern_for(exp.speckle)
     pts = plane_samples(pixel_points(cam))
@@ -195,10 +196,10 @@ def test_shadow_of_a_bar_is_where_the_shadow_map_puts_it(plate_experiment):
                             files=[("bar.stl", [1000, 120, 20], [0, 0, 200])])
     exp = config.load(path)
     meshes, sc = setup(exp, pattern=np.ones((16, 16), np.float32))
-    samples = scene.sample_regions(exp, meshes)
+    samples = scene.sample_regions(meshes, **region_tables(exp))
     blockers = scene.build_scene(meshes)
     illum = lighting.illuminate(blockers, exp.lights, samples)
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     vis = visibility.compute_visibility(blockers, [cam], samples, exp.evaluation.incidence_limit,
                                         progress=False)
     linear = render_linear(sc, camera_sensor(cam, exp.camera_specs[0], 16), 0)
@@ -230,7 +231,7 @@ def test_builtin_experiment_renders_a_complete_run_folder(tmp_path):
                                                  "shadows.vtp", "maps/shadows.png", "config.toml",
                                                  "render.json", "report.html"} == names
     layout = json.loads((out / "layout.json").read_text())
-    full = cameras_of(exp)
+    full = cameras_of(exp.camera_specs, exp.rails)
     for entry, cam in zip(layout["cameras"], full):
         small = scaled_camera(cam, 0.05)
         assert (entry["width"], entry["height"]) == (small.width, small.height) == (

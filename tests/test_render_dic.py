@@ -23,6 +23,7 @@ from vdo.model.speckle import (gradient_energy_table, g_iso_lookup, normalise,  
                                pattern_for, pixel_averaged_std)
 from vdo.render import (SpeckleTable, build_dic_scene, build_render_scene, render_camera,  # noqa: E402
                         render_camera_dic, render_settings)
+from conftest import mesh_tables, region_tables  # noqa: E402
 from vdo.scene import cameras_of
 
 FINE = 400                  # midpoints per axis of the reference quadrature of one box
@@ -65,10 +66,10 @@ def plate(plate_experiment, camera_text, light_text="", ambient=0.05, bar=True, 
 
 
 def renders(exp, spp=REFERENCE_SPP):
-    meshes = scene.load_meshes(exp)
-    rf = scene.all_region_faces(exp, meshes)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    rf = scene.all_region_faces(meshes, **region_tables(exp))
     pattern = pattern_for(exp.speckle)
-    cam, spec = cameras_of(exp)[0], exp.camera_specs[0]
+    cam, spec = cameras_of(exp.camera_specs, exp.rails)[0], exp.camera_specs[0]
     fast = render_camera_dic(build_dic_scene(exp, meshes, rf, (), pattern), cam)
     sc = build_render_scene(exp, meshes, rf, (), pattern)
     a, b = (render_camera(sc, cam, spec, spp, seed).astype(float) for seed in (1, 2))
@@ -111,7 +112,7 @@ def test_dic_mode_contrast_and_gradient_energy(plate_experiment, focal_mm):
     sp = exp.speckle
     pattern = pattern_for(exp.speckle)
     f_hat = normalise(pattern)
-    p = 0.5 / cameras_of(exp)[0].focal_px                    # m per pixel on the plate
+    p = 0.5 / cameras_of(exp.camera_specs, exp.rails)[0].focal_px                    # m per pixel on the plate
 
     def albedo(image):
         return (image[10:-10, 10:-10] / exp.render.ambient_radiance - sp.black_albedo) / (
@@ -157,7 +158,7 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
         render_images, scaled_camera
 
     exp = plate(plate_experiment, down_camera("c", [0, 0, 0.5], (6000, 4000), 3.45, 25), bar=False)
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     kept = 6000 * 4000 * IMAGE_BYTES_PER_PIXEL
     roomy = plan_render(cams, "dic", available=8 * 2 ** 30)
     assert roomy.tile_pixels == TILE_PIXELS and roomy.kept == kept
@@ -175,8 +176,8 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
     monkeypatch.undo()
     # Tiles: the same image in 1 tile or in tiles of 16 rows (light-map nodes restart per tile).
     small = scaled_camera(cams[0], 0.04)
-    meshes = scene.load_meshes(exp)
-    ds = build_dic_scene(exp, meshes, scene.all_region_faces(exp, meshes))
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    ds = build_dic_scene(exp, meshes, scene.all_region_faces(meshes, **region_tables(exp)))
     whole = render_camera_dic(ds, small)
     tiled = render_camera_dic(ds, small, tile_pixels=16 * small.width)
     assert np.abs(tiled - whole).max() <= TILE_TOL * whole.max()

@@ -50,11 +50,11 @@ def test_edit_in_file_units_equals_the_file(beam, tmp_path):
     entry.update(u=0.3, focal_mm=50, pan_deg=-20, tilt_deg=10)
     from_file = parse(data, BEAM).with_settings(evaluation={"sample_spacing_mm": 40})
     assert text   # the shipped file itself is unchanged
-    for a, b in zip(cameras_of(edited), cameras_of(from_file)):
+    for a, b in zip(cameras_of(edited.camera_specs, edited.rails), cameras_of(from_file.camera_specs, from_file.rails)):
         np.testing.assert_allclose(a.K, b.K, rtol=1e-12)
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.position, b.position, atol=1e-12)
-    cam = cameras_of(edited)[1]
+    cam = cameras_of(edited.camera_specs, edited.rails)[1]
     assert cam.focal_length == pytest.approx(0.050) and math.degrees(cam.pan) == pytest.approx(-20)
 
 
@@ -70,9 +70,9 @@ def test_a_move_reaims_at_the_aim_point(which, camera, move, beam, steel):
     if which == "steel":   # aim it by pan and tilt first (the file aims it at a target)
         exp = exp.with_camera(camera, pan_deg=75.0, tilt_deg=8.0)
     c = [s.name for s in exp.camera_specs].index(camera)
-    old = cameras_of(exp)[c]
+    old = cameras_of(exp.camera_specs, exp.rails)[c]
     moved = exp.with_camera(camera, centre=geometry.centre, **move)
-    new = cameras_of(moved)[c]
+    new = cameras_of(moved.camera_specs, moved.rails)[c]
     depth = float((geometry.centre - old.position) @ old.optical_axis)
     aim = old.position + depth * old.optical_axis
     np.testing.assert_allclose(_opencv_pixel(old, aim), old.principal_point, atol=AT_CENTRE_PX)
@@ -84,7 +84,7 @@ def test_a_move_reaims_at_the_aim_point(which, camera, move, beam, steel):
 def test_a_camera_with_a_target_keeps_it(steel):
     exp = steel.experiment
     moved = steel.with_camera("left", position_m=[-0.3, -1.4, 0.8])
-    new = cameras_of(moved)[0]
+    new = cameras_of(moved.camera_specs, moved.rails)[0]
     target = exp.camera_specs[0].target
     np.testing.assert_allclose(_opencv_pixel(new, target), new.principal_point, atol=AT_CENTRE_PX)
 
@@ -170,7 +170,7 @@ def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_p
     import dataclasses
     import json
     geometry = beam if which == "beam" else steel
-    cams = cameras_of(geometry.experiment)
+    cams = cameras_of(geometry.experiment.camera_specs, geometry.experiment.rails)
     cams[0] = dataclasses.replace(cams[0], focal_length=cams[0].focal_length * 1.5)
     cams[1] = cams[1].with_pose(cams[1].position + np.array([0.02, 0.0, 0.03]), cams[1].pan + 0.05,
                                 cams[1].tilt)
@@ -178,11 +178,11 @@ def test_write_evaluation_writes_the_cameras_it_judged(which, beam, steel, tmp_p
     result = vdo.write_evaluation(state, tmp_path / "run")
     again = vdo.load(tmp_path / "run" / "config.toml")
     layout = json.loads((tmp_path / "run" / "layout.json").read_text())
-    for cam, written in zip(cameras_of(again), cams):
+    for cam, written in zip(cameras_of(again.camera_specs, again.rails), cams):
         np.testing.assert_allclose(cam.K, written.K, rtol=1e-10)
         np.testing.assert_allclose(cam.R, written.R, atol=1e-10)
         np.testing.assert_allclose(cam.position, written.position, atol=1e-10)
-    for cam, written in zip(cameras_of(again), layout["cameras"]):   # config.toml agrees with layout.json
+    for cam, written in zip(cameras_of(again.camera_specs, again.rails), layout["cameras"]):   # config.toml agrees with layout.json
         assert cam.name == written["name"]
         np.testing.assert_allclose(cam.K, written["K"], rtol=1e-10)
         np.testing.assert_allclose(cam.R, written["R"], atol=1e-10)

@@ -228,7 +228,7 @@ def test_a_camera_is_not_hidden_by_its_own_tripod(tmp_path, tilt):
 def test_tripod_geometry_follows_the_mount_table(tmp_path, legs):
     exp = config.load(write(tmp_path, legs=legs))
     spec = exp.mount("floor").tripod
-    stand = cameras_of(exp)[1]
+    stand = cameras_of(exp.camera_specs, exp.rails)[1]
     parts = tripod_cylinders(stand, spec)
     assert len(parts) == legs + 1
     top = parts[0][0]
@@ -295,7 +295,7 @@ def test_render_shows_the_other_cameras_tripod(tmp_path):
 
     exp = config.load(write(tmp_path))
     geometry = prepare(exp)
-    viewer, stand = cameras_of(exp)
+    viewer, stand = cameras_of(exp.camera_specs, exp.rails)
     images = []
     for cams in ([viewer, stand], [viewer]):
         sc = build_render_scene(exp, list(geometry.meshes), list(geometry.region_faces), bodies(exp, cams))
@@ -353,7 +353,7 @@ def test_the_run_in_3d_draws_each_tripod(tmp_path):
     report.write_config(run / "config.toml", exp)
     drawn = {name: (v, f) for name, _, v, f in view3d.load(run).meshes}
     assert set(drawn) == {"wall", "tripod:stand"}
-    parts = tripods(exp, cameras_of(exp))
+    parts = tripods(cameras_of(exp.camera_specs, exp.rails), camera_specs=exp.camera_specs, mounts=exp.mounts)
     vertices, faces = drawn["tripod:stand"]
     np.testing.assert_allclose(vertices, np.vstack([p.vertices for p in parts]), atol=1e-9)
     assert len(faces) == sum(len(p.faces) for p in parts) and faces.max() == len(vertices) - 1

@@ -208,7 +208,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     scale, spp, seed = render_settings(exp, scale, spp, seed)
     dic = exp.render.mode == "dic"
     started = time.perf_counter()
-    cameras = [scaled_camera(c, scale) for c in cameras_of(exp)]
+    cameras = [scaled_camera(c, scale) for c in cameras_of(exp.camera_specs, exp.rails)]
     try:
         plan = plan_render(cameras, exp.render.mode)
     except MemoryError as err:

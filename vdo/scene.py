@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from vdo.config.experiment import Experiment, camera_positions
+from vdo.config.experiment import camera_positions
+from vdo.config.mounts import RailSpec
+from vdo.config.rig import CameraSpec
 from vdo.core.backend import mitsuba
 from vdo.meshes.hardware import (TRIPOD_SECTIONS, camera_body, camera_body_local, camera_body_points,
                                  camera_body_spheres, lens_length, prism, tripod, tripod_cylinders,
@@ -32,12 +34,13 @@ __all__ = ["cameras_of", "mitsuba_mesh", "build_scene",
            "camera_body_spheres", "lens_length", "prism", "tripod", "tripod_cylinders", "tripods"]
 
 
-def cameras_of(exp: Experiment) -> list[Camera]:
-    """The configured cameras of `exp` (`vdo.model.camera.Camera`), in [[camera]] order: optical
-    centres from rails and positions (`camera_positions`), aimed at target_m or by pan and tilt
-    (`CameraSpec.angles`), pixel pitch = sensor width / pixel columns."""
+def cameras_of(camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec, ...]) -> list[Camera]:
+    """The cameras (`vdo.model.camera.Camera`) that `camera_specs` (an experiment's [[camera]]
+    tables, `exp.camera_specs`) configure, in their order: optical centres from `rails` (its
+    [[rail]] tables, `exp.rails`) and positions (`camera_positions`), aimed at target_m or by pan
+    and tilt (`CameraSpec.angles`), pixel pitch = sensor width / pixel columns."""
     out = []
-    for spec, position in zip(exp.camera_specs, camera_positions(exp)):
+    for spec, position in zip(camera_specs, camera_positions(camera_specs, rails)):
         pan, tilt = spec.angles(position)
         width, height = spec.pixels
         out.append(Camera(name=spec.name, width=width, height=height,

@@ -208,7 +208,7 @@ def experiment_with_cameras(exp: Experiment, cameras) -> Experiment:
     `body = false`; a camera of `exp` absent from `cameras` is dropped. `exp` itself when every
     camera is as it configures them."""
     cameras = tuple(cameras)
-    configured = {c.name: c for c in cameras_of(exp)}
+    configured = {c.name: c for c in cameras_of(exp.camera_specs, exp.rails)}
     specs = {s.name: s for s in exp.camera_specs}
     out = []
     for cam in cameras:
@@ -289,10 +289,14 @@ def _first_difference(table: str, a, b) -> str | None:
 
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     """Read the meshes (unless given), sample the regions and build the speckle model."""
-    meshes = load_meshes(exp) if meshes is None else meshes
-    faces = tuple(all_region_faces(exp, meshes))
-    samples = sample_regions(exp, meshes, faces=list(faces))
+    if meshes is None:
+        meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                             rails=exp.rails, mounts=exp.mounts, path=exp.path)
     spacing, patch = exp.evaluation.sample_spacing, exp.evaluation.patch_size
+    faces = tuple(all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions, spacing=spacing,
+                                   path=exp.path))
+    samples = sample_regions(meshes, mesh_specs=exp.meshes, regions=exp.regions, spacing=spacing,
+                             path=exp.path, faces=list(faces))
     by_name = {m.name: m for m in meshes}
     rasters = [surface_raster(by_name[r.mesh], rf, spacing) if patch <= FINE_PATCH_CELLS * spacing else None
                for r, rf in zip(exp.regions, faces)]
@@ -313,7 +317,8 @@ def bodies(exp: Experiment, cameras) -> list[SceneMesh]:
     `body = true` (the default), and the tripods (`vdo.scene.tripods`) of those on a zone
     [[mount]] with a [mount.tripod], built where the cameras stand now."""
     with_body = {spec.name for spec in exp.camera_specs if spec.body}
-    return [camera_body(c) for c in cameras if c.name in with_body] + tripods(exp, cameras)
+    return [camera_body(c) for c in cameras if c.name in with_body] + tripods(
+        cameras, camera_specs=exp.camera_specs, mounts=exp.mounts)
 
 
 def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = True,
@@ -332,8 +337,8 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
     exp = geometry.experiment
     if isinstance(cameras, Experiment):
         check_geometry(geometry, cameras)
-        exp, cameras = cameras, cameras_of(cameras)
-    cameras = tuple(cameras_of(exp) if cameras is None else cameras)
+        exp, cameras = cameras, cameras_of(cameras.camera_specs, cameras.rails)
+    cameras = tuple(cameras_of(exp.camera_specs, exp.rails) if cameras is None else cameras)
     obstacles = bodies(exp, cameras)
     scene = build_scene(list(geometry.meshes) + obstacles)
     vis = compute_visibility(scene, list(cameras), geometry.samples,

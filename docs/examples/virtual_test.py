@@ -98,7 +98,7 @@ def inputs(folder: Path, exp):
 def cropped(exp, names, crop_px):
     """The experiment with only the cameras `names`, each cropped to `crop_px` full-size pixels
     centred on the projection of the joint top's centre (same pixels, shifted principal point)."""
-    cameras = {c.name: c for c in vdo.cameras_of(exp)}
+    cameras = {c.name: c for c in vdo.cameras_of(exp.camera_specs, exp.rails)}
     specs = []
     for spec in exp.camera_specs:
         if spec.name not in names:
@@ -200,7 +200,8 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
                             pairs=[QUICK_PAIR] if quick else None)
     geometry = prepare(exp)
     moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1).samples.points
-    cameras = {c.name: scaled_camera(c, summary["scale"]) for c in vdo.cameras_of(exp)}
+    cameras = {c.name: scaled_camera(c, summary["scale"])
+               for c in vdo.cameras_of(exp.camera_specs, exp.rails)}
     sensor, s, patch = exp.sensor, geometry.samples, exp.evaluation.patch_size
     rows, floor = [], []
     for first, second in summary["stereo_pairs"]:

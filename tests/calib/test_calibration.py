@@ -161,7 +161,7 @@ def test_written_images_calibrate_in_opencv(tmp_path, path, distortion):
     session = planned.session
     images = render_session(exp, session, RENDER_SCALE, spp=4)
     write(images.exposed(exp.sensor, 0, 0), session, tmp_path, exp.sensor, "png", "msb")
-    for cam in cameras_of(exp):
+    for cam in cameras_of(exp.camera_specs, exp.rails):
         truth = scaled_camera(cam, RENDER_SCALE)
         rms, K, dist, sigma, size, found = opencv_calibrate(tmp_path, cam.name)
         assert size == (truth.width, truth.height)
@@ -337,7 +337,7 @@ def test_import_round_trip(tmp_path, fmt):
     if fmt != "vic3d":          # VIC-3D's file holds no tangential terms
         data["camera"][1]["distortion"] = [0.03, 0.0, 0.001, -0.0005, 0.0]
     exp = parse(data, exp.path)
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     written = WRITERS[fmt](cams, [StereoPair(cams[0], cams[1])], tmp_path, exp.path)
     frame = np.eye(4)
     if fmt == "matchid":        # its frame is the first camera's: place it where that camera is
@@ -355,7 +355,8 @@ def test_import_refuses_another_image_size(tmp_path):
     from vdo.calib.importer import import_cameras
     from vdo.formats.opencv import write
 
-    cams = cameras_of(load(STEEL))
+    steel = load(STEEL)
+    cams = cameras_of(steel.camera_specs, steel.rails)
     path = write(cams[:1], [], tmp_path, STEEL)[0]
     from dataclasses import replace
 
@@ -378,7 +379,7 @@ def exported(tmp_path, fmt):
     if fmt != "vic3d":
         data["camera"][1]["distortion"] = [0.03, 0.0, 0.001, -0.0005, 0.0]
     exp = parse(data, STEEL)
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     written = WRITERS[fmt](cams, [StereoPair(cams[0], cams[1])], tmp_path, exp.path)
     files = [p for p in written if not p.name.startswith("stereo_")][:1 if fmt != "opencv" else None]
     return exp, files
@@ -401,9 +402,10 @@ def test_evaluate_calibration_import_round_trip(tmp_path, fmt):
             continue
         moved = moved.with_camera(c.name, position_m=(c.position + [0.0, -0.05, 0.1]).tolist(),
                                   target_m=[0.1, 0.0, 1.0], focal_mm=12)
-    imported = cameras_of(with_imported(moved, files))
+    back = with_imported(moved, files)
+    imported = cameras_of(back.camera_specs, back.rails)
     X = np.random.default_rng(1).uniform([-0.3, -0.1, 0.7], [0.3, 0.1, 1.1], (200, 3))
-    for mine, theirs in zip(imported, cameras_of(exp)):
+    for mine, theirs in zip(imported, cameras_of(exp.camera_specs, exp.rails)):
         assert mine.name == theirs.name
         assert np.abs(mine.project(X) - theirs.project(X)).max() < ROUND_TRIP_PX
 
@@ -580,15 +582,16 @@ def test_a_lab_frame_is_placed_by_its_anchor_camera(tmp_path, capsys):
     from vdo.formats.export import FORMATS as WRITERS
 
     exp = load(HOLED)
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     written = WRITERS["opencv"](cams, [], tmp_path, exp.path)
     files = [p for p in written if not p.name.startswith("stereo_")]
     Rg = cv2.Rodrigues(np.array([0.3, -0.2, 1.1]))[0]
     for p in files:
         _in_lab_frame(p, Rg, np.array([120.0, -40.0, 900.0]))
     X = np.random.default_rng(1).uniform([-0.1, -0.1, -0.02], [0.1, 0.1, 0.02], (200, 3))
-    placed = cameras_of(with_imported(exp, files, anchor=cams[1].name))
-    loose = cameras_of(with_imported(exp, files))
+    anchored, unanchored = with_imported(exp, files, anchor=cams[1].name), with_imported(exp, files)
+    placed = cameras_of(anchored.camera_specs, anchored.rails)
+    loose = cameras_of(unanchored.camera_specs, unanchored.rails)
     for mine, theirs, off in zip(placed, cams, loose):
         assert np.abs(mine.project(X) - theirs.project(X)).max() < ROUND_TRIP_PX
         assert np.linalg.norm(off.position - theirs.position) > 0.1

@@ -57,12 +57,12 @@ def test_evaluate_gives_calibration_errors_with_imported_cameras(tmp_path, capsy
     exp = load(config)
     lab = exp.with_camera("left", position_m=[-0.142, -0.686, 1.0])
     (tmp_path / "lab").mkdir()
-    files = write(cameras_of(lab), [], tmp_path / "lab", config)
+    files = write(cameras_of(lab.camera_specs, lab.rails), [], tmp_path / "lab", config)
     out = tmp_path / "run"
     assert main(["evaluate", str(config), "--out", str(out), "--calibration", *map(str, files)]) == 0
     assert "calib strain ue" in capsys.readouterr().out
     layout = {c["name"]: c for c in json.loads((out / "layout.json").read_text())["cameras"]}
-    for cam in cameras_of(lab):
+    for cam in cameras_of(lab.camera_specs, lab.rails):
         np.testing.assert_allclose(layout[cam.name]["position_m"], cam.position, atol=1e-9)
     summary = json.loads((out / "summary.json").read_text())
     cal = summary["calibration"]

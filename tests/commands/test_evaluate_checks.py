@@ -65,7 +65,7 @@ def test_evaluate_reports_clearance_axis_angle_and_a_blind_camera(tmp_path, capl
     assert by[("axis_angle_max", ("left", "right"))]["met"] == (expected <= 35 + 1e-6)
 
     # the clearance of the left camera: trimesh's exact distance from its body to the meshes
-    cam = next(c for c in cameras_of(exp) if c.name == "left")
+    cam = next(c for c in cameras_of(exp.camera_specs, exp.rails) if c.name == "left")
     body = camera_body(cam)
     points = trimesh.sample.sample_surface_even(
         trimesh.Trimesh(body.vertices, body.faces, process=False), 300, seed=1)[0]

@@ -8,6 +8,7 @@ import trimesh
 from vdo.config import experiment as config
 from vdo.commands.cli import main
 from vdo.core.errors import ConfigError
+from conftest import mesh_tables, region_tables
 from vdo.scene import cameras_of, load_meshes, sample_regions
 
 
@@ -72,7 +73,7 @@ def test_unreadable_mesh_content(plate_experiment):
     (path.parent / "plate.stl").write_bytes(b"solid junk\n this is not an stl\n")
     exp = config.load(path)
     with pytest.raises(ConfigError, match=r'mesh "plate"\.file: .*(cannot read|holds no triangles)'):
-        load_meshes(exp)
+        load_meshes(**mesh_tables(exp))
 
 
 def test_non_planar_region_is_refused(plate_experiment):
@@ -85,14 +86,14 @@ def test_non_planar_region_is_refused(plate_experiment):
     trimesh.util.concatenate([a, b]).export(path.parent / "plate.stl")
     exp = config.load(path)
     with pytest.raises(ConfigError, match=r'region "top": selects faces that are not coplanar'):
-        sample_regions(exp, load_meshes(exp))
+        sample_regions(load_meshes(**mesh_tables(exp)), **region_tables(exp))
 
 
 def test_defaults_and_units_are_resolved(plate_experiment):
     exp = config.load(plate_experiment())
     assert exp.meshes[0].scale == 0.001
     assert exp.evaluation.incidence_limit == pytest.approx(math.radians(75))
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     assert cam.pixel_size == pytest.approx(22.2e-3 / 600)
     assert cam.position.tolist() == pytest.approx([0.0, 0.0, 1.5])
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from vdo import scene
 from vdo.config import experiment as config
 from vdo.config.schema import NAME_PATTERN
-from conftest import DOWN_CAMERA
+from conftest import DOWN_CAMERA, mesh_tables, region_tables
 from vdo.core.errors import ConfigError
 
 
@@ -36,12 +36,12 @@ def error(path, stage=config.load) -> ConfigError:
 
 
 def meshes_of(path):
-    return scene.load_meshes(config.load(path))
+    return scene.load_meshes(**mesh_tables(config.load(path)))
 
 
 def samples_of(path):
     exp = config.load(path)
-    return scene.sample_regions(exp, scene.load_meshes(exp))
+    return scene.sample_regions(scene.load_meshes(**mesh_tables(exp)), **region_tables(exp))
 
 
 # --------------------------------------------------------------------------------------------
@@ -167,7 +167,8 @@ def test_absurd_values(plate_experiment, old, new, field, words):
 def test_coincident_cameras(plate_experiment):
     err = error(plate_experiment(cameras=two_cameras(0.5)))
     assert err.field == 'camera "b"' and "cannot share one pose" in err.message
-    assert len(scene.cameras_of(config.load(plate_experiment(cameras=two_cameras(0.51))))) == 2   # 2 cm apart
+    apart = config.load(plate_experiment(cameras=two_cameras(0.51)))
+    assert len(scene.cameras_of(apart.camera_specs, apart.rails)) == 2   # 2 cm apart
 
 
 def test_camera_inside_a_mesh(plate_experiment):
@@ -219,11 +220,11 @@ def test_sample_count_is_capped_with_the_fix(plate_experiment):
     assert err.field == "evaluation.sample_spacing_mm"
     assert "about 4,000,000 samples" in err.message and "raise sample_spacing_mm to 0.8 or more" in err.message
     exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    faces = scene.all_region_faces(exp, meshes, 0.8e-3)
-    scene.check_sample_count(exp, meshes, faces, 0.8e-3)          # 1.56 M: the suggested fix fits
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    faces = scene.all_region_faces(meshes, **region_tables(exp, 0.8e-3))
+    scene.check_sample_count(meshes, faces, 0.8e-3, path=exp.path)    # 1.56 M: the suggested fix fits
     with pytest.raises(ConfigError):
-        scene.check_sample_count(exp, meshes, faces, 0.7e-3)      # 2.04 M
+        scene.check_sample_count(meshes, faces, 0.7e-3, path=exp.path)   # 2.04 M
 
 
 # --------------------------------------------------------------------------------------------
@@ -253,13 +254,13 @@ def test_box_cutting_faces_splits_them(plate_experiment):
     path = edited(plate_experiment(), ("normal = [0, 0, 1]", "normal = [0, 0, 1]\nbox_min_m = [-0.2, -1, -1]\n"
                                                              "box_max_m = [0.2, 1, 1]"))
     exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    (rf,) = scene.all_region_faces(exp, meshes)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    (rf,) = scene.all_region_faces(meshes, **region_tables(exp))
     tm = meshes[0].trimesh
     assert tm.area_faces[rf.faces].sum() == pytest.approx(0.4, rel=1e-12)       # 0.4 m x 1 m
     assert tm.area == pytest.approx(2 * 1 + 4 * 0.01, rel=1e-12)                # surface unchanged
     assert trimesh.Trimesh(tm.vertices, tm.faces).is_watertight                  # no crack at the cut
-    samples = scene.sample_regions(exp, meshes)
+    samples = scene.sample_regions(meshes, **region_tables(exp))
     assert len(samples) == 40 * 100 and samples.points[:, 0].min() > -0.2
 
 

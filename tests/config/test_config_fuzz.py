@@ -18,6 +18,7 @@ from config_documents import JUNK, NO_SHRINK, plate_file, same
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from conftest import mesh_tables
 from vdo import scene
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
@@ -186,7 +187,7 @@ def test_mutated_mesh_files(folder, key, cut, flips, prefix, unit):
     doc["optimize"]["cameras"] = ["c2"]
     path = (folder / "mesh.toml").resolve()
     exp = config.parse(doc, path)
-    result = check_outcome(path, lambda: scene.load_meshes(exp))
+    result = check_outcome(path, lambda: scene.load_meshes(**mesh_tables(exp)))
     if isinstance(result, ConfigError):
         assert result.field in ('mesh "plate".file', 'camera "c2"'), str(result)
     else:

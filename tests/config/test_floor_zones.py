@@ -66,7 +66,7 @@ def test_point_in_floor_matches_matplotlib():
 
 def test_a_ring_zone_loads_and_the_hole_is_off_it(tmp_path):
     exp = config.load(write(tmp_path))
-    assert cameras_of(exp)[0].position.tolist() == pytest.approx([1.5, 0.0, 1.2])
+    assert cameras_of(exp.camera_specs, exp.rails)[0].position.tolist() == pytest.approx([1.5, 0.0, 1.2])
     assert not exp.mount("ring").convex
     with pytest.raises(ConfigError) as err:
         config.load(write(tmp_path, position="position_m = [0.5, 0.0, 1.2]"))
@@ -97,5 +97,5 @@ def test_design_candidates_stand_on_the_ring(tmp_path):
 def test_optimize_says_it_needs_convex_floors(tmp_path):
     exp = config.load(write(tmp_path, extra='\n[optimize]\nfree = ["u", "pan", "tilt"]\n'))
     with pytest.raises(ConfigError) as err:
-        Parameterization(exp, cameras_of(exp), np.zeros(3))
+        Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
     assert err.value.field == 'mount "ring".floor_m' and "convex floors only" in err.value.message

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import PLATE_TOML, write_box
+from conftest import PLATE_TOML, mesh_tables, region_tables, write_box
 from vdo import constraints
 from vdo.config import experiment as config
 from vdo.config.mounts import inside_keep_out
@@ -99,8 +99,8 @@ def test_design_drops_the_candidates_inside(tmp_path):
     (the grid's x values are 0.3, 0.6, 0.9), the others stay, and none inside is a candidate."""
     path = write(tmp_path, keep_out('[0.7, -inf, -inf]', '[inf, inf, inf]'), DESIGN)
     exp = config.load(path)
-    meshes = load_meshes(exp)
-    cams, mounts, *_, dropped = candidate_cameras(exp, sample_regions(exp, meshes), meshes)
+    meshes = load_meshes(**mesh_tables(exp))
+    cams, mounts, *_, dropped = candidate_cameras(exp, sample_regions(meshes, **region_tables(exp)), meshes)
     zone = np.array([c.position for c, m in zip(cams, mounts) if m == "ring"])
     assert len(zone) and np.all(zone[:, 0] < 0.7)
     assert set(np.round(zone[:, 0], 9)) == {0.3, 0.6}
@@ -133,10 +133,10 @@ def test_penalty_is_zero_outside_and_its_gradient_is_right():
 def test_exact_check_measures_the_depth(tmp_path):
     path = write(tmp_path, keep_out("[0.5, 0.15, 0.9]", "[0.7, 0.3, 1.1]"))
     exp = config.load(path)
-    entries = constraints.keep_out_checks(cameras_of(exp), exp.keep_outs)
+    entries = constraints.keep_out_checks(cameras_of(exp.camera_specs, exp.rails), exp.keep_outs)
     t = next(e for e in entries if e["cameras"] == ["t"])
     assert t["value"] == pytest.approx(-0.05) and t["met"]      # y = 0.1: 5 cm short of the box's y = 0.15
     moved = [c if c.name != "t" else type(c)(**{**c.__dict__, "position": np.array([0.6, 0.2, 1.0])})
-             for c in cameras_of(exp)]
+             for c in cameras_of(exp.camera_specs, exp.rails)]
     inside = next(e for e in constraints.keep_out_checks(moved, exp.keep_outs) if e["cameras"] == ["t"])
     assert inside["value"] == pytest.approx(0.05) and not inside["met"]   # 5 cm inside (y = 0.15 face)

@@ -72,14 +72,14 @@ def write(tmp_path, mounts=MOUNTS, cameras=CAMERAS, extra=""):
 
 def test_zone_fixed_and_rail_mounts_load_and_reload(tmp_path):
     exp = config.load(write(tmp_path))
-    t, w, b = cameras_of(exp)
+    t, w, b = cameras_of(exp.camera_specs, exp.rails)
     np.testing.assert_allclose(t.position, [0.6, 0.1, 1.0])
     np.testing.assert_allclose(w.position, [-0.8, 0.0, 1.0])
     np.testing.assert_allclose(b.position, [0.0, -0.8, 1.5])   # middle of the rail mount
     assert exp.camera_specs[2].rail == "beam" and exp.camera_specs[0].mount == "tripod"
     report.write_config(tmp_path / "again.toml", exp)
     again = config.load(tmp_path / "again.toml")
-    for c0, c1 in zip(cameras_of(exp), cameras_of(again)):
+    for c0, c1 in zip(cameras_of(exp.camera_specs, exp.rails), cameras_of(again.camera_specs, again.rails)):
         np.testing.assert_allclose(c1.position, c0.position, atol=1e-12)
         np.testing.assert_allclose(c1.R, c0.R, atol=1e-12)
     assert [m.name for m in again.mounts] == ["tripod", "wall"]
@@ -87,7 +87,7 @@ def test_zone_fixed_and_rail_mounts_load_and_reload(tmp_path):
 
 def _param(tmp_path):
     exp = config.load(write(tmp_path))
-    return exp, Parameterization(exp, cameras_of(exp), np.zeros(3))
+    return exp, Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
 
 
 def test_zone_map_stays_inside_the_zone_for_any_parameters(tmp_path):
@@ -161,7 +161,7 @@ def test_optimized_zone_camera_stays_in_its_zone_and_reloads(tmp_path):
     optimize(exp, out)
     again = config.load(out / "optimized.toml")
     zone = again.mount("tripod")
-    cam = cameras_of(again)[0]
+    cam = cameras_of(again.camera_specs, again.rails)[0]
     assert again.camera_specs[0].mount == "tripod"
     assert np.all(cam.position >= zone.box_min) and np.all(cam.position <= zone.box_max)
 
@@ -184,7 +184,7 @@ def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
     from vdo.config.mounts import inside_floor
 
     exp = config.load(write(tmp_path, MOUNTS + FLOOR, FLOOR_CAMERA))
-    param = Parameterization(exp, cameras_of(exp), np.zeros(3))
+    param = Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
     idx = param.index[0]
     assert {"w1", "w2", "w3", "w4", "z"} <= set(idx)
     np.testing.assert_allclose(param.cameras_at(param.theta0)[0].position, [0.7, -0.1, 1.1], atol=1e-6)

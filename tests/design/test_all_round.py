@@ -115,7 +115,7 @@ def test_six_cameras_around_a_cylinder_stand_equally_spaced_on_the_near_ring(sel
 
 def test_equal_spacing_beats_a_cluster_and_the_far_ring_in_coverage_and_sigma(selection):
     exp, geometry, cand, scorer, chosen, score = selection
-    by_name = {c.name: c for c in cameras_of(exp)}
+    by_name = {c.name: c for c in cameras_of(exp.camera_specs, exp.rails)}
     designed = [cand.cameras[i] for i in chosen]
     cluster = [by_name[f"near{k}"] for k in range(6)]                 # 0..150 deg: one side
     far = [by_name[f"far{k}"] for k in range(0, SPOTS, 2)]           # equally spaced, far

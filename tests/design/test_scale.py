@@ -10,6 +10,7 @@ import pytest
 import trimesh
 from PIL import Image
 
+from conftest import mesh_tables, region_tables
 from vdo import scene
 from vdo.config import experiment as config
 from vdo.outputs import maps
@@ -28,8 +29,8 @@ def girder(tmp_path_factory):
     path = write_case(tmp_path_factory.mktemp("girder"), length_m=2.0, segments=30, cameras=4,
                       spacing_mm=40)
     exp = config.load(path)
-    meshes = scene.load_meshes(exp)
-    return exp, meshes, scene.sample_regions(exp, meshes)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    return exp, meshes, scene.sample_regions(meshes, **region_tables(exp))
 
 
 def test_region_areas_with_shared_planes(girder):

@@ -78,7 +78,7 @@ def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_pat
             assert im.size == (200, 150) and im.mode.startswith("I;16")
             images.append(np.asarray(im))
     assert images[0].std() > 100                              # speckled and lit
-    cam = scaled_camera(cameras_of(exp)[0], 1.0)
+    cam = scaled_camera(cameras_of(exp.camera_specs, exp.rails)[0], 1.0)
     poses = load_path_of(exp, [], tmp_path / "motions.csv").poses
     for step, centres in ((1, [(100, 75), (60, 50)]), (2, [(60, 45), (140, 105)])):
         pose = poses[(step, "plate")]

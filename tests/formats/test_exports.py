@@ -62,7 +62,8 @@ MM = 1e3
 @pytest.fixture
 def experiment(plate_experiment):
     path = plate_experiment(cameras=CAMERAS)
-    return path, {c.name: c for c in cameras_of(config.load(path))}
+    exp = config.load(path)
+    return path, {c.name: c for c in cameras_of(exp.camera_specs, exp.rails)}
 
 
 def plate_points(n=200, seed=3):
@@ -238,7 +239,7 @@ def run_folder(path, tmp_path):
     exp = config.load(path)
     run = tmp_path / "run"
     run.mkdir()
-    report.write_json(run / "layout.json", report.layout(cameras_of(exp)))
+    report.write_json(run / "layout.json", report.layout(cameras_of(exp.camera_specs, exp.rails)))
     report.write_config(run / "config.toml", exp)
     return run
 
@@ -302,7 +303,7 @@ def test_unsafe_camera_name_is_refused(plate_experiment, tmp_path):
     run.mkdir()
     exp = config.load(plate_experiment(cameras=CAMERAS))
     report.write_config(run / "config.toml", exp)
-    layout = report.layout(cameras_of(exp))
+    layout = report.layout(cameras_of(exp.camera_specs, exp.rails))
     layout["cameras"][0]["name"] = "../away"
     (run / "layout.json").write_text(json.dumps(layout))
     with pytest.raises(ConfigError, match="cannot name an export file"):

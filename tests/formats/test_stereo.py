@@ -73,7 +73,7 @@ def test_declared_pair_limits_and_defaults(tmp_path):
     """A declared pair without angles: the rule of thumb (24 mm: 21.1 deg) and that + 20 deg;
     with angles: its own; the global maximum applies to the other shared pairs."""
     exp = config.load(write(tmp_path, pairs='[[stereo_pair]]\ncameras = ["a", "b"]'))
-    cams = cameras_of(exp)
+    cams = cameras_of(exp.camera_specs, exp.rails)
     pairs, low, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cams,
                                                 np.zeros((2, 1), dtype=bool))
     assert pairs.tolist() == [[0, 1]]
@@ -82,20 +82,20 @@ def test_declared_pair_limits_and_defaults(tmp_path):
     exp = config.load(write(tmp_path, optimize_extra="max_axis_angle_deg = 40",
                             pairs='[[stereo_pair]]\ncameras = ["b", "a"]\nmin_angle_deg = 15\nmax_angle_deg = 35'))
     both = np.ones((2, 1), dtype=bool)          # both cameras assigned the one region
-    _, low, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp),
+    _, low, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp.camera_specs, exp.rails),
                                             both)
     assert np.degrees([low[0], high[0]]) == pytest.approx([15, 35])
     exp = config.load(write(tmp_path, optimize_extra="max_axis_angle_deg = 40"))
-    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp), both)
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp.camera_specs, exp.rails), both)
     assert math.degrees(high[0]) == pytest.approx(40)
     # a region's own maximum applies to the pairs sharing it, the least of the limits wins
     path = write(tmp_path, optimize_extra="max_axis_angle_deg = 40")
     path.write_text(path.read_text().replace('normal = [0, 0, 1]', 'normal = [0, 0, 1]\nmax_axis_angle_deg = 30'))
     exp = config.load(path)
     assert exp.regions[0].max_axis_angle == pytest.approx(math.radians(30))
-    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp), both)
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp.camera_specs, exp.rails), both)
     assert math.degrees(high[0]) == pytest.approx(30)
-    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp),
+    _, _, high = constraints.angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras_of(exp.camera_specs, exp.rails),
                                           np.array([[True], [False]]))
     assert len(high) == 0                         # no common region: no pair
 

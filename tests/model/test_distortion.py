@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import DOWN_CAMERA
+from conftest import DOWN_CAMERA, mesh_tables, region_tables
 from vdo.config import experiment as config
 from vdo.model.camera import PARAMETERS, Camera, parameter_jacobian, project, rotation, sensitivity
 from vdo.model.pose import look_at_angles
@@ -111,7 +111,7 @@ def test_undistorted_pixels_invert_the_distortion(cam):
 def test_config_distortion_field(plate_experiment):
     cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + "distortion = [-0.1, 0.02, 0.001, -0.002, 0.003]\n"
     exp = config.load(plate_experiment(cameras=cams))
-    assert cameras_of(exp)[0].distortion == (-0.1, 0.02, 0.001, -0.002, 0.003)
+    assert cameras_of(exp.camera_specs, exp.rails)[0].distortion == (-0.1, 0.02, 0.001, -0.002, 0.003)
     assert exp.to_dict()["camera"][0]["distortion"] == [-0.1, 0.02, 0.001, -0.002, 0.003]
     with pytest.raises(ConfigError, match="distortion"):
         config.load(plate_experiment(cameras=cams.replace("0.003]", "0.003, 0.1]")))
@@ -172,9 +172,9 @@ body = false
 distortion = [-0.2, 0.02, 0.0, 0.0, 0.0]   # monotone: no fold anywhere
 """
     exp = config.load(plate_experiment(cameras=cams))
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
-    cam = cameras_of(exp)[0]
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    samples = scene.sample_regions(meshes, **region_tables(exp))
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     vis = visibility.compute_visibility(scene.build_scene(meshes), [cam], samples,
                                         exp.evaluation.incidence_limit, progress=False)
     uv = cam.project(samples.points)

@@ -15,6 +15,7 @@ from PIL import Image
 
 from conftest import DOWN_CAMERA, PLATE_TOML, write_box
 from vdo.outputs import view3d
+from conftest import mesh_tables, region_tables
 from vdo.core import vtp
 from vdo.commands.cli import main
 from vdo.outputs.html_report import write_report
@@ -138,7 +139,7 @@ def test_cells_from_the_run_folder_are_the_samplers(run):
 
     sc = view3d.load(run)
     exp = config.load(run / "config.toml")
-    samples = scene.sample_regions(exp, scene.load_meshes(exp))
+    samples = scene.sample_regions(scene.load_meshes(**mesh_tables(exp)), **region_tables(exp))
     lift = 0.1 * np.sqrt(samples.area)[:, None, None] * samples.normals[:, None, :]
     np.testing.assert_allclose(view3d.cells(sc), maps.cell_corners(samples) + lift, atol=1e-12)
     assert [c[0] for c in sc.cameras] == ["a", "b"] and sc.unreadable == []

@@ -8,6 +8,7 @@ import pytest
 from PIL import Image
 
 from conftest import write_box
+from conftest import mesh_tables, region_tables
 from vdo import scene
 from vdo.config import experiment as config
 from vdo.outputs import maps
@@ -53,7 +54,7 @@ def plate_samples(tmp_path):
     write_box(tmp_path / "plate.stl", [60, 20, 300], center=[0, 0, 150])
     (tmp_path / "plate.toml").write_text(textwrap.dedent(PLATE))
     exp = config.load(tmp_path / "plate.toml")
-    return scene.sample_regions(exp, scene.load_meshes(exp))
+    return scene.sample_regions(scene.load_meshes(**mesh_tables(exp)), **region_tables(exp))
 
 
 def _inside_and_ring(boxes, name, shape, inset=3, outset=4):

@@ -20,6 +20,7 @@ from vdo.physics import strain
 from vdo.outputs.maps import developed_outline
 from vdo.physics.lighting import photometry
 from vdo.physics.predict import settings, sigmas
+from conftest import mesh_tables, region_tables
 from vdo.scene import load_meshes, sample_regions
 from vdo.state import layout_state, prepare
 
@@ -164,7 +165,7 @@ def test_selection_that_selects_nothing_says_what_it_needs(tmp_path):
         within_m = 0.2""")
     exp = config.load(path)
     with pytest.raises(ConfigError) as err:
-        sample_regions(exp, load_meshes(exp))
+        sample_regions(load_meshes(**mesh_tables(exp)), **region_tables(exp))
     e = err.value
     assert e.field == 'region "shell"' and "near_point_m" in e.message and "within_m" in e.message
     assert "faces lie 0.9" in e.message      # the nearest face centroid: about 1 m - R = 0.9 m away
@@ -179,7 +180,7 @@ def test_distance_band_selects_a_ring(tmp_path):
         box_min_m = [-1, -1, -0.149]
         box_max_m = [1, 1, 0.149]""")
     exp = config.load(path)
-    s = sample_regions(exp, load_meshes(exp))
+    s = sample_regions(load_meshes(**mesh_tables(exp)), **region_tables(exp))
     half = math.sqrt(0.12 ** 2 - RADIUS ** 2)           # |z| where the sphere meets the wall
     assert np.abs(s.points[:, 2]).max() <= half
     assert s.area.sum() == pytest.approx(2 * math.pi * RADIUS * 2 * half, rel=2 * s.region_cell[0] / (2 * half))
@@ -194,14 +195,14 @@ def test_cone_is_developed_exactly(tmp_path):
         box_min_m = [-1, -1, 0.001]""")
     trimesh.creation.cone(radius=r, height=h, sections=256).export(tmp_path / "cyl.stl")
     exp = config.load(path)
-    meshes = load_meshes(exp)
+    meshes = load_meshes(**mesh_tables(exp))
     from vdo.scene import all_region_faces
-    dev = all_region_faces(exp, meshes)[0].development
+    dev = all_region_faces(meshes, **region_tables(exp))[0].development
     assert dev.kind == "cone"
     assert dev.half_angle == pytest.approx(math.atan(r / h), abs=STL_ROUNDING / h)
     assert dev.centre == pytest.approx([0, 0, h], abs=STL_ROUNDING)
     assert max(dev.distortion.area_p95, dev.distortion.angle_p95) < 1e-3
-    s = sample_regions(exp, meshes)
+    s = sample_regions(meshes, **region_tables(exp))
     slant = math.hypot(r, h)
     # sample cells tile the developed sector; its rim is resolved to a cell
     assert s.area.sum() == pytest.approx(math.pi * r * slant, rel=4 * s.region_cell[0] / slant)
@@ -219,11 +220,11 @@ def test_general_surface_is_mapped_with_its_distortion_warned(tmp_path, caplog):
         normal_tolerance_deg = 60""")
     sphere.export(tmp_path / "cyl.stl")
     exp = config.load(path)
-    meshes = load_meshes(exp)
+    meshes = load_meshes(**mesh_tables(exp))
     from vdo.model.surface import face_distortion
     from vdo.scene import all_region_faces
     with caplog.at_level("WARNING"):
-        rf = all_region_faces(exp, meshes)[0]
+        rf = all_region_faces(meshes, **region_tables(exp))[0]
     dev = rf.development
     assert dev.kind == "general"
     assert dev.distortion.angle_p95 < 0.05
@@ -247,8 +248,8 @@ def test_a_ring_is_textured_without_a_seam(tmp_path):
     from vdo.scene import all_region_faces
 
     exp = config.load(write_cylinder(tmp_path))
-    meshes = load_meshes(exp)
-    faces = all_region_faces(exp, meshes)
+    meshes = load_meshes(**mesh_tables(exp))
+    faces = all_region_faces(meshes, **region_tables(exp))
     scene = build_render_scene(exp, meshes, faces)
     (shape,) = [s for s in scene.shapes() if s.has_vertex_texcoords()]     # the speckled region
     params = mi.traverse(shape)

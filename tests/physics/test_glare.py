@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA, write_plate_experiment
+from conftest import region_tables
 from vdo.config import experiment as config
 from vdo.physics import glare
 from vdo.state import layout_state, prepare
@@ -121,7 +122,7 @@ def test_a_mitsuba_render_shows_the_predicted_hot_spot(tmp_path):
     Ls = glare.specular_radiance(exp.lights, state.illumination.lit, smp.points, smp.normals,
                                  [cam.position])[0]
     meshes = list(geometry.meshes)
-    sc = build_render_scene(exp, meshes, scene.all_region_faces(exp, meshes), ())
+    sc = build_render_scene(exp, meshes, scene.all_region_faces(meshes, **region_tables(exp)), ())
     image = render_camera(sc, cam, exp.camera_specs[0], RENDER_SPP, seed=1, jitter=False)
     peak = np.unravel_index(np.argmax(image), image.shape)
     u, v = np.asarray(cam.project(smp.points[np.argmax(Ls)][None]))[0]

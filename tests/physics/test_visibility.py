@@ -44,7 +44,7 @@ def test_incidence_limit_is_a_circle(plate_experiment):
     r_max = H * np.tan(np.radians(25))
     assert vis.in_image[0].all()
     assert_matches_away_from_edges(vis.visible[0], r < r_max, np.abs(r - r_max))
-    np.testing.assert_allclose(visibility.incidence_angles(cameras_of(exp)[0], samples), np.arctan2(r, H),
+    np.testing.assert_allclose(visibility.incidence_angles(cameras_of(exp.camera_specs, exp.rails)[0], samples), np.arctan2(r, H),
                                atol=1e-12)
 
 

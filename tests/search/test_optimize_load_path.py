@@ -66,7 +66,7 @@ def test_path_occlusion_hides_the_views_the_geometry_says(tmp_path):
     exp = experiment(tmp_path, True)
     geometry = prepare(exp)
     load_path = load_path_of(exp, geometry.meshes)
-    cam = cameras_of(exp)[0]
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
     near, far = (cam.with_pose([x, 0.0, RAIL_HEIGHT], *look_at_angles([x, 0.0, RAIL_HEIGHT], [0, 0, 0]))
                  for x in (0.2, 0.5))
     every = path_occlusion(geometry, load_path, [near, far], fraction=1.0)

@@ -3,7 +3,7 @@ before any optimization; a region both rail cameras see is not."""
 
 import logging
 
-from conftest import PLATE_TOML, aimed_camera, write_box
+from conftest import PLATE_TOML, aimed_camera, mesh_tables, region_tables, write_box
 from vdo import scene
 from vdo.config import experiment as config
 from vdo.search import reachability
@@ -22,8 +22,8 @@ def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplo
                              cameras=aimed_camera("a", 0.3) + aimed_camera("b", 0.7))
     (tmp_path / "exp.toml").write_text(text)
     exp = config.load(tmp_path / "exp.toml")
-    meshes = scene.load_meshes(exp)
-    samples = scene.sample_regions(exp, meshes)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    samples = scene.sample_regions(meshes, **region_tables(exp))
     with caplog.at_level(logging.WARNING, logger="vdo"):
         entries = {e["region"]: e for e in reachability.check(exp, meshes, samples)}
     # the top face faces both cameras from every rail position: all of it reachable by both

@@ -95,7 +95,7 @@ def render_session(exp, session: Session, scale: float, spp: int, deadline: floa
     from vdo.render import render_camera, render_seed, scaled_camera
 
     started = time.perf_counter()
-    cameras = tuple(scaled_camera(c, scale) for c in cameras_of(exp))
+    cameras = tuple(scaled_camera(c, scale) for c in cameras_of(exp.camera_specs, exp.rails))
     specs = {s.name: s for s in exp.camera_specs}
     jobs = sorted(((i, cam, k) for i, cam in enumerate(cameras) for k in session.views[cam.name]),
                   key=lambda job: (job[2], job[0]))     # pose by pose: one scene per pose

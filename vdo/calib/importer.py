@@ -253,7 +253,7 @@ def with_imported(exp, paths, anchor: str | None = None):
     (module docstring); the specs keep everything but the lens and pose (body, aperture, focus).
     `anchor`: a camera's name; the files' common frame is placed so that this camera stands at
     its CAD pose (`anchor_frame`: a lab's calibration in its own frame, e.g. its first camera's)."""
-    bases = {c.name: c for c in cameras_of(exp)}
+    bases = {c.name: c for c in cameras_of(exp.camera_specs, exp.rails)}
     specs = {s.name: s for s in exp.camera_specs}
     common = None if anchor is None else anchor_frame(paths, bases, anchor)
     for p in paths:

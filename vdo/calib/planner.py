@@ -49,7 +49,7 @@ def shared_pairs(pairs, names, visible: np.ndarray) -> list:
 
 def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
     """The curve and the chosen count (module docstring). `visible` (C, N) from the ray cast,
-    rows in the order of `vdo.scene.cameras_of(exp)`; `pairs` the stereo pairs to calibrate
+    rows in the order of `exp.camera_specs` (`vdo.scene.cameras_of`); `pairs` the stereo pairs to calibrate
     (`vdo.calib.session.stereo_names`). Raises ConfigError before any calibration when no pair's
     cameras see a common sample."""
     from vdo.calib.propagate import sample_errors
@@ -59,7 +59,7 @@ def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
     from vdo.core.progress import bar, hidden
     from vdo.scene import cameras_of
 
-    if not shared_pairs(pairs, [c.name for c in cameras_of(exp)], visible):
+    if not shared_pairs(pairs, [c.name for c in cameras_of(exp.camera_specs, exp.rails)], visible):
         raise ConfigError(exp.path, "stereo_pair", _UNSHARED)
     spec = exp.calibration
     sigma = spec.detection_sigma_px or DEFAULT_SIGMA_DET_PX

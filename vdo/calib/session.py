@@ -324,7 +324,7 @@ def plan(exp, scale: float, geometry=None, spec=None, pairs=None) -> Planned:
 
     spec = spec or exp.calibration
     geometry = geometry or prepare(exp)
-    cameras = tuple(cameras_of(exp))
+    cameras = tuple(cameras_of(exp.camera_specs, exp.rails))
     distances = {}
     for cam in cameras:
         d = working_distance(cam, geometry.samples.points)

@@ -209,7 +209,7 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
     check_out(out, overwrite)
     geometry = prepare(exp)
     state = layout_state(geometry, predict_fields=False)
-    pairs = stereo_names(exp, tuple(cameras_of(exp)), geometry, state.visibility)
+    pairs = stereo_names(exp, tuple(cameras_of(exp.camera_specs, exp.rails)), geometry, state.visibility)
     plan(exp, 1.0, geometry, pairs=pairs)        # the configured session's checks first
     p = plan_session(exp, state.visibility.visible, geometry, pairs)
     result = {"experiment": exp.name, "poses_per_camera": list(p.counts), "images": list(p.images),

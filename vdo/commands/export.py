@@ -31,7 +31,7 @@ def sources(source: Path):
         return config.load(source / "config.toml"), cameras, layout
     if source.is_file():
         exp = config.load(source)
-        return exp, cameras_of(exp), source
+        return exp, cameras_of(exp.camera_specs, exp.rails), source
     raise ConfigError(source, "", "does not exist: give an experiment TOML or a run folder")
 
 

@@ -267,7 +267,7 @@ class Experiment:
             drop |= {"rail", "u", "offset_m"}
         if "target_m" in fields:
             drop |= {"pan_deg", "tilt_deg"}
-        position = camera_positions(self)[index]
+        position = camera_positions(self.camera_specs, self.rails)[index]
         pan, tilt = self.camera_specs[index].angles(position)
         if "pan_deg" in fields or "tilt_deg" in fields:
             entry.setdefault("pan_deg", math.degrees(pan))
@@ -286,7 +286,8 @@ class Experiment:
                                                 "geometry.centre (or call geometry.with_camera), or "
                                                 "give pan_deg + tilt_deg or target_m")
         if reaim and holds_aim(tilt):
-            pan, tilt = look_at_angles(camera_positions(edited)[index], aim_point(position, pan, tilt, centre))
+            pan, tilt = look_at_angles(camera_positions(edited.camera_specs, edited.rails)[index],
+                                       aim_point(position, pan, tilt, centre))
             entry = entry | {"pan_deg": math.degrees(pan), "tilt_deg": math.degrees(tilt)}
             data["camera"] = entries[:index] + [entry] + entries[index + 1:]
             edited = parse(data, self.path)
@@ -337,12 +338,13 @@ def sections() -> tuple[Section, ...]:
     return tuple(out)
 
 
-def camera_positions(exp: Experiment) -> list[np.ndarray]:
-    """The optical centre (m) of every camera spec: rail point + offset, or position_m."""
+def camera_positions(camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec, ...]) -> list[np.ndarray]:
+    """The optical centre (m) of every camera spec of `camera_specs` (the [[camera]] tables): the
+    point of its rail (of `rails`, the [[rail]] tables) + offset, or position_m."""
     out = []
-    for spec in exp.camera_specs:
+    for spec in camera_specs:
         if spec.rail is not None:
-            out.append(exp.rail(spec.rail).point(spec.u) + spec.offset)
+            out.append(next(r for r in rails if r.name == spec.rail).point(spec.u) + spec.offset)
         else:
             out.append(np.asarray(spec.position, dtype=float))
     return out
@@ -436,7 +438,7 @@ def _check_references(exp: Experiment, tables: dict) -> None:
     deformed = exp.load_path.deformed_mesh
     if deformed is not None and roles.get(deformed) != "specimen":
         raise ConfigError(path, "load_path.deformed_mesh", f"must name a specimen mesh (got {deformed!r})")
-    positions = camera_positions(exp)
+    positions = camera_positions(exp.camera_specs, exp.rails)
     for spec, position, t in zip(exp.camera_specs, positions, tables["camera"]):
         if spec.target is not None and np.linalg.norm(spec.target - position) < 1e-6:
             raise t.error("target_m", "is the camera's own position")

@@ -320,7 +320,8 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
                  leave=False):
         chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
-        state = layout_state(coarse, cameras_of(designed(exp, cand, chosen)))
+        layout = designed(exp, cand, chosen)
+        state = layout_state(coarse, cameras_of(layout.camera_specs, layout.rails))
         curve.append({"cameras": n, "score": score, "swaps": swaps, "chosen": chosen,
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),

@@ -124,7 +124,8 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
     render_settings(exp, scale, spp, seed)                 # the mode, depth of field
     dic = rs.mode == "dic"
     try:
-        plan = plan_render([scaled_camera(c, scale) for c in cameras_of(exp)], rs.mode)
+        plan = plan_render([scaled_camera(c, scale) for c in cameras_of(exp.camera_specs, exp.rails)],
+                           rs.mode)
     except MemoryError as err:
         raise ConfigError(exp.path, "[render] scale", f"{err}: lower scale, or render fewer cameras") from None
     if poses_path is not None and not Path(poses_path).is_file():
@@ -136,7 +137,7 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
     if load_path is None:
         raise ConfigError(exp.path, "load_path", "a series needs poses: give --series POSES.csv or "
                                                  "a [load_path] in the experiment")
-    cameras = [scaled_camera(c, scale) for c in cameras_of(exp)]
+    cameras = [scaled_camera(c, scale) for c in cameras_of(exp.camera_specs, exp.rails)]
     obstacles = bodies(exp, cameras)
     state = layout_state(geometry, cameras, predict_fields=False)
     vis = state.visibility

@@ -26,7 +26,8 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
     from vdo.scene import load_meshes
 
     errors = Collect()
-    meshes = load_meshes(exp, errors)
+    meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                         rails=exp.rails, mounts=exp.mounts, path=exp.path, errors=errors)
     load_path = None
     needed = exp.load_path.deformed_mesh if exp.load_path.displacements is not None else None
     if (exp.load_path.active or poses is not None) and (

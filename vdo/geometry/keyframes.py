@@ -555,5 +555,7 @@ def check_load_path(exp, poses: Path | None = None) -> LoadPath | None:
 
     if not exp.load_path.active and poses is None:
         return None
-    meshes = load_meshes(exp) if exp.load_path.displacements is not None else []
+    meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                         rails=exp.rails, mounts=exp.mounts,
+                         path=exp.path) if exp.load_path.displacements is not None else []
     return load_path_of(exp, meshes, poses)

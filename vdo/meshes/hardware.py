@@ -11,8 +11,8 @@ import functools
 import numpy as np
 import trimesh
 
-from vdo.config.experiment import Experiment
-from vdo.config.mounts import TripodSpec
+from vdo.config.mounts import MountSpec, TripodSpec
+from vdo.config.rig import CameraSpec
 from vdo.meshes.mesh import SceneMesh
 from vdo.model.camera import Camera
 
@@ -151,10 +151,12 @@ def tripod(camera: Camera, spec: TripodSpec) -> list[SceneMesh]:
             for k, (top, bottom, radius) in enumerate(tripod_cylinders(camera, spec))]
 
 
-def tripods(exp: Experiment, cameras) -> list[SceneMesh]:
-    """The `tripod` parts of every camera of `cameras` that the experiment lists on a zone
-    [[mount]] with a [mount.tripod], built where the camera stands."""
-    mounts = {spec.name: spec.mount for spec in exp.camera_specs}
-    specs = {m.name: m.tripod for m in exp.mounts if m.tripod is not None}
-    return [part for c in cameras if mounts.get(c.name) in specs
-            for part in tripod(c, specs[mounts[c.name]])]
+def tripods(cameras, *, camera_specs: tuple[CameraSpec, ...],
+            mounts: tuple[MountSpec, ...]) -> list[SceneMesh]:
+    """The `tripod` parts of every camera of `cameras` that `camera_specs` (an experiment's
+    [[camera]] tables) list on a zone of `mounts` (its [[mount]] tables) with a [mount.tripod],
+    built where the camera stands."""
+    mount_of = {spec.name: spec.mount for spec in camera_specs}
+    specs = {m.name: m.tripod for m in mounts if m.tripod is not None}
+    return [part for c in cameras if mount_of.get(c.name) in specs
+            for part in tripod(c, specs[mount_of[c.name]])]

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from vdo.config.experiment import Experiment, camera_positions
-from vdo.config.rig import UNITS
+from vdo.config.experiment import camera_positions
+from vdo.config.mounts import MountSpec, RailSpec
+from vdo.config.rig import UNITS, CameraSpec, MeshSpec, RegionSpec
 from vdo.config.schema import IMAGE_MAGIC
 from vdo.core.errors import Collect, ConfigError
 from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY
@@ -41,37 +42,42 @@ class SceneMesh:
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 
 
-def load_meshes(exp: Experiment, errors: Collect | None = None) -> list[SceneMesh]:
-    """Read every [[mesh]] of the experiment, scaled to metres, and check it: readable content,
-    extents that fit the declared unit, no camera inside it (`cameras_inside`). Every mesh is
-    checked and every mistake reported together (`vdo.core.errors.Collect`). Specimen faces that
-    cross a region's box are split at the box (`split_at_boxes`), so a region's faces and area
-    are exactly the part inside its box. With `errors`, the mistakes are kept there instead of
-    raised, and the meshes that could be read are returned."""
+def load_meshes(*, mesh_specs: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
+                camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec, ...],
+                mounts: tuple[MountSpec, ...], path, errors: Collect | None = None) -> list[SceneMesh]:
+    """Read every mesh of `mesh_specs` (an experiment's [[mesh]] tables), scaled to metres, and
+    check it: readable content, extents that fit the declared unit, no camera of `camera_specs`
+    (placed by `rails` and `mounts`) inside it (`cameras_inside`). Every mesh is checked and every
+    mistake reported together (`vdo.core.errors.Collect`), each naming the experiment file
+    `path`. Specimen faces that cross a box of one of `regions` are split at the box
+    (`split_at_boxes`), so a region's faces and area are exactly the part inside its box. With
+    `errors`, the mistakes are kept there instead of raised, and the meshes that could be read
+    are returned."""
     own = errors is None
     errors = Collect() if own else errors
     meshes = []
-    for spec in exp.meshes:
+    for spec in mesh_specs:
         with errors.check():
-            meshes.append(_load_mesh(exp, spec))
-    errors.errors += cameras_inside(exp, meshes)
+            meshes.append(_load_mesh(spec, regions=regions, path=path))
+    errors.errors += cameras_inside(meshes, camera_specs=camera_specs, rails=rails, mounts=mounts,
+                                    path=path)
     if own:
         errors.raise_all()
     return meshes
 
 
-def _load_mesh(exp: Experiment, spec) -> SceneMesh:
+def _load_mesh(spec: MeshSpec, *, regions: tuple[RegionSpec, ...], path) -> SceneMesh:
     field = f'mesh "{spec.name}".file'
-    loaded = read_mesh(spec.path, (exp.path, field))
+    loaded = read_mesh(spec.path, (path, field))
     vertices = np.asarray(loaded.vertices, dtype=float) * spec.scale
     faces = np.asarray(loaded.faces, dtype=np.int64)
     if faces.min() < 0 or faces.max() >= len(vertices):
-        raise ConfigError(exp.path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
+        raise ConfigError(path, field, f"{spec.path.name!r} has faces that refer to missing vertices")
     if not np.all(np.isfinite(vertices)):
-        raise ConfigError(exp.path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
-    _check_extent(vertices[np.unique(faces)], spec, (exp.path, field))
+        raise ConfigError(path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
+    _check_extent(vertices[np.unique(faces)], spec, (path, field))
     if spec.role == "specimen":
-        vertices, faces = split_at_boxes(vertices, faces, [r for r in exp.regions if r.mesh == spec.name])
+        vertices, faces = split_at_boxes(vertices, faces, [r for r in regions if r.mesh == spec.name])
     return SceneMesh(spec.name, spec.role, vertices, faces)
 
 
@@ -182,13 +188,16 @@ def inside_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> 
     return out
 
 
-def cameras_inside(exp: Experiment, meshes: list[SceneMesh]) -> list[ConfigError]:
-    """One `ConfigError` per (camera, mesh) whose optical centre lies inside the mesh
-    (`inside_mesh`), naming the camera's field that places it and the fix; only the cameras
-    within a mesh's bounding box are tested against it."""
-    if not exp.camera_specs:
+def cameras_inside(meshes: list[SceneMesh], *, camera_specs: tuple[CameraSpec, ...],
+                   rails: tuple[RailSpec, ...], mounts: tuple[MountSpec, ...],
+                   path) -> list[ConfigError]:
+    """One `ConfigError` (at the experiment file `path`) per (camera of `camera_specs`, mesh)
+    whose optical centre (on its rail of `rails`, `camera_positions`) lies inside the mesh
+    (`inside_mesh`), naming the camera's field that places it (a fixed mount of `mounts`: its
+    `mount`) and the fix; only the cameras within a mesh's bounding box are tested against it."""
+    if not camera_specs:
         return []
-    positions = np.array(camera_positions(exp))
+    positions = np.array(camera_positions(camera_specs, rails))
     errors = []
     for mesh in meshes:
         lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
@@ -196,12 +205,13 @@ def cameras_inside(exp: Experiment, meshes: list[SceneMesh]) -> list[ConfigError
         if not len(near):
             continue
         for i in near[inside_mesh(positions[near], mesh.vertices, mesh.faces)]:
-            spec = exp.camera_specs[i]
-            fixed = spec.mount is not None and exp.mount(spec.mount).kind == "fixed"
+            spec = camera_specs[i]
+            fixed = spec.mount is not None and next(
+                m for m in mounts if m.name == spec.mount).kind == "fixed"
             field, fix = (("u", "move it out along its rail (u) or off it (offset_m)") if spec.rail else
                           ("mount", "stand it on a mount outside the mesh") if fixed else
                           ("position_m", "move it out of the mesh"))
-            errors.append(ConfigError(exp.path, f'camera "{spec.name}".{field}',
+            errors.append(ConfigError(path, f'camera "{spec.name}".{field}',
                                       f"its optical centre {np.round(positions[i], 4).tolist()} m lies "
                                       f"inside mesh {mesh.name!r}: {fix}"))
     return errors

@@ -16,8 +16,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-from vdo.config.experiment import Experiment
-from vdo.config.rig import RegionSpec
+from vdo.config.rig import MeshSpec, RegionSpec
 from vdo.core.errors import ConfigError
 from vdo.meshes.mesh import SceneMesh, read_mesh
 from vdo.model import surface
@@ -61,10 +60,12 @@ class RegionSelector:
         return self.in_box(points) & self.in_band(points)
 
 
-def region_selector(exp: Experiment, region: RegionSpec, meshes: list[SceneMesh],
-                    spacing: float) -> RegionSelector:
+def region_selector(region: RegionSpec, meshes: list[SceneMesh], spacing: float, *,
+                    mesh_specs: tuple[MeshSpec, ...], path) -> RegionSelector:
     """The `RegionSelector` of `region`: the near_mesh's surface from `meshes`, the region_file
-    read in the specimen mesh's unit; a region file's band defaults to `spacing` (m)."""
+    read in the specimen mesh's unit (its table of `mesh_specs`, the [[mesh]] tables; a file
+    that cannot be read is a ConfigError at the experiment file `path`); a region file's band
+    defaults to `spacing` (m)."""
     field = f'region "{region.name}".region_file'
     if region.near_point is not None:
         distance = lambda x: np.linalg.norm(x - region.near_point, axis=1)
@@ -74,8 +75,8 @@ def region_selector(exp: Experiment, region: RegionSpec, meshes: list[SceneMesh]
         other = next(m for m in meshes if m.name == region.near_mesh)
         distance = lambda x: surface.distance_to_mesh(x, other.vertices, other.faces)
     elif region.region_file is not None:
-        scale = next(m.scale for m in exp.meshes if m.name == region.mesh)
-        loaded = read_mesh(region.region_file, (exp.path, field))
+        scale = next(m.scale for m in mesh_specs if m.name == region.mesh)
+        loaded = read_mesh(region.region_file, (path, field))
         v, f = np.asarray(loaded.vertices, float) * scale, np.asarray(loaded.faces)
         distance = lambda x: surface.distance_to_mesh(x, v, f)
     else:
@@ -157,7 +158,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     if selector is None:
         if region.near_mesh is not None or region.region_file is not None:
             raise ValueError("a region that selects by a mesh needs its RegionSelector")
-        selector = region_selector(None, region, [], spacing)
+        selector = region_selector(region, [], spacing, mesh_specs=(), path=None)
     centroids = tm.triangles_center
     radius = np.linalg.norm(tm.triangles - centroids[:, None], axis=2).max(axis=1)
     chosen = selector.facing(tm.face_normals) & selector.in_box(centroids) & (tm.area_faces > 0)
@@ -197,11 +198,13 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
                        development=dev, selector=selector)
 
 
-def all_region_faces(exp: Experiment, meshes: list[SceneMesh],
-                     spacing: float | None = None) -> list[RegionFaces]:
-    """`region_faces` for every region of the experiment, in config order."""
-    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+def all_region_faces(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
+                     regions: tuple[RegionSpec, ...], spacing: float, path) -> list[RegionFaces]:
+    """`region_faces` for every region of `regions` (an experiment's [[region]] tables), in
+    config order, on `meshes` (read from `mesh_specs`, its [[mesh]] tables), at sample `spacing`
+    (m; the experiment's is `evaluation.sample_spacing`); errors name the experiment file
+    `path`."""
     by_name = {m.name: m for m in meshes}
-    return [region_faces(by_name[r.mesh], r, spacing, (exp.path, f'region "{r.name}"'),
-                         selector=region_selector(exp, r, meshes, spacing))
-            for r in exp.regions]
+    return [region_faces(by_name[r.mesh], r, spacing, (path, f'region "{r.name}"'),
+                         selector=region_selector(r, meshes, spacing, mesh_specs=mesh_specs, path=path))
+            for r in regions]

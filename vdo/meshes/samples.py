@@ -14,8 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vdo.config.experiment import Experiment
-from vdo.config.rig import RegionSpec
+from vdo.config.rig import MeshSpec, RegionSpec
 from vdo.core.errors import ConfigError
 from vdo.meshes.mesh import SceneMesh
 from vdo.meshes.regions import RegionFaces, all_region_faces, region_faces
@@ -171,38 +170,42 @@ def surface_raster(mesh: SceneMesh, rf: RegionFaces, spacing: float, pad_cells: 
 MAX_SAMPLES = 2_000_000     # surface samples: ~1 GB of visibility and uncertainty arrays for 10 cameras
 
 
-def check_sample_count(exp: Experiment, meshes: list[SceneMesh], faces: list[RegionFaces],
-                       spacing: float) -> None:
-    """ConfigError before sampling when the regions' area A would give more than MAX_SAMPLES
-    samples at spacing h (N = A / h^2), with the smallest spacing that fits."""
+def check_sample_count(meshes: list[SceneMesh], faces: list[RegionFaces], spacing: float, *,
+                       path) -> None:
+    """ConfigError (at the experiment file `path`, its evaluation.sample_spacing_mm) before
+    sampling when the regions' area A would give more than MAX_SAMPLES samples at spacing h
+    (N = A / h^2), with the smallest spacing that fits."""
     area = sum(float(m.trimesh.area_faces[rf.faces].sum()) for m, rf in zip(meshes, faces))
     count = area / spacing**2
     if count > MAX_SAMPLES:
         fits = math.ceil(math.sqrt(area / MAX_SAMPLES) * 1e4) / 10
-        raise ConfigError(exp.path, "evaluation.sample_spacing_mm",
+        raise ConfigError(path, "evaluation.sample_spacing_mm",
                           f"= {spacing * 1e3:g} mm gives about {count:,.0f} samples on the regions' "
                           f"{area:.3g} m² (at most {MAX_SAMPLES:,}): raise sample_spacing_mm to "
                           f"{fits:g} or more")
 
 
-def sample_regions(exp: Experiment, meshes: list[SceneMesh], spacing: float | None = None,
+def sample_regions(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
+                   regions: tuple[RegionSpec, ...], spacing: float, path,
                    faces: list[RegionFaces] | None = None) -> SurfaceSamples:
-    """Samples on every region of the experiment, at `spacing` (m; default from the config), on
-    the regions' `faces` (`all_region_faces` at that spacing; found here when not given)."""
-    spacing = exp.evaluation.sample_spacing if spacing is None else spacing
+    """Samples on every region of `regions` (an experiment's [[region]] tables) at `spacing` (m;
+    the experiment's is `evaluation.sample_spacing`), on the regions' `faces` (`all_region_faces`
+    at that spacing, with `mesh_specs`, its [[mesh]] tables; found here when not given); errors
+    name the experiment file `path`."""
     by_name = {m.name: m for m in meshes}
-    faces = all_region_faces(exp, meshes, spacing) if faces is None else faces
-    check_sample_count(exp, [by_name[r.mesh] for r in exp.regions], faces, spacing)
+    faces = all_region_faces(meshes, mesh_specs=mesh_specs, regions=regions, spacing=spacing,
+                             path=path) if faces is None else faces
+    check_sample_count([by_name[r.mesh] for r in regions], faces, spacing, path=path)
     parts = []
-    for index, (region, rf) in enumerate(zip(exp.regions, faces)):
+    for index, (region, rf) in enumerate(zip(regions, faces)):
         part = sample_region(by_name[region.mesh], region, spacing,
-                             (exp.path, f'region "{region.name}"'), rf)
+                             (path, f'region "{region.name}"'), rf)
         part["region"] = np.full(len(part["points"]), index)
         parts.append(part)
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     period = np.array([0.0 if rf.development is None else rf.development.period for rf in faces])
-    return SurfaceSamples(**merged, region_names=tuple(r.name for r in exp.regions),
-                          region_importance=np.array([r.importance for r in exp.regions]),
+    return SurfaceSamples(**merged, region_names=tuple(r.name for r in regions),
+                          region_importance=np.array([r.importance for r in regions]),
                           region_period=period,
                           region_cell=np.array([spacing if rf.development is None else
                                                 ring_spacing(rf.development.period, spacing)

@@ -166,15 +166,16 @@ def load(run_dir) -> Scene3D:
         try:
             exp = load_config(cfg)
             sc.name = exp.name
-            for m in load_meshes(exp):
+            for m in load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                                 rails=exp.rails, mounts=exp.mounts, path=exp.path):
                 v, f = m.vertices, m.faces
                 if m.role != "specimen" and len(f) > MAX_OBSTACLE_FACES:
                     v, f = decimate(v, f, MAX_OBSTACLE_FACES)
                     log.info("mesh %s simplified from %d to %d faces", m.name, len(m.faces), len(f))
                 sc.meshes.append((m.name, m.role, v, f))
             on_tripods = any(m.tripod is not None for m in exp.mounts)
-            for cam in cameras_of(exp) if on_tripods else ():     # each camera's tripod, one mesh
-                parts = tripods(exp, [cam])
+            for cam in cameras_of(exp.camera_specs, exp.rails) if on_tripods else ():   # each camera's tripod, one mesh
+                parts = tripods([cam], camera_specs=exp.camera_specs, mounts=exp.mounts)
                 if parts:
                     offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
                     sc.meshes.append((f"tripod:{cam.name}", "camera",

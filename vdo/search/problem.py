@@ -99,7 +99,7 @@ class Problem:
             keep = np.array([r.name in opt.regions for r in exp.regions])
             self.obj_samples = dataclasses.replace(
                 self.obj_samples, importance=jnp.where(jnp.asarray(keep), self.obj_samples.importance, 0.0))
-        self.param = Parameterization(exp, cameras_of(exp), self.geometry.centre)
+        self.param = Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), self.geometry.centre)
         self.cams0 = self.param.cameras
         self.run = reference.run if reference is not None else Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)

@@ -60,7 +60,7 @@ def check(exp: Experiment, meshes, samples: SurfaceSamples, positions: int = 9) 
     """Per region: name, min_cameras, best coverage (area fraction, module docstring), the
     cameras that can see some of it and their mounts, and whether it falls short (below
     `assign_fraction`); each shortfall is logged as a warning."""
-    cameras = cameras_of(exp)
+    cameras = cameras_of(exp.camera_specs, exp.rails)
     moving = set(exp.optimize.cameras or [c.name for c in cameras])
     sweeps = [mount_positions(exp, spec, cam, cam.name in moving and "u" in exp.optimize.free, positions)
               for spec, cam in zip(exp.camera_specs, cameras)]
