@@ -37,7 +37,7 @@ def main() -> None:
     exp = dataclasses.replace(exp, evaluation=dataclasses.replace(
         exp.evaluation, sample_spacing=args.spacing_mm * 1e-3))
     geometry = vdo.prepare(exp)
-    full = load_path_of(exp, geometry.meshes)
+    full = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes, groups=exp.groups)
     evaluate_load_path(geometry, dataclasses.replace(full, steps=full.steps[:1]))     # compile
     print(f"samples               {len(geometry.samples):,} ({args.spacing_mm:g} mm spacing), "
           f"{len(exp.camera_specs)} cameras, {len(full.steps)} steps in the load path")

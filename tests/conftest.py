@@ -48,6 +48,12 @@ def region_tables(exp, spacing=None) -> dict:
                 spacing=exp.evaluation.sample_spacing if spacing is None else spacing)
 
 
+def load_path_tables(exp) -> dict:
+    """The tables of `exp` that `vdo.geometry.keyframes.load_path_of` reads, as its keyword
+    arguments: ``load_path_of(meshes, **load_path_tables(exp))``."""
+    return dict(load_path_spec=exp.load_path, mesh_specs=exp.meshes, groups=exp.groups)
+
+
 def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     """An axis-aligned box mesh saved as STL (coordinates multiplied by unit_scale)."""
     box = trimesh.creation.box(extents=np.asarray(extents, dtype=float) * unit_scale)

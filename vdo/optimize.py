@@ -210,7 +210,8 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     log.info("%s samples, %d free parameters, %d camera pairs sharing a region; time limit %g s",
              f"{len(problem.samples):,}", len(problem.param.theta0), len(problem.pairs), time_limit)
     reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
-    over_path = load_path_of(exp, problem.meshes)
+    over_path = load_path_of(problem.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups)
     kept = _wrap_up_s(problem, len(over_path.steps) if over_path is not None else 0)
     stop.deadline -= kept   # the search ends in time for the result to be judged and written
     startup = time.perf_counter() - t_start

@@ -15,6 +15,11 @@ prediction is written once:
 Both results are immutable. A camera whose `[[camera]]` entry says `body = false`, or that the
 experiment does not list (a probe camera), is not an obstacle; the tripod of a camera on a zone
 mount with a [mount.tripod] is one, wherever the camera stands (`bodies`).
+
+This module is the door: the `Experiment` goes no further. The functions below it (meshes, scene,
+geometry, information, objective, physics, constraints) take the tables they read, handed out
+here; `check_experiment(exp)`, which checks the whole file up front (before either step), stands
+here for that reason.
 """
 
 from __future__ import annotations
@@ -23,16 +28,18 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 
 from vdo.physics import measured as measured_model, strain
 from vdo.constraints import stereo_min_angle
 from vdo.model.camera import Camera
-from vdo.config.experiment import Experiment
+from vdo.config.experiment import Experiment, lens_catalogue_errors
 from vdo.config.rig import CameraSpec
 from vdo.config.mounts import inside_floor
-from vdo.core.errors import ConfigError
+from vdo.core.errors import Collect, ConfigError
+from vdo.geometry.keyframes import LoadPath, load_path_of
 from vdo.physics.lighting import Illumination, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
@@ -285,6 +292,34 @@ def _first_difference(table: str, a, b) -> str | None:
                 return f"{table}.{key}"
         return None
     return None if a == b else table
+
+
+def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | None:
+    """Run every up-front check of `exp` that needs more than its TOML file, together, before any
+    heavy work (ray casting, rendering, JAX compilation): its meshes read and checked, no camera
+    inside one (`vdo.scene.load_meshes`), its load path's files read whole with every step of the
+    pose file in the displacement file (`vdo.geometry.keyframes.load_path_of`; `poses`, `vdo
+    render --series`'s pose file, replaces the [load_path]'s), and, with "lens" in [optimize]
+    free, every moving camera's lens in its catalogue
+    (`vdo.config.experiment.lens_catalogue_errors`). The checks do not stop at the first mistake:
+    the one mistake found is raised as a `ConfigError`, several together as `ConfigErrors` (one
+    line each), so that a file with several mistakes is fixed in one go. Returns the load path
+    (None when there is none). A load path whose displacements need a mesh that could not be read
+    is not read (the mesh's error is reported). It checks the whole file, so it stands here, at
+    the door, and hands each check below the tables it reads."""
+    errors = Collect()
+    meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                         rails=exp.rails, mounts=exp.mounts, path=exp.path, errors=errors)
+    load_path = None
+    needed = exp.load_path.deformed_mesh if exp.load_path.displacements is not None else None
+    if (exp.load_path.active or poses is not None) and (
+            needed is None or needed in {m.name for m in meshes}):
+        with errors.check():
+            load_path = load_path_of(meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                                     groups=exp.groups, poses=poses)
+    errors.errors += lens_catalogue_errors(exp)
+    errors.raise_all()
+    return load_path
 
 
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:

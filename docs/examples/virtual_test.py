@@ -199,7 +199,9 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,
                             pairs=[QUICK_PAIR] if quick else None)
     geometry = prepare(exp)
-    moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1).samples.points
+    load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups)
+    moved = at_step(geometry, load_path, 1, regions=exp.regions).samples.points
     cameras = {c.name: scaled_camera(c, summary["scale"])
                for c in vdo.cameras_of(exp.camera_specs, exp.rails)}
     sensor, s, patch = exp.sensor, geometry.samples, exp.evaluation.patch_size

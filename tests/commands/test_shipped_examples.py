@@ -201,7 +201,10 @@ def test_upfront_checks(path):
         spec = load_sweep(ROOT / path)
         check_points(spec, expand(spec))
     else:
-        check_load_path(load(ROOT / path))
+        exp = load(ROOT / path)
+        check_load_path(load_path_spec=exp.load_path, groups=exp.groups, mesh_specs=exp.meshes,
+                        regions=exp.regions, camera_specs=exp.camera_specs, rails=exp.rails,
+                        mounts=exp.mounts, path=exp.path)
 
 
 @pytest.mark.parametrize("path, command", list(GROUPS), ids=[f"{p}::{c}" for p, c in GROUPS])

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import SLIDING_SHUTTER
+from conftest import SLIDING_SHUTTER, load_path_tables
 from vdo import objective
 from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
@@ -327,7 +327,7 @@ def test_candidates_lose_what_the_load_path_hides(plate_experiment):
         "\n".join(rows + [f"{k},slide,{-500 * k},0,0,0,0,0" for k in range(1, 8)]) + "\n")
     path.write_text(path.read_text() + DESIGN.format(n=2, extra="keyframes = 1"))
     exp = config.load(path)
-    lp = load_path_of(exp, None)
+    lp = load_path_of(None, **load_path_tables(exp))
     assert keyframe_steps(lp, 1) == (7,)            # the farthest from rest
     assert keyframe_steps(lp, 2) == (1, 7)          # then the other extreme of the slide
     geometry = prepare(exp)

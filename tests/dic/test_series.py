@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import load_path_tables
 from vdo.physics import checks
 from vdo.commands import cli
 from vdo.config import experiment as config
@@ -79,7 +80,7 @@ def test_series_images_move_as_the_projection_predicts(plate_experiment, tmp_pat
             images.append(np.asarray(im))
     assert images[0].std() > 100                              # speckled and lit
     cam = scaled_camera(cameras_of(exp.camera_specs, exp.rails)[0], 1.0)
-    poses = load_path_of(exp, [], tmp_path / "motions.csv").poses
+    poses = load_path_of([], **load_path_tables(exp), poses=tmp_path / "motions.csv").poses
     for step, centres in ((1, [(100, 75), (60, 50)]), (2, [(60, 45), (140, 105)])):
         pose = poses[(step, "plate")]
         for centre in centres:
@@ -109,7 +110,7 @@ def test_bad_motion_files_are_one_clear_line(plate_experiment, tmp_path, capsys,
     path = plate_experiment(cameras=CAMERA)
     (tmp_path / "m.csv").write_text(text)
     with pytest.raises(ConfigError):
-        load_path_of(config.load(path), [], tmp_path / "m.csv")
+        load_path_of([], **load_path_tables(config.load(path)), poses=tmp_path / "m.csv")
     code = cli.main(["render", str(path), "--series", str(tmp_path / "m.csv"), "--out",
                      str(tmp_path / "o")])
     err = capsys.readouterr().err.strip()
@@ -246,11 +247,11 @@ def test_vtk_linear_field_is_reproduced_on_the_surface(plate_experiment, tmp_pat
     path = load_path_toml(plate_experiment(spacing=100), "u.pvd", 'unit = "mm"')
     exp = config.load(path)
     geometry = prepare(exp)
-    load_path = load_path_of(exp, geometry.meshes)
+    load_path = load_path_of(geometry.meshes, **load_path_tables(exp))
     assert load_path.steps == (1, 2)
     rest_vertices, rest_samples = geometry.meshes[0].vertices, geometry.samples.points
     for step, factor in ((1, 1.0), (2, -2.5)):
-        moved = at_step(geometry, load_path, step)
+        moved = at_step(geometry, load_path, step, regions=exp.regions)
         for rest, now in ((rest_vertices, moved.meshes[0].vertices), (rest_samples, moved.samples.points)):
             np.testing.assert_allclose(now - rest, factor * (LINEAR_A + rest @ LINEAR_B.T), atol=1e-12)
 
@@ -269,7 +270,7 @@ def test_vtk_nodes_at_the_vertices_carry_any_field(plate_experiment, tmp_path):
     write_vtk(tmp_path / "u.vtp", corners, {"U": u_corner}, mode="appended base64")
     exp = config.load(load_path_toml(path, "u.vtp", 'unit = "m"'))
     geometry = prepare(exp)
-    moved = at_step(geometry, load_path_of(exp, geometry.meshes), 1)
+    moved = at_step(geometry, load_path_of(geometry.meshes, **load_path_tables(exp)), 1, regions=exp.regions)
     np.testing.assert_allclose(moved.meshes[0].vertices - vertices, u, atol=1e-15)
 
 

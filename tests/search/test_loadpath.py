@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from conftest import write_box
+from conftest import mesh_tables, write_box
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import LoadPath, Pose, at_step, read_displacements, read_poses, rotation_xyz
 
@@ -87,7 +87,7 @@ def test_deformed_plate_samples_follow_a_linear_field(plate_experiment, tmp_path
     f = write_csv(tmp_path / "disp.csv", "\n".join(rows))
     u = read_displacements(f, plate.vertices, "plate")
     lp = LoadPath(steps=(3,), groups={}, poses={}, deformed_mesh="plate", displacements=u)
-    moved = at_step(geometry, lp, 3)
+    moved = at_step(geometry, lp, 3, regions=geometry.experiment.regions)
     rest = geometry.samples.points
     np.testing.assert_allclose(moved.samples.points[:, 2] - rest[:, 2], a * rest[:, 0], atol=1e-12)
     np.testing.assert_allclose(moved.meshes[0].vertices[:, 2] - plate.vertices[:, 2],
@@ -145,7 +145,7 @@ def test_a_path_that_returns_to_a_pose_is_judged_as_each_of_its_steps(plate_expe
     result = evaluate_load_path(geometry, lp)
     assert result.seen_fraction[1, 0, 0] < 0.9 * result.seen_fraction[0, 0, 0]   # step 1 hides
     for index, step in enumerate(lp.steps, start=1):
-        alone = layout_state(at_step(geometry, lp, step), strain_fields=False).prediction
+        alone = layout_state(at_step(geometry, lp, step, regions=exp.regions), strain_fields=False).prediction
         np.testing.assert_array_equal(result.coverage[index], alone.coverage)
         np.testing.assert_allclose(result.sigma_max[index], np.where(alone.measured, alone.sigma_max, np.inf),
                                    rtol=1e-12)
@@ -189,8 +189,9 @@ def test_every_kth_step_and_the_last_are_judged():
 
     path = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / "ten_cameras.toml"
     exp = load(path)
-    every = check_load_path(exp).steps
+    steps = lambda e: check_load_path(**mesh_tables(e), load_path_spec=e.load_path, groups=e.groups).steps
+    every = steps(exp)
     for k in (1, 4, 7):
-        kept = check_load_path(exp.with_settings(load_path={"every": k})).steps
+        kept = steps(exp.with_settings(load_path={"every": k}))
         assert kept == tuple(sorted(set(every[::k]) | {every[-1]}))
-    assert len(check_load_path(exp.with_settings(load_path={"every": 100})).steps) == 2
+    assert len(steps(exp.with_settings(load_path={"every": 100}))) == 2

@@ -24,13 +24,14 @@ ARRAYS = ("coverage", "sigma_max", "seen_fraction", "region_covered", "region_si
 def judged():
     """(geometry, load path, rest state, the serial `LoadPathResult`)."""
     from vdo.config.experiment import load
+    from conftest import load_path_tables
     from vdo.geometry.keyframes import load_path_of
     from vdo.search.loadpath import evaluate_load_path
     from vdo.state import layout_state, prepare
 
     exp = load(EXPERIMENT).with_settings(evaluation={"sample_spacing_mm": 40}, load_path={"every": 4})
     geometry = prepare(exp)
-    load_path = load_path_of(exp, geometry.meshes)
+    load_path = load_path_of(geometry.meshes, **load_path_tables(exp))
     rest = layout_state(geometry, strain_fields=False)
     serial = evaluate_load_path(geometry, load_path, rest=rest)
     return geometry, load_path, rest, serial

@@ -17,7 +17,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import PLATE_TOML, SLIDING_SHUTTER, aimed_camera, write_box
+from conftest import PLATE_TOML, SLIDING_SHUTTER, aimed_camera, load_path_tables, write_box
 from vdo.config import experiment as config
 from vdo.search import loadpath
 from vdo.model.pose import look_at_angles
@@ -65,7 +65,7 @@ def test_path_occlusion_hides_the_views_the_geometry_says(tmp_path):
     plate points whose ray crosses z = 0.9 beyond the edge, x_p > -0.1)."""
     exp = experiment(tmp_path, True)
     geometry = prepare(exp)
-    load_path = load_path_of(exp, geometry.meshes)
+    load_path = load_path_of(geometry.meshes, **load_path_tables(exp))
     cam = cameras_of(exp.camera_specs, exp.rails)[0]
     near, far = (cam.with_pose([x, 0.0, RAIL_HEIGHT], *look_at_angles([x, 0.0, RAIL_HEIGHT], [0, 0, 0]))
                  for x in (0.2, 0.5))
@@ -86,7 +86,8 @@ def test_rest_optimum_loses_the_plate_and_the_path_optimum_keeps_it(tmp_path, ov
     optimize(exp, out)
     after = json.loads((out / "summary_after.json").read_text())["load_path"]
     geometry = prepare(exp)   # the hand layout, judged over the path as `vdo evaluate` does
-    before = loadpath.summary(loadpath.evaluate_load_path(geometry, load_path_of(exp, geometry.meshes)))
+    before = loadpath.summary(loadpath.evaluate_load_path(geometry, load_path_of(geometry.meshes,
+                                                                                 **load_path_tables(exp))))
     moves = {row.split(",")[0]: row.split(",") for row in (out / "moves.csv").read_text().splitlines()}
     x_after = float(moves["a"][13])
     print(f"load_path={over_path}: camera a x = {x_after:.3f} m; covered at the worst step "

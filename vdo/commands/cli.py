@@ -141,10 +141,10 @@ def _load(args):
 
 def _experiment(path, series=None):
     """The experiment of `path`, read and checked whole: its tables, then together
-    (`vdo.geometry.checks.check_experiment`) its meshes (no camera inside one), its load-path
+    (`vdo.state.check_experiment`) its meshes (no camera inside one), its load-path
     files (every step) and a --series POSES.csv, and the lens catalogue of an optimize."""
     from vdo.config.experiment import load
-    from vdo.geometry.checks import check_experiment
+    from vdo.state import check_experiment
 
     exp = load(path)
     if series not in (None, "load_path") and not Path(series).is_file():

@@ -53,7 +53,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int |
     if not exp.lights and exp.render.ambient_radiance == 0:
         log.warning("note: no [[light]] and no [render] ambient_radiance: the images would be "
                     "black, so the uncertainty is not predicted (sigma = inf)")
-    load_path = load_path_of(exp, geometry.meshes)     # its files are checked before any ray
+    load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups)     # its files are checked before any ray
     calibration = evaluation_plan(exp, geometry)        # None without [calibration]: no work
     state = layout_state(geometry, progress=shown(log))
     over_path = None

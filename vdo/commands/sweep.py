@@ -69,7 +69,9 @@ def check_points(spec: SweepSpec, points: list[Point]) -> None:
             tables = json.dumps([point.config.get(k) for k in ("load_path", "group", "mesh")],
                                 sort_keys=True, default=str)
             if tables not in read:
-                check_load_path(exp)
+                check_load_path(load_path_spec=exp.load_path, groups=exp.groups, mesh_specs=exp.meshes,
+                                regions=exp.regions, camera_specs=exp.camera_specs, rails=exp.rails,
+                                mounts=exp.mounts, path=exp.path)
                 read.add(tables)
         except ConfigError as exc:
             values = ", ".join(f"{k} = {v!r}" for k, v in point.axes.items())

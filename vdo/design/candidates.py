@@ -370,11 +370,12 @@ def judging(exp: Experiment, geometry: Geometry) -> Judging:
     cams, mount, kind, u, heads, body, tg, aims, dropped = candidate_cameras(exp, samples, geometry.meshes)
     scene = build_scene(list(geometry.meshes))
     bare = build_scene([m for m in geometry.meshes if m.role == "specimen"])
-    path = load_path_of(exp, list(geometry.meshes))
+    path = load_path_of(list(geometry.meshes), load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                        groups=exp.groups)
     steps = () if path is None else loadpath.keyframe_steps(path, exp.design.keyframes)
     moved = []
     for step in steps:      # as `vdo.search.loadpath.path_occlusion`: every keyframe, meshes moved
-        g = at_step(geometry, path, step)
+        g = at_step(geometry, path, step, regions=exp.regions)
         moved.append((g.samples, build_scene(list(g.meshes) + bodies_of(exp, []))))
     light = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
     R = len(samples.region_names)

@@ -133,7 +133,8 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
                                                   "group (see vdo.geometry.keyframes)")
     started = time.perf_counter()
     geometry = prepare(exp)
-    load_path = load_path_of(exp, geometry.meshes, poses_path)
+    load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups, poses=poses_path)
     if load_path is None:
         raise ConfigError(exp.path, "load_path", "a series needs poses: give --series POSES.csv or "
                                                  "a [load_path] in the experiment")
@@ -160,7 +161,8 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
 
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
     for step in plan.steps:
-        posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step).meshes
+        posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
+                                                          regions=exp.regions).meshes
         build = build_dic_scene if plan.dic else build_render_scene
         scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
                       geometry.speckle.pattern, posed)

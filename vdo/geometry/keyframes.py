@@ -49,11 +49,17 @@ import math
 import re
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from vdo.core.errors import ConfigError
 from vdo.core.tolerances import BARYCENTRIC_SLACK
+
+if TYPE_CHECKING:
+    from vdo.config.mounts import MountSpec, RailSpec
+    from vdo.config.procedure import GroupSpec, LoadPathSpec
+    from vdo.config.rig import CameraSpec, MeshSpec, RegionSpec
 
 logger = logging.getLogger(__name__)
 
@@ -459,16 +465,17 @@ def _barycentric_displacement(points, triangles, displaced, candidates: int = 16
     return out
 
 
-def at_step(geometry, load_path: LoadPath, step: int):
+def at_step(geometry, load_path: LoadPath, step: int, *, regions: tuple[RegionSpec, ...]):
     """The geometry at `step`: every mesh of a moving group posed, the specimen's vertices
-    displaced, and the surface samples moved with the mesh they lie on (a new `Geometry`)."""
+    displaced, and the surface samples moved with the mesh they lie on (a new `Geometry`).
+    `regions`: the [[region]] tables the geometry was prepared from (`geometry.experiment.regions`),
+    which say the mesh each region's samples lie on."""
     from vdo.scene import SceneMesh
 
-    exp = geometry.experiment
     samples = geometry.samples
     points, normals = samples.points.copy(), samples.normals.copy()
     t_u, t_v = samples.tangent_u.copy(), samples.tangent_v.copy()
-    region_mesh = np.array([exp.regions[k].mesh for k in range(len(exp.regions))])[samples.region]
+    region_mesh = np.array([regions[k].mesh for k in range(len(regions))])[samples.region]
     meshes = []
     for mesh in geometry.meshes:
         vertices = mesh.vertices
@@ -476,7 +483,7 @@ def at_step(geometry, load_path: LoadPath, step: int):
         u = (load_path.displacements or {}).get(step) if mesh.name == load_path.deformed_mesh else None
         if u is not None:
             for k, faces in enumerate(geometry.region_faces):
-                if exp.regions[k].mesh == mesh.name:
+                if regions[k].mesh == mesh.name:
                     on_region = samples.region == k
                     tri = mesh.faces[faces.faces]
                     points[on_region] += _barycentric_displacement(points[on_region], vertices[tri], u[tri])
@@ -509,22 +516,24 @@ def _check_displaced_steps(file: Path, poses: Path | None, posed: set, displaced
                                     "drop them from the pose file")
 
 
-def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
-    """The experiment's `[load_path]` read from its CSV files, or None when it has none and no
-    `poses` file is given. `poses` replaces the `[load_path]`'s pose file (`vdo render --series`).
-    Groups are the experiment's `[[group]]` tables, and every mesh is also a group of its own name
-    (pivot at the origin), so a pose file may move single meshes without declaring groups. Rows
-    are checked here, before any ray is cast, and so is every step of the pose file found in the
-    displacement file (`_check_displaced_steps`). `meshes`: the experiment's SceneMeshes (needed
-    for the displacement nodes). With `[load_path] every = k`, the steps kept are every k-th of the
+def load_path_of(meshes, *, load_path_spec: LoadPathSpec, mesh_specs: tuple[MeshSpec, ...],
+                 groups: tuple[GroupSpec, ...], poses: Path | None = None) -> LoadPath | None:
+    """The experiment's `[load_path]` (`load_path_spec`) read from its CSV files, or None when it
+    has none and no `poses` file is given. `poses` replaces the `[load_path]`'s pose file (`vdo
+    render --series`). Groups are the experiment's `[[group]]` tables (`groups`), and every mesh
+    of `mesh_specs` (its [[mesh]] tables) is also a group of its own name (pivot at the origin),
+    so a pose file may move single meshes without declaring groups. Rows are checked here, before
+    any ray is cast, and so is every step of the pose file found in the displacement file
+    (`_check_displaced_steps`). `meshes`: the experiment's SceneMeshes (needed for the
+    displacement nodes). With `[load_path] every = k`, the steps kept are every k-th of the
     files' and the last (all rows checked first)."""
-    spec = exp.load_path
+    spec = load_path_spec
     if not spec.active and poses is None:
         return None
-    groups = {m.name: (m.name,) for m in exp.meshes}
-    pivots = {name: np.zeros(3) for name in groups}
-    for g in exp.groups:
-        groups[g.name] = tuple(g.meshes)
+    members = {m.name: (m.name,) for m in mesh_specs}
+    pivots = {name: np.zeros(3) for name in members}
+    for g in groups:
+        members[g.name] = tuple(g.meshes)
         pivots[g.name] = np.asarray(g.pivot, dtype=float)
     poses = poses if poses is not None else spec.poses
     displacements = None
@@ -535,27 +544,32 @@ def load_path_of(exp, meshes, poses: Path | None = None) -> LoadPath | None:
         else:
             displacements = read_vtk_displacements(spec.displacements, mesh.vertices, mesh.faces,
                                                    mesh.name, spec.unit, spec.displacement_array)
-    table = read_poses(Path(poses), groups, pivots) if poses is not None else {}
+    table = read_poses(Path(poses), members, pivots) if poses is not None else {}
     if displacements is not None:
         _check_displaced_steps(spec.displacements, Path(poses) if poses is not None else None,
                                {step for step, _ in table}, set(displacements))
     steps = sorted({step for step, _ in table} | set(displacements or {}))
     if spec.every > 1 and steps:      # every every-th step, and the last
         steps = sorted(set(steps[::spec.every]) | {steps[-1]})
-    return LoadPath(tuple(steps), groups, table, spec.deformed_mesh, displacements)
+    return LoadPath(tuple(steps), members, table, spec.deformed_mesh, displacements)
 
 
-def check_load_path(exp, poses: Path | None = None) -> LoadPath | None:
-    """Read the experiment's load path (and `poses`, `vdo render --series`'s file) whole, as the
-    commands do before any ray is cast, rendering or compile: every row of every step checked,
-    the first bad one a ConfigError naming the file, the row and the column (`load_path_of`).
-    The meshes are read only when the specimen's displacements need its vertices. Returns the
-    load path, or None when there is none."""
+def check_load_path(*, load_path_spec: LoadPathSpec, groups: tuple[GroupSpec, ...],
+                    mesh_specs: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
+                    camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec, ...],
+                    mounts: tuple[MountSpec, ...], path, poses: Path | None = None) -> LoadPath | None:
+    """Read the experiment's load path (`load_path_spec`, its `groups`; and `poses`, `vdo render
+    --series`'s file) whole, as the commands do before any ray is cast, rendering or compile:
+    every row of every step checked, the first bad one a ConfigError naming the file, the row and
+    the column (`load_path_of`). The meshes are read (and checked, `vdo.scene.load_meshes`, with
+    the [[mesh]], [[region]], [[camera]], [[rail]] and [[mount]] tables and the experiment file
+    `path`) only when the specimen's displacements need its vertices. Returns the load path, or
+    None when there is none."""
     from vdo.scene import load_meshes
 
-    if not exp.load_path.active and poses is None:
+    if not load_path_spec.active and poses is None:
         return None
-    meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
-                         rails=exp.rails, mounts=exp.mounts,
-                         path=exp.path) if exp.load_path.displacements is not None else []
-    return load_path_of(exp, meshes, poses)
+    meshes = load_meshes(mesh_specs=mesh_specs, regions=regions, camera_specs=camera_specs, rails=rails,
+                         mounts=mounts, path=path) if load_path_spec.displacements is not None else []
+    return load_path_of(meshes, load_path_spec=load_path_spec, mesh_specs=mesh_specs, groups=groups,
+                        poses=poses)

@@ -133,7 +133,7 @@ def judge_step(shared: PathShared, step: int) -> StepJudgement:
     strain fields), on a copy of the rest geometry's pair-list sizes: each step's arrays depend
     on that step alone, the same to the last bit in any process and after any other step."""
     rest = replace(shared.geometry, sizes=dict(shared.geometry.sizes))
-    moved = at_step(rest, shared.load_path, step)
+    moved = at_step(rest, shared.load_path, step, regions=rest.experiment.regions)
     cameras = None if shared.cameras is None else list(shared.cameras)
     return _judgement(layout_state(moved, cameras, strain_fields=False))
 
@@ -302,7 +302,7 @@ def path_occlusion(geometry: Geometry, load_path: LoadPath, cameras, steps=None,
         raise ValueError(f"path_occlusion: fraction must lie in (0, 1], got {fraction}")
     seen = np.zeros((len(cameras), len(geometry.samples)))
     for step in steps:
-        moved = at_step(geometry, load_path, step)
+        moved = at_step(geometry, load_path, step, regions=exp.regions)
         scene = build_scene(list(moved.meshes) + bodies(exp, cameras))
         seen += compute_visibility(scene, cameras, moved.samples, exp.evaluation.incidence_limit,
                                    progress=False).visible
@@ -316,7 +316,8 @@ def scored_path(exp, geometry: Geometry):
     experiment has no `[load_path]` or scoring over it is off."""
     if not exp.optimize.load_path:
         return None
-    load_path = load_path_of(exp, geometry.meshes)
+    load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups)
     if load_path is None or not load_path.steps:
         return None
     return (load_path, keyframe_steps(load_path, exp.optimize.load_path_keyframes),
