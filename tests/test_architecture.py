@@ -3,8 +3,8 @@
 A module may import a module of its own package, or of a package (or top-level module) on a
 lower floor; never one above. Inner (function-level) imports count as much as top-level ones.
 No private name (leading underscore) is imported from another module, nor read through one
-(`module._name`). Below `vdo.state` (the physics and the constraints) functions take the tables
-they read, not the whole `Experiment`. docs/architecture.md draws the same floors.
+(`module._name`). Below `vdo.state` (every unit from meshes/ to constraints.py) functions take
+the tables they read, not the whole `Experiment`. docs/architecture.md draws the same floors.
 """
 from __future__ import annotations
 
@@ -196,20 +196,47 @@ def _takes_the_experiment(node: ast.AST) -> list[str]:
             and re.search(r"\bExperiment\b", ast.unparse(p.annotation))]
 
 
-def test_the_physics_takes_tables_not_the_experiment():
-    """Below `vdo.state` (vdo/physics/ and vdo/constraints.py) a function takes the tables it
-    reads (`evaluation`, `analysis`, `regions`, ...), not the whole `Experiment`: no parameter
-    named `exp` nor annotated `Experiment`. The experiment stops at the door."""
+# the units below the door (`vdo.state`) that take tables, not the experiment: the units under
+# state in FLOORS above core, model and config (which define, read and check the experiment)
+BELOW_THE_DOOR = ("meshes", "scene", "geometry", "information", "objective", "physics", "constraints")
+
+
+def test_below_the_door_rule_covers_every_unit_under_state():
+    """BELOW_THE_DOOR is every unit between config and state: a unit added there is covered."""
+    assert set(BELOW_THE_DOOR) == {u for u, f in FLOORS.items() if FLOORS["config"] < f < FLOORS["state"]}
+
+
+def test_every_unit_below_the_door_takes_tables_not_the_experiment():
+    """Below `vdo.state` (vdo/meshes/, vdo/scene.py, vdo/geometry/, vdo/information/,
+    vdo/objective.py, vdo/physics/ and vdo/constraints.py) a function takes the tables it reads
+    (`evaluation`, `analysis`, `regions`, `mesh_specs`, `camera_specs`, ...), not the whole
+    `Experiment`: no parameter named `exp` nor annotated `Experiment`, and no `.experiment` read
+    off what it is handed (a `Geometry`'s or a `LayoutState`'s). The experiment stops at the
+    door."""
     wrong = []
     for path, name, _ in _modules():
-        if _unit(name) not in ("physics", "constraints"):
+        if _unit(name) not in BELOW_THE_DOOR:
             continue
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
                 for arg in _takes_the_experiment(node):
                     function = getattr(node, "name", "<lambda>")
                     wrong.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} {function}({arg})")
+            elif _reads_the_experiment(node):
+                wrong.append(f"{path.relative_to(ROOT.parent)}:{node.lineno} reads {ast.unparse(node)}")
     assert not wrong, "take the tables, not the experiment:\n" + "\n".join(wrong)
+
+
+def _reads_the_experiment(node: ast.AST) -> bool:
+    """Whether `node` reads an `experiment` attribute (`geometry.experiment`)."""
+    return isinstance(node, ast.Attribute) and node.attr == "experiment"
+
+
+def test_the_experiment_rule_sees_an_attribute():
+    """The rule above finds `.experiment` read off an object, and not a name that holds the word."""
+    code = "x = geometry.experiment.regions\ny = experiment_path\nz = state.experiments\n"
+    found = [ast.unparse(n) for n in ast.walk(ast.parse(code)) if _reads_the_experiment(n)]
+    assert found == ["geometry.experiment"]
 
 
 def test_the_experiment_rule_sees_a_parameter():
