@@ -87,9 +87,6 @@ def write_print(path: Path, f: np.ndarray, texel_mm: float, dpi: float, lines: l
     margin_in = 0.25 + 0.17 * len(lines)
     h = side_in + margin_in
     fig = plt.figure(figsize=(side_in, h), dpi=dpi)
-    # the tiles placed pixel for pixel (no resampling): one texel per printer dot at `dpi`
-    fig.figimage(np.repeat(dots[:, :, None], 3, axis=2), xo=0,
-                 yo=round(fig.bbox.height) - dots.shape[0], origin="upper")
     bar_ax = fig.add_axes((0, 0, 1, margin_in / h))
     bar_ax.set_xlim(0, side_in * MM_PER_INCH)
     bar_ax.set_ylim(0, margin_in * MM_PER_INCH)
@@ -99,6 +96,17 @@ def write_print(path: Path, f: np.ndarray, texel_mm: float, dpi: float, lines: l
     bar_ax.text(SCALE_BAR_MM + 2, top - 2.3, f"{SCALE_BAR_MM:g} mm", fontsize=6, va="center")
     for i, text in enumerate(lines):
         bar_ax.text(1, top - 6 - 4.3 * i, text, fontsize=6, va="center")
-    for ext in ("png", "pdf"):
-        fig.savefig(path.with_suffix(f".{ext}"), dpi=dpi)
+    # The tiles pixel for pixel, one texel per printer dot at `dpi`. The PNG: the margin drawn
+    # alone and the tiles pasted into its top rows (Agg would pass tens of Mpixel through its
+    # resampler: ~6 s for an A4 sheet). The PDF: the tiles embedded as they are ("none": no
+    # resampling in a vector file; lossless).
+    fig.canvas.draw()
+    page = np.array(fig.canvas.buffer_rgba())
+    page[:dots.shape[0], :dots.shape[1], :3] = dots[:, :, None]
+    page[:dots.shape[0], :dots.shape[1], 3] = 255
+    plt.imsave(path.with_suffix(".png"), page, dpi=dpi)
+    tiles_ax = fig.add_axes((0, margin_in / h, 1, side_in / h))
+    tiles_ax.imshow(np.repeat(dots[:, :, None], 3, axis=2), interpolation="none", aspect="auto")
+    tiles_ax.set_axis_off()
+    fig.savefig(path.with_suffix(".pdf"), dpi=dpi)
     plt.close(fig)
