@@ -73,10 +73,9 @@ def write_render(result: RenderResult, out, overwrite: bool = False) -> dict:
             save_image(inside(tmp / "images", f"{cam.name}{suffix}"), result.images[cam.name],
                        exp.sensor.bit_depth, rs.bit_alignment)
             if rs.exr:
-                from vdo.core.backend import mitsuba
+                from vdo.core.backend import write_exr
 
-                mitsuba().Bitmap(result.linear[cam.name][..., None]).write(
-                    str(inside(tmp / "images", f"{cam.name}.exr")))
+                write_exr(inside(tmp / "images", f"{cam.name}.exr"), result.linear[cam.name])
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
         write_all(cameras, result.pairs, tmp / "calibration", exp.path)

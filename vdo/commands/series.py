@@ -43,9 +43,9 @@ def write_series(plan: SeriesPlan, out, overwrite: bool = False) -> dict:
             stem = tmp / "images" / image.camera.name / f"{image.camera.name}_{image.step:04d}"
             save_image(stem.with_suffix(".tif"), image.dn, exp.sensor.bit_depth)
             if exp.render.exr:
-                from vdo.core.backend import mitsuba
+                from vdo.core.backend import write_exr
 
-                mitsuba().Bitmap(image.linear[..., None]).write(str(stem.with_suffix(".exr")))
+                write_exr(stem.with_suffix(".exr"), image.linear)
             bar.update()
         bar.close()
         report.write_json(tmp / "layout.json", report.layout(plan.cameras))

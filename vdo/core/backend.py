@@ -21,6 +21,7 @@ import re
 from vdo.core import interrupts
 
 MIN_LLVM = 16
+EXR_MIN_THREADS = 2   # Dr.Jit pool threads during an OpenEXR write (`write_exr`)
 _LLVM_GLOBS = (
     "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
     "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
@@ -108,3 +109,23 @@ def _load(variant: str):
         # The pool counts CPUs by affinity, not by container quota.
         dr.set_thread_count(_chosen["threads"] or len(os.sched_getaffinity(0)))
     return mi
+
+
+def write_exr(path, image) -> None:
+    """Write `image` (H, W), linear values, as a one-channel float32 OpenEXR file with Mitsuba's
+    `Bitmap`. Mitsuba's EXR writer never returns when Dr.Jit's thread pool has one thread (a
+    one-CPU machine or batch job, `taskset -c 0`, `configure(threads=1)`): the pool is given
+    `EXR_MIN_THREADS` for the write and its own count back after it."""
+    import numpy as np
+
+    mi = mitsuba()
+    import drjit as dr
+
+    threads = dr.thread_count()
+    if threads < EXR_MIN_THREADS:
+        dr.set_thread_count(EXR_MIN_THREADS)
+    try:
+        mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32)[..., None]).write(str(path))
+    finally:
+        if threads < EXR_MIN_THREADS:
+            dr.set_thread_count(threads)
