@@ -152,12 +152,13 @@ DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
 WRITE_S = 5.0   # s: kept at least for writing the run folder (figures, report) after the search
 
 
-def _wrap_up_s(problem: Problem, steps: int) -> float:
-    """Seconds kept from the time limit for what follows the search: the best layout judged
-    again for its summary and at each of the load path's `steps`, each about one hand-layout
-    refresh (`Problem.refresh_s`, measured at start-up, its compilations included: an upper
-    estimate), and the folder written (`WRITE_S`)."""
-    return (steps + 2) * problem.refresh_s + WRITE_S
+def _wrap_up_s(problem: Problem, judge_s: float, steps: int) -> float:
+    """Seconds kept from the time limit for what follows the search: the best layout judged as
+    the hand layout was at start-up (`judge_s`: its summary, constraint checks and score parts)
+    plus one hand-layout refresh (`Problem.refresh_s`, measured at start-up, its compilations
+    included: room for a best layout whose lenses need new programs), the best layout at each of
+    the load path's `steps` (a refresh each), and the folder written (`WRITE_S`)."""
+    return judge_s + (steps + 1) * problem.refresh_s + WRITE_S
 
 
 def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, stop: Stop | None = None,
@@ -212,7 +213,13 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     reach = reachability.check(exp, problem.meshes, problem.samples)   # logs a warning per short region
     over_path = load_path_of(problem.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
                              groups=exp.groups)
-    kept = _wrap_up_s(problem, len(over_path.steps) if over_path is not None else 0)
+    # the hand layout judged now, inside start-up: its time measures the best layout's judgement
+    t_judge = time.perf_counter()
+    before = _summary(problem, problem.start)
+    checks_before = problem.check(problem.start)
+    score_before = score_parts(problem, problem.start)
+    judge_s = time.perf_counter() - t_judge
+    kept = _wrap_up_s(problem, judge_s, len(over_path.steps) if over_path is not None else 0)
     stop.deadline -= kept   # the search ends in time for the result to be judged and written
     startup = time.perf_counter() - t_start
     log.info("start-up took %.0f s of the %g s time limit (%.0f s kept for writing the result); "
@@ -241,14 +248,11 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     search = time.perf_counter() - t_search
     log.info("search ended: %s after %.0f s (start-up %.0f s, search %.0f s)", status,
              time.perf_counter() - t_start, startup, search)
-    before = _summary(problem, problem.start)
     after = _summary(final, best.state)
     if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
         log.info("judging the optimized layout over the %d steps of the load path", len(over_path.steps))
         after = dataclasses.replace(after, load_path=loadpath.summary(loadpath.evaluate_load_path(
             problem.geometry, over_path, best.state.cameras)))
-    checks_before = problem.check(problem.start)
-    score_before = score_parts(problem, problem.start)
     score_after = score_parts(final, best.state)
     if objective is not None:   # the user's objective's values: what was minimised
         score_before["score_um"] = problem.exact_score(problem.start)
