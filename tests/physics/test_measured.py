@@ -85,3 +85,12 @@ def test_validation_rows_on_a_photograph_like_texture():
     assert row.samples == 6 * 16 * SUB
     assert np.all((row.ratio > RATIO_BAND[0]) & (row.ratio < RATIO_BAND[1])), row
     assert np.all((row.ratio_95[:, 0] < row.ratio) & (row.ratio < row.ratio_95[:, 1]))
+
+
+def test_scatter_model_holds_on_a_gaussian_field_with_the_fine_dots_spectrum():
+    # The fine-dot rows' y ratio (about 0.8 for 2 px binary dots) comes from the scatter term's
+    # Gaussian fourth moments, not from its spectra: the same dots with their phases drawn anew
+    # (a Gaussian field with the same power spectrum) are predicted within the band on both axes.
+    row = run_case(BiasCase("2 px dots' spectrum, Gaussian", "dots-gaussian", 2.0, "cubic", 0.0, 0.02),
+                   seeds=12)
+    assert np.all((row.ratio > RATIO_BAND[0]) & (row.ratio < RATIO_BAND[1])), row

@@ -39,7 +39,8 @@ BOOTSTRAP = 2000         # resamples of the seeds for the 95 % interval
 
 @dataclass(frozen=True)
 class BiasCase:
-    """One validation case: the pattern ("dots" sharp-edged, or "photo" photograph-like), its dot
+    """One validation case: the pattern ("dots" sharp-edged, "photo" photograph-like, or
+    "dots-gaussian", the sharp dots' spectrum with random phases: `gaussian_like`), its dot
     diameter in pixels, the interpolant, the optics' λN/p (0: none) and the noise in pattern stds."""
 
     name: str
@@ -82,11 +83,21 @@ def photo_like_pattern(size: int, dot_texels: float, seed: int) -> np.ndarray:
     return np.clip(img, 0.0, 1.0).astype(np.float32)
 
 
+def gaussian_like(f: np.ndarray, seed: int) -> np.ndarray:
+    """The periodic tile `f` with its Fourier amplitudes kept and its phases drawn anew (uniform,
+    Hermitian): a Gaussian field with the power spectrum of `f`, which is what the scatter term of
+    `correlation_error` assumes (its fourth moments are Gaussian); normalised."""
+    noise = np.fft.fft2(np.random.default_rng([seed, 7]).standard_normal(f.shape))
+    g = np.fft.ifft2(np.abs(np.fft.fft2(f - f.mean())) * noise / np.maximum(np.abs(noise), 1e-300))
+    return normalise(np.real(g).astype(np.float32))
+
+
 def case_pattern(case: BiasCase, tile: int, seed: int) -> np.ndarray:
     """The normalised pattern tile of a case for a seed (`tile` texels per side)."""
     if case.pattern == "photo":
         return normalise(photo_like_pattern(tile, case.dot_px * SUB, seed))
-    return normalise(generate_pattern(tile, 1.0, case.dot_px * SUB, 0.5, 0, seed=seed))
+    dots = normalise(generate_pattern(tile, 1.0, case.dot_px * SUB, 0.5, 0, seed=seed))
+    return gaussian_like(dots, seed) if case.pattern == "dots-gaussian" else dots
 
 
 def _images(f: np.ndarray, airy_px: float):
