@@ -21,7 +21,7 @@ from vdo.design.budget import ENTRY_BYTES, estimate, refuse
 from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import exchange, greedy, problems
+from vdo.design.select import POLISH_RTOL, exchange, figures, greedy, polish, problems
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
@@ -608,3 +608,66 @@ def test_a_camera_body_under_another_on_the_same_spot_is_a_conflict(plate_experi
                 assert row[k] == expected, (j, k)
                 checked, conflicts = checked + 1, conflicts + expected
     assert conflicts >= 2 and checked > 20        # both answers occur
+
+
+def _layout_figures(exp, geometry, cams):
+    """The polish's figures of a layout from its own ray cast (not the candidates' sums): the
+    smooth sigma of `_pair_score` per sample (numpy's eigenvalues of C + I/prior^2 from
+    `objective.fields`), usable views w >= 0.5 counted per sample, then the worst scored
+    region's p95 over the samples seen by >= 2 views (units of sigma_unit) and the area fraction
+    seen by min_cameras."""
+    scene = build_scene(list(geometry.meshes))
+    smp = samples_for_objective(exp.regions, geometry.samples)
+    vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
+                             progress=False)
+    light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
+    views = view_data(exp.speckle, exp.sensor, smp, vis, light, geometry.speckle)
+    st = replace(settings(exp.evaluation), pair_dtype="float64")
+    f = objective.fields(objective.CameraParams.from_cameras(cams), smp, views,
+                         geometry.speckle.table, st)
+    mu = 1.0 / np.linalg.eigvalsh(np.asarray(f.information) + np.eye(3) / st.prior_sigma ** 2)
+    sigma = np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit
+    count = (np.asarray(f.weights) >= 0.5).sum(0)
+    region, area = geometry.samples.region, np.asarray(geometry.samples.area)
+    need = np.array([r.min_cameras for r in exp.regions])[region]
+    seen = [(region == r) & (count >= 2) for r in range(len(exp.regions))]
+    p95 = [np.percentile(sigma[m], 95) if m.any() else np.inf for m in seen]
+    return max(p95), float(area[count >= need].sum() / area.sum())
+
+
+def test_the_polish_reads_its_figures_right_and_no_single_swap_beats_it(plate_experiment):
+    """`figures` (the candidates' sums, vectorised) equals `_layout_figures` (each layout's own
+    ray cast) for every candidate added to a pair; the polished triple's worst p95 is no higher
+    than the exchange's at no less coverage, and no feasible single swap, judged by
+    `_layout_figures`, lowers it further (by the polish's relative step) at the same coverage."""
+    exp = _experiment(plate_experiment, n=3, regions="\n[render]\nambient_radiance = 20\n")
+    geometry = prepare(exp)
+    cand = judge(exp, geometry)
+    scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand, geometry.samples)
+    own = lambda rows: _layout_figures(exp, geometry, [cand.cameras[i] for i in rows])  # noqa: E731
+    K = len(cand.cameras)
+    rows = [k for k in range(K) if k not in (1, 7)]
+    fig = figures(cand, scorer, geometry.samples, [1, 7], rows)
+    for k, row in enumerate(rows):
+        worst, cover = own([1, 7, row])
+        assert fig.worst_p95[k] == pytest.approx(worst, rel=1e-4)
+        assert fig.coverage[k] == pytest.approx(cover, abs=1e-12)
+    order, _ = greedy(cand, scorer, feas, 3)
+    chosen, _, _ = exchange(cand, scorer, feas, order)
+    for start in (chosen, [3, 4, 5]):            # the design's triple, and three bunched cameras
+        polished, swaps = polish(cand, scorer, feas, geometry.samples, list(start))
+        (w0, c0), (w1, c1) = own(start), own(polished)
+        assert w1 <= w0 and c1 >= c0 - 1e-12
+        assert (swaps > 0) == (polished != list(start))
+        _no_swap_beats(polished, w1, c1, own, feas)
+    assert swaps > 0 and w1 < 0.5 * w0           # the bunched triple spreads: its p95 halves at least
+
+
+def _no_swap_beats(polished, w1, c1, own, feas):
+    for slot in range(3):
+        rest = polished[:slot] + polished[slot + 1:]
+        for k in np.flatnonzero(feas.allowed(rest)):
+            if k in polished:
+                continue
+            w, c = own(rest + [int(k)])
+            assert not (c >= c1 - 1e-12 and w < w1 * (1 - POLISH_RTOL)), (rest, k, w, w1)

@@ -115,15 +115,16 @@ def write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 
 def write_curve(path, curve):
     """pareto.csv: per camera count its score, bound and gap, sigma_max p95 (µm; overall and per
-    scored region), coverage, swaps, lenses, bodies and the measurable area's figures; with
+    scored region), coverage, swaps (exchange, then polish), lenses, bodies and the measurable
+    area's figures; with
     [design] score = "measured" then σ_measured p95 (µm; the worst scored region, then per region)."""
     regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
     meas = bool(curve) and "sigma_measured_p95_um" in curve[0]    # [design] score = "measured"
     show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "lenses_mm",
-                    "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+        w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "polish_swaps",
+                    "lenses_mm", "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
                    + [f"sigma_p95_um_{r}" for r in regions]
                    + (["sigma_measured_p95_um"] + [f"sigma_measured_p95_um_{r}" for r in regions]
                       if meas else []))
@@ -131,8 +132,8 @@ def write_curve(path, curve):
             w.writerow([c["cameras"], f"{c['score']:.6g}",
                         "" if c["bound"] is None else f"{c['bound']:.6g}",
                         "" if c["gap"] is None else f"{c['gap']:.4f}",
-                        show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["lenses_mm"],
-                        c["bodies"], f"{c['measurable_fraction']:.4f}",
+                        show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["polish_swaps"],
+                        c["lenses_mm"], c["bodies"], f"{c['measurable_fraction']:.4f}",
                         f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
                        + [show(c["sigma_p95_by_region_um"][r]) for r in regions]
                        + ([show(c["sigma_measured_p95_um"])]
