@@ -70,7 +70,7 @@ def renders(exp, spp=REFERENCE_SPP):
     rf = scene.all_region_faces(meshes, **region_tables(exp))
     pattern = pattern_for(exp.speckle)
     cam, spec = cameras_of(exp.camera_specs, exp.rails)[0], exp.camera_specs[0]
-    fast = render_camera_dic(build_dic_scene(exp, meshes, rf, (), pattern), cam)
+    fast = render_camera_dic(build_dic_scene(exp, meshes, rf, (), pattern), cam, spec=spec)
     sc = build_render_scene(exp, meshes, rf, (), pattern)
     a, b = (render_camera(sc, cam, spec, spp, seed).astype(float) for seed in (1, 2))
     return fast.astype(float), (a + b) / 2, np.std(a - b) / 2     # noise of the mean of two

@@ -9,7 +9,7 @@ import pytest
 from scipy import optimize
 from scipy.special import j1
 
-from vdo.model.optics import (AIRY_GAUSS, OpticsBlur, circle_of_confusion, defocus_mtf,
+from vdo.model.optics import (AIRY_GAUSS, DEFAULT_F_NUMBER, OpticsBlur, circle_of_confusion, defocus_mtf,
                               diffraction_mtf, gaussian_mtf, optics_blur, working_f_number)
 from vdo.physics.checks import depth_of_field
 
@@ -106,7 +106,7 @@ def test_optics_blur_in_pixels():
 
 def test_renders_blur_by_the_diffraction_of_the_cameras_f_number():
     # An impulse through `vdo.render.diffraction_blur`: its second moment is the Airy core's
-    # Gaussian, 0.42 λ N_w / p pixels; a pinhole (no f_number) leaves the image as it is.
+    # Gaussian, 0.42 λ N_w / p pixels; a camera without f_number gets the assumed f/8 in focus.
     from types import SimpleNamespace
 
     from vdo.render import diffraction_blur
@@ -121,4 +121,10 @@ def test_renders_blur_by_the_diffraction_of_the_cameras_f_number():
     n_w = 11.0 * (1 + 0.05 / (1.5 - 0.05))
     assert std == pytest.approx(AIRY_GAUSS * 0.55e-6 * n_w / 3.45e-6, rel=1e-3)
     assert out.sum() == pytest.approx(1.0, rel=1e-5)
-    assert diffraction_blur(image, camera, SimpleNamespace(f_number=None)) is image
+    assert diffraction_blur(image, camera, None) is image            # no spec: as rendered
+    # a spec without f_number: the lens σ_measured assumes, f/8 in focus (N_w = N)
+    # (2 um pixels: a core of ~0.9 px, which the sampled Gaussian kernel holds to 1e-3)
+    small = SimpleNamespace(pixel_size=2.0e-6, focal_length=0.05)
+    out = diffraction_blur(image, small, SimpleNamespace(f_number=None, focus_distance=None))
+    std = np.sqrt(np.sum(out * x[None, :] ** 2) / out.sum())
+    assert std == pytest.approx(AIRY_GAUSS * 0.55e-6 * DEFAULT_F_NUMBER / 2.0e-6, rel=1e-3)

@@ -161,7 +161,8 @@ class CameraSpec:
         doc="principal point offset from the image centre")
     body: bool = row("body", Flag(), True, doc="the camera's body occludes the other cameras' views")
     f_number: float | None = row("f_number", Real(positive=True), None, shown="none",
-                                 doc="with focus_m: thin lens with depth of field in renders")
+                                 doc="with focus_m: thin lens with depth of field in renders "
+                                 "(none: f/8 in focus assumed, diffraction only)")
     focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
                                        doc="focus distance, with f_number")
     lenses: tuple[float, ...] = row(

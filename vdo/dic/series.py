@@ -167,7 +167,8 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
         scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
                       geometry.speckle.pattern, posed)
         for i, (cam, spec) in enumerate(zip(plan.cameras, exp.camera_specs)):
-            linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels) if plan.dic else
+            linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
+                      if plan.dic else
                       render_camera(scene, cam, spec, plan.spp, render_seed(seed, i), jitter=False))
             dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
             yield SeriesImage(camera=cam, step=step, dn=dn, linear=linear)

@@ -9,7 +9,7 @@ import numpy as np
 
 from vdo.model.camera import Camera
 from vdo.model.speckle import pattern_for
-from vdo.rendering.scene import NEAR_CLIP_M, SPECKLED_SUFFIX, build_render_scene
+from vdo.rendering.scene import NEAR_CLIP_M, SPECKLED_SUFFIX, build_render_scene, diffraction_blur
 
 
 # --------------------------------------------------------------------------------------------
@@ -196,7 +196,7 @@ def plan_render(cameras, mode: str, available: int | None = None) -> RenderPlan:
 
 
 def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
-                      tile_pixels: int = TILE_PIXELS) -> np.ndarray:
+                      tile_pixels: int = TILE_PIXELS, spec=None) -> np.ndarray:
     """One camera's (H, W) float32 linear image in the DIC render mode, in tiles of at most
     `tile_pixels` pixels (whole rows; `plan_render` chooses). Per pixel (u, v) of the (distorted) image:
 
@@ -215,6 +215,9 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
       than SHADE_TOLERANCE, where it is computed at the pixel;
     * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere).
 
+    With the camera's `spec` (a CameraSpec), the lens's in-focus diffraction of the whole image
+    afterwards (`vdo.rendering.scene.diffraction_blur`: the f/8 that σ_measured assumes for a
+    camera without f_number; a camera with one is refused in this mode).
     `progress`: called with the number of rows done after each tile."""
     rows = max(1, tile_pixels // camera.width)
     out = np.empty((camera.height, camera.width), dtype=np.float32)
@@ -223,7 +226,7 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
         out[r0:r1] = _dic_tile(dscene, camera, r0, r1)
         if progress is not None:
             progress(r1 - r0)
-    return out
+    return diffraction_blur(out, camera, spec)
 
 
 def _pixel_grid(u, v) -> np.ndarray:

@@ -162,8 +162,10 @@ def diffraction_blur(linear: np.ndarray, camera: Camera, spec) -> np.ndarray:
     """The image blurred by the diffraction of a lens at the spec's f_number: a Gaussian of std
     0.42 λ N_w / p pixels (`vdo.model.optics`: the Airy core's fit, N_w the working f-number at
     the focus distance, p the camera's pixel pitch, scaled with the render). Mitsuba's thin lens
-    models defocus only. Unchanged for a pinhole (no f_number)."""
-    if spec is None or spec.f_number is None:
+    models defocus only. A spec without f_number gets the lens that σ_measured assumes for it
+    (`vdo.model.optics.DEFAULT_F_NUMBER`, in focus: diffraction, no depth of field), so that the
+    renders and the prediction see the same optics; unchanged without a spec."""
+    if spec is None:
         return linear
     from scipy import ndimage
 
