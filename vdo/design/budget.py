@@ -8,8 +8,9 @@ their stored pairs; both scale to all K candidates:
              + K CAMERA_BYTES + STORE_COPIES E ENTRY_BYTES  (bytes),
     judging = (probe s per candidate) x K,  search = (score s per stored pair) x E x score passes,
 
-the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes of every count's
-cameras (`score_passes`). With `[design] score = "measured"` the probe is judged with its κ
+the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes and
+POLISH_PASSES polish passes (`vdo.design.select.polish`, which scores every feasible candidate
+per slot to pick its shortlist) of every count's cameras (`score_passes`). With `[design] score = "measured"` the probe is judged with its κ
 (`vdo.design.candidates.inflation`: one correlation model per new footprint), so the judging
 time includes it; scaled to K it is an upper bound, the candidates sharing models on the lattice
 (the built-in beam-column at 20 mm samples: 356 s estimated, 80 s taken, 9 s on the bound; at
@@ -41,6 +42,7 @@ PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a b
 #                              flags (whole scene, specimen alone, keyframes) and their float copies
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
+POLISH_PASSES = 1            # polish passes assumed per count: the one that confirms
 GB = 1e9
 
 
@@ -51,7 +53,8 @@ class Estimate:
     memory (bytes: the process so far, the stored pairs STORE_COPIES times, one block's working
     arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
-    greedy's n_max plus SEARCH_PASSES exchange passes of every count's cameras), seconds."""
+    greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
+    cameras), seconds."""
 
     candidates: int
     samples: int
@@ -87,9 +90,10 @@ def available_memory() -> float:
 
 def score_passes(exp: Experiment) -> int:
     """How many times the search scores every candidate: greedy's n_max steps plus SEARCH_PASSES
-    exchange passes over each count's cameras (count = min_cameras .. n_max)."""
+    exchange and POLISH_PASSES polish passes over each count's cameras (count = min_cameras ..
+    n_max)."""
     n = inventory(exp)
-    return n + SEARCH_PASSES * sum(range(min(exp.design.min_cameras, n), n + 1))
+    return n + (SEARCH_PASSES + POLISH_PASSES) * sum(range(min(exp.design.min_cameras, n), n + 1))
 
 
 def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
