@@ -58,13 +58,11 @@ def judged(plate_experiment):
     return exp, geometry, judge(exp, geometry)
 
 
-def _pair_score(exp, geometry, cams):
-    """The design's score of a layout of these cameras, computed from its own ray cast and not
-    from the candidates' stored sums: the per-sample information C and coverage k of
-    `objective.sample_fields`, sigma_n = sqrt((tr Sigma^p)^(1/p)) of Sigma = (C + I/prior^2)^-1
-    by numpy's eigenvalues (not the invariants the score uses), then
-    exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
-    Huber function of half a view."""
+def _own_fields(exp, geometry, cams):
+    """A layout of these cameras judged from its own ray cast, not from the candidates' stored
+    sums: `objective.fields` (per-sample information C, smooth coverage k, weights w) and
+    sigma_n = sqrt((tr Sigma^p)^(1/p)) of Sigma = (C + I/prior^2)^-1 by numpy's eigenvalues (not
+    the invariants the score uses), in sigma_unit; returns (sigma, fields, settings)."""
     scene = build_scene(list(geometry.meshes))
     smp = samples_for_objective(exp.regions, geometry.samples)
     vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
@@ -72,10 +70,17 @@ def _pair_score(exp, geometry, cams):
     light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
     views = view_data(exp.speckle, exp.sensor, smp, vis, light, geometry.speckle)
     st = replace(settings(exp.evaluation), pair_dtype="float64")
-    f = objective.sample_fields(objective.CameraParams.from_cameras(cams), smp, views,
-                                geometry.speckle.table, st)
+    f = objective.fields(objective.CameraParams.from_cameras(cams), smp, views,
+                         geometry.speckle.table, st)
     mu = 1.0 / np.linalg.eigvalsh(np.asarray(f.information) + np.eye(3) / st.prior_sigma ** 2)
-    sigma = np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit
+    return np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit, f, st
+
+
+def _pair_score(exp, geometry, cams):
+    """The design's score of a layout of these cameras from `_own_fields`:
+    exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
+    Huber function of half a view."""
+    sigma, f, st = _own_fields(exp, geometry, cams)
     area = np.asarray(geometry.samples.area)
     omega = area * geometry.samples.region_importance[geometry.samples.region]
     need = np.array([r.min_cameras for r in exp.regions])[geometry.samples.region]
@@ -611,22 +616,11 @@ def test_a_camera_body_under_another_on_the_same_spot_is_a_conflict(plate_experi
 
 
 def _layout_figures(exp, geometry, cams):
-    """The polish's figures of a layout from its own ray cast (not the candidates' sums): the
-    smooth sigma of `_pair_score` per sample (numpy's eigenvalues of C + I/prior^2 from
-    `objective.fields`), usable views w >= 0.5 counted per sample, then the worst scored
-    region's p95 over the samples seen by >= 2 views (units of sigma_unit) and the area fraction
-    seen by min_cameras."""
-    scene = build_scene(list(geometry.meshes))
-    smp = samples_for_objective(exp.regions, geometry.samples)
-    vis = compute_visibility(scene, cams, geometry.samples, exp.evaluation.incidence_limit,
-                             progress=False)
-    light = illuminate(scene, exp.lights, geometry.samples, exp.render.ambient_radiance)
-    views = view_data(exp.speckle, exp.sensor, smp, vis, light, geometry.speckle)
-    st = replace(settings(exp.evaluation), pair_dtype="float64")
-    f = objective.fields(objective.CameraParams.from_cameras(cams), smp, views,
-                         geometry.speckle.table, st)
-    mu = 1.0 / np.linalg.eigvalsh(np.asarray(f.information) + np.eye(3) / st.prior_sigma ** 2)
-    sigma = np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit
+    """The polish's figures of a layout from `_own_fields` (not the candidates' sums): usable
+    views w >= 0.5 counted per sample, then the worst scored region's p95 of the smooth sigma
+    over the samples seen by >= 2 views (units of sigma_unit) and the area fraction seen by
+    min_cameras."""
+    sigma, f, _ = _own_fields(exp, geometry, cams)
     count = (np.asarray(f.weights) >= 0.5).sum(0)
     region, area = geometry.samples.region, np.asarray(geometry.samples.area)
     need = np.array([r.min_cameras for r in exp.regions])[region]

@@ -80,6 +80,18 @@ def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
     return chosen, scores
 
 
+def _swap_options(feas: Feasibility, chosen: list):
+    """For each slot of `chosen` (a list the caller may change between slots): (slot, the other
+    selected cameras, the feasible candidates with them that are not selected); slots with none
+    are skipped."""
+    for slot in range(len(chosen)):
+        rest = chosen[:slot] + chosen[slot + 1:]
+        ok = np.flatnonzero(feas.allowed(rest))
+        ok = ok[~np.isin(ok, chosen)]
+        if ok.size:
+            yield slot, rest, ok
+
+
 def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_passes: int = 5,
              rtol: float = 1e-6) -> tuple[list[int], float, int]:
     """Swap passes: replace one selected camera by the best feasible candidate while the score
@@ -88,12 +100,7 @@ def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_pa
     current, swaps = scorer.of(cand, chosen), 0
     for _ in range(max_passes):
         improved = False
-        for slot in range(len(chosen)):
-            rest = chosen[:slot] + chosen[slot + 1:]
-            ok = np.flatnonzero(feas.allowed(rest))
-            ok = ok[~np.isin(ok, chosen)]
-            if ok.size == 0:
-                continue
+        for slot, rest, ok in _swap_options(feas, chosen):
             s = scorer.add(*cand.sums(rest), cand, ok)
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
@@ -167,12 +174,7 @@ def polish(cand: Candidates, scorer: Scorer, feas: Feasibility, samples, chosen,
     worst, cover = float(here.worst_p95[0]), float(here.coverage[0])
     for _ in range(POLISH_PASSES):
         improved = False
-        for slot in range(len(chosen)):
-            rest = chosen[:slot] + chosen[slot + 1:]
-            ok = np.flatnonzero(feas.allowed(rest))
-            ok = ok[~np.isin(ok, chosen)]
-            if ok.size == 0:
-                continue
+        for slot, rest, ok in _swap_options(feas, chosen):
             top = ok[np.argsort(scorer.add(*cand.sums(rest), cand, ok))[:POLISH_SHORTLIST]]
             f = figures(cand, scorer, samples, rest, top)
             better = (f.coverage >= cover - LIMIT_SLACK) & (f.worst_p95 < worst * (1 - rtol))
