@@ -21,7 +21,8 @@ from vdo.design.budget import ENTRY_BYTES, estimate, refuse
 from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import POLISH_RTOL, exchange, figures, greedy, polish, problems
+from vdo.design.select import (POLISH_RTOL, exchange, figures, greedy, percentile_by_region, polish,
+                               problems, region_table)
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
@@ -665,3 +666,23 @@ def _no_swap_beats(polished, w1, c1, own, feas):
                 continue
             w, c = own(rest + [int(k)])
             assert not (c >= c1 - 1e-12 and w < w1 * (1 - POLISH_RTOL)), (rest, k, w, w1)
+
+
+def test_the_polish_percentiles_are_numpys_per_region():
+    """`percentile_by_region` (one sort of a padded table) against np.nanpercentile region by
+    region: NaN values ignored, a region left without values NaN, a region not kept absent."""
+    import warnings
+
+    rng = np.random.default_rng(0)
+    region = rng.integers(0, 7, 500)
+    keep = (rng.random(500) > 0.2) & (region != 3)
+    values = rng.random((5, 500))
+    values[rng.random((5, 500)) < 0.3] = np.nan
+    values[2, region == 5] = np.nan
+    got = percentile_by_region(values, region_table(region, keep), 95.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)   # the all-NaN region
+        want = np.stack([np.nanpercentile(values[:, keep & (region == r)], 95, axis=1)
+                         for r in np.unique(region[keep])], 1)
+    np.testing.assert_allclose(got, want, rtol=1e-12)     # NaN where both are NaN
+    assert np.isnan(got[2, list(np.unique(region[keep])).index(5)])
