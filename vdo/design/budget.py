@@ -54,7 +54,9 @@ class Estimate:
     arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
     greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
-    cameras), seconds."""
+    cameras), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
+    spends in full unless it converges first; the refusal's spacing advice leaves it out, as it
+    does not grow with the samples)."""
 
     candidates: int
     samples: int
@@ -64,12 +66,14 @@ class Estimate:
     fixed_bytes: float
     judge_s: float
     search_s: float
+    bound_s: float = 0.0       # the bound's wall-time budget: [design] bound_s x the counts
 
     def line(self) -> str:
+        bound = f" + up to {self.bound_s:.0f} s bound" if self.bound_s > 0 else ""
         return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
                 f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
                 f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
-                f"{self.search_s:.0f} s search")
+                f"{self.search_s:.0f} s search{bound}")
 
 
 def peak_rss() -> float:
@@ -131,7 +135,10 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
         search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
     fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
     memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
-    return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s)
+    n = inventory(exp)
+    counts = len(range(min(exp.design.min_cameras, n), n + 1))
+    return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
+                    exp.design.bound_seconds * counts)
 
 
 def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:
