@@ -239,8 +239,8 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     for i in bar(log, iterable=chosen, desc="render", unit="camera"):
         cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()
-        linear[cam.name] = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec) if dic
-                            else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
+        linear[cam.name] = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
+                            if dic else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
         seconds[cam.name] = time.perf_counter() - t0
     pho = photometry(state.illumination, exp.speckle, exp.sensor, geometry.speckle.mean,

@@ -27,9 +27,8 @@ noise part (TIFF minus noise-free). Beside it, sigma_measured of the same pair (
 processing: the interpolation bias over sub-pixel positions, its scatter and the noise through
 the interpolant, `LayoutState.measured`) and the count within 3 sigma_measured. With fine sharp
 dots (`--dot-mm 0.25 --texel-mm 0.05`: 2 px dots at the cameras' own pixels) the bias dominates:
-the bound alone fails and sigma_measured holds (docs/exports.md). sigma_measured assumes an f/8
-lens where a camera has no f_number, while the pinhole render has no lens blur; for dots of
-4 px and more that makes it short (docs/exports.md).
+the bound alone fails and sigma_measured holds (docs/exports.md). These cameras have no
+f_number: sigma_measured and the renders both take them as f/8 lenses in focus (docs/render.md).
 
 The series is rendered at the cameras' own pixels (`--scale 1`, the default here, as a lab's DIC
 software would get them). At a reduced scale the bias is the correlation's interpolation floor:
@@ -208,6 +207,10 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         exp = dataclasses.replace(exp, speckle=dataclasses.replace(
             sp, dot_diameter=sp.dot_diameter if dot_mm is None else dot_mm * 1e-3,
             texel=sp.texel if texel_mm is None else texel_mm * 1e-3))
+        sp = exp.speckle
+        if not 0 < 3 * sp.texel <= sp.dot_diameter:   # the [speckle] rule: round dots need 3 texels
+            raise SystemExit(f"--dot-mm {sp.dot_diameter * 1e3:g} / --texel-mm {sp.texel * 1e3:g}: "
+                             "both > 0 and the texel at most a third of the dot")
     exp = inputs(out.with_name(out.name + "_inputs"), exp)
     exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True))
     summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,

@@ -116,15 +116,16 @@ def write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 def write_curve(path, curve):
     """pareto.csv: per camera count its score, bound and gap, sigma_max p95 (µm; overall and per
     scored region), coverage, swaps (exchange, then polish), lenses, bodies and the measurable
-    area's figures; with
-    [design] score = "measured" then σ_measured p95 (µm; the worst scored region, then per region)."""
+    area's figures; with [design] score = "measured" then σ_measured p95 (µm; the worst scored
+    region, then per region)."""
     regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
     meas = bool(curve) and "sigma_measured_p95_um" in curve[0]    # [design] score = "measured"
     show = lambda v: "" if v is None else f"{v:.5g}"
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "polish_swaps",
-                    "lenses_mm", "bodies", "measurable_fraction", "coverage_of_measurable", "sigma_p95_measurable_um"]
+                    "lenses_mm", "bodies", "measurable_fraction", "coverage_of_measurable",
+                    "sigma_p95_measurable_um"]
                    + [f"sigma_p95_um_{r}" for r in regions]
                    + (["sigma_measured_p95_um"] + [f"sigma_measured_p95_um_{r}" for r in regions]
                       if meas else []))

@@ -10,8 +10,8 @@ their stored pairs; both scale to all K candidates:
 
 the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes and
 POLISH_PASSES polish passes (`vdo.design.select.polish`, which scores every feasible candidate
-per slot to pick its shortlist) of every count's cameras (`score_passes`). With `[design] score = "measured"` the probe is judged with its κ
-(`vdo.design.candidates.inflation`: one correlation model per new footprint), so the judging
+per slot to pick its shortlist) of every count's cameras (`score_passes`). With `[design]
+score = "measured"` the probe is judged with its κ (`vdo.design.candidates.inflation`: one correlation model per new footprint), so the judging
 time includes it; scaled to K it is an upper bound, the candidates sharing models on the lattice
 (the built-in beam-column at 20 mm samples: 356 s estimated, 80 s taken, 9 s on the bound; at
 80 mm: 117 s, 49 s, 7 s). The stored pairs and both times grow as candidates x samples, samples
@@ -96,8 +96,13 @@ def score_passes(exp: Experiment) -> int:
     """How many times the search scores every candidate: greedy's n_max steps plus SEARCH_PASSES
     exchange and POLISH_PASSES polish passes over each count's cameras (count = min_cameras ..
     n_max)."""
+    return inventory(exp) + (SEARCH_PASSES + POLISH_PASSES) * sum(counts(exp))
+
+
+def counts(exp: Experiment) -> range:
+    """The camera counts the design's curve runs over: min_cameras .. n_max (the inventory)."""
     n = inventory(exp)
-    return n + (SEARCH_PASSES + POLISH_PASSES) * sum(range(min(exp.design.min_cameras, n), n + 1))
+    return range(min(exp.design.min_cameras, n), n + 1)
 
 
 def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
@@ -135,10 +140,8 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
         search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
     fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
     memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
-    n = inventory(exp)
-    counts = len(range(min(exp.design.min_cameras, n), n + 1))
     return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
-                    exp.design.bound_seconds * counts)
+                    exp.design.bound_seconds * len(counts(exp)))
 
 
 def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:

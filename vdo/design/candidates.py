@@ -49,6 +49,7 @@ import logging
 import math
 import os
 import uuid
+from functools import cached_property
 from dataclasses import dataclass, field, fields, replace
 from importlib import metadata
 from pathlib import Path
@@ -174,10 +175,23 @@ class Candidates:
             cover[self.index[s]] += self.entry_weight[s]
         return info, cover
 
+    @cached_property
+    def usable_entries(self) -> np.ndarray:
+        """(E,) bool: each stored pair is a usable view (w >= USABLE_WEIGHT,
+        `vdo.physics.usable.usable_views`), computed once."""
+        return usable.usable_views(self.entry_weight)
+
+    def usable_sums(self, rows) -> np.ndarray:
+        """(N,) the usable views of each sample among the candidates `rows` (as `sums`)."""
+        count = np.zeros(self.samples)
+        for i in rows:
+            s = slice(self.indptr[i], self.indptr[i + 1])
+            count[self.index[s]] += self.usable_entries[s]
+        return count
+
     def usable_counts(self) -> np.ndarray:
         """(K,) how many samples each candidate sees usably (w >= USABLE_WEIGHT)."""
-        use = usable.usable_views(self.entry_weight)
-        return np.bincount(self.row[use], minlength=len(self.cameras))
+        return np.bincount(self.row[self.usable_entries], minlength=len(self.cameras))
 
 
 def bodies(exp: Experiment) -> tuple[BodySpec, ...]:

@@ -22,7 +22,6 @@ import numpy as np
 import scipy.sparse
 
 from vdo.design.candidates import SPOT_M, Candidates, bodies
-from vdo.physics import usable
 from vdo.config.experiment import Experiment
 from vdo.constraints import stereo_min_angle
 from vdo.geometry import obstacles
@@ -63,7 +62,7 @@ class Feasibility:
         self.exp, self.cand = exp, cand
         self._seen = self._region_area = self._alone = self._sight = None
         if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
-            use = usable.usable_views(cand.entry_weight)
+            use = cand.usable_entries
             # the usable entries as sight lines: candidate, sample, its area (`hides`)
             self._sight = (cand.row[use], cand.index[use], samples.area[cand.index[use]])
             self._seen = scipy.sparse.csr_matrix(

@@ -48,7 +48,6 @@ from vdo.design.candidates import SPOT_M, Candidates, bodies, inventory, judge, 
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
 from vdo.outputs import report
-from vdo.physics import usable
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
 from vdo.config.rig import CameraSpec
@@ -161,11 +160,7 @@ def figures(cand: Candidates, scorer: Scorer, samples, rest, rows) -> Figures:
     `rest` plus one candidate's stored entries, σ from `Scorer.sigma`, POLISH_BLOCK candidates
     at a time."""
     info0, _ = cand.sums(rest)
-    use = usable.usable_views(cand.entry_weight)
-    count0 = np.zeros(cand.samples)
-    for i in rest:
-        s = slice(cand.indptr[i], cand.indptr[i + 1])
-        count0[cand.index[s]] += use[s]
+    count0, use = cand.usable_sums(rest), cand.usable_entries
     table = region_table(samples.region, scorer.omega > 0)
     need, area = scorer.minimum, scorer.area
     rows = np.asarray(rows, dtype=int)
@@ -266,7 +261,7 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
         return np.zeros(len(samples), dtype=bool)
     spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
     owner = np.repeat(np.arange(len(cand.cameras)), np.diff(cand.indptr))
-    use = usable.usable_views(cand.entry_weight)
+    use = cand.usable_entries
     pairs = np.unique(spot[owner[use]].astype(np.int64) * len(samples) + cand.index[use])
     return np.bincount(pairs % len(samples), minlength=len(samples)) >= need
 
@@ -330,7 +325,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     keyframes); fewer candidate spots (optical centres SPOT_M apart) seeing it than its
     min_cameras."""
     out, n = [], inventory(exp)
-    use = usable.usable_views(cand.entry_weight)
+    use = cand.usable_entries
     owner, region = cand.row[use], samples.region[cand.index[use]]
     where = "[design] max_cameras" if exp.design.max_cameras else \
         ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
