@@ -13,6 +13,7 @@ import hashlib
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft
 import scipy.sparse
 
 from vdo.model.speckle import blocked_spectrum
@@ -287,7 +288,8 @@ def _phase_pairs(px: np.ndarray, py: np.ndarray) -> list[tuple]:
 
 def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int | str = 3,
                       optics=None, noisy_reference: bool = True,
-                      texel_filter: str = "bilinear", phases=None) -> CorrelationError:
+                      texel_filter: str = "bilinear", phases=None,
+                      fourth_moments: bool = True) -> CorrelationError:
     """The error of an interpolating correlation of a translation (`order`: 3 or 5, the B-spline;
     KEYS, Keys' cubic convolution, `_KeysSpectrum`) on the
     box-pixel image of the pattern f̂ at K footprints `pixel_sides` (K, 2, 2) m (as
@@ -312,13 +314,20 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     with S_DD, S_EE, S_DE the folded spectra (Σ of w DDᵀ, w|E|², w i D Ē over the k that fold to
     q̄, binned FOLD_BINS² over the unit cell). Then û - u = b(d) + noise + scatter with
     Cov = σ² H₁⁻¹ N_d H₁⁻¹ / P + H₁⁻¹ V_d H₁⁻¹ / P: the mean over d on a PHASES² grid is returned
+    (px²). V_d holds for a Gaussian field; a real pattern's fourth cumulant changes it (binary dots
+    at 50 % fill are platykurtic: less scatter). With `fourth_moments` (the default) the scatter
+    is scaled per image axis a by kappa_a of `cumulant_factor`, the realized over the Gaussian
+    scatter on the image of this tile at the square footprint of the same area (side
+    sqrt|det a|, snapped): scatter_ab <- sqrt(kappa_a kappa_b) scatter_ab (kappa about 1 for a
+    Gaussian field, 0.6 on y for 2 px binary dots; tests/physics/test_measured.py)
     (docs/theory.md, "What the lab measures"); `phases` = (d₁ values, d₂ values) replaces that
     grid (e.g. ([0, 1/8, ...], [0]) for shifts along x only).
     `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
     band-limited interpolant: no texel filter, no texel images).
     Each footprint's terms are kept (`MODEL_CACHE_SIZE` of them, keyed by the pattern's digest, the
     settings, the footprint and the optics), so the design checks and σ_measured, which meet the
-    same footprints, compute them once per process."""
+    same footprints, compute them once per process; the factor is kept per canonical footprint
+    and snapped optics (`cumulant_factor`: 0.1-0.7 s for each new one on a 1024-texel tile)."""
     if order not in INTERPOLANTS.values():
         raise ValueError(f"order: expected one of {list(INTERPOLANTS.values())}, got {order!r}")
     f = np.asarray(pattern_normalised)
@@ -347,7 +356,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     pairs = _phase_pairs(px, py)
     common = (hashlib.blake2b(np.ascontiguousarray(f, dtype=np.float64).tobytes(),
                               digest_size=16).hexdigest(), float(texel_m), order, noisy_reference,
-              texel_filter, px.tobytes(), py.tobytes())
+              texel_filter, px.tobytes(), py.tobytes(), fourth_moments)
     for i, (a, opt) in enumerate(zip(sides, optics)):
         key = common + (a.tobytes(), opt)
         if key in _MODEL_CACHE:
@@ -422,8 +431,180 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
             scatter += np.einsum("c,cab,cbd,ced->ae", count, Hi, V, Hi)
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
-        out["bias"][i], out["scatter"][i] = bias / n_ph, scatter / n_ph
+        kappa = np.ones(2) if not fourth_moments else np.sqrt(cumulant_factor(
+            f, texel_m, math.sqrt(abs(np.linalg.det(a))), order, (px, py), opt, texel_filter).kappa)
+        out["bias"][i], out["scatter"][i] = bias / n_ph, kappa[:, None] * scatter * kappa / n_ph
         if len(_MODEL_CACHE) >= MODEL_CACHE_SIZE:
             _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))          # the oldest entry first
         _MODEL_CACHE[key] = {**{k: v[i].copy() for k, v in out.items()}, "bias_curve": curves[i].copy()}
     return CorrelationError(phases=(px, py), bias_curve=curves, **out)
+# --------------------------------------------------------------------------------------------
+# The scatter's fourth moments, from the realized pattern
+# --------------------------------------------------------------------------------------------
+SCATTER_LAGS = 21           # half-width (px) of the Bartlett window over which the realized
+                            # autocovariances of g = ∇f e_d are summed (`cumulant_factor`): the
+                            # variance of a 21 x 21 px patch's sum, the validation's subsets
+LAG_FRACTION = 4            # ... and at most a quarter of the canonical image's side: the tile's
+                            # sampling error of the factor stays about 0.1 at 64 px (its first-
+                            # order biases, O(L² / M²), are removed)
+SCALE_STEPS = 16            # canonical pixel sides per octave of texels per pixel (4.4 % steps)
+CUMULANT_PHASES = 4         # sub-pixel positions per axis at most over which the factor is taken
+OPTICS_STEP = 0.25          # px: the optics' λN/p and defocus blur snapped to this for the factor
+CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
+_CUMULANT_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class CumulantFactor:
+    """The realized scatter over its Gaussian part at a canonical footprint (`cumulant_factor`).
+
+    kappa     (2,) per image axis: Σ_d [H⁻¹ V_real H⁻¹]_aa / Σ_d [H⁻¹ V_gauss H⁻¹]_aa
+    gaussian  (2, 2) mean over the sub-pixel positions of H⁻¹ V_gauss H⁻¹ on the realized image:
+              the Gaussian formula's scatter (px², for a unit-variance pattern), summed over the
+              same lag window (checks against `correlation_error`'s analytic term)
+    pixels    M, the canonical image's pixels per side of the tile (its pixel: N h / M)
+    """
+
+    kappa: np.ndarray
+    gaussian: np.ndarray
+    pixels: int
+
+
+def _fold(x: np.ndarray, j: np.ndarray, m: int, axis: int) -> np.ndarray:
+    """Σ over the frequencies j ≡ p (mod m) of x along `axis` (j sorted ascending, consecutive
+    integers): the spectrum of the samples at m pixels per tile, p = 0 .. m - 1 (FFT order)."""
+    x = np.moveaxis(x, axis, 0)
+    out = np.zeros((m,) + x.shape[1:], dtype=x.dtype)
+    t, p = 0, int(j[0] % m)
+    while t < x.shape[0]:                        # runs of consecutive p, each added as a slice
+        run = min(m - p, x.shape[0] - t)
+        out[p:p + run] += x[t:t + run]
+        t, p = t + run, 0
+    return np.moveaxis(out, 0, axis)
+
+
+def _lag_window(m: int) -> np.ndarray:
+    """The Bartlett window (1 - |l₁|/L)(1 - |l₂|/L), |l| < L = min(SCATTER_LAGS, m // LAG_FRACTION),
+    on the m x m periodic lag grid (FFT order)."""
+    lag = max(1, min(SCATTER_LAGS, m // LAG_FRACTION))
+    l = np.abs(np.fft.fftfreq(m, 1.0 / m))
+    w1 = np.clip(1.0 - l / lag, 0.0, None)
+    return w1[:, None] * w1[None, :]
+
+
+def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, phases=None,
+                    optics=None, texel_filter: str = "bilinear") -> CumulantFactor:
+    """How far the scatter of the bias departs from its Gaussian fourth moments on this pattern:
+    the scatter computed on the realized image of the tile, over the same computed with Isserlis'
+    theorem from the same image's second moments, at the canonical footprint: square pixels of
+    side N h / M (M = round(N h / side), side snapped to SCALE_STEPS per octave of texels per
+    pixel), so that the tile holds M x M whole pixels and the image is periodic.
+
+    The image's spectrum at pixel frequency p is the sum of its pattern frequencies j ≡ p (mod M)
+    (j cycles per tile, q = j / M cycles per pixel, ω = 2πq): c_j T(j/N) sinc(q₁) sinc(q₂) MTF(|q|)
+    (c_j the tile's DFT / N², T the texel filter's amplitude on its base band; the texel images
+    are left out). The interpolant's response is R_d(ω) = exp(-iωd) P_d(ω̄), P_d periodic (the
+    discrete interpolation), so the moved image folds c_j exp(-iω.d) and the interpolation error
+    field is ê_d = P_d(ω̄₁) P_d(ω̄₂) fold(c exp(-iω.d)) - fold(c); the reference's spline gradient
+    ∇̂_a = i D(ω̄_a) fold(c). Per pixel g(n) = ∇f(n) e_d(n) - <∇f e_d> (`correlation_error`'s
+    û - u = -H_d⁻¹ Σ_n g(n)), with C_xy(l) = <x(n) y(n + l)> over the tile and w(l) the Bartlett
+    window of half-width SCATTER_LAGS px:
+
+        V_real  = Σ_l w(l) C_gg(l)                                    (every moment)
+        V_gauss = Σ_l w(l) [C_∇∇(l) C_ee(l) + C_∇e(l) C_e∇(l)ᵀ]       (Isserlis: Gaussian)
+
+    and kappa_a = Σ_d [H⁻¹ V_real H⁻¹]_aa / Σ_d [H⁻¹ V_gauss H⁻¹]_aa, H = <∇f ∇fᵀ>, over at most
+    CUMULANT_PHASES of the given sub-pixel positions per axis (`phases` as `correlation_error`;
+    twins d, 1 - d counted twice). kappa is 1 in expectation for a Gaussian field (a binary
+    pattern is platykurtic: kappa < 1). Cost: the tile's FFT, one N x N product per x phase and
+    six M x M FFTs per phase pair; kept per pattern, settings and canonical side
+    (CUMULANT_CACHE_SIZE)."""
+    f = np.asarray(pattern_normalised, dtype=np.float64)
+    n = f.shape[0]
+    if f.shape != (n, n):
+        raise ValueError(f"cumulant_factor: a square tile, got {f.shape}")
+    grid = np.arange(PHASES) / PHASES
+    px, py = (grid, grid) if phases is None else (np.atleast_1d(np.asarray(p, dtype=float))
+                                                  for p in phases)
+    px, py = (p[::-(-p.size // CUMULANT_PHASES)] for p in (px, py))
+    steps = round(math.log2(side_m / texel_m) * SCALE_STEPS)
+    m = max(8, int(round(n / 2.0 ** (steps / SCALE_STEPS))))
+    if optics is not None:
+        optics = type(optics)(**{k: OPTICS_STEP * round(getattr(optics, k) / OPTICS_STEP)
+                                 for k in ("airy_px", "defocus_px")})     # the MTF's parameters
+    digest = hashlib.blake2b(np.ascontiguousarray(f).tobytes(), digest_size=16).hexdigest()
+    key = (digest, float(texel_m), m, order, optics, texel_filter, px.tobytes(), py.tobytes())
+    if key in _CUMULANT_CACHE:
+        return _CUMULANT_CACHE[key]
+    j = np.arange(-(n // 2), n - n // 2)                            # cycles per tile, ascending
+    c = np.fft.fftshift(np.fft.fft2(f)) / n ** 2                     # rows: y (v), columns: x (u)
+    q = j / m
+    amp = np.sinc(q) * {"bilinear": np.sinc(j / n) ** 2, "box": np.sinc(j / n),
+                        "ideal": np.ones(n)}[texel_filter]
+    c = c * amp[:, None] * amp[None, :]
+    if optics is not None:
+        c = c * optics.mtf(np.hypot(q[:, None], q[None, :]))
+    omega = 2 * np.pi * q
+    folded = 2 * np.pi * np.fft.fftfreq(m)                            # ω̄, FFT order
+    sp = _responses(folded, order)
+    D = sp.derivative()
+    # P_d(ω̄) = R_d(ω̄) exp(iω̄d), per axis and phase
+    P1 = sp.shift(px) * np.exp(1j * np.outer(px, folded))
+    P2 = sp.shift(py) * np.exp(1j * np.outer(py, folded))
+    image = _fold(_fold(c, j, m, 1), j, m, 0)                          # (M, M), Î
+    npix, half = m * m, m // 2 + 1
+    # real fields through their half spectra: x(n) = Σ_p X̂(p) exp(2πi p.n / M), rfft2(x) = M² X̂
+    twice = np.where((np.arange(half) > 0) & (2 * np.arange(half) != m), 2.0, 1.0)  # rfft columns
+
+    def field(coef):
+        return scipy.fft.irfft2(npix * coef[:, :half], s=(m, m))
+
+    def corr(a_hat, b_hat):            # C_ab(l) = <a(n) b(n + l)>, from the rfft2s of a and b
+        return scipy.fft.irfft2(np.conj(a_hat) * b_hat, s=(m, m)) / npix
+
+    def reversed_(x):                  # x(-l) on the periodic lag grid
+        return np.roll(x[::-1, ::-1], 1, axis=(0, 1))
+
+    w = _lag_window(m)
+    w_hat = scipy.fft.rfft2(w).real * twice / npix ** 2    # Σ_l w C_ab = Σ_p ŵ conj(â) b̂ / M⁴
+    grad_coef = [1j * D[None, :] * image, 1j * D[:, None] * image]       # ∇_x (columns), ∇_y
+    grad = np.stack([field(x) for x in grad_coef])
+    grad_hat = [npix * x[:, :half] for x in grad_coef]
+    c_dd = [[corr(grad_hat[a], grad_hat[b]) for b in range(2)] for a in range(2)]
+    H = np.einsum("an,bn->ab", grad.reshape(2, -1), grad.reshape(2, -1)) / npix
+    Hi = np.linalg.inv(H)
+    real, gauss = np.zeros((2, 2)), np.zeros((2, 2))
+    # the pattern's expected <g> (random phases: the diagonal j = j' of Σ_p conj ∇̂ ê)
+    power = np.abs(c) ** 2
+    full = _responses(omega, order)
+    d_full, r1_full, r2_full = full.derivative(), full.shift(px), full.shift(py)
+    pairs = _phase_pairs(px, py)
+    for p1 in sorted({p[0] for p in pairs}):
+        moved_x = _fold(c * np.exp(-1j * omega * px[p1])[None, :], j, m, 1)      # (N, M)
+        mean_x, mean_y = power @ (d_full * r1_full[p1]), power @ r1_full[p1]        # (N,) per j₂
+        for _, p2, _, count in (p for p in pairs if p[0] == p1):
+            if px[p1] % 1.0 == 0.0 and py[p2] % 1.0 == 0.0:
+                continue                         # whole pixels: no interpolation error, V = 0
+            moved = _fold(moved_x * np.exp(-1j * omega * py[p2])[:, None], j, m, 0)
+            e_coef = P1[p1][None, :] * P2[p2][:, None] * moved - image
+            e, e_hat = field(e_coef), npix * e_coef[:, :half]
+            g = grad * e
+            g[0] -= np.real(-1j * np.sum(r2_full[p2] * mean_x))           # <g> = the bias's H b
+            g[1] -= np.real(-1j * np.sum(d_full * r2_full[p2] * mean_y))
+            g_hat = scipy.fft.rfft2(g)
+            c_ee = corr(e_hat, e_hat)
+            c_de = [corr(grad_hat[a], e_hat) for a in range(2)]         # <∇_a(n) e(n + l)>
+            c_ed = [reversed_(x) for x in c_de]                         # <e(n) ∇_a(n + l)>
+            v_real = np.array([[np.sum(w_hat * (np.conj(g_hat[a]) * g_hat[b]).real)
+                                for b in range(2)] for a in range(2)])
+            # minus the products' own bias, (Σw / M²) Σ_k C_∇e(k) [C_∇e(k) + C_∇e(-k)]
+            v_gauss = np.array([[np.sum(w * (c_dd[a][b] * c_ee + c_de[a] * c_ed[b]))
+                                 - w.sum() / npix * np.sum(c_de[a] * (c_de[b] + c_ed[b]))
+                                 for b in range(2)] for a in range(2)])
+            real += count * Hi @ v_real @ Hi
+            gauss += count * Hi @ v_gauss @ Hi
+    out = CumulantFactor(np.diagonal(real) / np.diagonal(gauss), gauss / (px.size * py.size), m)
+    if len(_CUMULANT_CACHE) >= CUMULANT_CACHE_SIZE:
+        _CUMULANT_CACHE.pop(next(iter(_CUMULANT_CACHE)))
+    _CUMULANT_CACHE[key] = out
+    return out
