@@ -514,8 +514,8 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
         V_gauss = Σ_l w(l) [C_∇∇(l) C_ee(l) + C_∇e(l) C_e∇(l)ᵀ]       (Isserlis: Gaussian)
 
     and kappa_a = Σ_d [H⁻¹ V_real H⁻¹]_aa / Σ_d [H⁻¹ V_gauss H⁻¹]_aa, H = <∇f ∇fᵀ>, over at most
-    CUMULANT_PHASES of the given sub-pixel positions per axis (`phases` as `correlation_error`;
-    twins d, 1 - d counted twice). kappa is 1 in expectation for a Gaussian field (a binary
+    CUMULANT_PHASES of the given sub-pixel positions and their twins 1 - d per axis (`phases` as
+    `correlation_error`; the set is the same for d and 1 - d, as the Gaussian term is). kappa is 1 in expectation for a Gaussian field (a binary
     pattern is platykurtic: kappa < 1). Cost: the tile's FFT, one N x N product per x phase and
     six M x M FFTs per phase pair; kept per pattern, settings and canonical side
     (CUMULANT_CACHE_SIZE)."""
@@ -526,6 +526,7 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     grid = np.arange(PHASES) / PHASES
     px, py = (grid, grid) if phases is None else (np.atleast_1d(np.asarray(p, dtype=float))
                                                   for p in phases)
+    px, py = (np.unique(np.concatenate([p % 1.0, (1.0 - p) % 1.0])) for p in (px, py))   # + twins
     px, py = (p[::-(-p.size // CUMULANT_PHASES)] for p in (px, py))
     steps = round(math.log2(side_m / texel_m) * SCALE_STEPS)
     m = max(8, int(round(n / 2.0 ** (steps / SCALE_STEPS))))
