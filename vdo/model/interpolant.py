@@ -314,14 +314,14 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     with S_DD, S_EE, S_DE the folded spectra (Σ of w DDᵀ, w|E|², w i D Ē over the k that fold to
     q̄, binned FOLD_BINS² over the unit cell). Then û - u = b(d) + noise + scatter with
     Cov = σ² H₁⁻¹ N_d H₁⁻¹ / P + H₁⁻¹ V_d H₁⁻¹ / P: the mean over d on a PHASES² grid is returned
-    (px²). V_d holds for a Gaussian field; a real pattern's fourth cumulant changes it (binary dots
-    at 50 % fill are platykurtic: less scatter). With `fourth_moments` (the default) the scatter
-    is scaled per image axis a by kappa_a of `cumulant_factor`, the realized over the Gaussian
-    scatter on the image of this tile at the square footprint of the same area (side
-    sqrt|det a|, snapped): scatter_ab <- sqrt(kappa_a kappa_b) scatter_ab (kappa about 1 for a
-    Gaussian field, 0.6 on y for 2 px binary dots; tests/physics/test_measured.py)
     (docs/theory.md, "What the lab measures"); `phases` = (d₁ values, d₂ values) replaces that
     grid (e.g. ([0, 1/8, ...], [0]) for shifts along x only).
+    V_d holds for a Gaussian field; a real pattern's fourth cumulant changes it (binary dots at
+    50 % fill are platykurtic: less scatter). With `fourth_moments` (the default) the scatter is
+    scaled per image axis a by kappa_a of `cumulant_factor`, the realized over the Gaussian
+    scatter on the image of this tile at the square footprint of the same area (side
+    sqrt|det a|, snapped): scatter_ab <- sqrt(kappa_a kappa_b) scatter_ab (px²; kappa about 1 for
+    a Gaussian field, about 0.6 on y for 2 px binary dots; tests/physics/test_measured.py).
     `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
     band-limited interpolant: no texel filter, no texel images).
     Each footprint's terms are kept (`MODEL_CACHE_SIZE` of them, keyed by the pattern's digest, the
@@ -438,6 +438,8 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
             _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))          # the oldest entry first
         _MODEL_CACHE[key] = {**{k: v[i].copy() for k, v in out.items()}, "bias_curve": curves[i].copy()}
     return CorrelationError(phases=(px, py), bias_curve=curves, **out)
+
+
 # --------------------------------------------------------------------------------------------
 # The scatter's fourth moments, from the realized pattern
 # --------------------------------------------------------------------------------------------
@@ -507,18 +509,22 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     discrete interpolation), so the moved image folds c_j exp(-iω.d) and the interpolation error
     field is ê_d = P_d(ω̄₁) P_d(ω̄₂) fold(c exp(-iω.d)) - fold(c); the reference's spline gradient
     ∇̂_a = i D(ω̄_a) fold(c). Per pixel g(n) = ∇f(n) e_d(n) - <∇f e_d> (`correlation_error`'s
-    û - u = -H_d⁻¹ Σ_n g(n)), with C_xy(l) = <x(n) y(n + l)> over the tile and w(l) the Bartlett
-    window of half-width SCATTER_LAGS px:
+    û - u = -H_d⁻¹ Σ_n g(n); the mean is its random-phase expectation, Σ_j |c_j|² (-i D) E, so
+    that V_real is unbiased), with C_xy(l) = <x(n) y(n + l)> over the tile and w(l) the Bartlett
+    window of half-width L = min(SCATTER_LAGS, M // LAG_FRACTION) px (`_lag_window`):
 
         V_real  = Σ_l w(l) C_gg(l)                                    (every moment)
         V_gauss = Σ_l w(l) [C_∇∇(l) C_ee(l) + C_∇e(l) C_e∇(l)ᵀ]       (Isserlis: Gaussian)
+                  - (Σw / M²) Σ_k C_∇e(k) [C_∇e(k) + C_∇e(-k)]ᵀ    (the products' own bias)
 
     and kappa_a = Σ_d [H⁻¹ V_real H⁻¹]_aa / Σ_d [H⁻¹ V_gauss H⁻¹]_aa, H = <∇f ∇fᵀ>, over at most
     CUMULANT_PHASES of the given sub-pixel positions and their twins 1 - d per axis (`phases` as
-    `correlation_error`; the set is the same for d and 1 - d, as the Gaussian term is). kappa is 1 in expectation for a Gaussian field (a binary
-    pattern is platykurtic: kappa < 1). Cost: the tile's FFT, one N x N product per x phase and
-    six M x M FFTs per phase pair; kept per pattern, settings and canonical side
-    (CUMULANT_CACHE_SIZE)."""
+    `correlation_error`; the set is the same for d and 1 - d, as the Gaussian term is). kappa is
+    1 in expectation for a Gaussian field (binary dots are platykurtic: kappa < 1 on the axis
+    across the shift). The texel filter's images (m ≠ 0) are left out of the realized image; the
+    optics' λN/p and defocus are snapped to OPTICS_STEP. Cost: the tile's FFT, one N x N product
+    per x phase and six M x M FFTs per phase pair; kept per pattern, settings, canonical side and
+    snapped optics (CUMULANT_CACHE_SIZE)."""
     f = np.asarray(pattern_normalised, dtype=np.float64)
     n = f.shape[0]
     if f.shape != (n, n):
