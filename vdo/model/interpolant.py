@@ -327,7 +327,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     Each footprint's terms are kept (`MODEL_CACHE_SIZE` of them, keyed by the pattern's digest, the
     settings, the footprint and the optics), so the design checks and σ_measured, which meet the
     same footprints, compute them once per process; the factor is kept per canonical footprint
-    and snapped optics (`cumulant_factor`: 0.1-0.7 s for each new one on a 1024-texel tile)."""
+    and snapped optics (`cumulant_factor`: 0.3-0.9 s for each new one on a 1024-texel tile)."""
     if order not in INTERPOLANTS.values():
         raise ValueError(f"order: expected one of {list(INTERPOLANTS.values())}, got {order!r}")
     f = np.asarray(pattern_normalised)
@@ -432,7 +432,8 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
         kappa = np.ones(2) if not fourth_moments else np.sqrt(cumulant_factor(
-            f, texel_m, math.sqrt(abs(np.linalg.det(a))), order, (px, py), opt, texel_filter).kappa)
+            f, texel_m, math.sqrt(abs(np.linalg.det(a))), order, (px, py), opt, texel_filter,
+            digest=common[0]).kappa)
         out["bias"][i], out["scatter"][i] = bias / n_ph, kappa[:, None] * scatter * kappa / n_ph
         if len(_MODEL_CACHE) >= MODEL_CACHE_SIZE:
             _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))          # the oldest entry first
@@ -449,9 +450,9 @@ SCATTER_LAGS = 21           # half-width (px) of the Bartlett window over which 
 LAG_FRACTION = 4            # ... and at most a quarter of the canonical image's side: the tile's
                             # sampling error of the factor stays about 0.1 at 64 px (its first-
                             # order biases, O(L² / M²), are removed)
-SCALE_STEPS = 16            # canonical pixel sides per octave of texels per pixel (4.4 % steps)
+SCALE_STEPS = 8             # canonical pixel sides per octave of texels per pixel (9 % steps)
 CUMULANT_PHASES = 4         # sub-pixel positions per axis at most over which the factor is taken
-OPTICS_STEP = 0.25          # px: the optics' λN/p and defocus blur snapped to this for the factor
+OPTICS_STEP = 0.5           # px: the optics' λN/p and defocus blur snapped to this for the factor
 CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
 _CUMULANT_CACHE: dict = {}
 
@@ -495,7 +496,8 @@ def _lag_window(m: int) -> np.ndarray:
 
 
 def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, phases=None,
-                    optics=None, texel_filter: str = "bilinear") -> CumulantFactor:
+                    optics=None, texel_filter: str = "bilinear",
+                    digest: str | None = None) -> CumulantFactor:
     """How far the scatter of the bias departs from its Gaussian fourth moments on this pattern:
     the scatter computed on the realized image of the tile, over the same computed with Isserlis'
     theorem from the same image's second moments, at the canonical footprint: square pixels of
@@ -524,7 +526,7 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     across the shift). The texel filter's images (m ≠ 0) are left out of the realized image; the
     optics' λN/p and defocus are snapped to OPTICS_STEP. Cost: the tile's FFT, one N x N product
     per x phase and six M x M FFTs per phase pair; kept per pattern, settings, canonical side and
-    snapped optics (CUMULANT_CACHE_SIZE)."""
+    snapped optics (CUMULANT_CACHE_SIZE); `digest`: the tile's, when the caller has it."""
     f = np.asarray(pattern_normalised, dtype=np.float64)
     n = f.shape[0]
     if f.shape != (n, n):
@@ -539,7 +541,8 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     if optics is not None:
         optics = type(optics)(**{k: OPTICS_STEP * round(getattr(optics, k) / OPTICS_STEP)
                                  for k in ("airy_px", "defocus_px")})     # the MTF's parameters
-    digest = hashlib.blake2b(np.ascontiguousarray(f).tobytes(), digest_size=16).hexdigest()
+    if digest is None:
+        digest = hashlib.blake2b(np.ascontiguousarray(f).tobytes(), digest_size=16).hexdigest()
     key = (digest, float(texel_m), m, order, optics, texel_filter, px.tobytes(), py.tobytes())
     if key in _CUMULANT_CACHE:
         return _CUMULANT_CACHE[key]
