@@ -450,9 +450,9 @@ SCATTER_LAGS = 21           # half-width (px) of the Bartlett window over which 
 LAG_FRACTION = 4            # ... and at most a quarter of the canonical image's side: the tile's
                             # sampling error of the factor stays about 0.1 at 64 px (its first-
                             # order biases, O(L² / M²), are removed)
-SCALE_STEPS = 8             # canonical pixel sides per octave of texels per pixel (9 % steps)
+SCALE_STEPS = 16            # canonical pixel sides per octave of texels per pixel (4.4 % steps)
 CUMULANT_PHASES = 4         # sub-pixel positions per axis at most over which the factor is taken
-OPTICS_STEP = 0.5           # px: the optics' λN/p and defocus blur snapped to this for the factor
+OPTICS_STEP = 0.25          # px: the optics' λN/p and defocus blur snapped to this for the factor
 CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
 _CUMULANT_CACHE: dict = {}
 
