@@ -7,7 +7,13 @@ Images. A pattern tile of `SUB` texels per pixel is moved by whole texels (sub-p
 d = j / SUB px along x) with its band-limited interpolant (an FFT phase ramp: the model's
 texel_filter = "ideal"), blurred by the optics' MTF (`vdo.model.optics.OpticsBlur`, applied in the
 Fourier domain, exact for the periodic tile), box-averaged over SUB x SUB texels per pixel, and
-given independent Gaussian noise in the reference and the deformed image.
+given independent Gaussian noise in the reference and the deformed image. A case with
+`texels_per_px` (coarse texels, as a rendered texture at the cameras' own pixels) is imaged as
+Mitsuba's bilinear bitmap is: the tile's N texels interpolated bilinearly (the triangle kernel,
+sinc² in Fourier, its images kept over `TEXEL_IMAGES` periods), integrated over M = round(N / T)
+box pixels of side N / M texels (sinc), moved by the same d = j / SUB px (a phase ramp) and
+sampled: every term exact in Fourier for the periodic tile, the texel-to-pixel alignment
+sweeping across the tile unless N / M is whole.
 
 Correlation. Gauss-Newton for a translation on square subsets, the reference read at its pixel
 centres with its spline gradient, the deformed image interpolated by `vdo.dic.images.SplineImage`
@@ -35,13 +41,19 @@ STRIDE = 11              # subset centres' spacing, px
 ITERATIONS = 8           # Gauss-Newton steps (converged to < 1e-8 px for these shifts)
 PREDICTION_SEEDS = 4     # patterns the prediction is averaged over
 BOOTSTRAP = 2000         # resamples of the seeds for the 95 % interval
+TEXEL_IMAGES = 4         # periods of the texels' spectrum kept for the coarse-texel images (the
+                         # bilinear kernel's sinc² times the pixel's sinc: the 5th period's
+                         # weight is below 1e-3 of the base band's)
 
 
 @dataclass(frozen=True)
 class BiasCase:
     """One validation case: the pattern ("dots" sharp-edged, "photo" photograph-like, or
     "dots-gaussian", the sharp dots' spectrum with random phases: `gaussian_like`), its dot
-    diameter in pixels, the interpolant, the optics' λN/p (0: none) and the noise in pattern stds."""
+    diameter in pixels, the interpolant, the optics' λN/p (0: none) and the noise in pattern stds;
+    `texels_per_px` None: SUB texels per pixel with the band-limited texel interpolant, else that
+    many bilinear texels per pixel (a rendered texture; may be fractional); `strokes` as
+    `generate_pattern`'s (per 512 x 512 texels)."""
 
     name: str
     pattern: str
@@ -49,6 +61,21 @@ class BiasCase:
     interpolant: str
     airy_px: float = 0.0
     noise: float = 0.0
+    texels_per_px: float | None = None
+    strokes: int = 0
+
+    @property
+    def texels(self) -> float:
+        """Texels per pixel."""
+        return SUB if self.texels_per_px is None else self.texels_per_px
+
+    def tile(self, pixels: int) -> int:
+        """Texels per side of a tile imaged onto about `pixels` x `pixels` pixels."""
+        return int(round(pixels * self.texels))
+
+    def texel_px(self, tile: int) -> float:
+        """A texel's side in pixels on a tile of `tile` texels (its image has whole pixels)."""
+        return 1.0 / SUB if self.texels_per_px is None else round(tile / self.texels_per_px) / tile
 
 
 def photo_like_pattern(size: int, dot_texels: float, seed: int) -> np.ndarray:
@@ -95,16 +122,20 @@ def gaussian_like(f: np.ndarray, seed: int) -> np.ndarray:
 def case_pattern(case: BiasCase, tile: int, seed: int) -> np.ndarray:
     """The normalised pattern tile of a case for a seed (`tile` texels per side)."""
     if case.pattern == "photo":
-        return normalise(photo_like_pattern(tile, case.dot_px * SUB, seed))
-    dots = normalise(generate_pattern(tile, 1.0, case.dot_px * SUB, 0.5, 0, seed=seed))
+        return normalise(photo_like_pattern(tile, case.dot_px * case.texels, seed))
+    strokes = int(round(case.strokes * tile ** 2 / 512 ** 2))
+    dots = normalise(generate_pattern(tile, 1.0, case.dot_px * case.texels, 0.5, strokes, seed=seed))
     return gaussian_like(dots, seed) if case.pattern == "dots-gaussian" else dots
 
 
-def _images(f: np.ndarray, airy_px: float):
+def case_images(f: np.ndarray, case: BiasCase):
+    """image(s1, s2): the case's pixel image of the tile f moved by (s1, s2) / SUB px."""
+    if case.texels_per_px is not None:
+        return _bilinear_images(f, case)
     F = np.fft.fft2(f)
     k = np.fft.fftfreq(f.shape[0])
-    if airy_px > 0:
-        F = F * OpticsBlur(airy_px=airy_px).mtf(np.hypot(k[None, :], k[:, None]) * SUB)
+    if case.airy_px > 0:
+        F = F * OpticsBlur(airy_px=case.airy_px).mtf(np.hypot(k[None, :], k[:, None]) * SUB)
 
     def image(s1, s2):
         g = np.real(np.fft.ifft2(F * np.exp(-2j * np.pi * (k[None, :] * s1 + k[:, None] * s2))))
@@ -113,10 +144,39 @@ def _images(f: np.ndarray, airy_px: float):
     return image
 
 
+def _fold(x: np.ndarray, p: np.ndarray, m: int) -> np.ndarray:
+    """Σ over the rows and columns of x whose frequency index p ≡ (0 .. m - 1): an (m, m) spectrum."""
+    rows = np.zeros((m, x.shape[1]), dtype=x.dtype)
+    np.add.at(rows, p, x)
+    out = np.zeros((m, m), dtype=x.dtype)
+    np.add.at(out.T, p, rows.T)
+    return out
+
+
+def _bilinear_images(f: np.ndarray, case: BiasCase):
+    """The bilinear texels' box-pixel image (module docstring): with c_j the tile's DFT / N² and
+    j over TEXEL_IMAGES periods, pixel frequency p ≡ j (mod M) carries
+    Σ_j c_(j mod N) sinc²(j / N) sinc(j / M) MTF(|j| / M) exp(-2πi j·s / M) (s in px, per axis)."""
+    n = f.shape[0]
+    m = int(round(n / case.texels_per_px))
+    j = np.fft.fftfreq(n * TEXEL_IMAGES, 1.0 / (n * TEXEL_IMAGES))        # cycles per tile
+    amp = np.sinc(j / n) ** 2 * np.sinc(j / m)
+    idx = (j % n).astype(int)
+    F = (np.fft.fft2(f) / n ** 2)[np.ix_(idx, idx)] * amp[:, None] * amp[None, :]
+    if case.airy_px > 0:
+        F = F * OpticsBlur(airy_px=case.airy_px).mtf(np.hypot(j[None, :], j[:, None]) / m)
+    p = (j % m).astype(int)
+
+    def image(s1, s2):
+        moved = F * np.exp(-2j * np.pi * (j[None, :] * s1 + j[:, None] * s2) / (SUB * m))
+        return np.real(np.fft.ifft2(_fold(moved, p, m))) * m * m
+    return image
+
+
 def measure(f: np.ndarray, case: BiasCase, shifts, rng) -> np.ndarray:
     """Errors (n, 2) px of the subset correlations of the pattern f over `shifts` (texels)."""
     order = INTERPOLANTS[case.interpolant]
-    image = _images(f, case.airy_px)
+    image = case_images(f, case)
     ref = image(0, 0)
     n = ref.shape[0]
     centres = range(HALF + 2, n - HALF - 2, STRIDE)
@@ -142,8 +202,9 @@ def predict(f: np.ndarray, case: BiasCase) -> tuple[np.ndarray, np.ndarray]:
     """(σ_measured (2,) px, the bound σ (2,) px) for the case's subsets on pattern f, RMS over
     the shifts d = j / SUB along x."""
     optics = [OpticsBlur(airy_px=case.airy_px)] if case.airy_px > 0 else None
-    model = correlation_error(f, 1.0 / SUB, np.eye(2)[None], order=INTERPOLANTS[case.interpolant],
-                              optics=optics, texel_filter="ideal",
+    model = correlation_error(f, case.texel_px(f.shape[0]), np.eye(2)[None],
+                              order=INTERPOLANTS[case.interpolant], optics=optics,
+                              texel_filter="ideal" if case.texels_per_px is None else "bilinear",
                               phases=(np.arange(SUB) / SUB, [0.0]))
     p = (2 * HALF + 1) ** 2
     measured = np.sqrt(np.diagonal(model.covariance(case.noise, p)[0]))
@@ -167,8 +228,9 @@ class BiasRow:
     bound_ratio: np.ndarray | None
 
 
-def run_case(case: BiasCase, seeds: int, tile: int = 512, first_seed: int = 0) -> BiasRow:
-    """The case over `seeds` patterns of `tile` texels (module docstring)."""
+def run_case(case: BiasCase, seeds: int, pixels: int = 64, first_seed: int = 0) -> BiasRow:
+    """The case over `seeds` patterns of images of `pixels` x `pixels` (module docstring)."""
+    tile = case.tile(pixels)
     shifts = [(j, 0) for j in range(SUB)]
     per_seed, preds, bounds = [], [], []
     for s in range(first_seed, first_seed + seeds):
@@ -185,7 +247,7 @@ def run_case(case: BiasCase, seeds: int, tile: int = 512, first_seed: int = 0) -
     boot = ms[rng.integers(0, seeds, size=(BOOTSTRAP, seeds))].mean(axis=1)    # (B, 2)
     low, high = np.sqrt(np.percentile(boot, [2.5, 97.5], axis=0)) / predicted
     bound = np.sqrt(np.mean(bounds, axis=0))
-    n = ((tile // SUB - 2 * HALF - 4 + STRIDE - 1) // STRIDE) ** 2 * SUB * seeds
+    n = ((round(tile * case.texel_px(tile)) - 2 * HALF - 4 + STRIDE - 1) // STRIDE) ** 2 * SUB * seeds
     return BiasRow(case, seeds, n, measured, predicted, measured / predicted,
                    np.stack([low, high], axis=1),
                    measured / (np.sqrt(2.0) * bound) if case.noise > 0 else None)
@@ -203,4 +265,12 @@ DEFAULT_CASES = (
     BiasCase("fine 2 px dots, keys", "dots", 2.0, "keys", 0.0, 0.02),
     BiasCase("4 px dots at f/8 (λN/p = 1.28), keys", "dots", 4.0, "keys", 1.28, 0.02),
     BiasCase("photo-like 4 px, keys", "photo", 4.0, "keys", 0.0, 0.02),
+    # coarse bilinear texels, as a rendered texture at the cameras' own pixels
+    BiasCase("4 px dots and strokes, 2 texels/px, cubic", "dots", 4.0, "cubic", 0.0, 0.02, 2.0, 3),
+    BiasCase("3.6 px dots, 2.2 texels/px, cubic", "dots", 3.6, "cubic", 0.0, 0.02, 2.2),
+    BiasCase("5 px dots, 1.6 texels/px, cubic", "dots", 5.0, "cubic", 0.0, 0.02, 1.6),
+    BiasCase("2.5 px dots, 2 texels/px, quintic", "dots", 2.5, "quintic", 0.0, 0.02, 2.0),
+    BiasCase("2 px dots, 3 texels/px, cubic", "dots", 2.0, "cubic", 0.0, 0.02, 3.0),
+    BiasCase("4 px dots, 2 texels/px, keys", "dots", 4.0, "keys", 0.0, 0.02, 2.0),
+    BiasCase("4 px dots, 2 texels/px, f/8 (λN/p = 1.28), cubic", "dots", 4.0, "cubic", 1.28, 0.02, 2.0),
 )
