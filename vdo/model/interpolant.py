@@ -453,7 +453,14 @@ LAG_FRACTION = 4            # ... and at most a quarter of the canonical image's
 SCALE_STEPS = 16            # canonical pixel sides per octave of texels per pixel (4.4 % steps)
 CUMULANT_PHASES = 4         # sub-pixel positions per axis at most over which the factor is taken
 OPTICS_STEP = 0.25          # px: the optics' λN/p and defocus blur snapped to this for the factor
+CUMULANT_MAX_PIXELS = 512  # the canonical image's side at most (px): a finer footprint (more
+                            # than 512 pixels over the tile, i.e. fewer than N / 512 texels per
+                            # pixel) takes the factor at 512 (cost grows as M² log M: 0.3 s at
+                            # 512, 2-3 s at 1024, 60 s at 4,500; below about 1.5 texels per pixel
+                            # the model's x is off by 13-54 % with or without the factor,
+                            # docs/theory.md)
 CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
+FACTOR_VERSION = 1          # part of the on-disk key: raise it when the factor's formula changes
 _CUMULANT_CACHE: dict = {}
 
 
@@ -524,9 +531,12 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     `correlation_error`; the set is the same for d and 1 - d, as the Gaussian term is). kappa is
     1 in expectation for a Gaussian field (binary dots are platykurtic: kappa < 1 on the axis
     across the shift). The texel filter's images (m ≠ 0) are left out of the realized image; the
-    optics' λN/p and defocus are snapped to OPTICS_STEP. Cost: the tile's FFT, one N x N product
-    per x phase and six M x M FFTs per phase pair; kept per pattern, settings, canonical side and
-    snapped optics (CUMULANT_CACHE_SIZE); `digest`: the tile's, when the caller has it."""
+    optics' λN/p and defocus are snapped to OPTICS_STEP; M is at most CUMULANT_MAX_PIXELS (a finer
+    footprint takes the factor at that M). Cost: the tile's FFT, one N x N product per x phase and
+    six M x M FFTs per phase pair (0.3 s at M = 512); kept per pattern, settings, canonical side
+    and snapped optics in memory (CUMULANT_CACHE_SIZE) and in vdo's cache folder
+    (`scatter-factors/`, one small file each, keyed with FACTOR_VERSION), so that later runs and
+    other processes read it; `digest`: the tile's, when the caller has it."""
     f = np.asarray(pattern_normalised, dtype=np.float64)
     n = f.shape[0]
     if f.shape != (n, n):
@@ -537,7 +547,7 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     px, py = (np.unique(np.concatenate([p % 1.0, (1.0 - p) % 1.0])) for p in (px, py))   # + twins
     px, py = (p[::-(-p.size // CUMULANT_PHASES)] for p in (px, py))
     steps = round(math.log2(side_m / texel_m) * SCALE_STEPS)
-    m = max(8, int(round(n / 2.0 ** (steps / SCALE_STEPS))))
+    m = min(CUMULANT_MAX_PIXELS, max(8, int(round(n / 2.0 ** (steps / SCALE_STEPS)))))
     if optics is not None:
         optics = type(optics)(**{k: OPTICS_STEP * round(getattr(optics, k) / OPTICS_STEP)
                                  for k in ("airy_px", "defocus_px")})     # the MTF's parameters
@@ -546,6 +556,10 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     key = (digest, float(texel_m), m, order, optics, texel_filter, px.tobytes(), py.tobytes())
     if key in _CUMULANT_CACHE:
         return _CUMULANT_CACHE[key]
+    stored = _stored_factor(key)
+    if stored is not None:
+        _keep(key, stored)
+        return stored
     j = np.arange(-(n // 2), n - n // 2)                            # cycles per tile, ascending
     c = np.fft.fftshift(np.fft.fft2(f)) / n ** 2                     # rows: y (v), columns: x (u)
     q = j / m
@@ -614,7 +628,54 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
             real += count * Hi @ v_real @ Hi
             gauss += count * Hi @ v_gauss @ Hi
     out = CumulantFactor(np.diagonal(real) / np.diagonal(gauss), gauss / (px.size * py.size), m)
-    if len(_CUMULANT_CACHE) >= CUMULANT_CACHE_SIZE:
-        _CUMULANT_CACHE.pop(next(iter(_CUMULANT_CACHE)))
-    _CUMULANT_CACHE[key] = out
+    _keep(key, out)
+    _store_factor(key, out)
     return out
+
+
+def _keep(key: tuple, factor: CumulantFactor) -> None:
+    if len(_CUMULANT_CACHE) >= CUMULANT_CACHE_SIZE:
+        _CUMULANT_CACHE.pop(next(iter(_CUMULANT_CACHE)))          # the oldest entry first
+    _CUMULANT_CACHE[key] = factor
+
+
+def _factor_path(key: tuple):
+    """The factor's file in vdo's cache folder (`vdo.core.configure.cache_dir`), named by a digest
+    of its key and FACTOR_VERSION."""
+    from vdo.core.configure import cache_dir
+
+    name = hashlib.blake2b(repr((FACTOR_VERSION,) + key).encode(), digest_size=20).hexdigest()
+    return cache_dir() / "scatter-factors" / f"{name}.npz"
+
+
+def _stored_factor(key: tuple) -> CumulantFactor | None:
+    """The factor kept on disk by an earlier process, or None (absent or unreadable)."""
+    path = _factor_path(key)
+    try:
+        with np.load(path) as z:
+            return CumulantFactor(z["kappa"].copy(), z["gaussian"].copy(), int(z["pixels"]))
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def _store_factor(key: tuple, factor: CumulantFactor) -> None:
+    """Keep the factor on disk for later processes (written whole, then renamed: a reader never
+    meets half a file); a folder that cannot be written only costs the recomputation."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    path = _factor_path(key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = tempfile.NamedTemporaryFile(dir=path.parent, suffix=".part", delete=False)
+    except OSError:
+        return
+    try:
+        with tmp:
+            np.savez(tmp, kappa=factor.kappa, gaussian=factor.gaussian, pixels=factor.pixels)
+        os.replace(tmp.name, path)
+    except BaseException as err:              # Ctrl-C included: no half-written file is left
+        Path(tmp.name).unlink(missing_ok=True)
+        if not isinstance(err, OSError):
+            raise
