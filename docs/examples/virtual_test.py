@@ -1,11 +1,25 @@
-"""The built-in virtual test: the beam-column under a closed-form displacement field, rendered as an
-image series (`vdo render --series`), then measured by vdo's own correlation on the exported
-images and compared with the imposed field and the predicted uncertainty; the folder's OpenCV
-calibration files re-projected against its layout.json.
+"""The virtual test: a specimen under a closed-form displacement field, rendered as an image
+series (`vdo render --series`), then measured by vdo's own correlation on the exported images and
+compared with the imposed field and the predicted uncertainty; the folder's OpenCV calibration
+files re-projected against its layout.json. By default the built-in beam-column; `--experiment`
+takes any experiment file.
 
     python docs/examples/virtual_test.py --out runs/virtual_test [--scale 1] [--spp 16]
     python docs/examples/virtual_test.py --out /tmp/vt --quick     # 2 cropped cameras (the test)
     python docs/examples/virtual_test.py --out /tmp/vt --quick --dot-mm 0.25 --texel-mm 0.05
+    python docs/examples/virtual_test.py --out /tmp/vt --quick \
+        --experiment experiments/pressure_vessel/all_round.toml [--pair t030 t080]
+
+Another experiment's field is general (`general_field`): about the centre c of the specimen's
+bounding box and its size S (the box's diagonal), a translation S x GENERAL_TRANSLATION, a turn
+by GENERAL_TURN about the vertical axis through c and a uniform stretch GENERAL_STRAIN along the
+box's longest horizontal axis e:
+
+    u = S t + phi e_z x (X - c) + eps ((X - c) . e) e
+
+an affine field, which the mesh's vertices carry exactly. Its pair: `--pair`, else the two cameras
+that share the most usable samples; `--quick` crops them around the sample nearest the centroid
+of those samples.
 
 The field (metres; joint centre c = (0, 0, 1.2), beam along +y from its root y0 = 0.06 to its
 end y0 + L, L = 1 m, s = clip((y - y0) / L, 0, 1)): a rigid motion of the whole specimen, a
@@ -67,6 +81,11 @@ BIAS_FLOOR_PX = 0.005                       # interpolation bias at scale 1 (doc
 QUICK_PAIR = ("cam1", "cam2")               # the 100 mm lenses on the joint, from the front, above
 QUICK_CROP_PX = (320, 240)                  # full-size pixels around the joint top's centre
 FOCUS_POINT = np.array([0.0, 0.0, 1.26])    # m, the joint top's centre (the crops' centre)
+WHOLE_PATCH_TOL = 1e-9                      # a patch fraction this close to 1 is whole (a sum of
+                                            # cell areas: 0.9999999999999999 on a curved surface)
+GENERAL_TRANSLATION = np.array([0.5, -0.3, 0.4]) * 1e-3   # per metre of the specimen's size
+GENERAL_TURN = math.radians(0.1)            # about the vertical axis through the box's centre
+GENERAL_STRAIN = 1e-3                       # along the box's longest horizontal axis
 
 
 def imposed(X: np.ndarray) -> np.ndarray:
@@ -80,38 +99,87 @@ def imposed(X: np.ndarray) -> np.ndarray:
     return u + np.column_stack([np.zeros(len(X)), -rel[:, 2] * dw, w])
 
 
-def inputs(folder: Path, exp):
-    """The refined specimen STL and the field at its vertices (.vtp, mm) in `folder`; the
-    experiment using them (its [load_path] only these displacements, step 1)."""
+def general_field(points: np.ndarray):
+    """The affine field of the module docstring for a specimen whose mesh points (N, 3) m are
+    given: a function of rest points X (N, 3) m returning displacements (N, 3) m."""
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre, size = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    axis = np.eye(3)[int(np.argmax((hi - lo)[:2]))]                 # longest horizontal axis
+
+    def field(X: np.ndarray) -> np.ndarray:
+        rel = np.atleast_2d(X) - centre
+        turn = GENERAL_TURN * np.column_stack([-rel[:, 1], rel[:, 0], np.zeros(len(rel))])
+        return size * GENERAL_TRANSLATION + turn + GENERAL_STRAIN * np.outer(rel @ axis, axis)
+    return field
+
+
+def inputs(folder: Path, exp, field, refine_mm: float | None):
+    """The specimen STL (refined to edges of at most `refine_mm`, or as it is) and the field at
+    its vertices (.vtp, mm) in `folder`; the experiment using them (its [load_path] only these
+    displacements, step 1)."""
     import trimesh
 
     from vdo.config import experiment as config
     from vdo.core import vtp
 
     folder.mkdir(parents=True, exist_ok=True)
-    spec = next(m for m in exp.meshes if m.name == "specimen")
+    spec = specimen_mesh(exp)
     mesh = trimesh.load(spec.path, force="mesh")
-    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=EDGE_MM)
+    vertices, faces = mesh.vertices, mesh.faces
+    if refine_mm is not None:
+        vertices, faces = trimesh.remesh.subdivide_to_size(vertices, faces, max_edge=refine_mm)
     trimesh.Trimesh(vertices, faces, process=False).export(folder / "specimen_refined.stl")
     nodes = np.unique(vertices * spec.scale, axis=0)
-    vtp.write_points(folder / "field.vtp", nodes / 1e-3, {"displacement": imposed(nodes) / 1e-3})
+    vtp.write_points(folder / "field.vtp", nodes / 1e-3, {"displacement": field(nodes) / 1e-3})
     meshes = tuple(dataclasses.replace(m, path=folder / "specimen_refined.stl") if m is spec else m
                    for m in exp.meshes)
-    load_path = config.LoadPathSpec(displacements=folder / "field.vtp", deformed_mesh="specimen",
+    load_path = config.LoadPathSpec(displacements=folder / "field.vtp", deformed_mesh=spec.name,
                                     unit="mm")
     return dataclasses.replace(exp, meshes=meshes, load_path=load_path)
 
 
-def cropped(exp, names, crop_px):
+def specimen_mesh(exp):
+    """The mesh the regions lie on (the built-in's "specimen"): the mesh of the first region."""
+    names = {m.name: m for m in exp.meshes}
+    return names.get("specimen") or names[exp.regions[0].mesh]
+
+
+def pair_and_focus(exp, pair=None):
+    """(pair, focus point (3,) m): the two cameras named, else the two that share the most usable
+    samples (the whole experiment judged at its own pixels); the sample nearest the centroid of
+    the samples both use."""
+    from vdo.state import layout_state, prepare
+
+    names = [c.name for c in exp.camera_specs]
+    unknown = [n for n in pair or () if n not in names]
+    if unknown:
+        raise SystemExit(f"--pair: no camera {unknown[0]!r} in {exp.path}; cameras: {', '.join(names)}")
+    state = layout_state(prepare(exp))
+    usable = state.prediction.usable
+    if pair is None:
+        shared = usable.astype(np.int64) @ usable.T.astype(np.int64)
+        np.fill_diagonal(shared, -1)
+        first, second = np.unravel_index(int(np.argmax(shared)), shared.shape)
+        pair = (names[first], names[second])
+    both = usable[names.index(pair[0])] & usable[names.index(pair[1])]
+    if not both.any():
+        raise SystemExit(f"--pair {pair[0]} {pair[1]}: the two cameras share no usable sample in "
+                         f"{exp.path}; choose a pair that sees the same surface")
+    points = state.samples.points[both]
+    return tuple(pair), points[int(np.argmin(np.linalg.norm(points - points.mean(axis=0), axis=1)))]
+
+
+def cropped(exp, names, crop_px, focus=FOCUS_POINT):
     """The experiment with only the cameras `names`, each cropped to `crop_px` full-size pixels
-    centred on the projection of the joint top's centre (same pixels, shifted principal point)."""
+    centred on the projection of `focus` (the built-in: the joint top's centre; same pixels,
+    shifted principal point)."""
     cameras = {c.name: c for c in vdo.cameras_of(exp.camera_specs, exp.rails)}
     specs = []
     for spec in exp.camera_specs:
         if spec.name not in names:
             continue
         cam = cameras[spec.name]
-        centre = cam.project(FOCUS_POINT[None])[0]
+        centre = cam.project(np.asarray(focus, dtype=float)[None])[0]
         width, height = crop_px
         x0, y0 = np.rint(centre - np.array([width, height]) / 2)
         cx, cy = cam.principal_point
@@ -130,7 +198,8 @@ def points_of_pair(state, first: int, second: int, per_region: int, motion=None,
     must lie `margin_px` inside both images: the usable test looks at the sample only, and a patch
     that leaves a (cropped) image is correlated on a part of itself against mirrored pixels."""
     pred, samples = state.prediction, state.samples
-    ok = pred.usable[first] & pred.usable[second] & pred.measured & (pred.patch_fraction >= 1.0)
+    ok = pred.usable[first] & pred.usable[second] & pred.measured \
+        & (pred.patch_fraction >= 1.0 - WHOLE_PATCH_TOL)
     half = state.geometry.experiment.evaluation.patch_size / 2
     motion = np.zeros_like(samples.points) if motion is None else motion
     for cam in (state.cameras[first], state.cameras[second]):
@@ -184,7 +253,7 @@ def calibration_error(folder: Path) -> float:
 def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = None,
         per_region: int = 2, realisations: int = 4, overwrite: bool = False,
         crop_px: tuple[int, int] = QUICK_CROP_PX, dot_mm: float | None = None,
-        texel_mm: float | None = None) -> dict:
+        texel_mm: float | None = None, experiment: Path = EXPERIMENT, pair=None) -> dict:
     """Render the series and measure it (module docstring). Per point: the error of the series'
     own TIFFs, split into the bias (the same correlation on the noise-free images, the .exr
     radiance through the sensor's mean) and the noise part (TIFF minus noise-free), which
@@ -199,9 +268,20 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     from vdo.state import layout_state, prepare
 
     out = Path(out)
-    exp = config.load(EXPERIMENT)
+    builtin = Path(experiment).resolve() == EXPERIMENT
+    exp = config.load(experiment)
+    if builtin:
+        field, refine_mm, pair, focus = imposed, EDGE_MM, tuple(pair or QUICK_PAIR), FOCUS_POINT
+        if pair != QUICK_PAIR:
+            pair, focus = pair_and_focus(exp, pair)
+    else:
+        import trimesh
+
+        spec = specimen_mesh(exp)
+        field, refine_mm = general_field(trimesh.load(spec.path, force="mesh").vertices * spec.scale), None
+        pair, focus = pair_and_focus(exp, pair)
     if quick:
-        exp = cropped(exp, QUICK_PAIR, crop_px)
+        exp = cropped(exp, pair, crop_px, focus)
     if dot_mm is not None or texel_mm is not None:     # another speckle: e.g. fine sharp dots
         sp = exp.speckle
         exp = dataclasses.replace(exp, speckle=dataclasses.replace(
@@ -211,10 +291,10 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         if not 0 < 3 * sp.texel <= sp.dot_diameter:   # the [speckle] rule: round dots need 3 texels
             raise SystemExit(f"--dot-mm {sp.dot_diameter * 1e3:g} / --texel-mm {sp.texel * 1e3:g}: "
                              "both > 0 and the texel at most a third of the dot")
-    exp = inputs(out.with_name(out.name + "_inputs"), exp)
+    exp = inputs(out.with_name(out.name + "_inputs"), exp, field, refine_mm)
     exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True))
     summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,
-                            pairs=[QUICK_PAIR] if quick else None)
+                            pairs=[pair] if quick or not builtin else None)
     geometry = prepare(exp)
     load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
                              groups=exp.groups)
@@ -254,7 +334,7 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
                           for c in pair)
             rows.append({"pair": f"{first}:{second}", "region": s.region_names[s.region[i]],
                          "point_mm": (s.points[i] * 1e3).round(1).tolist(),
-                         "closed_form_um": (imposed(s.points[i])[0] * 1e6).tolist(),
+                         "closed_form_um": (field(s.points[i])[0] * 1e6).tolist(),
                          "rendered_um": (rendered * 1e6).tolist(),
                          "measured_um": (measured[k] * 1e6).tolist(),
                          "error_um": ((measured[k] - rendered) * 1e6).tolist(),
@@ -326,11 +406,19 @@ def main(argv=None) -> dict:
                         help="speckle dot diameter, mm (default: the experiment's 2 mm)")
     parser.add_argument("--texel-mm", type=float, default=None,
                         help="speckle texel, mm (at most a third of the dot; default 0.25 mm)")
+    parser.add_argument("--experiment", type=Path, default=EXPERIMENT,
+                        help="experiment file (default: the built-in beam-column)")
+    parser.add_argument("--pair", nargs=2, default=None, metavar=("A", "B"),
+                        help="the two cameras (default: the built-in's cam1 cam2, else the two "
+                             "sharing the most usable samples)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
+    if not args.experiment.is_file():
+        parser.error(f"--experiment: no file {args.experiment}; give an experiment's .toml")
     vdo.configure()
     result = run(args.out, args.quick, args.scale, args.spp, args.per_region, args.realisations,
-                 args.overwrite, tuple(args.crop), args.dot_mm, args.texel_mm)
+                 args.overwrite, tuple(args.crop), args.dot_mm, args.texel_mm,
+                 args.experiment.resolve(), tuple(args.pair) if args.pair else None)
     print_table(result)
     return result
 
