@@ -52,8 +52,9 @@ class BiasCase:
     "dots-gaussian", the sharp dots' spectrum with random phases: `gaussian_like`), its dot
     diameter in pixels, the interpolant, the optics' λN/p (0: none) and the noise in pattern stds;
     `texels_per_px` None: SUB texels per pixel with the band-limited texel interpolant, else that
-    many bilinear texels per pixel (a rendered texture; may be fractional); `strokes` as
-    `generate_pattern`'s (per 512 x 512 texels)."""
+    many bilinear texels per pixel (a rendered texture; may be fractional) along x, and
+    `texels_per_px_y` along y when it differs (an oblique view's footprint; `dot_px` is along x);
+    `strokes` as `generate_pattern`'s (per 512 x 512 texels)."""
 
     name: str
     pattern: str
@@ -63,19 +64,27 @@ class BiasCase:
     noise: float = 0.0
     texels_per_px: float | None = None
     strokes: int = 0
+    texels_per_px_y: float | None = None
 
     @property
     def texels(self) -> float:
         """Texels per pixel."""
         return SUB if self.texels_per_px is None else self.texels_per_px
 
-    def tile(self, pixels: int) -> int:
-        """Texels per side of a tile imaged onto about `pixels` x `pixels` pixels."""
-        return int(round(pixels * self.texels))
+    @property
+    def texels_y(self) -> float:
+        """Texels per pixel along y."""
+        return self.texels if self.texels_per_px_y is None else self.texels_per_px_y
 
-    def texel_px(self, tile: int) -> float:
-        """A texel's side in pixels on a tile of `tile` texels (its image has whole pixels)."""
-        return 1.0 / SUB if self.texels_per_px is None else round(tile / self.texels_per_px) / tile
+    def tile(self, pixels: int) -> int:
+        """Texels per side of a tile imaged onto at least about `pixels` pixels per axis."""
+        return int(round(pixels * max(self.texels, self.texels_y)))
+
+    def image_px(self, tile: int) -> tuple[int, int]:
+        """(M_x, M_y): the whole pixels the tile of `tile` texels is imaged onto."""
+        if self.texels_per_px is None:
+            return tile // SUB, tile // SUB
+        return int(round(tile / self.texels)), int(round(tile / self.texels_y))
 
 
 def photo_like_pattern(size: int, dot_texels: float, seed: int) -> np.ndarray:
@@ -144,32 +153,35 @@ def case_images(f: np.ndarray, case: BiasCase):
     return image
 
 
-def _fold(x: np.ndarray, p: np.ndarray, m: int) -> np.ndarray:
-    """Σ over the rows and columns of x whose frequency index p ≡ (0 .. m - 1): an (m, m) spectrum."""
-    rows = np.zeros((m, x.shape[1]), dtype=x.dtype)
-    np.add.at(rows, p, x)
-    out = np.zeros((m, m), dtype=x.dtype)
-    np.add.at(out.T, p, rows.T)
+def _fold(x: np.ndarray, px: np.ndarray, py: np.ndarray, mx: int, my: int) -> np.ndarray:
+    """Σ over the columns of x whose frequency index is px (0 .. mx - 1) and the rows whose index
+    is py (0 .. my - 1): an (my, mx) spectrum."""
+    rows = np.zeros((my, x.shape[1]), dtype=x.dtype)
+    np.add.at(rows, py, x)
+    out = np.zeros((my, mx), dtype=x.dtype)
+    np.add.at(out.T, px, rows.T)
     return out
 
 
 def _bilinear_images(f: np.ndarray, case: BiasCase):
     """The bilinear texels' box-pixel image (module docstring): with c_j the tile's DFT / N² and
-    j over TEXEL_IMAGES periods, pixel frequency p ≡ j (mod M) carries
-    Σ_j c_(j mod N) sinc²(j / N) sinc(j / M) MTF(|j| / M) exp(-2πi j·s / M) (s in px, per axis)."""
+    j over TEXEL_IMAGES periods, pixel frequency p ≡ j (mod M_a) per axis carries
+    Σ_j c_(j mod N) sinc²(j / N) sinc(j_a / M_a) MTF(|q|) exp(-2πi Σ_a j_a s_a / M_a)
+    (q_a = j_a / M_a cycles per pixel, s in px)."""
     n = f.shape[0]
-    m = int(round(n / case.texels_per_px))
+    mx, my = case.image_px(n)
     j = np.fft.fftfreq(n * TEXEL_IMAGES, 1.0 / (n * TEXEL_IMAGES))        # cycles per tile
-    amp = np.sinc(j / n) ** 2 * np.sinc(j / m)
+    texel = np.sinc(j / n) ** 2
     idx = (j % n).astype(int)
-    F = (np.fft.fft2(f) / n ** 2)[np.ix_(idx, idx)] * amp[:, None] * amp[None, :]
+    F = ((np.fft.fft2(f) / n ** 2)[np.ix_(idx, idx)] * (texel * np.sinc(j / my))[:, None]
+         * (texel * np.sinc(j / mx))[None, :])
     if case.airy_px > 0:
-        F = F * OpticsBlur(airy_px=case.airy_px).mtf(np.hypot(j[None, :], j[:, None]) / m)
-    p = (j % m).astype(int)
+        F = F * OpticsBlur(airy_px=case.airy_px).mtf(np.hypot(j[None, :] / mx, j[:, None] / my))
+    px, py = (j % mx).astype(int), (j % my).astype(int)
 
     def image(s1, s2):
-        moved = F * np.exp(-2j * np.pi * (j[None, :] * s1 + j[:, None] * s2) / (SUB * m))
-        return np.real(np.fft.ifft2(_fold(moved, p, m))) * m * m
+        moved = F * np.exp(-2j * np.pi * (j[None, :] * s1 / mx + j[:, None] * s2 / my) / SUB)
+        return np.real(np.fft.ifft2(_fold(moved, px, py, mx, my))) * mx * my
     return image
 
 
@@ -178,8 +190,7 @@ def measure(f: np.ndarray, case: BiasCase, shifts, rng) -> np.ndarray:
     order = INTERPOLANTS[case.interpolant]
     image = case_images(f, case)
     ref = image(0, 0)
-    n = ref.shape[0]
-    centres = range(HALF + 2, n - HALF - 2, STRIDE)
+    rows, cols = ref.shape
     offsets = np.stack(np.meshgrid(np.arange(-HALF, HALF + 1), np.arange(-HALF, HALF + 1)), -1)
     errors = []
     for s1, s2 in shifts:
@@ -187,8 +198,8 @@ def measure(f: np.ndarray, case: BiasCase, shifts, rng) -> np.ndarray:
         r_img = ref + case.noise * rng.standard_normal(ref.shape)
         d_img = image(s1, s2) + case.noise * rng.standard_normal(ref.shape)
         reference, deformed = SplineImage(r_img, order=order), SplineImage(d_img, order=order)
-        for cx in centres:
-            for cy in centres:
+        for cx in range(HALF + 2, cols - HALF - 2, STRIDE):
+            for cy in range(HALF + 2, rows - HALF - 2, STRIDE):
                 x = (offsets + [cx, cy]).reshape(-1, 2).astype(float)
                 value, J = reference.value_and_gradient(x)
                 est = u.copy()
@@ -202,7 +213,9 @@ def predict(f: np.ndarray, case: BiasCase) -> tuple[np.ndarray, np.ndarray]:
     """(σ_measured (2,) px, the bound σ (2,) px) for the case's subsets on pattern f, RMS over
     the shifts d = j / SUB along x."""
     optics = [OpticsBlur(airy_px=case.airy_px)] if case.airy_px > 0 else None
-    model = correlation_error(f, case.texel_px(f.shape[0]), np.eye(2)[None],
+    n = f.shape[0]
+    mx, my = case.image_px(n)
+    model = correlation_error(f, 1.0, np.diag([n / mx, n / my])[None],          # in texels
                               order=INTERPOLANTS[case.interpolant], optics=optics,
                               texel_filter="ideal" if case.texels_per_px is None else "bilinear",
                               phases=(np.arange(SUB) / SUB, [0.0]))
@@ -247,7 +260,8 @@ def run_case(case: BiasCase, seeds: int, pixels: int = 64, first_seed: int = 0) 
     boot = ms[rng.integers(0, seeds, size=(BOOTSTRAP, seeds))].mean(axis=1)    # (B, 2)
     low, high = np.sqrt(np.percentile(boot, [2.5, 97.5], axis=0)) / predicted
     bound = np.sqrt(np.mean(bounds, axis=0))
-    n = ((round(tile * case.texel_px(tile)) - 2 * HALF - 4 + STRIDE - 1) // STRIDE) ** 2 * SUB * seeds
+    n = int(np.prod([(m - 2 * HALF - 4 + STRIDE - 1) // STRIDE for m in case.image_px(tile)])) \
+        * SUB * seeds
     return BiasRow(case, seeds, n, measured, predicted, measured / predicted,
                    np.stack([low, high], axis=1),
                    measured / (np.sqrt(2.0) * bound) if case.noise > 0 else None)
@@ -273,4 +287,9 @@ DEFAULT_CASES = (
     BiasCase("2 px dots, 3 texels/px, cubic", "dots", 2.0, "cubic", 0.0, 0.02, 3.0),
     BiasCase("4 px dots, 2 texels/px, keys", "dots", 4.0, "keys", 0.0, 0.02, 2.0),
     BiasCase("4 px dots, 2 texels/px, f/8 (λN/p = 1.28), cubic", "dots", 4.0, "cubic", 1.28, 0.02, 2.0),
+    # an oblique view: pixels three times longer on the surface along one image axis
+    BiasCase("4 px dots, 2.5 x 7.5 texels/px (oblique, 3:1), cubic", "dots", 4.0, "cubic", 0.0, 0.02,
+             2.5, 0, 7.5),
+    BiasCase("1.3 px dots, 7.5 x 2.5 texels/px (oblique, 3:1), cubic", "dots", 1.33, "cubic", 0.0,
+             0.02, 7.5, 0, 2.5),
 )

@@ -319,15 +319,16 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     V_d holds for a Gaussian field; a real pattern's fourth cumulant changes it (binary dots at
     50 % fill are platykurtic: less scatter). With `fourth_moments` (the default) the scatter is
     scaled per image axis a by kappa_a of `cumulant_factor`, the realized over the Gaussian
-    scatter on the image of this tile at the square footprint of the same area (side
-    sqrt|det a|, snapped): scatter_ab <- sqrt(kappa_a kappa_b) scatter_ab (px²; kappa about 1 for
-    a Gaussian field, about 0.6 on y for 2 px binary dots; tests/physics/test_measured.py).
+    scatter on the image of this tile at the rectangular footprint of the same pixel sides
+    (|a_1| along image x, |a_2| along y, snapped; the footprint's shear and its orientation to
+    the texel grid left out): scatter_ab <- sqrt(kappa_a kappa_b) scatter_ab (px²; kappa about 1
+    for a Gaussian field, about 0.6 on y for 2 px binary dots; tests/physics/test_measured.py).
     `texel_filter`: "bilinear" (Mitsuba's bitmap), "box" (nearest texel) or "ideal" (the texels'
     band-limited interpolant: no texel filter, no texel images).
     Each footprint's terms are kept (`MODEL_CACHE_SIZE` of them, keyed by the pattern's digest, the
     settings, the footprint and the optics), so the design checks and σ_measured, which meet the
     same footprints, compute them once per process; the factor is kept per canonical footprint
-    and snapped optics (`cumulant_factor`: 0.3-0.9 s for each new one on a 1024-texel tile)."""
+    and snapped optics (`cumulant_factor`: about 0.3 s for each new one, in memory and on disk)."""
     if order not in INTERPOLANTS.values():
         raise ValueError(f"order: expected one of {list(INTERPOLANTS.values())}, got {order!r}")
     f = np.asarray(pattern_normalised)
@@ -432,7 +433,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
         n_ph = px.size * py.size
         out["gradient"][i], out["noise"][i] = H1, noise / n_ph
         kappa = np.ones(2) if not fourth_moments else np.sqrt(cumulant_factor(
-            f, texel_m, math.sqrt(abs(np.linalg.det(a))), order, (px, py), opt, texel_filter,
+            f, texel_m, np.linalg.norm(a, axis=0), order, (px, py), opt, texel_filter,
             digest=common[0]).kappa)
         out["bias"][i], out["scatter"][i] = bias / n_ph, kappa[:, None] * scatter * kappa / n_ph
         if len(_MODEL_CACHE) >= MODEL_CACHE_SIZE:
@@ -460,7 +461,7 @@ CUMULANT_MAX_PIXELS = 512  # the canonical image's side at most (px): a finer fo
                             # the model's x is off by 13-54 % with or without the factor,
                             # docs/theory.md)
 CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
-FACTOR_VERSION = 1          # part of the on-disk key: raise it when the factor's formula changes
+FACTOR_VERSION = 2          # part of the on-disk key: raise it when the factor's formula changes
 _CUMULANT_CACHE: dict = {}
 
 
@@ -472,7 +473,8 @@ class CumulantFactor:
     gaussian  (2, 2) mean over the sub-pixel positions of H⁻¹ V_gauss H⁻¹ on the realized image:
               the Gaussian formula's scatter (px², for a unit-variance pattern), summed over the
               same lag window (checks against `correlation_error`'s analytic term)
-    pixels    M, the canonical image's pixels per side of the tile (its pixel: N h / M)
+    pixels    (M_x, M_y), the canonical image's pixels along x and y over the tile (its pixel:
+              N h / M_x by N h / M_y)
     """
 
     kappa: np.ndarray
@@ -493,26 +495,28 @@ def _fold(x: np.ndarray, j: np.ndarray, m: int, axis: int) -> np.ndarray:
     return np.moveaxis(out, 0, axis)
 
 
-def _lag_window(m: int) -> np.ndarray:
-    """The Bartlett window (1 - |l₁|/L)(1 - |l₂|/L), |l| < L = min(SCATTER_LAGS, m // LAG_FRACTION),
-    on the m x m periodic lag grid (FFT order)."""
-    lag = max(1, min(SCATTER_LAGS, m // LAG_FRACTION))
-    l = np.abs(np.fft.fftfreq(m, 1.0 / m))
-    w1 = np.clip(1.0 - l / lag, 0.0, None)
-    return w1[:, None] * w1[None, :]
+def _lag_window(mx: int, my: int) -> np.ndarray:
+    """The Bartlett window (1 - |l₁|/L₁)(1 - |l₂|/L₂), |l_a| < L_a = min(SCATTER_LAGS,
+    M_a // LAG_FRACTION), on the M_y x M_x periodic lag grid (FFT order)."""
+    def axis(m):
+        lag = max(1, min(SCATTER_LAGS, m // LAG_FRACTION))
+        return np.clip(1.0 - np.abs(np.fft.fftfreq(m, 1.0 / m)) / lag, 0.0, None)
+    return axis(my)[:, None] * axis(mx)[None, :]
 
 
-def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, phases=None,
+def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=None,
                     optics=None, texel_filter: str = "bilinear",
                     digest: str | None = None) -> CumulantFactor:
     """How far the scatter of the bias departs from its Gaussian fourth moments on this pattern:
     the scatter computed on the realized image of the tile, over the same computed with Isserlis'
-    theorem from the same image's second moments, at the canonical footprint: square pixels of
-    side N h / M (M = round(N h / side), side snapped to SCALE_STEPS per octave of texels per
-    pixel), so that the tile holds M x M whole pixels and the image is periodic.
+    theorem from the same image's second moments, at the canonical footprint: rectangular pixels
+    of sides N h / M_x along x and N h / M_y along y (M_a = round(N h / side_a), `side_m` a side
+    in metres or (x, y) sides, each snapped to SCALE_STEPS per octave of texels per pixel), so
+    that the tile holds M_x x M_y whole pixels and the image is periodic.
 
     The image's spectrum at pixel frequency p is the sum of its pattern frequencies j ≡ p (mod M)
-    (j cycles per tile, q = j / M cycles per pixel, ω = 2πq): c_j T(j/N) sinc(q₁) sinc(q₂) MTF(|q|)
+    per axis (j cycles per tile, q_a = j_a / M_a cycles per pixel, ω = 2πq):
+    c_j T(j/N) sinc(q₁) sinc(q₂) MTF(|q|)
     (c_j the tile's DFT / N², T the texel filter's amplitude on its base band; the texel images
     are left out). The interpolant's response is R_d(ω) = exp(-iωd) P_d(ω̄), P_d periodic (the
     discrete interpolation), so the moved image folds c_j exp(-iω.d) and the interpolation error
@@ -546,14 +550,16 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
                                                   for p in phases)
     px, py = (np.unique(np.concatenate([p % 1.0, (1.0 - p) % 1.0])) for p in (px, py))   # + twins
     px, py = (p[::-(-p.size // CUMULANT_PHASES)] for p in (px, py))
-    steps = round(math.log2(side_m / texel_m) * SCALE_STEPS)
-    m = min(CUMULANT_MAX_PIXELS, max(8, int(round(n / 2.0 ** (steps / SCALE_STEPS)))))
+    sides = np.broadcast_to(np.asarray(side_m, dtype=float), (2,))
+    steps = [round(math.log2(side / texel_m) * SCALE_STEPS) for side in sides]
+    mx, my = (min(CUMULANT_MAX_PIXELS, max(8, int(round(n / 2.0 ** (k / SCALE_STEPS)))))
+              for k in steps)
     if optics is not None:
         optics = type(optics)(**{k: OPTICS_STEP * round(getattr(optics, k) / OPTICS_STEP)
                                  for k in ("airy_px", "defocus_px")})     # the MTF's parameters
     if digest is None:
         digest = hashlib.blake2b(np.ascontiguousarray(f).tobytes(), digest_size=16).hexdigest()
-    key = (digest, float(texel_m), m, order, optics, texel_filter, px.tobytes(), py.tobytes())
+    key = (digest, float(texel_m), mx, my, order, optics, texel_filter, px.tobytes(), py.tobytes())
     if key in _CUMULANT_CACHE:
         return _CUMULANT_CACHE[key]
     stored = _stored_factor(key)
@@ -562,36 +568,35 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
         return stored
     j = np.arange(-(n // 2), n - n // 2)                            # cycles per tile, ascending
     c = np.fft.fftshift(np.fft.fft2(f)) / n ** 2                     # rows: y (v), columns: x (u)
-    q = j / m
-    amp = np.sinc(q) * {"bilinear": np.sinc(j / n) ** 2, "box": np.sinc(j / n),
-                        "ideal": np.ones(n)}[texel_filter]
-    c = c * amp[:, None] * amp[None, :]
+    qx, qy = j / mx, j / my                                          # cycles per pixel
+    texel = {"bilinear": np.sinc(j / n) ** 2, "box": np.sinc(j / n), "ideal": np.ones(n)}[texel_filter]
+    c = c * (np.sinc(qy) * texel)[:, None] * (np.sinc(qx) * texel)[None, :]
     if optics is not None:
-        c = c * optics.mtf(np.hypot(q[:, None], q[None, :]))
-    omega = 2 * np.pi * q
-    folded = 2 * np.pi * np.fft.fftfreq(m)                            # ω̄, FFT order
-    sp = _responses(folded, order)
-    D = sp.derivative()
+        c = c * optics.mtf(np.hypot(qy[:, None], qx[None, :]))
+    omega_x, omega_y = 2 * np.pi * qx, 2 * np.pi * qy
+    folded_x, folded_y = (2 * np.pi * np.fft.fftfreq(m) for m in (mx, my))   # ω̄, FFT order
+    sp_x, sp_y = _responses(folded_x, order), _responses(folded_y, order)
+    D_x, D_y = sp_x.derivative(), sp_y.derivative()
     # P_d(ω̄) = R_d(ω̄) exp(iω̄d), per axis and phase
-    P1 = sp.shift(px) * np.exp(1j * np.outer(px, folded))
-    P2 = sp.shift(py) * np.exp(1j * np.outer(py, folded))
-    image = _fold(_fold(c, j, m, 1), j, m, 0)                          # (M, M), Î
-    npix, half = m * m, m // 2 + 1
+    P1 = sp_x.shift(px) * np.exp(1j * np.outer(px, folded_x))
+    P2 = sp_y.shift(py) * np.exp(1j * np.outer(py, folded_y))
+    image = _fold(_fold(c, j, mx, 1), j, my, 0)                        # (M_y, M_x), Î
+    npix, half = mx * my, mx // 2 + 1
     # real fields through their half spectra: x(n) = Σ_p X̂(p) exp(2πi p.n / M), rfft2(x) = M² X̂
-    twice = np.where((np.arange(half) > 0) & (2 * np.arange(half) != m), 2.0, 1.0)  # rfft columns
+    twice = np.where((np.arange(half) > 0) & (2 * np.arange(half) != mx), 2.0, 1.0)  # rfft columns
 
     def field(coef):
-        return scipy.fft.irfft2(npix * coef[:, :half], s=(m, m))
+        return scipy.fft.irfft2(npix * coef[:, :half], s=(my, mx))
 
     def corr(a_hat, b_hat):            # C_ab(l) = <a(n) b(n + l)>, from the rfft2s of a and b
-        return scipy.fft.irfft2(np.conj(a_hat) * b_hat, s=(m, m)) / npix
+        return scipy.fft.irfft2(np.conj(a_hat) * b_hat, s=(my, mx)) / npix
 
     def reversed_(x):                  # x(-l) on the periodic lag grid
         return np.roll(x[::-1, ::-1], 1, axis=(0, 1))
 
-    w = _lag_window(m)
+    w = _lag_window(mx, my)
     w_hat = scipy.fft.rfft2(w).real * twice / npix ** 2    # Σ_l w C_ab = Σ_p ŵ conj(â) b̂ / M⁴
-    grad_coef = [1j * D[None, :] * image, 1j * D[:, None] * image]       # ∇_x (columns), ∇_y
+    grad_coef = [1j * D_x[None, :] * image, 1j * D_y[:, None] * image]   # ∇_x (columns), ∇_y
     grad = np.stack([field(x) for x in grad_coef])
     grad_hat = [npix * x[:, :half] for x in grad_coef]
     c_dd = [[corr(grad_hat[a], grad_hat[b]) for b in range(2)] for a in range(2)]
@@ -600,21 +605,22 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
     real, gauss = np.zeros((2, 2)), np.zeros((2, 2))
     # the pattern's expected <g> (random phases: the diagonal j = j' of Σ_p conj ∇̂ ê)
     power = np.abs(c) ** 2
-    full = _responses(omega, order)
-    d_full, r1_full, r2_full = full.derivative(), full.shift(px), full.shift(py)
+    full_x, full_y = _responses(omega_x, order), _responses(omega_y, order)
+    dx_full, dy_full = full_x.derivative(), full_y.derivative()
+    r1_full, r2_full = full_x.shift(px), full_y.shift(py)
     pairs = _phase_pairs(px, py)
     for p1 in sorted({p[0] for p in pairs}):
-        moved_x = _fold(c * np.exp(-1j * omega * px[p1])[None, :], j, m, 1)      # (N, M)
-        mean_x, mean_y = power @ (d_full * r1_full[p1]), power @ r1_full[p1]        # (N,) per j₂
+        moved_x = _fold(c * np.exp(-1j * omega_x * px[p1])[None, :], j, mx, 1)   # (N, M_x)
+        mean_x, mean_y = power @ (dx_full * r1_full[p1]), power @ r1_full[p1]       # (N,) per j₂
         for _, p2, _, count in (p for p in pairs if p[0] == p1):
             if px[p1] % 1.0 == 0.0 and py[p2] % 1.0 == 0.0:
                 continue                         # whole pixels: no interpolation error, V = 0
-            moved = _fold(moved_x * np.exp(-1j * omega * py[p2])[:, None], j, m, 0)
+            moved = _fold(moved_x * np.exp(-1j * omega_y * py[p2])[:, None], j, my, 0)
             e_coef = P1[p1][None, :] * P2[p2][:, None] * moved - image
             e, e_hat = field(e_coef), npix * e_coef[:, :half]
             g = grad * e
             g[0] -= np.real(-1j * np.sum(r2_full[p2] * mean_x))           # <g> = the bias's H b
-            g[1] -= np.real(-1j * np.sum(d_full * r2_full[p2] * mean_y))
+            g[1] -= np.real(-1j * np.sum(dy_full * r2_full[p2] * mean_y))
             g_hat = scipy.fft.rfft2(g)
             c_ee = corr(e_hat, e_hat)
             c_de = [corr(grad_hat[a], e_hat) for a in range(2)]         # <∇_a(n) e(n + l)>
@@ -627,7 +633,8 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m: float, order=3, 
                                  for b in range(2)] for a in range(2)])
             real += count * Hi @ v_real @ Hi
             gauss += count * Hi @ v_gauss @ Hi
-    out = CumulantFactor(np.diagonal(real) / np.diagonal(gauss), gauss / (px.size * py.size), m)
+    out = CumulantFactor(np.diagonal(real) / np.diagonal(gauss), gauss / (px.size * py.size),
+                         (mx, my))
     _keep(key, out)
     _store_factor(key, out)
     return out
@@ -653,7 +660,8 @@ def _stored_factor(key: tuple) -> CumulantFactor | None:
     path = _factor_path(key)
     try:
         with np.load(path) as z:
-            return CumulantFactor(z["kappa"].copy(), z["gaussian"].copy(), int(z["pixels"]))
+            return CumulantFactor(z["kappa"].copy(), z["gaussian"].copy(),
+                                  tuple(int(v) for v in z["pixels"]))
     except (OSError, KeyError, ValueError):
         return None
 
