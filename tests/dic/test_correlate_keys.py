@@ -10,8 +10,8 @@ import pytest
 from scipy import ndimage
 
 from vdo.dic.images import SplineImage, WindowedImage
-from vdo.model import interpolant
-from vdo.model.interpolant import KEYS
+from vdo.model import spline_response
+from vdo.model.spline_response import KEYS
 
 NUMPY_TOL = 1e-12        # gray levels of a [0, 1] image: the same sums in another order
 OPENCV_TOL = 1e-4        # of the gray range: OpenCV's float32 arithmetic and 1/32 px coordinates
@@ -64,7 +64,7 @@ def test_keys_sampler_is_the_kernel_written_out(scene):
 def test_keys_sampler_with_opencvs_parameter_is_cv2_remap(scene, monkeypatch):
     image, x = scene
     x = np.round(x * OPENCV_SUBPIXEL) / OPENCV_SUBPIXEL
-    monkeypatch.setattr(interpolant, "KEYS_A", -0.75)
+    monkeypatch.setattr(spline_response, "KEYS_A", -0.75)
     ours = SplineImage(image, order=KEYS)(x)
     theirs = cv2.remap(image.astype(np.float32), x[:, 0].astype(np.float32)[None],
                        x[:, 1].astype(np.float32)[None], cv2.INTER_CUBIC)[0]

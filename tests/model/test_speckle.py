@@ -393,7 +393,7 @@ def test_keys_responses_are_the_interpolated_sinusoid():
     here, for frequencies below and above Nyquist: f(x) / exp(iωx) is R_d(ω), the derivative
     (central differences of f) over i exp(iωx) is R'_d(ω), and at d = 0 the derivative response
     is sin ω (the kernel's k'(±1) = ∓1/2: the central difference)."""
-    from vdo.model.interpolant import _KeysSpectrum
+    from vdo.model.spline_response import _KeysSpectrum
 
     omega = np.array([0.05, 0.7, 2.0, 3.1, 4.4, 9.0])
     phases = np.array([0.0, 0.125, 0.5, 0.8])
@@ -420,7 +420,8 @@ def test_keys_correlation_error_is_symmetric_and_worse_than_the_cubic_spline():
     d and 1 - d, computed apart (grids without twins), give opposite biases and equal noise; and on
     4 px sharp dots its bias is several times the cubic B-spline's (the kernel's stronger
     attenuation off the grid)."""
-    from vdo.model.interpolant import KEYS, correlation_error
+    from vdo.model.interpolant import correlation_error
+    from vdo.model.spline_response import KEYS
 
     f = normalise(generate_pattern(256, 1.0, 32.0, 0.5, 0, seed=2))
     low, high = np.array([0.125, 0.25, 0.375]), np.array([0.875, 0.75, 0.625])

@@ -20,7 +20,8 @@ from vdo.dic.interpolation import (HALF, SUB, BiasCase, case_images, gaussian_li
                                    run_case)
 from vdo.model.optics import OpticsBlur
 from vdo.model.speckle import generate_pattern, normalise
-from vdo.model.interpolant import KEYS, correlation_error
+from vdo.model.interpolant import correlation_error
+from vdo.model.spline_response import KEYS
 
 TILE = 1024         # texels per side: a 128 x 128 pixel image
 RATIO_BAND = (0.85, 1.15)   # measured / predicted RMS: ~800 correlated samples, ~4 % sampling error
@@ -175,27 +176,27 @@ def test_the_factor_is_kept_on_disk_for_later_processes(tmp_path, monkeypatch):
     # A later process (the in-memory cache emptied) reads the stored factor instead of computing
     # it: with the tile's FFT broken, the call still returns the same numbers. Another
     # FACTOR_VERSION is another key. An interrupted write leaves no file behind.
-    from vdo.model import interpolant
+    from vdo.model import realized_scatter
     monkeypatch.setenv("VDO_CACHE_DIR", str(tmp_path))
     dots = normalise(generate_pattern(256, 1.0, 8.0, 0.5, 0, seed=5))
-    first = interpolant.cumulant_factor(dots, 0.25, 0.5)
+    first = realized_scatter.cumulant_factor(dots, 0.25, 0.5)
     assert len(list((tmp_path / "scatter-factors").glob("*.npz"))) == 1
-    interpolant._CUMULANT_CACHE.clear()
+    realized_scatter._CUMULANT_CACHE.clear()
     with monkeypatch.context() as m:
         m.setattr(np.fft, "fft2", None)
-        again = interpolant.cumulant_factor(dots, 0.25, 0.5)
+        again = realized_scatter.cumulant_factor(dots, 0.25, 0.5)
         np.testing.assert_array_equal(again.kappa, first.kappa)
         np.testing.assert_array_equal(again.gaussian, first.gaussian)
         assert again.pixels == first.pixels
-        interpolant._CUMULANT_CACHE.clear()
-        m.setattr(interpolant, "FACTOR_VERSION", interpolant.FACTOR_VERSION + 1)
+        realized_scatter._CUMULANT_CACHE.clear()
+        m.setattr(realized_scatter, "FACTOR_VERSION", realized_scatter.FACTOR_VERSION + 1)
         with pytest.raises(TypeError):
-            interpolant.cumulant_factor(dots, 0.25, 0.5)
+            realized_scatter.cumulant_factor(dots, 0.25, 0.5)
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
     monkeypatch.setattr(np, "savez", interrupted)
-    interpolant._CUMULANT_CACHE.clear()
+    realized_scatter._CUMULANT_CACHE.clear()
     with pytest.raises(KeyboardInterrupt):
-        interpolant.cumulant_factor(dots, 0.25, 0.6)
+        realized_scatter.cumulant_factor(dots, 0.25, 0.6)
     assert sorted(p.suffix for p in (tmp_path / "scatter-factors").iterdir()) == [".npz"]

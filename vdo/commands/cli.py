@@ -91,7 +91,7 @@ def _print_summary(summary: dict) -> None:
             f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}"
             + meas)
     if m:
-        from vdo.model.interpolant import INTERPOLANT_NAMES     # (jax: imported only when printed)
+        from vdo.model.spline_response import INTERPOLANT_NAMES     # (jax: imported only when printed)
 
         print(f"measured: {m['processing']}" + (f" ({m['pairs']} pairs, {m['merge']})"
                                                  if m["pairs"] else "")

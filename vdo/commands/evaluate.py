@@ -19,7 +19,7 @@ from vdo.outputs import report
 from vdo.physics import strain
 from vdo.core import vtp
 from vdo.config.experiment import Experiment
-from vdo.model.interpolant import INTERPOLANT_NAMES
+from vdo.model.spline_response import INTERPOLANT_NAMES
 from vdo.core.runfolder import run_folder
 from vdo.geometry.keyframes import load_path_of
 from vdo.search.loadpath import LoadPathResult, evaluate_load_path

@@ -1,7 +1,7 @@
 """Gray images read between their pixels: the interpolants the correlation samples.
 
 * `SplineImage`: the B-spline interpolant (cubic by default, quintic, or Keys' cubic convolution
-  kernel, `vdo.model.interpolant.KEYS`) of a gray image at vdo pixel coordinates x = (u, v) =
+  kernel, `vdo.model.spline_response.KEYS`) of a gray image at vdo pixel coordinates x = (u, v) =
   (column, row), pixel centres at integers: the value, its exact gradient (the spline's
   derivative on the (order + 1)² support), and the gradient at every pixel centre at once. The
   coefficients (`scipy.ndimage.spline_filter`, mirror extension) are computed on a window of the
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from vdo.model.interpolant import KEYS, keys_kernel
+from vdo.model.spline_response import KEYS, keys_kernel
 
 __all__ = ["SPLINE_ORDER", "WINDOW_MARGIN_PX", "SplineImage", "WindowedImage", "TextureSampler"]
 
@@ -46,7 +46,7 @@ def _bspline(x, order: int):
 class SplineImage:
     """B-spline interpolant (odd `order`, default SPLINE_ORDER: cubic) of a gray image, evaluated
     at vdo pixel coordinates x = (u, v) = (column, row), pixel centres at integers. `order` = KEYS:
-    Keys' cubic convolution (`vdo.model.interpolant.keys_kernel`, a = -0.5; OpenCV's INTER_CUBIC is
+    Keys' cubic convolution (`vdo.model.spline_response.keys_kernel`, a = -0.5; OpenCV's INTER_CUBIC is
     the same kernel with a = -0.75): no prefilter, the 4 × 4 taps weigh the samples themselves,
     the gradient from the kernel's derivative.
 

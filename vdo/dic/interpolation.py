@@ -33,7 +33,8 @@ import numpy as np
 from vdo.dic.images import SplineImage
 from vdo.model.optics import OpticsBlur
 from vdo.model.speckle import generate_pattern, normalise
-from vdo.model.interpolant import INTERPOLANTS, correlation_error
+from vdo.model.interpolant import correlation_error
+from vdo.model.spline_response import INTERPOLANTS
 
 SUB = 8                  # texels per pixel
 HALF = 10                # subset half-width, px (21 x 21 pixels)

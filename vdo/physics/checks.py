@@ -143,7 +143,8 @@ def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, p
     sub-pixel positions, noise_rel σ, and the `vdo.model.interpolant.CorrelationError` as "model"
     (not JSON: `design_checks` drops it)."""
     from vdo.model.speckle import normalise
-    from vdo.model.interpolant import INTERPOLANTS, correlation_error
+    from vdo.model.interpolant import correlation_error
+    from vdo.model.spline_response import INTERPOLANTS
 
     f = np.asarray(pattern, dtype=np.float64)
     model = correlation_error(normalise(f), speckle.texel, np.linalg.inv(np.asarray(footprints)),
