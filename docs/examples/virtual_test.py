@@ -270,6 +270,15 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     out = Path(out)
     builtin = Path(experiment).resolve() == EXPERIMENT
     exp = config.load(experiment)
+    if dot_mm is not None or texel_mm is not None:     # another speckle: e.g. fine sharp dots
+        sp = exp.speckle
+        exp = dataclasses.replace(exp, speckle=dataclasses.replace(
+            sp, dot_diameter=sp.dot_diameter if dot_mm is None else dot_mm * 1e-3,
+            texel=sp.texel if texel_mm is None else texel_mm * 1e-3))
+        sp = exp.speckle
+        if not 0 < 3 * sp.texel <= sp.dot_diameter:   # the [speckle] rule: round dots need 3 texels
+            raise SystemExit(f"--dot-mm {sp.dot_diameter * 1e3:g} / --texel-mm {sp.texel * 1e3:g}: "
+                             "both > 0 and the texel at most a third of the dot")
     if builtin:
         field, refine_mm, pair, focus = imposed, EDGE_MM, tuple(pair or QUICK_PAIR), FOCUS_POINT
         if pair != QUICK_PAIR:
@@ -282,15 +291,6 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         pair, focus = pair_and_focus(exp, pair)
     if quick:
         exp = cropped(exp, pair, crop_px, focus)
-    if dot_mm is not None or texel_mm is not None:     # another speckle: e.g. fine sharp dots
-        sp = exp.speckle
-        exp = dataclasses.replace(exp, speckle=dataclasses.replace(
-            sp, dot_diameter=sp.dot_diameter if dot_mm is None else dot_mm * 1e-3,
-            texel=sp.texel if texel_mm is None else texel_mm * 1e-3))
-        sp = exp.speckle
-        if not 0 < 3 * sp.texel <= sp.dot_diameter:   # the [speckle] rule: round dots need 3 texels
-            raise SystemExit(f"--dot-mm {sp.dot_diameter * 1e3:g} / --texel-mm {sp.texel * 1e3:g}: "
-                             "both > 0 and the texel at most a third of the dot")
     exp = inputs(out.with_name(out.name + "_inputs"), exp, field, refine_mm)
     exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True))
     summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,
