@@ -15,6 +15,7 @@ import pytest
 
 from vdo.config import experiment as config
 from vdo.core.errors import ConfigError
+from vdo.core.memo import Memo
 from vdo.design.candidates import KAPPA_LATTICE, judge, judging
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
@@ -157,7 +158,7 @@ def test_the_switch_changes_the_chosen_pair(plate_experiment):
 
 def test_blocks_and_cache_state_change_nothing(both, monkeypatch):
     exp, geometry, j, _, meas = both
-    monkeypatch.setattr("vdo.model.interpolant._MODEL_CACHE", {})               # cold
+    monkeypatch.setattr("vdo.model.interpolant._MODEL_CACHE", Memo(4096))         # cold
     monkeypatch.setattr("vdo.design.candidates.PAIRS_PER_BLOCK", 2 * len(geometry.samples))
     cold = judge(exp, geometry, j)                                          # blocks of 2, cold
     for name, value in _entries(meas).items():

@@ -118,29 +118,36 @@ def project(v: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
     """The Euclidean projection of v onto P (`vertex`), k <= `largest(...)`: from the KKT
     conditions w_i = clip(v_i - lambda - mu_b(i), 0, 1) on the allowed candidates (0 elsewhere),
     mu_b >= 0 the smallest that brings body kind b's sum to at most counts[b], lambda the one that
-    brings the total to k (bisection on both; the total is non-increasing in lambda)."""
-    groups = [np.flatnonzero(allowed & (body == b)) for b in range(len(counts))]
-    low, high = (float(v[allowed].min()), float(v[allowed].max())) if allowed.any() else (0.0, 0.0)
-    span = high - low + 2.0   # mu_b beyond this clips every entry to 0
-
-    def capped(lam: float) -> np.ndarray:
-        w = np.zeros(len(v))
-        for b, idx in enumerate(groups):
-            x = v[idx] - lam
-            if np.clip(x, 0, 1).sum() > counts[b]:
-                lo, hi = 0.0, span
-                for _ in range(BISECTIONS):
-                    mid = 0.5 * (lo + hi)
-                    lo, hi = (mid, hi) if np.clip(x - mid, 0, 1).sum() > counts[b] else (lo, mid)
-                x = x - hi
-            w[idx] = np.clip(x, 0, 1)
+    brings the total to k. At a given lambda body kind b holds min(counts[b], S_b(lambda)),
+    S_b(lambda) = sum_b clip(v_i - lambda, 0, 1), a total non-increasing in lambda: lambda by
+    bisection on that total, then every capped kind's mu_b by bisection at once (`BISECTIONS`
+    steps each, all kinds in one array)."""
+    idx = np.flatnonzero(allowed)
+    w = np.zeros(len(v))
+    if idx.size == 0:
         return w
+    x, b = np.asarray(v, dtype=float)[idx], np.asarray(body)[idx]
+    cap = np.asarray(counts, dtype=float)
+    kinds = len(cap)
 
-    lo, hi = low - 1.0, high   # at low - 1 every allowed entry clips to 1 (total >= k), at high to 0
+    def held(shift):
+        """sum over each body kind of clip(x - shift, 0, 1); shift a scalar or one per kind."""
+        return np.bincount(b, np.clip(x - shift, 0.0, 1.0), minlength=kinds)
+
+    lo, hi = float(x.min()) - 1.0, float(x.max())   # at lo every entry clips to 1, at hi to 0
     for _ in range(BISECTIONS):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if capped(mid).sum() > k else (lo, mid)
-    return capped(hi)
+        lo, hi = (mid, hi) if np.minimum(held(mid), cap).sum() > k else (lo, mid)
+    lam = hi
+    over = held(lam) > cap
+    mu_lo, mu_hi = np.zeros(kinds), np.where(over, float(x.max() - x.min()) + 2.0, 0.0)
+    if over.any():                  # mu_b beyond the span clips every entry of kind b to 0
+        for _ in range(BISECTIONS):
+            mid = 0.5 * (mu_lo + mu_hi)
+            above = held(lam + mid[b]) > cap
+            mu_lo, mu_hi = np.where(above, mid, mu_lo), np.where(above, mu_hi, mid)
+    w[idx] = np.clip(x - lam - mu_hi[b], 0.0, 1.0)
+    return w
 
 
 def linear_maps(info, weight):

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse
 
+from vdo.core.memo import Memo
 from vdo.model.realized_scatter import cumulant_factor
 from vdo.model.speckle import blocked_spectrum
 from vdo.model.spline_response import INTERPOLANTS, PHASES, phase_pairs, responses
@@ -127,7 +128,7 @@ class CorrelationError:
 
 
 MODEL_CACHE_SIZE = 4096      # footprints whose `correlation_error` terms are kept (about 2 kB each)
-_MODEL_CACHE: dict = {}      # (pattern digest, settings, footprint, optics) -> that footprint's terms
+_MODEL_CACHE = Memo(MODEL_CACHE_SIZE)  # (pattern digest, settings, footprint, optics) -> its terms
 
 
 def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: int | str = 3,
@@ -280,7 +281,5 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
             f, texel_m, np.linalg.norm(a, axis=0), order, (px, py), opt, texel_filter,
             digest=common[0]).kappa)
         out["bias"][i], out["scatter"][i] = bias / n_ph, kappa[:, None] * scatter * kappa / n_ph
-        if len(_MODEL_CACHE) >= MODEL_CACHE_SIZE:
-            _MODEL_CACHE.pop(next(iter(_MODEL_CACHE)))          # the oldest entry first
-        _MODEL_CACHE[key] = {**{k: v[i].copy() for k, v in out.items()}, "bias_curve": curves[i].copy()}
+        _MODEL_CACHE.put(key, {**{k: v[i].copy() for k, v in out.items()}, "bias_curve": curves[i].copy()})
     return CorrelationError(phases=(px, py), bias_curve=curves, **out)

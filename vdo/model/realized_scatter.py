@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
+from vdo.core.memo import Memo
 from vdo.model.spline_response import PHASES, phase_pairs, responses
 
 SCATTER_LAGS = 21           # half-width (px) of the Bartlett window over which the realized
@@ -34,7 +35,7 @@ CUMULANT_MAX_PIXELS = 512  # the canonical image's side at most (px): a finer fo
                             # docs/theory.md)
 CUMULANT_CACHE_SIZE = 1024  # (pattern, settings, canonical side, snapped optics) factors kept
 FACTOR_VERSION = 2          # part of the on-disk key: raise it when the factor's formula changes
-_CUMULANT_CACHE: dict = {}
+_CUMULANT_CACHE = Memo(CUMULANT_CACHE_SIZE)
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
         return _CUMULANT_CACHE[key]
     stored = _stored_factor(key)
     if stored is not None:
-        _keep(key, stored)
+        _CUMULANT_CACHE.put(key, stored)
         return stored
     j = np.arange(-(n // 2), n - n // 2)                            # cycles per tile, ascending
     c = np.fft.fftshift(np.fft.fft2(f)) / n ** 2                     # rows: y (v), columns: x (u)
@@ -207,15 +208,11 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
             gauss += count * Hi @ v_gauss @ Hi
     out = CumulantFactor(np.diagonal(real) / np.diagonal(gauss), gauss / (px.size * py.size),
                          (mx, my))
-    _keep(key, out)
+    _CUMULANT_CACHE.put(key, out)
     _store_factor(key, out)
     return out
 
 
-def _keep(key: tuple, factor: CumulantFactor) -> None:
-    if len(_CUMULANT_CACHE) >= CUMULANT_CACHE_SIZE:
-        _CUMULANT_CACHE.pop(next(iter(_CUMULANT_CACHE)))          # the oldest entry first
-    _CUMULANT_CACHE[key] = factor
 
 
 def _factor_path(key: tuple):

@@ -47,6 +47,8 @@ import scipy.fft
 import scipy.sparse
 from scipy.special import i0e, i1e, j0
 
+from vdo.core.memo import Memo, digest
+
 __all__ = [
     "GradientEnergyTable",
     "generate_pattern",
@@ -384,6 +386,12 @@ def _acf_half_width(k2: np.ndarray, p: np.ndarray, extent: float, texel: float) 
     return float(r[below[0]] if below.size else r[-1])
 
 
+TABLE_MEMO_SIZE = 16      # gradient-energy tables kept per process (~0.15 MB each at n = 96)
+PATTERN_MEMO_SIZE = 8     # generated tiles kept per process (4 MB each at 1024 texels)
+_TABLES = Memo(TABLE_MEMO_SIZE)
+_PATTERNS = Memo(PATTERN_MEMO_SIZE)
+
+
 def gradient_energy_table(pattern_normalised, texel_m: float, n: int = 96, *,
                           l_min: float | None = None, l_max: float | None = None) -> GradientEnergyTable:
     """Tabulate g_f(l) and G(l_par, l_perp) (module docstring) for a normalised pattern f̂.
@@ -399,7 +407,8 @@ def gradient_energy_table(pattern_normalised, texel_m: float, n: int = 96, *,
         l_max = 50 * dot_diameter_m to fix it.
 
     The spectrum is binned once (see `_radial_spectrum`), then g_f is a sum over ~500 bins per l
-    and G over ~n²/2 × 500 Bessel terms (G(i, j) and G(j, i) share them).
+    and G over ~n²/2 × 500 Bessel terms (G(i, j) and G(j, i) share them): ~0.2 s, so the last
+    `TABLE_MEMO_SIZE` tables are kept per process by the tile's values and the arguments.
     """
     f = np.asarray(pattern_normalised, dtype=np.float64)
     if f.ndim != 2 or min(f.shape) < 8:
@@ -408,17 +417,23 @@ def gradient_energy_table(pattern_normalised, texel_m: float, n: int = 96, *,
         raise ValueError("pattern_normalised: expected finite values")
     h = _positive_real("texel_m", texel_m)
     n = _integer("n", n, 8)
+    l_min = None if l_min is None else _positive_real("l_min", l_min)
+    l_max = None if l_max is None else _positive_real("l_max", l_max)
+    return _TABLES.get_or((digest(f), h, n, l_min, l_max), lambda: _table(f, h, n, l_min, l_max))
+
+
+def _table(f: np.ndarray, h: float, n: int, l_min: float | None,
+           l_max: float | None) -> GradientEnergyTable:
+    """`gradient_energy_table` of a checked tile f̂ with texel h [m]."""
     k2, w, p = _radial_spectrum(f, h)
     if w.size == 0:
         raise ValueError("pattern_normalised: expected a non-constant image (no gradient energy)")
     extent = min(f.shape) * h
-    lo = 0.25 * h if l_min is None else _positive_real("l_min", l_min)
-    hi = min(130.0 * _acf_half_width(k2, p, extent, h), 0.5 * extent) if l_max is None \
-        else _positive_real("l_max", l_max)
+    lo = 0.25 * h if l_min is None else l_min
+    hi = min(130.0 * _acf_half_width(k2, p, extent, h), 0.5 * extent) if l_max is None else l_max
     if not hi > lo:
         raise ValueError(f"l_max: expected > l_min = {lo:g} m, got {hi:g} m")
     ls = np.geomspace(lo, hi, n)
-
     c = 4.0 * np.pi ** 2 * k2  # α = c l²
     damp = w[None, :] * np.exp(-np.outer(ls ** 2, c))  # (n, bins): w e^(-α)
     g_iso = damp.sum(axis=1)
@@ -487,8 +502,14 @@ def g_aniso_lookup(table: GradientEnergyTable, l_par, l_perp):
 
 def pattern_for(spec) -> np.ndarray:
     """The [0, 1] pattern tile of a `vdo.config.rig.SpeckleSpec`: the user's image when it names one,
-    else a generated tile of `tile_texels` texels of `texel` metres."""
+    else a generated tile of `tile_texels` texels of `texel` metres (read-only: the last
+    `PATTERN_MEMO_SIZE` generated tiles are kept per process, ~0.1 s each to draw at 1024²)."""
     if spec.image is not None:
         return load_pattern(spec.image)
-    return generate_pattern(spec.tile_texels, spec.texel, spec.dot_diameter, spec.coverage,
-                            spec.strokes, spec.seed)
+    args = (spec.tile_texels, spec.texel, spec.dot_diameter, spec.coverage, spec.strokes, spec.seed)
+    return _PATTERNS.get_or(args, lambda: _read_only(generate_pattern(*args)))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a

@@ -246,6 +246,31 @@ def across_seam(uv: np.ndarray, turn: float, reach: float) -> tuple[np.ndarray, 
     return idx, np.stack([sign * s[idx] * np.sin(moved), -s[idx] * np.cos(moved)], axis=-1)
 
 
+class CellIndex:
+    """Integer grid cells (M, 2) -> a value per cell (default: the cell's row), looked up for many
+    cells at once on sorted 64-bit keys (no Python loop); a cell listed twice keeps its first
+    value. Cell indices must lie within +-2^31."""
+
+    def __init__(self, cells, values=None):
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+        values = np.arange(len(cells)) if values is None else np.asarray(values, dtype=np.int64)
+        self._keys, first = np.unique(_cell_keys(cells), return_index=True)
+        self._values = values[first]
+
+    def find(self, cells) -> np.ndarray:
+        """(K,) the value of each of `cells` (K, 2), -1 where a cell is not in the index."""
+        q = _cell_keys(np.asarray(cells, dtype=np.int64).reshape(-1, 2))
+        if self._keys.size == 0:
+            return np.full(len(q), -1, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(self._keys, q), self._keys.size - 1)
+        return np.where(self._keys[pos] == q, self._values[pos], -1)
+
+
+def _cell_keys(cells: np.ndarray) -> np.ndarray:
+    """One int64 per cell (i, j): i * 2^32 + (j + 2^31), ordered as (i, j)."""
+    return cells[:, 0] * (1 << 32) + (cells[:, 1] + (1 << 31))
+
+
 def across_seam_grid(cells: np.ndarray, step: float, turn: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
     """The grid version of `across_seam`: of the grid points beside a closed cone ring's seam (integer
     indices, point (i + 1/2) step), the ones that continue the cells `cells` (M, 2) across it,
@@ -259,10 +284,9 @@ def across_seam_grid(cells: np.ndarray, step: float, turn: float, reach: float) 
     grid = np.unique((near[:, None, :] + ring[None]).reshape(-1, 2), axis=0)
     back_idx, back = across_seam((grid + 0.5) * step, turn, 2 * reach)
     landed = np.round(back / step - 0.5).astype(np.int64)
-    lookup = {tuple(c): k for k, c in enumerate(cells)}
-    owner = np.array([lookup.get(tuple(c), -1) for c in landed], dtype=np.int64)
-    inside = {tuple(c) for c in cells}
-    keep = (owner >= 0) & np.array([tuple(c) not in inside for c in grid[back_idx]], dtype=bool)
+    index = CellIndex(cells)
+    owner = index.find(landed)
+    keep = (owner >= 0) & (index.find(grid[back_idx]) < 0)
     return grid[back_idx][keep], owner[keep]
 
 

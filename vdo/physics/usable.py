@@ -60,7 +60,7 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-from vdo.model.surface import across_seam, across_seam_grid
+from vdo.model.surface import CellIndex, across_seam, across_seam_grid
 from vdo.scene import SurfaceSamples
 
 USABLE_WEIGHT = 0.5    # a view counts when its soft weight w_i >= this
@@ -99,10 +99,11 @@ def raster_overlap(samples: SurfaceSamples, region: int, patch_size: float,
     lo = np.ceil(centre - half - 0.5 - 1e-9).astype(np.int64)
     hi = np.ceil(centre + half - 0.5 - 1e-9).astype(np.int64)
     whole = np.prod(hi - lo, axis=1).astype(float)
-    lookup = {tuple(c): k for k, c in enumerate(ij)}
-    if raster.turn:      # a closed cone's cells continue across its seam
-        for c, k in zip(*across_seam_grid(ij, h, raster.turn, 2 * h)):
-            lookup.setdefault(tuple(c), k)
+    lookup = CellIndex(ij)
+    if raster.turn:      # a closed cone's cells continue across its seam (a cell's own row first)
+        seam, owner = across_seam_grid(ij, h, raster.turn, 2 * h)
+        lookup = CellIndex(np.concatenate([ij, seam.reshape(-1, 2)]),
+                           np.concatenate([np.arange(len(ij)), owner]))
     rows, cols, vals = [], [], []
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
@@ -112,7 +113,7 @@ def raster_overlap(samples: SurfaceSamples, region: int, patch_size: float,
             c = count(a0, a1, b0, b1)
             if raster.around:
                 other[:, 0] = np.mod(other[:, 0], raster.around)
-            j = np.array([lookup.get(tuple(o), -1) for o in other])
+            j = lookup.find(other)
             ok = (c > 0) & (j >= 0)
             rows.append(idx[ok])
             cols.append(idx[j[ok]])
