@@ -225,6 +225,8 @@ def frustum_segments(centre: np.ndarray, corners: np.ndarray) -> np.ndarray:
 
 
 VIEWS = {"front": (22.0, -62.0), "back": (28.0, 118.0)}   # (elevation, azimuth) in degrees
+VIEW_AXES = (0.0, 0.0, 0.86, 0.93)           # the 3D axes in figure fractions (left, bottom, w, h)
+VIEW_COLORBAR = (0.87, 0.2, 0.022, 0.56)     # its colour bar
 
 
 def plot_static(sc: Scene3D, fld: Field, path, title: str, elev: float = 22.0,
@@ -234,8 +236,8 @@ def plot_static(sc: Scene3D, fld: Field, path, title: str, elev: float = 22.0,
     so large mesh triangles would be drawn over the samples (the HTML report shows them)."""
     rgba, lo, hi, how = fld.colours()
     polys, colours = cells(sc), rgba
-    fig = plt.figure(figsize=(10, 7.5), layout="constrained")
-    ax = fig.add_subplot(projection="3d", computed_zorder=False)
+    fig = plt.figure(figsize=(10, 7.5))      # placed by hand: a constrained layout drew it twice
+    ax = fig.add_axes(VIEW_AXES, projection="3d", computed_zorder=False)
     ax.set_proj_type("persp", focal_length=0.35)
     coll = Poly3DCollection(polys, facecolors=colours,
                             edgecolors="none", linewidths=0)
@@ -258,7 +260,7 @@ def plot_static(sc: Scene3D, fld: Field, path, title: str, elev: float = 22.0,
     mappable = plt.cm.ScalarMappable(cmap=plt.get_cmap(fld.cmap, int(hi - lo) if fld.discrete
                                                        else None),
                                      norm=plt.Normalize(lo, hi))
-    bar = fig.colorbar(mappable, ax=ax, shrink=0.6, pad=0.02)
+    bar = fig.colorbar(mappable, cax=fig.add_axes(VIEW_COLORBAR))
     bar.set_label(f"{fld.label}; scale {lo:.4g} – {hi:.4g} ({how})" if not fld.discrete
                   else f"{fld.label}; {how}", fontsize=9)
     if fld.discrete:
