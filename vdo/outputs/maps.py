@@ -45,10 +45,10 @@ VIEWS = (
 NO_VALUE = "0.78"     # grey of samples without a value (NaN); white is where there is no surface
 OUTLIER_RATIO = 1.5   # a continuous scale stops at the 98th percentile when max > 1.5 x p98
 MAP_HEIGHT_IN = 7.0   # height of a map figure; its width follows the unfolded specimen's aspect
-MAP_MARGINS_IN = (0.1, 0.3, 1.3, 0.6)   # left, bottom (the "no value" note), right (the colour
-                      # bar, its ticks and its label), top (a two-line title): inches
-COLORBAR_GAP_IN = 0.15  # from the panels' right margin to the colour bar
-COLORBAR_WIDTH_IN = 0.2
+MAP_MARGINS_IN = (0.1, 0.3, 0.6)   # left, bottom (the "no value" note), top (a two-line title):
+                      # inches; the right margin holds the colour bar (`COLORBAR_IN`)
+COLORBAR_IN = (0.15, 0.2, 0.75, 0.17)   # the colour bar's gap to the panels, its width, its tick
+                      # labels' room, and a line of its label (9 pt): inches
 MAX_REGION_LABELS = 40  # more regions than this: one label per region group (`region_groups`)
 
 
@@ -184,7 +184,10 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     dpi = 130
     # the panels' axes and the colour bar placed by hand (`MAP_MARGINS_IN`): matplotlib's
     # constrained layout drew every map twice, 40 % of evaluate's time in its 14 maps
-    left, bottom, right, top = MAP_MARGINS_IN
+    left, bottom, top = MAP_MARGINS_IN
+    bar_label = textwrap.fill(f"{label}; {scale}", 40)
+    gap, bar_width, ticks, line = COLORBAR_IN
+    right = gap + bar_width + ticks + line * (bar_label.count("\n") + 1)
     fig = plt.figure(figsize=(width_in, MAP_HEIGHT_IN), dpi=dpi)
     axes = fig.add_axes([left / width_in, bottom / MAP_HEIGHT_IN, 1 - (left + right) / width_in,
                          1 - (bottom + top) / MAP_HEIGHT_IN])
@@ -223,11 +226,11 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     chars = max(int(width_in * 72 / (0.6 * 12) * 0.8), 30)
     axes.set_title(textwrap.fill(f"{title} (first-angle projection)", chars), fontsize=12)
     height = 0.8 * (MAP_HEIGHT_IN - bottom - top)
-    cax = fig.add_axes([1 - (right - COLORBAR_GAP_IN) / width_in,
+    cax = fig.add_axes([1 - (right - gap) / width_in,
                         (bottom + 0.1 * (MAP_HEIGHT_IN - bottom - top)) / MAP_HEIGHT_IN,
-                        COLORBAR_WIDTH_IN / width_in, height / MAP_HEIGHT_IN])
+                        bar_width / width_in, height / MAP_HEIGHT_IN])
     cbar = fig.colorbar(coll, cax=cax, extend="neither" if discrete else _extend(values, vmin, vmax))
-    cbar.set_label(textwrap.fill(f"{label}; {scale}", 40), fontsize=9)
+    cbar.set_label(bar_label, fontsize=9)
     if discrete:
         cbar.set_ticks(range(0, int(vmax + 0.5)))
     if np.isnan(values).any():
