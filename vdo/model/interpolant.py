@@ -9,13 +9,12 @@ Keys' cubic convolution (`INTERPOLANTS`). The pattern's spectrum comes from
 from __future__ import annotations
 
 import math
-import hashlib
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse
 
-from vdo.core.memo import Memo
+from vdo.core.memo import Memo, digest
 from vdo.model.realized_scatter import cumulant_factor
 from vdo.model.speckle import blocked_spectrum
 from vdo.model.spline_response import INTERPOLANTS, PHASES, phase_pairs, responses
@@ -200,8 +199,7 @@ def correlation_error(pattern_normalised, texel_m: float, pixel_sides, order: in
     curves = np.empty((len(sides), px.size, py.size, 2))
     r = 1.0 if noisy_reference else 0.0
     pairs = phase_pairs(px, py)
-    common = (hashlib.blake2b(np.ascontiguousarray(f, dtype=np.float64).tobytes(),
-                              digest_size=16).hexdigest(), float(texel_m), order, noisy_reference,
+    common = (digest(np.asarray(f, dtype=np.float64)), float(texel_m), order, noisy_reference,
               texel_filter, px.tobytes(), py.tobytes(), fourth_moments)
     for i, (a, opt) in enumerate(zip(sides, optics)):
         key = common + (a.tobytes(), opt)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from vdo.core.memo import Memo
+from vdo.core.memo import Memo, digest as array_digest
 from vdo.model.spline_response import PHASES, phase_pairs, responses
 
 SCATTER_LAGS = 21           # half-width (px) of the Bartlett window over which the realized
@@ -131,7 +131,7 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
         optics = type(optics)(**{k: OPTICS_STEP * round(getattr(optics, k) / OPTICS_STEP)
                                  for k in ("airy_px", "defocus_px")})     # the MTF's parameters
     if digest is None:
-        digest = hashlib.blake2b(np.ascontiguousarray(f).tobytes(), digest_size=16).hexdigest()
+        digest = array_digest(f)
     key = (digest, float(texel_m), mx, my, order, optics, texel_filter, px.tobytes(), py.tobytes())
     if key in _CUMULANT_CACHE:
         return _CUMULANT_CACHE[key]
@@ -211,8 +211,6 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
     _CUMULANT_CACHE.put(key, out)
     _store_factor(key, out)
     return out
-
-
 
 
 def _factor_path(key: tuple):
