@@ -34,7 +34,10 @@ def _faults(mode):
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc options")
 def test_freed_memory_is_reused_without_page_faults():
     default, retained = _faults("default"), _faults("retain")
-    # glibc maps and unmaps the block every time: every allocation faults its pages in again
-    # (32,768 faults of 4 KiB pages, or 65 where the kernel backs the block with 2 MiB huge pages)
+    # glibc maps and unmaps the block every time: every allocation faults its pages in again. How
+    # many faults a 128 MB block costs depends on how much of it the kernel backs with 2 MiB huge
+    # pages (32,768 faults with none, 576 here, 2,109 on the CI machine): compare with that figure
     assert min(default) >= 0.5 * max(default) > 0
-    assert retained[0] >= 0.5 * min(default) and max(retained[1:]) <= 0.01 * retained[0]
+    # retained: the first allocation faults its pages in, the next four reuse them
+    assert retained[0] > 0
+    assert max(retained[1:]) <= 0.01 * min(default), (default, retained)
