@@ -57,15 +57,24 @@ class CumulantFactor:
 
 def _fold(x: np.ndarray, j: np.ndarray, m: int, axis: int) -> np.ndarray:
     """Σ over the frequencies j ≡ p (mod m) of x along `axis` (j sorted ascending, consecutive
-    integers): the spectrum of the samples at m pixels per tile, p = 0 .. m - 1 (FFT order)."""
-    x = np.moveaxis(x, axis, 0)
-    out = np.zeros((m,) + x.shape[1:], dtype=x.dtype)
+    integers): the spectrum of the samples at m pixels per tile, p = 0 .. m - 1 (FFT order). Runs
+    of consecutive p are added as slices along `axis` in place (no transposed copy of x)."""
+    shape = list(x.shape)
+    shape[axis] = m
+    out = np.zeros(shape, dtype=x.dtype)
+    cut = lambda a, b: (slice(None),) * axis + (slice(a, b),)  # noqa: E731
     t, p = 0, int(j[0] % m)
-    while t < x.shape[0]:                        # runs of consecutive p, each added as a slice
-        run = min(m - p, x.shape[0] - t)
-        out[p:p + run] += x[t:t + run]
+    while t < x.shape[axis]:
+        run = min(m - p, x.shape[axis] - t)
+        out[cut(p, p + run)] += x[cut(t, t + run)]
         t, p = t + run, 0
-    return np.moveaxis(out, 0, axis)
+    return out
+
+
+def _real_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b for a real matrix a and a complex b, as two real products (numpy's mixed-type matmul
+    casts a to complex and leaves BLAS: 1.35 s against 0.02 s for a 4096² tile's power)."""
+    return a @ b.real + 1j * (a @ b.imag)
 
 
 def _lag_window(mx: int, my: int) -> np.ndarray:
@@ -140,12 +149,13 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
         _CUMULANT_CACHE.put(key, stored)
         return stored
     j = np.arange(-(n // 2), n - n // 2)                            # cycles per tile, ascending
-    c = np.fft.fftshift(np.fft.fft2(f)) / n ** 2                     # rows: y (v), columns: x (u)
+    c = np.fft.fftshift(scipy.fft.fft2(f))          # / N² below; rows: y (v), columns: x (u)
     qx, qy = j / mx, j / my                                          # cycles per pixel
     texel = {"bilinear": np.sinc(j / n) ** 2, "box": np.sinc(j / n), "ideal": np.ones(n)}[texel_filter]
-    c = c * (np.sinc(qy) * texel)[:, None] * (np.sinc(qx) * texel)[None, :]
+    c *= (np.sinc(qy) * texel / n ** 2)[:, None]       # in place: the tile's spectrum is N² wide
+    c *= (np.sinc(qx) * texel)[None, :]
     if optics is not None:
-        c = c * optics.mtf(np.hypot(qy[:, None], qx[None, :]))
+        c *= optics.mtf(np.hypot(qy[:, None], qx[None, :]))
     omega_x, omega_y = 2 * np.pi * qx, 2 * np.pi * qy
     folded_x, folded_y = (2 * np.pi * np.fft.fftfreq(m) for m in (mx, my))   # ω̄, FFT order
     sp_x, sp_y = responses(folded_x, order), responses(folded_y, order)
@@ -182,9 +192,12 @@ def cumulant_factor(pattern_normalised, texel_m: float, side_m, order=3, phases=
     dx_full, dy_full = full_x.derivative(), full_y.derivative()
     r1_full, r2_full = full_x.shift(px), full_y.shift(py)
     pairs = phase_pairs(px, py)
-    for p1 in sorted({p[0] for p in pairs}):
+    firsts = sorted({p[0] for p in pairs})
+    means = _real_matmul(power, np.stack([v for p1 in firsts
+                                          for v in (dx_full * r1_full[p1], r1_full[p1])], axis=1))
+    for k, p1 in enumerate(firsts):
         moved_x = _fold(c * np.exp(-1j * omega_x * px[p1])[None, :], j, mx, 1)   # (N, M_x)
-        mean_x, mean_y = power @ (dx_full * r1_full[p1]), power @ r1_full[p1]       # (N,) per j₂
+        mean_x, mean_y = means[:, 2 * k], means[:, 2 * k + 1]                    # (N,) per j₂
         for _, p2, _, count in (p for p in pairs if p[0] == p1):
             if px[p1] % 1.0 == 0.0 and py[p2] % 1.0 == 0.0:
                 continue                         # whole pixels: no interpolation error, V = 0
