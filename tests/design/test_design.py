@@ -686,3 +686,30 @@ def test_the_polish_percentiles_are_numpys_per_region():
                          for r in np.unique(region[keep])], 1)
     np.testing.assert_allclose(got, want, rtol=1e-12)     # NaN where both are NaN
     assert np.isnan(got[2, list(np.unique(region[keep])).index(5)])
+
+
+def test_refine_starts_from_the_design_and_says_both_ends(plate_experiment, tmp_path, capsys):
+    """`vdo design --refine` (README's command table): `vdo optimize` runs from the designed layout
+    into out/refine; its 'before' is the design's own judgement (summary.json's worst scored
+    region), and the console line gives both ends with the constraint violations of each, as
+    design.json, refine/summary_*.json and refine/constraints.json hold them."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment, n=2)
+    exp.path.write_text(exp.path.read_text() + "\n[render]\nambient_radiance = 20\n"
+                        "[optimize]\nstarts = 1\nrounds = 1\nmax_steps = 5\n")
+    out = tmp_path / "out"
+    assert main(["design", str(exp.path), "--out", str(out), "--refine"]) == 0
+    line = [s for s in capsys.readouterr().out.splitlines() if s.startswith("refined:")]
+    design = json.loads((out / "design.json").read_text())
+    refined = json.loads((out / "refine" / "constraints.json").read_text())
+
+    def worst(summary):
+        return max(r["sigma_max_um"]["p95"] for r in json.loads(summary.read_text())["regions"].values())
+
+    before, after = worst(out / "refine" / "summary_before.json"), worst(out / "refine" / "summary_after.json")
+    assert before == pytest.approx(worst(out / "summary.json"), rel=SUM_ORDER_RTOL)
+    assert line == [f"refined: sigma_max p95 of the worst scored region {before:.3f} um "
+                    f"({design['constraint_violations']} constraint violation(s)) -> {after:.3f} um "
+                    f"({refined['violations']})"]
+    assert config.load(out / "refine" / "optimized.toml").camera_specs

@@ -326,8 +326,9 @@ def _design(exp, args) -> None:
             print(f"smallest count meeting the target: {result.target_count}")
         if result.refined is not None:
             before, after = (("unmeasured" if v is None else f"{v:.3f} um") for v in result.refined.worst_p95_um)
-            print(f"refined: sigma_max p95 of the worst scored region {before} -> {after}, "
-                  f"{result.refined.violations} constraint violation(s)")
+            print(f"refined: sigma_max p95 of the worst scored region {before} "
+                  f"({result.violations} constraint violation(s)) -> {after} "
+                  f"({result.refined.violations})")
         print(f"wrote {Path(args.out).resolve()} ({result.wall_s:.0f} s)")
 
 
