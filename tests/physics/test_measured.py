@@ -174,7 +174,7 @@ def test_scatter_model_holds_at_coarse_bilinear_texels(case, seeds):
 
 def test_the_factor_is_kept_on_disk_for_later_processes(tmp_path, monkeypatch):
     # A later process (the in-memory cache emptied) reads the stored factor instead of computing
-    # it: with the tile's FFT broken, the call still returns the same numbers. Another
+    # it: with the tile's FFT (scipy's) broken, the call still returns the same numbers. Another
     # FACTOR_VERSION is another key. An interrupted write leaves no file behind.
     from vdo.model import realized_scatter
     monkeypatch.setenv("VDO_CACHE_DIR", str(tmp_path))
@@ -183,7 +183,7 @@ def test_the_factor_is_kept_on_disk_for_later_processes(tmp_path, monkeypatch):
     assert len(list((tmp_path / "scatter-factors").glob("*.npz"))) == 1
     realized_scatter._CUMULANT_CACHE.clear()
     with monkeypatch.context() as m:
-        m.setattr(np.fft, "fft2", None)
+        m.setattr(realized_scatter.scipy.fft, "fft2", None)
         again = realized_scatter.cumulant_factor(dots, 0.25, 0.5)
         np.testing.assert_array_equal(again.kappa, first.kappa)
         np.testing.assert_array_equal(again.gaussian, first.gaussian)
