@@ -27,8 +27,12 @@ def camera_at(position, target, focal_mm=25.0):
                   position=np.asarray(position, float), pan=pan, tilt=tilt, roll=0.0)
 
 
-@pytest.mark.parametrize("on_tripod", [False, True])
-def test_hidden_lines_match_the_meshes(on_tripod):
+@pytest.mark.parametrize("on_tripod, chunk", [(False, None), (True, None), (True, 97)])
+def test_hidden_lines_match_the_meshes(on_tripod, chunk, monkeypatch):
+    """`chunk`: LINES_CHUNK small enough that the 4,000 lines are tested in 42 chunks, the last
+    one partial."""
+    if chunk is not None:
+        monkeypatch.setattr(obstacles, "LINES_CHUNK", chunk)
     cam = camera_at([0.3, -1.2, 1.3], [0.0, 0.0, 0.9])
     spec = TripodSpec() if on_tripod else None
     meshes = [camera_body(cam)] + (tripod(cam, spec) if on_tripod else [])

@@ -79,13 +79,26 @@ def segment_distance(a0: np.ndarray, a1: np.ndarray, b0: np.ndarray, b1: np.ndar
     return np.linalg.norm(a0 + s[..., None] * d1 - b0 - t[..., None] * d2, axis=-1)
 
 
+LINES_CHUNK = 1 << 16    # sight lines tested at once: the distance arrays of a chunk (lines x
+#                          spheres or capsules x 3 float64) stay tens of MB, whatever the count
+
+
 def hidden(starts: np.ndarray, ends: np.ndarray, hw: Hardware) -> np.ndarray:
-    """(M,) True where the sight line starts -> ends (M, 3) passes through the hardware `hw`."""
+    """(M,) True where the sight line starts -> ends (M, 3) passes through the hardware `hw`,
+    LINES_CHUNK lines at a time (a design's feasibility tests every stored sight line: millions)."""
     starts, ends = np.asarray(starts, float), np.asarray(ends, float)
     out = np.zeros(len(starts), dtype=bool)
-    near = np.flatnonzero(point_segment_distance(hw.bound_centre, starts, ends) < hw.bound_radius)
-    if near.size == 0:
-        return out
+    for lo in range(0, len(starts), LINES_CHUNK):
+        a, b = starts[lo:lo + LINES_CHUNK], ends[lo:lo + LINES_CHUNK]
+        near = np.flatnonzero(point_segment_distance(hw.bound_centre, a, b) < hw.bound_radius)
+        if near.size == 0:
+            continue
+        s, e = a[near, None], b[near, None]
+        hit = (point_segment_distance(hw.centres[None], s, e) < hw.radii[None]).any(axis=1)
+        if len(hw.widths):
+            hit |= (segment_distance(s, e, hw.tops[None], hw.bottoms[None]) < hw.widths[None]).any(axis=1)
+        out[lo + near] = hit
+    return out
     s, e = starts[near, None], ends[near, None]
     hit = (point_segment_distance(hw.centres[None], s, e) < hw.radii[None]).any(axis=1)
     if len(hw.widths):
