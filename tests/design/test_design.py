@@ -492,6 +492,34 @@ def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fit
     refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
 
 
+def test_the_estimate_judges_one_block_of_the_size_the_judging_uses(plate_experiment, monkeypatch):
+    """Judging a block (ray casts, Dr.Jit's and JAX's arrays) takes memory that grows with the
+    block, so the estimate's peak is measured after judging one block as large as the judging's:
+    blocks of 3 candidates here (of 9), the probe PROBE_WARM = 1 candidate then 3."""
+    from vdo.design import budget, candidates
+
+    exp = _experiment(plate_experiment)
+    geometry = prepare(exp)
+    j = judging(exp, geometry)
+    monkeypatch.setattr(candidates, "PAIRS_PER_BLOCK", 3 * len(geometry.samples))
+    monkeypatch.setattr(budget, "PROBE", 2)
+    monkeypatch.setattr(budget, "PROBE_WARM", 1)
+    sizes = {"estimate": [], "judge": []}
+    real = candidates.judge_block
+
+    def recorded(where):
+        def block(jj, start, stop):
+            sizes[where].append(stop - start)
+            return real(jj, start, stop)
+        return block
+
+    monkeypatch.setattr(budget, "judge_block", recorded("estimate"))
+    est = estimate(exp, j, Scorer(exp, geometry.samples))
+    monkeypatch.setattr(candidates, "judge_block", recorded("judge"))
+    judge(exp, geometry, j)
+    assert sizes == {"estimate": [1, 3], "judge": [3, 3, 3]} and est.probed == 4
+
+
 def test_design_refused_on_the_command_line_in_one_line(plate_experiment, tmp_path, capsys):
     """`vdo design --memory-gb` below the estimate: exit 2, one line naming the file and the
     field, no traceback, no output folder."""

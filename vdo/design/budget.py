@@ -1,11 +1,13 @@
 """What a design will take, estimated before the work (`estimate`), and its refusal when that
-does not fit (`refuse`). PROBE candidates, evenly spread over the list, are judged
-(`vdo.design.candidates.judge_block`) and the score (`vdo.design.score.Scorer.add`) is timed on
-their stored pairs; both scale to all K candidates:
+does not fit (`refuse`). Candidates evenly spread over the list are judged
+(`vdo.design.candidates.judge_block`): PROBE_WARM first, then one block of the size the judging
+uses (`vdo.design.candidates.block_size`; at least PROBE in all), so that the process's peak
+memory after it holds what judging a block takes (ray casts, Dr.Jit's and JAX's arrays, the
+programs compiled), measured, not assumed. The score (`vdo.design.score.Scorer.add`) is timed
+on their stored pairs; both scale to all K candidates:
 
     entries E = (pairs stored per probed candidate) x K,
-    memory = peak so far + one block's working arrays (PAIR_BYTES per pair)
-             + K CAMERA_BYTES + STORE_COPIES E ENTRY_BYTES  (bytes),
+    memory = peak after the probe's block + K CAMERA_BYTES + STORE_COPIES E ENTRY_BYTES  (bytes),
     judging = (probe s per candidate) x K,  search = (score s per stored pair) x E x score passes,
 
 the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes and
@@ -34,12 +36,10 @@ from vdo.design.score import ENTRY_CHUNK, Scorer
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 
-PROBE = 64                   # candidates judged, evenly spread, to estimate the whole judgement
+PROBE = 64                   # candidates judged at least, evenly spread, to estimate the whole judgement
 PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
 ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
 STORE_COPIES = 2             # the blocks' pairs and their concatenation coexist once, at the end of judging
-PAIR_BYTES = 64              # working bytes per (candidate, sample) pair of a block: the ray casts'
-#                              flags (whole scene, specimen alone, keyframes) and their float copies
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
 POLISH_PASSES = 1            # polish passes assumed per count: the one that confirms
@@ -50,8 +50,8 @@ GB = 1e9
 class Estimate:
     """What judging and selecting will take, estimated before the work (`estimate`): candidates
     K, samples N, candidates probed P, stored pairs E (the probe's mean per candidate x K), peak
-    memory (bytes: the process so far, the stored pairs STORE_COPIES times, one block's working
-    arrays, the candidates' cameras), judging time (the probe's time per candidate x K) and search
+    memory (bytes: the process's peak after judging the probe's full-size block, the stored pairs
+    STORE_COPIES times, the candidates' cameras), judging time (the probe's time per candidate x K) and search
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
     greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
     cameras), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
@@ -106,10 +106,12 @@ def counts(exp: Experiment) -> range:
 
 
 def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
-    """Judge PROBE candidates evenly spread over `j`'s list and time the score on their pairs;
-    scale to all candidates (the `Estimate` fields)."""
+    """Judge PROBE_WARM candidates, then one block of `block_size` (at least PROBE in all), evenly
+    spread over `j`'s list, and time the score on their pairs; scale to all candidates (the
+    `Estimate` fields). The probe costs at most one block's judging more than the design."""
     K, N = len(j.cams), len(j.geometry.samples)
-    pick = np.unique(np.linspace(0, K - 1, min(K, PROBE)).astype(int)) if K else np.zeros(0, int)
+    probed = min(K, max(PROBE, PROBE_WARM + block_size(N)))
+    pick = np.unique(np.linspace(0, K - 1, probed).astype(int)) if K else np.zeros(0, int)
     probe = replace(j, cams=tuple(j.cams[i] for i in pick), mount=tuple(j.mount[i] for i in pick),
                     kind=tuple(j.kind[i] for i in pick), u=j.u[pick], heads=j.heads[pick],
                     body=j.body[pick], target=j.target[pick])
@@ -138,7 +140,7 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
         scorer.add(*zero, sample, rows)
         chunks = math.ceil(sample.index.size / ENTRY_CHUNK)    # a chunk costs the same, full or padded
         search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
-    fixed = peak_rss() + block_size(N) * N * PAIR_BYTES + K * CAMERA_BYTES
+    fixed = peak_rss() + K * CAMERA_BYTES      # the peak holds the probe's full-size block
     memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
     return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
                     exp.design.bound_seconds * len(counts(exp)))
