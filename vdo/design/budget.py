@@ -7,7 +7,8 @@ programs compiled), measured, not assumed. The score (`vdo.design.score.Scorer.a
 on their stored pairs; both scale to all K candidates:
 
     entries E = (pairs stored per probed candidate) x K,
-    memory = peak after the probe's block + K CAMERA_BYTES + STORE_COPIES E ENTRY_BYTES  (bytes),
+    memory = peak after the probe's block + K CAMERA_BYTES
+             + E (STORE_COPIES ENTRY_BYTES + SELECT_BYTES)  (bytes),
     judging = (probe s per candidate) x K,  search = (score s per stored pair) x E x score passes,
 
 the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes and
@@ -40,6 +41,10 @@ PROBE = 64                   # candidates judged at least, evenly spread, to est
 PROBE_WARM = 8               # of them judged first, untimed: their block compiles the programs
 ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
 STORE_COPIES = 2             # the blocks' pairs and their concatenation coexist once, at the end of judging
+SELECT_BYTES = 104           # bytes per stored pair that the selection adds after judging: the feasibility
+#                              rule's sight lines and seen matrix, the entries' owners and usable flags, the
+#                              measurable samples' pairs, the bound's sums (measured on the scale benchmark's
+#                              7,176 candidates x 9,000 samples: 0.92 GB over 8.8 M stored pairs)
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
 POLISH_PASSES = 1            # polish passes assumed per count: the one that confirms
@@ -51,7 +56,8 @@ class Estimate:
     """What judging and selecting will take, estimated before the work (`estimate`): candidates
     K, samples N, candidates probed P, stored pairs E (the probe's mean per candidate x K), peak
     memory (bytes: the process's peak after judging the probe's full-size block, the stored pairs
-    STORE_COPIES times, the candidates' cameras), judging time (the probe's time per candidate x K) and search
+    STORE_COPIES times and the selection's SELECT_BYTES per pair, the candidates' cameras),
+    judging time (the probe's time per candidate x K) and search
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
     greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
     cameras), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
@@ -141,7 +147,7 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
         chunks = math.ceil(sample.index.size / ENTRY_CHUNK)    # a chunk costs the same, full or padded
         search_s = (time.perf_counter() - t0) / (chunks * ENTRY_CHUNK) * entries * score_passes(exp)
     fixed = peak_rss() + K * CAMERA_BYTES      # the peak holds the probe's full-size block
-    memory = fixed + STORE_COPIES * entries * ENTRY_BYTES
+    memory = fixed + entries * (STORE_COPIES * ENTRY_BYTES + SELECT_BYTES)
     return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
                     exp.design.bound_seconds * len(counts(exp)))
 
