@@ -99,9 +99,3 @@ def hidden(starts: np.ndarray, ends: np.ndarray, hw: Hardware) -> np.ndarray:
             hit |= (segment_distance(s, e, hw.tops[None], hw.bottoms[None]) < hw.widths[None]).any(axis=1)
         out[lo + near] = hit
     return out
-    s, e = starts[near, None], ends[near, None]
-    hit = (point_segment_distance(hw.centres[None], s, e) < hw.radii[None]).any(axis=1)
-    if len(hw.widths):
-        hit |= (segment_distance(s, e, hw.tops[None], hw.bottoms[None]) < hw.widths[None]).any(axis=1)
-    out[near] = hit
-    return out
