@@ -204,10 +204,53 @@ def test_obscuration_by_an_obstacle_matches_the_shadow_geometry(plate_experiment
         expected = float(np.clip(c.position[0] - 0.1, 0.0, 1.0))
         assert cand.masked[i, 0] == pytest.approx(expected, abs=0.05), c.position[0]
     feas = Feasibility(exp, cand)
-    assert np.array_equal(feas.alone, ~(cand.assigned[:, 0] & (cand.masked[:, 0] > 0.01)))
+    assert np.array_equal(feas.obstructed, cand.assigned[:, 0] & (cand.masked[:, 0] > 0.01))
+    assert np.array_equal(feas.alone, ~feas.obstructed & cand.framed)
     scorer = Scorer(exp, prepare(exp).samples)
     chosen, _, _ = exchange(cand, scorer, feas, greedy(cand, scorer, feas, 2)[0])
-    assert len(chosen) == 2 and all(cand.masked[i, 0] <= 0.01 for i in chosen)
+    assert len(chosen) == 2 and not any(cand.assigned[i, 0] and cand.masked[i, 0] > 0.01 for i in chosen)
+
+
+FRAME_GRID = 400        # plate points per side for the in-image fraction by direct projection
+FRAME_BORDER = 0.03    # |fraction - threshold| below this: the 10 mm samples may fall either way
+
+
+def test_a_candidate_frames_every_region_it_sees_over_half_of(plate_experiment):
+    """`Candidates.framed` against the pinhole projection of a dense grid on the plate (1 m x 1 m
+    at z = 0, every point facing every candidate above it): f the fraction of the plate whose
+    projection u = f_px x_c / z_c + c_x (and v) lies in [-0.5, W - 0.5] x [-0.5, H - 0.5]; a
+    candidate seeing the plate over f >= assign_fraction must hold 1 - max_obscuration of it in
+    its image, so framed = not (0.5 <= f < 0.99) (8 mm lenses frame all of it, 24 mm ones part).
+    Candidates within FRAME_BORDER of either threshold (but the whole plate, f = 1) are not
+    judged (the 10 mm samples resolve the edge to about that); the rest must agree, both kinds
+    present. The field-of-view check of the designed layout holds."""
+    path = plate_experiment(spacing=10)
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="sample_spacing_mm = 10\nlenses_mm = [8, 24]")
+                    .replace("sample_spacing_mm = 50\n", ""))
+    exp = config.load(path)
+    cand = judge(exp, prepare(exp))
+    g = (np.arange(FRAME_GRID) + 0.5) / FRAME_GRID - 0.5
+    X = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((FRAME_GRID, FRAME_GRID))], -1).reshape(-1, 3)
+    claim, full = exp.optimize.assign_fraction, 1 - exp.optimize.max_obscuration
+    judged = []
+    for i, c in enumerate(cand.cameras):
+        p = (X - c.position) @ c.R.T
+        u = c.focal_px * p[:, 0] / p[:, 2] + (c.width - 1) / 2
+        v = c.focal_px * p[:, 1] / p[:, 2] + (c.height - 1) / 2
+        f = float(np.mean((p[:, 2] > 0) & (u >= -0.5) & (u <= c.width - 0.5) & (v >= -0.5)
+                          & (v <= c.height - 0.5)))
+        if abs(f - claim) < FRAME_BORDER or (f < 1 and abs(f - full) < FRAME_BORDER):
+            continue
+        judged.append(not (claim <= f < full))
+        assert bool(cand.framed[i]) == judged[-1], (c.position, f)
+    assert len(set(judged)) == 2, judged
+    out = path.parent / "designed"
+    design_run(exp, out)
+    checks = json.loads((out / "constraints.json").read_text())["checks"]
+    assert all(e["met"] for e in checks if e["constraint"] == "field_of_view")
+    dropped = json.loads((out / "design.json").read_text())["dropped_per_mount"]
+    unframed = sum(1 - bool(x) for x in cand.framed)
+    assert sum(n for reasons in dropped.values() for why, n in reasons.items() if "field of view" in why) == unframed > 0
 
 
 ZONE = """

@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vdo.design.candidates import Judging, block_size, collect, inventory, judge_block
+from vdo.design.candidates import Block, Judging, block_size, collect, inventory, judge_block
 from vdo.design.score import ENTRY_CHUNK, Scorer
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
@@ -126,14 +126,7 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
     t0 = time.perf_counter()
     rest = judge_block(probe, warm, len(pick)) if len(pick) > warm else None
     judge_s = (time.perf_counter() - t0) / max(len(pick) - warm, 1) * K if rest is not None else 0.0
-    block = first if rest is None else replace(
-        rest, start=0, counts=np.concatenate([first.counts, rest.counts]),
-        index=np.concatenate([first.index, rest.index]), info=np.concatenate([first.info, rest.info]),
-        weight=np.concatenate([first.weight, rest.weight]),
-        assigned=np.concatenate([first.assigned, rest.assigned]),
-        masked=np.concatenate([first.masked, rest.masked]),
-        path_lost=np.concatenate([first.path_lost, rest.path_lost]),
-        seen=np.concatenate([first.seen, rest.seen]))
+    block = first if rest is None else Block.join([first, rest])
     per = float(block.counts.sum()) / len(pick) if len(pick) else 0.0
     entries = int(round(per * K))
     search_s = 0.0

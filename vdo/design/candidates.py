@@ -101,8 +101,10 @@ class Candidates:
     [[camera]]'s own fixed position), kind (K,) "rail", "zone" or "fixed", u (K,) (rail; NaN
     otherwise), offset (K, 3) m from the rail point, body (K,) index into `bodies(exp)`, target
     (K,) index into `targets`; masked (K, R) the area fraction of each region's samples the
-    candidate would see but an obstacle hides (its obscuration); path_lost (K,) the fraction of
-    its usable samples at rest that the load path's keyframes take away; pruned: how many blind
+    candidate would see but an obstacle hides (its obscuration); framed (K,) whether every region
+    it sees over at least assign_fraction of its area (`vdo.constraints.assignments`) lies in its
+    image over at least 1 - max_obscuration of the area facing it (the field-of-view check of
+    `vdo.constraints.check`); path_lost (K,) the fraction of its usable samples at rest that the load path's keyframes take away; pruned: how many blind
     candidates (no sample in view at rest) were dropped."""
 
     cameras: tuple[Camera, ...]
@@ -120,6 +122,7 @@ class Candidates:
     entry_weight: np.ndarray
     assigned: np.ndarray
     masked: np.ndarray
+    framed: np.ndarray
     path_lost: np.ndarray
     pruned: int = 0
     dropped: dict = field(default_factory=dict)   # {mount: {reason: count}} of the poses left out
@@ -404,8 +407,9 @@ def judging(exp: Experiment, geometry: Geometry) -> Judging:
 class Block:
     """The judgement of candidates [start, stop) (`judge_block`): per candidate the number of
     stored entries (counts), the entries (sample index int32, info (E, 6), weight (E,) float32,
-    candidate by candidate, samples ascending), assigned and masked (B, R), path_lost (B,), and
-    seen (B,) whether it has any entry at rest (before the load path)."""
+    candidate by candidate, samples ascending), assigned and masked (B, R), framed (B,)
+    (`Candidates`), path_lost (B,), and seen (B,) whether it has any entry at rest (before the
+    load path)."""
 
     start: int
     counts: np.ndarray
@@ -414,8 +418,15 @@ class Block:
     weight: np.ndarray
     assigned: np.ndarray
     masked: np.ndarray
+    framed: np.ndarray
     path_lost: np.ndarray
     seen: np.ndarray
+
+    @staticmethod
+    def join(blocks: list["Block"]) -> "Block":
+        """One block of `blocks`' candidates, in their order (starting where the first does)."""
+        return Block(start=blocks[0].start, **{k.name: np.concatenate([getattr(b, k.name) for b in blocks])
+                                               for k in fields(Block) if k.name != "start"})
 
 
 def inflation(exp: Experiment, cams, samples, visible, light, speckle) -> np.ndarray | None:
@@ -468,11 +479,15 @@ def judge_block(j: Judging, start: int, stop: int) -> Block:
     region = samples.region[index]
     seen_area = np.bincount(cam * R + region, samples.area[index] * use, minlength=B * R).reshape(B, R)
     assigned = seen_area / np.maximum(area, TINY) >= exp.optimize.assign_fraction
-    masked = (j.region_area.T @ hidden.T.astype(float)).T / np.maximum(
-        (j.region_area.T @ bare.T.astype(float)).T, TINY)
+    per_region = lambda mask: (j.region_area.T @ mask.T.astype(float)).T     # noqa: E731  (B, R) m^2
+    masked = per_region(hidden) / np.maximum(per_region(bare), TINY)
+    facing = vis.in_front & vis.facing
+    claims = per_region(vis.visible) / np.maximum(area, TINY) >= exp.optimize.assign_fraction
+    inside = per_region(facing & vis.in_image) / np.maximum(per_region(facing), TINY)
+    framed = ~(claims & (inside < 1 - exp.optimize.max_obscuration)).any(axis=1)
     keep = (weight != 0) | (info != 0).any(axis=-1)
     return Block(start, np.bincount(cam[keep], minlength=B), index[keep].astype(np.int32), info[keep],
-                 weight[keep], assigned, masked, lost, seen)
+                 weight[keep], assigned, masked, framed, lost, seen)
 
 
 def _named_files(value, out: list) -> list:
@@ -553,8 +568,19 @@ def collect(j: Judging, blocks: list[Block]) -> Candidates:
         cat(lambda b: b.index, np.zeros(0, np.int32)), cat(lambda b: b.info, np.zeros((0, 6))),
         cat(lambda b: b.weight, np.zeros(0, np.float32)),
         cat(lambda b: b.assigned, np.zeros((0, R), bool))[keep],
-        cat(lambda b: b.masked, np.zeros((0, R)))[keep], cat(lambda b: b.path_lost, np.zeros(0))[keep],
-        pruned=int(len(seen) - len(keep)), dropped=j.dropped)
+        cat(lambda b: b.masked, np.zeros((0, R)))[keep], cat(lambda b: b.framed, np.zeros(0, bool))[keep],
+        cat(lambda b: b.path_lost, np.zeros(0))[keep],
+        pruned=int(len(seen) - len(keep)), dropped=_with_blind(j, seen))
+
+
+def _with_blind(j: Judging, seen: np.ndarray) -> dict:
+    """A copy of `j.dropped` ({mount: {reason: count}}) with the blind candidates (`seen` False)
+    counted per mount."""
+    out = {name: dict(reasons) for name, reasons in j.dropped.items()}
+    mounts = np.array([m or "fixed" for m in j.mount], dtype=object)[~seen]
+    for name, count in zip(*np.unique(mounts, return_counts=True)):
+        out.setdefault(str(name), {})["blind (no sample in view at rest)"] = int(count)
+    return out
 
 
 _WORKER: dict = {}   # a Dask worker's Judging, built at its first block of a design run

@@ -13,7 +13,10 @@ Feasible with the selected set:
 * clearance from the meshes (per candidate: `vdo.design.candidates`);
 * obscuration: no obstacle hides more than `[optimize] max_obscuration` of a region the
   candidate is assigned (the area fraction it would see on a scene of the specimen alone but not
-  on the whole scene: a second ray cast).
+  on the whole scene: a second ray cast);
+* field of view: a region the candidate sees over at least `[optimize] assign_fraction` of its
+  area lies in its image over at least 1 - max_obscuration of the area facing it (the check
+  `vdo.constraints.check` makes of the designed layout; `Candidates.framed`).
 """
 
 from __future__ import annotations
@@ -74,7 +77,8 @@ class Feasibility:
         self.positions, self.axes = cand.positions, cand.axes
         self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
                         if spec.max_axis_angle is not None]
-        self.alone = ~(cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
+        self.obstructed = (cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
+        self.alone = ~self.obstructed & cand.framed
         self.body = cand.body
         self.counts = np.array([b.count for b in bodies(exp)])
         self._rows: dict[int, np.ndarray] = {}
@@ -82,6 +86,18 @@ class Feasibility:
         self._tripods = {m.name: m.tripod for m in exp.mounts}     # rails stand on no tripod
         self._hardware: dict[int, obstacles.Hardware] = {}
         self._bounds = None   # every candidate's hardware bounding sphere: (centres (K, 3), radii (K,))
+
+    def left_out(self) -> dict:
+        """{mount: {reason: count}} of the candidates no selection may hold (`alone` False)."""
+        out: dict = {}
+        reasons = (("an assigned region obstructed beyond max_obscuration", self.obstructed),
+                   ("a region it sees partly outside its image (field of view)",
+                    ~self.cand.framed & ~self.obstructed))
+        mounts = np.array([m or "fixed" for m in self.cand.mount], dtype=object)
+        for reason, mask in reasons:
+            for name, count in zip(*np.unique(mounts[mask], return_counts=True)):
+                out.setdefault(str(name), {})[reason] = int(count)
+        return out
 
     def row(self, j: int) -> np.ndarray:
         """(K,) True where a candidate conflicts with candidate j."""

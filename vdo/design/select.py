@@ -436,6 +436,10 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
             "a [[mount]] or [[rail]] in view of the regions") if cand.pruned else (
             "no candidate pose keeps its clearance: add a [[mount]] or [[rail]] clear of the meshes"))
     feas = Feasibility(exp, cand, coarse.samples)
+    for name, reasons in feas.left_out().items():
+        for reason, count in reasons.items():
+            cand.dropped.setdefault(name, {})[reason] = count
+            log.info("mount %s: %d candidate(s) left out: %s", name, count, reason)
     can_measure = measurable(exp, cand, coarse.samples)
     log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
              "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
