@@ -62,6 +62,8 @@ from typing import Callable
 import jax
 import numpy as np
 
+from vdo.design.candidates import ENTRY_CHUNK
+
 REL_TOL = 1e-3        # stop when (best value - bound) <= REL_TOL * bound
 MAX_ITER = 2000       # gradient steps at most per camera count
 BISECTIONS = 60       # bisection steps of the projection's multipliers (to 2^-60 of their range)
@@ -158,17 +160,27 @@ def linear_maps(info, weight):
     the stored entries, not K x N."""
     if weight is None:
         K, N = len(info.indptr) - 1, info.samples
-        owner = np.repeat(np.arange(K), np.diff(info.indptr))
-        idx, ei, ew = info.index, info.entry_info, info.entry_weight.astype(float)
+        owner, idx, ei, ew = info.row, info.index, info.entry_info, info.entry_weight
+        chunks = [slice(lo, lo + ENTRY_CHUNK) for lo in range(0, len(idx), ENTRY_CHUNK)]
 
         def summed(w):
-            we = np.asarray(w, float)[owner]
-            C = np.stack([np.bincount(idx, we * ei[:, c], minlength=N) for c in range(6)], axis=1)
-            return C, np.bincount(idx, we * ew, minlength=N)
+            w = np.asarray(w, float)
+            C, c = np.zeros((N, 6)), np.zeros(N)
+            for part in chunks:          # ENTRY_CHUNK entries at a time
+                we, i = w[owner[part]], idx[part]
+                for col in range(6):
+                    C[:, col] += np.bincount(i, we * ei[part, col], minlength=N)
+                c += np.bincount(i, we * ew[part], minlength=N)
+            return C, c
 
         def pullback(gC, gc):
             gC, gc = np.asarray(gC), np.asarray(gc)
-            return np.bincount(owner, (ei * gC[idx]).sum(1) + ew * gc[idx], minlength=K)
+            out = np.zeros(K)
+            for part in chunks:
+                i = idx[part]
+                out += np.bincount(owner[part], np.einsum("ec,ec->e", ei[part], gC[i]) + ew[part] * gc[i],
+                                   minlength=K)
+            return out
         return K, summed, pullback
     weight = np.asarray(weight, dtype=float)
 

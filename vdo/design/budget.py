@@ -32,8 +32,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from vdo.design.candidates import Block, Judging, block_size, collect, inventory, judge_block
-from vdo.design.score import ENTRY_CHUNK, Scorer
+from vdo.design.candidates import ENTRY_CHUNK, Block, Judging, block_size, collect, inventory, judge_block
+from vdo.design.score import Scorer
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
 

@@ -82,6 +82,8 @@ log = logging.getLogger(__name__)
 MERGE_TARGETS_M = 0.2   # region centres closer than this share one aim point
 SPOT_M = 0.2            # two optical centres closer than this are one physical spot
 PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
+ENTRY_CHUNK = 1 << 18        # stored entries per chunk of a pass over them (score, bound, tables):
+                             # a pass's per-entry temporaries live for one chunk, not for all pairs
 # [design] score = "measured": each candidate's footprint reduced to its singular values on 1/8-octave
 # steps (`vdo.physics.measured.noise_inflation`'s lattice): the built-in beam-column's 1,666
 # candidates meet 350 correlation models (6,642 on the optimizer's lattice), sqrt(kappa) within
@@ -135,10 +137,10 @@ class Candidates:
     def axes(self) -> np.ndarray:
         return np.array([c.optical_axis for c in self.cameras]).reshape(-1, 3)
 
-    @property
+    @cached_property
     def row(self) -> np.ndarray:
-        """(E,) the candidate of each stored entry."""
-        return np.repeat(np.arange(len(self.cameras)), np.diff(self.indptr))
+        """(E,) int32 the candidate of each stored entry, computed once."""
+        return np.repeat(np.arange(len(self.cameras), dtype=np.int32), np.diff(self.indptr))
 
     def information(self, rows) -> np.ndarray:
         """Dense (len(rows), N, 6) information of the candidates `rows` (zero where not stored)."""
@@ -191,6 +193,17 @@ class Candidates:
             s = slice(self.indptr[i], self.indptr[i + 1])
             count[self.index[s]] += self.usable_entries[s]
         return count
+
+    def regions_seen(self, region: np.ndarray, regions: int) -> np.ndarray:
+        """(K, regions) True where the candidate is a usable view of a sample of the region
+        (`region` (N,) each sample's), ENTRY_CHUNK entries at a time."""
+        K = len(self.cameras)
+        out = np.zeros(K * regions, dtype=bool)
+        for lo in range(0, len(self.index), ENTRY_CHUNK):
+            part = slice(lo, lo + ENTRY_CHUNK)
+            use = self.usable_entries[part]
+            out[self.row[part][use].astype(np.int64) * regions + region[self.index[part][use]]] = True
+        return out.reshape(K, regions)
 
     def usable_counts(self) -> np.ndarray:
         """(K,) how many samples each candidate sees usably (w >= USABLE_WEIGHT)."""
@@ -553,23 +566,34 @@ def block_size(samples: int) -> int:
 
 def collect(j: Judging, blocks: list[Block]) -> Candidates:
     """The `Candidates` of `j` from its blocks (in any order), blind candidates (no sample in view
-    at rest) dropped."""
-    blocks = sorted(blocks, key=lambda b: b.start)
+    at rest) dropped. The stored pairs are copied into their final arrays block by block and
+    each block is taken out of `blocks` as it is copied (the list is emptied), so that the pairs
+    are held about once, not twice (a block's and the whole)."""
+    blocks.sort(key=lambda b: b.start)
     R = len(j.geometry.samples.region_names)
     cat = (lambda f, empty: np.concatenate([f(b) for b in blocks]) if blocks else empty)
     seen = cat(lambda b: b.seen, np.zeros(0, bool))
     counts = cat(lambda b: b.counts, np.zeros(0, int))
     keep = np.flatnonzero(seen)
     pick = lambda seq: tuple(seq[i] for i in keep)                        # noqa: E731
+    small = dict(assigned=cat(lambda b: b.assigned, np.zeros((0, R), bool))[keep],
+                 masked=cat(lambda b: b.masked, np.zeros((0, R)))[keep],
+                 framed=cat(lambda b: b.framed, np.zeros(0, bool))[keep],
+                 path_lost=cat(lambda b: b.path_lost, np.zeros(0))[keep])
+    total = int(counts.sum())                   # blind candidates have no entries
+    index, info, weight = np.empty(total, np.int32), np.empty((total, 6)), np.empty(total, np.float32)
+    at = 0
+    while blocks:
+        b = blocks.pop(0)
+        n = len(b.index)
+        index[at:at + n], info[at:at + n], weight[at:at + n] = b.index, b.info, b.weight
+        at += n
+        del b
     return Candidates(
         pick(j.cams), pick(j.mount), pick(j.kind), j.u[keep], j.heads[keep], j.body[keep],
         j.target[keep], j.aims, len(j.geometry.samples),
-        np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64),
-        cat(lambda b: b.index, np.zeros(0, np.int32)), cat(lambda b: b.info, np.zeros((0, 6))),
-        cat(lambda b: b.weight, np.zeros(0, np.float32)),
-        cat(lambda b: b.assigned, np.zeros((0, R), bool))[keep],
-        cat(lambda b: b.masked, np.zeros((0, R)))[keep], cat(lambda b: b.framed, np.zeros(0, bool))[keep],
-        cat(lambda b: b.path_lost, np.zeros(0))[keep],
+        np.concatenate([[0], np.cumsum(counts[keep])]).astype(np.int64), index, info, weight,
+        small["assigned"], small["masked"], small["framed"], small["path_lost"],
         pruned=int(len(seen) - len(keep)), dropped=_with_blind(j, seen))
 
 

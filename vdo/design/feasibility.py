@@ -66,10 +66,10 @@ class Feasibility:
         self._seen = self._region_area = self._alone = self._sight = None
         if samples is not None:       # (K, N) usable views; (N, R) sample areas; (K, R) area seen
             use = cand.usable_entries
-            # the usable entries as sight lines: candidate, sample, its area (`hides`)
-            self._sight = (cand.row[use], cand.index[use], samples.area[cand.index[use]])
-            self._seen = scipy.sparse.csr_matrix(
-                (np.ones(int(use.sum())), self._sight[:2]), shape=(len(cand.cameras), cand.samples))
+            # the usable entries as sight lines: candidate (int32), sample (`hides`); 8 bytes each
+            self._sight = (cand.row[use], cand.index[use])
+            self._seen = scipy.sparse.csr_matrix(           # float32 ones: 8 bytes per usable pair
+                (np.ones(int(use.sum()), np.float32), self._sight), shape=(len(cand.cameras), cand.samples))
             self._region_area = scipy.sparse.csr_matrix(
                 (samples.area, (np.arange(len(samples)), samples.region)),
                 shape=(len(samples), len(samples.region_names)))
@@ -129,17 +129,23 @@ class Feasibility:
         (class docstring)."""
         cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
         K, R = cand.assigned.shape
-        rows, index, area = self._sight
-        # j's hardware in front of every other candidate's lines of sight
-        lost = obstacles.hidden(self.positions[rows], smp.points[index], self.hardware(j)) & (rows != j)
-        hidden = np.bincount(rows[lost] * R + smp.region[index[lost]], weights=area[lost],
-                             minlength=K * R).reshape(K, R)
+        rows, index = self._sight
+        # j's hardware in front of every other candidate's lines of sight, gathered a chunk at a
+        # time (the lines' end points are 48 bytes each: never all of them at once)
+        lost = np.zeros(len(rows), dtype=bool)
+        for lo in range(0, len(rows), obstacles.LINES_CHUNK):
+            part = slice(lo, lo + obstacles.LINES_CHUNK)
+            lost[part] = obstacles.hidden(self.positions[rows[part]], smp.points[index[part]], self.hardware(j))
+        lost &= rows != j
+        hidden = np.bincount(rows[lost].astype(np.int64) * R + smp.region[index[lost]],
+                             weights=smp.area[index[lost]], minlength=K * R).reshape(K, R)
         frac = hidden / np.maximum(self._alone, TINY)
         out = (cand.assigned & (frac > limit)).any(axis=1)
         # every other candidate's hardware in front of j's lines of sight
         mine = rows == j
         lines = (self.positions[j], smp.points[index[mine]])
-        seen = np.bincount(smp.region[index[mine]], weights=area[mine], minlength=R)
+        area = smp.area[index[mine]]
+        seen = np.bincount(smp.region[index[mine]], weights=area, minlength=R)
         mine_assigned = cand.assigned[j]
         if self._bounds is None:
             every = [self.hardware(k) for k in range(K)]
@@ -154,7 +160,7 @@ class Feasibility:
                 continue
             lost = obstacles.hidden(np.broadcast_to(lines[0], lines[1].shape), lines[1], self.hardware(k))
             if lost.any():
-                part = np.bincount(smp.region[index[mine]][lost], weights=area[mine][lost], minlength=R)
+                part = np.bincount(smp.region[index[mine]][lost], weights=area[lost], minlength=R)
                 out[k] = bool((mine_assigned & (part > limit * np.maximum(seen, TINY))).any())
         return out
 

@@ -54,11 +54,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo import objective
-from vdo.design.candidates import Candidates
+from vdo.design.candidates import ENTRY_CHUNK, Candidates
 from vdo.config.experiment import Experiment
 from vdo.physics.predict import settings
 
-ENTRY_CHUNK = 1 << 18        # stored entries per chunk of the score's sigma
 TARGET_BEND = 1.0             # ln(sigma / target) where the target's term turns from square to linear
 SHORT_SMOOTH = 0.5           # views: the coverage penalty is quadratic below this deficit, linear above (`views_short`)
 

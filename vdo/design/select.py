@@ -260,10 +260,14 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
     if not len(cand.cameras):
         return np.zeros(len(samples), dtype=bool)
     spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
-    owner = np.repeat(np.arange(len(cand.cameras)), np.diff(cand.indptr))
-    use = cand.usable_entries
-    pairs = np.unique(spot[owner[use]].astype(np.int64) * len(samples) + cand.index[use])
-    return np.bincount(pairs % len(samples), minlength=len(samples)) >= need
+    use, views = cand.usable_entries, np.zeros(len(samples), dtype=int)
+    for rows in np.split(np.argsort(spot, kind="stable"), np.flatnonzero(np.diff(np.sort(spot))) + 1):
+        seen = np.zeros(len(samples), dtype=bool)      # one spot at a time: no per-entry arrays
+        for k in rows:
+            e = slice(cand.indptr[k], cand.indptr[k + 1])
+            seen[cand.index[e][use[e]]] = True
+        views += seen
+    return views >= need
 
 
 def sigma_key(exp: Experiment) -> str:
@@ -325,8 +329,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
     keyframes); fewer candidate spots (optical centres SPOT_M apart) seeing it than its
     min_cameras."""
     out, n = [], inventory(exp)
-    use = cand.usable_entries
-    owner, region = cand.row[use], samples.region[cand.index[use]]
+    seen = cand.regions_seen(samples.region, len(exp.regions))
     where = "[design] max_cameras" if exp.design.max_cameras else \
         ("the [[body]] counts" if exp.bodies else "the [[camera]] count")
     for r, spec in enumerate(exp.regions):
@@ -334,7 +337,7 @@ def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
         if need > n:
             out.append(f"region {spec.name!r} needs {need} cameras (min_cameras) but the inventory "
                        f"has {n} ({where}): add {need - n} camera bod{'y' if need - n == 1 else 'ies'}")
-        seeing = np.unique(owner[region == r])
+        seeing = np.flatnonzero(seen[:, r])
         if seeing.size == 0:
             moving = " over the load path's keyframes" if np.any(cand.path_lost > 0) else ""
             out.append(f"region {spec.name!r}: no candidate pose sees it{moving}: add a mount "
