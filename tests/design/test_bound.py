@@ -212,19 +212,37 @@ def test_a_bound_for_more_cameras_bounds_fewer(plate):
     assert three.value <= min(scorer.of(cand, p) for p in pairs)
 
 
-def test_sparse_and_dense_candidates_give_one_relaxation(plate):
+def test_sparse_and_dense_candidates_give_one_relaxation(plate, monkeypatch):
     """The relaxation's linear map on the stored entries (`linear_maps` of the sparse
-    `Candidates`) and its adjoint equal those on the dense (K, N, 6) arrays, and so does the
-    bound."""
+    `Candidates`, in chunks of 37 entries, and over a vertex's few candidates alone) and its
+    adjoint equal those on the dense (K, N, 6) arrays, and so does the bound."""
     exp, geometry, cand, scorer, feas = plate
+    monkeypatch.setattr(bound, "ENTRY_CHUNK", 37)
     K, summed, pullback = bound.linear_maps(cand, None)
     Kd, summed_d, pullback_d = bound.linear_maps(cand.info, cand.weight)
     rng = np.random.default_rng(0)
-    w = rng.random(K)
-    for a, b in zip(summed(w), summed_d(w)):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+    vertex = np.zeros(K)
+    vertex[[0, K // 2]] = [1.0, 0.5]
+    assert 2 * bound.SPARSE_ROWS < K
+    for w in (rng.random(K), vertex):
+        for a, b in zip(summed(w), summed_d(w)):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     gC, gc = rng.normal(size=(cand.samples, 6)), rng.normal(size=cand.samples)
     np.testing.assert_allclose(pullback(gC, gc), pullback_d(gC, gc), rtol=1e-9)
     sparse = bound.relaxation(scorer.value, cand, None, 2, feas.alone, feas.body, feas.counts)
     dense = bound.relaxation(scorer.value, cand.info, cand.weight, 2, feas.alone, feas.body, feas.counts)
     assert sparse.value == pytest.approx(dense.value, rel=1e-9)
+
+
+def test_the_time_limit_holds_inside_the_backtracking(plate, monkeypatch):
+    """A clock that advances one second at each reading and a 2.5 s limit: the relaxation stops
+    after at most three projections (each backtracking try is a pass over every stored entry, so
+    the limit is read between tries, not only between steps), and the bound it returns still
+    bounds the best selection it found."""
+    exp, geometry, cand, scorer, feas = plate
+    clock, projected = iter(range(10 ** 6)), []
+    project = bound.project
+    monkeypatch.setattr(bound.time, "perf_counter", lambda: float(next(clock)))
+    monkeypatch.setattr(bound, "project", lambda *a: projected.append(1) or project(*a))
+    b = bound.relaxation(scorer.value, cand, None, 2, feas.alone, feas.body, feas.counts, time_limit=2.5)
+    assert len(projected) <= 3 and b.value <= b.relaxed

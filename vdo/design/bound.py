@@ -70,6 +70,7 @@ BISECTIONS = 60       # bisection steps of the projection's multipliers (to 2^-6
 ROUNDING = 1e-12      # relative rounding allowed in the backtracking test of the score
 DOUBLINGS = 60        # backtracking doublings of the Lipschitz estimate at most per step
 SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (backtracking doubles it)
+SPARSE_ROWS = 8       # sums over the weighted candidates' own entries when fewer than 1 / this of all
 
 
 @dataclass(frozen=True)
@@ -166,6 +167,13 @@ def linear_maps(info, weight):
         def summed(w):
             w = np.asarray(w, float)
             C, c = np.zeros((N, 6)), np.zeros(N)
+            rows = np.flatnonzero(w)
+            if len(rows) * SPARSE_ROWS < K:   # few candidates weighted (a vertex): their entries only
+                for k in rows:
+                    e = slice(info.indptr[k], info.indptr[k + 1])
+                    C[idx[e]] += w[k] * ei[e]
+                    c[idx[e]] += w[k] * ew[e]
+                return C, c
             for part in chunks:          # ENTRY_CHUNK entries at a time
                 we, i = w[owner[part]], idx[part]
                 for col in range(6):
@@ -231,6 +239,10 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
             if fn <= fy + float(g @ d) + 0.5 * lipschitz * float(d @ d) + ROUNDING * abs(fy):
                 break
             lipschitz *= 2.0
+            if time.perf_counter() - t0 > time_limit:   # each try is a pass over every entry
+                break
+        if time.perf_counter() - t0 > time_limit:      # the bound found so far stands
+            break
         if fn > fx:   # restart the momentum from the last accepted iterate
             y, t = x.copy(), 1.0
             continue

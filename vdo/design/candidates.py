@@ -47,6 +47,7 @@ import hashlib
 import json
 import logging
 import math
+import mmap
 import os
 import uuid
 from functools import cached_property
@@ -499,8 +500,19 @@ def judge_block(j: Judging, start: int, stop: int) -> Block:
     inside = per_region(facing & vis.in_image) / np.maximum(per_region(facing), TINY)
     framed = ~(claims & (inside < 1 - exp.optimize.max_obscuration)).any(axis=1)
     keep = (weight != 0) | (info != 0).any(axis=-1)
-    return Block(start, np.bincount(cam[keep], minlength=B), index[keep].astype(np.int32), info[keep],
-                 weight[keep], assigned, masked, framed, lost, seen)
+    return Block(start, np.bincount(cam[keep], minlength=B), _unheaped(index[keep].astype(np.int32)),
+                 _unheaped(info[keep]), _unheaped(weight[keep]), assigned, masked, framed, lost, seen)
+
+
+def _unheaped(a: np.ndarray) -> np.ndarray:
+    """`a` copied into an anonymous memory map of its own: when it is freed its pages go back to
+    the system at once, where the process heap keeps freed memory (`vdo.core.memory`), so that
+    `collect` holds each stored pair about once (a block's copy is unmapped as the whole grows)."""
+    if a.nbytes == 0:
+        return a
+    out = np.frombuffer(mmap.mmap(-1, a.nbytes), dtype=a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
 
 
 def _named_files(value, out: list) -> list:

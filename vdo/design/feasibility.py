@@ -68,8 +68,12 @@ class Feasibility:
             use = cand.usable_entries
             # the usable entries as sight lines: candidate (int32), sample (`hides`); 8 bytes each
             self._sight = (cand.row[use], cand.index[use])
-            self._seen = scipy.sparse.csr_matrix(           # float32 ones: 8 bytes per usable pair
-                (np.ones(int(use.sum()), np.float32), self._sight), shape=(len(cand.cameras), cand.samples))
+            # the entries are candidate by candidate, samples ascending: CSR as they lie (float32
+            # ones and the int32 samples, 8 bytes per usable pair, no COO copies)
+            per = np.bincount(self._sight[0], minlength=len(cand.cameras))
+            self._seen = scipy.sparse.csr_matrix(
+                (np.ones(len(per) and int(per.sum()), np.float32), self._sight[1],
+                 np.concatenate([[0], np.cumsum(per)])), shape=(len(cand.cameras), cand.samples))
             self._region_area = scipy.sparse.csr_matrix(
                 (samples.area, (np.arange(len(samples)), samples.region)),
                 shape=(len(samples), len(samples.region_names)))
