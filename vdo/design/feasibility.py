@@ -32,6 +32,7 @@ from vdo.core.tolerances import LIMIT_SLACK, TINY
 
 ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
 HARDWARE_CHUNK = 256          # candidates' hardware bounds tested against one camera's lines at once
+CONE_CHUNK = 1024             # candidates whose sight lines are gathered at once for their cones
 
 
 def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
@@ -78,6 +79,8 @@ class Feasibility:
                 (samples.area, (np.arange(len(samples)), samples.region)),
                 shape=(len(samples), len(samples.region_names)))
             self._alone = (self._seen @ self._region_area).toarray()
+            self._starts = self._seen.indptr           # (K + 1,) each candidate's sight lines
+            self._cones = self._sight_cones(samples)
         self.positions, self.axes = cand.positions, cand.axes
         self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
                         if spec.max_axis_angle is not None]
@@ -127,6 +130,32 @@ class Feasibility:
             self._hardware[k] = obstacles.hardware(self.cand.cameras[k], self._tripods.get(self.cand.mount[k]))
         return self._hardware[k]
 
+    def _sight_cones(self, samples) -> tuple[np.ndarray, np.ndarray]:
+        """(centres (K, 3), radii (K,)) m: the box around each candidate's usable samples as a
+        ball (its centre and half-diagonal; a candidate with none: its own position, radius 0).
+        Every sight line of candidate k lies within radius_k of the segment from its optical
+        centre to centre_k (a line's point p + t (x - p), x = c + u with |u| <= r, is t |u| <= r
+        from p + t (c - p)): the capsule that `hides` tests a hardware's bounding sphere against
+        before any of the lines."""
+        K, index, starts = len(self.cand.cameras), self._sight[1], self._starts
+        centres, radii = self.cand.positions.copy(), np.zeros(K)
+        for lo in range(0, K, CONE_CHUNK):                # CONE_CHUNK candidates' lines at a time
+            hi = min(lo + CONE_CHUNK, K)
+            has = np.flatnonzero(starts[lo + 1:hi + 1] > starts[lo:hi]) + lo
+            if not len(has):
+                continue
+            pts = samples.points[index[starts[lo]:starts[hi]]]
+            at = starts[has] - starts[lo]                 # increasing: one segment per candidate
+            low, high = np.minimum.reduceat(pts, at), np.maximum.reduceat(pts, at)
+            centres[has], radii[has] = (low + high) / 2, np.linalg.norm(high - low, axis=1) / 2
+        return centres, radii
+
+    def _lines_of(self, ks: np.ndarray) -> np.ndarray:
+        """Positions in `_sight` of the sight lines of candidates `ks`."""
+        a, b = self._starts[ks], self._starts[ks + 1]
+        n = b - a
+        return np.repeat(a - np.concatenate([[0], np.cumsum(n)[:-1]]), n) + np.arange(int(n.sum()))
+
     def hides(self, j: int) -> np.ndarray:
         """(K,) True where candidate j's hardware hides more than max_obscuration of an assigned
         region's usable area from a candidate, or that candidate's hardware hides as much from j
@@ -134,37 +163,45 @@ class Feasibility:
         cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
         K, R = cand.assigned.shape
         rows, index = self._sight
-        # j's hardware in front of every other candidate's lines of sight, gathered a chunk at a
-        # time (the lines' end points are 48 bytes each: never all of them at once)
-        lost = np.zeros(len(rows), dtype=bool)
-        for lo in range(0, len(rows), obstacles.LINES_CHUNK):
-            part = slice(lo, lo + obstacles.LINES_CHUNK)
-            lost[part] = obstacles.hidden(self.positions[rows[part]], smp.points[index[part]], self.hardware(j))
-        lost &= rows != j
-        hidden = np.bincount(rows[lost].astype(np.int64) * R + smp.region[index[lost]],
-                             weights=smp.area[index[lost]], minlength=K * R).reshape(K, R)
+        hw, (cone_c, cone_r) = self.hardware(j), self._cones
+        # j's hardware in front of the lines of sight of the candidates whose sight capsule
+        # (`_sight_cones`) its bounding sphere reaches, gathered a chunk at a time (the lines' end
+        # points are 48 bytes each: never all of them at once)
+        reach = obstacles.point_segment_distance(hw.bound_centre, self.positions, cone_c) < hw.bound_radius + cone_r
+        reach[j] = False
+        at = self._lines_of(np.flatnonzero(reach))
+        lost = np.zeros(len(at), dtype=bool)
+        for lo in range(0, len(at), obstacles.LINES_CHUNK):
+            part = at[lo:lo + obstacles.LINES_CHUNK]
+            lost[lo:lo + len(part)] = obstacles.hidden(self.positions[rows[part]], smp.points[index[part]], hw)
+        at = at[lost]
+        hidden = np.bincount(rows[at].astype(np.int64) * R + smp.region[index[at]],
+                             weights=smp.area[index[at]], minlength=K * R).reshape(K, R)
         frac = hidden / np.maximum(self._alone, TINY)
         out = (cand.assigned & (frac > limit)).any(axis=1)
         # every other candidate's hardware in front of j's lines of sight
-        mine = rows == j
-        lines = (self.positions[j], smp.points[index[mine]])
-        area = smp.area[index[mine]]
-        seen = np.bincount(smp.region[index[mine]], weights=area, minlength=R)
+        mine = index[self._starts[j]:self._starts[j + 1]]       # the samples j sees usably
+        lines = (self.positions[j], smp.points[mine])
+        area = smp.area[mine]
+        seen = np.bincount(smp.region[mine], weights=area, minlength=R)
         mine_assigned = cand.assigned[j]
         if self._bounds is None:
             every = [self.hardware(k) for k in range(K)]
             self._bounds = (np.array([h.bound_centre for h in every]), np.array([h.bound_radius for h in every]))
         near = np.zeros(K, dtype=bool)
-        for lo in range(0, K, HARDWARE_CHUNK):   # (chunk, lines) distances from each bounding centre
-            centre, radius = (b[lo:lo + HARDWARE_CHUNK] for b in self._bounds)
-            d = obstacles.point_segment_distance(centre[:, None], lines[0], lines[1][None])
-            near[lo:lo + HARDWARE_CHUNK] = (d < radius[:, None]).any(axis=1) if d.size else False
+        centres, radii = self._bounds            # only the hardware that reaches j's sight capsule
+        close = np.flatnonzero(obstacles.point_segment_distance(centres, self.positions[j], cone_c[j])
+                               < radii + cone_r[j])
+        for lo in range(0, len(close), HARDWARE_CHUNK):   # (chunk, lines) distances from each centre
+            ks = close[lo:lo + HARDWARE_CHUNK]
+            d = obstacles.point_segment_distance(centres[ks][:, None], lines[0], lines[1][None])
+            near[ks] = (d < radii[ks][:, None]).any(axis=1) if d.size else False
         for k in np.flatnonzero(near & ~out):
             if k == j:
                 continue
             lost = obstacles.hidden(np.broadcast_to(lines[0], lines[1].shape), lines[1], self.hardware(k))
             if lost.any():
-                part = np.bincount(smp.region[index[mine]][lost], weights=area[lost], minlength=R)
+                part = np.bincount(smp.region[mine][lost], weights=area[lost], minlength=R)
                 out[k] = bool((mine_assigned & (part > limit * np.maximum(seen, TINY))).any())
         return out
 
