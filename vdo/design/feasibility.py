@@ -119,8 +119,8 @@ class Feasibility:
                 conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
             for r, top in self.limited:
                 conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
-            if self._samples is not None:
-                conflict |= self.hides(j)
+            if self._samples is not None:     # the hardware rule only where nothing else conflicts
+                conflict |= self.hides(j, among=~conflict)
             self._rows[j] = conflict
         return self._rows[j]
 
@@ -156,10 +156,11 @@ class Feasibility:
         n = b - a
         return np.repeat(a - np.concatenate([[0], np.cumsum(n)[:-1]]), n) + np.arange(int(n.sum()))
 
-    def hides(self, j: int) -> np.ndarray:
+    def hides(self, j: int, among: np.ndarray | None = None) -> np.ndarray:
         """(K,) True where candidate j's hardware hides more than max_obscuration of an assigned
         region's usable area from a candidate, or that candidate's hardware hides as much from j
-        (class docstring)."""
+        (class docstring); with `among` (K,) bool, only those candidates are judged (the others
+        False)."""
         cand, smp, limit = self.cand, self._samples, self.exp.optimize.max_obscuration
         K, R = cand.assigned.shape
         rows, index = self._sight
@@ -169,6 +170,8 @@ class Feasibility:
         # points are 48 bytes each: never all of them at once)
         reach = obstacles.point_segment_distance(hw.bound_centre, self.positions, cone_c) < hw.bound_radius + cone_r
         reach[j] = False
+        if among is not None:
+            reach &= among
         at = self._lines_of(np.flatnonzero(reach))
         lost = np.zeros(len(at), dtype=bool)
         for lo in range(0, len(at), obstacles.LINES_CHUNK):
@@ -190,8 +193,8 @@ class Feasibility:
             self._bounds = (np.array([h.bound_centre for h in every]), np.array([h.bound_radius for h in every]))
         near = np.zeros(K, dtype=bool)
         centres, radii = self._bounds            # only the hardware that reaches j's sight capsule
-        close = np.flatnonzero(obstacles.point_segment_distance(centres, self.positions[j], cone_c[j])
-                               < radii + cone_r[j])
+        close = np.flatnonzero((obstacles.point_segment_distance(centres, self.positions[j], cone_c[j])
+                                < radii + cone_r[j]) & (True if among is None else among))
         for lo in range(0, len(close), HARDWARE_CHUNK):   # (chunk, lines) distances from each centre
             ks = close[lo:lo + HARDWARE_CHUNK]
             d = obstacles.point_segment_distance(centres[ks][:, None], lines[0], lines[1][None])
