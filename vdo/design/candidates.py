@@ -436,6 +436,11 @@ class Block:
     path_lost: np.ndarray
     seen: np.ndarray
 
+    def unheaped(self) -> "Block":
+        """This block with its stored pairs in memory maps of their own (`_unheaped`): a block that
+        comes from a Dask worker or from the store is read into the heap first."""
+        return replace(self, index=_unheaped(self.index), info=_unheaped(self.info), weight=_unheaped(self.weight))
+
     @staticmethod
     def join(blocks: list["Block"]) -> "Block":
         """One block of `blocks`' candidates, in their order (starting where the first does)."""
@@ -651,6 +656,7 @@ def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=
     blocks, starts = [], []
     for s in range(0, len(j.cams), size):
         block = None if kept is None else kept.load(s)
+        block = None if block is None else block.unheaped()
         if block is None:
             starts.append(s)
         else:
@@ -668,11 +674,13 @@ def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=
 
         token = uuid.uuid4().hex
         shared = client.scatter(exp, broadcast=True)
-        futures = [client.submit(remote_block, shared, token, s, min(s + size, len(j.cams)), threads,
-                                 key=f"vdo-design-{token}-{s}", pure=False) for s in starts]
-        for f in bar(log, iterable=as_completed(futures), total=len(futures),
+        # no list of the futures kept here: a block's result is freed on its worker once taken
+        pending = as_completed([client.submit(remote_block, shared, token, s, min(s + size, len(j.cams)),
+                                              threads, key=f"vdo-design-{token}-{s}", pure=False)
+                                for s in starts])
+        for f in bar(log, iterable=pending, total=len(starts),
                      desc="candidates (dask)", unit="block", leave=False):
-            blocks.append(f.result())
+            blocks.append(f.result().unheaped())
             if kept is not None:
                 kept.save(blocks[-1])
     log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
