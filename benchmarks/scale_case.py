@@ -50,7 +50,7 @@ def _vec(v) -> str:
 def write_case(folder: Path, length_m: float = 6.0, segments: int = 60, cameras: int = 12,
                spacing_mm: float = 11.0, zone_points: int = 4, zone_heights: int = 3,
                rail_positions: int = 12, lenses_mm=(8, 12, 16), aim_offsets_deg=(),
-               design_spacing_mm: float = 40.0) -> Path:
+               design_spacing_mm: float = 40.0, bound_s: float | None = None) -> Path:
     """Write the meshes and scale.toml into `folder`; returns the TOML's path. Cameras: two on the
     rail (when cameras >= 6), the rest split evenly between the front and the back tripod zones
     (one zone per camera on each side, the zones tiling the length)."""
@@ -110,7 +110,7 @@ def write_case(folder: Path, length_m: float = 6.0, segments: int = 60, cameras:
             f"zone_points = {zone_points}", f"zone_heights = {zone_heights}",
             f"rail_positions = {rail_positions}", "offset_m = [0, 0, -0.15]",
             f"aim_offsets_deg = {_vec(aim_offsets_deg)}", f"sample_spacing_mm = {design_spacing_mm:g}",
-            "keyframes = 0", ""]
+            "keyframes = 0", *([f"bound_s = {bound_s:g}"] if bound_s is not None else []), ""]
     path = folder / "scale.toml"
     path.write_text("\n".join(out))
     return path

@@ -97,9 +97,14 @@ def test_console_summary_of_many_regions_is_per_group(capsys):
 
     regions = {f"front_{k:03d}": region(0.1, 1.0, 1.0 + k / 100) for k in range(30)}
     regions |= {f"top_{k:03d}": region(0.3 if k else 0.6, 0.0 if k else 1.0, 2.0) for k in range(20)}
+    unmeasured = {"p50": None, "p95": None}     # a group partly unmeasured: its median, no worst p95
+    regions |= {f"bottom_{k:03d}": region(0.1, 1.0, 1.0) if k else {**region(0.1, 0.0, 1.0), "sigma_max_um": unmeasured}
+                for k in range(3)}
+    regions |= {f"back_{k:03d}": {**region(0.1, 0.0, 1.0), "sigma_max_um": unmeasured} for k in range(2)}
     cli._print_summary({"regions": regions})
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].startswith("50 regions in 2 groups") and len(lines) == 4
-    front, top = lines[2].split(), lines[3].split()
+    assert lines[0].startswith("55 regions in 4 groups") and len(lines) == 6
+    front, top, bottom, back = (line.split() for line in lines[2:])
     assert front[:3] == ["front", "(30)", "3.000"] and front[-1].endswith("/1.29")
     assert top[:4] == ["top", "(20)", "6.300", f"{100 * 0.6 / 6.3:.0f}%"]
+    assert bottom[:2] == ["bottom", "(3)"] and bottom[-1] == "0.50/-" and back[-1] == "-"

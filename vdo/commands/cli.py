@@ -67,6 +67,12 @@ def _grouped(regions: dict) -> dict:
     return out
 
 
+def _p50_p95(sigma: dict) -> str:
+    """'p50/p95' in µm to two decimals, '-' for either that is None (a group whose regions are
+    partly unmeasured has a median of the measured ones and no worst p95)."""
+    return "/".join("-" if sigma[k] is None else f"{sigma[k]:.2f}" for k in ("p50", "p95")).replace("-/-", "-")
+
+
 def _print_summary(summary: dict) -> None:
     regions = summary["regions"]
     grouped = len(regions) > MAX_ROWS
@@ -80,13 +86,10 @@ def _print_summary(summary: dict) -> None:
           + (f"{'measured p50/p95 um':>22}" if m else ""))
     for name, r in regions.items():
         sens = "/".join(f"{r['sensitivity_mpx_per_um'][a]:.1f}" for a in "xyz")
-        sig = r["sigma_max_um"]
-        sig = "-" if sig["p50"] is None else f"{sig['p50']:.2f}/{sig['p95']:.2f}"
+        sig = _p50_p95(r["sigma_max_um"])
         meas = ""
         if m:
-            s = m["regions"][name]["sigma_measured_um"]
-            meas = "-" if s["p50"] is None else f"{s['p50']:.2f}/{s['p95']:.2f}"
-            meas = f"{meas:>22}"
+            meas = f"{_p50_p95(m['regions'][name]['sigma_measured_um']):>22}"
         print(f"{name:<22}{r['area_m2']:>8.3f}" + "".join(
             f"{100 * r[f'seen_by_{m}_or_more']:>5.0f}%" for m in (1, 2, 3)) + f"{sens:>21}{sig:>19}"
             + meas)
