@@ -107,8 +107,9 @@ class Candidates:
     candidate would see but an obstacle hides (its obscuration); framed (K,) whether every region
     it sees over at least assign_fraction of its area (`vdo.constraints.assignments`) lies in its
     image over at least 1 - max_obscuration of the area facing it (the field-of-view check of
-    `vdo.constraints.check`); path_lost (K,) the fraction of its usable samples at rest that the load path's keyframes take away; pruned: how many blind
-    candidates (no sample in view at rest) were dropped."""
+    `vdo.constraints.check`); path_lost (K,) the fraction of its usable samples at rest that the
+    load path's keyframes take away; pruned: how many blind candidates (no sample in view at
+    rest) were dropped."""
 
     cameras: tuple[Camera, ...]
     mount: tuple[str, ...]

@@ -73,7 +73,7 @@ class Feasibility:
             # ones and the int32 samples, 8 bytes per usable pair, no COO copies)
             per = np.bincount(self._sight[0], minlength=len(cand.cameras))
             self._seen = scipy.sparse.csr_matrix(
-                (np.ones(len(per) and int(per.sum()), np.float32), self._sight[1],
+                (np.ones(int(per.sum()), np.float32), self._sight[1],
                  np.concatenate([[0], np.cumsum(per)])), shape=(len(cand.cameras), cand.samples))
             self._region_area = scipy.sparse.csr_matrix(
                 (samples.area, (np.arange(len(samples)), samples.region)),
