@@ -166,14 +166,10 @@ def linear_maps(info, weight):
 
         def summed(w):
             w = np.asarray(w, float)
-            C, c = np.zeros((N, 6)), np.zeros(N)
             rows = np.flatnonzero(w)
             if len(rows) * SPARSE_ROWS < K:   # few candidates weighted (a vertex): their entries only
-                for k in rows:
-                    e = slice(info.indptr[k], info.indptr[k + 1])
-                    C[idx[e]] += w[k] * ei[e]
-                    c[idx[e]] += w[k] * ew[e]
-                return C, c
+                return info.sums(rows, w[rows])
+            C, c = np.zeros((N, 6)), np.zeros(N)
             for part in chunks:          # ENTRY_CHUNK entries at a time
                 we, i = w[owner[part]], idx[part]
                 for col in range(6):

@@ -173,13 +173,15 @@ class Candidates:
         """Dense (K, N) float32 soft weights (for small problems and tests)."""
         return self.weights(range(len(self.cameras)))
 
-    def sums(self, rows) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 6) information and (N,) weights summed over the candidates `rows`."""
+    def sums(self, rows, scale=None) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 6) information and (N,) weights summed over the candidates `rows`, each times its
+        `scale` (len(rows),) where given."""
         info, cover = np.zeros((self.samples, 6)), np.zeros(self.samples)
-        for i in rows:
+        for k, i in enumerate(rows):
             s = slice(self.indptr[i], self.indptr[i + 1])
-            info[self.index[s]] += self.entry_info[s]
-            cover[self.index[s]] += self.entry_weight[s]
+            a = 1.0 if scale is None else scale[k]
+            info[self.index[s]] += a * self.entry_info[s]
+            cover[self.index[s]] += a * self.entry_weight[s]
         return info, cover
 
     @cached_property
@@ -619,10 +621,16 @@ def _with_blind(j: Judging, seen: np.ndarray) -> dict:
     """A copy of `j.dropped` ({mount: {reason: count}}) with the blind candidates (`seen` False)
     counted per mount."""
     out = {name: dict(reasons) for name, reasons in j.dropped.items()}
-    mounts = np.array([m or "fixed" for m in j.mount], dtype=object)[~seen]
-    for name, count in zip(*np.unique(mounts, return_counts=True)):
-        out.setdefault(str(name), {})["blind (no sample in view at rest)"] = int(count)
+    for name, count in per_mount(j.mount, ~seen).items():
+        out.setdefault(name, {})["blind (no sample in view at rest)"] = count
     return out
+
+
+def per_mount(mount, mask: np.ndarray) -> dict[str, int]:
+    """{mount name ("fixed" for a [[camera]]'s own position): how many of the candidates in
+    `mask` stand on it}."""
+    names = np.array([m or "fixed" for m in mount], dtype=object)[mask]
+    return {str(n): int(c) for n, c in zip(*np.unique(names, return_counts=True))}
 
 
 _WORKER: dict = {}   # a Dask worker's Judging, built at its first block of a design run

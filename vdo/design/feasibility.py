@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse
 
-from vdo.design.candidates import SPOT_M, Candidates, bodies
+from vdo.design.candidates import SPOT_M, Candidates, bodies, per_mount
 from vdo.config.experiment import Experiment
 from vdo.constraints import stereo_min_angle
 from vdo.geometry import obstacles
@@ -100,10 +100,9 @@ class Feasibility:
         reasons = (("an assigned region obstructed beyond max_obscuration", self.obstructed),
                    ("a region it sees partly outside its image (field of view)",
                     ~self.cand.framed & ~self.obstructed))
-        mounts = np.array([m or "fixed" for m in self.cand.mount], dtype=object)
         for reason, mask in reasons:
-            for name, count in zip(*np.unique(mounts[mask], return_counts=True)):
-                out.setdefault(str(name), {})[reason] = int(count)
+            for name, count in per_mount(self.cand.mount, mask).items():
+                out.setdefault(name, {})[reason] = count
         return out
 
     def row(self, j: int) -> np.ndarray:

@@ -260,13 +260,9 @@ def measurable(exp: Experiment, cand: Candidates, samples) -> np.ndarray:
     if not len(cand.cameras):
         return np.zeros(len(samples), dtype=bool)
     spot = np.unique(np.round(cand.positions / SPOT_M), axis=0, return_inverse=True)[1].ravel()
-    use, views = cand.usable_entries, np.zeros(len(samples), dtype=int)
+    views = np.zeros(len(samples), dtype=int)
     for rows in np.split(np.argsort(spot, kind="stable"), np.flatnonzero(np.diff(np.sort(spot))) + 1):
-        seen = np.zeros(len(samples), dtype=bool)      # one spot at a time: no per-entry arrays
-        for k in rows:
-            e = slice(cand.indptr[k], cand.indptr[k + 1])
-            seen[cand.index[e][use[e]]] = True
-        views += seen
+        views += cand.usable_sums(rows) > 0             # one spot at a time: no per-entry arrays
     return views >= need
 
 
