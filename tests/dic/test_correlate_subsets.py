@@ -16,17 +16,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import test_correlate  # noqa: E402
 from test_correlate import DOT, PATCH, STEREO, TEXEL, U_TRUE, render  # noqa: E402
 
+import jax.numpy as jnp  # noqa: E402
+
+from vdo.dic import subset_sums  # noqa: E402
 from vdo.dic import subsets as subsets_module  # noqa: E402
+from vdo.dic.images import SplineImage  # noqa: E402
 from vdo.dic.correlate import ImageReference, Q4, correlate  # noqa: E402
 from vdo.dic.patch import Patch  # noqa: E402
 from vdo.dic.subsets import correlate_subsets  # noqa: E402
 from vdo.dic.series import correlate_points, start_guess, start_guesses  # noqa: E402
 from vdo.model.speckle import generate_pattern  # noqa: E402
+from vdo.model.spline_response import KEYS  # noqa: E402
 
 pattern = test_correlate.pattern        # the module's fixture, shared
 
 SAME_U_M = 1e-12          # m (2e-8 px here): batched against per-point, the same iteration (measured ~5e-17)
 SAME_BC = 1e-9            # brightness (gray levels) and contrast: the same iteration
+SAME_SAMPLE = 1e-9        # grey levels of ~4000: the same sum in another order (measured ~1e-12)
+SAME_SUM = 1e-12          # relative: the compiled sums against NumPy's (float64 rounding)
 SAME_START_PX = 1e-9      # start guesses: whole-pixel shifts through the same least squares
 SHIFT_TOL_PX = 0.02       # recovered against imposed, noise-free box-pixel speckle (as test_correlate_window)
 CLOSED_FORM_TOL_PX = 0.002  # smooth speckle (dots blurred by 2 px): measured 5e-4 px
@@ -111,3 +118,51 @@ def test_subsets_off_the_image_go_to_correlate_and_bad_tangents_are_one_line(pat
         correlate_subsets(cameras, refs, refs, far, tu, tv, SUBSET)
     with pytest.raises(ValueError, match="orthonormal"):
         correlate_subsets(cameras, refs, refs, points, tu, tu, SUBSET)
+
+
+@pytest.mark.parametrize("order", [3, 5, KEYS])
+def test_compiled_sampler_is_scipys_spline(order):
+    """`vdo.dic.subset_sums._sample`, the compiled step's B-spline sum, against SciPy's
+    `map_coordinates` on the same coefficients (cubic, quintic) and against `SplineImage`'s Keys
+    interpolant, at random positions over the window less the kernel's reach."""
+    rng = np.random.default_rng(4)
+    image = ndimage.gaussian_filter(rng.random((70, 90)), 1.5) * 4000
+    spline = SplineImage(image, order=order)
+    rows, cols = rng.uniform(3, 66, (5, 400)), rng.uniform(3, 86, (5, 400))
+    got = np.asarray(subset_sums._sample(jnp.asarray(spline.coeffs), jnp.asarray(rows), jnp.asarray(cols), order))
+    if order == KEYS:
+        want = spline.sample_local(rows, cols)
+    else:
+        want = ndimage.map_coordinates(spline.coeffs, [rows, cols], order=order, prefilter=False, mode="mirror")
+    assert np.abs(got - want).max() < SAME_SAMPLE
+
+
+def test_padding_adds_nothing_to_the_compiled_sums():
+    """Padding does not change a sum: the pixels of weight 0 and the inactive subsets add nothing,
+    checked against the unpadded NumPy sums Σ w f j of the module docstring."""
+    rng = np.random.default_rng(5)
+    coeffs = ndimage.gaussian_filter(rng.random((160, 160)), 1.5) * 4000
+    K, P = 3, 50
+    X = np.stack([rng.uniform(-0.02, 0.02, (K, P)), rng.uniform(-0.02, 0.02, (K, P)), np.ones((K, P))], -1)
+    N = rng.dirichlet(np.ones(4), (K, P))
+    U = rng.uniform(-1e-4, 1e-4, (K, 4, 3))
+    w, g, G = (rng.random((K, P)) > 0.2).astype(float), rng.random((K, P)), rng.normal(size=(K, P, 3))
+    k = np.array([2000.0, 0.0, 80.0, 2000.0, 80.0])
+    corners = X[:, :4]
+    valid = np.array([3.0, 156.0, 3.0, 156.0])
+    pc = X + N @ U
+    u, v = k[0] * pc[..., 0] / pc[..., 2] + k[2], k[3] * pc[..., 1] / pc[..., 2] + k[4]
+    f = ndimage.map_coordinates(coeffs, [v, u], order=3, prefilter=False, mode="mirror")
+    j = np.concatenate([(N[..., :, None] * G[..., None, :]).reshape(K, P, 12), np.ones((K, P, 1)), g[..., None]], -1)
+    want = np.einsum("kp,kpi->ki", w * f, j)
+    shape = (8, 64)
+    args = [subset_sums.padded(a, shape) for a in (X, N)] + [subset_sums.padded(U, shape[:1])] \
+        + [subset_sums.padded(w, shape), np.r_[1.0, 0.0, 1.0, np.zeros(5)]] \
+        + [subset_sums.padded(a, shape) for a in (g, G)] + [subset_sums.padded(corners, shape[:1])]
+    t, inside = subset_sums.residual_sums(jnp.asarray(subset_sums.padded(coeffs, (512, 512))), np.zeros(2), k,
+                                          np.eye(3), *args[:3], *args[3:5], *args[5:7], args[7], valid, order=3)
+    t = np.asarray(t)
+    assert np.abs(t[[0, 2]] - want[[0, 2]]).max() < SAME_SUM * np.abs(want).max()
+    assert np.all(t[[1]] == 0) and np.all(t[3:] == 0)          # inactive and padding subsets
+    M = np.asarray(subset_sums.normal_sums(*(subset_sums.padded(a, shape) for a in (N, w, G, g))))
+    assert np.abs(M[:K] - np.einsum("kp,kpi,kpj->kij", w, j, j)).max() < SAME_SUM * np.abs(M).max()

@@ -99,6 +99,12 @@ class SplineImage:
             self._padded = np.pad(self.coeffs, self._pad, mode="reflect")
         return self._padded
 
+    @property
+    def valid(self) -> tuple:
+        """(u0, u1, v0, v1): the part of the image where this (windowed) spline is the whole
+        image's (`covers`)."""
+        return self._valid
+
     def covers(self, x) -> bool:
         """Whether every point x (..., 2) lies where this (windowed) spline is the whole image's."""
         x = np.asarray(x, dtype=float).reshape(-1, 2)

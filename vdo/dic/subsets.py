@@ -6,13 +6,14 @@ Subset k is the Q4(1, 1) patch of side `size` centred on points[k], correlated a
 the same modified Gauss–Newton steps (each camera's reference pixel centres on the subset, J from
 the reference spline's gradient there, brightness and contrast per camera solved alongside), here
 vectorised over chunks of SUBSET_CHUNK subsets: the per-camera normal matrices M_i (14 × 14) are
-summed once, only the residual is sampled per step (one `map_coordinates` call per camera on one
-window of B-spline coefficients per image, `vdo.dic.images.SplineImage.around` all the subsets),
-and the step is the batched scaled eigen pseudo-inverse. The subsets it cannot batch (an image's
+summed once, only the residual's sums are formed per step (one compiled program per camera,
+`vdo.dic.subset_sums`, on one window of B-spline coefficients per image,
+`vdo.dic.images.SplineImage.around` all the subsets), and the step is the batched scaled eigen
+pseudo-inverse. The subsets it cannot batch (an image's
 margin, a corner behind a camera, lens distortion, a sample that left the deformed window) are
 handed to `correlate` itself (`SubsetResult.one_by_one`).
 
-Above `vdo.dic.correlate` (which it calls), `vdo.dic.patch` and `vdo.dic.images`; used by
+Above `vdo.dic.correlate` (which it calls), `vdo.dic.subset_sums`, `vdo.dic.patch` and `vdo.dic.images`; used by
 `vdo.dic.series`.
 """
 
@@ -22,13 +23,17 @@ import logging
 from dataclasses import dataclass
 from typing import Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from vdo.core.tolerances import LIMIT_SLACK
 from vdo.dic.correlate import ImageReference, Q4, Solver, correlate
 from vdo.dic.images import SPLINE_ORDER, SplineImage
 from vdo.dic.patch import Patch
+from vdo.dic.subset_sums import PIXEL_PAD, WINDOW_PAD, normal_sums, padded, residual_sums
 from vdo.model.camera import image_point
+from vdo.model.spline_response import KEYS
 
 log = logging.getLogger(__name__)
 
@@ -75,15 +80,16 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     by every camera `margin_px` inside its image (`vdo.dic.patch.pixel_points`); J = [c_i ∇g_i s_i N, -1, -g_i]
     with ∇g_i the reference spline's gradient at its pixel centres (the B-spline's derivative
     stencil there), so that per camera M_i = Σ_p j_p j_pᵀ, j = [∇g s ⊗ N, 1, g] (14 × 14), is
-    summed once and H = Σ_i D_i M_i D_i, D_i = diag(c_i 1₁₂, -1, -1), at every step; only the
-    residual r = f(P_i(X + N U)) - b_i - c_i g_i is sampled per step, one `map_coordinates` call
-    per camera over every active subset's pixels, on the B-spline coefficients of one window per
-    image (`SplineImage.around` all the subsets). The step is `correlate`'s scaled eigen
+    summed once and H = Σ_i D_i M_i D_i, D_i = diag(c_i 1₁₂, -1, -1), at every step; per step
+    only the sums t_i = Σ_p f(P_i(X + N U)) j_p are formed (the residual's right-hand side is
+    t_i - M_i[:, 12:14] (b_i, c_i)), one compiled program per camera over the chunk's pixels
+    (`vdo.dic.subset_sums.residual_sums`), on the B-spline coefficients of one window per image
+    (`SplineImage.around` all the subsets). The step is `correlate`'s scaled eigen
     pseudo-inverse (`vdo.dic.correlate._pinv_solve`), batched; a subset stops when max |ΔU| <
     `solver.tol`, as `correlate` stops.
     Subsets that `correlate` would treat otherwise (SubsetResult.one_by_one) are solved by it.
-    `workers` threads share the chunks of SUBSET_CHUNK subsets (NumPy and SciPy release the GIL
-    in the heavy calls)."""
+    `workers` threads share the chunks of SUBSET_CHUNK subsets (NumPy, SciPy and XLA release
+    the GIL in the heavy calls)."""
     cameras = list(cameras)
     nc = len(cameras)
     if nc == 0 or len(references) != nc or len(deformed) != nc:
@@ -109,7 +115,8 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
         on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])
         spline = SplineImage.around(ref, on_image(corners), 1.0, order)
         refs.append((ref, spline, spline.pixel_gradients()))
-        defs.append(SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order))
+        spline = SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order)
+        defs.append(_Deformed.of(spline, cam))
     shape = (n_pts,)
     out = SubsetResult(U=U0.copy(), b=np.zeros((n_pts, nc)), c=np.zeros((n_pts, nc)),
                        iterations=np.zeros(shape, int), converged=np.zeros(shape, bool),
@@ -141,6 +148,35 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
         out.U[k], out.b[k], out.c[k] = res.U, res.b, res.c
         out.iterations[k], out.converged[k] = res.iterations, res.converged
     return out
+
+
+@dataclass(frozen=True)
+class _Deformed:
+    """A deformed image's spline as `vdo.dic.subset_sums.residual_sums` reads it: the window's
+    coefficients zero-padded to multiples of WINDOW_PAD (one compiled program for windows of
+    about one size), the window's corner `origin` (u, v), the camera's k = (f_x, s, c_x, f_y, c_y),
+    and `valid` = (u0, u1, v0, v1), where a sample is the whole image's spline and its taps lie in
+    the window: the spline's own valid part less the kernel's half-width + 1 px from the window's
+    edges."""
+
+    coeffs: jax.Array
+    origin: np.ndarray
+    k: np.ndarray
+    valid: np.ndarray
+    order: object
+
+    @classmethod
+    def of(cls, spline: SplineImage, cam) -> "_Deformed":
+        H, W = spline.coeffs.shape
+        half = (3 if spline.order == KEYS else spline.order) // 2 + 2
+        (u0, v0), (u1, v1) = spline.origin + half, spline.origin + [W - 1 - half, H - 1 - half]
+        s0, s1, t0, t1 = spline.valid
+        size = (-(-H // WINDOW_PAD) * WINDOW_PAD, -(-W // WINDOW_PAD) * WINDOW_PAD)
+        K = cam.K
+        return cls(coeffs=jnp.asarray(padded(spline.coeffs, size)), origin=spline.origin.copy(),
+                   k=np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]),
+                   valid=np.array([max(u0, s0), min(u1, s1), max(v0, t0), min(v1, t1)]),
+                   order=spline.order)
 
 
 def _subset_pixels(cam, cameras, geometry, k, margin_px):
@@ -232,12 +268,13 @@ def _image_gradient_sensitivity(cam, X, grad):
 
 def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out):
     """`correlate_subsets` on the subsets k: writes out.U[k], b, c, iterations, converged,
-    one_by_one."""
+    one_by_one. The per-pixel sums are `vdo.dic.subset_sums`' compiled programs, on the chunk
+    padded to SUBSET_CHUNK subsets and its boxes to a multiple of PIXEL_PAD pixels (weight 0)."""
     nu, ndof = 12, 12 + 2 * len(cameras)
     size = geometry[3]
     cams = []
     one_by_one = np.zeros(len(k), bool)
-    for cam, (ref, rspline, grads), dspline in zip(cameras, refs, defs):
+    for cam, (ref, rspline, grads), dfm in zip(cameras, refs, defs):
         uv, w, X, xi, odd = _subset_pixels(cam, cameras, geometry, k, margin_px)
         one_by_one |= odd | ~rspline.covers_each(uv[..., 0], uv[..., 1], w)     # (the window is built around them)
         a, b = xi[..., 0] / size, xi[..., 1] / size
@@ -245,77 +282,65 @@ def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out)
         g = ref[uv[..., 1], uv[..., 0]]
         cu, cv = uv[..., 0] - int(rspline.origin[0]), uv[..., 1] - int(rspline.origin[1])
         G0 = _image_gradient_sensitivity(cam, X, np.stack([grads[0][cv, cu], grads[1][cv, cu]], -1))
-        # M = Σ (w j)(w j)ᵀ (w = 0 or 1), by blocks: w j = [w N ⊗ ∇g s, w, w g]
-        ju = ((N * w[..., None])[..., :, None] * G0[..., None, :]).reshape(g.shape + (nu,))
-        jbc = np.stack([w, w * g], -1)
-        M = np.empty((len(k), nu + 2, nu + 2))
-        M[:, :nu, :nu] = np.matmul(np.swapaxes(ju, 1, 2), ju)
-        M[:, :nu, nu:] = np.matmul(np.swapaxes(ju, 1, 2), jbc)
-        M[:, nu:, :nu] = np.swapaxes(M[:, :nu, nu:], 1, 2)
-        M[:, nu:, nu:] = np.matmul(np.swapaxes(jbc, 1, 2), jbc)
-        cams.append(dict(cam=cam, spline=dspline, w=w, on=w > 0, Xc=X @ cam.R.T + cam.t, N=N,
-                         Nt=np.ascontiguousarray(np.swapaxes(N, 1, 2)), g=g, G0=G0, M=M))
+        corners = _corners(*(a[k] for a in geometry[:3]), size) @ cam.R.T + cam.t
+        cams.append(dict(cam=cam, dfm=dfm, Xc=X @ cam.R.T + cam.t, N=N, w=w, g=g, G=G0, corners=corners))
+    # every camera's boxes padded to one size: one compiled program for the chunk
+    shape = (SUBSET_CHUNK, -(-max(c["w"].shape[1] for c in cams) // PIXEL_PAD) * PIXEL_PAD)
+    for c in cams:
+        c.update({key: jnp.asarray(padded(c[key], shape)) for key in ("Xc", "N", "w", "g", "G")},
+                 corners=jnp.asarray(padded(c["corners"], shape[:1])))
+        c["M"] = np.asarray(normal_sums(c["N"], c["w"], c["G"], c["g"]))[:len(k)]
 
     p = np.zeros((len(k), ndof))
     p[:, :nu] = U0.reshape(len(k), nu)
     act = np.flatnonzero(~one_by_one)
 
-    corners_c = [_corners(*(g[k] for g in geometry[:3]), size) @ c["cam"].R.T + c["cam"].t for c in cams]
+    def sums(idx):
+        """Per camera the sums t = Σ w f j (len(idx), 14) of the subsets idx at their current U
+        (`vdo.dic.subset_sums.residual_sums`); and (len(idx),) whether every pixel lies where
+        the deformed spline is the whole image's: where the four displaced corners do (the
+        pixels' N are convex weights, so their positions lie in the corners' hull, and so do
+        their pinhole images). The program runs on the whole padded chunk, the other subsets at
+        weight 0: one compiled shape."""
+        on = np.zeros(SUBSET_CHUNK)
+        on[idx] = 1.0
+        U = padded(p[:, :nu].reshape(-1, 4, 3), (SUBSET_CHUNK,))
+        ts, inside = [], np.ones(len(idx), bool)
+        for c in cams:
+            d = c["dfm"]
+            t, ok = residual_sums(d.coeffs, d.origin, d.k, c["cam"].R, c["Xc"], c["N"], U, c["w"], on,
+                                  c["g"], c["G"], c["corners"], d.valid, order=d.order)
+            ts.append(np.asarray(t)[idx])
+            inside &= np.asarray(ok)[idx]
+        return ts, inside
 
-    def sample(idx, pick):
-        """Per camera f at R (X + N U) + t, the camera-frame position of every pixel of the
-        subsets idx; and (len(idx),) whether all of them lie where the deformed spline is the
-        whole image's: where the four displaced corners do (the pixels' N are convex weights, so
-        their positions lie in the corners' hull, and so do their pinhole images)."""
-        fs, inside = [], np.ones(len(idx), bool)
-        Un = p[idx, :nu].reshape(-1, 4, 3)
-        for c, corner in zip(cams, corners_c):
-            cam, sp = c["cam"], c["spline"]
-            URt = Un @ cam.R.T
-            pc = pick(c["Xc"]) + np.matmul(pick(c["N"]), URt)
-            u, v = image_point(cam.K, pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2])   # a pinhole
-            q = pick(corner) + URt
-            inside &= sp.covers_each(*image_point(cam.K, q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]))
-            on = pick(c["on"])                        # the pixels (not the box's padding)
-            f = np.zeros(u.shape)
-            f[on] = sp.sample_local(v[on] - sp.origin[1], u[on] - sp.origin[0])
-            fs.append(f)
-        return fs, inside
-
-    def picker(idx):
-        return (lambda a: a) if len(idx) == len(k) else (lambda a: a[idx])
-
-    # Initial b, c: least squares of f on [1, g] at U0 (`correlate`'s lstsq, normal equations).
-    # The first step samples f at the same U: these values serve it too.
-    pick = picker(act)
-    fs, inside = sample(act, pick)
+    # Initial b, c: least squares of f on [1, g] at U0 (`correlate`'s lstsq, normal equations):
+    # t[12:14] = (Σ w f, Σ w g f). The first step samples f at the same U: these sums serve it too.
+    ts, inside = sums(act)
     for i, c in enumerate(cams):
-        w, g = pick(c["w"]), pick(c["g"])
-        rhs = np.stack([np.sum(w * fs[i], 1), np.sum(w * g * fs[i], 1)], -1)
-        p[act, nu + 2 * i: nu + 2 * i + 2] = np.linalg.solve(pick(c["M"])[:, 12:, 12:], rhs[..., None])[..., 0]
+        p[act, nu + 2 * i: nu + 2 * i + 2] = np.linalg.solve(c["M"][act][:, 12:, 12:],
+                                                             ts[i][:, 12:, None])[..., 0]
     one_by_one[act[~inside]] = True
-    act, fs, inside = act[inside], [f[inside] for f in fs], inside[inside]
+    act, ts = act[inside], [t[inside] for t in ts]
 
     iterations = np.full(len(k), solver.max_iter)
     converged = np.zeros(len(k), bool)
+    inside = np.ones(len(act), bool)
     for it in range(1, solver.max_iter + 1):
         if not len(act):
             break
-        pick = picker(act)
         if it > 1:
-            fs, inside = sample(act, pick)
+            ts, inside = sums(act)
         H = np.zeros((len(act), ndof, ndof))
         rhs = np.zeros((len(act), ndof))
         for i, c in enumerate(cams):
             ib = nu + 2 * i
             b, cc = p[act, ib], p[act, ib + 1]
-            g = pick(c["g"])
-            rw = (fs[i] - b[:, None] - cc[:, None] * g) * pick(c["w"])
-            s = np.concatenate([np.matmul(pick(c["Nt"]), rw[..., None] * pick(c["G0"])).reshape(-1, nu),
-                                rw.sum(1)[:, None], np.sum(rw * g, 1)[:, None]], 1)
+            M = c["M"][act]
+            s = ts[i] - M[:, :, 12] * b[:, None] - M[:, :, 13] * cc[:, None]     # Σ w (f - b - c g) j
             D = np.concatenate([np.repeat(cc[:, None], nu, 1), -np.ones((len(act), 2))], 1)
             sel = np.r_[0:nu, ib, ib + 1]
-            H[:, sel[:, None], sel[None, :]] += D[:, :, None] * pick(c["M"]) * D[:, None, :]
+            H[:, sel[:, None], sel[None, :]] += D[:, :, None] * M * D[:, None, :]
             rhs[:, sel] -= D * s
         dp = _pinv_solve_many(H, rhs, solver.rcond, nu)
         p[act] += dp
