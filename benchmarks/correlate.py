@@ -8,8 +8,9 @@ moved by -U: the same images). Points on a full-field grid (--step pixels apart,
 subset: subsets side by side) over the middle of the plate's common view; per point a square
 subset of --subset pixels (a Q4 element: affine and more), both cameras at once
 (`vdo.dic.series.correlate_points`): "batched" solves all points at once
-(`vdo.dic.subsets.correlate_subsets`, --workers threads), "today's" one `correlate` call per
-point (`batched=False`, one process), timed on the first --today points. Reports points/s (wall
+(`vdo.dic.subsets.correlate_subsets`, --workers threads; its first call in the process compiles
+its XLA programs, so it is timed twice on 1 thread), "today's" one `correlate` call per point
+(`batched=False`, one process), timed on the first --today points. Reports points/s (wall
 and per CPU-second, the machine being shared), the error against the imposed U and the largest
 difference between the two on the points both solved.
 Run: .venv/bin/python benchmarks/correlate.py [--points 5000] [--workers 2] [--today 100] [--profile 20]
@@ -135,6 +136,7 @@ def main():
     results = {}
     for label, pts, workers, batched in (("today's (per point)", points[:args.today], 1, False),
                                          ("batched, 1 thread", points, 1, True),
+                                         ("batched, 1 thread again", points, 1, True),
                                          (f"batched, {args.workers} threads", points, args.workers, True)):
         U, wall, cpu, ok, err = run(pts, workers, batched)
         results[label] = U

@@ -16,9 +16,9 @@ functions, f_p the deformed image at the pixel's displaced position):
 
 so that the step's right-hand side Σ_p w_p (f_p - b - c g_p) j_p is t - M[:, 12:14] (b, c).
 
-Shapes. XLA compiles one program per shape: the caller pads the pixels of a chunk's boxes to a
-multiple of PIXEL_PAD (weight 0) and the coefficient window to a multiple of WINDOW_PAD (never
-read: a sample is only taken where the caller's `valid` box says its taps lie in the window).
+Shapes. XLA compiles one program per shape: the caller pads a chunk's pixel boxes to multiples of
+BOX_PAD a side (weight 0) and the image windows to multiples of WINDOW_PAD (never read: a sample
+is only taken where the caller's `valid` box says its taps lie in the window).
 """
 
 from __future__ import annotations
@@ -33,9 +33,10 @@ import numpy as np
 from vdo.model.camera import image_point
 from vdo.model.spline_response import KEYS, KEYS_A
 
-__all__ = ["PIXEL_PAD", "WINDOW_PAD", "padded", "normal_sums", "residual_sums"]
+__all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "subset_setup"]
 
-PIXEL_PAD = 64          # a chunk's pixels per box are padded to a multiple of this
+BOX_PAD = 2             # a call's pixel boxes are padded to multiples of this per side (calls
+                        # with boxes of about one size then share a program)
 WINDOW_PAD = 512        # a coefficient window's sides are padded to multiples of this (the
                         # cameras' windows of a call then share a size, hence one program)
 
@@ -45,6 +46,12 @@ def padded(a: np.ndarray, shape) -> np.ndarray:
     out = np.zeros(tuple(shape) + a.shape[len(shape):], dtype=a.dtype)
     out[tuple(slice(0, n) for n in a.shape[:len(shape)])] = a
     return out
+
+
+def _rotate(X, R):
+    """X Rᵀ for points X (..., 3) and a 3 × 3 R, as three fused sums (XLA makes a (..., 3) × (3, 3)
+    product a library call that costs more than the arithmetic)."""
+    return jnp.stack([X[..., 0] * R[i, 0] + X[..., 1] * R[i, 1] + X[..., 2] * R[i, 2] for i in range(3)], -1)
 
 
 def _weights(t, order):
@@ -115,8 +122,8 @@ def residual_sums(coeffs, origin, k, R, Xc, N, U, w, active, g, G, corners, vali
     four displaced corners (camera frame before the displacement, `corners` (K, 4, 3)) project
     inside `valid` = (u0, u1, v0, v1), where every pixel's taps lie in the window and the window's
     spline is the whole image's. k = (f_x, s, c_x, f_y, c_y) (pixels)."""
-    URt = U @ R.T
-    pc = Xc + N @ URt
+    URt = U @ R.T                                                   # (K, 4, 3): small
+    pc = Xc + sum(N[..., a:a + 1] * URt[:, None, a, :] for a in range(4))
     u, v = image_point(tuple(k), pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2])
     w = w * active[:, None]
     on = w > 0                       # padding pixels sit at the camera centre: 0 / 0
@@ -129,3 +136,58 @@ def residual_sums(coeffs, origin, k, R, Xc, N, U, w, active, g, G, corners, vali
     qu, qv = image_point(tuple(k), q[..., 0] / q[..., 2], q[..., 1] / q[..., 2])
     inside = jnp.all((qu >= valid[0]) & (qu <= valid[1]) & (qv >= valid[2]) & (qv <= valid[3]), axis=1)
     return t, inside
+
+
+@partial(jax.jit, static_argnames=("n_u", "n_v"))
+def subset_setup(lo, hi, origin, t_u, t_v, size, camera, image, gradient_u, gradient_v, window, valid, *,
+                 n_u, n_v):
+    """Each subset's pixels, as `vdo.dic.patch.pixel_points` finds them, and everything the steps
+    read of them, for K subsets of one camera: the pixel centres (u, v) of the box lo .. hi (K, 2)
+    (clipped to the image) in an n_u × n_v grid; of these, the pixels whose ray meets the
+    subset's square origin + [0, size]² in (t_u, t_v) (K, 3 each) in front of the camera, w = 1
+    (0 for the others), where the ray C + λ d (d = Rᵀ K⁻¹ q, q = (u, v, 1)) meets the plane:
+    λ = (o - C)·n / d·n and ξ_a = (C - o)·t_a + λ d·t_a.
+
+    camera = (Kinv_R (3, 3) with q Kinv_R = dᵀ, C (3,), R (3, 3), t (3,), k (5,) =
+    (f_x, s, c_x, f_y, c_y), (width, height)); `image`, `gradient_u`, `gradient_v`: the reference
+    image and its spline's gradient at the pixel centres on the reference window whose corner
+    pixel is `window` (u, v); `valid` (u0, u1, v0, v1): where that spline is the whole image's.
+
+    Returns Xc = R X + t (K, P, 3), N (K, P, 4) the Q4(1, 1) shape functions at ξ / size, w (K, P),
+    g (K, P) the reference grey level, G = ∇g s (K, P, 3) (s = ∂x/∂X of a pinhole: ∂u/∂p =
+    [f_x, s, -(f_x x + s y)/z] / z, ∂v/∂p = [0, f_y, -f_y y / z] / z, times R), M (K, 14, 14)
+    (`normal_sums`), the pixel count (K,) and (K,) whether every pixel lies in `valid`."""
+    Kinv_R, C, R, t, k, (width, height) = camera
+    du, dv = (a.ravel() for a in jnp.meshgrid(jnp.arange(n_u), jnp.arange(n_v), indexing="xy"))
+    U, V = lo[:, :1] + du, lo[:, 1:] + dv
+    ok = (U <= hi[:, :1]) & (V <= hi[:, 1:])
+    u, v = jnp.minimum(U, width - 1), jnp.minimum(V, height - 1)
+    normal = jnp.cross(t_u, t_v)
+    rows = jnp.stack([t_u, t_v, normal], 1) @ Kinv_R.T                # d·t_u, d·t_v, d·n per q
+    lin = lambda r: r[:, 0:1] * u + r[:, 1:2] * v + r[:, 2:3]         # noqa: E731
+    dn = lin(rows[:, 2])
+    dn_safe = jnp.where(dn == 0, 1.0, dn)
+    lam = jnp.einsum("ka,ka->k", origin - C, normal)[:, None] / dn_safe
+    ok &= (dn != 0) & jnp.isfinite(lam) & (lam > 0)
+    lam = jnp.where(ok, lam, 0.0)
+    co = C - origin
+    xi0 = jnp.where(ok, jnp.einsum("ka,ka->k", co, t_u)[:, None] + lam * lin(rows[:, 0]), 0.0)
+    xi1 = jnp.where(ok, jnp.einsum("ka,ka->k", co, t_v)[:, None] + lam * lin(rows[:, 1]), 0.0)
+    ok &= (xi0 >= 0) & (xi0 <= size) & (xi1 >= 0) & (xi1 <= size)
+    X = origin[:, None, :] + xi0[..., None] * t_u[:, None, :] + xi1[..., None] * t_v[:, None, :]
+    w = ok.astype(jnp.float64)
+    covered = jnp.all((u >= valid[0]) & (u <= valid[1]) & (v >= valid[2]) & (v <= valid[3]) | ~ok, axis=1)
+    h, wd = image.shape
+    cu = jnp.clip(u - window[0], 0, wd - 1).astype(jnp.int32)
+    cv = jnp.clip(v - window[1], 0, h - 1).astype(jnp.int32)
+    g, gu, gv = image[cv, cu], gradient_u[cv, cu], gradient_v[cv, cu]
+    a, b = xi0 / size, xi1 / size
+    N = jnp.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], -1)
+    pc = _rotate(X, R) + t
+    fx, sk, fy = k[0], k[1], k[3]
+    zi = 1.0 / pc[..., 2]
+    ga = gu * fx * zi
+    gb = (gu * sk + gv * fy) * zi
+    gc = -(ga * pc[..., 0] + gb * pc[..., 1]) * zi
+    G = jnp.where(ok[..., None], _rotate(jnp.stack([ga, gb, gc], -1), R.T), 0.0)     # (∇g s_p) R
+    return pc, N, w, g, G, normal_sums(N, w, G, g), w.sum(1), covered

@@ -31,7 +31,7 @@ from vdo.core.tolerances import LIMIT_SLACK
 from vdo.dic.correlate import ImageReference, Q4, Solver, correlate
 from vdo.dic.images import SPLINE_ORDER, SplineImage
 from vdo.dic.patch import Patch
-from vdo.dic.subset_sums import PIXEL_PAD, WINDOW_PAD, normal_sums, padded, residual_sums
+from vdo.dic.subset_sums import BOX_PAD, WINDOW_PAD, padded, residual_sums, subset_setup
 from vdo.model.camera import image_point
 from vdo.model.spline_response import KEYS
 
@@ -113,8 +113,7 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     for cam, ref, dfm in zip(cameras, references, deformed):
         ref, dfm = np.asarray(ref, dtype=float), np.asarray(dfm, dtype=float)
         on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])
-        spline = SplineImage.around(ref, on_image(corners), 1.0, order)
-        refs.append((ref, spline, spline.pixel_gradients()))
+        refs.append(_Reference.of(ref, SplineImage.around(ref, on_image(corners), 1.0, order)))
         spline = SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order)
         defs.append(_Deformed.of(spline, cam))
     shape = (n_pts,)
@@ -123,9 +122,16 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
                        one_by_one=np.zeros(shape, bool))
     chunks = [np.arange(k, min(k + SUBSET_CHUNK, n_pts)) for k in range(0, n_pts, SUBSET_CHUNK)]
     geometry = (origin, t_u, t_v, size)
+    boxes = [_subset_boxes(cam, cameras, geometry, np.arange(n_pts), margin_px) for cam in cameras]
+    # every chunk's boxes in every camera padded to one size (the largest box of the subsets it
+    # solves, rounded up to BOX_PAD): one compiled program per call
+    solved = ~np.any([odd for _, _, odd in boxes], axis=0)
+    box = tuple(-(-int(max([(hi - lo)[solved, a].max(initial=0) + 1 for lo, hi, _ in boxes])) // BOX_PAD) * BOX_PAD
+                for a in (0, 1))
 
     def run(k):
-        _solve_subsets(cameras, refs, defs, geometry, k, U0[k], solver, margin_px, out)
+        _solve_subsets(cameras, refs, defs, geometry, k, [tuple(a[k] for a in b) for b in boxes], box, U0[k],
+                       solver, out)
         return len(k)
 
     from concurrent.futures import ThreadPoolExecutor
@@ -148,6 +154,28 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
         out.U[k], out.b[k], out.c[k] = res.U, res.b, res.c
         out.iterations[k], out.converged[k] = res.iterations, res.converged
     return out
+
+
+@dataclass(frozen=True)
+class _Reference:
+    """A reference image as `vdo.dic.subset_sums.subset_setup` reads it: the image and its
+    spline's gradients at the pixel centres (`SplineImage.pixel_gradients`) on the spline's
+    window, zero-padded to multiples of WINDOW_PAD, the window's corner pixel (u, v) and where
+    the spline is the whole image's (`SplineImage.valid`)."""
+
+    image: jax.Array
+    gradient_u: jax.Array
+    gradient_v: jax.Array
+    window: np.ndarray
+    valid: np.ndarray
+
+    @classmethod
+    def of(cls, image: np.ndarray, spline: SplineImage) -> "_Reference":
+        (c0, r0), (h, w) = spline.origin.astype(int), spline.shape
+        size = (-(-h // WINDOW_PAD) * WINDOW_PAD, -(-w // WINDOW_PAD) * WINDOW_PAD)
+        gu, gv = spline.pixel_gradients()
+        return cls(*(jnp.asarray(padded(a, size)) for a in (image[r0:r0 + h, c0:c0 + w], gu, gv)),
+                   window=spline.origin.copy(), valid=np.array(spline.valid))
 
 
 @dataclass(frozen=True)
@@ -179,14 +207,12 @@ class _Deformed:
                    order=spline.order)
 
 
-def _subset_pixels(cam, cameras, geometry, k, margin_px):
-    """`pixel_points` of camera `cam` for the subsets k at once, on each subset's box of pixels
-    (the bounding box of its corners' projections, +1 px, as `pixel_points` scans it), padded to
-    the largest box: pixel (u, v) (K, M, 2) int, weight (K, M) (1 for a pixel of `pixel_points`,
-    0 otherwise), X (K, M, 3) and ξ (K, M, 2) where its ray meets the subset's plane; and (K,)
-    the subsets left to `correlate` (a corner behind the camera, where `pixel_points` scans the
-    whole image, or fewer than 4 pixels, where it raises; one that meets an image's margin; a
-    camera with lens distortion)."""
+def _subset_boxes(cam, cameras, geometry, k, margin_px):
+    """The box of pixels that `pixel_points` scans for each of the subsets k in camera `cam`
+    (the bounding box of its corners' projections, +1 px, clipped to the image): lo, hi (K, 2)
+    (u, v); and (K,) the subsets left to `correlate` whatever their pixels (a corner behind the
+    camera, where `pixel_points` scans the whole image; one that meets an image's margin; a camera
+    with lens distortion). `vdo.dic.subset_sums.subset_setup` finds the pixels in the box."""
     origin, t_u, t_v, size = *(a[k] for a in geometry[:3]), geometry[3]
     normal = np.cross(t_u, t_v)
     corners = _corners(origin, t_u, t_v, size)
@@ -198,30 +224,6 @@ def _subset_pixels(cam, cameras, geometry, k, margin_px):
     hi = np.minimum(np.ceil(px.max(axis=1)) + 1, [cam.width - 1, cam.height - 1])
     lo = np.where(behind[:, None], 0, lo)
     hi = np.where(behind[:, None], lo, hi)
-    n_u, n_v = np.maximum((hi - lo + 1).max(axis=0), 1).astype(int)
-    du, dv = np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="xy")
-    u = np.minimum(lo[:, None, 0] + du.ravel()[None], cam.width - 1)
-    v = np.minimum(lo[:, None, 1] + dv.ravel()[None], cam.height - 1)
-    ok = (lo[:, None, 0] + du.ravel()[None] <= hi[:, None, 0]) \
-        & (lo[:, None, 1] + dv.ravel()[None] <= hi[:, None, 1])
-    # The ray of pixel q = (u, v, 1) is C + λ d, d = Rᵀ K⁻¹ q; on the plane (X - o)·n = 0:
-    # λ = (o - C)·n / d·n, and ξ_a = (C - o)·t_a + λ d·t_a, each d·t linear in (u, v).
-    Kinv_R = np.linalg.inv(cam.K).T @ cam.R                       # q Kinv_R = dᵀ
-    C = np.asarray(cam.position, dtype=float)
-    rows = np.stack([t_u, t_v, normal], 1) @ Kinv_R.T             # (K, 3, 3): d·t_u, d·t_v, d·n per q
-    lin = lambda r: r[:, 0:1] * u + r[:, 1:2] * v + r[:, 2:3]
-    dn = lin(rows[:, 2])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = np.einsum("ka,ka->k", origin - C, normal)[:, None] / dn
-    ok &= np.isfinite(lam) & (lam > 0)
-    lam = np.where(ok, lam, 0.0)
-    co = C - origin
-    xi = np.stack([np.einsum("ka,ka->k", co, t_u)[:, None] + lam * lin(rows[:, 0]),
-                   np.einsum("ka,ka->k", co, t_v)[:, None] + lam * lin(rows[:, 1])], -1)
-    xi[:, :, 0] = np.where(ok, xi[:, :, 0], 0.0)
-    xi[:, :, 1] = np.where(ok, xi[:, :, 1], 0.0)
-    ok &= np.all((xi >= 0) & (xi <= size), axis=-1)
-    X = origin[:, None, :] + xi[..., :1] * t_u[:, None, :] + xi[..., 1:2] * t_v[:, None, :]
     # `vdo.dic.patch._visible` in every camera. Each of its conditions holds on a convex part
     # of the plane (in front; |cos| >= min_cos is |(X - C)·n| = const >= min_cos |X - C|, a disc;
     # inside the image margin, for a pinhole): where all four corners pass with LIMIT_SLACK to spare, every pixel
@@ -231,8 +233,7 @@ def _subset_pixels(cam, cameras, geometry, k, margin_px):
     for other in cameras:
         edge |= ~_visible_margin(other, corners, normal, margin_px, LIMIT_SLACK).all(axis=1)
         edge |= other.distortion_array is not None
-    count = ok.sum(axis=1)
-    return np.stack([u, v], -1).astype(np.int64), ok.astype(float), X, xi, behind | edge | (count < 4)
+    return lo, hi, behind | edge
 
 
 def _corners(origin, t_u, t_v, size):
@@ -253,43 +254,28 @@ def _visible_margin(cam, X, normal, margin_px, slack, min_cos: float = 0.05):
             & (y >= m) & (y <= cam.height - 1 - m))
 
 
-def _image_gradient_sensitivity(cam, X, grad):
-    """∇f · s (K, M, 3) with s = ∂x/∂X (`Camera.sensitivity`) at X (K, M, 3) for a pinhole:
-    s = ∂x/∂p R, ∂u/∂p = [f_x, s, -(f_x x + s y)/z] / z, ∂v/∂p = [0, f_y, -f_y y / z] / z (p = (x, y, z)
-    the camera-frame point)."""
-    pc = X @ cam.R.T + cam.t
-    fx, sk, fy = cam.K[0, 0], cam.K[0, 1], cam.K[1, 1]
-    zi = 1.0 / pc[..., 2]
-    a = grad[..., 0] * fx * zi
-    b = (grad[..., 0] * sk + grad[..., 1] * fy) * zi
-    c = -(a * pc[..., 0] + b * pc[..., 1]) * zi
-    return np.stack([a, b, c], -1) @ cam.R
-
-
-def _solve_subsets(cameras, refs, defs, geometry, k, U0, solver, margin_px, out):
-    """`correlate_subsets` on the subsets k: writes out.U[k], b, c, iterations, converged,
-    one_by_one. The per-pixel sums are `vdo.dic.subset_sums`' compiled programs, on the chunk
-    padded to SUBSET_CHUNK subsets and its boxes to a multiple of PIXEL_PAD pixels (weight 0)."""
+def _solve_subsets(cameras, refs, defs, geometry, k, boxes, box, U0, solver, out):
+    """`correlate_subsets` on the subsets k, given their pixel boxes in each camera (`_subset_boxes`
+    of the subsets k): writes out.U[k], b, c, iterations, converged, one_by_one. The per-pixel
+    work is `vdo.dic.subset_sums`' compiled programs, on the chunk padded to SUBSET_CHUNK subsets
+    and its boxes to `box` = (n_u, n_v) pixels (weight 0; as large as any box but those of the
+    subsets `_subset_boxes` leaves to `correlate`)."""
     nu, ndof = 12, 12 + 2 * len(cameras)
     size = geometry[3]
     cams = []
     one_by_one = np.zeros(len(k), bool)
-    for cam, (ref, rspline, grads), dfm in zip(cameras, refs, defs):
-        uv, w, X, xi, odd = _subset_pixels(cam, cameras, geometry, k, margin_px)
-        one_by_one |= odd | ~rspline.covers_each(uv[..., 0], uv[..., 1], w)     # (the window is built around them)
-        a, b = xi[..., 0] / size, xi[..., 1] / size
-        N = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b], -1)      # Q4(1, 1)
-        g = ref[uv[..., 1], uv[..., 0]]
-        cu, cv = uv[..., 0] - int(rspline.origin[0]), uv[..., 1] - int(rspline.origin[1])
-        G0 = _image_gradient_sensitivity(cam, X, np.stack([grads[0][cv, cu], grads[1][cv, cu]], -1))
+    n_u, n_v = box
+    origin, t_u, t_v = (padded(a[k], (SUBSET_CHUNK,)) for a in geometry[:3])
+    for cam, ref, dfm, (lo, hi, odd) in zip(cameras, refs, defs, boxes):
+        camera = (np.linalg.inv(cam.K).T @ cam.R, np.asarray(cam.position, dtype=float), cam.R, cam.t, dfm.k,
+                  np.array([cam.width, cam.height], dtype=float))
+        Xc, N, w, g, G, M, count, covered = subset_setup(
+            padded(lo, (SUBSET_CHUNK,)), padded(hi, (SUBSET_CHUNK,)), origin, t_u, t_v, size, camera, ref.image,
+            ref.gradient_u, ref.gradient_v, ref.window, ref.valid, n_u=n_u, n_v=n_v)
+        one_by_one |= odd | (np.asarray(count)[:len(k)] < 4) | ~np.asarray(covered)[:len(k)]
         corners = _corners(*(a[k] for a in geometry[:3]), size) @ cam.R.T + cam.t
-        cams.append(dict(cam=cam, dfm=dfm, Xc=X @ cam.R.T + cam.t, N=N, w=w, g=g, G=G0, corners=corners))
-    # every camera's boxes padded to one size: one compiled program for the chunk
-    shape = (SUBSET_CHUNK, -(-max(c["w"].shape[1] for c in cams) // PIXEL_PAD) * PIXEL_PAD)
-    for c in cams:
-        c.update({key: jnp.asarray(padded(c[key], shape)) for key in ("Xc", "N", "w", "g", "G")},
-                 corners=jnp.asarray(padded(c["corners"], shape[:1])))
-        c["M"] = np.asarray(normal_sums(c["N"], c["w"], c["G"], c["g"]))[:len(k)]
+        cams.append(dict(cam=cam, dfm=dfm, Xc=Xc, N=N, w=w, g=g, G=G, M=np.asarray(M)[:len(k)],
+                         corners=jnp.asarray(padded(corners, (SUBSET_CHUNK,)))))
 
     p = np.zeros((len(k), ndof))
     p[:, :nu] = U0.reshape(len(k), nu)
