@@ -35,7 +35,7 @@ from vdo.model.spline_response import KEYS, KEYS_A
 
 __all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "subset_setup"]
 
-BOX_PAD = 2             # a call's pixel boxes are padded to multiples of this per side (calls
+BOX_PAD = 2             # a camera's pixel boxes are padded to multiples of this per side (calls
                         # with boxes of about one size then share a program)
 WINDOW_PAD = 512        # a coefficient window's sides are padded to multiples of this (the
                         # cameras' windows of a call then share a size, hence one program)
@@ -115,13 +115,14 @@ def normal_sums(N, w, G, g):
 
 @partial(jax.jit, static_argnames="order")
 def residual_sums(coeffs, origin, k, R, Xc, N, U, w, active, g, G, corners, valid, *, order):
-    """One step's sums of one camera for the K subsets where `active` (K,) is 1 (0 elsewhere): t = Σ_p w_p f_p j_p (K, 14) (module
-    docstring), f_p the deformed image's spline (coefficients `coeffs` (H, W), window corner
-    `origin` = (u, v) in the image) at the pinhole image of R (X_p + N_p U) + t, given
-    Xc = R X_p + t (K, P, 3) and the Q4 node displacements U (K, 4, 3) (m); and (K,) whether the
-    four displaced corners (camera frame before the displacement, `corners` (K, 4, 3)) project
-    inside `valid` = (u0, u1, v0, v1), where every pixel's taps lie in the window and the window's
-    spline is the whole image's. k = (f_x, s, c_x, f_y, c_y) (pixels)."""
+    """One step's sums of one camera for the K subsets where `active` (K,) is 1 (0 elsewhere):
+    t = Σ_p w_p f_p j_p (K, 14) (module docstring), f_p the deformed image's spline (coefficients
+    `coeffs` (H, W), window corner `origin` = (u, v) in the image) at the pinhole image of
+    R (X_p + N_p U) + t, given Xc = R X_p + t (K, P, 3) and the Q4 node displacements U (K, 4, 3)
+    (m); and (K,) whether the four displaced corners (camera frame before the displacement,
+    `corners` (K, 4, 3)) project inside `valid` = (u0, u1, v0, v1), where every pixel's taps lie
+    in the window and the window's spline is the whole image's. k = (f_x, s, c_x, f_y, c_y)
+    (pixels)."""
     URt = U @ R.T                                                   # (K, 4, 3): small
     pc = Xc + sum(N[..., a:a + 1] * URt[:, None, a, :] for a in range(4))
     u, v = image_point(tuple(k), pc[..., 0] / pc[..., 2], pc[..., 1] / pc[..., 2])

@@ -123,15 +123,15 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     chunks = [np.arange(k, min(k + SUBSET_CHUNK, n_pts)) for k in range(0, n_pts, SUBSET_CHUNK)]
     geometry = (origin, t_u, t_v, size)
     boxes = [_subset_boxes(cam, cameras, geometry, np.arange(n_pts), margin_px) for cam in cameras]
-    # every chunk's boxes in every camera padded to one size (the largest box of the subsets it
-    # solves, rounded up to BOX_PAD): one compiled program per call
+    # a camera's boxes padded to one size (the largest of the subsets it solves, rounded up to
+    # BOX_PAD): one compiled program per camera and call, whatever the chunk
     solved = ~np.any([odd for _, _, odd in boxes], axis=0)
-    box = tuple(-(-int(max([(hi - lo)[solved, a].max(initial=0) + 1 for lo, hi, _ in boxes])) // BOX_PAD) * BOX_PAD
-                for a in (0, 1))
+    sizes = [tuple(-(-int((hi - lo)[solved, a].max(initial=0) + 1) // BOX_PAD) * BOX_PAD for a in (0, 1))
+             for lo, hi, _ in boxes]
 
     def run(k):
-        _solve_subsets(cameras, refs, defs, geometry, k, [tuple(a[k] for a in b) for b in boxes], box, U0[k],
-                       solver, out)
+        per_camera = [(lo[k], hi[k], odd[k], n) for (lo, hi, odd), n in zip(boxes, sizes)]
+        _solve_subsets(cameras, refs, defs, geometry, k, per_camera, U0[k], solver, out)
         return len(k)
 
     from concurrent.futures import ThreadPoolExecutor
@@ -254,19 +254,18 @@ def _visible_margin(cam, X, normal, margin_px, slack, min_cos: float = 0.05):
             & (y >= m) & (y <= cam.height - 1 - m))
 
 
-def _solve_subsets(cameras, refs, defs, geometry, k, boxes, box, U0, solver, out):
-    """`correlate_subsets` on the subsets k, given their pixel boxes in each camera (`_subset_boxes`
-    of the subsets k): writes out.U[k], b, c, iterations, converged, one_by_one. The per-pixel
-    work is `vdo.dic.subset_sums`' compiled programs, on the chunk padded to SUBSET_CHUNK subsets
-    and its boxes to `box` = (n_u, n_v) pixels (weight 0; as large as any box but those of the
-    subsets `_subset_boxes` leaves to `correlate`)."""
+def _solve_subsets(cameras, refs, defs, geometry, k, boxes, U0, solver, out):
+    """`correlate_subsets` on the subsets k, given per camera their pixel boxes lo, hi, the ones
+    left to `correlate` (`_subset_boxes` of the subsets k) and the padded box size (n_u, n_v) (as
+    large as any box but those left to `correlate`): writes out.U[k], b, c, iterations, converged,
+    one_by_one. The per-pixel work is `vdo.dic.subset_sums`' compiled programs, on the chunk padded
+    to SUBSET_CHUNK subsets and (n_u, n_v) pixels a box (weight 0)."""
     nu, ndof = 12, 12 + 2 * len(cameras)
     size = geometry[3]
     cams = []
     one_by_one = np.zeros(len(k), bool)
-    n_u, n_v = box
     origin, t_u, t_v = (padded(a[k], (SUBSET_CHUNK,)) for a in geometry[:3])
-    for cam, ref, dfm, (lo, hi, odd) in zip(cameras, refs, defs, boxes):
+    for cam, ref, dfm, (lo, hi, odd, (n_u, n_v)) in zip(cameras, refs, defs, boxes):
         camera = (np.linalg.inv(cam.K).T @ cam.R, np.asarray(cam.position, dtype=float), cam.R, cam.t, dfm.k,
                   np.array([cam.width, cam.height], dtype=float))
         Xc, N, w, g, G, M, count, covered = subset_setup(
