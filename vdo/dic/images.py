@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from vdo.model.spline_response import KEYS, keys_kernel
 
-__all__ = ["SPLINE_ORDER", "WINDOW_MARGIN_PX", "SplineImage", "WindowedImage", "TextureSampler"]
+__all__ = ["SPLINE_ORDER", "WINDOW_MARGIN_PX", "bspline", "SplineImage", "WindowedImage", "TextureSampler"]
 
 
 SPLINE_ORDER = 3                # cubic B-splines (an odd order: 3 or 5; or KEYS, Keys' kernel)
@@ -31,15 +31,15 @@ WINDOW_MARGIN_PX = 24           # coefficients computed this far beyond the poin
                                 # (z = -0.268 cubic: 2e-14; z = -0.430 quintic: 2e-9)
 
 
-def _bspline(x, order: int):
+def bspline(x, order: int, xp=np):
     """The centred cardinal B-spline β_n(x) of degree `order` (support |x| < (n + 1) / 2):
-    β_n(x) = Σ_j (-1)^j C(n+1, j) (x + (n+1)/2 - j)_+^n / n!."""
+    β_n(x) = Σ_j (-1)^j C(n+1, j) (x + (n+1)/2 - j)_+^n / n!. xp: numpy or jax.numpy."""
     from math import comb, factorial
 
     n = order
-    total = np.zeros_like(x, dtype=float)
+    total = 0.0
     for j in range(n + 2):
-        total += (-1) ** j * comb(n + 1, j) * np.maximum(x + (n + 1) / 2 - j, 0.0) ** n
+        total = total + (-1) ** j * comb(n + 1, j) * xp.maximum(x + (n + 1) / 2 - j, 0.0) ** n
     return total / factorial(n)
 
 
@@ -149,8 +149,8 @@ class SplineImage:
         d = t[:, None] - self._taps()[None, :]
         if self.order == KEYS:
             return keys_kernel(d), keys_kernel(d, derivative=True)
-        w = _bspline(d, self.order)
-        dw = _bspline(d + 0.5, self.order - 1) - _bspline(d - 0.5, self.order - 1)
+        w = bspline(d, self.order)
+        dw = bspline(d + 0.5, self.order - 1) - bspline(d - 0.5, self.order - 1)
         return w, dw
 
     def value_and_gradient(self, x):

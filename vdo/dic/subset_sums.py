@@ -24,14 +24,14 @@ is only taken where the caller's `valid` box says its taps lie in the window).
 from __future__ import annotations
 
 from functools import partial
-from math import comb, factorial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from vdo.dic.images import bspline
 from vdo.model.camera import image_point
-from vdo.model.spline_response import KEYS, KEYS_A
+from vdo.model.spline_response import KEYS, keys_kernel
 
 __all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "subset_setup"]
 
@@ -58,26 +58,16 @@ def _weights(t, order):
     """The kernel's weights of the taps floor(x) - (n - 1)/2 .. floor(x) + (n + 1)/2 (n = 3 for
     Keys), for t = x - floor(x): a list of arrays shaped like t. Cubic B-spline in closed form,
     (1 - t)³/6, (3t³ - 6t² + 4)/6, (-3t³ + 3t² + 3t + 1)/6, t³/6; other odd orders by
-    β_n(x) = Σ_j (-1)^j C(n+1, j) (x + (n+1)/2 - j)_+^n / n! (`vdo.dic.images`); Keys' kernel
-    (`vdo.model.spline_response.keys_kernel`, a = KEYS_A)."""
+    `vdo.dic.images.bspline`; Keys' kernel by `vdo.model.spline_response.keys_kernel`."""
     if order == 3:
         s, t2 = 1.0 - t, t * t
         t3 = t2 * t
         return [s * s * s / 6, (3 * t3 - 6 * t2 + 4) / 6, (-3 * t3 + 3 * t2 + 3 * t + 1) / 6, t3 / 6]
     n = 3 if order == KEYS else order
-    out = []
-    for j in range(-(n - 1) // 2, (n + 1) // 2 + 1):
-        x = t - j
-        if order == KEYS:
-            a, ax = KEYS_A, jnp.abs(x)
-            out.append(jnp.where(ax <= 1.0, ((a + 2) * ax - (a + 3)) * ax * ax + 1.0,
-                                 jnp.where(ax < 2.0, ((a * ax - 5 * a) * ax + 8 * a) * ax - 4 * a, 0.0)))
-        else:
-            total = 0.0
-            for i in range(n + 2):
-                total = total + (-1) ** i * comb(n + 1, i) * jnp.maximum(x + (n + 1) / 2 - i, 0.0) ** n
-            out.append(total / factorial(n))
-    return out
+    taps = range(-(n - 1) // 2, (n + 1) // 2 + 1)
+    if order == KEYS:
+        return [keys_kernel(t - j, xp=jnp) for j in taps]
+    return [bspline(t - j, order, xp=jnp) for j in taps]
 
 
 def _sample(coeffs, rows, cols, order):

@@ -76,24 +76,25 @@ class _SplineSpectrum:
         return self._weighted(self.s * (self.omega[:, None] + 2 * np.pi * self.l), phases)
 
 
-def keys_kernel(x, a: float | None = None, derivative: bool = False) -> np.ndarray:
+def keys_kernel(x, a: float | None = None, derivative: bool = False, xp=np) -> np.ndarray:
     """Keys' cubic convolution kernel k(x) (a = KEYS_A unless given; support |x| < 2), or k'(x):
 
         k(x) = (a + 2)|x|³ - (a + 3)|x|² + 1          |x| <= 1
                a|x|³ - 5a|x|² + 8a|x| - 4a            1 < |x| < 2
 
     k(0) = 1, k(±1) = k(±2) = 0: the interpolant f(x) = Σ_m f_m k(x - m) passes through its
-    samples, with no prefilter; k' is continuous (k'(±1) = ±a from both pieces)."""
+    samples, with no prefilter; k' is continuous (k'(±1) = ±a from both pieces). xp: numpy or
+    jax.numpy."""
     a = KEYS_A if a is None else float(a)
-    x = np.asarray(x, dtype=np.float64)
-    t = np.abs(x)
+    x = xp.asarray(x, dtype=xp.float64)
+    t = xp.abs(x)
     if derivative:
         inner = 3 * (a + 2) * t * t - 2 * (a + 3) * t
         outer = 3 * a * t * t - 10 * a * t + 8 * a
-        return np.sign(x) * np.where(t <= 1.0, inner, np.where(t < 2.0, outer, 0.0))
+        return xp.sign(x) * xp.where(t <= 1.0, inner, xp.where(t < 2.0, outer, 0.0))
     inner = ((a + 2) * t - (a + 3)) * t * t + 1.0
     outer = ((a * t - 5 * a) * t + 8 * a) * t - 4 * a
-    return np.where(t <= 1.0, inner, np.where(t < 2.0, outer, 0.0))
+    return xp.where(t <= 1.0, inner, xp.where(t < 2.0, outer, 0.0))
 
 
 class _KeysSpectrum:
