@@ -1,6 +1,7 @@
-"""The per-pixel sums of `vdo.dic.subsets.correlate_subsets`, compiled: each subset's normal
-matrix once (`normal_sums`) and, at every Gauss–Newton step, the B-spline samples of the deformed
-image with the sums the step needs (`residual_sums`), one XLA program (JAX, float64) each.
+"""The per-pixel work of `vdo.dic.subsets.correlate_subsets`, compiled: once per subset its
+pixels, what the steps read of them and its normal matrix (`subset_setup`, with `normal_sums`)
+and, at every Gauss–Newton step, the B-spline samples of the deformed image with the sums the
+step needs (`residual_sums`), one XLA program (JAX, float64) each.
 
 Why compiled. A step samples ~840 pixels per subset and camera. SciPy's `map_coordinates` takes
 ~60 ns a sample on this access pattern and the NumPy arithmetic around it as much again, in
