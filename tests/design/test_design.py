@@ -21,8 +21,8 @@ from vdo.design.budget import ENTRY_BYTES, estimate, refuse
 from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import (POLISH_RTOL, exchange, figures, greedy, percentile_by_region, polish,
-                               problems, region_table)
+from vdo.design.select import (POLISH_RTOL, design_layout, exchange, figures, greedy, percentile_by_region,
+                               polish, problems, region_table)
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
@@ -509,8 +509,9 @@ def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fit
     """Fewer candidates than PROBE: the estimate judges them all, so its stored pairs are the
     judgement's and its stored bytes the arrays' own. A memory limit a quarter of the way from the
     fixed part to the estimate is refused naming a spacing (at least 2x coarser) and a candidate
-    count; the estimate at that spacing fits within SCALING_TOL. A time limit half the estimate:
-    a spacing sqrt(2) coarser."""
+    count; the estimate at that spacing fits within SCALING_TOL. A time limit half the judging's
+    estimate: a spacing sqrt(2) coarser; one that the judging fits but not the search is not
+    refused (the selection stops at the limit)."""
     exp = _experiment(plate_experiment)
     geometry = prepare(exp)
     j = judging(exp, geometry)
@@ -530,10 +531,11 @@ def test_estimate_against_the_judgement_and_the_refusal_names_a_spacing_that_fit
     g2 = prepare(replace(coarse, evaluation=replace(coarse.evaluation, sample_spacing=spacing / 1e3)))
     est2 = estimate(coarse, judging(coarse, g2), Scorer(coarse, g2.samples))
     assert est2.memory_bytes - est2.fixed_bytes <= room * (1 + SCALING_TOL)
-    total = est.judge_s + est.search_s
     with pytest.raises(ConfigError, match=rf"sample_spacing_mm of {math.ceil(50 * math.sqrt(2))} or more"):
-        refuse(exp, est, math.inf, total / 2)
-    refuse(exp, est, est.memory_bytes, total)           # what fits is not refused
+        refuse(exp, est, math.inf, est.judge_s / 2)
+    refuse(exp, est, est.memory_bytes, est.judge_s)     # what fits is not refused
+    assert est.search_s > 0
+    refuse(exp, est, math.inf, est.judge_s + est.search_s / 2)
 
 
 def test_the_estimate_judges_one_block_of_the_size_the_judging_uses(plate_experiment, monkeypatch):
@@ -785,3 +787,30 @@ def test_refine_starts_from_the_design_and_says_both_ends(plate_experiment, tmp_
                     f"({design['constraint_violations']} constraint violation(s)) -> {after:.3f} um "
                     f"({refined['violations']})"]
     assert config.load(out / "refine" / "optimized.toml").camera_specs
+
+
+def test_the_selection_stops_at_the_time_limit_with_the_inventory_searched_first(plate_experiment, monkeypatch):
+    """The design's clock jumps past the time limit once the first camera count is searched: the
+    result is the inventory's layout (as without a limit), the curve holds that count alone, the
+    skipped counts are named in `problems`, and no bound is computed (no time left)."""
+    from vdo.design import select
+
+    exp = _experiment(plate_experiment, extra="min_cameras = 1")
+    free = design_layout(exp)
+    assert len(free.curve) >= 2
+    real, jumped = select._clock, {"s": 0.0}
+
+    def exchange(*args, **kwargs):
+        out = real_exchange(*args, **kwargs)
+        jumped["s"] = 1e6                    # the first count took "a million seconds"
+        return out
+
+    real_exchange = select.exchange
+    monkeypatch.setattr(select, "exchange", exchange)
+    monkeypatch.setattr(select, "_clock", lambda: real() + jumped["s"])
+    cut = design_layout(exp, time_limit=1e5)
+    assert [c["cameras"] for c in cut.curve] == [free.curve[-1]["cameras"]]
+    assert cut.curve[0]["chosen"] == free.curve[-1]["chosen"] and cut.cameras == free.cameras
+    assert cut.curve[0]["bound"] is None
+    skipped = [c["cameras"] for c in free.curve[:-1]]
+    assert any(f"counts {min(skipped)}..{max(skipped)} were searched" in p for p in cut.problems)

@@ -504,7 +504,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="refuse, before the work, a design estimated to need more (default: the "
                          "memory available)")
     de.add_argument("--time-limit", type=float, default=None, metavar="SECONDS",
-                    help="refuse, before the work, a design estimated to take longer")
+                    help="refuse, before the work, a design whose judging is estimated to take longer; "
+                         "the selection stops at the limit (the inventory's count first)")
     de.add_argument("--dask", default=None, help="judge the candidates on a Dask scheduler's workers "
                                                  "(its address), or 'local' for a LocalCluster")
     de.add_argument("--workers", type=int, default=None,

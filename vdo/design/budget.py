@@ -82,7 +82,7 @@ class Estimate:
         return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
                 f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
                 f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
-                f"{self.search_s:.0f} s search{bound}")
+                f"up to {self.search_s:.0f} s search{bound}")
 
 
 def peak_rss() -> float:
@@ -150,8 +150,10 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
 
 def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:
     """ConfigError naming the [design] sample_spacing_mm and the candidate count that would fit
-    when `est` needs more than `memory_limit` bytes or (with one) `time_limit` seconds. The stored
-    pairs and both times grow as candidates x samples, samples as 1 / spacing^2."""
+    when `est` needs more than `memory_limit` bytes or its judging (with one) more than
+    `time_limit` seconds: the judging has to finish, while the selection stops at the limit with
+    the counts it has searched (`vdo.design.select.design_layout`). The stored pairs and both
+    times grow as candidates x samples, samples as 1 / spacing^2."""
     over = []
     if est.memory_bytes > memory_limit:
         room = memory_limit - est.fixed_bytes
@@ -162,9 +164,8 @@ def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: floa
                 f"{est.fixed_bytes / GB:.1f} GB: free memory, or far fewer candidates (zone_points, "
                 "zone_heights, rail_positions, lenses_mm, aim_offsets_deg)"))
         over.append(((est.memory_bytes - est.fixed_bytes) / room, f"{memory_limit / GB:.1f} GB of memory"))
-    total = est.judge_s + est.search_s
-    if time_limit is not None and total > time_limit:
-        over.append((total / time_limit, f"the time limit of {time_limit:g} s"))
+    if time_limit is not None and est.judge_s > time_limit:
+        over.append((est.judge_s / time_limit, f"the time limit of {time_limit:g} s for judging the candidates"))
     if not over:
         return
     ratio, what = max(over)

@@ -17,7 +17,9 @@ included) with `vdo.state.layout_state` at [evaluation]'s sample spacing, and wi
 constraint check of `vdo optimize` (`vdo.optimize.layout_checks`, constraints.json).
 
 How many cameras. The greedy order and exchange passes per count give the best layout for every
-count from `[design] min_cameras` to the inventory; `pareto.csv` holds, per count, sigma_max p95
+count from `[design] min_cameras` to the inventory, the inventory's count first: with a time limit
+the counts left when it comes are not searched (said in `problems`), so the layout of the whole
+inventory is always there; `pareto.csv` holds, per count, sigma_max p95
 over the scored regions (the worst region's p95, at the selection spacing, camera bodies included)
 and the area fraction seen by its region's min_cameras. With `target_sigma_um` the smallest count
 that meets it with full coverage is reported.
@@ -36,6 +38,7 @@ region the design leaves short of its min_cameras; the best layout is written al
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -59,6 +62,8 @@ from vdo.state import layout_state, prepare
 from vdo.core.tolerances import LIMIT_SLACK
 
 log = logging.getLogger(__name__)
+
+_clock = time.perf_counter      # the design's clock (its time limit; a test moves it)
 
 
 def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
@@ -403,15 +408,19 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     written into out/refine; its constraints.json "before" holds every constraint check of the
     designed layout). Before the work, the time and memory it will take are estimated
     (`vdo.design.budget.estimate`, one INFO line) and a problem that needs more than
-    `memory_limit` bytes (default: `vdo.design.budget.available_memory`) or `time_limit` seconds
-    is refused (`vdo.design.budget.refuse`: ConfigError naming the spacing and the candidate count
-    that fit). With a dask.distributed `client` the candidates are judged on its workers
+    `memory_limit` bytes (default: `vdo.design.budget.available_memory`), or whose judging needs
+    more than `time_limit` seconds, is refused (`vdo.design.budget.refuse`: ConfigError naming the
+    spacing and the candidate count that fit). The selection then stops at the time limit: the
+    inventory's count is searched first, the smaller counts while time is left (each assumed to
+    take as long as the last one, with the final judgement's time kept), and the bounds share
+    what is left (module docstring). With a dask.distributed `client` the candidates are judged on its workers
     (`vdo.design.candidates.judge`; `threads` Dr.Jit threads each). With `store` (a folder) the
     judged candidate blocks are kept there, and those of an interrupted run of the same
     experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the chosen
     cameras: INFO lines and bars through the module logger; each problem found (also in the
     result): a warning."""
-    t0 = time.perf_counter()
+    t0 = _clock()
+    deadline = math.inf if time_limit is None else t0 + time_limit
     d = exp.design
     n_max = inventory(exp)
     coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
@@ -420,12 +429,12 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     est = estimate(exp, j, scorer)
     log.info(est.line())
     refuse(exp, est, available_memory() if memory_limit is None else memory_limit, time_limit)
-    t_judge = time.perf_counter()
+    t_judge = _clock()
     cand = judge(exp, coarse, j, client=client, threads=threads, store=store)
     K, N = len(cand.cameras), cand.samples
-    judged_s = time.perf_counter() - t_judge
+    judged_s = _clock() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
-             d.sample_spacing * 1e3, time.perf_counter() - t0)
+             d.sample_spacing * 1e3, _clock() - t0)
     issues = problems(exp, cand, coarse.samples)
     for msg in issues:
         log.warning(msg)
@@ -443,11 +452,15 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     log.info("%.0f %% of the regions' area can be measured from the candidate spots (%d+ views); "
              "the camera-count curve is over that area", 100 * coarse.samples.area[can_measure].sum()
              / coarse.samples.area.sum(), exp.evaluation.min_cameras)
-    t_search = time.perf_counter()
+    t_search = _clock()
     order, _ = greedy(cand, scorer, feas, n_max)
-    curve = []
-    for n in bar(log, iterable=range(min(d.min_cameras, len(order)), len(order) + 1), desc="counts",
-                 leave=False):
+    curve, count_s, skipped = [], 0.0, []
+    counts = list(range(len(order), min(d.min_cameras, len(order)) - 1, -1))      # the inventory first
+    for n in bar(log, iterable=counts, desc="counts", leave=False):
+        if curve and _clock() + 2 * count_s > deadline:      # this count, and the final judgement
+            skipped = [m for m in counts if m <= n]
+            break
+        started = _clock()
         chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
         judged = _judged(exp, cand, coarse, chosen, can_measure)
         polished, polish_swaps = polish(cand, scorer, feas, coarse.samples, chosen)
@@ -462,10 +475,20 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
                       "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
                       **judged})
-    relax_curve(exp, cand, scorer, feas, curve)
-    searched_s = time.perf_counter() - t_search
+        count_s = _clock() - started
+    best = curve[0]                     # the inventory's count
+    curve.reverse()
+    if skipped:
+        done = [c["cameras"] for c in curve]
+        issues.append(f"the time limit of {time_limit:g} s came before the camera counts "
+                      f"{skipped[-1]}..{skipped[0]} were searched: the curve holds "
+                      f"{done[0]}{'' if len(done) == 1 else f'..{done[-1]}'} cameras (a longer "
+                      "--time-limit searches them)")
+        log.warning(issues[-1])
+    relax_curve(exp, cand, scorer, feas, curve, seconds=min(d.bound_seconds, max(
+        0.0, (deadline - _clock() - count_s) / len(curve))))
+    searched_s = _clock() - t_search
     search_peak = peak_rss()      # what the estimate covers: judging and selection
-    best = curve[-1]
     target = None
     if d.target_sigma_um is not None:
         key = sigma_key(exp)
@@ -503,7 +526,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     for c in stats["chosen"]:
         log.info("%s: %s, %g mm, %s %s at %s m, sees %s", c["camera"], c["body"], c["focal_mm"], c["kind"],
                  c["mount"], c["position_m"], ", ".join(c["regions"]) or "no region whole")
-    wall = time.perf_counter() - t0
+    wall = _clock() - t0
     final_peak = peak_rss()       # before the refinement, as the figures above
     refined = optimize_layout(final) if refine else None
     return DesignResult(cameras=len(best["chosen"]), problems=issues, target_count=target,
@@ -566,15 +589,16 @@ class DesignRecord:
     final_peak_memory_bytes: float          # the same, the final judgement included
 
 
-def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve) -> None:
+def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
+                seconds: float | None = None) -> None:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
-    rules dropped; [design] bound_s wall seconds per count): "bound", "gap" (1 - bound / score)
-    and "bound_converged"; None where bound_s = 0. The score never rises when a camera is added,
+    rules dropped; `seconds` wall seconds per count, default [design] bound_s): "bound", "gap"
+    (1 - bound / score) and "bound_converged"; None where that is 0. The score never rises when a camera is added,
     so the best k-camera score is at least the best (k+1)-camera score: each count's bound is the
     largest of its own and those of larger counts (while the relaxation's count grows). Logs each
     gap."""
-    seconds = exp.design.bound_seconds
+    seconds = exp.design.bound_seconds if seconds is None else seconds
     if seconds <= 0:
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
