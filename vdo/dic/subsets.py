@@ -109,13 +109,24 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     half = size / 2
     origin = points - half * t_u - half * t_v
     corners = _corners(origin, t_u, t_v, size)
-    refs, defs = [], []
-    for cam, ref, dfm in zip(cameras, references, deformed):
-        ref, dfm = np.asarray(ref, dtype=float), np.asarray(dfm, dtype=float)
-        on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])
-        refs.append(_Reference.of(ref, SplineImage.around(ref, on_image(corners), 1.0, order)))
+
+    def splines(i):
+        """Camera i's reference and deformed splines, each on one window around the subsets."""
+        cam = cameras[i]
+        ref, dfm = np.asarray(references[i], dtype=float), np.asarray(deformed[i], dtype=float)
+        on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])  # noqa: E731
         spline = SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order)
-        defs.append(_Deformed.of(spline, cam))
+        return (_Reference.of(ref, SplineImage.around(ref, on_image(corners), 1.0, order)),
+                _Deformed.of(spline, cam))
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    threads = min(int(workers), nc)
+    if threads > 1:                   # SciPy's filters release the GIL
+        with ThreadPoolExecutor(threads) as pool:
+            refs, defs = zip(*pool.map(splines, range(nc)))
+    else:
+        refs, defs = zip(*map(splines, range(nc)))
     shape = (n_pts,)
     out = SubsetResult(U=U0.copy(), b=np.zeros((n_pts, nc)), c=np.zeros((n_pts, nc)),
                        iterations=np.zeros(shape, int), converged=np.zeros(shape, bool),
@@ -133,8 +144,6 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
         per_camera = [(lo[k], hi[k], odd[k], n) for (lo, hi, odd), n in zip(boxes, sizes)]
         _solve_subsets(cameras, refs, defs, geometry, k, per_camera, U0[k], solver, out)
         return len(k)
-
-    from concurrent.futures import ThreadPoolExecutor
 
     from vdo.core.progress import bar as progress_bar
 
