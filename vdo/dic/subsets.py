@@ -9,12 +9,12 @@ vectorised over chunks of SUBSET_CHUNK subsets: the per-camera normal matrices M
 summed once, only the residual's sums are formed per step (one compiled program per camera,
 `vdo.dic.subset_sums`, on one window of B-spline coefficients per image,
 `vdo.dic.images.SplineImage.around` all the subsets), and the step is the batched scaled eigen
-pseudo-inverse. The subsets it cannot batch (an image's
-margin, a corner behind a camera, lens distortion, a sample that left the deformed window) are
-handed to `correlate` itself (`SubsetResult.one_by_one`).
+pseudo-inverse. The subsets it cannot batch (an image's margin, a corner behind a camera, lens
+distortion, a sample that left the deformed window) are handed to `correlate` itself
+(`SubsetResult.one_by_one`).
 
-Above `vdo.dic.correlate` (which it calls), `vdo.dic.subset_sums`, `vdo.dic.patch` and `vdo.dic.images`; used by
-`vdo.dic.series`.
+Above `vdo.dic.correlate` (which it calls), `vdo.dic.subset_sums`, `vdo.dic.patch` and
+`vdo.dic.images`; used by `vdo.dic.series`.
 """
 
 from __future__ import annotations
