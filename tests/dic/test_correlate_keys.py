@@ -76,8 +76,8 @@ def test_keys_sampler_with_opencvs_parameter_is_cv2_remap(scene, monkeypatch):
 
 
 def test_keys_subsets_are_the_per_point_solution_and_recover_the_shift():
-    """`correlate_subsets(order=KEYS)` (its own vectorised sampler, `SplineImage.sample_local`)
-    against one `correlate(order=KEYS)` per subset, and the imposed shift of a smooth speckle
+    """`correlate_subsets(order=KEYS)` (the compiled sampler, `vdo.dic.subset_sums`, with Keys'
+    weights) against one `correlate(order=KEYS)` per subset, and the imposed shift of a smooth speckle
     rendered independently (tests/dic/test_correlate.py's box-pixel renders)."""
     import sys
     from dataclasses import replace
