@@ -75,7 +75,7 @@ from vdo import objective
 from vdo.search import reachability
 from vdo.outputs import report
 from vdo.config.experiment import Experiment, lens_catalogue_errors
-from vdo.core.errors import Collect, ConfigError
+from vdo.core.errors import Collect, ConfigError, check_time_limit
 from vdo.geometry.keyframes import load_path_of
 from vdo.model.camera import Camera
 from vdo.search.status import Status
@@ -185,9 +185,7 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     gets what is left; when start-up leaves nothing, the starting layout is judged and returned,
     with the reason. The log and the result give start-up and search apart (`startup_s`,
     `search_s`). Progress: INFO lines and a bar through the module logger (`vdo.core.progress`)."""
-    if not time_limit > 0:
-        raise ConfigError("command line", "--time-limit",
-                          f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")
+    check_time_limit(time_limit)
     errors = Collect()   # the lens check of `vdo check`, for callers that skip the command line
     errors.errors += lens_catalogue_errors(exp)
     errors.raise_all()

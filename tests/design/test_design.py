@@ -814,3 +814,17 @@ def test_the_selection_stops_at_the_time_limit_with_the_inventory_searched_first
     assert cut.curve[0]["bound"] is None
     skipped = [c["cameras"] for c in free.curve[:-1]]
     assert any(f"counts {min(skipped)}..{max(skipped)} were searched" in p for p in cut.problems)
+
+
+@pytest.mark.parametrize("limit", ["0", "-5"])
+def test_a_time_limit_that_is_not_positive_is_one_line(plate_experiment, tmp_path, capsys, limit):
+    """`vdo design --time-limit 0 | -5`: exit 2, one line naming the option and the fix, no
+    traceback, no output folder (it divided by zero or took a square root of a negative)."""
+    from vdo.commands.cli import main
+
+    exp = _experiment(plate_experiment)
+    out = tmp_path / "out"
+    assert main(["design", str(exp.path), "--out", str(out), "--time-limit", limit, "--quiet"]) == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "--time-limit: must be a positive number of seconds" in err[0]
+    assert not out.exists()

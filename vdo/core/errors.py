@@ -55,3 +55,11 @@ class Collect:
             raise self.errors[0]
         if self.errors:
             raise ConfigErrors(self.errors)
+
+
+def check_time_limit(time_limit: float | None) -> None:
+    """ConfigError for a command's `--time-limit` that is not a positive number of seconds (None:
+    no limit)."""
+    if time_limit is not None and not time_limit > 0:
+        raise ConfigError("command line", "--time-limit",
+                          f"must be a positive number of seconds (got {time_limit}); e.g. --time-limit 600")

@@ -54,7 +54,7 @@ from vdo.outputs import report
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
 from vdo.config.rig import CameraSpec
-from vdo.core.errors import ConfigError
+from vdo.core.errors import ConfigError, check_time_limit
 from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.core.progress import bar
 from vdo.scene import cameras_of
@@ -419,6 +419,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the chosen
     cameras: INFO lines and bars through the module logger; each problem found (also in the
     result): a warning."""
+    check_time_limit(time_limit)
     t0 = _clock()
     deadline = math.inf if time_limit is None else t0 + time_limit
     d = exp.design
