@@ -19,9 +19,9 @@ constraint check of `vdo optimize` (`vdo.optimize.layout_checks`, constraints.js
 How many cameras. The greedy order and exchange passes per count give the best layout for every
 count from `[design] min_cameras` to the inventory, the inventory's count first: with a time limit
 the counts left when it comes are not searched (said in `problems`), so the layout of the whole
-inventory is always there; `pareto.csv` holds, per count, sigma_max p95
-over the scored regions (the worst region's p95, at the selection spacing, camera bodies included)
-and the area fraction seen by its region's min_cameras. With `target_sigma_um` the smallest count
+inventory is always there; `pareto.csv` holds, per count, sigma_max p95 over the scored regions
+(the worst region's p95, at the selection spacing, camera bodies included) and the area fraction
+seen by its region's min_cameras. With `target_sigma_um` the smallest count
 that meets it with full coverage is reported.
 
 The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0, 1] (body counts
@@ -414,8 +414,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     inventory's count is searched first, the smaller counts while time is left (each assumed to
     take as long as the last one; kept for the final judgement: the first preparation's time
     times the ratio of the design's spacing to [evaluation]'s, and twice the first count's), and
-    the bounds share what is left (module docstring). With a dask.distributed `client` the candidates are judged on its workers
-    (`vdo.design.candidates.judge`; `threads` Dr.Jit threads each). With `store` (a folder) the
+    the bounds share what is left (module docstring). With a dask.distributed `client` the
+    candidates are judged on its workers (`vdo.design.candidates.judge`; `threads` Dr.Jit
+    threads each). With `store` (a folder) the
     judged candidate blocks are kept there, and those of an interrupted run of the same
     experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the chosen
     cameras: INFO lines and bars through the module logger; each problem found (also in the
@@ -491,8 +492,8 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       f"{done[0]}{'' if len(done) == 1 else f'..{done[-1]}'} cameras (a longer "
                       "--time-limit searches them)")
         log.warning(issues[-1])
-    relax_curve(exp, cand, scorer, feas, curve, seconds=min(d.bound_seconds, max(
-        0.0, (deadline - _clock() - final_s) / len(curve))))
+    left = max(0.0, (deadline - _clock() - final_s) / len(curve))    # per count, before the final judgement
+    relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left))
     searched_s = _clock() - t_search
     search_peak = peak_rss()      # what the estimate covers: judging and selection
     target = None
@@ -595,16 +596,14 @@ class DesignRecord:
     final_peak_memory_bytes: float          # the same, the final judgement included
 
 
-def relax_curve(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
-                seconds: float | None = None) -> None:
+def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve, seconds: float) -> None:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
-    rules dropped; `seconds` wall seconds per count, default [design] bound_s): "bound", "gap"
-    (1 - bound / score) and "bound_converged"; None where that is 0. The score never rises when a camera is added,
+    rules dropped; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score) and
+    "bound_converged"; None where `seconds` is 0. The score never rises when a camera is added,
     so the best k-camera score is at least the best (k+1)-camera score: each count's bound is the
     largest of its own and those of larger counts (while the relaxation's count grows). Logs each
     gap."""
-    seconds = exp.design.bound_seconds if seconds is None else seconds
     if seconds <= 0:
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)

@@ -274,6 +274,7 @@ def _solve_subsets(cameras, refs, defs, geometry, k, boxes, U0, solver, out):
     cams = []
     one_by_one = np.zeros(len(k), bool)
     origin, t_u, t_v = (padded(a[k], (SUBSET_CHUNK,)) for a in geometry[:3])
+    corners = _corners(origin, t_u, t_v, size)                  # world frame, padded
     for cam, ref, dfm, (lo, hi, odd, (n_u, n_v)) in zip(cameras, refs, defs, boxes):
         camera = (np.linalg.inv(cam.K).T @ cam.R, np.asarray(cam.position, dtype=float), cam.R, cam.t, dfm.k,
                   np.array([cam.width, cam.height], dtype=float))
@@ -281,9 +282,8 @@ def _solve_subsets(cameras, refs, defs, geometry, k, boxes, U0, solver, out):
             padded(lo, (SUBSET_CHUNK,)), padded(hi, (SUBSET_CHUNK,)), origin, t_u, t_v, size, camera, ref.image,
             ref.gradient_u, ref.gradient_v, ref.window, ref.valid, n_u=n_u, n_v=n_v)
         one_by_one |= odd | (np.asarray(count)[:len(k)] < 4) | ~np.asarray(covered)[:len(k)]
-        corners = _corners(*(a[k] for a in geometry[:3]), size) @ cam.R.T + cam.t
         cams.append(dict(cam=cam, dfm=dfm, Xc=Xc, N=N, w=w, g=g, G=G, M=np.asarray(M)[:len(k)],
-                         corners=jnp.asarray(padded(corners, (SUBSET_CHUNK,)))))
+                         corners=jnp.asarray(corners @ cam.R.T + cam.t)))
 
     p = np.zeros((len(k), ndof))
     p[:, :nu] = U0.reshape(len(k), nu)
