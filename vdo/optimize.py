@@ -79,8 +79,9 @@ from vdo.core.errors import Collect, ConfigError, check_time_limit
 from vdo.geometry.keyframes import load_path_of
 from vdo.model.camera import Camera
 from vdo.search.status import Status
+from vdo.physics.lighting import exposure_factors
 from vdo.physics.predict import predict
-from vdo.state import LayoutState, unobstructed_lighting
+from vdo.state import LayoutState, layout_state, prepare, unobstructed_lighting, with_exposure
 from vdo.search.anytime import Progress, Stop, stop_on_signals
 from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
 from vdo.search.problem import CLEARANCE_SPACING, Problem, Result, State, score_parts
@@ -256,6 +257,12 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
         score_before["score_um"] = problem.exact_score(problem.start)
         score_after["score_um"] = best.score
         score_before["objective"] = score_after["objective"] = getattr(objective, "__name__", "user")
+    optimized = final.exp.with_cameras(final.param.specs_at(best.theta))
+    settings = None
+    if optimized.exposure.free:   # f-numbers, exposure times and light power for the best layout
+        optimized, settings = with_exposure(optimized)
+        after = dataclasses.replace(report.state_evaluation(layout_state(prepare(optimized))),
+                                    load_path=after.load_path)
     scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
     worst = _worst_p95(before, scored), _worst_p95(after, scored)
     log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
@@ -265,7 +272,8 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
                           score_regions_um=score_after["regions"], reachability=reach,
                           violations=best.violations, worst_p95_um=worst,
                           violated=[e for e in best.checks if not e["met"]], before=before, after=after,
-                          optimized=final.exp.with_cameras(final.param.specs_at(best.theta)),
+                          optimized=optimized,
+                          exposure=None if settings is None else settings.to_json(),
                           cameras=tuple(best.state.cameras), checks_before=checks_before,
                           checks_after=best.checks, moves=_moves(problem, best),
                           record=SearchRecord(
@@ -300,16 +308,18 @@ class OptimizeResult:
     checks_after: list[dict]                    # every constraint check of the best layout
     moves: tuple[CameraMove, ...]               # per camera, hand layout -> best layout (moves.csv)
     record: SearchRecord                        # what the search did (optimizer.json, history.csv)
+    exposure: dict | None = None                # [exposure] free: the settings (`vdo.physics.exposure`)
 
     def to_json(self) -> dict:
         """The figures as a JSON dict: score_before, score_after (µm), startup_s, score_regions_um,
-        status (its value), reachability, violations, worst_p95_um [before, after], violated."""
+        status (its value), reachability, violations, worst_p95_um [before, after], violated,
+        exposure."""
         return {"score_before": self.score_before_um, "score_after": self.score_after_um,
                 "startup_s": self.startup_s, "search_s": self.search_s, "reason": self.reason,
                 "score_regions_um": self.score_regions_um,
                 "status": self.status.value, "reachability": self.reachability,
                 "violations": self.violations, "worst_p95_um": list(self.worst_p95_um),
-                "violated": self.violated}
+                "violated": self.violated, "exposure": self.exposure}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,7 +359,8 @@ def _summary(problem: Problem, state: State) -> report.EvaluationResult:
     exp = problem.exp
     pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(state.cameras),
                    problem.samples, state.vis, state.illumination, problem.speckle,
-                   overlap=problem.geometry.overlap)
+                   overlap=problem.geometry.overlap,
+                   exposure=exposure_factors(exp.camera_specs, exp.sensor))
     return report.evaluation(problem.exp, problem.samples, state.vis, pred)
 
 

@@ -126,7 +126,8 @@ class RenderResult:
     state        the layout state of the cameras *at the rendered scale* (`scaled_camera`; same
                  poses and lenses, hence the same bodies, visibility and lighting)
     images       camera name -> noisy DN image (H, W), uint8 or uint16 (`SensorModel.expose`)
-    linear       camera name -> linear float32 radiance image (H, W) before the sensor
+    linear       camera name -> linear float32 image (H, W) before the sensor: the radiance times
+                 the camera's exposure factor (`vdo.physics.lighting.exposure_factors`)
     photometry   one row per (camera, region): rendered against predicted brightness and
                  contrast (`region_photometry`, docs/photometry.md)
     seconds      camera name -> render time (s)
@@ -201,7 +202,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     import dataclasses
 
     from vdo.formats.export import default_pairs
-    from vdo.physics.lighting import photometry
+    from vdo.physics.lighting import exposure_factors, photometry
     from vdo.core.progress import bar
     from vdo.state import bodies, layout_state, prepare
 
@@ -236,15 +237,17 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     else:
         log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(chosen), scale, spp, seed)
     images, linear, seconds = {}, {}, {}
+    gathered = exposure_factors(exp.camera_specs, exp.sensor)
     for i in bar(log, iterable=chosen, desc="render", unit="camera"):
         cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()
-        linear[cam.name] = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
-                            if dic else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
+        radiance = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
+                    if dic else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
+        linear[cam.name] = radiance if gathered[i] == 1.0 else radiance * np.float32(gathered[i])
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
         seconds[cam.name] = time.perf_counter() - t0
     pho = photometry(state.illumination, exp.speckle, exp.sensor, geometry.speckle.mean,
-                     geometry.speckle.std, len(chosen))
+                     geometry.speckle.std, len(chosen), gathered[chosen])
     rows = region_photometry(list(state.cameras), vis, geometry.samples, pho, linear, exp.sensor,
                              normalise(pattern), exp.speckle.texel, None if dic else spp)
     return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,

@@ -40,7 +40,8 @@ from vdo.config.rig import CameraSpec
 from vdo.config.mounts import inside_floor
 from vdo.core.errors import Collect, ConfigError
 from vdo.geometry.keyframes import LoadPath, load_path_of
-from vdo.physics.lighting import Illumination, illuminate, relight
+from vdo.physics.exposure import ExposurePlan, design_exposure
+from vdo.physics.lighting import Illumination, exposure_factors, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
                        cameras_of, load_meshes, sample_regions, surface_raster, tripods)
@@ -392,11 +393,32 @@ def layout_state(geometry: Geometry, cameras=None, *, predict_fields: bool = Tru
         strain.check_regions(exp.analysis, samples, density, exp.path)
     prediction = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(cameras), samples,
                          vis, illumination, geometry.speckle, clip_patch=clip_patch,
-                         overlap=geometry.overlap, sizes=geometry.sizes)
+                         overlap=geometry.overlap, sizes=geometry.sizes,
+                         exposure=camera_exposure(exp, cameras))
     fields = None if density is None else strain.analysis_fields(
         exp.analysis, density, samples, prediction.information, prediction.measured,
         exp.evaluation.patch_size ** 2)
     return LayoutState(geometry, cameras, scene, vis, illumination, prediction, fields, source=exp)
+
+
+def camera_exposure(exp: Experiment, cameras) -> np.ndarray | None:
+    """(C,) the light each of `cameras` gathers (`vdo.physics.lighting.exposure_factors`) when
+    `exp`'s [[camera]] specs are these cameras (the same names in the same order); None (the
+    sensor's reference exposure) for cameras the file does not describe, e.g. design candidates."""
+    if [s.name for s in exp.camera_specs] != [c.name for c in cameras]:
+        return None
+    return exposure_factors(exp.camera_specs, exp.sensor)
+
+
+def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
+    """`exp` with the f-numbers, exposure times and light power that [exposure] free asks for
+    (`vdo.physics.exposure.design_exposure` on its layout, judged without predicting the fields),
+    and the plan itself."""
+    state = layout_state(prepare(exp), predict_fields=False)
+    plan = design_exposure(exp.exposure, exp.camera_specs, exp.lights, exp.speckle, exp.sensor,
+                           list(state.cameras), state.samples, state.visibility.visible,
+                           state.illumination, state.geometry.speckle.pattern)
+    return dataclasses.replace(exp.with_cameras(plan.camera_specs), lights=plan.lights), plan
 
 
 def warm_up(geometry: Geometry, cameras=None) -> float:

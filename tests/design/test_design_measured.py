@@ -206,7 +206,7 @@ def test_the_curve_and_the_target_read_sigma_measured(tmp_path, caplog, monkeypa
     monkeypatch.setenv("VDO_SET", 'design.score = "measured"; evaluation.sample_spacing_mm = 8; '
                                   "design.sample_spacing_mm = 8; design.rail_positions = 11; "
                                   f"design.lenses_mm = [16, 50]; design.bound_s = 0; "
-                                  f"design.target_sigma_um = {target}")
+                                  f"design.target_sigma_um = {target}; exposure.free = []")
     exp = config.load(Path(__file__).resolve().parents[2] / "experiments" / "holed_plate" / "design.toml")
     with caplog.at_level(logging.WARNING, logger="vdo"):
         result = design(exp, tmp_path / "design")

@@ -76,7 +76,7 @@ def write_design(result: DesignResult, out: Path, overwrite: bool = False) -> No
                         "sensor_width_mm": b.sensor_width * 1e3,
                         "lenses_mm": [f * 1e3 for f in lenses(exp, b)]} for b in bodies(exp)],
             "targets_m": cand.targets.tolist(), "problems": result.problems, "statistics": result.statistics,
-            "dropped_per_mount": cand.dropped,
+            "dropped_per_mount": cand.dropped, "exposure": result.exposure,
             "constraint_violations": result.violations,
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": result.target_count,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],

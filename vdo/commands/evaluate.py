@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.physics import checks, glare, measured
+from vdo.physics.lighting import exposure_factors
 from vdo import constraints
 from vdo.outputs import html_report
 from vdo.search import loadpath
@@ -133,7 +134,8 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     if checked is not None:
         judged = {"violations": sum(not c["met"] for c in checked), "checks": checked}
     hot = glare.hot_spots(exp.meshes, exp.regions, exp.lights, exp.speckle, exp.sensor,
-                          list(cameras), samples, vis.visible, illumination)
+                          list(cameras), samples, vis.visible, illumination,
+                          exposure_factors(exp.camera_specs, exp.sensor))
     for row in hot:
         for flag in row["flags"]:
             log.warning("camera %s: %s", row["camera"], flag)

@@ -37,9 +37,10 @@ import numpy as np
 
 from vdo.config.mounts import (KEEP_OUT_RAIL_POINTS, KeepOutSpec, MountSpec, RailSpec, check_keep_out,
                                check_mount, check_rail, inside_keep_out, resolve_mounts)
-from vdo.config.procedure import (Analysis, CalibrationSpec, DesignSpec, GroupSpec, LoadPathSpec,
-                                  ON_REQUEST, OptimizeSpec, StereoPairSpec, check_analysis,
-                                  check_calibration, check_design, check_load_path, check_optimize,
+from vdo.config.procedure import (Analysis, CalibrationSpec, DesignSpec, ExposureSpec, GroupSpec,
+                                  LoadPathSpec, ON_REQUEST, OptimizeSpec, StereoPairSpec,
+                                  check_analysis, check_calibration, check_design, check_exposure,
+                                  check_load_path, check_optimize,
                                   check_stereo_pair)
 from vdo.config.rig import (BodySpec, CameraSpec, Evaluation, LightSpec, MeshSpec, RegionSpec,
                             RenderSpec, SpeckleSpec, check_body, check_camera, check_light,
@@ -165,6 +166,10 @@ class Experiment:
     sensor: SensorModel = table("sensor", SensorModel, rows=sensor_rows(), default=SensorModel(),
                                 doc="EMVA 1288 sensor model (`vdo.model.sensor.SensorModel`).")
     render: RenderSpec = table("render", RenderSpec, default=RenderSpec())
+    exposure: ExposureSpec = table(
+        "exposure", ExposureSpec, check=check_exposure, default=ExposureSpec(),
+        doc="The light each camera gathers, (t / t_ref) (8 / N)², and what `vdo design` and "
+            "`vdo optimize` set of it: f-numbers, exposure times, light power (docs/exposure.md).")
     optimize: OptimizeSpec = table("optimize", OptimizeSpec, check=check_optimize,
                                    default=OptimizeSpec(), doc="What `vdo optimize` may move.")
     analysis: Analysis = table("analysis", Analysis, check=check_analysis, default=Analysis(),
@@ -402,6 +407,10 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         raise ConfigError(path, "optimize.free", 'lists "lens" but no lenses_mm catalogue is given: '
                                                  'add e.g. lenses_mm = [24, 35, 50, 100] here or on '
                                                  'a [[camera]]')
+    if "lights" in exp.exposure.free and not any(lt.max_radiance for lt in exp.lights):
+        raise ConfigError(path, "exposure.free", 'lists "lights" but no [[light]] has max_radiance: '
+                                                 "give each panel that may be set its brightest "
+                                                 "setting, e.g. max_radiance = 2 x its radiance")
     cameras, pairs = {c.name for c in exp.camera_specs}, set()
     for pair, t in zip(exp.stereo_pairs, tables["stereo_pair"]):
         unknown = sorted(set(pair.cameras) - cameras)

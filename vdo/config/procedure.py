@@ -149,12 +149,42 @@ def check_load_path(t: Table, v: dict) -> None:
                       "is for a VTK displacement file (a CSV names its units in its header)")
 
 
+EXPOSURE_FREE = ("aperture", "time", "lights")
+
+
+@dataclass(frozen=True)
+class ExposureSpec:
+    """[exposure]: the light each camera gathers and what `vdo design` and `vdo optimize` may set
+    of it after placing the cameras (`vdo.physics.exposure`, docs/exposure.md)."""
+
+    max_time: float = row("max_ms", Real(positive=True), 50.0, unit="ms",
+                          doc="the longest exposure the test allows: motion blur at the load rate "
+                              "(image speed x time below a tenth of a pixel, say)")
+    f_numbers: tuple[float, float] = row("f_number_range", Vector(2, positive=True, as_tuple=True,
+                                                                   letters=("min", "max")),
+                                         [2.8, 16.0], doc="the stops the lenses allow")
+    target_gray: float = row("target_gray", Real(0.3, 0.95), 0.85,
+                             doc="99th percentile gray aimed at in each camera's brightest region, "
+                                 "a fraction of the range")
+    free: tuple[str, ...] = row("free", Words(choices=EXPOSURE_FREE), [], shown="none",
+                                doc='what design and optimize set: "aperture" (each camera\'s '
+                                    'f-number and focus), "time" (its exposure time), "lights" '
+                                    "(each [[light]]'s radiance up to its max_radiance)")
+
+
+def check_exposure(t: Table, v: dict) -> None:
+    low, high = v["f_numbers"]
+    if not low < high:
+        raise t.error("f_number_range", f"= [{low:g}, {high:g}]: give [smallest, largest] stop, "
+                                        "e.g. [2.8, 16]")
+
+
 @dataclass(frozen=True)
 class OptimizeSpec:
     """What `vdo optimize` may move and the practical constraints it enforces."""
 
     free: tuple[str, ...] = row(
-        "free", Words(choices=("u", "pan", "tilt", "roll", "lens")), ["u", "pan", "tilt"],
+        "free", Words(choices=("u", "pan", "tilt", "roll", "lens"), nonempty=True), ["u", "pan", "tilt"],
         doc='parameters that move per camera (add "roll" to free it, otherwise cameras stay '
             'horizontal; add "lens" to choose each moving camera\'s lens from lenses_mm)')
     lenses: tuple[float, ...] = row(

@@ -165,6 +165,10 @@ class CameraSpec:
                                  "(none: f/8 in focus assumed, diffraction only)")
     focus_distance: float | None = row("focus_m", Real(positive=True), None, unit="m", shown="none",
                                        doc="focus distance, with f_number")
+    exposure_time: float | None = row("exposure_ms", Real(positive=True), None, unit="ms",
+                                      shown="[sensor] exposure_ms",
+                                      doc="exposure time; with the f-number (f/8 without one) it sets "
+                                          "the light the camera gathers, (t / t_ref) (8 / N)²")
     lenses: tuple[float, ...] = row(
         "lenses_mm", Numbers(as_set=True, what="focal lengths in mm"), [], unit="mm", shown="none",
         doc="the lenses this body takes, for \"lens\" in [optimize] free (default: [optimize] lenses_mm)")
@@ -212,6 +216,9 @@ class LightSpec:
                                     unit="m", doc="panel width and height")
     radiance: float = row("radiance", Real(positive=True),
                           doc="emitted radiance (any unit consistent with [sensor] photons_per_unit)")
+    max_radiance: float | None = row("max_radiance", Real(positive=True), None, shown="radiance",
+                                     doc='the panel\'s brightest setting: with "lights" in [exposure] '
+                                         "free, design and optimize set the radiance up to it")
 
 
 @dataclass(frozen=True)
@@ -248,7 +255,9 @@ def sensor_rows() -> tuple[Row, ...]:
             "gain_dn_per_e": ("system gain, DN per electron > 0", "full well → top DN"),
             "offset_dn": ("dark offset, DN in [0, 2^bit_depth − 1)", "2^(bit_depth − 7)"),
             "photons_per_unit": ("photons per pixel per unit of the linear render value, > 0",
-                                 "a linear value of 1 fills 70 % of the full well")}
+                                 "a linear value of 1 fills 70 % of the full well"),
+            "exposure_ms": ("the exposure time (ms) photons_per_unit holds at, with the lens at "
+                            "f/8; a camera's exposure_ms and f_number scale it", "")}
     return tuple(Row(name, kinds.get(name, Real()), defaults[name], doc=docs[name][0],
                      shown=docs[name][1], attr=name) for name in SENSOR_FIELDS)
 
@@ -357,6 +366,9 @@ def check_region(t: Table, v: dict) -> None:
 def check_light(t: Table, v: dict) -> None:
     if np.linalg.norm(v["target"] - v["position"]) < 1e-6:
         raise t.error("target_m", "must differ from position_m (the panel faces the target)")
+    if v["max_radiance"] is not None and v["max_radiance"] < v["radiance"]:
+        raise t.error("max_radiance", f"= {v['max_radiance']:g} is below radiance = "
+                                      f"{v['radiance']:g}: give the panel's brightest setting")
 
 
 def check_speckle(t: Table, v: dict) -> None:

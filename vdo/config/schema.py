@@ -2,8 +2,8 @@
 (`Kind`), how a dataclass field is described (`Row`, via `row`) and how a table is (`Section`, via
 `table`), and how a parsed table is written back (`write_rows`, `table_dict`).
 
-A `Kind` reads a value in file units and returns it in SI units: ``scale`` converts (mm -> m by
-1e-3, deg -> rad by pi/180, `_UNIT_SCALE`), ranges are in file units; `write` divides by the scale
+A `Kind` reads a value in file units and returns it in SI units: ``scale`` converts (mm -> m and
+ms -> s by 1e-3, deg -> rad by pi/180, `_UNIT_SCALE`), ranges are in file units; `write` divides by the scale
 and rounds to `_SIGNIFICANT` digits, so ``read(write(x)) == x`` to ~1e-12 relative. A value that
 does not fit raises `BadValue`, which the reading `vdo.config.reader.Table` turns into a
 `ConfigError` naming the file and the field. Imports only NumPy.
@@ -29,7 +29,7 @@ NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not st
 MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
 IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
                b"MM\x00*": "TIFF", b"BM": "BMP"}
-_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0}
+_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "ms": 1e-3, "deg": math.pi / 180.0}
 _SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
 
 
@@ -52,7 +52,7 @@ class BadValue(Exception):
 
 # --------------------------------------------------------------------------------------------
 # Kinds: how one TOML value is checked, converted to the attribute value and written back.
-# `scale` converts file units to SI (mm -> m, deg -> rad); ranges are in file units.
+# `scale` converts file units to SI (mm -> m, ms -> s, deg -> rad); ranges are in file units.
 # --------------------------------------------------------------------------------------------
 def is_number(x) -> bool:
     """Whether `x` is a TOML number (an int or a float, not a boolean)."""
@@ -286,7 +286,7 @@ class Words(Kind):
         ok = isinstance(value, list) and all(isinstance(x, str) for x in value) \
             and (value or not self.nonempty)
         if self.choices is not None:
-            if not ok or not value or not set(value) <= set(self.choices):
+            if not ok or not set(value) <= set(self.choices):
                 raise BadValue(f"must list some of {', '.join(self.choices)} (got {_show(value)})")
         elif not ok:
             raise BadValue(f"must be a {'non-empty ' if self.nonempty else ''}list of {self.what}")

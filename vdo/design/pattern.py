@@ -52,7 +52,7 @@ from vdo.core.progress import bar
 from vdo.model.speckle import MIN_DOT_TEXELS, generate_pattern, gradient_energy_table, normalise
 from vdo.outputs import report
 from vdo.physics.checks import INTERPOLATION_NOISE, SPECKLE_PX, design_checks
-from vdo.physics.lighting import pattern_stats
+from vdo.physics.lighting import exposure_factors, pattern_stats
 from vdo.physics.predict import SpeckleModel, predict
 from vdo.state import layout_state, prepare
 
@@ -155,7 +155,8 @@ def judge(exp: Experiment, state, dots_mm, dpi: float) -> tuple[Judged, np.ndarr
     e = replace(exp, speckle=spec)
     sm = model(f, texel, dots_mm)
     pred = predict(e.regions, e.evaluation, e.speckle, e.sensor, list(state.cameras), state.samples,
-                   state.visibility, state.illumination, sm, overlap=state.geometry.overlap)
+                   state.visibility, state.illumination, sm, overlap=state.geometry.overlap,
+                   exposure=exposure_factors(e.camera_specs, e.sensor))
     summary = report.summary(e, state.samples, state.visibility, pred)
     rows = design_checks(e.camera_specs, e.evaluation, e.speckle, e.sensor, e.analysis,
                          list(state.cameras), state.samples, state.visibility.visible,

@@ -58,7 +58,7 @@ from vdo.core.errors import ConfigError, check_time_limit
 from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.core.progress import bar
 from vdo.scene import cameras_of
-from vdo.state import layout_state, prepare
+from vdo.state import layout_state, prepare, with_exposure
 from vdo.core.tolerances import LIMIT_SLACK
 
 log = logging.getLogger(__name__)
@@ -519,6 +519,10 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                           "missing: more cameras, longer lenses or closer mounts)")
             log.warning(issues[-1])
     final = designed(exp, cand, best["chosen"])
+    settings = None
+    if exp.exposure.free:       # f-numbers, exposure times and light power for the chosen layout
+        final, settings = with_exposure(final)
+        issues.extend(settings.problems)
     state = layout_state(prepare(final))
     for msg in shortfalls(state, exp):
         issues.append(msg)
@@ -539,6 +543,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     return DesignResult(cameras=len(best["chosen"]), problems=issues, target_count=target,
                         refined=refined, statistics=stats, violations=len(violated), curve=curve,
                         summary=summary, wall_s=wall,
+                        exposure=None if settings is None else settings.to_json(),
                         record=DesignRecord(experiment=exp, designed=final, cameras=tuple(state.cameras),
                                             checks=checks, candidates=cand, inventory=n_max,
                                             estimate=est, judge_s=judged_s, search_s=searched_s,
@@ -565,13 +570,14 @@ class DesignResult:
     summary: report.EvaluationResult       # the designed layout judged whole
     wall_s: float                          # s, the whole design
     record: DesignRecord                   # what the run folder is written from
+    exposure: dict | None = None           # [exposure] free: the settings (`vdo.physics.exposure`)
 
     def to_json(self) -> dict:
         """The fields as a JSON dict, `summary` and `refined` as their `to_json()`."""
         return {"cameras": self.cameras, "problems": self.problems, "target_count": self.target_count,
                 "refined": None if self.refined is None else self.refined.to_json(),
                 "statistics": self.statistics, "violations": self.violations, "curve": self.curve,
-                "summary": self.summary.to_json(), "wall_s": self.wall_s}
+                "summary": self.summary.to_json(), "wall_s": self.wall_s, "exposure": self.exposure}
 
 
 @dataclass(frozen=True)

@@ -156,10 +156,12 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
     (`vdo.render.render_camera_dic`) or the sampled render without jitter, the camera's own
     Mitsuba seed at every step; the sensor noise drawn with default_rng([seed, camera, step])."""
     from vdo.geometry.keyframes import at_step
+    from vdo.physics.lighting import exposure_factors
     from vdo.render import (build_dic_scene, build_render_scene, render_camera, render_camera_dic,
                             render_seed)
 
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
+    gathered = exposure_factors(exp.camera_specs, exp.sensor)
     for step in plan.steps:
         posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
                                                           regions=exp.regions).meshes
@@ -170,6 +172,8 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
             linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
                       if plan.dic else
                       render_camera(scene, cam, spec, plan.spp, render_seed(seed, i), jitter=False))
+            if gathered[i] != 1.0:      # the light this camera's f-number and exposure time gather
+                linear = linear * np.float32(gathered[i])
             dn = exp.sensor.expose(linear, np.random.default_rng([seed, i, step]))
             yield SeriesImage(camera=cam, step=step, dn=dn, linear=linear)
 

@@ -88,6 +88,10 @@ class SensorModel:
         time and aperture (> 0). ``None`` (default): chosen so that a linear value of 1.0 gives
         70 % of the full well in mean electrons, ``0.7 * full_well_e / quantum_efficiency``
         (23333 photons for the defaults).
+    exposure_ms
+        The exposure time (ms, > 0) at which `photons_per_unit` holds, with the lens at f/8. A
+        camera at another f-number N or exposure time t gathers (t / exposure_ms) (8 / N)^2 times
+        as many photons (`vdo.model.optics.exposure_factor`). Default 10 ms.
 
     Invalid fields raise ValueError naming the field and the expected range.
     """
@@ -99,6 +103,7 @@ class SensorModel:
     gain_dn_per_e: float | None = None
     offset_dn: float | None = None
     photons_per_unit: float | None = None
+    exposure_ms: float = 10.0
 
     def __post_init__(self):
         bits = self.bit_depth
@@ -115,6 +120,7 @@ class SensorModel:
             "gain_dn_per_e": ("None or DN per electron > 0", lambda v: v > 0.0),
             "offset_dn": (f"None or DN in [0, {top})", lambda v: 0.0 <= v < top),
             "photons_per_unit": ("None or photons > 0", lambda v: v > 0.0),
+            "exposure_ms": ("milliseconds > 0", lambda v: v > 0.0),
         }
         optional = {"gain_dn_per_e", "offset_dn", "photons_per_unit"}
         # frozen dataclass: normalise (NumPy scalars -> Python numbers) through object.__setattr__

@@ -180,7 +180,12 @@ def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
     (`Illumination.irradiance`), `pattern` the [0, 1] speckle tile. The tables: the cameras'
     [[camera]] specs (f-number, focus), [evaluation] (the patch), [speckle], [sensor] and
-    [analysis] (the interpolant and the reference)."""
+    [analysis] (the interpolant and the reference). A camera gathering k times the sensor's
+    reference light (its f-number and exposure time, `vdo.physics.lighting.exposure_factors`)
+    is judged under k E."""
+    from vdo.physics.lighting import exposure_factors
+
+    gathered = exposure_factors(camera_specs, sensor)
     rows, lit, footprints, irradiances, lens, rendered, pixels = [], [], [], [], [], [], []
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
     for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
@@ -213,7 +218,7 @@ def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
                     found.append(("fail", "depth of field", f"out of focus: depth "
                                   f"{depth.min():.3f}-{depth.max():.3f} m leaves the depth of "
                                   f"field {near:.3f}-{far:.3f} m"))
-            expo = exposure(irradiance[seen], pixels_seen, speckle, sensor, pattern)
+            expo = exposure(gathered[i] * irradiance[seen], pixels_seen, speckle, sensor, pattern)
             for flag in expo["flags"]:
                 found.append(("fail" if flag.startswith("saturating") else "warn", "exposure", flag))
             median = int(np.argsort(density)[len(density) // 2])
@@ -230,7 +235,7 @@ def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
                 continue
             lit.append(rows[-1])
             footprints.append(A[median])
-            irradiances.append(float(irradiance[seen][median]))
+            irradiances.append(float(gathered[i] * irradiance[seen][median]))
             lens.append(_camera_optics(cam, spec, float(depth[median])))
             rendered.append(lens[-1] if spec.f_number is not None else None)
             pixels.append(evaluation.patch_size ** 2 * float(density[median]) ** 2)

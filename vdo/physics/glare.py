@@ -109,12 +109,14 @@ def satin_samples(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
 
 def hot_spots(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
               lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
-              cameras, samples, visible, illumination) -> list[dict]:
+              cameras, samples, visible, illumination, exposure=None) -> list[dict]:
     """The hot-spot check (module docstring): one row per (camera, satin region) with seen samples,
     {"camera", "region", "hot_spot_fraction", "saturated_fraction", "max_specular_ratio", "flags"};
     max_specular_ratio the largest L_s / ((rho_w - rho_b) E / pi) over the seen samples. The
     tables: [[mesh]] and [[region]] (which are satin, `satin_samples`), [[light]], [speckle] (the
-    paint's albedos) and [sensor]."""
+    paint's albedos) and [sensor]; `exposure` (C,) the light each camera gathers
+    (`vdo.physics.lighting.exposure_factors`; None: the sensor's reference), which scales what
+    saturates."""
     satin = satin_samples(meshes, regions, samples)
     if not satin.any() or not cameras:
         return []
@@ -124,7 +126,8 @@ def hot_spots(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
                            [c.position for c in cameras])
     white = speckle.white_albedo * E / np.pi
     contrast = (speckle.white_albedo - speckle.black_albedo) * E / np.pi
-    saturated = white[None] + Ls >= sensor.saturation_linear()
+    k = np.ones((len(cameras), 1)) if exposure is None else np.asarray(exposure, float)[:, None]
+    saturated = k * (white[None] + Ls) >= sensor.saturation_linear()
     washed = Ls > contrast[None]
     ratio = Ls / np.maximum(contrast[None], 1e-300)
     rows = []

@@ -34,7 +34,9 @@ g = K QE photons_per_unit (DN per unit linear value) the image is b + c f̂ (f̂
     c = g (ρ_w - ρ_b) std(f) E / π                                                [DN]
     σ = sensor.noise_sigma_dn(<ρ> E / π)                                          [DN rms]
 
-<ρ> = ρ_b + (ρ_w - ρ_b) mean(f). The pattern statistics are those of the unblurred texture; the
+<ρ> = ρ_b + (ρ_w - ρ_b) mean(f). A camera that gathers k times the sensor's reference light
+(its f-number and exposure time, `exposure_factors`) records k <ρ> E / π: b, c and σ above with
+E -> k E. The pattern statistics are those of the unblurred texture; the
 pixel's blur is the objective's business (g_f). For a Lambertian surface the image level does not
 depend on the camera except through visibility; the arrays are (C, N) anyway, as the objective takes
 them. Saturation is ignored (see `SensorModel.variance_dn`).
@@ -49,6 +51,7 @@ import numpy as np
 from vdo.core.backend import mitsuba
 from vdo.config.rig import LightSpec, SpeckleSpec
 from vdo.scene import SurfaceSamples
+from vdo.model.optics import exposure_factor
 from vdo.model.sensor import SensorModel
 from vdo.core.tolerances import RAY_OFFSET_M
 
@@ -208,19 +211,32 @@ class Photometry:
     linear: np.ndarray
 
 
+def exposure_factors(camera_specs, sensor: SensorModel) -> np.ndarray:
+    """(C,) k_c = (t_c / t_ref) (8 / N_c)^2 of each [[camera]] spec: the light it gathers against
+    the sensor's reference exposure t_ref ([sensor] exposure_ms at f/8;
+    `vdo.model.optics.exposure_factor`; no f_number: f/8, no exposure_ms: t_ref)."""
+    return np.array([exposure_factor(s.f_number, s.exposure_time, sensor.exposure_ms * 1e-3)
+                     for s in camera_specs], dtype=float)
+
+
 def photometry(illumination: Illumination, speckle: SpeckleSpec, sensor: SensorModel,
-               pattern_mean: float, pattern_std: float, n_cameras: int) -> Photometry:
+               pattern_mean: float, pattern_std: float, n_cameras: int,
+               exposure: np.ndarray | None = None) -> Photometry:
     """b, c and σ (DN) at every sample for each of `n_cameras` cameras, from the irradiance E:
-    b = sensor.mean_dn(<ρ> E/π), c = K QE p (ρ_w - ρ_b) std(f) E/π, σ = sensor.noise_sigma_dn(<ρ> E/π)
-    with <ρ> = ρ_b + (ρ_w - ρ_b) mean(f) and K QE p the sensor's DN per unit linear value."""
+    b = sensor.mean_dn(k <ρ> E/π), c = K QE p (ρ_w - ρ_b) std(f) k E/π,
+    σ = sensor.noise_sigma_dn(k <ρ> E/π) with <ρ> = ρ_b + (ρ_w - ρ_b) mean(f), K QE p the
+    sensor's DN per unit linear value and k (C,) the cameras' `exposure` factors
+    (`exposure_factors`; None: 1). `linear` is <ρ> E/π at k = 1."""
     E = illumination.irradiance
     rho_b, rho_w = speckle.black_albedo, speckle.white_albedo
     mean_rho = rho_b + (rho_w - rho_b) * pattern_mean
     linear = mean_rho * E / np.pi
     dn_per_unit = sensor.gain * sensor.quantum_efficiency * sensor.photon_scale
+    k = np.ones((n_cameras, 1)) if exposure is None else np.asarray(exposure, float).reshape(-1, 1)
     shape = (n_cameras, len(E))
     return Photometry(
-        brightness=np.broadcast_to(sensor.mean_dn(linear), shape).copy(),
-        contrast=np.broadcast_to(dn_per_unit * (rho_w - rho_b) * pattern_std * E / np.pi, shape).copy(),
-        noise=np.broadcast_to(sensor.noise_sigma_dn(linear), shape).copy(),
+        brightness=np.broadcast_to(sensor.mean_dn(k * linear), shape).copy(),
+        contrast=np.broadcast_to(dn_per_unit * (rho_w - rho_b) * pattern_std * k * E / np.pi,
+                                 shape).copy(),
+        noise=np.broadcast_to(sensor.noise_sigma_dn(k * linear), shape).copy(),
         linear=linear)

@@ -45,6 +45,7 @@ from vdo.config.rig import CameraSpec, Evaluation, RegionSpec, SpeckleSpec
 from vdo.core.errors import ConfigError
 from vdo.physics import usable
 from vdo.physics.checks import measurement_floor
+from vdo.physics.lighting import exposure_factors
 from vdo.model.optics import optics_blur
 from vdo.model.sensor import SensorModel
 from vdo.physics.predict import samples_for_objective, settings, view_data
@@ -136,9 +137,11 @@ def region_floors(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
     `vdo.model.interpolant.CorrelationError`) and `lens` the camera's `vdo.model.optics.OpticsBlur`
     there. The median is by pixel density sqrt|det A|, A = ∂x/∂(u, v) the footprint in px/m.
     `snap`: the footprint and the depth on the lattice of `_snap` (`lattice`) and SNAP_DEPTH.
-    The tables: the cameras' [[camera]] specs (f-number, focus), [evaluation] (the patch),
-    [speckle], [sensor] and [analysis] (the interpolant and the reference)."""
+    The tables: the cameras' [[camera]] specs (f-number, focus, exposure time: the light each
+    gathers, `vdo.physics.lighting.exposure_factors`), [evaluation] (the patch), [speckle],
+    [sensor] and [analysis] (the interpolant and the reference)."""
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
+    gathered = exposure_factors(camera_specs, sensor)
     jobs = []
     for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
         for k in range(len(samples.region_names)):
@@ -158,7 +161,7 @@ def region_floors(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
                 depth = 2.0 ** (SNAP_DEPTH * round(math.log2(depth) / SNAP_DEPTH))
             lens = optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance,
                                depth)
-            jobs.append((i, k, seen, footprint, float(illumination.irradiance[seen[m]]),
+            jobs.append((i, k, seen, footprint, float(gathered[i] * illumination.irradiance[seen[m]]),
                          evaluation.patch_size ** 2 * float(density[m]) ** 2, lens))
     if not jobs:
         return []
@@ -216,7 +219,8 @@ def camera_terms(regions: tuple[RegionSpec, ...], camera_specs: tuple[CameraSpec
     cams = objective.CameraParams.from_cameras(cameras)
     overlap = usable.patch_overlap(samples, evaluation.patch_size)
     phi = usable.patch_fractions(overlap, pred.usable)
-    vd = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, phi)
+    vd = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, phi,
+                   exposure=exposure_factors(camera_specs, sensor))
     C_i = np.asarray(objective.camera_information(cams, smp, vd, speckle.table, settings(evaluation)))
     M_i = np.zeros_like(C_i)
     rows = []

@@ -69,7 +69,8 @@ def samples_for_objective(regions: tuple[RegionSpec, ...],
 def view_data(speckle_spec: SpeckleSpec, sensor: SensorModel, samples: objective.Samples,
               vis: Visibility, illumination: Illumination, speckle: SpeckleModel,
               patch_fraction: np.ndarray | None = None, sizes: dict | None = None,
-              noise_scale: np.ndarray | None = None) -> objective.ViewData:
+              noise_scale: np.ndarray | None = None,
+              exposure: np.ndarray | None = None) -> objective.ViewData:
     """Occlusion from the ray cast, contrast and noise (DN) from the light and sensor models, as
     the sparse pair list of `objective.ViewData` over `samples`: the pairs the ray cast found
     unoccluded (it marks pairs that failed a geometric test, behind, outside the image or facing
@@ -78,9 +79,11 @@ def view_data(speckle_spec: SpeckleSpec, sensor: SensorModel, samples: objective
     that the patch area becomes Omega phi_i. `sizes`: fixed list sizes across layouts
     (`objective.ViewData.from_dense`). `noise_scale` (C, N): a factor on each pair's noise
     (`vdo.physics.measured.noise_inflation`: the information of what the lab measures).
-    `speckle_spec` and `sensor`: the [speckle] and [sensor] tables."""
+    `exposure` (C,): the light each camera gathers against the sensor's reference
+    (`vdo.physics.lighting.exposure_factors`; None: 1). `speckle_spec` and `sensor`: the
+    [speckle] and [sensor] tables."""
     pho = photometry(illumination, speckle_spec, sensor, speckle.mean, speckle.std,
-                     len(vis.camera_names))
+                     len(vis.camera_names), exposure)
     occlusion = np.asarray(vis.unoccluded, dtype=float)
     if patch_fraction is not None:
         occlusion = occlusion * patch_fraction
@@ -112,7 +115,8 @@ class Prediction:
 def predict(regions: tuple[RegionSpec, ...], evaluation: Evaluation, speckle_spec: SpeckleSpec,
             sensor: SensorModel, cameras: list[Camera], samples: SurfaceSamples, vis: Visibility,
             illumination: Illumination, speckle: SpeckleModel,
-            clip_patch: bool = True, overlap=None, sizes: dict | None = None) -> Prediction:
+            clip_patch: bool = True, overlap=None, sizes: dict | None = None,
+            exposure: np.ndarray | None = None) -> Prediction:
     """The report fields with the usable-view definition and the clipped patch of `vdo.physics.usable`:
     a first pass gives the soft weights, hence the usable views and each camera's usable patch
     fraction phi_i; the second pass weights each pair by phi_i (Omega_i = phi_i Omega). With
@@ -122,7 +126,8 @@ def predict(regions: tuple[RegionSpec, ...], evaluation: Evaluation, speckle_spe
     samples' parametric cells only, not on the cameras or on a keyframe's motion). `sizes`: the
     pair lists' fixed sizes for these samples (`objective.ViewData.from_dense`): a new layout
     then compiles nothing. `regions`, `evaluation`, `speckle_spec`, `sensor`: the experiment's
-    [[region]], [evaluation], [speckle] and [sensor] tables.
+    [[region]], [evaluation], [speckle] and [sensor] tables; `exposure` (C,) the cameras' light
+    factors (`view_data`).
 
     Curved surfaces: where the normals over a sample's patch spread by more than
     CURVED_PATCH_SPREAD (`vdo.physics.usable.patch_normal_spread`), its information is the sum over
@@ -131,14 +136,15 @@ def predict(regions: tuple[RegionSpec, ...], evaluation: Evaluation, speckle_spe
     smp = samples_for_objective(regions, samples)
     cams = objective.CameraParams.from_cameras(cameras)
     st = settings(evaluation)
-    first_views = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, sizes=sizes)
+    first_views = view_data(speckle_spec, sensor, smp, vis, illumination, speckle, sizes=sizes,
+                            exposure=exposure)
     first = objective.fields(cams, smp, first_views, speckle.table, st)
     use = usable.usable_views(np.asarray(first.weights))
     if overlap is None:
         overlap = usable.patch_overlap(samples, evaluation.patch_size)
     phi = usable.patch_fractions(overlap, use) if clip_patch else use.astype(float)
     f = objective.fields(cams, smp, view_data(speckle_spec, sensor, smp, vis, illumination, speckle,
-                                              phi, sizes), speckle.table, st)
+                                              phi, sizes, exposure=exposure), speckle.table, st)
     information = np.asarray(f.information)
     f_measured, f_sigma_max, f_sigma_xyz = (np.array(x) for x in (f.measured, f.sigma_max, f.sigma_xyz))
     curved = np.flatnonzero(usable.patch_normal_spread(overlap, samples.normals) > CURVED_PATCH_SPREAD) \

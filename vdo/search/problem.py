@@ -28,7 +28,7 @@ from vdo.search import loadpath
 from vdo import objective
 from vdo.model.camera import intrinsic_matrix, rotation
 from vdo.config.experiment import Experiment
-from vdo.physics.lighting import panel_frame
+from vdo.physics.lighting import exposure_factors, panel_frame
 from vdo.search.obscuration import ObscurationRenderer, ObscurationTerm
 from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
 from vdo.objective import bucket
@@ -282,7 +282,9 @@ class Problem:
             self.kappa_s = time.perf_counter() - t0
         return State(np.asarray(theta, float), cams, vis, vis_obstacles, illum,
                      self.run.padded(view_data(self.exp.speckle, self.exp.sensor, self.obj_samples,
-                                               scored, illum, self.speckle, noise_scale=scale)))
+                                               scored, illum, self.speckle, noise_scale=scale,
+                                               exposure=exposure_factors(self.exp.camera_specs,
+                                                                         self.exp.sensor))))
 
     def _lit_samples(self, per_light: int = 600):
         """(samples (S, 3), panels (S, 11)) for `constraints.shadow_penalty`: for each light, up to

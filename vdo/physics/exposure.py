@@ -1,0 +1,226 @@
+"""Each camera's f-number and exposure time, and the lights' power, for a placed layout: what
+`vdo design` and `vdo optimize` set after placing the cameras when [exposure] free asks for it.
+
+Light gathered. A camera at f-number N and exposure time t records k = (t / t_ref) (8 / N)^2
+times the sensor's reference light ([sensor] exposure_ms at f/8, `vdo.model.optics.exposure_factor`).
+The paint's gray level at a sample of irradiance E is g k ρ E / π + offset (DN, g the sensor's
+DN per unit linear value, ρ the paint's albedo: `vdo.physics.lighting`), so for one camera and one
+region every gray level above the offset scales with k and, through E = Σ_l w_l E_l + E_amb, with
+each light's power factor w_l (E_l its irradiance at its configured radiance).
+
+Aperture ("aperture" free). The depth Z along the optical axis of every sample the camera sees
+(all regions) spans [Z_near, Z_far]. The thin lens focused at s is sharp (circle of confusion
+c = COC_PIXELS pixel pitches, `vdo.physics.checks.depth_of_field`) from s f^2 / (f^2 + N c (s - f))
+to s f^2 / (f^2 - N c (s - f)); focused at the harmonic mean s = 2 Z_near Z_far / (Z_near + Z_far)
+both ends need the same
+
+    N_dof = f^2 (Z_far - Z_near) / (c (s - f) (Z_far + Z_near)),
+
+and the camera takes the smallest third stop of [exposure] f_number_range at or above N_dof
+(the most light and the least diffraction that keep the region sharp); above the range's largest
+stop the depth of field falls short, which is reported.
+
+Exposure ("time", "lights" free). Per (camera c, region r) with seen samples, p_cr(w) is the 99th
+percentile of the gray level above the offset at k = 1 over the seen samples (weighted by their
+pixels) and the paint's values (`GRAY_LEVELS` quantiles of the pattern), as `vdo.physics.checks`'
+exposure check takes it. The camera's exposure puts its brightest region at the target
+T = [exposure] target_gray of the range, within the time limit:
+
+    k_c(w) = min(T S / max_r p_cr(w),  (t_max / t_ref) (8 / N_c)^2),   S = max DN - offset,
+
+(k_c fixed by the file's exposure time when "time" is not free). With "lights" free the power
+factors w_l ∈ [LIGHT_MIN, max_radiance_l / radiance_l] minimise
+
+    Σ_cr [max(0, ln(F_0 S) - ln(k_c p_cr))^2 + max(0, ln(k_c p_cr) - ln(F_1 S))^2] - ε Σ_cr ln(k_c p_cr),
+
+(F_0, F_1) = `vdo.physics.checks.EXPOSURE`: the squared shortfall of every seen region below the
+under-exposure floor and its excess over saturation (with the times fixed), then (ε =
+`BRIGHTNESS_WEIGHT`) the light gathered, which lowers the noise; L-BFGS-B on ln w from w = 1,
+kept when it lowers the sum.
+Then t_c = t_ref k_c (N_c / 8)^2. The checks of the result are `vdo.physics.checks`' own, on the
+experiment with these settings (`vdo evaluate`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import minimize
+
+from vdo.config.procedure import ExposureSpec
+from vdo.config.rig import CameraSpec, LightSpec, SpeckleSpec
+from vdo.model.optics import DEFAULT_F_NUMBER
+from vdo.physics.checks import COC_PIXELS, EXPOSURE
+from vdo.model.sensor import SensorModel
+from vdo.physics.lighting import Illumination, exposure_factors
+
+log = logging.getLogger(__name__)
+
+GRAY_LEVELS = 32            # pattern quantiles the 99th percentile is taken over
+MAX_SAMPLES = 1000          # seen samples per (camera, region) at most (an even stride)
+LIGHT_MIN = 0.05            # a light dims to 5 % of its configured radiance at the least
+BRIGHTNESS_WEIGHT = 1e-3    # ε: the light gathered, against the shortfall below the floor
+THIRD_STOP = 2.0 ** (1.0 / 6.0)   # f-numbers step by a third of a stop: N ratio 2^(1/6)
+
+
+@dataclass(frozen=True)
+class CameraExposure:
+    """One camera's settings: f-number N, focus distance (m), exposure time (s), the light it
+    gathers against the sensor's reference (k) and the depth it must hold sharp (m)."""
+
+    camera: str
+    f_number: float
+    focus_m: float
+    exposure_s: float
+    gathered: float
+    depth_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class ExposurePlan:
+    """`design_exposure`'s result: the [[camera]] specs and [[light]] tables with the settings
+    written in, per camera its `CameraExposure`, per light its radiance, and what could not be
+    met (one line each)."""
+
+    camera_specs: tuple[CameraSpec, ...]
+    lights: tuple[LightSpec, ...]
+    cameras: tuple[CameraExposure, ...]
+    radiance: dict
+    problems: tuple[str, ...]
+
+    def to_json(self) -> dict:
+        return {"cameras": [{"camera": c.camera, "f_number": c.f_number, "focus_m": c.focus_m,
+                             "exposure_ms": c.exposure_s * 1e3, "gathered": c.gathered,
+                             "depth_m": list(c.depth_m)} for c in self.cameras],
+                "radiance": self.radiance, "problems": list(self.problems)}
+
+
+def stop_at_least(n: float, low: float, high: float) -> float:
+    """The smallest third stop 2^(j/6) (integer j: f/2.83, 3.17, 3.56, 4, ..., 16) at or above
+    max(n, low), at most `high` (high when n is above it), to 0.01."""
+    j = math.ceil(6.0 * math.log2(max(n, low)) - 1e-9)
+    return round(min(THIRD_STOP ** j, high), 2)
+
+
+def aperture_for(focal: float, pixel: float, near: float, far: float) -> tuple[float, float]:
+    """(N_dof, s): the f-number that holds depths [near, far] (m) sharp at the circle of confusion
+    COC_PIXELS x `pixel` (m), focused at the harmonic mean s (module docstring)."""
+    s = 2.0 * near * far / (near + far)
+    c = COC_PIXELS * pixel
+    return focal ** 2 * (far - near) / (c * (s - focal) * (far + near)), s
+
+
+def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
+    """99th percentile over samples (irradiance E, weights w) and albedos rho (equal weight) of
+    rho E / π: the linear value above the offset at k = 1, before the sensor's DN per unit."""
+    v = np.outer(E, rho).ravel() / np.pi
+    ww = np.repeat(w / (w.sum() * len(rho)), len(rho))
+    order = np.argsort(v)
+    return float(v[order][np.searchsorted(np.cumsum(ww[order]), 0.99)])
+
+
+def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
+                    lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
+                    cameras, samples, visible, illum: Illumination, pattern) -> ExposurePlan:
+    """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
+    the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
+    `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
+    configured radiances of `lights`), the paint [speckle] with its [0, 1] `pattern` tile, the
+    [sensor]."""
+    free = set(spec_x.free)
+    t_ref = sensor.exposure_ms * 1e-3
+    dn_per_unit = sensor.gain * sensor.quantum_efficiency * sensor.photon_scale
+    span = sensor.max_dn - sensor.offset
+    low_n, high_n = spec_x.f_numbers
+    rho = speckle.black_albedo + (speckle.white_albedo - speckle.black_albedo) * \
+        np.quantile(np.asarray(pattern, float), (np.arange(GRAY_LEVELS) + 0.5) / GRAY_LEVELS)
+    T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
+    problems, apertures, pairs = [], [], []
+    for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
+        seen_any = np.asarray(visible[i])
+        if not seen_any.any():
+            apertures.append((spec.f_number, spec.focus_distance, (math.nan, math.nan)))
+            continue
+        depth = (samples.points[seen_any] - cam.position) @ cam.optical_axis
+        near, far = float(depth.min()), float(depth.max())
+        if "aperture" in free:
+            need, focus = aperture_for(cam.focal_length, cam.pixel_size, near, far)
+            n = stop_at_least(need, low_n, high_n)
+            if need > high_n * (1 + 1e-9):
+                problems.append(f"camera {cam.name}: depth {near:.3f}-{far:.3f} m needs f/{need:.1f} "
+                                f"to be sharp; the lens stops at f/{high_n:g} (widen [exposure] "
+                                "f_number_range, or a shorter lens or farther stand-off)")
+            apertures.append((n, focus, (near, far)))
+        else:
+            apertures.append((spec.f_number, spec.focus_distance, (near, far)))
+        for k in range(len(samples.region_names)):
+            seen = np.flatnonzero(seen_any & (samples.region == k))
+            if seen.size == 0:
+                continue
+            seen = seen[:: max(1, seen.size // MAX_SAMPLES)]
+            A = cam.sensitivity(samples.points[seen]) @ T[seen]
+            pixels = samples.area[seen] * np.abs(np.linalg.det(A))
+            pairs.append((i, k, illum.direct[:, seen], pixels))
+    n_cam = len(camera_specs)
+    base = exposure_factors([replace(s, f_number=a[0]) for s, a in zip(camera_specs, apertures)],
+                            sensor)                       # the file's times at the chosen stops
+    n_eff = np.array([DEFAULT_F_NUMBER if a[0] is None else a[0] for a in apertures])
+    k_max = (spec_x.max_time / t_ref) * (DEFAULT_F_NUMBER / n_eff) ** 2 if "time" in free else base
+    configured = np.array([lt.radiance for lt in lights])
+    w_max = np.array([(lt.max_radiance or lt.radiance) / lt.radiance for lt in lights])
+    w_min = np.minimum(LIGHT_MIN, w_max)
+
+    def signals(w):
+        """(p (pairs,), k (C,)): each pair's p99 signal in DN at k = 1 and each camera's k."""
+        p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px in pairs]) \
+            * dn_per_unit
+        top = np.zeros(n_cam)
+        for (i, _, _, _), v in zip(pairs, p):
+            top[i] = max(top[i], v)
+        k = np.minimum(spec_x.target_gray * span / np.where(top > 0, top, np.inf), k_max) \
+            if "time" in free else base
+        k = np.where(top > 0, k, base)
+        return p, k
+
+    def cost(log_w):
+        p, k = signals(np.exp(log_w))
+        got = np.log(np.maximum(np.array([k[i] for i, *_ in pairs]) * p, 1e-300))
+        short = np.maximum(0.0, math.log(EXPOSURE[0] * span) - got)
+        over = np.maximum(0.0, got - math.log(EXPOSURE[1] * span))
+        return float(np.sum(short ** 2) + np.sum(over ** 2) - BRIGHTNESS_WEIGHT * np.sum(got))
+
+    w = np.ones(len(lights))
+    if "lights" in free and pairs and len(w):
+        res = minimize(cost, np.zeros(len(w)), method="L-BFGS-B",
+                       bounds=list(zip(np.log(w_min), np.log(w_max))), options={"maxiter": 60})
+        if cost(res.x) < cost(np.zeros(len(w))):
+            w = np.exp(res.x)
+    p, k = signals(w)
+    brightest = np.zeros(n_cam)
+    for (i, _, _, _), v in zip(pairs, p):
+        brightest[i] = max(brightest[i], k[i] * v / span)
+    for (i, r, _, _), v in zip(pairs, p):
+        level = k[i] * v / span
+        if level < EXPOSURE[0]:
+            problems.append(f"camera {camera_specs[i].name}: {samples.region_names[r]} stays at "
+                            f"{level:.0%} of the range (99th percentile) with the camera's brightest "
+                            f"region at {brightest[i]:.0%}: more light on it (a light aimed at it, "
+                            "or \"lights\" free with a higher max_radiance) or a longer [exposure] "
+                            "max_ms")
+    specs, chosen = [], []
+    for spec, (n, focus, dof), k_c in zip(camera_specs, apertures, k):
+        t = t_ref * k_c * ((DEFAULT_F_NUMBER if n is None else n) / DEFAULT_F_NUMBER) ** 2 \
+            if "time" in free else (spec.exposure_time or t_ref)
+        specs.append(replace(spec, f_number=n, focus_distance=focus,
+                             exposure_time=t if "time" in free else spec.exposure_time))
+        chosen.append(CameraExposure(spec.name, DEFAULT_F_NUMBER if n is None else float(n),
+                                     math.nan if focus is None else float(focus), float(t),
+                                     float(k_c), dof))
+    lit = tuple(replace(lt, radiance=float(r)) for lt, r in zip(lights, configured * w))
+    for msg in problems:
+        log.warning(msg)
+    return ExposurePlan(tuple(specs), lit, tuple(chosen), {lt.name: lt.radiance for lt in lit},
+                        tuple(problems))
