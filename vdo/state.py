@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.physics import measured as measured_model, strain
-from vdo.constraints import stereo_min_angle
+from vdo.constraints import assignments, stereo_min_angle
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment, lens_catalogue_errors
 from vdo.config.rig import CameraSpec
@@ -412,12 +412,16 @@ def camera_exposure(exp: Experiment, cameras) -> np.ndarray | None:
 
 def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
     """`exp` with the f-numbers, exposure times and light power that [exposure] free asks for
-    (`vdo.physics.exposure.design_exposure` on its layout, judged without predicting the fields),
-    and the plan itself."""
+    (`vdo.physics.exposure.design_exposure` on its layout, judged without predicting the fields;
+    the depth of field holds each camera's assigned regions, `vdo.constraints.assignments`), and
+    the plan itself."""
     state = layout_state(prepare(exp), predict_fields=False)
+    vis, samples = state.visibility, state.samples
+    assigned = assignments(vis, samples, exp.optimize.assign_fraction)
     plan = design_exposure(exp.exposure, exp.camera_specs, exp.lights, exp.speckle, exp.sensor,
-                           list(state.cameras), state.samples, state.visibility.visible,
-                           state.illumination, state.geometry.speckle.pattern)
+                           list(state.cameras), samples, vis.visible, state.illumination,
+                           state.geometry.speckle.pattern,
+                           sharp=vis.visible & assigned[:, samples.region])
     return dataclasses.replace(exp.with_cameras(plan.camera_specs), lights=plan.lights), plan
 
 

@@ -19,7 +19,7 @@ from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
 from vdo.design.budget import ENTRY_BYTES, estimate, refuse
 from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
-from vdo.design.feasibility import Feasibility
+from vdo.design.feasibility import STOP_MARGIN, Feasibility
 from vdo.design.score import Scorer
 from vdo.design.select import (POLISH_RTOL, design_layout, exchange, figures, greedy, percentile_by_region,
                                polish, problems, region_table)
@@ -828,3 +828,56 @@ def test_a_time_limit_that_is_not_positive_is_one_line(plate_experiment, tmp_pat
     err = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("error")]
     assert len(err) == 1 and "--time-limit: must be a positive number of seconds" in err[0]
     assert not out.exists()
+
+
+def test_with_the_aperture_free_candidates_that_no_stop_holds_sharp_are_left_out(plate_experiment):
+    """"aperture" in [exposure] free: a candidate is left out when no focus distance holds the depth
+    of its usable samples in its assigned regions within the thin lens's depth of field
+    (`checks.depth_of_field`, circle of confusion 2 pixels) a third of a stop below the largest
+    stop. Judged here by a scan of focus distances, that stop set to the median of what the
+    candidates need (so that both kinds are present); candidates within 2 % of it are not judged."""
+    from vdo.physics.checks import COC_PIXELS, depth_of_field
+
+    path = plate_experiment(spacing=50)
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="lenses_mm = [24, 50]")
+                    + '\n[exposure]\nfree = ["aperture"]\n')
+    exp = config.load(path)
+    geometry = prepare(exp)
+    cand = judge(exp, geometry)
+    samples = geometry.samples
+    use = cand.usable_entries
+    rows, index = cand.row[use], cand.index[use]
+    keep = cand.assigned[rows, samples.region[index]]
+
+    def sharp_at(k, stop):
+        pts = samples.points[index[keep & (rows == k)]]
+        if not len(pts):
+            return True
+        c = cand.cameras[k]
+        z = (pts - c.position) @ c.optical_axis
+        for s in np.linspace(z.min(), z.max(), 400):
+            near, far = depth_of_field(c.focal_length, stop, s, COC_PIXELS * c.pixel_size)
+            if near <= z.min() and z.max() <= far:
+                return True
+        return False
+
+    def need(k):     # the smallest stop that holds candidate k sharp, by bisection on sharp_at
+        lo, hi = 0.1, 1e4
+        for _ in range(40):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (lo, mid) if sharp_at(k, mid) else (mid, hi)
+        return hi
+
+    needs = np.array([need(k) for k in range(len(cand.cameras))])
+    top = float(np.median(needs))
+    exp = replace(exp, exposure=replace(exp.exposure, f_numbers=(0.5, top * STOP_MARGIN)))
+    feas = Feasibility(exp, cand, samples)
+    judged = np.abs(needs / top - 1) > 0.02
+    framed = ~feas.obstructed & cand.framed
+    expected = (needs > top) & framed
+    assert np.array_equal(feas.blurred[judged], expected[judged])
+    assert feas.blurred.any() and (framed & ~feas.blurred).any()
+    assert not feas.alone[feas.blurred].any()
+    left = feas.left_out()
+    assert sum(n for reasons in left.values() for why, n in reasons.items()
+               if "depth of field" in why) == int(feas.blurred.sum())

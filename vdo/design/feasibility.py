@@ -16,7 +16,12 @@ Feasible with the selected set:
   on the whole scene: a second ray cast);
 * field of view: a region the candidate sees over at least `[optimize] assign_fraction` of its
   area lies in its image over at least 1 - max_obscuration of the area facing it (the check
-  `vdo.constraints.check` makes of the designed layout; `Candidates.framed`).
+  `vdo.constraints.check` makes of the designed layout; `Candidates.framed`);
+* depth of field, when `[exposure] free` has "aperture" (the f-number is then chosen for the
+  layout, `vdo.physics.exposure`): the depth along the optical axis of the candidate's usable
+  samples in its assigned regions can be held sharp a third of a stop below the largest stop of
+  `[exposure] f_number_range` (`vdo.physics.exposure.aperture_for`, focused at the harmonic
+  mean; the margin because the design's samples are coarser than the final judgement's).
 """
 
 from __future__ import annotations
@@ -28,11 +33,13 @@ from vdo.design.candidates import SPOT_M, Candidates, bodies, per_mount
 from vdo.config.experiment import Experiment
 from vdo.constraints import stereo_min_angle
 from vdo.geometry import obstacles
+from vdo.physics.exposure import aperture_for
 from vdo.core.tolerances import LIMIT_SLACK, TINY
 
 ANGLE_TOL = LIMIT_SLACK       # rad: an axis angle this close to its limit meets it
 HARDWARE_CHUNK = 256          # candidates' hardware bounds tested against one camera's lines at once
 CONE_CHUNK = 1024             # candidates whose sight lines are gathered at once for their cones
+STOP_MARGIN = 2 ** (1 / 6)    # a third of a stop: the design's coarser samples see a little less depth
 
 
 def min_angles(exp: Experiment, cand: Candidates, j: int) -> np.ndarray:
@@ -85,7 +92,10 @@ class Feasibility:
         self.limited = [(r, spec.max_axis_angle) for r, spec in enumerate(exp.regions)
                         if spec.max_axis_angle is not None]
         self.obstructed = (cand.assigned & (cand.masked > exp.optimize.max_obscuration)).any(axis=1)
-        self.alone = ~self.obstructed & cand.framed
+        self.blurred = np.zeros(len(cand.cameras), bool)
+        if samples is not None and "aperture" in exp.exposure.free:
+            self.blurred = ~self._sharp(samples) & ~self.obstructed & cand.framed
+        self.alone = ~self.obstructed & cand.framed & ~self.blurred
         self.body = cand.body
         self.counts = np.array([b.count for b in bodies(exp)])
         self._rows: dict[int, np.ndarray] = {}
@@ -99,7 +109,9 @@ class Feasibility:
         out: dict = {}
         reasons = (("an assigned region obstructed beyond max_obscuration", self.obstructed),
                    ("a region it sees partly outside its image (field of view)",
-                    ~self.cand.framed & ~self.obstructed))
+                    ~self.cand.framed & ~self.obstructed),
+                   (f"its assigned regions deeper than the depth of field at "
+                    f"f/{self.exp.exposure.f_numbers[1]:g}", self.blurred))
         for reason, mask in reasons:
             for name, count in per_mount(self.cand.mount, mask).items():
                 out.setdefault(name, {})[reason] = count
@@ -148,6 +160,25 @@ class Feasibility:
             low, high = np.minimum.reduceat(pts, at), np.maximum.reduceat(pts, at)
             centres[has], radii[has] = (low + high) / 2, np.linalg.norm(high - low, axis=1) / 2
         return centres, radii
+
+    def _sharp(self, samples) -> np.ndarray:
+        """(K,) True where the depth range [near, far] of the candidate's usable samples in its
+        assigned regions needs at most the largest stop of [exposure] f_number_range less
+        STOP_MARGIN (`aperture_for`); True for a candidate with no such sample."""
+        rows, index = self._sight
+        keep = self.cand.assigned[rows, samples.region[index]]
+        rows, index = rows[keep], index[keep]
+        K = len(self.cand.cameras)
+        depth = np.einsum("ij,ij->i", samples.points[index] - self.positions[rows], self.axes[rows])
+        near, far = np.full(K, np.inf), np.full(K, -np.inf)
+        np.minimum.at(near, rows, depth)
+        np.maximum.at(far, rows, depth)
+        has = np.isfinite(near)
+        f = np.array([c.focal_length for c in self.cand.cameras])
+        pixel = np.array([c.pixel_size for c in self.cand.cameras])
+        need = np.zeros(K)
+        need[has] = aperture_for(f[has], pixel[has], near[has], far[has])[0]
+        return need <= self.exp.exposure.f_numbers[1] / STOP_MARGIN
 
     def _lines_of(self, ks: np.ndarray) -> np.ndarray:
         """Positions in `_sight` of the sight lines of candidates `ks`."""

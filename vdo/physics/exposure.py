@@ -8,8 +8,10 @@ DN per unit linear value, ρ the paint's albedo: `vdo.physics.lighting`), so for
 region every gray level above the offset scales with k and, through E = Σ_l w_l E_l + E_amb, with
 each light's power factor w_l (E_l its irradiance at its configured radiance).
 
-Aperture ("aperture" free). The depth Z along the optical axis of every sample the camera sees
-(all regions) spans [Z_near, Z_far]. The thin lens focused at s is sharp (circle of confusion
+Aperture ("aperture" free). The depth Z along the optical axis of the samples the camera holds
+sharp spans [Z_near, Z_far]: every sample it sees when a stop of the range allows, else those of
+the regions it is assigned (`vdo.constraints.assignments`; the others are then flagged out of
+focus by the depth-of-field check). The thin lens focused at s is sharp (circle of confusion
 c = COC_PIXELS pixel pitches, `vdo.physics.checks.depth_of_field`) from s f^2 / (f^2 + N c (s - f))
 to s f^2 / (f^2 - N c (s - f)); focused at the harmonic mean s = 2 Z_near Z_far / (Z_near + Z_far)
 both ends need the same
@@ -124,12 +126,14 @@ def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
 
 def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                     lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
-                    cameras, samples, visible, illum: Illumination, pattern) -> ExposurePlan:
+                    cameras, samples, visible, illum: Illumination, pattern,
+                    sharp=None) -> ExposurePlan:
     """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
     configured radiances of `lights`), the paint [speckle] with its [0, 1] `pattern` tile, the
-    [sensor]."""
+    [sensor]. `sharp` (C, N) bool: the samples each camera's depth of field must hold (default
+    `visible`; a camera with none holds all it sees)."""
     free = set(spec_x.free)
     t_ref = sensor.exposure_ms * 1e-3
     dn_per_unit = sensor.gain * sensor.quantum_efficiency * sensor.photon_scale
@@ -146,10 +150,14 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
             continue
         depth = (samples.points[seen_any] - cam.position) @ cam.optical_axis
         near, far = float(depth.min()), float(depth.max())
-        if "aperture" in free:
+        need, focus = aperture_for(cam.focal_length, cam.pixel_size, near, far)
+        if need > high_n and sharp is not None and np.any(sharp[i]):   # hold its own regions
+            depth = (samples.points[np.asarray(sharp[i])] - cam.position) @ cam.optical_axis
+            near, far = float(depth.min()), float(depth.max())
             need, focus = aperture_for(cam.focal_length, cam.pixel_size, near, far)
+        if "aperture" in free:
             n = stop_at_least(need, low_n, high_n)
-            if need > high_n * (1 + 1e-9):
+            if need > high_n:
                 problems.append(f"camera {cam.name}: depth {near:.3f}-{far:.3f} m needs f/{need:.1f} "
                                 f"to be sharp; the lens stops at f/{high_n:g} (widen [exposure] "
                                 "f_number_range, or a shorter lens or farther stand-off)")
