@@ -419,6 +419,7 @@ def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
     vis, samples = state.visibility, state.samples
     assigned = assignments(vis, samples, exp.optimize.assign_fraction)
     plan = design_exposure(exp.exposure, exp.camera_specs, exp.lights, exp.speckle, exp.sensor,
+                           exp.evaluation, exp.analysis,
                            list(state.cameras), samples, vis.visible, state.illumination,
                            state.geometry.speckle.pattern,
                            sharp=vis.visible & assigned[:, samples.region])

@@ -18,9 +18,15 @@ both ends need the same
 
     N_dof = f^2 (Z_far - Z_near) / (c (s - f) (Z_far + Z_near)),
 
-and the camera takes the smallest third stop of [exposure] f_number_range at or above N_dof
-(the most light and the least diffraction that keep the region sharp); above the range's largest
-stop the depth of field falls short, which is reported.
+and the camera's stop is a third stop of [exposure] f_number_range at or above N_dof (above the
+range's largest stop the depth of field falls short, which is reported). Among those stops the
+one where the lab's correlation measures best: a smaller stop gathers more light (less noise,
+with the exposure below), a larger one blurs the image more by diffraction (less interpolation
+bias on fine speckle, less contrast). Per stop, each (camera, region) pair's σ_measured² (the
+trace of `vdo.physics.checks.measurement_floor`'s covariance, px², at the region's median
+footprint and irradiance, through that stop's `vdo.model.optics.optics_blur`, with the exposure
+k of that stop at the configured light) is summed over the camera's regions; the smallest sum
+wins.
 
 Exposure ("time", "lights" free). Per (camera c, region r) with seen samples, p_cr(w) is the 99th
 percentile of the gray level above the offset at k = 1 over the seen samples (weighted by their
@@ -52,11 +58,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import minimize
 
-from vdo.config.procedure import ExposureSpec
-from vdo.config.rig import CameraSpec, LightSpec, SpeckleSpec
-from vdo.model.optics import DEFAULT_F_NUMBER
-from vdo.physics.checks import COC_PIXELS, EXPOSURE
+from vdo.config.procedure import Analysis, ExposureSpec
+from vdo.config.rig import CameraSpec, Evaluation, LightSpec, SpeckleSpec
+from vdo.model.optics import DEFAULT_F_NUMBER, exposure_factor, optics_blur
 from vdo.model.sensor import SensorModel
+from vdo.physics.checks import COC_PIXELS, EXPOSURE, measurement_floor
 from vdo.physics.lighting import Illumination, exposure_factors
 
 log = logging.getLogger(__name__)
@@ -124,15 +130,63 @@ def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
     return float(v[order][np.searchsorted(np.cumsum(ww[order]), 0.99)])
 
 
+def _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor, analysis, illum,
+                rho, pattern) -> list:
+    """`apertures` with each camera's stop moved to the third stop, from its depth-of-field stop
+    up to the range's largest, where its pairs' summed σ_measured² is least (module docstring):
+    one `measurement_floor` over every (pair, stop)."""
+    free, t_ref = set(spec_x.free), sensor.exposure_ms * 1e-3
+    span, dn_per_unit = sensor.max_dn - sensor.offset, sensor.gain * sensor.quantum_efficiency * \
+        sensor.photon_scale
+    top = np.zeros(len(cameras))
+    for i, _, D, px, _ in pairs:           # the brightest region's p99 at the configured light
+        top[i] = max(top[i], _p99_signal(D.sum(axis=0) + illum.ambient, px, rho) * dn_per_unit)
+    jobs = []                              # (camera, stop, pair's middle, k)
+    for i, (n, focus, _) in enumerate(apertures):
+        if n is None or top[i] <= 0:
+            continue
+        first = round(6.0 * math.log2(n))
+        stops = [n] + [round(THIRD_STOP ** j, 2) for j in range(first + 1, first + 7 * 6)
+                       if round(THIRD_STOP ** j, 2) <= spec_x.f_numbers[1]]
+        for stop in stops:
+            k = exposure_factor(stop, camera_specs[i].exposure_time, t_ref)
+            if "time" in free:
+                k = min(spec_x.target_gray * span / top[i],
+                        (spec_x.max_time / t_ref) * (DEFAULT_F_NUMBER / stop) ** 2)
+            jobs += [(i, stop, mid, k) for j, *_, mid in pairs if j == i]
+    if not jobs:
+        return apertures
+    cams = list(cameras)
+    floors = measurement_floor(
+        [mid[0] for _, _, mid, _ in jobs], [k * mid[1] for _, _, mid, k in jobs],
+        [mid[3] for _, _, mid, _ in jobs],
+        [optics_blur(cams[i].pixel_size, cams[i].focal_length, stop, apertures[i][1], mid[2])
+         for i, stop, mid, _ in jobs], speckle, sensor, pattern, analysis.interpolant,
+        analysis.reference == "noisy")
+    model, _ = floors[0]["model"]
+    cov = model.covariance(np.array([f["noise_rel"] for f in floors]),
+                           np.array([f["patch_px"] for f in floors]))
+    score: dict = {}
+    for (i, stop, _, _), c in zip(jobs, np.trace(cov, axis1=1, axis2=2)):
+        score[(i, stop)] = score.get((i, stop), 0.0) + float(c)
+    out = list(apertures)
+    for i, (n, focus, dof) in enumerate(apertures):
+        mine = {stop: v for (j, stop), v in score.items() if j == i}
+        if mine:
+            out[i] = (min(mine, key=mine.get), focus, dof)
+    return out
+
+
 def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                     lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
+                    evaluation: Evaluation, analysis: Analysis,
                     cameras, samples, visible, illum: Illumination, pattern,
                     sharp=None) -> ExposurePlan:
     """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
     configured radiances of `lights`), the paint [speckle] with its [0, 1] `pattern` tile, the
-    [sensor]. `sharp` (C, N) bool: the samples each camera's depth of field must hold (default
+    [sensor], [evaluation] (the patch) and [analysis] (the interpolant, the reference). `sharp` (C, N) bool: the samples each camera's depth of field must hold (default
     `visible`; a camera with none holds all it sees)."""
     free = set(spec_x.free)
     t_ref = sensor.exposure_ms * 1e-3
@@ -170,9 +224,16 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                 continue
             seen = seen[:: max(1, seen.size // MAX_SAMPLES)]
             A = cam.sensitivity(samples.points[seen]) @ T[seen]
-            pixels = samples.area[seen] * np.abs(np.linalg.det(A))
-            pairs.append((i, k, illum.direct[:, seen], pixels))
+            density = np.abs(np.linalg.det(A))
+            m = int(np.argsort(density)[len(density) // 2])       # the median footprint
+            middle = (A[m], float(illum.irradiance[seen[m]]),
+                      float((samples.points[seen[m]] - cam.position) @ cam.optical_axis),
+                      evaluation.patch_size ** 2 * float(density[m]))
+            pairs.append((i, k, illum.direct[:, seen], samples.area[seen] * density, middle))
     n_cam = len(camera_specs)
+    if "aperture" in free and pairs:
+        apertures = _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor,
+                                analysis, illum, rho, pattern)
     base = exposure_factors([replace(s, f_number=a[0]) for s, a in zip(camera_specs, apertures)],
                             sensor)                       # the file's times at the chosen stops
     n_eff = np.array([DEFAULT_F_NUMBER if a[0] is None else a[0] for a in apertures])
@@ -183,10 +244,10 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
 
     def signals(w):
         """(p (pairs,), k (C,)): each pair's p99 signal in DN at k = 1 and each camera's k."""
-        p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px in pairs]) \
+        p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px, _ in pairs]) \
             * dn_per_unit
         top = np.zeros(n_cam)
-        for (i, _, _, _), v in zip(pairs, p):
+        for (i, *_), v in zip(pairs, p):
             top[i] = max(top[i], v)
         k = np.minimum(spec_x.target_gray * span / np.where(top > 0, top, np.inf), k_max) \
             if "time" in free else base
@@ -208,9 +269,9 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
             w = np.exp(res.x)
     p, k = signals(w)
     brightest = np.zeros(n_cam)
-    for (i, _, _, _), v in zip(pairs, p):
+    for (i, *_), v in zip(pairs, p):
         brightest[i] = max(brightest[i], k[i] * v / span)
-    for (i, r, _, _), v in zip(pairs, p):
+    for (i, r, *_), v in zip(pairs, p):
         level = k[i] * v / span
         if level < EXPOSURE[0]:
             problems.append(f"camera {camera_specs[i].name}: {samples.region_names[r]} stays at "
