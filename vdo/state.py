@@ -25,6 +25,7 @@ here for that reason.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -47,6 +48,8 @@ from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces,
                        cameras_of, load_meshes, sample_regions, surface_raster, tripods)
 from vdo.physics.usable import FINE_PATCH_CELLS, patch_overlap
 from vdo.physics.visibility import Visibility, compute_visibility
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, eq=False)
@@ -415,6 +418,7 @@ def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
     (`vdo.physics.exposure.design_exposure` on its layout, judged without predicting the fields;
     the depth of field holds each camera's assigned regions, `vdo.constraints.assignments`), and
     the plan itself."""
+    t0 = time.perf_counter()
     state = layout_state(prepare(exp), predict_fields=False)
     vis, samples = state.visibility, state.samples
     assigned = assignments(vis, samples, exp.optimize.assign_fraction)
@@ -423,6 +427,10 @@ def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
                            list(state.cameras), samples, vis.visible, state.illumination,
                            state.geometry.speckle.pattern,
                            sharp=vis.visible & assigned[:, samples.region])
+    log.info("exposure (%.0f s): %s%s", time.perf_counter() - t0, ", ".join(
+        f"{c.camera} f/{c.f_number:g} {c.exposure_s * 1e3:.3g} ms" for c in plan.cameras),
+        "; lights " + ", ".join(f"{name} {value:.3g}" for name, value in plan.radiance.items())
+        if plan.radiance else "")
     return dataclasses.replace(exp.with_cameras(plan.camera_specs), lights=plan.lights), plan
 
 

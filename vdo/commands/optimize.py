@@ -57,7 +57,7 @@ def write_optimization(result: OptimizeResult, out: Path, overwrite: bool = Fals
             "rounds": record.rounds, "starts": record.starts, "accepted_steps": len(record.history),
             "layouts_judged": len(record.verdicts), "best_start": record.best_start,
             "score_before": record.score_before, "score_after": record.score_after,
-            "reachability": result.reachability})
+            "reachability": result.reachability, "exposure": result.exposure})
         write_history(tmp / "history.csv", record.history)
         plot_history(tmp / "convergence.png", record.history, record.verdicts, result.optimized.name)
         write_moves(tmp / "moves.csv", result)
