@@ -249,8 +249,8 @@ def test_the_stop_is_where_the_measured_uncertainty_is_least(tmp_path):
     chosen, plan = with_exposure(exp)
     (cam,) = plan.cameras
     first = stop_at_least(aperture_for(0.008, 6e-6, *cam.depth_m)[0], *exp.exposure.f_numbers)
-    stops = [first] + [round(THIRD_STOP ** j, 2) for j in range(round(6 * math.log2(first)) + 1, 40)
-                       if round(THIRD_STOP ** j, 2) <= exp.exposure.f_numbers[1]]
+    stops = [first] + [round(THIRD_STOP ** j, 2) for j in range(round(6 * math.log2(first)) + 3, 40, 3)
+                       if round(THIRD_STOP ** j, 2) <= exp.exposure.f_numbers[1]]     # whole stops up
     base = layout_state(prepare(exp), predict_fields=False)
     totals = {}
     for stop in stops:    # the time follows the stop (max_ms is never reached): k stays the plan's

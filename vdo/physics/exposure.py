@@ -19,8 +19,9 @@ both ends need the same
     N_dof = f^2 (Z_far - Z_near) / (c (s - f) (Z_far + Z_near)),
 
 and the camera's stop is a third stop of [exposure] f_number_range at or above N_dof (above the
-range's largest stop the depth of field falls short, which is reported). Among those stops the
-one where the lab's correlation measures best: a smaller stop gathers more light (less noise,
+range's largest stop the depth of field falls short, which is reported). Among those stops (the
+depth of field's, then whole stops above it, ratio sqrt 2) the one where the lab's correlation
+measures best: a smaller stop gathers more light (less noise,
 with the exposure below), a larger one blurs the image more by diffraction (less interpolation
 bias on fine speckle, less contrast). Per stop, each (camera, region) pair's σ_measured² (the
 trace of `vdo.physics.checks.measurement_floor`'s covariance, px², at the region's median
@@ -67,8 +68,8 @@ from vdo.physics.lighting import Illumination, exposure_factors
 
 log = logging.getLogger(__name__)
 
-GRAY_LEVELS = 32            # pattern quantiles the 99th percentile is taken over
-MAX_SAMPLES = 1000          # seen samples per (camera, region) at most (an even stride)
+GRAY_LEVELS = 16            # pattern quantiles the 99th percentile is taken over
+MAX_SAMPLES = 500           # seen samples per (camera, region) at most (an even stride)
 LIGHT_MIN = 0.05            # a light dims to 5 % of its configured radiance at the least
 BRIGHTNESS_WEIGHT = 1e-3    # ε: the light gathered, against the shortfall below the floor
 THIRD_STOP = 2.0 ** (1.0 / 6.0)   # f-numbers step by a third of a stop: N ratio 2^(1/6)
@@ -132,9 +133,9 @@ def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
 
 def _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor, analysis, illum,
                 rho, pattern) -> list:
-    """`apertures` with each camera's stop moved to the third stop, from its depth-of-field stop
-    up to the range's largest, where its pairs' summed σ_measured² is least (module docstring):
-    one `measurement_floor` over every (pair, stop)."""
+    """`apertures` with each camera's stop moved to the stop, its depth-of-field stop or a whole
+    stop above it up to the range's largest, where its pairs' summed σ_measured² is least (module
+    docstring): one `measurement_floor` over every (pair, stop)."""
     free, t_ref = set(spec_x.free), sensor.exposure_ms * 1e-3
     span, dn_per_unit = sensor.max_dn - sensor.offset, sensor.gain * sensor.quantum_efficiency * \
         sensor.photon_scale
@@ -145,8 +146,8 @@ def _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor
     for i, (n, focus, _) in enumerate(apertures):
         if n is None or top[i] <= 0:
             continue
-        first = round(6.0 * math.log2(n))
-        stops = [n] + [round(THIRD_STOP ** j, 2) for j in range(first + 1, first + 7 * 6)
+        first = round(6.0 * math.log2(n))     # n's third stop; then whole stops above it
+        stops = [n] + [round(THIRD_STOP ** j, 2) for j in range(first + 3, first + 7 * 6, 3)
                        if round(THIRD_STOP ** j, 2) <= spec_x.f_numbers[1]]
         for stop in stops:
             k = exposure_factor(stop, camera_specs[i].exposure_time, t_ref)
