@@ -18,16 +18,16 @@ both ends need the same
 
     N_dof = f^2 (Z_far - Z_near) / (c (s - f) (Z_far + Z_near)),
 
-and the camera's stop is a third stop of [exposure] f_number_range at or above N_dof (above the
-range's largest stop the depth of field falls short, which is reported). Among those stops (the
-depth of field's, then whole stops above it, ratio sqrt 2) the one where the lab's correlation
-measures best: a smaller stop gathers more light (less noise,
-with the exposure below), a larger one blurs the image more by diffraction (less interpolation
-bias on fine speckle, less contrast). Per stop, each (camera, region) pair's σ_measured² (the
-trace of `vdo.physics.checks.measurement_floor`'s covariance, px², at the region's median
-footprint and irradiance, through that stop's `vdo.model.optics.optics_blur`, with the exposure
-k of that stop at the configured light) is summed over the camera's regions; the smallest sum
-wins.
+rounded up to a third stop (2^(j/6): f/2.83, 3.17, 3.56, 4, ...) within [exposure]
+f_number_range; above the range's largest stop the depth of field falls short, which is
+reported. The camera takes, among that stop and the whole stops above it (ratio sqrt 2, up to
+the largest), the one where the lab's correlation measures best: a wider aperture gathers more
+light (less noise, with the exposure below), a smaller one blurs the image more by diffraction
+(less interpolation bias on fine speckle, less contrast). Per stop, each (camera, region) pair's
+σ_measured² (the trace of `vdo.physics.checks.measurement_floor`'s covariance, px², at the
+region's median footprint and irradiance, through that stop's `vdo.model.optics.optics_blur`,
+with the exposure k of that stop at the configured light) is summed over the camera's regions;
+the smallest sum wins.
 
 Exposure ("time", "lights" free). Per (camera c, region r) with seen samples, p_cr(w) is the 99th
 percentile of the gray level above the offset at k = 1 over the seen samples (weighted by their
@@ -45,8 +45,7 @@ factors w_l ∈ [LIGHT_MIN, max_radiance_l / radiance_l] minimise
 (F_0, F_1) = `vdo.physics.checks.EXPOSURE`: the squared shortfall of every seen region below the
 under-exposure floor and its excess over saturation (with the times fixed), then (ε =
 `BRIGHTNESS_WEIGHT`) the light gathered, which lowers the noise; L-BFGS-B on ln w from w = 1,
-kept when it lowers the sum.
-Then t_c = t_ref k_c (N_c / 8)^2. The checks of the result are `vdo.physics.checks`' own, on the
+kept when it lowers the sum. Then t_c = t_ref k_c (N_c / 8)^2. The checks of the result are `vdo.physics.checks`' own, on the
 experiment with these settings (`vdo evaluate`).
 """
 
