@@ -27,7 +27,10 @@ that meets it with full coverage is reported.
 The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0, 1] (body counts
 and obscuration kept, pairwise rules dropped) and certifies a lower bound on the score of every
 selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pareto.csv, the console
-and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count).
+and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count). The
+relaxation's weights are also a second start for each count (`rounded`: the candidates by
+decreasing weight while feasible, then the exchange and the polish): its selection replaces the
+count's when it scores lower ("rounded" in design.json's curve).
 
 What no selection can fix is reported naming the region and what is missing (`problems`,
 `shortfalls`): an inventory below its min_cameras, no candidate that sees it (at rest or over the
@@ -119,6 +122,7 @@ POLISH_BLOCK = 16           # candidates whose (N, 6) sums are formed together i
 POLISH_PASSES = 3           # most passes over the slots
 POLISH_RTOL = 1e-3          # a polish swap lowers the worst region's p95 by more than this (relative)
 POLISH_PERCENTILE = 95.0    # the curve's figure: each region's σ_max p95
+ROUNDING_RTOL = 1e-6        # the relaxation's rounded start replaces a count's selection when it scores this much lower
 
 
 @dataclass(frozen=True)
@@ -210,6 +214,42 @@ def polish(cand: Candidates, scorer: Scorer, feas: Feasibility, samples, chosen,
         if not improved:
             break
     return chosen, swaps
+
+
+def _count(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility, coarse,
+           can_measure, start) -> dict:
+    """One count's entry of the curve from the selection `start`: `exchange` passes, then
+    `polish` (kept when the judged layout, bodies included, reads better), the layout judged
+    (`_judged`) and its score, swaps, lenses and bodies."""
+    chosen, score, swaps = exchange(cand, scorer, feas, start)
+    judged = _judged(exp, cand, coarse, chosen, can_measure)
+    polished, polish_swaps = polish(cand, scorer, feas, coarse.samples, chosen)
+    if polish_swaps:     # kept when the judged layout (bodies included) agrees
+        again = _judged(exp, cand, coarse, polished, can_measure)
+        if _reads_better(again, judged, sigma_key(exp)):
+            chosen, score, judged = polished, scorer.of(cand, polished), again
+        else:
+            polish_swaps = 0
+    return {"cameras": len(start), "score": score, "swaps": swaps, "polish_swaps": polish_swaps,
+            "chosen": chosen,
+            "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
+            "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen), **judged}
+
+
+def rounded(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.ndarray,
+            k: int) -> list[int]:
+    """A feasible selection of k cameras from the relaxation's weights (`vdo.design.bound.Bound`):
+    the candidates by decreasing weight, each taken while it is feasible with those taken, then
+    `greedy` to k when the weighted ones run out."""
+    chosen: list[int] = []
+    for i in np.argsort(-np.asarray(weights)):
+        if len(chosen) == k or weights[i] <= 0:
+            break
+        if feas.allowed(chosen)[i]:
+            chosen.append(int(i))
+    if len(chosen) < k:
+        chosen, _ = greedy(cand, scorer, feas, k, start=chosen)
+    return chosen
 
 
 def _judged(exp: Experiment, cand: Candidates, coarse, chosen, can_measure) -> dict:
@@ -467,20 +507,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
             skipped = [m for m in counts if m <= n]
             break
         started = _clock()
-        chosen, score, swaps = exchange(cand, scorer, feas, order[:n])
-        judged = _judged(exp, cand, coarse, chosen, can_measure)
-        polished, polish_swaps = polish(cand, scorer, feas, coarse.samples, chosen)
-        if polish_swaps:     # kept when the judged layout (bodies included) agrees
-            again = _judged(exp, cand, coarse, polished, can_measure)
-            if _reads_better(again, judged, sigma_key(exp)):
-                chosen, score, judged = polished, scorer.of(cand, polished), again
-            else:
-                polish_swaps = 0
-        curve.append({"cameras": n, "score": score, "swaps": swaps, "polish_swaps": polish_swaps,
-                      "chosen": chosen,
-                      "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
-                      "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen),
-                      **judged})
+        curve.append(_count(exp, cand, scorer, feas, coarse, can_measure, order[:n]))
         count_s = _clock() - started
         final_s = final_s or final_prepare_s + 2 * count_s   # the final judgement of the inventory's layout
     best = curve[0]                     # the inventory's count
@@ -493,7 +520,18 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       "--time-limit searches them)")
         log.warning(issues[-1])
     left = max(0.0, (deadline - _clock() - final_s) / len(curve))    # per count, before the final judgement
-    relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left))
+    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left))
+    for c, b in zip(curve, relaxed):    # a second start: the relaxation's weights, rounded
+        if b is None or _clock() + count_s + final_s > deadline:
+            continue
+        again = _count(exp, cand, scorer, feas, coarse, can_measure,
+                       rounded(cand, scorer, feas, b.weights, c["cameras"]))
+        if again["score"] < c["score"] * (1 - ROUNDING_RTOL):
+            log.info("%d cameras: the relaxation's rounding scores %.4g against %.4g: gap %.1f -> "
+                     "%.1f %%", c["cameras"], again["score"], c["score"], 100 * c["gap"],
+                     100 * max(0.0, 1.0 - c["bound"] / again["score"]))
+            c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
+                     bound_converged=c["bound_converged"], rounded=True)
     searched_s = _clock() - t_search
     search_peak = peak_rss()      # what the estimate covers: judging and selection
     target = None
@@ -602,18 +640,19 @@ class DesignRecord:
     final_peak_memory_bytes: float          # the same, the final judgement included
 
 
-def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve, seconds: float) -> None:
+def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
+                seconds: float) -> list[bound.Bound | None]:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
     rules dropped; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score) and
     "bound_converged"; None where `seconds` is 0. The score never rises when a camera is added,
     so the best k-camera score is at least the best (k+1)-camera score: each count's bound is the
     largest of its own and those of larger counts (while the relaxation's count grows). Logs each
-    gap."""
+    gap. Returns each count's `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
-        return
+        return [None] * len(curve)
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
                               feas.counts, start=c["chosen"], time_limit=seconds)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
@@ -627,3 +666,4 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve, seco
         log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
                  "(%d steps, %s)", c["cameras"], c["score"], v, 100 * c["gap"], b.iterations,
                  "converged" if b.converged else f"time limit {seconds:g} s")
+    return found
