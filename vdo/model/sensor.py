@@ -168,6 +168,11 @@ class SensorModel:
         """
         return self.full_well_e / (self.quantum_efficiency * self.photon_scale)
 
+    @property
+    def dn_per_unit(self) -> float:
+        """DN per unit of the linear render value above the offset, ``K * QE * photons_per_unit``."""
+        return self.gain * self.quantum_efficiency * self.photon_scale
+
     def mean_dn(self, linear):
         """Noise-free expected DN, ``K * QE * photons_per_unit * linear + offset``.
 
@@ -176,7 +181,7 @@ class SensorModel:
         """
         if isinstance(linear, (list, tuple)):
             linear = np.asarray(linear, dtype=np.float64)
-        return linear * (self.gain * self.quantum_efficiency * self.photon_scale) + self.offset
+        return linear * self.dn_per_unit + self.offset
 
     def variance_dn(self, mean_dn):
         """Temporal noise variance in DN**2 at mean `mean_dn` (EMVA 1288 linear model).

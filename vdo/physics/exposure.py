@@ -130,17 +130,26 @@ def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
     return float(v[order][np.searchsorted(np.cumsum(ww[order]), 0.99)])
 
 
-def _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor, analysis, illum,
-                rho, pattern) -> list:
+def _pair_signals(pairs, w, illum: Illumination, rho, sensor: SensorModel,
+                  n_cam: int) -> tuple[np.ndarray, np.ndarray]:
+    """(p (pairs,), top (C,)): each (camera, region) pair's p99 signal (DN above the offset, at
+    k = 1) under the light power factors `w`, and each camera's largest."""
+    p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px, _ in pairs]) \
+        * sensor.dn_per_unit
+    top = np.zeros(n_cam)
+    for (i, *_), v in zip(pairs, p):
+        top[i] = max(top[i], v)
+    return p, top
+
+
+def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, sensor, analysis,
+                pattern) -> list:
     """`apertures` with each camera's stop moved to the stop, its depth-of-field stop or a whole
     stop above it up to the range's largest, where its pairs' summed σ_measured² is least (module
-    docstring): one `measurement_floor` over every (pair, stop)."""
+    docstring): one `measurement_floor` over every (pair, stop). `top` (C,): each camera's
+    brightest region's p99 signal (DN above the offset) at k = 1 and the configured light."""
     free, t_ref = set(spec_x.free), sensor.exposure_ms * 1e-3
-    span, dn_per_unit = sensor.max_dn - sensor.offset, sensor.gain * sensor.quantum_efficiency * \
-        sensor.photon_scale
-    top = np.zeros(len(cameras))
-    for i, _, D, px, _ in pairs:           # the brightest region's p99 at the configured light
-        top[i] = max(top[i], _p99_signal(D.sum(axis=0) + illum.ambient, px, rho) * dn_per_unit)
+    span = sensor.max_dn - sensor.offset
     jobs = []                              # (camera, stop, pair's middle, k)
     for i, (n, focus, _) in enumerate(apertures):
         if n is None or top[i] <= 0:
@@ -186,11 +195,11 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
     configured radiances of `lights`), the paint [speckle] with its [0, 1] `pattern` tile, the
-    [sensor], [evaluation] (the patch) and [analysis] (the interpolant, the reference). `sharp` (C, N) bool: the samples each camera's depth of field must hold (default
-    `visible`; a camera with none holds all it sees)."""
+    [sensor], [evaluation] (the patch) and [analysis] (the interpolant, the reference).
+    `sharp` (C, N) bool: the samples each camera's depth of field must hold (default `visible`;
+    a camera with none holds all it sees)."""
     free = set(spec_x.free)
     t_ref = sensor.exposure_ms * 1e-3
-    dn_per_unit = sensor.gain * sensor.quantum_efficiency * sensor.photon_scale
     span = sensor.max_dn - sensor.offset
     low_n, high_n = spec_x.f_numbers
     rho = speckle.black_albedo + (speckle.white_albedo - speckle.black_albedo) * \
@@ -232,8 +241,9 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
             pairs.append((i, k, illum.direct[:, seen], samples.area[seen] * density, middle))
     n_cam = len(camera_specs)
     if "aperture" in free and pairs:
-        apertures = _best_stops(apertures, pairs, cameras, camera_specs, spec_x, speckle, sensor,
-                                analysis, illum, rho, pattern)
+        _, top = _pair_signals(pairs, np.ones(len(lights)), illum, rho, sensor, n_cam)
+        apertures = _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle,
+                                sensor, analysis, pattern)
     base = exposure_factors([replace(s, f_number=a[0]) for s, a in zip(camera_specs, apertures)],
                             sensor)                       # the file's times at the chosen stops
     n_eff = np.array([DEFAULT_F_NUMBER if a[0] is None else a[0] for a in apertures])
@@ -244,11 +254,7 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
 
     def signals(w):
         """(p (pairs,), k (C,)): each pair's p99 signal in DN at k = 1 and each camera's k."""
-        p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px, _ in pairs]) \
-            * dn_per_unit
-        top = np.zeros(n_cam)
-        for (i, *_), v in zip(pairs, p):
-            top[i] = max(top[i], v)
+        p, top = _pair_signals(pairs, w, illum, rho, sensor, n_cam)
         k = np.minimum(spec_x.target_gray * span / np.where(top > 0, top, np.inf), k_max) \
             if "time" in free else base
         k = np.where(top > 0, k, base)

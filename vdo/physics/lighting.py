@@ -231,7 +231,7 @@ def photometry(illumination: Illumination, speckle: SpeckleSpec, sensor: SensorM
     rho_b, rho_w = speckle.black_albedo, speckle.white_albedo
     mean_rho = rho_b + (rho_w - rho_b) * pattern_mean
     linear = mean_rho * E / np.pi
-    dn_per_unit = sensor.gain * sensor.quantum_efficiency * sensor.photon_scale
+    dn_per_unit = sensor.dn_per_unit
     k = np.ones((n_cameras, 1)) if exposure is None else np.asarray(exposure, float).reshape(-1, 1)
     shape = (n_cameras, len(E))
     return Photometry(
