@@ -509,7 +509,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
         started = _clock()
         curve.append(_count(exp, cand, scorer, feas, coarse, can_measure, order[:n]))
         count_s = _clock() - started
-        final_s = final_s or final_prepare_s + 2 * count_s   # the final judgement of the inventory's layout
+        # the final judgement of the inventory's layout; twice with [exposure] free (its step
+        # judges the layout once more and searches the stops)
+        final_s = final_s or (final_prepare_s + 2 * count_s) * (2 if exp.exposure.free else 1)
     best = curve[0]                     # the inventory's count
     curve.reverse()
     if skipped:
