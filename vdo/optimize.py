@@ -83,8 +83,8 @@ from vdo.physics.lighting import exposure_factors
 from vdo.physics.predict import predict
 from vdo.state import LayoutState, layout_state, prepare, unobstructed_lighting, with_exposure
 from vdo.search.anytime import Progress, Stop, stop_on_signals
-from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
-from vdo.search.problem import CLEARANCE_SPACING, Problem, Result, State, score_parts
+from vdo.search.obstruction import CLEARANCE_SPACING, clearances, light_lost, obstacle_visibility, surface_points
+from vdo.search.problem import Problem, Result, State, score_parts
 from vdo.search.solver import LENS_TRIALS, choose_lenses, solve
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,8 @@ mount. From each spot a candidate aims at each *target*: the centres of the regi
 (clipped to their samples), merged when closer than MERGE_TARGETS_M; with `aim_offsets_deg` also
 at pan and tilt +- each offset. Each pose carries each body kind of the inventory ([[body]]: its
 sensor; or [design]'s one sensor) with each lens it takes. A candidate is dropped when its body
-(`vdo.scene.camera_body_points`) comes closer than `[optimize] clearance_m` to a mesh.
+comes closer than `[optimize] clearance_m` to a mesh, by the measure of the layout's clearance
+check (`vdo.search.obstruction.keep_clear`).
 
 One judgement of all candidates. The regions are sampled at `[design] sample_spacing_mm`
 (coarser than [evaluation]'s; 20 mm by default). One ray cast (`vdo.physics.visibility`) over every
@@ -72,7 +73,8 @@ from vdo.physics.lighting import illuminate
 from vdo.physics.predict import samples_for_objective, settings, view_data
 from vdo.core.configure import configure
 from vdo.core.progress import bar
-from vdo.scene import build_scene, camera_body_points
+from vdo.scene import build_scene
+from vdo.search.obstruction import CLEARANCE_SPACING, keep_clear, surface_points
 from vdo.state import Geometry, prepare
 from vdo.state import bodies as bodies_of
 from vdo.physics.visibility import compute_visibility
@@ -262,23 +264,6 @@ def targets(samples) -> np.ndarray:
     return np.array(out)
 
 
-def mesh_points(meshes, spacing: float = 0.01) -> np.ndarray:
-    """Points on every mesh surface, at most `spacing` apart along each triangle's edges
-    (vertices, and a barycentric grid per triangle), for clearance by nearest neighbour."""
-    out = []
-    for m in meshes:
-        tri = m.vertices[m.faces]                       # (F, 3, 3)
-        edge = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(axis=1)
-        for k in np.unique(np.ceil(edge / spacing).astype(int).clip(1, 400)):
-            sel = tri[np.ceil(edge / spacing).astype(int).clip(1, 400) == k]
-            i, j = np.meshgrid(np.arange(k + 1), np.arange(k + 1), indexing="ij")
-            keep = i + j <= k
-            b = np.c_[i[keep], j[keep]] / k
-            w = np.c_[1 - b.sum(1), b]                  # (G, 3)
-            out.append(np.einsum("gk,fkd->fgd", w, sel).reshape(-1, 3))
-    return np.vstack(out)
-
-
 def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
     """(P, 3) candidate optical centres (m) in a zone [[mount]]: `per_axis` evenly spaced values
     along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
@@ -323,7 +308,7 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
     aims = targets(samples)
     offsets = [(0.0, 0.0)] + [(s * a, t * a) for a in exp.design.aim_offsets for s, t in
                               ((1, 0), (-1, 0), (0, 1), (0, -1))]
-    cams, rows, points = [], [], []
+    cams, rows = [], []
     kept_out: dict[str, int] = {}
     for mount, kind, u, head, p in spots(exp):
         box = int(inside_keep_out(exp.keep_outs, p)[0])
@@ -344,11 +329,9 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
                                    pan=pan0 + dp, tilt=tilt0 + dt)
                         cams.append(c)
                         rows.append((mount, kind, u, head, b, t))
-                        points.append(camera_body_points(f) @ c.R + p)     # x_w = R^T x_c + C
-    if cams:   # one query, pruned at the clearance (an unbounded query from far away is slow)
-        gap = cKDTree(mesh_points(meshes)).query(np.concatenate(points),
-                                                 distance_upper_bound=exp.optimize.clearance)[0]
-        clear = (gap.reshape(len(cams), -1) >= exp.optimize.clearance).all(axis=1)
+    if cams:   # the measure of the layout's clearance check (`vdo.search.obstruction`)
+        tree = cKDTree(surface_points(list(meshes), spacing=CLEARANCE_SPACING))
+        clear = keep_clear(cams, tree, exp.optimize.clearance)
         for name in dict.fromkeys(r[0] for r in rows):
             of = np.array([r[0] == name for r in rows])
             log.info("mount %s: %d candidate poses, %d dropped for clearance (closer than %g m to a "

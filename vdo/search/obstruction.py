@@ -1,19 +1,30 @@
 """What the cameras' hardware does to the scene, judged by the optimizer at start-up and on its
-result: the mesh points clearances are measured to (`surface_points`), each body's clearance
-(`clearances`, m), the light the bodies take from each region (`light_lost`) and the ray cast
-against the obstacles alone (`obstacle_visibility`, the obscuration check)."""
+result and by `vdo design` on its candidates: the mesh points clearances are measured to
+(`surface_points`, every CLEARANCE_SPACING m), the points spread on each body (`body_points`),
+each body's clearance (`clearances`, m; `keep_clear`, the same measure as a filter), the light
+the bodies take from each region (`light_lost`) and the ray cast against the obstacles alone
+(`obstacle_visibility`, the obscuration check).
+
+One measure of clearance: the least distance from BODY_POINTS points spread on the body's surface
+to the mesh points. Both point sets are samples of the surfaces, so the measure can exceed the
+true surface-to-surface distance by up to about the two sets' point spacings; design's filter and the layout's check read the same
+measure, so a candidate kept by the one is never broken by the other."""
 
 from __future__ import annotations
 
 import logging
+from functools import lru_cache
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
 from vdo.physics.visibility import Visibility, compute_visibility
-from vdo.scene import build_scene, camera_body
+from vdo.scene import build_scene, camera_body_local
 from vdo.state import bodies
+
+CLEARANCE_SPACING = 0.015   # m between the mesh points clearances are measured to
+BODY_POINTS = 400           # points spread on each camera body's surface for its clearance
 
 
 def _spread(tm, count: int) -> np.ndarray:
@@ -40,10 +51,40 @@ def surface_points(meshes, spacing: float) -> np.ndarray:
     return np.vstack(pts)
 
 
+@lru_cache(maxsize=None)
+def body_points(focal_length: float) -> np.ndarray:
+    """(B, 3) points, B <= BODY_POINTS, spread evenly on the body's surface in the camera frame
+    (`vdo.scene.camera_body_local`; read-only). World points: X = x_c R + C (R the camera's
+    world-to-camera rotation, C its optical centre)."""
+    pts = _spread(camera_body_local(focal_length), BODY_POINTS)
+    pts.setflags(write=False)
+    return pts
+
+
+def _world_body_points(camera) -> np.ndarray:
+    return body_points(float(camera.focal_length)) @ camera.R + camera.position
+
+
+def keep_clear(cameras, tree, clearance: float) -> np.ndarray:
+    """bool (len(cameras),): each body at least `clearance` (m) from every point of `tree` (the
+    `clearances` measure without the other bodies). A camera whose optical centre is farther than
+    clearance + its body's reach from every point is clear without looking at its body."""
+    reach = {f: float(np.linalg.norm(body_points(f), axis=1).max())
+             for f in {float(c.focal_length) for c in cameras}}
+    out = np.ones(len(cameras), dtype=bool)
+    for f, r in reach.items():
+        of = [i for i, c in enumerate(cameras) if float(c.focal_length) == f]
+        centres = np.array([cameras[i].position for i in of], dtype=float).reshape(-1, 3)
+        near = np.isfinite(tree.query(centres, distance_upper_bound=clearance + r)[0])
+        for i in np.asarray(of)[near]:
+            gap = tree.query(_world_body_points(cameras[i]), distance_upper_bound=clearance)[0]
+            out[i] = bool(np.all(gap >= clearance))
+    return out
+
+
 def clearances(cameras, tree) -> np.ndarray:
     """Distance (m) from each camera body to the nearest mesh point and to the other bodies."""
-    bodies = [camera_body(c) for c in cameras]
-    dense = [_spread(b.trimesh, 400) for b in bodies]
+    dense = [_world_body_points(c) for c in cameras]
     out = np.array([tree.query(d)[0].min() for d in dense])
     for i, di in enumerate(dense):
         for j, dj in enumerate(dense):

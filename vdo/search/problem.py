@@ -30,7 +30,7 @@ from vdo.model.camera import intrinsic_matrix, rotation
 from vdo.config.experiment import Experiment
 from vdo.physics.lighting import exposure_factors, panel_frame
 from vdo.search.obscuration import ObscurationRenderer, ObscurationTerm
-from vdo.search.obstruction import clearances, light_lost, obstacle_visibility, surface_points
+from vdo.search.obstruction import CLEARANCE_SPACING, clearances, light_lost, obstacle_visibility, surface_points
 from vdo.objective import bucket
 from vdo.physics import measured
 from vdo.physics.predict import samples_for_objective, settings, view_data
@@ -46,7 +46,6 @@ PENALTIES = ("angle", "fov", "clearance", "obscuration", "shadow")   # the keys 
 # always lies a little beyond what it aims at, meets the exact limit.
 ANGLE_MARGIN = math.radians(0.5)   # rad added to each minimum axis angle
 CLEARANCE_MARGIN = 0.005           # m added to the clearance
-CLEARANCE_SPACING = 0.015          # m between the mesh points clearances are measured to
 FOV_MARGIN = 0.002                 # added to each least in-image fraction of a region
 SHADOW_MARGIN = 0.005              # m added to each body sphere's radius in the shadow penalty
 LOCAL_MOVE = 0.1   # m: the clearance and shadow penalties read only what a body point can reach
