@@ -40,8 +40,8 @@ from vdo.config.experiment import Experiment, lens_catalogue_errors
 from vdo.config.rig import CameraSpec
 from vdo.config.mounts import inside_floor
 from vdo.core.errors import Collect, ConfigError
-from vdo.geometry.keyframes import LoadPath, load_path_of
-from vdo.physics.exposure import ExposurePlan, design_exposure
+from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
+from vdo.physics.exposure import ExposurePlan, design_exposure, motion_limits
 from vdo.physics.lighting import Illumination, exposure_factors, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
@@ -416,19 +416,32 @@ def camera_exposure(exp: Experiment, cameras) -> np.ndarray | None:
 def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
     """`exp` with the f-numbers, exposure times and light power that [exposure] free asks for
     (`vdo.physics.exposure.design_exposure` on its layout, judged without predicting the fields;
-    the depth of field holds each camera's assigned regions, `vdo.constraints.assignments`), and
-    the plan itself."""
+    the depth of field holds each camera's assigned regions, `vdo.constraints.assignments`; with
+    [load_path] step_s, each exposure within [exposure] blur_px of image motion over the path's
+    steps, `vdo.physics.exposure.motion_limits`), and the plan itself."""
     t0 = time.perf_counter()
     state = layout_state(prepare(exp), predict_fields=False)
     vis, samples = state.visibility, state.samples
     assigned = assignments(vis, samples, exp.optimize.assign_fraction)
+    cameras = list(state.cameras)
+    motion = None
+    if exp.load_path.step_time is not None and "time" in exp.exposure.free:
+        path = load_path_of(state.geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                            groups=exp.groups)
+        tracks = [(0, samples.points)] + [
+            (step, at_step(state.geometry, path, step, regions=exp.regions).samples.points)
+            for step in path.steps if step > 0]
+        motion = motion_limits(cameras, vis.visible, tracks, exp.load_path.step_time,
+                               exp.exposure.blur_px, exp.exposure.max_time)
     plan = design_exposure(exp.exposure, exp.camera_specs, exp.lights, exp.speckle, exp.sensor,
                            exp.evaluation, exp.analysis,
-                           list(state.cameras), samples, vis.visible, state.illumination,
+                           cameras, samples, vis.visible, state.illumination,
                            state.geometry.speckle.pattern,
-                           sharp=vis.visible & assigned[:, samples.region])
+                           sharp=vis.visible & assigned[:, samples.region], motion=motion)
     log.info("exposure (%.0f s): %s%s", time.perf_counter() - t0, ", ".join(
-        f"{c.camera} f/{c.f_number:g} {c.exposure_s * 1e3:.3g} ms" for c in plan.cameras),
+        f"{c.camera} f/{c.f_number:g} {c.exposure_s * 1e3:.3g} ms"
+        + (f" (at most {c.max_s * 1e3:.3g} ms: {c.image_speed:.3g} px/s)" if c.image_speed > 0 else "")
+        for c in plan.cameras),
         "; lights " + ", ".join(f"{name} {value:.3g}" for name, value in plan.radiance.items())
         if plan.radiance else "")
     return dataclasses.replace(exp.with_cameras(plan.camera_specs), lights=plan.lights), plan

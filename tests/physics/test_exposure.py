@@ -197,6 +197,8 @@ def test_the_aperture_keeps_the_plate_sharp(tmp_path):
     (dict(exposure='[exposure]\nfree = ["lights"]'), "exposure.free"),
     (dict(exposure='[exposure]\nfree = ["shutter"]'), "exposure.free"),
     (dict(exposure="[exposure]\nmax_ms = 0"), "exposure.max_ms"),
+    (dict(exposure="[exposure]\nblur_px = 0"), "exposure.blur_px"),
+    (dict(exposure="[load_path]\nstep_s = 0.5"), "load_path.step_s"),
     (dict(camera="exposure_ms = -5"), 'camera "down".exposure_ms'),
     (dict(left_max="max_radiance = 10"), 'light "over_left".max_radiance'),
 ])
@@ -205,6 +207,36 @@ def test_bad_exposure_settings_are_one_line(tmp_path, edit, field):
         config.load(_write(tmp_path, **edit))
     message = str(err.value)
     assert field in message and "\n" not in message, message
+
+
+SLIDE_MM = 20.0   # the plate slides along x by this much per step of the load path
+
+
+def test_the_exposure_keeps_the_image_motion_within_blur_px(tmp_path):
+    """The plate slides 20 mm per step, a step every 0.5 s, under a camera looking straight down
+    from Z = 1.5 m: every point of the plate crosses the image at f_px v / Z pixels per second (a
+    fronto-parallel plane in translation, exactly). Under dim light the exposure the time wants
+    is longer than blur_px allows, so the plan sets blur_px / speed, and says so for the region
+    left dark; at rest (no step_s) the same file gets [exposure] max_ms."""
+    from vdo.state import with_exposure
+
+    (tmp_path / "poses.csv").write_text("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n" + "".join(
+        f"{k},plate,{SLIDE_MM * k},0,0,0,0,0\n" for k in (1, 2, 3)))
+    step_s, blur = 0.5, 0.1
+    moving = '[exposure]\nfree = ["time"]\nblur_px = 0.1\n\n[load_path]\nposes = "poses.csv"\nstep_s = 0.5'
+    exp, plan = with_exposure(config.load(_write(tmp_path, left=0.5, right=0.5, exposure=moving)))
+    (cam,) = plan.cameras
+    f_px = 0.016 / (22.2e-3 / 600)
+    speed = f_px * (SLIDE_MM * 1e-3 / step_s) / 1.5
+    assert cam.image_speed == pytest.approx(speed, rel=1e-6)
+    assert cam.max_s == pytest.approx(blur / speed, rel=1e-6)
+    assert cam.exposure_s == pytest.approx(cam.max_s, rel=1e-9)       # the limit binds
+    assert exp.camera_specs[0].exposure_time == pytest.approx(blur / speed, rel=1e-6)
+    assert any("blur_px" in p and "px/s" in p for p in plan.problems), plan.problems
+    still, plan_still = with_exposure(config.load(_write(
+        tmp_path, left=0.5, right=0.5, exposure="[exposure]\nfree = [\"time\"]\nblur_px = 0.1")))
+    assert plan_still.cameras[0].exposure_s == pytest.approx(still.exposure.max_time)
+    assert plan_still.cameras[0].image_speed == 0.0
 
 
 def test_the_settings_are_written_and_read_back(tmp_path):

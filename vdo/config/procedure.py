@@ -130,6 +130,11 @@ class LoadPathSpec:
     every: int = row("every", Whole(low=1), 1,
                      doc="judge and render every every-th step of the files and the last one (a "
                          "quicker look at a long series; every row of every step is still checked)")
+    step_time: float | None = row("step_s", Real(positive=True), None, unit="s", shown="none",
+                                  doc="seconds the load takes from one step of the files to the "
+                                      "next, the images taken on the move: with \"time\" in "
+                                      "[exposure] free, each camera's exposure keeps its image "
+                                      "motion within [exposure] blur_px")
 
     @property
     def active(self) -> bool:
@@ -144,6 +149,9 @@ def check_load_path(t: Table, v: dict) -> None:
     if vtk and v["unit"] is None:
         raise t.error("unit", "a VTK file carries no length unit: give unit = \"mm\" or \"m\" (its "
                               "points and displacements)")
+    if v["step_time"] is not None and v["poses"] is None and v["displacements"] is None:
+        raise t.error("step_s", "is the time between the load path's steps: give its poses or "
+                                "displacements, or drop step_s")
     if not vtk and (v["unit"] is not None or v["displacement_array"] is not None):
         raise t.error("unit" if v["unit"] is not None else "displacement_array",
                       "is for a VTK displacement file (a CSV names its units in its header)")
@@ -158,8 +166,12 @@ class ExposureSpec:
     of it after placing the cameras (`vdo.physics.exposure`, docs/exposure.md)."""
 
     max_time: float = row("max_ms", Real(positive=True), 50.0, unit="ms",
-                          doc="the longest exposure the test allows: motion blur at the load rate "
-                              "(image speed x time below a tenth of a pixel, say)")
+                          doc="the longest exposure the test allows (with [load_path] step_s, "
+                              "each camera's is also held to blur_px of image motion)")
+    blur_px: float = row("blur_px", Real(positive=True), 0.1,
+                         doc="the image motion (pixels) a camera may record during one exposure "
+                             "while the load runs ([load_path] step_s): its exposure time is at "
+                             "most blur_px / its fastest image speed")
     f_numbers: tuple[float, float] = row("f_number_range", Vector(2, positive=True, as_tuple=True,
                                                                    letters=("min", "max")),
                                          [2.8, 16.0], doc="the stops the lenses allow")

@@ -29,7 +29,7 @@ NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not st
 MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
 IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
                b"MM\x00*": "TIFF", b"BM": "BMP"}
-_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "ms": 1e-3, "deg": math.pi / 180.0}
+_UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "s": 1.0, "ms": 1e-3, "deg": math.pi / 180.0}
 _SIGNIFICANT = 12       # digits written back: parse(to_dict(e)) equals e to ~1e-12 relative
 
 

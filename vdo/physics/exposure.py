@@ -35,10 +35,17 @@ pixels) and the paint's values (`GRAY_LEVELS` quantiles of the pattern), as `vdo
 exposure check takes it. The camera's exposure puts its brightest region at the target
 T = [exposure] target_gray of the range, within the time limit:
 
-    k_c(w) = min(T S / max_r p_cr(w),  (t_max / t_ref) (8 / N_c)^2),   S = max DN - offset,
+    k_c(w) = min(T S / max_r p_cr(w),  (t_max,c / t_ref) (8 / N_c)^2),   S = max DN - offset,
 
-(k_c fixed by the file's exposure time when "time" is not free). With "lights" free the power
-factors w_l ∈ [LIGHT_MIN, max_radiance_l / radiance_l] minimise
+(k_c fixed by the file's exposure time when "time" is not free). t_max,c is [exposure] max_ms, and
+with the load running during the images ([load_path] step_s = Δt per step) also the motion
+limit (`motion_limits`): a sample X_n moves between steps a < b (step 0 the rest state) by
+Δx_cn = |x_c(X_n(b)) - x_c(X_n(a))| pixels in camera c, at image speed v_cn = Δx_cn / ((b - a) Δt),
+and an exposure t smears it over v_cn t pixels, so
+
+    t_max,c = min(max_ms, blur_px / max_{n seen by c, steps} v_cn).
+
+With "lights" free the power factors w_l ∈ [LIGHT_MIN, max_radiance_l / radiance_l] minimise
 
     Σ_cr [max(0, ln(F_0 S) - ln(k_c p_cr))^2 + max(0, ln(k_c p_cr) - ln(F_1 S))^2] - ε Σ_cr ln(k_c p_cr),
 
@@ -77,7 +84,8 @@ THIRD_STOP = 2.0 ** (1.0 / 6.0)   # f-numbers step by a third of a stop: N ratio
 @dataclass(frozen=True)
 class CameraExposure:
     """One camera's settings: f-number N, focus distance (m), exposure time (s), the light it
-    gathers against the sensor's reference (k) and the depth it must hold sharp (m)."""
+    gathers against the sensor's reference (k), the depth it must hold sharp (m), its longest
+    exposure allowed (s) and its fastest image speed over the load path (px/s, 0 at rest)."""
 
     camera: str
     f_number: float
@@ -85,6 +93,8 @@ class CameraExposure:
     exposure_s: float
     gathered: float
     depth_m: tuple[float, float]
+    max_s: float = math.nan
+    image_speed: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -102,8 +112,28 @@ class ExposurePlan:
     def to_json(self) -> dict:
         return {"cameras": [{"camera": c.camera, "f_number": c.f_number, "focus_m": c.focus_m,
                              "exposure_ms": c.exposure_s * 1e3, "gathered": c.gathered,
-                             "depth_m": list(c.depth_m)} for c in self.cameras],
+                             "depth_m": list(c.depth_m), "max_exposure_ms": c.max_s * 1e3,
+                             "image_speed_px_s": c.image_speed} for c in self.cameras],
                 "radiance": self.radiance, "problems": list(self.problems)}
+
+
+def motion_limits(cameras, visible, tracks, step_s: float, blur_px: float,
+                  max_time: float) -> tuple[np.ndarray, np.ndarray]:
+    """(t_max (C,) s, v (C,) px/s): each camera's longest exposure and fastest image speed
+    (module docstring). `tracks`: [(step, points (N, 3) m)] in step order, the rest state (step
+    0) first; `visible` (C, N) the samples each camera sees at rest; `step_s` the seconds per step
+    (None: the load does not run during the images, t_max = max_time, v = 0)."""
+    speed = np.zeros(len(cameras))
+    if step_s is not None:
+        for i, cam in enumerate(cameras):
+            seen = np.flatnonzero(np.asarray(visible[i]))
+            if seen.size == 0:
+                continue
+            px = [cam.project(points[seen]) for _, points in tracks]
+            for (a, _), (b, _), xa, xb in zip(tracks, tracks[1:], px, px[1:]):
+                speed[i] = max(speed[i], float(np.linalg.norm(xb - xa, axis=1).max()) / ((b - a) * step_s))
+    with np.errstate(divide="ignore"):
+        return np.minimum(max_time, np.where(speed > 0, blur_px / speed, np.inf)), speed
 
 
 def stop_at_least(n: float, low: float, high: float) -> float:
@@ -143,11 +173,12 @@ def _pair_signals(pairs, w, illum: Illumination, rho, sensor: SensorModel,
 
 
 def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, sensor, analysis,
-                pattern) -> list:
+                pattern, t_max) -> list:
     """`apertures` with each camera's stop moved to the stop, its depth-of-field stop or a whole
     stop above it up to the range's largest, where its pairs' summed σ_measured² is least (module
     docstring): one `measurement_floor` over every (pair, stop). `top` (C,): each camera's
-    brightest region's p99 signal (DN above the offset) at k = 1 and the configured light."""
+    brightest region's p99 signal (DN above the offset) at k = 1 and the configured light; `t_max`
+    (C,) each camera's longest exposure (s)."""
     free, t_ref = set(spec_x.free), sensor.exposure_ms * 1e-3
     span = sensor.max_dn - sensor.offset
     jobs = []                              # (camera, stop, pair's middle, k)
@@ -161,7 +192,7 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
             k = exposure_factor(stop, camera_specs[i].exposure_time, t_ref)
             if "time" in free:
                 k = min(spec_x.target_gray * span / top[i],
-                        (spec_x.max_time / t_ref) * (DEFAULT_F_NUMBER / stop) ** 2)
+                        (t_max[i] / t_ref) * (DEFAULT_F_NUMBER / stop) ** 2)
             jobs += [(i, stop, mid, k) for j, *_, mid in pairs if j == i]
     if not jobs:
         return apertures
@@ -190,15 +221,18 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                     lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
                     evaluation: Evaluation, analysis: Analysis,
                     cameras, samples, visible, illum: Illumination, pattern,
-                    sharp=None) -> ExposurePlan:
+                    sharp=None, motion=None) -> ExposurePlan:
     """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
     configured radiances of `lights`), the paint [speckle] with its [0, 1] `pattern` tile, the
     [sensor], [evaluation] (the patch) and [analysis] (the interpolant, the reference).
     `sharp` (C, N) bool: the samples each camera's depth of field must hold (default `visible`;
-    a camera with none holds all it sees)."""
+    a camera with none holds all it sees). `motion`: (t_max, v) of `motion_limits` (default
+    [exposure] max_ms for every camera, at rest)."""
     free = set(spec_x.free)
+    t_max, speed = motion if motion is not None else \
+        (np.full(len(camera_specs), spec_x.max_time), np.zeros(len(camera_specs)))
     t_ref = sensor.exposure_ms * 1e-3
     span = sensor.max_dn - sensor.offset
     low_n, high_n = spec_x.f_numbers
@@ -243,11 +277,11 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     if "aperture" in free and pairs:
         _, top = _pair_signals(pairs, np.ones(len(lights)), illum, rho, sensor, n_cam)
         apertures = _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle,
-                                sensor, analysis, pattern)
+                                sensor, analysis, pattern, t_max)
     base = exposure_factors([replace(s, f_number=a[0]) for s, a in zip(camera_specs, apertures)],
                             sensor)                       # the file's times at the chosen stops
     n_eff = np.array([DEFAULT_F_NUMBER if a[0] is None else a[0] for a in apertures])
-    k_max = (spec_x.max_time / t_ref) * (DEFAULT_F_NUMBER / n_eff) ** 2 if "time" in free else base
+    k_max = (t_max / t_ref) * (DEFAULT_F_NUMBER / n_eff) ** 2 if "time" in free else base
     configured = np.array([lt.radiance for lt in lights])
     w_max = np.array([(lt.max_radiance or lt.radiance) / lt.radiance for lt in lights])
     w_min = np.minimum(LIGHT_MIN, w_max)
@@ -279,21 +313,32 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
         brightest[i] = max(brightest[i], k[i] * v / span)
     for (i, r, *_), v in zip(pairs, p):
         level = k[i] * v / span
-        if level < EXPOSURE[0]:
-            problems.append(f"camera {camera_specs[i].name}: {samples.region_names[r]} stays at "
-                            f"{level:.0%} of the range (99th percentile) with the camera's brightest "
-                            f"region at {brightest[i]:.0%}: more light on it (a light aimed at it, "
-                            "or \"lights\" free with a higher max_radiance) or a longer [exposure] "
-                            "max_ms")
+        if level >= EXPOSURE[0]:
+            continue
+        light = ("more light on it (a light aimed at it, or \"lights\" free with a higher "
+                 "max_radiance)")
+        if "time" not in free:
+            fix = f"{light}, or \"time\" in [exposure] free"
+        elif k[i] < k_max[i] * (1.0 - 1e-9):      # the brightest region caps the time
+            fix = light
+        elif speed[i] * spec_x.max_time <= spec_x.blur_px:
+            fix = f"{light} or a longer [exposure] max_ms"
+        else:
+            fix = (f"{light}, a larger [exposure] blur_px (the load moves its image "
+                   f"{speed[i]:.3g} px/s: {t_max[i] * 1e3:.3g} ms at {spec_x.blur_px:g} px) or a "
+                   "slower load")
+        problems.append(f"camera {camera_specs[i].name}: {samples.region_names[r]} stays at "
+                        f"{level:.0%} of the range (99th percentile) with the camera's brightest "
+                        f"region at {brightest[i]:.0%}: {fix}")
     specs, chosen = [], []
-    for spec, (n, focus, dof), k_c in zip(camera_specs, apertures, k):
+    for spec, (n, focus, dof), k_c, t_c, v_c in zip(camera_specs, apertures, k, t_max, speed):
         t = t_ref * k_c * ((DEFAULT_F_NUMBER if n is None else n) / DEFAULT_F_NUMBER) ** 2 \
             if "time" in free else (spec.exposure_time or t_ref)
         specs.append(replace(spec, f_number=n, focus_distance=focus,
                              exposure_time=t if "time" in free else spec.exposure_time))
         chosen.append(CameraExposure(spec.name, DEFAULT_F_NUMBER if n is None else float(n),
                                      math.nan if focus is None else float(focus), float(t),
-                                     float(k_c), dof))
+                                     float(k_c), dof, float(t_c), float(v_c)))
     lit = tuple(replace(lt, radiance=float(r)) for lt, r in zip(lights, configured * w))
     for msg in problems:
         log.warning(msg)
