@@ -42,6 +42,7 @@ from vdo.config.mounts import inside_floor
 from vdo.core.errors import Collect, ConfigError
 from vdo.geometry.keyframes import LoadPath, at_step, load_path_of
 from vdo.physics.exposure import ExposurePlan, design_exposure, motion_limits
+from vdo.physics.glare import satin_samples
 from vdo.physics.lighting import Illumination, exposure_factors, illuminate, relight
 from vdo.physics.predict import Prediction, SpeckleModel, predict, speckle_model
 from vdo.scene import (RegionFaces, SceneMesh, SurfaceSamples, all_region_faces, build_scene, camera_body,
@@ -437,13 +438,19 @@ def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
                            exp.evaluation, exp.analysis,
                            cameras, samples, vis.visible, state.illumination,
                            state.geometry.speckle.pattern,
-                           sharp=vis.visible & assigned[:, samples.region], motion=motion)
+                           sharp=vis.visible & assigned[:, samples.region], motion=motion,
+                           scene=state.scene,
+                           places={l: exp.light_places(lt)
+                                   for l, lt in enumerate(exp.lights) if lt.mount is not None},
+                           satin=satin_samples(exp.meshes, exp.regions, samples))
     log.info("exposure (%.0f s): %s%s", time.perf_counter() - t0, ", ".join(
         f"{c.camera} f/{c.f_number:g} {c.exposure_s * 1e3:.3g} ms"
         + (f" (at most {c.max_s * 1e3:.3g} ms: {c.image_speed:.3g} px/s)" if c.image_speed > 0 else "")
         for c in plan.cameras),
-        "; lights " + ", ".join(f"{name} {value:.3g}" for name, value in plan.radiance.items())
-        if plan.radiance else "")
+        "; lights " + ", ".join(
+            f"{lt.name} {lt.radiance:.3g}" + (" at [" + ", ".join(f"{x:.2f}" for x in lt.position) + "] m"
+                                               if lt.name in plan.moved else "")
+            for lt in plan.lights) if plan.lights else "")
     return dataclasses.replace(exp.with_cameras(plan.camera_specs), lights=plan.lights), plan
 
 

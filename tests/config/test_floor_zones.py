@@ -14,7 +14,7 @@ from conftest import PLATE_TOML, write_box
 from vdo.config import experiment as config
 from vdo.config.mounts import inside_floor
 from vdo.core.errors import ConfigError
-from vdo.design.candidates import zone_grid
+from vdo.config.mounts import zone_grid
 from vdo.search.parameterisation import Parameterization
 from vdo.scene import cameras_of
 

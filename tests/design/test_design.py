@@ -18,7 +18,8 @@ from vdo import objective
 from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
 from vdo.design.budget import ENTRY_BYTES, estimate, refuse
-from vdo.design.candidates import judge, judging, lenses, spots, zone_grid
+from vdo.config.mounts import zone_grid
+from vdo.design.candidates import judge, judging, lenses, spots
 from vdo.design.feasibility import STOP_MARGIN, Feasibility
 from vdo.design.score import Scorer
 from vdo.design.select import (POLISH_RTOL, design_layout, exchange, figures, greedy, percentile_by_region,

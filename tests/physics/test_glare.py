@@ -128,3 +128,72 @@ def test_a_mitsuba_render_shows_the_predicted_hot_spot(tmp_path):
     u, v = np.asarray(cam.project(smp.points[np.argmax(Ls)][None]))[0]
     assert image.max() == pytest.approx(Ls.max(), rel=RENDER_RTOL)
     assert np.hypot(peak[1] + 0.5 - u, peak[0] + 0.5 - v) <= 3
+
+
+LIGHT_ZONE = """
+[[mount]]
+name = "light_stand"
+kind = "rail"
+control_points_m = [[-1.2, 0.0, 1.2], [0.3, 0.0, 1.2]]
+
+[exposure]
+free = ["light_positions"]
+"""
+
+
+def test_the_exposure_step_moves_a_light_off_the_mirror_direction(tmp_path):
+    """The panel over the satin plate at x = 0.3 m (flagged, above) may stand anywhere on a rail
+    from x = -1.2 to 0.3 m at its height: with "light_positions" free the exposure step moves it
+    where the hot-spot check (`glare.hot_spots`, run on the result) no longer flags the plate,
+    still facing its target."""
+    from vdo.state import with_exposure
+
+    path = write_plate_experiment(tmp_path, spacing=20, cameras=DOWN_CAMERA.format(name="down", focal=24, u=0.5))
+    text = path.read_text().replace('role = "specimen"', 'role = "specimen"\nfinish = "satin"')
+    path.write_text(text + PANEL.format(x=0.3) + 'mount = "light_stand"\n' + LIGHT_ZONE)
+    exp = config.load(path)
+    assert len(exp.light_places(exp.lights[0])) > 1
+    placed, plan = with_exposure(exp)
+    assert plan.moved == ("panel",)
+    (light,) = placed.lights
+    assert light.position[0] < 0.3 and light.position[1:] == pytest.approx([0.0, 1.2])
+    assert any(np.allclose(light.position, p) for p in exp.light_places(exp.lights[0]))
+    assert np.array_equal(light.target, exp.lights[0].target)
+    state = layout_state(prepare(placed), predict_fields=False)
+    rows = glare.hot_spots(placed.meshes, placed.regions, placed.lights, placed.speckle,
+                           placed.sensor, list(state.cameras), state.samples,
+                           state.visibility.visible, state.illumination)
+    assert len(rows) == 1 and not rows[0]["flags"], rows
+    assert plan.to_json()["light_positions_m"]["panel"] == pytest.approx(list(light.position))
+
+
+@pytest.mark.parametrize("edit, field, words", [
+    ('mount = "nowhere"', 'light "panel".mount', "no rail or zone"),
+    ('mount = "fixed_stand"', 'light "panel".mount', "no rail or zone"),
+    ('mount = "boxed"', 'light "panel".mount', "keep_out"),
+    ("", "exposure.free", "light_positions"),
+])
+def test_a_light_mount_that_cannot_be_used_is_one_line(tmp_path, edit, field, words):
+    path = write_plate_experiment(tmp_path, spacing=20)
+    extra = """
+[[mount]]
+name = "fixed_stand"
+kind = "fixed"
+position_m = [0.5, 0.5, 1.5]
+
+[[mount]]
+name = "boxed"
+kind = "zone"
+box_min_m = [1.0, 1.0, 1.0]
+box_max_m = [1.2, 1.2, 1.2]
+
+[[keep_out]]
+name = "cage"
+box_min_m = [0.9, 0.9, 0.9]
+box_max_m = [1.3, 1.3, 1.3]
+"""
+    path.write_text(path.read_text() + PANEL.format(x=0.3) + edit + "\n" + extra + LIGHT_ZONE)
+    with pytest.raises(config.ConfigError) as err:
+        config.load(path)
+    message = str(err.value)
+    assert field in message and words in message and "\n" not in message, message

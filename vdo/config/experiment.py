@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.config.mounts import (KEEP_OUT_RAIL_POINTS, KeepOutSpec, MountSpec, RailSpec, check_keep_out,
-                               check_mount, check_rail, inside_keep_out, resolve_mounts)
+                               check_mount, check_rail, inside_keep_out, resolve_mounts, zone_grid)
 from vdo.config.procedure import (Analysis, CalibrationSpec, DesignSpec, ExposureSpec, GroupSpec,
                                   LoadPathSpec, ON_REQUEST, OptimizeSpec, StereoPairSpec,
                                   check_analysis, check_calibration, check_design, check_exposure,
@@ -229,6 +229,20 @@ class Experiment:
         """The [[rail]] called `name`."""
         return next(r for r in self.rails if r.name == name)
 
+    def light_places(self, light: LightSpec) -> np.ndarray:
+        """(P, 3) the panel centres (m) `light` may take on its [[mount]], off every [[keep_out]]:
+        a rail's `[design] rail_positions` points evenly spread in u, a zone's `zone_grid`
+        ([design] zone_points x zone_heights); (0, 3) for a light on no mount."""
+        if light.mount is None:
+            return np.zeros((0, 3))
+        d = self.design
+        if any(r.name == light.mount for r in self.rails):
+            u = np.linspace(0.0, 1.0, d.rail_positions) if d.rail_positions > 1 else np.array([0.5])
+            points = np.asarray(self.rail(light.mount).point(u), float).reshape(-1, 3)
+        else:
+            points = zone_grid(self.mount(light.mount), d.zone_points, d.zone_heights)
+        return points[inside_keep_out(self.keep_outs, points) < 0] if len(points) else points
+
     def with_cameras(self, specs) -> "Experiment":
         """This experiment with other `CameraSpec`s (SI units, unchecked: for code that builds
         specs from a checked experiment, e.g. `vdo optimize`). From a script use `with_camera`."""
@@ -407,6 +421,22 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         raise ConfigError(path, "optimize.free", 'lists "lens" but no lenses_mm catalogue is given: '
                                                  'add e.g. lenses_mm = [24, 35, 50, 100] here or on '
                                                  'a [[camera]]')
+    mounts = {m.name: m.kind for m in exp.mounts} | {r.name: "rail" for r in exp.rails}
+    for light, t in zip(exp.lights, tables["light"]):
+        if light.mount is None:
+            continue
+        if mounts.get(light.mount) not in ("rail", "zone"):
+            raise t.error("mount", f"no rail or zone [[mount]] named {light.mount!r} (rail and zone "
+                                   "mounts: " + (", ".join(sorted(n for n, k in mounts.items()
+                                                                  if k != "fixed")) or "none")
+                          + "); a panel that stays put needs only position_m")
+        if not len(exp.light_places(light)):
+            raise t.error("mount", f"every point of mount {light.mount!r} lies in a [[keep_out]]: "
+                                   "no place for the panel; enlarge the mount or shrink the keep-out")
+    if "light_positions" in exp.exposure.free and not any(lt.mount for lt in exp.lights):
+        raise ConfigError(path, "exposure.free", 'lists "light_positions" but no [[light]] has a '
+                                                 'mount: give each panel that may move mount = '
+                                                 '"a rail or zone [[mount]]"')
     if "lights" in exp.exposure.free and not any(lt.max_radiance for lt in exp.lights):
         raise ConfigError(path, "exposure.free", 'lists "lights" but no [[light]] has max_radiance: '
                                                  "give each panel that may be set its brightest "

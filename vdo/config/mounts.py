@@ -1,10 +1,11 @@
-"""Where cameras stand: the [[rail]], [[mount]] (rail, zone or fixed) and [[keep_out]] tables of
-the experiment file, their checks, and the floor geometry they need (NumPy only).
+"""Where cameras and lights stand: the [[rail]], [[mount]] (rail, zone or fixed) and [[keep_out]]
+tables of the experiment file, their checks, and the floor geometry they need (NumPy only).
 
 A zone's floor is a simple polygon (corners (n, 2) in m, counter-clockwise once checked), possibly
 with holes; `inside_floor` tests points against it with the even-odd rule plus a distance
 tolerance to the edges. A keep-out is an axis-aligned box; `inside_keep_out` gives the first box
-holding each point. `resolve_mounts` turns rail mounts into rails and places the cameras on zone
+holding each point. `zone_grid` is the grid of points a zone offers to `vdo design`'s cameras
+and to the lights that stand on it. `resolve_mounts` turns rail mounts into rails and places the cameras on zone
 and fixed mounts before the `Experiment` is built.
 """
 
@@ -113,6 +114,24 @@ MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1
                   "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
                   "position_m": "position_m = [1.0, 0.0, 1.5]", "height_m": "height_m = [1.2, 1.8]",
                   "floor_m": "floor_m = [[0, -2], [1, -2], [1, -1], [0, -1]]"}
+
+
+def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
+    """(P, 3) candidate optical centres (or panel centres, m) in a zone [[mount]]: `per_axis` evenly spaced values
+    along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
+    values over its height range; over a floor polygon, the points of that grid on its bounding box
+    that lie on the polygon (off its holes), and its centroid when that does."""
+    lo, hi = zone.low, zone.high
+    axes = [np.linspace(lo[k], hi[k], per_axis) if hi[k] > lo[k] and per_axis > 1
+            else np.array([(lo[k] + hi[k]) / 2]) for k in range(2)]
+    axes.append(np.linspace(lo[2], hi[2], heights) if hi[2] > lo[2] and heights > 1
+                else np.array([(lo[2] + hi[2]) / 2]))
+    xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
+    if zone.floor is not None:
+        xy = xy[zone.inside(xy)]
+        centre = zone.floor.mean(axis=0)
+        xy = np.vstack([xy, centre]) if zone.inside(centre) else xy
+    return np.array([[x, y, z] for x, y in xy for z in axes[2]])
 
 
 @dataclass(frozen=True, eq=False)

@@ -157,7 +157,7 @@ def check_load_path(t: Table, v: dict) -> None:
                       "is for a VTK displacement file (a CSV names its units in its header)")
 
 
-EXPOSURE_FREE = ("aperture", "time", "lights")
+EXPOSURE_FREE = ("aperture", "time", "lights", "light_positions")
 
 
 @dataclass(frozen=True)
@@ -181,7 +181,8 @@ class ExposureSpec:
     free: tuple[str, ...] = row("free", Words(choices=EXPOSURE_FREE), [], shown="none",
                                 doc='what design and optimize set: "aperture" (each camera\'s '
                                     'f-number and focus), "time" (its exposure time), "lights" '
-                                    "(each [[light]]'s radiance up to its max_radiance)")
+                                    "(each [[light]]'s radiance up to its max_radiance), "
+                                    '"light_positions" (where each [[light]] with a mount stands)')
 
 
 def check_exposure(t: Table, v: dict) -> None:

@@ -219,6 +219,11 @@ class LightSpec:
     max_radiance: float | None = row("max_radiance", Real(positive=True), None, shown="radiance",
                                      doc='the panel\'s brightest setting: with "lights" in [exposure] '
                                          "free, design and optimize set the radiance up to it")
+    mount: str | None = row("mount", Text(name=True), None, shown="none",
+                            doc='a rail or zone [[mount]] the panel may stand anywhere on: with '
+                                '"light_positions" in [exposure] free, design and optimize move '
+                                "its centre to the best of the mount's [design] grid points, still "
+                                "facing target_m")
 
 
 @dataclass(frozen=True)

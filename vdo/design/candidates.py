@@ -67,7 +67,7 @@ from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
 from vdo.config.experiment import Experiment
 from vdo.config.rig import BodySpec, CameraSpec
-from vdo.config.mounts import inside_keep_out
+from vdo.config.mounts import inside_keep_out, zone_grid
 from vdo.geometry.keyframes import at_step, load_path_of
 from vdo.physics.lighting import illuminate
 from vdo.physics.predict import samples_for_objective, settings, view_data
@@ -262,24 +262,6 @@ def targets(samples) -> np.ndarray:
             out.append(c)
             weights.append(a.sum())
     return np.array(out)
-
-
-def zone_grid(zone, per_axis: int, heights: int) -> np.ndarray:
-    """(P, 3) candidate optical centres (m) in a zone [[mount]]: `per_axis` evenly spaced values
-    along x and along y (edges included; one, the middle, where the extent is zero) times `heights`
-    values over its height range; over a floor polygon, the points of that grid on its bounding box
-    that lie on the polygon (off its holes), and its centroid when that does."""
-    lo, hi = zone.low, zone.high
-    axes = [np.linspace(lo[k], hi[k], per_axis) if hi[k] > lo[k] and per_axis > 1
-            else np.array([(lo[k] + hi[k]) / 2]) for k in range(2)]
-    axes.append(np.linspace(lo[2], hi[2], heights) if hi[2] > lo[2] and heights > 1
-                else np.array([(lo[2] + hi[2]) / 2]))
-    xy = np.stack(np.meshgrid(axes[0], axes[1], indexing="ij"), -1).reshape(-1, 2)
-    if zone.floor is not None:
-        xy = xy[zone.inside(xy)]
-        centre = zone.floor.mean(axis=0)
-        xy = np.vstack([xy, centre]) if zone.inside(centre) else xy
-    return np.array([[x, y, z] for x, y in xy for z in axes[2]])
 
 
 def spots(exp: Experiment) -> list[tuple]:

@@ -10,7 +10,7 @@ points of a finer grid lie on a region's surface.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,6 +40,12 @@ class SurfaceSamples:
 
     def __len__(self):
         return len(self.points)
+
+    def take(self, index) -> "SurfaceSamples":
+        """The samples at `index` (an index or mask array), with the same regions."""
+        return replace(self, points=self.points[index], normals=self.normals[index],
+                       tangent_u=self.tangent_u[index], tangent_v=self.tangent_v[index],
+                       uv=self.uv[index], area=self.area[index], region=self.region[index])
 
 
 def _grid_points(uv_tri: np.ndarray, spacing: float):

@@ -52,7 +52,17 @@ With "lights" free the power factors w_l ∈ [LIGHT_MIN, max_radiance_l / radian
 (F_0, F_1) = `vdo.physics.checks.EXPOSURE`: the squared shortfall of every seen region below the
 under-exposure floor and its excess over saturation (with the times fixed), then (ε =
 `BRIGHTNESS_WEIGHT`) the light gathered, which lowers the noise; L-BFGS-B on ln w from w = 1,
-kept when it lowers the sum. Then t_c = t_ref k_c (N_c / 8)^2. The checks of the result are `vdo.physics.checks`' own, on the
+kept when it lowers the sum. Then t_c = t_ref k_c (N_c / 8)^2.
+
+Light places ("light_positions" free). A [[light]] with a `mount` may stand at any of the mount's
+points (`vdo.config.experiment.Experiment.light_places`: a rail's [design] rail_positions, a
+zone's zone_grid, off the keep-outs), still facing its target_m. The lights are placed one after
+the other, before their power: at each place the light's irradiance and visible fraction are cast
+again on the samples the pairs read (`vdo.physics.lighting.illuminate`, with the camera bodies),
+the power and times above are re-optimised, and the place's cost is that sum at its optimum plus
+γ = GLARE_WEIGHT times Σ over the (camera, satin region) pairs of the area fraction that is a hot
+spot (saturated or washed out by a reflection, `vdo.physics.glare`). The light keeps its own
+position unless a place lowers the cost. The stops (above) are chosen at the configured places. The checks of the result are `vdo.physics.checks`' own, on the
 experiment with these settings (`vdo evaluate`).
 """
 
@@ -70,7 +80,8 @@ from vdo.config.rig import CameraSpec, Evaluation, LightSpec, SpeckleSpec
 from vdo.model.optics import DEFAULT_F_NUMBER, exposure_factor, optics_blur
 from vdo.model.sensor import SensorModel
 from vdo.physics.checks import COC_PIXELS, EXPOSURE, measurement_floor
-from vdo.physics.lighting import Illumination, exposure_factors
+from vdo.physics.glare import specular_radiance
+from vdo.physics.lighting import Illumination, exposure_factors, illuminate
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +90,7 @@ MAX_SAMPLES = 500           # seen samples per (camera, region) at most (an even
 LIGHT_MIN = 0.05            # a light dims to 5 % of its configured radiance at the least
 BRIGHTNESS_WEIGHT = 1e-3    # ε: the light gathered, against the shortfall below the floor
 THIRD_STOP = 2.0 ** (1.0 / 6.0)   # f-numbers step by a third of a stop: N ratio 2^(1/6)
+GLARE_WEIGHT = 1.0          # γ: a satin region wholly washed out by a reflection, against the exposure cost
 
 
 @dataclass(frozen=True)
@@ -108,13 +120,17 @@ class ExposurePlan:
     cameras: tuple[CameraExposure, ...]
     radiance: dict
     problems: tuple[str, ...]
+    moved: tuple[str, ...] = ()     # the lights "light_positions" moved
 
     def to_json(self) -> dict:
         return {"cameras": [{"camera": c.camera, "f_number": c.f_number, "focus_m": c.focus_m,
                              "exposure_ms": c.exposure_s * 1e3, "gathered": c.gathered,
                              "depth_m": list(c.depth_m), "max_exposure_ms": c.max_s * 1e3,
                              "image_speed_px_s": c.image_speed} for c in self.cameras],
-                "radiance": self.radiance, "problems": list(self.problems)}
+                "radiance": self.radiance,
+                "light_positions_m": {lt.name: [float(x) for x in lt.position]
+                                      for lt in self.lights if lt.name in self.moved},
+                "problems": list(self.problems)}
 
 
 def motion_limits(cameras, visible, tracks, step_s: float, blur_px: float,
@@ -217,11 +233,65 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
     return out
 
 
+def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, speckle, sensor,
+                  satin, power, problems):
+    """Each light of `places` moved, one after the other, to the place (its mount's points, or
+    where it stands) with the least exposure cost (`power`, the power and times re-optimised)
+    plus γ times the satin pairs' hot-spot fraction, saturated or washed out as
+    `vdo.physics.glare.hot_spots` judges it (module docstring). Returns (lights, pairs with the
+    moved lights' irradiance, names of the lights moved)."""
+    used = np.unique(np.concatenate(seens))
+    sub = samples.take(used)
+    cols = [np.searchsorted(used, seen) for seen in seens]
+    sat = np.zeros(len(used), bool) if satin is None else np.asarray(satin)[used]
+    contrast_albedo = speckle.white_albedo - speckle.black_albedo
+
+    def rebuild(direct):
+        return [(i, k, direct[:, c], px, mid) for (i, k, _, px, mid), c in zip(pairs, cols)]
+
+    def total(lts, direct, lit) -> float:
+        w, value, k = power(rebuild(direct))
+        if not sat.any():
+            return value
+        E = w @ direct[:, sat] + illum.ambient
+        Ls = specular_radiance([replace(lt, radiance=lt.radiance * x) for lt, x in zip(lts, w)],
+                               lit[:, sat], sub.points[sat], sub.normals[sat], [c.position for c in cameras])
+        hot_spot = np.zeros((len(cameras), len(used)), bool)
+        hot_spot[:, sat] = (Ls > contrast_albedo * E / np.pi) | (
+            k[:, None] * (speckle.white_albedo * E / np.pi + Ls) >= sensor.saturation_linear())
+        hot = sum(float(px[sat[c]][hot_spot[i][c][sat[c]]].sum() / px.sum())
+                  for (i, _, _, px, _), c in zip(pairs, cols) if sat[c].any())
+        return value + GLARE_WEIGHT * hot
+
+    direct, lit = illum.direct[:, used].copy(), illum.lit[:, used].copy()
+    best = total(lights, direct, lit)
+    moved = []
+    for l, P in places.items():
+        choice, reached = None, False
+        for p in np.asarray(P, float).reshape(-1, 3):
+            cand = replace(lights[l], position=p)
+            one = illuminate(scene, [cand], sub)
+            reached |= bool(one.direct.any())
+            d2, l2 = direct.copy(), lit.copy()
+            d2[l], l2[l] = one.direct[0], one.lit[0]
+            lts = lights[:l] + (cand,) + lights[l + 1:]
+            value = total(lts, d2, l2)
+            if value < best - 1e-12:
+                best, choice = value, (lts, d2, l2)
+        if not reached:
+            problems.append(f"light {lights[l].name}: no place on mount {lights[l].mount!r} lights a "
+                            "region a camera sees (aim its target_m at the regions, or another mount)")
+        if choice is not None:
+            lights, direct, lit = choice
+            moved.append(lights[l].name)
+    return lights, rebuild(direct), moved
+
+
 def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                     lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
                     evaluation: Evaluation, analysis: Analysis,
                     cameras, samples, visible, illum: Illumination, pattern,
-                    sharp=None, motion=None) -> ExposurePlan:
+                    sharp=None, motion=None, scene=None, places=None, satin=None) -> ExposurePlan:
     """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
@@ -229,7 +299,10 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     [sensor], [evaluation] (the patch) and [analysis] (the interpolant, the reference).
     `sharp` (C, N) bool: the samples each camera's depth of field must hold (default `visible`;
     a camera with none holds all it sees). `motion`: (t_max, v) of `motion_limits` (default
-    [exposure] max_ms for every camera, at rest)."""
+    [exposure] max_ms for every camera, at rest). With "light_positions" free: `places` {light
+    index: (P, 3) panel centres it may take} (`Experiment.light_places`), `scene` the Mitsuba
+    scene its shadow rays are cast in (`vdo.physics.lighting.illuminate`) and `satin` (N,) the
+    samples of a satin finish (`vdo.physics.glare.satin_samples`; None: none)."""
     free = set(spec_x.free)
     t_max, speed = motion if motion is not None else \
         (np.full(len(camera_specs), spec_x.max_time), np.zeros(len(camera_specs)))
@@ -239,7 +312,7 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     rho = speckle.black_albedo + (speckle.white_albedo - speckle.black_albedo) * \
         np.quantile(np.asarray(pattern, float), (np.arange(GRAY_LEVELS) + 0.5) / GRAY_LEVELS)
     T = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)
-    problems, apertures, pairs = [], [], []
+    problems, apertures, pairs, seens = [], [], [], []
     for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
         seen_any = np.asarray(visible[i])
         if not seen_any.any():
@@ -273,6 +346,7 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                       float((samples.points[seen[m]] - cam.position) @ cam.optical_axis),
                       evaluation.patch_size ** 2 * float(density[m]))
             pairs.append((i, k, illum.direct[:, seen], samples.area[seen] * density, middle))
+            seens.append(seen)
     n_cam = len(camera_specs)
     if "aperture" in free and pairs:
         _, top = _pair_signals(pairs, np.ones(len(lights)), illum, rho, sensor, n_cam)
@@ -286,27 +360,37 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     w_max = np.array([(lt.max_radiance or lt.radiance) / lt.radiance for lt in lights])
     w_min = np.minimum(LIGHT_MIN, w_max)
 
-    def signals(w):
+    def signals(w, prs=pairs):
         """(p (pairs,), k (C,)): each pair's p99 signal in DN at k = 1 and each camera's k."""
-        p, top = _pair_signals(pairs, w, illum, rho, sensor, n_cam)
+        p, top = _pair_signals(prs, w, illum, rho, sensor, n_cam)
         k = np.minimum(spec_x.target_gray * span / np.where(top > 0, top, np.inf), k_max) \
             if "time" in free else base
         k = np.where(top > 0, k, base)
         return p, k
 
-    def cost(log_w):
-        p, k = signals(np.exp(log_w))
-        got = np.log(np.maximum(np.array([k[i] for i, *_ in pairs]) * p, 1e-300))
+    def cost(log_w, prs=pairs):
+        p, k = signals(np.exp(log_w), prs)
+        got = np.log(np.maximum(np.array([k[i] for i, *_ in prs]) * p, 1e-300))
         short = np.maximum(0.0, math.log(EXPOSURE[0] * span) - got)
         over = np.maximum(0.0, got - math.log(EXPOSURE[1] * span))
         return float(np.sum(short ** 2) + np.sum(over ** 2) - BRIGHTNESS_WEIGHT * np.sum(got))
 
-    w = np.ones(len(lights))
-    if "lights" in free and pairs and len(w):
-        res = minimize(cost, np.zeros(len(w)), method="L-BFGS-B",
-                       bounds=list(zip(np.log(w_min), np.log(w_max))), options={"maxiter": 60})
-        if cost(res.x) < cost(np.zeros(len(w))):
-            w = np.exp(res.x)
+    def power(prs=pairs):
+        """(w, cost, k): the light power factors ("lights" free; else 1), the cost there and
+        each camera's light factor k."""
+        w = np.ones(len(lights))
+        if "lights" in free and prs and len(w):
+            res = minimize(cost, np.zeros(len(w)), args=(prs,), method="L-BFGS-B",
+                           bounds=list(zip(np.log(w_min), np.log(w_max))), options={"maxiter": 60})
+            if cost(res.x, prs) < cost(np.zeros(len(w)), prs):
+                w = np.exp(res.x)
+        return w, cost(np.log(w), prs), signals(w, prs)[1]
+
+    lights, moved = tuple(lights), []
+    if "light_positions" in free and places and pairs:
+        lights, pairs, moved = _place_lights(lights, places, pairs, seens, illum, scene, samples,
+                                             cameras, speckle, sensor, satin, power, problems)
+    w, _, _ = power(pairs)
     p, k = signals(w)
     brightest = np.zeros(n_cam)
     for (i, *_), v in zip(pairs, p):
@@ -343,4 +427,4 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     for msg in problems:
         log.warning(msg)
     return ExposurePlan(tuple(specs), lit, tuple(chosen), {lt.name: lt.radiance for lt in lit},
-                        tuple(problems))
+                        tuple(problems), tuple(moved))
