@@ -433,6 +433,12 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         if not len(exp.light_places(light)):
             raise t.error("mount", f"every point of mount {light.mount!r} lies in a [[keep_out]]: "
                                    "no place for the panel; enlarge the mount or shrink the keep-out")
+    lit = {lt.mount for lt in exp.lights if lt.mount is not None}
+    for cam, t in zip(exp.camera_specs, tables["camera"]):
+        for key in ("mount", "rail"):
+            if getattr(cam, key) in lit:
+                raise t.error(key, f"{getattr(cam, key)!r} carries a [[light]]: a mount holds lights "
+                                   "or cameras, not both; give the camera another mount")
     if "light_positions" in exp.exposure.free and not any(lt.mount for lt in exp.lights):
         raise ConfigError(path, "exposure.free", 'lists "light_positions" but no [[light]] has a '
                                                  'mount: give each panel that may move mount = '

@@ -223,7 +223,7 @@ class LightSpec:
                             doc='a rail or zone [[mount]] the panel may stand anywhere on: with '
                                 '"light_positions" in [exposure] free, design and optimize move '
                                 "its centre to the best of the mount's [design] grid points, still "
-                                "facing target_m")
+                                "facing target_m (a mount holds lights or cameras, not both)")
 
 
 @dataclass(frozen=True)

@@ -61,9 +61,13 @@ the other, before their power: at each place the light's irradiance and visible 
 again on the samples the pairs read (`vdo.physics.lighting.illuminate`, with the camera bodies),
 the power and times above are re-optimised, and the place's cost is that sum at its optimum plus
 γ = GLARE_WEIGHT times Σ over the (camera, satin region) pairs of the area fraction that is a hot
-spot (saturated or washed out by a reflection, `vdo.physics.glare`). The light keeps its own
-position unless a place lowers the cost. The stops (above) are chosen at the configured places. The checks of the result are `vdo.physics.checks`' own, on the
-experiment with these settings (`vdo evaluate`).
+spot (saturated or washed out by a reflection, `vdo.physics.glare`). Each light takes its
+mount's best point (its position_m is only where it stood before). The stops (above) are chosen
+at the configured places. The panels are not obstacles: a place in a camera's view or inside a
+mesh is not ruled out (keep-outs are).
+
+The checks of the result are `vdo.physics.checks`' own, on the experiment with these settings
+(`vdo evaluate`).
 """
 
 from __future__ import annotations
@@ -235,8 +239,8 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
 
 def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, speckle, sensor,
                   satin, power, problems):
-    """Each light of `places` moved, one after the other, to the place (its mount's points, or
-    where it stands) with the least exposure cost (`power`, the power and times re-optimised)
+    """Each light of `places` moved, one after the other, to the place (of its mount's points)
+    with the least exposure cost (`power`, the power and times re-optimised)
     plus γ times the satin pairs' hot-spot fraction, saturated or washed out as
     `vdo.physics.glare.hot_spots` judges it (module docstring). Returns (lights, pairs with the
     moved lights' irradiance, names of the lights moved)."""
@@ -264,10 +268,9 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
         return value + GLARE_WEIGHT * hot
 
     direct, lit = illum.direct[:, used].copy(), illum.lit[:, used].copy()
-    best = total(lights, direct, lit)
     moved = []
     for l, P in places.items():
-        choice, reached = None, False
+        choice, best, reached = None, math.inf, False
         for p in np.asarray(P, float).reshape(-1, 3):
             cand = replace(lights[l], position=p)
             one = illuminate(scene, [cand], sub)
@@ -276,14 +279,15 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
             d2[l], l2[l] = one.direct[0], one.lit[0]
             lts = lights[:l] + (cand,) + lights[l + 1:]
             value = total(lts, d2, l2)
-            if value < best - 1e-12:
+            if value < best:
                 best, choice = value, (lts, d2, l2)
         if not reached:
             problems.append(f"light {lights[l].name}: no place on mount {lights[l].mount!r} lights a "
                             "region a camera sees (aim its target_m at the regions, or another mount)")
         if choice is not None:
+            if not np.allclose(choice[0][l].position, lights[l].position):
+                moved.append(lights[l].name)
             lights, direct, lit = choice
-            moved.append(lights[l].name)
     return lights, rebuild(direct), moved
 
 
