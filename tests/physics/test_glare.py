@@ -198,3 +198,19 @@ box_max_m = [1.3, 1.3, 1.3]
         config.load(path)
     message = str(err.value)
     assert field in message and words in message and "\n" not in message, message
+
+
+def test_two_panels_on_one_mount_do_not_stand_in_one_place(tmp_path):
+    """Two identical panels on the same rail, both best at the same point alone: the second takes
+    another point, its centre at least a panel's diagonal from the first's."""
+    from vdo.state import with_exposure
+
+    second = PANEL.replace('name = "panel"', 'name = "panel2"').format(x=0.2)
+    path = write_plate_experiment(tmp_path, spacing=20)
+    path.write_text(path.read_text() + PANEL.format(x=0.3) + 'mount = "light_stand"\n'
+                    + second + 'mount = "light_stand"\n' + LIGHT_ZONE)
+    placed, plan = with_exposure(config.load(path))
+    a, b = (np.asarray(lt.position) for lt in placed.lights)
+    assert np.linalg.norm(a - b) >= np.hypot(0.3, 0.3) - 1e-9
+    places = placed.light_places(placed.lights[0])
+    assert all(any(np.allclose(p, q) for q in places) for p in (a, b))

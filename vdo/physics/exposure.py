@@ -58,11 +58,13 @@ Light places ("light_positions" free). A [[light]] with a `mount` may stand at a
 points (`vdo.config.experiment.Experiment.light_places`: a rail's [design] rail_positions, a
 zone's zone_grid, off the keep-outs), still facing its target_m. The lights are placed one after
 the other, before their power: at each place the light's irradiance and visible fraction are cast
-again on the samples the pairs read (`vdo.physics.lighting.illuminate`, with the camera bodies),
-the power and times above are re-optimised, and the place's cost is that sum at its optimum plus
+again on the samples the pairs read (`vdo.physics.lighting.illuminate`, with the camera bodies)
+and the place is judged at the current power (the times follow); the PLACE_SHORTLIST best places
+are judged again with the power re-optimised, and a place's cost is that sum plus
 γ = GLARE_WEIGHT times Σ over the (camera, satin region) pairs of the area fraction that is a hot
 spot (saturated or washed out by a reflection, `vdo.physics.glare`). Each light takes its
-mount's best point (its position_m is only where it stood before). The stops (above) are chosen
+mount's best point (its position_m is only where it stood before) where no other panel stands
+(centres closer than half the sum of the two panels' diagonals). The stops (above) are chosen
 at the configured places. The panels are not obstacles: a place in a camera's view or inside a
 mesh is not ruled out (keep-outs are).
 
@@ -95,6 +97,7 @@ LIGHT_MIN = 0.05            # a light dims to 5 % of its configured radiance at 
 BRIGHTNESS_WEIGHT = 1e-3    # ε: the light gathered, against the shortfall below the floor
 THIRD_STOP = 2.0 ** (1.0 / 6.0)   # f-numbers step by a third of a stop: N ratio 2^(1/6)
 GLARE_WEIGHT = 1.0          # γ: a satin region wholly washed out by a reflection, against the exposure cost
+PLACE_SHORTLIST = 2         # places per light whose power is searched again (the others judged at the current power)
 
 
 @dataclass(frozen=True)
@@ -253,10 +256,11 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
     def rebuild(direct):
         return [(i, k, direct[:, c], px, mid) for (i, k, _, px, mid), c in zip(pairs, cols)]
 
-    def total(lts, direct, lit) -> float:
-        w, value, k = power(rebuild(direct))
+    def total(lts, direct, lit, at=None, start=None) -> tuple[float, np.ndarray]:
+        """(cost, w): the place's cost and the power factors it was judged at."""
+        w, value, k = power(rebuild(direct), at, start)
         if not sat.any():
-            return value
+            return value, w
         E = w @ direct[:, sat] + illum.ambient
         Ls = specular_radiance([replace(lt, radiance=lt.radiance * x) for lt, x in zip(lts, w)],
                                lit[:, sat], sub.points[sat], sub.normals[sat], [c.position for c in cameras])
@@ -265,29 +269,39 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
             k[:, None] * (speckle.white_albedo * E / np.pi + Ls) >= sensor.saturation_linear())
         hot = sum(float(px[sat[c]][hot_spot[i][c][sat[c]]].sum() / px.sum())
                   for (i, _, _, px, _), c in zip(pairs, cols) if sat[c].any())
-        return value + GLARE_WEIGHT * hot
+        return value + GLARE_WEIGHT * hot, w
 
     direct, lit = illum.direct[:, used].copy(), illum.lit[:, used].copy()
+    _, w_now = total(lights, direct, lit)
     moved = []
     for l, P in places.items():
-        choice, best, reached = None, math.inf, False
-        for p in np.asarray(P, float).reshape(-1, 3):
+        tried, reached = [], False
+        for p in np.asarray(P, float).reshape(-1, 3):       # each place at the current power
+            if any(np.linalg.norm(p - np.asarray(o.position)) < (np.hypot(*lights[l].size) + np.hypot(*o.size)) / 2
+                   for j, o in enumerate(lights) if j != l):
+                continue                                     # another panel stands there
             cand = replace(lights[l], position=p)
             one = illuminate(scene, [cand], sub)
             reached |= bool(one.direct.any())
             d2, l2 = direct.copy(), lit.copy()
             d2[l], l2[l] = one.direct[0], one.lit[0]
             lts = lights[:l] + (cand,) + lights[l + 1:]
-            value = total(lts, d2, l2)
-            if value < best:
-                best, choice = value, (lts, d2, l2)
+            tried.append((total(lts, d2, l2, at=w_now)[0], lts, d2, l2))
         if not reached:
             problems.append(f"light {lights[l].name}: no place on mount {lights[l].mount!r} lights a "
                             "region a camera sees (aim its target_m at the regions, or another mount)")
-        if choice is not None:
-            if not np.allclose(choice[0][l].position, lights[l].position):
-                moved.append(lights[l].name)
-            lights, direct, lit = choice
+        if not tried:
+            continue
+        tried.sort(key=lambda t: t[0])
+        best = None                                          # the shortlist with its power searched
+        for _, lts, d2, l2 in tried[:PLACE_SHORTLIST]:
+            value, w = total(lts, d2, l2, start=w_now)
+            if best is None or value < best[0]:
+                best = (value, w, lts, d2, l2)
+        _, w_now, lts, direct, lit = best
+        if not np.allclose(lts[l].position, lights[l].position):
+            moved.append(lights[l].name)
+        lights = lts
     return lights, rebuild(direct), moved
 
 
@@ -379,15 +393,17 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
         over = np.maximum(0.0, got - math.log(EXPOSURE[1] * span))
         return float(np.sum(short ** 2) + np.sum(over ** 2) - BRIGHTNESS_WEIGHT * np.sum(got))
 
-    def power(prs=pairs):
+    def power(prs=pairs, at=None, start=None):
         """(w, cost, k): the light power factors ("lights" free; else 1), the cost there and
-        each camera's light factor k."""
-        w = np.ones(len(lights))
-        if "lights" in free and prs and len(w):
-            res = minimize(cost, np.zeros(len(w)), args=(prs,), method="L-BFGS-B",
+        each camera's light factor k; `at` (L,) fixed power factors instead (no search), `start`
+        (L,) where the search starts besides w = 1."""
+        w = np.ones(len(lights)) if at is None else np.asarray(at, float)
+        if at is None and "lights" in free and prs and len(w):
+            x0 = np.zeros(len(w)) if start is None else np.log(start)
+            res = minimize(cost, x0, args=(prs,), method="L-BFGS-B",
                            bounds=list(zip(np.log(w_min), np.log(w_max))), options={"maxiter": 60})
-            if cost(res.x, prs) < cost(np.zeros(len(w)), prs):
-                w = np.exp(res.x)
+            w = min((np.zeros(len(w)), x0, res.x), key=lambda x: cost(x, prs))
+            w = np.exp(w)
         return w, cost(np.log(w), prs), signals(w, prs)[1]
 
     lights, moved = tuple(lights), []
