@@ -19,6 +19,7 @@ from test_correlate import DOT, PATCH, STEREO, TEXEL, U_TRUE, render  # noqa: E4
 import jax.numpy as jnp  # noqa: E402
 
 from vdo.dic import subset_sums  # noqa: E402
+from vdo.dic import series as series_module  # noqa: E402
 from vdo.dic import subsets as subsets_module  # noqa: E402
 from vdo.dic.images import SplineImage  # noqa: E402
 from vdo.dic.correlate import ImageReference, Q4, correlate  # noqa: E402
@@ -77,6 +78,8 @@ def test_batched_subsets_are_the_per_point_solution(pattern, cameras, monkeypatc
     U0 = start_guesses(cameras, refs, defs, points)
     one = np.array([start_guess(cameras, refs, defs, X) for X in points])
     assert px_error(cameras, points, U0, one) < SAME_START_PX
+    assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
+    monkeypatch.setattr(series_module, "START_CHUNK", 3)         # several chunks, several threads
     assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
     monkeypatch.setattr(subsets_module, "SUBSET_CHUNK", 4)       # several chunks, several threads
     batched = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0)

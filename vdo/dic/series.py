@@ -321,32 +321,49 @@ def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v
     return out, converged
 
 
+START_CHUNK = 256    # points whose phase correlations are taken together (their windows stay in cache)
+
+
 def start_guesses(cameras, references, deformed, points, half: int = 24, workers: int = 1) -> np.ndarray:
     """`start_guess` (N, 3) m for every point of `points` (N, 3): the phase correlations of all
-    points whose windows lie whole inside every image in one batched FFT per camera (`workers`
-    threads), the others one at a time."""
+    points whose windows lie whole inside every image batched per camera, START_CHUNK points at a
+    time on `workers` threads (each window's numbers as `start_guess` takes them), the others one
+    at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+
     from scipy import fft
 
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     whole = np.full(len(points), len(cameras) >= 2)     # fewer: `start_guess` answers 0
-    rows, rhs = [], []
-    taper = np.outer(*(2 * [np.hanning(2 * half + 1)]))
+    n = 2 * half + 1
+    taper = np.outer(*(2 * [np.hanning(n)]))
+    views, centres = [], []
     for cam, ref, dfm in zip(cameras, references, deformed):
         uv = np.rint(cam.project(points)).astype(int)
         u, v = uv[:, 0], uv[:, 1]
         whole &= np.minimum.reduce([u, v, cam.width - 1 - u, cam.height - 1 - v]) >= half
-        u, v = np.clip(u, half, cam.width - 1 - half), np.clip(v, half, cam.height - 1 - half)
-        n = 2 * half + 1
-        a, b = (np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))[v - half, u - half]
-                for img in (ref, dfm))
-        a, b = ((x - x.mean(axis=(1, 2), keepdims=True)) * taper for x in (a, b))
-        spectrum = fft.rfft2(b, workers=workers) * np.conj(fft.rfft2(a, workers=workers))  # real: half
-        peak = np.argmax(fft.irfft2(spectrum, s=(n, n), workers=workers).reshape(len(points), -1), axis=1)
-        dv, du = ((k + n // 2) % n - n // 2 for k in np.divmod(peak, n))
-        rows.append(np.asarray(cam.sensitivity(points)))
-        rhs.append(np.stack([du, dv], -1))
-    S, d = np.concatenate(rows, axis=1), np.concatenate(rhs, axis=1).astype(float)
-    U0 = np.einsum("kij,kj->ki", np.linalg.pinv(S), d)
+        centres.append((np.clip(u, half, cam.width - 1 - half), np.clip(v, half, cam.height - 1 - half)))
+        views.append([np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))
+                      for img in (ref, dfm)])
+    shifts = np.zeros((len(points), 2 * len(cameras)))
+
+    def chunk(lo):
+        """The whole-pixel shifts (du, dv) per camera of the points lo .. lo + START_CHUNK."""
+        for i, ((u, v), pair) in enumerate(zip(centres, views)):
+            u, v = u[lo:lo + START_CHUNK], v[lo:lo + START_CHUNK]
+            a, b = (view[v - half, u - half] for view in pair)          # copies (m, n, n)
+            for x in (a, b):
+                x -= x.mean(axis=(1, 2), keepdims=True)
+                x *= taper
+            spectrum = fft.rfft2(b) * np.conj(fft.rfft2(a))           # real: half
+            peak = np.argmax(fft.irfft2(spectrum, s=(n, n)).reshape(len(u), -1), axis=1)
+            dv, du = ((k + n // 2) % n - n // 2 for k in np.divmod(peak, n))
+            shifts[lo:lo + START_CHUNK, 2 * i], shifts[lo:lo + START_CHUNK, 2 * i + 1] = du, dv
+
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        list(pool.map(chunk, range(0, len(points), START_CHUNK)))
+    S = np.concatenate([np.asarray(cam.sensitivity(points)) for cam in cameras], axis=1)
+    U0 = np.einsum("kij,kj->ki", np.linalg.pinv(S), shifts)
     for k in np.flatnonzero(~whole):
         U0[k] = start_guess(cameras, references, deformed, points[k], half)
     return U0
