@@ -442,7 +442,8 @@ def with_exposure(exp: Experiment) -> tuple[Experiment, ExposurePlan]:
                            scene=state.scene,
                            places={l: exp.light_places(lt)
                                    for l, lt in enumerate(exp.lights) if lt.mount is not None},
-                           satin=satin_samples(exp.meshes, exp.regions, samples))
+                           satin=satin_samples(exp.meshes, exp.regions, samples),
+                           max_obscuration=exp.optimize.max_obscuration)
     log.info("exposure (%.0f s): %s%s", time.perf_counter() - t0, ", ".join(
         f"{c.camera} f/{c.f_number:g} {c.exposure_s * 1e3:.3g} ms"
         + (f" (at most {c.max_s * 1e3:.3g} ms: {c.image_speed:.3g} px/s)" if c.image_speed > 0 else "")

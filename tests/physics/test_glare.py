@@ -10,6 +10,7 @@ import pytest
 from conftest import DOWN_CAMERA, write_plate_experiment
 from conftest import region_tables
 from vdo.config import experiment as config
+from vdo.config.rig import LightSpec
 from vdo.physics import glare
 from vdo.state import layout_state, prepare
 
@@ -214,3 +215,56 @@ def test_two_panels_on_one_mount_do_not_stand_in_one_place(tmp_path):
     assert np.linalg.norm(a - b) >= np.hypot(0.3, 0.3) - 1e-9
     places = placed.light_places(placed.lights[0])
     assert all(any(np.allclose(p, q) for q in places) for p in (a, b))
+
+
+def test_the_panel_hides_what_mitsubas_ray_cast_hides(tmp_path):
+    """`panel_hides` (sight lines against the panel's rectangle) against Mitsuba: the plate seen
+    from above with and without a 0.3 m square, 1 mm thin box where a horizontal panel would
+    stand; the area fraction of the samples seen without it and lost with it. The two differ
+    only at the shadow's edge, by samples (20 mm apart) the box's 1 mm thickness or the edge
+    itself decides."""
+    from conftest import raycast
+    from vdo.physics.exposure import panel_hides
+
+    centre = (0.1, 0.05, 0.9)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    bare = write_plate_experiment(tmp_path / "a", spacing=20)
+    boxed = write_plate_experiment(tmp_path / "b", spacing=20, files=[
+        ("panel.stl", [300, 300, 1], [1000 * c for c in centre])], extra_meshes=(
+        '[[mesh]]\nname = "panel"\nfile = "panel.stl"\nunit = "mm"\nrole = "obstacle"\n'))
+    exp, samples, cams, _, seen = raycast(bare)
+    _, _, _, _, behind = raycast(boxed)
+    before = np.asarray(seen.visible[0])
+    lost = before & ~np.asarray(behind.visible[0])
+    mitsuba = samples.area[lost].sum() / samples.area[before].sum()
+    light = LightSpec(name="p", position=np.array(centre), target=np.array([0.1, 0.05, 0.0]),
+                             size=(0.3, 0.3), radiance=1.0)
+    ours = panel_hides(light, cams[0].position, samples.points[before], samples.area[before])
+    assert 0.2 < mitsuba < 0.6                              # the shadow falls on the plate in part
+    assert ours == pytest.approx(mitsuba, abs=PANEL_EDGE_TOL)
+
+
+PANEL_EDGE_TOL = 0.02   # area fraction: the shadow's edge, 2.5 x the panel's 1.2 m perimeter over 20 mm samples
+
+
+def test_a_mount_wholly_in_a_cameras_view_keeps_the_light_where_it_was(tmp_path):
+    """A rail 0.6 m under the camera, over the plate's middle: every place hides the plate from
+    it, so the panel stays put and the plan says why."""
+    from vdo.state import with_exposure
+
+    path = write_plate_experiment(tmp_path, spacing=20)
+    path.write_text(path.read_text() + PANEL.format(x=0.3) + 'mount = "in_view"\n' + """
+[[mount]]
+name = "in_view"
+kind = "rail"
+control_points_m = [[-0.1, 0.0, 0.9], [0.1, 0.0, 0.9]]
+
+[exposure]
+free = ["light_positions"]
+""")
+    exp = config.load(path)
+    placed, plan = with_exposure(exp)
+    assert plan.moved == ()
+    assert np.array_equal(placed.lights[0].position, exp.lights[0].position)
+    assert any("stands in a camera's view" in p for p in plan.problems), plan.problems

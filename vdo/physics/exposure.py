@@ -64,9 +64,10 @@ are judged again with the power re-optimised, and a place's cost is that sum plu
 γ = GLARE_WEIGHT times Σ over the (camera, satin region) pairs of the area fraction that is a hot
 spot (saturated or washed out by a reflection, `vdo.physics.glare`). Each light takes its
 mount's best point (its position_m is only where it stood before) where no other panel stands
-(centres closer than half the sum of the two panels' diagonals). The stops (above) are chosen
-at the configured places. The panels are not obstacles: a place in a camera's view or inside a
-mesh is not ruled out (keep-outs are).
+(centres closer than half the sum of the two panels' diagonals) and where the panel hides at
+most [optimize] max_obscuration of any (camera, region) pair's view (`panel_hides`: the sight
+lines from the camera to the pair's samples against the panel's rectangle). The stops (above)
+are chosen at the configured places. A place inside a mesh is not ruled out (keep-outs are).
 
 The checks of the result are `vdo.physics.checks`' own, on the experiment with these settings
 (`vdo evaluate`).
@@ -87,7 +88,7 @@ from vdo.model.optics import DEFAULT_F_NUMBER, exposure_factor, optics_blur
 from vdo.model.sensor import SensorModel
 from vdo.physics.checks import COC_PIXELS, EXPOSURE, measurement_floor
 from vdo.physics.glare import specular_radiance
-from vdo.physics.lighting import Illumination, exposure_factors, illuminate
+from vdo.physics.lighting import Illumination, exposure_factors, illuminate, panel_frame
 
 log = logging.getLogger(__name__)
 
@@ -240,13 +241,31 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
     return out
 
 
+def panel_hides(light: LightSpec, camera_position, points, weights) -> float:
+    """The weighted fraction of `points` (M, 3) whose sight line from `camera_position` crosses
+    the panel of `light` (a rectangle: centre P, normal n, edges e_1, e_2 of `panel_frame`): the
+    segment C + t (X - C) meets the panel's plane at t = n.(P - C) / n.(X - C), and hides X when
+    0 < t < 1 and the crossing lies within half the width along e_1 and half the height along e_2."""
+    n, e1, e2 = panel_frame(light)
+    P, C = np.asarray(light.position, float), np.asarray(camera_position, float)
+    d = np.asarray(points, float) - C
+    den = d @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(np.abs(den) > 1e-12, ((P - C) @ n) / den, -1.0)
+    q = C + t[:, None] * d - P
+    w, h = light.size
+    hit = (t > 0) & (t < 1) & (np.abs(q @ e1) <= w / 2) & (np.abs(q @ e2) <= h / 2)
+    return float(np.asarray(weights)[hit].sum() / np.sum(weights))
+
+
 def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, speckle, sensor,
-                  satin, power, problems):
+                  satin, power, problems, max_obscuration):
     """Each light of `places` moved, one after the other, to the place (of its mount's points)
     with the least exposure cost (`power`, the power and times re-optimised)
     plus γ times the satin pairs' hot-spot fraction, saturated or washed out as
-    `vdo.physics.glare.hot_spots` judges it (module docstring). Returns (lights, pairs with the
-    moved lights' irradiance, names of the lights moved)."""
+    `vdo.physics.glare.hot_spots` judges it (module docstring), among the places where the panel
+    hides at most `max_obscuration` of any pair's view (`panel_hides`). Returns (lights, pairs
+    with the moved lights' irradiance, names of the lights moved)."""
     used = np.unique(np.concatenate(seens))
     sub = samples.take(used)
     cols = [np.searchsorted(used, seen) for seen in seens]
@@ -275,23 +294,31 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
     _, w_now = total(lights, direct, lit)
     moved = []
     for l, P in places.items():
-        tried, reached = [], False
+        tried, reached, hiding = [], False, False
         for p in np.asarray(P, float).reshape(-1, 3):       # each place at the current power
             if any(np.linalg.norm(p - np.asarray(o.position)) < (np.hypot(*lights[l].size) + np.hypot(*o.size)) / 2
                    for j, o in enumerate(lights) if j != l):
                 continue                                     # another panel stands there
             cand = replace(lights[l], position=p)
+            if any(panel_hides(cand, cameras[i].position, samples.points[seen], px) > max_obscuration
+                   for (i, _, _, px, _), seen in zip(pairs, seens)):
+                hiding = True
+                continue                                     # it stands in a camera's view
             one = illuminate(scene, [cand], sub)
             reached |= bool(one.direct.any())
             d2, l2 = direct.copy(), lit.copy()
             d2[l], l2[l] = one.direct[0], one.lit[0]
             lts = lights[:l] + (cand,) + lights[l + 1:]
             tried.append((total(lts, d2, l2, at=w_now)[0], lts, d2, l2))
+        if not tried:
+            problems.append(f"light {lights[l].name}: every place on mount {lights[l].mount!r} "
+                            + ("stands in a camera's view or on another panel" if hiding else
+                               "is taken by another panel") + ": it stays where it was (a larger "
+                            "mount, or one out of the cameras' views)")
+            continue
         if not reached:
             problems.append(f"light {lights[l].name}: no place on mount {lights[l].mount!r} lights a "
                             "region a camera sees (aim its target_m at the regions, or another mount)")
-        if not tried:
-            continue
         tried.sort(key=lambda t: t[0])
         best = None                                          # the shortlist with its power searched
         for _, lts, d2, l2 in tried[:PLACE_SHORTLIST]:
@@ -309,7 +336,8 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
                     lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
                     evaluation: Evaluation, analysis: Analysis,
                     cameras, samples, visible, illum: Illumination, pattern,
-                    sharp=None, motion=None, scene=None, places=None, satin=None) -> ExposurePlan:
+                    sharp=None, motion=None, scene=None, places=None, satin=None,
+                    max_obscuration: float = 0.0) -> ExposurePlan:
     """The settings of the module docstring for what [exposure] free lists (`spec_x`), the rest as
     the tables give it: `cameras` (`vdo.model.camera.Camera`s) described by `camera_specs`, seeing
     `visible` (C, N) of `samples`, lit as `illum` (`vdo.physics.lighting.illuminate` at the
@@ -320,7 +348,9 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     [exposure] max_ms for every camera, at rest). With "light_positions" free: `places` {light
     index: (P, 3) panel centres it may take} (`Experiment.light_places`), `scene` the Mitsuba
     scene its shadow rays are cast in (`vdo.physics.lighting.illuminate`) and `satin` (N,) the
-    samples of a satin finish (`vdo.physics.glare.satin_samples`; None: none)."""
+    samples of a satin finish (`vdo.physics.glare.satin_samples`; None: none); a place whose
+    panel hides more than `max_obscuration` of a (camera, region) pair's view is not taken
+    ([optimize] max_obscuration)."""
     free = set(spec_x.free)
     t_max, speed = motion if motion is not None else \
         (np.full(len(camera_specs), spec_x.max_time), np.zeros(len(camera_specs)))
@@ -409,7 +439,8 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
     lights, moved = tuple(lights), []
     if "light_positions" in free and places and pairs:
         lights, pairs, moved = _place_lights(lights, places, pairs, seens, illum, scene, samples,
-                                             cameras, speckle, sensor, satin, power, problems)
+                                             cameras, speckle, sensor, satin, power, problems,
+                                             max_obscuration)
     w, _, _ = power(pairs)
     p, k = signals(w)
     brightest = np.zeros(n_cam)
