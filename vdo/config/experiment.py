@@ -237,8 +237,7 @@ class Experiment:
             return np.zeros((0, 3))
         d = self.design
         if any(r.name == light.mount for r in self.rails):
-            u = np.linspace(0.0, 1.0, d.rail_positions) if d.rail_positions > 1 else np.array([0.5])
-            points = np.asarray(self.rail(light.mount).point(u), float).reshape(-1, 3)
+            points = np.asarray(self.rail(light.mount).point(d.rail_us), float).reshape(-1, 3)
         else:
             points = zone_grid(self.mount(light.mount), d.zone_points, d.zone_heights)
         return points[inside_keep_out(self.keep_outs, points) < 0] if len(points) else points

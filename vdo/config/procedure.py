@@ -295,6 +295,12 @@ class DesignSpec:
             "correlation measures ([analysis] interpolant and reference: each candidate's information "
             "divided by its error over the bound in each region; docs/design.md)")
 
+    @property
+    def rail_us(self) -> np.ndarray:
+        """The rail_positions values of u in [0, 1] that a rail offers (edges included; the
+        middle alone for one)."""
+        return np.linspace(0.0, 1.0, self.rail_positions) if self.rail_positions > 1 else np.array([0.5])
+
 
 ON_REQUEST = ("calibration",)      # tables whose presence asks for work: written back only when given
 

@@ -272,9 +272,8 @@ def spots(exp: Experiment) -> list[tuple]:
     d = exp.design
     lit = {lt.mount for lt in exp.lights if lt.mount is not None}
     heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
-    grid = np.linspace(0, 1, d.rail_positions) if d.rail_positions > 1 else [0.5]
     out = [(r.name, "rail", float(u), h, exp.rail(r.name).point(u) + h)
-           for r in exp.rails if r.name not in lit for u in grid for h in heads]
+           for r in exp.rails if r.name not in lit for u in d.rail_us for h in heads]
     zero = np.zeros(3)
     for m in (m for m in exp.mounts if m.name not in lit):
         points = zone_grid(m, d.zone_points, d.zone_heights) if m.kind == "zone" else [m.position]

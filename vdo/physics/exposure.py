@@ -87,7 +87,7 @@ from vdo.config.rig import CameraSpec, Evaluation, LightSpec, SpeckleSpec
 from vdo.model.optics import DEFAULT_F_NUMBER, exposure_factor, optics_blur
 from vdo.model.sensor import SensorModel
 from vdo.physics.checks import COC_PIXELS, EXPOSURE, measurement_floor
-from vdo.physics.glare import specular_radiance
+from vdo.physics.glare import hot_spot_kinds, specular_radiance
 from vdo.physics.lighting import Illumination, exposure_factors, illuminate, panel_frame
 
 log = logging.getLogger(__name__)
@@ -270,7 +270,6 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
     sub = samples.take(used)
     cols = [np.searchsorted(used, seen) for seen in seens]
     sat = np.zeros(len(used), bool) if satin is None else np.asarray(satin)[used]
-    contrast_albedo = speckle.white_albedo - speckle.black_albedo
 
     def rebuild(direct):
         return [(i, k, direct[:, c], px, mid) for (i, k, _, px, mid), c in zip(pairs, cols)]
@@ -284,8 +283,7 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
         Ls = specular_radiance([replace(lt, radiance=lt.radiance * x) for lt, x in zip(lts, w)],
                                lit[:, sat], sub.points[sat], sub.normals[sat], [c.position for c in cameras])
         hot_spot = np.zeros((len(cameras), len(used)), bool)
-        hot_spot[:, sat] = (Ls > contrast_albedo * E / np.pi) | (
-            k[:, None] * (speckle.white_albedo * E / np.pi + Ls) >= sensor.saturation_linear())
+        hot_spot[:, sat] = np.logical_or(*hot_spot_kinds(Ls, E, k, speckle, sensor))
         hot = sum(float(px[sat[c]][hot_spot[i][c][sat[c]]].sum() / px.sum())
                   for (i, _, _, px, _), c in zip(pairs, cols) if sat[c].any())
         return value + GLARE_WEIGHT * hot, w

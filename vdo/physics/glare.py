@@ -107,6 +107,16 @@ def satin_samples(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
     return satin[samples.region] if len(satin) else np.zeros(len(samples.region), bool)
 
 
+def hot_spot_kinds(Ls, E, exposure, speckle: SpeckleSpec, sensor: SensorModel):
+    """(saturated, washed), each (C, S) bool, of the module docstring's hot spots: per camera c
+    and sample s of irradiance E (S,) and specular radiance Ls (C, S), saturated when
+    k_c (rho_w E / pi + Ls) reaches `SensorModel.saturation_linear` (k (C,) the light each camera
+    gathers, `exposure`; None: 1), washed out when Ls > (rho_w - rho_b) E / pi."""
+    k = np.ones((len(Ls), 1)) if exposure is None else np.asarray(exposure, float)[:, None]
+    saturated = k * (speckle.white_albedo * E / np.pi + Ls) >= sensor.saturation_linear()
+    return saturated, Ls > (speckle.white_albedo - speckle.black_albedo) * E / np.pi
+
+
 def hot_spots(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
               lights: tuple[LightSpec, ...], speckle: SpeckleSpec, sensor: SensorModel,
               cameras, samples, visible, illumination, exposure=None) -> list[dict]:
@@ -124,11 +134,8 @@ def hot_spots(meshes: tuple[MeshSpec, ...], regions: tuple[RegionSpec, ...],
     E = illumination.irradiance[idx]
     Ls = specular_radiance(lights, illumination.lit[:, idx], samples.points[idx], samples.normals[idx],
                            [c.position for c in cameras])
-    white = speckle.white_albedo * E / np.pi
+    saturated, washed = hot_spot_kinds(Ls, E, exposure, speckle, sensor)
     contrast = (speckle.white_albedo - speckle.black_albedo) * E / np.pi
-    k = np.ones((len(cameras), 1)) if exposure is None else np.asarray(exposure, float)[:, None]
-    saturated = k * (white[None] + Ls) >= sensor.saturation_linear()
-    washed = Ls > contrast[None]
     ratio = Ls / np.maximum(contrast[None], 1e-300)
     rows = []
     for c, cam in enumerate(cameras):
