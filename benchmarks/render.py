@@ -6,11 +6,12 @@ config's [render] defaults (scale, spp), rendering and exposure, as `vdo render`
 Run: .venv/bin/python benchmarks/render.py [--camera cam1] [--repeats 3]
 
 With --dic: the DIC render mode (`vdo.render.render_camera_dic`) on the camera at full size
-(Mpixel/s, wall and CPU time), then on a --crop window at the image centre the DIC mode, today's
+(Mpixel/s, wall and CPU time, first and second render), then on a --crop window at the image
+centre (and at each --crop-at) the DIC mode, today's
 sampled mode at --spp, and a reference (the mean of two --reference-spp renders): the per-pixel
 error of each against the reference, the reference's own noise, and the difference between the
 two modes, in one run.
-Run: .venv/bin/python benchmarks/render.py --dic [--camera cam1] [--crop 600 400]
+Run: .venv/bin/python benchmarks/render.py --dic [--camera cam1] [--crop 600 400] [--crop-at X0 Y0 ...]
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ def main():
     parser.add_argument("--dic", action="store_true", help="the DIC render mode against today's")
     parser.add_argument("--crop", type=int, nargs=2, default=(600, 400))
     parser.add_argument("--reference-spp", type=int, default=256)
+    parser.add_argument("--crop-at", type=int, nargs=2, action="append", default=[], metavar=("X0", "Y0"),
+                        help="--dic: another crop whose top-left pixel is X0 Y0 (repeatable)")
     args = parser.parse_args()
     configure()
     if args.dic:
@@ -93,13 +96,14 @@ def main():
           f"on average, {sum(per_camera):.1f} s for {len(full)} cameras")
 
 
-def crop(camera, width, height):
-    """The camera's centre window of width x height pixels (same K up to the principal point)."""
+def crop(camera, width, height, at=None):
+    """The camera's window of width x height pixels whose top-left pixel is `at` (x0, y0), by
+    default centred (same K up to the principal point)."""
     from dataclasses import replace
 
     import numpy as np
 
-    x0, y0 = (camera.width - width) // 2, (camera.height - height) // 2
+    x0, y0 = at if at is not None else ((camera.width - width) // 2, (camera.height - height) // 2)
     cx, cy = camera.principal_point
     return replace(camera, width=width, height=height,
                    principal_offset_px=(cx - x0 - (width - 1) / 2, cy - y0 - (height - 1) / 2),
@@ -130,32 +134,36 @@ def dic_benchmark(args):
     print(f"cpu threads          {len(os.sched_getaffinity(0))}; load average {os.getloadavg()[0]:.1f} "
           f"(shared machine: CPU time is the figure to compare)")
     print(f"scene build          dic {t_dic_scene:.2f} s, sampled {t_scene:.2f} s")
-    small = crop(cam, *args.crop)
-    render_camera_dic(ds, small)                                     # compile the kernels
-    _, wall, cpu = timed(render_camera_dic, ds, cam)
+    render_camera_dic(ds, crop(cam, *args.crop), spec=spec)         # compile the kernels
     mp = cam.width * cam.height / 1e6
-    print(f"dic mode, {cam.name} full size {cam.width}x{cam.height}: {wall:.1f} s wall, {cpu:.1f} s CPU: "
-          f"{mp / wall:.2f} Mpixel/s wall, {mp / cpu:.2f} Mpixel/s per CPU-second")
-    fast, wall_f, cpu_f = timed(render_camera_dic, ds, small)
-    render_camera(sc, small, spec, args.spp, 0)
-    today, wall_s, cpu_s = timed(render_camera, sc, small, spec, args.spp, 1)
-    a, wall_r, _ = timed(render_camera, sc, small, spec, args.reference_spp, 2)
-    b = render_camera(sc, small, spec, args.reference_spp, 3)
-    ref = (a.astype(float) + b) / 2
-    noise = np.std(a.astype(float) - b) / 2
-    n = small.width * small.height
-    print(f"crop {small.width}x{small.height} at the centre:")
-    print(f"  dic mode           {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: {n / 1e6 / cpu_f:.2f} Mpixel/s per CPU-s")
-    print(f"  sampled {args.spp:>3} spp    {wall_s:.2f} s wall, {cpu_s:.2f} s CPU: {n / 1e6 / cpu_s:.3f} "
-          f"Mpixel/s, {n * args.spp / 1e6 / cpu_s:.2f} Msamples/s per CPU-s")
-    print(f"  reference          2 x {args.reference_spp} spp ({wall_r:.1f} s wall each); image std "
-          f"{ref.std():.4f}, its own per-pixel noise {noise:.5f}")
-    for name, image in (("dic", fast), (f"sampled {args.spp} spp", today)):
-        d = image.astype(float) - ref
-        print(f"  {name:<18} - reference: std {d.std():.5f}, mean {d.mean():+.5f}, "
-              f"p99 |d| {np.percentile(np.abs(d), 99):.5f}")
-    d = fast.astype(float) - today
-    print(f"  dic - sampled {args.spp} spp: std {d.std():.5f}")
+    for label in ("first", "second"):
+        _, wall, cpu = timed(render_camera_dic, ds, cam, spec=spec)
+        print(f"dic mode, {cam.name} full size {cam.width}x{cam.height}, {label} render: {wall:.1f} s "
+              f"wall, {cpu:.1f} s CPU: {mp / wall:.2f} Mpixel/s wall, {mp / cpu:.2f} Mpixel/s per CPU-second")
+    windows = [None] + [tuple(a) for a in args.crop_at]
+    for at in windows:
+        small = crop(cam, *args.crop, at=at)
+        fast, wall_f, cpu_f = timed(render_camera_dic, ds, small, spec=spec)
+        render_camera(sc, small, spec, args.spp, 0)
+        today, wall_s, cpu_s = timed(render_camera, sc, small, spec, args.spp, 1)
+        a, wall_r, _ = timed(render_camera, sc, small, spec, args.reference_spp, 2)
+        b = render_camera(sc, small, spec, args.reference_spp, 3)
+        ref = (a.astype(float) + b) / 2
+        noise = np.std(a.astype(float) - b) / 2
+        n = small.width * small.height
+        where = "the centre" if at is None else f"x {at[0]}, y {at[1]}"
+        print(f"crop {small.width}x{small.height} at {where}:")
+        print(f"  dic mode           {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: {n / 1e6 / cpu_f:.2f} Mpixel/s per CPU-s")
+        print(f"  sampled {args.spp:>3} spp    {wall_s:.2f} s wall, {cpu_s:.2f} s CPU: {n / 1e6 / cpu_s:.3f} "
+              f"Mpixel/s, {n * args.spp / 1e6 / cpu_s:.2f} Msamples/s per CPU-s")
+        print(f"  reference          2 x {args.reference_spp} spp ({wall_r:.1f} s wall each); image std "
+              f"{ref.std():.4f}, its own per-pixel noise {noise:.5f}")
+        for name, image in (("dic", fast), (f"sampled {args.spp} spp", today)):
+            d = image.astype(float) - ref
+            print(f"  {name:<18} - reference: std {d.std():.5f}, mean {d.mean():+.5f}, "
+                  f"p99 |d| {np.percentile(np.abs(d), 99):.5f}")
+        d = fast.astype(float) - today
+        print(f"  dic - sampled {args.spp} spp: std {d.std():.5f}")
 
 
 if __name__ == "__main__":

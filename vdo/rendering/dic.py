@@ -24,9 +24,16 @@ FOOTPRINT_SPLIT = 2          # each pixel's footprint parallelogram is cut into 
 LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each light panel (a
                              # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
 AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
-SHADE_STRIDE = 8             # px between the nodes of the per-camera light map
-SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by more than this
-                             # fraction (a shadow edge, a panel's rim) is computed at every pixel
+SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
+SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
+                             # of the light scale (and that sees one shape) is interpolated
+SHADE_ERROR = 0.002          # else its finer nodes are computed, and where they lie within this
+                             # fraction of the light scale of its bilinear prediction its four
+                             # halves are interpolated
+CREASE_COS = float(np.cos(np.radians(1.0)))   # corners whose normals differ by more than 1°
+                             # straddle a crease (a facet's edge): the cell is refined
+SCALE_STRIDE = 64            # px between the nodes whose light sets the camera's light scale
+SCALE_PERCENTILE = 90        # the light scale: this percentile of their light (the well-lit surfaces)
 EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
                              # mean of EDGE_SUPERSAMPLE^2 sub-pixel rays, each with its own footprint
 TILE_PIXELS = 1 << 20        # pixels per tile of a DIC-mode render (fewer when memory is short)
@@ -219,11 +226,14 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
     afterwards (`vdo.rendering.scene.diffraction_blur`: the f/8 that σ_measured assumes for a
     camera without f_number; a camera with one is refused in this mode).
     `progress`: called with the number of rows done after each tile."""
+    s = SHADE_STRIDE
     rows = max(1, tile_pixels // camera.width)
+    rows = rows // s * s if rows >= s else rows           # tiles share the light map's lattice
     out = np.empty((camera.height, camera.width), dtype=np.float32)
+    scale = _light_scale(dscene, camera)
     for r0 in range(0, camera.height, rows):
         r1 = min(camera.height, r0 + rows)
-        out[r0:r1] = _dic_tile(dscene, camera, r0, r1)
+        out[r0:r1] = _dic_tile(dscene, camera, r0, r1, scale)
         if progress is not None:
             progress(r1 - r0)
     return diffraction_blur(out, camera, spec)
@@ -315,7 +325,7 @@ def _footprint_albedo(dscene: DicScene, si):
                     - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
     f = t.mean + acc / (n * n * 4 * hx * hy)
     rho = dscene.black + (dscene.white - dscene.black) * mi.Float(f)
-    shape = dr.reinterpret_array(mi.UInt32, si.shape)
+    shape = _shape_ids(si)
     speckled = mi.Bool(False)
     for sid in dscene.speckled_ids:
         speckled |= shape == sid
@@ -330,14 +340,15 @@ def _quadrature(dscene: DicScene):
     (Q,), LIGHT_POINTS^2 midpoints per panel."""
     q = LIGHT_POINTS
     mid = (np.arange(q) + 0.5) / q - 0.5
+    a, b = (x.ravel()[:, None] for x in np.meshgrid(mid, mid, indexing="ij"))
     P, N, w = [], [], []
     for c, e1, e2, normal, radiance in dscene.lights:
-        for a in mid:
-            for b in mid:
-                P.append(c + a * e1 + b * e2)
-                N.append(normal)
-                w.append(radiance * float(np.linalg.norm(np.cross(e1, e2))) / (q * q))
-    return np.array(P).reshape(-1, 3), np.array(N).reshape(-1, 3), np.array(w)
+        P.append(c + a * e1 + b * e2)
+        N.append(np.broadcast_to(normal, (q * q, 3)))
+        w.append(np.full(q * q, radiance * float(np.linalg.norm(np.cross(e1, e2))) / (q * q)))
+    if not P:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    return np.concatenate(P), np.concatenate(N), np.concatenate(w)
 
 
 def _shade(dscene: DicScene, si) -> np.ndarray:
@@ -397,6 +408,15 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     return out
 
 
+def _shape_ids(si):
+    """The registry id of the shape each hit sees (Dr.Jit UInt32; 0 for a miss)."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    return dr.reinterpret_array(mitsuba().UInt32, si.shape)
+
+
 def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0):
     """Primary hits (with uv partials over a footprint of `step` pixels) of the pixels `grid`
     (`_rays`)."""
@@ -406,7 +426,18 @@ def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0):
     return si
 
 
-def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int) -> np.ndarray:
+def _light_scale(dscene: DicScene, camera: Camera) -> float:
+    """The camera's light scale: the SCALE_PERCENTILE-th percentile of the light (`_shade`) at
+    the pixels every SCALE_STRIDE px; the light map's tolerances are fractions of it."""
+    xs = np.arange(SCALE_STRIDE // 2, camera.width, SCALE_STRIDE, dtype=float)
+    ys = np.arange(SCALE_STRIDE // 2, camera.height, SCALE_STRIDE, dtype=float)
+    light = _shade(dscene, _cast(dscene, camera, _pixel_grid(xs if len(xs) else np.zeros(1),
+                                                            ys if len(ys) else np.zeros(1))))
+    lit = light[light > 0]
+    return float(np.percentile(lit, SCALE_PERCENTILE)) if len(lit) else 1.0
+
+
+def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float) -> np.ndarray:
     """Rows r0 .. r1 - 1 of `render_camera_dic`'s image, (r1 - r0, W) float32."""
     import drjit as dr
 
@@ -415,56 +446,142 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int) -> np.ndarray:
     mi = mitsuba()
     W, h = camera.width, r1 - r0
     u, v = np.arange(W, dtype=float), np.arange(r0, r1, dtype=float)
-    # The light map's nodes: every SHADE_STRIDE px, and the last column and row of the tile.
-    s = SHADE_STRIDE
-    xs = np.unique(np.r_[np.arange(0, W, s), W - 1]).astype(float)
-    ys = np.unique(np.r_[np.arange(r0, r1, s), r1 - 1]).astype(float)
-    node_si = _cast(dscene, camera, _pixel_grid(xs, ys))
-    node_light = mi.Float(_shade(dscene, node_si))
-    node_ids = dr.reinterpret_array(mi.UInt32, node_si.shape)
-    dr.eval(node_ids)
-    del node_si
     index = dr.arange(mi.UInt32, W * h)
-    col, row = index % W, index // W
-    pixel = (mi.Float(col), mi.Float(row + r0))
+    pixel = (mi.Float(index % W), mi.Float(index // W + r0))
     si = _cast(dscene, camera, _pixel_grid(u, v) if camera.distorted else pixel)
     rho = _footprint_albedo(dscene, si)
     emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
-    ids = dr.reinterpret_array(mi.UInt32, si.shape)
-    # Bilinear in the cell (nodes cx, cx + 1 and cy, cy + 1; the last cell may be narrower).
-    nx, ny = len(xs), len(ys)
-    cx = dr.minimum(col // s, max(nx - 2, 0))
-    cy = dr.minimum(row // s, max(ny - 2, 0))
-    cx1, cy1 = dr.minimum(cx + 1, nx - 1), dr.minimum(cy + 1, ny - 1)
-    X, Y = mi.Float(xs), mi.Float(ys - r0)
-    x0, x1 = dr.gather(mi.Float, X, cx), dr.gather(mi.Float, X, cx1)
-    y0, y1 = dr.gather(mi.Float, Y, cy), dr.gather(mi.Float, Y, cy1)
-    fx = dr.select(x1 > x0, (pixel[0] - x0) / dr.maximum(x1 - x0, 1.0), 0.0)
-    fy = dr.select(y1 > y0, (mi.Float(row) - y0) / dr.maximum(y1 - y0, 1.0), 0.0)
-    corners = [cy * nx + cx, cy * nx + cx1, cy1 * nx + cx, cy1 * nx + cx1]
-    L = [dr.gather(mi.Float, node_light, k) for k in corners]
-    same = mi.Bool(True)
-    for k in corners:
-        same &= dr.gather(mi.UInt32, node_ids, k) == ids
-    lo = dr.minimum(dr.minimum(L[0], L[1]), dr.minimum(L[2], L[3]))
-    hi = dr.maximum(dr.maximum(L[0], L[1]), dr.maximum(L[2], L[3]))
-    smooth = same & (hi <= lo * (1 + SHADE_TOLERANCE))
-    light = (1 - fy) * ((1 - fx) * L[0] + fx * L[1]) + fy * ((1 - fx) * L[2] + fx * L[3])
-    value = emitted + rho * light
-    dr.eval(value, smooth, ids, rho, emitted)
-    value, smooth = np.array(value, dtype=np.float64), np.array(smooth)
-    ids_np = np.array(ids).reshape(h, W)
-    rough = np.flatnonzero(~smooth)
-    if len(rough):
-        grid = np.column_stack([u[rough % W], v[rough // W]])
-        value[rough] = (np.array(dr.gather(mi.Float, emitted, mi.UInt32(rough)), dtype=np.float64)
-                        + np.array(dr.gather(mi.Float, rho, mi.UInt32(rough)), dtype=np.float64)
-                        * _shade(dscene, _cast(dscene, camera, grid)))
+    ids = _shape_ids(si)
+    dr.eval(rho, emitted, ids)
     del si
+    ids_np = np.array(ids).reshape(h, W)
+    light = _light_map(dscene, camera, r0, ids_np, scale)
+    value = np.array(emitted, dtype=np.float64) + np.array(rho, dtype=np.float64) * light.ravel()
     edges = np.flatnonzero(_silhouette(ids_np))
     if len(edges):
-        value[edges] = _supersampled(dscene, camera, np.column_stack([u[edges % W], v[edges // W]]))
+        value[edges] = _supersampled(dscene, camera, r0, edges, ids_np, light)
     return value.astype(np.float32).reshape(h, W)
+
+
+def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale: float) -> np.ndarray:
+    """(h, W) the light (`_shade`) at each pixel of the tile whose rows start at r0 and whose
+    pixels see the shapes `ids` (h, W), from an adaptive light map (tolerances in units of the
+    camera's light `scale`). Level s has nodes every s pixels (s = SHADE_STRIDE,
+    SHADE_STRIDE / 2, ..., 1; the lattice may reach past the last row and column). A cell of
+    level s whose pixels and corners see one shape, with the corners' normals within CREASE_COS
+    of one another (no crease), is interpolated bilinearly from its corners when they differ by
+    at most SHADE_TOLERANCE; otherwise the five nodes of level s / 2 in it are computed, and
+    when they lie within SHADE_ERROR of the cell's bilinear prediction (on the same surface) its
+    four halves are interpolated from their corners; the rest (shadow edges, creases, another
+    shape) go down a level, to the pixels themselves at s = 1."""
+    h, W = ids.shape
+    s = SHADE_STRIDE
+    ncy, ncx = max(1, -(-(h - 1) // s)), max(1, -(-(W - 1) // s))
+    # The least and greatest shape id in each cell of each level (a min/max pyramid).
+    lo_ids = {1: np.pad(ids, ((0, ncy * s - h), (0, ncx * s - W)), mode="edge")}
+    hi_ids = {1: lo_ids[1]}
+    k = 1
+    while k < s:
+        for pyr, op in ((lo_ids, np.minimum), (hi_ids, np.maximum)):
+            q = pyr[k]
+            pyr[2 * k] = op(op(q[::2, ::2], q[1::2, ::2]), op(q[::2, 1::2], q[1::2, 1::2]))
+        k *= 2
+    out = np.empty((h, W))
+    nodes = _LightNodes.lattice(ncy + 1, ncx + 1)
+    nodes.compute(dscene, camera, r0, s, *np.nonzero(np.ones((ncy + 1, ncx + 1), dtype=bool)))
+    cj, ci = (a.ravel() for a in np.meshgrid(np.arange(ncy), np.arange(ncx), indexing="ij"))
+    while True:
+        if s == 1:                                   # the nodes are the pixels themselves
+            keep = (cj < h) & (ci < W)
+            out[cj[keep], ci[keep]] = nodes.L[cj[keep], ci[keep]]
+            return out
+        corners = [(cj, ci), (cj, ci + 1), (cj + 1, ci), (cj + 1, ci + 1)]
+        c00, c01, c10, c11 = (nodes.L[c] for c in corners)
+        lo_id = lo_ids[s][cj, ci]
+        one = (lo_id == hi_ids[s][cj, ci]) & nodes.same(corners, lo_id, corners[0])
+        lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11))
+        hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11))
+        smooth = one & (hi - lo <= SHADE_TOLERANCE * scale)
+        _fill(out, cj[smooth], ci[smooth], s, nodes.L)
+        rest = ~smooth
+        cj, ci, one, c00, c01, c10, c11, lo_id = (a[rest] for a in (cj, ci, one, c00, c01, c10, c11, lo_id))
+        if len(cj) == 0:
+            return out
+        # The next level: its lattice holds this one's nodes at even indices; the five new
+        # nodes of each remaining cell are computed.
+        nodes = nodes.refined()
+        J, I = 2 * cj, 2 * ci
+        new = [(J + 1, I + 1), (J, I + 1), (J + 2, I + 1), (J + 1, I), (J + 1, I + 2)]
+        fresh = np.unique(np.concatenate([j * nodes.L.shape[1] + i for j, i in new]))
+        nodes.compute(dscene, camera, r0, s // 2, *np.divmod(fresh, nodes.L.shape[1]))
+        predicted = [(c00 + c01 + c10 + c11) / 4, (c00 + c01) / 2, (c10 + c11) / 2,
+                     (c00 + c10) / 2, (c01 + c11) / 2]
+        err = np.max([np.abs(nodes.L[n] - p) for n, p in zip(new, predicted)], axis=0)
+        fine = one & (err <= SHADE_ERROR * scale) & nodes.same(new, lo_id, (J, I))
+        children = [(J + dy, I + dx) for dy in (0, 1) for dx in (0, 1)]
+        for j, i in children:
+            _fill(out, j[fine], i[fine], s // 2, nodes.L)
+        cj = np.concatenate([j[~fine] for j, _ in children])
+        ci = np.concatenate([i[~fine] for _, i in children])
+        s //= 2
+
+
+@dataclass
+class _LightNodes:
+    """The nodes of one level of the light map: light L, shape id I and shading normal N on a
+    lattice (NaN light where not computed)."""
+
+    L: np.ndarray
+    I: np.ndarray
+    N: np.ndarray
+
+    @classmethod
+    def lattice(cls, ny: int, nx: int) -> "_LightNodes":
+        return cls(np.full((ny, nx), np.nan), np.zeros((ny, nx), dtype=np.uint32), np.zeros((ny, nx, 3)))
+
+    def refined(self) -> "_LightNodes":
+        """The next level's lattice, this one's nodes at its even indices."""
+        ny, nx = self.L.shape
+        out = _LightNodes.lattice(2 * ny - 1, 2 * nx - 1)
+        out.L[::2, ::2], out.I[::2, ::2], out.N[::2, ::2] = self.L, self.I, self.N
+        return out
+
+    def same(self, at, shape_id: np.ndarray, base) -> np.ndarray:
+        """Whether the nodes `at` (a list of (j, i) index pairs) all see `shape_id` with normals
+        within CREASE_COS of the node `base`'s."""
+        ok = np.ones(len(shape_id), dtype=bool)
+        n0 = self.N[base]
+        for j, i in at:
+            ok &= (self.I[j, i] == shape_id) & (np.einsum("ij,ij->i", self.N[j, i], n0) >= CREASE_COS)
+        return ok
+
+    def compute(self, dscene: DicScene, camera: Camera, r0: int, s: int, j: np.ndarray, i: np.ndarray) -> None:
+        """Cast and shade the nodes (j, i) of level s: the pixels (i s, r0 + j s)."""
+        if len(j) == 0:
+            return
+        si = _cast(dscene, camera, np.column_stack([i * float(s), r0 + j * float(s)]))
+        shape = np.array(_shape_ids(si))
+        normal = np.column_stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)])
+        normal[shape == 0] = (0.0, 0.0, 1.0)          # a miss: one "surface", the sky
+        self.I[j, i], self.N[j, i], self.L[j, i] = shape, normal, _shade(dscene, si)
+
+
+def _fill(out: np.ndarray, j: np.ndarray, i: np.ndarray, s: int, L: np.ndarray) -> None:
+    """Write into `out` (h, W) the pixels of the level-s cells (j, i), bilinear between the
+    cells' corners in L."""
+    h, W = out.shape
+    if len(j) == 0:
+        return
+    t = np.arange(s) / s
+    y = j[:, None, None] * s + np.arange(s)[None, :, None]
+    x = i[:, None, None] * s + np.arange(s)[None, None, :]
+    fy, fx = t[None, :, None], t[None, None, :]
+    c00, c01 = L[j, i][:, None, None], L[j, i + 1][:, None, None]
+    c10, c11 = L[j + 1, i][:, None, None], L[j + 1, i + 1][:, None, None]
+    value = (1 - fy) * ((1 - fx) * c00 + fx * c01) + fy * ((1 - fx) * c10 + fx * c11)
+    y, x = np.broadcast_arrays(y, x)
+    keep = (y < h) & (x < W)
+    out[y[keep], x[keep]] = np.broadcast_to(value, y.shape)[keep]
 
 
 def _silhouette(ids: np.ndarray) -> np.ndarray:
@@ -478,21 +595,42 @@ def _silhouette(ids: np.ndarray) -> np.ndarray:
     return out
 
 
-def _supersampled(dscene: DicScene, camera: Camera, grid: np.ndarray) -> np.ndarray:
-    """(n,) the mean of EDGE_SUPERSAMPLE^2 sub-pixel values (stratum centres, each ray with the
-    footprint of its stratum, its albedo and its light computed at the ray) of the pixels `grid`."""
+def _supersampled(dscene: DicScene, camera: Camera, r0: int, pixels: np.ndarray, ids: np.ndarray,
+                  light: np.ndarray) -> np.ndarray:
+    """(n,) the mean of EDGE_SUPERSAMPLE^2 sub-pixel values of the tile's flat `pixels` (tile rows
+    from r0; stratum centres, each ray with the footprint of its stratum and its albedo). A
+    sub-pixel ray takes the light (`light`, (h, W), the light map) of the nearest pixel of the 3 x 3
+    around its pixel that sees its shape: the light is smooth on one surface over a pixel, and the
+    map is computed at each pixel where the shape changes. A ray whose shape no pixel around sees
+    (a feature thinner than a pixel) is shaded itself."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
+    h, W = ids.shape
     k = EDGE_SUPERSAMPLE
     mid = (np.arange(k) + 0.5) / k - 0.5
     offsets = np.stack(np.meshgrid(mid, mid), -1).reshape(-1, 2)
+    py, px = pixels // W, pixels % W
+    grid = np.column_stack([px, py + r0]).astype(float)
     sub = (grid[:, None, :] + offsets[None]).reshape(-1, 2)
     si = _cast(dscene, camera, sub, 1.0 / k)
     value = mi.luminance(si.emitter(dscene.scene).eval(si)) * 1.0
     rho = _footprint_albedo(dscene, si)
-    dr.eval(value, rho)
-    total = np.array(value, dtype=np.float64) + np.array(rho, dtype=np.float64) * _shade(dscene, si)
-    return total.reshape(len(grid), k * k).mean(axis=1)
+    sub_ids = _shape_ids(si)
+    dr.eval(value, rho, sub_ids)
+    del si
+    sub_ids = np.array(sub_ids).reshape(len(pixels), k * k)
+    sub_light = np.full(sub_ids.shape, np.nan)
+    # The 3 x 3 neighbours, nearest first, each as seen from the sub-ray's own pixel.
+    ring = sorted(((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)), key=lambda d: d[0] ** 2 + d[1] ** 2)
+    for dy, dx in ring:
+        y, x = np.clip(py + dy, 0, h - 1), np.clip(px + dx, 0, W - 1)
+        take = np.isnan(sub_light) & (ids[y, x][:, None] == sub_ids)
+        sub_light[take] = np.broadcast_to(light[y, x][:, None], sub_ids.shape)[take]
+    alone = np.flatnonzero(np.isnan(sub_light).ravel())
+    if len(alone):
+        sub_light.ravel()[alone] = _shade(dscene, _cast(dscene, camera, sub[alone], 1.0 / k))
+    total = np.array(value, dtype=np.float64) + np.array(rho, dtype=np.float64) * sub_light.ravel()
+    return total.reshape(len(pixels), k * k).mean(axis=1)
