@@ -9,6 +9,11 @@ takes any experiment file.
     python docs/examples/virtual_test.py --out /tmp/vt --quick --dot-mm 0.25 --texel-mm 0.05
     python docs/examples/virtual_test.py --out /tmp/vt --quick \
         --experiment experiments/pressure_vessel/all_round.toml [--pair t030 t080]
+    python docs/examples/virtual_test.py --out runs/vt_full --steps 4 --mode dic --realisations 1
+
+`--steps N`: the field grows linearly over N load steps; each step is correlated against the
+reference, starting from the previous step's result where it converged (a lab's incremental
+tracking). `--mode dic`: the DIC render mode (full-size images in minutes).
 
 Another experiment's field is general (`general_field`): about the centre c of the specimen's
 bounding box and its size S (the box's diagonal), a translation S x GENERAL_TRANSLATION, a turn
@@ -32,7 +37,8 @@ rotation of 3 delta / (2 L) about x:
 The specimen mesh is refined to edges of at most `EDGE_MM` (so that the rendered surface follows
 the cubic bending; vdo moves the mesh's vertices) and the field is written at its vertices as a
 VTK file (`[load_path] displacements`, `vdo.geometry.keyframes`). Points: samples of every stereo pair's
-regions that both cameras use with their whole patch; predicted sigma from the layout state of
+regions that both cameras use with their whole patch, grown by EDGE_MARGIN_PX pixels (no pixel
+the correlation reads on another face); predicted sigma from the layout state of
 the pair alone at the rendered scale, times sqrt(2) (reference and deformed images are both
 noisy); only points whose patch corners, at rest and moved, lie inside both (cropped) images.
 The whole error must be within 3 such sigmas on every axis; it is split into the bias (the same
@@ -81,6 +87,11 @@ BIAS_FLOOR_PX = 0.005                       # interpolation bias at scale 1 (doc
 QUICK_PAIR = ("cam1", "cam2")               # the 100 mm lenses on the joint, from the front, above
 QUICK_CROP_PX = (320, 240)                  # full-size pixels around the joint top's centre
 FOCUS_POINT = np.array([0.0, 0.0, 1.26])    # m, the joint top's centre (the crops' centre)
+EDGE_MARGIN_PX = 4.0                        # a point's patch grown by this many pixels of its
+                                            # coarser camera must still lie on its region: the
+                                            # pixels the correlation reads (the patch, the
+                                            # cubic spline's reach, the lens's blur, a pixel
+                                            # that straddles an edge) all on one face
 WHOLE_PATCH_TOL = 1e-9                      # a patch fraction this close to 1 is whole (a sum of
                                             # cell areas: 0.9999999999999999 on a curved surface)
 GENERAL_TRANSLATION = np.array([0.5, -0.3, 0.4]) * 1e-3   # per metre of the specimen's size
@@ -113,10 +124,11 @@ def general_field(points: np.ndarray):
     return field
 
 
-def inputs(folder: Path, exp, field, refine_mm: float | None):
+def inputs(folder: Path, exp, field, refine_mm: float | None, steps: int = 1):
     """The specimen STL (refined to edges of at most `refine_mm`, or as it is) and the field at
     its vertices (.vtp, mm) in `folder`; the experiment using them (its [load_path] only these
-    displacements, step 1)."""
+    displacements). With `steps` > 1 the field grows linearly, k / steps of it at step k
+    (field_<k>.vtp, gathered by field.pvd)."""
     import trimesh
 
     from vdo.config import experiment as config
@@ -130,10 +142,21 @@ def inputs(folder: Path, exp, field, refine_mm: float | None):
         vertices, faces = trimesh.remesh.subdivide_to_size(vertices, faces, max_edge=refine_mm)
     trimesh.Trimesh(vertices, faces, process=False).export(folder / "specimen_refined.stl")
     nodes = np.unique(vertices * spec.scale, axis=0)
-    vtp.write_points(folder / "field.vtp", nodes / 1e-3, {"displacement": field(nodes) / 1e-3})
+    if steps == 1:
+        vtp.write_points(folder / "field.vtp", nodes / 1e-3, {"displacement": field(nodes) / 1e-3})
+        displacements = folder / "field.vtp"
+    else:
+        sets = []
+        for k in range(1, steps + 1):
+            vtp.write_points(folder / f"field_{k}.vtp", nodes / 1e-3,
+                             {"displacement": field(nodes) * (k / steps) / 1e-3})
+            sets.append(f'    <DataSet timestep="{k}" file="field_{k}.vtp"/>')
+        displacements = folder / "field.pvd"
+        displacements.write_text('<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n'
+                                 "  <Collection>\n" + "\n".join(sets) + "\n  </Collection>\n</VTKFile>\n")
     meshes = tuple(dataclasses.replace(m, path=folder / "specimen_refined.stl") if m is spec else m
                    for m in exp.meshes)
-    load_path = config.LoadPathSpec(displacements=folder / "field.vtp", deformed_mesh=spec.name,
+    load_path = config.LoadPathSpec(displacements=displacements, deformed_mesh=spec.name,
                                     unit="mm")
     return dataclasses.replace(exp, meshes=meshes, load_path=load_path)
 
@@ -194,13 +217,27 @@ def points_of_pair(state, first: int, second: int, per_region: int, motion=None,
                    margin_px: float = 3.0):
     """Sample indices the two cameras both use with their whole patch, up to `per_region` per
     region, spread over it (farthest-point order from the sample nearest the region's centre).
+    The patch grown by EDGE_MARGIN_PX pixels of the coarser camera must lie on the region too:
+    next to a specimen's edge the correlation's pixels straddle another face (another light, a
+    silhouette), which the planar patch that sigma describes does not have (measured at full
+    size on the built-in: errors of 5-13 sigma_measured at 5 mm from the joint's lower edges,
+    docs/exports.md).
     The patch's four corners, at rest and moved by `motion` (N, 3) m (the sample's displacement),
     must lie `margin_px` inside both images: the usable test looks at the sample only, and a patch
     that leaves a (cropped) image is correlated on a part of itself against mirrored pixels."""
     pred, samples = state.prediction, state.samples
     ok = pred.usable[first] & pred.usable[second] & pred.measured \
         & (pred.patch_fraction >= 1.0 - WHOLE_PATCH_TOL)
-    half = state.geometry.experiment.evaluation.patch_size / 2
+    patch = state.geometry.experiment.evaluation.patch_size
+    half = patch / 2
+    if ok.any():
+        from vdo.physics.usable import patch_overlap
+
+        pixel = np.max([np.linalg.norm(samples.points - cam.position, axis=1) / cam.focal_px
+                        for cam in (state.cameras[first], state.cameras[second])], axis=0)
+        grown = patch + 2 * EDGE_MARGIN_PX * float(pixel[ok].max())
+        on_region = np.asarray(patch_overlap(samples, grown).sum(axis=1)).ravel()
+        ok &= on_region >= 1.0 - WHOLE_PATCH_TOL
     motion = np.zeros_like(samples.points) if motion is None else motion
     for cam in (state.cameras[first], state.cameras[second]):
         for su in (-half, half):
@@ -253,18 +290,21 @@ def calibration_error(folder: Path) -> float:
 def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = None,
         per_region: int = 2, realisations: int = 4, overwrite: bool = False,
         crop_px: tuple[int, int] = QUICK_CROP_PX, dot_mm: float | None = None,
-        texel_mm: float | None = None, experiment: Path = EXPERIMENT, pair=None) -> dict:
+        texel_mm: float | None = None, experiment: Path = EXPERIMENT, pair=None, steps: int = 1,
+        mode: str | None = None) -> dict:
     """Render the series and measure it (module docstring). Per point: the error of the series'
     own TIFFs, split into the bias (the same correlation on the noise-free images, the .exr
     radiance through the sensor's mean) and the noise part (TIFF minus noise-free), which
     √2 sigma predicts; and the mean noise part over `realisations` sensor-noise draws on the
-    same radiance (the TIFF's and realisations - 1 more, `SensorModel.expose`). Returns
-    {"rows": [...], "calibration_px": float, "series": series.json}."""
+    same radiance (the TIFF's and realisations - 1 more, `SensorModel.expose`). `steps` load
+    steps (the field grows linearly to its whole at the last), each correlated against the
+    reference; `mode`: the [render] mode (default the experiment's). Returns {"rows": [...]
+    (one per point and step), "calibration_px": float, "series": series.json}."""
     from vdo.config import experiment as config
     from vdo.geometry.keyframes import at_step, load_path_of
-    from vdo.render import noise_free_dn, scaled_camera
+    from vdo.render import scaled_camera
     from vdo.commands.series import render_series
-    from vdo.dic.series import correlate_points, correlate_series, series_cameras, series_image
+    from vdo.dic.series import series_cameras, series_image
     from vdo.state import layout_state, prepare
 
     out = Path(out)
@@ -291,14 +331,16 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         pair, focus = pair_and_focus(exp, pair)
     if quick:
         exp = cropped(exp, pair, crop_px, focus)
-    exp = inputs(out.with_name(out.name + "_inputs"), exp, field, refine_mm)
-    exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True))
+    exp = inputs(out.with_name(out.name + "_inputs"), exp, field, refine_mm, steps)
+    exp = dataclasses.replace(exp, render=dataclasses.replace(exp.render, exr=True,
+                                                              mode=mode or exp.render.mode))
     summary = render_series(exp, out, scale=scale, spp=spp, overwrite=overwrite,
                             pairs=[pair] if quick or not builtin else None)
     geometry = prepare(exp)
     load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
                              groups=exp.groups)
-    moved = at_step(geometry, load_path, 1, regions=exp.regions).samples.points
+    moved = {k: at_step(geometry, load_path, k, regions=exp.regions).samples.points
+             for k in range(1, steps + 1)}
     cameras = {c.name: scaled_camera(c, summary["scale"])
                for c in vdo.cameras_of(exp.camera_specs, exp.rails)}
     sensor, s, patch = exp.sensor, geometry.samples, exp.evaluation.patch_size
@@ -306,7 +348,7 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
     for first, second in summary["stereo_pairs"]:
         names = [first, second]
         state = layout_state(geometry, [cameras[first], cameras[second]])
-        chosen = points_of_pair(state, 0, 1, per_region, moved - s.points)
+        chosen = points_of_pair(state, 0, 1, per_region, moved[steps] - s.points)
         if not chosen:
             continue
         regions = {s.region_names[s.region[i]] for i in chosen}
@@ -314,58 +356,111 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
                   if f["camera"] in names and f["region"] in regions and f not in floor]
         at = (s.points[chosen], s.tangent_u[chosen], s.tangent_v[chosen], patch)
         pair = series_cameras(out, names)
-        linear = {step: [series_image(out, n, step, linear=True) for n in names] for step in (0, 1)}
-        clean, _ = correlate_points(pair, *([noise_free_dn(x, sensor) for x in linear[step]]
-                                            for step in (0, 1)), *at)
-        measured, converged = correlate_series(out, 1, names, *at)
-        noise = [measured - clean]
-        for r in range(1, realisations):
-            draw = {step: [sensor.expose(x, np.random.default_rng([summary["seed"], 1000 + r, i, step]))
-                           for i, x in enumerate(linear[step])] for step in (0, 1)}
-            noise.append(correlate_points(pair, draw[0], draw[1], *at)[0] - clean)
-        mean_noise = np.mean(noise, axis=0)
         sigma = math.sqrt(2) * state.prediction.sigma_xyz[chosen]
         sigma_measured = state.measured.sigma_xyz[chosen]      # [analysis]: bias, scatter, noise
-        for k, i in enumerate(chosen):
-            rendered = moved[i] - s.points[i]
-            bias = clean[k] - rendered
-            bias_px = max(float(np.abs(c.project((s.points[i] + clean[k])[None])[0]
-                                       - c.project((s.points[i] + rendered)[None])[0]).max())
-                          for c in pair)
-            rows.append({"pair": f"{first}:{second}", "region": s.region_names[s.region[i]],
-                         "point_mm": (s.points[i] * 1e3).round(1).tolist(),
-                         "closed_form_um": (field(s.points[i])[0] * 1e6).tolist(),
-                         "rendered_um": (rendered * 1e6).tolist(),
-                         "measured_um": (measured[k] * 1e6).tolist(),
-                         "error_um": ((measured[k] - rendered) * 1e6).tolist(),
-                         "bias_um": (bias * 1e6).tolist(), "bias_px": bias_px,
-                         "noise_um": (noise[0][k] * 1e6).tolist(),
-                         "mean_noise_um": (mean_noise[k] * 1e6).tolist(),
-                         "realisations": len(noise), "sigma_um": (sigma[k] * 1e6).tolist(),
-                         "ratio": float(np.max(np.abs(measured[k] - rendered) / sigma[k])),
-                         "sigma_measured_um": (sigma_measured[k] * 1e6).tolist(),
-                         "ratio_measured": float(np.max(np.abs(measured[k] - rendered)
-                                                        / sigma_measured[k])),
-                         "noise_ratio": float(np.max(np.abs(noise[0][k]) / sigma[k])),
-                         "mean_noise_ratio": float(np.max(np.abs(mean_noise[k]) / sigma[k])
-                                                   * math.sqrt(len(noise))),
-                         "converged": bool(converged[k])})
+        reference = [series_image(out, n, 0, linear=True) for n in names]
+        previous = None                # each step starts from the last one's result (incremental)
+        for step in range(1, steps + 1):
+            new, previous = _rows_of_step(out, summary, pair, names, reference, step, steps, at, chosen,
+                                          moved[step], s, sensor, realisations, field, sigma,
+                                          sigma_measured, first, second, previous)
+            rows += new
     return {"rows": rows, "interpolation": floor, "calibration_px": calibration_error(out),
             "series": summary}
+
+
+def _rows_of_step(out, summary, pair, names, reference, step, steps, at, chosen, moved, s, sensor,
+                  realisations, field, sigma, sigma_measured, first, second, previous=None):
+    """The rows of one load step of one pair (`run`), and the starts of the next step: this
+    step's results (noise-free and measured) where they converged. `previous`: this step's
+    starts (None: the correlation's own start guesses), as a lab's incremental tracking."""
+    from vdo.render import noise_free_dn
+    from vdo.dic.series import correlate_points, correlate_series, series_image
+
+    rows = []
+    linear = {0: reference, step: [series_image(out, n, step, linear=True) for n in names]}
+    clean_start, start = previous if previous is not None else (None, None)
+    clean, clean_converged = correlate_points(pair, *([noise_free_dn(x, sensor) for x in linear[k]]
+                                                      for k in (0, step)), *at, start=clean_start)
+    measured, converged = correlate_series(out, step, names, *at, start=start)
+    noise = [measured - clean]
+    for r in range(1, realisations):
+        draw = {k: [sensor.expose(x, np.random.default_rng([summary["seed"], 1000 + r, i, k]))
+                    for i, x in enumerate(linear[k])] for k in (0, step)}
+        noise.append(correlate_points(pair, draw[0], draw[step], *at, start=start)[0] - clean)
+    mean_noise = np.mean(noise, axis=0)
+    for k, i in enumerate(chosen):
+        rendered = moved[i] - s.points[i]
+        bias = clean[k] - rendered
+        bias_px = max(float(np.abs(c.project((s.points[i] + clean[k])[None])[0]
+                                   - c.project((s.points[i] + rendered)[None])[0]).max())
+                      for c in pair)
+        rows.append({"pair": f"{first}:{second}", "step": step,
+                     "region": s.region_names[s.region[i]],
+                     "point_mm": (s.points[i] * 1e3).round(1).tolist(),
+                     "closed_form_um": (field(s.points[i])[0] * (step / steps) * 1e6).tolist(),
+                     "rendered_um": (rendered * 1e6).tolist(),
+                     "measured_um": (measured[k] * 1e6).tolist(),
+                     "error_um": ((measured[k] - rendered) * 1e6).tolist(),
+                     "bias_um": (bias * 1e6).tolist(), "bias_px": bias_px,
+                     "noise_um": (noise[0][k] * 1e6).tolist(),
+                     "mean_noise_um": (mean_noise[k] * 1e6).tolist(),
+                     "realisations": len(noise), "sigma_um": (sigma[k] * 1e6).tolist(),
+                     "ratio": float(np.max(np.abs(measured[k] - rendered) / sigma[k])),
+                     "sigma_measured_um": (sigma_measured[k] * 1e6).tolist(),
+                     "ratio_measured": float(np.max(np.abs(measured[k] - rendered)
+                                                    / sigma_measured[k])),
+                     "noise_ratio": float(np.max(np.abs(noise[0][k]) / sigma[k])),
+                     "mean_noise_ratio": float(np.max(np.abs(mean_noise[k]) / sigma[k])
+                                               * math.sqrt(len(noise))),
+                     "converged": bool(converged[k])})
+    following = (np.where(clean_converged[:, None], clean, np.nan),
+                 np.where(converged[:, None], measured, np.nan))
+    return rows, following
+
+
+DETAIL_ROWS = 60        # print every point's table up to this many rows, else per pair and step
 
 
 def print_table(result: dict) -> None:
     from vdo.physics import checks
 
+    steps = sorted({r["step"] for r in result["rows"]})
+    if len(steps) > 1 or len(result["rows"]) > DETAIL_ROWS:
+        print(f"{'pair':<12}{'step':>5}{'points':>8}{'within 3 sqrt2 sig':>20}{'within 3 sig_meas':>19}"
+              f"{'largest err/sig_meas':>22}{'|u| mean um':>13}")
+        for key in dict.fromkeys((r["pair"], r["step"]) for r in result["rows"]):
+            group = [r for r in result["rows"] if (r["pair"], r["step"]) == key]
+            print(f"{key[0]:<12}{key[1]:>5}{len(group):>8}{sum(r['ratio'] <= N_SIGMA for r in group):>20}"
+                  f"{sum(r['ratio_measured'] <= N_SIGMA for r in group):>19}"
+                  f"{max(r['ratio_measured'] for r in group):>22.2f}"
+                  f"{np.mean([np.linalg.norm(r['rendered_um']) for r in group]):>13.0f}")
+        for step in steps:
+            group = [r for r in result["rows"] if r["step"] == step]
+            print(f"step {step}: {sum(r['ratio_measured'] <= N_SIGMA for r in group)} of {len(group)} "
+                  f"points within {N_SIGMA:g} sigma_measured "
+                  f"({100 * np.mean([r['ratio_measured'] <= N_SIGMA for r in group]):.1f} %), "
+                  f"{sum(r['ratio'] <= N_SIGMA for r in group)} within {N_SIGMA:g} sqrt(2) sigma")
+    else:
+        _print_points(result["rows"])
+    _print_totals(result)
+
+
+def _print_points(rows) -> None:
     print(f"{'pair':<12}{'region':<16}{'axis':>5}{'closed form':>12}{'rendered':>10}{'measured':>10}"
           f"{'error':>8}{'bias':>8}{'noise':>8}{'mean noise':>11}{'sqrt2 sig':>10}{'noise/sig':>10}")
-    for r in result["rows"]:
+    for r in rows:
         for a, axis in enumerate("xyz"):
             print(f"{r['pair'] if a == 0 else '':<12}{r['region'] if a == 0 else '':<16}{axis:>5}"
                   f"{r['closed_form_um'][a]:>12.1f}{r['rendered_um'][a]:>10.1f}{r['measured_um'][a]:>10.1f}"
                   f"{r['error_um'][a]:>8.2f}{r['bias_um'][a]:>8.2f}{r['noise_um'][a]:>8.2f}"
                   f"{r['mean_noise_um'][a]:>11.2f}{r['sigma_um'][a]:>10.2f}"
                   f"{abs(r['noise_um'][a]) / r['sigma_um'][a]:>10.2f}")
+
+
+def _print_totals(result: dict) -> None:
+    from vdo.physics import checks
+
     rows = result["rows"]
     n = rows[0]["realisations"]
     print(f"bias (noise-free images): {min(r['bias_px'] for r in rows):.4f}-"
@@ -392,6 +487,40 @@ def print_table(result: dict) -> None:
           f"{result['calibration_px']:.2e} px")
 
 
+def plot(result: dict, path: Path) -> None:
+    """Measured against rendered displacement per axis (every point and step), and each point's
+    largest |error| / sigma_measured against the 3 sigma line, as a PNG."""
+    import matplotlib.pyplot as plt
+
+    rows = result["rows"]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4.6), layout="constrained")
+    for a, (axis, marker) in enumerate(zip("xyz", "osD")):
+        ax.plot([r["rendered_um"][a] for r in rows], [r["measured_um"][a] for r in rows], marker,
+                ms=3, alpha=0.6, label=axis)
+    lim = max(abs(v) for r in rows for v in r["rendered_um"]) * 1.1
+    ax.plot([-lim, lim], [-lim, lim], "k-", lw=0.8)
+    ax.set_xlabel("imposed (rendered) displacement (µm)")
+    ax.set_ylabel("measured by correlation (µm)")
+    ax.legend(title="axis")
+    ax.grid(alpha=0.3)
+    steps = sorted({r["step"] for r in rows})
+    for step in steps:
+        ratios = np.sort([r["ratio_measured"] for r in rows if r["step"] == step])
+        bx.plot(ratios, np.arange(1, len(ratios) + 1) / len(ratios), drawstyle="steps-post",
+                label=f"step {step}")
+    bx.axvline(N_SIGMA, color="k", lw=0.8)
+    bx.axhline(0.95, color="0.5", lw=0.8, ls="--")
+    bx.set_xlabel("largest |error| / σ_measured of a point")
+    bx.set_ylabel("fraction of points")
+    bx.legend()
+    bx.grid(alpha=0.3)
+    within = np.mean([r["ratio_measured"] <= N_SIGMA for r in rows])
+    fig.suptitle(f"virtual test: {len(rows)} point-steps, {100 * within:.1f} % within {N_SIGMA:g} σ_measured",
+                 fontsize=10)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, type=Path, help="the series folder (new)")
@@ -411,15 +540,26 @@ def main(argv=None) -> dict:
     parser.add_argument("--pair", nargs=2, default=None, metavar=("A", "B"),
                         help="the two cameras (default: the built-in's cam1 cam2, else the two "
                              "sharing the most usable samples)")
+    parser.add_argument("--steps", type=int, default=1,
+                        help="load steps: the field grows linearly to its whole at the last")
+    parser.add_argument("--mode", choices=("sampled", "dic"), default=None,
+                        help="[render] mode (default: the experiment's)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
+    if args.steps < 1:
+        parser.error(f"--steps {args.steps}: give at least 1 load step")
     if not args.experiment.is_file():
         parser.error(f"--experiment: no file {args.experiment}; give an experiment's .toml")
     vdo.configure()
     result = run(args.out, args.quick, args.scale, args.spp, args.per_region, args.realisations,
                  args.overwrite, tuple(args.crop), args.dot_mm, args.texel_mm,
-                 args.experiment.resolve(), tuple(args.pair) if args.pair else None)
+                 args.experiment.resolve(), tuple(args.pair) if args.pair else None, args.steps,
+                 args.mode)
     print_table(result)
+    figure = args.out.with_name(args.out.name + "_result.png")
+    plot(result, figure)
+    args.out.with_name(args.out.name + "_result.json").write_text(json.dumps(result["rows"], indent=1))
+    print(f"figure: {figure}; every point: {figure.with_suffix('.json')}")
     return result
 
 

@@ -98,6 +98,15 @@ def test_batched_subsets_are_the_per_point_solution(pattern, cameras, monkeypatc
     assert px_error(cameras, points[:-1], batched.centre[:-1], U_true[:-1]) < SHIFT_TOL_PX    # whole subsets
     U, ok = correlate_points(cameras, refs, defs, points, tu, tv, SUBSET)         # the wiring
     assert ok.all() and np.array_equal(U, batched.centre)
+    # A given start (a previous load step's result) is used where finite, the start guess elsewhere.
+    start = U_true + [[2e-5, -1e-5, 1e-5]]
+    start[0] = np.nan
+    given = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET,
+                              np.where(np.isfinite(start), start, U0))
+    U2, ok2 = correlate_points(cameras, refs, defs, points, tu, tv, SUBSET, start=start)
+    assert ok2.all() and np.array_equal(U2, given.centre)
+    from vdo.dic.correlate import Solver
+    assert np.abs(U2 - U).max() < Solver().tol       # the same minimum, within the solver's stop
 
 
 def test_subpixel_translation_of_a_smooth_speckle_is_recovered(cameras):

@@ -456,6 +456,37 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
     assert sum(r["ratio"] > N_SIGMA for r in rows) >= len(rows) / 2, rows    # the bound alone fails
 
 
+@pytest.mark.slow
+def test_virtual_test_over_load_steps_in_the_dic_mode(tmp_path):
+    """The virtual test over 2 load steps (`--steps 2`: the field grows to its whole at the last,
+    a .pvd of two .vtp files, step 2 started from step 1's result) rendered in the DIC mode
+    (`--mode dic`), on the holed plate: each step's rendered motion is k/2 of the closed form,
+    every point of every step is within 3 sigma_measured, and the figure and the rows are
+    written beside the folder."""
+    import json
+    import runpy
+
+    example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
+    out = tmp_path / "series"
+    result = example["main"](["--out", str(out), "--quick", "--per-region", "3", "--realisations", "1",
+                              "--steps", "2", "--mode", "dic",
+                              "--experiment", str(ROOT / "experiments" / "holed_plate" / "stereo.toml")])
+    rows = result["rows"]
+    assert sorted({r["step"] for r in rows}) == [1, 2]
+    assert json.loads((out / "series.json").read_text())["steps"] == [0, 1, 2]   # the reference + 2
+    by_step = {k: [r for r in rows if r["step"] == k] for k in (1, 2)}
+    assert len({len(v) for v in by_step.values()}) == 1 and len(by_step[1]) >= 3
+    for a, b in zip(by_step[1], by_step[2]):
+        assert a["point_mm"] == b["point_mm"]
+        np.testing.assert_allclose(np.multiply(a["closed_form_um"], 2), b["closed_form_um"], rtol=1e-9)
+    for r in rows:
+        assert r["converged"], r
+        np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
+        assert np.all(np.abs(r["error_um"]) <= N_SIGMA * np.array(r["sigma_measured_um"])), r
+    assert (tmp_path / "series_result.png").stat().st_size > 10_000
+    assert len(json.loads((tmp_path / "series_result.json").read_text())) == len(rows)
+
+
 def test_virtual_test_refuses_a_pair_it_cannot_use(tmp_path, capsys):
     """A --pair naming an unknown camera, or an --experiment that is not a file: one line naming
     the option and what is there, before any rendering."""
@@ -470,4 +501,8 @@ def test_virtual_test_refuses_a_pair_it_cannot_use(tmp_path, capsys):
     with pytest.raises(SystemExit):
         example["main"](["--out", str(tmp_path / "s"), "--experiment", str(tmp_path / "none.toml")])
     assert "--experiment" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+    with pytest.raises(SystemExit):
+        example["main"](["--out", str(tmp_path / "s"), "--steps", "0"])
+    assert "--steps 0" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()

@@ -203,15 +203,16 @@ def _interpolation_at_scale(exp, cameras, state, scale: float) -> list[dict]:
 
 
 def correlate_series(folder, step: int, camera_names, points, tangent_u, tangent_v,
-                     patch_size: float) -> tuple[np.ndarray, np.ndarray]:
+                     patch_size: float, start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The displacement (N, 3) m that vdo's own correlation measures at `points` (N, 3) between
     the TIFF images of step 0 and `step` of a series folder, with the cameras `camera_names` of
-    its layout.json (at least two: a stereo pair or more); `correlate_points` does the measuring.
-    Returns (U, converged (N,) bool)."""
+    its layout.json (at least two: a stereo pair or more); `correlate_points` does the measuring
+    (`start`: as there, e.g. the previous step's result). Returns (U, converged (N,) bool)."""
     cameras = series_cameras(folder, camera_names)
     references = [series_image(folder, n, 0) for n in camera_names]
     deformed = [series_image(folder, n, step) for n in camera_names]
-    return correlate_points(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
+    return correlate_points(cameras, references, deformed, points, tangent_u, tangent_v, patch_size,
+                            start=start)
 
 
 def series_cameras(folder, camera_names) -> list:
@@ -246,14 +247,17 @@ def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarr
 
 
 def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
-                     patch_size: float, workers: int = 1, batched: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                     patch_size: float, workers: int = 1, batched: bool = True,
+                     start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The displacement (N, 3) m that vdo's own correlation (`vdo.dic.correlate`, as `vdo.dic.validate`
     uses it: each camera against its own reference image, integrated on its reference pixel
     centres, B-spline interpolation of windows around the patches) measures at `points` (N, 3)
     from the `references` to the `deformed` images (gray levels, one per camera): per point a
     square patch of side `patch_size` (m) in the plane of (tangent_u, tangent_v) centred on it, a
     bilinear (Q4, one element) field so that the patch may stretch and turn, read at the patch
-    centre (the mean of its four nodes), starting from `start_guesses`.
+    centre (the mean of its four nodes), starting from `start` (N, 3) m where it is given and
+    finite (a lab's incremental tracking: the previous load step's result), else from
+    `start_guesses`.
 
     `batched` (default): all points at once (`vdo.dic.subsets.correlate_subsets`, the same
     iteration vectorised over the points), shared among `workers` threads. Otherwise one
@@ -266,15 +270,18 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     workers = max(1, min(int(workers), n))
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0, bool)
+    U0 = np.full((n, 3), np.nan) if start is None else np.array(start, dtype=float).reshape(n, 3)
+    guess = ~np.isfinite(U0).all(axis=1)
+    if guess.any():
+        U0[guess] = start_guesses(cameras, references, deformed, points[guess], workers=workers)
     if batched:
         from vdo.dic.subsets import correlate_subsets
 
-        U0 = start_guesses(cameras, references, deformed, points, workers=workers)
         result = correlate_subsets(cameras, references, deformed, points, tangent_u, tangent_v,
                                    patch_size, U0, workers=workers)
         return result.centre, result.converged
     if workers == 1:
-        return _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size)
+        return _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size, U0)
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -282,7 +289,7 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     out, converged = np.zeros((n, 3)), np.zeros(n, bool)
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_pool_start, initargs=(cameras, references, deformed)) as pool:
-        jobs = {pool.submit(_pool_chunk, points[k], tangent_u[k], tangent_v[k], patch_size): k
+        jobs = {pool.submit(_pool_chunk, points[k], tangent_u[k], tangent_v[k], patch_size, U0[k]): k
                 for k in chunks if len(k)}
         for job, k in jobs.items():
             out[k], converged[k] = job.result()
@@ -300,12 +307,12 @@ def _pool_start(cameras, references, deformed):
     _POOL.update(cameras=cameras, references=references, deformed=deformed)
 
 
-def _pool_chunk(points, tangent_u, tangent_v, patch_size):
+def _pool_chunk(points, tangent_u, tangent_v, patch_size, U0):
     return _correlate_chunk(_POOL["cameras"], _POOL["references"], _POOL["deformed"], points,
-                            tangent_u, tangent_v, patch_size)
+                            tangent_u, tangent_v, patch_size, U0)
 
 
-def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size):
+def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size, U0):
     from vdo.dic.correlate import ImageReference, Q4, correlate
     from vdo.dic.patch import Patch
 
@@ -313,9 +320,8 @@ def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v
     out, converged = np.zeros((len(points), 3)), np.zeros(len(points), bool)
     for k, (X, t_u, t_v) in enumerate(zip(points, tangent_u, tangent_v)):
         patch = Patch(origin=X - half * t_u - half * t_v, t_u=t_u, t_v=t_v, size=(patch_size, patch_size))
-        U0 = start_guess(cameras, references, deformed, X)
         result = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
-                           U0=np.tile(U0, (4, 1)))
+                           U0=np.tile(U0[k], (4, 1)))
         out[k] = result.U.mean(axis=0)
         converged[k] = result.converged
     return out, converged
