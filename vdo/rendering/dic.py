@@ -36,10 +36,11 @@ SCALE_STRIDE = 64            # px between the nodes whose light sets the camera'
 SCALE_PERCENTILE = 90        # the light scale: this percentile of their light (the well-lit surfaces)
 EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
                              # mean of EDGE_SUPERSAMPLE^2 sub-pixel rays, each with its own footprint
-TILE_PIXELS = 1 << 20        # pixels per tile of a DIC-mode render (fewer when memory is short)
+TILE_PIXELS = 1 << 22        # pixels per tile of a DIC-mode render (fewer when memory is short)
 MIN_TILE_PIXELS = 1 << 14    # below this a tile's fixed costs dominate: refuse instead
 TILE_BYTES_PER_PIXEL = 150   # peak working set of a DIC tile per pixel (115 measured with
-                             # ru_maxrss on a 1920 x 1280 plate render, plus a margin)
+                             # ru_maxrss on a 1920 x 1280 plate render, 76 on the built-in's cam1
+                             # in 2^22-pixel tiles, plus a margin)
 SAMPLED_BYTES_PER_PIXEL = 80 # Mitsuba's film and wavefront per pixel, any spp (59 measured at
                              # 16 and 64 spp on 614k px, plus a margin)
 DISTORTION_BYTES_PER_PIXEL = 48   # the resampling map (H, W, 2) float64 and its spline copies
