@@ -12,6 +12,14 @@ sampled mode at --spp, and a reference (the mean of two --reference-spp renders)
 error of each against the reference, the reference's own noise, and the difference between the
 two modes, in one run.
 Run: .venv/bin/python benchmarks/render.py --dic [--camera cam1] [--crop 600 400] [--crop-at X0 Y0 ...]
+
+With --riley PYTHON (a Python whose environment has riley-raster, not vdo's): a frontal speckled
+plate (`benchmarks/correlate.py`'s speckle: 0.3 mm dots, 0.03 mm texels, 2.3 texels per pixel,
+under a uniform sky) of --riley-pixels, rendered by vdo's DIC mode, vdo's sampled mode at --spp
+and by Riley (`benchmarks/riley_plate.py`, bilinear texture reads) at 2x2, 4x4 and 8x8
+subsamples, each renderer's per-pixel error against its own 256-sample reference in per cent of
+the speckle's contrast (the image's std), and Mpixel/s, in one run.
+Run: .venv/bin/python benchmarks/render.py --riley /path/to/riley-env/bin/python
 """
 
 from __future__ import annotations
@@ -45,10 +53,15 @@ def main():
     parser.add_argument("--dic", action="store_true", help="the DIC render mode against today's")
     parser.add_argument("--crop", type=int, nargs=2, default=(600, 400))
     parser.add_argument("--reference-spp", type=int, default=256)
+    parser.add_argument("--riley", default=None, metavar="PYTHON",
+                        help="the Python of an environment with riley-raster: vdo against Riley")
+    parser.add_argument("--riley-pixels", type=int, nargs=2, default=(1500, 1000))
     parser.add_argument("--crop-at", type=int, nargs=2, action="append", default=[], metavar=("X0", "Y0"),
                         help="--dic: another crop whose top-left pixel is X0 Y0 (repeatable)")
     args = parser.parse_args()
     configure()
+    if args.riley:
+        return riley_benchmark(args)
     if args.dic:
         return dic_benchmark(args)
 
@@ -164,6 +177,92 @@ def dic_benchmark(args):
                   f"p99 |d| {np.percentile(np.abs(d), 99):.5f}")
         d = fast.astype(float) - today
         print(f"  dic - sampled {args.spp} spp: std {d.std():.5f}")
+
+
+RILEY_SUBSAMPLES = (2, 4, 8)     # Riley's sub_sample: k x k samples per pixel
+RILEY_REFERENCE = 16             # its own reference: 16 x 16 = 256 samples per pixel
+PLATE_TOML = """
+[experiment]
+name = "render benchmark plate"
+[evaluation]
+sample_spacing_mm = 20
+[[mesh]]
+name = "plate"
+file = "plate.stl"
+role = "specimen"
+unit = "mm"
+[[region]]
+name = "top"
+mesh = "plate"
+normal = [0, 0, 1]
+[speckle]
+dot_diameter_mm = 0.3
+texel_mm = 0.03
+tile_texels = 2048
+[render]
+ambient_radiance = 1.0
+[[camera]]
+name = "frontal"
+sensor_width_mm = {width_mm}
+pixels = [{w}, {h}]
+focal_mm = 50
+position_m = [0.0, 0.0, 1.0]
+target_m = [0.0, 0.0, 0.0]
+"""
+
+
+def riley_benchmark(args):
+    """vdo's DIC and sampled modes against Riley on one frontal speckled plate (module docstring)."""
+    import subprocess
+    import tempfile
+
+    import numpy as np
+    import trimesh
+
+    w, h = args.riley_pixels
+    folder = Path(tempfile.mkdtemp(prefix="vdo-riley-"))
+    trimesh.creation.box(extents=[1000, 1000, 10]).apply_translation([0, 0, -5]).export(folder / "plate.stl")
+    (folder / "plate.toml").write_text(PLATE_TOML.format(width_mm=w * 3.45e-3, w=w, h=h))
+    exp = config.load(folder / "plate.toml")
+    meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
+                               rails=exp.rails, mounts=exp.mounts, path=exp.path)
+    faces = scene.all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions,
+                                   spacing=exp.evaluation.sample_spacing, path=exp.path)
+    pattern = pattern_for(exp.speckle)
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
+    ds = build_dic_scene(exp, meshes, faces, (), pattern)
+    sc = build_render_scene(exp, meshes, faces, (), pattern)
+    n = w * h
+    render_camera_dic(ds, cam)                                     # compile
+    fast, wall_d, cpu_d = timed(render_camera_dic, ds, cam)
+    render_camera(sc, cam, None, args.spp, 0)
+    today, wall_s, cpu_s = timed(render_camera, sc, cam, None, args.spp, 1)
+    a = render_camera(sc, cam, None, 256, 2).astype(float)
+    b = render_camera(sc, cam, None, 256, 3).astype(float)
+    ref = (a + b) / 2
+    texels_per_px = cam.pixel_size / cam.focal_length * 1.0 / exp.speckle.texel
+    job, out = folder / "job.npz", folder / "riley.npz"
+    np.savez(job, texture=np.asarray(pattern, dtype=np.float64), pixels=np.array([w, h]),
+             texels_per_px=texels_per_px, sub_samples=np.array([*RILEY_SUBSAMPLES, RILEY_REFERENCE]),
+             threads=len(os.sched_getaffinity(0)))
+    subprocess.run([args.riley, str(ROOT / "benchmarks" / "riley_plate.py"), str(job), str(out)], check=True)
+    riley = np.load(out)
+    riley_ref = riley["images"][-1]
+
+    def error(image, reference):
+        return 100 * np.std(image - reference) / np.std(reference)
+
+    print(f"cpu threads          {len(os.sched_getaffinity(0))}; load average {os.getloadavg()[0]:.1f}")
+    print(f"frontal speckled plate {w}x{h} px, {texels_per_px:.2f} texels per pixel, uniform sky; "
+          f"error: per-pixel std against the renderer's own 256-sample reference, % of the speckle contrast")
+    print(f"{'renderer':<28}{'samples/px':>11}{'wall s':>9}{'Mpixel/s':>10}{'Msamples/s':>12}{'error %':>9}")
+    print(f"{'vdo dic mode':<28}{'1 ray':>11}{wall_d:>9.3f}{n / 1e6 / wall_d:>10.2f}{'':>12}{error(fast, ref):>9.3f}")
+    print(f"{'vdo sampled':<28}{args.spp:>11}{wall_s:>9.3f}{n / 1e6 / wall_s:>10.2f}"
+          f"{n * args.spp / 1e6 / wall_s:>12.2f}{error(today, ref):>9.3f}")
+    for k, image, seconds in zip(RILEY_SUBSAMPLES, riley["images"], riley["seconds"]):
+        print(f"{'Riley (riley-raster)':<28}{k * k:>11}{seconds:>9.3f}{n / 1e6 / seconds:>10.2f}"
+              f"{n * k * k / 1e6 / seconds:>12.2f}{error(image, riley_ref):>9.3f}")
+    print(f"vdo's 256-spp reference noise: {100 * np.std(a - b) / 2 / np.std(ref):.3f} % of the contrast")
 
 
 if __name__ == "__main__":
