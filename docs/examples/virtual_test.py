@@ -12,8 +12,8 @@ takes any experiment file.
     python docs/examples/virtual_test.py --out runs/vt_full --steps 4 --mode dic --realisations 1
 
 `--steps N`: the field grows linearly over N load steps; each step is correlated against the
-reference, starting from the previous step's result where it converged (a lab's incremental
-tracking). `--mode dic`: the DIC render mode (full-size images in minutes).
+reference from the correlation's own start guesses, and a point that does not converge is
+correlated again from the previous step's result (a lab re-seeds a lost point so). `--mode dic`: the DIC render mode (full-size images in minutes).
 
 Another experiment's field is general (`general_field`): about the centre c of the specimen's
 bounding box and its size S (the box's diagonal), a translation S x GENERAL_TRANSLATION, a turn
@@ -359,7 +359,7 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
         sigma = math.sqrt(2) * state.prediction.sigma_xyz[chosen]
         sigma_measured = state.measured.sigma_xyz[chosen]      # [analysis]: bias, scatter, noise
         reference = [series_image(out, n, 0, linear=True) for n in names]
-        previous = None                # each step starts from the last one's result (incremental)
+        previous = None                # a lost point is re-seeded from the last step's result
         for step in range(1, steps + 1):
             new, previous = _rows_of_step(out, summary, pair, names, reference, step, steps, at, chosen,
                                           moved[step], s, sensor, realisations, field, sigma,
@@ -369,25 +369,43 @@ def run(out: Path, quick: bool = False, scale: float = SCALE, spp: int | None = 
             "series": summary}
 
 
+def _with_retry(correlate, at, previous):
+    """`correlate(points, tangent_u, tangent_v, patch, start=...)` from the correlation's own
+    start guesses; the points that do not converge are correlated again from `previous` (the
+    last step's result, where it is finite), as a lab re-seeds a lost point from the step before."""
+    U, converged = correlate(*at)
+    retry = ~converged & (np.isfinite(previous).all(axis=1) if previous is not None else False)
+    if np.any(retry):
+        points, tangent_u, tangent_v, patch = at
+        again, ok = correlate(points[retry], tangent_u[retry], tangent_v[retry], patch,
+                              start=previous[retry])
+        U[retry], converged[retry] = again, ok
+    return U, converged
+
+
 def _rows_of_step(out, summary, pair, names, reference, step, steps, at, chosen, moved, s, sensor,
                   realisations, field, sigma, sigma_measured, first, second, previous=None):
-    """The rows of one load step of one pair (`run`), and the starts of the next step: this
-    step's results (noise-free and measured) where they converged. `previous`: this step's
-    starts (None: the correlation's own start guesses), as a lab's incremental tracking."""
+    """The rows of one load step of one pair (`run`), and what the next step falls back on: this
+    step's results (noise-free and measured) where they converged. `previous`: the last step's
+    (None at step 1), the start of a point that does not converge from the correlation's own
+    start guess (`_with_retry`)."""
     from vdo.render import noise_free_dn
     from vdo.dic.series import correlate_points, correlate_series, series_image
 
     rows = []
     linear = {0: reference, step: [series_image(out, n, step, linear=True) for n in names]}
     clean_start, start = previous if previous is not None else (None, None)
-    clean, clean_converged = correlate_points(pair, *([noise_free_dn(x, sensor) for x in linear[k]]
-                                                      for k in (0, step)), *at, start=clean_start)
-    measured, converged = correlate_series(out, step, names, *at, start=start)
+    clean_images = [[noise_free_dn(x, sensor) for x in linear[k]] for k in (0, step)]
+    clean, clean_converged = _with_retry(lambda *a, **k: correlate_points(pair, *clean_images, *a, **k),
+                                         at, clean_start)
+    measured, converged = _with_retry(lambda *a, **k: correlate_series(out, step, names, *a, **k),
+                                      at, start)
     noise = [measured - clean]
     for r in range(1, realisations):
         draw = {k: [sensor.expose(x, np.random.default_rng([summary["seed"], 1000 + r, i, k]))
                     for i, x in enumerate(linear[k])] for k in (0, step)}
-        noise.append(correlate_points(pair, draw[0], draw[step], *at, start=start)[0] - clean)
+        noise.append(_with_retry(lambda *a, **k: correlate_points(pair, draw[0], draw[step], *a, **k),
+                                 at, start)[0] - clean)
     mean_noise = np.mean(noise, axis=0)
     for k, i in enumerate(chosen):
         rendered = moved[i] - s.points[i]

@@ -459,7 +459,7 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
 @pytest.mark.slow
 def test_virtual_test_over_load_steps_in_the_dic_mode(tmp_path):
     """The virtual test over 2 load steps (`--steps 2`: the field grows to its whole at the last,
-    a .pvd of two .vtp files, step 2 started from step 1's result) rendered in the DIC mode
+    a .pvd of two .vtp files, a point lost at step 2 re-seeded from step 1) rendered in the DIC mode
     (`--mode dic`), on the holed plate: each step's rendered motion is k/2 of the closed form,
     every point of every step is within 3 sigma_measured, and the figure and the rows are
     written beside the folder."""
