@@ -166,7 +166,8 @@ def dic_benchmark(args):
         n = small.width * small.height
         where = "the centre" if at is None else f"x {at[0]}, y {at[1]}"
         print(f"crop {small.width}x{small.height} at {where}:")
-        print(f"  dic mode           {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: {n / 1e6 / cpu_f:.2f} Mpixel/s per CPU-s")
+        print(f"  dic mode           {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: "
+              f"{n / 1e6 / cpu_f:.2f} Mpixel/s per CPU-s")
         print(f"  sampled {args.spp:>3} spp    {wall_s:.2f} s wall, {cpu_s:.2f} s CPU: {n / 1e6 / cpu_s:.3f} "
               f"Mpixel/s, {n * args.spp / 1e6 / cpu_s:.2f} Msamples/s per CPU-s")
         print(f"  reference          2 x {args.reference_spp} spp ({wall_r:.1f} s wall each); image std "
@@ -256,7 +257,8 @@ def riley_benchmark(args):
     print(f"frontal speckled plate {w}x{h} px, {texels_per_px:.2f} texels per pixel, uniform sky; "
           f"error: per-pixel std against the renderer's own 256-sample reference, % of the speckle contrast")
     print(f"{'renderer':<28}{'samples/px':>11}{'wall s':>9}{'Mpixel/s':>10}{'Msamples/s':>12}{'error %':>9}")
-    print(f"{'vdo dic mode':<28}{'1 ray':>11}{wall_d:>9.3f}{n / 1e6 / wall_d:>10.2f}{'':>12}{error(fast, ref):>9.3f}")
+    print(f"{'vdo dic mode':<28}{'1 ray':>11}{wall_d:>9.3f}{n / 1e6 / wall_d:>10.2f}{'':>12}"
+          f"{error(fast, ref):>9.3f}")
     print(f"{'vdo sampled':<28}{args.spp:>11}{wall_s:>9.3f}{n / 1e6 / wall_s:>10.2f}"
           f"{n * args.spp / 1e6 / wall_s:>12.2f}{error(today, ref):>9.3f}")
     for k, image, seconds in zip(RILEY_SUBSAMPLES, riley["images"], riley["seconds"]):

@@ -37,7 +37,8 @@ def main(job_path: str, out_path: str) -> None:
     coords[:, :2] -= size / 2
     connect = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
     uvs = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float64)
-    convention = riley.ConnectConvention(riley.EElemType.TRI3, riley.EConnectAxis.ROW, 0, riley.ENodeOrder.RILEY)
+    convention = riley.ConnectConvention(riley.EElemType.TRI3, riley.EConnectAxis.ROW, 0,
+                                         riley.ENodeOrder.RILEY)
     shader = riley.TextureShader(uvs=uvs, texture=texture, sample=riley.TextureSample.linear)
     mesh = riley.create_mesh(convention, riley.MeshType.tri3opt, coords, connect, shader)
     pixel_m = texels_per_px / wt_tile                 # metres of plate per pixel

@@ -13,7 +13,8 @@ takes any experiment file.
 
 `--steps N`: the field grows linearly over N load steps; each step is correlated against the
 reference from the correlation's own start guesses, and a point that does not converge is
-correlated again from the previous step's result (a lab re-seeds a lost point so). `--mode dic`: the DIC render mode (full-size images in minutes).
+correlated again from the previous step's result (a lab re-seeds a lost point so).
+`--mode dic`: the DIC render mode (full-size images in minutes).
 
 Another experiment's field is general (`general_field`): about the centre c of the specimen's
 bounding box and its size S (the box's diagonal), a translation S x GENERAL_TRANSLATION, a turn
@@ -533,7 +534,8 @@ def plot(result: dict, path: Path) -> None:
     bx.legend()
     bx.grid(alpha=0.3)
     within = np.mean([r["ratio_measured"] <= N_SIGMA for r in rows])
-    fig.suptitle(f"virtual test: {len(rows)} point-steps, {100 * within:.1f} % within {N_SIGMA:g} σ_measured",
+    fig.suptitle(f"virtual test: {len(rows)} point-steps, {100 * within:.1f} % within "
+                 f"{N_SIGMA:g} σ_measured",
                  fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)

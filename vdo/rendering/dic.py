@@ -556,7 +556,8 @@ class _LightNodes:
             ok &= (self.I[j, i] == shape_id) & (np.einsum("ij,ij->i", self.N[j, i], n0) >= CREASE_COS)
         return ok
 
-    def compute(self, dscene: DicScene, camera: Camera, r0: int, s: int, j: np.ndarray, i: np.ndarray) -> None:
+    def compute(self, dscene: DicScene, camera: Camera, r0: int, s: int, j: np.ndarray,
+                i: np.ndarray) -> None:
         """Cast and shade the nodes (j, i) of level s: the pixels (i s, r0 + j s)."""
         if len(j) == 0:
             return
