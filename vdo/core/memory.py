@@ -14,6 +14,12 @@ no `mmap` for large blocks (M_MMAP_MAX = 0) and no trimming of the heap's free t
 the first JAX computation: threads that allocated before keep their own arenas. `vdo.core.configure`
 calls it (so the command line, the tests and `benchmarks/` do); a no-op where the C
 library is not glibc.
+
+`release_freed_memory` is its counterpart for work on large images whose buffers the next work
+does not reuse: glibc's `malloc_trim(0)` gives the heap's free pages back. Without it the
+retained heap of the built-in's full-size virtual test grew from 2.6 to 8.9 GB over its 24
+correlations of 24-megapixel images (fragments of freed images that no later request fit), with
+5 MB held by Python objects (`vdo.dic.series.correlate_points` calls it).
 """
 
 from __future__ import annotations
@@ -34,3 +40,16 @@ def retain_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, 2 ** 31 - 1))
     return all(mallopt(option, value) == 1 for option, value in settings)
+
+
+def release_freed_memory() -> bool:
+    """Return the heap's free pages to the system (glibc `malloc_trim(0)`, module docstring);
+    True where the C library has it."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return False
+    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    trim(0)
+    return True

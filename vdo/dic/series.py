@@ -275,10 +275,12 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     if guess.any():
         U0[guess] = start_guesses(cameras, references, deformed, points[guess], workers=workers)
     if batched:
+        from vdo.core.memory import release_freed_memory
         from vdo.dic.subsets import correlate_subsets
 
         result = correlate_subsets(cameras, references, deformed, points, tangent_u, tangent_v,
                                    patch_size, U0, workers=workers)
+        release_freed_memory()        # the windows' and splines' buffers (vdo.core.memory)
         return result.centre, result.converged
     if workers == 1:
         return _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v, patch_size, U0)
