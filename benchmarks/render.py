@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import textwrap
 import time
 from pathlib import Path
 
@@ -182,26 +183,7 @@ def dic_benchmark(args):
 
 RILEY_SUBSAMPLES = (2, 4, 8)     # Riley's sub_sample: k x k samples per pixel
 RILEY_REFERENCE = 16             # its own reference: 16 x 16 = 256 samples per pixel
-PLATE_TOML = """
-[experiment]
-name = "render benchmark plate"
-[evaluation]
-sample_spacing_mm = 20
-[[mesh]]
-name = "plate"
-file = "plate.stl"
-role = "specimen"
-unit = "mm"
-[[region]]
-name = "top"
-mesh = "plate"
-normal = [0, 0, 1]
-[speckle]
-dot_diameter_mm = 0.3
-texel_mm = 0.03
-tile_texels = 2048
-[render]
-ambient_radiance = 1.0
+FRONTAL_CAMERA = """
 [[camera]]
 name = "frontal"
 sensor_width_mm = {width_mm}
@@ -223,7 +205,10 @@ def riley_benchmark(args):
     w, h = args.riley_pixels
     folder = Path(tempfile.mkdtemp(prefix="vdo-riley-"))
     trimesh.creation.box(extents=[1000, 1000, 10]).apply_translation([0, 0, -5]).export(folder / "plate.stl")
-    (folder / "plate.toml").write_text(PLATE_TOML.format(width_mm=w * 3.45e-3, w=w, h=h))
+    from correlate import PLATE           # benchmarks/correlate.py's plate and speckle
+
+    (folder / "plate.toml").write_text(textwrap.dedent(PLATE)
+                                       + FRONTAL_CAMERA.format(width_mm=w * 3.45e-3, w=w, h=h))
     exp = config.load(folder / "plate.toml")
     meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
                                rails=exp.rails, mounts=exp.mounts, path=exp.path)
