@@ -217,11 +217,13 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
       (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly with the
       `SpeckleTable` (exact for a footprint aligned with the texture axes);
     * the light reaching the hit (`_shade`: each panel by a LIGHT_POINTS^2 midpoint rule with a
-      shadow ray per point, the ambient sky by AMBIENT_POINTS^2 BSDF-sampled directions) from a
-      light map per camera: computed at the nodes every SHADE_STRIDE pixels and interpolated
-      bilinearly, except in a cell whose corners see another shape than the pixel or differ by more
-      than SHADE_TOLERANCE, where it is computed at the pixel;
-    * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere).
+      shadow ray per point, the ambient sky by AMBIENT_POINTS^2 BSDF-sampled directions) from an
+      adaptive light map per tile (`_light_map`: nodes every SHADE_STRIDE pixels, refined a
+      level at a time where the bilinear prediction misses, a crease or another shape passes;
+      tolerances in units of the camera's light scale, `_light_scale`);
+    * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere);
+      a silhouette pixel (a 4-neighbour sees another shape) is the mean of EDGE_SUPERSAMPLE^2
+      sub-pixel values (`_supersampled`).
 
     With the camera's `spec` (a CameraSpec), the lens's in-focus diffraction of the whole image
     afterwards (`vdo.rendering.scene.diffraction_blur`: the f/8 that σ_measured assumes for a
