@@ -34,7 +34,7 @@ os.environ.setdefault("VDO_VARIANT", "llvm_ad_rgb")
 from vdo import scene  # noqa: E402
 from vdo.config import experiment as config  # noqa: E402
 from vdo.core.configure import configure  # noqa: E402
-from vdo.dic.series import correlate_points  # noqa: E402
+from vdo.dic.series import correlate_points, start_guesses  # noqa: E402
 from vdo.model.speckle import pattern_for  # noqa: E402
 from vdo.render import build_dic_scene, render_camera_dic  # noqa: E402
 from vdo.scene import cameras_of
@@ -124,27 +124,41 @@ def main():
           f"{len(points)} points {args.step or args.subset:g} px apart, subsets {args.subset} px "
           f"({size * 1e3:.2f} mm), 2 cameras")
 
-    def run(pts, workers, batched):
+    def run(pts, workers, options):
         t0, c0 = time.perf_counter(), time.process_time()
         U, ok = correlate_points(cams, refs, defs, pts, tu[:len(pts)], tv[:len(pts)], size, workers=workers,
-                                 batched=batched)
+                                 **options)
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         err = np.array([np.abs(np.einsum("nij,nj->ni", c.sensitivity(pts), U - U_IMPOSED)).max(axis=1)
                         for c in cams]).max(axis=0)
         return U, wall, cpu, ok, err
 
     results = {}
-    for label, pts, workers, batched in (("today's (per point)", points[:args.today], 1, False),
-                                         ("batched, 1 thread", points, 1, True),
-                                         ("batched, 1 thread again", points, 1, True),
-                                         (f"batched, {args.workers} threads", points, args.workers, True)):
-        U, wall, cpu, ok, err = run(pts, workers, batched)
+    subset = {"subset_px": args.subset, "shape_function": "affine"}
+    for label, pts, workers, options in (
+            ("today's (per point)", points[:args.today], 1, {"batched": False}),
+            ("batched, 1 thread", points, 1, {}),
+            ("batched, 1 thread again", points, 1, {}),
+            (f"batched, {args.workers} threads", points, args.workers, {}),
+            ("subset 2D, 1 thread", points, 1, subset),
+            ("subset 2D, 1 thread again", points, 1, subset),
+            (f"subset 2D, {args.workers} threads", points, args.workers, subset),
+            (f"subset 2D, {args.workers} threads again", points, args.workers, subset)):
+        U, wall, cpu, ok, err = run(pts, workers, options)
         results[label] = U
-        print(f"{label:<22} {len(pts):>6} points: {wall:6.2f} s wall, {cpu:6.2f} s CPU: {len(pts) / wall:7.1f} "
+        print(f"{label:<26} {len(pts):>6} points: {wall:6.2f} s wall, {cpu:6.2f} s CPU: {len(pts) / wall:7.1f} "
               f"points/s wall, {len(pts) / cpu:7.1f} per CPU-s; converged {ok.mean():.0%}, "
               f"|error| median {np.median(err):.4f} px, max {err.max():.4f} px")
     today, batched = results["today's (per point)"], results["batched, 1 thread"][:args.today]
     print(f"batched - today's on the first {args.today} points: max |dU| {np.abs(batched - today).max():.2e} m")
+    t0 = time.perf_counter()
+    start = start_guesses(cams, refs, defs, points, workers=args.workers)
+    begun = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    correlate_points(cams, refs, defs, points, tu, tv, size, workers=args.workers, start=start, **subset)
+    solved = time.perf_counter() - t0
+    print(f"subset 2D, {args.workers} threads, split: the start guesses (phase correlation) {begun:.2f} s, "
+          f"the matches and triangulation from them {solved:.2f} s ({len(points) / solved:.0f} points/s)")
     if args.profile:
         import cProfile
         import pstats

@@ -19,7 +19,7 @@ from test_correlate import DOT, PATCH, STEREO, TEXEL, U_TRUE, render  # noqa: E4
 import jax.numpy as jnp  # noqa: E402
 
 from vdo.dic import subset_sums  # noqa: E402
-from vdo.dic import series as series_module  # noqa: E402
+from vdo.dic import shifts as shifts_module  # noqa: E402
 from vdo.dic import subsets as subsets_module  # noqa: E402
 from vdo.dic.images import SplineImage  # noqa: E402
 from vdo.dic.correlate import ImageReference, Q4, correlate  # noqa: E402
@@ -79,7 +79,7 @@ def test_batched_subsets_are_the_per_point_solution(pattern, cameras, monkeypatc
     one = np.array([start_guess(cameras, refs, defs, X) for X in points])
     assert px_error(cameras, points, U0, one) < SAME_START_PX
     assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
-    monkeypatch.setattr(series_module, "START_CHUNK", 3)         # several chunks, several threads
+    monkeypatch.setattr(shifts_module, "START_CHUNK", 3)         # several chunks, several threads
     assert np.array_equal(start_guesses(cameras, refs, defs, points, workers=2), U0)
     monkeypatch.setattr(subsets_module, "SUBSET_CHUNK", 4)       # several chunks, several threads
     batched = correlate_subsets(cameras, refs, defs, points, tu, tv, SUBSET, U0)
@@ -134,14 +134,14 @@ def test_subsets_off_the_image_go_to_correlate_and_bad_tangents_are_one_line(pat
 
 @pytest.mark.parametrize("order", [3, 5, KEYS])
 def test_compiled_sampler_is_scipys_spline(order):
-    """`vdo.dic.subset_sums._sample`, the compiled step's B-spline sum, against SciPy's
+    """`vdo.dic.subset_sums.spline_sample`, the compiled step's B-spline sum, against SciPy's
     `map_coordinates` on the same coefficients (cubic, quintic) and against `SplineImage`'s Keys
     interpolant, at random positions over the window less the kernel's reach."""
     rng = np.random.default_rng(4)
     image = ndimage.gaussian_filter(rng.random((70, 90)), 1.5) * 4000
     spline = SplineImage(image, order=order)
     rows, cols = rng.uniform(3, 66, (5, 400)), rng.uniform(3, 86, (5, 400))
-    got = np.asarray(subset_sums._sample(jnp.asarray(spline.coeffs), jnp.asarray(rows), jnp.asarray(cols), order))
+    got = np.asarray(subset_sums.spline_sample(jnp.asarray(spline.coeffs), jnp.asarray(rows), jnp.asarray(cols), order))
     if order == KEYS:
         want = spline.sample_local(rows, cols)
     else:

@@ -248,7 +248,8 @@ def series_image(folder, name: str, step: int, linear: bool = False) -> np.ndarr
 
 def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v,
                      patch_size: float, workers: int = 1, batched: bool = True,
-                     start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                     start: np.ndarray | None = None, subset_px: int | None = None,
+                     shape_function: str = "affine") -> tuple[np.ndarray, np.ndarray]:
     """The displacement (N, 3) m that vdo's own correlation (`vdo.dic.correlate`, as `vdo.dic.validate`
     uses it: each camera against its own reference image, integrated on its reference pixel
     centres, B-spline interpolation of windows around the patches) measures at `points` (N, 3)
@@ -258,6 +259,13 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     centre (the mean of its four nodes), starting from `start` (N, 3) m where it is given and
     finite (a lab's incremental tracking: the previous load step's result), else from
     `start_guesses`.
+
+    With `subset_px`, subset DIC as a lab's stereo software runs it instead
+    (`vdo.dic.icgn.correlate_subsets_2d`): per camera a square subset of that many pixels around
+    the point's image, matched in 2D with `shape_function` ("affine" or "zero") by IC-GN, each
+    camera started from its own whole-pixel shift where `start` is not given, the cameras on
+    `workers` threads, and their matched points triangulated (patch_size, the tangents and
+    `batched` unused).
 
     `batched` (default): all points at once (`vdo.dic.subsets.correlate_subsets`, the same
     iteration vectorised over the points), shared among `workers` threads. Otherwise one
@@ -272,8 +280,17 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
         return np.zeros((0, 3)), np.zeros(0, bool)
     U0 = np.full((n, 3), np.nan) if start is None else np.array(start, dtype=float).reshape(n, 3)
     guess = ~np.isfinite(U0).all(axis=1)
-    if guess.any():
+    if subset_px is None and guess.any():
         U0[guess] = start_guesses(cameras, references, deformed, points[guess], workers=workers)
+    if subset_px is not None:
+        from vdo.core.memory import release_freed_memory
+        from vdo.dic.icgn import correlate_subsets_2d
+
+        U, converged, _ = correlate_subsets_2d(cameras, references, deformed, points, U0,
+                                               size_px=subset_px, shape_function=shape_function,
+                                               workers=workers)
+        release_freed_memory()
+        return U, converged
     if batched:
         from vdo.core.memory import release_freed_memory
         from vdo.dic.subsets import correlate_subsets
@@ -329,47 +346,24 @@ def _correlate_chunk(cameras, references, deformed, points, tangent_u, tangent_v
     return out, converged
 
 
-START_CHUNK = 256    # points whose phase correlations are taken together (their windows stay in cache)
 
 
 def start_guesses(cameras, references, deformed, points, half: int = 24, workers: int = 1) -> np.ndarray:
-    """`start_guess` (N, 3) m for every point of `points` (N, 3): the phase correlations of all
-    points whose windows lie whole inside every image batched per camera, START_CHUNK points at a
-    time on `workers` threads (each window's numbers as `start_guess` takes them), the others one
-    at a time."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    from scipy import fft
+    """`start_guess` (N, 3) m for every point of `points` (N, 3): the whole-pixel shifts of all
+    points whose windows lie whole inside every image per camera (`vdo.dic.shifts.image_shifts`
+    on `workers` threads, each window's numbers as `start_guess` takes them), the others one at
+    a time."""
+    from vdo.dic.shifts import image_shifts
 
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     whole = np.full(len(points), len(cameras) >= 2)     # fewer: `start_guess` answers 0
-    n = 2 * half + 1
-    taper = np.outer(*(2 * [np.hanning(n)]))
-    views, centres = [], []
-    for cam, ref, dfm in zip(cameras, references, deformed):
+    shifts = np.zeros((len(points), 2 * len(cameras)))
+    for i, (cam, ref, dfm) in enumerate(zip(cameras, references, deformed)):
         uv = np.rint(cam.project(points)).astype(int)
         u, v = uv[:, 0], uv[:, 1]
         whole &= np.minimum.reduce([u, v, cam.width - 1 - u, cam.height - 1 - v]) >= half
-        centres.append((np.clip(u, half, cam.width - 1 - half), np.clip(v, half, cam.height - 1 - half)))
-        views.append([np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))
-                      for img in (ref, dfm)])
-    shifts = np.zeros((len(points), 2 * len(cameras)))
-
-    def chunk(lo):
-        """The whole-pixel shifts (du, dv) per camera of the points lo .. lo + START_CHUNK."""
-        for i, ((u, v), pair) in enumerate(zip(centres, views)):
-            u, v = u[lo:lo + START_CHUNK], v[lo:lo + START_CHUNK]
-            a, b = (view[v - half, u - half] for view in pair)          # copies (m, n, n)
-            for x in (a, b):
-                x -= x.mean(axis=(1, 2), keepdims=True)
-                x *= taper
-            spectrum = fft.rfft2(b) * np.conj(fft.rfft2(a))           # real: half
-            peak = np.argmax(fft.irfft2(spectrum, s=(n, n)).reshape(len(u), -1), axis=1)
-            dv, du = ((k + n // 2) % n - n // 2 for k in np.divmod(peak, n))
-            shifts[lo:lo + START_CHUNK, 2 * i], shifts[lo:lo + START_CHUNK, 2 * i + 1] = du, dv
-
-    with ThreadPoolExecutor(max(1, workers)) as pool:
-        list(pool.map(chunk, range(0, len(points), START_CHUNK)))
+        centres = np.stack([np.clip(u, half, cam.width - 1 - half), np.clip(v, half, cam.height - 1 - half)], -1)
+        shifts[:, 2 * i:2 * i + 2] = image_shifts(ref, dfm, centres, half, workers)
     S = np.concatenate([np.asarray(cam.sensitivity(points)) for cam in cameras], axis=1)
     U0 = np.einsum("kij,kj->ki", np.linalg.pinv(S), shifts)
     for k in np.flatnonzero(~whole):

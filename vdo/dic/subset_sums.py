@@ -34,7 +34,8 @@ from vdo.dic.images import bspline
 from vdo.model.camera import image_point
 from vdo.model.spline_response import KEYS, keys_kernel
 
-__all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "subset_setup"]
+__all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "spline_sample",
+           "subset_setup"]
 
 BOX_PAD = 2             # a camera's pixel boxes are padded to multiples of this per side (calls
                         # with boxes of about one size then share a program)
@@ -71,7 +72,7 @@ def _weights(t, order):
     return [bspline(t - j, order, xp=jnp) for j in taps]
 
 
-def _sample(coeffs, rows, cols, order):
+def spline_sample(coeffs, rows, cols, order):
     """Σ_a Σ_b β(v - r_a) β(u - c_b) C[r_a, c_b] over the kernel's taps (`_weights`) at window
     coordinates (rows, cols): what `scipy.ndimage.map_coordinates(coeffs, [rows, cols],
     prefilter=False)` sums where every tap lies in the window (the caller's `valid` box). The
@@ -120,7 +121,7 @@ def residual_sums(coeffs, origin, k, R, Xc, N, U, w, active, g, G, corners, vali
     w = w * active[:, None]
     on = w > 0                       # padding pixels sit at the camera centre: 0 / 0
     rows, cols = jnp.where(on, v - origin[1], 0.0), jnp.where(on, u - origin[0], 0.0)
-    wf = jnp.where(on, w * _sample(coeffs, rows, cols, order), 0.0)
+    wf = jnp.where(on, w * spline_sample(coeffs, rows, cols, order), 0.0)
     K = w.shape[0]
     tU = jnp.einsum("kpa,kpj->kaj", N, wf[..., None] * G).reshape(K, 12)
     t = jnp.concatenate([tU, wf.sum(1)[:, None], (wf * g).sum(1)[:, None]], axis=1)
