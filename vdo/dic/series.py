@@ -282,14 +282,12 @@ def correlate_points(cameras, references, deformed, points, tangent_u, tangent_v
     guess = ~np.isfinite(U0).all(axis=1)
     if subset_px is None and guess.any():
         U0[guess] = start_guesses(cameras, references, deformed, points[guess], workers=workers)
-    if subset_px is not None:
-        from vdo.core.memory import release_freed_memory
-        from vdo.dic.icgn import correlate_subsets_2d
+    if subset_px is not None:      # its windows' heap is reused call after call: kept (measured
+        from vdo.dic.icgn import correlate_subsets_2d     # in benchmarks/README.md)
 
         U, converged, _ = correlate_subsets_2d(cameras, references, deformed, points, U0,
                                                size_px=subset_px, shape_function=shape_function,
                                                workers=workers)
-        release_freed_memory()
         return U, converged
     if batched:
         from vdo.core.memory import release_freed_memory
