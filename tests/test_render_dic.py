@@ -154,15 +154,16 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
     """The plan is made from the cameras alone (bytes per pixel measured, `vdo.render`): the DIC
     mode splits its tiles to fit, and a render whose images alone do not fit is refused with the
     size it needs, naming [render] scale."""
-    from vdo.render import IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, TILE_PIXELS, plan_render, \
-        render_images, scaled_camera
+    from vdo.render import CELL_BYTES_PER_PIXEL, IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, TILE_PIXELS, \
+        plan_render, render_images, scaled_camera
 
     exp = plate(plate_experiment, down_camera("c", [0, 0, 0.5], (6000, 4000), 3.45, 25), bar=False)
     cams = cameras_of(exp.camera_specs, exp.rails)
     kept = 6000 * 4000 * IMAGE_BYTES_PER_PIXEL
     roomy = plan_render(cams, "dic", available=8 * 2 ** 30)
     assert roomy.tile_pixels == TILE_PIXELS and roomy.kept == kept
-    tight = plan_render(cams, "dic", available=kept + 20 * 2 ** 20)
+    cells = 6000 * 4000 * CELL_BYTES_PER_PIXEL          # the lens's cells of the whole camera
+    tight = plan_render(cams, "dic", available=kept + cells + 20 * 2 ** 20)
     assert MIN_TILE_PIXELS <= tight.tile_pixels < TILE_PIXELS and tight.needed <= tight.available
     with pytest.raises(MemoryError, match=r"needs 0\.\d+ GiB"):
         plan_render(cams, "dic", available=kept // 2)

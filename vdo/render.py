@@ -17,18 +17,18 @@ import numpy as np
 
 from vdo.model.camera import Camera
 from vdo.model.speckle import normalise
-from vdo.rendering.dic import (IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, RENDER_MODES, TILE_PIXELS,
-                               SpeckleTable, build_dic_scene, plan_render, render_camera_dic)
-from vdo.rendering.scene import (build_render_scene, camera_sensor, diffraction_blur, expose,
+from vdo.rendering.dic import (CELL_BYTES_PER_PIXEL, IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, RENDER_MODES,
+                               TILE_PIXELS, SpeckleTable, build_dic_scene, plan_render, render_camera_dic)
+from vdo.rendering.scene import (build_render_scene, camera_sensor, cell_blur, expose, lens_sigma_px,
                                  lit_scene, noise_free_dn, render_camera, render_linear,
                                  render_seed, scaled_camera, sensor_dict)
 from vdo.scene import cameras_of
 
 # the face: what scripts and the other packages use of the renders
 __all__ = ["RenderResult", "render_images", "render_settings", "rendered_std", "region_photometry",
-           "IMAGE_BYTES_PER_PIXEL", "MIN_TILE_PIXELS", "RENDER_MODES", "TILE_PIXELS", "SpeckleTable",
+           "CELL_BYTES_PER_PIXEL", "IMAGE_BYTES_PER_PIXEL", "MIN_TILE_PIXELS", "RENDER_MODES", "TILE_PIXELS", "SpeckleTable",
            "build_dic_scene", "plan_render", "render_camera_dic", "build_render_scene",
-           "camera_sensor", "diffraction_blur", "expose", "lit_scene", "noise_free_dn",
+           "camera_sensor", "cell_blur", "expose", "lens_sigma_px", "lit_scene", "noise_free_dn",
            "render_camera", "render_linear", "render_seed", "scaled_camera", "sensor_dict"]
 
 log = logging.getLogger(__name__)

@@ -372,7 +372,10 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
     pixels): vdo's correlation on the exported TIFFs recovers the imposed field within 3 sqrt(2)
     sigma on every axis of every point; its bias (noise-free images) is below sqrt(2) sigma, as
     the design check, which does not flag these cameras, says; the noise part and its mean over
-    4 sensor draws are within 3 sqrt(2) sigma (and / sqrt(4)); the calibration matches."""
+    4 sensor draws are within 3 sigma_measured (and / sqrt(4)): the noise through the correlation's
+    interpolant, which the bound leaves out (a 24-draw Monte Carlo on the full-size cam1:cam2
+    measured 1.34 sqrt(2) sigma RMS, sigma_measured 1.2, benchmarks/README.md); the calibration
+    matches."""
     import math
     import runpy
 
@@ -398,8 +401,9 @@ def test_builtin_virtual_test_recovers_the_imposed_field(tmp_path):
         np.testing.assert_allclose(r["error_um"], np.add(r["bias_um"], r["noise_um"]), atol=1e-6)
         assert r["bias_px"] < BIAS_FLOOR_PX, r
         assert np.all(np.abs(r["bias_um"]) <= sigma), r
-        assert np.all(np.abs(r["noise_um"]) <= N_SIGMA * sigma), r
-        assert np.all(np.abs(r["mean_noise_um"]) <= N_SIGMA * sigma / math.sqrt(realisations)), r
+        measured = np.array(r["sigma_measured_um"])
+        assert np.all(np.abs(r["noise_um"]) <= N_SIGMA * measured), r
+        assert np.all(np.abs(r["mean_noise_um"]) <= N_SIGMA * measured / math.sqrt(realisations)), r
     # the design check at the rendered scale: an interpolation error below the flag
     floor = [f for f in result["interpolation"] if f["region"] == "joint_top"]
     assert {f["camera"] for f in floor} == {"cam1", "cam2"}
@@ -438,8 +442,9 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
     speckle at their cameras' own pixels, the general affine field (a translation, a turn about
     the vertical and a stretch, which the mesh's vertices carry exactly), the pair that shares the
     most usable samples cropped around them. Every point's whole error is within 3 sigma_measured
-    on every axis, where the bound alone (3 sqrt(2) sigma) fails at most points; the calibration
-    files re-project as layout.json does."""
+    on every axis, where the bound alone (3 sqrt(2) sigma) fails at some points (at most of them
+    while the renders blurred the lens after the pixels, which leaves aliasing; benchmarks/
+    README.md); the calibration files re-project as layout.json does."""
     import runpy
 
     example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
@@ -453,7 +458,7 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
         assert r["converged"], r
         np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
         assert np.all(np.abs(r["error_um"]) <= N_SIGMA * np.array(r["sigma_measured_um"])), r
-    assert sum(r["ratio"] > N_SIGMA for r in rows) >= len(rows) / 2, rows    # the bound alone fails
+    assert any(r["ratio"] > N_SIGMA for r in rows), rows    # the bound alone is not enough
 
 
 @pytest.mark.slow

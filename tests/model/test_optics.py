@@ -15,6 +15,7 @@ from vdo.physics.checks import depth_of_field
 
 GRID = 1024            # samples per side of the numerical transforms
 MTF_TOL = 5e-3         # numerical MTF vs closed form: discretisation of the PSF/pupil on GRID
+CELL_BLUR_TOL = 2e-3      # the sampled Gaussian kernel against the continuous one (measured ~4e-4)
 
 
 def _radial_mtf(psf: np.ndarray, step: float, q_max: float):
@@ -105,26 +106,44 @@ def test_optics_blur_in_pixels():
 
 
 def test_renders_blur_by_the_diffraction_of_the_cameras_f_number():
-    # An impulse through `vdo.render.diffraction_blur`: its second moment is the Airy core's
-    # Gaussian, 0.42 λ N_w / p pixels; a camera without f_number gets the assumed f/8 in focus.
+    # The lens's Gaussian is the Airy core's, 0.42 λ N_w / p pixels; a camera without f_number
+    # gets the assumed f/8 in focus; no spec, no blur.
     from types import SimpleNamespace
 
-    from vdo.render import diffraction_blur
+    from vdo.render import lens_sigma_px
 
     camera = SimpleNamespace(pixel_size=3.45e-6, focal_length=0.05)
-    spec = SimpleNamespace(f_number=11.0, focus_distance=1.5)
-    image = np.zeros((65, 65), dtype=np.float32)
-    image[32, 32] = 1.0
-    out = diffraction_blur(image, camera, spec)
-    x = np.arange(65) - 32
-    std = np.sqrt(np.sum(out * x[None, :] ** 2) / out.sum())
     n_w = 11.0 * (1 + 0.05 / (1.5 - 0.05))
-    assert std == pytest.approx(AIRY_GAUSS * 0.55e-6 * n_w / 3.45e-6, rel=1e-3)
-    assert out.sum() == pytest.approx(1.0, rel=1e-5)
-    assert diffraction_blur(image, camera, None) is image            # no spec: as rendered
-    # a spec without f_number: the lens σ_measured assumes, f/8 in focus (N_w = N)
-    # (2 um pixels: a core of ~0.9 px, which the sampled Gaussian kernel holds to 1e-3)
-    small = SimpleNamespace(pixel_size=2.0e-6, focal_length=0.05)
-    out = diffraction_blur(image, small, SimpleNamespace(f_number=None, focus_distance=None))
-    std = np.sqrt(np.sum(out * x[None, :] ** 2) / out.sum())
-    assert std == pytest.approx(AIRY_GAUSS * 0.55e-6 * DEFAULT_F_NUMBER / 2.0e-6, rel=1e-3)
+    assert lens_sigma_px(camera, SimpleNamespace(f_number=11.0, focus_distance=1.5)) == pytest.approx(
+        AIRY_GAUSS * 0.55e-6 * n_w / 3.45e-6, rel=1e-12)
+    assert lens_sigma_px(camera, SimpleNamespace(f_number=None, focus_distance=None)) == pytest.approx(
+        AIRY_GAUSS * 0.55e-6 * DEFAULT_F_NUMBER / 3.45e-6, rel=1e-12)
+    assert lens_sigma_px(camera, None) == 0.0
+
+
+@pytest.mark.parametrize("frequency", [0.2, 0.35, 0.75, 0.9])
+def test_the_lens_blurs_before_the_pixels_integrate(frequency):
+    """A grating of `frequency` cycles per pixel on the cells of the pixels (2 x 2 a pixel):
+    `cell_blur` on both axes gives each pixel the grating blurred by the lens's Gaussian at its
+    own frequency, then averaged over the pixel's cells, in closed form
+    exp(-2 π² σ² f²) sin(π f) / (n sin(π f / n)) sin(2 π f k + φ); above the pixels' Nyquist
+    frequency (0.75, 0.9; the cells carry gratings below 1 cycle per pixel) that is the aliased
+    grating a lens leaves, far below what a blur of the sampled image would leave,
+    exp(-2 π² σ² f_alias²) at the folded frequency."""
+    from vdo.render import cell_blur
+
+    n, sigma, phase = 2, 0.5, 0.3
+    x = (np.arange(400 * n) + 0.5) / n - 0.5                     # cell centres, pixel units
+    cells = np.broadcast_to(np.sin(2 * np.pi * frequency * x + phase), (8 * n, len(x)))
+    out = cell_blur(cell_blur(cells, sigma, n, axis=1), sigma, n, axis=0)
+    k = np.arange(400)
+    gain = np.exp(-2 * np.pi ** 2 * sigma ** 2 * frequency ** 2) * np.sin(np.pi * frequency) \
+        / (n * np.sin(np.pi * frequency / n))
+    expected = gain * np.sin(2 * np.pi * frequency * k + phase)
+    assert out.shape == (8, 400)
+    assert np.abs(out[4, 20:-20] - expected[20:-20]).max() < CELL_BLUR_TOL
+    if frequency > 0.5:
+        folded = abs(frequency - round(frequency))
+        after = np.sinc(frequency) * np.exp(-2 * np.pi ** 2 * sigma ** 2 * folded ** 2)
+        assert abs(gain) < abs(after) / 3
+

@@ -9,7 +9,8 @@ import numpy as np
 
 from vdo.model.camera import Camera
 from vdo.model.speckle import pattern_for
-from vdo.rendering.scene import NEAR_CLIP_M, SPECKLED_SUFFIX, build_render_scene, diffraction_blur
+from vdo.rendering.scene import (NEAR_CLIP_M, PRESAMPLE, SPECKLED_SUFFIX, build_render_scene, cell_blur,
+                                 lens_sigma_px)
 
 
 # --------------------------------------------------------------------------------------------
@@ -20,7 +21,8 @@ SAT_PAD_TEXELS = 64          # texels of wrapped pattern around the tile in the 
                              # a footprint is clamped to a half-extent of SAT_PAD_TEXELS - 2
 MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): below it, the box's
                              # corner differences lose digits and its average is the point value
-FOOTPRINT_SPLIT = 2          # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
+FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
+                             # (the cells on which a lens's blur acts, `render_camera_dic`)
 LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each light panel (a
                              # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
 AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
@@ -41,8 +43,10 @@ MIN_TILE_PIXELS = 1 << 14    # below this a tile's fixed costs dominate: refuse 
 TILE_BYTES_PER_PIXEL = 150   # peak working set of a DIC tile per pixel (115 measured with
                              # ru_maxrss on a 1920 x 1280 plate render, 76 on the built-in's cam1
                              # in 2^22-pixel tiles, plus a margin)
-SAMPLED_BYTES_PER_PIXEL = 80 # Mitsuba's film and wavefront per pixel, any spp (59 measured at
-                             # 16 and 64 spp on 614k px, plus a margin)
+SAMPLED_BYTES_PER_PIXEL = 80 * PRESAMPLE ** 2   # Mitsuba's film and wavefront per pixel, any
+                             # spp (59 measured at 16 and 64 spp on 614k px, plus a margin), the
+                             # film holding PRESAMPLE^2 cells a pixel (the lens's blur)
+CELL_BYTES_PER_PIXEL = 16    # a DIC render's cell rows (PRESAMPLE float32 a pixel) and their blur
 DISTORTION_BYTES_PER_PIXEL = 48   # the resampling map (H, W, 2) float64 and its spline copies
 IMAGE_BYTES_PER_PIXEL = 6    # what render_images keeps per pixel and camera: float32 + 16-bit DN
 
@@ -180,17 +184,19 @@ def plan_render(cameras, mode: str, available: int | None = None) -> RenderPlan:
     every finished image is kept (IMAGE_BYTES_PER_PIXEL per pixel); one camera renders at a time,
     the sampled mode with its whole film (SAMPLED_BYTES_PER_PIXEL, plus
     DISTORTION_BYTES_PER_PIXEL for a distorted camera), the DIC mode in tiles of TILE_PIXELS
-    (TILE_BYTES_PER_PIXEL each), split into smaller tiles (down to MIN_TILE_PIXELS) when that
-    does not fit in `available` bytes (default `available_memory`). Raises MemoryError with the
+    (TILE_BYTES_PER_PIXEL each) and its cell rows (CELL_BYTES_PER_PIXEL a pixel of the camera),
+    split into smaller tiles (down to MIN_TILE_PIXELS) when that does not fit in `available` bytes
+    (default `available_memory`). Raises MemoryError with the
     bytes it would need when even that does not fit."""
     available = available_memory() if available is None else int(available)
     kept = sum(c.width * c.height for c in cameras) * IMAGE_BYTES_PER_PIXEL
     tile = TILE_PIXELS
     if mode == "dic":
-        room = available - kept
+        cells = max((c.width * c.height for c in cameras), default=0) * CELL_BYTES_PER_PIXEL
+        room = available - kept - cells
         while tile > MIN_TILE_PIXELS and tile * TILE_BYTES_PER_PIXEL > room:
             tile //= 2
-        working = tile * TILE_BYTES_PER_PIXEL
+        working = tile * TILE_BYTES_PER_PIXEL + cells
     else:
         working = max((c.width * c.height * (SAMPLED_BYTES_PER_PIXEL
                                              + (DISTORTION_BYTES_PER_PIXEL if c.distorted else 0))
@@ -225,21 +231,29 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
       a silhouette pixel (a 4-neighbour sees another shape) is the mean of EDGE_SUPERSAMPLE^2
       sub-pixel values (`_supersampled`).
 
-    With the camera's `spec` (a CameraSpec), the lens's in-focus diffraction of the whole image
-    afterwards (`vdo.rendering.scene.diffraction_blur`: the f/8 that σ_measured assumes for a
-    camera without f_number; a camera with one is refused in this mode).
+    With the camera's `spec` (a CameraSpec), the lens's in-focus diffraction
+    (`vdo.rendering.scene.lens_sigma_px`: the f/8 that σ_measured assumes for a camera without
+    f_number; a camera with one is refused in this mode) acts before the pixels integrate, as in a
+    camera: each pixel's value is kept on its FOOTPRINT_SPLIT^2 cells (the speckle's albedo of
+    each part of the footprint, the pixel's light and emission; a silhouette pixel's mean on all),
+    the cells blurred and each pixel their mean (`vdo.rendering.scene.cell_blur`, along the rows
+    in each tile, across them once the tiles are done).
     `progress`: called with the number of rows done after each tile."""
     s = SHADE_STRIDE
     rows = max(1, tile_pixels // camera.width)
     rows = rows // s * s if rows >= s else rows           # tiles share the light map's lattice
-    out = np.empty((camera.height, camera.width), dtype=np.float32)
+    sigma, n = lens_sigma_px(camera, spec), FOOTPRINT_SPLIT
+    out = np.empty(((n if sigma > 0 else 1) * camera.height, camera.width), dtype=np.float32)
     scale = _light_scale(dscene, camera)
     for r0 in range(0, camera.height, rows):
         r1 = min(camera.height, r0 + rows)
-        out[r0:r1] = _dic_tile(dscene, camera, r0, r1, scale)
+        if sigma > 0:
+            out[n * r0:n * r1] = _dic_tile(dscene, camera, r0, r1, scale, sigma)
+        else:
+            out[r0:r1] = _dic_tile(dscene, camera, r0, r1, scale)
         if progress is not None:
             progress(r1 - r0)
-    return diffraction_blur(out, camera, spec)
+    return cell_blur(out, sigma, n, axis=0) if sigma > 0 else out
 
 
 def _pixel_grid(u, v) -> np.ndarray:
@@ -284,9 +298,10 @@ def _rays(camera: Camera, grid, step: float = 1.0):
     return ray
 
 
-def _footprint_albedo(dscene: DicScene, si):
+def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
     """ρ at each hit (Dr.Jit Float): the footprint-averaged speckle albedo on the speckled
-    shapes (`render_camera_dic`), 1 elsewhere."""
+    shapes (`render_camera_dic`), 1 elsewhere; with `cells`, the list of the FOOTPRINT_SPLIT^2
+    parts' own, part (i, j) (i along ∂/∂u, j along ∂/∂v) at i FOOTPRINT_SPLIT + j."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
@@ -319,20 +334,23 @@ def _footprint_albedo(dscene: DicScene, si):
                               + wx[2] * dr.gather(F, flat, row + 2))
         return total
 
-    acc = F(0.0)
+    parts = []
     for i in range(n):
         for j in range(n):
             oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
             cx, cy = x + oi * ax + oj * bx, y + oi * ay + oj * by
-            acc += (antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
-                    - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
-    f = t.mean + acc / (n * n * 4 * hx * hy)
-    rho = dscene.black + (dscene.white - dscene.black) * mi.Float(f)
+            parts.append(antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
+                         - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
     shape = _shape_ids(si)
     speckled = mi.Bool(False)
     for sid in dscene.speckled_ids:
         speckled |= shape == sid
-    return dr.select(si.is_valid() & speckled, rho, 1.0)
+    speckled &= si.is_valid()
+
+    def albedo(part_sum, count):
+        f = t.mean + part_sum / (count * 4 * hx * hy)
+        return dr.select(speckled, dscene.black + (dscene.white - dscene.black) * mi.Float(f), 1.0)
+    return [albedo(p, 1) for p in parts] if cells else albedo(sum(parts[1:], parts[0]), n * n)
 
 
 SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
@@ -440,8 +458,11 @@ def _light_scale(dscene: DicScene, camera: Camera) -> float:
     return float(np.percentile(lit, SCALE_PERCENTILE)) if len(lit) else 1.0
 
 
-def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float) -> np.ndarray:
-    """Rows r0 .. r1 - 1 of `render_camera_dic`'s image, (r1 - r0, W) float32."""
+def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
+              sigma: float = 0.0) -> np.ndarray:
+    """Rows r0 .. r1 - 1 of `render_camera_dic`'s image, (r1 - r0, W) float32; with a lens blur
+    `sigma` (px) > 0, their FOOTPRINT_SPLIT rows of cells each, blurred along the rows and each
+    pixel the mean of its cells along them (`cell_blur`): (FOOTPRINT_SPLIT (r1 - r0), W)."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
@@ -452,18 +473,27 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float) 
     index = dr.arange(mi.UInt32, W * h)
     pixel = (mi.Float(index % W), mi.Float(index // W + r0))
     si = _cast(dscene, camera, _pixel_grid(u, v) if camera.distorted else pixel)
-    rho = _footprint_albedo(dscene, si)
+    rho = _footprint_albedo(dscene, si, cells=sigma > 0)
+    rho = rho if sigma > 0 else [rho]
     emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
     ids = _shape_ids(si)
-    dr.eval(rho, emitted, ids)
+    dr.eval(*rho, emitted, ids)
     del si
     ids_np = np.array(ids).reshape(h, W)
-    light = _light_map(dscene, camera, r0, ids_np, scale)
-    value = np.array(emitted, dtype=np.float64) + np.array(rho, dtype=np.float64) * light.ravel()
+    light = _light_map(dscene, camera, r0, ids_np, scale).ravel()
+    emitted = np.array(emitted, dtype=np.float64)
     edges = np.flatnonzero(_silhouette(ids_np))
-    if len(edges):
-        value[edges] = _supersampled(dscene, camera, r0, edges, ids_np, light)
-    return value.astype(np.float32).reshape(h, W)
+    edge_value = _supersampled(dscene, camera, r0, edges, ids_np, light.reshape(h, W)) if len(edges) else None
+    n = FOOTPRINT_SPLIT if sigma > 0 else 1
+    cells = np.empty((h, n, W, n), dtype=np.float32)        # (row, j, column, i)
+    for k, part in enumerate(rho):
+        value = emitted + np.array(part, dtype=np.float64) * light
+        if edge_value is not None:
+            value[edges] = edge_value
+        cells[:, k % n, :, k // n] = value.reshape(h, W)
+    if sigma == 0:
+        return cells.reshape(h, W)
+    return cell_blur(cells.reshape(h * n, W * n), sigma, n, axis=1)
 
 
 def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale: float) -> np.ndarray:
