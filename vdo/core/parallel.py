@@ -150,6 +150,27 @@ def run_tasks(fn: Callable, items: Iterable, *, workers: int | None = None, thre
         yield from _local(fn, items, workers or cores(), threads, extra)
 
 
+def run_chunks(fn: Callable, chunks: Sequence, workers: int, log: logging.Logger, total: int,
+               desc: str, unit: str) -> None:
+    """fn(chunk) for every chunk, on `workers` threads of this process (for work whose heavy calls
+    release the GIL: NumPy, SciPy, XLA), each call's return value (the items it did) advancing a
+    progress bar of `total` `unit`s (`vdo.core.progress.bar`: shown when `log` passes INFO
+    records). Ctrl-C: the chunks not started are dropped, the running ones end."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vdo.core.progress import bar as progress_bar
+
+    bar = progress_bar(log, total=total, desc=desc, unit=unit)
+    pool = ThreadPoolExecutor(min(int(workers), len(chunks))) if workers > 1 and len(chunks) > 1 else None
+    try:
+        for done in (pool.map(fn, chunks) if pool else map(fn, chunks)):
+            bar.update(done)
+    finally:
+        if pool:
+            pool.shutdown(wait=True, cancel_futures=True)
+        bar.close()
+
+
 def _local(fn, items: list, workers: int, threads: int | None, shared: tuple):
     attempts = Counter()
     pending = list(range(len(items)))

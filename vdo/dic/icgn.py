@@ -257,19 +257,9 @@ def match_subsets(reference, deformed, points, start=None, *, size_px: int = 29,
         out.iterations[k], out.converged[k] = np.asarray(iters)[:m], np.asarray(ok)[:m]
         return m
 
-    from concurrent.futures import ThreadPoolExecutor
+    from vdo.core.parallel import run_chunks
 
-    from vdo.core.progress import bar as progress_bar
-
-    bar = progress_bar(log, total=len(idx), desc="subsets", unit="subset")
-    pool = ThreadPoolExecutor(min(int(workers), len(chunks))) if workers > 1 and len(chunks) > 1 else None
-    try:
-        for done in (pool.map(run, chunks) if pool else map(run, chunks)):
-            bar.update(done)
-    finally:               # Ctrl-C: the chunks not started are dropped, the running ones end
-        if pool:
-            pool.shutdown(wait=True, cancel_futures=True)
-        bar.close()
+    run_chunks(run, chunks, workers, log, len(idx), "subsets", "subset")
     out.x = x + out.p[:, [0, n // 2]]
     return out
 

@@ -145,17 +145,9 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
         _solve_subsets(cameras, refs, defs, geometry, k, per_camera, U0[k], solver, out)
         return len(k)
 
-    from vdo.core.progress import bar as progress_bar
+    from vdo.core.parallel import run_chunks
 
-    bar = progress_bar(log, total=n_pts, desc="subsets", unit="subset")
-    pool = ThreadPoolExecutor(min(int(workers), len(chunks))) if workers > 1 and len(chunks) > 1 else None
-    try:
-        for done in (pool.map(run, chunks) if pool else map(run, chunks)):
-            bar.update(done)
-    finally:               # Ctrl-C: the chunks not started are dropped, the running ones end
-        if pool:
-            pool.shutdown(wait=True, cancel_futures=True)
-        bar.close()
+    run_chunks(run, chunks, workers, log, n_pts, "subsets", "subset")
     for k in np.flatnonzero(out.one_by_one):
         patch = Patch(origin=origin[k], t_u=t_u[k], t_v=t_v[k], size=(size, size))
         res = correlate(cameras, deformed, patch, ImageReference(references), model=Q4(1, 1),
