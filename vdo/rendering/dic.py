@@ -25,6 +25,10 @@ FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into 
                              # (the cells on which a lens's blur acts, `render_camera_dic`)
 LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each light panel (a
                              # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
+PROBE_GRID = (0, 2, 5, 7)    # the rows and columns of each panel's points probed first: a shadow
+                             # ray per point only where the front probes disagree (a straight
+                             # shadow edge across the panel always splits them; a strip thinner
+                             # than the probes' gaps can pass between them)
 AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
@@ -377,7 +381,9 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     of `_register_integrator`'s estimator by quadrature: Σ over lights and the LIGHT_POINTS^2
     midpoints P of each panel of f(ω_i, ω_o) cosθ_s L cosθ_l (A / LIGHT_POINTS^2) / r^2 where P is
     visible (shadow ray), plus the ambient sky through AMBIENT_POINTS^2 stratum-centre BSDF
-    samples that escape. 0 where the ray missed. Every (hit, point) pair is one lane of a batch
+    samples that escape. 0 where the ray missed. The shadow rays of a panel's points are cast
+    only where the panel's PROBE_GRID^2 probe points in front of the hit disagree (some visible,
+    some not); where they agree, every point in front takes their answer. Every (hit, point) pair is one lane of a batch
     of at most SHADE_LANES (small kernels, compiled once)."""
     import drjit as dr
 
@@ -395,6 +401,13 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     if Q == 0:
         return out
     table = [mi.Point3f(*(np.ascontiguousarray(x[:, k]) for k in range(3))) for x in (P, normals)]
+    per_point = LIGHT_POINTS * LIGHT_POINTS                      # quadrature points a panel
+    panels = len(P) // per_point
+    grid = np.array(PROBE_GRID)
+    probes = (np.arange(panels)[:, None] * per_point
+              + (grid[:, None] * LIGHT_POINTS + grid[None, :]).ravel()[None, :]).ravel()
+    per_panel = len(grid) ** 2
+    probe_index = mi.UInt32(probes.astype(np.uint32))
     w_light = mi.Float(weights) if len(P) else None
     S = mi.Point2f(*(np.ascontiguousarray(samples[:, k]) for k in range(2))) if m else None
     ctx = mi.BSDFContext()
@@ -403,16 +416,33 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
         count = min(chunk, n - start)
         total = mi.Float(0.0)
         if len(P):
+            # The probes: PROBES^2 of each panel's points. A (hit, panel) whose front probes are
+            # all visible (all blocked) is taken as lit (dark) at all its points; the others
+            # cast a shadow ray per point.
+            lane = dr.arange(mi.UInt32, count * len(probes))
+            hit = dr.gather(type(si), si, start + lane // len(probes))
+            k = dr.gather(mi.UInt32, probe_index, lane % len(probes))
+            point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
+            d = dr.normalize(point - hit.p)
+            front = hit.is_valid() & (-dr.dot(d, mi.Vector3f(normal)) > 0) & (dr.dot(d, hit.n) > 0)
+            seen = front & ~dscene.scene.ray_test(hit.spawn_ray_to(point), front)
+            n_front = dr.block_sum(mi.Float(dr.select(front, 1.0, 0.0)), per_panel)
+            n_seen = dr.block_sum(mi.Float(dr.select(seen, 1.0, 0.0)), per_panel)
+            lit = (n_front > 0) & (n_seen == n_front)
+            dark = (n_front > 0) & (n_seen == 0)
             lane = dr.arange(mi.UInt32, count * len(P))
             hit = dr.gather(type(si), si, start + lane // len(P))
             k = lane % len(P)
+            pair = (lane // len(P)) * panels + k // per_point
+            lit_k, dark_k = dr.gather(mi.Bool, lit, pair), dr.gather(mi.Bool, dark, pair)
             point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
             d = point - hit.p
             dist2 = dr.squared_norm(d)
             d = d * dr.rsqrt(dist2)
             cos_l = -dr.dot(d, mi.Vector3f(normal))
-            ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0)
-            ok &= ~dscene.scene.ray_test(hit.spawn_ray_to(point), ok)
+            ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0) & ~dark_k
+            test = ok & ~lit_k
+            ok &= ~(test & dscene.scene.ray_test(hit.spawn_ray_to(point), test))
             f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
             value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, w_light, k) * cos_l / dist2), 0.0))
             total = dr.block_sum(value, len(P))
