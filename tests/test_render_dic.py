@@ -32,6 +32,8 @@ NOISE_RATIO = 1.5           # fast - reference within this many times the refere
 REFERENCE_SPP = 256
 CONTRAST_TOL = 0.01         # relative: the σ model's box-pixel contrast (same integral, exact)
 TILE_TOL = 1e-4             # tiles against one: light-map interpolation within SHADE_TOLERANCE
+PROBE_TOL = 1e-6            # of the light scale: the probed light against a ray per panel point
+                            # (measured equal to float32 rounding on the penumbra scene)
 ENERGY_TOL = 0.02           # relative: the 64-spp reference's noise adds ~0.5 % of gradient energy
 
 
@@ -225,3 +227,10 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     assert err.mean() <= dic.SHADE_ERROR * scale
     print(f"light map against every pixel: max {err.max() / scale:.2e}, mean {err.mean() / scale:.2e} "
           f"of the light scale")
+    # The probes (`PROBE_GRID`): the light with a shadow ray for every panel point, every pixel.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(dic, "PROBE_GRID", tuple(range(dic.LIGHT_POINTS)))
+        every_ray = dic._shade(ds, si).reshape(cam.height, cam.width)
+    shaded = (every_ray > 0.05 * scale) & (every_ray < 0.95 * every_ray.max())
+    assert shaded.sum() > 100               # neither dark nor fully lit: shadow edges and shading
+    assert np.abs(exact - every_ray).max() <= PROBE_TOL * scale
