@@ -33,7 +33,7 @@ Triangulation: X minimises Σ_i |π_i(X) - x'_i|² over the cameras i (π_i the 
 lens distortion included), Gauss–Newton from the start with S_i = ∂x/∂X (`Camera.sensitivity`).
 
 Every subset of a chunk of SUBSET_CHUNK runs in one XLA program (float64), the chunks on
-`workers` threads. Above `vdo.dic.images` and `vdo.dic.subset_sums`; used by
+`workers` threads. Above `vdo.dic.images`, `vdo.dic.shifts` and `vdo.dic.subset_sums`; used by
 `vdo.dic.series.correlate_points` (`subset_px`).
 """
 
@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo.dic.images import SPLINE_ORDER, SplineImage
-from vdo.dic.subset_sums import WINDOW_PAD, padded, spline_sample
+from vdo.dic.subset_sums import reference_arrays, sample_box, spline_sample, window_arrays
 
 log = logging.getLogger(__name__)
 
@@ -188,14 +188,6 @@ def _icgn(image, grad_u, grad_v, ref_origin, coeffs, dfm_origin, valid, x, p0, t
     return p, znssd, iters, ok
 
 
-def _window(spline: SplineImage, arrays):
-    """`arrays` of the spline's window shape zero-padded to multiples of WINDOW_PAD (windows of
-    about one size share a compiled program)."""
-    h, w = spline.shape
-    size = (-(-h // WINDOW_PAD) * WINDOW_PAD, -(-w // WINDOW_PAD) * WINDOW_PAD)
-    return [jnp.asarray(padded(a, size)) for a in arrays]
-
-
 def match_subsets(reference, deformed, points, start=None, *, size_px: int = 29,
                   shape_function: str = "affine", tol_px: float = TOL_PX, max_iter: int = MAX_ITER,
                   workers: int = 1) -> SubsetMatch:
@@ -233,17 +225,12 @@ def match_subsets(reference, deformed, points, start=None, *, size_px: int = 29,
         return out
     box = np.concatenate([c[idx] - half, c[idx] + half])
     ref_spline = SplineImage.around(ref, box, 0.0, SPLINE_ORDER)
-    (c0, r0), (h, w) = ref_spline.origin.astype(int), ref_spline.shape
-    ref_arrays = _window(ref_spline, (ref[r0:r0 + h, c0:c0 + w], *ref_spline.pixel_gradients()))
+    ref_arrays = reference_arrays(ref, ref_spline)
     moved = x[idx] + p0[idx][:, [0, n // 2]]
     dfm_spline = SplineImage.around(dfm, np.concatenate([moved - half, moved + half]),
                                     DEFORMED_MARGIN_PX + half, SPLINE_ORDER)
-    coeffs, = _window(dfm_spline, (dfm_spline.coeffs,))
-    rows, cols = dfm_spline.coeffs.shape
-    edge = 2 + SPLINE_ORDER // 2              # the kernel's taps stay inside the window
-    s0, s1, t0, t1 = dfm_spline.valid
-    valid = np.array([max(s0, dfm_spline.origin[0] + edge), min(s1, dfm_spline.origin[0] + cols - 1 - edge),
-                      max(t0, dfm_spline.origin[1] + edge), min(t1, dfm_spline.origin[1] + rows - 1 - edge)])
+    coeffs, = window_arrays(dfm_spline, (dfm_spline.coeffs,))
+    valid = sample_box(dfm_spline)
     chunks = [idx[k:k + SUBSET_CHUNK] for k in range(0, len(idx), SUBSET_CHUNK)]
 
     def run(k):

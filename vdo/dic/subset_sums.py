@@ -34,8 +34,8 @@ from vdo.dic.images import bspline
 from vdo.model.camera import image_point
 from vdo.model.spline_response import KEYS, keys_kernel
 
-__all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "normal_sums", "residual_sums", "spline_sample",
-           "subset_setup"]
+__all__ = ["WINDOW_PAD", "BOX_PAD", "padded", "window_arrays", "reference_arrays", "sample_box",
+           "normal_sums", "residual_sums", "spline_sample", "subset_setup"]
 
 BOX_PAD = 2             # a camera's pixel boxes are padded to multiples of this per side (calls
                         # with boxes of about one size then share a program)
@@ -48,6 +48,32 @@ def padded(a: np.ndarray, shape) -> np.ndarray:
     out = np.zeros(tuple(shape) + a.shape[len(shape):], dtype=a.dtype)
     out[tuple(slice(0, n) for n in a.shape[:len(shape)])] = a
     return out
+
+
+def window_arrays(spline, arrays) -> list:
+    """`arrays` of a `vdo.dic.images.SplineImage`'s window shape, zero-padded to multiples of
+    WINDOW_PAD a side (windows of about one size share a compiled program), as JAX arrays."""
+    h, w = spline.shape
+    size = (-(-h // WINDOW_PAD) * WINDOW_PAD, -(-w // WINDOW_PAD) * WINDOW_PAD)
+    return [jnp.asarray(padded(a, size)) for a in arrays]
+
+
+def reference_arrays(image, spline) -> list:
+    """The reference image and its spline's gradients at the pixel centres
+    (`SplineImage.pixel_gradients`) on the spline's window (`window_arrays`)."""
+    (c0, r0), (h, w) = spline.origin.astype(int), spline.shape
+    return window_arrays(spline, (np.asarray(image)[r0:r0 + h, c0:c0 + w], *spline.pixel_gradients()))
+
+
+def sample_box(spline) -> np.ndarray:
+    """(u0, u1, v0, v1): where a sample of the spline's window is the whole image's spline and its
+    kernel's taps lie in the window (`spline_sample`'s `valid` box): the spline's own valid part
+    less the kernel's half-width + 1 px from the window's edges."""
+    H, W = spline.shape
+    half = (3 if spline.order == KEYS else spline.order) // 2 + 2
+    (u0, v0), (u1, v1) = spline.origin + half, spline.origin + [W - 1 - half, H - 1 - half]
+    s0, s1, t0, t1 = spline.valid
+    return np.array([max(u0, s0), min(u1, s1), max(v0, t0), min(v1, t1)])
 
 
 def _rotate(X, R):

@@ -31,9 +31,9 @@ from vdo.core.tolerances import LIMIT_SLACK
 from vdo.dic.correlate import ImageReference, Q4, Solver, correlate
 from vdo.dic.images import SPLINE_ORDER, SplineImage
 from vdo.dic.patch import Patch
-from vdo.dic.subset_sums import BOX_PAD, WINDOW_PAD, padded, residual_sums, subset_setup
+from vdo.dic.subset_sums import (BOX_PAD, padded, reference_arrays, residual_sums, sample_box, subset_setup,
+                                 window_arrays)
 from vdo.model.camera import image_point
-from vdo.model.spline_response import KEYS
 
 log = logging.getLogger(__name__)
 
@@ -160,9 +160,9 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
 @dataclass(frozen=True)
 class _Reference:
     """A reference image as `vdo.dic.subset_sums.subset_setup` reads it: the image and its
-    spline's gradients at the pixel centres (`SplineImage.pixel_gradients`) on the spline's
-    window, zero-padded to multiples of WINDOW_PAD, the window's corner pixel (u, v) and where
-    the spline is the whole image's (`SplineImage.valid`)."""
+    spline's gradients at the pixel centres on the spline's window
+    (`vdo.dic.subset_sums.reference_arrays`), the window's corner pixel (u, v) and where the
+    spline is the whole image's (`SplineImage.valid`)."""
 
     image: jax.Array
     gradient_u: jax.Array
@@ -172,21 +172,17 @@ class _Reference:
 
     @classmethod
     def of(cls, image: np.ndarray, spline: SplineImage) -> "_Reference":
-        (c0, r0), (h, w) = spline.origin.astype(int), spline.shape
-        size = (-(-h // WINDOW_PAD) * WINDOW_PAD, -(-w // WINDOW_PAD) * WINDOW_PAD)
-        gu, gv = spline.pixel_gradients()
-        return cls(*(jnp.asarray(padded(a, size)) for a in (image[r0:r0 + h, c0:c0 + w], gu, gv)),
-                   window=spline.origin.copy(), valid=np.array(spline.valid))
+        return cls(*reference_arrays(image, spline), window=spline.origin.copy(),
+                   valid=np.array(spline.valid))
 
 
 @dataclass(frozen=True)
 class _Deformed:
     """A deformed image's spline as `vdo.dic.subset_sums.residual_sums` reads it: the window's
-    coefficients zero-padded to multiples of WINDOW_PAD (one compiled program for windows of
-    about one size), the window's corner `origin` (u, v), the camera's k = (f_x, s, c_x, f_y, c_y),
-    and `valid` = (u0, u1, v0, v1), where a sample is the whole image's spline and its taps lie in
-    the window: the spline's own valid part less the kernel's half-width + 1 px from the window's
-    edges."""
+    coefficients (`vdo.dic.subset_sums.window_arrays`: one compiled program for windows of about
+    one size), the window's corner `origin` (u, v), the camera's k = (f_x, s, c_x, f_y, c_y), and
+    `valid` = (u0, u1, v0, v1), where a sample is the whole image's spline and its taps lie in the
+    window (`vdo.dic.subset_sums.sample_box`)."""
 
     coeffs: jax.Array
     origin: np.ndarray
@@ -196,16 +192,10 @@ class _Deformed:
 
     @classmethod
     def of(cls, spline: SplineImage, cam) -> "_Deformed":
-        H, W = spline.coeffs.shape
-        half = (3 if spline.order == KEYS else spline.order) // 2 + 2
-        (u0, v0), (u1, v1) = spline.origin + half, spline.origin + [W - 1 - half, H - 1 - half]
-        s0, s1, t0, t1 = spline.valid
-        size = (-(-H // WINDOW_PAD) * WINDOW_PAD, -(-W // WINDOW_PAD) * WINDOW_PAD)
         K = cam.K
-        return cls(coeffs=jnp.asarray(padded(spline.coeffs, size)), origin=spline.origin.copy(),
+        return cls(coeffs=window_arrays(spline, (spline.coeffs,))[0], origin=spline.origin.copy(),
                    k=np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]]),
-                   valid=np.array([max(u0, s0), min(u1, s1), max(v0, t0), min(v1, t1)]),
-                   order=spline.order)
+                   valid=sample_box(spline), order=spline.order)
 
 
 def _subset_boxes(cam, cameras, geometry, k, margin_px):
