@@ -536,7 +536,8 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale
     at most SHADE_TOLERANCE; otherwise the five nodes of level s / 2 in it are computed, and
     when they lie within SHADE_ERROR of the cell's bilinear prediction (on the same surface) its
     four halves are interpolated from their corners; the rest (shadow edges, creases, another
-    shape) go down a level, to the pixels themselves at s = 1."""
+    shape) go down a level, to the pixels themselves at s = 1. Nodes and cells are held by their
+    pixel (row y, column x) on one lattice for all levels."""
     h, W = ids.shape
     s = SHADE_STRIDE
     ncy, ncx = max(1, -(-(h - 1) // s)), max(1, -(-(W - 1) // s))
@@ -549,50 +550,50 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale
             q = pyr[k]
             pyr[2 * k] = op(op(q[::2, ::2], q[1::2, ::2]), op(q[::2, 1::2], q[1::2, 1::2]))
         k *= 2
-    out = np.empty((h, W))
-    nodes = _LightNodes.lattice(ncy + 1, ncx + 1)
-    nodes.compute(dscene, camera, r0, s, *np.nonzero(np.ones((ncy + 1, ncx + 1), dtype=bool)))
-    cj, ci = (a.ravel() for a in np.meshgrid(np.arange(ncy), np.arange(ncx), indexing="ij"))
+    out = np.empty((ncy * s, ncx * s))
+    nodes = _LightNodes.lattice(ncy * s + 1, ncx * s + 1)
+    y, x = (a.ravel() * s for a in np.meshgrid(np.arange(ncy + 1), np.arange(ncx + 1), indexing="ij"))
+    nodes.compute(dscene, camera, r0, y, x)
+    y, x = (a.ravel() * s for a in np.meshgrid(np.arange(ncy), np.arange(ncx), indexing="ij"))
     while True:
         if s == 1:                                   # the nodes are the pixels themselves
-            keep = (cj < h) & (ci < W)
-            out[cj[keep], ci[keep]] = nodes.L[cj[keep], ci[keep]]
-            return out
-        corners = [(cj, ci), (cj, ci + 1), (cj + 1, ci), (cj + 1, ci + 1)]
+            out[y, x] = nodes.L[y, x]
+            return out[:h, :W]
+        corners = [(y, x), (y, x + s), (y + s, x), (y + s, x + s)]
         c00, c01, c10, c11 = (nodes.L[c] for c in corners)
-        lo_id = lo_ids[s][cj, ci]
-        one = (lo_id == hi_ids[s][cj, ci]) & nodes.same(corners, lo_id, corners[0])
+        lo_id = lo_ids[s][y // s, x // s]
+        one = (lo_id == hi_ids[s][y // s, x // s]) & nodes.same(corners, lo_id, corners[0])
         lo = np.minimum(np.minimum(c00, c01), np.minimum(c10, c11))
         hi = np.maximum(np.maximum(c00, c01), np.maximum(c10, c11))
         smooth = one & (hi - lo <= SHADE_TOLERANCE * scale)
-        _fill(out, cj[smooth], ci[smooth], s, nodes.L)
+        _fill(out, y[smooth], x[smooth], s, c00[smooth], c01[smooth], c10[smooth], c11[smooth])
         rest = ~smooth
-        cj, ci, one, c00, c01, c10, c11, lo_id = (a[rest] for a in (cj, ci, one, c00, c01, c10, c11, lo_id))
-        if len(cj) == 0:
-            return out
-        # The next level: its lattice holds this one's nodes at even indices; the five new
-        # nodes of each remaining cell are computed.
-        nodes = nodes.refined()
-        J, I = 2 * cj, 2 * ci
-        new = [(J + 1, I + 1), (J, I + 1), (J + 2, I + 1), (J + 1, I), (J + 1, I + 2)]
+        y, x, one, c00, c01, c10, c11, lo_id = (a[rest] for a in (y, x, one, c00, c01, c10, c11, lo_id))
+        if len(y) == 0:
+            return out[:h, :W]
+        # The next level: the five new nodes of each remaining cell are computed.
+        m = s // 2
+        new = [(y + m, x + m), (y, x + m), (y + s, x + m), (y + m, x), (y + m, x + s)]
         fresh = np.unique(np.concatenate([j * nodes.L.shape[1] + i for j, i in new]))
-        nodes.compute(dscene, camera, r0, s // 2, *np.divmod(fresh, nodes.L.shape[1]))
+        nodes.compute(dscene, camera, r0, *np.divmod(fresh, nodes.L.shape[1]))
         predicted = [(c00 + c01 + c10 + c11) / 4, (c00 + c01) / 2, (c10 + c11) / 2,
                      (c00 + c10) / 2, (c01 + c11) / 2]
         err = np.max([np.abs(nodes.L[n] - p) for n, p in zip(new, predicted)], axis=0)
-        fine = one & (err <= SHADE_ERROR * scale) & nodes.same(new, lo_id, (J, I))
-        children = [(J + dy, I + dx) for dy in (0, 1) for dx in (0, 1)]
+        fine = one & (err <= SHADE_ERROR * scale) & nodes.same(new, lo_id, (y, x))
+        children = [(y + dy, x + dx) for dy in (0, m) for dx in (0, m)]
         for j, i in children:
-            _fill(out, j[fine], i[fine], s // 2, nodes.L)
-        cj = np.concatenate([j[~fine] for j, _ in children])
-        ci = np.concatenate([i[~fine] for _, i in children])
-        s //= 2
+            jf, i_f = j[fine], i[fine]
+            _fill(out, jf, i_f, m, *(nodes.L[c] for c in ((jf, i_f), (jf, i_f + m), (jf + m, i_f),
+                                                        (jf + m, i_f + m))))
+        y = np.concatenate([j[~fine] for j, _ in children])
+        x = np.concatenate([i[~fine] for _, i in children])
+        s = m
 
 
 @dataclass
 class _LightNodes:
-    """The nodes of one level of the light map: light L, shape id I and shading normal N on a
-    lattice (NaN light where not computed)."""
+    """The nodes of the light map on the tile's pixel lattice: light L, shape id I and shading
+    normal N (NaN light where not computed)."""
 
     L: np.ndarray
     I: np.ndarray
@@ -600,17 +601,11 @@ class _LightNodes:
 
     @classmethod
     def lattice(cls, ny: int, nx: int) -> "_LightNodes":
-        return cls(np.full((ny, nx), np.nan), np.zeros((ny, nx), dtype=np.uint32), np.zeros((ny, nx, 3)))
-
-    def refined(self) -> "_LightNodes":
-        """The next level's lattice, this one's nodes at its even indices."""
-        ny, nx = self.L.shape
-        out = _LightNodes.lattice(2 * ny - 1, 2 * nx - 1)
-        out.L[::2, ::2], out.I[::2, ::2], out.N[::2, ::2] = self.L, self.I, self.N
-        return out
+        return cls(np.full((ny, nx), np.nan), np.zeros((ny, nx), dtype=np.uint32),
+                   np.zeros((ny, nx, 3)))
 
     def same(self, at, shape_id: np.ndarray, base) -> np.ndarray:
-        """Whether the nodes `at` (a list of (j, i) index pairs) all see `shape_id` with normals
+        """Whether the nodes `at` (a list of (y, x) index pairs) all see `shape_id` with normals
         within CREASE_COS of the node `base`'s."""
         ok = np.ones(len(shape_id), dtype=bool)
         n0 = self.N[base]
@@ -618,34 +613,29 @@ class _LightNodes:
             ok &= (self.I[j, i] == shape_id) & (np.einsum("ij,ij->i", self.N[j, i], n0) >= CREASE_COS)
         return ok
 
-    def compute(self, dscene: DicScene, camera: Camera, r0: int, s: int, j: np.ndarray,
-                i: np.ndarray) -> None:
-        """Cast and shade the nodes (j, i) of level s: the pixels (i s, r0 + j s)."""
-        if len(j) == 0:
+    def compute(self, dscene: DicScene, camera: Camera, r0: int, y: np.ndarray, x: np.ndarray) -> None:
+        """Cast and shade the nodes (y, x): the pixels (x, r0 + y)."""
+        if len(y) == 0:
             return
-        si = _cast(dscene, camera, np.column_stack([i * float(s), r0 + j * float(s)]))
+        si = _cast(dscene, camera, np.column_stack([x.astype(float), r0 + y.astype(float)]))
         shape = np.array(_shape_ids(si))
         normal = np.column_stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)])
         normal[shape == 0] = (0.0, 0.0, 1.0)          # a miss: one "surface", the sky
-        self.I[j, i], self.N[j, i], self.L[j, i] = shape, normal, _shade(dscene, si)
+        self.I[y, x], self.N[y, x], self.L[y, x] = shape, normal, _shade(dscene, si)
 
 
-def _fill(out: np.ndarray, j: np.ndarray, i: np.ndarray, s: int, L: np.ndarray) -> None:
-    """Write into `out` (h, W) the pixels of the level-s cells (j, i), bilinear between the
-    cells' corners in L."""
-    h, W = out.shape
-    if len(j) == 0:
+def _fill(out: np.ndarray, y: np.ndarray, x: np.ndarray, s: int, c00, c01, c10, c11) -> None:
+    """Write into `out` (a whole number of level-s cells a side) the pixels of the level-s cells
+    whose top-left pixels are (y, x), bilinear between their corners' values c00 (y, x), c01
+    (y, x + s), c10 (y + s, x) and c11 (y + s, x + s)."""
+    if len(y) == 0:
         return
     t = np.arange(s) / s
-    y = j[:, None, None] * s + np.arange(s)[None, :, None]
-    x = i[:, None, None] * s + np.arange(s)[None, None, :]
     fy, fx = t[None, :, None], t[None, None, :]
-    c00, c01 = L[j, i][:, None, None], L[j, i + 1][:, None, None]
-    c10, c11 = L[j + 1, i][:, None, None], L[j + 1, i + 1][:, None, None]
+    c00, c01, c10, c11 = (c[:, None, None] for c in (c00, c01, c10, c11))
     value = (1 - fy) * ((1 - fx) * c00 + fx * c01) + fy * ((1 - fx) * c10 + fx * c11)
-    y, x = np.broadcast_arrays(y, x)
-    keep = (y < h) & (x < W)
-    out[y[keep], x[keep]] = np.broadcast_to(value, y.shape)[keep]
+    H, W = out.shape
+    out.reshape(H // s, s, W // s, s)[y // s, :, x // s, :] = value
 
 
 def _silhouette(ids: np.ndarray) -> np.ndarray:

@@ -183,6 +183,20 @@ def lens_sigma_px(camera: Camera, spec) -> float:
                              spec.focus_distance).sigma_px)
 
 
+CELL_BLUR_TRUNCATE = 4.0   # the lens's Gaussian is cut at this many standard deviations (as SciPy's)
+
+
+def _cell_blur_kernel(sigma_px: float, n: int) -> np.ndarray:
+    """The weights c_k, k = -r .. n - 1 + r, that take n cells a pixel to the pixel's value along
+    one axis (`cell_blur`): c = (box of n cells, 1/n each) ⊗ g, g the Gaussian of std n sigma_px
+    cells sampled at whole cells within r = ⌊CELL_BLUR_TRUNCATE n sigma_px + ½⌋ and normalised
+    to a sum of 1 (the kernel of SciPy's `gaussian_filter1d`)."""
+    s = n * sigma_px
+    r = int(CELL_BLUR_TRUNCATE * s + 0.5)
+    g = np.exp(-0.5 * (np.arange(-r, r + 1) / s) ** 2)
+    return np.convolve(np.full(n, 1.0 / n), g / g.sum())
+
+
 def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarray:
     """Along `axis`, an image of n cells a pixel blurred by the lens's Gaussian (std `sigma_px`
     pixels, n sigma_px cells) and each pixel the mean of its n cells: float32, 1/n of the length.
@@ -190,17 +204,32 @@ def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarr
     blurs: the blur of an already sampled image (a Gaussian of the pixels) leaves the aliasing a
     lens removes (measured on the built-in's 24 mm cam9, 2 mm dots at 2 px/mm: the correlation's
     bias 0.0051 / 0.0059 px RMS against 0.0022 / 0.0047 with the blur before sampling, 0.0021 /
-    0.0045 on a 3 x 3 grid, and σ_measured's model 0.0021 / 0.0063; benchmarks/README.md)."""
-    from scipy import ndimage
+    0.0045 on a 3 x 3 grid, and σ_measured's model 0.0021 / 0.0063; benchmarks/README.md).
+    Computed at the pixels only: pixel p = Σ_k c_k cell[n p + k] (`_cell_blur_kernel`), the cells
+    beyond the image's ends taken equal to its first and last (SciPy's "nearest")."""
+    cells = np.asarray(cells, dtype=np.float32)
+    c = _cell_blur_kernel(sigma_px, n).astype(np.float32)
+    r = (len(c) - n) // 2
+    N = cells.shape[axis]
+    P = N // n
+    shape = list(cells.shape)
+    shape[axis] = P
+    out = np.zeros(shape, dtype=np.float32)
 
-    blurred = ndimage.gaussian_filter1d(np.asarray(cells, dtype=np.float32), n * sigma_px, axis=axis,
-                                        mode="nearest")
-    part = [blurred[(slice(None),) * axis + (slice(m, None, n),)] for m in range(n)]
-    total = part[0].copy()
-    for p in part[1:]:
-        total += p
-    total *= np.float32(1.0 / n)
-    return total
+    def along(a, index):
+        return a[(slice(None),) * axis + (index,)]
+
+    lo, hi = min(P, -(-r // n)), max(0, min(P, (N - n - r) // n + 1))   # every tap inside
+    if hi > lo:
+        inner = along(out, slice(lo, hi))
+        term = np.empty_like(inner)
+        for k, w in enumerate(c):
+            start = n * lo + k - r
+            inner += np.multiply(along(cells, slice(start, start + n * (hi - lo), n)), w, out=term)
+    for p in [*range(0, min(lo, P)), *range(max(hi, lo), P)]:        # clamped taps
+        taps = np.clip(n * p + np.arange(len(c)) - r, 0, N - 1)
+        along(out, p)[...] = np.tensordot(np.take(cells, taps, axis=axis), c, axes=([axis], [0]))
+    return out
 
 
 def camera_sensor(camera: Camera, spec, spp: int, jitter: bool = True) -> dict:
