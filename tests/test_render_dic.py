@@ -32,6 +32,8 @@ NOISE_RATIO = 1.5           # fast - reference within this many times the refere
 REFERENCE_SPP = 256
 CONTRAST_TOL = 0.01         # relative: the σ model's box-pixel contrast (same integral, exact)
 TILE_TOL = 1e-4             # tiles against one: light-map interpolation within SHADE_TOLERANCE
+FORM_FACTOR_TOL = 1e-5      # relative: the lit panels' Gauss-Legendre rule against the closed form
+                            # (measured 1.8e-6, float32; one point a panel: 8.6e-2)
 PROBE_TOL = 1e-6            # of the light scale: the probed light against a ray per panel point
                             # (measured equal to float32 rounding on the penumbra scene)
 ENERGY_TOL = 0.02           # relative: the 64-spp reference's noise adds ~0.5 % of gradient energy
@@ -220,7 +222,8 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     ids = np.array(dic._shape_ids(si)).reshape(cam.height, cam.width)
     exact = dic._shade(ds, si).reshape(cam.height, cam.width)
     scale = dic._light_scale(ds, cam)
-    mapped = dic._light_map(ds, cam, 0, ids, scale)
+    normals = dic._normals(si, ids.ravel()).reshape(cam.height, cam.width, 3)
+    mapped = dic._light_map(ds, cam, 0, ids, normals, scale)
     err = np.abs(mapped - exact)
     assert len(np.unique(ids)) >= 3                       # plate, bar, prism
     assert err.max() <= dic.SHADE_TOLERANCE * scale
@@ -234,3 +237,44 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     shaded = (every_ray > 0.05 * scale) & (every_ray < 0.95 * every_ray.max())
     assert shaded.sum() > 100               # neither dark nor fully lit: shadow edges and shading
     assert np.abs(exact - every_ray).max() <= PROBE_TOL * scale
+
+
+def rectangle_form_factor(a, b, c):
+    """The form factor from a differential area to a parallel rectangle a x b at distance c with
+    one corner straight above it (Howell's catalogue, C-12): (1 / 2π) [A / √(1 + A²) atan(B /
+    √(1 + A²)) + B / √(1 + B²) atan(A / √(1 + B²))], A = a / c, B = b / c; signed with a and b
+    so that rectangles add up."""
+    A, B = np.abs(a) / c, np.abs(b) / c
+    F = (A / np.sqrt(1 + A * A) * np.arctan(B / np.sqrt(1 + A * A))
+         + B / np.sqrt(1 + B * B) * np.arctan(A / np.sqrt(1 + B * B))) / (2 * np.pi)
+    return np.sign(a) * np.sign(b) * F
+
+
+def test_a_lit_panel_gives_the_closed_form_irradiance(plate_experiment):
+    """A white Lambertian plate under a parallel panel of radiance L, nothing between them: the
+    light each hit reflects (`vdo.rendering.dic._shade`) is L F, F the differential-area form
+    factor to the rectangle (four corner rectangles of the closed form, signed), at every pixel,
+    within FORM_FACTOR_TOL of it; every panel there is lit, so this is the lit panels' quadrature."""
+    from vdo.rendering import dic
+
+    height, size, radiance = 0.5, (0.3, 0.2), 20.0
+    cam_text = down_camera("c", [0.6, -0.1, 0.3], (64, 48), 20.0, 12, target=[0.05, 0.02, 0.0])
+    exp = plate(plate_experiment, cam_text, light("p", [0.0, 0.0, height], [0.0, 0.0, 0.0], list(size),
+                                                  radiance), ambient=0.0, bar=False)
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    ds = build_dic_scene(exp, meshes, scene.all_region_faces(meshes, **region_tables(exp)))
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
+    v, u = np.mgrid[: cam.height, : cam.width]
+    si = dic._cast(ds, cam, np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    p = np.column_stack([np.array(si.p[k], dtype=float) for k in range(3)])
+    assert np.all(np.array(si.is_valid())) and np.allclose(p[:, 2], 0.0, atol=1e-6)
+    centre, e1, e2, normal, L = ds.lights[0]
+    assert np.allclose(normal, [0, 0, -1])
+    d = p - centre                          # the point in the panel's frame
+    s1, s2 = d @ e1 / np.linalg.norm(e1), d @ e2 / np.linalg.norm(e2)
+    w, h = np.linalg.norm(e1), np.linalg.norm(e2)
+    x1, x2, y1, y2 = -w / 2 - s1, w / 2 - s1, -h / 2 - s2, h / 2 - s2
+    F = sum(sign * rectangle_form_factor(a, b, height) for a, b, sign in
+            ((x2, y2, 1), (x1, y2, -1), (x2, y1, -1), (x1, y1, 1)))
+    light_value = dic._shade(ds, si)
+    assert np.abs(light_value / (L * F) - 1).max() < FORM_FACTOR_TOL

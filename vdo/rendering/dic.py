@@ -29,6 +29,11 @@ PROBE_GRID = (0, 2, 5, 7)    # the rows and columns of each panel's points probe
                              # ray per point only where the front probes disagree (a straight
                              # shadow edge across the panel always splits them; a strip thinner
                              # than the probes' gaps can pass between them)
+LIT_POINTS = 4               # a panel whose probes are all in front of the hit and all visible (lit)
+                             # takes LIT_POINTS^2 Gauss-Legendre points instead (no shadow rays;
+                             # the integrand is smooth there). On the built-in's cam1, against a
+                             # 24 x 24 Gauss rule: 7e-8 of the light scale on average (max 2e-5),
+                             # the 8 x 8 midpoints 1e-4 (max 4e-4)
 AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
@@ -38,6 +43,10 @@ SHADE_ERROR = 0.002          # else its finer nodes are computed, and where they
                              # halves are interpolated
 CREASE_COS = float(np.cos(np.radians(1.0)))   # corners whose normals differ by more than 1°
                              # straddle a crease (a facet's edge): the cell is refined
+SURFACE_FILL = 2             # at this level of the light map a cell that sees more than one surface
+                             # (a silhouette or a crease passes) is not refined: each pixel takes
+                             # its surface's corners' light (`_surface_fill`)
+SURFACE_CORNERS = 3          # ... from at least this many of its surface's corners (not on one line)
 SCALE_STRIDE = 64            # px between the nodes whose light sets the camera's light scale
 SCALE_PERCENTILE = 90        # the light scale: this percentile of their light (the well-lit surfaces)
 EDGE_SUPERSAMPLE = 4         # a pixel whose neighbours see another shape (a silhouette) is the
@@ -334,17 +343,19 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
         total = F(0.0)
         for a in range(3):
             row = (iy + a) * stride + ix
-            total += wy[a] * (wx[0] * dr.gather(F, flat, row) + wx[1] * dr.gather(F, flat, row + 1)
-                              + wx[2] * dr.gather(F, flat, row + 2))
+            total += wy[a] * sum(wx[c] * dr.gather(F, flat, row + c) for c in range(3))
         return total
+
+    def box(cx, cy):
+        """Σ over the box cx ± hx, cy ± hy of the texture: S at its four corners."""
+        return (antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
+                - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
 
     parts = []
     for i in range(n):
         for j in range(n):
             oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
-            cx, cy = x + oi * ax + oj * bx, y + oi * ay + oj * by
-            parts.append(antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
-                         - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
+            parts.append(box(x + oi * ax + oj * bx, y + oi * ay + oj * by))
     shape = _shape_ids(si)
     speckled = mi.Bool(False)
     for sid in dscene.speckled_ids:
@@ -357,23 +368,29 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
     return [albedo(p, 1) for p in parts] if cells else albedo(sum(parts[1:], parts[0]), n * n)
 
 
-SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
+SHADE_LANES = 1 << 22        # (hit, light point) pairs per shadow-ray batch (memory bound)
 
 
-def _quadrature(dscene: DicScene):
-    """The lights' quadrature: points P (Q, 3), panel normals (Q, 3) and weights L A / LIGHT_POINTS^2
-    (Q,), LIGHT_POINTS^2 midpoints per panel."""
-    q = LIGHT_POINTS
-    mid = (np.arange(q) + 0.5) / q - 0.5
-    a, b = (x.ravel()[:, None] for x in np.meshgrid(mid, mid, indexing="ij"))
-    P, N, w = [], [], []
+def _quadrature(dscene: DicScene, rule: str = "midpoint"):
+    """The lights' quadrature: points P (Q, 3), panel normals (Q, 3) and weights (Q,) L A w_a w_b,
+    per panel the LIGHT_POINTS^2 midpoints (w = 1 / LIGHT_POINTS each way) or, with rule
+    "gauss", the LIT_POINTS^2 Gauss-Legendre points on the panel's [-1/2, 1/2]^2."""
+    if rule == "gauss":
+        x, w = np.polynomial.legendre.leggauss(LIT_POINTS)
+        mid, w = x / 2, w / 2
+    else:
+        mid = (np.arange(LIGHT_POINTS) + 0.5) / LIGHT_POINTS - 0.5
+        w = np.full(LIGHT_POINTS, 1.0 / LIGHT_POINTS)
+    a, b = (t.ravel()[:, None] for t in np.meshgrid(mid, mid, indexing="ij"))
+    wab = np.outer(w, w).ravel()
+    P, N, W = [], [], []
     for c, e1, e2, normal, radiance in dscene.lights:
         P.append(c + a * e1 + b * e2)
-        N.append(np.broadcast_to(normal, (q * q, 3)))
-        w.append(np.full(q * q, radiance * float(np.linalg.norm(np.cross(e1, e2))) / (q * q)))
+        N.append(np.broadcast_to(normal, (len(wab), 3)))
+        W.append(radiance * float(np.linalg.norm(np.cross(e1, e2))) * wab)
     if not P:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    return np.concatenate(P), np.concatenate(N), np.concatenate(w)
+    return np.concatenate(P), np.concatenate(N), np.concatenate(W)
 
 
 def _shade(dscene: DicScene, si) -> np.ndarray:
@@ -381,10 +398,14 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     of `_register_integrator`'s estimator by quadrature: Σ over lights and the LIGHT_POINTS^2
     midpoints P of each panel of f(ω_i, ω_o) cosθ_s L cosθ_l (A / LIGHT_POINTS^2) / r^2 where P is
     visible (shadow ray), plus the ambient sky through AMBIENT_POINTS^2 stratum-centre BSDF
-    samples that escape. 0 where the ray missed. The shadow rays of a panel's points are cast
-    only where the panel's PROBE_GRID^2 probe points in front of the hit disagree (some visible,
-    some not); where they agree, every point in front takes their answer. Every (hit, point) pair is one lane of a batch
-    of at most SHADE_LANES (small kernels, compiled once)."""
+    samples that escape. 0 where the ray missed. First the panel's PROBE_GRID^2 probe points: a
+    panel whose probes are all in front of the hit and visible is lit, and is integrated by
+    LIT_POINTS^2 Gauss-Legendre points instead (the same integral, no shadow rays); one with no
+    probe both in front and visible adds nothing (its corners are probes: a panel behind the
+    hit's tangent plane, or a straight shadow edge leaves it dark); otherwise the midpoints, with
+    the shadow rays cast only where the front probes disagree (where they agree, every point in
+    front takes their answer). The hits go in batches of at most SHADE_LANES / (probes + ambient
+    directions) (small kernels, compiled once)."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
@@ -409,6 +430,10 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     per_panel = len(grid) ** 2
     probe_index = mi.UInt32(probes.astype(np.uint32))
     w_light = mi.Float(weights) if len(P) else None
+    if len(P):
+        G, G_normals, G_weights = _quadrature(dscene, "gauss")
+        gauss = ([mi.Point3f(*(np.ascontiguousarray(x[:, k]) for k in range(3))) for x in (G, G_normals)],
+                 mi.Float(G_weights), LIT_POINTS * LIT_POINTS)
     S = mi.Point2f(*(np.ascontiguousarray(samples[:, k]) for k in range(2))) if m else None
     ctx = mi.BSDFContext()
     chunk = max(1, SHADE_LANES // Q)
@@ -416,9 +441,7 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
         count = min(chunk, n - start)
         total = mi.Float(0.0)
         if len(P):
-            # The probes: PROBES^2 of each panel's points. A (hit, panel) whose front probes are
-            # all visible (all blocked) is taken as lit (dark) at all its points; the others
-            # cast a shadow ray per point.
+            # The probes: PROBE_GRID^2 of each panel's midpoints, a shadow ray each.
             lane = dr.arange(mi.UInt32, count * len(probes))
             hit = dr.gather(type(si), si, start + lane // len(probes))
             k = dr.gather(mi.UInt32, probe_index, lane % len(probes))
@@ -428,24 +451,34 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
             seen = front & ~dscene.scene.ray_test(hit.spawn_ray_to(point), front)
             n_front = dr.block_sum(mi.Float(dr.select(front, 1.0, 0.0)), per_panel)
             n_seen = dr.block_sum(mi.Float(dr.select(seen, 1.0, 0.0)), per_panel)
-            lit = (n_front > 0) & (n_seen == n_front)
-            dark = (n_front > 0) & (n_seen == 0)
-            lane = dr.arange(mi.UInt32, count * len(P))
-            hit = dr.gather(type(si), si, start + lane // len(P))
-            k = lane % len(P)
-            pair = (lane // len(P)) * panels + k // per_point
-            lit_k, dark_k = dr.gather(mi.Bool, lit, pair), dr.gather(mi.Bool, dark, pair)
-            point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
-            d = point - hit.p
-            dist2 = dr.squared_norm(d)
-            d = d * dr.rsqrt(dist2)
-            cos_l = -dr.dot(d, mi.Vector3f(normal))
-            ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0) & ~dark_k
-            test = ok & ~lit_k
-            ok &= ~(test & dscene.scene.ray_test(hit.spawn_ray_to(point), test))
-            f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
-            value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, w_light, k) * cos_l / dist2), 0.0))
-            total = dr.block_sum(value, len(P))
+            # Lit: every probe in front and visible: LIT_POINTS^2 Gauss-Legendre points without
+            # shadow rays. Mixed (some probe in front and visible, not all): the midpoints, a
+            # shadow ray each where the front probes disagree. The rest (no probe in front or
+            # none visible: the corners are probes) adds nothing.
+            lit = n_seen == per_panel
+            mixed = (n_seen > 0) & ~lit
+            total = dr.zeros(mi.Float, count)
+            for which, (quad_table, quad_w, points) in ((lit, gauss), (mixed, (table, w_light, per_point))):
+                pairs = dr.compress(which)
+                if dr.width(pairs) == 0:
+                    continue
+                lane = dr.arange(mi.UInt32, dr.width(pairs) * points)
+                pair = dr.gather(mi.UInt32, pairs, lane // points)
+                local = pair // panels
+                hit = dr.gather(type(si), si, start + local)
+                k = (pair % panels) * points + lane % points
+                point, normal = (dr.gather(mi.Point3f, t, k) for t in quad_table)
+                d = point - hit.p
+                dist2 = dr.squared_norm(d)
+                d = d * dr.rsqrt(dist2)
+                cos_l = -dr.dot(d, mi.Vector3f(normal))
+                ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0)
+                if points == per_point:
+                    test = ok & (dr.gather(mi.Float, n_seen, pair) != dr.gather(mi.Float, n_front, pair))
+                    ok &= ~(test & dscene.scene.ray_test(hit.spawn_ray_to(point), test))
+                f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
+                value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, quad_w, k) * cos_l / dist2), 0.0))
+                dr.scatter_reduce(dr.ReduceOp.Add, total, value, local)
         if m:
             lane = dr.arange(mi.UInt32, count * len(samples))
             hit = dr.gather(type(si), si, start + lane // len(samples))
@@ -507,17 +540,18 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     rho = rho if sigma > 0 else [rho]
     emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
     ids = _shape_ids(si)
-    dr.eval(*rho, emitted, ids)
-    del si
+    dr.eval(*rho, emitted, ids, si.sh_frame.n)
     ids_np = np.array(ids).reshape(h, W)
-    light = _light_map(dscene, camera, r0, ids_np, scale).ravel()
-    emitted = np.array(emitted, dtype=np.float64)
+    normals = _normals(si, ids_np.ravel()).reshape(h, W, 3)
+    del si
+    light = _light_map(dscene, camera, r0, ids_np, normals, scale).ravel()
+    emitted = np.array(emitted, dtype=np.float32)
     edges = np.flatnonzero(_silhouette(ids_np))
     edge_value = _supersampled(dscene, camera, r0, edges, ids_np, light.reshape(h, W)) if len(edges) else None
     n = FOOTPRINT_SPLIT if sigma > 0 else 1
     cells = np.empty((h, n, W, n), dtype=np.float32)        # (row, j, column, i)
     for k, part in enumerate(rho):
-        value = emitted + np.array(part, dtype=np.float64) * light
+        value = emitted + np.array(part, dtype=np.float32) * light
         if edge_value is not None:
             value[edges] = edge_value
         cells[:, k % n, :, k // n] = value.reshape(h, W)
@@ -526,18 +560,22 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     return cell_blur(cells.reshape(h * n, W * n), sigma, n, axis=1)
 
 
-def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale: float) -> np.ndarray:
+def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, normals: np.ndarray,
+               scale: float) -> np.ndarray:
     """(h, W) the light (`_shade`) at each pixel of the tile whose rows start at r0 and whose
-    pixels see the shapes `ids` (h, W), from an adaptive light map (tolerances in units of the
-    camera's light `scale`). Level s has nodes every s pixels (s = SHADE_STRIDE,
-    SHADE_STRIDE / 2, ..., 1; the lattice may reach past the last row and column). A cell of
+    pixels see the shapes `ids` (h, W) with shading normals `normals` (h, W, 3) (`_normals`),
+    from an adaptive light map (tolerances in units of the camera's light `scale`). Level s has
+    nodes every s pixels (s = SHADE_STRIDE, SHADE_STRIDE / 2, ..., 1; the lattice may reach past
+    the last row and column). A cell of
     level s whose pixels and corners see one shape, with the corners' normals within CREASE_COS
     of one another (no crease), is interpolated bilinearly from its corners when they differ by
     at most SHADE_TOLERANCE; otherwise the five nodes of level s / 2 in it are computed, and
     when they lie within SHADE_ERROR of the cell's bilinear prediction (on the same surface) its
     four halves are interpolated from their corners; the rest (shadow edges, creases, another
-    shape) go down a level, to the pixels themselves at s = 1. Nodes and cells are held by their
-    pixel (row y, column x) on one lattice for all levels."""
+    shape) go down a level, to the pixels themselves at s = 1; but at s = SURFACE_FILL a cell
+    that sees more than one surface takes `_surface_fill` (a silhouette's or a crease's pixels
+    from their own surface's corners). Nodes and cells are held by their pixel (row y, column x)
+    on one lattice for all levels."""
     h, W = ids.shape
     s = SHADE_STRIDE
     ncy, ncx = max(1, -(-(h - 1) // s)), max(1, -(-(W - 1) // s))
@@ -550,7 +588,7 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale
             q = pyr[k]
             pyr[2 * k] = op(op(q[::2, ::2], q[1::2, ::2]), op(q[::2, 1::2], q[1::2, 1::2]))
         k *= 2
-    out = np.empty((ncy * s, ncx * s))
+    out = np.empty((ncy * s, ncx * s), dtype=np.float32)
     nodes = _LightNodes.lattice(ncy * s + 1, ncx * s + 1)
     y, x = (a.ravel() * s for a in np.meshgrid(np.arange(ncy + 1), np.arange(ncx + 1), indexing="ij"))
     nodes.compute(dscene, camera, r0, y, x)
@@ -568,6 +606,11 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale
         smooth = one & (hi - lo <= SHADE_TOLERANCE * scale)
         _fill(out, y[smooth], x[smooth], s, c00[smooth], c01[smooth], c10[smooth], c11[smooth])
         rest = ~smooth
+        if s == SURFACE_FILL:                        # silhouettes and creases: no further
+            edge = rest & ~one
+            padded = np.pad(normals, ((0, out.shape[0] - h), (0, out.shape[1] - W), (0, 0)), mode="edge")
+            _surface_fill(dscene, camera, r0, out, nodes, y[edge], x[edge], s, lo_ids[1], padded, scale)
+            rest &= one
         y, x, one, c00, c01, c10, c11, lo_id = (a[rest] for a in (y, x, one, c00, c01, c10, c11, lo_id))
         if len(y) == 0:
             return out[:h, :W]
@@ -588,6 +631,60 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, scale
         y = np.concatenate([j[~fine] for j, _ in children])
         x = np.concatenate([i[~fine] for _, i in children])
         s = m
+
+
+def _surface_fill(dscene: DicScene, camera: Camera, r0: int, out: np.ndarray, nodes: "_LightNodes",
+                  y: np.ndarray, x: np.ndarray, s: int, ids: np.ndarray, normals: np.ndarray,
+                  scale: float) -> None:
+    """Write into `out` the pixels of the level-s cells (y, x) that see more than one surface (a
+    silhouette or a crease passes): each pixel (y + a, x + b) takes the light of the cell's
+    corners on its own surface (shape id as in `ids`, normal within CREASE_COS of the pixel's in
+    `normals`; both padded like `out`), with the bilinear weights (1 - a/s or a/s, 1 - b/s or
+    b/s) renormalised over them (their mean where those weights are 0), when at least
+    SURFACE_CORNERS such corners (three of a square's corners are not on one line: the light's
+    slope is bounded both ways) agree within SHADE_ERROR x `scale`; the other pixels are computed
+    themselves (thin features, a surface with fewer corners, a shadow edge). The light on one
+    surface varies smoothly between shadow edges, and a pixel is at most s / √2 px from a corner.
+    Measured on the built-in's cam1 at full size: 22 % fewer nodes; the image within 0.0012 of
+    the light map refined to the pixels (25 pixels above 0.001, of 24 M) with SURFACE_CORNERS = 3,
+    within 0.0056 with 2 (a steep light on a dark face next to a silhouette)."""
+    if len(y) == 0:
+        return
+    corners = [(y, x), (y, x + s), (y + s, x), (y + s, x + s)]
+    L = np.stack([nodes.L[c] for c in corners], axis=1)              # (m, 4)
+    I = np.stack([nodes.I[c] for c in corners], axis=1)
+    N = np.stack([nodes.N[c] for c in corners], axis=1)              # (m, 4, 3)
+    todo_y, todo_x = [], []
+    for a in range(s):
+        for b in range(s):
+            py, px = y + a, x + b
+            if a == b == 0:                          # the corner (y, x) is this pixel's node
+                out[py, px] = nodes.L[py, px]
+                continue
+            match = (I == ids[py, px][:, None]) & (np.einsum("mkc,mc->mk", N, normals[py, px]) >= CREASE_COS)
+            count = match.sum(axis=1)
+            spread = np.where(match, L, -np.inf).max(axis=1) - np.where(match, L, np.inf).min(axis=1)
+            ok = (count >= SURFACE_CORNERS) & (spread <= SHADE_ERROR * scale)
+            fy, fx = a / s, b / s
+            w = np.array([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx])[None, :] * match
+            total = w.sum(axis=1)
+            w = np.where(total[:, None] > 0, w, match)
+            value = np.sum(w * np.where(match, L, 0.0), axis=1) / np.maximum(w.sum(axis=1), 1e-300)
+            out[py[ok], px[ok]] = value[ok]
+            todo_y.append(py[~ok])
+            todo_x.append(px[~ok])
+    py, px = np.concatenate(todo_y), np.concatenate(todo_x)
+    fresh = np.isnan(nodes.L[py, px])
+    nodes.compute(dscene, camera, r0, py[fresh], px[fresh])
+    out[py, px] = nodes.L[py, px]
+
+
+def _normals(si, ids: np.ndarray) -> np.ndarray:
+    """(n, 3) float64 shading normals of the hits `si` ((0, 0, 1) where the ray missed, `ids` 0:
+    the sky is one "surface")."""
+    normal = np.column_stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)])
+    normal[ids == 0] = (0.0, 0.0, 1.0)
+    return normal
 
 
 @dataclass
@@ -619,9 +716,7 @@ class _LightNodes:
             return
         si = _cast(dscene, camera, np.column_stack([x.astype(float), r0 + y.astype(float)]))
         shape = np.array(_shape_ids(si))
-        normal = np.column_stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)])
-        normal[shape == 0] = (0.0, 0.0, 1.0)          # a miss: one "surface", the sky
-        self.I[y, x], self.N[y, x], self.L[y, x] = shape, normal, _shade(dscene, si)
+        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), _shade(dscene, si)
 
 
 def _fill(out: np.ndarray, y: np.ndarray, x: np.ndarray, s: int, c00, c01, c10, c11) -> None:
@@ -630,10 +725,11 @@ def _fill(out: np.ndarray, y: np.ndarray, x: np.ndarray, s: int, c00, c01, c10, 
     (y, x + s), c10 (y + s, x) and c11 (y + s, x + s)."""
     if len(y) == 0:
         return
-    t = np.arange(s) / s
+    t = (np.arange(s) / s).astype(np.float32)
     fy, fx = t[None, :, None], t[None, None, :]
-    c00, c01, c10, c11 = (c[:, None, None] for c in (c00, c01, c10, c11))
-    value = (1 - fy) * ((1 - fx) * c00 + fx * c01) + fy * ((1 - fx) * c10 + fx * c11)
+    c00, c01, c10, c11 = (np.asarray(c, dtype=np.float32)[:, None, None] for c in (c00, c01, c10, c11))
+    top = c00 + fx * (c01 - c00)
+    value = top + fy * (c10 + fx * (c11 - c10) - top)
     H, W = out.shape
     out.reshape(H // s, s, W // s, s)[y // s, :, x // s, :] = value
 
