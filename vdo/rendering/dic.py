@@ -542,7 +542,7 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     ids = _shape_ids(si)
     dr.eval(*rho, emitted, ids, si.sh_frame.n)
     ids_np = np.array(ids).reshape(h, W)
-    normals = _normals(si, ids_np.ravel()).reshape(h, W, 3)
+    normals = _normals(si, ids_np.ravel(), np.float32).reshape(h, W, 3)
     del si
     light = _light_map(dscene, camera, r0, ids_np, normals, scale).ravel()
     emitted = np.array(emitted, dtype=np.float32)
@@ -679,10 +679,12 @@ def _surface_fill(dscene: DicScene, camera: Camera, r0: int, out: np.ndarray, no
     out[py, px] = nodes.L[py, px]
 
 
-def _normals(si, ids: np.ndarray) -> np.ndarray:
-    """(n, 3) float64 shading normals of the hits `si` ((0, 0, 1) where the ray missed, `ids` 0:
-    the sky is one "surface")."""
-    normal = np.column_stack([np.array(si.sh_frame.n[k], dtype=np.float64) for k in range(3)])
+def _normals(si, ids: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """(n, 3) shading normals of the hits `si` ((0, 0, 1) where the ray missed, `ids` 0: the sky
+    is one "surface")."""
+    normal = np.empty((len(ids), 3), dtype=dtype)
+    for k in range(3):
+        normal[:, k] = np.array(si.sh_frame.n[k])
     normal[ids == 0] = (0.0, 0.0, 1.0)
     return normal
 
