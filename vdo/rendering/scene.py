@@ -307,7 +307,10 @@ def _register_integrator() -> str:
     the rough conductor work); (3) with an ambient sky, one BSDF-sampled direction and a shadow
     ray: weight x L_amb when it escapes. This is the estimator of exactly the integral in
     `vdo.physics.lighting` (direct light only, no interreflection), with the noise of the cosθ/r^2
-    variation over one panel (about 1 % per sample) instead of the emitter lottery."""
+    variation over one panel (about 1 % per sample) instead of the emitter lottery. The camera
+    rays are traced in Embree's coherent mode (a pixel's samples are neighbouring lanes): 4.1 ->
+    3.1 s for cam1 at 1/4 scale and 16 spp, the same image but for 8 of 1.5 M pixels where two
+    surfaces tie on a shared edge."""
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
@@ -324,7 +327,7 @@ def _register_integrator() -> str:
             self.ambient = props.get("ambient", 0.0)
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            si = scene.ray_intersect(mi.Ray3f(ray), active)
+            si = scene.ray_intersect(mi.Ray3f(ray), mi.RayFlags.All, True, active)
             valid = mi.Bool(active) & si.is_valid()
             result = mi.Spectrum(0.0)
             result += si.emitter(scene, mi.Bool(active)).eval(si, mi.Bool(active))
