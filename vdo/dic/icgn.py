@@ -204,7 +204,7 @@ def match_subsets(reference, deformed, points, start=None, *, size_px: int = 29,
         raise ValueError(f"size_px: expected an odd whole number of pixels >= 5, got {size_px!r}")
     if not tol_px > 0 or int(max_iter) < 1:
         raise ValueError(f"tol_px > 0 and max_iter >= 1 expected, got {tol_px!r} and {max_iter!r}")
-    ref, dfm = (np.asarray(a, dtype=np.float64) for a in (reference, deformed))
+    ref, dfm = np.asarray(reference), np.asarray(deformed)     # the windows become float64
     if ref.ndim != 2 or ref.shape != dfm.shape:
         raise ValueError(f"match_subsets: expected two gray images of one shape, got {ref.shape} "
                          f"and {dfm.shape}")

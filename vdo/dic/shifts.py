@@ -34,7 +34,7 @@ def image_shifts(reference, deformed, centres, half: int = 24, workers: int = 1,
     n = 2 * half + 1
     u, v = (np.asarray(centres, dtype=int).reshape(-1, 2)[:, i] for i in (0, 1))
     taper = np.outer(*(2 * [np.hanning(n)])).astype(np.float32)
-    views = [np.lib.stride_tricks.sliding_window_view(np.asarray(img, dtype=float), (n, n))
+    views = [np.lib.stride_tricks.sliding_window_view(np.asarray(img), (n, n))
              for img in (reference, deformed)]
     shifts = np.zeros((len(u), 2))
 

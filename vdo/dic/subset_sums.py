@@ -62,7 +62,8 @@ def reference_arrays(image, spline) -> list:
     """The reference image and its spline's gradients at the pixel centres
     (`SplineImage.pixel_gradients`) on the spline's window (`window_arrays`)."""
     (c0, r0), (h, w) = spline.origin.astype(int), spline.shape
-    return window_arrays(spline, (np.asarray(image)[r0:r0 + h, c0:c0 + w], *spline.pixel_gradients()))
+    pixels = np.asarray(np.asarray(image)[r0:r0 + h, c0:c0 + w], dtype=np.float64)
+    return window_arrays(spline, (pixels, *spline.pixel_gradients()))
 
 
 def sample_box(spline) -> np.ndarray:

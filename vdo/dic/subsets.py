@@ -113,7 +113,7 @@ def correlate_subsets(cameras: Sequence, references: Sequence, deformed: Sequenc
     def splines(i):
         """Camera i's reference and deformed splines, each on one window around the subsets."""
         cam = cameras[i]
-        ref, dfm = np.asarray(references[i], dtype=float), np.asarray(deformed[i], dtype=float)
+        ref, dfm = np.asarray(references[i]), np.asarray(deformed[i])   # the windows become float64
         on_image = lambda X: np.clip(cam.project(X), 0, [cam.width - 1, cam.height - 1])  # noqa: E731
         spline = SplineImage.around(dfm, on_image(corners + U0), 1.0 + DEFORMED_MARGIN_PX, order)
         return (_Reference.of(ref, SplineImage.around(ref, on_image(corners), 1.0, order)),
