@@ -238,11 +238,14 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
       FOOTPRINT_SPLIT^2 parts, each replaced by the axis-aligned box of the same second moments
       (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly with the
       `SpeckleTable` (exact for a footprint aligned with the texture axes);
-    * the light reaching the hit (`_shade`: each panel by a LIGHT_POINTS^2 midpoint rule with a
-      shadow ray per point, the ambient sky by AMBIENT_DIRECTIONS BSDF-sampled directions) from an
-      adaptive light map per tile (`_light_map`: nodes every SHADE_STRIDE pixels, refined a
-      level at a time where the bilinear prediction misses, a crease or another shape passes;
-      tolerances in units of the camera's light scale, `_light_scale`);
+    * the light reaching the hit (`_shade`: each panel probed by shadow rays at PROBE_GRID^2 of
+      its points, then a lit panel by LIT_POINTS^2 Gauss-Legendre points, a partly shadowed one
+      by a LIGHT_POINTS^2 midpoint rule with a shadow ray per point where the probes disagree;
+      the ambient sky by AMBIENT_DIRECTIONS BSDF-sampled directions) from an adaptive light map
+      per tile (`_light_map`: nodes every SHADE_STRIDE pixels, refined a level at a time where
+      the bilinear prediction misses, a crease or another shape passes, silhouettes and creases
+      filled from their own surface at SURFACE_FILL px; tolerances in units of the camera's
+      light scale, `_light_scale`);
     * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere);
       a silhouette pixel (a 4-neighbour sees another shape) is the mean of EDGE_SUPERSAMPLE^2
       sub-pixel values (`_supersampled`).
@@ -585,16 +588,15 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, norma
     pixels see the shapes `ids` (h, W) with shading normals `normals` (h, W, 3) (`_normals`),
     from an adaptive light map (tolerances in units of the camera's light `scale`). Level s has
     nodes every s pixels (s = SHADE_STRIDE, SHADE_STRIDE / 2, ..., 1; the lattice may reach past
-    the last row and column). A cell of
-    level s whose pixels and corners see one shape, with the corners' normals within CREASE_COS
-    of one another (no crease), is interpolated bilinearly from its corners when they differ by
-    at most SHADE_TOLERANCE; otherwise the five nodes of level s / 2 in it are computed, and
-    when they lie within SHADE_ERROR of the cell's bilinear prediction (on the same surface) its
-    four halves are interpolated from their corners; the rest (shadow edges, creases, another
-    shape) go down a level, to the pixels themselves at s = 1; but at s = SURFACE_FILL a cell
-    that sees more than one surface takes `_surface_fill` (a silhouette's or a crease's pixels
-    from their own surface's corners). Nodes and cells are held by their pixel (row y, column x)
-    on one lattice for all levels."""
+    the last row and column). A cell of level s whose pixels and corners see one shape, with the
+    corners' normals within CREASE_COS of one another (no crease), is interpolated bilinearly
+    from its corners when they differ by at most SHADE_TOLERANCE; otherwise the five nodes of
+    level s / 2 in it are computed, and when they lie within SHADE_ERROR of the cell's bilinear
+    prediction (on the same surface) its four halves are interpolated from their corners; the
+    rest (shadow edges, creases, another shape) go down a level, to the pixels themselves at
+    s = 1; but at s = SURFACE_FILL a cell that sees more than one surface takes `_surface_fill`
+    (a silhouette's or a crease's pixels from their own surface's corners). Nodes and cells are
+    held by their pixel (row y, column x) on one lattice for all levels."""
     h, W = ids.shape
     s = SHADE_STRIDE
     ncy, ncx = max(1, -(-(h - 1) // s)), max(1, -(-(W - 1) // s))
