@@ -282,9 +282,8 @@ def test_a_lit_panel_gives_the_closed_form_irradiance(plate_experiment):
 
 def test_an_open_sky_gives_the_ambient_radiance_times_the_albedo(plate_experiment):
     """No light, an ambient sky of radiance L_amb and nothing above a white Lambertian plate:
-    every one of the ambient directions (`vdo.rendering.dic._fibonacci_lattice`) escapes, and the
-    light each hit reflects is L_amb ρ = L_amb exactly (the cosine-weighted hemisphere's integral
-    of ρ / π cosθ)."""
+    every one of the AMBIENT_POINTS^2 ambient directions escapes, and the light each hit reflects
+    is L_amb ρ = L_amb exactly (the cosine-weighted hemisphere's integral of ρ / π cosθ)."""
     from vdo.rendering import dic
 
     ambient = 0.05
@@ -297,10 +296,3 @@ def test_an_open_sky_gives_the_ambient_radiance_times_the_albedo(plate_experimen
     si = dic._cast(ds, cam, np.column_stack([u.ravel(), v.ravel()]).astype(float))
     assert np.all(np.array(si.is_valid()))
     assert np.allclose(dic._shade(ds, si), ambient, rtol=1e-5)
-    lattice = dic._fibonacci_lattice(dic.AMBIENT_DIRECTIONS)
-    assert lattice.shape == (dic.AMBIENT_DIRECTIONS, 2)
-    # one point in each row and each column of the n x n grid of the square
-    for axis in range(2):
-        assert len(np.unique(np.floor(lattice[:, axis] * len(lattice)))) == len(lattice)
-    with pytest.raises(ValueError, match="not a Fibonacci number"):
-        dic._fibonacci_lattice(50)

@@ -34,10 +34,7 @@ LIT_POINTS = 4               # a panel whose probes are all in front of the hit 
                              # the integrand is smooth there). On the built-in's cam1, against a
                              # 24 x 24 Gauss rule: 7e-8 of the light scale on average (max 2e-5),
                              # the 8 x 8 midpoints 1e-4 (max 4e-4)
-AMBIENT_DIRECTIONS = 55      # BSDF-sampled directions for the ambient sky: a Fibonacci lattice of
-                             # this many points (a Fibonacci number) in the sample square. On the
-                             # built-in's cam1 against 987 of them: 6.6e-4 of the light scale on
-                             # average (p99 2.6e-3), the 8 x 8 stratum centres before 1.0e-3 (4.4e-3)
+AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -241,7 +238,7 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
     * the light reaching the hit (`_shade`: each panel probed by shadow rays at PROBE_GRID^2 of
       its points, then a lit panel by LIT_POINTS^2 Gauss-Legendre points, a partly shadowed one
       by a LIGHT_POINTS^2 midpoint rule with a shadow ray per point where the probes disagree;
-      the ambient sky by AMBIENT_DIRECTIONS BSDF-sampled directions) from an adaptive light map
+      the ambient sky by AMBIENT_POINTS^2 BSDF-sampled directions) from an adaptive light map
       per tile (`_light_map`: nodes every SHADE_STRIDE pixels, refined a level at a time where
       the bilinear prediction misses, a crease or another shape passes, silhouettes and creases
       filled from their own surface at SURFACE_FILL px; tolerances in units of the camera's
@@ -399,32 +396,19 @@ def _quadrature(dscene: DicScene, rule: str = "midpoint"):
     return np.concatenate(P), np.concatenate(N), np.concatenate(W)
 
 
-def _fibonacci_lattice(n: int) -> np.ndarray:
-    """(n, 2) points of the Fibonacci lattice in [0, 1)^2, n a Fibonacci number F_k: ((i + ½) / n,
-    ((i F_(k-1)) mod n + ½) / n), i = 0 .. n - 1 (a rank-1 lattice: no row or column of points
-    lines up with an edge, as a square grid's do)."""
-    a, b = 1, 1
-    while b < n:
-        a, b = b, a + b
-    if b != n:
-        raise ValueError(f"_fibonacci_lattice: {n} is not a Fibonacci number")
-    i = np.arange(n)
-    return np.column_stack([(i + 0.5) / n, ((i * a) % n + 0.5) / n])
-
-
 def _shade(dscene: DicScene, si) -> np.ndarray:
     """The light reflected towards the camera at each hit ((n,) float64, luminance), the integral
     of `_register_integrator`'s estimator by quadrature: Σ over lights and the LIGHT_POINTS^2
     midpoints P of each panel of f(ω_i, ω_o) cosθ_s L cosθ_l (A / LIGHT_POINTS^2) / r^2 where P is
-    visible (shadow ray), plus the ambient sky through AMBIENT_DIRECTIONS BSDF samples
-    (`_fibonacci_lattice`) that escape. 0 where the ray missed. First the panel's PROBE_GRID^2
-    probe points: a panel whose probes are all in front of the hit and visible is lit, and is
-    integrated by LIT_POINTS^2 Gauss-Legendre points instead (the same integral, no shadow
-    rays); one with no probe both in front and visible adds nothing (its corners are probes: a
-    panel behind the hit's tangent plane, or a straight shadow edge leaves it dark); otherwise
-    the midpoints, with the shadow rays cast only where the front probes disagree (where they
-    agree, every point in front takes their answer). The hits go in batches of at most
-    SHADE_LANES / (probes + ambient directions) (small kernels, compiled once)."""
+    visible (shadow ray), plus the ambient sky through AMBIENT_POINTS^2 stratum-centre BSDF
+    samples that escape. 0 where the ray missed. First the panel's PROBE_GRID^2 probe points: a
+    panel whose probes are all in front of the hit and visible is lit, and is integrated by
+    LIT_POINTS^2 Gauss-Legendre points instead (the same integral, no shadow rays); one with no
+    probe both in front and visible adds nothing (its corners are probes: a panel behind the
+    hit's tangent plane, or a straight shadow edge leaves it dark); otherwise the midpoints, with
+    the shadow rays cast only where the front probes disagree (where they agree, every point in
+    front takes their answer). The hits go in batches of at most SHADE_LANES / (probes + ambient
+    directions) (small kernels, compiled once)."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
@@ -433,8 +417,9 @@ def _shade(dscene: DicScene, si) -> np.ndarray:
     n = dr.width(si)
     dr.eval(si)
     P, normals, weights = _quadrature(dscene)
-    samples = _fibonacci_lattice(AMBIENT_DIRECTIONS) if dscene.ambient > 0 else np.zeros((0, 2))
-    m = len(samples)
+    m = AMBIENT_POINTS if dscene.ambient > 0 else 0
+    mid = (np.arange(m) + 0.5) / max(m, 1)
+    samples = np.stack(np.meshgrid(mid, mid), -1).reshape(-1, 2)
     Q = len(P) + len(samples)
     out = np.zeros(n)
     if Q == 0:
