@@ -122,6 +122,25 @@ def test_determinism():
     assert a.shape == linear.shape
 
 
+def test_the_same_image_on_any_number_of_threads(monkeypatch):
+    """An image of several blocks (`EXPOSE_BLOCK_PIXELS`, each its own stream): the same counts
+    on 1 and on 3 threads, and blocks whose noise is not a copy of one another's."""
+    from vdo.core import backend
+    from vdo.model import sensor as sensor_module
+
+    s = SensorModel()
+    linear = np.full((3 * sensor_module.EXPOSE_BLOCK_PIXELS // 512 + 7, 512), 0.5)
+    images = []
+    for threads in (1, 3):
+        monkeypatch.setattr(backend, "cpu_threads", lambda threads=threads: threads)
+        images.append(s.expose(linear, np.random.default_rng(5)))
+    assert np.array_equal(images[0], images[1])
+    block = sensor_module.EXPOSE_BLOCK_PIXELS
+    flat = images[0].reshape(-1).astype(float)
+    assert not np.array_equal(flat[:block], flat[block:2 * block])
+    assert abs(np.corrcoef(flat[:block], flat[block:2 * block])[0, 1]) < 0.01
+
+
 @pytest.mark.parametrize(
     "bits, dtype", [(8, np.uint8), (10, np.uint16), (12, np.uint16), (16, np.uint16)]
 )

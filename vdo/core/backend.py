@@ -70,6 +70,15 @@ def configure(variant: str | None = None, threads: int | None = None) -> None:
             dr.set_thread_count(threads)
 
 
+def cpu_threads() -> int:
+    """The CPU threads this process's numerical work uses: `configure(threads=...)` (a worker's
+    share of the machine), else every core it may run on (`vdo.core.parallel.cores`: by affinity,
+    not by container quota)."""
+    from vdo.core.parallel import cores
+
+    return _chosen["threads"] or cores()
+
+
 @functools.cache
 def mitsuba():
     """The `mitsuba` module with vdo's variant set (first call chooses it; a CUDA variant that
@@ -106,8 +115,7 @@ def _load(variant: str):
                 "`libllvm19` (sudo apt-get install -y libllvm19)."
             ) from exc
     if variant.startswith("llvm"):
-        # The pool counts CPUs by affinity, not by container quota.
-        dr.set_thread_count(_chosen["threads"] or len(os.sched_getaffinity(0)))
+        dr.set_thread_count(cpu_threads())
     return mi
 
 

@@ -224,8 +224,9 @@ class SensorModel:
         values are treated as 0 and +inf as saturating; NaN raises ValueError. All randomness
         comes from `rng` (a `numpy.random.Generator`): the image, in C order, is cut into blocks
         of EXPOSE_BLOCK_PIXELS, block k draws from the k-th of `rng.spawn(blocks)` (first its
-        Poisson field, then its normal field), and the blocks run on the process's cores. So the
-        same seed gives the same image whatever the number of threads.
+        Poisson field, then its normal field), and the blocks run on the process's CPU threads
+        (`vdo.core.backend.cpu_threads`). So the same seed gives the same image whatever the
+        number of threads.
         """
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng: expected a numpy.random.Generator, got {type(rng).__name__}")
@@ -250,8 +251,9 @@ class SensorModel:
             np.minimum(electrons, self.full_well_e, out=electrons)
             out[part] = np.clip(np.rint(electrons * self.gain + self.offset), 0, self.max_dn)
 
-        threads = min(len(starts), len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                      else os.cpu_count() or 1)
+        from vdo.core.backend import cpu_threads
+
+        threads = min(len(starts), cpu_threads())
         if threads > 1:       # NumPy's generators release the GIL while they fill an array
             from concurrent.futures import ThreadPoolExecutor
 
