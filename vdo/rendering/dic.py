@@ -371,7 +371,7 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
     return [albedo(p, 1) for p in parts] if cells else albedo(sum(parts[1:], parts[0]), n * n)
 
 
-SHADE_LANES = 1 << 22        # (hit, light point) pairs per shadow-ray batch (memory bound)
+SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
 
 
 def _quadrature(dscene: DicScene, rule: str = "midpoint"):
