@@ -192,13 +192,13 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
 
 def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_experiment):
     """The light map (`vdo.rendering.dic._light_map`: nodes every SHADE_STRIDE px, refined where
-    the light bends, the shape changes or a crease passes) against `_shade` cast at every pixel,
+    the light bends, the shape changes or a crease passes) against `vdo.rendering.shading.shade` cast at every pixel,
     on a plate at 50° with a panel's penumbra, a bar's silhouette and a 12-sided prism lying on
     the plate (creases every 30°, each facet lit differently). Every pixel within the map's
     acceptance bound SHADE_TOLERANCE x the light scale; the mean error within SHADE_ERROR x it."""
     import trimesh
 
-    from vdo.rendering import dic
+    from vdo.rendering import dic, shading
 
     cam_text = down_camera("c", [0.05, -0.3, 0.6], (320, 240), 20.0, 25, target=[0.0, 0.0, 0.0])
     path = plate_experiment(
@@ -220,7 +220,7 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     grid = np.column_stack([u.ravel(), v.ravel()]).astype(float)
     si = dic._cast(ds, cam, grid)
     ids = np.array(dic._shape_ids(si)).reshape(cam.height, cam.width)
-    exact = dic._shade(ds, si).reshape(cam.height, cam.width)
+    exact = shading.shade(ds, si).reshape(cam.height, cam.width)
     scale = dic._light_scale(ds, cam)
     normals = dic._normals(si, ids.ravel()).reshape(cam.height, cam.width, 3)
     mapped = dic._light_map(ds, cam, 0, ids, normals, scale)
@@ -232,8 +232,8 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
           f"of the light scale")
     # The probes (`PROBE_GRID`): the light with a shadow ray for every panel point, every pixel.
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(dic, "PROBE_GRID", tuple(range(dic.LIGHT_POINTS)))
-        every_ray = dic._shade(ds, si).reshape(cam.height, cam.width)
+        mp.setattr(shading, "PROBE_GRID", tuple(range(shading.LIGHT_POINTS)))
+        every_ray = shading.shade(ds, si).reshape(cam.height, cam.width)
     shaded = (every_ray > 0.05 * scale) & (every_ray < 0.95 * every_ray.max())
     assert shaded.sum() > 100               # neither dark nor fully lit: shadow edges and shading
     assert np.abs(exact - every_ray).max() <= PROBE_TOL * scale
@@ -252,10 +252,10 @@ def rectangle_form_factor(a, b, c):
 
 def test_a_lit_panel_gives_the_closed_form_irradiance(plate_experiment):
     """A white Lambertian plate under a parallel panel of radiance L, nothing between them: the
-    light each hit reflects (`vdo.rendering.dic._shade`) is L F, F the differential-area form
+    light each hit reflects (`vdo.rendering.shading.shade`) is L F, F the differential-area form
     factor to the rectangle (four corner rectangles of the closed form, signed), at every pixel,
     within FORM_FACTOR_TOL of it; every panel there is lit, so this is the lit panels' quadrature."""
-    from vdo.rendering import dic
+    from vdo.rendering import dic, shading
 
     height, size, radiance = 0.5, (0.3, 0.2), 20.0
     cam_text = down_camera("c", [0.6, -0.1, 0.3], (64, 48), 20.0, 12, target=[0.05, 0.02, 0.0])
@@ -276,7 +276,7 @@ def test_a_lit_panel_gives_the_closed_form_irradiance(plate_experiment):
     x1, x2, y1, y2 = -w / 2 - s1, w / 2 - s1, -h / 2 - s2, h / 2 - s2
     F = sum(sign * rectangle_form_factor(a, b, height) for a, b, sign in
             ((x2, y2, 1), (x1, y2, -1), (x2, y1, -1), (x1, y1, 1)))
-    light_value = dic._shade(ds, si)
+    light_value = shading.shade(ds, si)
     assert np.abs(light_value / (L * F) - 1).max() < FORM_FACTOR_TOL
 
 
@@ -284,7 +284,7 @@ def test_an_open_sky_gives_the_ambient_radiance_times_the_albedo(plate_experimen
     """No light, an ambient sky of radiance L_amb and nothing above a white Lambertian plate:
     every one of the AMBIENT_POINTS^2 ambient directions escapes, and the light each hit reflects
     is L_amb ρ = L_amb exactly (the cosine-weighted hemisphere's integral of ρ / π cosθ)."""
-    from vdo.rendering import dic
+    from vdo.rendering import dic, shading
 
     ambient = 0.05
     exp = plate(plate_experiment, down_camera("c", [0.1, -0.05, 0.8], (32, 24), 20.0, 12),
@@ -295,4 +295,4 @@ def test_an_open_sky_gives_the_ambient_radiance_times_the_albedo(plate_experimen
     v, u = np.mgrid[: cam.height, : cam.width]
     si = dic._cast(ds, cam, np.column_stack([u.ravel(), v.ravel()]).astype(float))
     assert np.all(np.array(si.is_valid()))
-    assert np.allclose(dic._shade(ds, si), ambient, rtol=1e-5)
+    assert np.allclose(shading.shade(ds, si), ambient, rtol=1e-5)

@@ -11,6 +11,7 @@ from vdo.model.camera import Camera
 from vdo.model.speckle import pattern_for
 from vdo.rendering.scene import (NEAR_CLIP_M, PRESAMPLE, SPECKLED_SUFFIX, build_render_scene, cell_blur,
                                  lens_sigma_px)
+from vdo.rendering.shading import shade
 
 
 # --------------------------------------------------------------------------------------------
@@ -23,18 +24,6 @@ MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): 
                              # corner differences lose digits and its average is the point value
 FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
                              # (the cells on which a lens's blur acts, `render_camera_dic`)
-LIGHT_POINTS = 8             # midpoint rule of LIGHT_POINTS^2 points on each light panel (a
-                             # penumbra moves in steps of 1 / LIGHT_POINTS^2 of the panel)
-PROBE_GRID = (0, 2, 5, 7)    # the rows and columns of each panel's points probed first: a shadow
-                             # ray per point only where the front probes disagree (a straight
-                             # shadow edge across the panel always splits them; a strip thinner
-                             # than the probes' gaps can pass between them)
-LIT_POINTS = 4               # a panel whose probes are all in front of the hit and all visible (lit)
-                             # takes LIT_POINTS^2 Gauss-Legendre points instead (no shadow rays;
-                             # the integrand is smooth there). On the built-in's cam1, against a
-                             # 24 x 24 Gauss rule: 7e-8 of the light scale on average (max 2e-5),
-                             # the 8 x 8 midpoints 1e-4 (max 4e-4)
-AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the ambient sky
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -235,14 +224,13 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
       FOOTPRINT_SPLIT^2 parts, each replaced by the axis-aligned box of the same second moments
       (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly with the
       `SpeckleTable` (exact for a footprint aligned with the texture axes);
-    * the light reaching the hit (`_shade`: each panel probed by shadow rays at PROBE_GRID^2 of
-      its points, then a lit panel by LIT_POINTS^2 Gauss-Legendre points, a partly shadowed one
-      by a LIGHT_POINTS^2 midpoint rule with a shadow ray per point where the probes disagree;
-      the ambient sky by AMBIENT_POINTS^2 BSDF-sampled directions) from an adaptive light map
-      per tile (`_light_map`: nodes every SHADE_STRIDE pixels, refined a level at a time where
-      the bilinear prediction misses, a crease or another shape passes, silhouettes and creases
-      filled from their own surface at SURFACE_FILL px; tolerances in units of the camera's
-      light scale, `_light_scale`);
+    * the light reaching the hit (`vdo.rendering.shading.shade`: each panel probed by shadow
+      rays at some of its points, a lit panel by a Gauss rule, a partly shadowed one by midpoints
+      with shadow rays where the probes disagree, the ambient sky by BSDF-sampled directions)
+      from an adaptive light map per tile (`_light_map`: nodes every SHADE_STRIDE pixels,
+      refined a level at a time where the bilinear prediction misses, a crease or another shape
+      passes, silhouettes and creases filled from their own surface at SURFACE_FILL px;
+      tolerances in units of the camera's light scale, `_light_scale`);
     * value = emitted radiance seen + ρ × light (white regions: the BSDF's own albedo elsewhere);
       a silhouette pixel (a 4-neighbour sees another shape) is the mean of EDGE_SUPERSAMPLE^2
       sub-pixel values (`_supersampled`).
@@ -371,130 +359,6 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
     return [albedo(p, 1) for p in parts] if cells else albedo(sum(parts[1:], parts[0]), n * n)
 
 
-SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
-
-
-def _quadrature(dscene: DicScene, rule: str = "midpoint"):
-    """The lights' quadrature: points P (Q, 3), panel normals (Q, 3) and weights (Q,) L A w_a w_b,
-    per panel the LIGHT_POINTS^2 midpoints (w = 1 / LIGHT_POINTS each way) or, with rule
-    "gauss", the LIT_POINTS^2 Gauss-Legendre points on the panel's [-1/2, 1/2]^2."""
-    if rule == "gauss":
-        x, w = np.polynomial.legendre.leggauss(LIT_POINTS)
-        mid, w = x / 2, w / 2
-    else:
-        mid = (np.arange(LIGHT_POINTS) + 0.5) / LIGHT_POINTS - 0.5
-        w = np.full(LIGHT_POINTS, 1.0 / LIGHT_POINTS)
-    a, b = (t.ravel()[:, None] for t in np.meshgrid(mid, mid, indexing="ij"))
-    wab = np.outer(w, w).ravel()
-    P, N, W = [], [], []
-    for c, e1, e2, normal, radiance in dscene.lights:
-        P.append(c + a * e1 + b * e2)
-        N.append(np.broadcast_to(normal, (len(wab), 3)))
-        W.append(radiance * float(np.linalg.norm(np.cross(e1, e2))) * wab)
-    if not P:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    return np.concatenate(P), np.concatenate(N), np.concatenate(W)
-
-
-def _shade(dscene: DicScene, si) -> np.ndarray:
-    """The light reflected towards the camera at each hit ((n,) float64, luminance), the integral
-    of `_register_integrator`'s estimator by quadrature: Σ over lights and the LIGHT_POINTS^2
-    midpoints P of each panel of f(ω_i, ω_o) cosθ_s L cosθ_l (A / LIGHT_POINTS^2) / r^2 where P is
-    visible (shadow ray), plus the ambient sky through AMBIENT_POINTS^2 stratum-centre BSDF
-    samples that escape. 0 where the ray missed. First the panel's PROBE_GRID^2 probe points: a
-    panel whose probes are all in front of the hit and visible is lit, and is integrated by
-    LIT_POINTS^2 Gauss-Legendre points instead (the same integral, no shadow rays); one with no
-    probe both in front and visible adds nothing (its corners are probes: a panel behind the
-    hit's tangent plane, or a straight shadow edge leaves it dark); otherwise the midpoints, with
-    the shadow rays cast only where the front probes disagree (where they agree, every point in
-    front takes their answer). The hits go in batches of at most SHADE_LANES / (probes + ambient
-    directions) (small kernels, compiled once)."""
-    import drjit as dr
-
-    from vdo.core.backend import mitsuba
-
-    mi = mitsuba()
-    n = dr.width(si)
-    dr.eval(si)
-    P, normals, weights = _quadrature(dscene)
-    m = AMBIENT_POINTS if dscene.ambient > 0 else 0
-    mid = (np.arange(m) + 0.5) / max(m, 1)
-    samples = np.stack(np.meshgrid(mid, mid), -1).reshape(-1, 2)
-    Q = len(P) + len(samples)
-    out = np.zeros(n)
-    if Q == 0:
-        return out
-    table = [mi.Point3f(*(np.ascontiguousarray(x[:, k]) for k in range(3))) for x in (P, normals)]
-    per_point = LIGHT_POINTS * LIGHT_POINTS                      # quadrature points a panel
-    panels = len(P) // per_point
-    grid = np.array(PROBE_GRID)
-    probes = (np.arange(panels)[:, None] * per_point
-              + (grid[:, None] * LIGHT_POINTS + grid[None, :]).ravel()[None, :]).ravel()
-    per_panel = len(grid) ** 2
-    probe_index = mi.UInt32(probes.astype(np.uint32))
-    w_light = mi.Float(weights) if len(P) else None
-    if len(P):
-        G, G_normals, G_weights = _quadrature(dscene, "gauss")
-        gauss = ([mi.Point3f(*(np.ascontiguousarray(x[:, k]) for k in range(3))) for x in (G, G_normals)],
-                 mi.Float(G_weights), LIT_POINTS * LIT_POINTS)
-    S = mi.Point2f(*(np.ascontiguousarray(samples[:, k]) for k in range(2))) if m else None
-    ctx = mi.BSDFContext()
-    chunk = max(1, SHADE_LANES // Q)
-    for start in range(0, n, chunk):
-        count = min(chunk, n - start)
-        total = mi.Float(0.0)
-        if len(P):
-            # The probes: PROBE_GRID^2 of each panel's midpoints, a shadow ray each.
-            lane = dr.arange(mi.UInt32, count * len(probes))
-            hit = dr.gather(type(si), si, start + lane // len(probes))
-            k = dr.gather(mi.UInt32, probe_index, lane % len(probes))
-            point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
-            d = dr.normalize(point - hit.p)
-            front = hit.is_valid() & (-dr.dot(d, mi.Vector3f(normal)) > 0) & (dr.dot(d, hit.n) > 0)
-            seen = front & ~dscene.scene.ray_test(hit.spawn_ray_to(point), front)
-            n_front = dr.block_sum(mi.Float(dr.select(front, 1.0, 0.0)), per_panel)
-            n_seen = dr.block_sum(mi.Float(dr.select(seen, 1.0, 0.0)), per_panel)
-            # Lit: every probe in front and visible: LIT_POINTS^2 Gauss-Legendre points without
-            # shadow rays. Mixed (some probe in front and visible, not all): the midpoints, a
-            # shadow ray each where the front probes disagree. The rest (no probe in front or
-            # none visible: the corners are probes) adds nothing.
-            lit = n_seen == per_panel
-            mixed = (n_seen > 0) & ~lit
-            total = dr.zeros(mi.Float, count)
-            for which, (quad_table, quad_w, points) in ((lit, gauss), (mixed, (table, w_light, per_point))):
-                pairs = dr.compress(which)
-                if dr.width(pairs) == 0:
-                    continue
-                lane = dr.arange(mi.UInt32, dr.width(pairs) * points)
-                pair = dr.gather(mi.UInt32, pairs, lane // points)
-                local = pair // panels
-                hit = dr.gather(type(si), si, start + local)
-                k = (pair % panels) * points + lane % points
-                point, normal = (dr.gather(mi.Point3f, t, k) for t in quad_table)
-                d = point - hit.p
-                dist2 = dr.squared_norm(d)
-                d = d * dr.rsqrt(dist2)
-                cos_l = -dr.dot(d, mi.Vector3f(normal))
-                ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0)
-                if points == per_point:
-                    test = ok & (dr.gather(mi.Float, n_seen, pair) != dr.gather(mi.Float, n_front, pair))
-                    ok &= ~(test & dscene.scene.ray_test(hit.spawn_ray_to(point), test))
-                f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
-                value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, quad_w, k) * cos_l / dist2), 0.0))
-                dr.scatter_reduce(dr.ReduceOp.Add, total, value, local)
-        if m:
-            lane = dr.arange(mi.UInt32, count * len(samples))
-            hit = dr.gather(type(si), si, start + lane // len(samples))
-            valid = hit.is_valid()
-            bs, w = hit.bsdf().sample(ctx, hit, 0.5, dr.gather(mi.Point2f, S, lane % len(samples)), valid)
-            ok = valid & (bs.pdf > 0)
-            ok &= ~dscene.scene.ray_test(hit.spawn_ray(hit.to_world(bs.wo)), ok)
-            value = mi.luminance(dr.select(ok, w * (dscene.ambient / len(samples)), 0.0))
-            total = total + dr.block_sum(value, len(samples))
-        out[start:start + count] = np.array(total, dtype=np.float64)
-    return out
-
-
 def _shape_ids(si):
     """The registry id of the shape each hit sees (Dr.Jit UInt32; 0 for a miss)."""
     import drjit as dr
@@ -518,11 +382,11 @@ def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0):
 
 
 def _light_scale(dscene: DicScene, camera: Camera) -> float:
-    """The camera's light scale: the SCALE_PERCENTILE-th percentile of the light (`_shade`) at
+    """The camera's light scale: the SCALE_PERCENTILE-th percentile of the light (`shade`) at
     the pixels every SCALE_STRIDE px; the light map's tolerances are fractions of it."""
     xs = np.arange(SCALE_STRIDE // 2, camera.width, SCALE_STRIDE, dtype=float)
     ys = np.arange(SCALE_STRIDE // 2, camera.height, SCALE_STRIDE, dtype=float)
-    light = _shade(dscene, _cast(dscene, camera, _pixel_grid(xs if len(xs) else np.zeros(1),
+    light = shade(dscene, _cast(dscene, camera, _pixel_grid(xs if len(xs) else np.zeros(1),
                                                             ys if len(ys) else np.zeros(1))))
     lit = light[light > 0]
     return float(np.percentile(lit, SCALE_PERCENTILE)) if len(lit) else 1.0
@@ -569,7 +433,7 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
 
 def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, normals: np.ndarray,
                scale: float) -> np.ndarray:
-    """(h, W) the light (`_shade`) at each pixel of the tile whose rows start at r0 and whose
+    """(h, W) the light (`shade`) at each pixel of the tile whose rows start at r0 and whose
     pixels see the shapes `ids` (h, W) with shading normals `normals` (h, W, 3) (`_normals`),
     from an adaptive light map (tolerances in units of the camera's light `scale`). Level s has
     nodes every s pixels (s = SHADE_STRIDE, SHADE_STRIDE / 2, ..., 1; the lattice may reach past
@@ -724,7 +588,7 @@ class _LightNodes:
             return
         si = _cast(dscene, camera, np.column_stack([x.astype(float), r0 + y.astype(float)]))
         shape = np.array(_shape_ids(si))
-        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), _shade(dscene, si)
+        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), shade(dscene, si)
 
 
 def _fill(out: np.ndarray, y: np.ndarray, x: np.ndarray, s: int, c00, c01, c10, c11) -> None:
@@ -789,6 +653,6 @@ def _supersampled(dscene: DicScene, camera: Camera, r0: int, pixels: np.ndarray,
         sub_light[take] = np.broadcast_to(light[y, x][:, None], sub_ids.shape)[take]
     alone = np.flatnonzero(np.isnan(sub_light).ravel())
     if len(alone):
-        sub_light.ravel()[alone] = _shade(dscene, _cast(dscene, camera, sub[alone], 1.0 / k))
+        sub_light.ravel()[alone] = shade(dscene, _cast(dscene, camera, sub[alone], 1.0 / k))
     total = np.array(value, dtype=np.float64) + np.array(rho, dtype=np.float64) * sub_light.ravel()
     return total.reshape(len(pixels), k * k).mean(axis=1)
