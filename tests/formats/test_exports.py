@@ -258,6 +258,21 @@ def test_run_folder_exports_what_its_config_exports(experiment, tmp_path):
                                    [float(x) for x in number.findall(b)], rtol=1e-12, atol=1e-9)
 
 
+@pytest.mark.parametrize("name", ["optimized.toml", "designed.toml"])
+def test_an_optimize_or_design_folder_exports_its_layout(experiment, tmp_path, name):
+    """`vdo optimize` and `vdo design` write their layout as optimized.toml / designed.toml, not
+    config.toml: the folder exports what that file exports."""
+    path, _ = experiment
+    run = run_folder(path, tmp_path)
+    (run / "config.toml").rename(run / name)
+    from_run = export(run, "opencv", tmp_path / "a")
+    from_config = export(path, "opencv", tmp_path / "b")
+    assert [p.name for p in from_run] == [p.name for p in from_config]
+    (run / name).unlink()
+    with pytest.raises(ConfigError, match="config.toml: missing .*optimized.toml or designed.toml"):
+        export(run, "opencv", tmp_path / "c")
+
+
 def test_edited_layout_is_refused(experiment, tmp_path):
     path, _ = experiment
     run = run_folder(path, tmp_path)

@@ -10,9 +10,14 @@ from vdo.formats.export import FORMATS, camera_from_layout, default_pairs
 from vdo.scene import cameras_of
 
 
+RUN_EXPERIMENTS = ("config.toml", "optimized.toml", "designed.toml")   # a run folder's experiment:
+# the resolved config (`vdo evaluate`, `vdo render`, ...), else the layout `vdo optimize` or
+# `vdo design` wrote (its cameras are the layout.json's)
+
+
 def sources(source: Path):
     """(experiment, cameras, the file to name in errors): the cameras of an experiment TOML, or
-    of a run folder's layout.json with the experiment of its config.toml."""
+    of a run folder's layout.json with the experiment of the first of RUN_EXPERIMENTS it holds."""
     from vdo.config import experiment as config
 
     if source.is_dir():
@@ -25,10 +30,12 @@ def sources(source: Path):
         except (ValueError, KeyError, TypeError) as exc:
             raise ConfigError(layout, "cameras", f"cannot read the camera list ({exc})") from None
         cameras = [camera_from_layout(e, layout) for e in entries]
-        if not (source / "config.toml").is_file():
-            raise ConfigError(source, "config.toml", "missing: the run's experiment is needed to "
-                                                     "find which cameras share a field of view")
-        return config.load(source / "config.toml"), cameras, layout
+        found = [source / name for name in RUN_EXPERIMENTS if (source / name).is_file()]
+        if not found:
+            raise ConfigError(source, RUN_EXPERIMENTS[0], "missing (and no " + " or ".join(RUN_EXPERIMENTS[1:])
+                              + "): the run's experiment is needed to find which cameras share a "
+                                "field of view; export the experiment TOML instead")
+        return config.load(found[0]), cameras, layout
     if source.is_file():
         exp = config.load(source)
         return exp, cameras_of(exp.camera_specs, exp.rails), source
