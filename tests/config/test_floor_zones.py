@@ -70,7 +70,7 @@ def test_a_ring_zone_loads_and_the_hole_is_off_it(tmp_path):
     assert not exp.mount("ring").convex
     with pytest.raises(ConfigError) as err:
         config.load(write(tmp_path, position="position_m = [0.5, 0.0, 1.2]"))
-    assert err.value.field == 'camera "t".position_m' and "outside zone 'ring'" in err.value.message
+    assert err.value.field == 'camera "t".position_m' and "in hole 0 of the floor of zone 'ring'" in err.value.message
     with pytest.raises(ConfigError) as err:
         config.load(write(tmp_path, position=""))
     assert err.value.field == 'camera "t".position_m' and "centroid" in err.value.message

@@ -211,7 +211,7 @@ def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
     # a floor whose edges cross (a concave one is a zone now: tests/config/test_floor_zones.py)
     ("[[0.4, -0.6], [1.0, 0.4], [1.0, -0.6], [0.4, 0.2]]", "[0.6, 0.0, 1.1]", "floor_m", "edges cross"),
     # in the bounding box, not over the floor
-    ("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2]]", "[0.5, 0.1, 1.1]", "position_m", "outside zone"),
+    ("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2]]", "[0.5, 0.1, 1.1]", "position_m", "off the floor polygon of zone"),
 ])
 def test_bad_floor_zone_is_one_config_error_line(tmp_path, floor, camera_pos, field, words):
     mounts = MOUNTS + FLOOR.replace("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2], [0.6, 0.5], [0.3, 0.0]]", floor)

@@ -339,6 +339,20 @@ def check_keep_out(t: Table, v: dict) -> None:
         raise t.error("box_max_m", "must be greater than box_min_m on every axis")
 
 
+def _off_zone(mount: MountSpec, position: np.ndarray) -> str:
+    """Why `position` is not in zone `mount`, and the fix: in one of its floor's holes, off its
+    floor polygon, or outside its box (heights included)."""
+    box = f"({mount.low.tolist()} to {mount.high.tolist()})"
+    inside_box = not (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9))
+    if inside_box and mount.floor is not None:
+        for k, hole in enumerate(mount.floor_holes or ()):
+            if inside_floor(hole, position[:2], -1e-9):
+                return (f"in hole {k} of the floor of zone {mount.name!r} (floor_holes_m); move the "
+                        "camera onto the floor, off its holes")
+        return f"off the floor polygon of zone {mount.name!r} (floor_m); move the camera onto it"
+    return f"outside zone {mount.name!r} {box}; move the camera into it"
+
+
 def resolve_mounts(values: dict, tables: dict, path: Path) -> None:
     """Rail mounts become rails (a camera on one sits on that rail); a camera on a fixed mount
     takes its position, one in a zone its position_m (default: the zone's centre), checked to be
@@ -388,8 +402,7 @@ def resolve_mounts(values: dict, tables: dict, path: Path) -> None:
                 position = centre if spec.position is None else spec.position
                 if (np.any(position < mount.low - 1e-9) or np.any(position > mount.high + 1e-9)
                         or not mount.inside(position[:2])):
-                    raise t.error("position_m", f"{position.tolist()} is outside zone {name!r} "
-                                                f"({mount.low.tolist()} to {mount.high.tolist()})")
+                    raise t.error("position_m", f"{position.tolist()} is {_off_zone(mount, position)}")
                 spec = replace(spec, position=position)
         specs.append(spec)
     values["camera_specs"] = tuple(specs)
