@@ -302,7 +302,8 @@ def _first_difference(table: str, a, b) -> str | None:
 def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | None:
     """Run every up-front check of `exp` that needs more than its TOML file, together, before any
     heavy work (ray casting, rendering, JAX compilation): its meshes read and checked, no camera
-    inside one (`vdo.scene.load_meshes`), its load path's files read whole with every step of the
+    inside one (`vdo.scene.load_meshes`), every region selecting some of its mesh
+    (`vdo.scene.all_region_faces`), its load path's files read whole with every step of the
     pose file in the displacement file (`vdo.geometry.keyframes.load_path_of`; `poses`, `vdo
     render --series`'s pose file, replaces the [load_path]'s), and, with "lens" in [optimize]
     free, every moving camera's lens in its catalogue
@@ -315,6 +316,11 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
     errors = Collect()
     meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
                          rails=exp.rails, mounts=exp.mounts, path=exp.path, errors=errors)
+    if not errors.errors:                    # every region selects some of its mesh (each one said)
+        for region in exp.regions:
+            with errors.check():
+                all_region_faces(meshes, mesh_specs=exp.meshes, regions=(region,),
+                                 spacing=exp.evaluation.sample_spacing, path=exp.path)
     load_path = None
     needed = exp.load_path.deformed_mesh if exp.load_path.displacements is not None else None
     if (exp.load_path.active or poses is not None) and (

@@ -214,3 +214,38 @@ def test_geometric_mistakes_are_reported_together(plate_experiment, tmp_path, ca
             "optimized layout could keep a lens the catalogue does not list: add 24 to [optimize] "
             "lenses_mm, or start from a lens of the catalogue"], command
         assert not (tmp_path / "out").exists()
+
+
+def test_check_reports_every_region_that_selects_nothing(plate_experiment, capsys, no_work):
+    """`vdo check` reads the regions' selections too (the evaluation would refuse the file two
+    seconds in): two regions whose boxes miss the plate, one line each naming the region, and
+    exit 2; nothing computed (`no_work`)."""
+    path = plate_experiment()
+    with open(path, "a") as f:
+        for name, corner in (("nowhere", 5.0), ("elsewhere", -7.0)):
+            f.write(f'\n[[region]]\nname = "{name}"\nmesh = "plate"\n'
+                    f"box_min_m = [{corner}, {corner}, {corner}]\nbox_max_m = [{corner + 1}, {corner + 1}, {corner + 1}]\n")
+    assert main(["check", str(path)]) == 2
+    lines = [line for line in capsys.readouterr().err.strip().splitlines() if line.startswith("error:")]
+    assert len(lines) == 2, lines
+    for line, name in zip(lines, ("nowhere", "elsewhere")):
+        assert f'region "{name}": selects no face of mesh \'plate\'' in line and "box" in line, line
+
+
+def test_the_meshes_lines_are_said_once_per_command():
+    """The geometry is read by the up-front checks, the evaluation and the figures: its lines
+    (`vdo.meshes`) reach the console once each; other lines as often as they come."""
+    import logging
+
+    from vdo.commands.cli import _OnceForMeshes
+
+    once = _OnceForMeshes()
+
+    def record(name, text):
+        return logging.LogRecord(name, logging.INFO, __file__, 1, text, None, None)
+
+    split = "region 'shell': 152 faces split at its box plane x = 0.59 m"
+    said = [once.filter(record("vdo.meshes.mesh", split)) for _ in range(3)]
+    said += [once.filter(record("vdo.meshes.mesh", split.replace("0.59", "-0.59")))]
+    said += [once.filter(record("vdo.commands.evaluate", "step 1 of 4")) for _ in range(2)]
+    assert said == [True, False, False, True, True, True]

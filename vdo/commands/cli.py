@@ -573,6 +573,25 @@ def _run(args) -> int:
     return status
 
 
+class _OnceForMeshes(logging.Filter):
+    """Each line of `vdo.meshes` (faces split at a region's box plane, a region's development
+    distortion) once per command: the geometry is read again by the up-front checks, the
+    evaluation and the figures, and says the same each time."""
+
+    def __init__(self):
+        super().__init__()
+        self.said: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith("vdo.meshes"):
+            return True
+        text = record.getMessage()
+        if text in self.said:
+            return False
+        self.said.add(text)
+        return True
+
+
 @contextmanager
 def _log_to_stderr(quiet: bool):
     """Show the `vdo` logger's records on stderr while the command runs: warnings with --quiet,
@@ -581,6 +600,7 @@ def _log_to_stderr(quiet: bool):
 
     handler = AboveBars(sys.stderr)
     handler.setFormatter(logging.Formatter("%(message)s"))
+    handler.addFilter(_OnceForMeshes())
     logger = logging.getLogger("vdo")
     level = logger.level
     logger.addHandler(handler)
