@@ -18,7 +18,8 @@ areas A; `fit_development`):
   slant distance s = |p - A| and the developed angle psi = phi sin alpha (phi the angle about a),
   (u, v) = s (sin psi, -cos psi).
 * general: least-squares conformal map (LSCM, Levy et al. 2002), solved here with scipy's sparse
-  least squares, two far-apart vertices pinned, then scaled to the surface's total area.
+  least squares, two far-apart vertices pinned, then scaled to the surface's total area and turned
+  so that u runs along the map's longest extent (its principal axis).
 
 A fit is accepted when every vertex lies within `tolerance` of the fitted surface. Every
 development reports its area and angle distortion per face (`Development.distortion`): for the
@@ -460,8 +461,11 @@ def lscm(tri: np.ndarray) -> Development:
     Each face, in its own orthonormal 2D frame with corners (x_j, y_j), contributes
     |sum_j W_j U_j|^2 / (2 A) with W_j = (x_{j+2} - x_{j+1}) + i (y_{j+2} - y_{j+1}) and U_j = u_j
     + i v_j; the two vertices farthest apart are pinned at (0, 0) and (d, 0), the remaining
-    vertices solve the real least-squares system, and the map is scaled so that its developed
-    area equals the surface area."""
+    vertices solve the real least-squares system, the map is scaled so that its developed
+    area equals the surface area and turned so that u runs along its longest extent (the
+    principal axis of the faces' developed centroids, area-weighted, pointing from the first pin
+    to the second): the pins alone would set u along a diagonal of a band (a pipe bend's
+    intrados: 17-34 degrees off its length), and the samples' strain frames (t_u, t_v) follow u."""
     vertices, faces = merged(tri)
     p = vertices[faces]
     e1 = p[:, 1] - p[:, 0]
@@ -497,6 +501,15 @@ def lscm(tri: np.ndarray) -> Development:
     d2 = np.stack([faces_uv[:, 1] - faces_uv[:, 0], faces_uv[:, 2] - faces_uv[:, 0]], axis=1)
     area_uv = np.abs(d2[:, 0, 0] * d2[:, 1, 1] - d2[:, 0, 1] * d2[:, 1, 0]).sum()
     faces_uv = faces_uv * math.sqrt(area2.sum() / max(area_uv, 1e-300))
+    # Turn the map so that u runs along its longest extent: the principal axis e of the faces'
+    # developed centroids (area-weighted second moments), from the first pin towards the second.
+    weight = area2 / area2.sum()
+    centroid = faces_uv.mean(axis=1)
+    mean = weight @ centroid
+    spread = np.einsum("t,ti,tj->ij", weight, centroid - mean, centroid - mean)
+    e = np.linalg.eigh(spread)[1][:, -1]
+    e = e if e @ (uv[j] - uv[i]) >= 0 else -e
+    faces_uv = faces_uv @ np.array([[e[0], -e[1]], [e[1], e[0]]])      # a rotation: (u, v) -> (u.e, u x e)
     normals = n / np.maximum(area2, 1e-300)[:, None]
     dev = _orient(Development("general", triangles=np.asarray(tri, float), faces_uv=faces_uv), tri, normals)
     return Development(**{**dev.__dict__, "distortion": distortion_of(tri, dev.faces_uv)})
