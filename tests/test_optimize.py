@@ -509,3 +509,25 @@ def test_time_limit_holds_while_the_solver_compiles(tmp_path, monkeypatch):
     written = json.loads((tmp_path / "run" / "optimizer.json").read_text())
     assert any("while the solver's programs compiled" in r["reason"] for r in written["rounds"]), \
         written["rounds"]
+
+
+def test_the_console_gives_the_score_views_and_the_final_evaluations_unmeasured_area(monkeypatch, capsys):
+    """The unmeasured area of a scored region comes from two judgements that can differ (the
+    search's views; the final layout's evaluation with every body and tripod, summary_after.json):
+    the console line names both, each with its own number."""
+    from types import SimpleNamespace
+
+    from vdo.commands import cli, optimize as command
+
+    after = SimpleNamespace(regions={"bend": SimpleNamespace(unmeasured_fraction=0.119)})
+    result = SimpleNamespace(
+        status="converged", startup_s=3.0, search_s=40.0, score_before_um=2.0, score_after_um=1.0,
+        reason="", worst_p95_um=(2.5, 1.5), violated=[], after=after,
+        score_regions_um={"bend": dict(scored=True, sigma_smooth_um=1.2, unmeasured_fraction=0.075,
+                                       coverage_um=0.0)})
+    monkeypatch.setattr(command, "optimize", lambda *a, **k: result)
+    exp = SimpleNamespace(optimize=SimpleNamespace(score="bound"))
+    cli._optimize(exp, SimpleNamespace(out="run", overwrite=False, time_limit=60, started=None, quiet=False))
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("  bend:")][0]
+    assert ("7.5 % of the area unmeasured in the score's views, counted as 1 mm; 11.9 % in "
+            "summary_after.json") in line, line

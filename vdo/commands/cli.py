@@ -288,9 +288,14 @@ def _optimize(exp, args) -> None:
             print(result.reason)
         for name, r in result.score_regions_um.items():   # the regions the score counts
             if r["scored"] and r["sigma_smooth_um"] is not None:
+                # the score's views (the search's visibility) and the final layout's evaluation
+                # (every body and tripod ray-cast, summary_after.json) can differ: say both
+                final = result.after.regions[name].unmeasured_fraction if name in result.after.regions else None
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
-                      + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured, counted "
-                         "as 1 mm)" if r["unmeasured_fraction"] > 0 else "")
+                      + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured in the score's "
+                         "views, counted as 1 mm" + ("" if final is None else
+                                                      f"; {100 * final:.1f} % in summary_after.json") + ")"
+                         if r["unmeasured_fraction"] > 0 or (final or 0) > 0 else "")
                       + (f", coverage shortfall {r['coverage_um']:.3g} um" if r["coverage_um"] > 1e-3 else ""))
         before, after = result.worst_p95_um
         show = lambda v: "unmeasured" if v is None else f"{v:.3f} um"
