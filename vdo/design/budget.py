@@ -63,7 +63,8 @@ class Estimate:
     judging time (the probe's time per candidate x K) and search
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
     greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
-    cameras), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
+    cameras: an upper bound at full size, where those passes dominate; a small design pays more
+    in each count's compilation and final judgement, which it leaves out), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
     spends in full unless it converges first; the refusal's spacing advice leaves it out, as it
     does not grow with the samples)."""
 
@@ -82,7 +83,7 @@ class Estimate:
         return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
                 f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
                 f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
-                f"up to {self.search_s:.0f} s search{bound}")
+                f"about {self.search_s:.0f} s search{bound}")
 
 
 def peak_rss() -> float:

@@ -657,5 +657,6 @@ def judge(exp: Experiment, geometry: Geometry, j: Judging | None = None, client=
             blocks.append(f.result().unheaped())
             if kept is not None:
                 kept.save(blocks[-1])
-    log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
+    if len(j.steps):
+        log.info("load path: %d keyframe(s) %s judged for the candidates' occlusion", len(j.steps), j.steps)
     return collect(j, blocks)
