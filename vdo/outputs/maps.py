@@ -464,8 +464,8 @@ def plot_developed(samples: SurfaceSamples, region: int, faces, mesh_vertices, m
         how_dev += f"; area distortion p95 {100 * dist.area_p95:.2g} %, angle {100 * dist.angle_p95:.2g} %"
         if dist.large:
             how_dev += " (LARGE: distances on this map are off by as much)"
-    main.set_title(textwrap.fill(f"{title}\n{how_dev}", 110), fontsize=10)
-    cbar = fig.colorbar(coll, ax=main, shrink=0.8)
+    main.set_title("\n".join(textwrap.fill(part, 110) for part in (title, how_dev)), fontsize=10)
+    cbar = fig.colorbar(coll, ax=main, shrink=0.8, panchor=False)    # the map stays centred
     cbar.set_label(f"{label}; scale {vmin:.4g} – {vmax:.4g} ({how})", fontsize=8)
     fig.text(0.01, 0.005, "black: region outline   blue: hole / free edges"
              + ("   dotted: the ring's seam (the map continues across it)" if outline.seam is not None
