@@ -82,3 +82,22 @@ def test_evaluate_draws_every_region_developed(tmp_path):
         d = result.developed[name]
         assert d["kind"] == "cylinder" and d["area_distortion"] < 0.01
         assert set(d["cameras"]) <= {c.name for c in coarse().camera_specs}
+
+
+def test_a_curved_regions_outline_is_drawn_in_each_view_it_spans():
+    """The projected maps: the shell (a ring) faces every side view, so its outline is one ring
+    per view, each inside its own panel (one hull over all views crossed the sheet), and each
+    region is named once."""
+    from vdo.outputs.maps import layout
+
+    exp = coarse()
+    meshes = load_meshes(**mesh_tables(exp))
+    lay = layout(sample_regions(meshes, **region_tables(exp)))
+    assert len(lay.hulls["shell"]) >= 4
+    for name, rings in lay.hulls.items():
+        for ring in rings:
+            inside = [p for p in lay.panels
+                      if np.all((ring >= [p.x0 - 1e-9, p.y0 - 1e-9]) & (ring <= [p.x0 + p.width + 1e-9,
+                                                                                 p.y0 + p.height + 1e-9]))]
+            assert len(inside) == 1, (name, ring.min(0), ring.max(0))
+    assert sorted(text for text, _ in lay.labels) == sorted(r.name for r in exp.regions)

@@ -205,7 +205,7 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
                   f"→ {axis_label(h_axis)}   ↑ {axis_label(v_axis)}",
                   va="bottom", ha="left", fontsize=fs, color="0.2")
     # every region's outline in one collection (one artist, whatever the number of regions)
-    axes.add_collection(LineCollection([np.vstack([r, r[:1]]) for r in hulls.values()], lw=0.6,
+    axes.add_collection(LineCollection([np.vstack([r, r[:1]]) for rings in hulls.values() for r in rings], lw=0.6,
                                        colors="0.15", linestyles="--"))
     for text, ring in lay.labels:
         c = 0.5 * (ring.min(axis=0) + ring.max(axis=0))
@@ -238,8 +238,8 @@ def plot_unfolded(samples: SurfaceSamples, values: np.ndarray, path, title: str,
     fig.savefig(path, dpi=dpi)
     fig_h = fig.get_size_inches()[1] * dpi
     boxes = {}
-    for name, ring in hulls.items():
-        px = axes.transData.transform(ring)
+    for name, rings in hulls.items():
+        px = axes.transData.transform(np.vstack(rings))
         boxes[name] = (float(px[:, 0].min()), float(fig_h - px[:, 1].max()),
                        float(px[:, 0].max()), float(fig_h - px[:, 1].min()))
     plt.close(fig)
@@ -259,7 +259,8 @@ def region_groups(names) -> dict[str, list[int]]:
 class MapLayout:
     """What every map of one set of samples shares (`layout`): the unfolded cells (N, 4, 2) and
     depth (N,) of `unfold`, the drawing order (nearer faces last), the panels, each region's
-    outline on the sheet (convex hull of its cells) and the labels to draw: (text, ring), one per
+    outlines on the sheet (the convex hull of its cells in each view it spans: a curved region's
+    several) and the labels to draw: (text, ring), one per
     region up to MAX_REGION_LABELS regions, else one per region group (`region_groups`, its
     name and region count, over the union of its members' rings)."""
 
@@ -279,30 +280,37 @@ def layout(samples: SurfaceSamples) -> MapLayout:
     shares it)."""
     if samples in _LAYOUTS:
         return _LAYOUTS[samples]
-    _, _, panels, depth, cells = unfold(samples)
+    _, view_of, panels, depth, cells = unfold(samples)
     hulls = {}
     for r, name in enumerate(samples.region_names):
-        mask = samples.region == r
-        if not mask.any():
-            continue
-        corners = cells[mask].reshape(-1, 2)
-        try:
-            hulls[name] = corners[ConvexHull(corners).vertices]
-        except QhullError:                                 # degenerate (a line of samples)
-            hulls[name] = corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]]
-    if len(hulls) <= MAX_REGION_LABELS:
-        labels = list(hulls.items())
+        rings = []
+        for k in np.unique(view_of[samples.region == r]):   # a curved region spans several views
+            corners = cells[(samples.region == r) & (view_of == k)].reshape(-1, 2)
+            try:
+                rings.append(corners[ConvexHull(corners).vertices])
+            except QhullError:                             # degenerate (a line of samples)
+                rings.append(corners[[np.argmin(corners[:, 0]), np.argmax(corners[:, 0])]])
+        if rings:
+            hulls[name] = rings
+    if len(hulls) <= MAX_REGION_LABELS:       # each region named once, in the view it fills most
+        labels = [(name, max(rings, key=_ring_area)) for name, rings in hulls.items()]
     else:
         labels = []
         names = list(samples.region_names)
         for group, members in region_groups(names).items():
-            rings = [hulls[names[r]] for r in members if names[r] in hulls]
+            rings = [ring for r in members if names[r] in hulls for ring in hulls[names[r]]]
             if rings:   # a group spread over several views is labelled in each view it fills
                 for view in _views_of_rings(rings, panels):
                     labels.append((f"{group} ({len(members)})", np.vstack(view)))
     out = MapLayout(cells, depth, np.argsort(depth, kind="stable"), panels, hulls, labels)
     _LAYOUTS[samples] = out
     return out
+
+
+def _ring_area(ring: np.ndarray) -> float:
+    """The area a closed ring (M, 2) encloses (the shoelace formula; 0 for fewer than 3 points)."""
+    x, y = ring[:, 0], ring[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
 
 
 def _views_of_rings(rings, panels) -> list[list[np.ndarray]]:
