@@ -357,3 +357,111 @@ def test_the_run_in_3d_draws_each_tripod(tmp_path):
     vertices, faces = drawn["tripod:stand"]
     np.testing.assert_allclose(vertices, np.vstack([p.vertices for p in parts]), atol=1e-9)
     assert len(faces) == sum(len(p.faces) for p in parts) and faces.max() == len(vertices) - 1
+
+
+# --------------------------------------------------------------------------------------------
+# Tripods in the constraints: out of the keep-outs, apart from one another
+# --------------------------------------------------------------------------------------------
+def two_tripods(folder, keep_out=""):
+    """The wall scene with the viewer on the floor zone too: two tripods 0.6 m apart."""
+    text = write(folder, legs=4).read_text().replace(
+        'position_m = [2.0, 0.0, 0.55]\ntarget_m = [0.0, 0.0, 0.5]',
+        'mount = "floor"\nposition_m = [1.2, -0.5, 0.9]\ntarget_m = [0.0, 0.0, 0.5]')
+    (folder / "exp.toml").write_text(text + keep_out)
+    return config.load(folder / "exp.toml")
+
+
+def test_the_constraints_read_the_legs_of_the_tripod_mesh(tmp_path):
+    """`tripod_legs` (NumPy and JAX) gives the legs `tripod_cylinders` builds the mesh from."""
+    import jax.numpy as jnp
+
+    from vdo import constraints
+
+    exp = two_tripods(tmp_path)
+    cams = cameras_of(exp.camera_specs, exp.rails)
+    table = constraints.tripod_table(cams, exp.camera_specs, exp.mounts)
+    assert table["has"].tolist() == [True, True]
+    pos, axes, pans = (np.array([getattr(c, a) for c in cams], float) for a in ("position", "optical_axis", "pan"))
+    for xp in (np, jnp):
+        top, feet = constraints.tripod_legs(xp.asarray(pos), xp.asarray(axes), xp.asarray(pans),
+                                            {k: xp.asarray(v) for k, v in table.items()}, xp=xp)
+        for c, cam in enumerate(cams):
+            legs = tripod_cylinders(cam, exp.mount("floor").tripod)[:4]
+            np.testing.assert_allclose(np.asarray(top[c]), legs[0][0], atol=1e-12)
+            np.testing.assert_allclose(np.asarray(feet[c]), [foot for _, foot, _ in legs], atol=1e-12)
+            assert table["radius"][c] == pytest.approx(legs[0][2])
+
+
+def test_segment_distance_against_dense_sampling():
+    """`segment_distance` against the least distance between 2001 points on each segment, on
+    random, parallel, touching and end-to-end segments."""
+    from vdo.constraints import segment_distance
+
+    rng = np.random.default_rng(5)
+    cases = [tuple(rng.normal(size=(4, 3))) for _ in range(30)]
+    p0, p1 = np.zeros(3), np.array([1.0, 0, 0])
+    cases += [(p0, p1, p0 + [0.3, 0.2, 0], p1 + [0.3, 0.2, 0]),        # parallel, overlapping
+              (p0, p1, [1.5, 0.1, 0.0], [2.5, 0.1, 0.0]),               # parallel, end to end
+              (p0, p1, [0.5, -1, 0.0], [0.5, 1, 0.0]),                  # crossing: 0
+              (p0, p0, [0.0, 1.0, 0.0], [1.0, 1.0, 0.0])]               # a point and a segment
+    s = np.linspace(0, 1, 2001)[:, None]
+    for a, b, c, d in cases:
+        a, b, c, d = (np.asarray(x, float) for x in (a, b, c, d))
+        P, Q = a + s * (b - a), c + s * (d - c)
+        brute = np.sqrt(((P[:, None] - Q[None]) ** 2).sum(-1)).min()
+        step = (np.linalg.norm(b - a) + np.linalg.norm(d - c)) / 2000
+        assert segment_distance(a, b, c, d) <= brute + 1e-12
+        assert segment_distance(a, b, c, d) >= brute - step
+
+
+def test_a_tripod_foot_in_a_keep_out_is_a_broken_check_and_a_penalty_the_gradient_leaves(tmp_path):
+    """A keep-out box 0.2 m square and 0.05 m high around one foot of the "stand" tripod, 0.08 m
+    of it on one side in x: its check is broken by the foot's horizontal depth, 0.08 m (a foot leaves the box across the
+    floor; the leg above it lies less deep); the penalty is positive, and its JAX gradient in the
+    camera's position matches central differences and moves the foot out across the floor. The
+    two tripods' clearance check equals the least distance between their legs' sampled axes
+    minus both radii."""
+    import jax
+    import jax.numpy as jnp
+
+    from vdo import constraints
+    from vdo.core.configure import configure
+
+    configure()                                  # float64 JAX, as the commands run it
+    exp = two_tripods(tmp_path)
+    cams = cameras_of(exp.camera_specs, exp.rails)
+    foot = tripod_cylinders(cams[1], exp.mount("floor").tripod)[1][1]
+    box = (f'\n[[keep_out]]\nname = "pit"\nbox_min_m = [{foot[0] - 0.08}, {foot[1] - 0.1}, -1.0]\n'
+           f"box_max_m = [{foot[0] + 0.12}, {foot[1] + 0.1}, 0.05]\n")
+    exp = two_tripods(tmp_path, box)
+    table = constraints.tripod_table(cams, exp.camera_specs, exp.mounts)
+    checks = constraints.tripod_checks(cams, table, exp.keep_outs, clearance=0.05)
+    pit = {e["cameras"][0]: e for e in checks if e["constraint"] == "tripod_keep_out"}
+    assert pit["stand"]["value"] == pytest.approx(0.08, abs=1e-9) and not pit["stand"]["met"]
+    assert pit["viewer"]["met"]
+    apart = next(e for e in checks if e["constraint"] == "tripod_clearance")
+    pos, axes, pans = (np.array([getattr(c, a) for c in cams], float) for a in ("position", "optical_axis", "pan"))
+    top, feet = constraints.tripod_legs(pos, axes, pans, table, xp=np)
+    s = np.linspace(0, 1, 1001)[:, None]
+    legs = [[top[c] + s * (f - top[c]) for f in feet[c]] for c in range(2)]
+    brute = min(np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1)).min() for a in legs[0] for b in legs[1])
+    assert apart["value"] == pytest.approx(brute - 2 * table["radius"][0], abs=2e-3)
+    lows, highs = (jnp.asarray(np.array([getattr(k, a) for k in exp.keep_outs])) for a in ("box_min", "box_max"))
+    tab = {k: jnp.asarray(v) for k, v in table.items()}
+
+    def penalty(p):
+        return constraints.tripod_penalty(*constraints.tripod_legs(p, jnp.asarray(axes), jnp.asarray(pans), tab),
+                                          tab, lows, highs, 0.05, 0.01)
+
+    P = jnp.asarray(pos)
+    assert float(penalty(P)) > 0
+    grad = np.asarray(jax.grad(penalty)(P))
+    for k in range(3):
+        h = np.zeros_like(pos)
+        h[1, k] = 1e-6
+        fd = (float(penalty(P + h)) - float(penalty(P - h))) / 2e-6
+        assert grad[1, k] == pytest.approx(fd, rel=1e-4, abs=1e-6)
+    assert np.linalg.norm(grad[1, :2]) > 0 and abs(grad[0]).max() == 0   # across the floor; the viewer untouched
+    step = -grad[1, :2] / np.linalg.norm(grad[1, :2])
+    assert float(penalty(P.at[1, :2].add(0.01 * step))) < float(penalty(P))   # a descent direction
+    assert float(penalty(P.at[1, :2].add(0.1 * step))) < 1e-3 * float(penalty(P))  # past the box's 0.08 m

@@ -17,6 +17,8 @@ JAX, and exact checks for the report.
                 (minus 1 %, and at most 1 - max_obscuration is required);
 * clearance:    camera bodies keep `clearance` metres from every mesh and from each other;
 * keep-out:     no optical centre inside a `[[keep_out]]` box (counted with the clearance);
+* tripods:      no tripod leg inside a keep-out box, and two tripods' legs the clearance apart
+                (`tripod_penalty`, counted with the clearance; `tripod_checks`);
 * rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
 * shadows:      camera bodies do not shadow the regions from the lights (lights are not variables:
                 the bodies keep off the rays from the lit samples to the panels).
@@ -273,6 +275,147 @@ def keep_out_checks(cameras, keep_outs) -> list[dict]:
     return [_entry("keep_out", float(depth[c, b]), 0.0, "m inside", "max", cameras=[cam.name],
                    keep_out=box.name)
             for c, cam in enumerate(cameras) for b, box in enumerate(keep_outs)]
+
+
+TRIPOD_LEG_POINTS = 9      # points along each tripod leg (top casting to foot) in the smooth penalty
+TRIPOD_CHECK_POINTS = 65   # ... in the exact keep-out check (a leg of 1.5 m: every 2.3 cm)
+
+
+def tripod_table(cameras, camera_specs, mounts) -> dict | None:
+    """The constants of each camera's tripod legs (`vdo.scene.tripod_cylinders`, whose formula
+    `tripod_legs` repeats for the penalty and the checks), arrays over `cameras`: has (C,) bool
+    (the camera stands on a zone [[mount]] with a [mount.tripod]), back (C,) m (optical centre to
+    the body's centre along the optical axis: lens length + half the body depth), drop (C,) m
+    (body centre down to the top casting: half the body height + head_m), floor (C,) m, spread
+    (C,) m, angles (C, L) rad (azimuth + 2 pi k / legs from the pan, the last leg repeated up to
+    the most legs L) and radius (C,) m (the legs'). None when no camera stands on a tripod."""
+    from vdo.meshes.hardware import BODY_SIZE, lens_length
+
+    mount_of = {s.name: s.mount for s in camera_specs}
+    specs = {m.name: m.tripod for m in mounts if m.tripod is not None}
+    tripod = [specs.get(mount_of.get(c.name)) for c in cameras]
+    if not any(t is not None for t in tripod):
+        return None
+    most = max(t.legs for t in tripod if t is not None)
+    blank = dict(legs=1, head=0.0, floor_z=0.0, spread=0.0, azimuth=0.0, leg_diameter=0.0)
+    rows = [blank if t is None else dict(legs=t.legs, head=t.head, floor_z=t.floor_z, spread=t.spread,
+                                         azimuth=t.azimuth, leg_diameter=t.leg_diameter) for t in tripod]
+    angles = np.array([[r["azimuth"] + 2 * np.pi * min(k, r["legs"] - 1) / r["legs"] for k in range(most)]
+                       for r in rows])
+    return dict(has=np.array([t is not None for t in tripod]),
+                back=np.array([lens_length(c.focal_length) + BODY_SIZE[2] / 2 for c in cameras]),
+                drop=np.array([BODY_SIZE[1] / 2 + r["head"] for r in rows]),
+                floor=np.array([r["floor_z"] for r in rows]), spread=np.array([r["spread"] for r in rows]),
+                angles=angles, radius=np.array([r["leg_diameter"] / 2 for r in rows]))
+
+
+def tripod_legs(positions, axes, pans, table, xp=jnp):
+    """Each camera's tripod legs as segments: tops (C, 3) and feet (C, L, 3), m (`tripod_table`;
+    the formula of `vdo.scene.tripod_cylinders`): the top casting T = C - back z_c - drop e_z below
+    the body, feet on the floor at spread (cos phi_k, sin phi_k) from the point below T, phi_k =
+    pan + angles_k. `positions` (C, 3) the optical centres, `axes` (C, 3) the optical axes z_c,
+    `pans` (C,) rad; `xp` numpy or jax.numpy."""
+    top = positions - table["back"][:, None] * axes
+    top = top - xp.stack([xp.zeros_like(table["drop"]), xp.zeros_like(table["drop"]), table["drop"]], axis=-1)
+    phi = pans[:, None] + table["angles"]
+    feet = xp.stack([top[:, :1] + table["spread"][:, None] * xp.cos(phi),
+                     top[:, 1:2] + table["spread"][:, None] * xp.sin(phi),
+                     xp.broadcast_to(table["floor"][:, None], phi.shape)], axis=-1)
+    return top, feet
+
+
+def _leg_points(top, feet, count: int, xp=jnp):
+    """(C, L count, 3) `count` points along each leg, top to foot."""
+    s = xp.linspace(0.0, 1.0, count)
+    pts = top[:, None, None, :] + s[None, None, :, None] * (feet - top[:, None, :])[:, :, None, :]
+    return pts.reshape(top.shape[0], -1, 3)
+
+
+def tripod_depth(top, feet, lows, highs, count: int, xp=jnp):
+    """(C, B) how deep (m) each tripod's legs reach into each keep-out box: the greatest over
+    `count` points along each leg of `keep_out_depth`, except at the feet, which stand on the
+    floor whatever the pose: a foot's depth is the horizontal one, min over the x and y faces,
+    where the floor's height lies within the box (else it is outside), so that the remedy it
+    points to is a move across the floor."""
+    pts = _leg_points(top, feet, count, xp)[:, :, None, :]             # (C, P, 1, 3)
+    depth = xp.min(xp.minimum(pts - lows[None, None], highs[None, None] - pts), axis=-1).max(axis=1)
+    f = feet[:, :, None, :]                                             # (C, L, 1, 3)
+    flat = xp.min(xp.minimum(f[..., :2] - lows[None, None, :, :2], highs[None, None, :, :2] - f[..., :2]), axis=-1)
+    on = (f[..., 2] >= lows[None, None, :, 2]) & (f[..., 2] <= highs[None, None, :, 2])
+    return xp.maximum(depth, xp.where(on, flat, -KEEP_OUT_FAR).max(axis=1))
+
+
+def tripod_penalty(top, feet, table, lows, highs, clearance: float, margin: float):
+    """The tripods' smooth penalty, with the clearance's: Σ over the TRIPOD_LEG_POINTS points
+    along every leg and every keep-out box of (max(0, depth + margin) / KEEP_OUT_SCALE)^2
+    (`keep_out_depth`; and each foot's horizontal depth, as `tripod_depth`), and over the points of two different tripods, (max(0, g - d) / g)^2 with
+    g = clearance + margin + both legs' radii, d their distance (m): a keep-out holds no
+    equipment, and two tripods keep the bodies' clearance apart (`tripod_checks` judges both
+    exactly). C^1 in the poses (hinges squared)."""
+    has = jnp.asarray(table["has"], dtype=float)
+    pts = _leg_points(top, feet, TRIPOD_LEG_POINTS)                      # (C, P, 3)
+    total = 0.0
+    if lows.shape[0]:
+        pts3 = pts[:, :, None, :]
+        depth = jnp.min(jnp.minimum(pts3 - lows[None, None], highs[None, None] - pts3), axis=-1)   # (C, P, B)
+        f = feet[:, :, None, :]
+        flat = jnp.min(jnp.minimum(f[..., :2] - lows[None, None, :, :2], highs[None, None, :, :2] - f[..., :2]), axis=-1)
+        on = (f[..., 2] >= lows[None, None, :, 2]) & (f[..., 2] <= highs[None, None, :, 2])
+        feet_depth = jnp.where(on, flat, -KEEP_OUT_FAR)                 # (C, L, B): `tripod_depth`'s feet
+        total = total + jnp.sum(has[:, None, None] * (jnp.maximum(depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2) \
+            + jnp.sum(has[:, None, None] * (jnp.maximum(feet_depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2)
+    n = pts.shape[0]
+    if n > 1 and clearance > 0:
+        gap = clearance + margin + table["radius"][:, None] + table["radius"][None, :]   # (C, C)
+        d = jnp.sqrt(jnp.sum((pts[:, None, :, None, :] - pts[None, :, None, :, :]) ** 2, -1) + SMOOTH_SQRT)
+        hinge = (jnp.maximum(gap[:, :, None, None] - d, 0.0) / gap[:, :, None, None]) ** 2
+        pair = has[:, None] * has[None, :] * (1.0 - jnp.eye(n))
+        total = total + 0.5 * jnp.sum(pair[:, :, None, None] * hinge)
+    return total
+
+
+def segment_distance(p0, p1, q0, q1) -> np.ndarray:
+    """The least distance (m) between the segments p0-p1 and q0-q1 ((..., 3) each): the closest
+    points' parameters s, t in [0, 1] from the normal equations, clamped and re-projected
+    (exact for segments, parallel ones included)."""
+    u, v, w = p1 - p0, q1 - q0, p0 - q0
+    a, b, c = np.sum(u * u, -1), np.sum(u * v, -1), np.sum(v * v, -1)
+    d, e = np.sum(u * w, -1), np.sum(v * w, -1)
+    den = a * c - b * b
+    s = np.clip(np.where(den > 1e-15 * np.maximum(a * c, TINY), (b * e - c * d) / np.maximum(den, TINY), 0.0), 0, 1)
+    t = np.clip((b * s + e) / np.maximum(c, TINY), 0, 1)
+    s = np.clip((b * t - d) / np.maximum(a, TINY), 0, 1)
+    return np.linalg.norm(w + s[..., None] * u - t[..., None] * v, axis=-1)
+
+
+def tripod_checks(cameras, table, keep_outs, clearance: float) -> list[dict]:
+    """The tripods' exact checks: a "tripod_keep_out" entry per tripod and keep-out box, the
+    depth (m) of its legs inside the box (`tripod_depth` over TRIPOD_CHECK_POINTS points along
+    each leg), met when <= 0; and a "tripod_clearance" entry per two tripods, the
+    least distance between their legs' surfaces (`segment_distance` minus both radii), met when
+    >= `clearance` (the bodies' clearance; none when it is 0)."""
+    if table is None:
+        return []
+    top, feet = tripod_legs(np.array([c.position for c in cameras], float),
+                            np.array([c.optical_axis for c in cameras], float),
+                            np.array([c.pan for c in cameras], float), table, xp=np)
+    has = np.flatnonzero(table["has"])
+    out = []
+    if keep_outs:
+        lows, highs = (np.clip(np.array([getattr(k, a) for k in keep_outs]), -KEEP_OUT_FAR, KEEP_OUT_FAR)
+                       for a in ("box_min", "box_max"))
+        depth = tripod_depth(top, feet, lows, highs, TRIPOD_CHECK_POINTS, xp=np)
+        out += [_entry("tripod_keep_out", float(depth[c, b]), 0.0, "m inside", "max",
+                       cameras=[cameras[c].name], keep_out=box.name) for c in has for b, box in enumerate(keep_outs)]
+    if clearance > 0:
+        for k, i in enumerate(has):
+            for j in has[k + 1:]:
+                L = feet.shape[1]
+                gap = segment_distance(np.broadcast_to(top[i], (L, L, 3)), feet[i][:, None, :],
+                                       np.broadcast_to(top[j], (L, L, 3)), feet[j][None, :, :])
+                out.append(_entry("tripod_clearance", float(gap.min() - table["radius"][i] - table["radius"][j]),
+                                  clearance, "m", "min", cameras=[cameras[i].name, cameras[j].name]))
+    return out
 
 
 def shadow_penalty(centres, radii, samples, panels, margin: float, pairs=None, weight=None):

@@ -92,7 +92,8 @@ log = logging.getLogger(__name__)
 
 def layout_checks(state: LayoutState) -> list[dict]:
     """Every constraint check of `vdo optimize` (`vdo.constraints.check`: axis angles, clearance,
-    obscuration, field of view, shadows of the camera bodies, horizontal, on the rail) on a layout
+    obscuration, field of view, shadows of the camera bodies, horizontal, on the rail; and
+    `vdo.constraints.tripod_checks`: tripods out of the keep-outs and apart) on a layout
     as it stands: the one verdict that `vdo evaluate`, `vdo design` and the optimizer's report
     share. Regions are assigned as in the optimizer (`vdo.constraints.assignments`), the least
     in-image fraction of an assigned region is 1 - max_obscuration, clearances are measured to
@@ -111,7 +112,9 @@ def layout_checks(state: LayoutState) -> list[dict]:
     return constraints.check(cameras, obstacle_visibility(geometry, cameras), samples, assigned, pairs, min_angles,
                              clearances(cameras, tree), opt.clearance, opt.max_obscuration,
                              light_lost(lit_without, state.illumination.lit, samples), rails_u,
-                             roll_free="roll" in opt.free, max_angles=max_angles)
+                             roll_free="roll" in opt.free, max_angles=max_angles) \
+        + constraints.tripod_checks(cameras, constraints.tripod_table(cameras, exp.camera_specs, exp.mounts),
+                                    exp.keep_outs, opt.clearance)
 
 
 def check_objective(user_objective, exp: Experiment) -> None:

@@ -103,6 +103,7 @@ class Problem:
         self.run = reference.run if reference is not None else Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
+        self.tripods = constraints.tripod_table(self.cams0, exp.camera_specs, exp.mounts)
         paths = self._paths()
         self.near_sets = constraints.near_points(
             self.scene_points, paths, reach=float(np.abs(self.body_local).max()) * 1.8
@@ -155,6 +156,7 @@ class Problem:
             pairs=jnp.asarray(self.pairs), min_angles=jnp.asarray(self.min_angles + ANGLE_MARGIN),
             max_angles=jnp.asarray(np.minimum(self.max_angles - ANGLE_MARGIN, np.pi)),
             fov=self.fov, body_local=self.body_local,
+            tripods=None if self.tripods is None else {k: jnp.asarray(v) for k, v in self.tripods.items()},
             keep_out=tuple(jnp.asarray(np.clip(np.array([getattr(k, a) for k in self.exp.keep_outs]).reshape(-1, 3),
                                                -constraints.KEEP_OUT_FAR, constraints.KEEP_OUT_FAR))
                            for a in ("box_min", "box_max")),
@@ -385,7 +387,10 @@ class Problem:
                 fov["ramp"], data["distortion"]), fov["limit"], FOV_MARGIN),
             clearance=constraints.clearance_penalty(
                 constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance)
-            + constraints.keep_out_penalty(pos, *data["keep_out"], CLEARANCE_MARGIN),
+            + constraints.keep_out_penalty(pos, *data["keep_out"], CLEARANCE_MARGIN)
+            + (0.0 if data["tripods"] is None else constraints.tripod_penalty(
+                *constraints.tripod_legs(pos, R[:, 2, :], pan, data["tripods"]), data["tripods"],
+                *data["keep_out"], self.exp.optimize.clearance, CLEARANCE_MARGIN)),
             obscuration=self.obscuration.penalty(jnp.concatenate([pos, pan[:, None], tilt[:, None]], axis=1))
             if obscured else 0.0,
             shadow=0.0 if data["lit"] is None or data["spheres"] is None else constraints.shadow_penalty(
@@ -410,7 +415,8 @@ class Problem:
                                  opt.clearance, opt.max_obscuration, light_lost(self.lit_without_cameras, state.illumination.lit, self.samples),
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
                                  fov_limits=self.fov_limits, max_angles=self.max_angles) \
-            + constraints.keep_out_checks(state.cameras, self.exp.keep_outs)
+            + constraints.keep_out_checks(state.cameras, self.exp.keep_outs) \
+            + constraints.tripod_checks(state.cameras, self.tripods, self.exp.keep_outs, opt.clearance)
 
     def _fov_limits(self, entries) -> np.ndarray:
         """(C, R) least in-image fraction of each assigned region: 1 - max_obscuration, or what
