@@ -221,7 +221,8 @@ def test_command_runs_reduced(path, command, tmp_path, monkeypatch):
         out = tmp_path / ("store" if command == "sweep" else f"run{k}")
         full = [*argv, *FLAGS.get(command, []), "--out", str(out)]
         status = main(full)
-        if command == "validate":   # 2 seeds judge no ratio: 1 (a ratio outside) is a finished run
+        if command == "validate":   # 2 seeds leave a ratio inconclusive unless it is wild (above
+            # 4.2 over 32 ratios at 95 % joint confidence, docs/validation.md): then status 1
             assert status in (0, 1), full
         else:
             assert status == 0, full

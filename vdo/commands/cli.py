@@ -261,14 +261,12 @@ def _render(exp, args):
 
 
 def _validate(spec, args):
-    from vdo.commands.validate import print_table, validate_cases
+    from vdo.commands.validate import print_table, validate_cases, verdict_line
 
     summary = validate_cases(spec, Path(args.out), seeds=args.seeds, overwrite=args.overwrite)
     if not args.quiet:
         print_table(summary["rows"])
-        print(f"{'all ratios in [0.8, 1.25]' if summary['passed'] else 'SOME RATIOS OUTSIDE [0.8, 1.25]'}"
-              f"; noise-free check {'passed' if summary['noise_free_passed'] else 'FAILED'}; "
-              f"{summary['wall_seconds']:.0f} s; wrote {Path(args.out).resolve()}")
+        print(f"{verdict_line(summary)}; {summary['wall_seconds']:.0f} s; wrote {Path(args.out).resolve()}")
     return 0 if summary["passed"] and summary["noise_free_passed"] else 1
 
 

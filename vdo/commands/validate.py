@@ -10,7 +10,7 @@ The run folder (atomic, `vdo.core.runfolder`: appears whole or not at all):
                        (validation_strain.png: the same for the strain cases)
     estimates.csv      every measured U (µm) per case and seed (estimates_strain.csv: strains)
     summary.json       the convention, per-case diagnostics (noise-free errors, speckle and shift in
-                       pixels, times), wall time, pass/fail
+                       pixels, times), wall time, the verdicts' counts, pass/fail
     images/<case>.png  the noise-free reference image of each camera
     validation.toml    a copy of the validation file
     report.html        the run's page (`vdo.outputs.html_report`)
@@ -25,18 +25,24 @@ import shutil
 
 import numpy as np
 
-from vdo.dic.validate import BAND, STRAIN_AXES, UM, ValidationResult, ValidationSpec, noise_free_images, run_cases
+from vdo.dic.validate import (BAND, CONFIDENCE, STRAIN_AXES, UM, ValidationResult, ValidationSpec,
+                              noise_free_images, run_cases, seeds_to_decide)
 
 CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
               "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
-              "sigma_linear_um", "unit", "processing", "sigma_predicted_all_views_um"]
+              "sigma_linear_um", "unit", "processing", "sigma_predicted_all_views_um",
+              "ratio_joint_low", "ratio_joint_high", "verdict", "seeds_to_decide"]
 CONVENTION = ("sigma_predicted_um: vdo.physics.predict, the Cramer-Rao bound for ONE noisy image against a "
               "noise-free reference, for the correlated patch. sigma_measured_um: standard "
               "deviation over the seeds of the correlated displacement, reference and deformed "
               "images both noisy (reference='images'). sigma_expected_um = sqrt(2) * "
               "sigma_predicted_um. ratio = sigma_measured_um / sigma_expected_um (1 when the model "
               "is right; the requirement is [0.8, 1.25]). ratio_ci95_*: the 95% interval of the "
-              "ratio from the seed count alone. bias_um: mean error (measured - imposed). "
+              "ratio from the seed count alone (chi-square, n_seeds - 1 degrees of freedom). "
+              "ratio_joint_*: the interval at 95% confidence jointly over the run's ratios "
+              "(Bonferroni); verdict: within (it lies inside [0.8, 1.25]), outside (wholly outside: "
+              "the run fails) or inconclusive (it holds a band edge: too few seeds to tell; "
+              "seeds_to_decide: the seeds that would decide it at the same ratio). bias_um: mean error (measured - imposed). "
               "rms_error_um: rms error about the imposed displacement. sigma_linear_um: the "
               "correlation's own linear noise propagation (CorrelationResult.covariance) at the "
               "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
@@ -101,7 +107,8 @@ def write_validation(result: ValidationResult, out, overwrite: bool = False) -> 
                      f"{spec.name}: {seeds} seeds per case" + (" (strain)" if suffix else ""))
         shutil.copyfile(spec.path, tmp / "validation.toml")
         summary = {"name": spec.name, "config": str(spec.path), "seeds": seeds,
-                   "convention": CONVENTION, "band": list(BAND), "passed": result.passed,
+                   "convention": CONVENTION, "band": list(BAND), "confidence": CONFIDENCE,
+                   "verdicts": result.verdicts, "passed": result.passed,
                    "noise_free_passed": result.noise_free_passed,
                    "wall_seconds": round(result.wall_seconds, 1),
                    "cases": [c.info for c in result.cases],
@@ -158,11 +165,52 @@ def write_csv(rows: list[dict], path) -> None:
 
 
 def print_table(rows: list[dict]) -> None:
+    """One line per ratio: the sigmas, the ratio, its own 95 % interval, the joint interval its
+    verdict rests on (`vdo.dic.validate.judge`) and the verdict unless "within"."""
     print(f"{'case':<24}{'axis':>5}{'pred um':>10}{'sqrt2*pred':>12}{'meas um':>10}{'ratio':>8}"
-          f"{'95% CI':>15}{'bias um':>10}{'n':>6}")
+          f"{'95% CI':>15}{'joint CI':>15}{'bias um':>10}{'n':>6}")
     for r in rows:
-        flag = "" if BAND[0] <= r["ratio"] <= BAND[1] else "  OUTSIDE"
+        flag = {"within": "", "outside": "  OUTSIDE",
+                "inconclusive": f"  INCONCLUSIVE ({seeds_needed([r])})"}[r["verdict"]]
+        joint = f"{about(r['ratio_joint_low'])}-{about(r['ratio_joint_high'])}"
         print(f"{r['case']:<24}{r['axis']:>5}{r['sigma_predicted_um']:>10.4f}"
               f"{r['sigma_expected_um']:>12.4f}{r['sigma_measured_um']:>10.4f}{r['ratio']:>8.3f}"
-              f"{r['ratio_ci95_low']:>8.3f}-{r['ratio_ci95_high']:.3f}{r['bias_um']:>10.4f}"
-              f"{r['n_seeds']:>6}{flag}")
+              f"{r['ratio_ci95_low']:>8.3f}-{r['ratio_ci95_high']:.3f}{joint:>15}"
+              f"{r['bias_um']:>10.4f}{r['n_seeds']:>6}{flag}")
+
+
+def about(n: float) -> str:
+    """An interval's bound as the console shows it: 3 significant digits, a whole number from
+    1000 on (1220 rather than 1.22e+03)."""
+    return f"{n:.3g}" if n < 1000 else f"{n:.0f}"
+
+
+def round_up(n: int, digits: int = 2) -> int:
+    """`n` rounded up to `digits` significant digits: 47747 -> 48000, 16 -> 16."""
+    step = 10 ** max(len(str(n)) - digits, 0)
+    return -(-n // step) * step
+
+
+def seeds_needed(rows: list[dict]) -> str:
+    """The seeds that would decide these inconclusive rows at their measured ratios (their
+    `seeds_to_decide`, None: never, a ratio on a band edge), as words, rounded up to 2
+    significant digits (the ratio they rest on is itself uncertain)."""
+    counts = sorted(r["seeds_to_decide"] for r in rows if r["seeds_to_decide"] is not None)
+    if not counts:
+        return "no seed count decides a ratio on a band edge"
+    low, high = (str(round_up(c)) for c in (counts[0], counts[-1]))
+    return f"~{low if low == high else f'{low}-{high}'} seeds would decide {'it' if len(rows) == 1 else 'them'}"
+
+
+def verdict_line(summary: dict) -> str:
+    """The console's verdict on a run (summary.json's): the counts of ratios outside, inconclusive
+    and within the band at the joint confidence; with inconclusive ones, the seeds that would
+    decide them at their ratios and those that show a ratio of 1 within (`seeds_to_decide`); the
+    noise-free check."""
+    n, rows = summary["verdicts"], summary["rows"]
+    open_rows = [r for r in rows if r["verdict"] == "inconclusive"]
+    hint = (f" ({seeds_needed(open_rows)}; --seeds {seeds_to_decide(1.0, ratios=len(rows))} shows "
+            "a ratio of 1 within)") if open_rows else ""
+    return (f"ratios against [{BAND[0]:g}, {BAND[1]:g}] at {CONFIDENCE:.0%} joint confidence: "
+            f"{n['outside']} OUTSIDE, {n['inconclusive']} INCONCLUSIVE{hint}, {n['within']} within; "
+            f"noise-free check {'passed' if summary['noise_free_passed'] else 'FAILED'}")
