@@ -42,7 +42,8 @@ CONVENTION = ("sigma_predicted_um: vdo.physics.predict, the Cramer-Rao bound for
               "ratio_joint_*: the interval at 95% confidence jointly over the run's ratios "
               "(Bonferroni); verdict: within (it lies inside [0.8, 1.25]), outside (wholly outside: "
               "the run fails) or inconclusive (it holds a band edge: too few seeds to tell; "
-              "seeds_to_decide: the seeds that would decide it at the same ratio). bias_um: mean error (measured - imposed). "
+              "seeds_to_decide: the seeds that would decide it at the same ratio). bias_um: mean "
+              "error (measured - imposed). "
               "rms_error_um: rms error about the imposed displacement. sigma_linear_um: the "
               "correlation's own linear noise propagation (CorrelationResult.covariance) at the "
               "modelled noise level, on the noise-free images. Strain cases (a homogeneous strain imposed "
@@ -199,7 +200,8 @@ def seeds_needed(rows: list[dict]) -> str:
     if not counts:
         return "no seed count decides a ratio on a band edge"
     low, high = (str(round_up(c)) for c in (counts[0], counts[-1]))
-    return f"~{low if low == high else f'{low}-{high}'} seeds would decide {'it' if len(rows) == 1 else 'them'}"
+    span = low if low == high else f"{low}-{high}"
+    return f"~{span} seeds would decide {'it' if len(rows) == 1 else 'them'}"
 
 
 def verdict_line(summary: dict) -> str:
