@@ -132,6 +132,7 @@ class RenderResult:
                  contrast (`region_photometry`, docs/photometry.md)
     seconds      camera name -> render time (s)
     pairs        the stereo pairs of the calibration files (`vdo.formats.export.default_pairs`)
+    no_pair      without a pair, why and the fix (`vdo.formats.export.no_pair_message`); else ""
     """
 
     state: object                 # vdo.state.LayoutState
@@ -144,6 +145,7 @@ class RenderResult:
     seconds: dict
     total_seconds: float
     pairs: list
+    no_pair: str
 
     @property
     def experiment(self):
@@ -201,7 +203,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     camera i keeps its seed."""
     import dataclasses
 
-    from vdo.formats.export import default_pairs
+    from vdo.formats.export import default_pairs, no_pair_message
     from vdo.physics.lighting import exposure_factors, photometry
     from vdo.core.progress import bar
     from vdo.state import bodies, layout_state, prepare
@@ -229,6 +231,7 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
                                      ("in_front", "in_image", "facing", "unoccluded")})
         state = dataclasses.replace(state, cameras=tuple(cameras[i] for i in chosen), visibility=vis)
     stereo = default_pairs(exp, list(state.cameras), vis, geometry.samples, pairs)
+    no_pair = "" if stereo else no_pair_message(exp, list(state.cameras), vis, geometry.samples)
     pattern = geometry.speckle.pattern
     build = build_dic_scene if dic else build_render_scene
     scene = build(exp, list(geometry.meshes), list(geometry.region_faces), bodies(exp, cameras), pattern)
@@ -252,4 +255,5 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
                              normalise(pattern), exp.speckle.texel, None if dic else spp)
     return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,
                         photometry=rows, seconds=seconds,
-                        total_seconds=time.perf_counter() - started, pairs=stereo)
+                        total_seconds=time.perf_counter() - started, pairs=stereo,
+                        no_pair=no_pair)

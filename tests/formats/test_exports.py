@@ -334,7 +334,68 @@ def test_write_all_skips_what_a_format_cannot_hold(experiment, tmp_path, caplog)
 
     path, cams = experiment
     written = write_all(list(cams.values()), [StereoPair(cams["left"], cams["right"])],
-                        tmp_path / "calibration", path)
+                        tmp_path / "calibration", path, no_pair="")
     assert set(written) == {"opencv", "matchid", "dice"}
     assert sorted(p.name for p in (tmp_path / "calibration").iterdir()) == ["dice", "matchid", "opencv"]
     assert "vic3d calibration not written" in caplog.text and "tangential" in caplog.text
+
+
+@pytest.fixture
+def unpaired(experiment):
+    """The plate's cameras with [optimize] assign_fraction = 0.99: only 'right' (all of the plate)
+    is assigned it, 'left' (94 %) and 'centre' (81 %) are not, so no pair is assigned a common
+    region (as an all-round rig's cameras, each seeing less than half of a region)."""
+    path, cams = experiment
+    path.write_text(path.read_text() + "\n[optimize]\nassign_fraction = 0.99\n")
+    return path, cams
+
+
+def test_no_default_pair_names_the_flag_and_a_pair(unpaired, tmp_path, capsys):
+    """No default pair: the one-line error says why and names the fix, --pairs with the two
+    cameras (axes within 60 deg) that see the most of the plate together, computed here from the
+    ray cast; that pair then exports."""
+    from conftest import raycast
+
+    path, _ = unpaired
+    exp, samples, cams, _, vis = raycast(path)
+    seen = np.asarray(vis.visible, dtype=float) * samples.area
+    together = seen @ np.asarray(vis.visible, dtype=float).T / samples.area.sum()
+    assert np.sum(together.diagonal() >= exp.optimize.assign_fraction) == 1
+    axes = np.array([c.optical_axis for c in cams])
+    ok = np.degrees(np.arccos(np.clip(axes @ axes.T, -1, 1))) <= 60
+    best = max(((i, j) for i in range(len(cams)) for j in range(i + 1, len(cams)) if ok[i, j]),
+               key=lambda p: together[p])
+    pair = f"{cams[best[0]].name}:{cams[best[1]].name}"
+
+    code = cli.main(["export", str(path), "--format", "matchid", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and not (tmp_path / "o").exists()
+    assert "no two cameras are assigned a common region" in err and "assign_fraction = 0.99" in err
+    assert f"--pairs FIRST:SECOND, e.g. --pairs {pair} (together they see " \
+           f"{together[best]:.0%} of region 'top'" in err
+    assert cli.main(["export", str(path), "--format", "matchid", "--out", str(tmp_path / "o"),
+                     "--pairs", pair]) == 0
+
+
+def test_render_without_a_pair_says_how_to_name_one(unpaired, tmp_path, caplog):
+    """`vdo render`'s calibration folder without a default pair: one warning for matchid and
+    vic3d, with the fix; with no two cameras within max_pair_angle_deg sharing a view, the fix is
+    to move them."""
+    from conftest import raycast
+    from vdo.formats.export import default_pairs, no_pair_message, write_all
+
+    path, cams = unpaired
+    exp, samples, cameras, _, vis = raycast(path)
+    assert default_pairs(exp, cameras, vis, samples) == []
+    message = no_pair_message(exp, cameras, vis, samples)
+    written = write_all(list(cams.values()), [], tmp_path / "calibration", path, no_pair=message)
+    assert set(written) == {"opencv", "dice"}
+    lines = [r.getMessage() for r in caplog.records if "no stereo calibration" in r.getMessage()]
+    assert lines == [f"matchid, vic3d: no stereo calibration written: {message}"]
+    assert "--pairs FIRST:SECOND, e.g. --pairs " in message
+
+    path.write_text(path.read_text() + "\n[analysis]\nmax_pair_angle_deg = 1\n")
+    exp, samples, cameras, _, vis = raycast(path)
+    assert no_pair_message(exp, cameras, vis, samples).endswith(
+        "at most 1 deg apart, and no two such cameras see a point of a region together: move the "
+        "cameras so that two share a view, then name them with --pairs FIRST:SECOND")

@@ -520,7 +520,9 @@ def _parser() -> argparse.ArgumentParser:
     ex.add_argument("--format", required=True, help="opencv, matchid, dice or vic3d")
     ex.add_argument("--out", required=True, help="output folder (created; must be new or empty)")
     ex.add_argument("--pairs", nargs="+", metavar="FIRST:SECOND", default=None,
-                    help="stereo pairs (default: every pair that shares a field of view)")
+                    help="stereo pairs (default: cameras assigned a common region, optical "
+                         "axes at most [analysis] max_pair_angle_deg apart); each must share a "
+                         "field of view")
     ex.add_argument("--overwrite", action="store_true", help="replace a non-empty output folder")
     rp = sub.add_parser("report", help="write RUN_DIR/report.html (3D view, tables, figures)")
     rp.add_argument("run_dir", help="a run folder written by vdo")

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from vdo.core.errors import ConfigError
-from vdo.formats.export import FORMATS, camera_from_layout, default_pairs
+from vdo.formats.export import FORMATS, camera_from_layout, default_pairs, no_pair_message
 from vdo.scene import cameras_of
 
 
@@ -59,9 +59,8 @@ def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[P
     vis, samples = state.visibility, state.samples
     chosen = default_pairs(exp, cameras, vis, samples, pairs, errors_in)
     if not chosen and fmt in ("matchid", "vic3d"):
-        raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and no two "
-                                                 "cameras are assigned a common region: name the "
-                                                 "pairs with --pairs")
+        raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and "
+                                                 + no_pair_message(exp, cameras, vis, samples))
     with run_folder(out, overwrite) as tmp:
         names = [p.name for p in FORMATS[fmt](cameras, chosen, tmp, errors_in)]
     return [Path(out).resolve() / n for n in names]

@@ -78,7 +78,7 @@ def write_render(result: RenderResult, out, overwrite: bool = False) -> dict:
                 write_exr(inside(tmp / "images", f"{cam.name}.exr"), result.linear[cam.name])
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_config(tmp / "config.toml", exp)
-        write_all(cameras, result.pairs, tmp / "calibration", exp.path)
+        write_all(cameras, result.pairs, tmp / "calibration", exp.path, no_pair=result.no_pair)
         contact_sheet(result.images, exp.sensor.max_dn, tmp / "contact_sheet.png",
                       f"{exp.name}: scale {result.scale:g}, {result.spp} spp")
         with open(tmp / "photometry.csv", "w", newline="") as fh:

@@ -50,7 +50,7 @@ def write_series(plan: SeriesPlan, out, overwrite: bool = False) -> dict:
         bar.close()
         report.write_json(tmp / "layout.json", report.layout(plan.cameras))
         report.write_config(tmp / "config.toml", exp)
-        write_all(plan.cameras, plan.stereo, tmp / "calibration", exp.path)
+        write_all(plan.cameras, plan.stereo, tmp / "calibration", exp.path, no_pair=plan.no_pair)
         if plan.poses_path is not None:
             shutil.copyfile(plan.poses_path, tmp / "poses.csv")
         summary = plan.to_json()

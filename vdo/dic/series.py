@@ -88,6 +88,7 @@ class SeriesPlan:
     cameras: list[Camera]
     obstacles: list
     stereo: list                   # `vdo.formats.export.StereoPair`s
+    no_pair: str                   # without a pair, why and the fix (`no_pair_message`); else ""
     interpolation: list[dict]      # per camera and region, `_interpolation_at_scale`
     steps: list[int]
     started: float
@@ -110,7 +111,7 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
     the stereo pairs of the calibration files as (first, second) names (default: cameras
     assigned a common region), checked to share a field of view before anything is rendered.
     Bad input is refused (`ConfigError`) before the geometry is prepared."""
-    from vdo.formats.export import default_pairs
+    from vdo.formats.export import default_pairs, no_pair_message
     from vdo.geometry.keyframes import load_path_of
     from vdo.render import plan_render, render_settings, scaled_camera
     from vdo.state import bodies, layout_state, prepare
@@ -143,11 +144,12 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
     state = layout_state(geometry, cameras, predict_fields=False)
     vis = state.visibility
     stereo = default_pairs(exp, cameras, vis, geometry.samples, pairs)
+    no_pair = "" if stereo else no_pair_message(exp, cameras, vis, geometry.samples)
     floor = _interpolation_at_scale(exp, cameras, state, scale)
     return SeriesPlan(experiment=exp, poses_path=poses_path, scale=scale, spp=spp, seed=seed, dic=dic,
                       tile_pixels=plan.tile_pixels, geometry=geometry, load_path=load_path, cameras=cameras,
-                      obstacles=obstacles, stereo=stereo, interpolation=floor, steps=[0, *load_path.steps],
-                      started=started)
+                      obstacles=obstacles, stereo=stereo, no_pair=no_pair, interpolation=floor,
+                      steps=[0, *load_path.steps], started=started)
 
 
 def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:

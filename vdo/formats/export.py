@@ -18,6 +18,7 @@ import numpy as np
 
 from vdo.model.camera import Camera
 from vdo.core.errors import ConfigError
+from vdo.core.tolerances import TINY
 from vdo.formats import dice
 from vdo.formats import matchid
 from vdo.formats import opencv
@@ -35,17 +36,15 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
     (first, second) names, the lab's override, each checked to share a field of view
     (`stereo_pairs`; errors name `source`, default the experiment file)."""
     from vdo.constraints import assignments
-    from vdo.physics.measured import DEFAULT_MAX_PAIR_ANGLE_DEG
 
     if requested is not None:
         return stereo_pairs(cameras, vis.visible, None, requested, source or exp.path)
     pairs = stereo_pairs(cameras, vis.visible,
                          assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
-    limit = exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
-        else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)
+    limit = max_pair_angle(exp)
     kept, dropped = [], []
     for pair in pairs:
-        angle = math.acos(float(np.clip(pair.first.optical_axis @ pair.second.optical_axis, -1, 1)))
+        angle = axes_angle(pair.first, pair.second)
         if angle <= limit:
             kept.append(pair)
         else:
@@ -57,15 +56,63 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
     return kept
 
 
-def write_all(cameras, pairs, folder: Path, source) -> dict[str, list[Path]]:
+def max_pair_angle(exp) -> float:
+    """The largest angle between a default pair's optical axes (rad): [analysis]
+    max_pair_angle_deg, else `vdo.physics.measured`'s DEFAULT_MAX_PAIR_ANGLE_DEG."""
+    from vdo.physics.measured import DEFAULT_MAX_PAIR_ANGLE_DEG
+
+    return exp.analysis.max_pair_angle if exp.analysis.max_pair_angle is not None \
+        else math.radians(DEFAULT_MAX_PAIR_ANGLE_DEG)
+
+
+def axes_angle(first: Camera, second: Camera) -> float:
+    """The angle between two cameras' optical axes (rad), acos(a1 · a2)."""
+    return math.acos(float(np.clip(first.optical_axis @ second.optical_axis, -1, 1)))
+
+
+def no_pair_message(exp, cameras, vis, samples) -> str:
+    """Why a layout has no default stereo pair (`default_pairs` is empty) and the fix: name pairs
+    with --pairs FIRST:SECOND. The example pair is the two cameras, optical axes within
+    `max_pair_angle`, that see together the largest fraction of one region r,
+
+        f_ijr = Σ_{n in r} v_in v_jn A_n / Σ_{n in r} A_n
+
+    (v the ray cast's `visible`, A the samples' areas, the measure of
+    `vdo.constraints.assignments`); without such two cameras, the fix is to move them."""
+    visible = np.asarray(vis.visible, dtype=float)
+    limit = max_pair_angle(exp)
+    candidates = [(i, j) for i in range(len(cameras)) for j in range(i + 1, len(cameras))
+                  if axes_angle(cameras[i], cameras[j]) <= limit]
+    best, example = 0.0, None
+    for r, region in enumerate(samples.region_names):
+        mask = samples.region == r
+        area = samples.area[mask]
+        together = (visible[:, mask] * area) @ visible[:, mask].T / max(area.sum(), TINY)
+        for i, j in candidates:
+            if together[i, j] > best:
+                best, example = together[i, j], (cameras[i].name, cameras[j].name, region)
+    why = (f"no two cameras are assigned a common region (each seeing at least [optimize] "
+           f"assign_fraction = {exp.optimize.assign_fraction:g} of its area) with optical axes at most "
+           f"{math.degrees(limit):.0f} deg apart")
+    if example is None:
+        return (f"{why}, and no two such cameras see a point of a region together: move the cameras "
+                "so that two share a view, then name them with --pairs FIRST:SECOND")
+    first, second, region = example
+    return (f"{why}: name the pairs with --pairs FIRST:SECOND, e.g. --pairs {first}:{second} "
+            f"(together they see {best:.0%} of region {region!r}, the most of any two)")
+
+
+def write_all(cameras, pairs, folder: Path, source, *, no_pair: str) -> dict[str, list[Path]]:
     """Every format into folder/<format>/ (as `vdo render` writes them beside its images). A
     format that cannot hold these cameras (VIC-3D with tangential distortion, the pair formats
-    without a pair) is skipped with a warning. Returns the written paths per format."""
+    without a pair) is skipped with a warning; without a pair, one line for both, ending with
+    `no_pair` (why, and the fix: `no_pair_message`; read only then). Returns the written paths
+    per format."""
     written = {}
+    if not pairs:
+        log.warning("matchid, vic3d: no stereo calibration written: %s", no_pair)
     for fmt, write in FORMATS.items():
         if fmt in ("matchid", "vic3d") and not pairs:
-            log.warning("%s: no stereo pair (no two cameras assigned a common region); "
-                        "no stereo calibration written", fmt)
             continue
         (Path(folder) / fmt).mkdir(parents=True)
         try:
