@@ -99,3 +99,20 @@ def test_optimize_says_it_needs_convex_floors(tmp_path):
     with pytest.raises(ConfigError) as err:
         Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
     assert err.value.field == 'mount "ring".floor_m' and "convex floors only" in err.value.message
+
+
+def test_vdo_optimize_refuses_a_ring_before_reading_a_mesh(tmp_path, monkeypatch, capsys):
+    """The command line refuses the file with the same line before any mesh is read (`vdo check`,
+    evaluate and design take the ring whole)."""
+    from vdo.commands.cli import main
+
+    path = write(tmp_path, extra='\n[optimize]\nfree = ["u", "pan", "tilt"]\n')
+
+    def no_meshes(*args, **kwargs):
+        raise AssertionError("a mesh was read before the refusal")
+
+    monkeypatch.setattr("vdo.state.load_meshes", no_meshes)
+    assert main(["optimize", str(path), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and 'mount "ring".floor_m' in err and "convex floors only" in err
+    assert not (tmp_path / "run").exists()

@@ -20,8 +20,7 @@ from scipy.special import expit
 from vdo.model.camera import Camera
 from vdo.model.pose import aim_point, holds_aim
 from vdo.model.rail import Rail
-from vdo.config.experiment import Experiment
-from vdo.core.errors import ConfigError
+from vdo.config.experiment import Experiment, moving_floor_errors
 
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle (`Parameterization`)
 
@@ -54,6 +53,8 @@ class Parameterization:
 
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
+        for error in moving_floor_errors(exp):     # convex floors only (the corners' blend)
+            raise error
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
         free = exp.optimize.free
         self.index, theta, scale, aims = [], [], [], []
@@ -71,12 +72,6 @@ class Parameterization:
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
                     elif name == "u" and zone is not None and zone.floor is not None:
-                        if not zone.convex:
-                            raise ConfigError(exp.path, f'mount "{zone.name}".floor_m',
-                                              f"camera {cam.name!r} moves over a floor that is not convex "
-                                              "(or has holes): vdo optimize moves cameras over convex "
-                                              "floors only; split it into convex sectors for optimize "
-                                              "(evaluate and design take it whole)")
                         weights = mean_value_coordinates(zone.floor, cam.position[:2])
                         for k in range(1, len(zone.floor)):   # softmax logits against corner 0
                             idx[f"w{k}"] = len(theta)
