@@ -104,19 +104,49 @@ def test_photometry_formulas_follow_the_sensor_model():
     ("half shaded", [-0.3, -0.3, 0.18], [0.0, 0.3, 0.22], 10),
     # a box beside the light paths: nothing changes, and nothing needs casting again
     ("clear", [2.0, 2.0, 0.1], [2.2, 2.2, 0.3], 0),
+    # a box below the samples' plane: no sky ray can meet it, nothing is cast again
+    ("below", [-0.3, -0.3, -0.5], [0.3, 0.3, -0.4], 0),
 ])
 def test_relight_equals_a_full_cast_with_the_added_occluder(case, blocker_lo, blocker_hi, shaded_min):
     """`relight` (cast again only the samples an added occluder may shade) against `illuminate` of
-    the whole scene with it: the same lit fractions and irradiance, for samples shaded and not."""
+    the whole scene with it: the same lit fractions, irradiance and sky fractions, for samples
+    shaded and not."""
     light = LightSpec("p", np.array([0, 0, 0.5]), np.array([0, 0, 0.0]), (0.3, 0.3), 5.0)
     xs = np.linspace(-0.4, 0.4, 21)
     grid = samples_at(np.array([[x, y, 0.0] for x in xs for y in xs]))
     base = [box_mesh("far", [50, 50, 50], [51, 51, 51])]
     blocker = box_mesh("blocker", blocker_lo, blocker_hi)
-    unobstructed = lighting.illuminate(scene.build_scene(base), [light], grid)
-    full = lighting.illuminate(scene.build_scene(base + [blocker]), [light], grid)
+    unobstructed = lighting.illuminate(scene.build_scene(base), [light], grid, ambient_radiance=1.0)
+    full = lighting.illuminate(scene.build_scene(base + [blocker]), [light], grid, ambient_radiance=1.0)
     fast = lighting.relight(scene.build_scene(base + [blocker]), [light], grid, unobstructed,
                             [blocker.vertices])
     np.testing.assert_array_equal(fast.lit, full.lit)
     np.testing.assert_allclose(fast.direct, full.direct, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(fast.sky, full.sky)     # the sky hidden by the occluder too
     assert int((full.lit < unobstructed.lit).sum()) >= shaded_min, case
+
+
+
+SKY_MEAN_RTOL = 0.01   # mean of 64 points' sky fractions against the closed form
+SKY_POINT_RTOL = 0.06  # one point: its 12 x 12 grid's error at the wall's top edge
+
+
+@pytest.mark.parametrize("d_over_h", [0.2, 1.0, 3.0])
+def test_sky_beside_a_long_wall_follows_the_two_dimensional_view_factor(d_over_h):
+    """Floor points at distance d from a long wall of height h see the wall over the
+    cosine-weighted fraction F = (1 - d / sqrt(d^2 + h^2)) / 2 (an infinitely long strip's view
+    factor, (sin φ_2 - sin φ_1) / 2 with φ from the normal: the wall's foot at 90°, its top at
+    atan(d / h)), so the sky fraction is S = 1 - F and the ambient irradiance π L_amb S; a point
+    on the far side of a vertical face (normal away from the wall) keeps S = 1."""
+    h = 1.0
+    d = d_over_h * h
+    wall = box_mesh("wall", [d, -200.0, -0.1], [d + 0.05, 200.0, h])
+    sc = scene.build_scene([wall])
+    points = np.column_stack([np.zeros(64), np.linspace(-0.5, 0.5, 64), np.zeros(64)])
+    il = lighting.illuminate(sc, [], samples_at(points), ambient_radiance=2.0)
+    expected = 1.0 - (1.0 - d / math.hypot(d, h)) / 2
+    assert il.sky.mean() == pytest.approx(expected, rel=SKY_MEAN_RTOL)
+    np.testing.assert_allclose(il.sky, expected, rtol=SKY_POINT_RTOL)
+    np.testing.assert_allclose(il.irradiance, 2.0 * math.pi * il.sky, rtol=1e-12)
+    away = lighting.illuminate(sc, [], samples_at([[d - 0.01, 0.0, 0.5]], normal=(-1, 0, 0)), 2.0)
+    assert away.sky[0] == 1.0
