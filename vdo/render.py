@@ -25,7 +25,8 @@ from vdo.rendering.scene import (build_render_scene, camera_sensor, cell_blur, e
 from vdo.scene import cameras_of
 
 # the face: what scripts and the other packages use of the renders
-__all__ = ["RenderResult", "render_images", "render_settings", "rendered_std", "region_photometry",
+__all__ = ["RenderResult", "render_images", "render_settings", "rendered_std", "pixel_response", "region_photometry",
+           "photometry_warnings", "PHOTOMETRY_TOLERANCE",
            "CELL_BYTES_PER_PIXEL", "IMAGE_BYTES_PER_PIXEL", "MIN_TILE_PIXELS", "RENDER_MODES", "TILE_PIXELS", "SpeckleTable",
            "build_dic_scene", "plan_render", "render_camera_dic", "build_render_scene",
            "camera_sensor", "cell_blur", "expose", "lens_sigma_px", "lit_scene", "noise_free_dn",
@@ -37,48 +38,93 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------------------------
 # Photometry of the renders
 # --------------------------------------------------------------------------------------------
-def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int | None) -> np.ndarray:
-    """(K,) std of the rendered pixel values of a unit-variance pattern f̂: each pixel is the
-    mean of `spp` samples, one uniform in each of the sqrt(spp) x sqrt(spp) strata of the pixel
-    (the stratified sampler with jitter), not the box average a camera pixel takes. With
-    s(P) = `vdo.model.speckle.pixel_averaged_std` over a parallelogram P (the pixel A^-1, a stratum
-    A^-1 / sqrt(spp)) and s_0 that of the texture alone (P = 0):
+def pixel_response(freq, sigma_px: float) -> np.ndarray:
+    """Along one image axis, the transfer function of a rendered pixel at `freq` (cycles/px, any
+    shape): the lens's Gaussian (std `sigma_px` px) acting on PRESAMPLE = n cells a pixel before
+    the pixel averages them (`vdo.rendering.scene.cell_blur`). Pixel p = Σ_k c_k cell_k, cell k
+    the box of 1/n px centred at x_k = (k - r + 1/2) / n - 1/2 from the pixel's centre and c the
+    weights of `_cell_blur_kernel`, so
 
-        std^2 = s(A^-1)^2 + (s_0^2 - s(A^-1 / sqrt spp)^2) / spp
+        H(f) = sinc(f / n) Σ_k c_k cos(2π f x_k)          [1]
 
-    (law of total variance: the box average's variance, plus the mean variance of f within a
-    stratum, s_0^2 - s(stratum)^2 for a stationary pattern, over spp independent samples). The
-    second term is the render's Monte Carlo sampling of the speckle: small when a stratum is
-    small against a speckle, large for a reduced-scale render whose pixels span speckles.
-    `spp` None: the DIC render mode's exact box average, std = s(A^-1)."""
-    from vdo.model.speckle import pixel_averaged_std
+    (c is symmetric); sigma_px = 0: the box pixel, H = sinc(f)."""
+    from vdo.rendering.scene import PRESAMPLE, _cell_blur_kernel
+
+    f = np.asarray(freq, dtype=np.float64)
+    if sigma_px <= 0:
+        return np.sinc(f)
+    n = PRESAMPLE
+    c = _cell_blur_kernel(sigma_px, n)
+    x = (np.arange(len(c)) - (len(c) - n) // 2 + 0.5) / n - 0.5
+    return np.sinc(f / n) * np.tensordot(c, np.cos(2.0 * np.pi * np.multiply.outer(x, f)), axes=1)
+
+
+def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int | None,
+                 sigma_px: float = 0.0) -> np.ndarray:
+    """(K,) std of the rendered pixel values of a unit-variance pattern f̂ for K footprints
+    `pixel_sides` (K, 2, 2) [m] (columns a_1, a_2: one pixel step along image x, y on the surface,
+    A^-1). The lens's Gaussian (`sigma_px`, `vdo.rendering.scene.lens_sigma_px`) blurs PRESAMPLE^2
+    cells a pixel before the pixel averages them (`pixel_response` H along each image axis); a
+    surface wave of frequency k (cycles/m) has image frequencies (k.a_1, k.a_2) cycles/px, so the
+    pixel's deterministic part has
+
+        s² = Σ_k |F(k)|² H²(k.a_1) H²(k.a_2) sinc⁴(k_u h) sinc⁴(k_v h)
+
+    (`vdo.model.speckle.pixel_averaged_std` when sigma_px = 0). The sampled mode's pixel is not
+    the exact integral: each of its n^2 cells is the mean of spp / n^2 samples, one per stratum
+    A^-1 / sqrt(spp) (`spp` None: the DIC mode's exact average), which adds the Monte Carlo term
+
+        (s_0² - s(A^-1 / sqrt spp)²) n² (Σ_k c_k²)² / spp
+
+    (law of total variance over independent cells weighted c_i c_j; s_0 the texture alone; with
+    no blur n² (Σ c²)² = 1, the stratified mean of spp samples): small when a stratum is small
+    against a speckle, large for a reduced-scale render whose pixels span speckles."""
+    from vdo.model.speckle import blocked_spectrum, pixel_averaged_std
+    from vdo.rendering.scene import PRESAMPLE, _cell_blur_kernel
 
     sides = np.asarray(pixel_sides, dtype=float).reshape(-1, 2, 2)
-    box = pixel_averaged_std(pattern_normalised, texel, sides)
+    w, ku, kv = blocked_spectrum(pattern_normalised, texel, texel_filter=True)
+    box = np.array([math.sqrt(float(np.sum(w * (pixel_response(ku * a[0, 0] + kv * a[1, 0], sigma_px)
+                                                  * pixel_response(ku * a[0, 1] + kv * a[1, 1], sigma_px)) ** 2)))
+                    for a in sides])
     if spp is None:
         return box
+    weight = 1.0 if sigma_px <= 0 else PRESAMPLE ** 2 * float(np.sum(_cell_blur_kernel(sigma_px, PRESAMPLE) ** 2)) ** 2
     stratum = pixel_averaged_std(pattern_normalised, texel, sides / math.sqrt(spp))
     texture = pixel_averaged_std(pattern_normalised, texel, np.zeros((1, 2, 2)))[0]
-    return np.sqrt(box ** 2 + (texture ** 2 - stratum ** 2) / spp)
+    return np.sqrt(box ** 2 + weight * (texture ** 2 - stratum ** 2) / spp)
 
 
 PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
+PHOTOMETRY_FOOTPRINTS = 64  # samples per row (evenly spread over its visible ones) whose footprints
+                            # give the row's predicted pixel and render factors (their rms)
+PHOTOMETRY_TOLERANCE = 0.15  # relative: `vdo render` warns of a row whose rendered contrast is further
+                             # than this from c_render_predicted (the built-in's and the pressure
+                             # vessel's rows lie within 5 %; a row of a few samples scatters by
+                             # ~1 / sqrt(2 x its independent speckles), 10 % at 50)
 
 
 def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_normalised,
-                      texel: float, spp: int | None) -> list[dict]:
+                      texel: float, spp: int | None, sigma_px=None) -> list[dict]:
     """One row per (camera, region) of photometry.csv (docs/photometry.md). Over the
     `PHOTOMETRY_WINDOW`^2 pixels around each visible sample's projection in the noise-free
-    render (`noise_free_dn` of each camera's `linear` image): b_render = mean DN; c_render = std of (DN - offset) / (b_predicted(X) - offset) x
-    mean(b_predicted - offset), the contrast with the predicted light level divided out (so that
-    the irradiance's variation over the region does not count as contrast). Predictions at the
-    pixel footprint of the row's middle visible sample: c_pixel_predicted = c_predicted x
-    pixel_factor (`vdo.model.speckle.pixel_averaged_std`), the contrast of a camera's box pixels;
-    c_render_predicted = c_predicted x render_factor (`rendered_std`), that of the rendered
-    pixels, each a mean of `spp` samples."""
+    render (`noise_free_dn` of each camera's `linear` image): b_render = mean DN; c_render = std
+    of (DN - offset) / (b_predicted(X) - offset) x mean(b_predicted - offset), the contrast with
+    the predicted light level divided out (so that the irradiance's variation over the region
+    does not count as contrast). Since c_predicted / (b_predicted - offset) is the same at every
+    sample, that std is predicted by the rms of the samples' factors s_i:
+
+        c_render_predicted = mean(c_predicted) sqrt(mean_i s_i²)        [DN]
+
+    with s_i = `rendered_std` at sample i's footprint A_i^-1 (A = ∂x/∂ξ, px/m) and its camera's
+    lens blur `sigma_px` (C,) (None: none): render_factor. On a curved region the footprint
+    varies (foreshortened towards the silhouette), so no one sample stands for the region. The
+    factors are those of up to PHOTOMETRY_FOOTPRINTS samples spread evenly over the visible ones.
+    pixel_factor is the rms of the box pixel's `pixel_averaged_std` at the same footprints (no
+    lens, no Monte Carlo): c_pixel_predicted = c_predicted x pixel_factor."""
     from vdo.model.speckle import pixel_averaged_std
 
-    rows, sides = [], []
+    rows = []
     half = PHOTOMETRY_WINDOW // 2
     dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
     tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
@@ -86,6 +132,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
     for i, cam in enumerate(cameras):
         clean = noise_free_dn(linear[cam.name], sensor)
         uv = cam.project(samples.points)
+        sigma = 0.0 if sigma_px is None else float(sigma_px[i])
         for k, region in enumerate(samples.region_names):
             mask = vis.visible[i] & (samples.region == k)
             row = {"camera": cam.name, "region": region, "n_samples": int(mask.sum())}
@@ -95,22 +142,32 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
                 values = clean[r, col]                         # (n, window^2)
                 level = pho.brightness[i, mask] - offset_dn
                 ratio = (values - offset_dn) / level[:, None]
-                middle = np.flatnonzero(mask)[mask.sum() // 2]
-                A = cam.sensitivity(samples.points[middle:middle + 1]) @ tangents[middle]  # px/m
-                sides.append(np.linalg.inv(A[0]))
+                seen = np.flatnonzero(mask)
+                some = seen[np.unique(np.linspace(0, len(seen) - 1, PHOTOMETRY_FOOTPRINTS).round().astype(int))]
+                A = cam.sensitivity(samples.points[some]) @ tangents[some]          # (m, 2, 2) px/m
+                sides = np.linalg.inv(A)
+                pixel = math.sqrt(float(np.mean(pixel_averaged_std(pattern_normalised, texel, sides) ** 2)))
+                render = math.sqrt(float(np.mean(rendered_std(pattern_normalised, texel, sides, spp, sigma) ** 2)))
+                c_predicted = pho.contrast[i, mask].mean()
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
                         "c_render_dn": ratio.std() * level.mean(),
-                        "c_predicted_dn": pho.contrast[i, mask].mean(),
+                        "c_render_predicted_dn": c_predicted * render,
+                        "c_pixel_predicted_dn": c_predicted * pixel,
+                        "c_predicted_dn": c_predicted,
+                        "pixel_factor": pixel, "render_factor": render,
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
-    if sides:
-        box = pixel_averaged_std(pattern_normalised, texel, np.array(sides))
-        rendered = rendered_std(pattern_normalised, texel, np.array(sides), spp)
-        for row, factor, render_factor in zip((r for r in rows if r["n_samples"]), box, rendered):
-            row |= {"c_render_predicted_dn": row["c_predicted_dn"] * render_factor,
-                    "c_pixel_predicted_dn": row["c_predicted_dn"] * factor,
-                    "pixel_factor": factor, "render_factor": render_factor}
     return rows
+
+
+def photometry_warnings(rows) -> list[str]:
+    """One line per photometry row whose rendered contrast c_render is further than
+    PHOTOMETRY_TOLERANCE (relative) from c_render_predicted: camera, region and both numbers."""
+    return [f"photometry: {r['camera']}/{r['region']}: rendered contrast {r['c_render_dn']:.0f} DN is "
+            f"{100 * (r['c_render_dn'] / r['c_render_predicted_dn'] - 1):+.0f} % off the predicted "
+            f"{r['c_render_predicted_dn']:.0f} DN (tolerance {100 * PHOTOMETRY_TOLERANCE:.0f} %; docs/photometry.md)"
+            for r in rows if r["n_samples"] and
+            abs(r["c_render_dn"] / r["c_render_predicted_dn"] - 1) > PHOTOMETRY_TOLERANCE]
 
 
 
@@ -251,8 +308,12 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
         seconds[cam.name] = time.perf_counter() - t0
     pho = photometry(state.illumination, exp.speckle, exp.sensor, geometry.speckle.mean,
                      geometry.speckle.std, len(chosen), gathered[chosen])
+    specs = {spec.name: spec for spec in exp.camera_specs}
     rows = region_photometry(list(state.cameras), vis, geometry.samples, pho, linear, exp.sensor,
-                             normalise(pattern), exp.speckle.texel, None if dic else spp)
+                             normalise(pattern), exp.speckle.texel, None if dic else spp,
+                             [lens_sigma_px(c, specs[c.name]) for c in state.cameras])
+    for line in photometry_warnings(rows):
+        log.warning(line)
     return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,
                         photometry=rows, seconds=seconds,
                         total_seconds=time.perf_counter() - started, pairs=stereo,
