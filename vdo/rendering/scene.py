@@ -23,7 +23,7 @@ The render scene (`build_render_scene`):
   interreflection, with one sample on *every* panel per camera sample (Mitsuba's `direct` picks one
   emitter at random: 10 % pixel noise at 64 spp with 4 panels). So the renders and the photometric
   model of `vdo.physics.lighting` describe the same light transport: they agree up to Monte Carlo noise,
-  the panel quadrature and ambient occlusion (which the model ignores).
+  the panel quadrature and the model's sky quadrature (its sky fraction S, the ambient occlusion).
 
 Each camera is rendered with a box filter into a linear float luminance film (bit-identical for a
 seed), then `SensorModel.expose` adds shot and read noise and quantises, with the generator
