@@ -43,20 +43,23 @@ def pixel_response(freq, sigma_px: float) -> np.ndarray:
     shape): the lens's Gaussian (std `sigma_px` px) acting on PRESAMPLE = n cells a pixel before
     the pixel averages them (`vdo.rendering.scene.cell_blur`). Pixel p = Σ_k c_k cell_k, cell k
     the box of 1/n px centred at x_k = (k - r + 1/2) / n - 1/2 from the pixel's centre and c the
-    weights of `_cell_blur_kernel`, so
+    weights of `cell_blur_kernel`, so
 
         H(f) = sinc(f / n) Σ_k c_k cos(2π f x_k)          [1]
 
     (c is symmetric); sigma_px = 0: the box pixel, H = sinc(f)."""
-    from vdo.rendering.scene import PRESAMPLE, _cell_blur_kernel
+    from vdo.rendering.scene import PRESAMPLE, cell_blur_kernel
 
     f = np.asarray(freq, dtype=np.float64)
     if sigma_px <= 0:
         return np.sinc(f)
     n = PRESAMPLE
-    c = _cell_blur_kernel(sigma_px, n)
+    c = cell_blur_kernel(sigma_px, n)
     x = (np.arange(len(c)) - (len(c) - n) // 2 + 0.5) / n - 0.5
     return np.sinc(f / n) * np.tensordot(c, np.cos(2.0 * np.pi * np.multiply.outer(x, f)), axes=1)
+
+
+RESPONSE_POINTS = 1 << 14   # frequencies of the pixel response's table in `rendered_std`
 
 
 def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int | None,
@@ -80,23 +83,37 @@ def rendered_std(pattern_normalised, texel: float, pixel_sides, spp: int | None,
     no blur n² (Σ c²)² = 1, the stratified mean of spp samples): small when a stratum is small
     against a speckle, large for a reduced-scale render whose pixels span speckles."""
     from vdo.model.speckle import blocked_spectrum, pixel_averaged_std
-    from vdo.rendering.scene import PRESAMPLE, _cell_blur_kernel
+    from vdo.rendering.scene import PRESAMPLE, cell_blur_kernel
 
     sides = np.asarray(pixel_sides, dtype=float).reshape(-1, 2, 2)
     w, ku, kv = blocked_spectrum(pattern_normalised, texel, texel_filter=True)
-    box = np.array([math.sqrt(float(np.sum(w * (pixel_response(ku * a[0, 0] + kv * a[1, 0], sigma_px)
-                                                  * pixel_response(ku * a[0, 1] + kv * a[1, 1], sigma_px)) ** 2)))
+    # H² tabulated at RESPONSE_POINTS frequencies up to a bound on |k.a| over these footprints and
+    # read by linear interpolation (H is even and smooth: its second derivative is ~(2π sigma)²
+    # per px², the table's error below 1e-5): a cosine per tap, frequency and footprint cost
+    # 7 ms a footprint on the built-in's pattern
+    top = max(float(np.abs(ku).max() * np.abs(sides[:, 0]).max() + np.abs(kv).max() * np.abs(sides[:, 1]).max()),
+              1e-12) if len(sides) else 1.0          # |k.a| <= |k_u| |a_u| + |k_v| |a_v|
+    step = top / (RESPONSE_POINTS - 1)
+    table = pixel_response(np.arange(RESPONSE_POINTS + 1) * step, sigma_px) ** 2
+
+    def response2(f):
+        x = np.abs(f) / step
+        i = np.minimum(x.astype(np.int64), RESPONSE_POINTS - 1)
+        return table[i] + (x - i) * (table[i + 1] - table[i])
+
+    box = np.array([math.sqrt(float(np.sum(w * response2(ku * a[0, 0] + kv * a[1, 0])
+                                           * response2(ku * a[0, 1] + kv * a[1, 1]))))
                     for a in sides])
     if spp is None:
         return box
-    weight = 1.0 if sigma_px <= 0 else PRESAMPLE ** 2 * float(np.sum(_cell_blur_kernel(sigma_px, PRESAMPLE) ** 2)) ** 2
+    weight = 1.0 if sigma_px <= 0 else PRESAMPLE ** 2 * float(np.sum(cell_blur_kernel(sigma_px, PRESAMPLE) ** 2)) ** 2
     stratum = pixel_averaged_std(pattern_normalised, texel, sides / math.sqrt(spp))
     texture = pixel_averaged_std(pattern_normalised, texel, np.zeros((1, 2, 2)))[0]
     return np.sqrt(box ** 2 + weight * (texture ** 2 - stratum ** 2) / spp)
 
 
 PHOTOMETRY_WINDOW = 3     # px: each visible sample contributes the window x window pixels around it
-PHOTOMETRY_FOOTPRINTS = 64  # samples per row (evenly spread over its visible ones) whose footprints
+PHOTOMETRY_FOOTPRINTS = 16  # samples per row (evenly spread over its visible ones) whose footprints
                             # give the row's predicted pixel and render factors (their rms)
 PHOTOMETRY_TOLERANCE = 0.15  # relative: `vdo render` warns of a row whose rendered contrast is further
                              # than this from c_render_predicted (the built-in's and the pressure
@@ -124,7 +141,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
     lens, no Monte Carlo): c_pixel_predicted = c_predicted x pixel_factor."""
     from vdo.model.speckle import pixel_averaged_std
 
-    rows = []
+    rows, footprints = [], []          # (row, its footprints (m, 2, 2), its camera's blur)
     half = PHOTOMETRY_WINDOW // 2
     dx, dy = np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1))
     tangents = np.stack([samples.tangent_u, samples.tangent_v], axis=-1)      # (N, 3, 2)
@@ -145,18 +162,24 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
                 seen = np.flatnonzero(mask)
                 some = seen[np.unique(np.linspace(0, len(seen) - 1, PHOTOMETRY_FOOTPRINTS).round().astype(int))]
                 A = cam.sensitivity(samples.points[some]) @ tangents[some]          # (m, 2, 2) px/m
-                sides = np.linalg.inv(A)
-                pixel = math.sqrt(float(np.mean(pixel_averaged_std(pattern_normalised, texel, sides) ** 2)))
-                render = math.sqrt(float(np.mean(rendered_std(pattern_normalised, texel, sides, spp, sigma) ** 2)))
-                c_predicted = pho.contrast[i, mask].mean()
+                footprints.append((row, np.linalg.inv(A), sigma))
                 row |= {"b_render_dn": values.mean(), "b_predicted_dn": pho.brightness[i, mask].mean(),
                         "c_render_dn": ratio.std() * level.mean(),
-                        "c_render_predicted_dn": c_predicted * render,
-                        "c_pixel_predicted_dn": c_predicted * pixel,
-                        "c_predicted_dn": c_predicted,
-                        "pixel_factor": pixel, "render_factor": render,
+                        "c_predicted_dn": pho.contrast[i, mask].mean(),
                         "noise_predicted_dn": pho.noise[i, mask].mean()}
             rows.append(row)
+    if footprints:   # every row's footprints at once: the pattern's spectrum once per lens blur
+        sides = np.concatenate([f for _, f, _ in footprints])
+        pixel = pixel_averaged_std(pattern_normalised, texel, sides)
+        render = np.empty(len(sides))
+        blur = np.concatenate([np.full(len(f), sigma) for _, f, sigma in footprints])
+        for sigma in np.unique(blur):
+            render[blur == sigma] = rendered_std(pattern_normalised, texel, sides[blur == sigma], spp, float(sigma))
+        ends = np.cumsum([len(f) for _, f, _ in footprints])
+        for (row, _, _), p, r in zip(footprints, np.split(pixel, ends[:-1]), np.split(render, ends[:-1])):
+            p, r = math.sqrt(float(np.mean(p ** 2))), math.sqrt(float(np.mean(r ** 2)))
+            row |= {"c_render_predicted_dn": row["c_predicted_dn"] * r,
+                    "c_pixel_predicted_dn": row["c_predicted_dn"] * p, "pixel_factor": p, "render_factor": r}
     return rows
 
 

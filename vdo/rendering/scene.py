@@ -186,7 +186,7 @@ def lens_sigma_px(camera: Camera, spec) -> float:
 CELL_BLUR_TRUNCATE = 4.0   # the lens's Gaussian is cut at this many standard deviations (as SciPy's)
 
 
-def _cell_blur_kernel(sigma_px: float, n: int) -> np.ndarray:
+def cell_blur_kernel(sigma_px: float, n: int) -> np.ndarray:
     """The weights c_k, k = -r .. n - 1 + r, that take n cells a pixel to the pixel's value along
     one axis (`cell_blur`): c = (box of n cells, 1/n each) ⊗ g, g the Gaussian of std n sigma_px
     cells sampled at whole cells within r = ⌊CELL_BLUR_TRUNCATE n sigma_px + ½⌋ and normalised
@@ -205,10 +205,10 @@ def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarr
     lens removes (measured on the built-in's 24 mm cam9, 2 mm dots at 2 px/mm: the correlation's
     bias 0.0051 / 0.0059 px RMS against 0.0022 / 0.0047 with the blur before sampling, 0.0021 /
     0.0045 on a 3 x 3 grid, and σ_measured's model 0.0021 / 0.0063; benchmarks/README.md).
-    Computed at the pixels only: pixel p = Σ_k c_k cell[n p + k] (`_cell_blur_kernel`), the cells
+    Computed at the pixels only: pixel p = Σ_k c_k cell[n p + k] (`cell_blur_kernel`), the cells
     beyond the image's ends taken equal to its first and last (SciPy's "nearest")."""
     cells = np.asarray(cells, dtype=np.float32)
-    c = _cell_blur_kernel(sigma_px, n).astype(np.float32)
+    c = cell_blur_kernel(sigma_px, n).astype(np.float32)
     r = (len(c) - n) // 2
     N = cells.shape[axis]
     P = N // n
