@@ -132,10 +132,11 @@ def test_sigma_and_strain_match_the_exact_cylinder(cylinder_state):
     st = settings(exp.evaluation)
     pho = photometry(state.illumination, exp.speckle, exp.sensor, state.geometry.speckle.mean,
                      state.geometry.speckle.std, len(state.cameras))
-    contrast, noise = np.asarray(pho.contrast)[:, :1], np.asarray(pho.noise)[:, :1]
-    assert np.ptp(np.asarray(pho.contrast), axis=1).max() < 1e-12       # uniform ambient light
+    # ambient light only: the contrast varies over the shell only where a camera body hides some
+    # of a sample's sky (its sky fraction, `vdo.physics.lighting`); the reference takes sample n's
     Fs, _ = strain.analysis_factors(exp.analysis, np.ones(1))
     for n in chosen:
+        contrast, noise = np.asarray(pho.contrast)[:, n:n + 1], np.asarray(pho.noise)[:, n:n + 1]
         theta0 = math.atan2(s.points[n, 1], s.points[n, 0])
         pts, nrm, tu, tv = exact_patch(theta0, s.points[n, 2], L)
         m = len(pts)
