@@ -911,3 +911,18 @@ def test_the_relaxation_is_rounded_by_weight_into_a_feasible_selection(judged):
     greedy_pick, _ = greedy(cand, scorer, feas, 2, start=[a])
     assert chosen == greedy_pick and chosen[0] == a
     assert not any(feas.conflicts(x, y) for x, y in itertools.combinations(chosen, 2))
+
+
+def test_a_chosen_camera_is_told_what_part_of_each_region_it_sees():
+    """`seen_fractions`: the area fraction of each region a camera views usably (on an all-round
+    rig a useful camera sees no region whole), against the hand count on four samples."""
+    from types import SimpleNamespace
+
+    from vdo.design.select import seen_fractions
+
+    samples = SimpleNamespace(region=np.array([0, 0, 1, 1]), area=np.array([1.0, 3.0, 2.0, 2.0]),
+                              region_names=("bend", "leg"))
+    usable = np.array([[True, False, True, True], [False, True, False, False]])
+    state = SimpleNamespace(samples=samples, prediction=SimpleNamespace(usable=usable),
+                            cameras=(SimpleNamespace(name="d1"), SimpleNamespace(name="d2")))
+    assert seen_fractions(state) == {"d1": {"bend": 0.25, "leg": 1.0}, "d2": {"bend": 0.75, "leg": 0.0}}

@@ -62,7 +62,7 @@ from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.core.progress import bar
 from vdo.scene import cameras_of
 from vdo.state import layout_state, prepare, with_exposure
-from vdo.core.tolerances import LIMIT_SLACK
+from vdo.core.tolerances import LIMIT_SLACK, TINY
 
 log = logging.getLogger(__name__)
 
@@ -416,6 +416,21 @@ def shortfalls(state, exp: Experiment) -> list[str]:
     return out
 
 
+SEEN_SHOWN = 0.05   # the console lists the regions a chosen camera sees at least this fraction of
+
+
+def seen_fractions(state) -> dict[str, dict[str, float]]:
+    """Per camera of the layout `state`, the area fraction of each region it views usably (the
+    usable views of `vdo.physics.usable`, the measure that assigns regions, `[optimize]
+    assign_fraction`): on an all-round rig no camera sees half of a curved region, yet each sees
+    a useful part."""
+    samples, usable = state.samples, np.asarray(state.prediction.usable, bool)
+    area = np.bincount(samples.region, samples.area, minlength=len(samples.region_names))
+    return {cam.name: {name: float(samples.area[usable[c] & (samples.region == r)].sum() / max(area[r], TINY))
+                       for r, name in enumerate(samples.region_names)}
+            for c, cam in enumerate(state.cameras)}
+
+
 def statistics(exp: Experiment, cand: Candidates, chosen) -> dict:
     """Candidate statistics for design.json and the report: counts per mount kind, body, lens
     and region (candidates assigned it), the load path's mean loss, and the chosen cameras."""
@@ -574,9 +589,12 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
         log.warning("the designed layout breaks %d constraint check(s) of vdo optimize (constraints.json); "
                     "vdo design --refine (vdo optimize) starts from it", len(violated))
     stats = statistics(exp, cand, best["chosen"])
+    seen = seen_fractions(state)
     for c in stats["chosen"]:
+        c["seen_fraction"] = seen.get(c["camera"], {})
+        parts = [f"{r} {100 * f:.0f} %" for r, f in c["seen_fraction"].items() if f >= SEEN_SHOWN]
         log.info("%s: %s, %g mm, %s %s at %s m, sees %s", c["camera"], c["body"], c["focal_mm"], c["kind"],
-                 c["mount"], c["position_m"], ", ".join(c["regions"]) or "no region whole")
+                 c["mount"], c["position_m"], ", ".join(parts) or "no region usably")
     wall = _clock() - t0
     final_peak = peak_rss()       # before the refinement, as the figures above
     refined = optimize_layout(final) if refine else None
