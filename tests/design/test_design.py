@@ -926,3 +926,29 @@ def test_a_chosen_camera_is_told_what_part_of_each_region_it_sees():
     state = SimpleNamespace(samples=samples, prediction=SimpleNamespace(usable=usable),
                             cameras=(SimpleNamespace(name="d1"), SimpleNamespace(name="d2")))
     assert seen_fractions(state) == {"d1": {"bend": 0.25, "leg": 1.0}, "d2": {"bend": 0.75, "leg": 0.0}}
+
+
+def test_the_curve_compares_the_counts_on_the_area_every_count_measures():
+    """`common_p95`: each count's sigma_max p95 over the samples that every count measures (its
+    own figure is over a different area at each count), against numpy's percentile on that
+    area; the private arrays leave the curve."""
+    from types import SimpleNamespace
+
+    from vdo.design.select import common_p95
+
+    rng = np.random.default_rng(3)
+    n = 400
+    samples = SimpleNamespace(region=np.repeat([0, 1], n // 2), area=np.full(n, 1e-4),
+                              region_names=("a", "b"))
+    measured = [rng.random(n) < p for p in (0.5, 0.7, 0.9)]
+    sigma = [rng.uniform(1e-7, 1e-6, n) for _ in measured]
+    curve = [{"cameras": k + 2, "_measured": m, "_sigma_max": s} for k, (m, s) in enumerate(zip(measured, sigma))]
+    exp = SimpleNamespace(optimize=SimpleNamespace(regions=None), regions=(SimpleNamespace(name="a"),
+                                                                              SimpleNamespace(name="b")))
+    common_p95(exp, samples, curve)
+    both = measured[0] & measured[1] & measured[2]
+    for c, s in zip(curve, sigma):
+        worst = max(np.percentile(s[both & (samples.region == r)] * 1e6, 95) for r in (0, 1))
+        assert c["sigma_p95_common_um"] == pytest.approx(worst, rel=1e-12)
+        assert c["common_fraction"] == pytest.approx(both.mean(), rel=1e-12)
+        assert "_measured" not in c and "_sigma_max" not in c

@@ -115,8 +115,8 @@ def write_candidates(path, exp: Experiment, cand: Candidates, chosen):
 
 def write_curve(path, curve):
     """pareto.csv: per camera count its score, bound and gap, sigma_max p95 (µm; overall and per
-    scored region), coverage, swaps (exchange, then polish), lenses, bodies and the measurable
-    area's figures; with [design] score = "measured" then σ_measured p95 (µm; the worst scored
+    scored region), coverage, swaps (exchange, then polish), lenses, bodies, the measurable
+    area's figures and sigma_max p95 over the area every count measures (`common_p95`); with [design] score = "measured" then σ_measured p95 (µm; the worst scored
     region, then per region)."""
     regions = list(curve[0]["sigma_p95_by_region_um"]) if curve else []
     meas = bool(curve) and "sigma_measured_p95_um" in curve[0]    # [design] score = "measured"
@@ -125,7 +125,7 @@ def write_curve(path, curve):
         w = csv.writer(fh)
         w.writerow(["cameras", "score", "bound", "gap", "sigma_p95_um", "coverage", "swaps", "polish_swaps",
                     "lenses_mm", "bodies", "measurable_fraction", "coverage_of_measurable",
-                    "sigma_p95_measurable_um"]
+                    "sigma_p95_measurable_um", "common_fraction", "sigma_p95_common_um"]
                    + [f"sigma_p95_um_{r}" for r in regions]
                    + (["sigma_measured_p95_um"] + [f"sigma_measured_p95_um_{r}" for r in regions]
                       if meas else []))
@@ -135,7 +135,8 @@ def write_curve(path, curve):
                         "" if c["gap"] is None else f"{c['gap']:.4f}",
                         show(c["sigma_p95_um"]), f"{c['coverage']:.4f}", c["swaps"], c["polish_swaps"],
                         c["lenses_mm"], c["bodies"], f"{c['measurable_fraction']:.4f}",
-                        f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"])]
+                        f"{c['coverage_of_measurable']:.4f}", show(c["sigma_p95_measurable_um"]),
+                        f"{c['common_fraction']:.4f}", show(c["sigma_p95_common_um"])]
                        + [show(c["sigma_p95_by_region_um"][r]) for r in regions]
                        + ([show(c["sigma_measured_p95_um"])]
                           + [show(c["sigma_measured_p95_by_region_um"][r]) for r in regions]
@@ -147,7 +148,8 @@ def curve_line(c: dict, scored=None) -> str:
     region, or, while a scored region has no measured sample, over the area that is measured
     with the unmeasured regions named; then the coverage (of all the regions' area and of what
     the candidate spots can measure); σ_measured p95 of the worst scored region beside the bound
-    when the design scores it."""
+    when the design scores it; and the worst scored region's p95 over the area every count
+    measures (`vdo.design.select.common_p95`), where the counts compare."""
     by = c["sigma_p95_by_region_um"]
     scored = list(by) if scored is None else list(scored)
     if c["sigma_p95_um"] is not None:
@@ -162,6 +164,9 @@ def curve_line(c: dict, scored=None) -> str:
     if "sigma_measured_p95_um" in c:      # [design] score = "measured"
         m = c["sigma_measured_p95_um"]
         sigma += ", sigma_measured p95 " + ("unserved" if m is None else f"{m:.3f} um")
+    common = c.get("sigma_p95_common_um")
+    if common is not None:
+        sigma += f"; {common:.3f} um over the {100 * c['common_fraction']:.0f} % every count measures"
     return (f"{c['cameras']:3d} cameras: {sigma}, coverage {100 * c['coverage']:.1f} % "
             f"({100 * c['coverage_of_measurable']:.1f} % of the measurable)")
 
@@ -170,7 +175,7 @@ def plot_curve(path, curve, target, name):
     """Top: sigma_max p95 (and σ_measured p95 when the design scores it) and coverage per camera
     count; bottom: the design's score and the
     relaxation's bound on any selection's score per count (`relax_curve`)."""
-    fig, (ax, low) = plt.subplots(2, 1, figsize=(6, 6.5), layout="constrained", sharex=True,
+    fig, (ax, low) = plt.subplots(2, 1, figsize=(9, 6.5), layout="constrained", sharex=True,
                                   height_ratios=(3, 2))
     n = [c["cameras"] for c in curve]
     s = [np.nan if c["sigma_p95_um"] is None else c["sigma_p95_um"] for c in curve]
@@ -182,6 +187,10 @@ def plot_curve(path, curve, target, name):
     ax.semilogy(n, [np.nan if c["sigma_p95_measurable_um"] is None else c["sigma_p95_measurable_um"]
                     for c in curve], "x-", color="C0", alpha=0.45, lw=0.8,
                 label="σ_max p95 over the measured area")
+    if curve and "sigma_p95_common_um" in curve[0]:
+        ax.semilogy(n, [np.nan if c["sigma_p95_common_um"] is None else c["sigma_p95_common_um"] for c in curve],
+                    "P-", color="k", lw=1.4,
+                    label=f"σ_max p95 over the {100 * curve[0]['common_fraction']:.0f} % every count measures")
     for c in curve:     # a count that leaves a region unmeasured says so under its point
         none = [r for r, v in c["sigma_p95_by_region_um"].items() if v is None]
         if none:
@@ -204,13 +213,14 @@ def plot_curve(path, curve, target, name):
     ax2.set_ylim(0, 105)
     ax.set_title(f"{name}: cameras needed")
     lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
-    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=8, loc="center right")
+    ax.legend(lines, [ln.get_label() for ln in lines], fontsize=7, loc="upper left",
+              bbox_to_anchor=(1.12, 1.0))                               # beside the curves, not on them
     low.semilogy(n, [c["score"] for c in curve], "o-", label="design's score")
     bounds = [np.nan if c["bound"] is None or c["bound"] <= 0 else c["bound"] for c in curve]
     if not np.all(np.isnan(bounds)):
         low.semilogy(n, bounds, "v--", color="C2", label="bound: no selection scores lower")
     low.set_xlabel("cameras")
     low.set_ylabel("score")
-    low.legend(fontsize=8)
+    low.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.12, 1.0))
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -356,12 +356,32 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
         worst = [by_meas[r] for r in scored]
         out = {"sigma_measured_p95_um": None if any(v is None for v in worst) else max(worst),
                "sigma_measured_p95_by_region_um": by_meas}
-    return out | {"sigma_p95_um": None if any(v is None for v in p95) else max(p95),
+    return out | {"_sigma_max": np.asarray(pred.sigma_max, float), "_measured": can & np.asarray(pred.measured, bool),
+                  "sigma_p95_um": None if any(v is None for v in p95) else max(p95),
             "coverage": float(seen),
             "measurable_fraction": area / float(smp.area.sum()),
             "coverage_of_measurable": float(smp.area[can & covered].sum() / area) if area > 0 else 0.0,
             "sigma_p95_measurable_um": max(values) if values else None,
             "sigma_p95_by_region_um": by_region}
+
+
+def common_p95(exp: Experiment, samples, curve: list[dict]) -> None:
+    """Give each count of `curve` its σ_max p95 over the area that EVERY count measures
+    ("sigma_p95_common_um", µm: the worst scored region's p95 over its samples measured by every
+    count, None where a scored region has none; "common_fraction", that area's share of all
+    regions): each count's own figure is over the area it measures, which grows with the count,
+    so that curve can rise where a camera more adds hard, grazing area; on one area the figures
+    compare. The counts' private arrays (`measures`) are dropped."""
+    if not curve:
+        return
+    common = np.logical_and.reduce([c["_measured"] for c in curve])
+    scored = exp.optimize.regions or [r.name for r in exp.regions]
+    for c in curve:
+        by = _region_p95(samples, c.pop("_sigma_max"), common)
+        c.pop("_measured")
+        values = [by[r] for r in scored if by.get(r) is not None]
+        c["sigma_p95_common_um"] = max(values) if values else None
+        c["common_fraction"] = float(samples.area[common].sum() / samples.area.sum())
 
 
 def problems(exp: Experiment, cand: Candidates, samples) -> list[str]:
@@ -549,6 +569,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                      100 * max(0.0, 1.0 - c["bound"] / again["score"]))
             c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
                      bound_converged=c["bound_converged"], rounded=True)
+    common_p95(exp, coarse.samples, curve)
     searched_s = _clock() - t_search
     search_peak = peak_rss()      # what the estimate covers: judging and selection
     target = None
