@@ -339,10 +339,16 @@ def tripod_depth(top, feet, lows, highs, count: int, xp=jnp):
     points to is a move across the floor."""
     pts = _leg_points(top, feet, count, xp)[:, :, None, :]             # (C, P, 1, 3)
     depth = xp.min(xp.minimum(pts - lows[None, None], highs[None, None] - pts), axis=-1).max(axis=1)
+    return xp.maximum(depth, _feet_depth(feet, lows, highs, xp).max(axis=1))
+
+
+def _feet_depth(feet, lows, highs, xp=jnp):
+    """(C, L, B) each foot's horizontal depth in each box (min over its x and y faces) where the
+    floor's height lies within the box, else -KEEP_OUT_FAR (outside)."""
     f = feet[:, :, None, :]                                             # (C, L, 1, 3)
     flat = xp.min(xp.minimum(f[..., :2] - lows[None, None, :, :2], highs[None, None, :, :2] - f[..., :2]), axis=-1)
     on = (f[..., 2] >= lows[None, None, :, 2]) & (f[..., 2] <= highs[None, None, :, 2])
-    return xp.maximum(depth, xp.where(on, flat, -KEEP_OUT_FAR).max(axis=1))
+    return xp.where(on, flat, -KEEP_OUT_FAR)
 
 
 def tripod_penalty(top, feet, table, lows, highs, clearance: float, margin: float):
@@ -358,10 +364,7 @@ def tripod_penalty(top, feet, table, lows, highs, clearance: float, margin: floa
     if lows.shape[0]:
         pts3 = pts[:, :, None, :]
         depth = jnp.min(jnp.minimum(pts3 - lows[None, None], highs[None, None] - pts3), axis=-1)   # (C, P, B)
-        f = feet[:, :, None, :]
-        flat = jnp.min(jnp.minimum(f[..., :2] - lows[None, None, :, :2], highs[None, None, :, :2] - f[..., :2]), axis=-1)
-        on = (f[..., 2] >= lows[None, None, :, 2]) & (f[..., 2] <= highs[None, None, :, 2])
-        feet_depth = jnp.where(on, flat, -KEEP_OUT_FAR)                 # (C, L, B): `tripod_depth`'s feet
+        feet_depth = _feet_depth(feet, lows, highs)                      # (C, L, B)
         total = total + jnp.sum(has[:, None, None] * (jnp.maximum(depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2) \
             + jnp.sum(has[:, None, None] * (jnp.maximum(feet_depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2)
     n = pts.shape[0]
