@@ -379,7 +379,7 @@ def test_the_constraints_read_the_legs_of_the_tripod_mesh(tmp_path):
 
     exp = two_tripods(tmp_path)
     cams = cameras_of(exp.camera_specs, exp.rails)
-    table = constraints.tripod_table(cams, exp.camera_specs, exp.mounts)
+    table = constraints.tripod_table(cams, constraints.tripods_of(cams, exp.camera_specs, exp.mounts))
     assert table["has"].tolist() == [True, True]
     pos, axes, pans = (np.array([getattr(c, a) for c in cams], float) for a in ("position", "optical_axis", "pan"))
     for xp in (np, jnp):
@@ -434,7 +434,7 @@ def test_a_tripod_foot_in_a_keep_out_is_a_broken_check_and_a_penalty_the_gradien
     box = (f'\n[[keep_out]]\nname = "pit"\nbox_min_m = [{foot[0] - 0.08}, {foot[1] - 0.1}, -1.0]\n'
            f"box_max_m = [{foot[0] + 0.12}, {foot[1] + 0.1}, 0.05]\n")
     exp = two_tripods(tmp_path, box)
-    table = constraints.tripod_table(cams, exp.camera_specs, exp.mounts)
+    table = constraints.tripod_table(cams, constraints.tripods_of(cams, exp.camera_specs, exp.mounts))
     checks = constraints.tripod_checks(cams, table, exp.keep_outs, clearance=0.05)
     pit = {e["cameras"][0]: e for e in checks if e["constraint"] == "tripod_keep_out"}
     assert pit["stand"]["value"] == pytest.approx(0.08, abs=1e-9) and not pit["stand"]["met"]

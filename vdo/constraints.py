@@ -281,9 +281,18 @@ TRIPOD_LEG_POINTS = 9      # points along each tripod leg (top casting to foot) 
 TRIPOD_CHECK_POINTS = 65   # ... in the exact keep-out check (a leg of 1.5 m: every 2.3 cm)
 
 
-def tripod_table(cameras, camera_specs, mounts) -> dict | None:
+def tripods_of(cameras, camera_specs, mounts) -> list:
+    """Each camera's `TripodSpec`, None where it stands on none: the [mount.tripod] of the zone
+    [[mount]] its [[camera]] table names (`camera_specs`)."""
+    mount_of = {s.name: s.mount for s in camera_specs}
+    specs = {m.name: m.tripod for m in mounts if m.tripod is not None}
+    return [specs.get(mount_of.get(c.name)) for c in cameras]
+
+
+def tripod_table(cameras, tripod) -> dict | None:
     """The constants of each camera's tripod legs (`vdo.scene.tripod_cylinders`, whose formula
-    `tripod_legs` repeats for the penalty and the checks), arrays over `cameras`: has (C,) bool
+    `tripod_legs` repeats for the penalty and the checks), arrays over `cameras` and their
+    `TripodSpec`s `tripod` (`tripods_of`): has (C,) bool
     (the camera stands on a zone [[mount]] with a [mount.tripod]), back (C,) m (optical centre to
     the body's centre along the optical axis: lens length + half the body depth), drop (C,) m
     (body centre down to the top casting: half the body height + head_m), floor (C,) m, spread
@@ -291,9 +300,6 @@ def tripod_table(cameras, camera_specs, mounts) -> dict | None:
     the most legs L) and radius (C,) m (the legs'). None when no camera stands on a tripod."""
     from vdo.meshes.hardware import BODY_SIZE, lens_length
 
-    mount_of = {s.name: s.mount for s in camera_specs}
-    specs = {m.name: m.tripod for m in mounts if m.tripod is not None}
-    tripod = [specs.get(mount_of.get(c.name)) for c in cameras]
     if not any(t is not None for t in tripod):
         return None
     most = max(t.legs for t in tripod if t is not None)
@@ -354,10 +360,10 @@ def _feet_depth(feet, lows, highs, xp=jnp):
 def tripod_penalty(top, feet, table, lows, highs, clearance: float, margin: float):
     """The tripods' smooth penalty, with the clearance's: Σ over the TRIPOD_LEG_POINTS points
     along every leg and every keep-out box of (max(0, depth + margin) / KEEP_OUT_SCALE)^2
-    (`keep_out_depth`; and each foot's horizontal depth, as `tripod_depth`), and over the points of two different tripods, (max(0, g - d) / g)^2 with
-    g = clearance + margin + both legs' radii, d their distance (m): a keep-out holds no
-    equipment, and two tripods keep the bodies' clearance apart (`tripod_checks` judges both
-    exactly). C^1 in the poses (hinges squared)."""
+    (`keep_out_depth`; and each foot's horizontal depth, as `tripod_depth`), and over the points
+    of two different tripods, (max(0, g - d) / g)^2 with g = clearance + margin + both legs'
+    radii, d their distance (m): a keep-out holds no equipment, and two tripods keep the bodies'
+    clearance apart (`tripod_checks` judges both exactly). C^1 in the poses (hinges squared)."""
     has = jnp.asarray(table["has"], dtype=float)
     pts = _leg_points(top, feet, TRIPOD_LEG_POINTS)                      # (C, P, 3)
     total = 0.0

@@ -113,7 +113,7 @@ def layout_checks(state: LayoutState) -> list[dict]:
                              clearances(cameras, tree), opt.clearance, opt.max_obscuration,
                              light_lost(lit_without, state.illumination.lit, samples), rails_u,
                              roll_free="roll" in opt.free, max_angles=max_angles) \
-        + constraints.tripod_checks(cameras, constraints.tripod_table(cameras, exp.camera_specs, exp.mounts),
+        + constraints.tripod_checks(cameras, constraints.tripod_table(cameras, constraints.tripods_of(cameras, exp.camera_specs, exp.mounts)),
                                     exp.keep_outs, opt.clearance)
 
 

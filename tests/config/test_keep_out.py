@@ -140,3 +140,23 @@ def test_exact_check_measures_the_depth(tmp_path):
              for c in cameras_of(exp.camera_specs, exp.rails)]
     inside = next(e for e in constraints.keep_out_checks(moved, exp.keep_outs) if e["cameras"] == ["t"])
     assert inside["value"] == pytest.approx(0.05) and not inside["met"]   # 5 cm inside (y = 0.15 face)
+
+
+def test_design_drops_the_poses_whose_tripod_stands_in_a_keep_out(tmp_path):
+    """The zone's cameras on tripods (feet 0.45 m out on the floor): a keep-out box on the floor
+    beside the zone, away from every optical centre, takes the poses whose tripod's legs reach
+    into it (by `tripod_checks`' measure, which holds none of those kept), counted per mount."""
+    from vdo import constraints
+
+    path = write(tmp_path, keep_out("[1.15, -1, -0.1]", "[2, 1, 0.2]", name="pit"), DESIGN)
+    path.write_text(path.read_text().replace('box_max_m = [0.9, 0.4, 1.3]\n',
+                                             'box_max_m = [0.9, 0.4, 1.3]\ntripod = {}\n', 1))
+    exp = config.load(path)
+    meshes = load_meshes(**mesh_tables(exp))
+    cams, mounts, *_, dropped = candidate_cameras(exp, sample_regions(meshes, **region_tables(exp)), meshes)
+    assert dropped["ring"]["poses with tripod legs in keep_out 'pit'"] > 0
+    ring = [c for c, m in zip(cams, mounts) if m == "ring"]
+    assert ring
+    table = constraints.tripod_table(ring, [exp.mount("ring").tripod] * len(ring))
+    checks = constraints.tripod_checks(ring, table, exp.keep_outs, clearance=0.0)
+    assert all(e["met"] for e in checks)

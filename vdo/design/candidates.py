@@ -61,7 +61,7 @@ import scipy.sparse
 from scipy.spatial import cKDTree
 
 from vdo.search import loadpath
-from vdo import objective
+from vdo import constraints, objective
 from vdo.physics import measured, usable
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
@@ -322,6 +322,22 @@ def candidate_cameras(exp: Experiment, samples, meshes) -> tuple:
                 kept_out[(name or "fixed", "poses within the clearance")] = int((of & ~clear).sum())
         cams = [c for c, ok in zip(cams, clear) if ok]
         rows = [r for r, ok in zip(rows, clear) if ok]
+    if cams and exp.keep_outs:   # a pose whose tripod's legs reach into a keep-out (`tripod_checks`' measure)
+        on = {m.name: m.tripod for m in exp.mounts if m.tripod is not None}
+        table = constraints.tripod_table(cams, [on.get(r[0]) for r in rows])
+        if table is not None:
+            lows, highs = (np.clip(np.array([getattr(k, a) for k in exp.keep_outs]), -constraints.KEEP_OUT_FAR,
+                                   constraints.KEEP_OUT_FAR) for a in ("box_min", "box_max"))
+            top, feet = constraints.tripod_legs(np.array([c.position for c in cams]),
+                                                np.array([c.optical_axis for c in cams]),
+                                                np.array([c.pan for c in cams]), table, xp=np)
+            depth = constraints.tripod_depth(top, feet, lows, highs, constraints.TRIPOD_CHECK_POINTS, xp=np)
+            inside = table["has"] & (depth > 0).any(axis=1)
+            for i in np.flatnonzero(inside):
+                key = (rows[i][0], f"poses with tripod legs in keep_out {exp.keep_outs[int(np.argmax(depth[i]))].name!r}")
+                kept_out[key] = kept_out.get(key, 0) + 1
+            cams = [c for c, bad in zip(cams, inside) if not bad]
+            rows = [r for r, bad in zip(rows, inside) if not bad]
     dropped: dict = {}
     for (name, reason), count in kept_out.items():
         dropped.setdefault(name, {})[reason] = count

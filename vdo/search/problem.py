@@ -103,7 +103,7 @@ class Problem:
         self.run = reference.run if reference is not None else Run(len(self.cams0), opt.max_obscuration)
         self.scene_tree = cKDTree(self.scene_points)
         self.body_local = jnp.asarray(np.stack([camera_body_points(c.focal_length) for c in self.cams0]))
-        self.tripods = constraints.tripod_table(self.cams0, exp.camera_specs, exp.mounts)
+        self.tripods = constraints.tripod_table(self.cams0, constraints.tripods_of(self.cams0, exp.camera_specs, exp.mounts))
         paths = self._paths()
         self.near_sets = constraints.near_points(
             self.scene_points, paths, reach=float(np.abs(self.body_local).max()) * 1.8
