@@ -184,11 +184,11 @@ def _p99_signal(E: np.ndarray, w: np.ndarray, rho: np.ndarray) -> float:
     return float(v[order][np.searchsorted(np.cumsum(ww[order]), 0.99)])
 
 
-def _pair_signals(pairs, w, illum: Illumination, rho, sensor: SensorModel,
-                  n_cam: int) -> tuple[np.ndarray, np.ndarray]:
+def _pair_signals(pairs, w, rho, sensor: SensorModel, n_cam: int) -> tuple[np.ndarray, np.ndarray]:
     """(p (pairs,), top (C,)): each (camera, region) pair's p99 signal (DN above the offset, at
-    k = 1) under the light power factors `w`, and each camera's largest."""
-    p = np.array([_p99_signal(w @ D + illum.ambient, px, rho) for _, _, D, px, _ in pairs]) \
+    k = 1) under the light power factors `w` (the lights' irradiance w @ D plus the sky's at each
+    sample), and each camera's largest."""
+    p = np.array([_p99_signal(w @ D + sky, px, rho) for _, _, D, px, _, sky in pairs]) \
         * sensor.dn_per_unit
     top = np.zeros(n_cam)
     for (i, *_), v in zip(pairs, p):
@@ -217,7 +217,7 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
             if "time" in free:
                 k = min(spec_x.target_gray * span / top[i],
                         (t_max[i] / t_ref) * (DEFAULT_F_NUMBER / stop) ** 2)
-            jobs += [(i, stop, mid, k) for j, *_, mid in pairs if j == i]
+            jobs += [(i, stop, mid, k) for j, _, _, _, mid, _ in pairs if j == i]
     if not jobs:
         return apertures
     cams = list(cameras)
@@ -272,20 +272,20 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
     sat = np.zeros(len(used), bool) if satin is None else np.asarray(satin)[used]
 
     def rebuild(direct):
-        return [(i, k, direct[:, c], px, mid) for (i, k, _, px, mid), c in zip(pairs, cols)]
+        return [(i, k, direct[:, c], px, mid, sky) for (i, k, _, px, mid, sky), c in zip(pairs, cols)]
 
     def total(lts, direct, lit, at=None, start=None) -> tuple[float, np.ndarray]:
         """(cost, w): the place's cost and the power factors it was judged at."""
         w, value, k = power(rebuild(direct), at, start)
         if not sat.any():
             return value, w
-        E = w @ direct[:, sat] + illum.ambient
+        E = w @ direct[:, sat] + illum.sky_irradiance[used][sat]
         Ls = specular_radiance([replace(lt, radiance=lt.radiance * x) for lt, x in zip(lts, w)],
                                lit[:, sat], sub.points[sat], sub.normals[sat], [c.position for c in cameras])
         hot_spot = np.zeros((len(cameras), len(used)), bool)
         hot_spot[:, sat] = np.logical_or(*hot_spot_kinds(Ls, E, k, speckle, sensor))
         hot = sum(float(px[sat[c]][hot_spot[i][c][sat[c]]].sum() / px.sum())
-                  for (i, _, _, px, _), c in zip(pairs, cols) if sat[c].any())
+                  for (i, _, _, px, _, _), c in zip(pairs, cols) if sat[c].any())
         return value + GLARE_WEIGHT * hot, w
 
     direct, lit = illum.direct[:, used].copy(), illum.lit[:, used].copy()
@@ -299,7 +299,7 @@ def _place_lights(lights, places, pairs, seens, illum, scene, samples, cameras, 
                 continue                                     # another panel stands there
             cand = replace(lights[l], position=p)
             if any(panel_hides(cand, cameras[i].position, samples.points[seen], px) > max_obscuration
-                   for (i, _, _, px, _), seen in zip(pairs, seens)):
+                   for (i, _, _, px, _, _), seen in zip(pairs, seens)):
                 hiding = True
                 continue                                     # it stands in a camera's view
             one = illuminate(scene, [cand], sub)
@@ -391,11 +391,12 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
             middle = (A[m], float(illum.irradiance[seen[m]]),
                       float((samples.points[seen[m]] - cam.position) @ cam.optical_axis),
                       evaluation.patch_size ** 2 * float(density[m]))
-            pairs.append((i, k, illum.direct[:, seen], samples.area[seen] * density, middle))
+            pairs.append((i, k, illum.direct[:, seen], samples.area[seen] * density, middle,
+                          illum.sky_irradiance[seen]))
             seens.append(seen)
     n_cam = len(camera_specs)
     if "aperture" in free and pairs:
-        _, top = _pair_signals(pairs, np.ones(len(lights)), illum, rho, sensor, n_cam)
+        _, top = _pair_signals(pairs, np.ones(len(lights)), rho, sensor, n_cam)
         apertures = _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle,
                                 sensor, analysis, pattern, t_max)
     base = exposure_factors([replace(s, f_number=a[0]) for s, a in zip(camera_specs, apertures)],
@@ -408,7 +409,7 @@ def design_exposure(spec_x: ExposureSpec, camera_specs: tuple[CameraSpec, ...],
 
     def signals(w, prs=pairs):
         """(p (pairs,), k (C,)): each pair's p99 signal in DN at k = 1 and each camera's k."""
-        p, top = _pair_signals(prs, w, illum, rho, sensor, n_cam)
+        p, top = _pair_signals(prs, w, rho, sensor, n_cam)
         k = np.minimum(spec_x.target_gray * span / np.where(top > 0, top, np.inf), k_max) \
             if "time" in free else base
         k = np.where(top > 0, k, base)

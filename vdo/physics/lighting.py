@@ -113,9 +113,14 @@ class Illumination:
     sky: np.ndarray | None = None
 
     @property
+    def sky_irradiance(self) -> np.ndarray:
+        """The ambient sky's irradiance at each sample (N,), π L_amb S, W m^-2."""
+        return self.ambient * (np.ones(self.direct.shape[1]) if self.sky is None else self.sky)
+
+    @property
     def irradiance(self) -> np.ndarray:
         """Total irradiance E (N,) in W m^-2: all lights plus the ambient sky, π L_amb S."""
-        return self.direct.sum(axis=0) + self.ambient * (1.0 if self.sky is None else self.sky)
+        return self.direct.sum(axis=0) + self.sky_irradiance
 
     @property
     def lights_reaching(self) -> np.ndarray:
