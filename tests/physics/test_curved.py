@@ -28,6 +28,7 @@ RADIUS, HEIGHT, SECTIONS = 0.1, 0.3, 256
 PATCH_RTOL = 0.02     # sigma vs the exact-cylinder integral: facets (0.7 deg) and 4 mm cells
 FINE = 41             # reference quadrature points per side of the patch
 STL_ROUNDING = 1e-6  # m: STL stores float32 coordinates (7 digits of a 0.1 m part)
+FACET_FRAME = 1e-4   # a sample's frame against the smooth surface's: its facet's plane, float32 corners
 
 CAMERA = """
 [[camera]]
@@ -204,6 +205,14 @@ def test_cone_is_developed_exactly(tmp_path):
     assert dev.centre == pytest.approx([0, 0, h], abs=STL_ROUNDING)
     assert max(dev.distortion.area_p95, dev.distortion.angle_p95) < 1e-3
     s = sample_regions(meshes, **region_tables(exp))
+    # the strain frame: t_u around the axis (horizontal), t_v along the slant, as on a cylinder
+    # (the developed sector's Cartesian u turns by its 2 pi sin(alpha) from one edge to the other)
+    # (within FACET_FRAME: a facet's plane in float32 STL coordinates; around the axis, a point's
+    # radial direction is up to half a facet's angle, pi / 256, off its facet's)
+    assert np.abs(s.tangent_u[:, 2]).max() < FACET_FRAME
+    radial = s.points[:, :2] / np.linalg.norm(s.points[:, :2], axis=1, keepdims=True)
+    assert np.abs(np.einsum("ij,ij->i", s.tangent_u[:, :2], radial)).max() < math.sin(math.pi / 256) + FACET_FRAME
+    assert np.abs(np.abs(s.tangent_v[:, 2]) - h / math.hypot(r, h)).max() < FACET_FRAME   # cos(alpha)
     slant = math.hypot(r, h)
     # sample cells tile the developed sector; its rim is resolved to a cell
     assert s.area.sum() == pytest.approx(math.pi * r * slant, rel=4 * s.region_cell[0] / slant)

@@ -27,7 +27,8 @@ class SurfaceSamples:
 
     points: np.ndarray       # (N, 3)
     normals: np.ndarray      # (N, 3) outward unit normals
-    tangent_u: np.ndarray    # (N, 3) unit, with tangent_v: the face's parametric frame
+    tangent_u: np.ndarray    # (N, 3) unit, with tangent_v: the face's parametric frame (on a
+                             # cylinder and a cone: around its axis, then along the surface)
     tangent_v: np.ndarray    # (N, 3)
     uv: np.ndarray           # (N, 2) parametric coordinates on the face, m
     area: np.ndarray         # (N,) m^2 carried by each sample
@@ -115,7 +116,12 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
     det = np.linalg.det(D)
     J = E @ np.linalg.inv(np.where(np.abs(det)[:, None, None] > 1e-300, D, np.eye(2)))
     normal = tm.face_normals[rf.faces]
-    t_u = J[:, :, 0] - normal * np.einsum("ij,ij->i", J[:, :, 0], normal)[:, None]
+    along = J[:, :, 0]
+    if dev.kind == "cone":   # the hoop direction, J e_psi: the developed polar angle's at the face
+        centre = uv_tri.mean(axis=1)                                  # (u, v) = s (sin psi, -cos psi)
+        radial = centre / np.maximum(np.linalg.norm(centre, axis=1, keepdims=True), 1e-300)
+        along = np.einsum("tij,tj->ti", J, np.stack([-radial[:, 1], radial[:, 0]], axis=1))
+    t_u = along - normal * np.einsum("ij,ij->i", along, normal)[:, None]
     t_u /= np.linalg.norm(t_u, axis=1, keepdims=True)
     t_v = np.cross(normal, t_u)
     ratio = tm.area_faces[rf.faces] / np.maximum(np.abs(det) / 2, 1e-300)
