@@ -522,3 +522,22 @@ def test_virtual_test_refuses_a_pair_it_cannot_use(tmp_path, capsys):
         example["main"](["--out", str(tmp_path / "s"), "--steps", "0"])
     assert "--steps 0" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("mode, spp, warned", [("sampled", 4, True), ("sampled", 64, False), ("dic", 4, False)])
+def test_a_lit_series_in_the_sampled_mode_warns_of_its_shadow_bands(plate_experiment, tmp_path, caplog,
+                                                                    mode, spp, warned):
+    """Without jitter every pixel samples a light at the same spp points, so below
+    SERIES_LIGHT_SPP a thin occluder's shadow comes out as hard bands: said before rendering."""
+    from dataclasses import replace
+
+    from test_render import light
+    from vdo.dic.series import plan_series
+
+    path = plate_experiment(cameras=CAMERA + light("p", [0.5, 0.2, 1.5], [0, 0, 0], [0.3, 0.2], 20))
+    (tmp_path / "motions.csv").write_text(MOTIONS)
+    exp = config.load(path)
+    exp = replace(exp, render=replace(exp.render, mode=mode))
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        plan_series(exp, tmp_path / "motions.csv", spp=spp)
+    assert ("hard-edged shadow bands" in caplog.text) == warned

@@ -53,6 +53,7 @@ if TYPE_CHECKING:   # annotations only: the heavy modules are imported where the
     from vdo.state import Geometry
 
 log = logging.getLogger(__name__)
+SERIES_LIGHT_SPP = 64   # below this the sampled mode's fixed light points draw shadows as bands
 
 
 @dataclass(frozen=True)
@@ -124,6 +125,11 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
         raise ConfigError(exp.path, "--scale/--spp/--seed", "need 0 < scale <= 4, spp >= 1, seed >= 0")
     render_settings(exp, scale, spp, seed)                 # the mode, depth of field
     dic = rs.mode == "dic"
+    if not dic and exp.lights and spp < SERIES_LIGHT_SPP:
+        log.warning("a series in the sampled mode has no jitter: every pixel samples each light at the "
+                    "same %d points, so a thin occluder (a tripod leg, a bar) casts %d hard-edged shadow "
+                    "bands instead of one soft one; [render] mode = \"dic\" (the light integrated) or "
+                    "spp >= %d", spp, spp, SERIES_LIGHT_SPP)
     try:
         plan = plan_render([scaled_camera(c, scale) for c in cameras_of(exp.camera_specs, exp.rails)],
                            rs.mode)
