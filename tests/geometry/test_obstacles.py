@@ -71,3 +71,24 @@ def test_segment_distance_against_a_dense_search():
     exact = obstacles.segment_distance(a0, a1, b0, b1)
     assert np.all(exact <= dense + 1e-12)
     assert exact == pytest.approx(dense, abs=5e-3)
+
+
+def test_a_group_missing_between_its_moving_steps_is_warned(caplog, tmp_path):
+    """A group with no row at a step of the load path between two steps where it moves stands
+    at rest there (the documented meaning of a missing row): said, since a forgotten row gives
+    the same jump; a group that returns to rest by its own rows, or moves only at the end, is not."""
+    import logging
+
+    import numpy as np
+
+    from vdo.geometry.keyframes import Pose, _warn_gaps
+
+    def pose(dz):
+        return Pose(np.eye(3), np.array([0.0, 0.0, dz]), np.zeros(3))
+
+    poses = {(1, "platen"): pose(-0.5), (2, "platen"): pose(-1.0), (4, "platen"): pose(-2.0),
+             (1, "hexapod"): pose(0.0), (3, "hexapod"): pose(0.0), (5, "hexapod"): pose(0.003)}
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        _warn_gaps(tmp_path / "poses.csv", poses, [1, 2, 3, 4, 5])
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1 and "group 'platen' has no row at step(s) 3" in lines[0], lines

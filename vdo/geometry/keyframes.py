@@ -86,6 +86,11 @@ class Pose:
     def turn(self, vectors: np.ndarray) -> np.ndarray:
         return np.asarray(vectors) @ self.rotation.T
 
+    @property
+    def is_identity(self) -> bool:
+        """Whether the pose moves nothing (the rest pose)."""
+        return not np.any(self.translation != 0) and not np.any(self.rotation != np.eye(3))
+
 
 def rotation_xyz(rx: float, ry: float, rz: float) -> np.ndarray:
     """R = Rz(rz) Ry(ry) Rx(rx), radians: about world x first, then y, then z."""
@@ -126,7 +131,7 @@ class LoadPath:
         key = []
         for group in sorted(g for at, g in self.poses if at == step):
             pose = self.poses[(step, group)]
-            if np.any(pose.translation != 0) or np.any(pose.rotation != np.eye(3)):
+            if not pose.is_identity:
                 key.append((group, pose.rotation.tobytes(), pose.translation.tobytes(), pose.pivot.tobytes()))
         u = (self.displacements or {}).get(step)
         if u is not None and np.any(u != 0):
@@ -180,6 +185,22 @@ def _step(row, index, file, line) -> int:
         raise ConfigError(file, f"row {line}", f"step must be a whole number >= 1 (got {row[index]!r}; "
                                                "step 0 is the rest state)")
     return int(value)
+
+
+def _warn_gaps(file: Path, poses: dict, steps) -> None:
+    """A warning per group that has no row at a step of the load path (`steps`: the pose file's
+    and the displacement file's) lying between two of its own steps where it is moved (not at
+    rest): it stands at rest there (module docstring), a jump back and forth in the middle of its
+    motion that a forgotten row would also give."""
+    for group in sorted({g for _, g in poses}):
+        own = [step for step in steps if (step, group) in poses]
+        moved = [step for step in own if not poses[(step, group)].is_identity]
+        gaps = [step for step in steps if (step, group) not in poses and moved
+                and moved[0] < step < moved[-1]]
+        if gaps:
+            logger.warning("%s: group %r has no row at step(s) %s, between steps where it moves: it "
+                           "stands at rest there; add its rows if it should not", file, group,
+                           ", ".join(map(str, gaps[:MISSING_STEPS_SHOWN])) + (" ..." if len(gaps) > MISSING_STEPS_SHOWN else ""))
 
 
 def read_poses(file: Path, groups: dict, pivots: dict) -> dict:
@@ -549,6 +570,8 @@ def load_path_of(meshes, *, load_path_spec: LoadPathSpec, mesh_specs: tuple[Mesh
         _check_displaced_steps(spec.displacements, Path(poses) if poses is not None else None,
                                {step for step, _ in table}, set(displacements))
     steps = sorted({step for step, _ in table} | set(displacements or {}))
+    if poses is not None:
+        _warn_gaps(Path(poses), table, steps)
     if spec.every > 1 and steps:      # every every-th step, and the last
         steps = sorted(set(steps[::spec.every]) | {steps[-1]})
     return LoadPath(tuple(steps), members, table, spec.deformed_mesh, displacements)
