@@ -404,3 +404,16 @@ def test_lens_outside_the_catalogue_is_refused(plate_experiment, tmp_path):
     with pytest.raises(ConfigError, match=r'camera "down".focal_mm: = 24 mm is not in'):
         optimize(exp("28, 50"), tmp_path / "run")     # before any work: no folder, no start-up
     assert not (tmp_path / "run").exists()
+
+
+def test_a_normal_whose_faces_lie_outside_the_box_says_so(plate_experiment):
+    """The plate's top faces (+z) lie outside a box that holds only its lower half: the line
+    gives the closest normal among the faces in the box (its sides, 90 deg; not the top's 0 deg,
+    which would say the normal is fine) and where the faces that face +z are."""
+    path = plate_experiment()
+    path = edited(path, ("normal = [0, 0, 1]", "normal = [0, 0, 1]\nbox_min_m = [-1, -1, -1]\n"
+                                               "box_max_m = [1, 1, -0.006]"))
+    err = error(path, samples_of)
+    assert err.field == 'region "top"' and "selects no face" in err.message
+    assert "the closest face normal in the box is 90.0 deg from normal" in err.message, err.message
+    assert "the faces that face it lie outside the box" in err.message

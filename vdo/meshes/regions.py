@@ -138,11 +138,19 @@ def _nothing_selected(mesh: SceneMesh, region: RegionSpec, selector: RegionSelec
                                       f"{NEAR_FIELDS[near]} ({near}); set within_m / beyond_m to "
                                       "include some of that range")
     if region.normal is not None:
-        best = float(np.degrees(np.arccos(np.clip((tm.face_normals @ region.normal).max(), -1, 1))))
-        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: the closest face normal is "
-                                  f"{best:.1f} deg from normal (tolerance "
-                                  f"{np.degrees(region.normal_tolerance):g} deg); check normal, "
-                                  "normal_tolerance_deg, box_min_m and box_max_m (metres, world frame)")
+        in_box = selector.in_box(tm.triangles_center)
+        facing = selector.facing(tm.face_normals)
+        scope = in_box if in_box.any() else np.ones(len(in_box), dtype=bool)
+        best = float(np.degrees(np.arccos(np.clip((tm.face_normals[scope] @ region.normal).max(), -1, 1))))
+        outside = ""
+        if facing.any() and in_box.any():   # the faces that face it are all outside the box
+            c = tm.triangles_center[facing]
+            outside = (f"; the faces that face it lie outside the box, between "
+                       f"{np.round(c.min(axis=0), 3).tolist()} and {np.round(c.max(axis=0), 3).tolist()} m")
+        raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: the closest face normal "
+                                  f"{'in the box ' if in_box.any() else ''}is {best:.1f} deg from normal "
+                                  f"(tolerance {np.degrees(region.normal_tolerance):g} deg){outside}; check "
+                                  "normal, normal_tolerance_deg, box_min_m and box_max_m (metres, world frame)")
     raise ConfigError(*where, f"selects no face of mesh {mesh.name!r}: check box_min_m and box_max_m "
                               "(metres, world frame)")
 
