@@ -190,3 +190,17 @@ def test_report_in_headless_chromium(run, tmp_path):
     assert area.std() > 20 and (~background).mean() > 0.05      # not blank
     diff = np.abs(shots["coverage"][plot] - shots["sensitivity_x"][plot]).max(axis=-1) > 30
     assert diff.mean() > 0.01                                   # the field changed the colours
+
+
+@pytest.mark.parametrize("files, kind", [(["series.json", "config.toml"], "series"),
+                                         (["target.yml", "summary.json"], "calibrate"),
+                                         (["render.json"], "render"), (["summary.json"], "evaluate")])
+def test_a_series_or_calibrate_folder_is_reported_as_what_it_is(tmp_path, files, kind):
+    """`vdo render --series` and `vdo calibrate` folders are their own kinds: the report does not
+    call a complete one an interrupted evaluate or render run."""
+    from vdo.outputs.html_report import EXPECTED, kind_of
+
+    for f in files:
+        (tmp_path / f).write_text("{}")
+    assert kind_of(tmp_path) == kind
+    assert set(files) <= set(EXPECTED[kind]) or kind == "evaluate"

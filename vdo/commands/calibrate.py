@@ -157,7 +157,9 @@ def write_fields(folder, exp, samples, errors, noise_u, noise_strain) -> None:
               "calib_displacement_per_unit": errors.per_unit_displacement,
               "calib_strain_sigma": errors.strain, "calib_strain_per_unit": errors.per_unit_strain,
               "calib_pair": errors.pair.astype(np.int32), "noise_displacement_sigma": noise_u,
-              "noise_strain_sigma": noise_strain, "region": samples.region.astype(np.int32)}
+              "noise_strain_sigma": noise_strain, "region": samples.region.astype(np.int32),
+              "normal": samples.normals, "tangent_u": samples.tangent_u, "tangent_v": samples.tangent_v,
+              "area": samples.area}                 # the sample cells `vdo report` draws
     vtp.write_points(folder / "samples.vtp", samples.points, arrays)
     level = exp.calibration.strain
     for name, values, title in (

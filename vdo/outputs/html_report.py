@@ -32,6 +32,8 @@ KINDS = (("design", ("designed.toml", "design.json", "pareto.csv")),
          ("optimize", ("optimized.toml", "summary_before.json", "summary_after.json")),
          ("sweep", ("results.csv",)),
          ("validate", ("validation.csv", "validation.png")),
+         ("series", ("series.json",)),
+         ("calibrate", ("target.yml",)),
          ("render", ("render.json", "contact_sheet.png")))
 EXPECTED = {"evaluate": ("config.toml", "layout.json", "samples.vtp", "summary.json"),
             "design": ("designed.toml", "layout.json", "summary.json", "design.json", "pareto.csv",
@@ -40,7 +42,9 @@ EXPECTED = {"evaluate": ("config.toml", "layout.json", "samples.vtp", "summary.j
                          "summary_after.json", "constraints.json", "convergence.png"),
             "sweep": ("results.csv",),
             "validate": ("validation.csv", "validation.png"),
-            "render": ("config.toml", "layout.json", "render.json", "contact_sheet.png")}
+            "render": ("config.toml", "layout.json", "render.json", "contact_sheet.png"),
+            "series": ("config.toml", "layout.json", "series.json"),
+            "calibrate": ("config.toml", "target.yml", "summary.json", "samples.vtp", "contact_sheet.png")}
 WHY = {"config.toml": "meshes and lights are not drawn", "optimized.toml": "meshes and lights are "
        "not drawn", "layout.json": "no camera is drawn", "samples.vtp": "no field is drawn",
        "summary.json": "no region table", "summary_before.json": "no table before optimizing",
@@ -318,7 +322,8 @@ def _read_json(path: Path, missing: list[str]):
 
 
 def kind_of(run_dir: Path) -> str:
-    """Which command wrote the folder: optimize, sweep, validate, render or evaluate."""
+    """Which command wrote the folder: design, optimize, sweep, validate, a render's series,
+    calibrate, render or evaluate."""
     for kind, markers in KINDS:
         if any((run_dir / m).exists() for m in markers):
             return kind
