@@ -541,3 +541,16 @@ def test_a_lit_series_in_the_sampled_mode_warns_of_its_shadow_bands(plate_experi
     with caplog.at_level(logging.WARNING, logger="vdo"):
         plan_series(exp, tmp_path / "motions.csv", spp=spp)
     assert ("hard-edged shadow bands" in caplog.text) == warned
+
+
+def test_a_series_from_the_experiments_load_path_keeps_its_poses(plate_experiment, tmp_path):
+    """The poses of `[load_path] poses` (no --series file) go into the folder's poses.csv too."""
+    from dataclasses import replace
+
+    path = plate_experiment(cameras=CAMERA)
+    (tmp_path / "motions.csv").write_text(MOTIONS)
+    exp = config.load(path)
+    exp = replace(exp, load_path=replace(exp.load_path, poses=tmp_path / "motions.csv"))
+    summary = render_series(exp, tmp_path / "series", None)
+    assert summary["steps"] == [0, 1, 2]
+    assert (tmp_path / "series" / "poses.csv").read_text() == MOTIONS

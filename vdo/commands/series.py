@@ -1,7 +1,7 @@
 """`vdo render --series` as a command: the plan of `vdo.dic.series` (`plan_series`) and its run
 folder, each image written as `series_images` renders it (a long series is never held in
 memory): images/<camera>/<camera>_<step:04d>.tif (and .exr with [render] exr = true),
-calibration/<format>/, layout.json, config.toml, poses.csv (when given), series.json and
+calibration/<format>/, layout.json, config.toml, poses.csv (the poses used, when any), series.json and
 report.html."""
 
 from __future__ import annotations
@@ -51,8 +51,9 @@ def write_series(plan: SeriesPlan, out, overwrite: bool = False) -> dict:
         report.write_json(tmp / "layout.json", report.layout(plan.cameras))
         report.write_config(tmp / "config.toml", exp)
         write_all(plan.cameras, plan.stereo, tmp / "calibration", exp.path, no_pair=plan.no_pair)
-        if plan.poses_path is not None:
-            shutil.copyfile(plan.poses_path, tmp / "poses.csv")
+        poses = plan.poses_path if plan.poses_path is not None else exp.load_path.poses
+        if poses is not None:                 # --series POSES.csv, else the [load_path]'s
+            shutil.copyfile(poses, tmp / "poses.csv")
         summary = plan.to_json()
         (tmp / "series.json").write_text(json.dumps(summary, indent=2) + "\n")
         html_report.write_report(tmp)
