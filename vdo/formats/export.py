@@ -48,7 +48,7 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
         if angle <= limit:
             kept.append(pair)
         else:
-            dropped.append(f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.0f}")
+            dropped.append(f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.1f}")
     if dropped:       # one line, however many pairs (45 of them on a 10-camera rig)
         log.info("%d stereo pair(s) not exported: optical axes more than %.0f deg apart "
                  "([analysis] max_pair_angle_deg; --pairs overrides): %s", len(dropped),
