@@ -299,6 +299,37 @@ def _first_difference(table: str, a, b) -> str | None:
     return None if a == b else table
 
 
+
+
+def _warn_overlaps(exp: Experiment, selected: dict, meshes: dict) -> None:
+    """A warning per two regions of one mesh that keep some of the same surface (points inside the
+    faces both select that both regions' boxes and distance bands keep): their samples lie on
+    one another, so that surface counts twice in every area-weighted figure and score. Faces
+    that a distance band cuts between two regions are shared without any overlap."""
+    names = [r.name for r in exp.regions if r.name in selected]
+    mesh = {r.name: r.mesh for r in exp.regions}
+    # points inside each face (not on its edges, where two bands meet exactly)
+    w = np.array([[1 / 3, 1 / 3, 1 / 3], [2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]])
+    for k, a in enumerate(names):
+        for b in names[k + 1:]:
+            if mesh[a] != mesh[b]:
+                continue
+            shared = np.intersect1d(selected[a].faces, selected[b].faces)
+            if not shared.size:
+                continue
+            m = meshes[mesh[a]]
+            pts = np.einsum("pk,fkc->fpc", w, m.vertices[m.faces[shared]]).reshape(-1, 3)
+            both = np.ones(len(pts), dtype=bool)
+            for name in (a, b):
+                if selected[name].selector is not None:
+                    both &= selected[name].selector.keep(pts)
+            faces = int(both.reshape(len(shared), -1).any(axis=1).sum())
+            if faces:
+                log.warning("%s: regions %r and %r both keep parts of %d face(s) of mesh %r: that surface "
+                            "counts twice; narrow one of them if they should not overlap", exp.path, a, b,
+                            faces, mesh[a])
+
+
 def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | None:
     """Run every up-front check of `exp` that needs more than its TOML file, together, before any
     heavy work (ray casting, rendering, JAX compilation): its meshes read and checked, no camera
@@ -317,10 +348,12 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
     meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
                          rails=exp.rails, mounts=exp.mounts, path=exp.path, errors=errors)
     if not errors.errors:                    # every region selects some of its mesh (each one said)
+        selected = {}
         for region in exp.regions:
             with errors.check():
-                all_region_faces(meshes, mesh_specs=exp.meshes, regions=(region,),
-                                 spacing=exp.evaluation.sample_spacing, path=exp.path)
+                selected[region.name] = all_region_faces(meshes, mesh_specs=exp.meshes, regions=(region,),
+                                                         spacing=exp.evaluation.sample_spacing, path=exp.path)[0]
+        _warn_overlaps(exp, selected, {m.name: m for m in meshes})
     load_path = None
     needed = exp.load_path.deformed_mesh if exp.load_path.displacements is not None else None
     if (exp.load_path.active or poses is not None) and (

@@ -249,3 +249,26 @@ def test_the_meshes_lines_are_said_once_per_command():
     said += [once.filter(record("vdo.meshes.mesh", split.replace("0.59", "-0.59")))]
     said += [once.filter(record("vdo.commands.evaluate", "step 1 of 4")) for _ in range(2)]
     assert said == [True, False, False, True, True, True]
+
+
+@pytest.mark.parametrize("second, overlaps", [
+    ('normal = [0, 0, 1]', True),                                       # the same top face again
+    ('normal = [0, 0, 1]\nnear_point_m = [0, 0, 0]\nbeyond_m = 0.2\nwithin_m = 5', False),   # a band beside it
+])
+def test_two_regions_keeping_the_same_surface_are_said(plate_experiment, caplog, second, overlaps):
+    """Two regions of one mesh that keep the same surface count it twice: said at the door; two
+    that a distance band splits between them (faces cut by the band shared, no surface twice)
+    are not."""
+    import logging
+
+    from vdo.config import experiment as config
+    from vdo.state import check_experiment
+
+    path = plate_experiment()
+    text = path.read_text()
+    first = 'normal = [0, 0, 1]\nnear_point_m = [0, 0, 0]\nwithin_m = 0.2' if not overlaps else 'normal = [0, 0, 1]'
+    text = text.replace('normal = [0, 0, 1]', first, 1)
+    path.write_text(text + f'\n[[region]]\nname = "again"\nmesh = "plate"\n{second}\n')
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        check_experiment(config.load(path))
+    assert ("counts twice" in caplog.text) == overlaps, caplog.text
