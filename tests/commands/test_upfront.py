@@ -244,7 +244,7 @@ def test_the_meshes_lines_are_said_once_per_command():
     def record(name, text):
         return logging.LogRecord(name, logging.INFO, __file__, 1, text, None, None)
 
-    split = "region 'shell': 152 faces split at its box plane x = 0.59 m"
+    split = "152 mesh faces split at the plane x = 0.59 m (a box face of region 'shell'), so that regions end there exactly"
     said = [once.filter(record("vdo.meshes.mesh", split)) for _ in range(3)]
     said += [once.filter(record("vdo.meshes.mesh", split.replace("0.59", "-0.59")))]
     said += [once.filter(record("vdo.commands.evaluate", "step 1 of 4")) for _ in range(2)]

@@ -245,8 +245,10 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
             side = np.sign(np.where(np.abs(offset) < eps, 0.0, offset))
             crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
             if np.any(crossing & selectable):
-                log.info("region %r: %d faces split at its box plane %s = %g m", region.name,
-                         int(crossing.sum()), "xyz"[k], c)
+                sharing = [r.name for r in regions if c in (float(r.box_min[k]), float(r.box_max[k]))]
+                log.info("%d mesh faces split at the plane %s = %g m (a box face of region %s), so that "
+                         "regions end there exactly", int(crossing.sum()), "xyz"[k], c,
+                         ", ".join(repr(n) for n in sharing))
                 vertices, faces = _split_plane(vertices, faces, side, crossing, k, c)
                 done.add((k, c))
                 tri = None
