@@ -363,7 +363,47 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
                                      groups=exp.groups, poses=poses)
     errors.errors += lens_catalogue_errors(exp)
     errors.raise_all()
+    if load_path is not None:
+        _warn_penetration(exp, meshes, load_path)
     return load_path
+
+
+PENETRATION_M = 1e-3        # a moving mesh's vertex deeper than this inside a specimen is said
+PENETRATION_VERTICES = 400  # vertices of a moving mesh tested at each step (evenly spread)
+
+
+def _warn_penetration(exp: Experiment, meshes, load_path: LoadPath) -> None:
+    """A warning per (moving mesh, specimen mesh) whose posed vertices reach more than
+    PENETRATION_M inside the specimen at some step of the load path (`inside_mesh`, the depth by
+    `vdo.model.surface.distance_to_mesh`): a platen driven through the specimen (poses 10x too
+    large, mm read as m) changes every occlusion silently. The specimen is taken at rest."""
+    from vdo.meshes.mesh import inside_mesh
+    from vdo.model.surface import distance_to_mesh
+
+    specimens = [m for m in meshes if m.role == "specimen"]
+    worst = {}
+    for step in load_path.steps:
+        for mesh in meshes:
+            pose = load_path.mesh_pose(step, mesh.name)
+            if pose is None or mesh.role == "specimen" or pose.is_identity:
+                continue
+            pick = np.unique(np.linspace(0, len(mesh.vertices) - 1, PENETRATION_VERTICES).astype(int))
+            moved = pose.move(mesh.vertices[pick])
+            for spec in specimens:
+                lo, hi = spec.vertices.min(axis=0), spec.vertices.max(axis=0)
+                near = np.all((moved >= lo) & (moved <= hi), axis=1)
+                if not near.any():
+                    continue
+                inside = moved[near][inside_mesh(moved[near], spec.vertices, spec.faces)]
+                if len(inside):
+                    depth = float(distance_to_mesh(inside, spec.vertices, spec.faces).max())
+                    key = (mesh.name, spec.name)
+                    if depth > PENETRATION_M and depth > worst.get(key, (0.0, 0))[0]:
+                        worst[key] = (depth, step)
+    for (moving, specimen), (depth, step) in worst.items():
+        log.warning("%s: at step %d of the load path mesh %r reaches %.1f mm inside specimen %r: check "
+                    "the pose file's units and values (a platen presses on the surface, not through it)",
+                    exp.path, step, moving, depth * 1e3, specimen)
 
 
 def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:

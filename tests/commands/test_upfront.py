@@ -272,3 +272,24 @@ def test_two_regions_keeping_the_same_surface_are_said(plate_experiment, caplog,
     with caplog.at_level(logging.WARNING, logger="vdo"):
         check_experiment(config.load(path))
     assert ("counts twice" in caplog.text) == overlaps, caplog.text
+
+
+@pytest.mark.parametrize("down_mm, said", [(15.0, True), (10.5, False)])
+def test_a_mesh_driven_into_the_specimen_is_said(plate_experiment, caplog, down_mm, said):
+    """A 100 x 100 x 20 mm platen 10 mm above the 10 mm plate, driven down by the load path: at
+    15 mm its underside lies 5 mm inside the plate (said, with the step and the depth), at
+    10.5 mm 0.5 mm (a press's contact, below PENETRATION_M: not said)."""
+    import logging
+
+    from vdo.config import experiment as config
+    from vdo.state import check_experiment
+
+    path = plate_experiment(files=[("platen.stl", [100, 100, 20], [0, 0, 20])],
+                            extra_meshes='[[mesh]]\nname = "platen"\nfile = "platen.stl"\nrole = "obstacle"\nunit = "mm"\n')
+    (path.parent / "poses.csv").write_text("step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
+                                           f"1,platen,0,0,-5,0,0,0\n2,platen,0,0,{-down_mm},0,0,0\n")
+    path.write_text(path.read_text() + '\n[load_path]\nposes = "poses.csv"\n')
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        check_experiment(config.load(path))
+    assert ("at step 2 of the load path mesh 'platen' reaches 5.0 mm inside specimen 'plate'" in caplog.text) == said, caplog.text
+    assert ("inside specimen" in caplog.text) == said
