@@ -531,3 +531,16 @@ def test_the_console_gives_the_score_views_and_the_final_evaluations_unmeasured_
     line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("  bend:")][0]
     assert ("7.5 % of the area unmeasured in the score's views, counted as 1 mm; 11.9 % in "
             "summary_after.json") in line, line
+
+
+def test_the_convergence_figure_names_the_lens_trials_apart_from_the_starts():
+    """Two starts (0, 1), the lens screening judged under index 2 without a solve, two lens
+    trials solved under 3 and 4: "start 1", "start 2", "lens trial 1", "lens trial 2" (the figure
+    said "start 4" and "start 5", and no start 3 existed)."""
+    from vdo.optimize import run_labels
+
+    history = [{"start": s} for s in (0, 0, 1, 3, 4)]
+    verdicts = [{"start": s} for s in (0, 1, 2, 2, 3, 4)]
+    assert run_labels(history, verdicts) == {0: "start 1", 1: "start 2", 2: "the lens screening",
+                                             3: "lens trial 1", 4: "lens trial 2"}
+    assert run_labels([{"start": 0}], [{"start": 0}]) == {0: "start 1"}

@@ -90,6 +90,18 @@ from vdo.search.solver import LENS_TRIALS, choose_lenses, solve
 log = logging.getLogger(__name__)
 
 
+def run_labels(history, verdicts) -> dict[int, str]:
+    """The name of each solved run of the search (its "start" index in `history`): "start k" for
+    the starts, "lens trial k" for the solves after the lens screening (whose layouts are judged
+    under the one index after the starts' and never solved: "the lens screening")."""
+    solved = sorted({h["start"] for h in history})
+    screening = min((r["start"] for r in verdicts if r["start"] not in solved and solved
+                     and r["start"] > solved[0]), default=None)    # judged after a solve, not solved
+    trials = [s for s in solved if screening is not None and s > screening]
+    labels = {s: f"lens trial {trials.index(s) + 1}" if s in trials else f"start {s + 1}" for s in solved}
+    return labels | ({} if screening is None else {screening: "the lens screening"})
+
+
 def layout_checks(state: LayoutState) -> list[dict]:
     """Every constraint check of `vdo optimize` (`vdo.constraints.check`: axis angles, clearance,
     obscuration, field of view, shadows of the camera bodies, horizontal, on the rail; and
@@ -268,7 +280,8 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
                                     load_path=after.load_path)
     scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
     worst = _worst_p95(before, scored), _worst_p95(after, scored)
-    log.info("best: start %d, score %.4g -> %.4g µm, %d constraint violation(s)", best.start + 1,
+    log.info("best: %s, score %.4g -> %.4g µm, %d constraint violation(s)",
+             run_labels(run.history, run.verdicts).get(best.start, f"start {best.start + 1}"),
              score_before["score_um"], score_after["score_um"], best.violations)
     return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
                           startup_s=startup, search_s=search, reason=reason,

@@ -13,7 +13,7 @@ import matplotlib.pyplot as plt
 
 from vdo.config.experiment import Experiment
 from vdo.core.runfolder import run_folder
-from vdo.optimize import DEFAULT_TIME_LIMIT, OptimizeResult, optimize_layout
+from vdo.optimize import DEFAULT_TIME_LIMIT, OptimizeResult, optimize_layout, run_labels
 from vdo.outputs import html_report, report
 from vdo.search.anytime import Stop
 from vdo.search.problem import PENALTIES
@@ -77,20 +77,23 @@ def write_history(path, history):
 def plot_history(path, history, verdicts, name):
     """Score (log scale when it spans more than a factor 10) at every accepted solver step (thin
     line) and the exact score of each judged layout (markers: filled where it meets every
-    constraint; each round's end, and the checkpoints within rounds), per start; layouts judged
-    without a solve (lens screening) as crosses."""
-    fig, ax = plt.subplots(figsize=(7, 4), layout="constrained")
+    constraint; each round's end, and the checkpoints within rounds), per start and lens trial
+    (the solves after the lens screening); layouts judged without a solve (the screening) as
+    crosses. The legend stands beside the axes."""
+    fig, ax = plt.subplots(figsize=(9.5, 4), layout="constrained")
     solved = sorted({h["start"] for h in history})
+    screened = [r for r in verdicts if r["start"] not in solved]
+    labels = run_labels(history, verdicts)
     for s in solved:
         rows = [h for h in history if h["start"] == s]
+        what = labels[s]
         line, = ax.plot([h["wall_s"] for h in rows], [h["score"] for h in rows], lw=0.6, alpha=0.5,
-                        label=f"start {s + 1}: accepted steps")
+                        label=f"{what}: accepted steps")
         for feasible in (True, False):
             v = [r for r in verdicts if r["start"] == s and (r["violations"] == 0) == feasible]
             ax.plot([r["wall_s"] for r in v], [r["score"] for r in v], "o", ms=6,
                     color=line.get_color(), mfc=line.get_color() if feasible else "white",
-                    label=f"start {s + 1}: judged layout, {'feasible' if feasible else 'violates a constraint'}")
-    screened = [r for r in verdicts if r["start"] not in solved]
+                    label=f"{what}: judged layout, {'feasible' if feasible else 'violates a constraint'}")
     if screened:
         ax.plot([r["wall_s"] for r in screened], [r["score"] for r in screened], "x", color="0.4",
                 label="lens options screened at the best layout")
@@ -101,7 +104,7 @@ def plot_history(path, history, verdicts, name):
     ax.set_ylabel("score (smooth σ_max, µm, + coverage)")
     ax.set_title(f"{name}: convergence")
     if verdicts:
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))     # beside the points
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
