@@ -918,7 +918,7 @@ def test_a_chosen_camera_is_told_what_part_of_each_region_it_sees():
     rig a useful camera sees no region whole), against the hand count on four samples."""
     from types import SimpleNamespace
 
-    from vdo.design.select import seen_fractions
+    from vdo.design.measures import seen_fractions
 
     samples = SimpleNamespace(region=np.array([0, 0, 1, 1]), area=np.array([1.0, 3.0, 2.0, 2.0]),
                               region_names=("bend", "leg"))
@@ -934,7 +934,7 @@ def test_the_curve_compares_the_counts_on_the_area_every_count_measures():
     area; the private arrays leave the curve."""
     from types import SimpleNamespace
 
-    from vdo.design.select import common_p95
+    from vdo.design.measures import common_p95
 
     rng = np.random.default_rng(3)
     n = 400

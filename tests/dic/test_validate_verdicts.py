@@ -17,6 +17,7 @@ from small_plate import DEFAULTS
 from vdo.commands import validate as command
 from vdo.commands.cli import main
 from vdo.dic import validate as V
+from vdo.dic import verdicts
 
 COVERAGE_DRAWS = 4000     # Monte Carlo sets: the coverage's sampling sd is sqrt(.95 .05 / 4000) = 0.0034
 COVERAGE_TOLERANCE = 0.012  # 3.5 of those sds
@@ -25,7 +26,7 @@ COVERAGE_TOLERANCE = 0.012  # 3.5 of those sds
 def row(ratio: float, seeds: int, case: str = "c", axis: str = "x") -> dict:
     """One row as `run_case` writes it, reduced to what the verdict and the table read (a
     predicted σ of 1 µm)."""
-    low, high = V.ratio_interval(ratio, seeds)
+    low, high = verdicts.ratio_interval(ratio, seeds)
     return {"case": case, "axis": axis, "ratio": ratio, "n_seeds": seeds,
             "ratio_ci95_low": low, "ratio_ci95_high": high, "sigma_predicted_um": 1.0,
             "sigma_expected_um": math.sqrt(2), "sigma_measured_um": ratio * math.sqrt(2), "bias_um": 0.0}
@@ -46,7 +47,7 @@ def test_interval_bounds_are_where_the_chi2_test_rejects(seeds):
     r sits at the α/2 tail (scipy.stats.chi2.sf and .cdf), α = 5 %, or α/m jointly over m."""
     r, dof = 0.9, seeds - 1
     for m in (1, 32):
-        low, high = V.ratio_interval(r, seeds, ratios=m)
+        low, high = verdicts.ratio_interval(r, seeds, ratios=m)
         tail = 0.05 / m / 2
         assert stats.chi2.sf(dof * r ** 2 / low ** 2, dof) == pytest.approx(tail, rel=1e-9)
         assert stats.chi2.cdf(dof * r ** 2 / high ** 2, dof) == pytest.approx(tail, rel=1e-9)
@@ -55,10 +56,10 @@ def test_interval_bounds_are_where_the_chi2_test_rejects(seeds):
 
 def test_interval_textbook_values():
     """The 95 % interval of σ from n = 10 draws is [0.688 s, 1.826 s], from n = 2 [0.446 s, 31.9 s]."""
-    assert V.ratio_interval(1.0, 10) == pytest.approx((0.6878, 1.8256), abs=1e-4)
-    assert V.ratio_interval(1.0, 2) == pytest.approx((0.44615, 31.910), rel=1e-4)
+    assert verdicts.ratio_interval(1.0, 10) == pytest.approx((0.6878, 1.8256), abs=1e-4)
+    assert verdicts.ratio_interval(1.0, 2) == pytest.approx((0.44615, 31.910), rel=1e-4)
     # scaling: the interval of a ratio r is r times that of 1
-    assert V.ratio_interval(0.7, 10) == pytest.approx(tuple(0.7 * b for b in V.ratio_interval(1.0, 10)))
+    assert verdicts.ratio_interval(0.7, 10) == pytest.approx(tuple(0.7 * b for b in verdicts.ratio_interval(1.0, 10)))
 
 
 def test_interval_covers_the_true_ratio_95_percent_of_the_time():
@@ -66,7 +67,7 @@ def test_interval_covers_the_true_ratio_95_percent_of_the_time():
     COVERAGE_DRAWS sets of 5 draws."""
     rng = np.random.default_rng(7)
     s = rng.normal(0.0, 2.0, size=(COVERAGE_DRAWS, 5)).std(axis=1, ddof=1)
-    covered = [lo <= 1.0 <= hi for lo, hi in (V.ratio_interval(x / 2.0, 5) for x in s)]
+    covered = [lo <= 1.0 <= hi for lo, hi in (verdicts.ratio_interval(x / 2.0, 5) for x in s)]
     assert abs(np.mean(covered) - 0.95) < COVERAGE_TOLERANCE
 
 
@@ -83,7 +84,7 @@ def test_interval_covers_the_true_ratio_95_percent_of_the_time():
     (1.26, 2.0, "outside"),
 ])
 def test_verdict_of_an_interval(low, high, said):
-    assert V.verdict(low, high) == said
+    assert verdicts.verdict(low, high) == said
 
 
 def test_rows_are_judged_jointly_and_only_outside_fails():
@@ -94,7 +95,7 @@ def test_rows_are_judged_jointly_and_only_outside_fails():
     judged = {r["case"]: r for r in run.rows}
     assert [judged[c]["verdict"] for c in ("many", "two", "bad")] == ["within", "inconclusive", "outside"]
     assert (judged["two"]["ratio_joint_low"], judged["two"]["ratio_joint_high"]) == pytest.approx(
-        V.ratio_interval(0.69, 2, ratios=3))
+        verdicts.ratio_interval(0.69, 2, ratios=3))
     assert judged["two"]["ratio_joint_low"] < judged["two"]["ratio_ci95_low"]       # wider
     assert judged["many"]["seeds_to_decide"] is None and judged["bad"]["seeds_to_decide"] is None
     assert run.verdicts == {"outside": 1, "inconclusive": 1, "within": 1} and not run.passed
@@ -103,9 +104,9 @@ def test_rows_are_judged_jointly_and_only_outside_fails():
 
 @pytest.mark.parametrize("ratio", [0.69, 0.95, 1.2, 1.4, 0.3])
 def test_seeds_to_decide_is_the_first_count_that_decides(ratio):
-    n = V.seeds_to_decide(ratio, ratios=32)
-    assert V.verdict(*V.ratio_interval(ratio, n, ratios=32)) != "inconclusive"
-    assert n == 2 or V.verdict(*V.ratio_interval(ratio, n - 1, ratios=32)) == "inconclusive"
+    n = verdicts.seeds_to_decide(ratio, ratios=32)
+    assert verdicts.verdict(*verdicts.ratio_interval(ratio, n, ratios=32)) != "inconclusive"
+    assert n == 2 or verdicts.verdict(*verdicts.ratio_interval(ratio, n - 1, ratios=32)) == "inconclusive"
 
 
 def test_seeds_to_decide_follows_the_1_over_sqrt_n_width():
@@ -114,9 +115,9 @@ def test_seeds_to_decide_follows_the_1_over_sqrt_n_width():
     z = stats.norm.ppf(1 - 0.05 / 2)
     for ratio in (0.85, 1.2):
         edge = 0.8 if ratio < 1 else 1.25
-        assert V.seeds_to_decide(ratio) == pytest.approx(1 + z ** 2 / (2 * math.log(ratio / edge) ** 2),
+        assert verdicts.seeds_to_decide(ratio) == pytest.approx(1 + z ** 2 / (2 * math.log(ratio / edge) ** 2),
                                                          rel=0.1)
-    assert V.seeds_to_decide(0.8) is None       # on an edge: never decided
+    assert verdicts.seeds_to_decide(0.8) is None       # on an edge: never decided
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,6 +160,6 @@ def test_exit_status_and_summary_line(rows, status, counts, tmp_path, monkeypatc
         needed = sorted(command.round_up(r["seeds_to_decide"]) for r in opened)
         spread = str(needed[0]) if needed[0] == needed[-1] else f"{needed[0]}-{needed[-1]}"
         assert f"~{spread} seeds would decide" in last
-        assert f"--seeds {V.seeds_to_decide(1.0, ratios=len(rows))} shows a ratio of 1 within" in last
+        assert f"--seeds {verdicts.seeds_to_decide(1.0, ratios=len(rows))} shows a ratio of 1 within" in last
     else:
         assert "seeds" not in last

@@ -30,6 +30,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from vdo.core.stats import sd_ratio_band
+
 from vdo.calib import propagate as prop
 from vdo.calib.solve import INTRINSICS, calibrate, rvec, simulate
 
@@ -79,12 +81,9 @@ class MonteCarlo:
 
 def ratio_interval(trials: int, parameters: int = 1, confidence: float = 0.95) -> tuple[float, float]:
     """The interval holding, with probability `confidence`, all `parameters` ratios sample sd /
-    true sd of `trials` independent normal draws (module docstring): sqrt(chi2_{n-1, q} / (n - 1))
-    at q = a / 2P and 1 - a / 2P, a = 1 - confidence, n = trials (Bonferroni over parameters)."""
-    from scipy.stats import chi2
-
-    n, q = trials - 1, (1 - confidence) / 2 / parameters
-    return tuple(float(np.sqrt(chi2.ppf(x, n) / n)) for x in (q, 1 - q))
+    true sd of `trials` independent normal draws (module docstring; `vdo.core.stats.sd_ratio_band`,
+    Bonferroni over parameters)."""
+    return sd_ratio_band(trials, parameters, confidence)
 
 
 def true_theta(r: prop.Rig, cameras) -> np.ndarray:

@@ -25,8 +25,9 @@ import shutil
 
 import numpy as np
 
-from vdo.dic.validate import (BAND, CONFIDENCE, STRAIN_AXES, UM, ValidationResult, ValidationSpec,
-                              noise_free_images, run_cases, seeds_to_decide)
+from vdo.dic.verdicts import BAND, CONFIDENCE, seeds_to_decide
+from vdo.dic.validate import (STRAIN_AXES, UM, ValidationResult, ValidationSpec,
+                              noise_free_images, run_cases)
 
 CSV_FIELDS = ["case", "axis", "sigma_predicted_um", "sigma_measured_um", "ratio", "n_seeds",
               "sigma_expected_um", "ratio_ci95_low", "ratio_ci95_high", "bias_um", "rms_error_um",
@@ -167,7 +168,7 @@ def write_csv(rows: list[dict], path) -> None:
 
 def print_table(rows: list[dict]) -> None:
     """One line per ratio: the sigmas, the ratio, its own 95 % interval, the joint interval its
-    verdict rests on (`vdo.dic.validate.judge`) and the verdict unless "within"."""
+    verdict rests on (`vdo.dic.verdicts.judge`) and the verdict unless "within"."""
     print(f"{'case':<24}{'axis':>5}{'pred um':>10}{'sqrt2*pred':>12}{'meas um':>10}{'ratio':>8}"
           f"{'95% CI':>15}{'joint CI':>15}{'bias um':>10}{'n':>6}")
     for r in rows:

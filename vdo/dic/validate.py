@@ -22,10 +22,10 @@ For each case of a validation file (experiments/validation.toml, schema in docs/
 
        ratio = sigma_measured / (√2 sigma_predicted)      (1 when the model is right).
 
-   Each ratio is judged by its χ² interval from the seed count (`judge`), at 95 % confidence
-   jointly over the run's ratios (Bonferroni): "within" `BAND`, "outside" it (the run fails), or
-   "inconclusive" when the interval holds a band edge (too few seeds to tell; `seeds_to_decide`
-   says how many would).
+   Each ratio is judged by its χ² interval from the seed count (`vdo.dic.verdicts.judge`), at 95 %
+   confidence jointly over the run's ratios (Bonferroni): "within" the band [0.8, 1.25], "outside"
+   it (the run fails), or "inconclusive" when the interval holds a band edge (too few seeds to
+   tell; `seeds_to_decide` says how many would).
 
 With one camera only the in-plane axes are reported: the depth is seen through perspective alone.
 The model's one-camera information is rank 2 (`predict` reports +inf), so its in-plane bound is the
@@ -57,7 +57,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -66,23 +66,21 @@ import numpy as np
 from vdo import objective
 from vdo.constraints import stereo_min_angle
 from vdo.physics import measured, strain
-from vdo.geometry.plate import cameras_of, check_cases, deform, plate_geometry, undeform
+from vdo.geometry.plate import check_cases, deform, plate_geometry
 from vdo.model.camera import Camera
 from vdo.model.pose import look_at_angles
 from vdo.config import validation
-from vdo.config.experiment import Experiment
-from vdo.config.rig import Evaluation, MeshSpec, RegionSpec, RenderSpec
-from vdo.config.procedure import Analysis, StereoPairSpec
 from vdo.config.validation import Case, ValidationSpec
 from vdo.dic.correlate import ImageReference, PixelIntegration, Q4, Translation, correlate
 from vdo.dic.patch import Patch
+from vdo.dic.cases import Setup, build_setup, render_case, speckle_model_of
+from vdo.dic.verdicts import VERDICTS, judge, ratio_interval
 from vdo.core.errors import ConfigError
 from vdo.physics.lighting import pattern_stats
-from vdo.physics.predict import SpeckleModel, samples_for_objective, settings, view_data
-from vdo.render import build_render_scene, expose, noise_free_dn, render_linear, render_seed, sensor_dict
-from vdo.scene import SceneMesh, SurfaceSamples, region_faces
+from vdo.physics.predict import samples_for_objective, settings, view_data
+from vdo.render import expose, noise_free_dn
+from vdo.scene import SurfaceSamples
 from vdo.physics.usable import patch_overlap
-from vdo.model.speckle import gradient_energy_table, normalise, pattern_for
 from vdo.state import Geometry, layout_state
 
 log = logging.getLogger(__name__)
@@ -91,10 +89,6 @@ AXES = "xyz"
 STRAIN_AXES = ("eps_uu", "eps_vv", "eps_uv")
 UM = 1e6
 SQRT2 = math.sqrt(2.0)
-BAND = (0.8, 1.25)       # the requirement on every ratio (`verdict`, `ValidationResult.passed`)
-CONFIDENCE = 0.95        # each row's interval (ratio_ci95_*), and the run's joint level (`judge`)
-SEEDS_HINT_MAX = 10 ** 7  # `seeds_to_decide` searches no further (a ratio on a band edge never decides)
-VERDICTS = ("outside", "inconclusive", "within")
 
 
 def load(path) -> ValidationSpec:
@@ -113,134 +107,6 @@ def check_pairs(spec: ValidationSpec) -> None:
     for case in spec.cases:
         if case.processing == "pairs":
             serving_pairs(build_setup(case, spec.path, painted=False))
-
-
-# --------------------------------------------------------------------------------------------
-# Geometry
-# --------------------------------------------------------------------------------------------
-@dataclass(frozen=True, eq=False)
-class DeformedFaces:
-    """The plate region's faces after the deformation: every point keeps the uv of its reference
-    position, so the texture moves and strains with the plate (what `build_render_scene` reads)."""
-
-    base: object        # vdo.scene.RegionFaces of the reference plate
-    case: Case
-
-    development = None   # a plate: planar, uv by `uv` (the render scene asks)
-
-    @property
-    def faces(self):
-        return self.base.faces
-
-    def uv(self, points) -> np.ndarray:
-        return self.base.uv(undeform(self.case, points))
-
-
-@dataclass(eq=False)
-class Setup:
-    """Everything one case needs, built once."""
-
-    case: Case
-    experiment: Experiment
-    cameras: list
-    patch: object                   # vdo.dic.patch.Patch
-    plate: object                   # vdo.scene.SceneMesh
-    region: object                  # vdo.scene.RegionFaces
-    pattern: np.ndarray | None
-    reference_linear: list = field(default_factory=list)
-    deformed_linear: list = field(default_factory=list)
-    pairs: tuple = ()               # pair cases: the pairs the merge uses (camera indices)
-    pair_weights: np.ndarray | None = None   # (P, 3, 3) A_p of the merge, `predict_pairs`
-
-
-def experiment_for(case: Case, path: Path, cameras=None) -> Experiment:
-    """An in-memory vdo Experiment for the case: one specimen plate, one region (the plate's
-    face), ambient light only, the DIC patch side sqrt(patch area) (Ω = the correlated area);
-    the strain analysis is the case's: subset DIC with its subset, step and window for a
-    subset case, else global DIC with the patch's shorter side as element (it fits the region,
-    the patch itself, up to rounding: `vdo.core.tolerances.SIZE_TOLERANCE`)."""
-    g = plate_geometry(case)
-    region = RegionSpec(name="patch", mesh="plate", normal=g["normal"],
-                        box_min=np.full(3, -np.inf), box_max=np.full(3, np.inf),
-                        normal_tolerance=math.radians(1.0), min_cameras=1)
-    w, h = case.patch
-    return Experiment(path=Path(path), name=case.name, description=case.description,
-                      meshes=(MeshSpec(name="plate", path=Path(path), unit="m", role="specimen"),),
-                      regions=(region,), rails=(), camera_specs=(),
-                      evaluation=Evaluation(sample_spacing=min(w, h) / 4, incidence_limit=math.radians(85.0),
-                                            patch_size=math.sqrt(w * h), min_cameras=1),
-                      speckle=case.speckle, sensor=case.sensor,
-                      render=RenderSpec(spp=case.spp, ambient_radiance=case.ambient_radiance),
-                      analysis=analysis_of(case),
-                      stereo_pairs=tuple(StereoPairSpec(cameras=p) for p in case.stereo_pairs))
-
-
-def analysis_of(case: Case) -> Analysis:
-    """The `[analysis]` of a case (`experiment_for`): subset DIC (subset, step and window in
-    metres, sizes in pixels unset) for a subset case, else global DIC, element = the patch's
-    shorter side; the case's processing (all views, or stereo pairs and their merge)."""
-    if case.subsets is not None:
-        side, step, n = case.subsets
-        return Analysis(method="subset", subset=side, subset_px=None, step=step, step_px=None,
-                        strain_window=n)
-    return Analysis(element=min(case.patch), processing=case.processing, pairs=case.pairs,
-                    merge=case.merge, max_pair_angle=case.max_pair_angle)
-
-
-def build_setup(case: Case, path: Path, painted: bool = True) -> Setup:
-    """The case's experiment, plate, region, patch and cameras; with `painted`, its speckle
-    pattern too (False: the geometry only, for the checks before any render)."""
-    g = plate_geometry(case)
-    exp = experiment_for(case, path)
-    plate = SceneMesh("plate", "specimen", g["plate"], np.array([[0, 1, 2], [0, 2, 3]]))
-    rf = region_faces(plate, exp.regions[0], exp.evaluation.sample_spacing, (path, case.name))
-    patch = Patch(origin=g["origin"], t_u=g["t_u"], t_v=g["t_v"], size=np.array(case.patch))
-    return Setup(case=case, experiment=exp, cameras=cameras_of(case), patch=patch, plate=plate,
-                 region=rf, pattern=case_pattern(case) if painted else None)
-
-
-def case_pattern(case: Case) -> np.ndarray:
-    """The [0, 1] pattern painted on the plate: vdo's generated tile, its edges softened by a
-    periodic Gaussian of std `edge_blur` (ink spread) when that is > 0."""
-    from scipy import ndimage
-
-
-    pattern = pattern_for(case.speckle).astype(np.float64)
-    if case.edge_blur > 0:
-        pattern = ndimage.gaussian_filter(pattern, case.edge_blur / case.speckle.texel, mode="wrap")
-    return pattern.astype(np.float32)
-
-
-def speckle_model_of(setup: Setup):
-    """vdo.physics.predict's SpeckleModel (statistics and gradient-energy table, vdo.model.speckle) of the
-    pattern actually painted; the same as `vdo.physics.predict.speckle_model` when edge_blur = 0."""
-
-    sp = setup.case.speckle
-    mean, std = pattern_stats(setup.pattern)
-    table = gradient_energy_table(normalise(setup.pattern), sp.texel,
-                                  l_max=max(50 * sp.dot_diameter, 0.05))
-    return SpeckleModel(setup.pattern, mean, std, table)
-
-
-# --------------------------------------------------------------------------------------------
-# Renders
-# --------------------------------------------------------------------------------------------
-def render_case(setup: Setup) -> None:
-    """Noise-free linear renders of every camera: the plate as it is, and deformed (translated
-    by U and, in a strain case, strained homogeneously) with its texture (`DeformedFaces`: every
-    point keeps its uv; the plate is flat, so the affine map of its vertices is exact)."""
-
-    case, exp = setup.case, setup.experiment
-    moved = SceneMesh("plate", "specimen", deform(case, setup.plate.vertices), setup.plate.faces)
-    moved_rf = DeformedFaces(setup.region, case)
-    scenes = [build_render_scene(exp, [setup.plate], [setup.region], (), setup.pattern),
-              build_render_scene(exp, [moved], [moved_rf], (), setup.pattern)]
-    setup.reference_linear, setup.deformed_linear = [], []
-    for i, cam in enumerate(setup.cameras):
-        # jitter=False: each pixel is integrated on a fixed sub-pixel midpoint grid (no render noise)
-        sensor = sensor_dict(cam, spp=case.spp, jitter=False)
-        setup.reference_linear.append(render_linear(scenes[0], sensor, render_seed(0, i)))
-        setup.deformed_linear.append(render_linear(scenes[1], sensor, render_seed(0, i)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -589,74 +455,6 @@ def axes_reported(case: Case) -> list[int]:
     return [k for k in range(3) if abs(n[k]) < 0.5]
 
 
-# --------------------------------------------------------------------------------------------
-# Statistics: each ratio's interval and the run's verdict on it
-# --------------------------------------------------------------------------------------------
-def ratio_interval(ratio: float, seeds: int, confidence: float = CONFIDENCE,
-                   ratios: int = 1) -> tuple[float, float]:
-    """The `confidence` interval of the true ratio σ/σ_e from `ratio` = s/σ_e, s the standard
-    deviation (ddof 1) of n = `seeds` normal draws and σ_e the prediction (exact): (n − 1) s²/σ²
-    follows χ²_{n−1}, so
-
-        σ/σ_e ∈ [ratio √((n − 1)/χ²_{n−1}(1 − α/2)),  ratio √((n − 1)/χ²_{n−1}(α/2))],
-
-    α = (1 − confidence) / `ratios`: with `ratios` = m > 1 the m intervals of a run hold their true
-    ratios together with probability ≥ `confidence` (Bonferroni)."""
-    from scipy.stats import chi2
-
-    alpha = (1 - confidence) / ratios
-    dof = seeds - 1
-    return (ratio * math.sqrt(dof / chi2.ppf(1 - alpha / 2, dof)),
-            ratio * math.sqrt(dof / chi2.ppf(alpha / 2, dof)))
-
-
-def verdict(low: float, high: float) -> str:
-    """A ratio's verdict from its interval [low, high] (`ratio_interval`) and `BAND` [b0, b1]:
-    "within" when b0 <= low and high <= b1, "outside" when high < b0 or low > b1 (the seeds
-    reject every ratio in the band), else "inconclusive" (the interval holds a band edge: the
-    seeds cannot tell)."""
-    if BAND[0] <= low and high <= BAND[1]:
-        return "within"
-    if high < BAND[0] or low > BAND[1]:
-        return "outside"
-    return "inconclusive"
-
-
-def seeds_to_decide(ratio: float, confidence: float = CONFIDENCE, ratios: int = 1) -> int | None:
-    """The fewest seeds n at which the interval about the same `ratio` (`ratio_interval`, the same
-    `confidence` and `ratios`) no longer holds a band edge, i.e. its `verdict` is "within" or
-    "outside"; None past SEEDS_HINT_MAX (a ratio on an edge is never decided). To first order
-    the interval is ratio · exp(±z/√(2(n − 1))) (z the normal quantile of 1 − α/2), so
-    n ≈ 1 + z²/(2 ln²(ratio/edge)); the χ² interval is skewed (~6 % in n at 500 seeds, far more
-    at a few), so n is searched on it (doubling, then bisection: it shrinks about `ratio` as n
-    grows)."""
-
-    def decided(n: int) -> bool:
-        return verdict(*ratio_interval(ratio, n, confidence, ratios)) != "inconclusive"
-
-    high = 2
-    while not decided(high):
-        if high >= SEEDS_HINT_MAX:
-            return None
-        high *= 2
-    low = high // 2           # undecided (1: no interval below 2 seeds)
-    while high - low > 1:
-        mid = (low + high) // 2
-        low, high = (low, mid) if decided(mid) else (mid, high)
-    return high
-
-
-def judge(row: dict, ratios: int) -> dict:
-    """`row` (one ratio of `run_case`) with the run's verdict on it: its interval at joint
-    `CONFIDENCE` over the run's `ratios` ratios (`ratio_interval`; ratio_joint_low/high), its
-    `verdict`, and for an inconclusive one `seeds_to_decide` (else None)."""
-    low, high = ratio_interval(row["ratio"], row["n_seeds"], ratios=ratios)
-    said = verdict(low, high)
-    return {**row, "ratio_joint_low": low, "ratio_joint_high": high, "verdict": said,
-            "seeds_to_decide": seeds_to_decide(row["ratio"], ratios=ratios)
-            if said == "inconclusive" else None}
-
-
 def run_case(case: Case, path: Path, seeds: int, progress=None) -> CaseResult:
     """Render, predict, correlate `seeds` times; returns the per-axis statistics and diagnostics.
     `progress`: called with 1 after each seed."""
@@ -779,7 +577,7 @@ class ValidationResult:
 
     @cached_property
     def rows(self) -> list[dict]:
-        """Every case's rows, each judged (`judge`) at joint `CONFIDENCE` over all of them."""
+        """Every case's rows, each judged (`judge`) at joint `verdicts.CONFIDENCE` over all of them."""
         m = sum(len(case.rows) for case in self.cases)
         return [judge(row, m) for case in self.cases for row in case.rows]
 
@@ -790,7 +588,7 @@ class ValidationResult:
 
     @property
     def passed(self) -> bool:
-        """No ratio outside `BAND` (its joint interval wholly outside it); an inconclusive ratio,
+        """No ratio outside `verdicts.BAND` (its joint interval wholly outside it); an inconclusive ratio,
         one its seeds cannot place, does not fail the run."""
         return self.verdicts["outside"] == 0
 
