@@ -21,7 +21,7 @@ import numpy as np
 
 import vdo
 from vdo.core.backend import mitsuba
-from vdo.physics.lighting import EPSILON, GRID, illuminate, panel_frame, panel_points
+from vdo.physics.lighting import EPSILON, GRID, SKY_GRID, illuminate, panel_frame, panel_points
 from vdo.scene import build_scene
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -92,6 +92,11 @@ def main() -> None:
     print(f"vdo (Dr.Jit)     {t_vdo:.3f} s   ratio {t_np / t_vdo:.2f}x")
     print(f"largest difference: lit {np.abs(ill.lit - lit_np).max():.2e}, direct "
           f"{np.abs(ill.direct - dir_np).max() / max(dir_np.max(), 1e-300):.2e} of its largest value")
+    if exp.render.ambient_radiance > 0:   # the sky fraction S too: SKY_GRID^2 shadow rays a sample
+        t_sky, lit_sky = timed(lambda: illuminate(scene, exp.lights, s, exp.render.ambient_radiance), args.repeats)
+        print(f"vdo with the sky fraction ({SKY_GRID}^2 rays a sample, {len(X) * SKY_GRID ** 2 / 1e6:.2f} M "
+              f"more): {t_sky:.3f} s; S from {lit_sky.sky.min():.3f} to {lit_sky.sky.max():.3f}, "
+              f"mean {lit_sky.sky.mean():.3f}")
 
 
 if __name__ == "__main__":
