@@ -76,13 +76,19 @@ def applicable(path: str) -> list[list[str]]:
     return out
 
 
-def doc_commands() -> list[tuple[str, list[str]]]:
-    """(where, argv) of every `vdo ...` (or `python -m vdo ...`) line in a fenced code block of
-    README.md and docs/*.md: '$ ' prompts, '# ' comments, [optional] parts and leading
-    environment assignments (the test sets VDO_SET itself) dropped, '\\' continuations joined."""
-    command = re.compile(r'(\w+=("[^"]*"|\S*)\s+)*(python3? -m )?vdo\s')
-    found = []
-    for doc in DOCS:
+def doc_commands(docs=DOCS) -> tuple[list[tuple[str, list[str]]], list[str]]:
+    """(commands, unreadable): (where, argv) of every `vdo NAME ...` (or `python -m vdo NAME ...`)
+    line in a fenced code block of README.md and docs/*.md, NAME one of the CLI's subcommands
+    (`vdo.commands.cli.subcommands`: prose in a code block that starts with "vdo" is not a
+    command): '$ ' prompts, '# ' comments, [optional] parts and leading environment assignments
+    (the test sets VDO_SET itself) dropped, '\\' continuations joined; unreadable: where such a
+    line cannot be split by shlex (a test fails on it, the collection does not)."""
+    from vdo.commands.cli import subcommands
+
+    names = "|".join(sorted(subcommands(), key=len, reverse=True))
+    command = re.compile(rf'(\w+=("[^"]*"|\S*)\s+)*(python3? -m )?vdo\s+({names})(\s|$)')
+    found, unreadable = [], []
+    for doc in docs:
         inside, lines = False, doc.read_text().splitlines()
         k = 0
         while k < len(lines):
@@ -97,12 +103,20 @@ def doc_commands() -> list[tuple[str, list[str]]]:
             text = re.sub(r"\[[^\]]*\]", "", re.sub(r"\s#.*$", "", line.strip().removeprefix("$ ")))
             if not inside or not command.match(text):
                 continue
-            words = shlex.split(text)
+            where = f"{doc.relative_to(ROOT) if doc.is_relative_to(ROOT) else doc}:{number}"
+            try:
+                words = shlex.split(text)
+            except ValueError as err:
+                unreadable.append(f"{where}: {err}")
+                continue
             while re.fullmatch(r"\w+=.*", words[0]):
                 words = words[1:]
             words = words[3:] if words[0].startswith("python") else words[1:]
-            found.append((f"{doc.relative_to(ROOT)}:{number}", words))
-    return found
+            found.append((where, words))
+    return found, unreadable
+
+
+DOC_COMMANDS, UNREADABLE = doc_commands()
 
 
 def _strip(argv: list[str]) -> list[str]:
@@ -130,7 +144,7 @@ def groups() -> dict[tuple[str, str], list[list[str]]]:
             commands = [["validate" if kind(path) == "validation" else "evaluate", path]]
         for argv in commands:
             out.setdefault((path, argv[0]), []).append(argv)
-    for where, argv in doc_commands():
+    for where, argv in DOC_COMMANDS:
         argv = _strip(argv)
         files = [a for a in argv[1:] if a.endswith(".toml")]
         if not files or files[0] not in SHIPPED:
@@ -176,11 +190,24 @@ def test_every_shipped_file_and_doc_command_is_covered():
     shipped file is one of the runs."""
     assert "experiments/validation.toml" in SHIPPED and len(SHIPPED) >= 8
     assert {path for path, _ in GROUPS} >= set(SHIPPED)
-    for where, argv in doc_commands():
+    assert not UNREADABLE, UNREADABLE
+    assert len(DOC_COMMANDS) >= 10
+    for where, argv in DOC_COMMANDS:
         argv = _strip(argv)
         files = [a for a in argv[1:] if a.endswith(".toml")]
         if files and files[0] in SHIPPED:
             assert argv in GROUPS[(files[0], argv[0])], where
+
+
+def test_the_docs_reader_takes_commands_not_prose(tmp_path):
+    """A code block's line is a command when `vdo` is followed by a subcommand; prose that starts
+    with "vdo" is skipped, and a command shlex cannot split is reported with its place."""
+    doc = tmp_path / "doc.md"
+    doc.write_text("```\nvdo sweep, the calibration's Monte Carlo\n$ vdo check experiments/a.toml  # ok\n"
+                   "vdo evaluate 'unclosed --out x\n```\nvdo check outside.toml\n")
+    found, unreadable = doc_commands([doc])
+    assert found == [(f"{doc}:3", ["check", "experiments/a.toml"])]
+    assert unreadable and unreadable[0].startswith(f"{doc}:4")
 
 
 @pytest.mark.parametrize("path", SHIPPED)

@@ -548,6 +548,12 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def subcommands() -> tuple[str, ...]:
+    """The names of vdo's subcommands (`vdo NAME ...`), in the order of `vdo --help`."""
+    action = next(a for a in _parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return tuple(action.choices)
+
+
 def _run(args) -> int:
     started = args.started = time.perf_counter()
     if args.command == "demo":
