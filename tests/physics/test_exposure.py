@@ -296,7 +296,7 @@ def test_the_stop_is_where_the_measured_uncertainty_is_least(tmp_path):
         for *_, floor, _ in floors:
             model, j = floor["model"]
             n = len(model.bias)
-            cov = model.covariance(np.full(n, floor["noise_rel"]), np.full(n, floor["patch_px"]))
+            cov = model.covariance(np.full(n, floor["noise_rel"]), np.full(n, floor["patch_pixels"]))
             total += float(np.trace(cov[j]))
         totals[stop] = total
     best = min(totals, key=totals.get)

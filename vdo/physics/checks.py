@@ -140,8 +140,9 @@ def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, p
     footprints A (K, 2, 2) px/m, irradiances E (K,), patches of `pixels` (K,) pixels, through the
     K `optics`. σ (in pattern stds) = σ_n / (contrast std f). One dict per footprint:
     measured_over_noise and measured_over_bound (2,) per image axis, bias_px (2,) RMS over
-    sub-pixel positions, noise_rel σ, and the `vdo.model.interpolant.CorrelationError` as "model"
-    (not JSON: `design_checks` drops it)."""
+    sub-pixel positions, noise_rel σ, patch_pixels the patch's pixel count (an area, px²), and
+    the `vdo.model.interpolant.CorrelationError` as "model" (not JSON: `design_checks` drops
+    it)."""
     from vdo.model.speckle import normalise
     from vdo.model.interpolant import correlation_error
     from vdo.model.spline_response import INTERPOLANTS
@@ -160,7 +161,7 @@ def measurement_floor(footprints, irradiance, pixels, optics, speckle, sensor, p
     return [{"measured_over_noise": [float(x) for x in np.sqrt(total[k] / noise[k])],
              "measured_over_bound": [float(x) for x in over_bound[k]],
              "bias_px": [float(x) for x in bias[k]], "noise_rel": float(sigma[k]),
-             "patch_px": float(p[k]), "interpolant": interpolant, "model": (model, k)}
+             "patch_pixels": float(p[k]), "interpolant": interpolant, "model": (model, k)}
             for k in range(len(p))]
 
 

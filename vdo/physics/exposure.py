@@ -229,7 +229,7 @@ def _best_stops(apertures, pairs, top, cameras, camera_specs, spec_x, speckle, s
         analysis.reference == "noisy")
     model, _ = floors[0]["model"]
     cov = model.covariance(np.array([f["noise_rel"] for f in floors]),
-                           np.array([f["patch_px"] for f in floors]))
+                           np.array([f["patch_pixels"] for f in floors]))
     score: dict = {}
     for (i, stop, _, _), c in zip(jobs, np.trace(cov, axis1=1, axis2=2)):
         score[(i, stop)] = score.get((i, stop), 0.0) + float(c)

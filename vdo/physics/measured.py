@@ -201,7 +201,7 @@ def noise_inflation(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation
                                               analysis, cameras, samples, views, illumination,
                                               speckle, snap, lattice):
         model, j = floor["model"]
-        s2, p = floor["noise_rel"] ** 2, floor["patch_px"]
+        s2, p = floor["noise_rel"] ** 2, floor["patch_pixels"]
         kappa = _nu(floor) + p * float(np.trace(model.bias[j])) / (s2 * float(np.trace(model.bound_sharp[j])))
         scale[i, seen] = math.sqrt(kappa)
     return scale
@@ -238,7 +238,7 @@ def camera_terms(regions: tuple[RegionSpec, ...], camera_specs: tuple[CameraSpec
         M_i[i, seen] = nu * C_i[i, seen] + np.einsum("nai,ab,nbj->nij", WS, B, WS)
         rows.append({"camera": cameras[i].name, "region": samples.region_names[k], "nu": nu,
                      "optics_gradient_loss": gamma, "bias_px": [float(x) for x in np.sqrt(np.diag(B))],
-                     "patch_px": floor["patch_px"], "f_number": lens.f_number,
+                     "patch_pixels": floor["patch_pixels"], "f_number": lens.f_number,
                      "f_number_assumed": lens.assumed, "optics_sigma_px": lens.sigma_px})
     return C_i, M_i, rows
 
