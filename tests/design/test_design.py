@@ -78,10 +78,10 @@ def _own_fields(exp, geometry, cams):
     return np.sqrt((mu ** st.eigen_power).sum(-1) ** (1.0 / st.eigen_power)) / st.sigma_unit, f, st
 
 
-def _pair_score(exp, geometry, cams):
+def _pair_score(exp, geometry, cams, coverage_weight=1.0):
     """The design's score of a layout of these cameras from `_own_fields`:
-    exp(sum omega ln(sigma / sigma_unit) + kappa sum a h(max(0, m - k))) sigma_unit units, h the
-    Huber function of half a view."""
+    exp(sum omega ln(sigma / sigma_unit) + coverage_weight kappa sum a h(max(0, m - k)))
+    sigma_unit units, h the Huber function of half a view."""
     sigma, f, st = _own_fields(exp, geometry, cams)
     area = np.asarray(geometry.samples.area)
     omega = area * geometry.samples.region_importance[geometry.samples.region]
@@ -95,7 +95,7 @@ def _pair_score(exp, geometry, cams):
         x = np.maximum(excess, 0.0)
         cost = cost + kappa * np.where(x > 1, 2 * x - 1, x * x)     # square up to e times, then linear
     return float(np.exp(np.sum(omega / omega.sum() * cost)
-                        + kappa * np.sum(area / area.sum() * huber)))
+                        + coverage_weight * kappa * np.sum(area / area.sum() * huber)))
 
 
 def test_candidates_information_adds_to_the_layouts(judged):
@@ -480,6 +480,43 @@ def test_the_target_term_matches_its_closed_form_and_the_sparse_sums(plate_exper
         rows = np.array([k for k in range(len(cand.cameras)) if k not in base])
         np.testing.assert_allclose(scorer.add(*cand.sums(list(base)), cand, rows),
                                    [scorer.of(cand, list(base) + [k]) for k in rows], rtol=SUM_ORDER_RTOL)
+
+
+@pytest.mark.parametrize("weight", [0.25, 4.0])
+def test_the_coverage_weight_scales_the_coverage_term_only(plate_experiment, weight):
+    """[design] coverage_weight multiplies the coverage term's kappa and nothing else (the
+    target's term keeps the default kappa): with a target at the median sigma of a pair, the
+    score equals `_pair_score`'s independent computation with coverage_weight x kappa for pairs
+    and for one camera alone (every sample at least a view short), and ln(score / default
+    score) is (weight - 1) times the default's coverage term, read from `_pair_score`."""
+    exp = _experiment(plate_experiment, regions="\n[render]\nambient_radiance = 20\n")   # lit
+    geometry = prepare(exp)
+    cand = judge(exp, geometry)
+    sigma = Scorer(exp, geometry.samples).sigma(cand.sums([2, 6])[0]) * settings(exp.evaluation).sigma_unit
+    target = float(np.median(sigma[sigma < 0.1 * settings(exp.evaluation).prior_sigma])) * 1e6
+    aimed = replace(exp, design=replace(exp.design, target_sigma_um=target))
+    plain = Scorer(aimed, geometry.samples)
+    weighted = Scorer(replace(aimed, design=replace(aimed.design, coverage_weight=weight)), geometry.samples)
+    for chosen in [(2, 6), (0, 8), (3,)]:
+        cams = [cand.cameras[i] for i in chosen]
+        mine = _pair_score(aimed, geometry, cams, coverage_weight=weight)
+        default = _pair_score(aimed, geometry, cams)
+        assert weighted.of(cand, chosen) == pytest.approx(mine, rel=1e-4)
+        assert plain.of(cand, chosen) == pytest.approx(default, rel=1e-4)
+        coverage_term = (math.log(_pair_score(aimed, geometry, cams, coverage_weight=2.0)) - math.log(default))
+        assert math.log(weighted.of(cand, chosen) / plain.of(cand, chosen)) == pytest.approx(
+            (weight - 1) * coverage_term, rel=1e-3, abs=1e-9)
+    assert math.log(plain.of(cand, (3,))) - math.log(_pair_score(
+        replace(aimed, design=replace(aimed.design, target_sigma_um=None)), geometry, [cand.cameras[3]])) > 0
+
+
+def test_a_coverage_weight_of_zero_is_refused_in_one_line(plate_experiment):
+    from vdo.core.errors import ConfigError
+
+    path = plate_experiment()
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="coverage_weight = 0"))
+    with pytest.raises(ConfigError, match=r"coverage_weight.*> 0|coverage_weight.*positive"):
+        config.load(path)
 
 
 def test_stored_pairs_equal_the_dense_information_and_weights(judged):

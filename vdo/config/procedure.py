@@ -268,6 +268,13 @@ class DesignSpec:
                                         doc="sigma_max p95 (µm) to reach on the scored regions (σ_measured's "
                                             "with score = \"measured\"): the smallest camera count "
                                             "that does is reported")
+    coverage_weight: float = row(
+        "coverage_weight", Real(positive=True), 1.0,
+        doc="how much a view short of a region's min_cameras costs in the selection's score, "
+            "as a multiple of the default (a sample's whole area one view short costs as much as "
+            "its sigma going from 1 um to unmeasured): above 1 the design gives up sigma on the "
+            "scored regions for area seen by min_cameras everywhere, below 1 the reverse "
+            "(docs/design.md, \"Coverage against precision\")")
     rail_positions: int = row("rail_positions", Whole(low=1), 12,
                               doc="candidate positions per rail, evenly spread in u")
     offset: np.ndarray = row("offset_m", Vector(3, letters="xyz"), [0.0, 0.0, 0.15], unit="m",

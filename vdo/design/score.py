@@ -11,7 +11,8 @@ coverage deficit:
 sigma_n the smooth sigma_max of the regularised C_S (`vdo.objective`), omega = area x importance
 over the scored regions ([optimize] regions, default all) normalised to sum 1, and the coverage
 penalty P over EVERY region (a design must see the whole specimen, not only the scored part),
-kappa = ln(prior_sigma / 1 um) = ln 1000 (`coverage_weight`), h the views missing at a sample
+kappa = ln(prior_sigma / 1 um) = ln 1000 (`coverage_weight`) times [design] coverage_weight
+(default 1), h the views missing at a sample
 smoothed (`views_short`: Huber, linear beyond half a view, so that a second view counts about as
 much as a first). Why not the optimizer's power mean
 (q = 8, `vdo.objective.score`): a sample no camera pair measures sits at the prior's sigma (1 mm),
@@ -33,7 +34,8 @@ g(x) = x^2 up to x = 1 and 2x - 1 beyond (`target_excess`), so that a region's w
 no longer traded for typical ones (the geometric mean alone let the steel beam's 4-camera design
 leave 30 % of one end at 2.3 um p95, against a 0.3 um target). The weight is the coverage
 penalty's kappa: a sample at e times the target costs as much as one view missing there; the term
-is 0 at or below the target, 3.3 at twice it. Beyond e times it grows linearly in ln sigma, so an
+is 0 at or below the target, 3.3 at twice it (the default kappa, whatever [design]
+coverage_weight). Beyond e times it grows linearly in ln sigma, so an
 unmeasured sample (the prior's 1 mm) adds a bounded constant and the score's exponent stays finite
 for any target. It is convex (a convex increasing function of ln sigma, itself convex in C_S), so
 the score stays convex and the bound holds.
@@ -89,7 +91,8 @@ class Scorer:
         self.omega = omega / omega.sum()
         self.area = samples.area / samples.area.sum()
         self.minimum = minimum[samples.region].astype(float)
-        self.kappa = coverage_weight(st)
+        self.target_weight = coverage_weight(st)          # the target's term: the default kappa
+        self.kappa = self.target_weight * exp.design.coverage_weight
         target = exp.design.target_sigma_um
         self.log_target = None if target is None else math.log(target * 1e-6 / st.sigma_unit)
         self._sigma = jax.jit(lambda e: objective.smooth_sigma_max(tuple(e[:, k] for k in range(6)), st)
@@ -115,7 +118,7 @@ class Scorer:
         target (module docstring); xp: numpy or jax.numpy."""
         if self.log_target is None:
             return log_sigma
-        return log_sigma + self.kappa * target_excess(xp.maximum(log_sigma - self.log_target, 0.0), xp)
+        return log_sigma + self.target_weight * target_excess(xp.maximum(log_sigma - self.log_target, 0.0), xp)
 
     def value(self, info, cover):
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
