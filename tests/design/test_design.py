@@ -297,6 +297,7 @@ def test_zone_candidates_stand_on_the_grid_and_the_design_loads(plate_experiment
     assert (out / "summary.json").read_text() == json.dumps(result.summary.to_json(), indent=2) + "\n"
     written = json.loads((out / "design.json").read_text())
     assert (written["problems"], written["constraint_violations"]) == (result.problems, result.violations)
+    assert written["coverage_weight"] == exp.design.coverage_weight == 1.0
     assert [c["score"] for c in written["curve"]] == [c["score"] for c in result.curve]
     assert result.cameras == len(again.camera_specs) == result.curve[-1]["cameras"]
     assert result.refined is None

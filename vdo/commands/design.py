@@ -79,6 +79,7 @@ def write_design(result: DesignResult, out: Path, overwrite: bool = False) -> No
             "dropped_per_mount": cand.dropped, "exposure": result.exposure,
             "constraint_violations": result.violations,
             "target_sigma_um": d.target_sigma_um, "smallest_count_meeting_target": result.target_count,
+            "coverage_weight": d.coverage_weight,
             "curve": [{k: v for k, v in c.items() if k != "chosen"} for c in curve],
             "gap_to_bound": best["gap"], "bound": best["bound"],
             "wall_s": result.wall_s,

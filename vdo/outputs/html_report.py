@@ -258,7 +258,7 @@ def _design_section(run_dir: Path, data: dict) -> str:
                      + "".join(f"<li>{html.escape(str(p))}</li>" for p in problems) + "</ul></div>")
     scalars = {k: data.get(k) for k in ("candidates", "samples", "selection_spacing_mm",
                                         "inventory", "lenses_mm", "target_sigma_um",
-                                        "smallest_count_meeting_target", "bound",
+                                        "smallest_count_meeting_target", "coverage_weight", "bound",
                                         "gap_to_bound", "wall_s")}
     parts.append(_table([scalars]))
     if (run_dir / "pareto.png").is_file():
