@@ -21,7 +21,7 @@ from vdo.outputs.maps import developed_outline
 from vdo.physics.lighting import photometry
 from vdo.physics.predict import settings, sigmas
 from conftest import mesh_tables, region_tables
-from vdo.scene import load_meshes, sample_regions
+from vdo.scene import all_region_faces, load_meshes, sample_regions
 from vdo.state import layout_state, prepare
 
 RADIUS, HEIGHT, SECTIONS = 0.1, 0.3, 256
@@ -186,6 +186,51 @@ def test_distance_band_selects_a_ring(tmp_path):
     half = math.sqrt(0.12 ** 2 - RADIUS ** 2)           # |z| where the sphere meets the wall
     assert np.abs(s.points[:, 2]).max() <= half
     assert s.area.sum() == pytest.approx(2 * math.pi * RADIUS * 2 * half, rel=2 * s.region_cell[0] / (2 * half))
+
+
+def test_a_band_ends_a_face_where_it_ends(tmp_path):
+    """A band beyond_m = 0.08 m around the axis of the capped cylinder's upper half: the cap's
+    fan triangles are split where each radial edge is 0.08 m from the axis, so the region's
+    faces are the wall's rectangles and the cap's ring between two SECTIONS-gons, area
+    SECTIONS x chord x HEIGHT / 2 + (SECTIONS / 2) sin(2 pi / SECTIONS) (R^2 - 0.08^2), not the
+    whole cap that a band's faces held before; the pieces inside 0.08 m are left out."""
+    path = write_cylinder(tmp_path, region="""
+        near_axis_m = [[0, 0, 0], [0, 0, 1]]
+        beyond_m = 0.08
+        within_m = 0.2
+        box_min_m = [-1, -1, 0]
+        box_max_m = [1, 1, 1]""")
+    exp = config.load(path)
+    meshes = load_meshes(**mesh_tables(exp))
+    rf = all_region_faces(meshes, **region_tables(exp))[0]
+    tm = meshes[0].trimesh
+    wall = SECTIONS * 2 * RADIUS * math.sin(math.pi / SECTIONS) * HEIGHT / 2
+    ring = SECTIONS / 2 * math.sin(2 * math.pi / SECTIONS) * (RADIUS ** 2 - 0.08 ** 2)
+    assert tm.area_faces[rf.faces].sum() == pytest.approx(wall + ring, rel=1e-6)   # float32 STL
+    inner = np.linalg.norm(tm.triangles[rf.faces][..., :2], axis=2).min()
+    assert inner == pytest.approx(0.08, abs=STL_ROUNDING)       # cut on the radial edges
+
+
+def test_the_least_distance_from_a_line_to_a_triangle_is_dense_samplings_least():
+    """`line_triangle_distance` against the least over 1,891 points of each triangle: never
+    above it, and below it by at most the grid's reach (1/60 of an edge); 0 for the triangles
+    the line pierces; a triangle in a plane parallel to the line at its plane's distance."""
+    from vdo.model.surface import distance_to_line, line_triangle_distance
+
+    rng = np.random.default_rng(3)
+    tri = rng.normal(size=(400, 3, 3))
+    a, b = rng.normal(size=3), rng.normal(size=3)
+    n = 60
+    ij = np.array([(i / n, j / n) for i in range(n + 1) for j in range(n + 1 - i)])
+    pts = (tri[:, None, 0] + ij[None, :, :1] * (tri[:, 1] - tri[:, 0])[:, None]
+           + ij[None, :, 1:] * (tri[:, 2] - tri[:, 0])[:, None])
+    dense = distance_to_line(pts.reshape(-1, 3), a, b).reshape(len(tri), -1).min(axis=1)
+    least = line_triangle_distance(tri, a, b)
+    reach = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max(axis=1) / n
+    assert np.all(least <= dense + 1e-12) and np.all(dense - least <= reach)
+    assert 5 < np.sum(least == 0) < 400
+    flat = np.array([[[0.3, -1, 0], [0.3, 1, -1], [0.3, 1, 1]]])     # x = 0.3, the line is the z axis
+    assert line_triangle_distance(flat, np.zeros(3), np.array([0, 0, 1.0]))[0] == pytest.approx(0.3)
 
 
 def test_cone_is_developed_exactly(tmp_path):

@@ -1,6 +1,7 @@
 """The scene's triangle meshes (`SceneMesh`, world metres): the [[mesh]] files read and checked
 (readable content, extents that fit the declared unit, no camera inside a mesh: `inside_mesh`, by
-the even-odd rule), and a specimen's faces split at its regions' boxes (`split_at_boxes`).
+the even-odd rule), and a specimen's faces split at its regions' boxes (`split_at_boxes`) and at
+the edges of their distance bands (`split_at_bands`).
 
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory
 (`vdo.scene.mitsuba_mesh`), so a user's CAD export and the built-in example take the same path.
@@ -11,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import trimesh
@@ -21,6 +23,7 @@ from vdo.config.rig import UNITS, CameraSpec, MeshSpec, RegionSpec
 from vdo.config.schema import IMAGE_MAGIC
 from vdo.core.errors import Collect, ConfigError
 from vdo.core.tolerances import BARYCENTRIC_SLACK, TINY
+from vdo.model import surface
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +53,9 @@ def load_meshes(*, mesh_specs: tuple[MeshSpec, ...], regions: tuple[RegionSpec, 
     (placed by `rails` and `mounts`) inside it (`cameras_inside`). Every mesh is checked and every
     mistake reported together (`vdo.core.errors.Collect`), each naming the experiment file
     `path`. Specimen faces that cross a box of one of `regions` are split at the box
-    (`split_at_boxes`), so a region's faces and area are exactly the part inside its box. With
+    (`split_at_boxes`), and those that cross the edge of a region's distance band at that edge
+    (`split_at_bands`), so a region's faces and area are exactly the part inside its box and
+    band. With
     `errors`, the mistakes are kept there instead of raised, and the meshes that could be read
     are returned."""
     own = errors is None
@@ -63,6 +68,8 @@ def load_meshes(*, mesh_specs: tuple[MeshSpec, ...], regions: tuple[RegionSpec, 
                                     path=path)
     if own:
         errors.raise_all()
+    with errors.check():
+        meshes = split_at_bands(meshes, regions=regions, mesh_specs=mesh_specs, path=path)
     return meshes
 
 
@@ -257,25 +264,136 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
     return vertices, faces
 
 
+BAND_EDGE_M = 1e-9          # m: a vertex this close to a distance band's edge lies on it (the
+                            # band's cuts place theirs to ~1e-13 m of it, `BAND_BISECTIONS`)
+BAND_BISECTIONS = 48        # bisection steps of a band's cut along an edge (2^-48 of the edge)
+
+
+@dataclass(frozen=True, eq=False)
+class Band:
+    """The distance that a region's band is measured in: `distance(points (N, 3))` -> (N,) m,
+    and for a convex distance (to a point or a line) `least(triangles (T, 3, 3))` -> (T,) its
+    least value on each triangle, exact (None for the distance to a mesh). A convex distance is
+    greatest on a triangle at a vertex, so a triangle holds part of the band [beyond, within]
+    exactly when least < within and its greatest vertex distance > beyond."""
+
+    distance: Callable[[np.ndarray], np.ndarray]
+    least: Callable[[np.ndarray], np.ndarray] | None = None
+
+
+def band_distance(region: RegionSpec, meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
+                  path) -> Band | None:
+    """The `Band` of `region`'s near_point_m, near_axis_m, near_mesh (one of `meshes`) or
+    region_file (read in the unit of the region's mesh in `mesh_specs`; a file that cannot be
+    read is a ConfigError at the experiment file `path`); None without one."""
+    if region.near_point is not None:
+        point = region.near_point
+        return Band(lambda x: np.linalg.norm(x - point, axis=1),
+                    lambda t: surface.point_triangle_distance(np.broadcast_to(point, (len(t), 3)), t))
+    if region.near_axis is not None:
+        ends = region.near_axis
+        return Band(lambda x: surface.distance_to_line(x, *ends),
+                    lambda t: surface.line_triangle_distance(t, *ends))
+    if region.near_mesh is not None:
+        other = next(m for m in meshes if m.name == region.near_mesh)
+        return Band(lambda x: surface.distance_to_mesh(x, other.vertices, other.faces))
+    if region.region_file is not None:
+        scale = next(m.scale for m in mesh_specs if m.name == region.mesh)
+        loaded = read_mesh(region.region_file, (path, f'region "{region.name}".region_file'))
+        v, f = np.asarray(loaded.vertices, float) * scale, np.asarray(loaded.faces)
+        return Band(lambda x: surface.distance_to_mesh(x, v, f))
+    return None
+
+
+def split_at_bands(meshes: list[SceneMesh], *, regions: tuple[RegionSpec, ...],
+                   mesh_specs: tuple[MeshSpec, ...], path) -> list[SceneMesh]:
+    """`meshes` with every specimen triangle that a region could select (its normal within the
+    tolerance, overlapping the box) and whose vertices lie on both sides of an edge of the
+    region's distance band (within_m, and beyond_m when > 0) split along it, like
+    `split_at_boxes`: the cut on each crossed edge found by bisection of the distance along it,
+    so each piece lies on one side of the band's edge (its vertices there or on it, to
+    `BAND_EDGE_M`). A region then holds the part of a large face that lies in its band, not the
+    whole face (a flange beside a nozzle's wall, a fan of long triangles). Only a convex
+    distance (to a point or an axis: `Band.least`) is split at; a band around a mesh keeps the
+    faces that may reach into it."""
+    out = []
+    for mesh in meshes:
+        vertices, faces = mesh.vertices, mesh.faces
+        for region in regions:
+            if mesh.role != "specimen" or region.mesh != mesh.name or region.within is None:
+                continue
+            band = band_distance(region, meshes, mesh_specs=mesh_specs, path=path)
+            if band is None or band.least is None:
+                continue
+            distance = band.distance
+            for level in (region.within, region.beyond):
+                if level <= 0:
+                    continue
+                tri = vertices[faces]
+                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+                length = np.linalg.norm(normals, axis=1)
+                selectable = np.all((tri.max(axis=1) >= region.box_min) & (tri.min(axis=1) <= region.box_max), axis=1)
+                if region.normal is not None:
+                    selectable &= normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
+                offset = distance(vertices) - level
+                side = np.sign(np.where(np.abs(offset) <= BAND_EDGE_M, 0.0, offset))[faces]
+                crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0) & selectable
+                if not crossing.any():
+                    continue
+                log.info("%d faces of mesh %r split at %g m from region %r's %s, so that the region "
+                         "ends there exactly", int(crossing.sum()), mesh.name, level, region.name,
+                         region.near.removesuffix("_m").replace("_", " "))
+
+                def at(p, q, level=level, distance=distance):
+                    lo, hi = np.zeros(len(p)), np.ones(len(p))
+                    below = distance(p) < level          # which end lies below the level
+                    for _ in range(BAND_BISECTIONS):
+                        mid = 0.5 * (lo + hi)
+                        under = distance(p + (q - p) * mid[:, None]) < level
+                        lo, hi = np.where(under == below, mid, lo), np.where(under == below, hi, mid)
+                    return p + (q - p) * (0.5 * (lo + hi))[:, None]
+                vertices, faces = _split(vertices, faces, side, crossing, at)
+        out.append(mesh if vertices is mesh.vertices else SceneMesh(mesh.name, mesh.role, vertices, faces))
+    return out
+
+
 def _split_plane(vertices, faces, side, crossing, k, c):
-    new_vertices, cache, out = [vertices], {}, [faces[~crossing]]
-    count = len(vertices)
+    """`_split` at the plane x_k = c (the cut points on it exactly)."""
+    def at(p, q):
+        point = p + (q - p) * ((c - p[:, k]) / (q[:, k] - p[:, k]))[:, None]
+        point[:, k] = c
+        return point
+    return _split(vertices, faces, side, crossing, at)
+
+
+def _split(vertices, faces, side, crossing, at):
+    """The mesh with each `crossing` triangle cut where its edges change `side` (per face vertex
+    -1, 0 or 1; a vertex at 0 lies on the cut): one vertex alone on its side -> 3 triangles, a
+    vertex on the cut -> 2. `at(p, q)` (E, 3) gives the cut points of the edges p -> q (E, 3);
+    each cut edge gets one new vertex, shared by the triangles on both sides of it, so a closed
+    mesh stays closed."""
+    edges = []
+    for f, s in zip(faces[crossing], side[crossing]):
+        zero = np.flatnonzero(s == 0)
+        if len(zero):
+            r = int(zero[0])
+            edges.append((f[(r + 1) % 3], f[(r + 2) % 3]))
+        else:
+            r = next(i for i in range(3) if s[i] != s[(i + 1) % 3] and s[i] != s[(i + 2) % 3])
+            edges += [(f[r], f[(r + 1) % 3]), (f[r], f[(r + 2) % 3])]
+    keys = sorted({(min(a, b), max(a, b)) for a, b in edges})
+    cache = {key: len(vertices) + n for n, key in enumerate(keys)}
+    ends = np.array(keys, dtype=np.int64).reshape(-1, 2)
+    new_vertices = [vertices, at(vertices[ends[:, 0]], vertices[ends[:, 1]])]
+    out = [faces[~crossing]]
 
     def cut(a, b):
-        nonlocal count
-        key = (min(a, b), max(a, b))
-        if key not in cache:
-            p, q = vertices[key[0]], vertices[key[1]]
-            point = p + (q - p) * ((c - p[k]) / (q[k] - p[k]))
-            point[k] = c
-            new_vertices.append(point[None])
-            cache[key], count = count, count + 1
-        return cache[key]
+        return cache[(min(a, b), max(a, b))]
 
     pieces = []
     for f, s in zip(faces[crossing], side[crossing]):
         zero = np.flatnonzero(s == 0)
-        if len(zero):                                   # a vertex on the plane: 2 triangles
+        if len(zero):                                   # a vertex on the cut: 2 triangles
             r = int(zero[0])
             a, b, d = f[r], f[(r + 1) % 3], f[(r + 2) % 3]
             p = cut(b, d)

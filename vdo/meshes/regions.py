@@ -18,7 +18,7 @@ import trimesh
 
 from vdo.config.rig import MeshSpec, RegionSpec
 from vdo.core.errors import ConfigError
-from vdo.meshes.mesh import SceneMesh, read_mesh
+from vdo.meshes.mesh import BAND_EDGE_M, Band, SceneMesh, band_distance
 from vdo.model import surface
 
 log = logging.getLogger(__name__)
@@ -35,8 +35,12 @@ class RegionSelector:
     axis or surface (None without one)."""
 
     region: RegionSpec
-    distance: Callable[[np.ndarray], np.ndarray] | None = None
+    band: Band | None = None
     within: float = math.inf
+
+    @property
+    def distance(self) -> Callable[[np.ndarray], np.ndarray] | None:
+        return None if self.band is None else self.band.distance
 
     def facing(self, normals: np.ndarray) -> np.ndarray:
         if self.region.normal is None:
@@ -55,6 +59,20 @@ class RegionSelector:
         d = self.distance(points)
         return (d <= self.within + slack) & (d >= self.region.beyond - slack)
 
+    def in_banded_face(self, triangles: np.ndarray, centroids: np.ndarray,
+                       radius: np.ndarray) -> np.ndarray:
+        """(T,) the triangles (T, 3, 3) that hold part of the band. For a convex distance
+        (`vdo.meshes.mesh.Band.least`, on a mesh split at the band's edges): least on the
+        triangle < within and greatest (at a vertex) > beyond, each by more than `BAND_EDGE_M`,
+        so the outer piece of a split face, whose vertices lie on the edge or beyond it, is left
+        out. Otherwise (the distance to a mesh): the centroid within the band widened by the
+        circumradius `radius` (the distance is 1-Lipschitz)."""
+        if self.band.least is None:
+            return self.in_band(centroids, radius)
+        greatest = self.distance(triangles.reshape(-1, 3)).reshape(-1, 3).max(axis=1)
+        return ((self.band.least(triangles) < self.within - BAND_EDGE_M)
+                & (greatest > self.region.beyond + BAND_EDGE_M))
+
     def keep(self, points: np.ndarray) -> np.ndarray:
         """(N,) the points the region keeps of those on its selected faces: in the box and band."""
         return self.in_box(points) & self.in_band(points)
@@ -66,23 +84,11 @@ def region_selector(region: RegionSpec, meshes: list[SceneMesh], spacing: float,
     read in the specimen mesh's unit (its table of `mesh_specs`, the [[mesh]] tables; a file
     that cannot be read is a ConfigError at the experiment file `path`); a region file's band
     defaults to `spacing` (m)."""
-    field = f'region "{region.name}".region_file'
-    if region.near_point is not None:
-        distance = lambda x: np.linalg.norm(x - region.near_point, axis=1)
-    elif region.near_axis is not None:
-        distance = lambda x: surface.distance_to_line(x, *region.near_axis)
-    elif region.near_mesh is not None:
-        other = next(m for m in meshes if m.name == region.near_mesh)
-        distance = lambda x: surface.distance_to_mesh(x, other.vertices, other.faces)
-    elif region.region_file is not None:
-        scale = next(m.scale for m in mesh_specs if m.name == region.mesh)
-        loaded = read_mesh(region.region_file, (path, field))
-        v, f = np.asarray(loaded.vertices, float) * scale, np.asarray(loaded.faces)
-        distance = lambda x: surface.distance_to_mesh(x, v, f)
-    else:
+    band = band_distance(region, meshes, mesh_specs=mesh_specs, path=path)
+    if band is None:
         return RegionSelector(region)
     within = region.within if region.within is not None else spacing
-    return RegionSelector(region, distance, within)
+    return RegionSelector(region, band, within)
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +177,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     radius = np.linalg.norm(tm.triangles - centroids[:, None], axis=2).max(axis=1)
     chosen = selector.facing(tm.face_normals) & selector.in_box(centroids) & (tm.area_faces > 0)
     if selector.distance is not None and chosen.any():
-        chosen[chosen] = selector.in_band(centroids[chosen], radius[chosen])
+        chosen[chosen] = selector.in_banded_face(tm.triangles[chosen], centroids[chosen], radius[chosen])
     faces = np.flatnonzero(chosen)
     if len(faces) == 0:
         _nothing_selected(mesh, region, selector, tm, where)

@@ -39,6 +39,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.spatial import cKDTree
 
+from vdo.core.tolerances import TINY
+
 FIT_ANGLE = math.radians(1.0)     # a cylinder's mean |n.a| below sin of this; a cone's above
 MERGE_DIGITS = 9                  # vertices equal to 1 nm (metres) are one vertex of the surface
 LARGE_DISTORTION = 0.1            # warn above 10 % area or angle distortion (p95 over the area)
@@ -126,6 +128,36 @@ def distance_to_line(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nda
     d = (np.asarray(b, float) - a) / np.linalg.norm(np.asarray(b, float) - a)
     rel = np.asarray(points, float) - a
     return np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)
+
+
+def line_triangle_distance(tri: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T,) least distance (m) from the triangles (T, 3, 3) to the infinite line through a and b:
+    0 where the line pierces a triangle (its barycentric coordinates on the triangle's plane all
+    >= 0), else the least over its three edges. The distance to a line is convex, so on a
+    triangle the line does not pierce it is least on the boundary (a plane parallel to the line
+    holds its least value along a line that leaves the triangle through an edge). An edge p + s e
+    (s in [0, 1]) is at distance |w + s e| off the line's direction u (w = p - a, both with
+    their u part removed), least at s = -w.e / |e|^2 clipped to [0, 1]."""
+    tri = np.asarray(tri, float)
+    a = np.asarray(a, float)
+    u = (np.asarray(b, float) - a) / np.linalg.norm(np.asarray(b, float) - a)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    h = np.cross(u, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = np.abs(det) > TINY * np.maximum(np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), TINY)
+    det = np.where(ok, det, 1.0)
+    w = a - tri[:, 0]
+    beta = np.einsum("ij,ij->i", w, h) / det
+    q = np.cross(w, e1)
+    gamma = (q @ u) / det
+    pierced = ok & (beta >= 0) & (gamma >= 0) & (beta + gamma <= 1)
+    off = lambda x: x - np.outer(x @ u, u)                  # the part across the line
+    least = np.full(len(tri), np.inf)
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        w_i, e = off(tri[:, i] - a), off(tri[:, j] - tri[:, i])
+        s = np.clip(-np.einsum("ij,ij->i", w_i, e) / np.maximum(np.einsum("ij,ij->i", e, e), TINY), 0.0, 1.0)
+        least = np.minimum(least, np.linalg.norm(w_i + s[:, None] * e, axis=1))
+    return np.where(pierced, 0.0, least)
 
 
 # --------------------------------------------------------------------------------------------
@@ -389,7 +421,8 @@ def fit_cylinder(tri: np.ndarray, normals: np.ndarray, areas: np.ndarray,
     c2, signed = sol[:2], sol[2]
     verts = tri.reshape(-1, 3)
     r = np.linalg.norm(np.stack([verts @ e1, verts @ e2], axis=1) - c2, axis=1)
-    radius = float(r.mean())
+    radius = float(r.max())     # a tessellation's vertices lie on the surface, its facets and the
+    # points where a region's box or band cuts them inside it (a chord's sagitta)
     if abs(signed) < 1e-12 or np.abs(r - radius).max() > tolerance:
         return None
     centre = c2[0] * e1 + c2[1] * e2
