@@ -210,6 +210,10 @@ def test_floor_polygon_zone_keeps_the_camera_over_the_polygon(tmp_path):
     ("[[0.4, -0.6], [0.7, -0.3], [1.0, 0.0]]", "[0.7, -0.3, 1.1]", "floor_m", "no floor area"),
     # a floor whose edges cross (a concave one is a zone now: tests/config/test_floor_zones.py)
     ("[[0.4, -0.6], [1.0, 0.4], [1.0, -0.6], [0.4, 0.2]]", "[0.6, 0.0, 1.1]", "floor_m", "edges cross"),
+    # a symmetric bow-tie: its signed area is 0, yet the reason is the crossing, not the area
+    ("[[0.4, 0.4], [1.0, -0.6], [0.4, -0.6], [1.0, 0.4]]", "[0.6, 0.0, 1.1]", "floor_m", "edges cross"),
+    # repeated corners: no area, and no crossing
+    ("[[0.4, -0.6], [1.0, 0.4], [1.0, 0.4], [0.4, -0.6]]", "[0.6, 0.0, 1.1]", "floor_m", "no floor area"),
     # in the bounding box, not over the floor
     ("[[0.4, -0.6], [1.0, -0.5], [1.1, 0.2]]", "[0.5, 0.1, 1.1]", "position_m", "off the floor polygon of zone"),
 ])

@@ -276,7 +276,7 @@ def check_rail(t: Table, v: dict) -> None:
 
 def check_mount(t: Table, v: dict) -> None:
     """[[mount]]: the fields its kind takes (and no others); a rail as `check_rail`; a floor
-    polygon simple, with an area, its holes inside it, turned counter-clockwise in `v`; a box
+    polygon simple (checked first), with an area, its holes inside it, turned counter-clockwise in `v`; a box
     zone with a floor extent; a tripod only under a zone, with room below the lowest height."""
     kind = v["kind"]
     floor = kind == "zone" and t.has("floor_m")
@@ -301,12 +301,12 @@ def check_mount(t: Table, v: dict) -> None:
         corners = v["floor"]
         x, y = corners[:, 0], corners[:, 1]
         area = 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
+        if not _is_simple(corners):   # before the area: a symmetric bow-tie's signed area is 0
+            raise t.error("floor_m", "must be a simple polygon: two of its edges cross (list the "
+                                     "corners in order around the area)")
         if abs(area) < 1e-6:
             raise t.error("floor_m", "the zone has no floor area: its corners are on one line or repeated")
         corners = corners if area > 0 else corners[::-1]
-        if not _is_simple(corners):
-            raise t.error("floor_m", "must be a simple polygon: two of its edges cross (list the "
-                                     "corners in order around the area)")
         for k, hole in enumerate(v["floor_holes"] or ()):
             if not _is_simple(hole) or abs(_signed_area(hole)) < 1e-6:
                 raise t.error("floor_holes_m", f"hole {k} must be a simple polygon with an area")
