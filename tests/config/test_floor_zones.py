@@ -101,6 +101,23 @@ def test_optimize_says_it_needs_convex_floors(tmp_path):
     assert err.value.field == 'mount "ring".floor_m' and "convex floors only" in err.value.message
 
 
+@pytest.mark.parametrize("moving, named", [
+    ("", "cameras 't', 't2' move over"),            # every camera moves: one line names both
+    ('cameras = ["t2"]\n', "camera 't2' moves over"),   # only the moving one is named
+])
+def test_optimize_refuses_a_ring_once_per_mount(tmp_path, monkeypatch, capsys, moving, named):
+    """Two cameras on one ring: `vdo optimize` says it once for the mount, naming the cameras it
+    would move on it, not once per camera."""
+    from vdo.commands.cli import main
+
+    second = CAMERA.format(position="position_m = [-1.5, 0.0, 1.2]").replace('name = "t"', 'name = "t2"')
+    path = write(tmp_path, extra=second + f'\n[optimize]\nfree = ["u", "pan", "tilt"]\n{moving}')
+    monkeypatch.setattr("vdo.state.load_meshes", lambda *a, **k: pytest.fail("a mesh was read"))
+    assert main(["optimize", str(path), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.count('mount "ring".floor_m') == 1 and named in err, err
+
+
 def test_vdo_optimize_refuses_a_ring_before_reading_a_mesh(tmp_path, monkeypatch, capsys):
     """The command line refuses the file with the same line before any mesh is read (`vdo check`,
     evaluate and design take the ring whole)."""
