@@ -13,13 +13,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import SLIDING_SHUTTER, load_path_tables
+from conftest import DOWN_CAMERA, SLIDING_SHUTTER, load_path_tables
 from vdo import objective
 from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
 from vdo.design.budget import ENTRY_BYTES, estimate, refuse
 from vdo.config.mounts import zone_grid
-from vdo.design.candidates import judge, judging, lenses, spots
+from vdo.design.candidates import BLIND, judge, judging, lenses, spots
 from vdo.design.feasibility import STOP_MARGIN, Feasibility
 from vdo.design.score import Scorer
 from vdo.design.select import (POLISH_RTOL, design_layout, exchange, figures, greedy, percentile_by_region,
@@ -990,3 +990,24 @@ def test_the_curve_compares_the_counts_on_the_area_every_count_measures():
         assert c["sigma_p95_common_um"] == pytest.approx(worst, rel=1e-12)
         assert c["common_fraction"] == pytest.approx(both.mean(), rel=1e-12)
         assert "_measured" not in c and "_sigma_max" not in c
+
+
+PIT = """
+[[mount]]
+name = "pit"
+kind = "fixed"
+position_m = [0.0, 0.0, -1.0]
+"""
+
+
+def test_blind_candidates_get_their_console_line(plate_experiment, caplog):
+    """A fixed mount under the plate sees only its underside, which holds no sample: its
+    candidates are blind, dropped, and said in one console line for the mount with their count
+    (as design.json's dropped_per_mount has it); the rail above, whose candidates all see the
+    plate, gets no such line."""
+    exp = _experiment(plate_experiment, n=2, cameras=PIT + DOWN_CAMERA.format(name="down", focal=24, u=0.5))
+    with caplog.at_level("INFO", logger="vdo.design.select"):
+        result = design_layout(exp)
+    blind = [r.getMessage() for r in caplog.records if "blind" in r.getMessage()]
+    count = result.record.candidates.dropped["pit"][BLIND]
+    assert count > 0 and blind == [f"mount pit: {count} candidate(s) left out: {BLIND}"], blind

@@ -84,6 +84,7 @@ log = logging.getLogger(__name__)
 
 MERGE_TARGETS_M = 0.2   # region centres closer than this share one aim point
 SPOT_M = 0.2            # two optical centres closer than this are one physical spot
+BLIND = "blind (no sample in view at rest)"   # why a blind candidate is dropped (dropped_per_mount)
 PAIRS_PER_BLOCK = 1_000_000  # (candidate, sample) pairs judged at once (dense arrays of one block)
 ENTRY_CHUNK = 1 << 18        # stored entries per chunk of a pass over them (score, bound, tables):
                              # a pass's per-entry temporaries live for one chunk, not for all pairs
@@ -603,7 +604,7 @@ def _with_blind(j: Judging, seen: np.ndarray) -> dict:
     counted per mount."""
     out = {name: dict(reasons) for name, reasons in j.dropped.items()}
     for name, count in per_mount(j.mount, ~seen).items():
-        out.setdefault(name, {})["blind (no sample in view at rest)"] = count
+        out.setdefault(name, {})[BLIND] = count
     return out
 
 

@@ -50,7 +50,7 @@ import numpy as np
 
 from vdo.design import bound
 from vdo.design.budget import Estimate, available_memory, estimate, peak_rss, refuse
-from vdo.design.candidates import SPOT_M, Candidates, bodies, inventory, judge, judging, lenses
+from vdo.design.candidates import BLIND, SPOT_M, Candidates, bodies, inventory, judge, judging, lenses
 from vdo.design.feasibility import Feasibility
 from vdo.design.measures import SEEN_SHOWN, common_p95, measures, seen_fractions, sigma_key
 from vdo.design.score import Scorer
@@ -429,6 +429,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     judged_s = _clock() - t_judge
     log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
              d.sample_spacing * 1e3, _clock() - t0)
+    for name, reasons in cand.dropped.items():       # (the other reasons say their own line)
+        if BLIND in reasons:
+            log.info("mount %s: %d candidate(s) left out: %s", name, reasons[BLIND], BLIND)
     issues = problems(exp, cand, coarse.samples)
     for msg in issues:
         log.warning(msg)
