@@ -97,6 +97,30 @@ def test_renders_are_bit_identical_for_a_seed(plate_experiment, tmp_path):
     assert runs[0][0] != runs[2][0] and runs[0][1] != runs[2][1]
 
 
+@pytest.mark.parametrize("mode", ["sampled", "dic"])
+def test_the_run_folder_says_which_mode_made_the_images(plate_experiment, tmp_path, monkeypatch, mode):
+    """render.json records the mode, and spp and the integrator only where they were used (the
+    sampled mode; the dic mode has one ray per pixel); the contact sheet's title names the mode."""
+    import vdo.commands.render as command
+
+    text = (down_camera("c", [0.0, 0.0, 1.5], (48, 32), 462.5, 24)
+            + table("speckle", dot_diameter_mm=8.0, texel_mm=1.0, tile_texels=128)
+            + table("render", spp=4, mode=mode, ambient_radiance=0.5))
+    exp = config.load(plate_experiment(cameras=text))
+    titles = []
+    sheet = command.contact_sheet
+    monkeypatch.setattr(command, "contact_sheet", lambda *a, **k: (titles.append(a[3]), sheet(*a, **k)))
+    render_experiment(exp, tmp_path / "run")
+    written = json.loads((tmp_path / "run" / "render.json").read_text())
+    assert written["mode"] == mode
+    if mode == "sampled":
+        assert (written["spp"], written["integrator"]) == (4, "direct")
+        assert titles == [f"{exp.name}: sampled mode, scale 1, 4 spp"]
+    else:
+        assert "spp" not in written and "integrator" not in written
+        assert titles == [f"{exp.name}: dic mode, scale 1"]
+
+
 def test_flat_field_noise_follows_the_emva_variance_line(plate_experiment):
     """A white plane under a uniform sky (no texture, no panel): radiance ρ L_amb everywhere. At
     each exposure, two independent noise draws: var((A - B)) / 2 is the temporal variance (the

@@ -217,7 +217,8 @@ class RenderResult:
 
     state: object                 # vdo.state.LayoutState
     scale: float
-    spp: int
+    mode: str                     # the render mode, one of RENDER_MODES ([render] mode)
+    spp: int | None               # samples per pixel; None in the dic mode (one ray per pixel, no spp)
     seed: int
     images: dict
     linear: dict
@@ -337,7 +338,8 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
                              [lens_sigma_px(c, specs[c.name]) for c in state.cameras])
     for line in photometry_warnings(rows):
         log.warning(line)
-    return RenderResult(state=state, scale=scale, spp=spp, seed=seed, images=images, linear=linear,
+    return RenderResult(state=state, scale=scale, mode=exp.render.mode, spp=None if dic else spp,
+                        seed=seed, images=images, linear=linear,
                         photometry=rows, seconds=seconds,
                         total_seconds=time.perf_counter() - started, pairs=stereo,
                         no_pair=no_pair)

@@ -9,7 +9,7 @@ The run folder (atomic, `vdo.core.runfolder`):
     images/<camera>.exr        linear float radiance, when [render] exr = true
     layout.json                K, R, t of the cameras at the rendered scale (`scaled_camera`)
     calibration/<format>/      the same cameras for DIC software (`vdo.formats.export.write_all`)
-    contact_sheet.png          all cameras in a grid with their names
+    contact_sheet.png          all cameras in a grid with their names, titled with the mode and scale
     photometry.csv             per camera and region: brightness b and contrast c of the noise-free
                                render around the projected visible samples, next to vdo.physics.lighting's
                                prediction (b, c of the paint, noise σ) and the contrasts predicted
@@ -17,7 +17,8 @@ The run folder (atomic, `vdo.core.runfolder`):
                                (docs/photometry.md)
     shadows.vtp                per sample: lit_<light> (visible fraction of each light), irradiance
     maps/shadows.png           number of lights reaching each sample (>= half the panel visible)
-    config.toml, render.json   the resolved config; settings and time per camera
+    config.toml, render.json   the resolved config; settings (the mode; spp and integrator in the
+                               sampled mode only) and time per camera
     report.html                the run's page (`vdo.outputs.html_report`)
 """
 
@@ -80,7 +81,8 @@ def write_render(result: RenderResult, out, overwrite: bool = False) -> dict:
         report.write_config(tmp / "config.toml", exp)
         write_all(cameras, result.pairs, tmp / "calibration", exp.path, no_pair=result.no_pair)
         contact_sheet(result.images, exp.sensor.max_dn, tmp / "contact_sheet.png",
-                      f"{exp.name}: scale {result.scale:g}, {result.spp} spp")
+                      f"{exp.name}: {result.mode} mode, scale {result.scale:g}"
+                      + ("" if result.spp is None else f", {result.spp} spp"))
         with open(tmp / "photometry.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=PHOTOMETRY_FIELDS, restval="")
             writer.writeheader()
@@ -93,8 +95,9 @@ def write_render(result: RenderResult, out, overwrite: bool = False) -> dict:
         maps.plot_unfolded(samples, illum.lights_reaching, tmp / "maps" / "shadows.png",
                            f"{exp.name}: number of lights reaching each point", "lights",
                            discrete=True)
+        sampled = {} if result.spp is None else {"spp": result.spp, "integrator": "direct"}
         summary = {"experiment": exp.name, "config": str(exp.path), "scale": result.scale,
-                   "spp": result.spp, "seed": result.seed, "integrator": "direct",
+                   "mode": result.mode, **sampled, "seed": result.seed,
                    "lights": list(illum.light_names),
                    "cameras": {c.name: {"width": c.width, "height": c.height,
                                         "seconds": round(result.seconds[c.name], 3)} for c in cameras},
