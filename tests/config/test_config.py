@@ -2,12 +2,14 @@
 
 import math
 
+import numpy as np
 import pytest
 import trimesh
 
 from vdo.config import experiment as config
 from vdo.commands.cli import main
 from vdo.core.errors import ConfigError
+from vdo.meshes.mesh import faces_against
 from conftest import mesh_tables, region_tables
 from vdo.scene import cameras_of, load_meshes, sample_regions
 
@@ -74,6 +76,44 @@ def test_unreadable_mesh_content(plate_experiment):
     exp = config.load(path)
     with pytest.raises(ConfigError, match=r'mesh "plate"\.file: .*(cannot read|holds no triangles)'):
         load_meshes(**mesh_tables(exp))
+
+
+BLOCK = '[[mesh]]\nname = "block"\nfile = "block.stl"\nunit = "mm"\nrole = "obstacle"\n'
+
+
+@pytest.mark.parametrize("flipped", [(), (0, 3, 5)])
+def test_faces_wound_against_their_neighbours_are_said_once(plate_experiment, capsys, flipped):
+    """A closed box with some faces turned over (their vertex order reversed, so that they run
+    each shared edge the way their neighbours do): `vdo check` says so in one line naming the
+    mesh, its file and how many faces; a box as trimesh makes it is silent."""
+    path = plate_experiment(extra_meshes=BLOCK)
+    box = trimesh.creation.box(extents=[100.0, 100.0, 100.0])
+    box.apply_translation([300.0, 300.0, 50.0])
+    faces = box.faces.copy()
+    faces[list(flipped)] = faces[list(flipped)][:, ::-1]
+    trimesh.Trimesh(box.vertices, faces, process=False).export(path.parent / "block.stl")
+    assert main(["check", str(path)]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "wound against" in line]
+    assert said == ([f"mesh 'block' (block.stl): {len(flipped)} face(s) wound against their neighbours "
+                     "(their normals point the other way: the renders draw them dark and a region's "
+                     "normal selector and area take them wrong): fix the winding in the file (e.g. "
+                     "trimesh's repair.fix_winding)"] if flipped else []), said
+
+
+def test_the_faces_against_are_the_smaller_class_and_a_one_sided_strip_has_none():
+    """Of a box's 12 faces, 7 turned over leave 5 wound against the rest (the smaller class); a
+    Moebius strip has no consistent winding (None)."""
+    box = trimesh.creation.box(extents=[1.0, 1.0, 1.0])
+    faces = box.faces.copy()
+    faces[:7] = faces[:7, ::-1]
+    assert faces_against(box.vertices, box.faces) == 0 and faces_against(box.vertices, faces) == 5
+    turn = np.linspace(0, 2 * np.pi, 20, endpoint=False)
+    edge = np.array([[(1 + w * np.cos(t / 2)) * np.cos(t), (1 + w * np.cos(t / 2)) * np.sin(t),
+                      w * np.sin(t / 2)] for t in turn for w in (-0.2, 0.2)])
+    a, b = 2 * np.arange(20), 2 * np.arange(20) + 1
+    c, d = np.r_[a[1:], 1], np.r_[b[1:], 0]           # the last rung joins the first turned over
+    strip = np.concatenate([np.stack([a, b, c], 1), np.stack([b, d, c], 1)])
+    assert faces_against(edge, strip) is None
 
 
 def test_non_planar_region_is_refused(plate_experiment):

@@ -1,7 +1,8 @@
 """The scene's triangle meshes (`SceneMesh`, world metres): the [[mesh]] files read and checked
 (readable content, extents that fit the declared unit, no camera inside a mesh: `inside_mesh`, by
-the even-odd rule), and a specimen's faces split at its regions' boxes (`split_at_boxes`) and at
-the edges of their distance bands (`split_at_bands`).
+the even-odd rule; faces wound against their neighbours said in a warning: `faces_against`),
+and a specimen's faces split at its regions' boxes (`split_at_boxes`) and at the edges of their
+distance bands (`split_at_bands`).
 
 Meshes are read with trimesh (Mitsuba has no STL loader) and handed to Mitsuba in memory
 (`vdo.scene.mitsuba_mesh`), so a user's CAD export and the built-in example take the same path.
@@ -49,7 +50,8 @@ def load_meshes(*, mesh_specs: tuple[MeshSpec, ...], regions: tuple[RegionSpec, 
                 camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec, ...],
                 mounts: tuple[MountSpec, ...], path, errors: Collect | None = None) -> list[SceneMesh]:
     """Read every mesh of `mesh_specs` (an experiment's [[mesh]] tables), scaled to metres, and
-    check it: readable content, extents that fit the declared unit, no camera of `camera_specs`
+    check it: readable content, extents that fit the declared unit, a consistent winding (else a
+    warning naming the mesh, its file and the faces wound against the rest), no camera of `camera_specs`
     (placed by `rails` and `mounts`) inside it (`cameras_inside`). Every mesh is checked and every
     mistake reported together (`vdo.core.errors.Collect`), each naming the experiment file
     `path`. Specimen faces that cross a box of one of `regions` are split at the box
@@ -83,9 +85,54 @@ def _load_mesh(spec: MeshSpec, *, regions: tuple[RegionSpec, ...], path) -> Scen
     if not np.all(np.isfinite(vertices)):
         raise ConfigError(path, field, f"{spec.path.name!r} has non-finite vertex coordinates")
     _check_extent(vertices[np.unique(faces)], spec, (path, field))
+    against = faces_against(vertices, faces)
+    if against != 0:
+        log.warning("mesh %r (%s): %s wound against their neighbours (their normals point the "
+                    "other way: the renders draw them dark and a region's normal selector and area "
+                    "take them wrong): fix the winding in the file (e.g. trimesh's repair.fix_winding)",
+                    spec.name, spec.path.name, "some faces" if against is None else f"{against} face(s)")
     if spec.role == "specimen":
         vertices, faces = split_at_boxes(vertices, faces, [r for r in regions if r.mesh == spec.name])
     return SceneMesh(spec.name, spec.role, vertices, faces)
+
+
+def faces_against(vertices: np.ndarray, faces: np.ndarray) -> int | None:
+    """How many of the faces (`vertices` (n, 3) m, `faces` (m, 3)) are wound against their
+    neighbours: 0 when trimesh finds the winding consistent (vertices merged first: an STL's
+    triangles share none); else, per connected patch of faces, the smaller of the two classes
+    that a consistent winding tells apart (two faces sharing an edge are in one class when they
+    run it in opposite directions); None when no winding is consistent (a one-sided surface such
+    as a Moebius strip)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    merged = trimesh.Trimesh(vertices, faces, process=True)
+    if merged.is_winding_consistent:
+        return 0
+    tri, pairs, shared = merged.faces, merged.face_adjacency, merged.face_adjacency_edges
+
+    def forward(side):   # whether that face of each pair runs the shared edge from its first vertex
+        corners = tri[pairs[:, side]]
+        at = [np.argmax(corners == shared[:, k, None], axis=1) for k in (0, 1)]
+        return (at[1] - at[0]) % 3 == 1
+
+    same = forward(0) == forward(1)                      # the pair runs the edge the same way
+    n, a, b = len(tri), pairs[:, 0], pairs[:, 1]
+    # faces twice over (f: as wound, f + n: flipped); a pair ties a face to its neighbour as wound
+    # when they run the edge in opposite directions, to its flipped copy when the same way
+    cross = np.where(same, n, 0)
+    twice = coo_matrix((np.ones(2 * len(a)), (np.concatenate([a, a + n]),
+                                               np.concatenate([b + cross, b + n - cross]))),
+                       shape=(2 * n, 2 * n))
+    label = connected_components(twice, directed=False)[1]
+    if np.any(label[:n] == label[n:]):
+        return None
+    patches = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(n, n)), directed=False)[1]
+    first = np.full(patches.max() + 1, n)
+    np.minimum.at(first, patches, np.arange(n))          # a face of each patch: its class is "one"
+    one = label[:n] == label[first[patches]]
+    size, ones = np.bincount(patches), np.bincount(patches, weights=one)
+    return int(np.minimum(ones, size - ones).sum())
 
 
 MAX_MESH_EXTENT = 100.0      # m: a test setup larger than this is a unit mistake
