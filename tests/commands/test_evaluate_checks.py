@@ -1,5 +1,5 @@
 """`vdo evaluate` says what is wrong with a hand layout: the optimizer's constraint checks
-(`vdo.optimize.layout_checks`) and a camera that sees no region, checked against closed forms
+(`vdo.optimize.layout_checks`), a camera that sees no region and a light that lights no sample, checked against closed forms
 and trimesh's exact distances; `vdo check` and `vdo render --cameras` refuse bad names in one
 line before any work."""
 from __future__ import annotations
@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import DOWN_CAMERA
 from vdo.commands import cli
 from vdo.commands.evaluate import evaluate
 from vdo.config.experiment import load
@@ -109,3 +110,31 @@ def test_render_only_the_named_cameras(tmp_path):
     assert list(one.images) == ["left"] and [c.name for c in one.cameras] == ["left"]
     assert np.array_equal(one.images["left"], both.images["left"])
     assert isinstance(one.cameras[0], Camera)
+
+
+CRATE = '[[mesh]]\nname = "crate"\nfile = "crate.stl"\nunit = "mm"\nrole = "obstacle"\n'
+
+
+def _light(name, position, target) -> str:
+    return (f'\n[[light]]\nname = "{name}"\nposition_m = {list(position)}\ntarget_m = {list(target)}\n'
+            "size_m = [0.2, 0.2]\nradiance = 20\n")
+
+
+def test_evaluate_says_a_light_that_lights_no_sample(plate_experiment, tmp_path, caplog):
+    """Three panels over the plate (top face at z = 0) and a closed crate floating above it
+    (z 0.2 to 0.4 m): 'over' faces the plate and lights it (not named); 'boxed' stands inside the
+    crate facing down, every sight line to it blocked by the crate's floor (named with the
+    crate); 'skyward' faces up, away from every sample (named, no mesh)."""
+    lights = (_light("over", [-0.3, 0.0, 1.0], [0, 0, 0]) + _light("boxed", [0.3, 0.3, 0.3], [0.3, 0.3, 0])
+              + _light("skyward", [0.0, 0.0, 1.0], [0, 0, 2]))
+    path = plate_experiment(spacing=50, files=[("crate.stl", [300, 300, 200], [300, 300, 300])],
+                            extra_meshes=CRATE,
+                            cameras=DOWN_CAMERA.format(name="down", focal=24, u=0.5) + lights)
+    with caplog.at_level(logging.WARNING, logger="vdo"):
+        evaluate(load(path), tmp_path / "run")
+    said = sorted(r.getMessage() for r in caplog.records if "lights no region sample" in r.getMessage())
+    assert said == [
+        "warning: light 'boxed' lights no region sample (its centre is inside mesh 'crate'): move it "
+        "(position_m) out of the mesh",
+        "warning: light 'skyward' lights no region sample (it faces away from them, or something "
+        "blocks it): aim it at the regions (target_m) or move it (position_m)"], said

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.physics import checks, glare, measured
-from vdo.physics.lighting import exposure_factors
+from vdo.physics.lighting import dark_lights, exposure_factors
 from vdo import constraints
 from vdo.outputs import html_report
 from vdo.search import loadpath
@@ -42,7 +42,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int |
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
     component for the [analysis] settings, `vdo.physics.strain`); summary.json also holds the design
-    checks per camera and region (`vdo.physics.checks`). Returns the judged layout
+    checks per camera and region (`vdo.physics.checks`); a light that lights no sample is said
+    (`vdo.physics.lighting.dark_lights`). Returns the judged layout
     (`vdo.outputs.report.EvaluationResult`, whose `to_json()` is summary.json). Progress and
     warnings go to the `vdo.commands.evaluate` logger (`vdo.core.progress`). The load path's
     steps run in this process, or on `workers` >= 2 spawned processes, or on a dask.distributed
@@ -58,6 +59,8 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int |
                              groups=exp.groups)     # its files are checked before any ray
     calibration = evaluation_plan(exp, geometry)        # None without [calibration]: no work
     state = layout_state(geometry, progress=shown(log))
+    for line in dark_lights(state.illumination, exp.lights, geometry.meshes):
+        log.warning("warning: %s", line)
     over_path = None
     if load_path is not None:
         log.info("load path: %d steps", len(load_path.steps))

@@ -63,13 +63,14 @@ import numpy as np
 
 from vdo.core.backend import mitsuba
 from vdo.config.rig import LightSpec, SpeckleSpec
-from vdo.scene import SurfaceSamples
+from vdo.scene import SurfaceSamples, inside_mesh
 from vdo.model.optics import exposure_factor
 from vdo.model.sensor import SensorModel
 from vdo.core.tolerances import RAY_OFFSET_M
 
 EPSILON = RAY_OFFSET_M   # m: shadow rays start this far off the surface and stop this short of the panel
 GRID = 8         # panel points per side for the irradiance integral
+REACH = 0.5      # a light reaches a sample when at least this fraction of its panel is visible from it
 SKY_GRID = 12    # sky directions per side of the stratified cosine-weighted hemisphere (144 rays a sample)
 SKY_TURN = (math.sqrt(5) - 1) / 2   # sample i's directions turn by 2π frac(i SKY_TURN) about its normal
 
@@ -124,8 +125,8 @@ class Illumination:
 
     @property
     def lights_reaching(self) -> np.ndarray:
-        """Number of lights of which at least half the panel is visible, per sample (N,)."""
-        return (self.lit >= 0.5).sum(axis=0)
+        """Number of lights of which at least half the panel (REACH) is visible, per sample (N,)."""
+        return (self.lit >= REACH).sum(axis=0)
 
 
 def illuminate(scene, lights, samples: SurfaceSamples, ambient_radiance: float = 0.0,
@@ -181,6 +182,28 @@ def relight(scene, lights, samples: SurfaceSamples, unobstructed: Illumination,
         if near.size:
             sky[near] = _sky(scene, X[near], nrm[near], batch_rays, near)
     return Illumination(unobstructed.light_names, lit, direct, unobstructed.ambient, sky)
+
+
+def dark_lights(illumination: Illumination, lights, meshes) -> list[str]:
+    """One line per light of `lights` that reaches no sample of `illumination` (no sample sees
+    REACH of its panel, as in `Illumination.lights_reaching`: the panel faces away from every
+    sample, or something blocks it; not "no ray at all", since a shadow ray can slip between two
+    triangles of a closed mesh at their shared edge), naming the mesh of `meshes`
+    (`vdo.scene.SceneMesh`) that its panel centre lies inside (`vdo.scene.inside_mesh`, tested
+    only for such a light and the meshes whose bounding box holds its centre), and the fix."""
+    out = []
+    for k, light in enumerate(lights):
+        if np.any(illumination.lit[k] >= REACH):
+            continue
+        centre = np.asarray(light.position, dtype=float)
+        holder = next((m.name for m in meshes if np.all(centre >= m.vertices.min(axis=0))
+                       and np.all(centre <= m.vertices.max(axis=0))
+                       and inside_mesh(centre[None], m.vertices, m.faces)[0]), None)
+        out.append(f"light {light.name!r} lights no region sample " + (
+            f"(its centre is inside mesh {holder!r}): move it (position_m) out of the mesh"
+            if holder else "(it faces away from them, or something blocks it): aim it at the "
+                           "regions (target_m) or move it (position_m)"))
+    return out
 
 
 def _sky(scene, X: np.ndarray, nrm: np.ndarray, batch_rays: int, index=None) -> np.ndarray:
