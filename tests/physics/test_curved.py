@@ -29,6 +29,7 @@ PATCH_RTOL = 0.02     # sigma vs the exact-cylinder integral: facets (0.7 deg) a
 FINE = 41             # reference quadrature points per side of the patch
 STL_ROUNDING = 1e-6  # m: STL stores float32 coordinates (7 digits of a 0.1 m part)
 FACET_FRAME = 1e-4   # a sample's frame against the smooth surface's: its facet's plane, float32 corners
+RING_DISTORTION = 0.10   # a ring cut open into a strip: p95 of its area distortion (8 % with a 2 cm lip)
 
 CAMERA = """
 [[camera]]
@@ -209,6 +210,36 @@ def test_a_band_ends_a_face_where_it_ends(tmp_path):
     assert tm.area_faces[rf.faces].sum() == pytest.approx(wall + ring, rel=1e-6)   # float32 STL
     inner = np.linalg.norm(tm.triangles[rf.faces][..., :2], axis=2).min()
     assert inner == pytest.approx(0.08, abs=STL_ROUNDING)       # cut on the radial edges
+    # the wall with its lip is a ring: mapped cut open into a strip (as a ring: 775 % in area,
+    # and half of its area without samples), so its samples hold its area
+    assert rf.development.kind == "general" and rf.development.distortion.area_p95 < RING_DISTORTION
+    samples = sample_regions(meshes, **region_tables(exp))
+    assert samples.area.sum() == pytest.approx(wall + ring, rel=0.01)
+
+
+def test_a_tube_is_cut_open_and_a_band_round_a_small_hole_is_not():
+    """`lscm` of an open tube (no cylinder fit: a general patch with a ring's topology) opens it
+    into a strip: near isometric (the ring mapped whole is an annulus, > 100 % in area); a
+    spherical cap with a small hole keeps its whole map when the cut one distorts more."""
+    from vdo.model.surface import boundary_loops, cut_ring, lscm, merged
+
+    tube = trimesh.creation.cylinder(radius=0.1, height=0.3, sections=48)
+    wall = tube.triangles[np.abs(tube.face_normals[:, 2]) < 0.5]
+    v, f = merged(wall)
+    assert len(boundary_loops(f, len(v))) == 2
+    cv, cf = cut_ring(v, f)
+    assert len(boundary_loops(cf, len(cv))) == 1 and len(cv) > len(v)
+    assert lscm(wall).distortion.area_p95 < RING_DISTORTION
+    cap = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    z = cap.triangles[..., 2].min(axis=1)
+    band = cap.triangles[(z > 0.3) & (cap.triangles[..., 2].max(axis=1) < 0.98)]   # a hole at the pole
+    whole = lscm(band)
+    v, f = merged(band)
+    from vdo.model.surface import _conformal
+    opened = _conformal(band, *cut_ring(v, f))
+    assert whole.distortion.area_p95 <= opened.distortion.area_p95
+
+
 
 
 def test_the_least_distance_from_a_line_to_a_triangle_is_dense_samplings_least():
