@@ -219,9 +219,9 @@ def test_a_band_ends_a_face_where_it_ends(tmp_path):
 
 def test_a_tube_is_cut_open_and_a_band_round_a_small_hole_is_not():
     """`lscm` of an open tube (no cylinder fit: a general patch with a ring's topology) opens it
-    into a strip: near isometric (the ring mapped whole is an annulus, > 100 % in area); a
-    spherical cap with a small hole keeps its whole map when the cut one distorts more."""
-    from vdo.model.surface import boundary_loops, cut_ring, lscm, merged
+    into a strip: near isometric (the ring mapped whole is an annulus, > 100 % in area); of a
+    band round a dome's pole, mapped whole and cut open, the less distorted is kept."""
+    from vdo.model.surface import _conformal, boundary_loops, cut_ring, lscm, merged
 
     tube = trimesh.creation.cylinder(radius=0.1, height=0.3, sections=48)
     wall = tube.triangles[np.abs(tube.face_normals[:, 2]) < 0.5]
@@ -230,14 +230,19 @@ def test_a_tube_is_cut_open_and_a_band_round_a_small_hole_is_not():
     cv, cf = cut_ring(v, f)
     assert len(boundary_loops(cf, len(cv))) == 1 and len(cv) > len(v)
     assert lscm(wall).distortion.area_p95 < RING_DISTORTION
-    cap = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
-    z = cap.triangles[..., 2].min(axis=1)
-    band = cap.triangles[(z > 0.3) & (cap.triangles[..., 2].max(axis=1) < 0.98)]   # a hole at the pole
-    whole = lscm(band)
+    # a band 0.08 to 0.3 m of arc round the pole of a 1 m sphere (a dome round a nozzle): whole
+    # 2.0 % in area, cut open 0.9 %: the smaller is kept
+    arc, turn = np.meshgrid(np.linspace(0.08, 0.3, 19), np.linspace(0, 2 * np.pi, 65)[:-1], indexing="ij")
+    points = np.stack([np.sin(arc.ravel()) * np.cos(turn.ravel()), np.sin(arc.ravel()) * np.sin(turn.ravel()),
+                       np.cos(arc.ravel())], axis=1)
+    k = np.arange(64)
+    quads = [(i * 64 + k, i * 64 + (k + 1) % 64, (i + 1) * 64 + (k + 1) % 64, (i + 1) * 64 + k) for i in range(18)]
+    faces = np.concatenate([np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)]) for a, b, c, d in quads])
+    band = points[faces]
     v, f = merged(band)
-    from vdo.model.surface import _conformal
-    opened = _conformal(band, *cut_ring(v, f))
-    assert whole.distortion.area_p95 <= opened.distortion.area_p95
+    whole, opened = _conformal(band, v, f), _conformal(band, *cut_ring(v, f))
+    assert opened.distortion.area_p95 < 0.6 * whole.distortion.area_p95
+    assert lscm(band).distortion.area_p95 == opened.distortion.area_p95
 
 
 
