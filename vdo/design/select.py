@@ -427,8 +427,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     cand = judge(exp, coarse, j, client=client, threads=threads, store=store)
     K, N = len(cand.cameras), cand.samples
     judged_s = _clock() - t_judge
-    log.info("%s candidates x %s samples (%g mm) judged in %.0f s", f"{K:,}", f"{N:,}",
-             d.sample_spacing * 1e3, _clock() - t0)
+    log.info("%s candidates x %s samples (%g mm) judged in %.0f s (%.0f s since the start, the "
+             "samples and the estimate before)", f"{K:,}", f"{N:,}", d.sample_spacing * 1e3, judged_s,
+             _clock() - t0)
     for name, reasons in cand.dropped.items():       # (the other reasons say their own line)
         if BLIND in reasons:
             log.info("mount %s: %d candidate(s) left out: %s", name, reasons[BLIND], BLIND)
