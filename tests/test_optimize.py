@@ -544,3 +544,35 @@ def test_the_convergence_figure_names_the_lens_trials_apart_from_the_starts():
     assert run_labels(history, verdicts) == {0: "start 1", 1: "start 2", 2: "the lens screening",
                                              3: "lens trial 1", 4: "lens trial 2"}
     assert run_labels([{"start": 0}], [{"start": 0}]) == {0: "start 1"}
+
+
+def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(plate_experiment):
+    """Two cameras on the plate with 24 mm lenses (sharper, part of the plate seen once) against
+    12 mm (every point seen twice, σ about doubled): read as a run whose score fell from the 24 mm
+    layout to the 12 mm one, `precision_traded` names the region with both σ p95 and both areas
+    seen by min_cameras; it stays silent when σ fell or when the score did not fall."""
+    from vdo.optimize import PRECISION_RISE, precision_traded
+    from vdo.outputs import report
+    from vdo.state import layout_state, prepare
+
+    def judged(focal):
+        cams = "".join(aimed_camera(n, u).replace("focal_mm = 24", f"focal_mm = {focal}")
+                       for n, u in (("a", 0.3), ("b", 0.7))) + "\n[render]\nambient_radiance = 1.0\n"
+        exp = config.load(plate_experiment(spacing=25, cameras=cams))
+        return report.state_evaluation(layout_state(prepare(exp)))
+
+    sharp, wide = judged(24), judged(12)
+    s0, s1 = sharp.regions["top"], wide.regions["top"]
+    assert s1.sigma_max_um.p95 > (1 + PRECISION_RISE) * s0.sigma_max_um.p95     # the scene does trade
+    assert s0.seen_by_min_cameras < s1.seen_by_min_cameras == pytest.approx(1.0)
+    assert s0.min_cameras == 2 and s0.seen_by_min_cameras == s0.seen_by_2_or_more
+    traded = precision_traded(sharp, wide, ["top"], 2.0, 1.0)
+    assert traded["regions"] == [dict(region="top", min_cameras=2,
+                                      sigma_p95_um=[s0.sigma_max_um.p95, s1.sigma_max_um.p95],
+                                      seen_by_min_cameras=[s0.seen_by_min_cameras, 1.0])]
+    message = traded["message"]
+    assert (f"top: sigma_max p95 {s0.sigma_max_um.p95:.3f} -> {s1.sigma_max_um.p95:.3f} um, seen by 2+ "
+            f"cameras {100 * s0.seen_by_min_cameras:.1f} -> 100.0 %") in message, message
+    assert "min_cameras" in message and "[design] coverage_weight below 1" in message
+    assert precision_traded(wide, sharp, ["top"], 2.0, 1.0) is None       # σ fell
+    assert precision_traded(sharp, wide, ["top"], 1.0, 1.0) is None       # the score did not fall

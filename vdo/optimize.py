@@ -167,6 +167,11 @@ DEFAULT_TIME_LIMIT = 900.0   # s: `vdo optimize --time-limit`
 
 WRITE_S = 5.0   # s: kept at least for writing the run folder (figures, report) after the search
 
+# Relative rise of a scored region's σ_max p95 (after / before - 1) past which a run whose score
+# fell warns that it traded precision for coverage (`precision_traded`): a p95 over a few hundred
+# samples moves by a few percent as the views shift, a tenth is a change the lab would notice.
+PRECISION_RISE = 0.10
+
 
 def _wrap_up_s(problem: Problem, judge_s: float, steps: int) -> float:
     """Seconds kept from the time limit for what follows the search: the best layout judged as
@@ -280,13 +285,16 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
                                     load_path=after.load_path)
     scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
     worst = _worst_p95(before, scored), _worst_p95(after, scored)
+    traded = precision_traded(before, after, scored, score_before["score_um"], best.score)
+    if traded is not None:
+        log.warning(traded["message"])
     log.info("best: %s, score %.4g -> %.4g µm, %d constraint violation(s)",
              run_labels(run.history, run.verdicts).get(best.start, f"start {best.start + 1}"),
              score_before["score_um"], score_after["score_um"], best.violations)
     return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
                           startup_s=startup, search_s=search, reason=reason,
                           score_regions_um=score_after["regions"], reachability=reach,
-                          violations=best.violations, worst_p95_um=worst,
+                          violations=best.violations, worst_p95_um=worst, precision_traded=traded,
                           violated=[e for e in best.checks if not e["met"]], before=before, after=after,
                           optimized=optimized,
                           exposure=None if settings is None else settings.to_json(),
@@ -325,17 +333,19 @@ class OptimizeResult:
     moves: tuple[CameraMove, ...]               # per camera, hand layout -> best layout (moves.csv)
     record: SearchRecord                        # what the search did (optimizer.json, history.csv)
     exposure: dict | None = None                # [exposure] free: the settings (`vdo.physics.exposure`)
+    precision_traded: dict | None = None        # `precision_traded`: σ p95 rose while the score fell
 
     def to_json(self) -> dict:
         """The figures as a JSON dict: score_before, score_after (µm), startup_s, score_regions_um,
         status (its value), reachability, violations, worst_p95_um [before, after], violated,
-        exposure."""
+        exposure, precision_traded."""
         return {"score_before": self.score_before_um, "score_after": self.score_after_um,
                 "startup_s": self.startup_s, "search_s": self.search_s, "reason": self.reason,
                 "score_regions_um": self.score_regions_um,
                 "status": self.status.value, "reachability": self.reachability,
                 "violations": self.violations, "worst_p95_um": list(self.worst_p95_um),
-                "violated": self.violated, "exposure": self.exposure}
+                "violated": self.violated, "exposure": self.exposure,
+                "precision_traded": self.precision_traded}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -385,6 +395,39 @@ def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
     None when one of them has no measured sample."""
     values = [summary.regions[name].sigma_max_um.p95 for name in scored]
     return None if any(v is None for v in values) else max(values)
+
+
+def precision_traded(before: report.EvaluationResult, after: report.EvaluationResult, scored,
+                     score_before_um: float, score_after_um: float) -> dict | None:
+    """When the score fell (µm) yet the σ_max p95 of a `scored` region rose by more than
+    `PRECISION_RISE` (or the region lost every measured sample): {"regions": per such region its
+    name, min_cameras, "sigma_p95_um" and "seen_by_min_cameras" (area fraction) as [before,
+    after]; "message": the warning, naming each with what the lab can do}. None otherwise. The
+    score counts area short of min_cameras (and unmeasured area at the 1 mm prior) so heavily
+    that a search can buy a sliver of it with σ everywhere (docs/optimize.md)."""
+    if not score_after_um < score_before_um:
+        return None
+    rows = []
+    for name in scored:
+        b, a = before.regions[name], after.regions[name]
+        p0, p1 = b.sigma_max_um.p95, a.sigma_max_um.p95
+        if p0 is not None and (p1 is None or p1 > (1 + PRECISION_RISE) * p0):
+            rows.append(dict(region=name, min_cameras=a.min_cameras, sigma_p95_um=[p0, p1],
+                             seen_by_min_cameras=[b.seen_by_min_cameras, a.seen_by_min_cameras]))
+    if not rows:
+        return None
+    show = lambda v: "unmeasured" if v is None else f"{v:.3f}"
+    named = "; ".join(f"{r['region']}: sigma_max p95 {show(r['sigma_p95_um'][0])} -> "
+                      f"{show(r['sigma_p95_um'][1])} um, seen by {r['min_cameras']}+ cameras "
+                      f"{100 * r['seen_by_min_cameras'][0]:.1f} -> {100 * r['seen_by_min_cameras'][1]:.1f} %"
+                      for r in rows)
+    message = (f"the score fell ({score_before_um:.4g} -> {score_after_um:.4g} um) but sigma_max p95 "
+               f"rose by more than {100 * PRECISION_RISE:.0f} % in {len(rows)} scored region(s) "
+               f"({named}): the score bought area seen by min_cameras with precision. To keep "
+               "precision: keep the hand layout (summary_before.json), lower that region's "
+               "min_cameras, leave it out of [optimize] regions, or design the layout with vdo design "
+               "and [design] coverage_weight below 1 (docs/design.md, \"Coverage against precision\")")
+    return {"regions": rows, "message": message}
 
 
 def _moves(problem: Problem, best: Result) -> tuple[CameraMove, ...]:

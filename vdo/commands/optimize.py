@@ -35,7 +35,8 @@ def optimize(exp: Experiment, out: Path, overwrite: bool = False,
 def write_optimization(result: OptimizeResult, out: Path, overwrite: bool = False) -> None:
     """The run folder of `vdo optimize` from its result: optimized.toml, layout.json,
     summary_before/after.json, constraints.json, optimizer.json (how the search ended, start-up
-    and search seconds, rounds, starts, scores), history.csv, convergence.png, moves.csv and
+    and search seconds, rounds, starts, scores, the regions whose σ rose while the score fell:
+    `vdo.optimize.precision_traded`), history.csv, convergence.png, moves.csv and
     report.html (atomic, `vdo.core.runfolder`)."""
     log.info("writing %s", out)
     record = result.record
@@ -57,7 +58,8 @@ def write_optimization(result: OptimizeResult, out: Path, overwrite: bool = Fals
             "rounds": record.rounds, "starts": record.starts, "accepted_steps": len(record.history),
             "layouts_judged": len(record.verdicts), "best_start": record.best_start,
             "score_before": record.score_before, "score_after": record.score_after,
-            "reachability": result.reachability, "exposure": result.exposure})
+            "reachability": result.reachability, "exposure": result.exposure,
+            "precision_traded": result.precision_traded})
         write_history(tmp / "history.csv", record.history)
         plot_history(tmp / "convergence.png", record.history, record.verdicts, result.optimized.name)
         write_moves(tmp / "moves.csv", result)

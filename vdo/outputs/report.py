@@ -85,6 +85,8 @@ class RegionSummary:
     seen_by_1_or_more: float                         # area fraction with >= 1 usable view
     seen_by_2_or_more: float
     seen_by_3_or_more: float
+    min_cameras: int                                 # the region's coverage requirement ([[region]] min_cameras)
+    seen_by_min_cameras: float                       # area fraction with >= min_cameras usable views
     cameras: dict[str, float]                        # camera -> area fraction it usably sees (4 digits)
     sigma_max_um: Percentiles                        # µm, worst-direction displacement σ
     n_outliers: int                                  # σ_max > outlier_factor x the region's median
@@ -99,7 +101,8 @@ class RegionSummary:
         """The region's row of summary.json (the strain keys only when computed)."""
         out = {"area_m2": self.area_m2, "importance": self.importance, "n_samples": self.n_samples,
                "seen_by_1_or_more": self.seen_by_1_or_more, "seen_by_2_or_more": self.seen_by_2_or_more,
-               "seen_by_3_or_more": self.seen_by_3_or_more, "cameras": dict(self.cameras),
+               "seen_by_3_or_more": self.seen_by_3_or_more, "min_cameras": self.min_cameras,
+               "seen_by_min_cameras": self.seen_by_min_cameras, "cameras": dict(self.cameras),
                "sigma_max_um": self.sigma_max_um.to_json(), "n_outliers": self.n_outliers,
                "n_edge_limited": self.n_edge_limited, "unmeasured_fraction": self.unmeasured_fraction,
                "sensitivity_mpx_per_um": dict(self.sensitivity_mpx_per_um),
@@ -198,20 +201,22 @@ def summary(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Pre
 def evaluation(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: Prediction,
                strain=None) -> EvaluationResult:
     """Per region: area (m^2), the area fractions seen by >= 1, 2, 3 usable views
-    (`vdo.physics.usable`), which cameras are usable views of it (fraction of its area), sigma_max
-    p50/p95/max/max_unflagged (um, over the measured samples), the counts of outlier and
+    (`vdo.physics.usable`) and by >= its min_cameras (`seen_by_min_cameras`), which cameras are
+    usable views of it (fraction of its area), sigma_max p50/p95/max/max_unflagged (um, over the
+    measured samples), the counts of outlier and
     edge-limited samples, the unmeasured area fraction, and the mean global sensitivity per axis
     (mpixel/um). With `strain` = (sigma_strain (N, 3), sigma_dic (N,) m) from
     `vdo.physics.strain.analysis_fields`: per-axis sigma percentiles (um), strain sigma percentiles per
     face-frame component (microstrain) and the analysis' displacement sigma."""
     coverage = pred.coverage
+    need = {r.name: r.min_cameras for r in exp.regions}
     regions = {}
     for k, name in enumerate(samples.region_names):
         mask = samples.region == k
         area = samples.area[mask]
         total = float(area.sum())
         sens = pred.sensitivity[mask] * 1e-3
-        seen = [float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3)]
+        seen = [float(area[coverage[mask] >= m].sum() / total) for m in (1, 2, 3, need[name])]
         strain_sigma = disp_sigma = None
         if strain is not None:
             eps, disp = strain
@@ -221,6 +226,7 @@ def evaluation(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: 
         regions[name] = RegionSummary(
             area_m2=total, importance=float(samples.region_importance[k]), n_samples=int(mask.sum()),
             seen_by_1_or_more=seen[0], seen_by_2_or_more=seen[1], seen_by_3_or_more=seen[2],
+            min_cameras=need[name], seen_by_min_cameras=seen[3],
             cameras={cam: round(float(area[pred.usable[i, mask]].sum() / total), 4)
                      for i, cam in enumerate(vis.camera_names) if pred.usable[i, mask].any()},
             sigma_max_um=_percentiles(pred.sigma_max[mask] * 1e6,
