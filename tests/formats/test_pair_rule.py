@@ -54,3 +54,54 @@ def test_wide_pairs_are_not_exported_unless_requested(tmp_path, caplog):
     assert "left:right 130" in caplog.text
     forced = default_pairs(exp, cams, vis, samples, requested=[("left", "right")])
     assert _axes_deg(forced[0]) == pytest.approx(130, abs=1)
+
+
+LOOKING = """
+[[camera]]
+name = "{name}"
+sensor_mm = [22.2, 14.8]
+pixels = [600, 400]
+focal_mm = 50
+rail = "overhead"
+u = {u}
+target_m = [{x}, 0.0, 0.0]
+"""
+
+
+def test_a_region_the_exported_pairs_leave_half_uncovered_is_named_with_the_pairs_to_add(
+        tmp_path, plate_experiment, caplog):
+    """Four 50 mm cameras over a 1 m plate, two on its left half (l1, l2), two on its right (r1,
+    r2), each seeing about a quarter of it (none assigned the region, so no default pair): with
+    only l1:l2 exported the export warns that region "top" is covered on its left only, with the
+    fractions counted here from the ray cast, and suggests r1:r2 beside l1:l2; with both pairs it
+    says nothing."""
+    import numpy as np
+
+    from vdo.commands.export import export
+    from vdo.config.experiment import load
+    from vdo.formats.export import PAIR_GAP, uncovered_regions
+    from vdo.state import layout_state, prepare
+
+    cams = "".join(LOOKING.format(name=n, u=u, x=x) for n, u, x in
+                   (("l1", 0.30, -0.25), ("l2", 0.45, -0.25), ("r1", 0.55, 0.25), ("r2", 0.70, 0.25)))
+    path = plate_experiment(spacing=25, cameras=cams)
+    exp = load(path)
+    state = layout_state(prepare(exp), predict_fields=False)
+    vis, samples = state.visibility, state.samples
+    seen = np.asarray(vis.visible, bool)
+    area = samples.area / samples.area.sum()
+    left, right = float(area[seen[0] & seen[1]].sum()), float(area[seen[2] & seen[3]].sum())
+    assert 0.15 < left < 0.35 and 0.15 < right < 0.35 and right > PAIR_GAP   # the scene as meant
+
+    with caplog.at_level(logging.WARNING, logger="vdo.commands.export"):
+        export(path, "opencv", tmp_path / "one", pairs=[("l1", "l2")])
+    warned = [r.getMessage() for r in caplog.records if "uncovered by the exported stereo" in r.getMessage()]
+    assert len(warned) == 1, caplog.text
+    assert f"top (100% of the area): {left:.0%} seen by both cameras of an exported pair" in warned[0]
+    assert warned[0].endswith("e.g. --pairs l1:l2 r1:r2"), warned[0]
+
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="vdo.commands.export"):
+        export(path, "opencv", tmp_path / "both", pairs=[("l1", "l2"), ("r1", "r2")])
+    assert "uncovered" not in caplog.text
+    assert "top" in uncovered_regions(exp, list(state.cameras), vis, samples, [])   # no pair at all

@@ -3,11 +3,14 @@ experiment TOML or a run folder's layout.json (the formats: `vdo.formats`)."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 from vdo.core.errors import ConfigError
-from vdo.formats.export import FORMATS, camera_from_layout, default_pairs, no_pair_message
+from vdo.formats.export import FORMATS, camera_from_layout, default_pairs, no_pair_message, uncovered_regions
 from vdo.scene import cameras_of
+
+log = logging.getLogger(__name__)
 
 
 RUN_EXPERIMENTS = ("config.toml", "optimized.toml", "designed.toml")   # a run folder's experiment:
@@ -45,7 +48,9 @@ def sources(source: Path):
 def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[Path]:
     """Write the `fmt` calibration files of `source`'s cameras into the run folder `out`
     (atomically, `vdo.core.runfolder`). `pairs`: (first, second) camera names, or None for the pairs
-    assigned a common region (`default_pairs`). Returns the written paths (inside `out`)."""
+    assigned a common region (`default_pairs`); a region that the chosen pairs leave partly
+    uncovered is named in a warning with the --pairs that would cover it (`uncovered_regions`). Returns the written paths
+    (inside `out`)."""
     from vdo.core.runfolder import run_folder
 
     source = Path(source)
@@ -61,6 +66,9 @@ def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[P
     if not chosen and fmt in ("matchid", "vic3d"):
         raise ConfigError(errors_in, "--format", f"{fmt} files describe stereo pairs, and "
                                                  + no_pair_message(exp, cameras, vis, samples))
+    uncovered = uncovered_regions(exp, cameras, vis, samples, chosen)
+    if uncovered:
+        log.warning(uncovered)
     with run_folder(out, overwrite) as tmp:
         names = [p.name for p in FORMATS[fmt](cameras, chosen, tmp, errors_in)]
     return [Path(out).resolve() / n for n in names]
