@@ -1011,3 +1011,62 @@ def test_blind_candidates_get_their_console_line(plate_experiment, caplog):
     blind = [r.getMessage() for r in caplog.records if "blind" in r.getMessage()]
     count = result.record.candidates.dropped["pit"][BLIND]
     assert count > 0 and blind == [f"mount pit: {count} candidate(s) left out: {BLIND}"], blind
+
+
+def test_a_smaller_count_sharper_in_every_scored_region_is_named():
+    """`sharper_smaller_count`: of a curve 2, 3, 4 cameras with 4 written, the 3 has the lower
+    σ p95 in both scored regions (the 2 too, but the largest such count is named), with its p95
+    per region and coverage against the written one's; a count sharper in one region only, or a
+    curve whose written count is the sharpest, says nothing."""
+    from types import SimpleNamespace
+
+    from vdo.design.measures import sharper_smaller_count
+
+    exp = SimpleNamespace(optimize=SimpleNamespace(regions=None), design=SimpleNamespace(score="bound"),
+                          regions=(SimpleNamespace(name="dome"), SimpleNamespace(name="ring")))
+    row = lambda n, cov, dome, ring: {"cameras": n, "coverage": cov,
+                                      "sigma_p95_by_region_um": {"dome": dome, "ring": ring}}
+    curve = [row(2, 0.80, 0.70, 0.40), row(3, 0.990, 0.587, 0.488), row(4, 0.997, 0.861, 0.534)]
+    line = sharper_smaller_count(exp, curve, curve[-1])
+    assert line.startswith("3 cameras reach a lower sigma_max p95 than the 4 written to designed.toml "
+                           "in every scored region (dome 0.587 against 0.861 um, ring 0.488 against "
+                           "0.534 um) at coverage 99.0 % against 99.7 %"), line
+    assert "[design] max_cameras = 3" in line
+    one_region = [row(3, 0.99, 0.587, 0.60), row(4, 0.997, 0.861, 0.534)]
+    assert sharper_smaller_count(exp, one_region, one_region[-1]) is None
+    sharpest = [row(3, 0.99, 0.9, 0.6), row(4, 0.997, 0.861, 0.534)]
+    assert sharper_smaller_count(exp, sharpest, sharpest[-1]) is None
+    unmeasured = [row(3, 0.99, None, 0.4), row(4, 0.997, 0.861, 0.534)]   # a region lost is not sharper
+    assert sharper_smaller_count(exp, unmeasured, unmeasured[-1]) is None
+
+
+def test_the_design_names_a_sharper_smaller_count_and_still_writes_the_inventorys(plate_experiment, tmp_path,
+                                                                                monkeypatch):
+    """On the plate, counts 1 and 2 (one camera measures nothing): the design says nothing of a
+    sharper smaller count. With the 1-camera count's σ p95 made lower than the 2's (the count's
+    figures replaced after its judgement), the line is in `problems` and design.json, and the
+    written layout is still the inventory's 2 cameras."""
+    import json
+
+    from vdo.design import select
+
+    exp = _experiment(plate_experiment, extra="min_cameras = 1",
+                      regions="\n[render]\nambient_radiance = 20\n")
+    plain = design_run(exp, tmp_path / "plain")
+    assert [c["cameras"] for c in plain.curve] == [1, 2] and plain.curve[0]["sigma_p95_by_region_um"]["top"] is None
+    assert not [p for p in plain.problems if "written to designed.toml" in p]
+
+    real = select._count
+
+    def sharper_one(*args, **kwargs):
+        c = real(*args, **kwargs)
+        if c["cameras"] == 1:
+            c["sigma_p95_by_region_um"] = {"top": 1e-3}
+        return c
+
+    monkeypatch.setattr(select, "_count", sharper_one)
+    result = design_run(exp, tmp_path / "out")
+    said = [p for p in result.problems if "written to designed.toml" in p]
+    assert len(said) == 1 and said[0].startswith("1 cameras reach a lower sigma_max p95 than the 2"), result.problems
+    assert said[0] in json.loads((tmp_path / "out" / "design.json").read_text())["problems"]
+    assert result.cameras == 2 and len(json.loads((tmp_path / "out" / "layout.json").read_text())["cameras"]) == 2

@@ -1,6 +1,7 @@
 """What a judged layout of `vdo design` reports (`vdo.design.select`): σ_max p95 per region and
 of the worst scored region, coverage, the area the candidates can measure at all and the figures
-over it (`measures`); the curve's p95 over the area every count measures (`common_p95`); each
+over it (`measures`); the curve's p95 over the area every count measures (`common_p95`); a
+smaller count sharper in every scored region than the written one (`sharper_smaller_count`); each
 chosen camera's usably seen fraction of each region (`seen_fractions`)."""
 
 from __future__ import annotations
@@ -83,6 +84,31 @@ def common_p95(exp: Experiment, samples, curve: list[dict]) -> None:
         values = [by[r] for r in scored if by.get(r) is not None]
         c["sigma_p95_common_um"] = max(values) if values else None
         c["common_fraction"] = float(samples.area[common].sum() / samples.area.sum())
+
+
+def sharper_smaller_count(exp: Experiment, curve: list[dict], written: dict) -> str | None:
+    """The line saying that a smaller count of the camera-count `curve` has a lower σ p95 (µm,
+    per region over its measured samples: `sigma_p95_by_region_um`, or σ_measured's with [design]
+    score = "measured") than the `written` count (the inventory's, designed.toml) in every scored
+    region; the largest such count, with its p95 per region and coverage against the written
+    one's. None when no smaller count does. The curve can rise with the count where a camera more
+    buys hard, grazing area (docs/curved.md); the lab may prefer the sharper, smaller layout."""
+    key = "sigma_measured_p95_by_region_um" if sigma_key(exp) != "sigma_p95_um" else "sigma_p95_by_region_um"
+    scored = exp.optimize.regions or [r.name for r in exp.regions]
+    mine = written[key]
+    lower = lambda c, r: c[key][r] is not None and (mine[r] is None or c[key][r] < mine[r])
+    better = [c for c in curve if c["cameras"] < written["cameras"] and all(lower(c, r) for r in scored)]
+    if not better:
+        return None
+    c = max(better, key=lambda c: c["cameras"])
+    show = lambda v: "unmeasured" if v is None else f"{v:.3f}"
+    name = "sigma_measured" if key.startswith("sigma_measured") else "sigma_max"
+    return (f"{c['cameras']} cameras reach a lower {name} p95 than the {written['cameras']} written to "
+            "designed.toml in every scored region ("
+            + ", ".join(f"{r} {show(c[key][r])} against {show(mine[r])} um" for r in scored)
+            + f") at coverage {100 * c['coverage']:.1f} % against {100 * written['coverage']:.1f} %: "
+            f"the design writes the inventory's count; [design] max_cameras = {c['cameras']} writes "
+            f"a {c['cameras']}-camera layout (pareto.csv compares the counts)")
 
 
 SEEN_SHOWN = 0.05   # the console lists the regions a chosen camera sees at least this fraction of

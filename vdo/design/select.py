@@ -52,7 +52,8 @@ from vdo.design import bound
 from vdo.design.budget import Estimate, available_memory, estimate, peak_rss, refuse
 from vdo.design.candidates import BLIND, SPOT_M, Candidates, bodies, inventory, judge, judging, lenses
 from vdo.design.feasibility import Feasibility
-from vdo.design.measures import SEEN_SHOWN, common_p95, measures, seen_fractions, sigma_key
+from vdo.design.measures import (SEEN_SHOWN, common_p95, measures, seen_fractions, sharper_smaller_count,
+                                 sigma_key)
 from vdo.design.score import Scorer
 from vdo.outputs import report
 from vdo.model.camera import Camera
@@ -487,6 +488,10 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
             c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
                      bound_converged=c["bound_converged"], rounded=True)
     common_p95(exp, coarse.samples, curve)
+    sharper = sharper_smaller_count(exp, curve, best)
+    if sharper:
+        issues.append(sharper)
+        log.warning(sharper)
     searched_s = _clock() - t_search
     search_peak = peak_rss()      # what the estimate covers: judging and selection
     target = None
