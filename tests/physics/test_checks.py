@@ -153,3 +153,37 @@ def test_a_dark_pair_is_flagged_under_exposed_and_not_interpolated(plate_experim
     assert [f["check"] for f in row["findings"]] == ["exposure"]
     assert row["findings"][0]["message"].startswith("under-exposed")
     assert math.isnan(checks._measured_over_noise(row))
+
+
+def test_a_camera_that_sees_a_sliver_at_its_image_edge_is_left_out_and_counted(plate_experiment, tmp_path, capsys):
+    """Camera `down` sees the whole plate; `edge`, above the floor past the plate's end looking
+    down, holds a strip of it at its image border, where the frame's ramp leaves no usable view (under
+    NEGLIGIBLE_VIEW of the area, counted here from the prediction's usable views): `vdo evaluate`
+    leaves `edge` out of the design checks, lists it in summary.json's negligible_views and says so
+    in one line; `down` stays checked, and without the cut `edge` would have had its row."""
+    import json
+
+    from conftest import aimed_camera
+    from vdo.commands.cli import main
+
+    edge = aimed_camera("edge", 1.0).replace("target_m = [0.0, 0.0, 0.0]", "target_m = [0.95, 0.0, 0.0]")
+    cams = DOWN_CAMERA.format(name="down", focal=24, u=0.5) + edge + "\n[render]\nambient_radiance = 1.0\n"
+    path = plate_experiment(spacing=25, cameras=cams)
+    assert main(["evaluate", str(path), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert [(r["camera"], r["region"]) for r in summary["design_checks"]] == [("down", "top")]
+    left = summary["negligible_views"]
+    assert [(n["camera"], n["region"]) for n in left] == [("edge", "top")]
+    assert left[0]["usable_fraction"] == pytest.approx(summary["regions"]["top"]["cameras"].get("edge", 0.0), abs=1e-4)
+    assert left[0]["usable_fraction"] < checks.NEGLIGIBLE_VIEW
+    assert ("1 pair(s) left out as negligible (usable view under 1 % of the region: summary.json "
+            "negligible_views)") in out, out
+
+    # the strip is seen (the ray cast): without the cut the table would hold its row
+    from conftest import raycast
+    exp, samples, cams_, scene, vis = raycast(path)
+    illum = illuminate(scene, exp.lights, samples, exp.render.ambient_radiance)
+    rows = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis,
+                                cams_, samples, vis.visible, illum.irradiance, pattern_for(exp.speckle))
+    assert [r["camera"] for r in rows] == ["down", "edge"]

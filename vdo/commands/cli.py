@@ -222,7 +222,7 @@ def _evaluate(exp, args):
         _print_summary(result.to_json())
         if result.calibration is not None:
             _print_calibration(result.calibration)
-        print_checks(result.design_checks)
+        print_checks(result.design_checks, result.negligible_views or ())
         print(f"wrote {Path(args.out).resolve()}")
 
 

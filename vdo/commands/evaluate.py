@@ -130,9 +130,11 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     eps, sigma_dic = state.strain
     angles = constraints.angle_checks(exp.regions, exp.optimize, exp.stereo_pairs, list(cameras),
                                       vis, samples)
+    negligible = checks.negligible_views(vis.camera_names, samples, vis.visible, pred.usable)
     design_checks = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor,
                                          exp.analysis, list(cameras), samples, vis.visible,
-                                         illumination.irradiance, state.geometry.speckle.pattern)
+                                         illumination.irradiance, state.geometry.speckle.pattern,
+                                         leave_out={(n["camera"], n["region"]) for n in negligible})
     judged = None
     if checked is not None:
         judged = {"violations": sum(not c["met"] for c in checked), "checks": checked}
@@ -148,7 +150,7 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
         calibration_summary, calibration_errors = evaluation_errors(calibration, state)
     result = dataclasses.replace(
         report.state_evaluation(state),
-        axis_angles=angles, design_checks=design_checks,
+        axis_angles=angles, design_checks=design_checks, negligible_views=negligible,
         cameras_seeing_nothing=[name for i, name in enumerate(vis.camera_names) if not pred.usable[i].any()],
         constraints=judged, glare=hot,
         measured=measured.summary(exp.analysis, meas, samples, pred, eps),

@@ -137,7 +137,7 @@ class EvaluationSettings:
                 "outlier_factor": self.outlier_factor, "usable": USABLE_MEANING}
 
 
-SECTIONS = ("axis_angles", "design_checks", "cameras_seeing_nothing", "constraints", "glare",
+SECTIONS = ("axis_angles", "design_checks", "negligible_views", "cameras_seeing_nothing", "constraints", "glare",
             "measured", "load_path", "developed", "calibration")   # EvaluationResult's optional parts, JSON order
 
 
@@ -154,6 +154,7 @@ class EvaluationResult:
     regions: dict[str, RegionSummary]                # in the file's order
     axis_angles: list[dict] | None = None            # `vdo.constraints.angle_checks`
     design_checks: list[dict] | None = None          # `vdo.physics.checks.design_checks`
+    negligible_views: list[dict] | None = None       # pairs left out of them (`checks.negligible_views`)
     cameras_seeing_nothing: list[str] | None = None  # cameras with no usable view of any sample
     constraints: dict | None = None                  # {"violations": count, "checks": `layout_checks`}
     glare: list[dict] | None = None                  # `vdo.physics.glare.hot_spots`

@@ -1,6 +1,7 @@
 """Design checks per camera and region: the numbers a DIC planning sheet asks for, with flags.
 
-For each camera and each region it sees (samples visible to it, `vdo.physics.visibility`):
+For each camera and each region it sees (samples visible to it, `vdo.physics.visibility`), but
+the pairs whose usable view is negligible (under NEGLIGIBLE_VIEW of the region, `negligible_views`):
 
 stand-off      median distance |X - C| (m) from the optical centre to the region's seen samples,
                and their depth range Z_c (along the optical axis, m)
@@ -60,6 +61,12 @@ INTERPOLATION_WARN = 2.0    # σ_measured / σ_noise above this: the bias domina
 INTERPOLATION_ADVICE = 1.25  # above this: the bias adds visibly to the noise ("advice")
 SEVERITIES = ("fail", "warn", "advice")   # most severe first
 COC_PIXELS = 2.0
+# A camera whose usable view (`vdo.physics.usable`) covers less than this fraction of a region's
+# area is left out of that region's checks (`negligible_views`): its median footprint, depth and
+# gray levels describe a sliver at the image's edge or at grazing incidence, which weighs next to
+# nothing in the region's σ (area-weighted) while its flags crowded out the views that matter
+# (0.07 % of a dome at 0.2 % FOV fill made half of one lab's warnings).
+NEGLIGIBLE_VIEW = 0.01
 PATTERN_VALUES = 4096     # pattern values drawn (evenly strided) for the gray-level distribution
 
 
@@ -172,10 +179,28 @@ def _camera_optics(cam, spec, depth: float):
     return optics_blur(cam.pixel_size, cam.focal_length, spec.f_number, spec.focus_distance, depth)
 
 
+def negligible_views(camera_names, samples, visible, usable) -> list[dict]:
+    """The (camera, region) pairs with seen samples (`visible` (C, N) bool, the ray cast) whose
+    usable view (`usable` (C, N) bool, `Prediction.usable`) covers less than `NEGLIGIBLE_VIEW` of
+    the region's area: {"camera", "region", "usable_fraction"} (area fraction), in the cameras'
+    and regions' order."""
+    out = []
+    for i, name in enumerate(camera_names):
+        for k, region in enumerate(samples.region_names):
+            mask = samples.region == k
+            if not np.asarray(visible[i])[mask].any():
+                continue
+            fraction = float(samples.area[mask & np.asarray(usable[i])].sum() / samples.area[mask].sum())
+            if fraction < NEGLIGIBLE_VIEW:
+                out.append({"camera": name, "region": region, "usable_fraction": fraction})
+    return out
+
+
 def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
                   speckle: SpeckleSpec, sensor: SensorModel, analysis: Analysis,
-                  cameras, samples, visible, irradiance, pattern) -> list[dict]:
-    """One row per (camera, region) with seen samples: the checks of the module docstring, each
+                  cameras, samples, visible, irradiance, pattern, leave_out=()) -> list[dict]:
+    """One row per (camera, region) with seen samples, but the (camera name, region name) pairs
+    in `leave_out` (`negligible_views`): the checks of the module docstring, each
     finding {"severity", "check", "message"} in "findings" (most severe first), their messages in
     "flags" and the worst severity in "severity" (None when nothing was found).
     `visible` (C, N) bool (`Visibility.visible`), `irradiance` (N,) W m^-2
@@ -192,7 +217,7 @@ def design_checks(camera_specs: tuple[CameraSpec, ...], evaluation: Evaluation,
     for i, (cam, spec) in enumerate(zip(cameras, camera_specs)):
         for k, region in enumerate(samples.region_names):
             seen = np.asarray(visible[i]) & (samples.region == k)
-            if not seen.any():
+            if not seen.any() or (cam.name, region) in leave_out:
                 continue
             X = samples.points[seen]
             A = cam.sensitivity(X) @ T[seen]                                        # px/m
@@ -279,15 +304,18 @@ def count_findings(rows: list[dict]) -> dict:
     return {s: sum(f["severity"] == s for r in rows for f in r["findings"]) for s in SEVERITIES}
 
 
-def print_checks(rows: list[dict]) -> None:
-    """The design-check table on the console (the CLI's): a count per severity, then the flagged
-    camera-region pairs, the worst first (by severity, then by the interpolation's
-    σ_measured / σ_noise), each with its findings."""
+def print_checks(rows: list[dict], negligible=()) -> None:
+    """The design-check table on the console (the CLI's): a count per severity and of the
+    `negligible` pairs left out (`negligible_views`), then the flagged camera-region pairs, the
+    worst first (by severity, then by the interpolation's σ_measured / σ_noise), each with its
+    findings."""
     counts = count_findings(rows)
     flagged = [r for r in rows if r["findings"]]
     print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged; findings: "
           + ", ".join(f"{n} {s}" for s, n in counts.items())
-          + " (all of them in summary.json and report.html)")
+          + " (all of them in summary.json and report.html)"
+          + (f"; {len(negligible)} pair(s) left out as negligible (usable view under "
+             f"{100 * NEGLIGIBLE_VIEW:g} % of the region: summary.json negligible_views)" if negligible else ""))
     if not flagged:
         return
     flagged.sort(key=lambda r: (SEVERITIES.index(r["severity"]),
