@@ -1070,3 +1070,24 @@ def test_the_design_names_a_sharper_smaller_count_and_still_writes_the_inventory
     assert len(said) == 1 and said[0].startswith("1 cameras reach a lower sigma_max p95 than the 2"), result.problems
     assert said[0] in json.loads((tmp_path / "out" / "design.json").read_text())["problems"]
     assert result.cameras == 2 and len(json.loads((tmp_path / "out" / "layout.json").read_text())["cameras"]) == 2
+
+
+@pytest.mark.parametrize("lo, hi, at_least", [(0.43, 0.86, 3), (0.05, 40.0, 4)])
+def test_the_curves_log_axis_labels_enough_ticks(lo, hi, at_least):
+    """`log_ticks` on a σ axis: a curve spanning less than a decade (0.43-0.86 µm, where
+    matplotlib labelled two ticks) gets a label at every digit inside it; one spanning three
+    decades at 1, 2 and 5 per decade; the labels are the tick values."""
+    import matplotlib.pyplot as plt
+
+    from vdo.commands.design import log_ticks
+
+    fig, ax = plt.subplots()
+    ax.semilogy([1, 2, 3], [lo, (lo * hi) ** 0.5, hi])
+    log_ticks(ax)
+    fig.canvas.draw()
+    y0, y1 = ax.get_ylim()
+    shown = [(t.get_loc(), t.label1.get_text()) for t in ax.yaxis.get_major_ticks()
+             if y0 <= t.get_loc() <= y1 and t.label1.get_text()]
+    plt.close(fig)
+    assert len(shown) >= at_least, shown
+    assert all(float(text) == pytest.approx(loc, rel=1e-2) for loc, text in shown)
