@@ -187,3 +187,24 @@ def test_a_camera_that_sees_a_sliver_at_its_image_edge_is_left_out_and_counted(p
     rows = checks.design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis,
                                 cams_, samples, vis.visible, illum.irradiance, pattern_for(exp.speckle))
     assert [r["camera"] for r in rows] == ["down", "edge"]
+
+
+def test_the_console_counts_pairs_by_worst_finding_and_lists_only_the_above_advice_ones(plate_experiment, capsys):
+    """Three real rows: a failing one (f/1.4 focused at 1 m, over-lit, fine dots), an advice-only
+    one (coarse dots) and a clean one. The head line counts pairs by their worst finding; the table
+    holds the failing pair, not the advice-only one (which stays in summary.json)."""
+    failing, _ = _rows(plate_experiment, dot=3.0, ambient=2.0, lens="f_number = 1.4\nfocus_m = 1.0")
+    clean, _ = _rows(plate_experiment, dot=11.0, texel=3.66, lens="f_number = 8\nfocus_m = 1.5")
+    advice = dict(clean, camera="coarse",
+                  findings=[{"severity": "advice", "check": "speckle", "message": "speckle dots 9 px"}],
+                  severity="advice")
+    assert failing["severity"] == "fail" and not clean["findings"]
+    rows = [dict(failing, camera="sharp"), advice, dict(clean, camera="good")]
+    checks.print_checks(rows)
+    out = capsys.readouterr().out.splitlines()
+    n_fail = checks.count_findings([failing])
+    assert out[0].startswith("design checks on 3 camera-region pairs, by worst finding: 1 fail, 0 warn, "
+                             "1 advice only, 1 clean; findings: "
+                             f"{n_fail['fail']} fail, {n_fail['warn']} warn, {n_fail['advice'] + 1} advice"), out[0]
+    table = out[2:]
+    assert len(table) == 1 and table[0].startswith("FAIL    sharp"), out

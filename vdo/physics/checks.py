@@ -305,17 +305,21 @@ def count_findings(rows: list[dict]) -> dict:
 
 
 def print_checks(rows: list[dict], negligible=()) -> None:
-    """The design-check table on the console (the CLI's): a count per severity and of the
-    `negligible` pairs left out (`negligible_views`), then the flagged camera-region pairs, the
-    worst first (by severity, then by the interpolation's σ_measured / σ_noise), each with its
-    findings."""
+    """The design-check table on the console (the CLI's): the camera-region pairs counted by their
+    worst finding's severity, the findings per severity and the `negligible` pairs left out
+    (`negligible_views`), then the pairs whose worst finding is above advice, the worst first (by
+    severity, then by the interpolation's σ_measured / σ_noise), each with its findings. Pairs
+    with advice only are in summary.json and report.html, not on the console."""
     counts = count_findings(rows)
-    flagged = [r for r in rows if r["findings"]]
-    print(f"design checks: {len(flagged)} of {len(rows)} camera-region pairs flagged; findings: "
-          + ", ".join(f"{n} {s}" for s, n in counts.items())
+    worst = {s: sum(r["findings"] != [] and r["severity"] == s for r in rows) for s in SEVERITIES}
+    clean = sum(not r["findings"] for r in rows)
+    print(f"design checks on {len(rows)} camera-region pairs, by worst finding: "
+          + ", ".join(f"{n} {s}" + (" only" if s == SEVERITIES[-1] else "") for s, n in worst.items())
+          + f", {clean} clean; findings: " + ", ".join(f"{n} {s}" for s, n in counts.items())
           + " (all of them in summary.json and report.html)"
           + (f"; {len(negligible)} pair(s) left out as negligible (usable view under "
              f"{100 * NEGLIGIBLE_VIEW:g} % of the region: summary.json negligible_views)" if negligible else ""))
+    flagged = [r for r in rows if r["findings"] and r["severity"] != SEVERITIES[-1]]
     if not flagged:
         return
     flagged.sort(key=lambda r: (SEVERITIES.index(r["severity"]),
