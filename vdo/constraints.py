@@ -17,6 +17,10 @@ JAX, and exact checks for the report.
                 (minus 1 %, and at most 1 - max_obscuration is required);
 * clearance:    camera bodies keep `clearance` metres from every mesh and from each other;
 * keep-out:     no optical centre inside a `[[keep_out]]` box (counted with the clearance);
+* floor:        a camera on a zone whose floor is not convex (a ring, an L, a floor with holes)
+                stands over it, its optical centre inside the outline and out of the holes
+                (`floor_penalty`, counted with the clearance; `floor_checks`); a box or a convex
+                floor holds its cameras by construction;
 * tripods:      no tripod leg inside a keep-out box, and two tripods' legs the clearance apart
                 (`tripod_penalty`, counted with the clearance; `tripod_checks`);
 * rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
@@ -275,6 +279,69 @@ def keep_out_checks(cameras, keep_outs) -> list[dict]:
     return [_entry("keep_out", float(depth[c, b]), 0.0, "m inside", "max", cameras=[cam.name],
                    keep_out=box.name)
             for c, cam in enumerate(cameras) for b, box in enumerate(keep_outs)]
+
+
+def floor_edges(zone) -> tuple[np.ndarray, np.ndarray]:
+    """The edges of a zone's floor polygon and of its holes as segments: starts (E, 2), ends
+    (E, 2), m."""
+    rings = [np.asarray(zone.floor, float)] + [np.asarray(h, float) for h in zone.floor_holes or ()]
+    return (np.concatenate(rings), np.concatenate([np.roll(r, -1, axis=0) for r in rings]))
+
+
+def floor_depth(xy, starts, ends):
+    """(K,) how far (m) each floor point xy (K, 2) lies off a floor with the edges starts -> ends
+    (E, 2) each (`floor_edges`): + the distance to the nearest edge where the point is off it
+    (outside the outline or inside a hole: an odd number of edges crossed by the ray to +x, the
+    even-odd rule), - that distance where it is on it."""
+    e = ends - starts
+    d = xy[:, None, :] - starts[None]                                     # (K, E, 2)
+    t = jnp.clip(jnp.sum(d * e, axis=-1) / jnp.sum(e * e, axis=-1), 0.0, 1.0)
+    gap = d - t[..., None] * e
+    distance = jnp.sqrt(jnp.min(jnp.sum(gap * gap, axis=-1), axis=1) + SMOOTH_SQRT)
+    y = xy[:, 1:2]
+    straddles = (starts[None, :, 1] > y) != (ends[None, :, 1] > y)
+    dy = jnp.where(straddles, e[None, :, 1], 1.0)
+    x_cross = starts[None, :, 0] + (y - starts[None, :, 1]) * e[None, :, 0] / dy
+    on = jnp.sum(straddles & (x_cross > xy[:, 0:1]), axis=1) % 2 == 1
+    return jnp.where(on, -distance, distance)
+
+
+def floor_penalty(positions, floors, margin: float):
+    """Σ (max(0, depth + margin) / KEEP_OUT_SCALE)^2 over the cameras on non-convex floors,
+    `floors` a tuple of (camera indices (k,), edge starts, edge ends) per such zone
+    (`floor_depth` of the optical centre's x, y): 0 exactly where each stands `margin` or more
+    inside its floor, C^1 in the positions."""
+    total = 0.0
+    for index, starts, ends in floors:
+        depth = floor_depth(positions[index, :2], starts, ends)
+        total = total + jnp.sum((jnp.maximum(depth + margin, 0.0) / KEEP_OUT_SCALE) ** 2)
+    return total
+
+
+def non_convex_floors(specs, mounts) -> list[tuple[list[int], object]]:
+    """[(indices of the cameras in `specs` standing on it, zone)] per zone of `mounts` whose
+    floor is a polygon that is not convex or has holes (`MountSpec.convex`)."""
+    out = []
+    for zone in mounts:
+        if zone.kind == "zone" and zone.floor is not None and not zone.convex:
+            index = [i for i, s in enumerate(specs) if s.mount == zone.name]
+            if index:
+                out.append((index, zone))
+    return out
+
+
+def floor_checks(cameras, specs, mounts) -> list[dict]:
+    """One "floor" entry per camera on a non-convex floor (`non_convex_floors`): how far (m) its
+    optical centre lies off the floor (`floor_depth`: outside the outline or in a hole), met
+    when <= 0."""
+    out = []
+    for index, zone in non_convex_floors(specs, mounts):
+        starts, ends = (jnp.asarray(a) for a in floor_edges(zone))
+        depth = np.asarray(floor_depth(jnp.asarray([cameras[i].position[:2] for i in index], dtype=float),
+                                       starts, ends))
+        out += [_entry("floor", float(d), 0.0, "m off the floor", "max", cameras=[cameras[i].name],
+                       zone=zone.name) for i, d in zip(index, depth)]
+    return out
 
 
 TRIPOD_LEG_POINTS = 9      # points along each tripod leg (top casting to foot) in the smooth penalty

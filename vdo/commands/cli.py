@@ -26,7 +26,7 @@ import numpy as np
 from vdo.core import interrupts
 from vdo.core.backend import BackendError
 from vdo.physics.checks import print_checks
-from vdo.core.errors import ConfigError, ConfigErrors
+from vdo.core.errors import ConfigError
 from vdo.core.parallel import TaskFailed
 from vdo.core.runfolder import check_out
 from vdo.core.memory import retain_freed_memory
@@ -120,7 +120,7 @@ def _load(args):
         return spec
     if args.command == "calibrate":
         _calibrate_flags(args)
-    exp = _experiment(args.config, getattr(args, "series", None), args.command)
+    exp = _experiment(args.config, getattr(args, "series", None))
     if args.command == "evaluate":
         _evaluate_flags(args, exp)
     if getattr(args, "cameras", None) is not None:
@@ -142,19 +142,14 @@ def _load(args):
     return exp
 
 
-def _experiment(path, series=None, command=None):
-    """The experiment of `path`, read and checked whole: its tables (for `vdo optimize`, its
-    moving cameras' floors too, `moving_floor_errors`, before any mesh is read), then together
+def _experiment(path, series=None):
+    """The experiment of `path`, read and checked whole: its tables, then together
     (`vdo.state.check_experiment`) its meshes (no camera inside one), its load-path
     files (every step) and a --series POSES.csv, and the lens catalogue of an optimize."""
-    from vdo.config.experiment import load, moving_floor_errors
+    from vdo.config.experiment import load
     from vdo.state import check_experiment
 
     exp = load(path)
-    if command == "optimize":
-        errors = moving_floor_errors(exp)
-        if errors:
-            raise errors[0] if len(errors) == 1 else ConfigErrors(errors)
     if series not in (None, "load_path") and not Path(series).is_file():
         raise ConfigError(series, "--series", "no such file: give a CSV of poses per step and "
                                               "group (see vdo.geometry.keyframes)")

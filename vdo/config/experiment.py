@@ -62,32 +62,6 @@ COINCIDENT_M = 1e-3                # two optical centres closer than this are on
 SAME_LENS_REL = 1e-9   # relative: focal lengths this close are one lens (mm read as m, rounding)
 
 
-def moving_floor_errors(exp: Experiment) -> list[ConfigError]:
-    """`vdo optimize`'s own check, before any mesh is read: one `ConfigError` per zone whose floor
-    polygon is not convex or has holes (`MountSpec.convex`) and that a camera it moves ("u" in
-    [optimize] free, the camera in `[optimize] cameras`, default all) stands on, naming those
-    cameras: their parameters blend the floor's corners, which stays on the floor only for a
-    convex one."""
-    if "u" not in exp.optimize.free:
-        return []
-    moving = set(exp.optimize.cameras or [c.name for c in exp.camera_specs])
-    on_zone: dict[str, list[str]] = {}          # mount name -> the moving cameras on it, in file order
-    for spec in exp.camera_specs:
-        zone = exp.mount(spec.mount) if spec.mount else None
-        if spec.name in moving and zone is not None and zone.kind == "zone" and zone.floor is not None \
-                and not zone.convex:
-            on_zone.setdefault(zone.name, []).append(spec.name)
-    errors = []
-    for name, cams in on_zone.items():
-        who = f"camera {cams[0]!r} moves" if len(cams) == 1 else \
-            f"cameras {', '.join(repr(c) for c in cams)} move"
-        errors.append(ConfigError(exp.path, f'mount "{name}".floor_m',
-                                  f"{who} over a floor that is not convex (or has holes): vdo "
-                                  "optimize moves cameras over convex floors only; split it into "
-                                  "convex sectors for optimize (evaluate and design take it whole)"))
-    return errors
-
-
 def lens_catalogue_errors(exp: Experiment) -> list[ConfigError]:
     """With "lens" in [optimize] free, one `ConfigError` per moving camera (`[optimize] cameras`,
     default all) whose focal_mm is not in its lens catalogue (its own lenses_mm, else [optimize]

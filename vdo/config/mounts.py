@@ -109,7 +109,7 @@ def inside_keep_out(keep_outs, points: np.ndarray) -> np.ndarray:
 
 MOUNT_NEEDS = {"rail": ("control_points_m",), "zone": ("box_min_m", "box_max_m"),
                "fixed": ("position_m",)}
-ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a convex floor polygon
+ZONE_FLOOR = ("floor_m", "height_m")   # the other form of a zone: a floor polygon
 MOUNT_EXAMPLES = {"control_points_m": "control_points_m = [[0, 0, 1.5], [2, 0, 1.5]]",
                   "box_min_m": "box_min_m = [0.5, -1.0, 1.2]", "box_max_m": "box_max_m = [1.5, 1.0, 1.8]",
                   "position_m": "position_m = [1.0, 0.0, 1.5]", "height_m": "height_m = [1.2, 1.8]",
@@ -184,8 +184,9 @@ class TripodSpec:
 class MountSpec:
     """Where a camera stands. kind "rail": a NURBS curve (as a [[rail]]; read into `rails`);
     "zone": anywhere in the axis-aligned box [box_min, box_max] (m), e.g. a tripod on a floor
-    area with its height range in z (a zero extent holds that axis), or anywhere above the convex
-    polygon `floor` ((n, 2) m, counter-clockwise) within `height` (m); "fixed": at `position` (m)."""
+    area with its height range in z (a zero extent holds that axis), or anywhere above the simple
+    polygon `floor` ((n, 2) m, counter-clockwise) off its `floor_holes`, within `height` (m);
+    "fixed": at `position` (m)."""
 
     name: str = row("name", Text(name=True), doc="unique among mounts and rails")
     kind: str = row("kind", Text(choices=tuple(MOUNT_NEEDS)), doc="rail, zone or fixed")

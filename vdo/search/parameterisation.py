@@ -20,7 +20,7 @@ from scipy.special import expit
 from vdo.model.camera import Camera
 from vdo.model.pose import aim_point, holds_aim
 from vdo.model.rail import Rail
-from vdo.config.experiment import Experiment, moving_floor_errors
+from vdo.config.experiment import Experiment
 
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle (`Parameterization`)
 
@@ -53,8 +53,6 @@ class Parameterization:
 
     def __init__(self, exp: Experiment, cameras: list[Camera], centre):
         self.exp, self.cameras = exp, cameras
-        for error in moving_floor_errors(exp):     # convex floors only (the corners' blend)
-            raise error
         moving = set(exp.optimize.cameras or [c.name for c in cameras])
         free = exp.optimize.free
         self.index, theta, scale, aims = [], [], [], []
@@ -71,7 +69,7 @@ class Parameterization:
                         idx[name] = len(theta)
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
-                    elif name == "u" and zone is not None and zone.floor is not None:
+                    elif name == "u" and zone is not None and zone.floor is not None and zone.convex:
                         weights = mean_value_coordinates(zone.floor, cam.position[:2])
                         for k in range(1, len(zone.floor)):   # softmax logits against corner 0
                             idx[f"w{k}"] = len(theta)
@@ -174,13 +172,15 @@ class Parameterization:
         """p_k = lo_k + (hi_k - lo_k) sigmoid(θ[idx[axis k]]) for the zone's free axes, else
         held[k] (m): inside the box [lo, hi] for every θ (written as the convex combination
         (1 - s) lo + s hi and clipped, so that rounding never puts it a hair outside). Over a
-        floor polygon with corners v_k: (x, y) = Σ_k softmax(0, θ_w1, ...)_k v_k, inside the
-        (convex) polygon for every θ, and z as above."""
+        convex floor polygon with corners v_k: (x, y) = Σ_k softmax(0, θ_w1, ...)_k v_k, inside
+        the polygon for every θ, and z as above. A floor that is not convex (a ring, an L) moves
+        its cameras over its bounding box, the box above, and the optimizer's floor penalty keeps
+        them on it (`vdo.constraints.floor_penalty`)."""
         def axis(k, a):
             lo, hi = zone.low[k], zone.high[k]
             s = jax.nn.sigmoid(theta[idx[a]])
             return jnp.clip((1 - s) * lo + s * hi, lo, hi)
-        if zone.floor is not None:   # a convex combination of the corners: inside the polygon
+        if "w1" in idx:   # a convex floor: a convex combination of its corners, inside it
             logits = jnp.stack([jnp.zeros(())] + [theta[idx[f"w{k}"]] for k in range(1, len(zone.floor))])
             xy = jax.nn.softmax(logits) @ jnp.asarray(zone.floor)
             return jnp.stack([xy[0], xy[1], axis(2, "z") if "z" in idx else held[2]])

@@ -160,6 +160,8 @@ class Problem:
             keep_out=tuple(jnp.asarray(np.clip(np.array([getattr(k, a) for k in self.exp.keep_outs]).reshape(-1, 3),
                                                -constraints.KEEP_OUT_FAR, constraints.KEEP_OUT_FAR))
                            for a in ("box_min", "box_max")),
+            floors=tuple((jnp.asarray(index), *(jnp.asarray(a) for a in constraints.floor_edges(zone)))
+                         for index, zone in constraints.non_convex_floors(self.exp.camera_specs, self.exp.mounts)),
             spheres=None if self.sphere_local is None else (self.sphere_local, self.sphere_radii),
             lit=self.lit_samples)
 
@@ -388,6 +390,7 @@ class Problem:
             clearance=constraints.clearance_penalty(
                 constraints.body_points_world(data["body_local"], R, pos), local["near"], clearance)
             + constraints.keep_out_penalty(pos, *data["keep_out"], CLEARANCE_MARGIN)
+            + constraints.floor_penalty(pos, data["floors"], CLEARANCE_MARGIN)
             + (0.0 if data["tripods"] is None else constraints.tripod_penalty(
                 *constraints.tripod_legs(pos, R[:, 2, :], pan, data["tripods"]), data["tripods"],
                 *data["keep_out"], self.exp.optimize.clearance, CLEARANCE_MARGIN)),
@@ -416,6 +419,7 @@ class Problem:
                                  self.param.u(state.theta), roll_free="roll" in opt.free,
                                  fov_limits=self.fov_limits, max_angles=self.max_angles) \
             + constraints.keep_out_checks(state.cameras, self.exp.keep_outs) \
+            + constraints.floor_checks(state.cameras, self.exp.camera_specs, self.exp.mounts) \
             + constraints.tripod_checks(state.cameras, self.tripods, self.exp.keep_outs, opt.clearance)
 
     def _fov_limits(self, entries) -> np.ndarray:
