@@ -293,3 +293,22 @@ def test_a_mesh_driven_into_the_specimen_is_said(plate_experiment, caplog, down_
         check_experiment(config.load(path))
     assert ("at step 2 of the load path mesh 'platen' reaches 5.0 mm inside specimen 'plate'" in caplog.text) == said, caplog.text
     assert ("inside specimen" in caplog.text) == said
+
+
+def test_check_says_one_line_and_the_warnings(plate_experiment, capsys, no_work):
+    """`vdo check` on the shipped pressure vessel, whose regions split faces (five information
+    lines in the other commands): the one ok line on stdout, nothing on stderr. Its warnings
+    still reach the console: a second region on the plate's top warns that two regions keep the
+    same surface."""
+    from pathlib import Path
+
+    vessel = Path(__file__).resolve().parents[2] / "experiments" / "pressure_vessel" / "all_round.toml"
+    assert main(["check", str(vessel)]) == 0
+    out, err = capsys.readouterr()
+    assert out.count("\n") == 1 and out.startswith(f"ok: {vessel}") and err == "", (out, err)
+    path = plate_experiment()
+    with open(path, "a") as f:
+        f.write('\n[[region]]\nname = "again"\nmesh = "plate"\nnormal = [0, 0, 1]\n')
+    assert main(["check", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("ok: ") and "'top'" in err and "'again'" in err, (out, err)

@@ -630,7 +630,9 @@ def main(argv=None) -> int:
     restore = interrupts.install()
     try:
         args = _parser().parse_args(argv)
-        with _log_to_stderr(getattr(args, "quiet", False)):
+        # `vdo check` says one line per file: the meshes' information lines (faces split at a
+        # region's box) are for the commands that compute; its warnings still show
+        with _log_to_stderr(getattr(args, "quiet", False) or args.command == "check"):
             return _run(args)
     except BaseException as exc:
         stop = interrupts.interruption(exc)
