@@ -286,8 +286,9 @@ def _optimize(exp, args) -> None:
             print(result.reason)
         for name, r in result.score_regions_um.items():   # the regions the score counts
             if r["scored"] and r["sigma_smooth_um"] is not None:
-                # the score's views (the search's visibility) and the final layout's evaluation
-                # (every body and tripod ray-cast, summary_after.json) can differ: say both
+                # the score's views and the final layout's evaluation (summary_after.json) differ
+                # by the area seen twice with a view under the usable weight (grazing, at the
+                # image's edge): the score keeps it at a finite sigma, the evaluation does not
                 final = result.after.regions[name].unmeasured_fraction if name in result.after.regions else None
                 print(f"  {name}: smooth sigma_max {r['sigma_smooth_um']:.4g} um"
                       + (f" ({100 * r['unmeasured_fraction']:.1f} % of the area unmeasured in the score's "
