@@ -2,7 +2,9 @@
 
 Per moving camera, each only when listed in ``[optimize] free``: its position ("u": on a rail
 z_u with u = sigmoid(z_u), in a zone one sigmoid per axis of its box, or softmax weights over the
-corners of a floor polygon, so the camera cannot leave its mount), pan, tilt (offsets from the
+corners of a convex floor polygon, so the camera cannot leave its mount; over any other floor the
+sigmoids of its bounding box, and the floor penalty, `vdo.constraints.floor_penalty`, keeps it on
+the floor), pan, tilt (offsets from the
 direction to its aim point when it holds one), roll, and with "lens" free the focal length (a
 discrete choice made outside θ, `vdo.search.solver.choose_lenses`). `perturbation` draws the
 extra starts around the hand layout."""
