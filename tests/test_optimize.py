@@ -549,9 +549,11 @@ def test_the_convergence_figure_names_the_lens_trials_apart_from_the_starts():
 def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(plate_experiment):
     """Two cameras on the plate with 24 mm lenses (sharper, part of the plate seen once) against
     12 mm (every point seen twice, σ about doubled): read as a run whose score fell from the 24 mm
-    layout to the 12 mm one, `precision_traded` names the region with both σ p95 and both areas
-    seen by min_cameras; it stays silent when σ fell or when the score did not fall."""
-    from vdo.optimize import PRECISION_RISE, precision_traded
+    layout to the 12 mm one, `precision_traded` names the region with σ p95 over the area both
+    measure and over each one's own, and both areas seen by min_cameras; it stays silent when σ
+    fell, when the score did not fall, and when only the newly measured area is worse (the p95
+    over the common area unchanged)."""
+    from vdo.optimize import PRECISION_RISE, common_p95, precision_traded
     from vdo.outputs import report
     from vdo.state import layout_state, prepare
 
@@ -559,20 +561,46 @@ def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(p
         cams = "".join(aimed_camera(n, u).replace("focal_mm = 24", f"focal_mm = {focal}")
                        for n, u in (("a", 0.3), ("b", 0.7))) + "\n[render]\nambient_radiance = 1.0\n"
         exp = config.load(plate_experiment(spacing=25, cameras=cams))
-        return report.state_evaluation(layout_state(prepare(exp)))
+        state = layout_state(prepare(exp))
+        return report.state_evaluation(state), state.prediction.sigma_max, state.samples
 
-    sharp, wide = judged(24), judged(12)
+    (sharp, sigma_sharp, samples), (wide, sigma_wide, _) = judged(24), judged(12)
     s0, s1 = sharp.regions["top"], wide.regions["top"]
     assert s1.sigma_max_um.p95 > (1 + PRECISION_RISE) * s0.sigma_max_um.p95     # the scene does trade
     assert s0.seen_by_min_cameras < s1.seen_by_min_cameras == pytest.approx(1.0)
     assert s0.min_cameras == 2 and s0.seen_by_min_cameras == s0.seen_by_2_or_more
-    traded = precision_traded(sharp, wide, ["top"], 2.0, 1.0)
+    common = common_p95(sigma_sharp, sigma_wide, np.asarray(samples.region), samples.region_names)
+    both = np.isfinite(sigma_sharp) & np.isfinite(sigma_wide)
+    assert common["top"] == [pytest.approx(np.percentile(sigma_sharp[both] * 1e6, 95), rel=1e-12),
+                             pytest.approx(np.percentile(sigma_wide[both] * 1e6, 95), rel=1e-12)]
+    c0, c1 = common["top"]
+    assert c1 > (1 + PRECISION_RISE) * c0      # on the area both measure, too
+    traded = precision_traded(sharp, wide, ["top"], 2.0, 1.0, common)
     assert traded["regions"] == [dict(region="top", min_cameras=2,
                                       sigma_p95_um=[s0.sigma_max_um.p95, s1.sigma_max_um.p95],
+                                      sigma_p95_common_um=[c0, c1],
                                       seen_by_min_cameras=[s0.seen_by_min_cameras, 1.0])]
     message = traded["message"]
-    assert (f"top: sigma_max p95 {s0.sigma_max_um.p95:.3f} -> {s1.sigma_max_um.p95:.3f} um, seen by 2+ "
+    assert (f"top: sigma_max p95 over the area measured before and after {c0:.3f} -> {c1:.3f} um "
+            f"(over each one's own {s0.sigma_max_um.p95:.3f} -> {s1.sigma_max_um.p95:.3f} um), seen by 2+ "
             f"cameras {100 * s0.seen_by_min_cameras:.1f} -> 100.0 %") in message, message
     assert "min_cameras" in message and "[design] coverage_weight below 1" in message
-    assert precision_traded(wide, sharp, ["top"], 2.0, 1.0) is None       # σ fell
-    assert precision_traded(sharp, wide, ["top"], 1.0, 1.0) is None       # the score did not fall
+    flipped = {"top": [c1, c0]}
+    assert precision_traded(wide, sharp, ["top"], 2.0, 1.0, flipped) is None    # σ fell
+    assert precision_traded(sharp, wide, ["top"], 1.0, 1.0, common) is None     # the score did not fall
+    # each one's own p95 rose, the common area's did not: new, harder area is not precision lost
+    assert precision_traded(sharp, wide, ["top"], 2.0, 1.0, {"top": [c0, c0]}) is None
+
+
+def test_the_common_p95_is_over_the_samples_both_measure():
+    """σ (m) measured at samples 0, 1, 3 before and 0, 1, 2 after: the common area is samples 0
+    and 1 of region a (p95 of [1, 2] µm, linear: 1.95) and nothing of region b."""
+    from vdo.optimize import common_p95
+
+    inf = np.inf
+    before = np.array([1.0, 2.0, inf, 4.0]) * 1e-6
+    after = np.array([3.0, 5.0, 6.0, inf]) * 1e-6
+    region = np.array([0, 0, 0, 1])
+    out = common_p95(before, after, region, ("a", "b"))
+    assert out["a"] == [pytest.approx(1.95), pytest.approx(3.0 + 0.95 * 2.0)]
+    assert out["b"] == [None, None]

@@ -67,6 +67,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from scipy.spatial import cKDTree
 
 from vdo import constraints
@@ -234,7 +235,7 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
                              groups=exp.groups)
     # the hand layout judged now, inside start-up: its time measures the best layout's judgement
     t_judge = time.perf_counter()
-    before = _summary(problem, problem.start)
+    before, sigma_before = _summary(problem, problem.start)
     checks_before = problem.check(problem.start)
     score_before = score_parts(problem, problem.start)
     judge_s = time.perf_counter() - t_judge
@@ -267,7 +268,7 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     search = time.perf_counter() - t_search
     log.info("search ended: %s after %.0f s (start-up %.0f s, search %.0f s)", status,
              time.perf_counter() - t_start, startup, search)
-    after = _summary(final, best.state)
+    after, sigma_after = _summary(final, best.state)
     if over_path is not None:   # the optimized layout judged at every step, as `vdo evaluate` does
         log.info("judging the optimized layout over the %d steps of the load path", len(over_path.steps))
         after = dataclasses.replace(after, load_path=loadpath.summary(loadpath.evaluate_load_path(
@@ -281,11 +282,14 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     settings = None
     if optimized.exposure.free:   # f-numbers, exposure times and light power for the best layout
         optimized, settings = with_exposure(optimized)
-        after = dataclasses.replace(report.state_evaluation(layout_state(prepare(optimized))),
-                                    load_path=after.load_path)
+        judged = layout_state(prepare(optimized))
+        after = dataclasses.replace(report.state_evaluation(judged), load_path=after.load_path)
+        sigma_after = judged.prediction.sigma_max
     scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
     worst = _worst_p95(before, scored), _worst_p95(after, scored)
-    traded = precision_traded(before, after, scored, score_before["score_um"], best.score)
+    common = common_p95(sigma_before, sigma_after, np.asarray(problem.samples.region),
+                        problem.samples.region_names)
+    traded = precision_traded(before, after, scored, score_before["score_um"], best.score, common)
     if traded is not None:
         log.warning(traded["message"])
     log.info("best: %s, score %.4g -> %.4g µm, %d constraint violation(s)",
@@ -379,15 +383,27 @@ class CameraMove:
     rail_after_m: float | None
 
 
-def _summary(problem: Problem, state: State) -> report.EvaluationResult:
+def _summary(problem: Problem, state: State) -> tuple[report.EvaluationResult, np.ndarray]:
     """`vdo evaluate`'s summary of a round's layout: the one prediction of `vdo.physics.predict` (usable
-    views, clipped patches) on the round's ray cast and lighting."""
+    views, clipped patches) on the round's ray cast and lighting; and its σ_max per sample (m,
+    +inf where not measured)."""
     exp = problem.exp
     pred = predict(exp.regions, exp.evaluation, exp.speckle, exp.sensor, list(state.cameras),
                    problem.samples, state.vis, state.illumination, problem.speckle,
                    overlap=problem.geometry.overlap,
                    exposure=exposure_factors(exp.camera_specs, exp.sensor))
-    return report.evaluation(problem.exp, problem.samples, state.vis, pred)
+    return report.evaluation(problem.exp, problem.samples, state.vis, pred), pred.sigma_max
+
+
+def common_p95(sigma_before: np.ndarray, sigma_after: np.ndarray, region: np.ndarray, names) -> dict:
+    """{region name: [σ_max p95 before, after] (µm, `report.percentiles`)} over the samples that
+    both layouts measure (finite σ_max (N,) in m; `region` (N,) the samples' region index into
+    `names`): where the two compare, unlike each layout's p95 over its own measured area, which
+    rises when a layout adds hard, grazing area. [None, None] where no sample is measured in both."""
+    both = np.isfinite(sigma_before) & np.isfinite(sigma_after)
+    return {name: [report.percentiles(sigma_before[both & (region == r)] * 1e6).p95,
+                   report.percentiles(sigma_after[both & (region == r)] * 1e6).p95]
+            for r, name in enumerate(names)}
 
 
 def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
@@ -398,27 +414,35 @@ def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
 
 
 def precision_traded(before: report.EvaluationResult, after: report.EvaluationResult, scored,
-                     score_before_um: float, score_after_um: float) -> dict | None:
-    """When the score fell (µm) yet the σ_max p95 of a `scored` region rose by more than
-    `PRECISION_RISE` (or the region lost every measured sample): {"regions": per such region its
-    name, min_cameras, "sigma_p95_um" and "seen_by_min_cameras" (area fraction) as [before,
-    after]; "message": the warning, naming each with what the lab can do}. None otherwise. The
-    score counts area short of min_cameras (and unmeasured area at the 1 mm prior) so heavily
-    that a search can buy a sliver of it with σ everywhere (docs/optimize.md)."""
+                     score_before_um: float, score_after_um: float, common: dict) -> dict | None:
+    """When the score fell (µm) yet a `scored` region's σ_max p95 over the area both layouts
+    measure (`common`: `common_p95`) rose by more than `PRECISION_RISE`, or the region lost every
+    measured sample: {"regions": per such region its name, min_cameras, "sigma_p95_um" (over
+    each layout's own measured area), "sigma_p95_common_um" and "seen_by_min_cameras" (area
+    fraction), each as [before, after]; "message": the warning, naming each with what the lab can
+    do}. None otherwise. The score counts area short of min_cameras (and unmeasured area at the
+    1 mm prior) so heavily that a search can buy a sliver of it with σ everywhere
+    (docs/optimize.md); a higher σ over newly measured area alone, grazing where the hand layout
+    saw nothing, is not precision lost."""
     if not score_after_um < score_before_um:
         return None
     rows = []
     for name in scored:
         b, a = before.regions[name], after.regions[name]
         p0, p1 = b.sigma_max_um.p95, a.sigma_max_um.p95
-        if p0 is not None and (p1 is None or p1 > (1 + PRECISION_RISE) * p0):
+        c0, c1 = common[name]
+        lost = p0 is not None and p1 is None
+        if lost or (c0 is not None and c1 > (1 + PRECISION_RISE) * c0):
             rows.append(dict(region=name, min_cameras=a.min_cameras, sigma_p95_um=[p0, p1],
+                             sigma_p95_common_um=[c0, c1],
                              seen_by_min_cameras=[b.seen_by_min_cameras, a.seen_by_min_cameras]))
     if not rows:
         return None
     show = lambda v: "unmeasured" if v is None else f"{v:.3f}"
-    named = "; ".join(f"{r['region']}: sigma_max p95 {show(r['sigma_p95_um'][0])} -> "
-                      f"{show(r['sigma_p95_um'][1])} um, seen by {r['min_cameras']}+ cameras "
+    named = "; ".join(f"{r['region']}: sigma_max p95 over the area measured before and after "
+                      f"{show(r['sigma_p95_common_um'][0])} -> {show(r['sigma_p95_common_um'][1])} um "
+                      f"(over each one's own {show(r['sigma_p95_um'][0])} -> "
+                      f"{show(r['sigma_p95_um'][1])} um), seen by {r['min_cameras']}+ cameras "
                       f"{100 * r['seen_by_min_cameras'][0]:.1f} -> {100 * r['seen_by_min_cameras'][1]:.1f} %"
                       for r in rows)
     message = (f"the score fell ({score_before_um:.4g} -> {score_after_um:.4g} um) but sigma_max p95 "

@@ -170,7 +170,7 @@ class EvaluationResult:
         return out | {k: getattr(self, k) for k in SECTIONS if getattr(self, k) is not None}
 
 
-def _percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> Percentiles:
+def percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> Percentiles:
     """p50, p95 and max over the measured (finite) values, and max_unflagged: the max over those
     not flagged as outliers or edge-limited."""
     finite = np.isfinite(values_um)
@@ -221,23 +221,23 @@ def evaluation(exp: Experiment, samples: SurfaceSamples, vis: Visibility, pred: 
         strain_sigma = disp_sigma = None
         if strain is not None:
             eps, disp = strain
-            strain_sigma = {f"eps_{c}": _percentiles(eps[mask, j] * 1e6)
+            strain_sigma = {f"eps_{c}": percentiles(eps[mask, j] * 1e6)
                             for j, c in enumerate(STRAIN_COMPONENTS)}
-            disp_sigma = _percentiles(disp[mask] * 1e6)
+            disp_sigma = percentiles(disp[mask] * 1e6)
         regions[name] = RegionSummary(
             area_m2=total, importance=float(samples.region_importance[k]), n_samples=int(mask.sum()),
             seen_by_1_or_more=seen[0], seen_by_2_or_more=seen[1], seen_by_3_or_more=seen[2],
             min_cameras=need[name], seen_by_min_cameras=seen[3],
             cameras={cam: round(float(area[pred.usable[i, mask]].sum() / total), 4)
                      for i, cam in enumerate(vis.camera_names) if pred.usable[i, mask].any()},
-            sigma_max_um=_percentiles(pred.sigma_max[mask] * 1e6,
+            sigma_max_um=percentiles(pred.sigma_max[mask] * 1e6,
                                       pred.outlier[mask] | pred.edge_limited[mask]),
             n_outliers=int(pred.outlier[mask].sum()),
             n_edge_limited=int(pred.edge_limited[mask].sum()),
             unmeasured_fraction=float(area[~pred.measured[mask]].sum() / total),
             sensitivity_mpx_per_um={a: float(np.average(sens[:, j], weights=area))
                                     for j, a in enumerate("xyz")},
-            sigma_axis_um={a: _percentiles(pred.sigma_xyz[mask, j] * 1e6) for j, a in enumerate("xyz")},
+            sigma_axis_um={a: percentiles(pred.sigma_xyz[mask, j] * 1e6) for j, a in enumerate("xyz")},
             sigma_strain_microstrain=strain_sigma, sigma_dic_max_um=disp_sigma)
     ev = exp.evaluation
     settings = EvaluationSettings(
