@@ -553,7 +553,7 @@ def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(p
     measure and over each one's own, and both areas seen by min_cameras; it stays silent when σ
     fell, when the score did not fall, and when only the newly measured area is worse (the p95
     over the common area unchanged)."""
-    from vdo.optimize import PRECISION_RISE, common_p95, precision_traded
+    from vdo.optimize import PRECISION_RISE, p95_where_both_measure, precision_traded
     from vdo.outputs import report
     from vdo.state import layout_state, prepare
 
@@ -569,7 +569,7 @@ def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(p
     assert s1.sigma_max_um.p95 > (1 + PRECISION_RISE) * s0.sigma_max_um.p95     # the scene does trade
     assert s0.seen_by_min_cameras < s1.seen_by_min_cameras == pytest.approx(1.0)
     assert s0.min_cameras == 2 and s0.seen_by_min_cameras == s0.seen_by_2_or_more
-    common = common_p95(sigma_sharp, sigma_wide, np.asarray(samples.region), samples.region_names)
+    common = p95_where_both_measure(samples, sigma_sharp, sigma_wide)
     both = np.isfinite(sigma_sharp) & np.isfinite(sigma_wide)
     assert common["top"] == [pytest.approx(np.percentile(sigma_sharp[both] * 1e6, 95), rel=1e-12),
                              pytest.approx(np.percentile(sigma_wide[both] * 1e6, 95), rel=1e-12)]
@@ -592,15 +592,17 @@ def test_a_score_that_falls_while_sigma_rises_is_named_with_the_area_it_bought(p
     assert precision_traded(sharp, wide, ["top"], 2.0, 1.0, {"top": [c0, c0]}) is None
 
 
-def test_the_common_p95_is_over_the_samples_both_measure():
+def test_the_p95_where_both_measure_is_over_the_samples_both_measure():
     """σ (m) measured at samples 0, 1, 3 before and 0, 1, 2 after: the common area is samples 0
     and 1 of region a (p95 of [1, 2] µm, linear: 1.95) and nothing of region b."""
-    from vdo.optimize import common_p95
+    from types import SimpleNamespace
+
+    from vdo.optimize import p95_where_both_measure
 
     inf = np.inf
     before = np.array([1.0, 2.0, inf, 4.0]) * 1e-6
     after = np.array([3.0, 5.0, 6.0, inf]) * 1e-6
     region = np.array([0, 0, 0, 1])
-    out = common_p95(before, after, region, ("a", "b"))
+    out = p95_where_both_measure(SimpleNamespace(region=region, region_names=("a", "b")), before, after)
     assert out["a"] == [pytest.approx(1.95), pytest.approx(3.0 + 0.95 * 2.0)]
     assert out["b"] == [None, None]

@@ -287,8 +287,7 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
         sigma_after = judged.prediction.sigma_max
     scored = problem.exp.optimize.regions or [r.name for r in problem.exp.regions]
     worst = _worst_p95(before, scored), _worst_p95(after, scored)
-    common = common_p95(sigma_before, sigma_after, np.asarray(problem.samples.region),
-                        problem.samples.region_names)
+    common = p95_where_both_measure(problem.samples, sigma_before, sigma_after)
     traded = precision_traded(before, after, scored, score_before["score_um"], best.score, common)
     if traded is not None:
         log.warning(traded["message"])
@@ -395,17 +394,6 @@ def _summary(problem: Problem, state: State) -> tuple[report.EvaluationResult, n
     return report.evaluation(problem.exp, problem.samples, state.vis, pred), pred.sigma_max
 
 
-def common_p95(sigma_before: np.ndarray, sigma_after: np.ndarray, region: np.ndarray, names) -> dict:
-    """{region name: [σ_max p95 before, after] (µm, `report.percentiles`)} over the samples that
-    both layouts measure (finite σ_max (N,) in m; `region` (N,) the samples' region index into
-    `names`): where the two compare, unlike each layout's p95 over its own measured area, which
-    rises when a layout adds hard, grazing area. [None, None] where no sample is measured in both."""
-    both = np.isfinite(sigma_before) & np.isfinite(sigma_after)
-    return {name: [report.percentiles(sigma_before[both & (region == r)] * 1e6).p95,
-                   report.percentiles(sigma_after[both & (region == r)] * 1e6).p95]
-            for r, name in enumerate(names)}
-
-
 def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
     """σ_max p95 (µm) of the worst of the `scored` regions ([optimize] regions, default all);
     None when one of them has no measured sample."""
@@ -413,14 +401,24 @@ def _worst_p95(summary: report.EvaluationResult, scored) -> float | None:
     return None if any(v is None for v in values) else max(values)
 
 
+def p95_where_both_measure(samples, sigma_before: np.ndarray, sigma_after: np.ndarray) -> dict:
+    """{region name: [σ_max p95 before, after] (µm, `report.region_p95`)} over the samples that
+    both layouts measure (finite σ_max (N,), m): where the two compare, unlike each layout's p95
+    over its own measured area, which rises when a layout adds hard, grazing area. [None, None]
+    where no sample of the region is measured by both."""
+    both = np.isfinite(sigma_before) & np.isfinite(sigma_after)
+    b, a = (report.region_p95(samples, s, both) for s in (sigma_before, sigma_after))
+    return {name: [b[name], a[name]] for name in samples.region_names}
+
+
 def precision_traded(before: report.EvaluationResult, after: report.EvaluationResult, scored,
                      score_before_um: float, score_after_um: float, common: dict) -> dict | None:
     """When the score fell (µm) yet a `scored` region's σ_max p95 over the area both layouts
-    measure (`common`: `common_p95`) rose by more than `PRECISION_RISE`, or the region lost every
-    measured sample: {"regions": per such region its name, min_cameras, "sigma_p95_um" (over
-    each layout's own measured area), "sigma_p95_common_um" and "seen_by_min_cameras" (area
-    fraction), each as [before, after]; "message": the warning, naming each with what the lab can
-    do}. None otherwise. The score counts area short of min_cameras (and unmeasured area at the
+    measure (`common`: `p95_where_both_measure`) rose by more than `PRECISION_RISE`, or the
+    region lost every measured sample: {"regions": per such region its name, min_cameras,
+    "sigma_p95_um" (over each layout's own measured area), "sigma_p95_common_um" and
+    "seen_by_min_cameras" (area fraction), each as [before, after]; "message": the warning,
+    naming each with what the lab can do}. None otherwise. The score counts area short of min_cameras (and unmeasured area at the
     1 mm prior) so heavily that a search can buy a sliver of it with σ everywhere
     (docs/optimize.md); a higher σ over newly measured area alone, grazing where the hand layout
     saw nothing, is not precision lost."""

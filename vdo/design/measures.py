@@ -19,16 +19,6 @@ def sigma_key(exp: Experiment) -> str:
     return "sigma_measured_p95_um" if exp.design.score == "measured" else "sigma_p95_um"
 
 
-def _region_p95(samples, sigma_m: np.ndarray, keep: np.ndarray) -> dict:
-    """Per region name: the p95 (µm) of `sigma_m` (m) over its samples where `keep`, None where
-    none is kept."""
-    out = {}
-    for r, name in enumerate(samples.region_names):
-        m = (samples.region == r) & keep
-        out[name] = float(np.percentile(sigma_m[m] * 1e6, 95)) if m.any() else None
-    return out
-
-
 def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> dict:
     """Of a judged layout: sigma_max p95 (um) of the worst scored region (None when a scored
     region is unmeasured), the area fraction of all regions seen by their region's min_cameras
@@ -48,13 +38,13 @@ def measures(state, exp: Experiment, can_measure: np.ndarray | None = None) -> d
     covered = pred.coverage >= need
     seen = smp.area[covered].sum() / smp.area.sum()
     can = np.ones(len(smp), dtype=bool) if can_measure is None else np.asarray(can_measure, bool)
-    by_region = _region_p95(smp, pred.sigma_max, can & pred.measured)
+    by_region = report.region_p95(smp, pred.sigma_max, can & pred.measured)
     values = [by_region[r] for r in scored if by_region[r] is not None]
     area = float(smp.area[can].sum())
     out = {}
     if exp.design.score == "measured":
         meas = state.measured
-        by_meas = _region_p95(smp, meas.sigma_max, np.isfinite(meas.sigma_max))
+        by_meas = report.region_p95(smp, meas.sigma_max, np.isfinite(meas.sigma_max))
         worst = [by_meas[r] for r in scored]
         out = {"sigma_measured_p95_um": None if any(v is None for v in worst) else max(worst),
                "sigma_measured_p95_by_region_um": by_meas}
@@ -79,7 +69,7 @@ def common_p95(exp: Experiment, samples, curve: list[dict]) -> None:
     common = np.logical_and.reduce([c["_measured"] for c in curve])
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     for c in curve:
-        by = _region_p95(samples, c.pop("_sigma_max"), common)
+        by = report.region_p95(samples, c.pop("_sigma_max"), common)
         c.pop("_measured")
         values = [by[r] for r in scored if by.get(r) is not None]
         c["sigma_p95_common_um"] = max(values) if values else None
@@ -90,14 +80,19 @@ def sharper_smaller_count(exp: Experiment, curve: list[dict], written: dict) -> 
     """The line saying that a smaller count of the camera-count `curve` has a lower σ p95 (µm,
     per region over its measured samples: `sigma_p95_by_region_um`, or σ_measured's with [design]
     score = "measured") than the `written` count (the inventory's, designed.toml) in every scored
-    region; the largest such count, with its p95 per region and coverage against the written
-    one's. None when no smaller count does. The curve can rise with the count where a camera more
-    buys hard, grazing area (docs/curved.md); the lab may prefer the sharper, smaller layout."""
+    region, and no higher a σ_max p95 over the area every count measures (`common_p95`'s
+    "sigma_p95_common_um", where both have one): the largest such count, with its p95 per region
+    and coverage against the written one's. None when no smaller count does. The curve can rise
+    with the count where a camera more buys hard, grazing area (docs/curved.md); the lab may
+    prefer the sharper, smaller layout, unless it is sharper only for measuring less."""
     key = "sigma_measured_p95_by_region_um" if sigma_key(exp) != "sigma_p95_um" else "sigma_p95_by_region_um"
     scored = exp.optimize.regions or [r.name for r in exp.regions]
     mine = written[key]
     lower = lambda c, r: c[key][r] is not None and (mine[r] is None or c[key][r] < mine[r])
-    better = [c for c in curve if c["cameras"] < written["cameras"] and all(lower(c, r) for r in scored)]
+    common = lambda c: c.get("sigma_p95_common_um") is None or written.get("sigma_p95_common_um") is None \
+        or c["sigma_p95_common_um"] <= written["sigma_p95_common_um"]
+    better = [c for c in curve if c["cameras"] < written["cameras"] and all(lower(c, r) for r in scored)
+              and common(c)]
     if not better:
         return None
     c = max(better, key=lambda c: c["cameras"])

@@ -183,6 +183,13 @@ def percentiles(values_um: np.ndarray, flagged: np.ndarray | None = None) -> Per
                        max_unflagged=float(plain.max()) if plain.size else None)
 
 
+def region_p95(samples, sigma_m: np.ndarray, keep: np.ndarray) -> dict:
+    """Per region name of `samples`: the p95 (µm, `percentiles`) of `sigma_m` (N,) (m) over its
+    samples where `keep` (N,) bool; None where none is kept (or none is finite)."""
+    return {name: percentiles(sigma_m[(samples.region == r) & keep] * 1e6).p95
+            for r, name in enumerate(samples.region_names)}
+
+
 def state_evaluation(state: LayoutState) -> EvaluationResult:
     """The per-region table of a judged layout (`evaluation` of its pieces)."""
     return evaluation(state.experiment, state.samples, state.visibility, state.prediction, state.strain)
