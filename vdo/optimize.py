@@ -418,10 +418,10 @@ def precision_traded(before: report.EvaluationResult, after: report.EvaluationRe
     region lost every measured sample: {"regions": per such region its name, min_cameras,
     "sigma_p95_um" (over each layout's own measured area), "sigma_p95_common_um" and
     "seen_by_min_cameras" (area fraction), each as [before, after]; "message": the warning,
-    naming each with what the lab can do}. None otherwise. The score counts area short of min_cameras (and unmeasured area at the
-    1 mm prior) so heavily that a search can buy a sliver of it with σ everywhere
-    (docs/optimize.md); a higher σ over newly measured area alone, grazing where the hand layout
-    saw nothing, is not precision lost."""
+    naming each with what the lab can do}. None otherwise. The score counts area short of
+    min_cameras (and unmeasured area at the 1 mm prior) so heavily that a search can buy a sliver
+    of it with σ everywhere (docs/optimize.md); a higher σ over newly measured area alone,
+    grazing where the hand layout saw nothing, is not precision lost."""
     if not score_after_um < score_before_um:
         return None
     rows = []

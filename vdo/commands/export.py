@@ -49,8 +49,8 @@ def export(source, fmt: str, out, pairs=None, overwrite: bool = False) -> list[P
     """Write the `fmt` calibration files of `source`'s cameras into the run folder `out`
     (atomically, `vdo.core.runfolder`). `pairs`: (first, second) camera names, or None for the pairs
     assigned a common region (`default_pairs`); a region that the chosen pairs leave partly
-    uncovered is named in a warning with the --pairs that would cover it (`uncovered_regions`). Returns the written paths
-    (inside `out`)."""
+    uncovered is named in a warning with the --pairs that would cover it (`uncovered_regions`).
+    Returns the written paths (inside `out`)."""
     from vdo.core.runfolder import run_folder
 
     source = Path(source)

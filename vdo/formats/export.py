@@ -5,7 +5,8 @@ SOURCE is an experiment TOML (its cameras resolved as `vdo evaluate` does) or a 
 layout.json (cameras at that run's pose and image scale). The stereo pairs are the cameras
 assigned a common region with optical axes at most the pair rule's maximum apart
 (`default_pairs`); a region the pairs leave partly uncovered is named in a warning
-(`uncovered_regions`); for a run folder the scene comes from its config.toml. Which camera sees which sample comes from the ray cast (`vdo.physics.visibility`).
+(`uncovered_regions`); for a run folder the scene comes from its config.toml. Which camera sees
+which sample comes from the ray cast (`vdo.physics.visibility`).
 """
 
 from __future__ import annotations

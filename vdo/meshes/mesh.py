@@ -271,6 +271,17 @@ def cameras_inside(meshes: list[SceneMesh], *, camera_specs: tuple[CameraSpec, .
     return errors
 
 
+def _selectable(triangles: np.ndarray, region) -> np.ndarray:
+    """(T,) the triangles (T, 3, 3) that `region` could select: its normal within the tolerance
+    (when it has one) and overlapping its box."""
+    out = np.all((triangles.max(axis=1) >= region.box_min) & (triangles.min(axis=1) <= region.box_max), axis=1)
+    if region.normal is not None:
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        length = np.linalg.norm(normals, axis=1)
+        out &= normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
+    return out
+
+
 def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np.ndarray, np.ndarray]:
     """The mesh with every triangle that crosses a face plane of a region box split along it.
 
@@ -289,12 +300,7 @@ def split_at_boxes(vertices: np.ndarray, faces: np.ndarray, regions) -> tuple[np
         for k, c in planes:
             if tri is None:
                 tri = vertices[faces]
-                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                length = np.linalg.norm(normals, axis=1)
-                facing = (np.ones(len(tri), dtype=bool) if region.normal is None else
-                          normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300))
-                selectable = facing & np.all((tri.max(axis=1) >= region.box_min)
-                                             & (tri.min(axis=1) <= region.box_max), axis=1)
+                selectable = _selectable(tri, region)
             offset = tri[..., k] - c
             side = np.sign(np.where(np.abs(offset) < eps, 0.0, offset))
             crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0)
@@ -367,24 +373,17 @@ def split_at_bands(meshes: list[SceneMesh], *, regions: tuple[RegionSpec, ...],
     for mesh in meshes:
         vertices, faces = mesh.vertices, mesh.faces
         for region in regions:
-            if mesh.role != "specimen" or region.mesh != mesh.name or region.within is None:
+            convex = region.near_point is not None or region.near_axis is not None   # `Band.least`
+            if mesh.role != "specimen" or region.mesh != mesh.name or region.within is None or not convex:
                 continue
             band = band_distance(region, meshes, mesh_specs=mesh_specs, path=path)
-            if band is None or band.least is None:
-                continue
             distance = band.distance
             for level in (region.within, region.beyond):
                 if level <= 0:
                     continue
-                tri = vertices[faces]
-                normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-                length = np.linalg.norm(normals, axis=1)
-                selectable = np.all((tri.max(axis=1) >= region.box_min) & (tri.min(axis=1) <= region.box_max), axis=1)
-                if region.normal is not None:
-                    selectable &= normals @ region.normal >= np.cos(region.normal_tolerance) * np.maximum(length, 1e-300)
                 offset = distance(vertices) - level
                 side = np.sign(np.where(np.abs(offset) <= BAND_EDGE_M, 0.0, offset))[faces]
-                crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0) & selectable
+                crossing = (side.max(axis=1) > 0) & (side.min(axis=1) < 0) & _selectable(vertices[faces], region)
                 if not crossing.any():
                     continue
                 log.info("%d faces of mesh %r split at %g m from region %r's %s, so that the region "

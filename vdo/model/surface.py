@@ -488,11 +488,17 @@ def components(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     return labels
 
 
+def _edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The patch's distinct edges (E, 2) (vertex pairs, smaller index first) and how many faces
+    use each (E,)."""
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(edges, axis=0, return_counts=True)
+
+
 def boundary_loops(faces: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     """The vertex indices of each boundary loop of a merged patch (`merged`): the edges that one
     face alone uses, grouped by connection."""
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    unique, count = np.unique(edges, axis=0, return_counts=True)
+    unique, count = _edges(faces)
     rim = unique[count == 1]
     if len(rim) == 0:
         return []
@@ -512,8 +518,7 @@ def cut_ring(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nd
     corners at theta < 0. Other patches, or a cut that does not leave one boundary loop, are
     returned as they are."""
     loops = boundary_loops(faces, len(vertices))
-    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
-    if len(loops) != 2 or len(vertices) - len(edges) + len(faces) != 0:
+    if len(loops) != 2 or len(vertices) - len(_edges(faces)[0]) + len(faces) != 0:
         return vertices, faces
     rim = vertices[loops[0]]
     centre = rim.mean(axis=0)

@@ -311,7 +311,7 @@ def print_checks(rows: list[dict], negligible=()) -> None:
     severity, then by the interpolation's σ_measured / σ_noise), each with its findings. Pairs
     with advice only are in summary.json and report.html, not on the console."""
     counts = count_findings(rows)
-    worst = {s: sum(r["findings"] != [] and r["severity"] == s for r in rows) for s in SEVERITIES}
+    worst = {s: sum(r["severity"] == s for r in rows) for s in SEVERITIES}   # None: no finding
     clean = sum(not r["findings"] for r in rows)
     print(f"design checks on {len(rows)} camera-region pairs, by worst finding: "
           + ", ".join(f"{n} {s}" + (" only" if s == SEVERITIES[-1] else "") for s, n in worst.items())
