@@ -205,11 +205,11 @@ def test_geometric_mistakes_are_reported_together(plate_experiment, tmp_path, ca
             f"error: {path.parent / 'u.csv'}: step: has no displacements at step 2, which the pose file "
             "'poses.csv' has (the specimen would stand undeformed there): add those steps (zeros where "
             "it does not deform), or drop them from the pose file",
-            f"error: {path.resolve()}: camera \"down\".focal_mm: = 24 mm is not in the lens catalogue "
+            f"error: {path.resolve()}: camera \"down\".focal_mm: 24 mm is not in the lens catalogue "
             "([optimize] lenses_mm = [28, 50]) that \"lens\" in [optimize] free chooses from, so the "
             "optimized layout could keep a lens the catalogue does not list: add 24 to [optimize] "
             "lenses_mm, or start from a lens of the catalogue",
-            f"error: {path.resolve()}: camera \"buried\".focal_mm: = 24 mm is not in the lens catalogue "
+            f"error: {path.resolve()}: camera \"buried\".focal_mm: 24 mm is not in the lens catalogue "
             "([optimize] lenses_mm = [28, 50]) that \"lens\" in [optimize] free chooses from, so the "
             "optimized layout could keep a lens the catalogue does not list: add 24 to [optimize] "
             "lenses_mm, or start from a lens of the catalogue"], command

@@ -26,6 +26,7 @@ CASES = [
     # (replace this, with this, field named in the error, words in the message)
     ('focal_mm = 24', 'focal_length = 24', 'camera "down".focal_length', "did you mean 'focal_mm'"),
     ('file = "plate.stl"', 'file = "missing.stl"', 'mesh "plate".file', "does not exist"),
+    ('file = "plate.stl"', 'file = "' + "x" * 300 + '.stl"', 'mesh "plate".file', "does not exist"),
     ('unit = "mm"', 'unit = "millimetre"', 'mesh "plate".unit', "must be one of m, cm, mm, in, ft"),
     ('u = 0.5', 'u = 1.3', 'camera "down".u', "off rail 'overhead'"),
     ('rail = "overhead"\nu', 'rail = "overhed"\nu', 'camera "down".rail', "no [[rail]] named 'overhed'"),
@@ -35,6 +36,7 @@ CASES = [
     ('sensor_mm = [22.2, 14.8]', 'sensor_mm = [22.2, 18.0]', 'camera "down".sensor_mm', "non-square pixels"),
     ('pixels = [600, 400]', 'pixels = [600.5, 400]', 'camera "down".pixels', "whole numbers"),
     ('sample_spacing_mm = 10', 'sample_spacing_mm = 0', 'evaluation.sample_spacing_mm', "positive"),
+    ('sample_spacing_mm = 10', 'sample_spacing_mm = 1e300', 'evaluation.sample_spacing_mm', "within ±1e+12"),
     ('incidence_limit_deg = 75', 'incidence_limit_deg = 95', 'evaluation.incidence_limit_deg', "[1.0, 89.9]"),
     ('normal = [0, 0, 1]', 'normal = [0, 0]', 'region "top".normal', "list of 3"),
     ('role = "specimen"', 'role = "obstacle"', 'mesh', 'needs at least one mesh with role = "specimen"'),

@@ -66,6 +66,27 @@ def test_virtual_file_systems_refused(plate_experiment, no_work, capsys, place):
     assert "virtual file system" in one_error_line(capsys)
 
 
+def test_a_name_the_system_refuses_is_one_line(plate_experiment, tmp_path, no_work, capsys):
+    """A folder name longer than the file system allows (NAME_MAX, 255 bytes on Linux) or with a
+    NUL byte: one line on --out, not the OSError or ValueError of the first stat."""
+    assert main(["evaluate", str(plate_experiment()), "--out", str(tmp_path / ("a" * 300))]) == 2
+    assert "cannot be used as a folder (File name too long)" in one_error_line(capsys)
+    assert main(["evaluate", str(plate_experiment()), "--out", str(tmp_path / "a\x00b")]) == 2
+    assert "cannot be used as a folder" in one_error_line(capsys)
+    assert not [p for p in tmp_path.iterdir() if p.name.lstrip(".").startswith("a")]
+
+
+def test_other_paths_the_system_refuses_are_one_line(tmp_path, capsys):
+    """Any other path typed by the user that the system refuses (a run folder for vdo report or
+    vdo export): one line naming it, exit status 2."""
+    long = str(tmp_path / ("a" * 300))
+    for argv in (["report", long], ["export", long, "--format", "opencv", "--out", str(tmp_path / "x")]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert err == [f"error: {long}: File name too long; check the path (its length, its "
+                       "permissions, the space left)"], err
+
+
 def test_output_checked_before_the_config(tmp_path, capsys):
     """A bad --out is reported even when the config cannot be read: it costs nothing to check."""
     (tmp_path / "afile").write_text("x")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from vdo.core.errors import ConfigError
+from vdo.core.runfolder import is_file
 from vdo.formats.calibration import MM
 from vdo.scene import cameras_of
 
@@ -182,7 +183,7 @@ def _read(path: Path, fmt: str, bases: dict) -> list:
 
 def existing(path: Path) -> None:
     """Refuse (one line) a calibration file that is not there."""
-    if not path.is_file():
+    if not is_file(path):
         raise ConfigError(path, "--calibration", "no such file: give a calibration file written by "
                                                  "vdo export or the lab's software (docs/calibration.md)")
 

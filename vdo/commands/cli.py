@@ -6,8 +6,9 @@ Order of work, so that mistakes and interrupts cost nothing: SIGINT/SIGTERM hand
 config file, all before JAX, Mitsuba or matplotlib are imported (this module imports them only
 inside the commands); then `vdo.core.configure.configure()` and the work. Exit status: 0 done, 1 a
 check that failed (`validate`) or a worker's task that failed (one line naming it:
-`vdo.core.parallel.TaskFailed`), 2 a user mistake (one line naming file and field), 3 Mitsuba
-could not start, 130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
+`vdo.core.parallel.TaskFailed`), 2 a user mistake (one line naming file and field; a path the
+system refuses, too long or not permitted: one line naming it), 3 Mitsuba could not start,
+130 / 143 interrupted by SIGINT / SIGTERM (one line; no output folder left).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from vdo.core.backend import BackendError
 from vdo.physics.checks import print_checks
 from vdo.core.errors import ConfigError
 from vdo.core.parallel import TaskFailed
-from vdo.core.runfolder import check_out
+from vdo.core.runfolder import check_out, is_file
 from vdo.core.memory import retain_freed_memory
 
 BUILTIN = Path(__file__).resolve().parents[2] / "experiments" / "beam_column" / "ten_cameras.toml"
@@ -150,7 +151,7 @@ def _experiment(path, series=None):
     from vdo.state import check_experiment
 
     exp = load(path)
-    if series not in (None, "load_path") and not Path(series).is_file():
+    if series not in (None, "load_path") and not is_file(series):
         raise ConfigError(series, "--series", "no such file: give a CSV of poses per step and "
                                               "group (see vdo.geometry.keyframes)")
     check_experiment(exp, None if series in (None, "load_path") else Path(series))
@@ -655,6 +656,10 @@ def main(argv=None) -> int:
         if isinstance(exc, TaskFailed):     # a worker's task: one line (its traceback at DEBUG)
             print(f"error: {exc}", file=sys.stderr)
             return 1
+        if isinstance(exc, OSError) and exc.filename is not None:   # a path the system refuses
+            print(f"error: {exc.filename}: {exc.strerror or exc}; check the path (its length, its "
+                  "permissions, the space left)", file=sys.stderr)
+            return 2
         raise
     finally:
         restore()

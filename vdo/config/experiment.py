@@ -79,7 +79,7 @@ def lens_catalogue_errors(exp: Experiment) -> list[ConfigError]:
         where = "its lenses_mm" if spec.lenses else "[optimize] lenses_mm"
         listed = ", ".join(f"{f * 1e3:g}" for f in catalogue)
         errors.append(ConfigError(exp.path, f'camera "{spec.name}".focal_mm',
-                                  f"= {spec.focal_length * 1e3:g} mm is not in the lens catalogue "
+                                  f"{spec.focal_length * 1e3:g} mm is not in the lens catalogue "
                                   f"({where} = [{listed}]) that \"lens\" in [optimize] free chooses "
                                   "from, so the optimized layout could keep a lens the catalogue "
                                   f"does not list: add {spec.focal_length * 1e3:g} to {where}, or "

@@ -23,10 +23,14 @@ from typing import Any, Callable
 
 import numpy as np
 
+from vdo.core.runfolder import is_file
+
 NAME_PATTERN = r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}"   # names that become parts of file names
 NAME_RULE = (f"must match {NAME_PATTERN} (letters, digits, '_', '.', '-'; not starting with '.' or "
              "'-'; at most 64 characters), as it names output files")
 MAX_COORDINATE = 1e6               # any vector entry (a lab is not 1000 km wide)
+MAX_MAGNITUDE = 1e12               # any number without a range of its own: larger values are unit
+                                   # mistakes, and overflow float32 renders and float64 squares
 IMAGE_MAGIC = {b"\x89PNG\r\n\x1a\n": "PNG", b"\xff\xd8\xff": "JPEG", b"II*\x00": "TIFF",
                b"MM\x00*": "TIFF", b"BM": "BMP"}
 _UNIT_SCALE = {"": 1.0, "m": 1.0, "mm": 1e-3, "s": 1.0, "ms": 1e-3, "deg": math.pi / 180.0}
@@ -140,6 +144,9 @@ class Real(Kind):
         if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
             raise BadValue(f"must lie in [{self.low}, {self.high}] (got {_show(value)})"
                        + (f": {self.why}" if self.why else ""))
+        if abs(value) > MAX_MAGNITUDE and (self.low is None or self.high is None):
+            raise BadValue(f"must lie within ±{MAX_MAGNITUDE:g} (got {_show(value)}): no quantity of an "
+                           "experiment is this large in the units it is read in; check the unit")
         return float(value) * scale
 
     def write(self, value, scale):
@@ -314,7 +321,7 @@ class File(Kind):
         if not isinstance(value, str) or not value or "\x00" in value:
             raise BadValue(f"must be a non-empty string (got {_show(value)})")
         path = (base / value).resolve()
-        if not path.is_file():
+        if not is_file(path):
             raise BadValue(f"{self.what} file {str(path)!r} does not exist; give a path to "
                        f"{self.kinds} file, relative to the config file")
         if not os.access(path, os.R_OK):

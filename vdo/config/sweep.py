@@ -23,6 +23,7 @@ import numpy as np
 from vdo.config.experiment import parse, sections
 from vdo.config.reader import Table, read_toml, with_overrides
 from vdo.core.errors import ConfigError
+from vdo.core.runfolder import is_file
 from vdo.core.tolerances import LIMIT_SLACK
 
 ACTIONS = ("evaluate", "optimize")
@@ -148,7 +149,7 @@ def load_sweep(path) -> SweepSpec:
     experiments = []
     for label in named:
         file = (path.parent / label).resolve()
-        if not file.is_file():
+        if not is_file(file):
             raise t.error("experiment", f"{str(file)!r} does not exist")
         experiments.append((label, file))
     samples = t.integer("samples", 1, low=1) if t.has("samples") else None

@@ -14,6 +14,8 @@
 * Partial folders left by processes that died without cleaning up (SIGKILL, power loss) are
   removed by the next `check_out` into the same parent: a ``.NAME.partial-PID`` folder whose PID
   is not a running process.
+* `is_file(path)`: whether a regular file is there, False for a name the system refuses (too
+  long, ...) instead of an OSError: for paths typed by a user.
 * `inside(folder, name)` joins a relative name (from a config: a camera or case name) to the run
   folder and refuses any result outside it (``..``, an absolute path, a symbolic link out).
 """
@@ -61,8 +63,29 @@ def remove_stale_partials(parent: Path) -> list[Path]:
     return removed
 
 
+def is_file(path) -> bool:
+    """Whether `path` is a regular file (symbolic links followed); False where the system
+    refuses the name itself (a part longer than NAME_MAX, a NUL byte, ...)."""
+    try:
+        return Path(path).is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def check_out(out, overwrite: bool = False) -> Path:
-    """The absolute output folder, after the checks in the module docstring (no file written)."""
+    """The absolute output folder, after the checks in the module docstring (no file written);
+    a name the system refuses (a part longer than NAME_MAX, ...) is a `ConfigError` too."""
+    try:
+        return _check_out(out, overwrite)
+    except ConfigError:
+        raise
+    except (OSError, ValueError) as exc:       # a name too long, a NUL byte
+        why = getattr(exc, "strerror", None) or str(exc)
+        raise ConfigError(out, "--out", f"cannot be used as a folder ({why}); choose another "
+                                        "path") from None
+
+
+def _check_out(out, overwrite: bool) -> Path:
     out = Path(out).expanduser().resolve()
     for virtual in _VIRTUAL:
         if out.is_relative_to(virtual):

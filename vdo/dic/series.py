@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from vdo.core.errors import ConfigError
+from vdo.core.runfolder import is_file
 from vdo.scene import cameras_of
 
 if TYPE_CHECKING:   # annotations only: the heavy modules are imported where they are used
@@ -135,7 +136,7 @@ def plan_series(exp, poses_path=None, scale: float | None = None, spp: int | Non
                            rs.mode)
     except MemoryError as err:
         raise ConfigError(exp.path, "[render] scale", f"{err}: lower scale, or render fewer cameras") from None
-    if poses_path is not None and not Path(poses_path).is_file():
+    if poses_path is not None and not is_file(poses_path):
         raise ConfigError(poses_path, "--series", "no such file: give a CSV of poses per step and "
                                                   "group (see vdo.geometry.keyframes)")
     started = time.perf_counter()
