@@ -271,6 +271,9 @@ def test_tripod_table_round_trips(tmp_path):
     ("legs = 3", "legs = 3\nfloor_z_m = 0.45", 'mount "floor".tripod.floor_z_m', "no room"),
     ('kind = "zone"\nbox_min_m = [0.6, -0.6, 0.5]\nbox_max_m = [1.4, 0.6, 1.4]',
      'kind = "fixed"\nposition_m = [1.0, 0.1, 0.9]', 'mount "floor".tripod', "only a zone mount"),
+    # trial 4: a floor-wide keep-out (for the cameras of a rail) also holds every tripod foot
+    ("column_length_m = 0.3", 'column_length_m = 0.3\n[[keep_out]]\nname = "below"\nbox_min_m = [-inf, -inf, -inf]\n'
+     "box_max_m = [inf, inf, 0.05]", 'mount "floor".tripod.floor_z_m', "end the keep-out below the floor"),
 ])
 def test_bad_tripod_input_is_one_config_error_line(tmp_path, old, new, field, words):
     path = write(tmp_path)

@@ -354,6 +354,7 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
                 selected[region.name] = all_region_faces(meshes, mesh_specs=exp.meshes, regions=(region,),
                                                          spacing=exp.evaluation.sample_spacing, path=exp.path)[0]
         _warn_overlaps(exp, selected, {m.name: m for m in meshes})
+        _warn_below_floor(exp, meshes)
     load_path = None
     needed = exp.load_path.deformed_mesh if exp.load_path.displacements is not None else None
     if (exp.load_path.active or poses is not None) and (
@@ -366,6 +367,32 @@ def check_experiment(exp: Experiment, poses: Path | None = None) -> LoadPath | N
     if load_path is not None:
         _warn_penetration(exp, meshes, load_path)
     return load_path
+
+
+FLOOR_RAIL_POINTS = 513     # points along a rail tested against the floor (u every 1/512)
+FLOOR_SLACK_M = 0.01        # a rail this far below the lowest mesh point is said to run under the floor
+
+
+def _warn_below_floor(exp: Experiment, meshes) -> None:
+    """A warning per rail that runs more than FLOOR_SLACK_M below every mesh (the lowest vertex
+    taken as the floor; trial 4: a ring around a pipe dipped 0.3 m under it, and design and
+    optimize put cameras there), naming the stretch of u, its depth and the fix. A keep-out
+    below the floor keeps the cameras' optical centres out of it."""
+    if not exp.rails or not meshes:
+        return
+    floor = min(float(np.min(m.vertices[:, 2])) for m in meshes)
+    u = np.linspace(0.0, 1.0, FLOOR_RAIL_POINTS)
+    for rail in exp.rails:
+        z = rail.point(u)[:, 2]
+        under = z < floor - FLOOR_SLACK_M
+        if under.any():
+            edges = np.flatnonzero(np.diff(np.r_[0, under.astype(int), 0]))    # run starts, ends
+            runs = " and ".join(f"[{u[a]:.2f}, {u[b - 1]:.2f}]" for a, b in zip(edges[::2], edges[1::2]))
+            log.warning("rail %r runs below every mesh (the lowest at z = %.3f m, taken as the floor) "
+                        "for u in %s, down to z = %.3f m: cameras there stand under the floor; "
+                        "raise the rail, or add a [[keep_out]] below the floor (box_max_m z = %.3f) "
+                        "that design and optimize keep the cameras out of", rail.name, floor, runs,
+                        z.min(), floor)
 
 
 PENETRATION_M = 1e-3        # a moving mesh's vertex deeper than this inside a specimen is said

@@ -534,25 +534,38 @@ PLAN_SPACING_MM = 4        # the holed plate's samples at 4 mm (the file: 1 mm),
 def test_vdo_calibrate_plan(tmp_path, capsys, monkeypatch):
     """`vdo calibrate --plan`: the curve falls with the number of images, at large sessions as
     1/sqrt(images) (the covariance of n like views: J^T J grows as n) within 30 %, and the chosen
-    count is the first that reaches the target. Samples at PLAN_SPACING_MM (the propagation's
+    count is the first that reaches the target; the plan stops PLAN_PAST_TARGET counts after it
+    (trial 4's plan met its target at once and calibrated 845 images more), its points those of
+    the whole curve. Samples at PLAN_SPACING_MM (the propagation's
     cost follows the samples; the curve's shape does not)."""
     import json
 
     from vdo.commands.cli import main
 
-    monkeypatch.setenv("VDO_SET", f"evaluation.sample_spacing_mm = {PLAN_SPACING_MM}")
+    from vdo.calib.planner import COUNTS, PLAN_PAST_TARGET
 
-    out = tmp_path / "plan"     # docs/calibration.md's command
-    assert main(["calibrate", str(HOLED), "--plan", "--out", str(out)]) == 0
-    result = json.loads((out / "plan.json").read_text())
+    # a target no session reaches: the whole curve
+    monkeypatch.setenv("VDO_SET", f"evaluation.sample_spacing_mm = {PLAN_SPACING_MM}; "
+                                  "calibration.target_strain_error = 1e-12")
+    whole = tmp_path / "whole"
+    assert main(["calibrate", str(HOLED), "--plan", "--out", str(whole)]) == 0
+    result = json.loads((whole / "plan.json").read_text())
     images, sigma = np.array(result["images"]), np.array(result["strain_sigma_p95"])
+    assert result["poses_per_camera"] == list(COUNTS) and result["chosen_poses_per_camera"] is None
     assert np.all(np.diff(sigma) < 0)
     expected = np.sqrt(images[-2] / images[-1])
     assert abs(sigma[-1] / sigma[-2] / expected - 1) < 0.3
-    chosen = result["chosen_poses_per_camera"]
-    target = result["target_strain_error"]
-    reached = [n for n, e in zip(result["poses_per_camera"], sigma) if e <= target]
-    assert chosen == (reached[0] if reached else None)
+    # the file's target: the curve stops PLAN_PAST_TARGET counts past the first that reaches it
+    monkeypatch.setenv("VDO_SET", f"evaluation.sample_spacing_mm = {PLAN_SPACING_MM}")
+    out = tmp_path / "plan"     # docs/calibration.md's command
+    assert main(["calibrate", str(HOLED), "--plan", "--out", str(out)]) == 0
+    result = json.loads((out / "plan.json").read_text())
+    chosen, target = result["chosen_poses_per_camera"], result["target_strain_error"]
+    reached = [n for n, e in zip(COUNTS, sigma) if e <= target]      # from the whole curve
+    assert chosen == reached[0]
+    stop = list(COUNTS).index(chosen) + PLAN_PAST_TARGET + 1
+    assert result["poses_per_camera"] == list(COUNTS[:stop])
+    np.testing.assert_allclose(result["strain_sigma_p95"], sigma[:stop], rtol=1e-4)   # the solver's stop
     assert (out / "plan.png").is_file() and "poses per camera" in capsys.readouterr().out
 
 

@@ -312,3 +312,31 @@ def test_check_says_one_line_and_the_warnings(plate_experiment, capsys, no_work)
     assert main(["check", str(path)]) == 0
     out, err = capsys.readouterr()
     assert out.startswith("ok: ") and "'top'" in err and "'again'" in err, (out, err)
+
+
+def test_a_rail_under_the_floor_is_said(plate_experiment, capsys, no_work):
+    """Trial 4: a ring rail dipped under the floor and design put cameras there, unsaid. A rail
+    that runs below every mesh (the plate's underside, z = -0.01 m, is the lowest) is warned
+    with its stretches of u: the polyline (-1, 0, 1.5) -> (0, 0, -1) -> (1, 0, 1.5) is under
+    z = -0.02 m where -1 + 5 |u - 0.5| < -0.02 (u in [0.304, 0.696], sampled every 1/512); a rail
+    above it is not."""
+    path = plate_experiment()
+    text = path.read_text()
+    assert main(["check", str(path)]) == 0
+    assert "runs below every mesh" not in capsys.readouterr().err
+    path.write_text(text.replace("control_points_m = [[-1.0, 0.0, 1.5], [1.0, 0.0, 1.5]]",
+                                 "control_points_m = [[-1.0, 0.0, 1.5], [0.0, 0.0, -1.0], [1.0, 0.0, 1.5]]\ndegree = 1"))
+    assert main(["check", str(path)]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "runs below every mesh" in line]
+    assert len(err) == 1 and "rail 'overhead'" in err[0] and "for u in [0.30, 0.70], down to z = -1.000 m" in err[0], err
+
+
+def test_validate_given_an_experiment_says_which_file_it_reads(plate_experiment, capsys, no_work):
+    """Trial 4: `vdo validate EXPERIMENT` said "experiment: unknown field". One line: the file is
+    an experiment, and validate reads a validation file."""
+    path = plate_experiment()
+    assert main(["validate", str(path), "--out", str(path.parent / "v")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: is an experiment file; vdo validate "
+                                               "reads a validation file"), err
+    assert not (path.parent / "v").exists()

@@ -162,7 +162,7 @@ def test_vdo_set_writes_fields_over_the_file(plate_experiment, monkeypatch):
     monkeypatch.setenv("VDO_SET", "evaluation.sample_spacing_mm = -1")
     with pytest.raises(ConfigError, match=r"evaluation.sample_spacing_mm: must be positive"):
         config.load(path)
-    for bad in ("evaluation.sample_spacing_mm", "evaluation = 3", "camera.cam1.focal_mm = 35",
+    for bad in ("evaluation.sample_spacing_mm", "evaluation = 3", "camera.a.cam1.focal_mm = 35",
                 "evaluation.sample_spacing_mm = [1,"):
         monkeypatch.setenv("VDO_SET", bad)
         with pytest.raises(ConfigError) as err:

@@ -417,3 +417,27 @@ def test_a_normal_whose_faces_lie_outside_the_box_says_so(plate_experiment):
     assert err.field == 'region "top"' and "selects no face" in err.message
     assert "the closest face normal in the box is 90.0 deg from normal" in err.message, err.message
     assert "the faces that face it lie outside the box" in err.message
+
+
+def test_a_field_written_by_vdo_set_is_blamed_on_it(plate_experiment, monkeypatch):
+    """VDO_SET (`vdo.config.reader.with_overrides`): a bad field it writes names the item and says
+    the value is not the file's (trial 4: 'render.mod' read as the file's own typo); one camera
+    by its name (`camera.NAME.FIELD`), and a name no camera has, one line naming VDO_SET."""
+    path = plate_experiment()
+    monkeypatch.setenv("VDO_SET", "render.mod = 'dic'")
+    with pytest.raises(ConfigError) as err:
+        config.load(path)
+    assert err.value.field == "render.mod" and "did you mean 'mode'" in err.value.message
+    assert str(err.value).endswith("(this value comes from the environment's VDO_SET item "
+                                   "\"render.mod = 'dic'\", not from the file)")
+    monkeypatch.setenv("VDO_SET", "camera.down.focal_mm = 35")
+    assert config.load(path).camera_specs[0].focal_length == pytest.approx(0.035)
+    monkeypatch.setenv("VDO_SET", "camera.down.focal_mm = -35")
+    with pytest.raises(ConfigError, match=r'camera "down".focal_mm: must be positive .*VDO_SET item'):
+        config.load(path)
+    monkeypatch.setenv("VDO_SET", "camera.dwn.focal_mm = 35")
+    with pytest.raises(ConfigError) as err:
+        config.load(path)
+    assert err.value.file == "VDO_SET" and "no [[camera]] is named 'dwn'" in str(err.value)
+    monkeypatch.delenv("VDO_SET")
+    assert config.load(path).camera_specs[0].focal_length == pytest.approx(0.024)   # the file's

@@ -142,6 +142,57 @@ def test_bad_mount_input_is_one_config_error_line(tmp_path, mounts, cameras, fie
     assert "\n" not in text and err.value.field == field and words in text, text
 
 
+R_RING = 1.5          # m, the ring's radius
+RING = """
+[[mount]]
+name = "ring"
+kind = "rail"
+degree = 2
+control_points_m = [[0, -1.5, 1.2], [1.5, -1.5, 1.2], [1.5, 0, 1.2], [1.5, 1.5, 1.2], [0, 1.5, 1.2],
+                    [-1.5, 1.5, 1.2], [-1.5, 0, 1.2], [-1.5, -1.5, 1.2], [0, -1.5, 1.2]]
+weights = [1, 0.7071067811865476, 1, 0.7071067811865476, 1, 0.7071067811865476, 1, 0.7071067811865476, 1]
+knots = [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 4]
+"""
+RING_CAMERA = CAMERAS.replace('mount = "beam"', 'mount = "ring"')
+
+
+def test_a_cad_circle_with_its_knots_is_a_circle(tmp_path):
+    """Trial 4: the CAD form of a circle (9 control points on a square, degree 2, corner weights
+    1/sqrt(2), double interior knots) read with uniform knots gave radii of 1.50-1.78 m. With its
+    `knots` every point lies at R_RING from the centre, in NumPy (the config's point) and in JAX
+    (the optimizer's Rail); u = 0 and u = 1 are the same point, u = 1/4 a quarter turn on."""
+    exp = config.load(write(tmp_path, MOUNTS + RING, RING_CAMERA))
+    ring = next(r for r in exp.rails if r.name == "ring")
+    u = np.linspace(0, 1, 1001)
+    pts = ring.point(u)
+    np.testing.assert_allclose(np.linalg.norm(pts[:, :2], axis=1), R_RING, rtol=1e-12)
+    np.testing.assert_allclose(pts[:, 2], 1.2, atol=1e-12)
+    np.testing.assert_allclose(ring.point(np.array([0.0, 0.25, 1.0])), [[0, -1.5, 1.2], [1.5, 0, 1.2], [0, -1.5, 1.2]],
+                               atol=1e-12)
+    param = Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
+    jax_pts = np.asarray(param.rails[2].position(jnp.asarray(u)))
+    np.testing.assert_allclose(jax_pts, pts, atol=1e-12)
+    uniform = dataclasses.replace(ring, knots=None).point(u)      # what the trial got
+    assert np.ptp(np.linalg.norm(uniform[:, :2], axis=1)) > 0.1
+    report.write_config(tmp_path / "again.toml", exp)
+    again = next(r for r in config.load(tmp_path / "again.toml").rails if r.name == "ring")
+    np.testing.assert_allclose(again.point(u), pts, atol=1e-12)
+
+
+@pytest.mark.parametrize("knots, words", [
+    ("[0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4]", "must hold n + degree + 1 = 12 values"),
+    ("[0, 0, 0, 1, 1, 2, 2, 3, 3, 2, 4, 4]", "must be non-decreasing"),
+    ("[0, 0, 1, 1, 1, 2, 2, 3, 3, 4, 4, 4]", "must be clamped"),
+    ("[0, 0, 0, 1, 1, 1, 2, 3, 3, 4, 4, 4]", "more than the degree 2"),
+])
+def test_bad_knots_are_one_config_error_line(tmp_path, knots, words):
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, MOUNTS + RING.replace("[0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 4]", knots),
+                          RING_CAMERA))
+    text = str(err.value)
+    assert "\n" not in text and err.value.field == 'mount "ring".knots' and words in text, text
+
+
 def test_non_positive_lens_in_the_catalogue_is_refused(tmp_path):
     extra = '\n[optimize]\nfree = ["u", "pan", "tilt", "lens"]\nlenses_mm = [16, 0, 35]\n'
     with pytest.raises(ConfigError) as err:
@@ -224,3 +275,14 @@ def test_bad_floor_zone_is_one_config_error_line(tmp_path, floor, camera_pos, fi
     with pytest.raises(ConfigError) as err:
         config.load(write(tmp_path, mounts, cams))
     assert "\n" not in str(err.value) and err.value.field.endswith(field) and words in str(err.value), str(err.value)
+
+
+def test_a_light_on_a_rail_mount_a_camera_uses_names_the_field_and_the_light(tmp_path):
+    """Trial 4: a camera on a rail [[mount]] (`mount = ...`, read as a rail) that also carries a
+    light was told about its `rail`, a field it does not have, and the light went unnamed."""
+    light = ('\n[[light]]\nname = "front"\nmount = "beam"\nposition_m = [0.2, -0.8, 1.5]\n'
+             'target_m = [0, 0, 0]\nsize_m = [0.2, 0.2]\nradiance = 10\n')
+    with pytest.raises(ConfigError) as err:
+        config.load(write(tmp_path, extra=light))
+    assert err.value.field == 'camera "b".mount', str(err.value)
+    assert "'beam' carries the [[light]] 'front'" in err.value.message

@@ -204,3 +204,18 @@ def test_a_series_or_calibrate_folder_is_reported_as_what_it_is(tmp_path, files,
         (tmp_path / f).write_text("{}")
     assert kind_of(tmp_path) == kind
     assert set(files) <= set(EXPECTED[kind]) or kind == "evaluate"
+
+
+def test_a_folder_no_run_wrote_is_refused(tmp_path, capsys):
+    """`vdo report` on a folder that no vdo command wrote (trial 4: an empty report, exit 0): one
+    line, exit 2, nothing written; one file of a run is enough to report it."""
+    from vdo.commands.cli import main
+
+    (tmp_path / "notes.txt").write_text("mine")
+    assert main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {tmp_path}: RUN_DIR: holds none of the files a vdo run writes "
+                   "(summary.json, layout.json, ...): give the --out folder of a vdo command"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+    (tmp_path / "render.json").write_text("{}")
+    assert main(["report", str(tmp_path)]) == 0 and (tmp_path / "report.html").is_file()

@@ -172,7 +172,7 @@ def test_the_exposure_step_moves_a_light_off_the_mirror_direction(tmp_path):
     ('mount = "nowhere"', 'light "panel".mount', "no rail or zone"),
     ('mount = "fixed_stand"', 'light "panel".mount', "no rail or zone"),
     ('mount = "boxed"', 'light "panel".mount', "keep_out"),
-    ('mount = "overhead"', 'camera "down".rail', "carries a [[light]]"),
+    ('mount = "overhead"', 'camera "down".rail', "'overhead' carries the [[light]] 'panel'"),
     ("", "exposure.free", "light_positions"),
 ])
 def test_a_light_mount_that_cannot_be_used_is_one_line(tmp_path, edit, field, words):

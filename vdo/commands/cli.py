@@ -349,10 +349,14 @@ def _export(_, args) -> None:
 
 
 def _report(_, args) -> None:
-    from vdo.outputs.html_report import write_report
+    from vdo.outputs.html_report import EXPECTED, write_report
 
     if not Path(args.run_dir).is_dir():
         raise ConfigError(args.run_dir, "RUN_DIR", "is not a folder; give a run folder")
+    if not any((Path(args.run_dir) / f).is_file() for files in EXPECTED.values() for f in files):
+        raise ConfigError(args.run_dir, "RUN_DIR", "holds none of the files a vdo run writes "
+                                                   "(summary.json, layout.json, ...): give the --out "
+                                                   "folder of a vdo command")
     print(f"wrote {write_report(args.run_dir).resolve()}")
 
 

@@ -45,9 +45,9 @@ from vdo.config.procedure import (Analysis, CalibrationSpec, DesignSpec, Exposur
 from vdo.config.rig import (BodySpec, CameraSpec, Evaluation, LightSpec, MeshSpec, RegionSpec,
                             RenderSpec, SpeckleSpec, check_body, check_camera, check_light,
                             check_region, check_speckle, sensor_mm_row, sensor_rows)
-from vdo.config.reader import Table, read_section, read_toml, with_overrides
+from vdo.config.reader import Table, from_override, read_section, read_toml, with_overrides
 from vdo.config.schema import Section, Text, row, rows_of, table, unknown_field, write_rows
-from vdo.core.errors import ConfigError
+from vdo.core.errors import ConfigError, ConfigErrors
 from vdo.model.pose import aim_point, holds_aim, look_at_angles
 from vdo.model.sensor import SensorModel
 
@@ -94,6 +94,21 @@ def _check_keep_outs(exp: "Experiment", tables: dict) -> None:
     if not exp.keep_outs:
         return
     mounts = {m.name: m for m in exp.mounts}
+    for m, t in zip(exp.mounts, tables.get("mount", [])):
+        if m.kind != "zone" or m.tripod is None:
+            continue
+        # where the feet can stand: the zone's footprint grown by the legs' spread, on its floor
+        xy = m.floor if m.floor is not None else np.array([m.low[:2], m.high[:2]])
+        reach = np.array([xy.min(axis=0) - m.tripod.spread, xy.max(axis=0) + m.tripod.spread])
+        for box in exp.keep_outs:
+            if (box.box_min[2] <= m.tripod.floor_z <= box.box_max[2]
+                    and np.all(box.box_min[:2] <= reach[0]) and np.all(box.box_max[:2] >= reach[1])):
+                raise t.error("tripod.floor_z_m", f"= {m.tripod.floor_z:g} m, where the feet of zone "
+                                                  f"{m.name!r}'s tripods stand, lies in keep_out {box.name!r} "
+                                                  f"({box.box_min.tolist()} to {box.box_max.tolist()} m) "
+                                                  "under the whole zone: no pose can move them out of it; "
+                                                  "end the keep-out below the floor (box_max_m z < "
+                                                  f"{m.tripod.floor_z:g}) or narrow it")
     for spec, t in zip(exp.camera_specs, tables["camera"]):
         if spec.rail is not None:
             track = exp.rail(spec.rail).point(np.linspace(0, 1, KEEP_OUT_RAIL_POINTS)) + spec.offset
@@ -151,8 +166,10 @@ class Experiment:
             "onto the plane (docs/curved.md).")
     rails: tuple[RailSpec, ...] = table(
         "rail", RailSpec, array=True, check=check_rail,
-        doc="A bar cameras slide along. The knot vector is clamped and uniform on [0, 1]: `u = 0` is "
-            "the first control point, `u = 1` the last.")
+        doc="A bar cameras slide along: a NURBS curve. Its knot vector is clamped and uniform on [0, 1], "
+            "or `knots` as CAD exports them (a full circle: 9 control points on a square, degree 2, "
+            "corner weights 1/sqrt(2), knots [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 4]), mapped onto [0, 1]: "
+            "`u = 0` is the first control point, `u = 1` the last.")
     camera_specs: tuple[CameraSpec, ...] = table(
         "camera", CameraSpec, array=True, required=True, check=check_camera, extra=(sensor_mm_row(),),
         doc="Place a camera with `rail` + `u` (+ `offset_m`) or `position_m`; aim it with `target_m` "
@@ -369,8 +386,15 @@ def camera_positions(camera_specs: tuple[CameraSpec, ...], rails: tuple[RailSpec
 
 
 def load(path) -> Experiment:
-    """Read and validate an experiment file. Raises ConfigError on any user mistake."""
-    return parse(read_toml(path), Path(path))
+    """Read and validate an experiment file. Raises ConfigError on any user mistake (saying so
+    where the field was written by VDO_SET, `vdo.config.reader.from_override`)."""
+    data = read_toml(path)
+    try:
+        return parse(data, Path(path))
+    except ConfigErrors:
+        raise
+    except ConfigError as err:
+        raise from_override(err) from None
 
 
 def parse(data: dict, path: Path) -> Experiment:
@@ -434,10 +458,12 @@ def _check_references(exp: Experiment, tables: dict) -> None:
                                    "no place for the panel; enlarge the mount or shrink the keep-out")
     lit = {lt.mount for lt in exp.lights if lt.mount is not None}
     for cam, t in zip(exp.camera_specs, tables["camera"]):
-        for key in ("mount", "rail"):
-            if getattr(cam, key) in lit:
-                raise t.error(key, f"{getattr(cam, key)!r} carries a [[light]]: a mount holds lights "
-                                   "or cameras, not both; give the camera another mount")
+        on = next((name for name in (cam.mount, cam.rail) if name in lit), None)
+        if on is not None:        # the field the file used (a rail [[mount]] is read as a rail)
+            panels = ", ".join(repr(lt.name) for lt in exp.lights if lt.mount == on)
+            raise t.error("mount" if t.has("mount") else "rail",
+                          f"{on!r} carries the [[light]] {panels}: a mount holds lights or cameras, "
+                          "not both; give the camera or the light another mount")
     if "light_positions" in exp.exposure.free and not any(lt.mount for lt in exp.lights):
         raise ConfigError(path, "exposure.free", 'lists "light_positions" but no [[light]] has a '
                                                  'mount: give each panel that may move mount = '

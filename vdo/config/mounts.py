@@ -146,10 +146,15 @@ class RailSpec:
     degree: int = row("degree", Whole(low=1), 1, doc="B-spline degree p < n (1 = polyline)")
     weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="all 1",
                                      doc="NURBS weights, one per control point")
+    knots: np.ndarray | None = row("knots", Numbers(what="knots", positive=False), None,
+                                   shown="clamped uniform",
+                                   doc="NURBS knot vector, n + degree + 1 non-decreasing values, "
+                                       "clamped (the first and last degree + 1 equal), as CAD "
+                                       "exports it (a circle's double knots); mapped onto u in [0, 1]")
 
     def point(self, u) -> np.ndarray:
         """C(u) in metres (u.shape + (3,)), u in [0, 1] (`vdo.model.nurbs.point`)."""
-        return nurbs.point(self.control_points, self.degree, self.weights, u)
+        return nurbs.point(self.control_points, self.degree, self.weights, u, self.knots)
 
 
 @dataclass(frozen=True)
@@ -195,6 +200,8 @@ class MountSpec:
     degree: int | None = row("degree", Whole(low=1), None, shown="rail: 1", doc="a rail mount's degree")
     weights: np.ndarray | None = row("weights", Numbers(what="weights"), None, shown="rail: all 1",
                                      doc="a rail mount's NURBS weights")
+    knots: np.ndarray | None = row("knots", Numbers(what="knots", positive=False), None,
+                                   shown="rail: clamped uniform", doc="a rail mount's NURBS knot vector")
     box_min: np.ndarray | None = row("box_min_m", Vector(3, letters="xyz"), None, unit="m",
                                      shown="zone", doc="a box zone's lower corner")
     box_max: np.ndarray | None = row("box_max_m", Vector(3, letters="xyz"), None, unit="m",
@@ -258,7 +265,9 @@ class KeepOutSpec:
 
 def check_rail(t: Table, v: dict) -> None:
     """[[rail]] (and a rail [[mount]]): degree below the control point count, consecutive control
-    points distinct (1e-6 m), one weight per control point (default all 1, set in `v`)."""
+    points distinct (1e-6 m), one weight per control point (default all 1, set in `v`), knots
+    (when given) n + p + 1 non-decreasing, clamped, spanning an interval, no interior knot
+    repeated more than p times (the curve would break there)."""
     points = v["control_points"]
     if v["degree"] >= len(points):
         raise t.error("degree", f"must be less than the number of control points ({len(points)})")
@@ -273,6 +282,23 @@ def check_rail(t: Table, v: dict) -> None:
         raise t.error("weights", f"must be a list of {len(points)} numbers > 0, one per control point")
     else:
         v["weights"] = np.asarray(v["weights"], dtype=float)
+    if v.get("knots") is not None:
+        k, p, n = np.asarray(v["knots"], dtype=float), v["degree"], len(points)
+        example = "e.g. a 9-point circle of degree 2: [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 4]"
+        if len(k) != n + p + 1:
+            raise t.error("knots", f"must hold n + degree + 1 = {n + p + 1} values for {n} control points "
+                                   f"of degree {p} (got {len(k)}); {example}")
+        if np.any(np.diff(k) < 0) or k[-1] <= k[0]:
+            raise t.error("knots", f"must be non-decreasing and span an interval (got {k.tolist()})")
+        if np.any(k[:p + 1] != k[0]) or np.any(k[-p - 1:] != k[-1]):
+            raise t.error("knots", f"must be clamped: the first {p + 1} values equal and the last {p + 1} "
+                                   f"equal (got {k.tolist()}); {example}")
+        inner = k[p + 1:n]
+        values, counts = np.unique(inner, return_counts=True)
+        if np.any(counts > p):
+            raise t.error("knots", f"repeat the interior knot {values[counts > p][0]:g} {counts.max()} "
+                                   f"times, more than the degree {p}: the rail would break in two there")
+        v["knots"] = k
 
 
 def check_mount(t: Table, v: dict) -> None:
@@ -284,8 +310,8 @@ def check_mount(t: Table, v: dict) -> None:
     if t.has("floor_holes_m") and not floor:
         raise t.error("floor_holes_m", "applies to a zone with floor_m (a floor polygon)")
     needs = ZONE_FLOOR if floor else MOUNT_NEEDS[kind]
-    allowed = needs + (("degree", "weights") if kind == "rail" else ())
-    for key in ("control_points_m", "degree", "weights", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
+    allowed = needs + (("degree", "weights", "knots") if kind == "rail" else ())
+    for key in ("control_points_m", "degree", "weights", "knots", "box_min_m", "box_max_m", "position_m") + ZONE_FLOOR:
         if t.has(key) and key not in allowed:
             raise t.error(key, f"does not apply to a {kind} mount{' with floor_m' if floor else ''} "
                                f"(it takes {', '.join(allowed)})")
@@ -365,7 +391,8 @@ def resolve_mounts(values: dict, tables: dict, path: Path) -> None:
                                          "[[mount]]; rename one")
     as_rails = [m for m in values["mounts"] if m.kind == "rail"]
     values["rails"] = values["rails"] + tuple(
-        RailSpec(name=m.name, control_points=m.control_points, degree=m.degree, weights=m.weights)
+        RailSpec(name=m.name, control_points=m.control_points, degree=m.degree, weights=m.weights,
+                 knots=m.knots)
         for m in as_rails)
     mounts = {m.name: m for m in values["mounts"] if m.kind != "rail"}
     values["mounts"] = tuple(mounts.values())

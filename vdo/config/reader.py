@@ -131,7 +131,8 @@ def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
     written in, for a quick, coarse run of any file without editing it (the test of the shipped
     examples runs them so). VDO_SET holds `TABLE.FIELD = VALUE` items separated by ';', VALUE in
     TOML syntax, e.g. `evaluation.sample_spacing_mm = 60; optimize.starts = 1`;
-    `TABLE.*.FIELD` sets FIELD on every table of an array of tables ([[camera]]). Only the items
+    `TABLE.*.FIELD` sets FIELD on every table of an array of tables ([[camera]]), `TABLE.NAME.FIELD`
+    on the one named NAME (ConfigError when none is). Only the items
     whose TABLE is one of `tables` apply (a validation file reads `validation` and `defaults`,
     an experiment its own tables), so one VDO_SET serves every kind of file; an item the file's
     table does not take is refused by the file's own checks. ConfigError (naming VDO_SET) for an
@@ -151,11 +152,10 @@ def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"] if eq else None
         except tomllib.TOMLDecodeError:
             parsed = None
-        if parsed is None or len(tokens) not in (2, 3) or not all(tokens) or \
-                (len(tokens) == 3 and tokens[1] != "*"):
-            raise ConfigError(OVERRIDE_VARIABLE, item, "write TABLE.FIELD = VALUE or "
-                                                       "TABLE.*.FIELD = VALUE (VALUE in TOML), "
-                                                       "items separated by ';'")
+        if parsed is None or len(tokens) not in (2, 3) or not all(tokens):
+            raise ConfigError(OVERRIDE_VARIABLE, item, "write TABLE.FIELD = VALUE, TABLE.*.FIELD = "
+                                                       "VALUE or TABLE.NAME.FIELD = VALUE (VALUE in "
+                                                       "TOML), items separated by ';'")
         if tokens[0] not in tables:
             continue
         if len(tokens) == 2:
@@ -163,10 +163,35 @@ def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
             if isinstance(table, dict):
                 table[tokens[1]] = parsed
         else:
-            for table in data.get(tokens[0], []):
-                if isinstance(table, dict):
-                    table[tokens[2]] = parsed
+            tables_of = [t for t in data.get(tokens[0], []) if isinstance(t, dict)
+                         and (tokens[1] == "*" or t.get("name") == tokens[1])]
+            if not tables_of and tokens[1] != "*":
+                raise ConfigError(OVERRIDE_VARIABLE, item, f"no [[{tokens[0]}]] is named {tokens[1]!r}: "
+                                                           "name one of the file's, or write "
+                                                           f"{tokens[0]}.*.{tokens[2]} for all of them")
+            for table in tables_of:
+                table[tokens[2]] = parsed
     return data
+
+
+def from_override(err: ConfigError) -> ConfigError:
+    """`err` (from a file's checks) saying that its field was written by VDO_SET, not by the
+    file, when a VDO_SET item names that field (`TABLE.FIELD`, or `TABLE.*.FIELD` /
+    `TABLE.NAME.FIELD` for a field of an array's table); else `err` itself."""
+    import os
+
+    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
+    field = str(err.field or "")
+    for item in filter(None, (part.strip() for part in text.split(";"))):
+        tokens = item.partition("=")[0].strip().split(".")
+        ours = (len(tokens) == 2 and field == f"{tokens[0]}.{tokens[1]}") or (
+            len(tokens) == 3 and field.startswith(f"{tokens[0]} ") and field.endswith(f".{tokens[2]}")
+            and (tokens[1] == "*" or f'"{tokens[1]}"' in field))
+        if ours:
+            return ConfigError(err.file, err.field, f"{err.message} (this value comes from the "
+                                                    f"environment's {OVERRIDE_VARIABLE} item {item!r}, "
+                                                    "not from the file)")
+    return err
 
 
 def read_section(top: Table, sec: Section, path: Path):

@@ -261,15 +261,22 @@ class Polygons(Kind):
 
 @dataclass(frozen=True)
 class Numbers(Kind):
-    """A list of numbers > 0, as a tuple (sorted and without repeats when `as_set`)."""
+    """A list of numbers > 0 (any finite numbers without `positive`), as a tuple (sorted and
+    without repeats when `as_set`)."""
 
     as_set: bool = False
     what: str = "numbers"
-    doc = "list of numbers > 0"
+    positive: bool = True
+
+    @property
+    def doc(self):
+        return "list of numbers > 0" if self.positive else "list of numbers"
 
     def read(self, value, scale, base):
-        if not isinstance(value, list) or not all(is_number(x) and math.isfinite(x) and x > 0 for x in value):
-            raise BadValue(f"must be a list of {self.what}, each > 0 (got {_show(value)})")
+        if not isinstance(value, list) or not all(is_number(x) and math.isfinite(x) and abs(x) <= MAX_MAGNITUDE
+                                                  and (x > 0 or not self.positive) for x in value):
+            raise BadValue(f"must be a list of {self.what}{', each > 0' if self.positive else ''} "
+                           f"(got {_show(value)})")
         out = [float(x) * scale for x in value]
         return tuple(sorted(set(out))) if self.as_set else tuple(out)
 

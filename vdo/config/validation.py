@@ -97,6 +97,11 @@ def parse(data: dict, path) -> ValidationSpec:
     (`vdo.config.reader.with_overrides`)."""
     path = Path(path).resolve()
     data = with_overrides(data, ("validation", "defaults"))
+    if "case" not in data and "validation" not in data and ("experiment" in data or "camera" in data):
+        raise ConfigError(path, "", "is an experiment file; vdo validate reads a validation file "
+                                    "([validation] and [[case]] tables, e.g. experiments/validation.toml, "
+                                    "docs/validation.md); an experiment's renders are correlated as "
+                                    "docs/exports.md shows")
     top = Table(data, "", path, ("validation", "defaults", "case"))
     head = Table(top.raw("validation", {}), "validation", path, ("name", "seeds"))
     name = head.string("name", "vdo validation")

@@ -1,4 +1,5 @@
-"""NURBS curves without JAX: the clamped uniform knot vector and de Boor's algorithm on
+"""NURBS curves without JAX: the knot vector (clamped uniform, or a user's clamped one on [0, 1])
+and de Boor's algorithm on
 homogeneous control points, for any array module `xp` (NumPy here and in the config; `jax.numpy`
 in `vdo.model.rail`, which differentiates them).
 
@@ -16,16 +17,26 @@ def clamped_knots(n: int, p: int) -> np.ndarray:
     return np.concatenate([np.zeros(p + 1), interior, np.ones(p + 1)])
 
 
+def knot_vector(n: int, p: int, knots=None) -> np.ndarray:
+    """The knot vector of n control points of degree p: `knots` (n + p + 1 non-decreasing values,
+    clamped: the first p + 1 equal, the last p + 1 equal) mapped onto [0, 1], so that u = 0 is
+    the first control point and u = 1 the last; `clamped_knots` without them."""
+    if knots is None:
+        return clamped_knots(n, p)
+    k = np.asarray(knots, dtype=float)
+    return (k - k[0]) / (k[-1] - k[0])
+
+
 def homogeneous(control_points: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(n, 4): the control points times their weights, and the weights."""
     return np.hstack([control_points * weights[:, None], weights[:, None]])
 
 
-def point(control_points, degree: int, weights, u) -> np.ndarray:
-    """C(u) in metres (u.shape + (3,)) on the host, NumPy only."""
+def point(control_points, degree: int, weights, u, knots=None) -> np.ndarray:
+    """C(u) in metres (u.shape + (3,)) on the host, NumPy only (`knot_vector` of `knots`)."""
     pts = np.asarray(control_points, dtype=float)
     w = np.ones(len(pts)) if weights is None else np.asarray(weights, dtype=float)
-    return de_boor(clamped_knots(len(pts), degree), homogeneous(pts, w), degree,
+    return de_boor(knot_vector(len(pts), degree, knots), homogeneous(pts, w), degree,
                    np.asarray(u, dtype=float))
 
 

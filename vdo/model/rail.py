@@ -1,8 +1,9 @@
 """Camera rails: NURBS curves in world space, evaluated in JAX so that d(position)/du exists.
 
 A rail is a clamped B-spline of degree p >= 1 with control points P_i (metres) and weights w_i
-(all 1 for a plain B-spline, i.e. a polyline when p = 1). Its knot vector is clamped and uniform on
-[0, 1], so u = 0 is the first control point and u = 1 the last:
+(all 1 for a plain B-spline, i.e. a polyline when p = 1). Its knot vector is clamped, uniform on
+[0, 1] or the user's mapped onto [0, 1] (a CAD circle's double knots), so u = 0 is the first
+control point and u = 1 the last:
 
     C(u) = sum_i N_{i,p}(u) w_i P_i / sum_i N_{i,p}(u) w_i
 
@@ -18,17 +19,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vdo.model.nurbs import clamped_knots, de_boor, homogeneous
+from vdo.model.nurbs import de_boor, homogeneous, knot_vector
 
 
 @dataclass(frozen=True, eq=False)
 class Rail:
-    """A NURBS rail. `control_points` (n, 3) in metres, `weights` (n,), `degree` p with 1 <= p < n."""
+    """A NURBS rail. `control_points` (n, 3) in metres, `weights` (n,), `degree` p with 1 <= p < n,
+    `knots` (n + p + 1, clamped; None: uniform)."""
 
     name: str
     control_points: np.ndarray
     degree: int = 1
     weights: np.ndarray | None = None
+    knots_given: np.ndarray | None = None
 
     def __post_init__(self):
         pts = np.asarray(self.control_points, dtype=float)
@@ -45,8 +48,8 @@ class Rail:
 
     @property
     def knots(self) -> np.ndarray:
-        """Clamped uniform knot vector on [0, 1] (n + p + 1 values)."""
-        return clamped_knots(len(self.control_points), self.degree)
+        """The knot vector on [0, 1] (n + p + 1 values; `vdo.model.nurbs.knot_vector`)."""
+        return knot_vector(len(self.control_points), self.degree, self.knots_given)
 
     def position(self, u, xp=jnp):
         """C(u) in metres, for scalar or array u in [0, 1] (shape u.shape + (3,)). JAX-traceable;

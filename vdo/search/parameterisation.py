@@ -102,7 +102,7 @@ class Parameterization:
         self.scale = np.array(scale, dtype=float)   # the solver works in units of these
         self.aims = np.array(aims)
         rails = {r.name: Rail(name=r.name, control_points=r.control_points, degree=r.degree,
-                              weights=r.weights) for r in exp.rails}      # in JAX: d(position)/du
+                              weights=r.weights, knots_given=r.knots) for r in exp.rails}      # in JAX: d(position)/du
         self.rails = [rails[s.rail] if s.rail else None for s in exp.camera_specs]
 
     @staticmethod
