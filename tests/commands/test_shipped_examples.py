@@ -42,7 +42,7 @@ SWEEP_POINTS = 4            # a sweep runs its first points (`--max-points`), th
 LOAD_PATH_EVERY = 8         # a load path judged and rendered at every 8th step and the last
 VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
 DESIGN = ("design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1; "
-          "design.bound_s = 1")
+          "design.bound_s = 1; design.restart_s = 1")
 # per command: the flags that shorten it (a flag given in the docs is replaced)
 FLAGS = {"validate": ["--seeds", "2"], "render": ["--scale", "0.05", "--spp", "1"],
          "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1", "--max-points", str(SWEEP_POINTS)]}

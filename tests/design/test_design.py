@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import re
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -35,7 +36,8 @@ from vdo.physics.visibility import compute_visibility
 
 SUM_ORDER_RTOL = 1e-12   # the same float64 sums taken in another order (entries vs all samples)
 
-# the bound on the best score (tests/design/test_bound.py checks it) gets 2 s per camera count here
+# the bound on the best score (tests/design/test_bound.py checks it) and the restarts get 2 s per
+# camera count here
 DESIGN = """
 [design]
 max_cameras = {n}
@@ -43,6 +45,7 @@ rail_positions = 9
 offset_m = [0, 0, 0]
 sample_spacing_mm = 50
 bound_s = 2
+restart_s = 2
 {extra}
 """
 
@@ -826,6 +829,27 @@ def test_refine_starts_from_the_design_and_says_both_ends(plate_experiment, tmp_
                     f"({design['constraint_violations']} constraint violation(s)) -> {after:.3f} um "
                     f"({refined['violations']})"]
     assert config.load(out / "refine" / "optimized.toml").camera_specs
+
+
+def test_refine_keeps_to_the_time_limit(plate_experiment, monkeypatch):
+    """`vdo design --refine --time-limit T`: the refinement's optimize gets what is left of T
+    (trial 4: it ran with optimize's own 900 s default after a 240 s design), at least
+    REFINE_MIN_S; without a limit, optimize's default."""
+    from vdo.design import select
+
+    given = []
+
+    def record(exp, **kwargs):
+        given.append(kwargs.get("time_limit"))
+        return "refined"
+
+    monkeypatch.setattr(select, "optimize_layout", record)
+    exp = _experiment(plate_experiment, n=2)
+    t0 = time.perf_counter()
+    assert design_layout(exp, refine=True, time_limit=120.0).refined == "refined"
+    spent = time.perf_counter() - t0
+    assert select.REFINE_MIN_S <= given[0] <= max(select.REFINE_MIN_S, 120.0 - spent + 1.0)
+    assert design_layout(exp, refine=True).refined == "refined" and given[1] is None
 
 
 def test_the_selection_stops_at_the_time_limit_with_the_inventory_searched_first(plate_experiment, monkeypatch):

@@ -224,6 +224,10 @@ class OptimizeSpec:
     assign_fraction: float = row("assign_fraction", Real(0.01, 1.0), 0.5,
                                  doc="a camera is assigned the regions it sees this much of in the "
                                      "starting layout")
+    restart_seconds: float = row("restart_s", Real(low=0), 60.0,
+                                 doc="wall seconds per camera count for random restarts (starts drawn "
+                                     "from the bound's weights, each followed by exchange passes; "
+                                     "docs/design.md; 0: none)")
     score: str = row(
         "score", Text(choices=("bound", "measured")), "bound",
         doc='what the score\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '
@@ -296,6 +300,10 @@ class DesignSpec:
     bound_seconds: float = row("bound_s", Real(low=0), 60.0,
                                doc="wall seconds per camera count for the bound on the best score "
                                    "(`vdo.design.bound`; 0: no bound)")
+    restart_seconds: float = row("restart_s", Real(low=0), 60.0,
+                                 doc="wall seconds per camera count for random restarts (starts drawn "
+                                     "from the bound's weights, each followed by exchange passes; "
+                                     "docs/design.md; 0: none)")
     score: str = row(
         "score", Text(choices=("bound", "measured")), "bound",
         doc='what the selection\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '

@@ -64,8 +64,8 @@ class Estimate:
     time (the score's time per stored pair, timed on the probe's pairs, x E x the score passes:
     greedy's n_max plus SEARCH_PASSES exchange and POLISH_PASSES polish passes of every count's
     cameras: an upper bound at full size, where those passes dominate; a small design pays more
-    in each count's compilation and final judgement, which it leaves out), seconds; and the bound's wall-time budget, [design] bound_s per count (a cap it
-    spends in full unless it converges first; the refusal's spacing advice leaves it out, as it
+    in each count's compilation and final judgement, which it leaves out), seconds; and the bound's and the restarts' wall-time budget, [design] bound_s +
+    restart_s per count (caps; the bound spends its own in full unless it converges first; the refusal's spacing advice leaves it out, as it
     does not grow with the samples)."""
 
     candidates: int
@@ -76,10 +76,11 @@ class Estimate:
     fixed_bytes: float
     judge_s: float
     search_s: float
-    bound_s: float = 0.0       # the bound's wall-time budget: [design] bound_s x the counts
+    bound_s: float = 0.0       # the bound's and the restarts' wall-time budget: [design] (bound_s
+                               # + restart_s) x the counts
 
     def line(self) -> str:
-        bound = f" + up to {self.bound_s:.0f} s bound" if self.bound_s > 0 else ""
+        bound = f" + up to {self.bound_s:.0f} s bound and restarts" if self.bound_s > 0 else ""
         return (f"design estimate: {self.candidates:,} candidates x {self.samples:,} samples, about "
                 f"{self.entries:,} stored pairs (from {self.probed} probed candidates): "
                 f"{self.memory_bytes / GB:.1f} GB peak, {self.judge_s:.0f} s judging + "
@@ -146,7 +147,7 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
     fixed = peak_rss() + K * CAMERA_BYTES      # the peak holds the probe's full-size block
     memory = fixed + entries * (STORE_COPIES * ENTRY_BYTES + SELECT_BYTES)
     return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
-                    exp.design.bound_seconds * len(counts(exp)))
+                    (exp.design.bound_seconds + exp.design.restart_seconds) * len(counts(exp)))
 
 
 def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:

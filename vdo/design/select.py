@@ -30,7 +30,15 @@ selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pare
 and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count). The
 relaxation's weights are also a second start for each count (`rounded`: the candidates by
 decreasing weight while feasible, then the exchange and the polish): its selection replaces the
-count's when it scores lower ("rounded" in design.json's curve).
+count's when it scores lower ("rounded" in design.json's curve). Then random restarts (`restarts`,
+[design] restart_s seconds per count): starts drawn from the weights, half of each draw spread
+over all candidates, each taken down by the exchange passes; the best (exchanged over all
+candidates, polished and judged as `_count` does) replaces the count's selection when it scores
+lower, as the rounded start does ("restarts" and "restarted" in the curve); the console says
+when it reads worse on the worst scored region's p95 or on the area seen by min_cameras (the
+score weighs the two, `coverage_weight`). Exchange passes stop at a local minimum of single
+swaps, and the two starts above are two of many: on the holed plate's design problem the greedy
+start ends 1.57x above the best pair, which restarts find (docs/design.md has the figures).
 
 What no selection can fix is reported naming the region and what is missing (`problems`,
 `shortfalls`): an inventory below its min_cameras, no candidate that sees it (at rest or over the
@@ -88,27 +96,30 @@ def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
     return chosen, scores
 
 
-def _swap_options(feas: Feasibility, chosen: list):
+def _swap_options(feas: Feasibility, chosen: list, pool: np.ndarray | None = None):
     """For each slot of `chosen` (a list the caller may change between slots): (slot, the other
-    selected cameras, the feasible candidates with them that are not selected); slots with none
-    are skipped."""
+    selected cameras, the feasible candidates with them that are not selected, of `pool` (indices)
+    when given); slots with none are skipped."""
     for slot in range(len(chosen)):
         rest = chosen[:slot] + chosen[slot + 1:]
         ok = np.flatnonzero(feas.allowed(rest))
         ok = ok[~np.isin(ok, chosen)]
+        if pool is not None:
+            ok = ok[np.isin(ok, pool)]
         if ok.size:
             yield slot, rest, ok
 
 
 def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_passes: int = 5,
-             rtol: float = 1e-6) -> tuple[list[int], float, int]:
-    """Swap passes: replace one selected camera by the best feasible candidate while the score
-    drops by more than rtol (relative). Returns (chosen, score, swaps made)."""
+             rtol: float = 1e-6, pool: np.ndarray | None = None) -> tuple[list[int], float, int]:
+    """Swap passes: replace one selected camera by the best feasible candidate (of `pool`, indices,
+    when given) while the score drops by more than rtol (relative). Returns (chosen, score, swaps
+    made)."""
     chosen = list(chosen)
     current, swaps = scorer.of(cand, chosen), 0
     for _ in range(max_passes):
         improved = False
-        for slot, rest, ok in _swap_options(feas, chosen):
+        for slot, rest, ok in _swap_options(feas, chosen, pool):
             s = scorer.add(*cand.sums(rest), cand, ok)
             best = int(np.argmin(s))
             if s[best] < current * (1 - rtol):
@@ -125,6 +136,13 @@ POLISH_PASSES = 3           # most passes over the slots
 POLISH_RTOL = 1e-3          # a polish swap lowers the worst region's p95 by more than this (relative)
 POLISH_PERCENTILE = 95.0    # the curve's figure: each region's σ_max p95
 ROUNDING_RTOL = 1e-6        # the relaxation's rounded start replaces a count's selection when it scores this much lower
+REFINE_MIN_S = 10.0         # --refine's optimize gets at least this long when the time limit is spent
+RESTART_SPREAD = 0.1        # share of a restart's draw spread evenly over the candidates (the rest
+                            # follows the relaxation's weights): starts away from the relaxation too
+RESTART_SEED = 0            # the restarts' random stream (a design is repeatable)
+RESTART_PATIENCE = 16       # the restarts stop after this many starts in a row find nothing better
+RESTART_POOL = 1024         # candidates a restart's exchange passes choose from (drawn as its start;
+                            # the best restart's selection is then exchanged over all candidates)
 
 
 @dataclass(frozen=True)
@@ -254,6 +272,40 @@ def rounded(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.nda
     return chosen
 
 
+def restarts(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.ndarray | None,
+             k: int, seconds: float, rng: np.random.Generator) -> tuple[list[int], float, int]:
+    """Random restarts for k cameras for about `seconds` (at least one start; fewer when
+    RESTART_PATIENCE starts in a row find nothing better than the best so far): each start draws
+    feasible candidates one at a time, candidate i (not yet drawn, feasible with those drawn)
+    with probability proportional to (1 - RESTART_SPREAD) w_i / sum(w) + RESTART_SPREAD / K
+    (w: the relaxation's weights; uniform without them; K candidates), up to k (`greedy` fills
+    the rest when the draws run out of feasible candidates), then `exchange` to a local minimum
+    of single swaps among RESTART_POOL candidates drawn the same way (a pass over all of them
+    costs K / RESTART_POOL times as much). Returns the best (chosen, score) and the number of
+    starts; the caller exchanges the best over all candidates."""
+    K = len(cand.cameras)
+    w = np.zeros(K) if weights is None else np.clip(np.asarray(weights, dtype=float), 0.0, None)
+    p = (1.0 - RESTART_SPREAD) * w / w.sum() + RESTART_SPREAD / K if w.sum() > 0 else np.full(K, 1.0 / K)
+    best, best_score, starts, since = [], math.inf, 0, 0
+    stop = _clock() + seconds
+    while starts == 0 or (_clock() < stop and since < RESTART_PATIENCE):
+        starts, since = starts + 1, since + 1
+        chosen: list[int] = []
+        while len(chosen) < k:
+            q = np.where(feas.allowed(chosen), p, 0.0)
+            q[chosen] = 0.0
+            if q.sum() <= 0:
+                break
+            chosen.append(int(rng.choice(K, p=q / q.sum())))
+        if len(chosen) < k:
+            chosen, _ = greedy(cand, scorer, feas, k, start=chosen)
+        pool = rng.choice(K, size=min(K, RESTART_POOL), replace=False, p=p)
+        chosen, score, _ = exchange(cand, scorer, feas, chosen, pool=np.union1d(pool, chosen))
+        if score < best_score * (1 - ROUNDING_RTOL):
+            best, best_score, since = chosen, score, 0
+    return best, best_score, starts
+
+
 def _judged(exp: Experiment, cand: Candidates, coarse, chosen, can_measure) -> dict:
     """`measures` of the chosen candidates judged as a layout on the `coarse` samples (camera
     bodies and tripods included)."""
@@ -269,6 +321,18 @@ def _reads_better(a: dict, b: dict, key: str) -> bool:
     if a["coverage"] < b["coverage"] - LIMIT_SLACK:
         return False
     return a[key] is not None and (b[key] is None or a[key] < b[key])
+
+
+def _reads_no_worse(a: dict, b: dict, key: str) -> bool:
+    """Judged figures `a` read no worse than `b`: no less area seen by min_cameras, and the worst
+    scored region's p95 (`key`) no higher (beyond POLISH_RTOL; measured where `b` is)."""
+    if a["coverage"] < b["coverage"] - LIMIT_SLACK:
+        return False
+    return b[key] is None or (a[key] is not None and a[key] <= b[key] * (1 + POLISH_RTOL))
+
+
+def _um(value) -> str:
+    return "unmeasured" if value is None else f"{value:.3f}"
 
 
 def camera_specs(exp: Experiment, cand: Candidates, chosen) -> list[CameraSpec]:
@@ -394,22 +458,22 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     writes as designed.toml, layout.json, summary.json, constraints.json, candidates.csv,
     pareto.csv, pareto.png, design.json and report.html (this function writes nothing). With
     `refine`, also `vdo.optimize.optimize_layout` of the designed layout (`DesignResult.refined`,
-    written into out/refine; its constraints.json "before" holds every constraint check of the
-    designed layout). Before the work, the time and memory it will take are estimated
-    (`vdo.design.budget.estimate`, one INFO line) and a problem that needs more than
-    `memory_limit` bytes (default: `vdo.design.budget.available_memory`), or whose judging needs
-    more than `time_limit` seconds, is refused (`vdo.design.budget.refuse`: ConfigError naming the
-    spacing and the candidate count that fit). The selection then stops at the time limit: the
-    inventory's count is searched first, the smaller counts while time is left (each assumed to
-    take as long as the last one; kept for the final judgement: the first preparation's time
-    times the ratio of the design's spacing to [evaluation]'s, and twice the first count's), and
-    the bounds share what is left (module docstring). With a dask.distributed `client` the
-    candidates are judged on its workers (`vdo.design.candidates.judge`; `threads` Dr.Jit
-    threads each). With `store` (a folder) the
+    written into out/refine, within what is left of `time_limit`; its constraints.json "before"
+    holds every constraint check of the designed layout). Before the work, the time and memory
+    it will take are estimated (`vdo.design.budget.estimate`, one INFO line) and a problem that
+    needs more than `memory_limit` bytes (default: `vdo.design.budget.available_memory`), or
+    whose judging needs more than `time_limit` seconds, is refused (`vdo.design.budget.refuse`:
+    ConfigError naming the spacing and the candidate count that fit). The selection then stops
+    at the time limit: the inventory's count is searched first, the smaller counts while time is
+    left (each assumed to take as long as the last one; kept for the final judgement: the first
+    preparation's time times the ratio of the design's spacing to [evaluation]'s, and twice the
+    first count's), and the bounds and restarts share what is left (module docstring). With a
+    dask.distributed `client` the candidates are judged on its workers
+    (`vdo.design.candidates.judge`; `threads` Dr.Jit threads each). With `store` (a folder) the
     judged candidate blocks are kept there, and those of an interrupted run of the same
-    experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the chosen
-    cameras: INFO lines and bars through the module logger; each problem found (also in the
-    result): a warning."""
+    experiment are not judged again (`vdo.design.candidates.BlockStore`). Progress and the
+    chosen cameras: INFO lines and bars through the module logger; each problem found (also in
+    the result): a warning."""
     check_time_limit(time_limit)
     t0 = _clock()
     deadline = math.inf if time_limit is None else t0 + time_limit
@@ -487,6 +551,30 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                      100 * max(0.0, 1.0 - c["bound"] / again["score"]))
             c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
                      bound_converged=c["bound_converged"], rounded=True)
+    rng = np.random.default_rng(RESTART_SEED)
+    for i, (c, b) in enumerate(zip(curve, relaxed)):     # random restarts, the bound's weights as a guide
+        per_count = (deadline - _clock() - final_s) / (len(curve) - i)
+        seconds = min(d.restart_seconds, per_count)
+        if d.restart_seconds <= 0 or seconds <= count_s:
+            continue
+        chosen, score, starts = restarts(cand, scorer, feas, None if b is None else b.weights,
+                                         c["cameras"], seconds - count_s, rng)
+        c["restarts"] = starts
+        again = None
+        if score < c["score"] * (1 - ROUNDING_RTOL):    # over all candidates, polished, judged
+            again = _count(exp, cand, scorer, feas, coarse, can_measure, chosen)
+        if again is not None and again["score"] < c["score"] * (1 - ROUNDING_RTOL):
+            key = sigma_key(exp)
+            gap = None if c["bound"] is None else max(0.0, 1.0 - c["bound"] / again["score"])
+            traded = "" if _reads_no_worse(again, c, key) else (
+                f" (the score trades: worst scored region's p95 {_um(again[key])} against "
+                f"{_um(c[key])} um, area seen by min_cameras {100 * again['coverage']:.1f} against "
+                f"{100 * c['coverage']:.1f} %)")
+            log.info("%d cameras: %d random restarts score %.4g against %.4g%s%s", c["cameras"], starts,
+                     again["score"], c["score"], "" if gap is None else
+                     f": gap {100 * c['gap']:.1f} -> {100 * gap:.1f} %", traded)
+            c.update(again, bound=c["bound"], gap=gap, bound_converged=c["bound_converged"],
+                     rounded=c.get("rounded", False), restarts=starts, restarted=True)
     common_p95(exp, coarse.samples, curve)
     sharper = sharper_smaller_count(exp, curve, best)
     if sharper:
@@ -540,7 +628,9 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                  c["mount"], c["position_m"], ", ".join(parts) or "no region usably")
     wall = _clock() - t0
     final_peak = peak_rss()       # before the refinement, as the figures above
-    refined = optimize_layout(final) if refine else None
+    # the refinement gets what is left of the time limit (at least REFINE_MIN_S), else its default
+    refined = None if not refine else optimize_layout(final) if math.isinf(deadline) else \
+        optimize_layout(final, time_limit=max(REFINE_MIN_S, deadline - _clock()))
     return DesignResult(cameras=len(best["chosen"]), problems=issues, target_count=target,
                         refined=refined, statistics=stats, violations=len(violated), curve=curve,
                         summary=summary, wall_s=wall,
