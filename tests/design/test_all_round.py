@@ -20,7 +20,7 @@ from vdo.config import experiment as config
 from vdo.design.candidates import judge
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import exchange, greedy
+from vdo.design.moves import exchange, greedy
 from vdo.state import layout_state, prepare
 from vdo.scene import cameras_of
 

@@ -21,7 +21,7 @@ from vdo.commands.design import design as design_run
 from vdo.design.candidates import judge
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import exchange, greedy
+from vdo.design.moves import exchange, greedy
 from vdo.state import prepare
 
 # scipy's SLSQP stops at ftol 1e-12 on these small problems; its solution agrees to about this

@@ -23,8 +23,9 @@ from vdo.config.mounts import zone_grid
 from vdo.design.candidates import BLIND, judge, judging, lenses, spots
 from vdo.design.feasibility import STOP_MARGIN, Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import (POLISH_RTOL, design_layout, exchange, figures, greedy, percentile_by_region,
-                               polish, problems, region_table)
+from vdo.design.moves import exchange, greedy
+from vdo.design.select import (POLISH_RTOL, design_layout, figures, percentile_by_region, polish, problems,
+                               region_table)
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate
@@ -951,7 +952,7 @@ def test_the_relaxation_is_rounded_by_weight_into_a_feasible_selection(judged):
     (`Feasibility.conflicts`), then greedy to k. A heavy candidate that conflicts with a heavier
     one is skipped; with no weight left, greedy completes the selection. The rounded start of
     the whole design is judged in `vdo design`'s log on the built-in (docs/design.md)."""
-    from vdo.design.select import rounded
+    from vdo.design.moves import rounded
 
     exp, geometry, cand = judged
     scorer, feas = Scorer(exp, geometry.samples), Feasibility(exp, cand)

@@ -19,7 +19,8 @@ from vdo.core.memo import Memo
 from vdo.design.candidates import KAPPA_LATTICE, judge, judging
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import camera_specs, exchange, greedy
+from vdo.design.moves import exchange, greedy
+from vdo.design.select import camera_specs
 from vdo.physics import measured
 from vdo.physics.visibility import compute_visibility
 from vdo.state import prepare

@@ -15,7 +15,7 @@ from vdo.config.experiment import load
 from vdo.design.candidates import judge, judging
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
-from vdo.design.select import RESTART_PATIENCE, exchange, greedy, restarts
+from vdo.design.moves import RESTART_PATIENCE, exchange, greedy, restarts
 from vdo.state import prepare
 
 ROOT = Path(__file__).resolve().parents[2]

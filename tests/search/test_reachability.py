@@ -16,7 +16,9 @@ normal = [0, 0, -1]
 """
 
 
-def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplog):
+def plate_with_bottom(tmp_path):
+    """The plate with its top and bottom regions and two cameras on the overhead rail: the
+    experiment, its meshes and its samples."""
     write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
     text = PLATE_TOML.format(spacing=40, limit=75, height=1.2, extra_meshes=BOTTOM,
                              cameras=aimed_camera("a", 0.3) + aimed_camera("b", 0.7))
@@ -24,6 +26,11 @@ def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplo
     exp = config.load(tmp_path / "exp.toml")
     meshes = scene.load_meshes(**mesh_tables(exp))
     samples = scene.sample_regions(meshes, **region_tables(exp))
+    return exp, meshes, samples
+
+
+def test_region_no_mount_can_show_to_two_cameras_is_warned_about(tmp_path, caplog):
+    exp, meshes, samples = plate_with_bottom(tmp_path)
     with caplog.at_level(logging.WARNING, logger="vdo"):
         entries = {e["region"]: e for e in reachability.check(exp, meshes, samples)}
     # the top face faces both cameras from every rail position: all of it reachable by both
@@ -45,13 +52,7 @@ def test_the_configured_poses_count_too(tmp_path, monkeypatch):
     is reachable whole, and the bottom face, which they cannot see, stays at 0."""
     import numpy as np
 
-    write_box(tmp_path / "plate.stl", [600, 600, 10], center=[0, 0, -5])
-    text = PLATE_TOML.format(spacing=40, limit=75, height=1.2, extra_meshes=BOTTOM,
-                             cameras=aimed_camera("a", 0.3) + aimed_camera("b", 0.7))
-    (tmp_path / "exp.toml").write_text(text)
-    exp = config.load(tmp_path / "exp.toml")
-    meshes = scene.load_meshes(**mesh_tables(exp))
-    samples = scene.sample_regions(meshes, **region_tables(exp))
+    exp, meshes, samples = plate_with_bottom(tmp_path)
     monkeypatch.setattr(reachability, "mount_positions", lambda *a, **k: ("rail overhead", np.zeros((0, 3))))
     entries = {e["region"]: e for e in reachability.check(exp, meshes, samples)}
     assert entries["top"]["best_coverage"] == 1.0 and entries["top"]["cameras"] == ["a", "b"]

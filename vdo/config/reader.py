@@ -126,6 +126,15 @@ def read_toml(path) -> dict:
 OVERRIDE_VARIABLE = "VDO_SET"   # environment: field values written over the files vdo reads
 
 
+def _override_items() -> list[tuple[str, list[str]]]:
+    """VDO_SET's items (separated by ';'), each with the dotted path before its '=' split."""
+    import os
+
+    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
+    items = filter(None, (part.strip() for part in text.split(";")))
+    return [(item, item.partition("=")[0].strip().split(".")) for item in items]
+
+
 def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
     """`data` (a parsed TOML document) with the fields of the environment variable VDO_SET
     written in, for a quick, coarse run of any file without editing it (the test of the shipped
@@ -138,16 +147,14 @@ def with_overrides(data: dict, tables: tuple[str, ...]) -> dict:
     table does not take is refused by the file's own checks. ConfigError (naming VDO_SET) for an
     item that is not of that form."""
     import copy
-    import os
     import tomllib
 
-    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
-    if not text:
+    items = _override_items()
+    if not items:
         return data
     data = copy.deepcopy(data)
-    for item in filter(None, (part.strip() for part in text.split(";"))):
-        path, eq, value = item.partition("=")
-        tokens = path.strip().split(".")
+    for item, tokens in items:
+        _, eq, value = item.partition("=")
         try:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"] if eq else None
         except tomllib.TOMLDecodeError:
@@ -178,12 +185,8 @@ def from_override(err: ConfigError) -> ConfigError:
     """`err` (from a file's checks) saying that its field was written by VDO_SET, not by the
     file, when a VDO_SET item names that field (`TABLE.FIELD`, or `TABLE.*.FIELD` /
     `TABLE.NAME.FIELD` for a field of an array's table); else `err` itself."""
-    import os
-
-    text = os.environ.get(OVERRIDE_VARIABLE, "").strip()
     field = str(err.field or "")
-    for item in filter(None, (part.strip() for part in text.split(";"))):
-        tokens = item.partition("=")[0].strip().split(".")
+    for item, tokens in _override_items():
         ours = (len(tokens) == 2 and field == f"{tokens[0]}.{tokens[1]}") or (
             len(tokens) == 3 and field.startswith(f"{tokens[0]} ") and field.endswith(f".{tokens[2]}")
             and (tokens[1] == "*" or f'"{tokens[1]}"' in field))

@@ -28,17 +28,17 @@ The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0,
 and obscuration kept, pairwise rules dropped) and certifies a lower bound on the score of every
 selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pareto.csv, the console
 and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count). The
-relaxation's weights are also a second start for each count (`rounded`: the candidates by
-decreasing weight while feasible, then the exchange and the polish): its selection replaces the
-count's when it scores lower ("rounded" in design.json's curve). Then random restarts (`restarts`,
-[design] restart_s seconds per count): starts drawn from the weights, half of each draw spread
-over all candidates, each taken down by the exchange passes; the best (exchanged over all
-candidates, polished and judged as `_count` does) replaces the count's selection when it scores
-lower, as the rounded start does ("restarts" and "restarted" in the curve); the console says
-when it reads worse on the worst scored region's p95 or on the area seen by min_cameras (the
-score weighs the two, `coverage_weight`). Exchange passes stop at a local minimum of single
-swaps, and the two starts above are two of many: on the holed plate's design problem the greedy
-start ends 1.57x above the best pair, which restarts find (docs/design.md has the figures).
+relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
+candidates by decreasing weight while feasible, then the exchange and the polish): its selection
+replaces the count's when it scores lower ("rounded" in design.json's curve). Then random restarts
+(`moves.restarts`, [design] restart_s seconds per count): starts drawn from the weights, a tenth of
+each draw spread over all candidates, each taken down by the exchange passes; the best (exchanged
+over all candidates, polished and judged as `_count` does) replaces the count's selection when it
+scores lower, as the rounded start does ("restarts" and "restarted" in the curve); the console says
+when it reads worse on the worst scored region's p95 or on the area seen by min_cameras (the score
+weighs the two, `coverage_weight`). Exchange passes stop at a local minimum of single swaps, and
+the two starts above are two of many: on the holed plate's design problem the greedy start ends
+1.57x above the best pair, which restarts find (docs/design.md has the figures).
 
 What no selection can fix is reported naming the region and what is missing (`problems`,
 `shortfalls`): an inventory below its min_cameras, no candidate that sees it (at rest or over the
@@ -63,6 +63,7 @@ from vdo.design.feasibility import Feasibility
 from vdo.design.measures import (SEEN_SHOWN, common_p95, measures, seen_fractions, sharper_smaller_count,
                                  sigma_key)
 from vdo.design.score import Scorer
+from vdo.design.moves import RESTART_SEED, ROUNDING_RTOL, exchange, greedy, restarts, rounded, swap_options
 from vdo.outputs import report
 from vdo.model.camera import Camera
 from vdo.config.experiment import Experiment
@@ -79,70 +80,12 @@ log = logging.getLogger(__name__)
 _clock = time.perf_counter      # the design's clock (its time limit; a test moves it)
 
 
-def greedy(cand: Candidates, scorer: Scorer, feas: Feasibility, n: int,
-           start=()) -> tuple[list[int], list[float]]:
-    """Forward selection up to n cameras from `start`: the chosen indices and the score after
-    each addition (stops early when no feasible candidate is left); a progress bar when the module
-    logger passes INFO."""
-    chosen, scores = list(start), []
-    for _ in bar(log, iterable=range(n - len(chosen)), desc="greedy", leave=False):
-        ok = np.flatnonzero(feas.allowed(chosen))
-        if ok.size == 0:
-            break
-        s = scorer.add(*cand.sums(chosen), cand, ok)
-        best = int(np.argmin(s))
-        chosen.append(int(ok[best]))
-        scores.append(float(s[best]))
-    return chosen, scores
-
-
-def _swap_options(feas: Feasibility, chosen: list, pool: np.ndarray | None = None):
-    """For each slot of `chosen` (a list the caller may change between slots): (slot, the other
-    selected cameras, the feasible candidates with them that are not selected, of `pool` (indices)
-    when given); slots with none are skipped."""
-    for slot in range(len(chosen)):
-        rest = chosen[:slot] + chosen[slot + 1:]
-        ok = np.flatnonzero(feas.allowed(rest))
-        ok = ok[~np.isin(ok, chosen)]
-        if pool is not None:
-            ok = ok[np.isin(ok, pool)]
-        if ok.size:
-            yield slot, rest, ok
-
-
-def exchange(cand: Candidates, scorer: Scorer, feas: Feasibility, chosen, max_passes: int = 5,
-             rtol: float = 1e-6, pool: np.ndarray | None = None) -> tuple[list[int], float, int]:
-    """Swap passes: replace one selected camera by the best feasible candidate (of `pool`, indices,
-    when given) while the score drops by more than rtol (relative). Returns (chosen, score, swaps
-    made)."""
-    chosen = list(chosen)
-    current, swaps = scorer.of(cand, chosen), 0
-    for _ in range(max_passes):
-        improved = False
-        for slot, rest, ok in _swap_options(feas, chosen, pool):
-            s = scorer.add(*cand.sums(rest), cand, ok)
-            best = int(np.argmin(s))
-            if s[best] < current * (1 - rtol):
-                chosen[slot], current = int(ok[best]), float(s[best])
-                swaps, improved = swaps + 1, True
-        if not improved:
-            break
-    return chosen, current, swaps
-
-
 POLISH_SHORTLIST = 128      # candidates per slot that the polish judges: those of lowest score
 POLISH_BLOCK = 16           # candidates whose (N, 6) sums are formed together in the polish
 POLISH_PASSES = 3           # most passes over the slots
 POLISH_RTOL = 1e-3          # a polish swap lowers the worst region's p95 by more than this (relative)
 POLISH_PERCENTILE = 95.0    # the curve's figure: each region's σ_max p95
-ROUNDING_RTOL = 1e-6        # the relaxation's rounded start replaces a count's selection when it scores this much lower
 REFINE_MIN_S = 10.0         # --refine's optimize gets at least this long when the time limit is spent
-RESTART_SPREAD = 0.1        # share of a restart's draw spread evenly over the candidates (the rest
-                            # follows the relaxation's weights): starts away from the relaxation too
-RESTART_SEED = 0            # the restarts' random stream (a design is repeatable)
-RESTART_PATIENCE = 16       # the restarts stop after this many starts in a row find nothing better
-RESTART_POOL = 1024         # candidates a restart's exchange passes choose from (drawn as its start;
-                            # the best restart's selection is then exchanged over all candidates)
 
 
 @dataclass(frozen=True)
@@ -223,7 +166,7 @@ def polish(cand: Candidates, scorer: Scorer, feas: Feasibility, samples, chosen,
     worst, cover = float(here.worst_p95[0]), float(here.coverage[0])
     for _ in range(POLISH_PASSES):
         improved = False
-        for slot, rest, ok in _swap_options(feas, chosen):
+        for slot, rest, ok in swap_options(feas, chosen):
             top = ok[np.argsort(scorer.add(*cand.sums(rest), cand, ok))[:POLISH_SHORTLIST]]
             f = figures(cand, scorer, samples, rest, top)
             better = (f.coverage >= cover - LIMIT_SLACK) & (f.worst_p95 < worst * (1 - rtol))
@@ -254,56 +197,6 @@ def _count(exp: Experiment, cand: Candidates, scorer: Scorer, feas: Feasibility,
             "chosen": chosen,
             "lenses_mm": " ".join(f"{cand.cameras[i].focal_length * 1e3:g}" for i in chosen),
             "bodies": " ".join(bodies(exp)[cand.body[i]].name for i in chosen), **judged}
-
-
-def rounded(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.ndarray,
-            k: int) -> list[int]:
-    """A feasible selection of k cameras from the relaxation's weights (`vdo.design.bound.Bound`):
-    the candidates by decreasing weight, each taken while it is feasible with those taken, then
-    `greedy` to k when the weighted ones run out."""
-    chosen: list[int] = []
-    for i in np.argsort(-np.asarray(weights)):
-        if len(chosen) == k or weights[i] <= 0:
-            break
-        if feas.allowed(chosen)[i]:
-            chosen.append(int(i))
-    if len(chosen) < k:
-        chosen, _ = greedy(cand, scorer, feas, k, start=chosen)
-    return chosen
-
-
-def restarts(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.ndarray | None,
-             k: int, seconds: float, rng: np.random.Generator) -> tuple[list[int], float, int]:
-    """Random restarts for k cameras for about `seconds` (at least one start; fewer when
-    RESTART_PATIENCE starts in a row find nothing better than the best so far): each start draws
-    feasible candidates one at a time, candidate i (not yet drawn, feasible with those drawn)
-    with probability proportional to (1 - RESTART_SPREAD) w_i / sum(w) + RESTART_SPREAD / K
-    (w: the relaxation's weights; uniform without them; K candidates), up to k (`greedy` fills
-    the rest when the draws run out of feasible candidates), then `exchange` to a local minimum
-    of single swaps among RESTART_POOL candidates drawn the same way (a pass over all of them
-    costs K / RESTART_POOL times as much). Returns the best (chosen, score) and the number of
-    starts; the caller exchanges the best over all candidates."""
-    K = len(cand.cameras)
-    w = np.zeros(K) if weights is None else np.clip(np.asarray(weights, dtype=float), 0.0, None)
-    p = (1.0 - RESTART_SPREAD) * w / w.sum() + RESTART_SPREAD / K if w.sum() > 0 else np.full(K, 1.0 / K)
-    best, best_score, starts, since = [], math.inf, 0, 0
-    stop = _clock() + seconds
-    while starts == 0 or (_clock() < stop and since < RESTART_PATIENCE):
-        starts, since = starts + 1, since + 1
-        chosen: list[int] = []
-        while len(chosen) < k:
-            q = np.where(feas.allowed(chosen), p, 0.0)
-            q[chosen] = 0.0
-            if q.sum() <= 0:
-                break
-            chosen.append(int(rng.choice(K, p=q / q.sum())))
-        if len(chosen) < k:
-            chosen, _ = greedy(cand, scorer, feas, k, start=chosen)
-        pool = rng.choice(K, size=min(K, RESTART_POOL), replace=False, p=p)
-        chosen, score, _ = exchange(cand, scorer, feas, chosen, pool=np.union1d(pool, chosen))
-        if score < best_score * (1 - ROUNDING_RTOL):
-            best, best_score, since = chosen, score, 0
-    return best, best_score, starts
 
 
 def _judged(exp: Experiment, cand: Candidates, coarse, chosen, can_measure) -> dict:
