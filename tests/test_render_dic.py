@@ -296,3 +296,54 @@ def test_an_open_sky_gives_the_ambient_radiance_times_the_albedo(plate_experimen
     si = dic._cast(ds, cam, np.column_stack([u.ravel(), v.ravel()]).astype(float))
     assert np.all(np.array(si.is_valid()))
     assert np.allclose(shading.shade(ds, si), ambient, rtol=1e-5)
+
+
+PIPE_RADIUS_MM, PIPE_AXIS_MM = 160.0, 1200.0   # a pipe along x; a camera level with its axis
+EDGE_ROW_RATIO = 0.9        # the edge row's darkest pixel against its neighbour rows' darkest
+
+
+def faceted_pipe(path, facets=96, cells=120, length_mm=3000.0):
+    """A closed ring of `facets` flat strips (open ends), a triangle soup as a CAD export writes
+    it, with a vertex row at (y, z) = (-R, axis height): the side a camera at y < 0 sees edge-on."""
+    import trimesh
+
+    phi = 2 * np.pi * np.arange(facets + 1) / facets
+    X, P = np.meshgrid(np.linspace(-length_mm / 2, length_mm / 2, cells + 1), phi, indexing="ij")
+    grid = np.stack([X, -PIPE_RADIUS_MM * np.cos(P), PIPE_AXIS_MM + PIPE_RADIUS_MM * np.sin(P)], -1)
+    a, b, c, d = grid[:-1, :-1], grid[1:, :-1], grid[1:, 1:], grid[:-1, 1:]
+    tri = np.concatenate([np.stack([a, b, c], -2), np.stack([a, c, d], -2)]).reshape(-1, 3, 3)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    outward = tri.mean(axis=1) * [0, 1, 1] - [0, 0, PIPE_AXIS_MM]
+    flip = np.einsum("ij,ij->i", normal, outward) < 0
+    tri[flip] = tri[flip][:, ::-1]
+    trimesh.Trimesh(tri.reshape(-1, 3), np.arange(3 * len(tri)).reshape(-1, 3), process=False).export(path)
+
+
+def test_a_camera_level_with_an_edge_sees_the_near_wall(plate_experiment, tmp_path):
+    """A camera level with a faceted pipe's axis: its middle pixel row (the principal point's)
+    runs exactly along the edge between two facets. Every primary ray that hits the pipe must hit
+    its near side (y < 0: the far wall is hidden by the near one, a closed form), and the DIC
+    render's edge row is no darker than its neighbours (a leaked ray saw the far wall from inside,
+    in the dark). In Embree's fast mode half of that row's 64 pixels were black (0); in its robust
+    mode (`vdo.rendering.dic.ROBUST_RAYS`) none.
+    161 rows: (161 - 1) is a multiple of the light map's SHADE_STRIDE, a tile size that crashed."""
+    from vdo.rendering import dic
+
+    faceted_pipe(tmp_path / "pipe.stl")
+    axis_m = PIPE_AXIS_MM / 1000
+    text = (down_camera("c", [0.0, -1.5, axis_m], (64, 161), 34.472, 12, target=[0.0, 0.0, axis_m])
+            + light("p", [0.3, -1.0, 1.2], [0, 0, 0.6], [0.3, 0.2], 20) + table("render", ambient_radiance=0.5))
+    extra = '[[mesh]]\nname = "pipe"\nfile = "pipe.stl"\nrole = "specimen"\nunit = "mm"\n'
+    exp = config.load(plate_experiment(cameras=text, extra_meshes=extra))
+    meshes = scene.load_meshes(**mesh_tables(exp))
+    ds = build_dic_scene(exp, meshes, scene.all_region_faces(meshes, **region_tables(exp)))
+    cam = cameras_of(exp.camera_specs, exp.rails)[0]
+    middle = cam.height // 2
+    assert cam.K[1, 2] == middle                            # the middle row's centres lie on the edge
+    v, u = np.mgrid[: cam.height, : cam.width]
+    si = dic._cast(ds, cam, np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    y = np.array(si.p[1]).reshape(cam.height, cam.width)
+    on_pipe = np.array(si.is_valid()).reshape(cam.height, cam.width)
+    assert on_pipe[middle].all() and not np.any(y[on_pipe] > 0)
+    image = render_camera_dic(ds, cam)
+    assert image[middle].min() >= EDGE_ROW_RATIO * min(image[middle - 1].min(), image[middle + 1].min())

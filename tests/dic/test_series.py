@@ -446,21 +446,28 @@ def test_fine_sharp_dots_at_own_pixels_are_within_three_sigma_measured_where_the
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("experiment", ["holed_plate/stereo.toml", "steel_beam/four_point_bending.toml"],
-                         ids=["holed-plate", "steel-beam"])
-def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experiment, tmp_path):
+@pytest.mark.parametrize("experiment, options", [
+    ("holed_plate/stereo.toml", ["--per-region", "3", "--steps", "2", "--mode", "dic"]),
+    ("steel_beam/four_point_bending.toml", ["--spp", "16", "--per-region", "4"])],
+    ids=["holed-plate-dic-two-steps", "steel-beam"])
+def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experiment, options, tmp_path):
     """The virtual test on experiments other than the built-in (`--experiment`): their own sharp
     speckle at their cameras' own pixels, the general affine field (a translation, a turn about
     the vertical and a stretch, which the mesh's vertices carry exactly), the pair that shares the
     most usable samples cropped around them. Every point's whole error is within 3 sigma_measured
     on every axis, where the bound alone (3 sqrt(2) sigma) fails at some points (at most of them
     while the renders blurred the lens after the pixels, which leaves aliasing; benchmarks/
-    README.md); the calibration files re-project as layout.json does."""
+    README.md); the calibration files re-project as layout.json does. The holed plate runs over 2
+    load steps (`--steps 2`: the field grows to its whole at the last, a .pvd of two .vtp files, a
+    point lost at step 2 re-seeded from step 1) rendered in the DIC mode (`--mode dic`): each
+    step's rendered motion is k/2 of the closed form, and the figure and the rows are written
+    beside the folder."""
+    import json
     import runpy
 
     example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
-    result = example["main"](["--out", str(tmp_path / "series"), "--quick", "--spp", "16",
-                              "--per-region", "4", "--realisations", "1",
+    out = tmp_path / "series"
+    result = example["main"](["--out", str(out), "--quick", "--realisations", "1", *options,
                               "--experiment", str(ROOT / "experiments" / experiment)])
     rows = result["rows"]
     assert len(rows) >= 3 and len({r["pair"] for r in rows}) == 1
@@ -470,24 +477,8 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
         np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
         assert np.all(np.abs(r["error_um"]) <= N_SIGMA * np.array(r["sigma_measured_um"])), r
     assert any(r["ratio"] > N_SIGMA for r in rows), rows    # the bound alone is not enough
-
-
-@pytest.mark.slow
-def test_virtual_test_over_load_steps_in_the_dic_mode(tmp_path):
-    """The virtual test over 2 load steps (`--steps 2`: the field grows to its whole at the last,
-    a .pvd of two .vtp files, a point lost at step 2 re-seeded from step 1) rendered in the DIC mode
-    (`--mode dic`), on the holed plate: each step's rendered motion is k/2 of the closed form,
-    every point of every step is within 3 sigma_measured, and the figure and the rows are
-    written beside the folder."""
-    import json
-    import runpy
-
-    example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
-    out = tmp_path / "series"
-    result = example["main"](["--out", str(out), "--quick", "--per-region", "3", "--realisations", "1",
-                              "--steps", "2", "--mode", "dic",
-                              "--experiment", str(ROOT / "experiments" / "holed_plate" / "stereo.toml")])
-    rows = result["rows"]
+    if "--steps" not in options:
+        return
     assert sorted({r["step"] for r in rows}) == [1, 2]
     assert json.loads((out / "series.json").read_text())["steps"] == [0, 1, 2]   # the reference + 2
     by_step = {k: [r for r in rows if r["step"] == k] for k in (1, 2)}
@@ -495,10 +486,6 @@ def test_virtual_test_over_load_steps_in_the_dic_mode(tmp_path):
     for a, b in zip(by_step[1], by_step[2]):
         assert a["point_mm"] == b["point_mm"]
         np.testing.assert_allclose(np.multiply(a["closed_form_um"], 2), b["closed_form_um"], rtol=1e-9)
-    for r in rows:
-        assert r["converged"], r
-        np.testing.assert_allclose(r["rendered_um"], r["closed_form_um"], atol=RENDERED_UM)
-        assert np.all(np.abs(r["error_um"]) <= N_SIGMA * np.array(r["sigma_measured_um"])), r
     assert (tmp_path / "series_result.png").stat().st_size > 10_000
     assert len(json.loads((tmp_path / "series_result.json").read_text())) == len(rows)
 

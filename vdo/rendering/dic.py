@@ -24,6 +24,10 @@ MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): 
                              # corner differences lose digits and its average is the point value
 FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
                              # (the cells on which a lens's blur acts, `render_camera_dic`)
+ROBUST_RAYS = True           # Embree's watertight mode in the DIC scene: in its fast mode a ray of the
+                            # pixel lattice through a shared edge can miss both triangles and hit the
+                            # far wall from inside (a camera level with a pipe's vertex row: half its
+                            # middle row black, tests/test_render_dic.py); cost in benchmarks/README.md
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -137,7 +141,8 @@ def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=No
     mi = mitsuba()
     sp = exp.speckle
     pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
-    scene = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True)
+    scene = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True,
+                               robust=ROBUST_RAYS)
     ids = tuple(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in scene.shapes()
                 if s.id().endswith(SPECKLED_SUFFIX))
     lights = []
@@ -448,7 +453,7 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, norma
     held by their pixel (row y, column x) on one lattice for all levels."""
     h, W = ids.shape
     s = SHADE_STRIDE
-    ncy, ncx = max(1, -(-(h - 1) // s)), max(1, -(-(W - 1) // s))
+    ncy, ncx = -(-h // s), -(-W // s)          # cells of s x s pixels covering the tile
     # The least and greatest shape id in each cell of each level (a min/max pyramid).
     lo_ids = {1: np.pad(ids, ((0, ncy * s - h), (0, ncx * s - W)), mode="edge")}
     hi_ids = {1: lo_ids[1]}

@@ -371,7 +371,7 @@ def _integrator_dict(lights, ambient: float) -> dict:
 
 
 def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=None,
-                       white_regions: bool = False):
+                       white_regions: bool = False, robust: bool = False):
     """The Mitsuba scene to render `exp` (module docstring), without sensors. `meshes` are the
     experiment's SceneMeshes at rest (vdo.scene.load_meshes), `region_faces` one RegionFaces per
     region, `bodies` camera-body SceneMeshes, `pattern` the [0, 1] speckle tile (default:
@@ -380,7 +380,8 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
     come from the rest vertices, so the speckle moves with the surface (`vdo.dic.series`).
     `white_regions`: the regions are white (ρ = 1, texture coordinates kept) for the DIC render
     mode, which multiplies in the speckle itself (`build_dic_scene`); their shapes' ids end in
-    SPECKLED_SUFFIX either way."""
+    SPECKLED_SUFFIX either way. `robust`: Embree's watertight mode (RTC_SCENE_FLAG_ROBUST), for
+    rays cast on a lattice (the DIC render mode), which can pass exactly through a shared edge."""
     at = {m.name: m.vertices for m in (posed or meshes)}
 
     def moved(name, faces):
@@ -447,7 +448,8 @@ def build_render_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed
     dark = mi.load_dict(_diffuse(BODY_ALBEDO))
     for body in bodies:
         shapes[body.name] = _mi_mesh(body.name, body.vertices, body.faces, dark)
-    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance),
+             "embree_use_robust_intersections": robust}
     for i, (name, shape) in enumerate(shapes.items()):
         scene[f"shape_{i:04d}" + (SPECKLED_SUFFIX if name.startswith("region:") else "")] = shape
     for i, light in enumerate(exp.lights):
@@ -464,7 +466,8 @@ def lit_scene(exp, shapes: dict):
     the specimen (`vdo.calib.images` renders the calibration target in it)."""
     from vdo.core.backend import mitsuba
 
-    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance),
+             "embree_use_robust_intersections": robust}
     for i, shape in enumerate(shapes.values()):
         scene[f"shape_{i:04d}"] = shape
     for i, light in enumerate(exp.lights):
