@@ -23,7 +23,8 @@ JAX, and exact checks for the report.
                 floor holds its cameras by construction;
 * tripods:      no tripod leg inside a keep-out box, and two tripods' legs the clearance apart
                 (`tripod_penalty`, counted with the clearance; `tripod_checks`);
-* rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), roll held);
+* rails, horizontality: by construction of the parameters (u = sigmoid(z) in (0, 1), or z mod 1 on
+                a closed rail; roll held);
 * shadows:      camera bodies do not shadow the regions from the lights (lights are not variables:
                 the bodies keep off the rays from the lit samples to the panels).
 

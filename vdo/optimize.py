@@ -2,7 +2,7 @@
 uncertainty under the practical constraints of `vdo.constraints`.
 
 Parameters, per moving camera, each only when listed in ``[optimize] free``: its position ("u":
-on a rail z_u with u = sigmoid(z_u), in a zone one sigmoid per axis of its box, so the camera
+on a rail z_u with u = sigmoid(z_u), or z_u mod 1 round a closed rail, in a zone one sigmoid per axis of its box, so the camera
 cannot leave its mount; `Parameterization`), pan, tilt, roll (held at its configured value,
 0 = horizontal, unless freed); and, with "lens" free, the focal length, a discrete choice from
 ``[optimize] lenses_mm`` made in an outer loop (`choose_lenses`). The objective, a JAX function

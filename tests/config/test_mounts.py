@@ -179,6 +179,41 @@ def test_a_cad_circle_with_its_knots_is_a_circle(tmp_path):
     np.testing.assert_allclose(again.point(u), pts, atol=1e-12)
 
 
+SEAM_STEP = 0.05     # how far past the ring's seam (u = 1 = 0) the camera is moved, in u
+
+
+def test_a_camera_goes_round_a_closed_rail_past_its_seam(tmp_path):
+    """On a closed rail (the CAD circle: its last control point is its first) the optimizer's u
+    is θ mod 1, not a sigmoid that stops short of the ends: a camera at u = 0.98 moved by
+    SEAM_STEP stands at the config's own point C(0.03) (NumPy, `RailSpec.point`), the map's
+    derivative across the seam matches central differences, and `u` reads 0.03. The open beam
+    keeps its sigmoid. `vdo design` offers the ring's u = 0 once (not again at u = 1)."""
+    from vdo.design.candidates import spots
+
+    exp = config.load(write(tmp_path, MOUNTS + RING, RING_CAMERA.replace("u = 0.5", "u = 0.98")
+                            + CAMERAS.split("[[camera]]")[3].replace('name = "b"', '[[camera]]\nname = "o"')
+                            + "\n[design]\nrail_positions = 5\n"))
+    ring = next(r for r in exp.rails if r.name == "ring")
+    param = Parameterization(exp, cameras_of(exp.camera_specs, exp.rails), np.zeros(3))
+    assert param.periodic == [False, False, True, False] and ring.closed
+    k = param.index[2]["u"]
+    assert param.theta0[k] == pytest.approx(0.98)
+    theta = param.theta0.copy()
+    theta[k] += SEAM_STEP
+    np.testing.assert_allclose(param.cameras_at(theta)[2].position, ring.point(0.03), atol=1e-9)
+    assert param.u(theta)[2] == pytest.approx(0.03) and param.u(theta)[3] == 0.5
+    pos = lambda z: param.poses(jnp.asarray(theta).at[k].set(z), param.held)[0][2]
+    h = 1e-6
+    for z in (1.0 - 1e-3, 1.0 + 1e-3):                      # either side of the seam
+        fd = (np.asarray(pos(z + h)) - np.asarray(pos(z - h))) / (2 * h)
+        np.testing.assert_allclose(np.asarray(jax.jacfwd(pos)(z)), fd, rtol=1e-5, atol=1e-8)
+    by_rail = {}
+    for mount, kind, u, *_ in spots(exp):
+        by_rail.setdefault(mount, []).append(u)
+    assert sorted(set(by_rail["ring"])) == [0.0, 0.25, 0.5, 0.75]          # each u with its heads
+    assert sorted(set(by_rail["beam"])) == [0.0, 0.25, 0.5, 0.75, 1.0]
+
+
 @pytest.mark.parametrize("knots, words", [
     ("[0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4]", "must hold n + degree + 1 = 12 values"),
     ("[0, 0, 0, 1, 1, 2, 2, 3, 3, 2, 4, 4]", "must be non-decreasing"),

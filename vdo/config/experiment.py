@@ -254,7 +254,8 @@ class Experiment:
             return np.zeros((0, 3))
         d = self.design
         if any(r.name == light.mount for r in self.rails):
-            points = np.asarray(self.rail(light.mount).point(d.rail_us), float).reshape(-1, 3)
+            rail = self.rail(light.mount)
+            points = np.asarray(rail.point(rail.spread(d.rail_us)), float).reshape(-1, 3)
         else:
             points = zone_grid(self.mount(light.mount), d.zone_points, d.zone_heights)
         return points[inside_keep_out(self.keep_outs, points) < 0] if len(points) else points

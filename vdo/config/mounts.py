@@ -156,6 +156,17 @@ class RailSpec:
         """C(u) in metres (u.shape + (3,)), u in [0, 1] (`vdo.model.nurbs.point`)."""
         return nurbs.point(self.control_points, self.degree, self.weights, u, self.knots)
 
+    @property
+    def closed(self) -> bool:
+        """A ring: its last control point is its first (`vdo.model.nurbs.is_closed`)."""
+        return nurbs.is_closed(self.control_points)
+
+    def spread(self, us: np.ndarray) -> np.ndarray:
+        """The values `us` in [0, 1] of u to place things at, without u = 1 on a closed rail
+        where u = 0 is taken (the same place)."""
+        us = np.asarray(us, dtype=float)
+        return us[:-1] if self.closed and len(us) > 1 and us[0] == 0.0 and us[-1] == 1.0 else us
+
 
 @dataclass(frozen=True)
 class TripodSpec:

@@ -267,14 +267,14 @@ def targets(samples) -> np.ndarray:
 
 def spots(exp: Experiment) -> list[tuple]:
     """Where candidates stand: (mount name, kind, u, offset (3,), optical centre (3,)) for
-    `rail_positions` values of u on every rail (with `offset_m`, and its mirror below the bar),
+    `rail_positions` values of u on every rail (u = 1 left out on a closed rail: it is u = 0) (with `offset_m`, and its mirror below the bar),
     the `zone_grid` of every zone mount, every fixed mount, and every [[camera]] given by
     position_m on no mount; not the mounts of the [[light]]s."""
     d = exp.design
     lit = {lt.mount for lt in exp.lights if lt.mount is not None}
     heads = [d.offset] + ([d.offset * [1, 1, -1]] if d.offset[2] != 0 else [])
     out = [(r.name, "rail", float(u), h, exp.rail(r.name).point(u) + h)
-           for r in exp.rails if r.name not in lit for u in d.rail_us for h in heads]
+           for r in exp.rails if r.name not in lit for u in r.spread(d.rail_us) for h in heads]
     zero = np.zeros(3)
     for m in (m for m in exp.mounts if m.name not in lit):
         points = zone_grid(m, d.zone_points, d.zone_heights) if m.kind == "zone" else [m.position]

@@ -10,6 +10,16 @@ from __future__ import annotations
 
 import numpy as np
 
+CLOSED_TOL_M = 1e-9     # m: a rail whose last control point is its first within this is closed
+
+
+def is_closed(control_points) -> bool:
+    """Whether a clamped curve through these control points (n, 3) closes on itself: C(0) = P_0
+    and C(1) = P_(n-1) coincide within CLOSED_TOL_M (a ring rail, as a CAD circle or a polyline
+    whose last point is its first). Its u is then periodic: u and u + 1 are the same place."""
+    pts = np.asarray(control_points, dtype=float)
+    return bool(np.linalg.norm(pts[-1] - pts[0]) <= CLOSED_TOL_M)
+
 
 def clamped_knots(n: int, p: int) -> np.ndarray:
     """Clamped uniform knot vector on [0, 1] for n control points of degree p (n + p + 1 values)."""

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from vdo.model.nurbs import de_boor, homogeneous, knot_vector
+from vdo.model.nurbs import de_boor, homogeneous, is_closed, knot_vector
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,6 +45,11 @@ class Rail:
             raise ValueError("weights must be n positive numbers")
         object.__setattr__(self, "control_points", pts)
         object.__setattr__(self, "weights", w)
+
+    @property
+    def closed(self) -> bool:
+        """A ring: u and u + 1 are the same place (`vdo.model.nurbs.is_closed`)."""
+        return is_closed(self.control_points)
 
     @property
     def knots(self) -> np.ndarray:

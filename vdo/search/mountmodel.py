@@ -21,7 +21,8 @@ class MountModel:
 
     theta (P,), the optimizer's unconstrained variables (`Parameterization`), one per free
     parameter ([optimize] free) of each moving camera ([optimize] cameras), named in `names`:
-    "cam.u": logit of the rail parameter (u = sigmoid(θ), 0..1 along the rail); "cam.x", "cam.y",
+    "cam.u": logit of the rail parameter (u = sigmoid(θ), 0..1 along the rail; on a closed rail
+    u itself, taken mod 1); "cam.x", "cam.y",
     "cam.z": logit of the fraction of a zone's box along that axis (over a floor polygon
     "cam.w1", ...: softmax logits of its corners against the first, and "cam.z"); "cam.pan",
     "cam.tilt" (rad): offsets from the direction to the camera's aim point when its position is

@@ -1,7 +1,8 @@
 """θ <-> camera specs: the optimizer's unconstrained variables and the camera poses they map to.
 
 Per moving camera, each only when listed in ``[optimize] free``: its position ("u": on a rail
-z_u with u = sigmoid(z_u), in a zone one sigmoid per axis of its box, or softmax weights over the
+z_u with u = sigmoid(z_u), on a closed rail (a ring) u = z_u mod 1, so a camera can go round
+past the seam, in a zone one sigmoid per axis of its box, or softmax weights over the
 corners of a convex floor polygon, so the camera cannot leave its mount; over any other floor the
 sigmoids of its bounding box, and the floor penalty, `vdo.constraints.floor_penalty`, keeps it on
 the floor), pan, tilt (offsets from the
@@ -25,6 +26,10 @@ from vdo.model.rail import Rail
 from vdo.config.experiment import Experiment
 
 ANGLE_SCALE = math.radians(3.0)   # rad: the solver's largest unit for an angle (`Parameterization`)
+PERIODIC_U_SCALE = 0.125          # the solver's unit for u on a closed rail: what the logit's 0.5
+                                  # is in u at mid-rail (du/dz = 1/4 there)
+PERIODIC_U_SPREAD = 0.1           # the extra starts' spread of u on a closed rail: the logit's 0.4
+                                  # at mid-rail (`perturbation`)
 
 
 # --------------------------------------------------------------------------------------------
@@ -34,7 +39,9 @@ class Parameterization:
     """θ <-> camera poses. `index[c]` maps 'u' (rail), 'x', 'y', 'z' (zone), 'pan', 'tilt',
     'roll' to positions in θ for the free parameters of camera c.
 
-    Position ("u" in `[optimize] free`): on a rail, u = sigmoid(z_u) in (0, 1); in a zone mount
+    Position ("u" in `[optimize] free`): on a rail, u = sigmoid(z_u) in (0, 1), on a closed
+    rail u = z_u mod 1 in [0, 1) (C(0) = C(1): the position is continuous across the seam,
+    `periodic`); in a zone mount
     (a box [lo, hi]), each axis with an extent, p_k = lo_k + (hi_k - lo_k) sigmoid(z_k), so the
     camera can never leave its zone and the map is smooth; an axis with no extent, and a
     camera on a fixed mount, keeps its configured position.
@@ -47,7 +54,7 @@ class Parameterization:
     is undefined) pan, tilt and roll are absolute. θ = 0 offsets reproduce the hand layout; a
     held angle keeps its configured value. Each parameter's natural scale (`scale`, the solver's
     unit) is 0.5 in logit u (or per zone axis), and for an angle `ANGLE_SCALE` or an eighth of the camera's
-    horizontal field of view, whichever is smaller."""
+    horizontal field of view, whichever is smaller; PERIODIC_U_SCALE for u on a closed rail."""
 
     RELATIVE = ("pan", "tilt")  # the angles an aimed camera holds as offsets
     AXES = ("x", "y", "z")      # a zone camera's position parameters
@@ -61,13 +68,21 @@ class Parameterization:
         self.zones = [exp.mount(s.mount) if s.mount and exp.mount(s.mount).kind == "zone" else None
                       for s in exp.camera_specs]
         logit = lambda u: math.log(u / (1 - u))
-        for cam, spec, zone in zip(cameras, exp.camera_specs, self.zones):
+        rails = {r.name: Rail(name=r.name, control_points=r.control_points, degree=r.degree,
+                              weights=r.weights, knots_given=r.knots) for r in exp.rails}      # in JAX: d(position)/du
+        self.rails = [rails[s.rail] if s.rail else None for s in exp.camera_specs]
+        self.periodic = []
+        for cam, spec, zone, rail in zip(cameras, exp.camera_specs, self.zones, self.rails):
             idx = {}
             if cam.name in moving:
                 for name in ("u", "pan", "tilt", "roll"):
                     if name not in free:
                         continue
-                    if name == "u" and spec.rail is not None:
+                    if name == "u" and spec.rail is not None and rail.closed:
+                        idx[name] = len(theta)
+                        theta.append(float(spec.u))
+                        scale.append(PERIODIC_U_SCALE)
+                    elif name == "u" and spec.rail is not None:
                         idx[name] = len(theta)
                         theta.append(logit(float(np.clip(spec.u, 1e-4, 1 - 1e-4))))
                         scale.append(0.5)
@@ -97,13 +112,11 @@ class Parameterization:
                         # a few degrees, less for a long lens: an eighth of its horizontal field
                         scale.append(min(ANGLE_SCALE, math.atan(cam.width / 2 / cam.focal_px) / 4))
             self.index.append(idx)
+            self.periodic.append("u" in idx and rail.closed)
             aims.append(aim_point(cam.position, cam.pan, cam.tilt, centre))
         self.theta0 = np.array(theta, dtype=float)
         self.scale = np.array(scale, dtype=float)   # the solver works in units of these
         self.aims = np.array(aims)
-        rails = {r.name: Rail(name=r.name, control_points=r.control_points, degree=r.degree,
-                              weights=r.weights, knots_given=r.knots) for r in exp.rails}      # in JAX: d(position)/du
-        self.rails = [rails[s.rail] if s.rail else None for s in exp.camera_specs]
 
     @staticmethod
     def _aimed(idx: dict, cam: Camera) -> bool:
@@ -135,7 +148,7 @@ class Parameterization:
     def signature(self) -> tuple:
         """What the traced `poses` depends on besides its array inputs (`held`): two
         parameterisations with the same signature share compiled programs."""
-        return (tuple(tuple(sorted(idx.items())) for idx in self.index),
+        return (tuple(tuple(sorted(idx.items())) for idx in self.index), tuple(self.periodic),
                 tuple(self._aimed(idx, c) for idx, c in zip(self.index, self.cameras)),
                 tuple((s.rail, tuple(np.asarray(s.offset, float))) for s in self.exp.camera_specs),
                 tuple(None if z is None else (tuple(z.low), tuple(z.high),
@@ -150,7 +163,8 @@ class Parameterization:
         for c, (cam, spec, rail, idx) in enumerate(zip(self.cameras, self.exp.camera_specs, self.rails,
                                                        self.index)):
             if "u" in idx:
-                p = rail.position(jax.nn.sigmoid(theta[idx["u"]])) + spec.offset
+                z = theta[idx["u"]]
+                p = rail.position(jnp.mod(z, 1.0) if self.periodic[c] else jax.nn.sigmoid(z)) + spec.offset
             elif self.moves(idx):
                 p = self.zone_position(self.zones[c], theta, idx, held["position"][c])
             else:
@@ -189,9 +203,12 @@ class Parameterization:
         return jnp.stack([axis(k, a) if a in idx else held[k] for k, a in enumerate(cls.AXES)])
 
     def u(self, theta) -> list:
+        """Each camera's rail parameter u at θ (sigmoid, or mod 1 on a closed rail; the spec's
+        own where u is held or there is no rail)."""
         theta = np.asarray(theta)
-        return [float(expit(theta[idx["u"]])) if "u" in idx else spec.u
-                for spec, idx in zip(self.exp.camera_specs, self.index)]
+        return [(float(np.mod(theta[idx["u"]], 1.0)) if periodic else float(expit(theta[idx["u"]])))
+                if "u" in idx else spec.u
+                for spec, idx, periodic in zip(self.exp.camera_specs, self.index, self.periodic)]
 
     def cameras_at(self, theta) -> list[Camera]:
         if not hasattr(self, "_poses_jit"):   # one compiled program, not one per eager operation
@@ -228,8 +245,13 @@ def mean_value_coordinates(polygon: np.ndarray, point) -> np.ndarray:
 
 
 def perturbation(param: Parameterization, rng) -> np.ndarray:
+    """A random offset of θ for an extra start: positions by 0.4 in their logits (PERIODIC_U_SPREAD
+    in u on a closed rail), angles by 3 degrees."""
     d = np.zeros_like(param.theta0)
-    for idx in param.index:
+    for idx, periodic in zip(param.index, param.periodic):
         for name, k in idx.items():
-            d[k] = rng.normal(0, 0.4) if Parameterization.is_position(name) else rng.normal(0, math.radians(3))
+            if name == "u" and periodic:
+                d[k] = rng.normal(0, PERIODIC_U_SPREAD)
+            else:
+                d[k] = rng.normal(0, 0.4) if Parameterization.is_position(name) else rng.normal(0, math.radians(3))
     return d
