@@ -606,3 +606,14 @@ def test_the_p95_where_both_measure_is_over_the_samples_both_measure():
     out = p95_where_both_measure(SimpleNamespace(region=region, region_names=("a", "b")), before, after)
     assert out["a"] == [pytest.approx(1.95), pytest.approx(3.0 + 0.95 * 2.0)]
     assert out["b"] == [None, None]
+
+
+def test_a_higher_score_after_a_broken_start_says_why():
+    """Trial 4: `design --refine` read "score 896.3 -> 1236 µm" with no word on why: the designed
+    start broke a constraint, which the search meets first. The "best:" line says so only then."""
+    from vdo.optimize import why_higher
+
+    said = why_higher(896.3, 1236.0, 0, 1)
+    assert "the start broke 1 constraint(s), this breaks 0" in said
+    assert why_higher(1236.0, 896.3, 0, 1) == ""           # lower: nothing to explain
+    assert why_higher(896.3, 1236.0, 1, 1) == ""           # as many broken: not the reason

@@ -291,9 +291,11 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
     traded = precision_traded(before, after, scored, score_before["score_um"], best.score, common)
     if traded is not None:
         log.warning(traded["message"])
-    log.info("best: %s, score %.4g -> %.4g µm, %d constraint violation(s)",
+    log.info("best: %s, score %.4g -> %.4g µm, %d constraint violation(s)%s",
              run_labels(run.history, run.verdicts).get(best.start, f"start {best.start + 1}"),
-             score_before["score_um"], score_after["score_um"], best.violations)
+             score_before["score_um"], score_after["score_um"], best.violations,
+             why_higher(score_before["score_um"], score_after["score_um"], best.violations,
+                        sum(not e["met"] for e in checks_before)))
     return OptimizeResult(status=status, score_before_um=score_before["score_um"], score_after_um=best.score,
                           startup_s=startup, search_s=search, reason=reason,
                           score_regions_um=score_after["regions"], reachability=reach,
@@ -307,6 +309,16 @@ def optimize_layout(exp: Experiment, time_limit: float = DEFAULT_TIME_LIMIT, sto
                               time_limit_s=time_limit, rounds=run.rounds, starts=run.ends,
                               history=run.history, verdicts=run.verdicts, best_start=best.start,
                               score_before=score_before, score_after=score_after))
+
+
+def why_higher(before_um: float, after_um: float, violations: int, broken: int) -> str:
+    """What the "best:" line adds when the optimized score is higher than the start's: the start
+    broke `broken` constraints and the result breaks fewer (`violations`), and the search puts
+    meeting constraints before the score (`vdo.search.solver`); "" otherwise."""
+    if after_um <= before_um or violations >= broken:
+        return ""
+    return (f" (higher than the start's: the start broke {broken} constraint(s), this breaks "
+            f"{violations}, and meeting them comes first)")
 
 
 @dataclasses.dataclass(frozen=True)
