@@ -124,6 +124,22 @@ class Illumination:
         return self.direct.sum(axis=0) + self.sky_irradiance
 
     @property
+    def sampling_cv2(self) -> np.ndarray:
+        """(N,) the squared coefficient of variation V / E² of the sampled render mode's one-sample
+        estimate of E (`vdo.rendering.scene`'s `vdo_panels`: one point per panel, one
+        BSDF-sampled sky direction, a shadow ray each), 0 where E = 0. Each panel's term is
+        E_l / lit_l times a Bernoulli of its visible fraction lit_l, the sky's π L_amb times a
+        Bernoulli of S; the cosθ/r² variation over a panel (about 1 % per sample) is left out:
+
+            V = Σ_l E_l² (1 - lit_l) / lit_l + (π L_amb)² S (1 - S)              [W² m^-4]"""
+        lit = self.lit
+        panels = np.where(lit > 0, self.direct ** 2 * (1 - lit) / np.where(lit > 0, lit, 1.0), 0.0).sum(axis=0)
+        S = np.ones(self.direct.shape[1]) if self.sky is None else self.sky
+        V = panels + self.ambient ** 2 * S * (1 - S)
+        E = self.irradiance
+        return np.where(E > 0, V / np.where(E > 0, E, 1.0) ** 2, 0.0)
+
+    @property
     def lights_reaching(self) -> np.ndarray:
         """Number of lights of which at least half the panel (REACH) is visible, per sample (N,)."""
         return (self.lit >= REACH).sum(axis=0)
