@@ -24,10 +24,13 @@ MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): 
                              # corner differences lose digits and its average is the point value
 FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
                              # (the cells on which a lens's blur acts, `render_camera_dic`)
-ROBUST_RAYS = True           # Embree's watertight mode in the DIC scene: in its fast mode a ray of the
-                            # pixel lattice through a shared edge can miss both triangles and hit the
-                            # far wall from inside (a camera level with a pipe's vertex row: half its
-                            # middle row black, tests/test_render_dic.py); cost in benchmarks/README.md
+ROBUST_RAYS = True           # Embree's watertight mode for the primary rays: in its fast mode a ray of
+                             # the pixel lattice through a shared edge can miss both triangles and hit
+                             # the far wall from inside (a camera level with a pipe's vertex row: half
+                             # its middle row black, tests/test_render_dic.py). The shadow rays keep
+                             # the fast mode (`DicScene.shadows`): the robust one cost them 30 % of CPU
+                             # (200 k nodes of cam1, 3.25 -> 4.23 s), and one of them through an edge
+                             # is one quadrature point, not a line of pixels
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -118,10 +121,13 @@ def _b2_weights(t):
 @dataclass(frozen=True, eq=False)
 class DicScene:
     """What the DIC render mode needs of an experiment: the render scene with white regions
-    (`build_render_scene(white_regions=True)`), the registry ids of the speckled shapes, the
-    speckle's summed-area table and tile size, the paint's albedos and the lights."""
+    (`build_render_scene(white_regions=True)`) in Embree's robust mode for the primary rays
+    (ROBUST_RAYS) and the same scene in its fast mode for the shadow rays (`shadows`), the
+    registry ids of the speckled shapes (of `scene`), the speckle's summed-area table and tile
+    size, the paint's albedos and the lights."""
 
     scene: object
+    shadows: object
     speckled_ids: tuple[int, ...]
     table: SpeckleTable
     tile: tuple[int, int]          # (W_t, H_t) texels of the pattern tile
@@ -143,6 +149,8 @@ def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=No
     pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
     scene = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True,
                                robust=ROBUST_RAYS)
+    shadows = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed,
+                                 white_regions=True) if ROBUST_RAYS else scene
     ids = tuple(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in scene.shapes()
                 if s.id().endswith(SPECKLED_SUFFIX))
     lights = []
@@ -150,7 +158,7 @@ def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=No
         n, e1, e2 = panel_frame(light)
         w, h = light.size
         lights.append((np.asarray(light.position, float), e1 * w, e2 * h, n, float(light.radiance)))
-    return DicScene(scene, ids, SpeckleTable.of(pattern), (pattern.shape[1], pattern.shape[0]),
+    return DicScene(scene, shadows, ids, SpeckleTable.of(pattern), (pattern.shape[1], pattern.shape[0]),
                     float(sp.black_albedo), float(sp.white_albedo), tuple(lights),
                     float(exp.render.ambient_radiance))
 

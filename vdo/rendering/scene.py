@@ -466,8 +466,7 @@ def lit_scene(exp, shapes: dict):
     the specimen (`vdo.calib.images` renders the calibration target in it)."""
     from vdo.core.backend import mitsuba
 
-    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance),
-             "embree_use_robust_intersections": robust}
+    scene = {"type": "scene", "integrator": _integrator_dict(exp.lights, exp.render.ambient_radiance)}
     for i, shape in enumerate(shapes.values()):
         scene[f"shape_{i:04d}"] = shape
     for i, light in enumerate(exp.lights):

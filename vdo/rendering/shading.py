@@ -101,7 +101,7 @@ def shade(dscene, si) -> np.ndarray:
             point, normal = (dr.gather(mi.Point3f, t, k) for t in table)
             d = dr.normalize(point - hit.p)
             front = hit.is_valid() & (-dr.dot(d, mi.Vector3f(normal)) > 0) & (dr.dot(d, hit.n) > 0)
-            seen = front & ~dscene.scene.ray_test(hit.spawn_ray_to(point), front)
+            seen = front & ~dscene.shadows.ray_test(hit.spawn_ray_to(point), front)
             n_front = dr.block_sum(mi.Float(dr.select(front, 1.0, 0.0)), per_panel)
             n_seen = dr.block_sum(mi.Float(dr.select(seen, 1.0, 0.0)), per_panel)
             # Lit: every probe in front and visible: LIT_POINTS^2 Gauss-Legendre points without
@@ -128,7 +128,7 @@ def shade(dscene, si) -> np.ndarray:
                 ok = hit.is_valid() & (cos_l > 0) & (dr.dot(d, hit.n) > 0)
                 if points == per_point:
                     test = ok & (dr.gather(mi.Float, n_seen, pair) != dr.gather(mi.Float, n_front, pair))
-                    ok &= ~(test & dscene.scene.ray_test(hit.spawn_ray_to(point), test))
+                    ok &= ~(test & dscene.shadows.ray_test(hit.spawn_ray_to(point), test))
                 f = hit.bsdf().eval(ctx, hit, hit.to_local(d), ok)
                 value = mi.luminance(dr.select(ok, f * (dr.gather(mi.Float, quad_w, k) * cos_l / dist2), 0.0))
                 dr.scatter_reduce(dr.ReduceOp.Add, total, value, local)
@@ -138,7 +138,7 @@ def shade(dscene, si) -> np.ndarray:
             valid = hit.is_valid()
             bs, w = hit.bsdf().sample(ctx, hit, 0.5, dr.gather(mi.Point2f, S, lane % len(samples)), valid)
             ok = valid & (bs.pdf > 0)
-            ok &= ~dscene.scene.ray_test(hit.spawn_ray(hit.to_world(bs.wo)), ok)
+            ok &= ~dscene.shadows.ray_test(hit.spawn_ray(hit.to_world(bs.wo)), ok)
             value = mi.luminance(dr.select(ok, w * (dscene.ambient / len(samples)), 0.0))
             total = total + dr.block_sum(value, len(samples))
         out[start:start + count] = np.array(total, dtype=np.float64)
