@@ -50,7 +50,9 @@ def test_wide_pairs_are_not_exported_unless_requested(tmp_path, caplog):
     exp, cams, vis, samples = _state(tmp_path / "wide", wide)
     with caplog.at_level(logging.INFO, logger="vdo.formats.export"):
         assert default_pairs(exp, cams, vis, samples) == []
-    assert "1 stereo pair(s) not exported: optical axes more than 60 deg apart" in caplog.text
+    assert "1 camera pair(s) assigned a common region left out of the stereo pairs: optical axes " \
+           "more than 60 deg apart ([analysis] max_pair_angle_deg; naming pairs with --pairs " \
+           "FIRST:SECOND overrides)" in caplog.text
     assert "left:right 130" in caplog.text
     forced = default_pairs(exp, cams, vis, samples, requested=[("left", "right")])
     assert _axes_deg(forced[0]) == pytest.approx(130, abs=1)
