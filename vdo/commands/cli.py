@@ -134,9 +134,10 @@ def _load(args):
         if args.series is not None:
             raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
                                                         "renders every camera (drop one of them)")
-    if getattr(args, "calibration", None):
-        from vdo.calib.importer import with_imported
-        exp = with_imported(exp, args.calibration, getattr(args, "calibration_anchor", None))
+    if getattr(args, "calibration", None):      # which camera from which file: to the run folder
+        from vdo.calib.importer import imported
+        exp, args.calibration_files = imported(exp, args.calibration,
+                                               getattr(args, "calibration_anchor", None))
     elif getattr(args, "calibration_anchor", None):
         raise ConfigError(args.config, "--calibration-anchor", "places --calibration's files: "
                                                                "add --calibration FILE ...")
@@ -213,7 +214,8 @@ def _evaluate(exp, args):
     # Dask workers compute as this process (their OpenBLAS thread count): the same result
     with dask_client(dask, workers or cores(), DASK_CONNECT_S, prefix="vdo-evaluate-dask-",
                      env=blas_environment()) as client:
-        result = evaluate(exp, Path(args.out), overwrite=args.overwrite, workers=workers, client=client)
+        result = evaluate(exp, Path(args.out), overwrite=args.overwrite, workers=workers, client=client,
+                          calibration_files=getattr(args, "calibration_files", None))
     if not args.quiet:
         _print_summary(result.to_json())
         if result.calibration is not None:
