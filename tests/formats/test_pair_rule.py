@@ -99,7 +99,8 @@ def test_a_region_the_exported_pairs_leave_half_uncovered_is_named_with_the_pair
         export(path, "opencv", tmp_path / "one", pairs=[("l1", "l2")])
     warned = [r.getMessage() for r in caplog.records if "uncovered by the exported stereo" in r.getMessage()]
     assert len(warned) == 1, caplog.text
-    assert f"top (100% of the area): {left:.0%} seen by both cameras of an exported pair" in warned[0]
+    assert f"top (100% of all regions' area): {left:.0%} of it seen by both cameras of an " \
+           "exported pair" in warned[0]
     assert warned[0].endswith("e.g. --pairs l1:l2 r1:r2"), warned[0]
 
     caplog.clear()

@@ -153,8 +153,8 @@ def uncovered_regions(exp, cameras, vis, samples, pairs) -> str | None:
     covers the samples both its cameras see (the ray cast's `visible`: the common area that
     `vdo.constraints.sharing`, the optimizer's pair rule, measures); a region is named when the
     pairs leave more than `PAIR_GAP` of its area uncovered that some two cameras with optical axes
-    within `max_pair_angle` see together, with the fraction the pairs cover against the fraction
-    such two cameras can. The fix: pairs added greedily (each time the one covering the most of
+    within `max_pair_angle` see together, with its share of all regions' area and the fraction
+    of it the pairs cover against the fraction such two cameras can. The fix: pairs added greedily (each time the one covering the most of
     that missing area) until every named region is within `PAIR_GAP`, gathered into one --pairs
     FIRST:SECOND list with the pairs already exported (--pairs replaces them)."""
     visible = np.asarray(vis.visible, dtype=bool)
@@ -173,8 +173,8 @@ def uncovered_regions(exp, cameras, vis, samples, pairs) -> str | None:
              if fraction(coverable & ~covered, r) > PAIR_GAP]
     if not short:
         return None
-    named = [f"{samples.region_names[r]} ({area[samples.region == r].sum() / total:.0%} of the area): "
-             f"{fraction(covered, r):.0%} seen by both cameras of an exported pair, "
+    named = [f"{samples.region_names[r]} ({area[samples.region == r].sum() / total:.0%} of all "
+             f"regions' area): {fraction(covered, r):.0%} of it seen by both cameras of an exported pair, "
              f"{fraction(coverable, r):.0%} by two cameras within the pair angle" for r in short]
     missing = coverable & ~covered & np.isin(samples.region, short)
     added = []
