@@ -320,7 +320,7 @@ def _speckle(exp, args) -> None:
 
 def _design(exp, args) -> None:
     from vdo.core.parallel import cores, dask_client
-    from vdo.commands.design import curve_line, design
+    from vdo.commands.design import curve_line, design, uncompared
 
     workers = args.workers or cores()
     # the candidates judged on Dask workers (spawned processes for "local")
@@ -332,6 +332,9 @@ def _design(exp, args) -> None:
     if not args.quiet:
         for c in result.curve:
             print(curve_line(c, exp.optimize.regions or [r.name for r in exp.regions]))
+        missing = uncompared(result.curve)       # no figure over the area every count measures
+        if missing is not None:
+            print(missing)
         if result.target_count is not None:
             print(f"smallest count meeting the target: {result.target_count}")
         if result.refined is not None:
