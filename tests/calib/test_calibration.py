@@ -623,9 +623,10 @@ def test_a_lab_frame_is_placed_by_its_anchor_camera(tmp_path, capsys):
 
 
 def test_plan_whose_pairs_share_no_sample_is_one_line(tmp_path, capsys, monkeypatch):
-    """`vdo calibrate --plan` on the pressure vessel seen all round: its sessions calibrate, but
-    no calibrated pair sees a region sample with both cameras. One line saying so (it used to
-    say that no session passed the checks), no folder."""
+    """`vdo calibrate --plan` on the pressure vessel seen all round: no [[stereo_pair]], and no
+    two cameras assigned a common region, so no calibrated pair sees a region sample with both
+    cameras. One line saying why (it used to say that no session passed the checks) with the
+    example pair `vdo export` names (it gave none), no folder."""
     from vdo.commands.cli import main
 
     monkeypatch.setenv("VDO_SET", "calibration.poses_per_camera = 6; calibration.shared_poses = 3")
@@ -633,5 +634,38 @@ def test_plan_whose_pairs_share_no_sample_is_one_line(tmp_path, capsys, monkeypa
     out = tmp_path / "plan"
     assert main(["calibrate", str(path), "--plan", "--out", str(out)]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
-    assert len(err) == 1 and "stereo_pair" in err[0] and "share" in err[0]
+    assert len(err) == 1 and "stereo_pair" in err[0]
+    # the example `vdo export` gives on this rig (docs/exports.md), in [[stereo_pair]] form
+    assert err[0].endswith('e.g. [[stereo_pair]] cameras = ["t150", "t210"] (together they see '
+                           "25% of region 'nozzle', the most of any two)")
     assert not out.exists()
+
+
+def test_plan_without_a_pair_names_one_in_stereo_pair_form(tmp_path, caplog):
+    """`vdo calibrate --plan` with no [[stereo_pair]] and no default pair (trial 4: its one
+    assigned pair 88 deg apart): the rule's left-out pair is logged as left out of the stereo
+    pairs (it said "not exported", from `vdo export`), and the error says why; with no two
+    cameras within the pair angle, the fix is to move them, then name them in [[stereo_pair]]
+    form (the example pair: `test_plan_whose_pairs_share_no_sample_is_one_line`)."""
+    import logging
+
+    from vdo.commands.calibrate import plan_experiment
+
+    data = load(HOLED).to_dict()
+    data.pop("stereo_pair")
+    data["evaluation"]["sample_spacing_mm"] = PLAN_SPACING_MM
+    # the pair's axes are about 25 deg apart: a 10-deg rule leaves it out
+    narrow = parse({**data, "analysis": {"max_pair_angle_deg": 10}}, HOLED)
+    with caplog.at_level(logging.INFO, logger="vdo.formats.export"), \
+            pytest.raises(ConfigError) as err:
+        plan_experiment(narrow, tmp_path / "narrow")
+    assert "1 camera pair(s) assigned a common region left out of the stereo pairs: optical axes " \
+           "more than 10 deg apart ([analysis] max_pair_angle_deg; naming pairs with " \
+           '[[stereo_pair]] cameras = ["FIRST", "SECOND"] overrides): left:right' in caplog.text
+    assert "not exported" not in caplog.text
+    assert err.value.field == "stereo_pair" and err.value.message.startswith(
+        "the plan needs a stereo pair, none is declared, and no two cameras are assigned a common "
+        "region")
+    assert err.value.message.endswith("move the cameras so that two share a view, then name them "
+                                      'with [[stereo_pair]] cameras = ["FIRST", "SECOND"]')
+    assert not (tmp_path / "narrow").exists()

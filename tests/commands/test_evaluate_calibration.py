@@ -103,3 +103,30 @@ def test_calibration_errors_scale_with_detection_noise(tmp_path):
     assert one["regions"]["front"]["noise_strain_microstrain"]["p95"] == pytest.approx(
         np.percentile(eps[m][np.isfinite(eps[m])], 95) * 1e6, rel=SAME)
     assert np.isfinite(errors.strain).any()
+
+
+def test_evaluate_says_which_camera_came_from_which_calibration_file(tmp_path, capsys):
+    """`vdo evaluate --calibration left.yml` (the lab's file of one camera): the console says
+    which camera took its pose and intrinsics from which file and which kept the experiment's,
+    summary.json's "calibration_files" maps camera -> file, and config.toml opens with the same
+    lines as comments and loads again (before, none of them said a calibration file was used)."""
+    from vdo.formats.opencv import write
+    from vdo.commands.cli import main
+
+    config = plate(tmp_path, "")
+    exp = load(config)
+    lab = exp.with_camera("left", position_m=[-0.142, -0.686, 1.0])
+    (tmp_path / "lab").mkdir()
+    files = write(cameras_of(lab.camera_specs, lab.rails), [], tmp_path / "lab", config)
+    left = next(str(p) for p in files if Path(p).name == "left.yml")
+    out = tmp_path / "run"
+    assert main(["evaluate", str(config), "--out", str(out), "--calibration", left]) == 0
+    lines = [f"camera left: pose and intrinsics from the calibration file {left}",
+             "camera right: in no calibration file, as the experiment file gives them"]
+    err = capsys.readouterr().err.splitlines()
+    assert all(line in err for line in lines)
+    assert json.loads((out / "summary.json").read_text())["calibration_files"] == {"left": left}
+    text = (out / "config.toml").read_text()
+    assert text.startswith("".join(f"# {line}\n" for line in lines))
+    back = cameras_of(load(out / "config.toml").camera_specs, lab.rails)
+    np.testing.assert_allclose(back[0].position, [-0.142, -0.686, 1.0], atol=1e-9)

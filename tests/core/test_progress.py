@@ -31,8 +31,13 @@ def clock(monkeypatch):
 
 
 @pytest.fixture
-def shown(monkeypatch):
-    monkeypatch.setattr(LOG, "level", logging.INFO)
+def shown():
+    """LOG passes INFO records for the test, through setLevel: it clears the loggers' cache of
+    isEnabledFor, which a level set as an attribute leaves stale from an earlier test."""
+    level = LOG.level
+    LOG.setLevel(logging.INFO)
+    yield
+    LOG.setLevel(level)
 
 
 class Terminal(io.StringIO):
@@ -119,6 +124,54 @@ def test_the_optimizer_line_says_its_own_time_left_once(monkeypatch, capsys):
     assert lines and all(line.count("s left") == 1 for line in lines)
     assert lines[0] == ("optimize: 10/100 step (10 %), 10 s, ~20 s left "
                         "[start 1 round 1/3, step 10/100, no layout judged yet]")
+
+
+def test_a_count_past_the_estimated_total_never_shows_more_than_100_percent(shown, clock):
+    """A total is an estimate (trial 4's optimize: "528/480 step (110 %)"): off a terminal the
+    lines past it drop the percentage and the time left and say "past the estimated 480"; a
+    terminal bar grows its total to the count (100 %) and says the same in its description."""
+    stream = io.StringIO()
+    bar = progress.bar(LOG, total=480, desc="optimize", unit="step", file=stream)
+    for _ in range(547):
+        clock.now += 0.1
+        bar.update(1)
+    bar.close()
+    lines = stream.getvalue().splitlines()
+    assert lines[9] == "optimize: 480/480 step (100 %), 48 s, ~0 s left"
+    assert lines[10:] == ["optimize: 528 step (past the estimated 480), 53 s",
+                          "optimize: 547 step (past the estimated 480), 55 s"]
+    assert not any("%" in line for line in lines[10:])
+
+    terminal = Terminal()
+    bar = progress.bar(LOG, total=480, desc="optimize", unit="step", file=terminal,
+                       bar_format="{desc}: {n}/{total} steps ({percentage:.0f} %)")
+    bar.update(528)
+    assert (bar.n, bar.total) == (528, 528)
+    assert str(bar) == "optimize (past the estimated 480): 528/528 steps (100 %)"
+    bar.update(19)
+    assert str(bar) == "optimize (past the estimated 480): 547/547 steps (100 %)"
+    bar.close()
+
+
+def test_the_optimizer_past_its_plan_says_the_time_limit_left(monkeypatch, capsys):
+    """`vdo optimize` past its planned steps (feasibility rounds beyond the plan's one): the
+    line says the step count past the estimate, and the time left is the time limit's (the
+    mean rate over no steps left said ~0 s)."""
+    from vdo.search import anytime
+
+    monkeypatch.setattr(logging.getLogger(anytime.__name__), "level", logging.INFO)
+    now = [0.0]
+    monkeypatch.setattr(anytime.time, "perf_counter", lambda: now[0])
+    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
+    stop = anytime.Stop(time_limit=100.0)
+    bar = anytime.Progress(10, stop)
+    for k in range(12):
+        now[0] += 1.0
+        bar.step(f"start 1 round 1/3, step {k + 1}/10", None)
+    bar.close()
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1] == ("optimize: 12 step (past the estimated 10), 12 s, ~88 s left "
+                         "[start 1 round 1/3, step 12/10, no layout judged yet]")
 
 
 def test_hidden_silences_an_inner_bar_and_restores_the_level(shown):

@@ -1136,3 +1136,58 @@ def test_a_smaller_count_sharper_only_for_measuring_less_is_not_named():
     three["sigma_p95_common_um"] = 0.80
     said = sharper_smaller_count(exp, [written, three], written)
     assert said.startswith("3 cameras reach a lower sigma_max p95 than the 7") and "nozzle 0.786 against 1.522" in said
+
+
+def _curve_counts(common_um, common_fraction):
+    """A camera-count curve of two counts as `vdo design` returns it, region "a" only, with each
+    count's σ_max p95 over the area every count measures (`common_um`, None: none) and that
+    area's share (`common_fraction`)."""
+    return [{"cameras": k, "score": 1.0 / k, "bound": None, "sigma_p95_um": 2.0 / k,
+             "sigma_p95_by_region_um": {"a": 2.0 / k}, "sigma_p95_measurable_um": 2.0 / k,
+             "coverage": 0.5, "coverage_of_measurable": 0.8, "measurable_fraction": 0.6,
+             "sigma_p95_common_um": u, "common_fraction": common_fraction}
+            for k, u in zip((2, 3), common_um)]
+
+
+def test_counts_that_share_no_measured_area_say_so_instead_of_a_0_percent_curve(tmp_path, monkeypatch,
+                                                                              capsys):
+    """Trial 4: every count's common_fraction 0, so no count has a σ_max p95 over the area every
+    count measures; pareto.png's legend said "σ_max p95 over the 0 % every count measures" for
+    a curve with no point, and the console nothing. Now the console prints one line saying why,
+    the legend says the same with no curve drawn; counts that share an area keep their curve."""
+    from types import SimpleNamespace
+
+    import matplotlib.pyplot as plt
+
+    from vdo.commands import cli
+    from vdo.commands import design as command
+    from vdo.commands.design import curve_figure, uncompared
+
+    line = "the camera counts share no measured area: their sigma_max p95 over a common area is not compared"
+    apart = _curve_counts((None, None), 0.0)
+    assert uncompared(apart) == line
+    fig = curve_figure(apart, None, "tee")
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "the camera counts share no measured area: their σ_max p95 over a common area is not " \
+           "compared" in labels
+    assert not any("every count measures" in t for t in labels)
+    assert not any("every count measures" in ln.get_label() for ln in fig.axes[0].get_lines())
+    plt.close(fig)
+
+    shared = _curve_counts((1.5, 1.2), 0.4)
+    assert uncompared(shared) is None
+    fig = curve_figure(shared, None, "tee")
+    assert "σ_max p95 over the 40 % every count measures" in \
+        [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    plt.close(fig)
+    assert uncompared(_curve_counts((None, None), 0.25)) == (
+        "the area every camera count measures (25.0 % of the regions) holds no sample of a scored "
+        "region: their sigma_max p95 over a common area is not compared")
+
+    result = SimpleNamespace(curve=apart, target_count=None, refined=None, wall_s=1.0)
+    monkeypatch.setattr(command, "design", lambda *a, **k: result)
+    exp = SimpleNamespace(optimize=SimpleNamespace(regions=None), regions=[SimpleNamespace(name="a")])
+    cli._design(exp, SimpleNamespace(workers=1, dask=None, out=tmp_path / "o", overwrite=False,
+                                     refine=False, memory_gb=None, time_limit=None, quiet=False))
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[2] == line and sum(line == p for p in printed) == 1

@@ -50,7 +50,9 @@ def test_wide_pairs_are_not_exported_unless_requested(tmp_path, caplog):
     exp, cams, vis, samples = _state(tmp_path / "wide", wide)
     with caplog.at_level(logging.INFO, logger="vdo.formats.export"):
         assert default_pairs(exp, cams, vis, samples) == []
-    assert "1 stereo pair(s) not exported: optical axes more than 60 deg apart" in caplog.text
+    assert "1 camera pair(s) assigned a common region left out of the stereo pairs: optical axes " \
+           "more than 60 deg apart ([analysis] max_pair_angle_deg; naming pairs with --pairs " \
+           "FIRST:SECOND overrides)" in caplog.text
     assert "left:right 130" in caplog.text
     forced = default_pairs(exp, cams, vis, samples, requested=[("left", "right")])
     assert _axes_deg(forced[0]) == pytest.approx(130, abs=1)
@@ -97,7 +99,8 @@ def test_a_region_the_exported_pairs_leave_half_uncovered_is_named_with_the_pair
         export(path, "opencv", tmp_path / "one", pairs=[("l1", "l2")])
     warned = [r.getMessage() for r in caplog.records if "uncovered by the exported stereo" in r.getMessage()]
     assert len(warned) == 1, caplog.text
-    assert f"top (100% of the area): {left:.0%} seen by both cameras of an exported pair" in warned[0]
+    assert f"top (100% of all regions' area): {left:.0%} of it seen by both cameras of an " \
+           "exported pair" in warned[0]
     assert warned[0].endswith("e.g. --pairs l1:l2 r1:r2"), warned[0]
 
     caplog.clear()

@@ -10,14 +10,17 @@ hold pixels, not millimetres), and a file whose image size disagrees with that c
 refused (`ConfigError`). vdo models square pixels without skew: fx and fy must agree within
 `SQUARE_PIXELS`.
 
-`vdo evaluate CONFIG --calibration FILE ...` (`with_imported`): the files' cameras replace the
-experiment's cameras of the same names (placed by position and angles: off their rail or mount),
-the format told by the file (`format_of`); the calibration frame is the CAD frame (vdo's exports),
-except a MatchID file's, which is its first camera's: it is placed at that camera's configured pose.
+`vdo evaluate CONFIG --calibration FILE ...` (`imported`, `with_imported`): the files' cameras
+replace the experiment's cameras of the same names (placed by position and angles: off their rail
+or mount), the format told by the file (`format_of`); the calibration frame is the CAD frame (vdo's
+exports), except a MatchID file's, which is its first camera's: it is placed at that camera's
+configured pose. Which camera came from which file is said on the console and in the run folder
+(`source_lines`; summary.json's "calibration_files").
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from dataclasses import replace
@@ -30,6 +33,7 @@ from vdo.core.runfolder import is_file
 from vdo.formats.calibration import MM
 from vdo.scene import cameras_of
 
+log = logging.getLogger(__name__)
 SQUARE_PIXELS = 1e-9     # relative difference of fx and fy accepted as square pixels
 FORMATS = ("opencv", "vic3d", "dice", "matchid")
 
@@ -250,13 +254,21 @@ def anchor_frame(paths, bases: dict, anchor: str) -> np.ndarray:
 
 
 def with_imported(exp, paths, anchor: str | None = None):
-    """The experiment `exp` with its cameras replaced by those of the calibration files `paths`
-    (module docstring); the specs keep everything but the lens and pose (body, aperture, focus).
+    """The experiment of `imported`."""
+    return imported(exp, paths, anchor)[0]
+
+
+def imported(exp, paths, anchor: str | None = None) -> tuple:
+    """(the experiment `exp` with its cameras replaced by those of the calibration files `paths`
+    (module docstring), camera name -> the file it came from, as given, in the experiment's
+    camera order); the specs keep everything but the lens and pose (body, aperture, focus).
     `anchor`: a camera's name; the files' common frame is placed so that this camera stands at
-    its CAD pose (`anchor_frame`: a lab's calibration in its own frame, e.g. its first camera's)."""
+    its CAD pose (`anchor_frame`: a lab's calibration in its own frame, e.g. its first camera's).
+    Logs `source_lines` (INFO)."""
     bases = {c.name: c for c in cameras_of(exp.camera_specs, exp.rails)}
     specs = {s.name: s for s in exp.camera_specs}
     common = None if anchor is None else anchor_frame(paths, bases, anchor)
+    sources = {}
     for p in paths:
         path = Path(p)
         fmt = format_of(path)
@@ -272,4 +284,24 @@ def with_imported(exp, paths, anchor: str | None = None):
                 offset=np.zeros(3), position=np.asarray(cam.position, dtype=float), target=None,
                 pan=cam.pan, tilt=cam.tilt, roll=cam.roll, principal_offset_px=tuple(
                     float(v) for v in cam.principal_offset_px), distortion=cam.distortion)
-    return exp.with_cameras([specs[s.name] for s in exp.camera_specs])
+            sources[cam.name] = str(p)
+    sources = {s.name: sources[s.name] for s in exp.camera_specs if s.name in sources}
+    for line in source_lines(sources, [s.name for s in exp.camera_specs]):
+        log.info("%s", line)
+    return exp.with_cameras([specs[s.name] for s in exp.camera_specs]), sources
+
+
+def source_lines(sources: dict, cameras) -> list[str]:
+    """Which cameras took their pose and intrinsics from which calibration file (`sources`:
+    camera -> file, `imported`), one line per file, then one for the `cameras` (names) in no
+    file, which keep the experiment's: the console's lines and config.toml's comment."""
+    by_file: dict[str, list[str]] = {}
+    for name, path in sources.items():
+        by_file.setdefault(path, []).append(name)
+    plural = lambda names: ("camera " if len(names) == 1 else "cameras ") + ", ".join(names)
+    lines = [f"{plural(names)}: pose and intrinsics from the calibration file {path}"
+             for path, names in by_file.items()]
+    rest = [n for n in cameras if n not in sources]
+    if rest:
+        lines.append(f"{plural(rest)}: in no calibration file, as the experiment file gives them")
+    return lines

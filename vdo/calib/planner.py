@@ -27,8 +27,6 @@ log = logging.getLogger(__name__)
 COUNTS = (3, 4, 6, 8, 12, 16, 24, 32)     # poses per camera tried
 PLAN_PAST_TARGET = 1                      # counts tried past the first that reaches the target
 DEFAULT_SIGMA_DET_PX = 0.05               # corner detection noise when none is configured (px)
-_UNSHARED = ("no calibrated stereo pair sees a region sample with both cameras: name stereo pairs "
-             "that share a view of a region")
 
 
 @dataclass(frozen=True)
@@ -52,11 +50,28 @@ def shared_pairs(pairs, names, visible: np.ndarray) -> list:
     return [(a, b) for a, b in pairs if np.any(visible[row[a]] & visible[row[b]])]
 
 
-def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
-    """The curve and the chosen count (module docstring). `visible` (C, N) from the ray cast,
-    rows in the order of `exp.camera_specs` (`vdo.scene.cameras_of`); `pairs` the stereo pairs to calibrate
-    (`vdo.calib.session.stereo_names`). Raises ConfigError before any calibration when no pair's
-    cameras see a common sample."""
+def unshared_message(exp, cameras, visibility, samples, pairs) -> str:
+    """Why no calibrated stereo pair sees a region sample with both cameras, and the fix with an
+    example pair in [[stereo_pair]] form (`vdo.formats.export.no_pair_message`, `pair_example`:
+    the two cameras that see the most of one region together). No `pairs` at all (none declared,
+    none by the default rule): why the rule found none."""
+    from vdo.calib.session import STEREO_PAIR_TABLE
+    from vdo.formats.export import no_pair_message, pair_example
+
+    if not pairs:
+        return ("the plan needs a stereo pair, none is declared, and "
+                + no_pair_message(exp, cameras, visibility, samples, STEREO_PAIR_TABLE))
+    example = pair_example(exp, cameras, visibility.visible, samples, STEREO_PAIR_TABLE)
+    return ("no calibrated stereo pair sees a region sample with both cameras: name stereo pairs "
+            "that share a view of a region with " + STEREO_PAIR_TABLE.form + ", "
+            + (example or "after moving two cameras so that they do"))
+
+
+def plan_session(exp, visibility, geometry, pairs) -> Plan:
+    """The curve and the chosen count (module docstring). `visibility` the ray cast (its
+    `visible` (C, N), rows in the order of `exp.camera_specs`, `vdo.scene.cameras_of`); `pairs`
+    the stereo pairs to calibrate (`vdo.calib.session.stereo_names`). Raises ConfigError before
+    any calibration when no pair's cameras see a common sample (`unshared_message`)."""
     from vdo.calib.propagate import sample_errors
     from vdo.calib.session import plan
     from vdo.calib.solve import calibrate, simulate
@@ -64,8 +79,11 @@ def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
     from vdo.core.progress import bar, hidden
     from vdo.scene import cameras_of
 
-    if not shared_pairs(pairs, [c.name for c in cameras_of(exp.camera_specs, exp.rails)], visible):
-        raise ConfigError(exp.path, "stereo_pair", _UNSHARED)
+    cameras = cameras_of(exp.camera_specs, exp.rails)
+    visible = visibility.visible
+    if not shared_pairs(pairs, [c.name for c in cameras], visible):
+        raise ConfigError(exp.path, "stereo_pair",
+                          unshared_message(exp, cameras, visibility, geometry.samples, pairs))
     spec = exp.calibration
     sigma = spec.detection_sigma_px or DEFAULT_SIGMA_DET_PX
     counts, images, p95 = [], [], []
@@ -106,7 +124,8 @@ def plan_session(exp, visible: np.ndarray, geometry, pairs) -> Plan:
             past = 0
     progress.close()
     if not counts and unseen:     # pairs that share samples but were not calibrated together
-        raise ConfigError(exp.path, "stereo_pair", _UNSHARED)
+        raise ConfigError(exp.path, "stereo_pair",
+                          unshared_message(exp, cameras, visibility, geometry.samples, pairs))
     if not counts:
         raise ConfigError(exp.path, "calibration", "no session of the planner's sizes passes the "
                                                    "checks: see vdo calibrate's message for one")

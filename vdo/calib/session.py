@@ -39,6 +39,7 @@ import numpy as np
 
 from vdo.calib.target import MARGIN_PITCHES, Target
 from vdo.core.errors import ConfigError
+from vdo.formats.export import PairSyntax
 from vdo.scene import cameras_of
 
 EDGE_PX = 4.0                # the pattern's outline stays this far inside the image
@@ -49,6 +50,9 @@ MIN_SQUARE_PX = 8.0          # smallest pitch in pixels the detectors find relia
 ROLL_DEG = 15.0              # largest in-plane turn of a generated pose
 GOLDEN = math.pi * (3.0 - math.sqrt(5.0))   # golden angle, rad
 PLASTIC = 1.324717957244746    # the plastic number phi_2, the real root of x^3 = x + 1
+# how an experiment file names the pairs to calibrate (the messages of `stereo_names`, the planner's)
+STEREO_PAIR_TABLE = PairSyntax('[[stereo_pair]] cameras = ["FIRST", "SECOND"]',
+                               '[[stereo_pair]] cameras = ["{first}", "{second}"]')
 
 
 @dataclass(frozen=True)
@@ -304,7 +308,7 @@ class Planned:
 def stereo_names(exp, cameras, geometry, visibility=None) -> list[tuple[str, str]]:
     """The stereo pairs to calibrate: the declared [[stereo_pair]]s, else the cameras assigned a
     common region (`vdo.formats.export.default_pairs`, on `visibility`: the layout's ray cast,
-    cast here when not given)."""
+    cast here when not given; its messages name [[stereo_pair]], `STEREO_PAIR_TABLE`)."""
     if exp.stereo_pairs:
         return [tuple(p.cameras) for p in exp.stereo_pairs]
     from vdo.formats.export import default_pairs
@@ -313,7 +317,8 @@ def stereo_names(exp, cameras, geometry, visibility=None) -> list[tuple[str, str
     if visibility is None:
         visibility = layout_state(geometry, cameras, predict_fields=False).visibility
     return [(p.first.name, p.second.name)
-            for p in default_pairs(exp, cameras, visibility, geometry.samples)]
+            for p in default_pairs(exp, cameras, visibility, geometry.samples,
+                                   syntax=STEREO_PAIR_TABLE)]
 
 
 def plan(exp, scale: float, geometry=None, spec=None, pairs=None) -> Planned:

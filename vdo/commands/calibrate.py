@@ -213,7 +213,7 @@ def plan_experiment(exp, out, overwrite: bool = False) -> dict:
     state = layout_state(geometry, predict_fields=False)
     pairs = stereo_names(exp, tuple(cameras_of(exp.camera_specs, exp.rails)), geometry, state.visibility)
     plan(exp, 1.0, geometry, pairs=pairs)        # the configured session's checks first
-    p = plan_session(exp, state.visibility.visible, geometry, pairs)
+    p = plan_session(exp, state.visibility, geometry, pairs)
     result = {"experiment": exp.name, "poses_per_camera": list(p.counts), "images": list(p.images),
               "strain_sigma_p95": list(p.strain_p95), "target_strain_error": p.target,
               "sigma_det_px": p.sigma_det, "chosen_poses_per_camera": p.chosen}

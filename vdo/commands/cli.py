@@ -134,9 +134,10 @@ def _load(args):
         if args.series is not None:
             raise ConfigError(args.config, "--cameras", "renders single shots; a --series "
                                                         "renders every camera (drop one of them)")
-    if getattr(args, "calibration", None):
-        from vdo.calib.importer import with_imported
-        exp = with_imported(exp, args.calibration, getattr(args, "calibration_anchor", None))
+    if getattr(args, "calibration", None):      # which camera from which file: to the run folder
+        from vdo.calib.importer import imported
+        exp, args.calibration_files = imported(exp, args.calibration,
+                                               getattr(args, "calibration_anchor", None))
     elif getattr(args, "calibration_anchor", None):
         raise ConfigError(args.config, "--calibration-anchor", "places --calibration's files: "
                                                                "add --calibration FILE ...")
@@ -213,7 +214,8 @@ def _evaluate(exp, args):
     # Dask workers compute as this process (their OpenBLAS thread count): the same result
     with dask_client(dask, workers or cores(), DASK_CONNECT_S, prefix="vdo-evaluate-dask-",
                      env=blas_environment()) as client:
-        result = evaluate(exp, Path(args.out), overwrite=args.overwrite, workers=workers, client=client)
+        result = evaluate(exp, Path(args.out), overwrite=args.overwrite, workers=workers, client=client,
+                          calibration_files=getattr(args, "calibration_files", None))
     if not args.quiet:
         _print_summary(result.to_json())
         if result.calibration is not None:
@@ -318,7 +320,7 @@ def _speckle(exp, args) -> None:
 
 def _design(exp, args) -> None:
     from vdo.core.parallel import cores, dask_client
-    from vdo.commands.design import curve_line, design
+    from vdo.commands.design import curve_line, design, uncompared
 
     workers = args.workers or cores()
     # the candidates judged on Dask workers (spawned processes for "local")
@@ -330,6 +332,9 @@ def _design(exp, args) -> None:
     if not args.quiet:
         for c in result.curve:
             print(curve_line(c, exp.optimize.regions or [r.name for r in exp.regions]))
+        missing = uncompared(result.curve)       # no figure over the area every count measures
+        if missing is not None:
+            print(missing)
         if result.target_count is not None:
             print(f"smallest count meeting the target: {result.target_count}")
         if result.refined is not None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
 
 from vdo.commands.optimize import write_optimization
@@ -172,6 +173,22 @@ def curve_line(c: dict, scored=None) -> str:
             f"({100 * c['coverage_of_measurable']:.1f} % of the measurable)")
 
 
+def uncompared(curve, sigma: str = "sigma_max") -> str | None:
+    """Why the counts of `curve` get no figure over the area every count measures (each count's
+    "sigma_p95_common_um" None, `vdo.design.select.common_p95`): they share no measured area
+    ("common_fraction" 0), or that area holds no scored region's sample; None when a count has
+    the figure. `sigma` names the figure (the console's "sigma_max", the figure's "σ_max"): the
+    console's line and pareto.png's legend entry in place of the missing curve."""
+    if not curve or "sigma_p95_common_um" not in curve[0] \
+            or any(c["sigma_p95_common_um"] is not None for c in curve):
+        return None
+    share = curve[0]["common_fraction"]
+    why = ("the camera counts share no measured area" if share == 0 else
+           f"the area every camera count measures ({100 * share:.1f} % of the regions) holds no "
+           "sample of a scored region")
+    return f"{why}: their {sigma} p95 over a common area is not compared"
+
+
 def log_ticks(ax) -> None:
     """Plain labels on a log axis at 1, 2 and 5 per decade, and at every digit where the data
     span less than a decade (matplotlib's default labels two ticks of a 0.43-0.86 µm curve)."""
@@ -183,8 +200,16 @@ def log_ticks(ax) -> None:
 
 
 def plot_curve(path, curve, target, name):
+    """pareto.png: `curve_figure` saved at `path`."""
+    fig = curve_figure(curve, target, name)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def curve_figure(curve, target, name):
     """Top: sigma_max p95 (and σ_measured p95 when the design scores it) and coverage per camera
-    count; bottom: the design's score and the
+    count, and σ_max p95 over the area every count measures, or where no count has it, why
+    (`uncompared`, a legend entry without a curve); bottom: the design's score and the
     relaxation's bound on any selection's score per count (`relax_curve`)."""
     fig, (ax, low) = plt.subplots(2, 1, figsize=(9, 6.5), layout="constrained", sharex=True,
                                   height_ratios=(3, 2))
@@ -198,7 +223,8 @@ def plot_curve(path, curve, target, name):
     ax.semilogy(n, [np.nan if c["sigma_p95_measurable_um"] is None else c["sigma_p95_measurable_um"]
                     for c in curve], "x-", color="C0", alpha=0.45, lw=0.8,
                 label="σ_max p95 over the measured area")
-    if curve and "sigma_p95_common_um" in curve[0]:
+    missing = uncompared(curve, "σ_max")
+    if curve and "sigma_p95_common_um" in curve[0] and missing is None:
         ax.semilogy(n, [np.nan if c["sigma_p95_common_um"] is None else c["sigma_p95_common_um"] for c in curve],
                     "P-", color="k", lw=1.4,
                     label=f"σ_max p95 over the {100 * curve[0]['common_fraction']:.0f} % every count measures")
@@ -225,6 +251,8 @@ def plot_curve(path, curve, target, name):
     ax2.set_ylim(0, 105)
     ax.set_title(f"{name}: cameras needed")
     lines = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    if missing is not None:     # said in the legend, with no mark: nothing is drawn for it
+        lines.append(Line2D([], [], linestyle="none", label=missing))
     ax.legend(lines, [ln.get_label() for ln in lines], fontsize=7, loc="upper left",
               bbox_to_anchor=(1.12, 1.0))                               # beside the curves, not on them
     low.semilogy(n, [c["score"] for c in curve], "o-", label="design's score")
@@ -234,5 +262,4 @@ def plot_curve(path, curve, target, name):
     low.set_xlabel("cameras")
     low.set_ylabel("score")
     low.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.12, 1.0))
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig

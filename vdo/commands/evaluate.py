@@ -27,6 +27,7 @@ from vdo.search.loadpath import LoadPathResult, evaluate_load_path
 from vdo.core.progress import shown
 from vdo.optimize import layout_checks
 from vdo.commands.calibrate import evaluation_errors, evaluation_plan, write_evaluation_map
+from vdo.calib.importer import source_lines
 from vdo.state import LayoutState, layout_state, prepare
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,7 @@ MAX_WARNINGS = 10   # load-path warnings of each kind on the console; all of the
 
 
 def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int | None = None,
-             client=None) -> report.EvaluationResult:
+             client=None, calibration_files: dict | None = None) -> report.EvaluationResult:
     """Sample the regions, ray-cast every (camera, sample) pair and every light, predict the
     uncertainty, and write to `out`: layout.json, samples.vtp, summary.json, config.toml and the
     unfolded maps (coverage, sensitivity per axis, sigma_max and per axis, strain sigma per
@@ -47,7 +48,10 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int |
     (`vdo.outputs.report.EvaluationResult`, whose `to_json()` is summary.json). Progress and
     warnings go to the `vdo.commands.evaluate` logger (`vdo.core.progress`). The load path's
     steps run in this process, or on `workers` >= 2 spawned processes, or on a dask.distributed
-    `client`'s workers (`vdo.search.loadpath.evaluate_load_path`): the same files."""
+    `client`'s workers (`vdo.search.loadpath.evaluate_load_path`): the same files.
+    `calibration_files`: camera -> the calibration file its pose and intrinsics came from
+    (`vdo.calib.importer.imported`, `--calibration`), written as summary.json's
+    "calibration_files" and a comment atop config.toml (`write_evaluation`)."""
     geometry = prepare(exp)
     samples = geometry.samples
     log.info("%s samples on %d regions (%g mm spacing)", f"{len(samples):,}", len(exp.regions),
@@ -84,7 +88,7 @@ def evaluate(exp: Experiment, out: Path, overwrite: bool = False, workers: int |
         if hidden:
             log.warning("warning: %d more load-path losses and changes in summary.json (load_path)", hidden)
     result = write_evaluation(state, out, overwrite, over_path, checked=layout_checks(state),
-                              calibration=calibration)
+                              calibration=calibration, calibration_files=calibration_files)
     for line in warnings(result):
         log.warning("warning: %s", line)
     return result
@@ -114,7 +118,8 @@ def _shown(value) -> str:
 
 def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
                      over_path: LoadPathResult | None = None,
-                     checked: list[dict] | None = None, calibration=None) -> report.EvaluationResult:
+                     checked: list[dict] | None = None, calibration=None,
+                     calibration_files: dict | None = None) -> report.EvaluationResult:
     """Write a judged layout into the run folder `out` (see `evaluate`); returns it
     (`vdo.outputs.report.EvaluationResult`: summary.json is its `to_json()`).
     With `over_path` (`vdo.search.loadpath`) also the load path: load_path.csv, load_path.png, the worst
@@ -124,7 +129,9 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
     constraints.json and summary.json's "constraints" (None: not judged). `calibration`, the
     planned calibration session (`vdo.commands.calibrate.evaluation_plan`), adds summary.json's
     "calibration" (per region the calibration-induced errors beside the image noise's) and
-    maps/calibration_strain.png."""
+    maps/calibration_strain.png. `calibration_files` (camera -> file, `vdo.calib.importer.imported`)
+    is summary.json's "calibration_files" and config.toml's opening comment
+    (`vdo.calib.importer.source_lines`)."""
     exp, samples, cameras = state.experiment, state.samples, state.cameras
     vis, illumination, pred = state.visibility, state.illumination, state.prediction
     eps, sigma_dic = state.strain
@@ -155,13 +162,14 @@ def write_evaluation(state: LayoutState, out: Path, overwrite: bool = False,
         constraints=judged, glare=hot,
         measured=measured.summary(exp.analysis, meas, samples, pred, eps),
         load_path=None if over_path is None else loadpath.summary(over_path),
-        calibration=calibration_summary)
+        calibration=calibration_summary, calibration_files=calibration_files)
     with run_folder(out, overwrite) as tmp:
         if judged is not None:
             report.write_json(tmp / "constraints.json", judged)
         report.write_json(tmp / "layout.json", report.layout(cameras))
         report.write_json(tmp / "summary.json", result.to_json())
-        report.write_config(tmp / "config.toml", exp)
+        report.write_config(tmp / "config.toml", exp, comment=None if calibration_files is None
+                            else source_lines(calibration_files, vis.camera_names))
         sigma_um = np.where(pred.measured, pred.sigma_max * UM, np.nan)
         sigma_xyz_um = np.where(pred.measured[:, None], pred.sigma_xyz * UM, np.nan)
         sens = pred.sensitivity * MPX_PER_UM

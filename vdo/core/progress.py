@@ -12,10 +12,16 @@ return per update, thousands of them on one line; there `bar` returns a `PlainBa
 lines, one every `PLAIN_FRACTION` of the total or `PLAIN_SECONDS`, whichever comes first, each with
 the count, the elapsed time and the time left (elapsed / n x (total - n), or the caller's own
 estimate in `PlainBar.left_s`), and one when it closes.
+
+A total is often an estimate (optimize plans one feasibility round per start, and a start may take
+up to three): a count that passes it never shows more than 100 %. A plain line then drops the
+percentage and says "past the estimated TOTAL"; a terminal bar grows its total to the count and
+says the same beside its description (`past_estimate`).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 import time
@@ -23,6 +29,11 @@ from contextlib import contextmanager
 
 PLAIN_FRACTION = 0.1      # a plain progress line every tenth of the total ...
 PLAIN_SECONDS = 30.0      # ... or every 30 s, whichever comes first
+
+
+def past_estimate(total) -> str:
+    """The words a bar shows once its count has passed its estimated `total`."""
+    return f"past the estimated {total}"
 
 
 def shown(log: logging.Logger) -> bool:
@@ -60,9 +71,31 @@ def shown_bar(show: bool, **tqdm_options):
 
     disable = tqdm_options.pop("disable", False) or not show
     stream = tqdm_options.get("file") or sys.stderr
-    if disable or _is_terminal(stream):
-        return tqdm(disable=disable, **tqdm_options)
+    if disable:
+        return tqdm(disable=True, **tqdm_options)
+    if _is_terminal(stream):
+        return _growing_tqdm()(**tqdm_options)
     return PlainBar(**tqdm_options)
+
+
+@functools.cache
+def _growing_tqdm():
+    """tqdm whose total, an estimate, grows to the count once the count passes it, the
+    description then saying so (`past_estimate`): never more than 100 %. (A class made on
+    first use: tqdm is imported only when a bar is drawn.)"""
+    from tqdm import tqdm
+
+    class GrowingTqdm(tqdm):
+        def update(self, n=1):
+            if self.total and self.n + n > self.total:
+                if not getattr(self, "estimate", None):
+                    self.estimate = self.total
+                    self.set_description_str(f"{self.desc} ({past_estimate(self.estimate)})",
+                                             refresh=False)
+                self.total = self.n + n
+            return super().update(n)
+
+    return GrowingTqdm
 
 
 def _is_terminal(stream) -> bool:
@@ -96,15 +129,22 @@ class PlainBar:
         return int(self.n / self.total / PLAIN_FRACTION + 1e-9)
 
     def line(self) -> str:
+        """"desc: n/total unit (p %), elapsed s, ~left s left [postfix]"; past the total (an
+        estimate): "desc: n unit (past the estimated total), elapsed s [postfix]", the time left
+        only where the caller knows it (`left_s`)."""
         elapsed = time.monotonic() - self.t0
-        text = f"{self.desc}: {self.n}" + (f"/{self.total}" if self.total else "") + f" {self.unit}"
-        if self.total:
-            text += f" ({100 * self.n / self.total:.0f} %)"
+        past = bool(self.total) and self.n > self.total
+        if past:
+            text = f"{self.desc}: {self.n} {self.unit} ({past_estimate(self.total)})"
+        else:
+            text = f"{self.desc}: {self.n}" + (f"/{self.total}" if self.total else "") + f" {self.unit}"
+            if self.total:
+                text += f" ({100 * self.n / self.total:.0f} %)"
         text += f", {elapsed:.0f} s"
         if self.left_s is not None:
             text += f", ~{self.left_s:.0f} s left"
-        elif self.total and self.n > 0:
-            text += f", ~{elapsed / self.n * max(self.total - self.n, 0):.0f} s left"
+        elif self.total and self.n > 0 and not past:
+            text += f", ~{elapsed / self.n * (self.total - self.n):.0f} s left"
         return text + (f" [{self.postfix}]" if self.postfix else "")
 
     def _write(self) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +31,31 @@ log = logging.getLogger(__name__)
 FORMATS = {"opencv": opencv.write, "matchid": matchid.write, "dice": dice.write, "vic3d": vic3d.write}
 
 
-def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> list:
+@dataclass(frozen=True)
+class PairSyntax:
+    """How a user names stereo pairs, in the messages that tell how: `form` the general form,
+    `example` the same for two cameras (a format string of {first} and {second})."""
+
+    form: str
+    example: str
+
+    def of(self, first: str, second: str) -> str:
+        """The form naming cameras `first` and `second`."""
+        return self.example.format(first=first, second=second)
+
+
+# the command line's option (vdo export, vdo render)
+PAIRS_OPTION = PairSyntax("--pairs FIRST:SECOND", "--pairs {first}:{second}")
+
+
+def default_pairs(exp, cameras, vis, samples, requested=None, source=None,
+                  syntax: PairSyntax = PAIRS_OPTION) -> list:
     """The stereo pairs of a layout: cameras assigned a common region whose optical axes are at
     most [analysis] max_pair_angle_deg apart (default `vdo.physics.measured`'s 60°: beyond it
-    stereo matching fails on foreshortening; dropped pairs are logged), or the `requested`
-    (first, second) names, the lab's override, each checked to share a field of view
-    (`stereo_pairs`; errors name `source`, default the experiment file)."""
+    stereo matching fails on foreshortening; the pairs left out are logged, with the `syntax`
+    that overrides the rule), or the `requested` (first, second) names, the lab's override, each
+    checked to share a field of view (`stereo_pairs`; errors name `source`, default the
+    experiment file)."""
     from vdo.constraints import assignments
 
     if requested is not None:
@@ -51,9 +71,10 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None) -> li
         else:
             dropped.append(f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.1f}")
     if dropped:       # one line, however many pairs (45 of them on a 10-camera rig)
-        log.info("%d stereo pair(s) not exported: optical axes more than %.0f deg apart "
-                 "([analysis] max_pair_angle_deg; --pairs overrides): %s", len(dropped),
-                 math.degrees(limit), ", ".join(dropped))
+        log.info("%d camera pair(s) assigned a common region left out of the stereo pairs: "
+                 "optical axes more than %.0f deg apart ([analysis] max_pair_angle_deg; naming "
+                 "pairs with %s overrides): %s", len(dropped), math.degrees(limit), syntax.form,
+                 ", ".join(dropped))
     return kept
 
 
@@ -71,16 +92,16 @@ def axes_angle(first: Camera, second: Camera) -> float:
     return math.acos(float(np.clip(first.optical_axis @ second.optical_axis, -1, 1)))
 
 
-def no_pair_message(exp, cameras, vis, samples) -> str:
-    """Why a layout has no default stereo pair (`default_pairs` is empty) and the fix: name pairs
-    with --pairs FIRST:SECOND. The example pair is the two cameras, optical axes within
-    `max_pair_angle`, that see together the largest fraction of one region r,
+def best_pair(exp, cameras, visible, samples) -> tuple[str, str, str, float] | None:
+    """The two cameras, optical axes within `max_pair_angle`, that see together the largest
+    fraction of one region r,
 
         f_ijr = Σ_{n in r} v_in v_jn A_n / Σ_{n in r} A_n
 
-    (v the ray cast's `visible`, A the samples' areas, the measure of
-    `vdo.constraints.assignments`); without such two cameras, the fix is to move them."""
-    visible = np.asarray(vis.visible, dtype=float)
+    (v the ray cast's `visible` (C, N), rows in the order of `cameras`; A the samples' areas, the
+    measure of `vdo.constraints.assignments`), as (first, second, region, f); None when no two
+    such cameras see a point of a region together."""
+    visible = np.asarray(visible, dtype=float)
     limit = max_pair_angle(exp)
     candidates = [(i, j) for i in range(len(cameras)) for j in range(i + 1, len(cameras))
                   if axes_angle(cameras[i], cameras[j]) <= limit]
@@ -92,15 +113,32 @@ def no_pair_message(exp, cameras, vis, samples) -> str:
         for i, j in candidates:
             if together[i, j] > best:
                 best, example = together[i, j], (cameras[i].name, cameras[j].name, region)
+    return None if example is None else (*example, float(best))
+
+
+def pair_example(exp, cameras, visible, samples, syntax: PairSyntax = PAIRS_OPTION) -> str | None:
+    """The example pair of the messages that ask for pairs, in `syntax`: "e.g. --pairs A:B
+    (together they see 46% of region 'r', the most of any two)" (`best_pair`), or None."""
+    found = best_pair(exp, cameras, visible, samples)
+    if found is None:
+        return None
+    first, second, region, fraction = found
+    return (f"e.g. {syntax.of(first, second)} (together they see {fraction:.0%} of region "
+            f"{region!r}, the most of any two)")
+
+
+def no_pair_message(exp, cameras, vis, samples, syntax: PairSyntax = PAIRS_OPTION) -> str:
+    """Why a layout has no default stereo pair (`default_pairs` is empty) and the fix: name pairs
+    in `syntax` (default --pairs FIRST:SECOND), with the example of `pair_example`; without two
+    cameras that see a point of a region together, the fix is to move them."""
     why = (f"no two cameras are assigned a common region (each seeing at least [optimize] "
            f"assign_fraction = {exp.optimize.assign_fraction:g} of its area) with optical axes at most "
-           f"{math.degrees(limit):.0f} deg apart")
+           f"{math.degrees(max_pair_angle(exp)):.0f} deg apart")
+    example = pair_example(exp, cameras, vis.visible, samples, syntax)
     if example is None:
         return (f"{why}, and no two such cameras see a point of a region together: move the cameras "
-                "so that two share a view, then name them with --pairs FIRST:SECOND")
-    first, second, region = example
-    return (f"{why}: name the pairs with --pairs FIRST:SECOND, e.g. --pairs {first}:{second} "
-            f"(together they see {best:.0%} of region {region!r}, the most of any two)")
+                f"so that two share a view, then name them with {syntax.form}")
+    return f"{why}: name the pairs with {syntax.form}, {example}"
 
 
 # Fraction of a region's area that the exported stereo pairs may leave unseen by both cameras of
@@ -115,8 +153,8 @@ def uncovered_regions(exp, cameras, vis, samples, pairs) -> str | None:
     covers the samples both its cameras see (the ray cast's `visible`: the common area that
     `vdo.constraints.sharing`, the optimizer's pair rule, measures); a region is named when the
     pairs leave more than `PAIR_GAP` of its area uncovered that some two cameras with optical axes
-    within `max_pair_angle` see together, with the fraction the pairs cover against the fraction
-    such two cameras can. The fix: pairs added greedily (each time the one covering the most of
+    within `max_pair_angle` see together, with its share of all regions' area and the fraction
+    of it the pairs cover against the fraction such two cameras can. The fix: pairs added greedily (each time the one covering the most of
     that missing area) until every named region is within `PAIR_GAP`, gathered into one --pairs
     FIRST:SECOND list with the pairs already exported (--pairs replaces them)."""
     visible = np.asarray(vis.visible, dtype=bool)
@@ -135,8 +173,8 @@ def uncovered_regions(exp, cameras, vis, samples, pairs) -> str | None:
              if fraction(coverable & ~covered, r) > PAIR_GAP]
     if not short:
         return None
-    named = [f"{samples.region_names[r]} ({area[samples.region == r].sum() / total:.0%} of the area): "
-             f"{fraction(covered, r):.0%} seen by both cameras of an exported pair, "
+    named = [f"{samples.region_names[r]} ({area[samples.region == r].sum() / total:.0%} of all "
+             f"regions' area): {fraction(covered, r):.0%} of it seen by both cameras of an exported pair, "
              f"{fraction(coverable, r):.0%} by two cameras within the pair angle" for r in short]
     missing = coverable & ~covered & np.isin(samples.region, short)
     added = []

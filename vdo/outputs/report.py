@@ -138,7 +138,8 @@ class EvaluationSettings:
 
 
 SECTIONS = ("axis_angles", "design_checks", "negligible_views", "cameras_seeing_nothing", "constraints", "glare",
-            "measured", "load_path", "developed", "calibration")   # EvaluationResult's optional parts, JSON order
+            "measured", "load_path", "developed", "calibration",
+            "calibration_files")   # EvaluationResult's optional parts, JSON order
 
 
 @dataclass(frozen=True)
@@ -162,6 +163,7 @@ class EvaluationResult:
     load_path: dict | None = None                    # `vdo.search.loadpath.summary`
     developed: dict | None = None                    # region -> `vdo.outputs.maps.plot_developed`
     calibration: dict | None = None                  # `vdo.commands.calibrate.evaluation_errors`
+    calibration_files: dict | None = None            # camera -> its --calibration file (`vdo.calib.importer.imported`)
 
     def to_json(self) -> dict:
         """summary.json: experiment, config, settings, regions, then each section that is not None."""
@@ -259,5 +261,7 @@ def write_json(path: Path, data: dict) -> None:
     Path(path).write_text(json.dumps(data, indent=2) + "\n")
 
 
-def write_config(path: Path, exp: Experiment) -> None:
-    Path(path).write_text(tomli_w.dumps(exp.to_dict()))
+def write_config(path: Path, exp: Experiment, comment: list[str] | None = None) -> None:
+    """The resolved experiment as TOML at `path`, after `comment`'s lines as TOML comments."""
+    head = "".join(f"# {line}\n" for line in comment or ())
+    Path(path).write_text(head + tomli_w.dumps(exp.to_dict()))

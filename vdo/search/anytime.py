@@ -109,7 +109,10 @@ def stop_on_signals(stop: Stop):
 class Progress:
     """One progress line (tqdm) over the planned solver steps: start, round, step, the best
     score so far (µm; feasible layouts first) and the time left, the least of the time limit
-    and the steps left at the mean time per step so far (refreshes and checks included)."""
+    and the steps left at the mean time per step so far (refreshes and checks included). The
+    plan is an estimate (one feasibility round per start; a start may take up to
+    `vdo.search.solver.FEASIBILITY_ROUNDS`): past it the bar says so (`vdo.core.progress`) and
+    the time left is the time limit's."""
 
     def __init__(self, planned: int | None, stop: Stop | None = None):
         self.planned, self.stop, self.done = planned, stop, 0
@@ -118,6 +121,9 @@ class Progress:
                        bar_format="{desc}: {n}/{total} steps{postfix}", dynamic_ncols=True)
 
     def left(self) -> float:
+        """The time left (s): class docstring."""
+        if self.stop is not None and self.planned is not None and self.done >= self.planned:
+            return self.stop.left
         rate = (time.perf_counter() - self.t0) / max(self.done, 1)
         est = rate * max((self.planned or 0) - self.done, 0)
         return min(est, self.stop.left) if self.stop is not None else est
