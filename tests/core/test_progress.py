@@ -104,23 +104,28 @@ def test_a_terminal_gets_the_tqdm_bar_and_a_quiet_logger_nothing(shown):
     assert stream.getvalue() == ""
 
 
-def test_the_optimizer_line_says_its_own_time_left_once(monkeypatch, capsys):
-    """`vdo optimize` off a terminal: 10 steps of a planned 100 in 1 s each under a time limit of
-    30 s: the steps left at the mean rate would take 90 s, the limit leaves ~20 s; each plain
-    line says "s left" once, the lesser figure (the search stops at the limit)."""
+def optimizer_lines(monkeypatch, capsys, planned: int, steps: int, time_limit: float) -> list[str]:
+    """The plain lines of `vdo optimize`'s progress (`vdo.search.anytime.Progress`) for `steps`
+    steps of 1 s each, `planned` steps planned, under `time_limit` s."""
     from vdo.search import anytime
 
     monkeypatch.setattr(logging.getLogger(anytime.__name__), "level", logging.INFO)
     now = [0.0]
     monkeypatch.setattr(anytime.time, "perf_counter", lambda: now[0])
     monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
-    stop = anytime.Stop(time_limit=30.0)
-    bar = anytime.Progress(100, stop)
-    for k in range(10):
+    bar = anytime.Progress(planned, anytime.Stop(time_limit=time_limit))
+    for k in range(steps):
         now[0] += 1.0
-        bar.step(f"start 1 round 1/3, step {k + 1}/100", None)
+        bar.step(f"start 1 round 1/3, step {k + 1}/{planned}", None)
     bar.close()
-    lines = capsys.readouterr().err.splitlines()
+    return capsys.readouterr().err.splitlines()
+
+
+def test_the_optimizer_line_says_its_own_time_left_once(monkeypatch, capsys):
+    """`vdo optimize` off a terminal: 10 steps of a planned 100 in 1 s each under a time limit of
+    30 s: the steps left at the mean rate would take 90 s, the limit leaves ~20 s; each plain
+    line says "s left" once, the lesser figure (the search stops at the limit)."""
+    lines = optimizer_lines(monkeypatch, capsys, planned=100, steps=10, time_limit=30.0)
     assert lines and all(line.count("s left") == 1 for line in lines)
     assert lines[0] == ("optimize: 10/100 step (10 %), 10 s, ~20 s left "
                         "[start 1 round 1/3, step 10/100, no layout judged yet]")
@@ -157,19 +162,7 @@ def test_the_optimizer_past_its_plan_says_the_time_limit_left(monkeypatch, capsy
     """`vdo optimize` past its planned steps (feasibility rounds beyond the plan's one): the
     line says the step count past the estimate, and the time left is the time limit's (the
     mean rate over no steps left said ~0 s)."""
-    from vdo.search import anytime
-
-    monkeypatch.setattr(logging.getLogger(anytime.__name__), "level", logging.INFO)
-    now = [0.0]
-    monkeypatch.setattr(anytime.time, "perf_counter", lambda: now[0])
-    monkeypatch.setattr(progress.time, "monotonic", lambda: now[0])
-    stop = anytime.Stop(time_limit=100.0)
-    bar = anytime.Progress(10, stop)
-    for k in range(12):
-        now[0] += 1.0
-        bar.step(f"start 1 round 1/3, step {k + 1}/10", None)
-    bar.close()
-    lines = capsys.readouterr().err.splitlines()
+    lines = optimizer_lines(monkeypatch, capsys, planned=10, steps=12, time_limit=100.0)
     assert lines[-1] == ("optimize: 12 step (past the estimated 10), 12 s, ~88 s left "
                          "[start 1 round 1/3, step 12/10, no layout judged yet]")
 
