@@ -486,13 +486,22 @@ def tripod_checks(cameras, table, keep_outs, clearance: float) -> list[dict]:
                        cameras=[cameras[c].name], keep_out=box.name) for c in has for b, box in enumerate(keep_outs)]
     if clearance > 0:
         for k, i in enumerate(has):
-            for j in has[k + 1:]:
-                L = feet.shape[1]
-                gap = segment_distance(np.broadcast_to(top[i], (L, L, 3)), feet[i][:, None, :],
-                                       np.broadcast_to(top[j], (L, L, 3)), feet[j][None, :, :])
-                out.append(_entry("tripod_clearance", float(gap.min() - table["radius"][i] - table["radius"][j]),
-                                  clearance, "m", "min", cameras=[cameras[i].name, cameras[j].name]))
+            for j, gap in zip(has[k + 1:], tripod_gaps(top, feet, table["radius"], i, has[k + 1:])):
+                out.append(_entry("tripod_clearance", float(gap), clearance, "m", "min",
+                                  cameras=[cameras[i].name, cameras[j].name]))
     return out
+
+
+def tripod_gaps(top, feet, radius, i: int, others) -> np.ndarray:
+    """(n,) the least distance (m) between the surfaces of tripod i's legs and those of each
+    tripod `others` (n indices): `segment_distance` over every pair of legs (tops (C, 3), feet
+    (C, L, 3) from `tripod_legs`) less both legs' radii (C,). Two tripods at one floor point share
+    their feet: -2 r."""
+    o = np.asarray(others, dtype=int)
+    L = feet.shape[1]
+    gap = segment_distance(np.broadcast_to(top[i], (len(o), L, L, 3)), feet[i][None, :, None, :],
+                           top[o][:, None, None, :], feet[o][:, None, :, :])
+    return gap.min(axis=(1, 2)) - radius[i] - radius[o]
 
 
 def shadow_penalty(centres, radii, samples, panels, margin: float, pairs=None, weight=None):

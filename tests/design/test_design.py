@@ -1191,3 +1191,51 @@ def test_counts_that_share_no_measured_area_say_so_instead_of_a_0_percent_curve(
                                      refine=False, memory_gb=None, time_limit=None, quiet=False))
     printed = capsys.readouterr().out.splitlines()
     assert printed[2] == line and sum(line == p for p in printed) == 1
+
+
+TRIPOD_ZONE = """
+[[mount]]
+name = "floor"
+kind = "zone"
+box_min_m = [-1.0, -1.2, 0.5]
+box_max_m = [1.0, -1.0, 1.1]
+[mount.tripod]
+spread_m = 0.45
+leg_diameter_m = 0.04
+"""
+
+
+def test_two_tripods_never_share_their_legs(plate_experiment):
+    """The steel beam's design put two tripods over one floor point at 1.1 and 0.5 m (their feet
+    shared), which its own judgement then failed ("tripod_clearance"). The selection's rule is
+    that check's measure: for every two tripod candidates, a conflict exactly where the
+    designed layout's `tripod_checks` would fail; two heights over one floor point always
+    conflict (the same feet); tripods whose footprints (spread + leg radius) lie more than the
+    clearance apart in plan never do."""
+    from vdo.constraints import tripod_checks, tripod_table, tripods_of
+
+    path = plate_experiment(spacing=50, extra_meshes=TRIPOD_ZONE)
+    path.write_text(path.read_text() + DESIGN.format(n=2, extra="zone_points = 3\nzone_heights = 2"))
+    exp = config.load(path)
+    cand = judge(exp, prepare(exp))
+    feas = Feasibility(exp, cand)
+    on = np.flatnonzero(np.array(cand.mount) == "floor")
+    assert len(on) >= 12
+    clearance, reach = exp.optimize.clearance, 0.45 + 0.02
+    seen = {"same point": 0, "far": 0, "measured": 0}
+    for a in on:
+        row = feas.tripods_touch(int(a))
+        for b in on[on > a]:
+            pa, pb = cand.cameras[a].position, cand.cameras[b].position
+            pair = [cand.cameras[a], cand.cameras[b]]
+            table = tripod_table(pair, [exp.mount("floor").tripod] * 2)
+            check = tripod_checks(pair, table, [], clearance)[0]
+            assert row[b] == (not check["met"]), (pa, pb, check)
+            if np.allclose(pa[:2], pb[:2]):
+                seen["same point"] += 1
+                assert row[b] and feas.row(int(a))[b]            # the selection's own rule
+            elif np.linalg.norm(pa[:2] - pb[:2]) > 2 * reach + clearance + 0.3:   # the top's offset
+                seen["far"] += 1
+                assert not row[b]
+            seen["measured"] += 1
+    assert min(seen.values()) > 0, seen

@@ -5,6 +5,9 @@ Feasible with the selected set:
 * the inventory: no more cameras of a body kind than its count;
 * one camera per spot: no two optical centres closer than SPOT_M (`vdo.design.candidates`; a
   body and its clearance);
+* tripods: two cameras on zones with a [mount.tripod] keep their legs `[optimize] clearance_m`
+  apart (`vdo.constraints.tripod_gaps`, the measure of the designed layout's "tripod_clearance"
+  check; two heights over one floor point share their feet);
 * axis angles: two cameras that share a region (each sees at least `[optimize]
   assign_fraction` of its area with usable weight, or the area of it both see usably is at least
   that fraction of the smaller area either sees: all-round regions, `Feasibility`) keep their optical axes at least `[optimize]
@@ -31,7 +34,7 @@ import scipy.sparse
 
 from vdo.design.candidates import SPOT_M, Candidates, bodies, per_mount
 from vdo.config.experiment import Experiment
-from vdo.constraints import stereo_min_angle
+from vdo.constraints import stereo_min_angle, tripod_gaps, tripod_legs, tripod_table
 from vdo.geometry import obstacles
 from vdo.physics.exposure import aperture_for
 from vdo.core.tolerances import LIMIT_SLACK, TINY
@@ -101,6 +104,9 @@ class Feasibility:
         self._rows: dict[int, np.ndarray] = {}
         self._samples = samples
         self._tripods = {m.name: m.tripod for m in exp.mounts}     # rails stand on no tripod
+        table = tripod_table(cand.cameras, [self._tripods.get(m) for m in cand.mount])
+        self._legs = None if table is None or exp.optimize.clearance <= 0 else (
+            table, *tripod_legs(self.positions, self.axes, np.array([c.pan for c in cand.cameras]), table, xp=np))
         self._hardware: dict[int, obstacles.Hardware] = {}
         self._bounds = None   # every candidate's hardware bounding sphere: (centres (K, 3), radii (K,))
 
@@ -130,10 +136,27 @@ class Feasibility:
                 conflict |= share & (angle > opt.max_axis_angle + ANGLE_TOL)
             for r, top in self.limited:
                 conflict |= shared[:, r] & (angle > top + ANGLE_TOL)
+            conflict |= self.tripods_touch(j)
             if self._samples is not None:     # the hardware rule only where nothing else conflicts
                 conflict |= self.hides(j, among=~conflict)
             self._rows[j] = conflict
         return self._rows[j]
+
+    def tripods_touch(self, j: int) -> np.ndarray:
+        """(K,) True where candidate j and another both stand on tripods whose legs come closer
+        than [optimize] clearance_m (`tripod_gaps`); only candidates whose tripods' footprints
+        (spread + leg radius around the top casting, in plan) come within it are measured."""
+        out = np.zeros(len(self.cand.cameras), bool)
+        if self._legs is None or not self._legs[0]["has"][j]:
+            return out
+        table, top, feet = self._legs
+        reach = table["spread"] + table["radius"]
+        plan = np.linalg.norm(top[:, :2] - top[j, :2], axis=1)
+        near = np.flatnonzero(table["has"] & (plan < reach + reach[j] + self.exp.optimize.clearance))
+        near = near[near != j]
+        if len(near):
+            out[near] = tripod_gaps(top, feet, table["radius"], j, near) < self.exp.optimize.clearance
+        return out
 
     def hardware(self, k: int) -> obstacles.Hardware:
         """Candidate k's body and tripod (`vdo.geometry.obstacles.hardware`)."""
