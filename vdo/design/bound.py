@@ -47,7 +47,10 @@ The relaxation keeps the body counts and drops the pairwise rules; measured on t
 experiment, the relaxed optimum already puts at most about one camera's weight on any spot (its
 weight per optical centre is <= 1.02), so the spot rule would barely tighten it. What separates
 the bound from a design is mostly the relaxation's own integrality gap: fractional weights mix
-lenses and aims at a spot, which no selection can.
+lenses and aims at a spot, which no selection can, and whole selections: on the steel beam
+(4 cameras) the relaxed optimum is a convex combination of feasible selections, so no
+inequality that every feasible selection meets can raise the bound; on the built-in (10) the
+convex hull of feasible selections holds a point 0.17 % above it (docs/design.md, "The bound").
 
 The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
 many cameras can lower the score by more than that fraction.
