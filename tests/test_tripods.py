@@ -398,7 +398,7 @@ def test_the_constraints_read_the_legs_of_the_tripod_mesh(tmp_path):
 def test_segment_distance_against_dense_sampling():
     """`segment_distance` against the least distance between 2001 points on each segment, on
     random, parallel, touching and end-to-end segments."""
-    from vdo.constraints import segment_distance
+    from vdo.geometry.obstacles import segment_distance
 
     rng = np.random.default_rng(5)
     cases = [tuple(rng.normal(size=(4, 3))) for _ in range(30)]

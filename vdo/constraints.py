@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
 
+from vdo.geometry.obstacles import segment_distance
 from vdo.model.camera import image_point, to_camera
 from vdo.objective import smoothstep
 from vdo.scene import SurfaceSamples
@@ -449,20 +450,6 @@ def tripod_penalty(top, feet, table, lows, highs, clearance: float, margin: floa
         pair = has[:, None] * has[None, :] * (1.0 - jnp.eye(n))
         total = total + 0.5 * jnp.sum(pair[:, :, None, None] * hinge)
     return total
-
-
-def segment_distance(p0, p1, q0, q1) -> np.ndarray:
-    """The least distance (m) between the segments p0-p1 and q0-q1 ((..., 3) each): the closest
-    points' parameters s, t in [0, 1] from the normal equations, clamped and re-projected
-    (exact for segments, parallel ones included)."""
-    u, v, w = p1 - p0, q1 - q0, p0 - q0
-    a, b, c = np.sum(u * u, -1), np.sum(u * v, -1), np.sum(v * v, -1)
-    d, e = np.sum(u * w, -1), np.sum(v * w, -1)
-    den = a * c - b * b
-    s = np.clip(np.where(den > 1e-15 * np.maximum(a * c, TINY), (b * e - c * d) / np.maximum(den, TINY), 0.0), 0, 1)
-    t = np.clip((b * s + e) / np.maximum(c, TINY), 0, 1)
-    s = np.clip((b * t - d) / np.maximum(a, TINY), 0, 1)
-    return np.linalg.norm(w + s[..., None] * u - t[..., None] * v, axis=-1)
 
 
 def tripod_checks(cameras, table, keep_outs, clearance: float) -> list[dict]:
