@@ -469,7 +469,7 @@ def test_the_solver_step_compiles_once_for_the_first_and_the_later_steps():
     assert len(compiles) == 1
 
 
-COMPILE_LIMIT_S = 30.0   # the run's time limit in the test below
+COMPILE_LIMIT_S = 20.0   # the run's time limit in the test below
 COMPILE_SLACK_S = 5.0    # past it: one poll of the stop request and the run folder's writing
 
 

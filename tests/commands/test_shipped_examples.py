@@ -38,7 +38,7 @@ DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 SPACING_FACTOR = 4          # sample spacings x 4: about 16x fewer samples
 OPTIMIZE_STEPS = 2          # BFGS steps of the one start and round
-SWEEP_POINTS = 4            # a sweep runs its first points (`--max-points`), the rest stay pending
+SWEEP_POINTS = 2            # a sweep runs its first points (`--max-points`), the rest stay pending
 LOAD_PATH_EVERY = 8         # a load path judged and rendered at every 8th step and the last
 VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
 DESIGN = ("design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1; "
