@@ -325,7 +325,7 @@ def test_a_camera_level_with_an_edge_sees_the_near_wall(plate_experiment, tmp_pa
     its near side (y < 0: the far wall is hidden by the near one, a closed form), and the DIC
     render's edge row is no darker than its neighbours (a leaked ray saw the far wall from inside,
     in the dark). In Embree's fast mode half of that row's 64 pixels were black (0); in its robust
-    mode (`vdo.rendering.dic.ROBUST_RAYS`) none.
+    mode (`vdo.rendering.dic.DicScene`) none.
     161 rows: (161 - 1) is a multiple of the light map's SHADE_STRIDE, a tile size that crashed."""
     from vdo.rendering import dic
 

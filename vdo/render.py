@@ -172,6 +172,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
         clean = noise_free_dn(linear[cam.name], sensor)
         uv = cam.project(samples.points)
         sigma = 0.0 if sigma_px is None else float(sigma_px[i])
+        weight = sample_weight(sigma)
         for k, region in enumerate(samples.region_names):
             mask = vis.visible[i] & (samples.region == k)
             row = {"camera": cam.name, "region": region, "n_samples": int(mask.sum())}
@@ -187,7 +188,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
                 light = 0.0
                 if spp is not None and light_cv2 is not None:
                     q = float(np.mean(pho.contrast[i, mask] / np.maximum(level, 1e-300)))
-                    light = float(level.mean()) * math.sqrt((1 + q * q) * sample_weight(sigma)
+                    light = float(level.mean()) * math.sqrt((1 + q * q) * weight
                                                             * float(np.mean(light_cv2[mask])) / spp)
                 row["c_light_sampling_dn"] = light
                 footprints.append((row, np.linalg.inv(A), sigma))

@@ -24,13 +24,6 @@ MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): 
                              # corner differences lose digits and its average is the point value
 FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
                              # (the cells on which a lens's blur acts, `render_camera_dic`)
-ROBUST_RAYS = True           # Embree's watertight mode for the primary rays: in its fast mode a ray of
-                             # the pixel lattice through a shared edge can miss both triangles and hit
-                             # the far wall from inside (a camera level with a pipe's vertex row: half
-                             # its middle row black, tests/test_render_dic.py). The shadow rays keep
-                             # the fast mode (`DicScene.shadows`): the robust one cost them 30 % of CPU
-                             # (200 k nodes of cam1, 3.25 -> 4.23 s), and one of them through an edge
-                             # is one quadrature point, not a line of pixels
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -121,10 +114,16 @@ def _b2_weights(t):
 @dataclass(frozen=True, eq=False)
 class DicScene:
     """What the DIC render mode needs of an experiment: the render scene with white regions
-    (`build_render_scene(white_regions=True)`) in Embree's robust mode for the primary rays
-    (ROBUST_RAYS) and the same scene in its fast mode for the shadow rays (`shadows`), the
+    (`build_render_scene(white_regions=True)`) in Embree's robust (watertight) mode for the
+    primary rays, and the same scene in its fast mode for the shadow rays (`shadows`); the
     registry ids of the speckled shapes (of `scene`), the speckle's summed-area table and tile
-    size, the paint's albedos and the lights."""
+    size, the paint's albedos and the lights.
+
+    Why two modes: in the fast mode a ray of the pixel lattice through an edge two triangles
+    share can miss both and hit the far wall from inside (a camera level with a pipe's vertex
+    row: half its middle row black, tests/test_render_dic.py); the robust mode for the shadow
+    rays too cost them 30 % of CPU (200 k light nodes of cam1, 3.25 -> 4.23 s), and a shadow ray
+    through an edge is one quadrature point, not a line of pixels."""
 
     scene: object
     shadows: object
@@ -148,9 +147,8 @@ def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=No
     sp = exp.speckle
     pattern = pattern_for(sp) if pattern is None else np.asarray(pattern, dtype=np.float32)
     scene = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True,
-                               robust=ROBUST_RAYS)
-    shadows = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed,
-                                 white_regions=True) if ROBUST_RAYS else scene
+                               robust=True)
+    shadows = build_render_scene(exp, meshes, region_faces, bodies, pattern, posed, white_regions=True)
     ids = tuple(int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(s))[0]) for s in scene.shapes()
                 if s.id().endswith(SPECKLED_SUFFIX))
     lights = []
