@@ -67,6 +67,10 @@ NODE_TOLERANCE = 1e-4         # m: a displacement node matches a mesh vertex thi
 SURFACE_TOLERANCE = 1e-4      # m: a VTK node lies on the mesh surface this close
 FIT_NODES = 12                # nearest nodes of a VTK file fitted at a vertex with no node
 DISPLACEMENT_NAMES = ("displacement", "displacements", "disp", "displ", "u", "depl")
+SPHERE_CLASS = 2.0            # `_locate`: triangles' bounding spheres searched in classes of radii this
+                              # factor apart (one ball search per class, at its largest radius)
+SPHERE_WIDEN = 1.25           # ... each sphere's radius widened by this factor (a point a little off a
+                              # triangle's plane, as a curved region's sample off its chord, still inside)
 MAX_ROTATION_DEG = 360.0      # |rotation| beyond a full turn is a unit mistake
 SMALL_ROTATION_DEG = 0.2      # all rotations below this in a _deg column: likely radians
 _UNITS = {"m": 1.0, "mm": 1e-3, "deg": math.pi / 180.0, "rad": 1.0}
@@ -445,45 +449,78 @@ def _vertex_fit(nodes: np.ndarray, vertices: np.ndarray, tree):
 def _barycentric_displacement(points, triangles, displaced, candidates: int = 16) -> np.ndarray:
     """Displacement at `points` (N, 3) lying on `triangles` (T, 3, 3): barycentric interpolation
     of the corner displacements `displaced` (T, 3, 3) of the triangle each point lies on (its
-    in-plane coordinates (l1, l2) with X - A = l1 (B - A) + l2 (C - A), all >= -1e-6 and
-    l1 + l2 <= 1 + 1e-6). Each point tries the `candidates` triangles with the nearest centroids
-    first, then every triangle; on a shared edge the nearer centroid wins (the field is
-    continuous across it)."""
+    in-plane coordinates (l1, l2) with X - A = l1 (B - A) + l2 (C - A), all >= -BARYCENTRIC_SLACK
+    and l1 + l2 <= 1 + BARYCENTRIC_SLACK; `_locate`)."""
+    tri, lam = _locate(np.asarray(points, float), triangles, candidates)
+    out = np.zeros((len(points), 3))
+    found = tri >= 0
+    t, l1, l2 = tri[found], lam[found, :1], lam[found, 1:]
+    out[found] = (1 - l1 - l2) * displaced[t, 0] + l1 * displaced[t, 1] + l2 * displaced[t, 2]
+    return out
+
+
+def _locate(points: np.ndarray, triangles: np.ndarray, candidates: int = 16):
+    """(triangle (N,) int, -1 where none holds the point; (l1, l2) (N, 2)): the triangle of
+    `triangles` (T, 3, 3) each point lies on, where two hold it (a shared edge) the one with the
+    nearer centroid (the field is continuous across it). The `candidates` triangles with the
+    nearest centroids are tried first; the points none of them holds try every triangle whose
+    bounding sphere (about its centroid c_t, radius SPHERE_WIDEN R_t, R_t = max |vertex - c_t|,
+    plus the barycentric slack) holds them, found by a ball search per class of radii within a factor
+    SPHERE_CLASS of one another, so that a few long thin triangles (a fan around a hole) do not
+    make the search a pass over every triangle for every point; any point still unplaced (off
+    every triangle's plane by more than its sphere) tries every triangle."""
     from scipy.spatial import cKDTree
 
-    points = np.asarray(points, float)
-    out = np.zeros_like(points)
+    n = len(points)
     e1, e2 = triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
     g11, g12, g22 = (e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)
     det = g11 * g22 - g12 * g12
     usable = np.abs(det) >= 1e-30
+    centroid = triangles.mean(axis=1)
+    tri_out, lam_out = np.full(n, -1), np.zeros((n, 2))
 
-    def solve(idx, tri):   # (n, k) candidate triangles -> barycentric (n, k, 2), inside (n, k)
-        rel = points[idx, None] - triangles[tri, 0]
-        r1, r2 = (rel * e1[tri]).sum(-1), (rel * e2[tri]).sum(-1)
-        d = np.where(usable[tri], det[tri], 1.0)
-        lam = np.stack([(g22[tri] * r1 - g12[tri] * r2) / d, (g11[tri] * r2 - g12[tri] * r1) / d], -1)
-        inside = usable[tri] & (lam >= -BARYCENTRIC_SLACK).all(-1) & (lam.sum(-1) <= 1 + BARYCENTRIC_SLACK)
+    def solve(p, t):   # pairs (point, triangle) -> barycentric (m, 2), inside (m,)
+        rel = points[p] - triangles[t, 0]
+        r1, r2 = (rel * e1[t]).sum(-1), (rel * e2[t]).sum(-1)
+        d = np.where(usable[t], det[t], 1.0)
+        lam = np.stack([(g22[t] * r1 - g12[t] * r2) / d, (g11[t] * r2 - g12[t] * r1) / d], -1)
+        inside = usable[t] & (lam >= -BARYCENTRIC_SLACK).all(-1) & (lam.sum(-1) <= 1 + BARYCENTRIC_SLACK)
         return lam, inside
 
-    def assign(idx, tri, lam, inside):
-        found = inside.any(axis=1)
-        pick = np.argmax(inside, axis=1)[found]
-        rows, t = idx[found], tri[found, pick]
-        l1, l2 = lam[found, pick, :1], lam[found, pick, 1:]
-        out[rows] = (1 - l1 - l2) * displaced[t, 0] + l1 * displaced[t, 1] + l2 * displaced[t, 2]
-        return idx[~found]
+    def assign(p, t):  # pairs -> the inside pair of nearest centroid per point; the points left
+        lam, inside = solve(p, t)
+        p, t, lam = p[inside], t[inside], lam[inside]
+        near = np.linalg.norm(points[p] - centroid[t], axis=1)
+        order = np.lexsort((near, p))
+        first = order[np.r_[True, p[order][1:] != p[order][:-1]]] if len(order) else order
+        tri_out[p[first]], lam_out[p[first]] = t[first], lam[first]
 
     k = min(candidates, len(triangles))
-    _, near = cKDTree(triangles.mean(axis=1)).query(points, k=k)
-    near = np.asarray(near).reshape(len(points), k)
-    left = assign(np.arange(len(points)), near, *solve(np.arange(len(points)), near))
+    _, near = cKDTree(centroid).query(points, k=k)
+    assign(np.repeat(np.arange(n), k), np.asarray(near).reshape(-1))
+    left = np.flatnonzero(tri_out < 0)
+    if len(left):
+        edge = np.sqrt(np.maximum(g11, g22))
+        radius = SPHERE_WIDEN * np.linalg.norm(triangles - centroid[:, None], axis=2).max(axis=1) \
+            + 2 * BARYCENTRIC_SLACK * edge
+        smallest = radius[radius > 0].min() if (radius > 0).any() else 1.0   # degenerate: radius 0
+        level = np.floor(np.log(np.maximum(radius, smallest) / smallest) / np.log(SPHERE_CLASS)).astype(int)
+        pairs_p, pairs_t = [], []
+        for c in np.unique(level):
+            members = np.flatnonzero(level == c)
+            hits = cKDTree(centroid[members]).query_ball_point(points[left], r=float(radius[members].max()))
+            sizes = np.fromiter((len(h) for h in hits), int, len(hits))
+            if sizes.sum():
+                pairs_p.append(np.repeat(left, sizes))
+                pairs_t.append(members[np.concatenate([h for h in hits if h])])
+        if pairs_p:
+            assign(np.concatenate(pairs_p), np.concatenate(pairs_t))
+    left = np.flatnonzero(tri_out < 0)
     every = np.arange(len(triangles))
     for chunk in np.array_split(left, max(1, len(left) * len(triangles) // 2_000_000 + 1)):
         if len(chunk):
-            tri = np.broadcast_to(every, (len(chunk), len(every)))
-            assign(chunk, tri, *solve(chunk, tri))
-    return out
+            assign(np.repeat(chunk, len(every)), np.tile(every, len(chunk)))
+    return tri_out, lam_out
 
 
 def at_step(geometry, load_path: LoadPath, step: int, *, regions: tuple[RegionSpec, ...]):
