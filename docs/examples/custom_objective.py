@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import jax
@@ -94,4 +95,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except vdo.ConfigError as err:       # a user mistake: one line, as vdo's commands print it
+        sys.exit(f"error: {err}")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 from pathlib import Path
 
 import vdo
@@ -64,4 +65,7 @@ def main(argv=None) -> list[LensRow]:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except vdo.ConfigError as err:       # a user mistake: one line, as vdo's commands print it
+        sys.exit(f"error: {err}")

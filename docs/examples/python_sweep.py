@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import sys
 from pathlib import Path
 
 import vdo
@@ -53,4 +54,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except vdo.ConfigError as err:       # a user mistake: one line, as vdo's commands print it
+        sys.exit(f"error: {err}")

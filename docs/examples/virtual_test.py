@@ -68,6 +68,7 @@ import argparse
 import dataclasses
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -570,6 +571,12 @@ def main(argv=None) -> dict:
         parser.error(f"--steps {args.steps}: give at least 1 load step")
     if not args.experiment.is_file():
         parser.error(f"--experiment: no file {args.experiment}; give an experiment's .toml")
+    from vdo.core.runfolder import check_out
+
+    try:                               # a used --out says so in one line before any work
+        check_out(args.out, args.overwrite)
+    except vdo.ConfigError as err:
+        parser.error(str(err))
     vdo.configure()
     result = run(args.out, args.quick, args.scale, args.spp, args.per_region, args.realisations,
                  args.overwrite, tuple(args.crop), args.dot_mm, args.texel_mm,
@@ -584,4 +591,7 @@ def main(argv=None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except vdo.ConfigError as err:       # a user mistake: one line, as vdo's commands print it
+        sys.exit(f"error: {err}")

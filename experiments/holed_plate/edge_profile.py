@@ -27,6 +27,7 @@ sys.path.insert(0, str(HERE.parent.parent))
 from vdo.config import experiment as config  # noqa: E402
 from vdo.commands.evaluate import evaluate  # noqa: E402
 from vdo.core.configure import configure  # noqa: E402
+from vdo.core.errors import ConfigError  # noqa: E402
 
 CENTRE, RADIUS = np.array([0.0, 1.0]), 0.015   # hole centre (x, z) and radius, m (make_meshes.py)
 
@@ -94,4 +95,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except ConfigError as err:       # a user mistake: one line, as vdo's commands print it
+        sys.exit(f"error: {err}")

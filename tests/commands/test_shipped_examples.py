@@ -282,3 +282,37 @@ def test_experiment_scripts_run_reduced(script, tmp_path):
     assert len(rows) > 20
     ratio = np.array([float(r["sigma_max_um"]) / float(r["sigma_model_um"]) for r in rows])
     assert abs(np.median(ratio) - 1) < 0.05
+
+
+BAD_TOML = 'x = [\n'         # not TOML: the reader's own one-line error
+
+
+SCRIPT_ARGS = [
+    ("docs/examples/compare_layouts.py", ["{bad}"]),
+    ("docs/examples/custom_objective.py", ["{bad}", "--out", "{out}"]),
+    ("docs/examples/lens_study.py", ["{bad}"]),
+    ("docs/examples/python_sweep.py", ["{bad}", "--out", "{out}"]),
+    ("docs/examples/virtual_test.py", ["--experiment", "{bad}", "--out", "{out}", "--quick"]),
+    ("experiments/holed_plate/edge_profile.py", ["--out", "{out}"])]
+
+
+@pytest.mark.parametrize("script, argv", SCRIPT_ARGS)
+def test_scripts_say_a_bad_experiment_in_one_line(script, argv, tmp_path, monkeypatch, capsys):
+    """Each shipped script given a broken experiment (not TOML; edge_profile, which reads its
+    own file, a negative sample spacing through VDO_SET) stops with one line naming the file,
+    as vdo's commands do: no traceback, nothing written."""
+    import runpy
+    import sys
+
+    assert sorted(p.relative_to(ROOT).as_posix() for p in (ROOT / "docs" / "examples").glob("*.py")) == \
+        sorted(s for s, _ in SCRIPT_ARGS if s.startswith("docs/")), "a new example: add it here"
+    bad = tmp_path / "bad.toml"
+    bad.write_text(BAD_TOML)
+    monkeypatch.setenv("VDO_SET", "evaluation.sample_spacing_mm = -4")
+    monkeypatch.setattr(sys, "argv", [script, *(a.format(bad=bad, out=tmp_path / "out") for a in argv)])
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(ROOT / script), run_name="__main__")
+    message = str(stop.value.code)
+    assert message.startswith("error: ") and "\n" not in message, message
+    assert ("bad.toml" in message) if "{bad}" in argv else ("sample_spacing_mm" in message), message
+    assert not (tmp_path / "out").exists()

@@ -491,8 +491,8 @@ def test_virtual_test_of_other_experiments_is_within_three_sigma_measured(experi
 
 
 def test_virtual_test_refuses_a_pair_it_cannot_use(tmp_path, capsys):
-    """A --pair naming an unknown camera, or an --experiment that is not a file: one line naming
-    the option and what is there, before any rendering."""
+    """A --pair naming an unknown camera, an --experiment that is not a file, --steps 0 or an
+    --out that holds files: one line naming the option and what is there, before any rendering."""
     import runpy
 
     example = runpy.run_path(str(ROOT / "docs" / "examples" / "virtual_test.py"))
@@ -509,6 +509,13 @@ def test_virtual_test_refuses_a_pair_it_cannot_use(tmp_path, capsys):
         example["main"](["--out", str(tmp_path / "s"), "--steps", "0"])
     assert "--steps 0" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+    used = tmp_path / "used"
+    (used / "keep.txt").parent.mkdir()
+    (used / "keep.txt").write_text("mine")
+    with pytest.raises(SystemExit):
+        example["main"](["--out", str(used), "--quick"])
+    assert "--out: exists and is not empty" in capsys.readouterr().err
+    assert [f.name for f in used.iterdir()] == ["keep.txt"]
 
 
 @pytest.mark.parametrize("mode, spp, warned", [("sampled", 4, True), ("sampled", 64, False), ("dic", 4, False)])
