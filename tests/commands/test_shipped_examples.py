@@ -46,7 +46,7 @@ DESIGN = ("design.rail_positions = 3; design.zone_points = 1; design.zone_height
 # per command: the flags that shorten it (a flag given in the docs is replaced)
 FLAGS = {"validate": ["--seeds", "2"], "render": ["--scale", "0.05", "--spp", "1"],
          "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1", "--max-points", str(SWEEP_POINTS)]}
-REPLACED = {"--out": 1, "--seeds": 1, "--scale": 1, "--spp": 1, "--time-limit": 1, "--workers": 1,
+REPLACED = {"--out": 1, "--seeds": 1, "--scale": 1, "--spp": 1, "--time-limit": 1, "--workers": 1, "--max-points": 1,
             "--overwrite": 0, "--quiet": 0}
 
 

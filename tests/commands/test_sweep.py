@@ -210,22 +210,27 @@ def done_files(folder: Path) -> dict:
 
 
 def test_kill_resume_trial_dask_and_closed_form(plate_sweep, tmp_path):
-    """One uninterrupted run on a Dask LocalCluster; one run on the local pool killed midway
-    (SIGKILL) and resumed, and a trial of two points then the rest: the same table, no finished
-    point recomputed. The resumed run also
-    writes the run folders of the points it computes (`vdo evaluate`'s summary), the others
-    came from the summary without a run folder: the same numbers."""
+    """A trial of two points (--max-points 2) on the local pool, then the rest on a Dask
+    LocalCluster; one run on the local pool killed midway (SIGKILL) and resumed: the same table,
+    no finished point recomputed. The resumed run also writes the run folders of the points it
+    computes (`vdo evaluate`'s summary), the others came from the summary without a run folder:
+    the same numbers."""
     spec = load_sweep(plate_sweep())
     n_valid = 4
 
-    # 1. uninterrupted, on Dask
-    whole = sweep(spec, tmp_path / "dask", workers=1, dask="local")
-    assert (whole["points"], whole["done"], whole["failed"]) == (4, 4, 0)
-    table = read_table(tmp_path / "dask" / "results.csv")
+    # 1. a trial of two points: the first two in the table's order run, the other two stay
+    # pending; the second run, on Dask, computes those two alone
+    trial = sweep(spec, tmp_path / "trial", workers=1, max_points=2)
+    assert (trial["points"], trial["done"], trial["pending"], trial["computed"]) == (4, 2, 2, 2)
+    assert [r["status"] for r in read_table(tmp_path / "trial" / "results.csv")] == \
+        ["done", "done", "pending", "pending"]
+    rest = sweep(spec, tmp_path / "trial", workers=1, dask="local")
+    assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
+    table = read_table(tmp_path / "trial" / "results.csv")
     assert [r["status"] for r in table] == ["done"] * 4
-    assert sorted(f.name for f in (tmp_path / "dask" / "figures").iterdir()) == [
+    assert sorted(f.name for f in (tmp_path / "trial" / "figures").iterdir()) == [
         "axis1_camera.all.focal_mm.png", "axis2_speckle.dot_diameter_mm.png"]
-    assert not (tmp_path / "dask" / "dask-scratch").exists()
+    assert not (tmp_path / "trial" / "dask-scratch").exists()
 
     # 2. coverage columns against the footprints (sample spacing 25 mm)
     for r in table[:4]:
@@ -261,7 +266,7 @@ def test_kill_resume_trial_dask_and_closed_form(plate_sweep, tmp_path):
     assert len(partial) == 4 and sum(r["status"] == "done" for r in partial) >= len(before) - 1
 
     # 4. resumed (with run folders: not part of a point's key): only the missing points run,
-    # and the table is the uninterrupted one
+    # and the table is the trial's
     with_folders = load_sweep(plate_sweep(extra="run_folders = true", name="folders.toml"))
     resumed = sweep(with_folders, tmp_path / "killed", workers=1)
     assert resumed["reused"] == len(before) and resumed["computed"] == n_valid - len(before)
@@ -272,17 +277,6 @@ def test_kill_resume_trial_dask_and_closed_form(plate_sweep, tmp_path):
     assert folders == set(after) - set(before)
     assert all((tmp_path / "killed" / "runs" / k / "summary.json").is_file() for k in folders)
     assert without_times(read_table(tmp_path / "killed" / "results.csv")) == without_times(table)
-
-    # 5. a trial of two points (--max-points 2): the first two in the table's order run, the
-    # other two stay pending; the second run computes those two alone, and the table is the
-    # uninterrupted one
-    trial = sweep(spec, tmp_path / "trial", workers=1, max_points=2)
-    assert (trial["points"], trial["done"], trial["pending"], trial["computed"]) == (4, 2, 2, 2)
-    assert [r["status"] for r in read_table(tmp_path / "trial" / "results.csv")] == \
-        ["done", "done", "pending", "pending"]
-    rest = sweep(spec, tmp_path / "trial", workers=1)
-    assert (rest["done"], rest["pending"], rest["computed"], rest["reused"]) == (4, 0, 2, 2)
-    assert without_times(read_table(tmp_path / "trial" / "results.csv")) == without_times(table)
 
 
 OPTIMIZE_SWEEP = """
