@@ -76,7 +76,7 @@ def ring_spacing(period: float, spacing: float) -> float:
 
 
 def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
-                  rf: RegionFaces | None = None) -> dict:
+                  rf: RegionFaces | None = None, field: str = "evaluation.sample_spacing_mm") -> dict:
     """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
     found by `region_faces`), in the region's (u, v): each stands for its cell of the grid.
 
@@ -105,7 +105,13 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
         keep = rf.selector.keep(pts)
         t, ij, pts = t[keep], ij[keep], pts[keep]
     if len(pts) == 0:
-        raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
+        span = np.ptp(uv_tri.reshape(-1, 2), axis=0) * 1e3
+        ring = (f" (on this ring {spacing * 1e3:.4g} mm, the nearest spacing that divides its "
+                f"circumference)") if dev is not None and dev.period > 0 else ""
+        raise ConfigError(*where, f"is smaller than the sample spacing: no grid point {spacing * 1e3:.4g} mm "
+                                  f"apart{ring} falls inside it (its selected faces span {span[0]:.4g} x "
+                                  f"{span[1]:.4g} mm{' developed' if dev is not None else ''}); lower {field} "
+                                  "or widen the region")
     n = len(pts)
     if dev is None:
         return dict(points=pts, normals=np.tile(rf.normal, (n, 1)), tangent_u=np.tile(rf.t_u, (n, 1)),
@@ -183,15 +189,15 @@ MAX_SAMPLES = 2_000_000     # surface samples: ~1 GB of visibility and uncertain
 
 
 def check_sample_count(meshes: list[SceneMesh], faces: list[RegionFaces], spacing: float, *,
-                       path) -> None:
-    """ConfigError (at the experiment file `path`, its evaluation.sample_spacing_mm) before
+                       path, field: str = "evaluation.sample_spacing_mm") -> None:
+    """ConfigError (at the experiment file `path`, its `field`, the spacing's) before
     sampling when the regions' area A would give more than MAX_SAMPLES samples at spacing h
     (N = A / h^2), with the smallest spacing that fits."""
     area = sum(float(m.trimesh.area_faces[rf.faces].sum()) for m, rf in zip(meshes, faces))
     count = area / spacing**2
     if count > MAX_SAMPLES:
         fits = math.ceil(math.sqrt(area / MAX_SAMPLES) * 1e4) / 10
-        raise ConfigError(path, "evaluation.sample_spacing_mm",
+        raise ConfigError(path, field,
                           f"= {spacing * 1e3:g} mm gives about {count:,.0f} samples on the regions' "
                           f"{area:.3g} m² (at most {MAX_SAMPLES:,}): raise sample_spacing_mm to "
                           f"{fits:g} or more")
@@ -199,7 +205,8 @@ def check_sample_count(meshes: list[SceneMesh], faces: list[RegionFaces], spacin
 
 def sample_regions(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
                    regions: tuple[RegionSpec, ...], spacing: float, path,
-                   faces: list[RegionFaces] | None = None) -> SurfaceSamples:
+                   faces: list[RegionFaces] | None = None,
+                   field: str = "evaluation.sample_spacing_mm") -> SurfaceSamples:
     """Samples on every region of `regions` (an experiment's [[region]] tables) at `spacing` (m;
     the experiment's is `evaluation.sample_spacing`), on the regions' `faces` (`all_region_faces`
     at that spacing, with `mesh_specs`, its [[mesh]] tables; found here when not given); errors
@@ -207,11 +214,11 @@ def sample_regions(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
     by_name = {m.name: m for m in meshes}
     faces = all_region_faces(meshes, mesh_specs=mesh_specs, regions=regions, spacing=spacing,
                              path=path) if faces is None else faces
-    check_sample_count([by_name[r.mesh] for r in regions], faces, spacing, path=path)
+    check_sample_count([by_name[r.mesh] for r in regions], faces, spacing, path=path, field=field)
     parts = []
     for index, (region, rf) in enumerate(zip(regions, faces)):
         part = sample_region(by_name[region.mesh], region, spacing,
-                             (path, f'region "{region.name}"'), rf)
+                             (path, f'region "{region.name}"'), rf, field=field)
         part["region"] = np.full(len(part["points"]), index)
         parts.append(part)
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
