@@ -49,6 +49,52 @@ class SurfaceSamples:
                        uv=self.uv[index], area=self.area[index], region=self.region[index])
 
 
+def edge_distance(samples: SurfaceSamples, keep: np.ndarray | None = None) -> np.ndarray:
+    """(N,) each sample's distance (m) to the edge of its region's samples that `keep` (N,) bool
+    holds (all of them by default; e.g. those a camera sees, whose edge is then also a silhouette
+    or an occlusion's), measured on the region's sample grid (planar, or developed): half a cell
+    for a sample with a grid neighbour (up, down, left or right) that is not held, else the
+    distance in (u, v) to the nearest such sample plus half a cell; 0 for samples not held. A ring
+    closed around its axis wraps in u (`region_period`), so its seam is no edge; a cone ring's
+    seam counts as one (conservative). Lengths in the developed plane: a conformal map's area
+    distortion makes them approximate."""
+    from scipy.spatial import cKDTree
+
+    keep = np.ones(len(samples), dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    out = np.zeros(len(samples))
+    for r in range(len(samples.region_names)):
+        idx = np.flatnonzero((samples.region == r) & keep)
+        if not len(idx):
+            continue
+        h = float(samples.region_cell[r]) if samples.region_cell is not None else \
+            float(np.sqrt(samples.area[idx].mean()))
+        period = samples.region_period[r] if samples.region_period is not None else 0.0
+        cells = int(round(period / h)) if period > 0 and (samples.region_turn is None
+                                                          or samples.region_turn[r] == 0) else 0
+        ij = np.rint(samples.uv[idx] / h - 0.5).astype(np.int64)
+        low = ij.min(axis=0) - 1
+        width = int(ij[:, 1].max() - low[1]) + 2
+        key = lambda i, j: (i - low[0]) * width + (j - low[1])                    # noqa: E731
+        have = np.sort(key(ij[:, 0], ij[:, 1]))
+        edge = np.zeros(len(idx), dtype=bool)
+        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            i = ij[:, 0] + di
+            if cells:
+                i = np.mod(i - low[0], cells) + low[0]
+            k = key(i, ij[:, 1] + dj)
+            at = np.clip(np.searchsorted(have, k), 0, len(have) - 1)
+            edge |= have[at] != k
+        uv = (ij + 0.5) * h
+        if not edge.any():      # a closed surface without an edge: everything is interior
+            out[idx] = np.inf
+            continue
+        border = uv[edge]
+        if cells:               # the ring's edge samples one period either side, for the wrap
+            border = np.concatenate([border + [k * cells * h, 0.0] for k in (-1, 0, 1)])
+        out[idx] = cKDTree(border).query(uv)[0] + h / 2
+    return out
+
+
 def _grid_points(uv_tri: np.ndarray, spacing: float):
     """Grid points (i + 1/2, j + 1/2) spacing inside the 2D triangles uv_tri (T, 3, 2): (triangle
     index t, barycentric l1, l2 (K, 1) each, grid index ij (K, 2))."""
