@@ -87,6 +87,19 @@ def test_bad_row_is_named_by_its_line_in_the_file(tmp_path):
         read_displacements(d, np.zeros((1, 3)), "plate")
 
 
+def test_node_positions_in_millimetres_under_metre_columns_name_the_columns(tmp_path):
+    """A vertex at (0.1, 0.2, 0.3) m written in mm under x_m columns: the message names the unit
+    slip and the columns; under x_mm columns the same row moves that vertex by its 5 mm."""
+    vertices = np.array([[0.1, 0.2, 0.3], [1.0, 1.0, 1.0]])
+    f = tmp_path / "disp.csv"
+    f.write_text("step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm\n1,100,200,300,0,0,5\n")
+    with pytest.raises(ConfigError, match=r"row 2: .*at 0\.001 times it is a vertex: the positions are in mm, "
+                                          r"so name their columns x_mm, y_mm, z_mm \(not _m\)"):
+        read_displacements(f, vertices, "plate")
+    f.write_text("step,x_mm,y_mm,z_mm,ux_mm,uy_mm,uz_mm\n1,100,200,300,0,0,5\n")
+    np.testing.assert_allclose(read_displacements(f, vertices, "plate")[1], [[0, 0, 0.005], [0, 0, 0]])
+
+
 def test_radians_in_degree_columns_are_warned(tmp_path, caplog):
     f = write_csv(tmp_path / "poses.csv", "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
                                           "1,top,0,0,0,0.05,0,0\n2,top,0,0,0,0.1,0,-0.12")

@@ -272,9 +272,14 @@ def read_displacements(file: Path, vertices: np.ndarray, mesh: str) -> dict:
         matches = tree.query_ball_point(x, NODE_TOLERANCE)   # all copies (STL repeats vertices)
         if not matches:
             distance = tree.query(x)[0]
+            hint = ""
+            for factor, written, right in ((1e-3, "m", "mm"), (1e3, "mm", "m")):   # a unit slip?
+                if tree.query(x * factor)[0] <= NODE_TOLERANCE:
+                    hint = (f"; at {factor:g} times it is a vertex: the positions are in {right}, so "
+                            f"name their columns x_{right}, y_{right}, z_{right} (not _{written})")
             raise ConfigError(file, f"row {line}", f"node {x.tolist()} m is {distance * 1e3:.2f} mm "
                                                    f"from the nearest vertex of mesh {mesh!r}: the "
-                                                   "nodes must be the mesh's vertices (world metres, at rest)")
+                                                   f"nodes must be the mesh's vertices (world metres, at rest){hint}")
         out.setdefault(step, np.zeros_like(vertices))[matches] = u
     return out
 
