@@ -52,6 +52,8 @@ if TYPE_CHECKING:
     from vdo.config.procedure import OptimizeSpec, StereoPairSpec
     from vdo.config.rig import RegionSpec
 
+SHADOW_LIMIT = 1e-3   # largest fraction of a region's area where the camera bodies may hide light
+                      # (more than 1 % of a light: `vdo.search.obstruction.light_lost`)
 
 def stereo_min_angle(focal_length: float) -> float:
     """Rule-of-thumb minimum angle (rad) between the optical axes of a stereo pair with this lens
@@ -628,7 +630,7 @@ def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarra
           pairs: np.ndarray, min_angles: np.ndarray, clearances: np.ndarray, clearance: float,
           max_obscuration: float, lost_light: np.ndarray, rails_u: list,
           roll_free: bool = False, fov_limits: np.ndarray | None = None,
-          max_angles: np.ndarray | None = None) -> list[dict]:
+          max_angles: np.ndarray | None = None, shadowers: dict | None = None) -> list[dict]:
     """One entry per constraint instance: name, what it concerns, value, limit, met and excess
     (`_entry`); `max_angles` (K,) rad adds an "axis_angle_max" entry for each pair with a
     finite maximum.
@@ -636,7 +638,9 @@ def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarra
     `clearances` (C,) is the measured distance from each body to everything else (m),
     `lost_light` (R,) the fraction of each region's area where camera bodies block light, and
     `fov_limits` (C, R) the least in-image fraction of each assigned region (default
-    1 - max_obscuration)."""
+    1 - max_obscuration), `shadowers` {region index: (camera names, light names)}
+    (`vdo.search.obstruction.light_shadowers`) the bodies that shadow a region and the lights
+    they hide, written into its "no_shadow_from_cameras" entry as `cameras` and `lights`."""
     out = []
     tops = np.full(len(pairs), np.inf) if max_angles is None else np.asarray(max_angles, dtype=float)
     for (i, j), limit, top, angle in zip(pairs, min_angles, tops, axis_angles(cameras, pairs)):
@@ -668,6 +672,8 @@ def check(cameras, vis: Visibility, samples: SurfaceSamples, assigned: np.ndarra
         if rails_u[c] is not None:
             out.append(_entry("on_rail", float(rails_u[c]), [0.0, 1.0], "u", "range", cameras=[cam.name]))
     for r, lost in enumerate(lost_light):
-        out.append(_entry("no_shadow_from_cameras", float(lost), 1e-3, "fraction of the region losing light",
-                          "max", region=samples.region_names[r]))
+        who, lights = (shadowers or {}).get(r, ([], []))
+        about = dict(cameras=list(who), lights=list(lights)) if who else {}
+        out.append(_entry("no_shadow_from_cameras", float(lost), SHADOW_LIMIT, "fraction of the region losing light",
+                          "max", region=samples.region_names[r], **about))
     return out

@@ -84,7 +84,8 @@ from vdo.physics.lighting import exposure_factors
 from vdo.physics.predict import predict
 from vdo.state import LayoutState, layout_state, prepare, unobstructed_lighting, with_exposure
 from vdo.search.anytime import Progress, Stop, stop_on_signals
-from vdo.search.obstruction import CLEARANCE_SPACING, clearances, light_lost, obstacle_visibility, surface_points
+from vdo.search.obstruction import (CLEARANCE_SPACING, clearances, light_lost, light_shadowers, obstacle_visibility,
+                                   surface_points)
 from vdo.search.problem import Problem, Result, State, score_parts
 from vdo.search.solver import LENS_TRIALS, choose_lenses, solve
 
@@ -118,14 +119,17 @@ def layout_checks(state: LayoutState) -> list[dict]:
         exp.regions, opt, exp.stereo_pairs, cameras, assigned,
         constraints.sharing(state.visibility, samples, opt.assign_fraction))
     tree = cKDTree(surface_points(list(geometry.meshes), spacing=CLEARANCE_SPACING))
-    lit_without = unobstructed_lighting(geometry).lit if exp.lights else None
+    unlit = unobstructed_lighting(geometry) if exp.lights else None
+    lit_without = None if unlit is None else unlit.lit
     specs = {s.name: s for s in exp.camera_specs}
     rails_u = [specs[c.name].u if c.name in specs and specs[c.name].rail is not None else None
                for c in cameras]
+    lost = light_lost(lit_without, state.illumination.lit, samples)
+    shadowers = (light_shadowers(geometry, cameras, unlit, lost, constraints.SHADOW_LIMIT)
+                 if unlit is not None else None)
     return constraints.check(cameras, obstacle_visibility(geometry, cameras), samples, assigned, pairs, min_angles,
-                             clearances(cameras, tree), opt.clearance, opt.max_obscuration,
-                             light_lost(lit_without, state.illumination.lit, samples), rails_u,
-                             roll_free="roll" in opt.free, max_angles=max_angles) \
+                             clearances(cameras, tree), opt.clearance, opt.max_obscuration, lost, rails_u,
+                             roll_free="roll" in opt.free, max_angles=max_angles, shadowers=shadowers) \
         + constraints.tripod_checks(cameras, constraints.tripod_table(cameras, constraints.tripods_of(cameras, exp.camera_specs, exp.mounts)),
                                     exp.keep_outs, opt.clearance)
 

@@ -433,8 +433,11 @@ def _warn_penetration(exp: Experiment, meshes, load_path: LoadPath) -> None:
                     exp.path, step, moving, depth * 1e3, specimen)
 
 
-def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
-    """Read the meshes (unless given), sample the regions and build the speckle model."""
+def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None,
+            spacing_field: str = "evaluation.sample_spacing_mm") -> Geometry:
+    """Read the meshes (unless given), sample the regions and build the speckle model.
+    `spacing_field` names the field the sample spacing came from in the messages (`vdo design`
+    samples at "design.sample_spacing_mm")."""
     if meshes is None:
         meshes = load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
                              rails=exp.rails, mounts=exp.mounts, path=exp.path)
@@ -442,7 +445,7 @@ def prepare(exp: Experiment, meshes: list[SceneMesh] | None = None) -> Geometry:
     faces = tuple(all_region_faces(meshes, mesh_specs=exp.meshes, regions=exp.regions, spacing=spacing,
                                    path=exp.path))
     samples = sample_regions(meshes, mesh_specs=exp.meshes, regions=exp.regions, spacing=spacing,
-                             path=exp.path, faces=list(faces))
+                             path=exp.path, faces=list(faces), field=spacing_field)
     by_name = {m.name: m for m in meshes}
     rasters = [surface_raster(by_name[r.mesh], rf, spacing) if patch <= FINE_PATCH_CELLS * spacing else None
                for r, rf in zip(exp.regions, faces)]

@@ -157,8 +157,8 @@ def test_load_path_bad_step_deep_in_the_list(beam_column, tmp_path, capsys, no_w
     config = folder / ("design.toml" if command == ["design"] else "ten_cameras.toml")
     assert main([command[0], str(config), *command[1:], "--out", str(tmp_path / "out")]) == 2
     err = one_line(capsys)
-    # the reader numbers rows from the header (row 2 = the first data row; the comment line is skipped)
-    assert err.startswith(f"error: {folder / file}: row {line - 1}: "), err
+    # the row named is the line spoiled: the file's line number, its comment line counted
+    assert err.startswith(f"error: {folder / file}: row {line}: "), err
     assert re.search(words, err), err
     assert not (tmp_path / "out").exists()
 

@@ -186,3 +186,21 @@ def test_hidden_silences_an_inner_bar_and_restores_the_level(shown):
         loud.update()
     loud.close()
     assert "4/4" in stream.getvalue()
+
+
+def test_work_that_ends_before_its_total_ends_at_100_percent(shown, clock):
+    """`finish_early` (the calibration planner once its target is reached: 7 of 105 poses):
+    the last line is the count over itself, with no time left, not 7 % and the time that the
+    skipped 98 would have taken; on a terminal, tqdm's total becomes the count the same way."""
+    stream = io.StringIO()
+    bar = progress.bar(LOG, total=105, desc="planning the session", unit="pose", file=stream)
+    clock.now += 9.0
+    bar.update(7)
+    progress.finish_early(bar)
+    last = stream.getvalue().splitlines()[-1]
+    assert last == "planning the session: 7/7 pose (100 %), 9 s, ~0 s left"
+    terminal = Terminal()
+    drawn = progress.bar(LOG, total=105, desc="planning the session", unit="pose", file=terminal)
+    drawn.update(7)
+    progress.finish_early(drawn)
+    assert drawn.total == 7 and "7/7" in terminal.getvalue().split("\r")[-1]

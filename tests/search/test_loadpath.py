@@ -67,6 +67,39 @@ def test_bad_pose_files_name_the_row_and_the_fix(tmp_path, text, where, words):
     assert str(f) in str(info.value) and where in str(info.value) and words in str(info.value)
 
 
+def test_bad_row_is_named_by_its_line_in_the_file(tmp_path):
+    """Comment and blank lines (the shipped CSVs open with a comment) count: the row a message
+    names is the line an editor or a spreadsheet shows, found here by searching the text."""
+    text = ("# a comment line, as the shipped load paths have\n"
+            "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
+            "1,top,0,0,0,0,0,0\n"
+            "\n"
+            "# another comment\n"
+            "2,top,0,nan,0,0,0,0\n")
+    f = tmp_path / "poses.csv"
+    f.write_text(text)
+    line = text.splitlines().index("2,top,0,nan,0,0,0,0") + 1
+    with pytest.raises(ConfigError, match=rf"row {line}: column y_mm: nan is not finite"):
+        read_poses(f, {"top": ("a",)}, {"top": np.zeros(3)})
+    d = tmp_path / "disp.csv"
+    d.write_text("# comment\nstep,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm\n1,0,0,0,0,0,0\n1,5,5,5,0,0,0\n")
+    with pytest.raises(ConfigError, match=r"row 4: node \[5.0, 5.0, 5.0\] m"):
+        read_displacements(d, np.zeros((1, 3)), "plate")
+
+
+def test_node_positions_in_millimetres_under_metre_columns_name_the_columns(tmp_path):
+    """A vertex at (0.1, 0.2, 0.3) m written in mm under x_m columns: the message names the unit
+    slip and the columns; under x_mm columns the same row moves that vertex by its 5 mm."""
+    vertices = np.array([[0.1, 0.2, 0.3], [1.0, 1.0, 1.0]])
+    f = tmp_path / "disp.csv"
+    f.write_text("step,x_m,y_m,z_m,ux_mm,uy_mm,uz_mm\n1,100,200,300,0,0,5\n")
+    with pytest.raises(ConfigError, match=r"row 2: .*at 0\.001 times it is a vertex: the positions are in mm, "
+                                          r"so name their columns x_mm, y_mm, z_mm \(not _m\)"):
+        read_displacements(f, vertices, "plate")
+    f.write_text("step,x_mm,y_mm,z_mm,ux_mm,uy_mm,uz_mm\n1,100,200,300,0,0,5\n")
+    np.testing.assert_allclose(read_displacements(f, vertices, "plate")[1], [[0, 0, 0.005], [0, 0, 0]])
+
+
 def test_radians_in_degree_columns_are_warned(tmp_path, caplog):
     f = write_csv(tmp_path / "poses.csv", "step,group,x_mm,y_mm,z_mm,rx_deg,ry_deg,rz_deg\n"
                                           "1,top,0,0,0,0.05,0,0\n2,top,0,0,0,0.1,0,-0.12")

@@ -76,7 +76,7 @@ def plan_session(exp, visibility, geometry, pairs) -> Plan:
     from vdo.calib.session import plan
     from vdo.calib.solve import calibrate, simulate
     from vdo.core.errors import ConfigError
-    from vdo.core.progress import bar, hidden
+    from vdo.core.progress import bar, finish_early, hidden
     from vdo.scene import cameras_of
 
     cameras = cameras_of(exp.camera_specs, exp.rails)
@@ -122,7 +122,7 @@ def plan_session(exp, visibility, geometry, pairs) -> Plan:
             past += 1
         elif p95[-1] <= spec.target_strain_error:
             past = 0
-    progress.close()
+    finish_early(progress)        # the larger sessions past the target are not tried
     if not counts and unseen:     # pairs that share samples but were not calibrated together
         raise ConfigError(exp.path, "stereo_pair",
                           unshared_message(exp, cameras, visibility, geometry.samples, pairs))

@@ -102,11 +102,29 @@ def warnings(result: report.EvaluationResult) -> list[str]:
     broken = sorted((c for c in result.constraints["checks"] if not c["met"]),
                     key=lambda c: -c["excess"])
     for c in broken:
+        if c["constraint"] == "no_shadow_from_cameras":
+            out.append(_shadow_line(c))
+            continue
         who = " and ".join(c.get("cameras", [])) or "the layout"
         where = f" on region {c['region']}" if "region" in c else ""
         out.append(f"{c['constraint']} not met: {who}{where}: {_shown(c['value'])} {c['unit']}, "
                    f"limit {_shown(c['limit'])}")
     return out
+
+
+def _shadow_line(c: dict) -> str:
+    """A "no_shadow_from_cameras" check that fails, in words: how much of the region loses light,
+    and (`vdo.search.obstruction.light_shadowers`) which camera bodies hide which lights."""
+    head = (f"no_shadow_from_cameras not met on region {c['region']}: {100 * c['value']:.3g} % of its area "
+            f"loses light to camera bodies (limit {100 * c['limit']:.3g} %)")
+    if not c.get("cameras"):
+        return head
+    lights = ", ".join(repr(name) for name in c.get("lights", []))
+    bodies = " and ".join(c["cameras"])
+    return (f"{head}: {bodies} stand{'s' if len(c['cameras']) == 1 else ''} between the region and "
+            f"light{'s' if len(c.get('lights', [])) > 1 else ''} {lights}; move "
+            f"{'that camera' if len(c['cameras']) == 1 else 'those cameras'} or the "
+            f"light{'s' if len(c.get('lights', [])) > 1 else ''}")
 
 
 def _shown(value) -> str:

@@ -35,7 +35,7 @@ from vdo.render import RenderResult, render_images, render_settings
 
 PHOTOMETRY_FIELDS = ["camera", "region", "n_samples", "b_render_dn", "b_predicted_dn", "c_render_dn",
                      "c_render_predicted_dn", "c_pixel_predicted_dn", "c_predicted_dn",
-                     "pixel_factor", "render_factor", "c_light_sampling_dn", "noise_predicted_dn"]
+                     "pixel_factor", "render_factor", "c_light_sampling_dn", "noise_predicted_dn", "n_interior"]
 
 
 def render_experiment(exp, out, scale: float | None = None, spp: int | None = None,

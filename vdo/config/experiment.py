@@ -48,6 +48,7 @@ from vdo.config.rig import (BodySpec, CameraSpec, Evaluation, LightSpec, MeshSpe
 from vdo.config.reader import Table, from_override, read_section, read_toml, with_overrides
 from vdo.config.schema import Section, Text, row, rows_of, table, unknown_field, write_rows
 from vdo.core.errors import ConfigError, ConfigErrors
+from vdo.model import nurbs
 from vdo.model.pose import aim_point, holds_aim, look_at_angles
 from vdo.model.sensor import SensorModel
 
@@ -430,10 +431,13 @@ def _check_references(exp: Experiment, tables: dict) -> None:
         if region.near_mesh is not None and region.near_mesh not in roles:
             raise t.error("near_mesh", f"no [[mesh]] named {region.near_mesh!r} (meshes: "
                                        f"{', '.join(sorted(roles))})")
-    rails = {r.name for r in exp.rails}
+    rails = {r.name: r for r in exp.rails}
     for cam, t in zip(exp.camera_specs, tables["camera"]):
         if cam.rail is not None and cam.rail not in rails:
             raise t.error("rail", f"no [[rail]] named {cam.rail!r} (rails: {', '.join(sorted(rails)) or 'none'})")
+        if cam.rail is not None and not 0.0 <= cam.u <= 1.0:
+            raise t.error("u", f"= {cam.u} is off rail {cam.rail!r}: the rail parameter runs from 0 to 1"
+                               f"{nurbs.off_rail_hint(rails[cam.rail].control_points, cam.u)}")
     for key, names, kind in (("cameras", exp.optimize.cameras, "camera"),
                              ("regions", exp.optimize.regions, "region")):
         known = {x.name for x in (exp.camera_specs if kind == "camera" else exp.regions)}

@@ -415,8 +415,9 @@ def resolve_mounts(values: dict, tables: dict, path: Path) -> None:
             if not t.has("u"):
                 raise t.error("u", "is required for a camera on a rail mount (0 to 1)")
             if not 0.0 <= spec.u <= 1.0:
+                points = next(r.control_points for r in values["rails"] if r.name == name)
                 raise t.error("u", f"= {spec.u} is off rail mount {name!r}: the rail parameter runs "
-                                   "from 0 to 1")
+                                   f"from 0 to 1{nurbs.off_rail_hint(points, spec.u)}")
             spec = replace(spec, rail=name, mount=None)
         elif name is not None:
             mount = mounts.get(name)

@@ -78,6 +78,17 @@ def shown_bar(show: bool, **tqdm_options):
     return PlainBar(**tqdm_options)
 
 
+def finish_early(progress) -> None:
+    """End a bar whose work stopped short of its total (a search that reached its target): the
+    total becomes the count, so its last line reads 100 % and no time left, not the unfinished
+    total's share and the time the skipped work would have taken. Then closes it."""
+    if getattr(progress, "total", None) and progress.n < progress.total:
+        progress.total = progress.n
+        if hasattr(progress, "refresh") and not isinstance(progress, PlainBar):
+            progress.refresh()
+    progress.close()
+
+
 @functools.cache
 def _growing_tqdm():
     """tqdm whose total, an estimate, grows to the count once the count passes it, the

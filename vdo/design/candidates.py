@@ -627,7 +627,8 @@ def remote_block(exp: Experiment, token: str, start: int, stop: int, threads: in
         configure(threads=threads)
         _WORKER.clear()
         spacing = exp.design.sample_spacing
-        geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
+        geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)),
+                           spacing_field="design.sample_spacing_mm")
         _WORKER.update(token=token, judging=judging(exp, geometry))
     return judge_block(_WORKER["judging"], start, stop)
 

@@ -188,7 +188,8 @@ def design_speckle(exp: Experiment) -> SpeckleResult:
     `vdo.commands.speckle` writes (this function writes nothing)."""
     dpi = exp.speckle.print_dpi
     spacing = exp.design.sample_spacing
-    geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)))
+    geometry = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=spacing)),
+                       spacing_field="design.sample_spacing_mm")
     state = layout_state(geometry, predict_fields=False)
     rows = design_checks(exp.camera_specs, exp.evaluation, exp.speckle, exp.sensor, exp.analysis,
                          list(state.cameras), state.samples, state.visibility.visible,

@@ -372,7 +372,8 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     deadline = math.inf if time_limit is None else t0 + time_limit
     d = exp.design
     n_max = inventory(exp)
-    coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)))
+    coarse = prepare(replace(exp, evaluation=replace(exp.evaluation, sample_spacing=d.sample_spacing)),
+                     spacing_field="design.sample_spacing_mm")
     # the final judgement prepares the designed layout at [evaluation]'s spacing: its time, scaled
     # by the spacings' ratio (measured: the vessel's 30 -> 8 mm preparation 0.79 -> 2.8 s, not 14x)
     final_prepare_s = (_clock() - t0) * max(1.0, d.sample_spacing / exp.evaluation.sample_spacing)

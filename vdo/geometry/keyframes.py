@@ -162,14 +162,18 @@ def _columns(header: list[str], wanted: tuple[str, ...], units: tuple[str, ...],
 
 
 def _rows(file: Path):
+    """(header, [(line, row), ...]): the header and the data rows of a CSV, blank rows and `#`
+    comment rows skipped, each data row with the file's line number on which it ends (what an
+    editor or a spreadsheet shows as its row: the messages' "row N")."""
     try:
         with open(file, newline="", encoding="utf-8") as fh:
-            rows = [r for r in csv.reader(fh) if r and not r[0].lstrip().startswith("#")]
+            reader = csv.reader(fh)
+            rows = [(reader.line_num, r) for r in reader if r and not r[0].lstrip().startswith("#")]
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(file, "", f"cannot be read as a UTF-8 CSV file ({exc})") from None
     if len(rows) < 2:
         raise ConfigError(file, "", "needs a header row and at least one data row")
-    return [h.strip() for h in rows[0]], rows[1:]
+    return [h.strip() for h in rows[0][1]], rows[1:]
 
 
 def _number(row, index, file, line, name) -> float:
@@ -216,7 +220,7 @@ def read_poses(file: Path, groups: dict, pivots: dict) -> dict:
     lin = _columns(header, ("x", "y", "z"), ("m", "mm"), file)
     rot = _columns(header, ("rx", "ry", "rz"), ("deg", "rad"), file)
     poses, angles, posed = {}, [], {}
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
         step = _step(row, i_step, file, line)
         group = row[i_group].strip() if i_group < len(row) else ""
         if group not in groups:
@@ -260,7 +264,7 @@ def read_displacements(file: Path, vertices: np.ndarray, mesh: str) -> dict:
     disp = _columns(header, ("ux", "uy", "uz"), ("m", "mm"), file)
     tree = cKDTree(vertices)
     out: dict[int, np.ndarray] = {}
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
         step = _step(row, i_step, file, line)
         x = np.array([_number(row, pos[a][0], file, line, f"{a}_{pos[a][2]}") * pos[a][1] for a in "xyz"])
         u = np.array([_number(row, disp[a][0], file, line, f"{a}_{disp[a][2]}") * disp[a][1]
@@ -268,9 +272,14 @@ def read_displacements(file: Path, vertices: np.ndarray, mesh: str) -> dict:
         matches = tree.query_ball_point(x, NODE_TOLERANCE)   # all copies (STL repeats vertices)
         if not matches:
             distance = tree.query(x)[0]
+            hint = ""
+            for factor, written, right in ((1e-3, "m", "mm"), (1e3, "mm", "m")):   # a unit slip?
+                if tree.query(x * factor)[0] <= NODE_TOLERANCE:
+                    hint = (f"; at {factor:g} times it is a vertex: the positions are in {right}, so "
+                            f"name their columns x_{right}, y_{right}, z_{right} (not _{written})")
             raise ConfigError(file, f"row {line}", f"node {x.tolist()} m is {distance * 1e3:.2f} mm "
                                                    f"from the nearest vertex of mesh {mesh!r}: the "
-                                                   "nodes must be the mesh's vertices (world metres, at rest)")
+                                                   f"nodes must be the mesh's vertices (world metres, at rest){hint}")
         out.setdefault(step, np.zeros_like(vertices))[matches] = u
     return out
 

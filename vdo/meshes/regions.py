@@ -161,6 +161,35 @@ def _nothing_selected(mesh: SceneMesh, region: RegionSpec, selector: RegionSelec
                               "(metres, world frame)")
 
 
+BAND_SCALE = 10.0   # a distance band wider than this many times its mesh's size cuts nothing off it
+
+
+def _band_in_metres(mesh: SceneMesh, region: RegionSpec, where) -> None:
+    """ConfigError when a region's band around a point or an axis is given as if in millimetres:
+    within_m larger than BAND_SCALE times the mesh's size (the diagonal of its bounding box: the
+    band then cuts nothing off it), or the point (the axis line) farther than that from the mesh's
+    bounding box (its centre less the half-diagonal); both fields are metres, like every `_m`."""
+    if region.near not in ("near_point_m", "near_axis_m"):
+        return
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    size = float(np.linalg.norm(hi - lo))
+    if region.near == "near_point_m":      # the point's distance to the mesh's bounding box
+        far = float(np.linalg.norm(np.maximum(np.maximum(lo - region.near_point, region.near_point - hi), 0.0)))
+    else:                                   # the line's distance to the box's centre, less its half-diagonal
+        a, b = np.asarray(region.near_axis, dtype=float)
+        e, c = (b - a) / max(float(np.linalg.norm(b - a)), 1e-300), (lo + hi) / 2 - a
+        far = max(float(np.linalg.norm(c - (c @ e) * e)) - size / 2, 0.0)
+    hint = (f"the near_* fields and within_m / beyond_m are metres (values in mm? divide them by 1000)")
+    if region.within is not None and region.within > BAND_SCALE * size:
+        raise ConfigError(*where, f"within_m = {region.within:g} m is more than {BAND_SCALE:g} times the size "
+                                  f"of mesh {mesh.name!r} ({size:.3g} m across): the band cuts nothing "
+                                  f"off it; {hint}")
+    if far > BAND_SCALE * size:
+        raise ConfigError(*where, f"{region.near} lies {far:.4g} m from mesh {mesh.name!r} ({size:.3g} m "
+                                  f"across, spanning {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()} m); "
+                                  f"{hint}")
+
+
 def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
                  tm: trimesh.Trimesh | None = None, selector: RegionSelector | None = None) -> RegionFaces:
     """The faces that `region` selects on `mesh` and their frame; ConfigError (at `where`) when
@@ -179,6 +208,7 @@ def region_faces(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tup
     if selector.distance is not None and chosen.any():
         chosen[chosen] = selector.in_banded_face(tm.triangles[chosen], centroids[chosen], radius[chosen])
     faces = np.flatnonzero(chosen)
+    _band_in_metres(mesh, region, where)
     if len(faces) == 0:
         _nothing_selected(mesh, region, selector, tm, where)
     normal = np.average(tm.face_normals[faces], axis=0, weights=tm.area_faces[faces])

@@ -49,6 +49,52 @@ class SurfaceSamples:
                        uv=self.uv[index], area=self.area[index], region=self.region[index])
 
 
+def edge_distance(samples: SurfaceSamples, keep: np.ndarray | None = None) -> np.ndarray:
+    """(N,) each sample's distance (m) to the edge of its region's samples that `keep` (N,) bool
+    holds (all of them by default; e.g. those a camera sees, whose edge is then also a silhouette
+    or an occlusion's), measured on the region's sample grid (planar, or developed): half a cell
+    for a sample with a grid neighbour (up, down, left or right) that is not held, else the
+    distance in (u, v) to the nearest such sample plus half a cell; 0 for samples not held. A ring
+    closed around its axis wraps in u (`region_period`), so its seam is no edge; a cone ring's
+    seam counts as one (conservative). Lengths in the developed plane: a conformal map's area
+    distortion makes them approximate."""
+    from scipy.spatial import cKDTree
+
+    keep = np.ones(len(samples), dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
+    out = np.zeros(len(samples))
+    for r in range(len(samples.region_names)):
+        idx = np.flatnonzero((samples.region == r) & keep)
+        if not len(idx):
+            continue
+        h = float(samples.region_cell[r]) if samples.region_cell is not None else \
+            float(np.sqrt(samples.area[idx].mean()))
+        period = samples.region_period[r] if samples.region_period is not None else 0.0
+        cells = int(round(period / h)) if period > 0 and (samples.region_turn is None
+                                                          or samples.region_turn[r] == 0) else 0
+        ij = np.rint(samples.uv[idx] / h - 0.5).astype(np.int64)
+        low = ij.min(axis=0) - 1
+        width = int(ij[:, 1].max() - low[1]) + 2
+        key = lambda i, j: (i - low[0]) * width + (j - low[1])                    # noqa: E731
+        have = np.sort(key(ij[:, 0], ij[:, 1]))
+        edge = np.zeros(len(idx), dtype=bool)
+        for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            i = ij[:, 0] + di
+            if cells:
+                i = np.mod(i - low[0], cells) + low[0]
+            k = key(i, ij[:, 1] + dj)
+            at = np.clip(np.searchsorted(have, k), 0, len(have) - 1)
+            edge |= have[at] != k
+        uv = (ij + 0.5) * h
+        if not edge.any():      # a closed surface without an edge: everything is interior
+            out[idx] = np.inf
+            continue
+        border = uv[edge]
+        if cells:               # the ring's edge samples one period either side, for the wrap
+            border = np.concatenate([border + [k * cells * h, 0.0] for k in (-1, 0, 1)])
+        out[idx] = cKDTree(border).query(uv)[0] + h / 2
+    return out
+
+
 def _grid_points(uv_tri: np.ndarray, spacing: float):
     """Grid points (i + 1/2, j + 1/2) spacing inside the 2D triangles uv_tri (T, 3, 2): (triangle
     index t, barycentric l1, l2 (K, 1) each, grid index ij (K, 2))."""
@@ -76,7 +122,7 @@ def ring_spacing(period: float, spacing: float) -> float:
 
 
 def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tuple,
-                  rf: RegionFaces | None = None) -> dict:
+                  rf: RegionFaces | None = None, field: str = "evaluation.sample_spacing_mm") -> dict:
     """Grid samples of spacing `spacing` (m) on the faces that `region` selects (`rf`: already
     found by `region_faces`), in the region's (u, v): each stands for its cell of the grid.
 
@@ -105,7 +151,13 @@ def sample_region(mesh: SceneMesh, region: RegionSpec, spacing: float, where: tu
         keep = rf.selector.keep(pts)
         t, ij, pts = t[keep], ij[keep], pts[keep]
     if len(pts) == 0:
-        raise ConfigError(*where, f"is smaller than the sample spacing ({spacing * 1e3:g} mm)")
+        span = np.ptp(uv_tri.reshape(-1, 2), axis=0) * 1e3
+        ring = (f" (on this ring {spacing * 1e3:.4g} mm, the nearest spacing that divides its "
+                f"circumference)") if dev is not None and dev.period > 0 else ""
+        raise ConfigError(*where, f"is smaller than the sample spacing: no grid point {spacing * 1e3:.4g} mm "
+                                  f"apart{ring} falls inside it (its selected faces span {span[0]:.4g} x "
+                                  f"{span[1]:.4g} mm{' developed' if dev is not None else ''}); lower {field} "
+                                  "or widen the region")
     n = len(pts)
     if dev is None:
         return dict(points=pts, normals=np.tile(rf.normal, (n, 1)), tangent_u=np.tile(rf.t_u, (n, 1)),
@@ -183,15 +235,15 @@ MAX_SAMPLES = 2_000_000     # surface samples: ~1 GB of visibility and uncertain
 
 
 def check_sample_count(meshes: list[SceneMesh], faces: list[RegionFaces], spacing: float, *,
-                       path) -> None:
-    """ConfigError (at the experiment file `path`, its evaluation.sample_spacing_mm) before
+                       path, field: str = "evaluation.sample_spacing_mm") -> None:
+    """ConfigError (at the experiment file `path`, its `field`, the spacing's) before
     sampling when the regions' area A would give more than MAX_SAMPLES samples at spacing h
     (N = A / h^2), with the smallest spacing that fits."""
     area = sum(float(m.trimesh.area_faces[rf.faces].sum()) for m, rf in zip(meshes, faces))
     count = area / spacing**2
     if count > MAX_SAMPLES:
         fits = math.ceil(math.sqrt(area / MAX_SAMPLES) * 1e4) / 10
-        raise ConfigError(path, "evaluation.sample_spacing_mm",
+        raise ConfigError(path, field,
                           f"= {spacing * 1e3:g} mm gives about {count:,.0f} samples on the regions' "
                           f"{area:.3g} m² (at most {MAX_SAMPLES:,}): raise sample_spacing_mm to "
                           f"{fits:g} or more")
@@ -199,7 +251,8 @@ def check_sample_count(meshes: list[SceneMesh], faces: list[RegionFaces], spacin
 
 def sample_regions(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
                    regions: tuple[RegionSpec, ...], spacing: float, path,
-                   faces: list[RegionFaces] | None = None) -> SurfaceSamples:
+                   faces: list[RegionFaces] | None = None,
+                   field: str = "evaluation.sample_spacing_mm") -> SurfaceSamples:
     """Samples on every region of `regions` (an experiment's [[region]] tables) at `spacing` (m;
     the experiment's is `evaluation.sample_spacing`), on the regions' `faces` (`all_region_faces`
     at that spacing, with `mesh_specs`, its [[mesh]] tables; found here when not given); errors
@@ -207,11 +260,11 @@ def sample_regions(meshes: list[SceneMesh], *, mesh_specs: tuple[MeshSpec, ...],
     by_name = {m.name: m for m in meshes}
     faces = all_region_faces(meshes, mesh_specs=mesh_specs, regions=regions, spacing=spacing,
                              path=path) if faces is None else faces
-    check_sample_count([by_name[r.mesh] for r in regions], faces, spacing, path=path)
+    check_sample_count([by_name[r.mesh] for r in regions], faces, spacing, path=path, field=field)
     parts = []
     for index, (region, rf) in enumerate(zip(regions, faces)):
         part = sample_region(by_name[region.mesh], region, spacing,
-                             (path, f'region "{region.name}"'), rf)
+                             (path, f'region "{region.name}"'), rf, field=field)
         part["region"] = np.full(len(part["points"]), index)
         parts.append(part)
     merged = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

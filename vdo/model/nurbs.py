@@ -21,6 +21,26 @@ def is_closed(control_points) -> bool:
     return bool(np.linalg.norm(pts[-1] - pts[0]) <= CLOSED_TOL_M)
 
 
+NEARLY_CLOSED = 0.05    # a rail whose ends are apart by at most this fraction of its control polygon's
+                        # length, but more than CLOSED_TOL_M, looks like a ring and is not one
+
+
+def off_rail_hint(control_points, u: float) -> str:
+    """What to tell a user whose camera's u lies outside [0, 1], by the rail's ends: on a closed
+    rail the same place within [0, 1]; on one whose ends nearly meet (NEARLY_CLOSED), that it is
+    open and how to close it; otherwise nothing."""
+    pts = np.asarray(control_points, dtype=float)
+    gap = float(np.linalg.norm(pts[-1] - pts[0]))
+    length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+    if gap <= CLOSED_TOL_M:
+        return (f"; the rail is closed (its last control point is its first), so u = {u:g} is the "
+                f"place u = {u % 1.0:g}: write that")
+    if gap <= NEARLY_CLOSED * length:
+        return (f"; its ends are {gap * 1e3:.3g} mm apart, so it is open, not a ring: to close it, "
+                "make its last control point exactly its first (a closed rail's u wraps in vdo optimize)")
+    return ""
+
+
 def clamped_knots(n: int, p: int) -> np.ndarray:
     """Clamped uniform knot vector on [0, 1] for n control points of degree p (n + p + 1 values)."""
     interior = np.arange(1, n - p) / (n - p)

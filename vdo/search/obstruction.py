@@ -2,7 +2,7 @@
 result and by `vdo design` on its candidates: the mesh points clearances are measured to
 (`surface_points`, every CLEARANCE_SPACING m), the points spread on each body (`body_points`),
 each body's clearance (`clearances`, m; `keep_clear`, the same measure as a filter), the light
-the bodies take from each region (`light_lost`) and the ray cast against the obstacles alone
+the bodies take from each region (`light_lost`; `light_shadowers`: which bodies, which lights) and the ray cast against the obstacles alone
 (`obstacle_visibility`, the obscuration check).
 
 One measure of clearance: the least distance from BODY_POINTS points spread on the body's surface
@@ -102,6 +102,36 @@ def light_lost(lit_without_cameras, lit, samples) -> np.ndarray:
     lost = ((lit_without_cameras - lit) > 0.01).any(axis=0)
     return np.array([(samples.area[(samples.region == r) & lost]).sum() / samples.area[samples.region == r].sum()
                      for r in range(len(samples.region_names))])
+
+
+def light_shadowers(geometry, cameras, unobstructed, lost_light, limit: float) -> dict:
+    """{region index: (cameras, lights)} for each region whose `lost_light` (R,) is above `limit`:
+    the cameras whose own body (and tripod) hides more than 1 % of a light on some of the region's
+    samples (`light_lost`'s measure), and those lights, each in the experiment's order. Each
+    camera's bodies are cast alone (`vdo.physics.lighting.relight` from `unobstructed`, the
+    lighting without any camera), so the names are what to move; a shadow that only two bodies
+    together cast names neither."""
+    from vdo.physics.lighting import relight
+
+    exp, samples = geometry.experiment, geometry.samples
+    failing = [r for r, lost in enumerate(lost_light) if lost > limit]
+    out = {r: ([], []) for r in failing}
+    if not failing or not exp.lights:
+        return out
+    hit = np.zeros((len(cameras), len(exp.lights), len(failing)), dtype=bool)
+    for c, cam in enumerate(cameras):
+        occluders = bodies(exp, [cam])
+        if not occluders:
+            continue
+        lit = relight(build_scene(list(geometry.meshes) + occluders), exp.lights, samples, unobstructed,
+                      [b.vertices for b in occluders]).lit
+        lost = (unobstructed.lit - lit) > 0.01                                   # (L, N)
+        for k, r in enumerate(failing):
+            hit[c, :, k] = lost[:, samples.region == r].any(axis=1)
+    for k, r in enumerate(failing):
+        out[r] = ([cam.name for c, cam in enumerate(cameras) if hit[c, :, k].any()],
+                  [light.name for l, light in enumerate(exp.lights) if hit[:, l, k].any()])
+    return out
 
 
 def obstacle_visibility(geometry, cameras) -> Visibility:
