@@ -26,8 +26,9 @@ that meets it with full coverage is reported.
 
 The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0, 1] (body counts
 and obscuration kept, then the spot, axis-angle and tripod rules among the candidates it weighs)
-and certifies a lower bound on the score of every selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pareto.csv, the console
-and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count). The
+and certifies a lower bound on the score of every selection of that many cameras; `design.json`
+(curve, bound, gap_to_bound), pareto.csv, the console and pareto.png give the gap
+1 - bound / score ([design] bound_s seconds per count). The
 relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
 candidates by decreasing weight while feasible, then the exchange and the polish): its selection
 replaces the count's when it scores lower ("rounded" in design.json's curve). Then random restarts
