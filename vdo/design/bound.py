@@ -55,7 +55,7 @@ rules (every pair of it held), a vertex of H. Holding fewer candidates' rules on
 conflicts, which enlarges H: the bound stays valid. The hardware rule of `Feasibility.row` (one
 camera's body or tripod hiding another's region) is left out: 0.5-2 s a candidate against 50 ms
 for the others, and on the steel beam (4 cameras) it moved the hull's optimum by nothing
-(0.1557 with or without; its rules cost 138 s).
+(0.1556-0.1557 with or without; its rules cost 138 s).
 
 The iterates. First, over P: accelerated projected gradient (FISTA with backtracking on the
 Lipschitz estimate and a restart when the value rises) from the design's own selection (a
@@ -76,20 +76,25 @@ one their weights are optimised again by the same accelerated gradient over thei
 with k = 1 and one body kind), INNER_SHARE of the time limit at most, and the selections left
 at weight 0 are dropped. The iterates stay in H, so f at them bounds min_H f from above
 (`Bound.relaxed`), and the loop stops when that and the certificate agree to REL_TOL. Measured
-on the steel beam (4 cameras, 420 samples, a loaded 2-core machine): Frank-Wolfe with pairwise
-steps and a line search reached f = 0.15605 and a bound of 0.15516 in 120 s, the fully
-corrective one f = 0.15574 and 0.15559 in 55 s. The MILP takes 7-20 ms a call there (100-150
-candidates held, 130-210 cliques), the LP with the same clique rows 4-10 ms and gave the same
-value on every call compared (its solutions 0/1): the MILP's solutions are selections whatever
-the graph, which keeps the iterates in H.
+on the steel beam (4 cameras, 420 samples, a loaded 2-core machine, XLA's optimisations off for
+both): Frank-Wolfe with pairwise steps and a line search reached f = 0.15605 and a bound of
+0.15516 in 120 s, the fully corrective one f = 0.15574 and 0.15559 in 55 s. There the MILP
+takes 7-20 ms a call (100-150 candidates held, 130-210 cliques), the LP with the same clique
+rows 4-10 ms and gave the same value on every call compared (its solutions 0/1): the MILP's
+solutions are selections whatever the graph, which keeps the iterates in H. The inner descent
+to INNER_TOL = 0.5 of REL_TOL took the built-in's 10 cameras to the same bound in 32 s against
+44-49 s at 0.1.
 
 What the rules lift. On the steel beam the relaxed optimum over P (0.1531) puts 1.44 cameras
 over one floor point (0.68 + 0.31 + 0.30 + 0.15 on four candidates at [1.5, -1.2], two heights,
-whose tripods share their feet), no pair of them above 1: inequalities on pairs, w_i + w_j <= 1,
-would lift nothing; the clique of that floor point does, to min_H f = 0.1557 (+1.7 %). On the
+every two of them a tripod conflict), no pair of them above 1: inequalities on pairs, w_i + w_j
+<= 1, would lift nothing; the clique of that floor point does, to min_H f in [0.15562, 0.15574]
+(+1.7 %). On the
 built-in (10 cameras, rails, no tripods) min_P f = 0.05140 and min_H f <= 0.05146 (+0.1 %):
 what separates the bound from a design there is the integrality gap of H itself, the
-fractional mix of whole selections (docs/design.md, "The bound").
+fractional mix of whole selections. The bound over the curve took 129 s with the rules
+against 176 s without on the steel beam, 210 s against 153 s on the built-in (docs/design.md,
+"The bound holds the pairwise rules").
 
 The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
 many cameras can lower the score by more than that fraction.
@@ -117,7 +122,7 @@ SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (
 SPARSE_ROWS = 8       # sums over the weighted candidates' own entries when fewer than 1 / this of all
 SUPPORT = 1e-4        # the first phase's best iterate names the candidates it weighs above this to the rules
 PLAIN_SHARE = 0.5     # with pairwise rules the first phase stops at this share of the time limit at most
-INNER_SHARE = 0.05    # one re-weighting of the hull phase's selections takes this share of the time limit at most
+INNER_SHARE = 0.05    # one re-weighting of the hull phase's selections: this share of the time limit at most
 INNER_TOL = 0.5       # ... and stops at INNER_TOL * rel_tol (of its own certificate)
 MIP_GAP = 1e-9        # HiGHS's relative gap in the selection oracle (the certificate takes its dual bound)
 
