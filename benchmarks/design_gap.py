@@ -1,9 +1,11 @@
 """How far can valid inequalities lift `vdo design`'s bound? (docs/design.md, "The bound").
 
-The bound (`vdo.design.bound`) is the minimum of the convex score f over the polytope P of
-weights (body counts kept, pairwise rules dropped). Any constraint that every feasible selection
-meets (clique inequalities over conflicting candidates, the spot rule, the axis angles) keeps the
-convex hull H of the feasible selections, so the best bound they can give is min_H f, and
+The bound's first phase (`vdo.design.bound.relaxation` without `conflicts`, as run here) is the
+minimum of the convex score f over the polytope P of weights (body counts kept, pairwise rules
+dropped); `vdo design` then holds the spot, axis-angle and tripod rules (the bound's hull phase).
+Any constraint that every feasible selection meets (clique inequalities over conflicting
+candidates, the spot rule, the axis angles) keeps the convex hull H of the feasible selections,
+so the best bound they can give is min_H f, and
 
     min_P f  <=  min_H f  <=  f(h)   for every h in H.
 

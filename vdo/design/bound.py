@@ -17,40 +17,84 @@ and the score of `vdo.design.score.Scorer` is convex in (C, k):
   non-decreasing) of a non-negative sum of convex functions: convex.
 
 So f(w) = score(C(w), k(w)) is convex on the polytope P of the weights, and every selection of k
-cameras that `vdo design` may choose is a vertex of P (the pairwise rules of the selection, one
-camera per spot and the axis angles, are dropped: that only enlarges the set, and lowers the
-minimum). Hence min_P f <= the score of every feasible k-selection.
+cameras that `vdo design` may choose is a vertex of P. Hence min_P f <= the score of every
+feasible k-selection (the first phase, below; the pairwise rules of the selection dropped).
 
-The certificate. For any w where f is convex and differentiable, with g = df/dw,
+The certificate. For any w >= 0 (where f is convex and differentiable), with g = df/dw, and any
+set S of weights,
 
-    min_P f >= f(w) + min_{s in P} g.(s - w)      (the Frank-Wolfe duality gap's bound),
+    min_S f >= f(w) + min_{s in S} g.(s - w)      (the Frank-Wolfe duality gap's bound),
 
-and the linear minimisation over P is exact and cheap: P is the base polytope of a truncated
-partition matroid, so s takes candidates by increasing g_i while their body kind has room, until
-k are taken (`vertex`). The best of these over the iterates (and 0: the score, an exponential, is
-positive) is a certified lower bound, whatever the convergence; it meets the
-relaxed optimum as the iterate reaches it.
+since f(s) >= f(w) + g.(s - w) for every s (convexity); w need not lie in S. Over P the linear
+minimisation is exact and cheap: P is the base polytope of a truncated partition matroid, so s
+takes candidates by increasing g_i while their body kind has room, until k are taken (`vertex`).
+The best of these over the iterates (and 0: the score, an exponential, is positive) is a
+certified lower bound, whatever the convergence; it meets the relaxed optimum as the iterate
+reaches it.
 
-The iterates. Accelerated projected gradient (FISTA with backtracking on the Lipschitz estimate
-and a restart when the value rises) from the design's own selection (a vertex); the projection
-onto P is exact (`project`: w_i = clip(v_i - lambda - mu_b(i), 0, 1), the multipliers found by
-bisection). g comes from JAX on the per-sample function, g_i = sum_n <dF/dC_n, C_i(n)> + dF/dk_n
-w_i(n). Measured on the built-in experiment with the earlier power-mean score (1,666 candidates x 3,372 samples, 10 cameras,
-60 s wall on a loaded 2-core machine): Frank-Wolfe with exact line search reached f = 0.092 and a
-bound of 0.028, the accelerated gradient f = 0.080 and a bound of 0.050 (after 300 s: f = 0.073,
-bound 0.065); a conic solver would need
-one 3x3 linear matrix inequality and a power cone per sample, and the score's smooth sigma_max (a
-trace p-norm) has no compact conic form. The loop stops when the best value and the bound agree
-to REL_TOL, after MAX_ITER steps or at the time limit.
+The pairwise rules. Given `conflicts` (`vdo.design.feasibility.Feasibility.placement`: one spot,
+the axis angles, the tripods' legs), the bound also holds the rules between two cameras. Let H
+be the convex hull of the 0/1 selections of k allowed candidates within the body counts with no
+conflicting pair (a pair conflicts when each conflicts with the other). A selection of the
+design adds its cameras one at a time, each allowed by those before it, so it holds no
+conflicting pair and is a point of H; H lies in P, so
 
-The relaxation keeps the body counts and drops the pairwise rules; measured on the built-in
-experiment, the relaxed optimum already puts at most about one camera's weight on any spot (its
-weight per optical centre is <= 1.02), so the spot rule would barely tighten it. What separates
-the bound from a design is mostly the relaxation's own integrality gap: fractional weights mix
-lenses and aims at a spot, which no selection can, and whole selections: on the steel beam
-(4 cameras) the relaxed optimum is a convex combination of feasible selections, so no
-inequality that every feasible selection meets can raise the bound; on the built-in (10) the
-convex hull of feasible selections holds a point 0.17 % above it (docs/design.md, "The bound").
+    min_P f  <=  min_H f  <=  the score of every feasible k-selection,
+
+and the certificate with S = H is f(w) - g.w + min g.s over those 0/1 selections: a MILP
+(`Rules.vertex`, scipy's HiGHS), whose dual bound (a lower bound on its optimum, whatever its
+own gap) keeps the certificate valid. Its variables are the candidates whose rules it holds and,
+per body kind, the min(count, k) others of lowest g (only the body counts constrain the others,
+so any solution's others of a kind can be swapped for those at no cost); its rows sum = k, the
+body counts, and one clique inequality, at most one camera, per clique of the conflict graph
+among the held candidates (`cliques` covers every edge: the candidates at one spot, the tripods
+over one floor point). The rules held start with the candidates the first phase's best iterate
+weighs above SUPPORT and the design's selection; a solution that takes a candidate not held is
+solved again with its rules held, until it takes none: then it is a selection that keeps the
+rules (every pair of it held), a vertex of H. Holding fewer candidates' rules only drops
+conflicts, which enlarges H: the bound stays valid. The hardware rule of `Feasibility.row` (one
+camera's body or tripod hiding another's region) is left out: 0.5-2 s a candidate against 50 ms
+for the others, and on the steel beam (4 cameras) it moved the hull's optimum by nothing
+(0.1556-0.1557 with or without; its rules cost 138 s).
+
+The iterates. First, over P: accelerated projected gradient (FISTA with backtracking on the
+Lipschitz estimate and a restart when the value rises) from the design's own selection (a
+vertex); the projection onto P is exact (`project`: w_i = clip(v_i - lambda - mu_b(i), 0, 1),
+the multipliers found by bisection). g comes from JAX on the per-sample function, g_i = sum_n
+<dF/dC_n, C_i(n)> + dF/dk_n w_i(n). Measured on the built-in experiment with the earlier
+power-mean score (1,666 candidates x 3,372 samples, 10 cameras, 60 s wall on a loaded 2-core
+machine): Frank-Wolfe with exact line search reached f = 0.092 and a bound of 0.028, the
+accelerated gradient f = 0.080 and a bound of 0.050 (after 300 s: f = 0.073, bound 0.065); a
+conic solver would need one 3x3 linear matrix inequality and a power cone per sample, and the
+score's smooth sigma_max (a trace p-norm) has no compact conic form. It stops when the best
+value and the bound agree to REL_TOL, after MAX_ITER steps or at the time limit (PLAIN_SHARE of
+it with pairwise rules); its certificate, `Bound.plain`, bounds every k cameras within the body
+counts, which a bound for fewer cameras needs (`vdo.design.select.relax_curve`).
+Then, with pairwise rules, over H: fully corrective Frank-Wolfe (`_hull`). The iterate is a
+convex combination of the selections the MILP has returned (and the design's); after each new
+one their weights are optimised again by the same accelerated gradient over their simplex (P
+with k = 1 and one body kind), INNER_SHARE of the time limit at most, and the selections left
+at weight 0 are dropped. The iterates stay in H, so f at them bounds min_H f from above
+(`Bound.relaxed`), and the loop stops when that and the certificate agree to REL_TOL. Measured
+on the steel beam (4 cameras, 420 samples, a loaded 2-core machine, XLA's optimisations off for
+both): Frank-Wolfe with pairwise steps and a line search reached f = 0.15605 and a bound of
+0.15516 in 120 s, the fully corrective one f = 0.15574 and 0.15559 in 55 s. There the MILP
+takes 7-20 ms a call (100-150 candidates held, 130-210 cliques), the LP with the same clique
+rows 4-10 ms and gave the same value on every call compared (its solutions 0/1): the MILP's
+solutions are selections whatever the graph, which keeps the iterates in H. The inner descent
+to INNER_TOL = 0.5 of REL_TOL took the built-in's 10 cameras to the same bound in 32 s against
+44-49 s at 0.1.
+
+What the rules lift. On the steel beam the relaxed optimum over P (0.1531) puts 1.44 cameras
+over one floor point (0.68 + 0.31 + 0.30 + 0.15 on four candidates at [1.5, -1.2], two heights,
+every two of them a tripod conflict), no pair of them above 1: inequalities on pairs, w_i + w_j
+<= 1, would lift nothing; the clique of that floor point does, to min_H f in [0.15562, 0.15574]
+(+1.7 %). On the
+built-in (10 cameras, rails, no tripods) min_P f = 0.05140 and min_H f <= 0.05146 (+0.1 %):
+what separates the bound from a design there is the integrality gap of H itself, the
+fractional mix of whole selections. The bound over the curve took 129 s with the rules
+against 176 s without on the steel beam, 210 s against 153 s on the built-in (docs/design.md,
+"The bound holds the pairwise rules").
 
 The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
 many cameras can lower the score by more than that fraction.
@@ -64,6 +108,8 @@ from typing import Callable
 
 import jax
 import numpy as np
+import scipy.sparse
+from scipy.optimize import Bounds, LinearConstraint, milp
 
 from vdo.design.candidates import ENTRY_CHUNK
 
@@ -74,22 +120,33 @@ ROUNDING = 1e-12      # relative rounding allowed in the backtracking test of th
 DOUBLINGS = 60        # backtracking doublings of the Lipschitz estimate at most per step
 SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (backtracking doubles it)
 SPARSE_ROWS = 8       # sums over the weighted candidates' own entries when fewer than 1 / this of all
+SUPPORT = 1e-4        # the first phase's best iterate names the candidates it weighs above this to the rules
+PLAIN_SHARE = 0.5     # with pairwise rules the first phase stops at this share of the time limit at most
+INNER_SHARE = 0.05    # one re-weighting of the hull phase's selections: this share of the time limit at most
+INNER_TOL = 0.5       # ... and stops at INNER_TOL * rel_tol (of its own certificate)
+MIP_GAP = 1e-9        # HiGHS's relative gap in the selection oracle (the certificate takes its dual bound)
 
 
 @dataclass(frozen=True)
 class Bound:
-    """The relaxation for k cameras. value: certified lower bound on the score of every feasible
-    selection of k cameras (the best certificate over the iterates, and 0); relaxed: f at the best
-    iterate (>= the relaxed optimum >= value); weights (K,) that iterate; iterations made;
-    converged: (relaxed - value) <= REL_TOL * value; seconds: wall time."""
+    """The relaxation for k cameras. value: certified lower bound on the score of every selection
+    of k cameras within the body counts that keeps the pairwise rules the relaxation was given
+    (the best certificate over the iterates, and 0); plain: the certificate of the first phase,
+    over P alone: it bounds every k cameras within the body counts, pairwise rules or not (<=
+    value); relaxed: f at the best iterate (>= the relaxed optimum >= value; with pairwise rules,
+    an iterate of the hull phase when it made one); weights (K,) that iterate; iterations made
+    (gradient steps, then the hull phase's); converged: (relaxed - value) <= REL_TOL * value;
+    seconds: wall time; conflicted: the candidates whose pairwise rules the bound holds (0: none)."""
 
     cameras: int
     value: float
+    plain: float
     relaxed: float
     weights: np.ndarray
     iterations: int
     converged: bool
     seconds: float
+    conflicted: int
 
     def gap(self, score: float) -> float:
         """1 - value / score: the largest fraction by which any selection of `cameras` cameras
@@ -200,17 +257,204 @@ def linear_maps(info, weight):
     return info.shape[0], summed, pullback
 
 
+def cliques(adjacent: np.ndarray) -> list[np.ndarray]:
+    """Cliques of the graph `adjacent` (n, n) symmetric bool, False on the diagonal, that cover
+    every edge: from each edge no clique holds yet, the clique grown by the common neighbour of
+    most neighbours while one is left."""
+    degree = adjacent.sum(axis=1)
+    left = np.triu(adjacent, 1)
+    out = []
+    for i, j in zip(*np.nonzero(left)):
+        if not left[i, j]:
+            continue
+        members, common = [i, j], adjacent[i] & adjacent[j]
+        while common.any():
+            m = np.flatnonzero(common)[np.argmax(degree[common])]
+            members.append(m)
+            common &= adjacent[m]
+        q = np.array(members)
+        left[np.ix_(q, q)] = False
+        out.append(q)
+    return out
+
+
+class Rules:
+    """The pairwise rules of a selection over the candidates asked so far (`held`), for the linear
+    step over the selections that keep them: conflicts(j) (K,) bool, True where a candidate may
+    not join a selection holding j; a pair conflicts when each says so of the other (a selection
+    adds its cameras in some order). Every clique of that graph holds at most one camera of a
+    selection (`cliques`); a candidate not held keeps the body counts alone."""
+
+    def __init__(self, conflicts: Callable, k: int, allowed: np.ndarray, body: np.ndarray,
+                 counts: np.ndarray):
+        self.conflicts, self.k, self.allowed, self.body, self.counts = conflicts, k, allowed, body, counts
+        self.held = np.zeros(0, dtype=int)
+        self._rows: list[np.ndarray] = []
+        self._cliques: list[np.ndarray] = []
+
+    def hold(self, candidates, deadline: float) -> None:
+        """Adds the rules of `candidates` (indices, in that order; those not allowed are left
+        out) until the deadline (time.perf_counter()) passes: holding fewer keeps the bound valid."""
+        held = set(self.held.tolist())
+        new = [j for j in dict.fromkeys(np.asarray(candidates, dtype=int).tolist())
+               if self.allowed[j] and j not in held]
+        rows = []
+        for j in new:
+            if time.perf_counter() > deadline:
+                break
+            rows.append(np.asarray(self.conflicts(j), dtype=bool))
+        if not rows:
+            return
+        self._rows += rows
+        self.held = np.concatenate([self.held, new[:len(rows)]]).astype(int)
+        among = np.array([r[self.held] for r in self._rows])
+        adjacent = among & among.T
+        np.fill_diagonal(adjacent, False)
+        self._cliques = cliques(adjacent)
+
+    def vertex(self, g: np.ndarray, seconds: float) -> tuple[np.ndarray | None, float]:
+        """(s, low): low <= g.s for every 0/1 s of k allowed candidates within the body counts
+        with at most one camera in each clique of the held candidates (HiGHS's dual bound of
+        that MILP; -inf where it gives none); s the indices of its solution when all are held
+        (a selection that keeps the rules), else None. The candidates not held enter only as
+        the min(count, k) of lowest g of each body kind (any solution's others of a kind can
+        be swapped for them at no cost); a solution that takes one is solved again with its
+        rules held, until none is taken or `seconds` have passed."""
+        k, body, counts = self.k, self.body, self.counts
+        deadline = time.perf_counter() + seconds
+        while True:
+            free = self.allowed.copy()
+            free[self.held] = False
+            extra = []
+            for b, c in enumerate(counts):
+                idx = np.flatnonzero(free & (body == b))
+                n = min(int(c), k, len(idx))
+                extra.append(idx[np.argpartition(g[idx], n - 1)[:n]] if n else idx[:0])
+            V = np.concatenate([self.held, *extra])
+            rows = [np.arange(len(V))] + [np.flatnonzero(body[V] == b) for b in range(len(counts))] + \
+                self._cliques
+            A = scipy.sparse.csr_matrix((np.ones(sum(len(r) for r in rows)),
+                                         (np.repeat(np.arange(len(rows)), [len(r) for r in rows]),
+                                          np.concatenate(rows))), shape=(len(rows), len(V)))
+            top = np.concatenate([[k], counts, np.ones(len(self._cliques))])
+            low_rows = np.concatenate([[k], np.zeros(len(counts) + len(self._cliques))])
+            res = milp(g[V], constraints=LinearConstraint(A, low_rows, top), integrality=np.ones(len(V)),
+                       bounds=Bounds(0, 1), options={"mip_rel_gap": MIP_GAP,
+                                                     "time_limit": max(deadline - time.perf_counter(), 0.0)})
+            low = getattr(res, "mip_dual_bound", None)
+            low = -np.inf if low is None or not np.isfinite(low) or res.status not in (0, 1) else float(low)
+            if res.x is None:
+                return None, low
+            taken = np.sort(V[res.x > 0.5])
+            new = np.setdiff1d(taken, self.held)
+            if not len(new):
+                return taken, low
+            held = len(self.held)
+            self.hold(new, deadline)
+            if len(self.held) == held:
+                return None, low
+
+
+def _descend(both, only, summed, pullback, x, k, allowed, body, counts, deadline, rel_tol, max_iter):
+    """Accelerated projected gradient over P from x, a point of P (module docstring), until the
+    best value and the certificate agree to rel_tol, max_iter steps or the deadline
+    (time.perf_counter()): (best value, its iterate, the best certificate (>= 0), steps)."""
+    fx = float(only(*summed(x)))
+    y, t, lipschitz = x.copy(), 1.0, 1.0
+    best, best_x, bound, it = fx, x, 0.0, 0   # the score is >= 0: 0 bounds it before any step
+    for it in range(1, max_iter + 1):
+        fy, (gC, gc) = both(*summed(y))
+        fy = float(fy)
+        g = pullback(gC, gc)
+        bound = max(bound, fy + float(g @ (vertex(g, k, allowed, body, counts) - y)))
+        if best - bound <= rel_tol * abs(bound) or time.perf_counter() > deadline:
+            break
+        for _ in range(DOUBLINGS):   # backtracking: the quadratic model at y bounds f at the step
+            xn = project(y - g / lipschitz, k, allowed, body, counts)
+            fn, d = float(only(*summed(xn))), xn - y
+            if fn <= fy + float(g @ d) + 0.5 * lipschitz * float(d @ d) + ROUNDING * abs(fy):
+                break
+            lipschitz *= 2.0
+            if time.perf_counter() > deadline:   # each try is a pass over every entry
+                break
+        if time.perf_counter() > deadline:      # the bound found so far stands
+            break
+        if fn > fx:   # restart the momentum from the last accepted iterate
+            y, t = x.copy(), 1.0
+            continue
+        tn = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
+        y = np.clip(xn + (t - 1.0) / tn * (xn - x), 0.0, 1.0)   # w >= 0 keeps every C_n >= 0
+        x, fx, t = xn, fn, tn
+        if fx < best:
+            best, best_x = fx, x
+        lipschitz *= SHRINK
+    return best, best_x, bound, it
+
+
+def _hull(both, only, summed, pullback, rules: Rules, point, start, bound, deadline, inner_s,
+          rel_tol, max_iter):
+    """Fully corrective Frank-Wolfe over the hull of the selections that keep `rules` (module
+    docstring): the certificate at `point` (the first phase's best iterate, of P), then at each
+    iterate, a convex combination of the selections found by `Rules.vertex` (and `start`, a
+    selection keeping the rules, or None), its weights re-optimised over them all after each
+    new one (`_descend` over their simplex, inner_s seconds at most); `bound` the certificate
+    so far. The oracle may run inner_s past the deadline, so that the last iterate is
+    certified. Returns (best value in the hull (inf: none), its iterate (None: none), the best
+    certificate, steps)."""
+    K = len(point)
+    chosen, sums, lam = [], [], np.zeros(0)
+
+    def add(selection, weight):
+        v = np.zeros(K)
+        v[selection] = 1.0
+        chosen.append(selection)
+        sums.append(summed(v))
+        return np.append(lam, weight)
+
+    if start is not None and len(start):
+        lam = add(np.sort(np.asarray(start, dtype=int)), 1.0)
+    x, C, inside = point, summed(point), False
+    best, best_x, steps = np.inf, None, 0
+    while steps < max_iter:
+        steps += 1
+        fx, (gC, gc) = both(*C)
+        fx = float(fx)
+        g = pullback(gC, gc)
+        s, low = rules.vertex(g, max(deadline - time.perf_counter(), inner_s))
+        bound = max(bound, fx + low - float(g @ x))
+        if inside and fx < best:
+            best, best_x = fx, x
+        if best - bound <= rel_tol * abs(bound) or s is None or time.perf_counter() > deadline:
+            break
+        if not any(np.array_equal(s, v) for v in chosen):
+            lam = add(s, 0.0 if lam.size else 1.0)
+        m = len(chosen)          # the weights of the selections: the same descent over a simplex
+        _, inner_sum, inner_pull = linear_maps(np.stack([c for c, _ in sums]), np.stack([c for _, c in sums]))
+        _, lam, _, _ = _descend(both, only, inner_sum, inner_pull, lam, 1, np.ones(m, bool), np.zeros(m, int),
+                                np.ones(1, int), min(deadline, time.perf_counter() + inner_s),
+                                INNER_TOL * rel_tol, max_iter)
+        keep = np.flatnonzero(lam > 0)     # the projection clips unused selections to 0
+        chosen, sums, lam = [chosen[i] for i in keep], [sums[i] for i in keep], lam[keep]
+        x = np.zeros(K)
+        for weight, v in zip(lam, chosen):
+            x[v] += weight
+        C, inside = tuple(sum(w * c[part] for w, c in zip(lam, sums)) for part in (0, 1)), True
+    return best, best_x, bound, steps
+
+
 def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
-               body: np.ndarray, counts: np.ndarray, start=None, rel_tol: float = REL_TOL,
-               max_iter: int = MAX_ITER, time_limit: float = 60.0) -> Bound:
+               body: np.ndarray, counts: np.ndarray, start=None, conflicts: Callable | None = None,
+               rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, time_limit: float = 60.0) -> Bound:
     """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
     k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.score.Scorer.value`);
     info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights
     (or info the sparsely stored `Candidates` and weight None, `linear_maps`);
     allowed (K,) the candidates a selection may hold at all; body (K,) their body kind, counts
     its inventory; start: indices of a feasible selection (the design's), else the vertex of the
-    first candidates; time_limit in wall seconds. k is cut to `largest(...)` (no selection holds
-    more)."""
+    first candidates; conflicts: j -> (K,) bool, the candidates that may not join a selection
+    holding j (`vdo.design.feasibility.Feasibility.placement`), whose rules the bound then holds
+    (`Rules`; None: the pairwise rules dropped); time_limit in wall seconds. k is cut to
+    `largest(...)` (no selection holds more)."""
     t0 = time.perf_counter()
     k = min(int(k), largest(allowed, body, counts))
     K, summed, pullback = linear_maps(info, weight)
@@ -222,34 +466,20 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
         x[list(start)] = 1.0
     else:
         x = vertex(-np.ones(K), k, allowed, body, counts)
-    fx = float(only(*summed(x)))
-    y, t, lipschitz = x.copy(), 1.0, 1.0
-    best, best_x, bound, it = fx, x, 0.0, 0   # the score is >= 0: 0 bounds it before any step
-    for it in range(1, max_iter + 1):
-        fy, (gC, gc) = both(*summed(y))
-        fy = float(fy)
-        g = pullback(gC, gc)
-        bound = max(bound, fy + float(g @ (vertex(g, k, allowed, body, counts) - y)))
-        if best - bound <= rel_tol * abs(bound) or time.perf_counter() - t0 > time_limit:
-            break
-        for _ in range(DOUBLINGS):   # backtracking: the quadratic model at y bounds f at the step
-            xn = project(y - g / lipschitz, k, allowed, body, counts)
-            fn, d = float(only(*summed(xn))), xn - y
-            if fn <= fy + float(g @ d) + 0.5 * lipschitz * float(d @ d) + ROUNDING * abs(fy):
-                break
-            lipschitz *= 2.0
-            if time.perf_counter() - t0 > time_limit:   # each try is a pass over every entry
-                break
-        if time.perf_counter() - t0 > time_limit:      # the bound found so far stands
-            break
-        if fn > fx:   # restart the momentum from the last accepted iterate
-            y, t = x.copy(), 1.0
-            continue
-        tn = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-        y = np.clip(xn + (t - 1.0) / tn * (xn - x), 0.0, 1.0)   # w >= 0 keeps every C_n >= 0
-        x, fx, t = xn, fn, tn
-        if fx < best:
-            best, best_x = fx, x
-        lipschitz *= SHRINK
-    return Bound(cameras=k, value=float(bound), relaxed=float(best), weights=best_x, iterations=it,
-                 converged=best - bound <= rel_tol * abs(bound), seconds=time.perf_counter() - t0)
+    first = t0 + time_limit * (1.0 if conflicts is None else PLAIN_SHARE)
+    best, best_x, plain, it = _descend(both, only, summed, pullback, x, k, allowed, body, counts, first,
+                                       rel_tol, max_iter)
+    bound, held = plain, 0
+    if conflicts is not None and time.perf_counter() < t0 + time_limit:
+        rules = Rules(conflicts, k, allowed, body, counts)
+        weighed = np.flatnonzero(best_x > SUPPORT)
+        rules.hold(np.concatenate([np.asarray(start if start is not None else [], dtype=int),
+                                   weighed[np.argsort(-best_x[weighed])]]), t0 + time_limit)
+        top, top_x, bound, steps = _hull(both, only, summed, pullback, rules, best_x, start, plain,
+                                         t0 + time_limit, INNER_SHARE * time_limit, rel_tol, max_iter)
+        it, held = it + steps, len(rules.held)
+        if top_x is not None:
+            best, best_x = top, top_x
+    return Bound(cameras=k, value=float(bound), plain=float(plain), relaxed=float(best), weights=best_x,
+                 iterations=it, converged=best - bound <= rel_tol * abs(bound),
+                 seconds=time.perf_counter() - t0, conflicted=held)

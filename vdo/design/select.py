@@ -25,9 +25,10 @@ seen by its region's min_cameras. With `target_sigma_um` the smallest count
 that meets it with full coverage is reported.
 
 The bound. Per count, `vdo.design.bound` relaxes the selection to weights in [0, 1] (body counts
-and obscuration kept, pairwise rules dropped) and certifies a lower bound on the score of every
-selection of that many cameras; `design.json` (curve, bound, gap_to_bound), pareto.csv, the console
-and pareto.png give the gap 1 - bound / score ([design] bound_s seconds per count). The
+and obscuration kept, then the spot, axis-angle and tripod rules among the candidates it weighs)
+and certifies a lower bound on the score of every selection of that many cameras; `design.json`
+(curve, bound, gap_to_bound), pareto.csv, the console and pareto.png give the gap
+1 - bound / score ([design] bound_s seconds per count). The
 relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
 candidates by decreasing weight while feasible, then the exchange and the polish): its selection
 replaces the count's when it scores lower ("rounded" in design.json's curve). Then random restarts
@@ -590,24 +591,28 @@ class DesignRecord:
 def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
                 seconds: float) -> list[bound.Bound | None]:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
-    that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, pairwise
-    rules dropped; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score) and
-    "bound_converged"; None where `seconds` is 0. The score never rises when a camera is added,
-    so the best k-camera score is at least the best (k+1)-camera score: each count's bound is the
-    largest of its own and those of larger counts (while the relaxation's count grows). Logs each
+    that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, and the
+    spot, axis-angle and tripod rules among the candidates the relaxation weighs,
+    `Feasibility.placement`; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score)
+    and "bound_converged"; None where `seconds` is 0. The score never rises when a camera is
+    added, so the best k-camera score is at least the best score of k + 1 cameras within the body
+    counts: each count's bound is the largest of its own and the plain bounds (pairwise rules
+    dropped) of larger counts (while the relaxation's count grows). Logs each
     gap. Returns each count's `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
         return [None] * len(curve)
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
-                              feas.counts, start=c["chosen"], time_limit=seconds)
+                              feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
     value, later = [b.value for b in found], 0.0
     for i in reversed(range(len(found))):
-        # adding a camera never raises the score, so a bound for k + 1 cameras (uncut) bounds k
+        # adding a camera never raises the score, so a bound for every k + 1 cameras within the
+        # body counts (uncut; the plain one: a feasible selection plus one camera may break a
+        # pairwise rule) bounds k
         value[i] = max(value[i], later)
-        later = value[i] if i == 0 or found[i].cameras > found[i - 1].cameras else 0.0
+        later = max(later, found[i].plain) if i == 0 or found[i].cameras > found[i - 1].cameras else 0.0
     for c, b, v in zip(curve, found, value):
         c.update(bound=v, gap=max(0.0, 1.0 - v / c["score"]), bound_converged=b.converged)
         log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
