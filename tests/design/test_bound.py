@@ -197,8 +197,6 @@ def test_design_reports_the_gap(plate, tmp_path):
     for r in rows:
         assert float(r["bound"]) <= float(r["score"])
         assert float(r["gap"]) == pytest.approx(1 - float(r["bound"]) / float(r["score"]), abs=1e-4)
-    bounds = [float(r["bound"]) for r in rows]
-    assert bounds == sorted(bounds, reverse=True)       # a bound for more cameras bounds fewer
     assert (out / "pareto.png").is_file()
 
 
