@@ -62,6 +62,19 @@ def write_box(path: Path, extents, center=(0, 0, 0), unit_scale=1.0):
     return path
 
 
+# A tripod zone (y from -1.2 to -1.0 m) beside the plate experiment's plate (appended to its meshes).
+TRIPOD_ZONE = """
+[[mount]]
+name = "floor"
+kind = "zone"
+box_min_m = [-1.0, -1.2, 0.5]
+box_max_m = [1.0, -1.0, 1.1]
+[mount.tripod]
+spread_m = 0.45
+leg_diameter_m = 0.04
+"""
+
+
 # An obstacle mesh "shutter.stl" in a group "slide" that the poses of "poses.csv" move: a part
 # that hides a region during the load path (appended to PLATE_TOML's meshes).
 SLIDING_SHUTTER = """

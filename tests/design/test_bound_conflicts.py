@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import TRIPOD_ZONE
+
 from vdo.config import experiment as config
 from vdo.design import bound
 from vdo.design.candidates import SPOT_M, judge
@@ -128,17 +130,6 @@ def test_the_rules_lift_the_bound_to_the_best_selection():
     assert held.weights[:2].sum() == pytest.approx(1.0, abs=1e-9)
 
 
-TRIPODS = """
-[[mount]]
-name = "floor"
-kind = "zone"
-box_min_m = [-1.0, -1.2, 0.5]
-box_max_m = [1.0, -1.0, 1.1]
-[mount.tripod]
-spread_m = 0.45
-leg_diameter_m = 0.04
-"""
-
 DESIGN = """
 [design]
 max_cameras = 2
@@ -156,7 +147,7 @@ def test_the_bound_holds_rules_the_selection_keeps(plate_experiment):
     selection's own (so a pair it holds can be in no selection, whichever camera comes first),
     and holds the tripods' conflicts and those of one spot (some of each among the candidates
     taken)."""
-    path = plate_experiment(spacing=50, extra_meshes=TRIPODS)
+    path = plate_experiment(spacing=50, extra_meshes=TRIPOD_ZONE)
     path.write_text(path.read_text() + DESIGN)
     exp = config.load(path)
     geometry = prepare(exp)

@@ -14,7 +14,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import DOWN_CAMERA, SLIDING_SHUTTER, load_path_tables
+from conftest import DOWN_CAMERA, SLIDING_SHUTTER, TRIPOD_ZONE, load_path_tables
 from vdo import objective
 from vdo.config import experiment as config
 from vdo.commands.design import curve_line, design as design_run
@@ -1191,18 +1191,6 @@ def test_counts_that_share_no_measured_area_say_so_instead_of_a_0_percent_curve(
                                      refine=False, memory_gb=None, time_limit=None, quiet=False))
     printed = capsys.readouterr().out.splitlines()
     assert printed[2] == line and sum(line == p for p in printed) == 1
-
-
-TRIPOD_ZONE = """
-[[mount]]
-name = "floor"
-kind = "zone"
-box_min_m = [-1.0, -1.2, 0.5]
-box_max_m = [1.0, -1.0, 1.1]
-[mount.tripod]
-spread_m = 0.45
-leg_diameter_m = 0.04
-"""
 
 
 def test_two_tripods_never_share_their_legs(plate_experiment):
