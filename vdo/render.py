@@ -184,14 +184,14 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
             if mask.any():
                 # only samples whose window (and the pixels' and the blur's reach) stays on the
                 # region: beyond its edge lie other paint or other surfaces (module constants)
-                seen = np.flatnonzero(mask)
-                A = cam.sensitivity(samples.points[seen]) @ tangents[seen]                 # (n, 2, 2) px/m
-                metres_per_px = 1.0 / np.maximum(np.linalg.svd(A, compute_uv=False)[:, -1], 1e-300)
-                inner = edge[seen] >= (PHOTOMETRY_REACH_PX + half * math.sqrt(2) + 2 * sigma) * metres_per_px
+                visible = np.flatnonzero(mask)
+                A_visible = cam.sensitivity(samples.points[visible]) @ tangents[visible]   # (n, 2, 2) px/m
+                metres_per_px = 1.0 / np.maximum(np.linalg.svd(A_visible, compute_uv=False)[:, -1], 1e-300)
+                inner = edge[visible] >= (PHOTOMETRY_REACH_PX + half * math.sqrt(2) + 2 * sigma) * metres_per_px
                 row["n_interior"] = int(inner.sum())
                 if inner.any():
                     mask = np.zeros_like(mask)
-                    mask[seen[inner]] = True
+                    mask[visible[inner]] = True
                 col = np.clip(np.rint(uv[mask, 0]).astype(int)[:, None] + dx.ravel(), 0, cam.width - 1)
                 r = np.clip(np.rint(uv[mask, 1]).astype(int)[:, None] + dy.ravel(), 0, cam.height - 1)
                 values = clean[r, col]                         # (n, window^2)
@@ -199,7 +199,7 @@ def region_photometry(cameras, vis, samples, pho, linear: dict, sensor, pattern_
                 ratio = (values - offset_dn) / level[:, None]
                 seen = np.flatnonzero(mask)
                 some = seen[np.unique(np.linspace(0, len(seen) - 1, PHOTOMETRY_FOOTPRINTS).round().astype(int))]
-                A = cam.sensitivity(samples.points[some]) @ tangents[some]          # (m, 2, 2) px/m
+                A = A_visible[np.searchsorted(visible, some)]                       # (m, 2, 2) px/m
                 light = 0.0
                 if spp is not None and light_cv2 is not None:
                     q = float(np.mean(pho.contrast[i, mask] / np.maximum(level, 1e-300)))
