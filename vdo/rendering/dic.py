@@ -134,6 +134,8 @@ class DicScene:
     white: float
     lights: tuple                  # per light (centre, e_u w, e_v h, normal, radiance)
     ambient: float
+    light_map: object = None       # a `vdo.rendering.lightmap.SurfaceLightMap` shared by the
+                                   # frame's cameras (`render_camera_dic`'s light_map), or None
 
 
 def build_dic_scene(exp, meshes, region_faces, bodies=(), pattern=None, posed=None) -> DicScene:
@@ -223,7 +225,7 @@ def plan_render(cameras, mode: str, available: int | None = None) -> RenderPlan:
 
 
 def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
-                      tile_pixels: int = TILE_PIXELS, spec=None) -> np.ndarray:
+                      tile_pixels: int = TILE_PIXELS, spec=None, light_map=None) -> np.ndarray:
     """One camera's (H, W) float32 linear image in the DIC render mode, in tiles of at most
     `tile_pixels` pixels (whole rows; `plan_render` chooses). Per pixel (u, v) of the (distorted) image:
 
@@ -253,7 +255,18 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
     each part of the footprint, the pixel's light and emission; a silhouette pixel's mean on all),
     the cells blurred and each pixel their mean (`vdo.rendering.scene.cell_blur`, along the rows
     in each tile, across them once the tiles are done).
+    `light_map`: the frame's `vdo.rendering.lightmap.SurfaceLightMap` (`surface_light_map` of
+    the frame's cameras, this one among them), from which the light map's nodes take the light
+    where its lattice's nodes agree (the nodes it lacks are computed into it); None: a map of this
+    camera alone; False: every node computed (no surface map).
     `progress`: called with the number of rows done after each tile."""
+    from dataclasses import replace
+
+    from vdo.rendering.lightmap import surface_light_map
+
+    if light_map is None:
+        light_map = surface_light_map(dscene, [camera])
+    dscene = replace(dscene, light_map=light_map or None)
     s = SHADE_STRIDE
     rows = max(1, tile_pixels // camera.width)
     rows = rows // s * s if rows >= s else rows           # tiles share the light map's lattice
@@ -379,15 +392,21 @@ def _shape_ids(si):
     return dr.reinterpret_array(mitsuba().UInt32, si.shape)
 
 
-def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0):
+def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0, barycentric: bool = False):
     """Primary hits (with uv partials over a footprint of `step` pixels) of the pixels `grid`
     (`_rays`), traced in Embree's coherent mode: neighbouring lanes are neighbouring pixels. On
     cam1 of the built-in the traversal took 0.3 s instead of 1.3 s for 24 M rays, with the same
     hits except where two surfaces tie on a shared edge (the other one taken at ~600 pixels)."""
     from vdo.core.backend import mitsuba
 
+    mi = mitsuba()
     ray = _rays(camera, grid, step)
-    si = dscene.scene.ray_intersect(ray, mitsuba().RayFlags.All, True)
+    if barycentric:          # and the hits' barycentric coordinates (Mitsuba's prim_uv)
+        pi = dscene.scene.ray_intersect_preliminary(ray, True)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        si.compute_uv_partials(ray)
+        return si, pi.prim_uv
+    si = dscene.scene.ray_intersect(ray, mi.RayFlags.All, True)
     si.compute_uv_partials(ray)
     return si
 
@@ -417,16 +436,22 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     u, v = np.arange(W, dtype=float), np.arange(r0, r1, dtype=float)
     index = dr.arange(mi.UInt32, W * h)
     pixel = (mi.Float(index % W), mi.Float(index // W + r0))
-    si = _cast(dscene, camera, _pixel_grid(u, v) if camera.distorted else pixel)
+    grid = _pixel_grid(u, v) if camera.distorted else pixel
+    mapped = dscene.light_map is not None
+    si, prim_uv = _cast(dscene, camera, grid, barycentric=True) if mapped else (_cast(dscene, camera, grid), None)
     rho = _footprint_albedo(dscene, si, cells=sigma > 0)
     rho = rho if sigma > 0 else [rho]
     emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
     ids = _shape_ids(si)
-    dr.eval(*rho, emitted, ids, si.sh_frame.n)
+    prepared = dscene.light_map.prepare(dscene, si, prim_uv) if mapped else ()
+    dr.eval(*rho, emitted, ids, si.sh_frame.n, *prepared)
     ids_np = np.array(ids).reshape(h, W)
     normals = _normals(si, ids_np.ravel(), np.float32).reshape(h, W, 3)
-    del si
-    light = _light_map(dscene, camera, r0, ids_np, normals, scale).ravel()
+    del si, prim_uv
+    given = None
+    if mapped:         # the frame's surface light map where its nodes agree (NaN elsewhere)
+        given = dscene.light_map.finish(dscene, prepared, scale, camera.focal_px)[0].reshape(h, W)
+    light = _light_map(dscene, camera, r0, ids_np, normals, scale, given).ravel()
     emitted = np.array(emitted, dtype=np.float32)
     edges = np.flatnonzero(_silhouette(ids_np))
     edge_value = _supersampled(dscene, camera, r0, edges, ids_np, light.reshape(h, W)) if len(edges) else None
@@ -443,7 +468,7 @@ def _dic_tile(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
 
 
 def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, normals: np.ndarray,
-               scale: float) -> np.ndarray:
+               scale: float, given: np.ndarray | None = None) -> np.ndarray:
     """(h, W) the light (`shade`) at each pixel of the tile whose rows start at r0 and whose
     pixels see the shapes `ids` (h, W) with shading normals `normals` (h, W, 3) (`_normals`),
     from an adaptive light map (tolerances in units of the camera's light `scale`). Level s has
@@ -456,7 +481,11 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, norma
     rest (shadow edges, creases, another shape) go down a level, to the pixels themselves at
     s = 1; but at s = SURFACE_FILL a cell that sees more than one surface takes `_surface_fill`
     (a silhouette's or a crease's pixels from their own surface's corners). Nodes and cells are
-    held by their pixel (row y, column x) on one lattice for all levels."""
+    held by their pixel (row y, column x) on one lattice for all levels.
+
+    `given` (h, W): the light already known at some pixels (the frame's surface light map, NaN
+    elsewhere): those pixels keep it, a coarsest cell whose pixels all have it is done, and a
+    node at such a pixel takes it."""
     h, W = ids.shape
     s = SHADE_STRIDE
     ncy, ncx = -(-h // s), -(-W // s)          # cells of s x s pixels covering the tile
@@ -471,13 +500,27 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, norma
         k *= 2
     out = np.empty((ncy * s, ncx * s), dtype=np.float32)
     nodes = _LightNodes.lattice(ncy * s + 1, ncx * s + 1)
-    y, x = (a.ravel() * s for a in np.meshgrid(np.arange(ncy + 1), np.arange(ncx + 1), indexing="ij"))
-    nodes.compute(dscene, camera, r0, y, x)
     y, x = (a.ravel() * s for a in np.meshgrid(np.arange(ncy), np.arange(ncx), indexing="ij"))
+    if given is not None:
+        nodes.given, nodes.ids, nodes.normals = given, ids, normals
+        known = np.pad(np.isfinite(given), ((0, ncy * s - h), (0, ncx * s - W)))
+        done = known.reshape(ncy, s, ncx, s).all(axis=(1, 3)).ravel()
+        y, x = y[~done], x[~done]
+        corners = np.unique(np.concatenate([(y + dy) * nodes.L.shape[1] + x + dx
+                                            for dy in (0, s) for dx in (0, s)]))
+        nodes.compute(dscene, camera, r0, *np.divmod(corners, nodes.L.shape[1]), scale)
+    else:
+        nodes.compute(dscene, camera, r0, *(a.ravel() * s for a in np.meshgrid(
+            np.arange(ncy + 1), np.arange(ncx + 1), indexing="ij")), scale)
+
+    def finish():
+        if given is not None:
+            return np.where(np.isfinite(given), given, out[:h, :W])
+        return out[:h, :W]
     while True:
         if s == 1:                                   # the nodes are the pixels themselves
             out[y, x] = nodes.L[y, x]
-            return out[:h, :W]
+            return finish()
         corners = [(y, x), (y, x + s), (y + s, x), (y + s, x + s)]
         c00, c01, c10, c11 = (nodes.L[c] for c in corners)
         lo_id = lo_ids[s][y // s, x // s]
@@ -494,12 +537,12 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, ids: np.ndarray, norma
             rest &= one
         y, x, one, c00, c01, c10, c11, lo_id = (a[rest] for a in (y, x, one, c00, c01, c10, c11, lo_id))
         if len(y) == 0:
-            return out[:h, :W]
+            return finish()
         # The next level: the five new nodes of each remaining cell are computed.
         m = s // 2
         new = [(y + m, x + m), (y, x + m), (y + s, x + m), (y + m, x), (y + m, x + s)]
         fresh = np.unique(np.concatenate([j * nodes.L.shape[1] + i for j, i in new]))
-        nodes.compute(dscene, camera, r0, *np.divmod(fresh, nodes.L.shape[1]))
+        nodes.compute(dscene, camera, r0, *np.divmod(fresh, nodes.L.shape[1]), scale)
         predicted = [(c00 + c01 + c10 + c11) / 4, (c00 + c01) / 2, (c10 + c11) / 2,
                      (c00 + c10) / 2, (c01 + c11) / 2]
         err = np.max([np.abs(nodes.L[n] - p) for n, p in zip(new, predicted)], axis=0)
@@ -556,7 +599,7 @@ def _surface_fill(dscene: DicScene, camera: Camera, r0: int, out: np.ndarray, no
             todo_x.append(px[~ok])
     py, px = np.concatenate(todo_y), np.concatenate(todo_x)
     fresh = np.isnan(nodes.L[py, px])
-    nodes.compute(dscene, camera, r0, py[fresh], px[fresh])
+    nodes.compute(dscene, camera, r0, py[fresh], px[fresh], scale)
     out[py, px] = nodes.L[py, px]
 
 
@@ -578,6 +621,9 @@ class _LightNodes:
     L: np.ndarray
     I: np.ndarray
     N: np.ndarray
+    given: np.ndarray | None = None    # (h, W) light known at the tile's pixels (NaN: not), their
+    ids: np.ndarray | None = None      # shape ids (h, W) and shading normals (h, W, 3)
+    normals: np.ndarray | None = None
 
     @classmethod
     def lattice(cls, ny: int, nx: int) -> "_LightNodes":
@@ -593,13 +639,52 @@ class _LightNodes:
             ok &= (self.I[j, i] == shape_id) & (np.einsum("ij,ij->i", self.N[j, i], n0) >= CREASE_COS)
         return ok
 
-    def compute(self, dscene: DicScene, camera: Camera, r0: int, y: np.ndarray, x: np.ndarray) -> None:
+    def compute(self, dscene: DicScene, camera: Camera, r0: int, y: np.ndarray, x: np.ndarray,
+                scale: float = 1.0) -> None:
         """Cast and shade the nodes (y, x): the pixels (x, r0 + y)."""
         if len(y) == 0:
             return
-        si = _cast(dscene, camera, np.column_stack([x.astype(float), r0 + y.astype(float)]))
+        if self.given is not None:
+            # pixels of the tile: their shape and normal are known, and the light where given
+            h, W = self.given.shape
+            inside = (y < h) & (x < W)
+            yi, xi = y[inside], x[inside]
+            self.I[yi, xi], self.N[yi, xi] = self.ids[yi, xi], self.normals[yi, xi]
+            light = self.given[yi, xi].astype(np.float64)
+            cast = ~np.isfinite(light)
+            if cast.any():
+                si = _cast(dscene, camera, np.column_stack([xi[cast].astype(float), r0 + yi[cast].astype(float)]))
+                light[cast] = shade(dscene, si)
+            self.L[yi, xi] = light
+            y, x = y[~inside], x[~inside]
+            if len(y) == 0:
+                return
+        grid = np.column_stack([x.astype(float), r0 + y.astype(float)])
+        if dscene.light_map is None:
+            si = _cast(dscene, camera, grid)
+            light = shade(dscene, si)
+        else:
+            si, prim_uv = _cast(dscene, camera, grid, barycentric=True)
+            light = _mapped_light(dscene, camera, si, prim_uv, scale)
         shape = np.array(_shape_ids(si))
-        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), shade(dscene, si)
+        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), light
+
+
+def _mapped_light(dscene: DicScene, camera: Camera, si, prim_uv, scale: float) -> np.ndarray:
+    """The light (`shade`) at the hits `si` from the frame's surface light map (`dscene.light_map`,
+    `vdo.rendering.lightmap`) where its lattice's nodes agree (tolerance in units of the camera's
+    light `scale`), computed at the hits themselves elsewhere."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+
+    mi = mitsuba()
+    light, ok = dscene.light_map.lookup(dscene, si, prim_uv, scale, camera.focal_px)
+    light = light.astype(np.float64)
+    rest = np.flatnonzero(~ok)
+    if len(rest):
+        light[rest] = shade(dscene, dr.gather(type(si), si, mi.UInt32(rest.astype(np.uint32))))
+    return light
 
 
 def _fill(out: np.ndarray, y: np.ndarray, x: np.ndarray, s: int, c00, c01, c10, c11) -> None:
