@@ -29,58 +29,65 @@ MAP_STRIDE = 16              # px between neighbouring nodes of a triangle's lat
 MAP_TOLERANCE = 0.03         # a sub-triangle whose nodes' light differs by at most this fraction
                              # of the camera's light scale is interpolated (as the image-space
                              # map's coarsest cells, `vdo.rendering.dic.SHADE_TOLERANCE`)
-PERSPECTIVE_FACTOR = 2.0     # `divisions`: at most this many times the divisions that the
-                             # triangle's projected area asks for
-MAP_MAX_PX = 2 * MAP_STRIDE  # a sub-triangle whose side may span more pixels than this in the
-                             # camera (frontal bound: side x f / distance) is not interpolated
+PERSPECTIVE_FACTOR = 1.0     # `divisions`: at most this many times the divisions that the
+                             # block's projected area asks for
+DEPTH_RATIO = 1.25           # `blocks_of`: a triangle's blocks span at most this depth ratio
+MAX_BLOCKS = 64              # ... and are at most this many a side
+MAP_MAX_PX = 2 * MAP_STRIDE  # a sub-triangle larger than half a square of this side in the camera's
+                             # image (its area x cos θ x (f / distance)²) is not interpolated
 MAP_MAX_DIVISIONS = 2048     # at most this many divisions of a triangle's side
 NEAR_DEPTH_M = 0.05          # a triangle closer to a camera than this is treated as at this depth
 
 
 @dataclass
 class SurfaceLightMap:
-    """The light on a lattice per triangle of the diffuse shapes (module docstring). The shapes'
-    triangles are numbered one after another (`offset` by Mitsuba shape id, `Shape.id()`);
-    triangle t has `n[t]` divisions a side (0: not in the map) and its lattice's nodes are
-    `values[base[t]:]` (NaN: not computed yet; +inf: a node whose light could not be computed),
-    allocated a triangle at a time, the first time a camera's hit lies on it: node (i, j) of a
-    lattice of n divisions at base + i (n + 1) - i (i - 1) / 2 + j."""
+    """The light on lattices over the triangles of the diffuse shapes (module docstring). The
+    shapes' triangles are numbered one after another (`offset` by Mitsuba shape id, `Shape.id()`).
+    Triangle t is first cut into `nc[t]`² blocks (its barycentric lattice of nc divisions: a
+    triangle that recedes from a camera has blocks of about one depth each), numbered from
+    `block0[t]`: the lower blocks (i, j) (corners (i, j), (i + 1, j), (i, j + 1), i + j < nc) at
+    i nc - i (i - 1) / 2 + j, then the upper ones (corners (i + 1, j + 1), (i, j + 1), (i + 1, j),
+    i + j < nc - 1). Block b has `n[b]` divisions a side (0: not in the map) and its lattice's
+    nodes are `values[base[b]:]`, node (i, j) at base + i (n + 1) - i (i - 1) / 2 + j (NaN: not
+    computed yet; +inf: a node whose light could not be computed), allocated a block at a time,
+    the first time a camera's hit lies in it."""
 
     offset: dict                       # Mitsuba shape id -> its first triangle's number
-    n: np.ndarray                      # (T,) int64
-    longest: np.ndarray                # (T,) the triangle's longest side (m, at rest)
-    base: np.ndarray                   # (T,) int64, -1: not allocated
+    nc: np.ndarray                     # (T,) int64 blocks a side of each triangle
+    block0: np.ndarray                 # (T,) int64 its first block
+    block_tri: np.ndarray              # (B,) int64 each block's triangle, its (i, j) and whether
+    block_ij: np.ndarray               # (B, 2) int64   it is an upper block
+    block_upper: np.ndarray            # (B,) bool
+    n: np.ndarray                      # (B,) int64 divisions of the block's sides
+    area: np.ndarray                   # (B,) the block's area (m², at rest)
+    base: np.ndarray                   # (B,) int64, -1: not allocated
     values: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.float32))
     used: int = 0
     computed: int = 0                  # nodes whose light was computed
-    alloc_tris: list = field(default_factory=list)   # triangles in the order of allocation
+    alloc_blocks: list = field(default_factory=list)   # blocks in the order of allocation
 
-    @property
-    def node_count(self) -> int:
-        return self.computed
-
-    def _allocate(self, tris: np.ndarray) -> None:
-        tris = np.unique(tris[self.base[tris] < 0])
-        if len(tris) == 0:
+    def _allocate(self, blocks: np.ndarray) -> None:
+        blocks = np.unique(blocks[self.base[blocks] < 0])
+        if len(blocks) == 0:
             return
-        size = (self.n[tris] + 1) * (self.n[tris] + 2) // 2
-        self.base[tris] = self.used + np.concatenate([[0], np.cumsum(size)[:-1]])
+        size = (self.n[blocks] + 1) * (self.n[blocks] + 2) // 2
+        self.base[blocks] = self.used + np.concatenate([[0], np.cumsum(size)[:-1]])
         need = self.used + int(size.sum())
         if need > len(self.values):
             grown = np.full(max(need, 2 * len(self.values)), np.nan, dtype=np.float32)
             grown[:self.used] = self.values[:self.used]
             self.values = grown
         self.used = need
-        self.alloc_tris.append(tris)
+        self.alloc_blocks.append(blocks)
 
     def lookup(self, dscene, si, prim_uv, scale: float, focal_px: float, tolerance: float | None = None):
         """(light, ok) at the hits `si` (Mitsuba SurfaceInteraction, n lanes) with barycentric
         coordinates `prim_uv` (Mitsuba's Point2f: p = (1 - u - v) p0 + u p1 + v p2): the
         interpolated light of each hit's sub-triangle where ok (a diffuse shape in the map, its
-        front side seen, the sub-triangle's sides at most MAP_MAX_PX in a camera of focal length
-        `focal_px` (px) at the hit's distance, its three nodes within `tolerance` x `scale` of one
-        another), computing the nodes not computed yet; NaN where not ok. Numpy (n,) float32 and
-        bool."""
+        front side seen, the sub-triangle at most MAP_MAX_PX² / 2 px² in a camera of focal
+        length `focal_px` (px) at the hit's distance and angle, its three nodes within `tolerance` (default
+        MAP_TOLERANCE) x `scale` of one another), computing the nodes not computed yet; NaN where
+        not ok. Numpy (n,) float32 and bool."""
         return self.finish(dscene, self.prepare(dscene, si, prim_uv), scale, focal_px, tolerance)
 
     def prepare(self, dscene, si, prim_uv) -> tuple:
@@ -99,7 +106,20 @@ class SurfaceLightMap:
         off = dr.gather(mi.UInt32, table, sid, inside)
         active = inside & si.is_valid() & (mi.Frame3f.cos_theta(si.wi) > 0) & (off > 0)
         tri = dr.select(active, off - 1 + si.prim_index, 0xFFFFFFFF)
-        return tri, mi.Float(prim_uv.x), mi.Float(prim_uv.y), mi.Float(si.t)
+        return (tri, mi.Float(prim_uv.x), mi.Float(prim_uv.y), mi.Float(si.t),
+                mi.Float(mi.Frame3f.cos_theta(si.wi)))
+
+    @staticmethod
+    def _cell(mi, dr, x, y, n):
+        """The sub-triangle of a lattice of n (Int32) divisions holding the point of lattice
+        coordinates (x, y) = n (u, v): its lower-or-upper (i, j), whether upper and the point's
+        coordinates (a, b) in it (p = (1 - a - b) c0 + a c1 + b c2; lower c0 = (i, j), c1 =
+        (i + 1, j), c2 = (i, j + 1); upper c0 = (i + 1, j + 1), c1 = (i, j + 1), c2 = (i + 1, j))."""
+        i = dr.clip(mi.Int32(dr.floor(x)), 0, n - 1)
+        j = dr.clip(mi.Int32(dr.floor(y)), 0, n - 1 - i)
+        fi, fj = x - mi.Float(i), y - mi.Float(j)
+        upper = (fi + fj > 1) & (i + j <= n - 2)
+        return i, j, upper, dr.select(upper, 1 - fi, fi), dr.select(upper, 1 - fj, fj)
 
     def finish(self, dscene, prepared, scale: float, focal_px: float, tolerance: float | None = None):
         """`lookup` from `prepare`'s arrays."""
@@ -109,37 +129,39 @@ class SurfaceLightMap:
 
         mi = mitsuba()
         _, names = _id_table(dscene, self)
-        tri, pu, pv, distance = prepared
+        tri, pu, pv, distance, cos_view = prepared
         tolerance = MAP_TOLERANCE if tolerance is None else tolerance
         active = tri != 0xFFFFFFFF
-        n = dr.gather(mi.UInt32, self._device("n"), tri, active)
+        # the block
+        nc = mi.Int32(dr.gather(mi.UInt32, self._device("nc"), tri, active))
+        i1, j1, up1, bu, bv = self._cell(mi, dr, pu * mi.Float(nc), pv * mi.Float(nc), nc)
+        local = dr.select(up1, nc * (nc + 1) // 2 + i1 * (nc - 1) - i1 * (i1 - 1) // 2 + j1,
+                          i1 * nc - i1 * (i1 - 1) // 2 + j1)
+        block = dr.gather(mi.UInt32, self._device("block0"), tri, active) + mi.UInt32(local)
+        n = dr.gather(mi.UInt32, self._device("n"), block, active)
         active &= n > 0
-        side = dr.gather(mi.Float, self._device("longest"), tri, active) / mi.Float(n)
-        active &= side * focal_px <= MAP_MAX_PX * distance
+        # the sub-triangle's area in this camera's image (px²): world area x cos θ (f / distance)²
+        area = dr.gather(mi.Float, self._device("area"), block, active) / dr.square(mi.Float(n))
+        active &= 2 * area * cos_view * focal_px * focal_px <= MAP_MAX_PX * MAP_MAX_PX * distance * distance
         hit = dr.zeros(mi.UInt32, max(len(self.n), 1))
-        dr.scatter(hit, 1, tri, active)
+        dr.scatter(hit, 1, block, active)
         fresh = np.flatnonzero(np.array(hit))
         if len(fresh) and (self.base[fresh] < 0).any():
             self._allocate(fresh)
-        base = dr.gather(mi.UInt32, self._device("base"), tri, active)
-        nf = mi.Float(n)
-        x, y = pu * nf, pv * nf
+        base = mi.Int32(dr.gather(mi.UInt32, self._device("base"), block, active))
+        # the sub-triangle of the block's lattice
         ni = mi.Int32(n)
-        i = dr.clip(mi.Int32(dr.floor(x)), 0, ni - 1)
-        j = dr.clip(mi.Int32(dr.floor(y)), 0, ni - 1 - i)
-        fi, fj = x - mi.Float(i), y - mi.Float(j)
-        upper = (fi + fj > 1) & (i + j <= ni - 2)
+        i, j, upper, a, b = self._cell(mi, dr, bu * mi.Float(n), bv * mi.Float(n), ni)
         one = mi.Int32(1)
         corners = [(dr.select(upper, i + one, i), dr.select(upper, j + one, j)),
                    (dr.select(upper, i, i + one), dr.select(upper, j + one, j)),
                    (dr.select(upper, i + one, i), dr.select(upper, j, j + one))]
-        weights = [dr.select(upper, fi + fj - 1, 1 - fi - fj), dr.select(upper, 1 - fj, fi),
-                   dr.select(upper, 1 - fi, fj)]
-        keys = [mi.UInt32(mi.Int32(base) + a * (ni + 1) - a * (a - 1) // 2 + b) for a, b in corners]
+        weights = [1 - a - b, a, b]
+        keys = [mi.UInt32(base + ci * (ni + 1) - ci * (ci - 1) // 2 + cj) for ci, cj in corners]
         values = self._device("values")
         v = [dr.gather(mi.Float, values, key, active) for key in keys]
         missing = active & (dr.isnan(v[0]) | dr.isnan(v[1]) | dr.isnan(v[2]))
-        dr.eval(keys, v, weights, missing)
+        dr.eval(keys, v, weights, missing, active)
         lanes = dr.compress(missing)
         if dr.width(lanes):
             todo = np.unique(np.concatenate([np.array(dr.gather(mi.UInt32, key, lanes)) for key in keys]))
@@ -155,7 +177,7 @@ class SurfaceLightMap:
         return np.array(light), np.array(ok)
 
     def _device(self, what: str):
-        """The Dr.Jit copy of `n`, `base` or `values` (made again when they changed)."""
+        """The Dr.Jit copy of an array of the map (made again when the map changed)."""
         from vdo.core.backend import mitsuba
 
         mi = mitsuba()
@@ -163,31 +185,35 @@ class SurfaceLightMap:
         stamp = (self.used, self.computed)
         if what in cache and cache[what][0] == stamp:
             return cache[what][1]
-        if what == "n":
-            out = mi.UInt32(self.n.astype(np.uint32))
-        elif what == "longest":
-            out = mi.Float(self.longest.astype(np.float32))
-        elif what == "base":
-            out = mi.UInt32(np.maximum(self.base, 0).astype(np.uint32))
-        else:
+        if what == "values":
             out = mi.Float(self.values[:max(self.used, 1)])
+        elif what == "area":
+            out = mi.Float(self.area.astype(np.float32))
+        else:
+            out = mi.UInt32(np.maximum(getattr(self, what), 0).astype(np.uint32))
         cache[what] = (stamp, out)
         return out
 
     def _nodes(self, keys: np.ndarray):
-        """(triangle, i, j) of the nodes `keys`."""
-        tris = np.concatenate(self.alloc_tris)
-        order = np.argsort(self.base[tris])
-        tris = tris[order]
-        t = tris[np.searchsorted(self.base[tris], keys, side="right") - 1]
-        n, k = self.n[t], keys - self.base[t]
-        b = 2 * n + 3
-        i = np.floor((b - np.sqrt(np.maximum(b * b - 8.0 * k, 0.0))) / 2).astype(np.int64)
-        for _ in range(2):    # rounding: offset(i) <= k < offset(i + 1)
-            i = np.where(i * b - i * i > 2 * k, i - 1, i)
-            i = np.where((i + 1) * b - (i + 1) * (i + 1) <= 2 * k, i + 1, i)
-        j = k - (i * b - i * i) // 2
-        return t, i, j
+        """(triangle, u, v) of the nodes `keys`: the triangle's barycentric coordinates."""
+        blocks = np.concatenate(self.alloc_blocks)
+        blocks = blocks[np.argsort(self.base[blocks])]
+        blk = blocks[np.searchsorted(self.base[blocks], keys, side="right") - 1]
+        n, k = self.n[blk], keys - self.base[blk]
+        c = 2 * n + 3
+        i = np.floor((c - np.sqrt(np.maximum(c * c - 8.0 * k, 0.0))) / 2).astype(np.int64)
+        for _ in range(2):    # rounding: offset(i) <= k < offset(i + 1), offset(i) = (i c - i²) / 2
+            i = np.where(i * c - i * i > 2 * k, i - 1, i)
+            i = np.where((i + 1) * c - (i + 1) * (i + 1) <= 2 * k, i + 1, i)
+        j = k - (i * c - i * i) // 2
+        a, b = i / n, j / n                                   # in the block
+        tri = self.block_tri[blk]
+        nc = self.nc[tri].astype(np.float64)
+        bi, bj = self.block_ij[blk, 0], self.block_ij[blk, 1]
+        up = self.block_upper[blk]
+        u = np.where(up, bi + 1 - a, bi + a) / nc
+        v = np.where(up, bj + 1 - b, bj + b) / nc
+        return tri, u, v
 
     def _compute(self, dscene, names, keys: np.ndarray) -> None:
         """Shade the nodes `keys` on `dscene`'s shapes (their posed vertices)."""
@@ -197,11 +223,10 @@ class SurfaceLightMap:
         from vdo.rendering.shading import shade
 
         mi = mitsuba()
-        tri, i, j = self._nodes(keys)
+        tri, u, v = self._nodes(keys)
         starts = np.array([self.offset[name] for name, _ in names])
         owner = np.searchsorted(starts, tri, side="right") - 1
         prim = tri - starts[owner]
-        n = self.n[tri].astype(np.float64)
         m = len(keys)
         normal = np.empty((m, 3))
         for k, (_, shape) in enumerate(names):
@@ -213,7 +238,7 @@ class SurfaceLightMap:
                 normal[at] = nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
         pi = dr.zeros(mi.PreliminaryIntersection3f, m)
         pi.t = mi.Float(np.ones(m, dtype=np.float32))
-        pi.prim_uv = mi.Point2f((i / n).astype(np.float32), (j / n).astype(np.float32))
+        pi.prim_uv = mi.Point2f(u.astype(np.float32), v.astype(np.float32))
         pi.prim_index = mi.UInt32(prim.astype(np.uint32))
         pi.shape = dr.gather(mi.ShapePtr, mi.ShapePtr([shape for _, shape in names]),
                              mi.UInt32(owner.astype(np.uint32)))
@@ -293,6 +318,46 @@ def _diffuse(shape) -> bool:
             and not mi.has_flag(flags, mi.BSDFFlags.Transmission))
 
 
+def _lattice_ij(nc: int):
+    """(nc², 2) the (i, j) of a triangle's blocks in their order (lower, then upper) and (nc²,)
+    whether each is upper."""
+    lower = [(i, j) for i in range(nc) for j in range(nc - i)]
+    upper = [(i, j) for i in range(nc - 1) for j in range(nc - 1 - i)]
+    return np.array(lower + upper, dtype=np.int64).reshape(-1, 2), np.arange(nc * nc) >= len(lower)
+
+
+def blocks_of(V: np.ndarray, F: np.ndarray, cameras):
+    """(nc (T,), block corners (B, 3, 3) world, block's triangle (B,), (i, j) (B, 2), upper (B,)):
+    each triangle cut into nc² blocks so that its depth varies by at most DEPTH_RATIO - 1 of the
+    nearest depth over a block in every camera in front of which it lies (at most MAX_BLOCKS a
+    side; a triangle that reaches behind a camera's plane: MAX_BLOCKS)."""
+    tri = V[F]
+    nc = np.ones(len(F), dtype=np.int64)
+    for cam in cameras:
+        z = ((tri - np.asarray(cam.position, float)) @ cam.R.T)[..., 2]
+        zmin, zmax = z.min(1), z.max(1)
+        want = np.where(zmin > NEAR_DEPTH_M, np.ceil((zmax - zmin) / ((DEPTH_RATIO - 1) * np.maximum(zmin, 1e-9))),
+                        np.where(zmax > 0, MAX_BLOCKS, 1))
+        nc = np.maximum(nc, np.clip(want, 1, MAX_BLOCKS).astype(np.int64))
+    corners, owner, ij, up = [], [], [], []
+    for c in np.unique(nc):
+        ts = np.flatnonzero(nc == c)
+        bij, bup = _lattice_ij(int(c))
+        # barycentric (u, v) of each block's three corners, in the order of `_cell`
+        a0 = np.where(bup[:, None], bij + 1, bij)
+        a1 = np.where(bup[:, None], bij + [0, 1], bij + [1, 0])
+        a2 = np.where(bup[:, None], bij + [1, 0], bij + [0, 1])
+        uv = np.stack([a0, a1, a2], axis=1) / c                        # (k, 3, 2)
+        w = np.concatenate([1 - uv.sum(-1, keepdims=True), uv], axis=-1)  # (k, 3, 3) weights of p0 p1 p2
+        corners.append(np.einsum("kcw,twx->tkcx", w, tri[ts]).reshape(-1, 3, 3))
+        owner.append(np.repeat(ts, len(bij)))
+        ij.append(np.tile(bij, (len(ts), 1)))
+        up.append(np.tile(bup, len(ts)))
+    order = np.argsort(np.concatenate(owner), kind="stable")
+    return (nc, np.concatenate(corners)[order], np.concatenate(owner)[order],
+            np.concatenate(ij)[order], np.concatenate(up)[order])
+
+
 def divisions(V: np.ndarray, F: np.ndarray, cameras, stride: float = MAP_STRIDE,
               max_divisions: int = MAP_MAX_DIVISIONS) -> np.ndarray:
     """(T,) the divisions n_t of each triangle's sides, so that a sub-triangle covers about half
@@ -334,18 +399,24 @@ def divisions(V: np.ndarray, F: np.ndarray, cameras, stride: float = MAP_STRIDE,
 
 def surface_light_map(dscene, cameras, stride: float = MAP_STRIDE) -> SurfaceLightMap:
     """An empty `SurfaceLightMap` of `dscene`'s diffuse meshes for a frame seen by `cameras`
-    (their lattices from `divisions`; nodes computed when first needed)."""
-    offset, ns, longest = {}, [], []
+    (their blocks from `blocks_of`, the blocks' lattices from `divisions`; nodes computed when
+    first needed)."""
+    offset, parts = {}, []
     total = 0
     for _, (name, shape) in sorted(dscene_slots(dscene).items(), key=lambda item: item[1][0]):
         if not _diffuse(shape):
             continue
         V, F = _vertices_faces(shape)
         offset[name] = total
-        ns.append(divisions(V, F, cameras, stride))
-        tri = V[F]
-        longest.append(np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1))
+        nc, corners, owner, ij, up = blocks_of(V, F, cameras)
+        flat = corners.reshape(-1, 3)
+        n = divisions(flat, np.arange(len(flat)).reshape(-1, 3), cameras, stride)
+        area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+        parts.append((nc, owner + total, ij, up, n, area))
         total += len(F)
-    n = np.concatenate(ns) if ns else np.zeros(0, dtype=np.int64)
-    longest = np.concatenate(longest) if longest else np.zeros(0)
-    return SurfaceLightMap(offset, n, longest, np.full(len(n), -1, dtype=np.int64))
+    if not parts:
+        parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2), np.int64),
+                  np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0))]
+    nc, owner, ij, up, n, area = (np.concatenate(a) for a in zip(*parts))
+    block0 = np.concatenate([[0], np.cumsum(nc * nc)[:-1]]).astype(np.int64)
+    return SurfaceLightMap(offset, nc, block0, owner, ij, up, n, area, np.full(len(n), -1, dtype=np.int64))
