@@ -6,11 +6,12 @@ config's [render] defaults (scale, spp), rendering and exposure, as `vdo render`
 Run: .venv/bin/python benchmarks/render.py [--camera cam1] [--repeats 3]
 
 With --dic: the DIC render mode (`vdo.render.render_camera_dic`) on the camera at full size
-(Mpixel/s, wall and CPU time, first and second render), then on a --crop window at the image
-centre (and at each --crop-at) the DIC mode, today's
+(Mpixel/s, wall and CPU time): without the surface light map (the baseline), with a fresh map
+(cold) and with the frame's map already computed; the whole rig's frame with one map and
+without; a load step rendered with the map of step 0 against a map of its own; then on a --crop
+window at the image centre (and at each --crop-at) the DIC mode with and without the map, today's
 sampled mode at --spp, and a reference (the mean of two --reference-spp renders): the per-pixel
-error of each against the reference, the reference's own noise, and the difference between the
-two modes, in one run.
+error of each against the reference and the reference's own noise, in one run.
 Run: .venv/bin/python benchmarks/render.py --dic [--camera cam1] [--crop 600 400] [--crop-at X0 Y0 ...]
 
 With --riley PYTHON (a Python whose environment has riley-raster, not vdo's): a frontal speckled
@@ -131,7 +132,14 @@ def timed(fn, *a, **k):
 
 
 def dic_benchmark(args):
+    """The DIC mode (module docstring): cam1 at full size without the surface light map (the
+    baseline: every light-map node computed for the camera), with a fresh map (a cold render:
+    the map's nodes computed as the camera needs them) and with the frame's map already computed
+    (a second render); the whole rig's frame with one map; a load step with the map of step 0
+    against one computed on the deformed step; and the per-pixel error in the --crop windows."""
     import numpy as np
+
+    from vdo.render import surface_light_map
 
     exp = config.load(args.config)
     meshes = scene.load_meshes(mesh_specs=exp.meshes, regions=exp.regions, camera_specs=exp.camera_specs,
@@ -148,16 +156,50 @@ def dic_benchmark(args):
     print(f"cpu threads          {len(os.sched_getaffinity(0))}; load average {os.getloadavg()[0]:.1f} "
           f"(shared machine: CPU time is the figure to compare)")
     print(f"scene build          dic {t_dic_scene:.2f} s, sampled {t_scene:.2f} s")
-    render_camera_dic(ds, crop(cam, *args.crop), spec=spec)         # compile the kernels
+    small = crop(cam, *args.crop)
+    render_camera_dic(ds, small, spec=spec, light_map=False)        # compile the kernels
+    render_camera_dic(ds, small, spec=spec)
     mp = cam.width * cam.height / 1e6
-    for label in ("first", "second"):
-        _, wall, cpu = timed(render_camera_dic, ds, cam, spec=spec)
-        print(f"dic mode, {cam.name} full size {cam.width}x{cam.height}, {label} render: {wall:.1f} s "
-              f"wall, {cpu:.1f} s CPU: {mp / wall:.2f} Mpixel/s wall, {mp / cpu:.2f} Mpixel/s per CPU-second")
+
+    def line(label, wall, cpu, megapixels=mp):
+        print(f"{label:<58} {wall:6.2f} s wall {cpu:6.2f} s CPU  {megapixels / wall:5.2f} Mpixel/s wall, "
+              f"{megapixels / cpu:5.2f} per CPU-s  (load {os.getloadavg()[0]:.1f})", flush=True)
+
+    print(f"dic mode, {cam.name} full size {cam.width}x{cam.height}:")
+    for k in range(2):
+        _, wall, cpu = timed(render_camera_dic, ds, cam, spec=spec, light_map=False)
+        line(f"  baseline (no surface map), render {k + 1}", wall, cpu)
+    shared, wall, cpu = timed(surface_light_map, ds, [cam])
+    print(f"  surface map of the camera: lattices laid out in {wall:.2f} s wall, {cpu:.2f} s CPU")
+    _, wall, cpu = timed(render_camera_dic, ds, cam, spec=spec, light_map=shared)
+    line(f"  (a) cold: the map's {shared.computed:,} nodes computed", wall, cpu)
+    for k in range(2):
+        image, wall, cpu = timed(render_camera_dic, ds, cam, spec=spec, light_map=shared)
+        line(f"  (b) the map already computed, render {k + 1}", wall, cpu)
+
+    # (c) the rig's frame: every camera, one map
+    t0, c0 = time.perf_counter(), time.process_time()
+    rig = surface_light_map(ds, full)
+    pixels = 0
+    for c, s in zip(full, exp.camera_specs):
+        render_camera_dic(ds, c, spec=s, light_map=rig)
+        pixels += c.width * c.height
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    line(f"  (c) the rig's frame, {len(full)} cameras, one map ({rig.computed:,} nodes)", wall, cpu, pixels / 1e6)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for c, s in zip(full, exp.camera_specs):
+        render_camera_dic(ds, c, spec=s, light_map=False)
+    line(f"      the same {len(full)} cameras without the map (baseline)", time.perf_counter() - t0,
+         time.process_time() - c0, pixels / 1e6)
+
+    deformed_step(args, exp, full, index, spec, image)
+
     windows = [None] + [tuple(a) for a in args.crop_at]
+    rows = []
     for at in windows:
         small = crop(cam, *args.crop, at=at)
-        fast, wall_f, cpu_f = timed(render_camera_dic, ds, small, spec=spec)
+        base = render_camera_dic(ds, small, spec=spec, light_map=False)
+        fast, wall_f, cpu_f = timed(render_camera_dic, ds, small, spec=spec, light_map=shared)
         render_camera(sc, small, spec, args.spp, 0)
         today, wall_s, cpu_s = timed(render_camera, sc, small, spec, args.spp, 1)
         a, wall_r, _ = timed(render_camera, sc, small, spec, args.reference_spp, 2)
@@ -167,18 +209,58 @@ def dic_benchmark(args):
         n = small.width * small.height
         where = "the centre" if at is None else f"x {at[0]}, y {at[1]}"
         print(f"crop {small.width}x{small.height} at {where}:")
-        print(f"  dic mode           {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: "
+        print(f"  dic mode (shared map) {wall_f:.2f} s wall, {cpu_f:.2f} s CPU: "
               f"{n / 1e6 / cpu_f:.2f} Mpixel/s per CPU-s")
         print(f"  sampled {args.spp:>3} spp    {wall_s:.2f} s wall, {cpu_s:.2f} s CPU: {n / 1e6 / cpu_s:.3f} "
               f"Mpixel/s, {n * args.spp / 1e6 / cpu_s:.2f} Msamples/s per CPU-s")
         print(f"  reference          2 x {args.reference_spp} spp ({wall_r:.1f} s wall each); image std "
               f"{ref.std():.4f}, its own per-pixel noise {noise:.5f}")
-        for name, image in (("dic", fast), (f"sampled {args.spp} spp", today)):
+        errors = []
+        for name, image in (("dic, shared map", fast), ("dic, no map", base), (f"sampled {args.spp} spp", today)):
             d = image.astype(float) - ref
+            errors.append(d.std())
             print(f"  {name:<18} - reference: std {d.std():.5f}, mean {d.mean():+.5f}, "
                   f"p99 |d| {np.percentile(np.abs(d), 99):.5f}")
-        d = fast.astype(float) - today
-        print(f"  dic - sampled {args.spp} spp: std {d.std():.5f}")
+        print(f"  dic shared map - no map: max |d| {np.abs(fast.astype(float) - base).max():.5f}")
+        rows.append((where, *errors, noise))
+    print("per-pixel error against the reference (std of the difference):")
+    print(f"  {'window':<16}{'dic, shared map':>16}{'dic, no map':>13}{f'{args.spp} spp':>9}{'ref. noise':>11}  ok")
+    for where, e_map, e_base, e_spp, noise in rows:
+        print(f"  {where:<16}{e_map:>16.5f}{e_base:>13.5f}{e_spp:>9.5f}{noise:>11.5f}  "
+              f"{'yes' if e_map <= e_spp else 'NO'}")
+
+
+def deformed_step(args, exp, full, index, spec, image0):
+    """cam1 at the load path's last step, rendered with the map of step 0 (the frame's, shared
+    by the steps) and with a map computed on the deformed step: their difference."""
+    import numpy as np
+
+    from vdo.geometry.keyframes import at_step, load_path_of
+    from vdo.render import surface_light_map
+    from vdo.state import bodies as camera_bodies, prepare
+
+    geometry = prepare(exp)
+    load_path = load_path_of(geometry.meshes, load_path_spec=exp.load_path, mesh_specs=exp.meshes,
+                             groups=exp.groups)
+    if load_path is None:
+        print("load step: the experiment has no [load_path]")
+        return
+    step = load_path.steps[-1]
+    obstacles = camera_bodies(exp, full)
+    rest = build_dic_scene(exp, geometry.meshes, geometry.region_faces, obstacles, geometry.speckle.pattern)
+    posed = at_step(geometry, load_path, step, regions=exp.regions).meshes
+    moved = build_dic_scene(exp, geometry.meshes, geometry.region_faces, obstacles, geometry.speckle.pattern,
+                            posed)
+    shift = max(float(np.abs(p.vertices - m.vertices).max()) for p, m in zip(posed, geometry.meshes))
+    cam = full[index]
+    frame = surface_light_map(rest, full)
+    render_camera_dic(rest, cam, spec=spec, light_map=frame)              # step 0 fills the map
+    shared = render_camera_dic(moved, cam, spec=spec, light_map=frame)
+    fresh = render_camera_dic(moved, cam, spec=spec, light_map=surface_light_map(moved, full))
+    d = shared.astype(float) - fresh
+    print(f"load step {step} (vertices moved by up to {shift * 1e3:.3f} mm), {cam.name} full size: the map "
+          f"of step 0 against one computed on the step: max |d| {np.abs(d).max():.5f}, std {d.std():.6f}, "
+          f"{int((np.abs(d) > 1e-3).sum())} pixels above 0.001 (image std {fresh.std():.3f})", flush=True)
 
 
 RILEY_SUBSAMPLES = (2, 4, 8)     # Riley's sub_sample: k x k samples per pixel

@@ -3,7 +3,7 @@ experiment (`render_images`, the computation of `vdo render`; `vdo.commands.rend
 into a run folder), their photometry against the prediction, and the pieces a script needs from
 `vdo.rendering`: the render scene and one camera's image (`vdo.rendering.scene`, whose docstring
 describes the scene, the exposure and the render scale) and the DIC render mode
-(`vdo.rendering.dic`).
+(`vdo.rendering.dic`, its light shared by a frame's cameras in `vdo.rendering.lightmap`).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from vdo.model.camera import Camera
 from vdo.model.speckle import normalise
 from vdo.rendering.dic import (CELL_BYTES_PER_PIXEL, IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, RENDER_MODES,
                                TILE_PIXELS, SpeckleTable, build_dic_scene, plan_render, render_camera_dic)
+from vdo.rendering.lightmap import SurfaceLightMap, surface_light_map
 from vdo.rendering.scene import (build_render_scene, camera_sensor, cell_blur, expose, lens_sigma_px,
                                  lit_scene, noise_free_dn, render_camera, render_linear,
                                  render_seed, scaled_camera, sensor_dict)
@@ -28,7 +29,8 @@ from vdo.scene import cameras_of
 __all__ = ["RenderResult", "render_images", "render_settings", "rendered_std", "pixel_response", "region_photometry",
            "photometry_warnings", "PHOTOMETRY_TOLERANCE",
            "CELL_BYTES_PER_PIXEL", "IMAGE_BYTES_PER_PIXEL", "MIN_TILE_PIXELS", "RENDER_MODES", "TILE_PIXELS", "SpeckleTable",
-           "build_dic_scene", "plan_render", "render_camera_dic", "build_render_scene",
+           "build_dic_scene", "plan_render", "render_camera_dic", "SurfaceLightMap", "surface_light_map",
+           "build_render_scene",
            "camera_sensor", "cell_blur", "expose", "lens_sigma_px", "lit_scene", "noise_free_dn",
            "render_camera", "render_linear", "render_seed", "scaled_camera", "sensor_dict"]
 
@@ -368,10 +370,12 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
         log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(chosen), scale, spp, seed)
     images, linear, seconds = {}, {}, {}
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
+    # the DIC mode's light in surface space, shared by the cameras (`vdo.rendering.lightmap`)
+    light_map = surface_light_map(scene, [cameras[i] for i in chosen]) if dic else None
     for i in bar(log, iterable=chosen, desc="render", unit="camera"):
         cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()
-        radiance = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
+        radiance = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec, light_map=light_map)
                     if dic else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
         linear[cam.name] = radiance if gathered[i] == 1.0 else radiance * np.float32(gathered[i])
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)

@@ -167,18 +167,22 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
     from vdo.geometry.keyframes import at_step
     from vdo.physics.lighting import exposure_factors
     from vdo.render import (build_dic_scene, build_render_scene, render_camera, render_camera_dic,
-                            render_seed)
+                            render_seed, surface_light_map)
 
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
+    light_map = None     # the DIC mode's surface light map, shared by the cameras and the steps
     for step in plan.steps:
         posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
                                                           regions=exp.regions).meshes
         build = build_dic_scene if plan.dic else build_render_scene
         scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
                       geometry.speckle.pattern, posed)
+        if plan.dic and light_map is None:
+            light_map = surface_light_map(scene, plan.cameras)
         for i, (cam, spec) in enumerate(zip(plan.cameras, exp.camera_specs)):
-            linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
+            linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec,
+                                        light_map=light_map)
                       if plan.dic else
                       render_camera(scene, cam, spec, plan.spp, render_seed(seed, i), jitter=False))
             if gathered[i] != 1.0:      # the light this camera's f-number and exposure time gather

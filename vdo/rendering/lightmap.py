@@ -32,7 +32,7 @@ MAP_TOLERANCE = 0.03         # a sub-triangle whose nodes' light differs by at m
 PERSPECTIVE_FACTOR = 1.0     # `divisions`: at most this many times the divisions that the
                              # block's projected area asks for
 DEPTH_RATIO = 1.25           # `blocks_of`: a triangle's blocks span at most this depth ratio
-MAX_BLOCKS = 64              # ... and are at most this many a side
+MAX_BLOCKS = 16              # ... and are at most this many a side
 MAP_MAX_PX = 2 * MAP_STRIDE  # a sub-triangle larger than half a square of this side in the camera's
                              # image (its area x cos θ x (f / distance)²) is not interpolated
 MAP_MAX_DIVISIONS = 2048     # at most this many divisions of a triangle's side
@@ -186,7 +186,7 @@ class SurfaceLightMap:
         if what in cache and cache[what][0] == stamp:
             return cache[what][1]
         if what == "values":
-            out = mi.Float(self.values[:max(self.used, 1)])
+            out = mi.Float(self.values[:self.used] if self.used else np.full(1, np.nan, dtype=np.float32))
         elif what == "area":
             out = mi.Float(self.area.astype(np.float32))
         else:
@@ -318,6 +318,26 @@ def _diffuse(shape) -> bool:
             and not mi.has_flag(flags, mi.BSDFFlags.Transmission))
 
 
+def _seen(tri: np.ndarray, cam):
+    """(seen (T,), depths (T, 3), pixels (u, v) each (T, 3)) of the triangles `tri` (T, 3, 3) in
+    the pinhole camera `cam`: seen where some corner lies in front of it and the projection's box
+    overlaps the image (a triangle that reaches behind the camera's plane: wherever in front)."""
+    Xc = (tri - np.asarray(cam.position, float)) @ cam.R.T      # (T, 3, 3) camera frame
+    z = Xc[..., 2]
+    ahead = z > 1e-6
+    K = cam.K
+    safe = np.where(ahead, z, 1.0)
+    u = K[0, 0] * Xc[..., 0] / safe + K[0, 2]
+    v = K[1, 1] * Xc[..., 1] / safe + K[1, 2]
+    big = 1e30
+    umin, umax = np.where(ahead, u, big).min(1), np.where(ahead, u, -big).max(1)
+    vmin, vmax = np.where(ahead, v, big).min(1), np.where(ahead, v, -big).max(1)
+    whole = ahead.all(1)
+    seen = ahead.any(1) & (~whole | ((umax >= -0.5) & (umin <= cam.width - 0.5)
+                                     & (vmax >= -0.5) & (vmin <= cam.height - 0.5)))
+    return seen, z, (u, v)
+
+
 def _lattice_ij(nc: int):
     """(nc², 2) the (i, j) of a triangle's blocks in their order (lower, then upper) and (nc²,)
     whether each is upper."""
@@ -334,11 +354,11 @@ def blocks_of(V: np.ndarray, F: np.ndarray, cameras):
     tri = V[F]
     nc = np.ones(len(F), dtype=np.int64)
     for cam in cameras:
-        z = ((tri - np.asarray(cam.position, float)) @ cam.R.T)[..., 2]
+        seen, z, _ = _seen(tri, cam)
         zmin, zmax = z.min(1), z.max(1)
         want = np.where(zmin > NEAR_DEPTH_M, np.ceil((zmax - zmin) / ((DEPTH_RATIO - 1) * np.maximum(zmin, 1e-9))),
-                        np.where(zmax > 0, MAX_BLOCKS, 1))
-        nc = np.maximum(nc, np.clip(want, 1, MAX_BLOCKS).astype(np.int64))
+                        MAX_BLOCKS)
+        nc = np.where(seen, np.maximum(nc, np.clip(want, 1, MAX_BLOCKS).astype(np.int64)), nc)
     corners, owner, ij, up = [], [], [], []
     for c in np.unique(nc):
         ts = np.flatnonzero(nc == c)
@@ -374,20 +394,9 @@ def divisions(V: np.ndarray, F: np.ndarray, cameras, stride: float = MAP_STRIDE,
     n = np.zeros(len(F))
     seen_any = np.zeros(len(F), dtype=bool)
     for cam in cameras:
-        Xc = (tri - np.asarray(cam.position, float)) @ cam.R.T  # (T, 3, 3) camera frame
-        z = Xc[..., 2]
+        seen, z, (u, v) = _seen(tri, cam)
         ahead = z > 1e-6
-        K = cam.K
-        safe = np.where(ahead, z, 1.0)
-        u = K[0, 0] * Xc[..., 0] / safe + K[0, 2]
-        v = K[1, 1] * Xc[..., 1] / safe + K[1, 2]
-        big = 1e30
-        umin, umax = np.where(ahead, u, big).min(1), np.where(ahead, u, -big).max(1)
-        vmin, vmax = np.where(ahead, v, big).min(1), np.where(ahead, v, -big).max(1)
         whole = ahead.all(1)
-        # a triangle that reaches behind the camera's plane may cover any part of the image
-        seen = ahead.any(1) & (~whole | ((umax >= -0.5) & (umin <= cam.width - 0.5)
-                                         & (vmax >= -0.5) & (vmin <= cam.height - 0.5)))
         area = 0.5 * np.abs((u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0]))
         near = np.maximum(np.where(ahead, z, np.inf).min(1), NEAR_DEPTH_M)
         at_near = longest * cam.focal_px / (stride * near)    # the finest: frontal at its nearest vertex
