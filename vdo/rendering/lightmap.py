@@ -29,13 +29,16 @@ MAP_STRIDE = 16              # px between neighbouring nodes of a triangle's lat
 MAP_TOLERANCE = 0.03         # a sub-triangle whose nodes' light differs by at most this fraction
                              # of the camera's light scale is interpolated (as the image-space
                              # map's coarsest cells, `vdo.rendering.dic.SHADE_TOLERANCE`)
-PERSPECTIVE_FACTOR = 1.0     # `divisions`: at most this many times the divisions that the
-                             # block's projected area asks for
+PERSPECTIVE_FACTOR = 1.0     # `divisions`: at most this many times the divisions of the frontal
+                             # scale at a block's nearest vertex
 DEPTH_RATIO = 1.25           # `blocks_of`: a triangle's blocks span at most this depth ratio
 MAX_BLOCKS = 16              # ... and are at most this many a side
 MAP_MAX_PX = 2 * MAP_STRIDE  # a sub-triangle larger than half a square of this side in the camera's
                              # image (its area x cos θ x (f / distance)²) is not interpolated
-MAP_MAX_DIVISIONS = 2048     # at most this many divisions of a triangle's side
+MAP_MAX_DIVISIONS = 256      # at most this many divisions of a block's side (33k nodes; a coarser
+                             # lattice than the rule asks is caught by MAP_MAX_PX)
+STRADDLE_DIVISIONS = 32      # ... of one that reaches behind a camera's plane (seen, if at all, at
+                             # the image's edge: MAP_MAX_PX leaves it to the camera when too coarse)
 NEAR_DEPTH_M = 0.05          # a triangle closer to a camera than this is treated as at this depth
 
 
@@ -380,15 +383,14 @@ def blocks_of(V: np.ndarray, F: np.ndarray, cameras):
 
 def divisions(V: np.ndarray, F: np.ndarray, cameras, stride: float = MAP_STRIDE,
               max_divisions: int = MAP_MAX_DIVISIONS) -> np.ndarray:
-    """(T,) the divisions n_t of each triangle's sides, so that a sub-triangle covers about half
-    a `stride` x `stride` pixel square where the camera that sees it largest sees it largest:
-    n_t = L f / (stride z) for its longest side L at the depth z of its nearest vertex (at least
-    NEAR_DEPTH_M; f the focal length in px), the frontal scale there, but at most
-    PERSPECTIVE_FACTOR sqrt(2 A) / stride for A its pinhole projection's area (px²) (a triangle
-    that recedes far is not resolved at its near end's scale everywhere: `lookup` leaves a
-    sub-triangle larger than MAP_MAX_PX in the image to the camera's own light map), in the cameras
-    whose image its projection overlaps; at least 1, at most `max_divisions`; 0 where no camera
-    sees it."""
+    """(T,) the divisions n_t of each triangle's (block's) sides, so that a sub-triangle covers
+    about half a `stride` x `stride` pixel square in the camera that sees it largest: n_t =
+    sqrt(2 A) / stride for A its pinhole projection's area (px²), at most PERSPECTIVE_FACTOR times
+    L f / (stride z), its longest side L at the depth z of its nearest vertex (the frontal scale
+    there); a triangle that reaches behind a camera's plane: L f / (stride z) for its nearest vertex
+    in front (z at least NEAR_DEPTH_M), at most STRADDLE_DIVISIONS. Only the cameras whose image
+    its projection overlaps count; at least 1, at most `max_divisions`; 0 where no camera sees it.
+    (`lookup` leaves a sub-triangle larger than MAP_MAX_PX² / 2 in a camera's image to the camera.)"""
     tri = V[F]                                                   # (T, 3, 3)
     longest = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1)
     n = np.zeros(len(F))
@@ -400,7 +402,8 @@ def divisions(V: np.ndarray, F: np.ndarray, cameras, stride: float = MAP_STRIDE,
         area = 0.5 * np.abs((u[:, 1] - u[:, 0]) * (v[:, 2] - v[:, 0]) - (u[:, 2] - u[:, 0]) * (v[:, 1] - v[:, 0]))
         near = np.maximum(np.where(ahead, z, np.inf).min(1), NEAR_DEPTH_M)
         at_near = longest * cam.focal_px / (stride * near)    # the finest: frontal at its nearest vertex
-        here = np.where(whole, np.minimum(at_near, PERSPECTIVE_FACTOR * np.sqrt(2 * area) / stride), at_near)
+        here = np.where(whole, np.minimum(PERSPECTIVE_FACTOR * at_near, np.sqrt(2 * area) / stride),
+                        np.minimum(at_near, STRADDLE_DIVISIONS))
         n = np.where(seen, np.maximum(n, here), n)
         seen_any |= seen
     return np.where(seen_any, np.clip(np.ceil(n), 1, max_divisions), 0).astype(np.int64)
