@@ -231,12 +231,17 @@ def dic_benchmark(args):
 
 
 def deformed_step(args, exp, full, index, spec, image0):
-    """cam1 at the load path's last step, rendered with the map of step 0 (the frame's, shared
-    by the steps) and with a map computed on the deformed step: their difference."""
+    """cam1 at a load step, rendered with the map of step 0 and with a map computed on the step
+    itself: their difference, for the load path's first step (the hexapod moves the specimen by
+    5 mm: a step `map_holds` refuses, a new map) and for the same motion scaled to MAP_REUSE_M
+    (20 µm: a step that reads the map of step 0)."""
+    from dataclasses import replace
+
     import numpy as np
 
     from vdo.geometry.keyframes import at_step, load_path_of
-    from vdo.render import surface_light_map
+    from vdo.render import map_holds, surface_light_map
+    from vdo.rendering.lightmap import MAP_REUSE_M
     from vdo.state import bodies as camera_bodies, prepare
 
     geometry = prepare(exp)
@@ -245,22 +250,26 @@ def deformed_step(args, exp, full, index, spec, image0):
     if load_path is None:
         print("load step: the experiment has no [load_path]")
         return
-    step = load_path.steps[-1]
+    step = load_path.steps[0]
     obstacles = camera_bodies(exp, full)
     rest = build_dic_scene(exp, geometry.meshes, geometry.region_faces, obstacles, geometry.speckle.pattern)
     posed = at_step(geometry, load_path, step, regions=exp.regions).meshes
-    moved = build_dic_scene(exp, geometry.meshes, geometry.region_faces, obstacles, geometry.speckle.pattern,
-                            posed)
     shift = max(float(np.abs(p.vertices - m.vertices).max()) for p, m in zip(posed, geometry.meshes))
+    small = [replace(p, vertices=m.vertices + (p.vertices - m.vertices) * (MAP_REUSE_M / shift))
+             for p, m in zip(posed, geometry.meshes)]
     cam = full[index]
     frame = surface_light_map(rest, full)
     render_camera_dic(rest, cam, spec=spec, light_map=frame)              # step 0 fills the map
-    shared = render_camera_dic(moved, cam, spec=spec, light_map=frame)
-    fresh = render_camera_dic(moved, cam, spec=spec, light_map=surface_light_map(moved, full))
-    d = shared.astype(float) - fresh
-    print(f"load step {step} (vertices moved by up to {shift * 1e3:.3f} mm), {cam.name} full size: the map "
-          f"of step 0 against one computed on the step: max |d| {np.abs(d).max():.5f}, std {d.std():.6f}, "
-          f"{int((np.abs(d) > 1e-3).sum())} pixels above 0.001 (image std {fresh.std():.3f})", flush=True)
+    for label, meshes in ((f"step {step} (the hexapod moves the specimen {shift * 1e3:.1f} mm)", posed),
+                          (f"step {step}'s motion scaled to {MAP_REUSE_M * 1e6:.0f} um", small)):
+        moved = build_dic_scene(exp, geometry.meshes, geometry.region_faces, obstacles,
+                                geometry.speckle.pattern, meshes)
+        shared = render_camera_dic(moved, cam, spec=spec, light_map=frame)
+        fresh = render_camera_dic(moved, cam, spec=spec, light_map=surface_light_map(moved, full))
+        d = shared.astype(float) - fresh
+        print(f"load {label}, {cam.name} full size: the map of step 0 against one of the step: max |d| "
+              f"{np.abs(d).max():.5f}, std {d.std():.6f}, {int((np.abs(d) > 1e-3).sum())} pixels above "
+              f"0.001 (image std {fresh.std():.3f}); map_holds: {map_holds(geometry.meshes, meshes)}", flush=True)
 
 
 RILEY_SUBSAMPLES = (2, 4, 8)     # Riley's sub_sample: k x k samples per pixel

@@ -229,3 +229,20 @@ def test_a_load_steps_micrometres_leave_the_map_of_step_0_valid(plate_experiment
     d = (render_camera_dic(moved, cam, light_map=frame).astype(float)
          - render_camera_dic(moved, cam, light_map=fresh_map))
     assert d.std() <= RENDER_STD_TOL
+
+
+def test_a_step_that_moves_a_group_by_millimetres_gets_a_map_of_its_own():
+    """`map_holds`: the same meshes within MAP_REUSE_M serve one map; a vertex moved farther (a
+    rigid motion of the built-in's hexapod by millimetres) or another mesh does not."""
+    from vdo.render import map_holds
+    from vdo.rendering.lightmap import MAP_REUSE_M
+    from vdo.scene import SceneMesh
+
+    v = np.random.default_rng(1).random((10, 3))
+    f = np.array([[0, 1, 2], [3, 4, 5]])
+    rest = [SceneMesh("a", "specimen", v, f), SceneMesh("b", "obstacle", v + 1, f)]
+    near = [replace(rest[0], vertices=v + 0.9 * MAP_REUSE_M), rest[1]]
+    far = [replace(rest[0], vertices=v + [0.005, 0.0, 0.0]), rest[1]]
+    assert map_holds(rest, rest) and map_holds(rest, near)
+    assert not map_holds(rest, far) and not map_holds(rest, rest[:1])
+    assert not map_holds(rest, [rest[0], replace(rest[1], name="c")])

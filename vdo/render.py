@@ -19,7 +19,7 @@ from vdo.model.camera import Camera
 from vdo.model.speckle import normalise
 from vdo.rendering.dic import (CELL_BYTES_PER_PIXEL, IMAGE_BYTES_PER_PIXEL, MIN_TILE_PIXELS, RENDER_MODES,
                                TILE_PIXELS, SpeckleTable, build_dic_scene, plan_render, render_camera_dic)
-from vdo.rendering.lightmap import SurfaceLightMap, surface_light_map
+from vdo.rendering.lightmap import SurfaceLightMap, map_holds, surface_light_map
 from vdo.rendering.scene import (build_render_scene, camera_sensor, cell_blur, expose, lens_sigma_px,
                                  lit_scene, noise_free_dn, render_camera, render_linear,
                                  render_seed, scaled_camera, sensor_dict)
@@ -29,7 +29,7 @@ from vdo.scene import cameras_of
 __all__ = ["RenderResult", "render_images", "render_settings", "rendered_std", "pixel_response", "region_photometry",
            "photometry_warnings", "PHOTOMETRY_TOLERANCE",
            "CELL_BYTES_PER_PIXEL", "IMAGE_BYTES_PER_PIXEL", "MIN_TILE_PIXELS", "RENDER_MODES", "TILE_PIXELS", "SpeckleTable",
-           "build_dic_scene", "plan_render", "render_camera_dic", "SurfaceLightMap", "surface_light_map",
+           "build_dic_scene", "plan_render", "render_camera_dic", "SurfaceLightMap", "map_holds", "surface_light_map",
            "build_render_scene",
            "camera_sensor", "cell_blur", "expose", "lens_sigma_px", "lit_scene", "noise_free_dn",
            "render_camera", "render_linear", "render_seed", "scaled_camera", "sensor_dict"]

@@ -167,19 +167,24 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
     from vdo.geometry.keyframes import at_step
     from vdo.physics.lighting import exposure_factors
     from vdo.render import (build_dic_scene, build_render_scene, render_camera, render_camera_dic,
-                            render_seed, surface_light_map)
+                            map_holds, render_seed, surface_light_map)
 
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
-    light_map = None     # the DIC mode's surface light map, shared by the cameras and the steps
+    maps = []            # the DIC mode's surface light maps, (posed meshes, map): shared by the
+                         # cameras, and by the steps whose geometry they hold (`map_holds`)
     for step in plan.steps:
         posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
                                                           regions=exp.regions).meshes
         build = build_dic_scene if plan.dic else build_render_scene
         scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
                       geometry.speckle.pattern, posed)
-        if plan.dic and light_map is None:
-            light_map = surface_light_map(scene, plan.cameras)
+        light_map = None
+        if plan.dic:
+            light_map = next((m for at, m in maps if map_holds(at, posed)), None)
+            if light_map is None:
+                light_map = surface_light_map(scene, plan.cameras)
+                maps.append((posed, light_map))
         for i, (cam, spec) in enumerate(zip(plan.cameras, exp.camera_specs)):
             linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec,
                                         light_map=light_map)

@@ -14,7 +14,8 @@ penumbra, the light is computed at the point itself). Glossy shapes (satin paint
 back faces are always computed, per camera.
 
 The lattice follows the mesh (triangle and barycentric coordinates), not the world: the same
-map serves a load step's deformed mesh (the same faces), its nodes moved with the surface."""
+map serves a load step's deformed mesh (the same faces), its nodes moved with the surface, when
+no vertex moved by more than MAP_REUSE_M (`map_holds`)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["MAP_STRIDE", "MAP_TOLERANCE", "MAP_MAX_DIVISIONS", "SurfaceLightMap", "surface_light_map"]
+__all__ = ["MAP_STRIDE", "MAP_TOLERANCE", "MAP_MAX_DIVISIONS", "MAP_REUSE_M", "SurfaceLightMap", "map_holds",
+           "surface_light_map"]
 
 MAP_STRIDE = 16              # px between neighbouring nodes of a triangle's lattice in the camera
                              # of the frame that sees the triangle largest (`divisions`)
@@ -39,6 +41,8 @@ MAP_MAX_DIVISIONS = 256      # at most this many divisions of a block's side (33
                              # lattice than the rule asks is caught by MAP_MAX_PX)
 STRADDLE_DIVISIONS = 32      # ... of one that reaches behind a camera's plane (seen, if at all, at
                              # the image's edge: MAP_MAX_PX leaves it to the camera when too coarse)
+MAP_REUSE_M = 20e-6          # a load step whose vertices lie within this of the geometry a map was
+                             # filled on reads that map (`map_holds`); farther, a map of its own
 NEAR_DEPTH_M = 0.05          # a triangle closer to a camera than this is treated as at this depth
 
 
@@ -432,3 +436,18 @@ def surface_light_map(dscene, cameras, stride: float = MAP_STRIDE) -> SurfaceLig
     nc, owner, ij, up, n, area = (np.concatenate(a) for a in zip(*parts))
     block0 = np.concatenate([[0], np.cumsum(nc * nc)[:-1]]).astype(np.int64)
     return SurfaceLightMap(offset, nc, block0, owner, ij, up, n, area, np.full(len(n), -1, dtype=np.int64))
+
+
+def map_holds(meshes, posed, tolerance: float = MAP_REUSE_M) -> bool:
+    """Whether a map filled on the scene of `meshes` serves the scene of `posed` (the same
+    SceneMeshes at a load step): the same meshes, every vertex within `tolerance` (m). A rigid
+    motion of a group by millimetres (the built-in's hexapod) moves the shadows over the surface
+    and needs a map of its own; a specimen's micrometre deformation does not."""
+    if len(meshes) != len(posed):
+        return False
+    for a, b in zip(meshes, posed):
+        if a.name != b.name or a.vertices.shape != b.vertices.shape:
+            return False
+        if a.vertices is not b.vertices and np.abs(np.asarray(a.vertices) - b.vertices).max() > tolerance:
+            return False
+    return True
