@@ -370,12 +370,15 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
         log.info("rendering %d cameras at scale %g, %d spp, seed %d", len(chosen), scale, spp, seed)
     images, linear, seconds = {}, {}, {}
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
-    # the DIC mode's light in surface space, shared by the cameras (`vdo.rendering.lightmap`)
-    light_map = surface_light_map(scene, [cameras[i] for i in chosen]) if dic else None
+    # The DIC mode's light in surface space (`vdo.rendering.lightmap`): one map per camera. One
+    # map shared by the frame's cameras costs more for a single frame (its lattices are as fine
+    # as the nearest camera's, and the cameras see mostly different surfaces: built-in, ten
+    # cameras at full size, 96.5 s CPU against 82.9 s without a map; benchmarks/README.md); it
+    # pays where a frame is rendered again (a series' steps, `vdo.dic.series`).
     for i in bar(log, iterable=chosen, desc="render", unit="camera"):
         cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()
-        radiance = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec, light_map=light_map)
+        radiance = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec)
                     if dic else render_camera(scene, cam, spec, spp, render_seed(seed, i)))
         linear[cam.name] = radiance if gathered[i] == 1.0 else radiance * np.float32(gathered[i])
         images[cam.name] = expose(linear[cam.name], exp.sensor, seed, i)
