@@ -283,6 +283,7 @@ def _id_table(dscene, light_map):
 
 
 _GEOMETRY_CACHE: dict = {}
+GEOMETRY_CACHE_SHAPES = 256   # shapes whose vertices and faces are kept (`_vertices_faces`)
 
 
 def _vertices_faces(shape):
@@ -295,6 +296,8 @@ def _vertices_faces(shape):
         return hit[1], hit[2]
     V = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
     F = np.array(shape.faces_buffer(), dtype=np.int64).reshape(-1, 3)
+    if len(_GEOMETRY_CACHE) >= GEOMETRY_CACHE_SHAPES:   # a series' steps: older scenes' shapes go
+        _GEOMETRY_CACHE.clear()
     _GEOMETRY_CACHE[key] = (shape, V, F)
     return V, F
 
