@@ -88,3 +88,12 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
         within = [b for node, b in tree.leaves
                   if (node.out is None or not node.out[list(s)].any()) and all(np.isin(q, s).any() for q in node.into)]
         assert within and min(within) <= score * (1 + 1e-12), s
+
+
+def test_a_spot_holds_every_candidate_at_one_optical_centre():
+    """`spots`: candidates whose optical centres agree to the millimetre share a group, others
+    do not."""
+    p = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0002], [0.0, 0.0, 1.5], [2.0, -1.0, 1.0], [0.0, 0.0, 1.5]])
+    g = bound.spots(p)
+    assert g[0] == g[1] and g[2] == g[4]
+    assert len({g[0], g[2], g[3]}) == 3
