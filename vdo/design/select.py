@@ -433,9 +433,10 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       f"{done[0]}{'' if len(done) == 1 else f'..{done[-1]}'} cameras (a longer "
                       "--time-limit searches them)")
         log.warning(issues[-1])
-    left = max(0.0, (deadline - _clock() - final_s) / len(curve))    # per count, before the final judgement
-    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left),
-                          branch_seconds=min(d.branch_seconds, max(0.0, deadline - _clock() - final_s) / 2))
+    remaining = max(0.0, deadline - _clock() - final_s)     # before the final judgement
+    branch = min(d.branch_seconds, remaining / 2)           # the inventory's count's branch and bound
+    left = (remaining - branch) / len(curve)                # per count
+    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch)
     for c, b in zip(curve, relaxed):    # a second start: the relaxation's weights, rounded
         if b is None or _clock() + count_s + final_s > deadline:
             continue
