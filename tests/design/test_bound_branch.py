@@ -70,7 +70,7 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
     """The tree after a few nodes, against every selection keeping the conflicts: each one
     that scores below the incumbent keeps the branching rules of an open node whose bound is
     at most its score (so the least of the open nodes' bounds bounds it), and the bound
-    reported is the least of those and the incumbent."""
+    reported is the least of those and the incumbent (or a closed node's, within REL_TOL of it)."""
     info, weight, body, counts, conflict = _instance(seed, K=12)
     K = len(body)
     scores = {tuple(s): float(_value(info[s].sum(axis=0), weight[s].sum(axis=0)))
@@ -81,7 +81,8 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
                             groups=np.arange(K) // 3)
     incumbent = min(scores[tuple(s)] for s in tree.found)
     assert tree.leaves
-    assert tree.value == pytest.approx(min([incumbent] + [b for _, b in tree.leaves]))
+    least = min([incumbent] + [b for _, b in tree.leaves])     # a closed node may lie REL_TOL under the incumbent
+    assert least * (1 - bound.REL_TOL) <= tree.value <= least
     for s, score in scores.items():
         if score >= incumbent * (1 - bound.REL_TOL):
             continue

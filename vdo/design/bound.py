@@ -562,9 +562,9 @@ def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.n
     rules; the node of lowest bound is split on the set S of `_fractional` (none of S / at
     least one of S: every selection lies in one child), each child certified by `_hull` from
     its parent's selections that keep its rules, and a child whose bound reaches the incumbent
-    (f at the best selection found, each a point of the hull) is closed. Returns (the least of
-    the incumbent and the open nodes' bounds: a lower bound on f over every selection keeping
-    the rules; nodes made (at most max_nodes); the incumbent; the selections found, best first
+    (f at the best selection found, each a point of the hull) within rel_tol is closed. Returns
+    (the least of the incumbent, the closed nodes' bounds and the open nodes' bounds: a lower
+    bound on f over every selection keeping the rules; nodes made (at most max_nodes); the incumbent; the selections found, best first
     (at most 8); the open nodes as (Node, bound))."""
     K = len(root.x)
     found: dict = {}
@@ -580,7 +580,7 @@ def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.n
                 incumbent = min(incumbent, found[key])
 
     seen(root)
-    heap, order, nodes = [(root.bound, 0, Node(), root)], 1, 1
+    heap, order, nodes, closed = [(root.bound, 0, Node(), root)], 1, 1, np.inf
     shown = since = time.perf_counter()
     risen = root.bound
     while heap and time.perf_counter() < deadline and (max_nodes is None or nodes < max_nodes):
@@ -613,7 +613,9 @@ def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.n
             if c.bound < incumbent * (1 - rel_tol):
                 heapq.heappush(heap, (max(c.bound, low), order, child, c))
                 order += 1
-    value = min([incumbent] + [n[0] for n in heap])
+            else:           # closed: its selections score at least this (within rel_tol of the incumbent)
+                closed = min(closed, max(c.bound, low))
+    value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
     return value, nodes, incumbent, [np.array(v) for v in best], [(n[2], n[0]) for n in heap]
 
