@@ -65,7 +65,9 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None,
     assigned = assignments(vis, samples, exp.optimize.assign_fraction)
     pairs = stereo_pairs(cameras, vis.visible, assigned, None, exp.path)
     index = {c.name: i for i, c in enumerate(cameras)}
-    keys, lows, _ = angle_limits(exp.regions, exp.optimize, exp.stereo_pairs, cameras, assigned)
+    # the declared pairs of these cameras (`--cameras` may have left one of a pair out)
+    declared = tuple(p for p in exp.stereo_pairs if all(n in index for n in p.cameras))
+    keys, lows, _ = angle_limits(exp.regions, exp.optimize, declared, cameras, assigned)
     low_of = {(int(i), int(j)): float(low) for (i, j), low in zip(keys, lows)}
     limit = max_pair_angle(exp)
     kept, dropped, narrow = [], [], []
