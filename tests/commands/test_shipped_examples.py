@@ -5,7 +5,7 @@ up) passes its up-front checks, and each command that applies to it runs on it, 
 * the environment variable VDO_SET (`vdo.config.reader.with_overrides`) coarsens every file
   the same way, from the file's own values: the sample spacings (`[evaluation]`, `[design]`)
   `SPACING_FACTOR` times the file's, one optimizer start, round and `OPTIMIZE_STEPS` steps, the
-  design search's candidates thinned and its bound given 1 s per count (`DESIGN`) and its curve
+  design search's candidates thinned, its bound given 1 s per count and its branch and bound 1 s (`DESIGN`), its curve
   ended at one camera more than the file's `min_cameras`, validation renders at `VALIDATION_SPP` spp, a load path at every
   `LOAD_PATH_EVERY`-th step (all rows still checked);
 * flags that the commands already have: `--seeds 2` (validate), `--scale 0.05 --spp 1` (render),
@@ -42,7 +42,7 @@ SWEEP_POINTS = 2            # a sweep runs its first points (`--max-points`), th
 LOAD_PATH_EVERY = 8         # a load path judged and rendered at every 8th step and the last
 VALIDATION_SPP = 4          # validation renders: 4 samples per pixel (the file's are 64)
 DESIGN = ("design.rail_positions = 3; design.zone_points = 1; design.zone_heights = 1; design.keyframes = 1; "
-          "design.bound_s = 1; design.restart_s = 1")
+          "design.bound_s = 1; design.restart_s = 1; design.branch_s = 1")
 # per command: the flags that shorten it (a flag given in the docs is replaced)
 FLAGS = {"validate": ["--seeds", "2"], "render": ["--scale", "0.05", "--spp", "1"],
          "optimize": ["--time-limit", "1"], "sweep": ["--workers", "1", "--max-points", str(SWEEP_POINTS)]}

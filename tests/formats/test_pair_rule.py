@@ -58,6 +58,29 @@ def test_wide_pairs_are_not_exported_unless_requested(tmp_path, caplog):
     assert _axes_deg(forced[0]) == pytest.approx(130, abs=1)
 
 
+def test_a_pair_closer_than_its_minimum_angle_is_exported_with_a_warning(tmp_path, caplog):
+    """The plate's pair declares min_angle_deg = 15; its cameras moved to x = ±0.05 m (axes
+    ~8° apart, measured here) stay the exported pair, and the warning names it with both angles."""
+    from vdo.formats.export import default_pairs
+
+    text = EXPERIMENT.read_text()
+    near = text.replace("position_m = [-0.152, -0.686, 1.0]", "position_m = [-0.05, -0.686, 1.0]")
+    near = near.replace("position_m = [0.152, -0.686, 1.0]", "position_m = [0.05, -0.686, 1.0]")
+    exp, cams, vis, samples = _state(tmp_path, near)
+    with caplog.at_level(logging.WARNING, logger="vdo.formats.export"):
+        pairs = default_pairs(exp, cams, vis, samples)
+    assert [(p.first.name, p.second.name) for p in pairs] == [("left", "right")]
+    angle = _axes_deg(pairs[0])
+    assert angle < 15
+    assert f"left:right {angle:.1f} (min 15) deg; move a camera apart or name better pairs with " \
+           "--pairs FIRST:SECOND" in caplog.text, caplog.text
+    caplog.clear()
+    exp, cams, vis, samples = _state(tmp_path / "as shipped", text)
+    with caplog.at_level(logging.WARNING, logger="vdo.formats.export"):
+        default_pairs(exp, cams, vis, samples)
+    assert "closer than" not in caplog.text
+
+
 LOOKING = """
 [[camera]]
 name = "{name}"

@@ -170,7 +170,11 @@ class Experiment:
         doc="A bar cameras slide along: a NURBS curve. Its knot vector is clamped and uniform on [0, 1], "
             "or `knots` as CAD exports them (a full circle: 9 control points on a square, degree 2, "
             "corner weights 1/sqrt(2), knots [0, 0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 4]), mapped onto [0, 1]: "
-            "`u = 0` is the first control point, `u = 1` the last.")
+            "`u = 0` is the first control point, `u = 1` the last. `u` is the curve's parameter, "
+            "not its arc length: on a rational circle it is not proportional to the angle (on the "
+            "9-point circle above, u = 0.0625 lies at 21.6 deg and u = 0.3 at 107.1 deg, not 22.5 "
+            "and 108: exact at the quarters, up to ~1 deg between them), so where the angle matters "
+            "read a camera's place from `vdo evaluate`'s layout or give `position_m`.")
     camera_specs: tuple[CameraSpec, ...] = table(
         "camera", CameraSpec, array=True, required=True, check=check_camera, extra=(sensor_mm_row(),),
         doc="Place a camera with `rail` + `u` (+ `offset_m`) or `position_m`; aim it with `target_m` "

@@ -304,6 +304,11 @@ class DesignSpec:
                                  doc="wall seconds per camera count for random restarts (starts drawn "
                                      "from the bound's weights, each followed by exchange passes; "
                                      "docs/design.md; 0: none)")
+    branch_seconds: float = row("branch_s", Real(low=0), 300.0,
+                                doc="wall seconds at most of branch and bound on the bound of the "
+                                    "inventory's count (the layout written), after its relaxation; it "
+                                    "stops earlier when a minute lifts the bound by less than 0.05 % "
+                                    "(`vdo.design.bound`; 0: none)")
     score: str = row(
         "score", Text(choices=("bound", "measured")), "bound",
         doc='what the selection\'s σ is: "bound", the Cramér-Rao bound; "measured", what the lab\'s '

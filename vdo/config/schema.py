@@ -277,8 +277,9 @@ class Numbers(Kind):
                                                   and (x > 0 or not self.positive) for x in value):
             raise BadValue(f"must be a list of {self.what}{', each > 0' if self.positive else ''} "
                            f"(got {_show(value)})")
-        out = [float(x) * scale for x in value]
-        return tuple(sorted(set(out))) if self.as_set else tuple(out)
+        if self.as_set:     # one value per number as written back (`write`'s digits): 1 and 1 + 1e-16 are one
+            return tuple(sorted({_tidy(float(x)) * scale for x in value}))
+        return tuple(float(x) * scale for x in value)
 
     def write(self, value, scale):
         return [_tidy(x / scale) for x in value]

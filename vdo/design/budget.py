@@ -147,7 +147,8 @@ def estimate(exp: Experiment, j: Judging, scorer: Scorer) -> Estimate:
     fixed = peak_rss() + K * CAMERA_BYTES      # the peak holds the probe's full-size block
     memory = fixed + entries * (STORE_COPIES * ENTRY_BYTES + SELECT_BYTES)
     return Estimate(K, N, len(pick), entries, memory, fixed, judge_s, search_s,
-                    (exp.design.bound_seconds + exp.design.restart_seconds) * len(counts(exp)))
+                    (exp.design.bound_seconds + exp.design.restart_seconds) * len(counts(exp))
+                    + (exp.design.branch_seconds if exp.design.bound_seconds > 0 else 0.0))
 
 
 def refuse(exp: Experiment, est: Estimate, memory_limit: float, time_limit: float | None) -> None:

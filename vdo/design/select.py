@@ -433,8 +433,10 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       f"{done[0]}{'' if len(done) == 1 else f'..{done[-1]}'} cameras (a longer "
                       "--time-limit searches them)")
         log.warning(issues[-1])
-    left = max(0.0, (deadline - _clock() - final_s) / len(curve))    # per count, before the final judgement
-    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left))
+    remaining = max(0.0, deadline - _clock() - final_s)     # before the final judgement
+    branch = min(d.branch_seconds, remaining / 2)           # the inventory's count's branch and bound
+    left = (remaining - branch) / len(curve)                # per count
+    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch)
     for c, b in zip(curve, relaxed):    # a second start: the relaxation's weights, rounded
         if b is None or _clock() + count_s + final_s > deadline:
             continue
@@ -589,22 +591,29 @@ class DesignRecord:
 
 
 def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
-                seconds: float) -> list[bound.Bound | None]:
+                seconds: float, branch_seconds: float = 0.0) -> list[bound.Bound | None]:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, and the
     spot, axis-angle and tripod rules among the candidates the relaxation weighs,
-    `Feasibility.placement`; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score)
-    and "bound_converged"; None where `seconds` is 0. The score never rises when a camera is
+    `Feasibility.placement`; `seconds` wall seconds per count): "bound", "gap" (1 - bound / score),
+    "bound_converged" and "bound_nodes" (the branch and bound's nodes, 0: none); None where
+    `seconds` is 0. The score never rises when a camera is
     added, so the best k-camera score is at least the best score of k + 1 cameras within the body
     counts: each count's bound is the largest of its own and the plain bounds (pairwise rules
-    dropped) of larger counts (while the relaxation's count grows). Logs each
-    gap. Returns each count's `vdo.design.bound.Bound` (None where `seconds` is 0)."""
+    dropped) of larger counts (while the relaxation's count grows). The largest count (the
+    inventory's, the layout written) then gets `branch_seconds` of branch and bound over the
+    candidates' spots (`vdo.design.bound.spots`), which lifts its bound where the relaxation
+    mixes selections (docs/design.md, "The bound"). Logs each gap. Returns each count's
+    `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
         for c in curve:
             c.update(bound=None, gap=None, bound_converged=None)
         return [None] * len(curve)
+    top = max(c["cameras"] for c in curve)
+    groups = bound.spots(cand.positions) if branch_seconds > 0 else None
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
-                              feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds)
+                              feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds,
+                              groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
     value, later = [b.value for b in found], 0.0
     for i in reversed(range(len(found))):
@@ -614,8 +623,9 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
         value[i] = max(value[i], later)
         later = max(later, found[i].plain) if i == 0 or found[i].cameras > found[i - 1].cameras else 0.0
     for c, b, v in zip(curve, found, value):
-        c.update(bound=v, gap=max(0.0, 1.0 - v / c["score"]), bound_converged=b.converged)
-        log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound): gap %.1f %% "
-                 "(%d steps, %s)", c["cameras"], c["score"], v, 100 * c["gap"], b.iterations,
+        c.update(bound=v, gap=max(0.0, 1.0 - v / c["score"]), bound_converged=b.converged, bound_nodes=b.nodes)
+        log.info("%d cameras: score %.4g, no selection below %.4g (relaxation bound%s): gap %.1f %% "
+                 "(%d steps, %s)", c["cameras"], c["score"], v,
+                 f", {b.nodes} branch-and-bound nodes" if b.nodes else "", 100 * c["gap"], b.iterations,
                  "converged" if b.converged else f"time limit {seconds:g} s")
     return found

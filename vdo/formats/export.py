@@ -53,28 +53,45 @@ def default_pairs(exp, cameras, vis, samples, requested=None, source=None,
     """The stereo pairs of a layout: cameras assigned a common region whose optical axes are at
     most [analysis] max_pair_angle_deg apart (default `vdo.physics.measured`'s 60°: beyond it
     stereo matching fails on foreshortening; the pairs left out are logged, with the `syntax`
-    that overrides the rule), or the `requested` (first, second) names, the lab's override, each
+    that overrides the rule; a kept pair whose axes are closer than the minimum the optimizer
+    holds it to, `vdo.constraints.angle_limits`, is named in a warning), or the `requested`
+    (first, second) names, the lab's override, each
     checked to share a field of view (`stereo_pairs`; errors name `source`, default the
     experiment file)."""
-    from vdo.constraints import assignments
+    from vdo.constraints import angle_limits, assignments
 
     if requested is not None:
         return stereo_pairs(cameras, vis.visible, None, requested, source or exp.path)
-    pairs = stereo_pairs(cameras, vis.visible,
-                         assignments(vis, samples, exp.optimize.assign_fraction), None, exp.path)
+    assigned = assignments(vis, samples, exp.optimize.assign_fraction)
+    pairs = stereo_pairs(cameras, vis.visible, assigned, None, exp.path)
+    index = {c.name: i for i, c in enumerate(cameras)}
+    # the declared pairs of these cameras (`--cameras` may have left one of a pair out)
+    declared = tuple(p for p in exp.stereo_pairs if all(n in index for n in p.cameras))
+    keys, lows, _ = angle_limits(exp.regions, exp.optimize, declared, cameras, assigned)
+    low_of = {(int(i), int(j)): float(low) for (i, j), low in zip(keys, lows)}
     limit = max_pair_angle(exp)
-    kept, dropped = [], []
+    kept, dropped, narrow = [], [], []
     for pair in pairs:
         angle = axes_angle(pair.first, pair.second)
-        if angle <= limit:
-            kept.append(pair)
-        else:
-            dropped.append(f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.1f}")
+        name = f"{pair.first.name}:{pair.second.name} {math.degrees(angle):.1f}"
+        if angle > limit:
+            dropped.append(name)
+            continue
+        kept.append(pair)
+        low = low_of.get(tuple(sorted((index[pair.first.name], index[pair.second.name]))))
+        if low is not None and angle < low:
+            narrow.append(f"{name} (min {math.degrees(low):.0f})")
     if dropped:       # one line, however many pairs (45 of them on a 10-camera rig)
         log.info("%d camera pair(s) assigned a common region left out of the stereo pairs: "
                  "optical axes more than %.0f deg apart ([analysis] max_pair_angle_deg; naming "
                  "pairs with %s overrides): %s", len(dropped), math.degrees(limit), syntax.form,
                  ", ".join(dropped))
+    if narrow:
+        log.warning("%d exported stereo pair(s) with optical axes closer than their lenses' stereo "
+                    "angle (depth uncertainty grows as 1/sin of the angle; the minimum is [optimize] "
+                    "min_axis_angle_deg, a [[stereo_pair]]'s min_angle_deg, or the rule of thumb of "
+                    "the shorter lens): %s deg; move a camera apart or name better pairs with %s",
+                    len(narrow), ", ".join(narrow), syntax.form)
     return kept
 
 
