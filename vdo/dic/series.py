@@ -171,21 +171,24 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
 
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
-    maps = []            # the DIC mode's surface light maps, (posed meshes, map): shared by the
-                         # cameras, and by the steps whose geometry they hold (`map_holds`)
+    # the DIC mode's surface light maps, per camera (posed meshes, map): each camera's own (a map
+    # shared by the cameras is as fine as the nearest one's, over surfaces the others do not see:
+    # more work in one frame, `vdo.render.render_images`), reused by the steps whose geometry it
+    # holds (`map_holds`: micrometre deformation, not a rigid move by millimetres)
+    maps = [[] for _ in plan.cameras]
     for step in plan.steps:
         posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
                                                           regions=exp.regions).meshes
         build = build_dic_scene if plan.dic else build_render_scene
         scene = build(exp, geometry.meshes, geometry.region_faces, plan.obstacles,
                       geometry.speckle.pattern, posed)
-        light_map = None
-        if plan.dic:
-            light_map = next((m for at, m in maps if map_holds(at, posed)), None)
-            if light_map is None:
-                light_map = surface_light_map(scene, plan.cameras)
-                maps.append((posed, light_map))
         for i, (cam, spec) in enumerate(zip(plan.cameras, exp.camera_specs)):
+            light_map = None
+            if plan.dic:
+                light_map = next((m for at, m in maps[i] if map_holds(at, posed)), None)
+                if light_map is None:
+                    light_map = surface_light_map(scene, [cam])
+                    maps[i].append((posed, light_map))
             linear = (render_camera_dic(scene, cam, tile_pixels=plan.tile_pixels, spec=spec,
                                         light_map=light_map)
                       if plan.dic else

@@ -1,5 +1,5 @@
-"""The DIC render mode's light in surface space, shared by the cameras of a frame and by the load
-steps (docs/render.md, "The surface light map"; `vdo.rendering.dic`).
+"""The DIC render mode's light in surface space, computed once for a camera and kept for the load
+steps it holds for (docs/render.md, "The surface light map"; `vdo.rendering.dic`).
 
 The light a diffuse surface reflects (`vdo.rendering.shading.shade`: the panels and the ambient
 sky) does not depend on the camera that sees it: the BSDF is f = ρ / π on the front side, so the
