@@ -10,7 +10,7 @@ demo: setup
 # one worker per core (at most 4), a test file per worker: its tests share compiled programs;
 # one OpenBLAS thread per worker (its threads spin while they wait: with a worker per core, a
 # 220 x 220 product took 12.9 ms with two threads against 0.45 ms with one on this 2-core machine)
-# XLA's LLVM backend at -O0: the suite compiles ~3,300 programs and runs most of them a few times;
+# XLA's LLVM backend at -O0: the suite compiles ~7,700 programs and runs most of them a few times;
 # on a cold cache this took the suite from 14 min 12 s to 12 min 27 s, warm it costs ~1 min
 # (benchmarks/README.md, "Test suite"); the numbers tested are the same at any optimisation level
 test: setup
