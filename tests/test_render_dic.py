@@ -190,15 +190,11 @@ def test_a_render_that_does_not_fit_is_split_or_refused_before_rendering(plate_e
 
 
 
-def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_experiment):
-    """The light map (`vdo.rendering.dic._light_map`: nodes every SHADE_STRIDE px, refined where
-    the light bends, the shape changes or a crease passes) against `vdo.rendering.shading.shade` cast at every pixel,
-    on a plate at 50° with a panel's penumbra, a bar's silhouette and a 12-sided prism lying on
-    the plate (creases every 30°, each facet lit differently). Every pixel within the map's
-    acceptance bound SHADE_TOLERANCE x the light scale; the mean error within SHADE_ERROR x it."""
+def penumbra_plate(plate_experiment):
+    """The plate at 50° to a 320 x 240 camera, lit by a panel whose penumbra crosses it, with a
+    bar (a shadow and a silhouette) and a 12-sided prism lying on it (creases every 30°, each
+    facet lit differently): the light maps' hard case. Returns the loaded experiment."""
     import trimesh
-
-    from vdo.rendering import dic, shading
 
     cam_text = down_camera("c", [0.05, -0.3, 0.6], (320, 240), 20.0, 25, target=[0.0, 0.0, 0.0])
     path = plate_experiment(
@@ -212,7 +208,18 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     prism.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
     prism.apply_translation([-60, 0, 40])
     prism.export(Path(path).parent / "prism.stl")
-    exp = config.load(path)
+    return config.load(path)
+
+
+def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_experiment):
+    """The light map (`vdo.rendering.dic._light_map`: nodes every SHADE_STRIDE px, refined where
+    the light bends, the shape changes or a crease passes) against `vdo.rendering.shading.shade` cast at every pixel,
+    on a plate at 50° with a panel's penumbra, a bar's silhouette and a 12-sided prism lying on
+    the plate (creases every 30°, each facet lit differently). Every pixel within the map's
+    acceptance bound SHADE_TOLERANCE x the light scale; the mean error within SHADE_ERROR x it."""
+    from vdo.rendering import dic, shading
+
+    exp = penumbra_plate(plate_experiment)
     meshes = scene.load_meshes(**mesh_tables(exp))
     ds = build_dic_scene(exp, meshes, scene.all_region_faces(meshes, **region_tables(exp)))
     cam = cameras_of(exp.camera_specs, exp.rails)[0]

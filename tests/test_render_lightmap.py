@@ -16,7 +16,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_render import down_camera, light, table  # noqa: E402
-from test_render_dic import plate, rectangle_form_factor  # noqa: E402
+from test_render_dic import penumbra_plate, plate, rectangle_form_factor  # noqa: E402
 
 from conftest import mesh_tables, region_tables  # noqa: E402
 from vdo import scene  # noqa: E402
@@ -68,23 +68,9 @@ def test_the_surface_map_follows_the_light_computed_at_every_pixel(plate_experim
     pixel it interpolates within MAP_TOLERANCE x the light scale, on average within SHADE_ERROR x
     it; it interpolates most pixels; and the whole render within RENDER_STD_TOL of the render
     without the map (every node of the camera's light map computed)."""
-    import trimesh
-
     from vdo.rendering import dic, lightmap
 
-    cam_text = down_camera("c", [0.05, -0.3, 0.6], (320, 240), 20.0, 25, target=[0.0, 0.0, 0.0])
-    path = plate_experiment(
-        cameras=cam_text + light("p", [0.5, 0.2, 0.8], [0, 0, 0], [0.3, 0.2], 20)
-        + table("speckle", dot_diameter_mm=1.5, texel_mm=0.1, tile_texels=512)
-        + table("render", ambient_radiance=0.05),
-        files=[("bar.stl", [20, 300, 20], [60, 0, 30])],
-        extra_meshes='[[mesh]]\nname = "bar"\nfile = "bar.stl"\nrole = "obstacle"\nunit = "mm"\n'
-                     '[[mesh]]\nname = "prism"\nfile = "prism.stl"\nrole = "obstacle"\nunit = "mm"\n')
-    prism = trimesh.creation.cylinder(radius=40, height=300, sections=12)
-    prism.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    prism.apply_translation([-60, 0, 40])
-    prism.export(Path(path).parent / "prism.stl")
-    exp = config.load(path)
+    exp = penumbra_plate(plate_experiment)
     ds, (cam,) = dic_scene(exp)
     light_map = surface_light_map(ds, [cam])
     exact, mapped, scale = every_pixel(ds, cam, light_map)
