@@ -12,17 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import DOWN_CAMERA, write_plate_experiment
-
-SCENE = """
-[speckle]
-dot_diameter_mm = 6
-texel_mm = 0.75
-strokes = 0
-
-[render]
-ambient_radiance = 1.0
-spp = 4
-"""
+from test_photometry import LIGHTS as SCENE   # 6 mm dots, an ambient light alone, 4 spp
 
 STRIP = """
 [[region]]
