@@ -142,7 +142,9 @@ class Real(Kind):
         if self.positive and value <= 0:
             raise BadValue(f"must be positive (got {_show(value)})")
         if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
-            raise BadValue(f"must lie in [{self.low}, {self.high}] (got {_show(value)})"
+            within = (f"lie in [{self.low}, {self.high}]" if self.low is not None and self.high is not None
+                      else f"be ≥ {self.low:g}" if self.low is not None else f"be ≤ {self.high:g}")
+            raise BadValue(f"must {within} (got {_show(value)})"
                        + (f": {self.why}" if self.why else ""))
         if abs(value) > MAX_MAGNITUDE and (self.low is None or self.high is None):
             raise BadValue(f"must lie within ±{MAX_MAGNITUDE:g} (got {_show(value)}): no quantity of an "
