@@ -36,6 +36,8 @@ FORM_FACTOR_TOL = 1e-5      # relative: the lit panels' Gauss-Legendre rule agai
                             # (measured 1.8e-6, float32; one point a panel: 8.6e-2)
 PROBE_TOL = 1e-6            # of the light scale: the probed light against a ray per panel point
                             # (measured equal to float32 rounding on the penumbra scene)
+PART_TOL = 1e-4             # a footprint part's mean: float32 weights of 0.002-texel boxes (6e-5
+                            # measured), against the summed-area table in float64
 ENERGY_TOL = 0.02           # relative: the 64-spp reference's noise adds ~0.5 % of gradient energy
 
 
@@ -56,6 +58,45 @@ def test_summed_area_table_gives_the_box_average_of_the_bilinear_texture():
              (5.0, 5.001, 7.3, 7.301), (20.5, 27.25, 3.0, 9.5)]
     for box in boxes:
         assert sat.box_average(*box) == pytest.approx(bilinear_box_mean(pattern, *box), abs=QUADRATURE_TOL)
+
+
+def test_footprint_parts_are_the_box_averages_of_the_bilinear_texture_in_every_tier():
+    """`_part_means` (Dr.Jit: K x K texels for small boxes, the summed-area table for the rest)
+    against `SpeckleTable.box_average` (numpy, checked against quadrature above) on footprints
+    from 0.001 to 40 texels, rotated and sheared, centred anywhere (the texture is periodic);
+    each of DIRECT_TAPS's tiers and the table get lanes."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+    from vdo.rendering.dic import DIRECT_TAPS, FOOTPRINT_SPLIT, MIN_HALF_TEXELS, _part_means
+
+    mi = mitsuba()
+    rng = np.random.default_rng(7)
+    pattern = rng.random((40, 56))
+    table = SpeckleTable.of(pattern, pad=32)
+    m = 4000
+    x, y = rng.uniform(-300, 300, (2, m))
+    size = np.exp(rng.uniform(np.log(1e-3), np.log(40), m))
+    a = size[:, None] * rng.normal(size=(m, 2)) / np.sqrt(2)
+    b = size[:, None] * rng.normal(size=(m, 2)) / np.sqrt(2)
+    a, b = a * np.minimum(1, 26 / (np.abs(a) + np.abs(b)).max(axis=1))[:, None], \
+        b * np.minimum(1, 26 / (np.abs(a) + np.abs(b)).max(axis=1))[:, None]      # within the pad
+    means = _part_means(table, mi.Float64(x), mi.Float64(y), *(mi.Float(c.astype(np.float32))
+                                                                for c in (a[:, 0], a[:, 1], b[:, 0], b[:, 1])))
+    dr.eval(means)
+    n = FOOTPRINT_SPLIT
+    a32, b32 = a.astype(np.float32).astype(float), b.astype(np.float32).astype(float)
+    hx = np.maximum(0.5 * np.hypot(a32[:, 0], b32[:, 0]) / n, MIN_HALF_TEXELS)
+    hy = np.maximum(0.5 * np.hypot(a32[:, 1], b32[:, 1]) / n, MIN_HALF_TEXELS)
+    width = 2 * np.maximum(hx, hy)
+    tiers = np.searchsorted(np.array(DIRECT_TAPS) - 2, width)       # K - 2 >= width: that tier
+    assert all(np.any(tiers == k) for k in range(len(DIRECT_TAPS) + 1))
+    for k, mean in enumerate(means):
+        i, j = divmod(k, n)
+        oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
+        cx, cy = x + oi * a32[:, 0] + oj * b32[:, 0], y + oi * a32[:, 1] + oj * b32[:, 1]
+        expected = table.box_average(cx - hx, cx + hx, cy - hy, cy + hy)
+        assert np.array(mean) == pytest.approx(expected, abs=PART_TOL)
 
 
 def plate(plate_experiment, camera_text, light_text="", ambient=0.05, bar=True, dot_mm=1.5):
@@ -230,7 +271,7 @@ def test_the_adaptive_light_map_follows_the_light_computed_at_every_pixel(plate_
     exact = shading.shade(ds, si).reshape(cam.height, cam.width)
     scale = dic._light_scale(ds, cam)
     normals = dic._normals(si, ids.ravel()).reshape(cam.height, cam.width, 3)
-    mapped = dic._light_map(ds, cam, 0, ids, normals, scale)
+    mapped = dic._light_map(ds, cam, 0, dic._LightNodes.lattice(ids, (normals[..., k] for k in range(3))), scale)
     err = np.abs(mapped - exact)
     assert len(np.unique(ids)) >= 3                       # plate, bar, prism
     assert err.max() <= dic.SHADE_TOLERANCE * scale

@@ -152,16 +152,23 @@ def test_the_lens_blurs_before_the_pixels_integrate(frequency):
 CELL_BLUR_SCIPY_TOL = 1e-6       # float32 sums in another order (measured 2.4e-7)
 
 
+@pytest.mark.parametrize("threads", [1, 3])
 @pytest.mark.parametrize("shape, sigma, n, axis", [((40, 60), 0.5, 2, 0), ((40, 60), 0.5, 2, 1),
                                                    ((6, 10), 1.3, 2, 1), ((2, 4), 1.3, 2, 0),
                                                    ((30, 33), 0.3, 3, 0), ((4, 6, 8), 2.0, 2, 2)])
-def test_cell_blur_is_scipys_gaussian_then_the_pixels_mean(shape, sigma, n, axis):
+def test_cell_blur_is_scipys_gaussian_then_the_pixels_mean(shape, sigma, n, axis, threads, monkeypatch):
     """`cell_blur` computes only the pixels: it equals SciPy's `gaussian_filter1d` of the cells
     (std n sigma cells, "nearest" beyond the ends) followed by each pixel's mean of its n cells,
-    in the middle and at both ends, also where the kernel is longer than the image."""
+    in the middle and at both ends, also where the kernel is longer than the image; on one
+    thread and cut into strips for three (every image counted as large enough)."""
     from scipy import ndimage
 
+    from vdo.core import backend
     from vdo.render import cell_blur
+    from vdo.rendering import scene
+
+    monkeypatch.setattr(backend, "cpu_threads", lambda: threads)
+    monkeypatch.setattr(scene, "BLUR_THREAD_CELLS", 1)
 
     cells = np.random.default_rng(7).random(shape).astype(np.float32)
     blurred = ndimage.gaussian_filter1d(cells.astype(float), n * sigma, axis=axis, mode="nearest")

@@ -139,7 +139,7 @@ def shade(dscene, si) -> np.ndarray:
             bs, w = hit.bsdf().sample(ctx, hit, 0.5, dr.gather(mi.Point2f, S, lane % len(samples)), valid)
             ok = valid & (bs.pdf > 0)
             ok &= ~dscene.shadows.ray_test(hit.spawn_ray(hit.to_world(bs.wo)), ok)
-            value = mi.luminance(dr.select(ok, w * (dscene.ambient / len(samples)), 0.0))
+            value = mi.luminance(dr.select(ok, w * dr.opaque(mi.Float, dscene.ambient / len(samples)), 0.0))
             total = total + dr.block_sum(value, len(samples))
         out[start:start + count] = np.array(total, dtype=np.float64)
     return out
