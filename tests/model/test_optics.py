@@ -176,3 +176,26 @@ def test_cell_blur_is_scipys_gaussian_then_the_pixels_mean(shape, sigma, n, axis
     out = cell_blur(cells, sigma, n, axis)
     assert out.dtype == np.float32 and out.shape == expected.shape
     assert np.abs(out - expected).max() < CELL_BLUR_SCIPY_TOL
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+@pytest.mark.parametrize("h, W, sigma, n", [(5, 40, 0.5, 2), (3, 2, 1.3, 2), (9, 11, 0.7, 3), (4, 30, 2.5, 2)])
+def test_part_blur_is_the_cell_blur_of_the_laid_out_cells(h, W, sigma, n, threads, monkeypatch):
+    """`part_blur` (the DIC mode's rows: a pixel's n x n cells as n² separate images) equals
+    `cell_blur` along the rows of the cells laid out (pixel row y's cell row j at n y + j, cell i
+    of pixel x at n x + i), borders and kernels longer than the row included."""
+    from vdo.core import backend
+    from vdo.render import cell_blur
+    from vdo.rendering import scene
+
+    monkeypatch.setattr(backend, "cpu_threads", lambda: threads)
+    monkeypatch.setattr(scene, "BLUR_THREAD_CELLS", 1)
+    rng = np.random.default_rng(3)
+    parts = [rng.random((h, W)).astype(np.float32) for _ in range(n * n)]
+    cells = np.empty((h, n, W, n), dtype=np.float32)
+    for k, part in enumerate(parts):
+        cells[:, k % n, :, k // n] = part
+    expected = cell_blur(cells.reshape(h * n, W * n), sigma, n, axis=1)
+    out = scene.part_blur(parts, sigma, n)
+    assert out.dtype == np.float32 and out.shape == expected.shape
+    assert np.abs(out - expected).max() < CELL_BLUR_SCIPY_TOL

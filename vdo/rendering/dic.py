@@ -11,7 +11,7 @@ import numpy as np
 from vdo.model.camera import Camera
 from vdo.model.speckle import pattern_for
 from vdo.rendering.scene import (NEAR_CLIP_M, PRESAMPLE, SPECKLED_SUFFIX, build_render_scene, cell_blur,
-                                 lens_sigma_px)
+                                 lens_sigma_px, part_blur)
 from vdo.rendering.shading import shade
 
 
@@ -277,8 +277,8 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
     f_number; a camera with one is refused in this mode) acts before the pixels integrate, as in a
     camera: each pixel's value is kept on its FOOTPRINT_SPLIT^2 cells (the speckle's albedo of
     each part of the footprint, the pixel's light and emission; a silhouette pixel's mean on all),
-    the cells blurred and each pixel their mean (`vdo.rendering.scene.cell_blur`, along the rows
-    in each tile, across them once the tiles are done).
+    the cells blurred and each pixel their mean (along the rows in each tile,
+    `vdo.rendering.scene.part_blur`, and across them once the tiles are done, `cell_blur`).
     `light_map`: the frame's `vdo.rendering.lightmap.SurfaceLightMap` (`surface_light_map` of
     the frame's cameras, this one among them), from which the light map's nodes take the light
     where its lattice's nodes agree (the nodes it lacks are computed into it); None: a map of this
@@ -598,23 +598,20 @@ def _tile_image(dscene: DicScene, camera: Camera, hits: _TileHits, scale: float,
                 sigma: float = 0.0) -> np.ndarray:
     """The tile's rows of `render_camera_dic`'s image from its `hits`, (h, W) float32; with a
     lens blur `sigma` (px) > 0, their FOOTPRINT_SPLIT rows of cells each, blurred along the rows
-    and each pixel the mean of its cells along them (`cell_blur`): (FOOTPRINT_SPLIT h, W)."""
+    and each pixel the mean of its cells along them (`part_blur`): (FOOTPRINT_SPLIT h, W)."""
     h, W = hits.nodes.tile
     ids = hits.nodes.I[:h, :W]
     light = _light_map(dscene, camera, hits.r0, hits.nodes, scale).ravel()
     edges = np.flatnonzero(_silhouette(ids))
     edge_value = (_supersampled(dscene, camera, hits.r0, edges, ids, light.reshape(h, W))
                   if len(edges) else None)
-    n = FOOTPRINT_SPLIT if sigma > 0 else 1
-    cells = np.empty((h, n, W, n), dtype=np.float32)        # (row, j, column, i)
-    for k, part in enumerate(hits.rho):
+    values = []                                     # part i n + j: cell i along the row
+    for part in hits.rho:
         value = hits.emitted + part * light
         if edge_value is not None:
             value[edges] = edge_value
-        cells[:, k % n, :, k // n] = value.reshape(h, W)
-    if sigma == 0:
-        return cells.reshape(h, W)
-    return cell_blur(cells.reshape(h * n, W * n), sigma, n, axis=1)
+        values.append(value.reshape(h, W))
+    return part_blur(values, sigma, FOOTPRINT_SPLIT) if sigma > 0 else values[0]
 
 
 def _light_map(dscene: DicScene, camera: Camera, r0: int, nodes: "_LightNodes",

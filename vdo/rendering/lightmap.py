@@ -19,7 +19,6 @@ no vertex moved by more than MAP_REUSE_M (`map_holds`)."""
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,9 +72,6 @@ class SurfaceLightMap:
     used: int = 0
     computed: int = 0                  # nodes whose light was computed
     alloc_blocks: list = field(default_factory=list)   # blocks in the order of allocation
-    lock: threading.RLock = field(default_factory=threading.RLock, repr=False, compare=False)
-                                       # held while the map is read or filled (`finish`): a
-                                       # render reads it from two threads
 
     def _allocate(self, blocks: np.ndarray) -> None:
         blocks = np.unique(blocks[self.base[blocks] < 0])
@@ -134,10 +130,6 @@ class SurfaceLightMap:
 
     def finish(self, dscene, prepared, scale: float, focal_px: float, tolerance: float | None = None):
         """`lookup` from `prepare`'s arrays."""
-        with self.lock:
-            return self._finish(dscene, prepared, scale, focal_px, tolerance)
-
-    def _finish(self, dscene, prepared, scale: float, focal_px: float, tolerance: float | None = None):
         import drjit as dr
 
         from vdo.core.backend import mitsuba
@@ -147,7 +139,7 @@ class SurfaceLightMap:
         tri, pu, pv, distance, cos_view = prepared
         tolerance = MAP_TOLERANCE if tolerance is None else tolerance
         # the camera's numbers as opaque values: one compiled kernel for every camera
-        focal_px, scale = dr.opaque(mi.Float, focal_px), dr.opaque(mi.Float, tolerance * scale)
+        focal_px, bound = dr.opaque(mi.Float, focal_px), dr.opaque(mi.Float, tolerance * scale)
         active = tri != 0xFFFFFFFF
         # the block
         nc = mi.Int32(dr.gather(mi.UInt32, self._device("nc"), tri, active))
@@ -178,7 +170,8 @@ class SurfaceLightMap:
         values = self._device("values")
         v = [dr.gather(mi.Float, values, key, active) for key in keys]
         missing = active & (dr.isnan(v[0]) | dr.isnan(v[1]) | dr.isnan(v[2]))
-        lanes = dr.compress(missing)           # (the rest is computed again below: less to store)
+        dr.eval(keys, v, weights, missing, active)
+        lanes = dr.compress(missing)
         if dr.width(lanes):
             todo = np.unique(np.concatenate([np.array(dr.gather(mi.UInt32, key, lanes)) for key in keys]))
             todo = todo[np.isnan(self.values[todo])].astype(np.int64)
@@ -187,7 +180,7 @@ class SurfaceLightMap:
             v = [dr.gather(mi.Float, values, key, active) for key in keys]
         lo = dr.minimum(dr.minimum(v[0], v[1]), v[2])
         hi = dr.maximum(dr.maximum(v[0], v[1]), v[2])
-        ok = active & (hi - lo <= scale)                      # False for NaN and inf
+        ok = active & (hi - lo <= bound)                      # False for NaN and inf
         light = dr.select(ok, weights[0] * v[0] + weights[1] * v[1] + weights[2] * v[2], dr.nan)
         dr.eval(light, ok)
         return np.array(light), np.array(ok)

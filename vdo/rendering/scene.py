@@ -226,6 +226,48 @@ def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarr
 
 
 
+def part_blur(parts, sigma_px: float, n: int) -> np.ndarray:
+    """`cell_blur` along the rows (axis 1) of an image whose pixel (y, x) has the n x n cells
+    parts[i n + j][y, x] (i along the row, j across it; each part (h, W)), without laying the
+    cells out: (n h, W) float32, pixel row y's cell row j at n y + j. Cell q = n x + i of a cell
+    row j is parts[i n + j][:, x], so pixel p = Σ_k c_k parts[i_k n + j][:, p + o_k], i_k = (k - r)
+    mod n and o_k = ⌊(k - r) / n⌋ (`cell_blur_kernel`'s c and r: slices of the parts, no strides);
+    cells beyond the row's ends taken equal to its first and last. In row strips on
+    `vdo.core.backend.cpu_threads` threads."""
+    from vdo.core.backend import cpu_threads
+
+    h, W = parts[0].shape
+    c = cell_blur_kernel(sigma_px, n).astype(np.float32)
+    r = (len(c) - n) // 2
+    out = np.empty((h, n, W), dtype=np.float32)
+
+    def strip(rows: slice) -> None:
+        lo, hi = min(W, -(-r // n)), max(0, min(W, (n * W - n - r) // n + 1))   # every tap inside
+        for j in range(n):
+            target = out[rows, j]
+            if hi > lo:
+                inner = target[:, lo:hi]
+                inner[...] = 0.0
+                term = np.empty_like(inner)
+                for k, w in enumerate(c):
+                    i, o = (k - r) % n, (k - r) // n
+                    inner += np.multiply(parts[i * n + j][rows, lo + o:hi + o], w, out=term)
+            for p in [*range(0, min(lo, W)), *range(max(hi, lo), W)]:      # clamped taps
+                q = np.clip(n * p + np.arange(len(c)) - r, 0, n * W - 1)
+                target[:, p] = sum(w * parts[(qk % n) * n + j][rows, qk // n] for w, qk in zip(c, q))
+
+    threads = min(cpu_threads(), h)
+    if threads > 1 and h * W * n * n >= BLUR_THREAD_CELLS:
+        from concurrent.futures import ThreadPoolExecutor
+
+        cuts = np.linspace(0, h, threads + 1).astype(int)
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(strip, [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]))
+    else:
+        strip(slice(0, h))
+    return out.reshape(n * h, W)
+
+
 def _cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarray:
     """`cell_blur` on one thread."""
     c = cell_blur_kernel(sigma_px, n).astype(np.float32)
