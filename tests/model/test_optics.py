@@ -196,6 +196,6 @@ def test_part_blur_is_the_cell_blur_of_the_laid_out_cells(h, W, sigma, n, thread
     for k, part in enumerate(parts):
         cells[:, k % n, :, k // n] = part
     expected = cell_blur(cells.reshape(h * n, W * n), sigma, n, axis=1)
-    out = scene.part_blur(parts, sigma, n)
+    out = scene.part_blur(lambda k, rows: parts[k][rows], (h, W), sigma, n)
     assert out.dtype == np.float32 and out.shape == expected.shape
     assert np.abs(out - expected).max() < CELL_BLUR_SCIPY_TOL

@@ -605,13 +605,18 @@ def _tile_image(dscene: DicScene, camera: Camera, hits: _TileHits, scale: float,
     edges = np.flatnonzero(_silhouette(ids))
     edge_value = (_supersampled(dscene, camera, hits.r0, edges, ids, light.reshape(h, W))
                   if len(edges) else None)
-    values = []                                     # part i n + j: cell i along the row
-    for part in hits.rho:
-        value = hits.emitted + part * light
+    light, emitted = light.reshape(h, W), hits.emitted.reshape(h, W)
+    rho = [part.reshape(h, W) for part in hits.rho]         # part i n + j: cell i along the row
+
+    def value(k: int, rows: slice) -> np.ndarray:
+        """Part k's value on `rows`: emitted + ρ L, a silhouette pixel's own mean on all parts."""
+        out = np.multiply(rho[k][rows], light[rows])
+        out += emitted[rows]
         if edge_value is not None:
-            value[edges] = edge_value
-        values.append(value.reshape(h, W))
-    return part_blur(values, sigma, FOOTPRINT_SPLIT) if sigma > 0 else values[0]
+            at = slice(*np.searchsorted(edges, (rows.start * W, rows.stop * W)))
+            out.ravel()[edges[at] - rows.start * W] = edge_value[at]
+        return out
+    return part_blur(value, (h, W), sigma, FOOTPRINT_SPLIT) if sigma > 0 else value(0, slice(0, h))
 
 
 def _light_map(dscene: DicScene, camera: Camera, r0: int, nodes: "_LightNodes",

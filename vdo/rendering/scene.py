@@ -226,22 +226,24 @@ def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarr
 
 
 
-def part_blur(parts, sigma_px: float, n: int) -> np.ndarray:
-    """`cell_blur` along the rows (axis 1) of an image whose pixel (y, x) has the n x n cells
-    parts[i n + j][y, x] (i along the row, j across it; each part (h, W)), without laying the
-    cells out: (n h, W) float32, pixel row y's cell row j at n y + j. Cell q = n x + i of a cell
-    row j is parts[i n + j][:, x], so pixel p = Σ_k c_k parts[i_k n + j][:, p + o_k], i_k = (k - r)
-    mod n and o_k = ⌊(k - r) / n⌋ (`cell_blur_kernel`'s c and r: slices of the parts, no strides);
-    cells beyond the row's ends taken equal to its first and last. In row strips on
-    `vdo.core.backend.cpu_threads` threads."""
+def part_blur(part, shape: tuple[int, int], sigma_px: float, n: int) -> np.ndarray:
+    """`cell_blur` along the rows (axis 1) of an h x W image (`shape`) whose pixel (y, x) has the
+    n x n cells part(i n + j, rows)[y - rows.start, x] (i along the row, j across it; `part`
+    gives a part's values on a slice of rows), without laying the cells out: (n h, W) float32,
+    pixel row y's cell row j at n y + j. Cell q = n x + i of a cell row j is part i n + j at x, so
+    pixel p = Σ_k c_k part(i_k n + j)[:, p + o_k], i_k = (k - r) mod n and o_k = ⌊(k - r) / n⌋
+    (`cell_blur_kernel`'s c and r: slices, no strides); cells beyond the row's ends taken equal
+    to its first and last. In row strips on `vdo.core.backend.cpu_threads` threads, each strip's
+    parts made by `part` on its thread."""
     from vdo.core.backend import cpu_threads
 
-    h, W = parts[0].shape
+    h, W = shape
     c = cell_blur_kernel(sigma_px, n).astype(np.float32)
     r = (len(c) - n) // 2
     out = np.empty((h, n, W), dtype=np.float32)
 
     def strip(rows: slice) -> None:
+        parts = [part(k, rows) for k in range(n * n)]
         lo, hi = min(W, -(-r // n)), max(0, min(W, (n * W - n - r) // n + 1))   # every tap inside
         for j in range(n):
             target = out[rows, j]
@@ -251,10 +253,10 @@ def part_blur(parts, sigma_px: float, n: int) -> np.ndarray:
                 term = np.empty_like(inner)
                 for k, w in enumerate(c):
                     i, o = (k - r) % n, (k - r) // n
-                    inner += np.multiply(parts[i * n + j][rows, lo + o:hi + o], w, out=term)
+                    inner += np.multiply(parts[i * n + j][:, lo + o:hi + o], w, out=term)
             for p in [*range(0, min(lo, W)), *range(max(hi, lo), W)]:      # clamped taps
                 q = np.clip(n * p + np.arange(len(c)) - r, 0, n * W - 1)
-                target[:, p] = sum(w * parts[(qk % n) * n + j][rows, qk // n] for w, qk in zip(c, q))
+                target[:, p] = sum(w * parts[(qk % n) * n + j][:, qk // n] for w, qk in zip(c, q))
 
     threads = min(cpu_threads(), h)
     if threads > 1 and h * W * n * n >= BLUR_THREAD_CELLS:
