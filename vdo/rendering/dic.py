@@ -808,20 +808,14 @@ class _LightNodes:
 
     def compute(self, dscene: DicScene, camera: Camera, r0: int, y: np.ndarray, x: np.ndarray,
                 scale: float = 1.0) -> None:
-        """The light of the nodes (y, x), the pixels (x, r0 + y), where not known yet: cast and
-        shaded (from the frame's surface light map where it holds, past the tile's pixels, whose
-        shape and normal the cast gives)."""
+        """The light of the nodes (y, x), the pixels (x, r0 + y), where not known yet: cast (one
+        batch) and shaded, from the frame's surface light map where it holds (at the tile's
+        pixels it did not when the tile was cast: there it is shaded); the cast gives the shape
+        and normal of the nodes past the tile's pixels."""
         import drjit as dr
 
         todo = np.isnan(self.L[y, x])
         y, x = y[todo], x[todo]
-        h, W = self.tile
-        inside = (y < h) & (x < W)
-        if inside.any():
-            yi, xi = y[inside], x[inside]
-            si = _cast(dscene, camera, np.column_stack([xi.astype(float), r0 + yi.astype(float)]))
-            self.L[yi, xi] = shade(dscene, si)
-        y, x = y[~inside], x[~inside]
         if len(y) == 0:
             return
         grid = np.column_stack([x.astype(float), r0 + y.astype(float)])
