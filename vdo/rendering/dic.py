@@ -549,14 +549,14 @@ def _light_scale(dscene: DicScene, camera: Camera) -> float:
 
 @dataclass(frozen=True, eq=False)
 class _TileHits:
-    """What a tile's primary rays give (`_tile_hits`), numpy arrays over its h x W pixels."""
+    """What a tile's primary rays give (`_tile_hits`), numpy arrays over its h x W pixels (views
+    of Dr.Jit's arrays where they can be: a view keeps its array)."""
 
     r0: int                     # its first row
     nodes: "_LightNodes"        # its light map's lattice: the pixels' shape ids and shading
                                 # normals, and their light where known (the surface light map)
     emitted: np.ndarray         # (h W,) float32 the radiance emitted towards the camera
     rho: list                   # per footprint part (or one: the whole footprint) (h W,) float32
-    normals: object = None      # the Dr.Jit shading normals that `nodes`' tile normals view
 
 
 def _tile_hits(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
@@ -583,15 +583,14 @@ def _tile_hits(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     rho = _footprint_albedo(dscene, si, cells=cells)
     rho = rho if cells else [rho]
     dr.eval(*rho)
-    normals = si.sh_frame.n                          # kept (evaluated) with the tile's arrays
     nodes = _LightNodes.lattice(np.asarray(ids).reshape(h, W),
-                                (np.asarray(normals[k]).reshape(h, W) for k in range(3)))
+                                (np.asarray(si.sh_frame.n[k]).reshape(h, W) for k in range(3)))
     tile = nodes.I[:h, :W]
     del si, prim_uv
     if mapped:         # the frame's surface light map where its nodes agree (NaN elsewhere)
         nodes.L[:h, :W] = dscene.light_map.finish(dscene, prepared, scale, camera.focal_px)[0].reshape(h, W)
     nodes.L[:h, :W][tile == 0] = 0.0                   # a pixel that sees nothing has no light
-    return _TileHits(r0, nodes, np.asarray(emitted), [np.asarray(part) for part in rho], normals)
+    return _TileHits(r0, nodes, np.asarray(emitted), [np.asarray(part) for part in rho])
 
 
 def _tile_image(dscene: DicScene, camera: Camera, hits: _TileHits, scale: float,
