@@ -22,10 +22,11 @@ rail_positions = 9
 offset_m = [0, 0, 0]
 sample_spacing_mm = 50
 bound_s = 1
-restart_s = 10
+restart_s = 300
 """
 # restart_s: RESTART_PATIENCE fruitless starts end the restarts long before it, so the two runs
-# compared below make the same starts (a 1 s limit could cut one run short)
+# compared below make the same starts (a 1 s limit could cut one run short; 10 s did once, in a
+# test suite on 2 loaded cores)
 JUDGE_BLOCK = candidates.judge_block    # the real one, before any test wraps it
 PER_BLOCK = 2          # candidates per block: 5 blocks of the plate rail's 9 candidates
 

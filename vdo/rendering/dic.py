@@ -321,10 +321,13 @@ def _rays(camera: Camera, grid, step: float = 1.0):
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
-    # The camera's numbers enter the kernels as opaque values (not literals), so that every camera
-    # and tile runs the same compiled kernels.
-    M = [[dr.opaque(mi.Float, float(v)) for v in row]
-         for row in camera.R.T @ np.linalg.inv(camera.K)]     # world direction of a homogeneous pixel
+    # The camera's numbers enter the kernels as values read from one array (not literals), so that
+    # every camera and tile runs the same compiled kernels: the world direction of a homogeneous
+    # pixel M = R^T K^-1, then the centre.
+    numbers = mi.Float(np.concatenate([(camera.R.T @ np.linalg.inv(camera.K)).ravel(),
+                                       camera.position]).astype(np.float32))
+    number = [dr.gather(mi.Float, numbers, mi.UInt32(k)) for k in range(12)]
+    M = [number[3 * k:3 * k + 3] for k in range(3)]
 
     def direction(x, y):
         return mi.Vector3f(*(M[k][0] * x + M[k][1] * y + M[k][2] for k in range(3)))
@@ -343,7 +346,7 @@ def _rays(camera: Camera, grid, step: float = 1.0):
         pux, puy, pvx, pvy = step, 0.0, 0.0, step
     # Each ray starts on the near-clip plane (the camera frame's z = NEAR_CLIP_M, as Mitsuba's
     # perspective sensor), so that a camera's own body around its centre is not hit.
-    o = mi.Point3f(*(dr.opaque(mi.Float, float(c)) for c in camera.position))
+    o = mi.Point3f(*number[9:])
     d, d_x, d_y = direction(px, py), direction(px + pux, py + puy), direction(px + pvx, py + pvy)
     ray = mi.RayDifferential3f(o + NEAR_CLIP_M * d, dr.normalize(d))
     ray.o_x, ray.o_y = o + NEAR_CLIP_M * d_x, o + NEAR_CLIP_M * d_y
@@ -651,8 +654,7 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, nodes: "_LightNodes",
             pyr[2 * k] = op(op(q[::2, ::2], q[1::2, ::2]), op(q[::2, 1::2], q[1::2, 1::2]))
         k *= 2
     out = np.empty((ncy * s, ncx * s), dtype=np.float32)
-    known = np.isfinite(nodes.L[:h, :W])
-    given = nodes.L[:h, :W].astype(np.float32)
+    known = np.isfinite(nodes.L[:h, :W])        # (the nodes computed below were not known)
     done = np.pad(known, ((0, ncy * s - h), (0, ncx * s - W))).reshape(ncy, s, ncx, s).all(axis=(1, 3))
     y, x = (a.ravel() * s for a in np.nonzero(~done))
     corners = np.unique(np.concatenate([(y + dy) * nodes.L.shape[1] + x + dx
@@ -660,7 +662,7 @@ def _light_map(dscene: DicScene, camera: Camera, r0: int, nodes: "_LightNodes",
     nodes.compute(dscene, camera, r0, *np.divmod(corners, nodes.L.shape[1]), scale)
 
     def finish():
-        return np.where(known, given, out[:h, :W])
+        return np.where(known, nodes.L[:h, :W], out[:h, :W])
     while True:
         if s == 1:                                   # the nodes are the pixels themselves
             out[y, x] = nodes.L[y, x]
