@@ -21,12 +21,14 @@ max_cameras = 2
 rail_positions = 9
 offset_m = [0, 0, 0]
 sample_spacing_mm = 50
-bound_s = 1
+bound_s = 60
+branch_s = 0
 restart_s = 300
 """
-# restart_s: RESTART_PATIENCE fruitless starts end the restarts long before it, so the two runs
-# compared below make the same starts (a 1 s limit could cut one run short; 10 s did once, in a
-# test suite on 2 loaded cores)
+# Nothing below may depend on the clock, so that the two runs compared make the same curve (twice
+# in a loaded suite they did not): the bound's hull phase converges long before bound_s, no branch
+# and bound (how many nodes it opens in its time follows the clock), and RESTART_PATIENCE
+# fruitless starts end the restarts long before restart_s
 JUDGE_BLOCK = candidates.judge_block    # the real one, before any test wraps it
 PER_BLOCK = 2          # candidates per block: 5 blocks of the plate rail's 9 candidates
 
