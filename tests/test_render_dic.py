@@ -61,14 +61,14 @@ def test_summed_area_table_gives_the_box_average_of_the_bilinear_texture():
 
 
 def test_footprint_parts_are_the_box_averages_of_the_bilinear_texture_in_every_tier():
-    """`_part_means` (Dr.Jit: K x K texels for small boxes, the summed-area table for the rest)
+    """`part_means` (Dr.Jit: K x K texels for small boxes, the summed-area table for the rest)
     against `SpeckleTable.box_average` (numpy, checked against quadrature above) on footprints
     from 0.001 to 40 texels, rotated and sheared, centred anywhere (the texture is periodic);
     each of DIRECT_TAPS's tiers and the table get lanes."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
-    from vdo.rendering.dic import DIRECT_TAPS, FOOTPRINT_SPLIT, MIN_HALF_TEXELS, _part_means
+    from vdo.rendering.footprint import DIRECT_TAPS, FOOTPRINT_SPLIT, MIN_HALF_TEXELS, part_means
 
     mi = mitsuba()
     rng = np.random.default_rng(7)
@@ -81,7 +81,7 @@ def test_footprint_parts_are_the_box_averages_of_the_bilinear_texture_in_every_t
     b = size[:, None] * rng.normal(size=(m, 2)) / np.sqrt(2)
     a, b = a * np.minimum(1, 26 / (np.abs(a) + np.abs(b)).max(axis=1))[:, None], \
         b * np.minimum(1, 26 / (np.abs(a) + np.abs(b)).max(axis=1))[:, None]      # within the pad
-    means = _part_means(table, mi.Float64(x), mi.Float64(y), *(mi.Float(c.astype(np.float32))
+    means = part_means(table, mi.Float64(x), mi.Float64(y), *(mi.Float(c.astype(np.float32))
                                                                 for c in (a[:, 0], a[:, 1], b[:, 0], b[:, 1])))
     dr.eval(means)
     n = FOOTPRINT_SPLIT

@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from vdo.model.camera import Camera
 from vdo.model.speckle import pattern_for
+from vdo.rendering.footprint import FOOTPRINT_SPLIT, SpeckleTable, part_means
 from vdo.rendering.scene import (NEAR_CLIP_M, PRESAMPLE, SPECKLED_SUFFIX, build_render_scene, cell_blur,
                                  lens_sigma_px, part_blur)
 from vdo.rendering.shading import shade
@@ -19,15 +19,6 @@ from vdo.rendering.shading import shade
 # The DIC render mode: one primary ray per pixel, the speckle averaged over the pixel's footprint
 # --------------------------------------------------------------------------------------------
 RENDER_MODES = ("sampled", "dic")
-SAT_PAD_TEXELS = 64          # texels of wrapped pattern around the tile in the summed-area table;
-                             # a footprint is clamped to a half-extent of SAT_PAD_TEXELS - 2
-DIRECT_TAPS = (3, 4)         # a footprint part's box at most K - 2 texels wide is averaged from the
-                             # K x K texels it reads, K the first of these it fits; wider ones from
-                             # the summed-area table (`_part_means`)
-MIN_HALF_TEXELS = 1e-3       # smallest half-width of a footprint box (texels): below it, the box's
-                             # corner differences lose digits and its average is the point value
-FOOTPRINT_SPLIT = PRESAMPLE  # each pixel's footprint parallelogram is cut into SPLIT x SPLIT parts
-                             # (the cells on which a lens's blur acts, `render_camera_dic`)
 SHADE_STRIDE = 16            # px between the nodes of the coarsest level of the light map
 SHADE_TOLERANCE = 0.03       # a light-map cell whose corner values differ by at most this fraction
                              # of the light scale (and that sees one shape) is interpolated
@@ -55,83 +46,6 @@ SAMPLED_BYTES_PER_PIXEL = 80 * PRESAMPLE ** 2   # Mitsuba's film and wavefront p
 CELL_BYTES_PER_PIXEL = 16    # a DIC render's cell rows (PRESAMPLE float32 a pixel) and their blur
 DISTORTION_BYTES_PER_PIXEL = 48   # the resampling map (H, W, 2) float64 and its spline copies
 IMAGE_BYTES_PER_PIXEL = 6    # what render_images keeps per pixel and camera: float32 + 16-bit DN
-
-
-@dataclass(frozen=True, eq=False)
-class SpeckleTable:
-    """Summed-area table of a [0, 1] speckle tile for exact box averages of its bilinear texture.
-
-    The texture (`build_render_scene`'s bitmap, bilinear, periodic) in texel coordinates
-    x = u W_t, y = v H_t is f = g * box, g(x, y) = pattern[floor y mod H_t, floor x mod W_t] the
-    nearest-texel image and box the unit square centred at 0. With G the antiderivative of g
-    (bilinear between the integer corners S[j, i] = sum of g over [0, i) x [0, j)), the
-    antiderivative of f is H(x, y) = sum_ij S[j, i] B2(x - i) B2(y - j), B2 the quadratic
-    B-spline (3 x 3 taps), so that
-
-        ∫∫_[x0, x1] x [y0, y1] f = H(x1, y1) - H(x0, y1) - H(x1, y0) + H(x0, y0)   (texel^2)
-
-    exactly. `table` holds S of g - mean over the tile padded by `pad` wrapped texels
-    (row/column k is corner k - pad), so any box whose centre lies in the tile and whose
-    half-extent is at most pad - 2 is read without wrapping; `texels` holds g itself (float32)
-    padded alike, for small boxes read texel by texel (`_direct_means`)."""
-
-    table: np.ndarray       # (H_t + 2 pad + 1, W_t + 2 pad + 1) float64
-    mean: float
-    pad: int
-    shape: tuple[int, int]  # (H_t, W_t)
-    texels: np.ndarray      # (H_t + 2 pad, W_t + 2 pad) float32
-
-    @functools.cached_property
-    def _drjit(self) -> tuple:
-        from vdo.core.backend import mitsuba
-
-        mi = mitsuba()
-        return (mi.Float64(np.ascontiguousarray(self.table.ravel())),
-                mi.Float(np.ascontiguousarray(self.texels.ravel())))
-
-    def table_drjit(self):
-        """`table` flattened, as a Dr.Jit Float64 (made once)."""
-        return self._drjit[0]
-
-    def texels_drjit(self):
-        """`texels` flattened, as a Dr.Jit Float (made once)."""
-        return self._drjit[1]
-
-    @classmethod
-    def of(cls, pattern, pad: int = SAT_PAD_TEXELS) -> "SpeckleTable":
-        g = np.asarray(pattern, dtype=np.float64)
-        mean = float(g.mean())
-        tiled = np.pad(g - mean, pad, mode="wrap")
-        table = np.zeros((tiled.shape[0] + 1, tiled.shape[1] + 1))
-        table[1:, 1:] = tiled.cumsum(0).cumsum(1)
-        texels = np.pad(g, pad, mode="wrap").astype(np.float32)
-        return cls(table, mean, int(pad), g.shape, texels)
-
-    def box_average(self, x0, x1, y0, y1) -> np.ndarray:
-        """The mean of the bilinear texture f over the boxes [x0, x1] x [y0, y1] (texels, any
-        position: each box is moved by whole tiles to centre it in the tile); numpy reference of
-        what the DIC render computes with Dr.Jit."""
-        x0, x1, y0, y1 = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (x0, x1, y0, y1)))
-        h, w = self.shape
-        sx = np.floor((x0 + x1) / 2 / w) * w
-        sy = np.floor((y0 + y1) / 2 / h) * h
-        total = 0.0
-        for xs, ys, sign in ((x1, y1, 1), (x0, y1, -1), (x1, y0, -1), (x0, y0, 1)):
-            total = total + sign * self._antiderivative(xs - sx, ys - sy)
-        return self.mean + total / ((x1 - x0) * (y1 - y0))
-
-    def _antiderivative(self, x, y):
-        rx, ry = np.rint(x), np.rint(y)
-        wx, wy = _b2_weights(x - rx), _b2_weights(y - ry)
-        ix, iy = rx.astype(np.int64) + self.pad, ry.astype(np.int64) + self.pad
-        return sum(wy[a] * wx[b] * self.table[iy + a - 1, ix + b - 1]
-                   for a in range(3) for b in range(3))
-
-
-def _b2_weights(t):
-    """Quadratic B-spline weights of the corners round(x) - 1, round(x), round(x) + 1 for
-    t = x - round(x) in [-1/2, 1/2]."""
-    return (0.5 * (0.5 - t) ** 2, 0.75 - t * t, 0.5 * (0.5 + t) ** 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -258,7 +172,7 @@ def render_camera_dic(dscene: DicScene, camera: Camera, progress=None,
     * on a speckled region, the albedo ρ = ρ_b + (ρ_w - ρ_b) f̄ with f̄ the mean of the bilinear
       texture over the footprint parallelogram c + [-½, ½] a + [-½, ½] b, cut into
       FOOTPRINT_SPLIT^2 parts, each replaced by the axis-aligned box of the same second moments
-      (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly (`_part_means`:
+      (half-widths ½ |(a_x, b_x)| / n and ½ |(a_y, b_y)| / n), averaged exactly (`vdo.rendering.footprint.part_means`:
       from the few texels a small box reads, else the `SpeckleTable`; exact for a footprint
       aligned with the texture axes);
     * the light reaching the hit (`vdo.rendering.shading.shade`: each panel probed by shadow
@@ -373,7 +287,7 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
     for sid in dscene.speckled_ids:
         speckled |= shape == sid
     speckled &= si.is_valid()
-    means = _part_means(dscene.table, mi.Float64(si.uv.x) * wt, mi.Float64(si.uv.y) * ht,
+    means = part_means(dscene.table, mi.Float64(si.uv.x) * wt, mi.Float64(si.uv.y) * ht,
                         *(c * s for c, s in ((si.duv_dx.x, wt), (si.duv_dx.y, ht),
                                              (si.duv_dy.x, wt), (si.duv_dy.y, ht))), active=speckled)
 
@@ -383,132 +297,6 @@ def _footprint_albedo(dscene: DicScene, si, cells: bool = False):
         return dr.select(speckled, black + (white - black) * f, 1.0)
     n = FOOTPRINT_SPLIT
     return [albedo(f) for f in means] if cells else albedo(sum(means[1:], means[0]) / (n * n))
-
-
-def _part_means(table: SpeckleTable, x, y, ax, ay, bx, by, taps=DIRECT_TAPS, active=True) -> list:
-    """The mean of the bilinear texture over each of the FOOTPRINT_SPLIT^2 parts of the
-    footprints centred at (x, y) (Dr.Jit Float64, texels) with sides a = (ax, ay) and
-    b = (bx, by) (Float, texels), part (i, j) at i FOOTPRINT_SPLIT + j: the part's axis-aligned
-    box of the same second moments (`render_camera_dic`), its centre c + ((i + ½) / n - ½) a +
-    ((j + ½) / n - ½) b, its half-widths hx = ½ |(ax, bx)| / n, hy = ½ |(ay, by)| / n (n =
-    FOOTPRINT_SPLIT; at least MIN_HALF_TEXELS). Evaluated (with what the caller has scheduled);
-    lanes outside `active` (a Dr.Jit Bool, or True) get some value.
-
-    A box at most K - 2 texels wide on both axes (K the first of `taps`) meets the tents of K x K
-    texels at most, and its mean is their separable sum (`_direct_means`, float32 texels read near
-    one another); the others go to the next of `taps`, and past the last to the summed-area table
-    (`_table_means`, four float64 corners of 3 x 3 reads each). Measured on the built-in's cam1 (a
-    4 M pixel tile, 0.2-texel boxes): 0.06 s against 0.16 s."""
-    import drjit as dr
-
-    from vdo.core.backend import mitsuba
-
-    mi = mitsuba()
-    wt, ht = table.shape[1], table.shape[0]
-    x, y = (dr.select(dr.isfinite(c), c - dr.floor(c / p) * p, 0.0) for c, p in ((x, wt), (y, ht)))
-    n = FOOTPRINT_SPLIT
-    hx = dr.maximum(0.5 * dr.sqrt(ax * ax + bx * bx) / n, MIN_HALF_TEXELS)
-    hy = dr.maximum(0.5 * dr.sqrt(ay * ay + by * by) / n, MIN_HALF_TEXELS)
-    if not taps:
-        return _table_means(table, x, y, ax, ay, bx, by, mi.Float64(hx), mi.Float64(hy))
-    K = taps[0]
-    narrow = dr.maximum(hx, hy) <= 0.5 * (K - 2)                    # NaN: not narrow
-    small = [dr.select(narrow, c, 0.0) for c in (ax, ay, bx, by)]   # the others read their centre
-    means = _direct_means(table, K, x, y, *small, dr.select(narrow, hx, MIN_HALF_TEXELS),
-                          dr.select(narrow, hy, MIN_HALF_TEXELS))
-    wide = active & ~narrow
-    dr.eval(*means, wide, x, y, ax, ay, bx, by)
-    lanes = dr.compress(wide)
-    if dr.width(lanes):
-        rest = _part_means(table, *(dr.gather(type(c), c, lanes) for c in (x, y, ax, ay, bx, by)),
-                           taps=taps[1:])
-        for whole, part in zip(means, rest):
-            dr.scatter(whole, part, lanes)
-    return means
-
-
-def _parts(x, y, ax, ay, bx, by):
-    """The parts' centres (Float64 pairs), part (i, j) at i FOOTPRINT_SPLIT + j."""
-    from vdo.core.backend import mitsuba
-
-    F64 = mitsuba().Float64
-    n = FOOTPRINT_SPLIT
-    for i in range(n):
-        for j in range(n):
-            oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
-            yield x + F64(oi * ax + oj * bx), y + F64(oi * ay + oj * by)
-
-
-def _tent_integral(t):
-    """∫_{-∞}^t max(0, 1 - |s|) ds: the antiderivative of a bilinear texel's weight along one axis."""
-    import drjit as dr
-
-    t = dr.clip(t, -1.0, 1.0)
-    return dr.select(t < 0, 0.5 * (t + 1) * (t + 1), 1.0 - 0.5 * (1 - t) * (1 - t))
-
-
-def _direct_means(table: SpeckleTable, K: int, x, y, ax, ay, bx, by, hx, hy) -> list:
-    """`_part_means` from the K x K texels whose tents meet each box (valid for boxes at most
-    K - 2 texels wide): texel (j, i) has its centre at (i + ½, j + ½) and the weight of a box
-    [x0, x1] along x is T(x1 - i - ½) - T(x0 - i - ½), T = `_tent_integral`; the mean is
-    Σ_ji w_j w_i g_ji / (4 hx hy), for i from ⌊x0 - ½⌋ (the first texel whose tent reaches past
-    x0) on."""
-    import drjit as dr
-
-    from vdo.core.backend import mitsuba
-
-    mi = mitsuba()
-    F = mi.Float
-    texels, pad = table.texels_drjit(), table.pad
-    stride = dr.opaque(mi.Int32, table.shape[1] + 2 * pad)
-    means = []
-    for cx, cy in _parts(x, y, ax, ay, bx, by):
-        x0, y0 = cx - hx, cy - hy
-        i0, j0 = dr.floor(x0 - 0.5), dr.floor(y0 - 0.5)
-        tx, ty = F(x0 - (i0 + 0.5)), F(y0 - (j0 + 0.5))      # x0 from the first texel's centre
-        wx = [_tent_integral(tx + 2 * hx - k) - _tent_integral(tx - k) for k in range(K)]
-        wy = [_tent_integral(ty + 2 * hy - k) - _tent_integral(ty - k) for k in range(K)]
-        base = (mi.Int32(j0) + pad) * stride + mi.Int32(i0) + pad     # pad: one literal for all
-        total = F(0.0)
-        for a in range(K):
-            row = sum(wx[c] * dr.gather(F, texels, base + a * stride + c) for c in range(K))
-            total += wy[a] * row
-        means.append(total / (4 * hx * hy))
-    return means
-
-
-def _table_means(table: SpeckleTable, x, y, ax, ay, bx, by, hx, hy) -> list:
-    """`_part_means` from the summed-area table (any box; a footprint wider than the table's
-    padding allows is shrunk about its centre to fit)."""
-    import drjit as dr
-
-    from vdo.core.backend import mitsuba
-
-    mi = mitsuba()
-    F = mi.Float64
-    flat, pad = table.table_drjit(), table.pad
-    stride = dr.opaque(mi.Int32, table.table.shape[1])
-    ax, ay, bx, by = F(ax), F(ay), F(bx), F(by)
-    extent = dr.maximum(dr.abs(ax) + dr.abs(bx), dr.abs(ay) + dr.abs(by)) / 2
-    k = dr.minimum(1.0, (pad - 3) / dr.maximum(extent, 1e-30))        # clamp huge footprints
-    ax, ay, bx, by, hx, hy = ax * k, ay * k, bx * k, by * k, hx * k, hy * k
-
-    def antiderivative(px, py):
-        rx, ry = dr.round(px), dr.round(py)
-        wx, wy = _b2_weights(px - rx), _b2_weights(py - ry)
-        ix, iy = mi.Int32(rx) + pad - 1, mi.Int32(ry) + pad - 1
-        total = F(0.0)
-        for a in range(3):
-            row = (iy + a) * stride + ix
-            total += wy[a] * sum(wx[c] * dr.gather(F, flat, row + c) for c in range(3))
-        return total
-
-    means = []
-    for cx, cy in _parts(x, y, ax, ay, bx, by):
-        box = (antiderivative(cx + hx, cy + hy) - antiderivative(cx - hx, cy + hy)
-               - antiderivative(cx + hx, cy - hy) + antiderivative(cx - hx, cy - hy))
-        means.append(mi.Float(dr.opaque(F, table.mean) + box / (4 * hx * hy)))
-    return means
 
 
 def _shape_ids(si):
