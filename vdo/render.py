@@ -371,10 +371,11 @@ def render_images(exp, scale: float | None = None, spp: int | None = None,
     images, linear, seconds = {}, {}, {}
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
     # The DIC mode's light in surface space (`vdo.rendering.lightmap`): one map per camera. One
-    # map shared by the frame's cameras costs more for a single frame (its lattices are as fine
-    # as the nearest camera's, and the cameras see mostly different surfaces: built-in, ten
-    # cameras at full size, 96.5 s CPU against 82.9 s without a map; benchmarks/README.md); it
-    # pays where a frame is rendered again (a series' steps, `vdo.dic.series`).
+    # map shared by the frame's cameras has lattices as fine as the nearest camera's over
+    # surfaces the others do not see (built-in, ten cameras at full size: 96.5 s CPU against
+    # 82.9 s without a map when this was chosen; 60.7 against 72.6 s since every camera runs the
+    # same compiled kernels; per-camera maps were not timed beside it, benchmarks/README.md); a
+    # map pays most where a frame is rendered again (a series' steps, `vdo.dic.series`).
     for i in bar(log, iterable=chosen, desc="render", unit="camera"):
         cam, spec = cameras[i], exp.camera_specs[i]
         t0 = time.perf_counter()

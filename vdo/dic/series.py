@@ -172,9 +172,9 @@ def series_images(plan: SeriesPlan) -> Iterator[SeriesImage]:
     exp, geometry, seed = plan.experiment, plan.geometry, plan.seed
     gathered = exposure_factors(exp.camera_specs, exp.sensor)
     # the DIC mode's surface light maps, per camera (posed meshes, map): each camera's own (a map
-    # shared by the cameras is as fine as the nearest one's, over surfaces the others do not see:
-    # more work in one frame, `vdo.render.render_images`), reused by the steps whose geometry it
-    # holds (`map_holds`: micrometre deformation, not a rigid move by millimetres)
+    # shared by the cameras is as fine as the nearest one's, over surfaces the others do not see,
+    # `vdo.render.render_images`), reused by the steps whose geometry it holds (`map_holds`:
+    # micrometre deformation, not a rigid move by millimetres)
     maps = [[] for _ in plan.cameras]
     for step in plan.steps:
         posed = geometry.meshes if step == 0 else at_step(geometry, plan.load_path, step,
