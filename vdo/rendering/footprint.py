@@ -165,32 +165,58 @@ def _tent_integral(t):
 
 def _direct_means(table: SpeckleTable, K: int, x, y, ax, ay, bx, by, hx, hy) -> list:
     """`part_means` from the K x K texels whose tents meet each box (valid for boxes at most
-    K - 2 texels wide): texel (j, i) has its centre at (i + ½, j + ½) and the weight of a box
-    [x0, x1] along x is T(x1 - i - ½) - T(x0 - i - ½), T = `_tent_integral`; the mean is
-    Σ_ji w_j w_i g_ji / (4 hx hy), for i from ⌊x0 - ½⌋ (the first texel whose tent reaches past
-    x0) on."""
+    K - 2 texels wide). Along x, with texel i's centre at i + ½ and the box [x0, x1], the first
+    texel is i0 = ⌊x0 - ½⌋ and u = x - (i0 + ½) in [0, 1) at x0; the box's integral of the row's
+    linear interpolant g is Σ_k w_k g_k with
+
+        w_k = T(u1 - k) - T(u0 - k),   T(t) = ∫_{-∞}^t max(0, 1 - |s|) ds   (`_tent_integral`),
+
+    and for K = 3 (u1 = u0 + 2 hx < 2) in closed form, with p = min(u1, 1), v = u1 - p:
+    w_0 = (p - p²/2) - (u0 - u0²/2), w_1 = p²/2 + v - v²/2 - u0²/2, w_2 = v²/2 (the
+    antiderivative of g over its two segments). The mean is Σ_ji w_j w_i g_ji / (4 hx hy). The
+    footprint's centre is split once into its texel (integer) and its offset (float32), each
+    part placed from the offset in float32."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
-    F = mi.Float
+    F, I = mi.Float, mi.Int32
     texels, pad = table.texels_drjit(), table.pad
-    stride = dr.opaque(mi.Int32, table.shape[1] + 2 * pad)
+    stride = dr.opaque(I, table.shape[1] + 2 * pad)
+    x_floor, y_floor = dr.floor(x), dr.floor(y)
+    corner = (I(y_floor) + pad) * stride + I(x_floor) + pad       # pad: one literal for all
+    dx, dy = F(x - x_floor) - hx - 0.5, F(y - y_floor) - hy - 0.5   # x0 - ½ of the centre, in its texel
+    n = FOOTPRINT_SPLIT
     means = []
-    for cx, cy in _parts(x, y, ax, ay, bx, by):
-        x0, y0 = cx - hx, cy - hy
-        i0, j0 = dr.floor(x0 - 0.5), dr.floor(y0 - 0.5)
-        tx, ty = F(x0 - (i0 + 0.5)), F(y0 - (j0 + 0.5))      # x0 from the first texel's centre
-        wx = [_tent_integral(tx + 2 * hx - k) - _tent_integral(tx - k) for k in range(K)]
-        wy = [_tent_integral(ty + 2 * hy - k) - _tent_integral(ty - k) for k in range(K)]
-        base = (mi.Int32(j0) + pad) * stride + mi.Int32(i0) + pad     # pad: one literal for all
-        total = F(0.0)
-        for a in range(K):
-            row = sum(wx[c] * dr.gather(F, texels, base + a * stride + c) for c in range(K))
-            total += wy[a] * row
-        means.append(total / (4 * hx * hy))
+    for i in range(n):
+        for j in range(n):
+            oi, oj = (i + 0.5) / n - 0.5, (j + 0.5) / n - 0.5
+            px, py = dx + (oi * ax + oj * bx), dy + (oi * ay + oj * by)
+            fx, fy = dr.floor(px), dr.floor(py)
+            wx, wy = _weights(K, px - fx, 2 * hx), _weights(K, py - fy, 2 * hy)
+            base = corner + I(fy) * stride + I(fx)
+            total = F(0.0)
+            for a in range(K):
+                row = base + a * stride
+                total += wy[a] * sum((wx[c] * dr.gather(F, texels, row + c) for c in range(1, K)),
+                                     wx[0] * dr.gather(F, texels, row))
+            means.append(total / (4 * hx * hy))
     return means
+
+
+def _weights(K: int, u0, width) -> list:
+    """`_direct_means`'s weights w_0 .. w_{K-1} of a box from u0 to u0 + width (texels from the
+    first texel's centre, u0 in [0, 1))."""
+    import drjit as dr
+
+    if K == 3:
+        u1 = u0 + width
+        p = dr.minimum(u1, 1.0)
+        v = u1 - p
+        half_p2, half_v2, half_u2 = 0.5 * p * p, 0.5 * v * v, 0.5 * u0 * u0
+        return [p - half_p2 - (u0 - half_u2), half_p2 + v - half_v2 - half_u2, half_v2]
+    return [_tent_integral(u0 + width - k) - _tent_integral(u0 - k) for k in range(K)]
 
 
 def _table_means(table: SpeckleTable, x, y, ax, ay, bx, by, hx, hy) -> list:

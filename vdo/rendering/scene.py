@@ -185,6 +185,8 @@ def lens_sigma_px(camera: Camera, spec) -> float:
 
 CELL_BLUR_TRUNCATE = 4.0   # the lens's Gaussian is cut at this many standard deviations (as SciPy's)
 BLUR_THREAD_CELLS = 1 << 18   # an image of fewer cells is blurred on one thread
+BLUR_STRIP_CELLS = 1 << 20    # ... a larger one in strips of about this many cells (the threads take
+                              # them in turn: a strip's temporaries stay in the cache)
 
 
 def cell_blur_kernel(sigma_px: float, n: int) -> np.ndarray:
@@ -213,18 +215,28 @@ def cell_blur(cells: np.ndarray, sigma_px: float, n: int, axis: int) -> np.ndarr
     cells = np.asarray(cells, dtype=np.float32)
     if cells.ndim != 2:
         return _cell_blur(cells, sigma_px, n, axis)
-    parts = _on_strips(cells.shape[1 - axis], cells.size,
-                       lambda s: _cell_blur(cells[s] if axis == 1 else cells[:, s], sigma_px, n, axis))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=1 - axis)
+    shape = list(cells.shape)
+    shape[axis] //= n
+    out = np.empty(shape, dtype=np.float32)
+
+    def strip(s: slice) -> None:
+        at = (s, slice(None)) if axis == 1 else (slice(None), s)
+        out[at] = _cell_blur(cells[at], sigma_px, n, axis)
+    _on_strips(cells.shape[1 - axis], cells.size, strip)
+    return out
 
 
 def _on_strips(length: int, cells: int, work) -> list:
-    """[work(s) for each slice s of range(length)]: `vdo.core.backend.cpu_threads` strips at once
-    (NumPy releases the GIL), one strip for an image of fewer than BLUR_THREAD_CELLS `cells`."""
+    """[work(s) for each slice s of range(length)], in order: strips of about BLUR_STRIP_CELLS of
+    the image's `cells`, `vdo.core.backend.cpu_threads` at once (NumPy releases the GIL); one strip
+    for an image of fewer than BLUR_THREAD_CELLS cells. Measured on the built-in's cam1 at full
+    size: the blur along the rows 0.23-0.28 s in one strip a thread, 0.17-0.19 s in 48-row strips;
+    across them 0.18-0.27 s against 0.14-0.15 s in 48-column strips."""
     from vdo.core.backend import cpu_threads
 
     threads = max(1, min(cpu_threads(), length)) if cells >= BLUR_THREAD_CELLS else 1
-    cuts = np.linspace(0, length, threads + 1).astype(int)
+    count = min(length, max(threads, -(-cells // BLUR_STRIP_CELLS))) if threads > 1 else 1
+    cuts = np.linspace(0, length, count + 1).astype(int)
     strips = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
     if threads == 1:
         return [work(s) for s in strips]
