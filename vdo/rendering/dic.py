@@ -225,11 +225,12 @@ def _pixel_grid(u, v) -> np.ndarray:
     return np.stack(np.broadcast_arrays(u[None, :], v[:, None]), axis=-1).reshape(-1, 2)
 
 
-def _rays(camera: Camera, grid, step: float = 1.0):
+def _rays(camera: Camera, grid, step: float = 1.0, differentials: bool = True):
     """Mitsuba ray differentials for the (distorted) pixels `grid` ((n, 2) array, or a pair of
     Dr.Jit Floats (u, v)): from the near-clip plane through the pinhole pixel p =
     `Camera.undistorted_pixels`(u, v) and, as differentials, through p + ∂p/∂u and p + ∂p/∂v
-    for a step of `step` pixels (central differences over ±step/2 for a distorted camera)."""
+    for a step of `step` pixels (central differences over ±step/2 for a distorted camera);
+    without `differentials`, the rays alone."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
@@ -246,6 +247,12 @@ def _rays(camera: Camera, grid, step: float = 1.0):
     def direction(x, y):
         return mi.Vector3f(*(M[k][0] * x + M[k][1] * y + M[k][2] for k in range(3)))
 
+    if camera.distorted and not differentials:
+        p = camera.undistorted_pixels(grid)
+        px, py = (mi.Float(np.ascontiguousarray(p[:, k], dtype=np.float32)) for k in range(2))
+        d = direction(px, py)
+        o = mi.Point3f(*number[9:])
+        return mi.Ray3f(o + NEAR_CLIP_M * d, dr.normalize(d))
     if camera.distorted:
         at = camera.undistorted_pixels
         du, dv = np.array([step / 2, 0.0]), np.array([0.0, step / 2])
@@ -261,6 +268,9 @@ def _rays(camera: Camera, grid, step: float = 1.0):
     # Each ray starts on the near-clip plane (the camera frame's z = NEAR_CLIP_M, as Mitsuba's
     # perspective sensor), so that a camera's own body around its centre is not hit.
     o = mi.Point3f(*number[9:])
+    if not differentials:
+        d = direction(px, py)
+        return mi.Ray3f(o + NEAR_CLIP_M * d, dr.normalize(d))
     d, d_x, d_y = direction(px, py), direction(px + pux, py + puy), direction(px + pvx, py + pvy)
     ray = mi.RayDifferential3f(o + NEAR_CLIP_M * d, dr.normalize(d))
     ray.o_x, ray.o_y = o + NEAR_CLIP_M * d_x, o + NEAR_CLIP_M * d_y
@@ -308,23 +318,34 @@ def _shape_ids(si):
     return dr.reinterpret_array(mitsuba().UInt32, si.shape)
 
 
-def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0, barycentric: bool = False):
-    """Primary hits (with uv partials over a footprint of `step` pixels) of the pixels `grid`
-    (`_rays`), traced in Embree's coherent mode: neighbouring lanes are neighbouring pixels. On
-    cam1 of the built-in the traversal took 0.3 s instead of 1.3 s for 24 M rays, with the same
-    hits except where two surfaces tie on a shared edge (the other one taken at ~600 pixels)."""
+def _cast(dscene: DicScene, camera: Camera, grid, step: float = 1.0, barycentric: bool = False,
+          partials: bool = True):
+    """Primary hits (with uv partials over a footprint of `step` pixels; without `partials`, to be
+    shaded only: fewer values to trace) of the pixels `grid` (`_rays`), traced in Embree's coherent
+    mode: neighbouring lanes are neighbouring pixels. On cam1 of the built-in the traversal took
+    0.3 s instead of 1.3 s for 24 M rays, with the same hits except where two surfaces tie on a
+    shared edge (the other one taken at ~600 pixels)."""
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
-    ray = _rays(camera, grid, step)
+    ray = _rays(camera, grid, step, differentials=partials)
     if barycentric:          # and the hits' barycentric coordinates (Mitsuba's prim_uv)
         pi = dscene.scene.ray_intersect_preliminary(ray, True)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
-        si.compute_uv_partials(ray)
+        if partials:
+            si.compute_uv_partials(ray)
         return si, pi.prim_uv
     si = dscene.scene.ray_intersect(ray, mi.RayFlags.All, True)
-    si.compute_uv_partials(ray)
+    if partials:
+        si.compute_uv_partials(ray)
     return si
+
+
+def _shaded(dscene: DicScene, camera: Camera, grid):
+    """(`shade` at the primary hits of the pixels `grid`, the hits): cast without ray
+    differentials or uv partials, which the shading does not read."""
+    si = _cast(dscene, camera, grid, partials=False)
+    return shade(dscene, si), si
 
 
 def _light_scale(dscene: DicScene, camera: Camera) -> float:
@@ -332,8 +353,7 @@ def _light_scale(dscene: DicScene, camera: Camera) -> float:
     the pixels every SCALE_STRIDE px; the light map's tolerances are fractions of it."""
     xs = np.arange(SCALE_STRIDE // 2, camera.width, SCALE_STRIDE, dtype=float)
     ys = np.arange(SCALE_STRIDE // 2, camera.height, SCALE_STRIDE, dtype=float)
-    light = shade(dscene, _cast(dscene, camera, _pixel_grid(xs if len(xs) else np.zeros(1),
-                                                            ys if len(ys) else np.zeros(1))))
+    light, _ = _shaded(dscene, camera, _pixel_grid(xs if len(xs) else np.zeros(1), ys if len(ys) else np.zeros(1)))
     lit = light[light > 0]
     return float(np.percentile(lit, SCALE_PERCENTILE)) if len(lit) else 1.0
 
@@ -608,11 +628,11 @@ class _LightNodes:
         if len(y) == 0:
             return
         grid = np.column_stack([x.astype(float), r0 + y.astype(float)])
-        if dscene.light_map is None:
-            si = _cast(dscene, camera, grid)
-            light = shade(dscene, si)
+        h, W = self.tile
+        if dscene.light_map is None or ((y < h) & (x < W)).all():     # the map failed at those pixels
+            light, si = _shaded(dscene, camera, grid)
         else:
-            si, prim_uv = _cast(dscene, camera, grid, barycentric=True)
+            si, prim_uv = _cast(dscene, camera, grid, barycentric=True, partials=False)
             dr.eval(si, prim_uv)              # once: the lookup, the shading and the reads below
             light = _mapped_light(dscene, camera, si, prim_uv, scale)
         shape = np.array(_shape_ids(si))
@@ -699,6 +719,6 @@ def _supersampled(dscene: DicScene, camera: Camera, r0: int, pixels: np.ndarray,
         sub_light[take] = np.broadcast_to(light[y, x][:, None], sub_ids.shape)[take]
     alone = np.flatnonzero(np.isnan(sub_light).ravel())
     if len(alone):
-        sub_light.ravel()[alone] = shade(dscene, _cast(dscene, camera, sub[alone], 1.0 / k))
+        sub_light.ravel()[alone] = _shaded(dscene, camera, sub[alone])[0]
     total = np.array(value, dtype=np.float64) + np.array(rho, dtype=np.float64) * sub_light.ravel()
     return total.reshape(len(pixels), k * k).mean(axis=1)
