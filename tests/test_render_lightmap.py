@@ -88,6 +88,48 @@ def test_the_surface_map_follows_the_light_computed_at_every_pixel(plate_experim
     assert d.std() <= RENDER_STD_TOL and np.abs(d).max() <= RENDER_MAX_TOL
 
 
+def test_the_maps_light_read_in_the_render_kernel_is_its_lookup(plate_experiment):
+    """`SurfaceLightMap.filled` (the map's light scheduled in a tile's kernel, `render_camera_dic`)
+    against `finish` (the lookup that computes the nodes it lacks) on the penumbra plate: on a
+    fresh map every hit the map serves is `missing` and none has light; on a map filled from
+    half the image, the other half's new blocks and nodes are missing; once the whole image
+    was looked up, none is missing and the light is the lookup's, NaN where it is NaN."""
+    import drjit as dr
+
+    from vdo.core.backend import mitsuba
+    from vdo.rendering import dic
+
+    mi = mitsuba()
+    exp = penumbra_plate(plate_experiment)
+    ds, (cam,) = dic_scene(exp)
+    light_map = surface_light_map(ds, [cam])
+    mapped = replace(ds, light_map=light_map)
+    v, u = np.mgrid[: cam.height, : cam.width]
+    grid = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    si, prim_uv = dic._cast(mapped, cam, grid, barycentric=True)
+    prepared = light_map.prepare(mapped, si, prim_uv)
+    dr.eval(prepared)
+    scale = dic._light_scale(ds, cam)
+
+    def filled():
+        light, missing = light_map.filled(mapped, prepared, scale, cam.focal_px)
+        dr.eval(light, missing)
+        return np.array(light), np.array(missing)
+    served = np.array(prepared[0]) != 0xFFFFFFFF
+    light, missing = filled()
+    assert missing.any() and not missing[~served].any() and not np.isfinite(light).any()
+    top = np.arange(len(grid)) < len(grid) // 2
+    light_map.finish(mapped, tuple(dr.gather(type(a), a, dr.compress(mi.Bool(top))) for a in prepared),
+                     scale, cam.focal_px)
+    light, missing = filled()
+    assert missing[~top].any() and not missing[top].any()
+    value, ok = light_map.finish(mapped, prepared, scale, cam.focal_px)
+    light, missing = filled()
+    assert not missing.any()
+    assert np.array_equal(np.isfinite(light), ok) and ok.mean() > 0.5
+    assert light[ok] == pytest.approx(value[ok], rel=1e-6)
+
+
 def test_the_surface_map_gives_a_panels_closed_form_and_an_open_sky(plate_experiment):
     """A white Lambertian plate under a parallel panel (no sky): the map's light is L F, F the
     form factor to the rectangle (closed form), within FORM_TOL at every pixel; under an open sky

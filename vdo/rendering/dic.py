@@ -390,7 +390,9 @@ def _tile_hits(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     emitted = mi.luminance(si.emitter(dscene.scene).eval(si))
     ids = _shape_ids(si)
     prepared = dscene.light_map.prepare(dscene, si, prim_uv) if mapped else ()
-    dr.schedule(emitted, ids, si.sh_frame.n, *prepared)           # one kernel with the albedo's
+    # the map's light read in the same kernel where it can be (every node it needs computed)
+    filled = dscene.light_map.filled(dscene, prepared, scale, camera.focal_px) if mapped else ()
+    dr.schedule(emitted, ids, si.sh_frame.n, *prepared, *filled)   # one kernel with the albedo's
     rho = _footprint_albedo(dscene, si, cells=cells)
     rho = rho if cells else [rho]
     dr.eval(*rho)
@@ -399,7 +401,10 @@ def _tile_hits(dscene: DicScene, camera: Camera, r0: int, r1: int, scale: float,
     tile = nodes.I[:h, :W]
     del si, prim_uv
     if mapped:         # the frame's surface light map where its nodes agree (NaN elsewhere)
-        nodes.L[:h, :W] = dscene.light_map.finish(dscene, prepared, scale, camera.focal_px)[0].reshape(h, W)
+        light, missing = filled
+        if dr.any(missing)[0]:                    # nodes to compute first: the map's own lookup
+            light = dscene.light_map.finish(dscene, prepared, scale, camera.focal_px)[0]
+        nodes.L[:h, :W] = np.asarray(light).reshape(h, W)
     nodes.L[:h, :W][tile == 0] = 0.0                   # a pixel that sees nothing has no light
     return _TileHits(r0, nodes, np.asarray(emitted), [np.asarray(part) for part in rho])
 

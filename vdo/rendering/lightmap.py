@@ -128,20 +128,13 @@ class SurfaceLightMap:
         upper = (fi + fj > 1) & (i + j <= n - 2)
         return i, j, upper, dr.select(upper, 1 - fi, fi), dr.select(upper, 1 - fj, fj)
 
-    def finish(self, dscene, prepared, scale: float, focal_px: float, tolerance: float | None = None):
-        """`lookup` from `prepare`'s arrays."""
-        import drjit as dr
-
-        from vdo.core.backend import mitsuba
-
-        mi = mitsuba()
-        _, names = _id_table(dscene, self)
+    def _block(self, mi, dr, prepared, focal_px):
+        """The block of each hit of `prepare`'s arrays (UInt32), its lattice's divisions (UInt32),
+        the hit's coordinates in the block (bu, bv) and where the map serves it (a diffuse front
+        face whose block has a lattice, the sub-triangle small enough in the camera of focal
+        length `focal_px`: an opaque Float); lazy Dr.Jit arrays."""
         tri, pu, pv, distance, cos_view = prepared
-        tolerance = MAP_TOLERANCE if tolerance is None else tolerance
-        # the camera's numbers as opaque values: one compiled kernel for every camera
-        focal_px, bound = dr.opaque(mi.Float, focal_px), dr.opaque(mi.Float, tolerance * scale)
         active = tri != 0xFFFFFFFF
-        # the block
         nc = mi.Int32(dr.gather(mi.UInt32, self._device("nc"), tri, active))
         i1, j1, up1, bu, bv = self._cell(mi, dr, pu * mi.Float(nc), pv * mi.Float(nc), nc)
         local = dr.select(up1, nc * (nc + 1) // 2 + i1 * (nc - 1) - i1 * (i1 - 1) // 2 + j1,
@@ -152,21 +145,66 @@ class SurfaceLightMap:
         # the sub-triangle's area in this camera's image (px²): world area x cos θ (f / distance)²
         area = dr.gather(mi.Float, self._device("area"), block, active) / dr.square(mi.Float(n))
         active &= 2 * area * cos_view * focal_px * focal_px <= MAP_MAX_PX * MAP_MAX_PX * distance * distance
-        hit = dr.zeros(mi.UInt32, max(len(self.n), 1))
-        dr.scatter(hit, 1, block, active)
-        fresh = np.flatnonzero(np.array(hit))
-        if len(fresh) and (self.base[fresh] < 0).any():
-            self._allocate(fresh)
+        return block, n, bu, bv, active
+
+    def _corners(self, mi, dr, block, n, bu, bv, active):
+        """The keys of the three nodes of each hit's sub-triangle (UInt32) and their weights, from
+        `_block`'s arrays (the block allocated)."""
         base = mi.Int32(dr.gather(mi.UInt32, self._device("base"), block, active))
-        # the sub-triangle of the block's lattice
         ni = mi.Int32(n)
         i, j, upper, a, b = self._cell(mi, dr, bu * mi.Float(n), bv * mi.Float(n), ni)
         one = mi.Int32(1)
         corners = [(dr.select(upper, i + one, i), dr.select(upper, j + one, j)),
                    (dr.select(upper, i, i + one), dr.select(upper, j + one, j)),
                    (dr.select(upper, i + one, i), dr.select(upper, j, j + one))]
-        weights = [1 - a - b, a, b]
         keys = [mi.UInt32(base + ci * (ni + 1) - ci * (ci - 1) // 2 + cj) for ci, cj in corners]
+        return keys, [1 - a - b, a, b]
+
+    @staticmethod
+    def _interpolated(dr, v, weights, active, bound):
+        """(light, ok): the nodes' interpolation where they agree within `bound`, NaN elsewhere."""
+        lo = dr.minimum(dr.minimum(v[0], v[1]), v[2])
+        hi = dr.maximum(dr.maximum(v[0], v[1]), v[2])
+        ok = active & (hi - lo <= bound)                      # False for NaN and inf
+        return dr.select(ok, weights[0] * v[0] + weights[1] * v[1] + weights[2] * v[2], dr.nan), ok
+
+    def filled(self, dscene, prepared, scale: float, focal_px: float):
+        """(light, missing): `finish`'s light as lazy Dr.Jit arrays, to be evaluated with the hits,
+        and where it cannot be read yet (a block without its lattice, a node not computed): where
+        no hit misses one, `finish` would give the same light without computing anything (a
+        camera's second render of a map already filled)."""
+        import drjit as dr
+
+        from vdo.core.backend import mitsuba
+
+        mi = mitsuba()
+        focal_px, bound = dr.opaque(mi.Float, focal_px), dr.opaque(mi.Float, MAP_TOLERANCE * scale)
+        block, n, bu, bv, active = self._block(mi, dr, prepared, focal_px)
+        allocated = dr.gather(mi.Bool, self._device("allocated"), block, active)
+        keys, weights = self._corners(mi, dr, block, n, bu, bv, active & allocated)
+        values = self._device("values")
+        v = [dr.gather(mi.Float, values, key, active & allocated) for key in keys]
+        missing = active & (~allocated | dr.isnan(v[0]) | dr.isnan(v[1]) | dr.isnan(v[2]))
+        return self._interpolated(dr, v, weights, active & allocated, bound)[0], missing
+
+    def finish(self, dscene, prepared, scale: float, focal_px: float, tolerance: float | None = None):
+        """`lookup` from `prepare`'s arrays."""
+        import drjit as dr
+
+        from vdo.core.backend import mitsuba
+
+        mi = mitsuba()
+        _, names = _id_table(dscene, self)
+        tolerance = MAP_TOLERANCE if tolerance is None else tolerance
+        # the camera's numbers as opaque values: one compiled kernel for every camera
+        focal_px, bound = dr.opaque(mi.Float, focal_px), dr.opaque(mi.Float, tolerance * scale)
+        block, n, bu, bv, active = self._block(mi, dr, prepared, focal_px)
+        hit = dr.zeros(mi.UInt32, max(len(self.n), 1))
+        dr.scatter(hit, 1, block, active)
+        fresh = np.flatnonzero(np.array(hit))
+        if len(fresh) and (self.base[fresh] < 0).any():
+            self._allocate(fresh)
+        keys, weights = self._corners(mi, dr, block, n, bu, bv, active)
         values = self._device("values")
         v = [dr.gather(mi.Float, values, key, active) for key in keys]
         missing = active & (dr.isnan(v[0]) | dr.isnan(v[1]) | dr.isnan(v[2]))
@@ -178,10 +216,7 @@ class SurfaceLightMap:
             self._compute(dscene, names, todo)
             values = self._device("values")
             v = [dr.gather(mi.Float, values, key, active) for key in keys]
-        lo = dr.minimum(dr.minimum(v[0], v[1]), v[2])
-        hi = dr.maximum(dr.maximum(v[0], v[1]), v[2])
-        ok = active & (hi - lo <= bound)                      # False for NaN and inf
-        light = dr.select(ok, weights[0] * v[0] + weights[1] * v[1] + weights[2] * v[2], dr.nan)
+        light, ok = self._interpolated(dr, v, weights, active, bound)
         dr.eval(light, ok)
         return np.array(light), np.array(ok)
 
@@ -196,6 +231,8 @@ class SurfaceLightMap:
             return cache[what][1]
         if what == "values":
             out = mi.Float(self.values[:self.used] if self.used else np.full(1, np.nan, dtype=np.float32))
+        elif what == "allocated":
+            out = mi.Bool(np.append(self.base >= 0, False))
         elif what == "area":
             out = mi.Float(self.area.astype(np.float32))
         else:
