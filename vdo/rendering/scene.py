@@ -240,10 +240,23 @@ def _on_strips(length: int, cells: int, work) -> list:
     strips = [slice(a, b) for a, b in zip(cuts[:-1], cuts[1:])]
     if threads == 1:
         return [work(s) for s in strips]
+    return list(_strip_pool(threads).map(work, strips))
+
+
+_POOLS: dict = {}
+
+
+def _strip_pool(threads: int):
+    """A thread pool of `threads` workers kept for the process (a render blurs in seven calls;
+    a forked child, which has none of its parent's threads, makes its own)."""
+    import os
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(threads) as pool:
-        return list(pool.map(work, strips))
+    key = (os.getpid(), threads)
+    pool = _POOLS.get(key)
+    if pool is None:
+        pool = _POOLS[key] = ThreadPoolExecutor(threads, thread_name_prefix="vdo-blur")
+    return pool
 
 
 def part_blur(part, shape: tuple[int, int], sigma_px: float, n: int) -> np.ndarray:

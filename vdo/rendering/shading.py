@@ -24,10 +24,26 @@ AMBIENT_POINTS = 8           # AMBIENT_POINTS^2 BSDF-sampled directions for the 
 SHADE_LANES = 1 << 19        # (hit, light point) pairs per shadow-ray batch (memory bound)
 
 
+_QUADRATURES: dict = {}
+
+
 def quadrature(dscene, rule: str = "midpoint"):
     """The lights' quadrature: points P (Q, 3), panel normals (Q, 3) and weights (Q,) L A w_a w_b,
     per panel the LIGHT_POINTS^2 midpoints (w = 1 / LIGHT_POINTS each way) or, with rule
-    "gauss", the LIT_POINTS^2 Gauss-Legendre points on the panel's [-1/2, 1/2]^2."""
+    "gauss", the LIT_POINTS^2 Gauss-Legendre points on the panel's [-1/2, 1/2]^2. Kept for the
+    last lights asked (a render shades some thirty batches under the same lights)."""
+    key = (id(dscene.lights), rule)
+    kept = _QUADRATURES.get(key)
+    if kept is not None and kept[0] is dscene.lights:
+        return kept[1]
+    if len(_QUADRATURES) > 8:
+        _QUADRATURES.clear()
+    out = _quadrature(dscene.lights, rule)
+    _QUADRATURES[key] = (dscene.lights, out)
+    return out
+
+
+def _quadrature(lights, rule: str):
     if rule == "gauss":
         x, w = np.polynomial.legendre.leggauss(LIT_POINTS)
         mid, w = x / 2, w / 2
@@ -37,7 +53,7 @@ def quadrature(dscene, rule: str = "midpoint"):
     a, b = (t.ravel()[:, None] for t in np.meshgrid(mid, mid, indexing="ij"))
     wab = np.outer(w, w).ravel()
     P, N, W = [], [], []
-    for c, e1, e2, normal, radiance in dscene.lights:
+    for c, e1, e2, normal, radiance in lights:
         P.append(c + a * e1 + b * e2)
         N.append(np.broadcast_to(normal, (len(wab), 3)))
         W.append(radiance * float(np.linalg.norm(np.cross(e1, e2))) * wab)
