@@ -250,10 +250,7 @@ def _rays(camera: Camera, grid, step: float = 1.0, differentials: bool = True):
     if camera.distorted and not differentials:
         p = camera.undistorted_pixels(grid)
         px, py = (mi.Float(np.ascontiguousarray(p[:, k], dtype=np.float32)) for k in range(2))
-        d = direction(px, py)
-        o = mi.Point3f(*number[9:])
-        return mi.Ray3f(o + NEAR_CLIP_M * d, dr.normalize(d))
-    if camera.distorted:
+    elif camera.distorted:
         at = camera.undistorted_pixels
         du, dv = np.array([step / 2, 0.0]), np.array([0.0, step / 2])
         p, pu, pv = at(grid), at(grid + du) - at(grid - du), at(grid + dv) - at(grid - dv)
