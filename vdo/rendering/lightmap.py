@@ -209,10 +209,11 @@ class SurfaceLightMap:
         v = [dr.gather(mi.Float, values, key, active) for key in keys]
         missing = active & (dr.isnan(v[0]) | dr.isnan(v[1]) | dr.isnan(v[2]))
         dr.eval(keys, v, weights, missing, active)
-        lanes = dr.compress(missing)
-        if dr.width(lanes):
-            todo = np.unique(np.concatenate([np.array(dr.gather(mi.UInt32, key, lanes)) for key in keys]))
-            todo = todo[np.isnan(self.values[todo])].astype(np.int64)
+        if dr.any(missing)[0]:       # the nodes to compute: flagged by the hits that miss one
+            wanted = dr.zeros(mi.UInt32, max(self.used, 1))
+            for key in keys:
+                dr.scatter(wanted, 1, key, missing)
+            todo = np.flatnonzero((np.array(wanted)[:self.used] > 0) & np.isnan(self.values[:self.used]))
             self._compute(dscene, names, todo)
             values = self._device("values")
             v = [dr.gather(mi.Float, values, key, active) for key in keys]
