@@ -559,16 +559,6 @@ def _surface_fill(dscene: DicScene, camera: Camera, r0: int, out: np.ndarray, no
     out[py, px] = nodes.L[py, px]
 
 
-def _normals(si, ids: np.ndarray) -> np.ndarray:
-    """(n, 3) shading normals of the hits `si` ((0, 0, 1) where the ray missed, `ids` 0: the sky
-    is one "surface")."""
-    normal = np.empty((len(ids), 3))
-    for k in range(3):
-        normal[:, k] = np.asarray(si.sh_frame.n[k])
-    normal[ids == 0] = (0.0, 0.0, 1.0)
-    return normal
-
-
 @dataclass
 class _LightNodes:
     """The nodes of the light map on the tile's pixel lattice (one row and column of nodes past
@@ -630,31 +620,42 @@ class _LightNodes:
         if len(y) == 0:
             return
         grid = np.column_stack([x.astype(float), r0 + y.astype(float)])
+        mapped = dscene.light_map is not None
+        si, prim_uv = (_cast(dscene, camera, grid, barycentric=True, partials=False) if mapped
+                       else (_cast(dscene, camera, grid, partials=False), None))
+        dr.eval(si, prim_uv)                  # once: the lookup, the shading and the reads below
         h, W = self.tile
-        if dscene.light_map is None or ((y < h) & (x < W)).all():     # the map failed at those pixels
-            light, si = _shaded(dscene, camera, grid)
-        else:
-            si, prim_uv = _cast(dscene, camera, grid, barycentric=True, partials=False)
-            dr.eval(si, prim_uv)              # once: the lookup, the shading and the reads below
-            light = _mapped_light(dscene, camera, si, prim_uv, scale)
+        beyond = (y >= h) | (x >= W)          # the map failed at the tile's pixels when it was cast
+        light = _mapped_light(dscene, camera, si, prim_uv, scale, beyond if mapped else None)
         shape = np.array(_shape_ids(si))
-        self.I[y, x], self.N[y, x], self.L[y, x] = shape, _normals(si, shape), light
+        normal = np.empty((len(shape), 3), dtype=np.float32)
+        for k in range(3):
+            normal[:, k] = np.asarray(si.sh_frame.n[k])
+        self.I[y, x], self.N[y, x], self.L[y, x] = shape, normal, light
 
 
-def _mapped_light(dscene: DicScene, camera: Camera, si, prim_uv, scale: float) -> np.ndarray:
-    """The light (`shade`) at the hits `si` from the frame's surface light map (`dscene.light_map`,
-    `vdo.rendering.lightmap`) where its lattice's nodes agree (tolerance in units of the camera's
-    light `scale`), computed at the hits themselves elsewhere."""
+def _mapped_light(dscene: DicScene, camera: Camera, si, prim_uv, scale: float, where=None) -> np.ndarray:
+    """The light (`shade`) at the hits `si`: from the frame's surface light map (`dscene.light_map`,
+    `vdo.rendering.lightmap`) at the hits `where` (a bool array; None: nowhere) when its lattice's
+    nodes agree (tolerance in units of the camera's light `scale`), computed at the hits
+    themselves elsewhere."""
     import drjit as dr
 
     from vdo.core.backend import mitsuba
 
     mi = mitsuba()
-    light, ok = dscene.light_map.lookup(dscene, si, prim_uv, scale, camera.focal_px)
-    light = light.astype(np.float64)
-    rest = np.flatnonzero(~ok)
+
+    def hits(lanes):
+        return mi.UInt32(lanes.astype(np.uint32))
+    light = np.full(dr.width(si), np.nan)
+    tried = np.flatnonzero(where) if where is not None else np.zeros(0, dtype=np.int64)
+    if len(tried):
+        value, ok = dscene.light_map.lookup(dscene, dr.gather(type(si), si, hits(tried)),
+                                            dr.gather(type(prim_uv), prim_uv, hits(tried)), scale, camera.focal_px)
+        light[tried[ok]] = value[ok]
+    rest = np.flatnonzero(np.isnan(light))
     if len(rest):
-        light[rest] = shade(dscene, dr.gather(type(si), si, mi.UInt32(rest.astype(np.uint32))))
+        light[rest] = shade(dscene, dr.gather(type(si), si, hits(rest)))
     return light
 
 
