@@ -267,8 +267,8 @@ def part_blur(part, shape: tuple[int, int], sigma_px: float, n: int) -> np.ndarr
     pixel row y's cell row j at n y + j. Cell q = n x + i of a cell row j is part i n + j at x, so
     pixel p = Σ_k c_k part(i_k n + j)[:, p + o_k], i_k = (k - r) mod n and o_k = ⌊(k - r) / n⌋
     (`cell_blur_kernel`'s c and r: slices, no strides); cells beyond the row's ends taken equal
-    to its first and last. In row strips on `vdo.core.backend.cpu_threads` threads, each strip's
-    parts made by `part` on its thread."""
+    to its first and last. In row strips (`_on_strips`) that the threads take in turn, each
+    strip's parts made by `part` on its thread."""
     h, W = shape
     c = cell_blur_kernel(sigma_px, n).astype(np.float32)
     r = (len(c) - n) // 2
