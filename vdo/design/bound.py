@@ -118,6 +118,36 @@ cameras) 49 nodes in 260 s lifted 0.05142 to 0.05192, gap 5.8 -> 4.9 %; on the s
 (4 cameras) 13 nodes in 240 s lifted 0.15559 to 0.15575: there each child moves the bound by
 0.01-0.05 %, the mix spreading over other spots at almost no cost.
 
+Branching on views. A camera measures a point in two directions of three, so a sample seen by
+one camera is unmeasured (the prior's sigma), by two or more measured. The hull's optimum mixes
+selections that see a sample once with others that see it two or more times: at the mix's
+summed information the sample reads measured, while a part of the mix leaves it unmeasured
+(on the steel beam the root's mix weighs selections that leave one end of the beam to a single
+camera, each scoring 1e8-1e10 alone). Given the score's per-sample terms (`term`, score =
+exp(sum_n term_n), each convex and non-increasing in the sample's information and coverage),
+a node is first split on the samples n_1..n_m (`Views.split`, SPLIT_SAMPLES at most) that its
+mix sees both ways and whose term it underrates most (the mix of the selections' own terms
+less the term at the mix): every selection either sees all of them with two cameras or more
+(one child: a row of the linear step per sample, at least two of the candidates that see it),
+or n_j is the first it sees with at most one (child j: the rows of n_1..n_{j-1}, at most one
+candidate of n_j's, and n_j's term at least `Views.alone(n_j)`, the least term one camera or
+none can give it; the node's function takes max(term_n, floor_n) per sample, `_floored`,
+convex and equal to the score at the node's selections). These partition the node's
+selections, so the bound stays valid. The floor lifts child j's bound at once: on the steel
+beam an unmeasured sample costs 1.2-1.3x the score, so child j is certified at the parent's
+iterate alone (`_once`: one gradient and one linear step), kept open without its own hull
+until it is the least open bound, and mostly closed by the incumbent. When no sample is mixed,
+the split falls back to spots, and once a split on views lifts its node's bound by less than
+VIEWS_LIFT (the mix found other selections that see those samples twice at little cost) the
+tree splits on spots alone. Measured on the steel beam (4 cameras, 2 loaded cores): two
+splits on views lift the hull's 0.15562 to 0.15710 (+0.95 %, against +0.1 % for the first four
+spot splits), after which the mix sees every sample twice and the splits go back to spots; what
+separates the bound from the designs there is then the Jensen gap of the measured samples'
+sigma (the target's term is quadratic in ln sigma), which no split on views removes. On random
+instances where each view has rank two (tests/design/test_bound_views.py, seeds 0, 3, 5) three
+nodes split on views lift the hull's bound by 2.48, 2.55 and 0.64 against 0.09, 0.16 and 0.08
+for three split on candidates, and the tree closes on the best selection.
+
 The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
 many cameras can lower the score by more than that fraction.
 """
@@ -127,10 +157,11 @@ from __future__ import annotations
 import heapq
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy.sparse
 from scipy.optimize import Bounds, LinearConstraint, milp
@@ -154,6 +185,8 @@ MIP_GAP = 1e-9        # HiGHS's relative gap in the selection oracle (the certif
 NODE_INNER_S = 1.0     # the branch and bound's nodes: one re-weighting of their selections at most this long
 STALL_S = 60.0         # the branch and bound stops when the bound rose by less than STALL (relative) in STALL_S
 STALL = 5e-4
+SPLIT_SAMPLES = 16     # a split on views names at most this many samples (`Views.split`)
+VIEWS_LIFT = 1e-3      # ... and the tree splits on candidates alone once one lifts its bound by less (relative)
 BRANCH_LOG_S = 30.0    # a progress line of the branch and bound at most this often
 
 
@@ -351,17 +384,18 @@ class Rules:
     def vertex(self, g: np.ndarray, seconds: float, node: Node | None = None) -> tuple[np.ndarray | None, float]:
         """(s, low): low <= g.s for every 0/1 s of k allowed candidates within the body counts
         with at most one camera in each clique of the held candidates, and with a `node`'s
-        branching rules (none of its `out` candidates, at least one camera in each of its
-        `into` groups) (HiGHS's dual bound of that MILP; -inf where it gives none, +inf where
-        no such s exists); s the indices of its solution when all are held (a selection that
-        keeps the rules), else None. The candidates not held enter only as the min(count, k)
-        of lowest g of each body kind and each `into` group (or none; any solution's others of
-        a kind and group can be swapped for them at no cost, the rows they enter being the
-        same); a solution that takes one is solved again with its rules held, until none is
-        taken or `seconds` have passed."""
+        branching rules (none of its `out` candidates, between lo and hi cameras in each of its
+        groups, `Node.limits`) (HiGHS's dual bound of that MILP; -inf where it gives none, +inf
+        where no such s exists); s the indices of its solution when all are held (a selection
+        that keeps the rules), else None. The candidates not held enter only as the min(count,
+        k) of lowest g of each body kind and each set of groups they belong to (or none; any
+        solution's others of a kind and set can be swapped for them at no cost, the rows they
+        enter being the same); a solution that takes one is solved again with its rules held,
+        until none is taken or `seconds` have passed."""
         k, body, counts = self.k, self.body, self.counts
         node = node or Node()
-        into = [np.asarray(q, dtype=int) for q in node.into]
+        limits = node.limits(k)
+        into = [q for q, _, _ in limits]
         deadline = time.perf_counter() + seconds
         while True:
             free = self.allowed.copy()
@@ -370,7 +404,7 @@ class Rules:
             usable = free[self.held]          # held candidates a node's branching leaves out: 0
             free[self.held] = False
             rest = np.flatnonzero(free)
-            inside = np.zeros((len(rest), len(into)), bool)   # which `into` groups each is in
+            inside = np.zeros((len(rest), len(into)), bool)   # which groups each is in
             for q, group in enumerate(into):
                 inside[:, q] = np.isin(rest, group)
             pattern = np.unique(inside, axis=0, return_inverse=True)[1].ravel() if len(rest) else rest
@@ -386,8 +420,8 @@ class Rules:
             A = scipy.sparse.csr_matrix((np.ones(sum(len(r) for r in rows)),
                                          (np.repeat(np.arange(len(rows)), [len(r) for r in rows]),
                                           np.concatenate(rows))), shape=(len(rows), len(V)))
-            top = np.concatenate([[k], counts, np.ones(len(self._cliques)), np.full(len(into), k)])
-            low_rows = np.concatenate([[k], np.zeros(len(counts) + len(self._cliques)), np.ones(len(into))])
+            top = np.concatenate([[k], counts, np.ones(len(self._cliques)), [hi for _, _, hi in limits]])
+            low_rows = np.concatenate([[k], np.zeros(len(counts) + len(self._cliques)), [lo for _, lo, _ in limits]])
             upper = np.concatenate([usable, np.ones(len(V) - len(self.held), bool)]).astype(float)
             res = milp(g[V], constraints=LinearConstraint(A, low_rows, top), integrality=np.ones(len(V)),
                        bounds=Bounds(0, upper), options={"mip_rel_gap": MIP_GAP,
@@ -518,14 +552,110 @@ def _hull(both, only, summed, pullback, rules: Rules, point, start, bound, deadl
     return Hull(best, best_x, bound, steps, chosen, lam, x)
 
 
+def _floor(node: Node, samples: int) -> np.ndarray:
+    """(samples,) each sample's least term in the node's selections (-inf where none is known)."""
+    floor = np.full(samples, -np.inf)
+    for n, value in node.floor:
+        floor[n] = max(floor[n], value)
+    return floor
+
+
 @dataclass(frozen=True)
 class Node:
     """The branching rules of a node of the branch and bound (`_branch`): `out` (K,) bool, the
     candidates none of its selections holds (None: none), `into` the groups (index arrays) in
-    each of which its selections hold at least one camera."""
+    each of which its selections hold at least one camera, `views` (group, lo, hi): between lo
+    and hi cameras of the group (the candidates that see one sample, `Views`), and `floor`
+    (sample, value): that sample's term of the score is at least value in every selection of
+    the node (`Views.alone`)."""
 
     out: np.ndarray | None = None
     into: tuple = ()
+    views: tuple = ()
+    floor: tuple = ()
+
+    def limits(self, k: int) -> list:
+        """Every group rule as (group, lo, hi): `into`'s as (group, 1, k), then `views`."""
+        return [(np.asarray(q, dtype=int), 1, k) for q in self.into] + \
+            [(np.asarray(q, dtype=int), lo, hi) for q, lo, hi in self.views]
+
+    def keeps(self, selection, k: int) -> bool:
+        """Whether a selection (indices) keeps the node's rules."""
+        v = np.asarray(selection, dtype=int)
+        return (self.out is None or not self.out[v].any()) and \
+            all(lo <= np.isin(v, q).sum() <= hi for q, lo, hi in self.limits(k))
+
+
+class Views:
+    """Which candidates see each sample, for the branch and bound's splits on a sample's views
+    (module docstring, "Branching on views"). term(info (M, 6), cover (M,), sample (M,)) -> (M,)
+    the score's logarithm per sample (`vdo.design.score.Scorer.term`: score = exp(sum_n
+    term_n), each term convex and non-increasing in the sample's information and coverage);
+    info and weight as `relaxation`'s (dense, or the sparse `Candidates` and None); allowed the
+    candidates a selection may hold. A candidate sees sample n when it stores an entry there
+    (or, dense, a non-zero information or weight): the others add nothing at n."""
+
+    def __init__(self, term: Callable, info, weight, allowed: np.ndarray):
+        if weight is None:
+            self.owner, self.sample, self.indptr = info.row, info.index, info.indptr
+            self.info, self.weight = info.entry_info, info.entry_weight
+            self.samples = info.samples
+        else:
+            info, weight = np.asarray(info, float), np.asarray(weight, float)
+            self.owner, self.sample = np.nonzero((info != 0).any(axis=2) | (weight != 0))
+            self.indptr = np.searchsorted(self.owner, np.arange(info.shape[0] + 1))
+            self.info, self.weight = info[self.owner, self.sample], weight[self.owner, self.sample]
+            self.samples = info.shape[1]
+        self.allowed = np.asarray(allowed, bool)
+        self.K = len(self.allowed)
+        self._term = jax.jit(term)
+        self._all = np.arange(self.samples)
+
+    def terms(self, info: np.ndarray, cover: np.ndarray) -> np.ndarray:
+        """(N,) every sample's term at summed information (N, 6) and coverage (N,)."""
+        return np.asarray(self._term(info, cover, self._all))
+
+    def count(self, selection) -> np.ndarray:
+        """(N,) how many cameras of a selection (indices) see each sample."""
+        seen = [self.sample[self.indptr[i]:self.indptr[i + 1]] for i in np.asarray(selection, dtype=int)]
+        return np.bincount(np.concatenate(seen), minlength=self.samples) if seen else np.zeros(self.samples, int)
+
+    def viewers(self, n: int) -> np.ndarray:
+        """The allowed candidates that see sample n (sorted indices)."""
+        at = self.owner[self.sample == n]
+        return np.unique(at[self.allowed[at]])
+
+    def alone(self, n: int) -> float:
+        """The least term sample n can have in a selection of which at most one camera sees it:
+        min(term(0, 0), min_i term(C_i(n), w_i(n))) over the allowed candidates i that see it
+        (a lower bound on its term in every such selection, the term being exact there)."""
+        e = np.flatnonzero((self.sample == n) & self.allowed[self.owner])
+        info = np.concatenate([np.zeros((1, 6)), self.info[e]])
+        cover = np.concatenate([[0.0], np.asarray(self.weight[e], float)])
+        return float(np.min(np.asarray(self._term(info, cover, np.full(len(info), n)))))
+
+    def split(self, h: Hull, summed, floor: np.ndarray) -> list[int] | None:
+        """The samples to branch on at a hull's iterate, most underrated first (at most
+        SPLIT_SAMPLES), or None: those that some of its selections see with at most one camera
+        and others with two or more, and whose term the mix underrates, sum_s lam_s term_n(s) >
+        max(term_n(x), floor_n) (the relaxation evaluates the mix's summed information x, the
+        selections their own)."""
+        if len(h.chosen) < 2:
+            return None
+        counts = np.array([self.count(v) for v in h.chosen])
+        mixed = (counts <= 1).any(axis=0) & (counts >= 2).any(axis=0)
+        if not mixed.any():
+            return None
+        mix = np.zeros(self.samples)
+        for lam, v in zip(h.lam, h.chosen):
+            w = np.zeros(self.K)
+            w[v] = 1.0
+            mix += lam * self.terms(*summed(w))
+        under = mix - np.maximum(self.terms(*summed(h.x)), floor)
+        under[~mixed] = -np.inf
+        order = np.argsort(-under)[:SPLIT_SAMPLES]
+        order = order[under[order] > 0]
+        return [int(n) for n in order] if len(order) else None
 
 
 def spots(positions: np.ndarray, digits: int = 3) -> np.ndarray:
@@ -556,7 +686,8 @@ def _fractional(x: np.ndarray, groups: np.ndarray, node: Node, tol: float):
 
 
 def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.ndarray, incumbent: float,
-            deadline: float, inner_s: float, rel_tol: float, max_iter: int, max_nodes: int | None = None):
+            deadline: float, inner_s: float, rel_tol: float, max_iter: int, max_nodes: int | None = None,
+            views: Views | None = None, floored=None):
     """Branch and bound over the hull's selections (module docstring, "Branching"), best first:
     each open node's certificate bounds every selection keeping the rules and its branching
     rules; the node of lowest bound is split on the set S of `_fractional` (none of S / at
@@ -580,15 +711,44 @@ def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.n
                 incumbent = min(incumbent, found[key])
 
     seen(root)
-    heap, order, nodes, closed = [(root.bound, 0, Node(), root)], 1, 1, np.inf
+    # an open node: (bound, order, Node, its Hull, or None while only its parent's iterate
+    # certifies it (`_once`), then the parent's Hull)
+    heap, order, nodes, closed = [(root.bound, 0, Node(), root, None)], 1, 1, np.inf
     shown = since = time.perf_counter()
     risen = root.bound
+    on_views = views is not None          # splits on views first (module docstring)
+
+    def settle(child: Node, bound: float, c: Hull | None, parent: Hull | None):
+        """Keeps a child open (its bound below the incumbent) or closes it."""
+        nonlocal order, closed
+        if bound < incumbent * (1 - rel_tol):
+            heapq.heappush(heap, (bound, order, child, c, parent))
+            order += 1
+        else:           # closed: its selections score at least this (within rel_tol of the incumbent)
+            closed = min(closed, bound)
+
+    def solve(child: Node, parent: Hull, low: float) -> Hull:
+        nonlocal nodes
+        keep = [(v, w) for v, w in zip(parent.chosen, parent.lam) if child.keeps(v, rules.k)]
+        fb, fo = (both, only) if not child.floor else floored(_floor(child, views.samples))
+        c = _hull(fb, fo, summed, pullback, rules, parent.x, keep or None, low, deadline,
+                  min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=incumbent)
+        nodes += 1
+        seen(c)
+        return c
+
     while heap and time.perf_counter() < deadline and (max_nodes is None or nodes < max_nodes):
-        low, _, node, h = heap[0]
+        low, _, node, h, parent = heap[0]
         if low >= incumbent * (1 - rel_tol):
             break
-        pick = _fractional(h.x, groups, node, 1e-6)
-        if pick is None:        # an integral iterate not certified: hull's steps ran out of time
+        if h is None:           # certified by its parent's iterate alone so far: its own hull now
+            heapq.heappop(heap)
+            c = solve(node, parent, low)
+            settle(node, max(c.bound, low), c, None)
+            continue
+        split = views.split(h, summed, _floor(node, views.samples)) if on_views else None
+        pick = None if split is not None else _fractional(h.x, groups, node, 1e-6)
+        if split is None and pick is None:        # an integral iterate not certified: hull's steps ran out of time
             break
         now = time.perf_counter()
         if now > since + STALL_S:           # stalled: the bound rose by less than STALL in STALL_S
@@ -600,31 +760,67 @@ def _branch(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.n
             shown = now
             log.info("branch and bound: %d nodes, %d open, bound %.5g, best selection found %.5g", nodes,
                      len(heap) + 1, low, incumbent)
+        if split is not None:
+            # samples n_1..n_m: every one seen by two cameras or more (solved now), or n_j the
+            # first seen by at most one (its term at least `alone`; certified from h's iterate,
+            # `_once`, and solved only when it is the least open bound)
+            seers = [views.viewers(n) for n in split]
+            many = tuple((q, 2, rules.k) for q in seers)
+            for j, n in enumerate(split):
+                child = replace(node, views=node.views + many[:j] + ((seers[j], 0, 1),),
+                                floor=node.floor + ((n, views.alone(n)),))
+                once = _once(floored(_floor(child, views.samples)), summed, pullback, rules, h.x, child, inner_s)
+                nodes += 1
+                if np.isfinite(once):
+                    settle(child, max(once, low), None, h)
+            child = replace(node, views=node.views + many)
+            c = solve(child, h, low)
+            settle(child, max(c.bound, low), c, None)
+            if c.bound < low * (1 + VIEWS_LIFT):      # the mix moved at little cost: candidates from now on
+                on_views = False
+            continue
         out = np.zeros(K, bool) if node.out is None else node.out.copy()
         out[pick] = True
-        children = [Node(out=out, into=node.into), Node(out=node.out, into=node.into + (pick,))]
-        for child in children:
-            keep = [(v, w) for v, w in zip(h.chosen, h.lam) if not out[v].any()] if child is children[0] else \
-                [(v, w) for v, w in zip(h.chosen, h.lam) if np.isin(v, pick).any()]
-            c = _hull(both, only, summed, pullback, rules, h.x, keep or None, low, deadline,
-                      min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=incumbent)
-            nodes += 1
-            seen(c)
-            if c.bound < incumbent * (1 - rel_tol):
-                heapq.heappush(heap, (max(c.bound, low), order, child, c))
-                order += 1
-            else:           # closed: its selections score at least this (within rel_tol of the incumbent)
-                closed = min(closed, max(c.bound, low))
+        for child in (replace(node, out=out), replace(node, into=node.into + (pick,))):
+            c = solve(child, h, low)
+            settle(child, max(c.bound, low), c, None)
     value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
     return value, nodes, incumbent, [np.array(v) for v in best], [(n[2], n[0]) for n in heap]
+
+
+def _once(at, summed, pullback, rules: Rules, x: np.ndarray, node: Node, seconds: float) -> float:
+    """A node's certificate at one point x (its parent's iterate), without its own hull: f(x) +
+    min g.(s - x) over the selections that keep the node's rules (`Rules.vertex`), f and g the
+    node's (value, gradient) `at`; inf when no selection keeps them."""
+    fx, (gC, gc) = at[0](*summed(x))
+    g = pullback(gC, gc)
+    _, low = rules.vertex(g, seconds, node)
+    return float(fx) + low - float(g @ x)
+
+
+def _floored(term: Callable, samples: int):
+    """floor (samples,) -> (value and gradient, value) of exp(sum_n max(term_n, floor_n)), jitted
+    once: the score of a node whose selections keep each sample's term at or above its floor
+    (`Node.floor`): convex (a maximum of convex functions) and equal to the score at each of
+    those selections, so its minimum over their hull bounds their scores."""
+    every = jnp.arange(samples)
+
+    def value(info, cover, floor):
+        return jnp.exp(jnp.sum(jnp.maximum(term(info, cover, every), floor)))
+    both, only = jax.jit(jax.value_and_grad(value, argnums=(0, 1))), jax.jit(value)
+
+    def at(floor):
+        f = jnp.asarray(floor)
+        return (lambda C, c: both(C, c, f)), (lambda C, c: only(C, c, f))
+    return at
 
 
 def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
                body: np.ndarray, counts: np.ndarray, start=None, conflicts: Callable | None = None,
                rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, time_limit: float = 60.0,
                groups: np.ndarray | None = None, branch_s: float = 0.0,
-               branch_nodes: int | None = None) -> Bound:
+               branch_nodes: int | None = None, term: Callable | None = None) -> Bound:
     """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
     k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.score.Scorer.value`);
     info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights
@@ -636,8 +832,9 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
     (`Rules`; None: the pairwise rules dropped); time_limit in wall seconds. With conflicts and
     branch_s > 0, a branch and bound follows for branch_s wall seconds more (`_branch`; groups
     (K,) the sets it branches on first, default none: candidates alone; branch_nodes: at most
-    that many nodes, else as many as the time allows). k is cut
-    to `largest(...)` (no selection holds more)."""
+    that many nodes, else as many as the time allows; term: the score's logarithm per sample,
+    value = exp(sum_n term_n) (`Views`), with which it splits first on how many cameras see a
+    sample). k is cut to `largest(...)` (no selection holds more)."""
     t0 = time.perf_counter()
     k = min(int(k), largest(allowed, body, counts))
     K, summed, pullback = linear_maps(info, weight)
@@ -666,10 +863,14 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
             best, best_x = h.best, h.best_x
         if branch_s > 0 and np.isfinite(h.bound):
             incumbent = float(only(*summed(x))) if start is not None and len(start) else np.inf
+            views = floored = None
+            if term is not None:
+                views = Views(term, info, weight, allowed)
+                floored = _floored(term, views.samples)
             bound, nodes, _, found, leaves = _branch(
                 both, only, summed, pullback, rules, h, np.arange(K) if groups is None else np.asarray(groups),
                 incumbent, time.perf_counter() + branch_s, INNER_SHARE * time_limit, rel_tol, max_iter,
-                max_nodes=branch_nodes)
+                max_nodes=branch_nodes, views=views, floored=floored)
             bound, held = max(bound, h.bound), len(rules.held)
     return Bound(cameras=k, value=float(bound), plain=float(plain), relaxed=float(best), weights=best_x,
                  iterations=it, converged=best - bound <= rel_tol * abs(bound),

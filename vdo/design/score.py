@@ -123,11 +123,21 @@ class Scorer:
     def value(self, info, cover):
         """The score of summed information info (N, 6) float64 1/m^2 and coverage cover (N,): a
         traceable JAX function, convex in both (`vdo.design.bound`); `_score` on the host."""
+        return jnp.exp(jnp.sum(self.term(info, cover, jnp.arange(len(self.omega)))))
+
+    def term(self, info, cover, sample):
+        """The score's logarithm sample by sample: score = exp(sum_n term_n) (class docstring),
+
+            term_n = omega_n c(sigma_n) + kappa a_n h(max(0, k_region(n) - k_n)),
+
+        of information info (M, 6) 1/m^2 and coverage cover (M,) at the samples `sample` (M,)
+        (indices; a sample may repeat): traceable JAX, convex in (info, cover) and non-increasing
+        as either grows (`vdo.design.bound`'s branching on a sample's views)."""
         st = self.settings
         sigma = objective.smooth_sigma_max(tuple(info[:, k] for k in range(6)), st) / st.sigma_unit
-        short = jnp.maximum(self._minimum - cover, 0.0)
-        return jnp.exp(jnp.sum(self._omega * self.cost(jnp.log(sigma), jnp))
-                       + self.kappa * jnp.sum(self._area * views_short(short, jnp)))
+        short = jnp.maximum(self._minimum[sample] - cover, 0.0)
+        return self._omega[sample] * self.cost(jnp.log(sigma), jnp) + \
+            self.kappa * self._area[sample] * views_short(short, jnp)
 
     def _score(self, sigma, cover) -> float:
         short = np.maximum(self.minimum - cover, 0.0)

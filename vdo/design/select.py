@@ -31,7 +31,9 @@ and certifies a lower bound on the score of every selection of that many cameras
 1 - bound / score ([design] bound_s seconds per count). The
 relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
 candidates by decreasing weight while feasible, then the exchange and the polish): its selection
-replaces the count's when it scores lower ("rounded" in design.json's curve). Then random restarts
+replaces the count's when it scores lower ("rounded" in design.json's curve); so does, on the
+inventory's count, the best selection the branch and bound met when it scores lower than the
+count's before the exchange ("branched"). Then random restarts
 (`moves.restarts`, [design] restart_s seconds per count): starts drawn from the weights, a tenth of
 each draw spread over all candidates, each taken down by the exchange passes; the best (exchanged
 over all candidates, polished and judged as `_count` does) replaces the count's selection when it
@@ -437,17 +439,23 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     branch = min(d.branch_seconds, remaining / 2)           # the inventory's count's branch and bound
     left = (remaining - branch) / len(curve)                # per count
     relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch)
-    for c, b in zip(curve, relaxed):    # a second start: the relaxation's weights, rounded
-        if b is None or _clock() + count_s + final_s > deadline:
+    for c, b in zip(curve, relaxed):    # more starts: the relaxation's weights, rounded, and the
+        if b is None:                   # best selection its branch and bound met
             continue
-        again = _count(exp, cand, scorer, feas, coarse, can_measure,
-                       rounded(cand, scorer, feas, b.weights, c["cameras"]))
-        if again["score"] < c["score"] * (1 - ROUNDING_RTOL):
-            log.info("%d cameras: the relaxation's rounding scores %.4g against %.4g: gap %.1f -> "
-                     "%.1f %%", c["cameras"], again["score"], c["score"], 100 * c["gap"],
-                     100 * max(0.0, 1.0 - c["bound"] / again["score"]))
-            c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
-                     bound_converged=c["bound_converged"], rounded=True)
+        starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
+        if b.found and scorer.of(cand, b.found[0]) < c["score"] * (1 - ROUNDING_RTOL):
+            starts.append(("the branch and bound's best selection", "branched", list(b.found[0])))
+        for what, key, start in starts:
+            if _clock() + count_s + final_s > deadline:
+                break
+            again = _count(exp, cand, scorer, feas, coarse, can_measure, start)
+            if again["score"] < c["score"] * (1 - ROUNDING_RTOL):
+                log.info("%d cameras: %s scores %.4g against %.4g: gap %.1f -> %.1f %%", c["cameras"], what,
+                         again["score"], c["score"], 100 * c["gap"],
+                         100 * max(0.0, 1.0 - c["bound"] / again["score"]))
+                c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
+                         bound_converged=c["bound_converged"], rounded=key == "rounded",
+                         branched=key == "branched")
     rng = np.random.default_rng(RESTART_SEED)
     for i, (c, b) in enumerate(zip(curve, relaxed)):     # random restarts, the bound's weights as a guide
         per_count = (deadline - _clock() - final_s) / (len(curve) - i)
@@ -613,7 +621,8 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
     groups = bound.spots(cand.positions) if branch_seconds > 0 else None
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
                               feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds,
-                              groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0)
+                              groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0,
+                              term=scorer.term)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
     value, later = [b.value for b in found], 0.0
     for i in reversed(range(len(found))):
