@@ -32,7 +32,7 @@ from scipy.optimize import Bounds, LinearConstraint, milp, minimize_scalar
 
 from vdo.config import experiment as config
 from vdo.core.configure import configure
-from vdo.design import bound
+from vdo.design import bound, hull
 from vdo.design.candidates import inventory, judge
 from vdo.design.feasibility import Feasibility
 from vdo.design.score import Scorer
@@ -75,7 +75,7 @@ def main() -> None:
         rows.append(LinearConstraint(edge, 0, 1))
     print(f"support: {n} candidates (weight > {SUPPORT:g}), {len(pairs)} conflicting pairs among them")
 
-    K, summed, pullback = bound.linear_maps(cand, None)
+    K, summed, pullback = hull.linear_maps(cand, None)
     value_grad, value = jax.jit(jax.value_and_grad(scorer.value, argnums=(0, 1))), jax.jit(scorer.value)
 
     def full(x):

@@ -16,7 +16,7 @@ import pytest
 from scipy.optimize import linprog, minimize
 
 from vdo.config import experiment as config
-from vdo.design import bound
+from vdo.design import bound, hull
 from vdo.commands.design import design as design_run
 from vdo.design.candidates import judge
 from vdo.design.feasibility import Feasibility
@@ -75,7 +75,7 @@ def test_the_linear_step_is_linprogs_optimum():
     allowed, body, counts = _polytope(rng)
     for k in (1, 3, 5):
         g = rng.normal(size=len(body))
-        s = bound.vertex(g, k, allowed, body, counts)
+        s = hull.vertex(g, k, allowed, body, counts)
         A = np.array([(body == b).astype(float) for b in range(len(counts))])
         lp = linprog(g, A_ub=A, b_ub=counts, A_eq=np.ones((1, len(g))), b_eq=[k],
                      bounds=[(0, 1) if a else (0, 0) for a in allowed])
@@ -91,7 +91,7 @@ def test_the_projection_is_slsqps():
     allowed, body, counts = _polytope(rng)
     for k in (2, 4):
         v = rng.normal(scale=0.8, size=len(body)) + 0.4
-        w = bound.project(v, k, allowed, body, counts)
+        w = hull.project(v, k, allowed, body, counts)
         cons, box = _constraints(allowed, body, counts, k)
         ref = minimize(lambda x: 0.5 * ((x - v) ** 2).sum(), np.full(len(v), 0.0), jac=lambda x: x - v,
                        bounds=box, constraints=cons, method="SLSQP", options={"ftol": 1e-14})
@@ -215,13 +215,13 @@ def test_sparse_and_dense_candidates_give_one_relaxation(plate, monkeypatch):
     `Candidates`, in chunks of 37 entries, and over a vertex's few candidates alone) and its
     adjoint equal those on the dense (K, N, 6) arrays, and so does the bound."""
     exp, geometry, cand, scorer, feas = plate
-    monkeypatch.setattr(bound, "ENTRY_CHUNK", 37)
-    K, summed, pullback = bound.linear_maps(cand, None)
-    Kd, summed_d, pullback_d = bound.linear_maps(cand.info, cand.weight)
+    monkeypatch.setattr(hull, "ENTRY_CHUNK", 37)
+    K, summed, pullback = hull.linear_maps(cand, None)
+    Kd, summed_d, pullback_d = hull.linear_maps(cand.info, cand.weight)
     rng = np.random.default_rng(0)
     vertex = np.zeros(K)
     vertex[[0, K // 2]] = [1.0, 0.5]
-    assert 2 * bound.SPARSE_ROWS < K
+    assert 2 * hull.SPARSE_ROWS < K
     for w in (rng.random(K), vertex):
         for a, b in zip(summed(w), summed_d(w)):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
@@ -239,8 +239,8 @@ def test_the_time_limit_holds_inside_the_backtracking(plate, monkeypatch):
     bounds the best selection it found."""
     exp, geometry, cand, scorer, feas = plate
     clock, projected = iter(range(10 ** 6)), []
-    project = bound.project
-    monkeypatch.setattr(bound.time, "perf_counter", lambda: float(next(clock)))
-    monkeypatch.setattr(bound, "project", lambda *a: projected.append(1) or project(*a))
+    project = hull.project
+    monkeypatch.setattr(hull.time, "perf_counter", lambda: float(next(clock)))
+    monkeypatch.setattr(hull, "project", lambda *a: projected.append(1) or project(*a))
     b = bound.relaxation(scorer.value, cand, None, 2, feas.alone, feas.body, feas.counts, time_limit=2.5)
     assert len(projected) <= 3 and b.value <= b.relaxed

@@ -12,7 +12,7 @@ import pytest
 
 from test_bound_conflicts import _instance, _selections, _value
 
-from vdo.design import bound
+from vdo.design import bound, hull, branch
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -26,8 +26,8 @@ def test_the_linear_step_keeps_a_nodes_rules(seed):
     out = np.zeros(K, bool)
     out[[2, 9]] = True
     into = (np.array([0, 1, 4]), np.array([4, 6, 10, 11]))
-    node = bound.Node(out=out, into=into)
-    rules = bound.Rules(lambda j: conflict[j], k, allowed, body, counts)
+    node = hull.Node(out=out, into=into)
+    rules = hull.Rules(lambda j: conflict[j], k, allowed, body, counts)
     rules.hold([1], np.inf)     # the others enter as the solutions take them
     g = np.random.default_rng(seed + 20).normal(size=K)
     keeps = [s for s in _selections(K, k, body, counts, conflict, ~out)
@@ -38,7 +38,7 @@ def test_the_linear_step_keeps_a_nodes_rules(seed):
     assert not conflict[np.ix_(s, s)].any()
     assert g[s].sum() == pytest.approx(min(g[x].sum() for x in keeps), abs=1e-9)
     assert low <= g[s].sum() + 1e-9
-    empty = bound.Node(out=np.arange(K) >= 3, into=(np.array([5]),))   # a group wholly left out
+    empty = hull.Node(out=np.arange(K) >= 3, into=(np.array([5]),))   # a group wholly left out
     assert rules.vertex(g, 10.0, empty) == (None, np.inf)
 
 
@@ -95,6 +95,6 @@ def test_a_spot_holds_every_candidate_at_one_optical_centre():
     """`spots`: candidates whose optical centres agree to the millimetre share a group, others
     do not."""
     p = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0002], [0.0, 0.0, 1.5], [2.0, -1.0, 1.0], [0.0, 0.0, 1.5]])
-    g = bound.spots(p)
+    g = branch.spots(p)
     assert g[0] == g[1] and g[2] == g[4]
     assert len({g[0], g[2], g[3]}) == 3

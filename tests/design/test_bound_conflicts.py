@@ -16,7 +16,7 @@ import pytest
 from conftest import TRIPOD_ZONE
 
 from vdo.config import experiment as config
-from vdo.design import bound
+from vdo.design import bound, hull
 from vdo.design.candidates import SPOT_M, judge
 from vdo.design.feasibility import Feasibility
 from vdo.state import prepare
@@ -58,7 +58,7 @@ def test_the_cliques_cover_every_conflict():
     upper = np.triu(rng.random((30, 30)) < 0.3, 1)
     adjacent = upper | upper.T
     covered = np.zeros_like(adjacent)
-    for q in bound.cliques(adjacent):
+    for q in hull.cliques(adjacent):
         sub = adjacent[np.ix_(q, q)]
         assert sub[~np.eye(len(q), dtype=bool)].all()      # a clique
         covered[np.ix_(q, q)] = True
@@ -74,7 +74,7 @@ def test_the_linear_step_is_the_best_selection(seed):
     K, k = len(body), 4
     allowed = np.ones(K, bool)
     allowed[[3, 7]] = False
-    rules = bound.Rules(lambda j: conflict[j], k, allowed, body, counts)
+    rules = hull.Rules(lambda j: conflict[j], k, allowed, body, counts)
     rules.hold([0, 5], np.inf)
     g = np.random.default_rng(seed + 10).normal(size=K)
     best = min(g[s].sum() for s in _selections(K, k, body, counts, conflict, allowed))

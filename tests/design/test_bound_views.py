@@ -1,4 +1,4 @@
-"""The design bound's splits on a sample's views (`vdo.design.bound.Views`, `relaxation` with
+"""The design bound's splits on a sample's views (`vdo.design.branch.Views`, `relaxation` with
 `term`): the floor of a sample seen at most once against every selection, the linear step under
 view-count rules against enumeration, and the branch and bound on instances where each camera
 measures two directions of three (one view leaves a sample unmeasured), against the best
@@ -12,7 +12,7 @@ import pytest
 
 from test_bound_conflicts import _selections
 
-from vdo.design import bound
+from vdo.design import bound, hull, branch
 
 E = 0.05         # the information every sample has before any camera (a view measures two directions of three)
 A = 0.05         # a sample's term: A tr (M_n + E I)^-1
@@ -59,7 +59,7 @@ def test_a_sample_seen_at_most_once_keeps_its_floor(seed):
     with the information stored."""
     info, weight, body, counts, conflict = _instance(seed)
     K, N = info.shape[:2]
-    views = bound.Views(_term, info, weight, np.ones(K, bool))
+    views = branch.Views(_term, info, weight, np.ones(K, bool))
     for n in range(N):
         seers = views.viewers(n)
         assert np.array_equal(seers, np.flatnonzero((info[:, n] != 0).any(-1)))
@@ -78,10 +78,10 @@ def test_the_linear_step_keeps_view_counts(seed):
     of another) against every selection that keeps them and the conflicts."""
     info, weight, body, counts, conflict = _instance(seed)
     K, k = len(body), 3
-    views = bound.Views(_term, info, weight, np.ones(K, bool))
+    views = branch.Views(_term, info, weight, np.ones(K, bool))
     few, many = views.viewers(0), views.viewers(1)
-    node = bound.Node(views=((few, 0, 1), (many, 2, k)))
-    rules = bound.Rules(lambda j: conflict[j], k, np.ones(K, bool), body, counts)
+    node = hull.Node(views=((few, 0, 1), (many, 2, k)))
+    rules = hull.Rules(lambda j: conflict[j], k, np.ones(K, bool), body, counts)
     rules.hold([int(many[0])], np.inf)
     g = np.random.default_rng(seed + 30).normal(size=K)
     keeps = [s for s in _selections(K, k, body, counts, conflict) if node.keeps(s, k)]
@@ -90,7 +90,7 @@ def test_the_linear_step_keeps_view_counts(seed):
     assert s is not None and node.keeps(s, k) and not conflict[np.ix_(s, s)].any()
     assert g[s].sum() == pytest.approx(min(g[x].sum() for x in keeps), abs=1e-9)
     assert low <= g[s].sum() + 1e-9
-    never = bound.Node(views=((many, 0, 1), (many, 2, k)))
+    never = hull.Node(views=((many, 0, 1), (many, 2, k)))
     assert rules.vertex(g, 10.0, never) == (None, np.inf)
 
 

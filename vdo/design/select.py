@@ -59,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.design import bound
+from vdo.design import bound, branch
 from vdo.design.budget import Estimate, available_memory, estimate, peak_rss, refuse
 from vdo.design.candidates import BLIND, SPOT_M, Candidates, bodies, inventory, judge, judging, lenses
 from vdo.design.feasibility import Feasibility
@@ -610,7 +610,7 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
     counts: each count's bound is the largest of its own and the plain bounds (pairwise rules
     dropped) of larger counts (while the relaxation's count grows). The largest count (the
     inventory's, the layout written) then gets `branch_seconds` of branch and bound over the
-    candidates' spots (`vdo.design.bound.spots`), which lifts its bound where the relaxation
+    candidates' spots (`vdo.design.branch.spots`), which lifts its bound where the relaxation
     mixes selections (docs/design.md, "The bound"). Logs each gap. Returns each count's
     `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
@@ -618,7 +618,7 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
             c.update(bound=None, gap=None, bound_converged=None)
         return [None] * len(curve)
     top = max(c["cameras"] for c in curve)
-    groups = bound.spots(cand.positions) if branch_seconds > 0 else None
+    groups = branch.spots(cand.positions) if branch_seconds > 0 else None
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
                               feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds,
                               groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0,
