@@ -436,12 +436,13 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                       "--time-limit searches them)")
         log.warning(issues[-1])
     remaining = max(0.0, deadline - _clock() - final_s)     # before the final judgement
-    branch = min(d.branch_seconds, remaining / 2)           # the inventory's count's branch and bound
-    left = (remaining - branch) / len(curve)                # per count
-    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch)
-    for c, b in zip(curve, relaxed):    # more starts: the relaxation's weights, rounded, and the
-        if b is None:                   # best selection its branch and bound met
+    branch_s = min(d.branch_seconds, remaining / 2)         # the inventory's count's branch and bound
+    left = (remaining - branch_s) / len(curve)              # per count
+    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch_s)
+    for c, b in zip(curve, relaxed):
+        if b is None:
             continue
+        # more starts: the relaxation's weights rounded, and the best selection its branch and bound met
         starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
         if b.found and scorer.of(cand, b.found[0]) < c["score"] * (1 - ROUNDING_RTOL):
             starts.append(("the branch and bound's best selection", "branched", list(b.found[0])))
