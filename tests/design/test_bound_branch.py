@@ -65,12 +65,14 @@ def test_branching_lifts_the_bound_to_the_best_selection(seed, k):
     assert scores[tuple(tree.found[0])] == pytest.approx(best)      # the best selection found
 
 
-@pytest.mark.parametrize("seed, k", [(0, 3), (3, 4)])
-def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
+@pytest.mark.parametrize("seed, k, families", [(0, 3, 1), (3, 4, 1), (0, 3, 3), (3, 4, 3)])
+def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k, families):
     """The tree after a few nodes, against every selection keeping the conflicts: each one
     that scores below the incumbent keeps the branching rules of an open node whose bound is
     at most its score (so the least of the open nodes' bounds bounds it), and the bound
-    reported is the least of those and the incumbent (or a closed node's, within REL_TOL of it)."""
+    reported is the least of those and the incumbent (or a closed node's, within REL_TOL of it).
+    With three families of classes (`_families`) the splits count cameras (at most t / at
+    least t + 1 of a class, t >= 1 among them)."""
     info, weight, body, counts, conflict = _instance(seed, K=12)
     K = len(body)
     scores = {tuple(s): float(_value(info[s].sum(axis=0), weight[s].sum(axis=0)))
@@ -78,7 +80,7 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
     start = list(max(scores, key=scores.get))
     tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts, start=start,
                             conflicts=lambda j: conflict[j], branch_s=60.0, branch_nodes=5,
-                            groups=np.arange(K) // 3)
+                            groups=_families(K, families))
     incumbent = min(scores[tuple(s)] for s in tree.found)
     assert tree.leaves
     least = min([incumbent] + [b for _, b in tree.leaves])     # a closed node may lie REL_TOL under the incumbent
@@ -86,9 +88,116 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k):
     for s, score in scores.items():
         if score >= incumbent * (1 - bound.REL_TOL):
             continue
-        within = [b for node, b in tree.leaves
-                  if (node.out is None or not node.out[list(s)].any()) and all(np.isin(q, s).any() for q in node.into)]
+        within = [b for node, b in tree.leaves if node.keeps(list(s), k)]
         assert within and min(within) <= score * (1 + 1e-12), s
+
+
+def _families(K: int, n: int) -> np.ndarray:
+    """(n, K) families of classes for the branching, coarse to fine: halves, then sixths, then
+    triples of the candidates (n = 1: the triples alone)."""
+    rows = [np.arange(K) // (K // 2), np.arange(K) // (K // 6), np.arange(K) // 3]
+    return np.stack(rows[-n:])
+
+
+@pytest.mark.parametrize("seed, k", [(0, 3), (2, 3), (3, 4)])
+def test_branching_on_classes_closes_on_the_best_selection(seed, k, monkeypatch):
+    """With three families of classes (halves, sixths, triples of the candidates), whose sums at
+    the hull's iterate exceed one: the tree splits on counts above none / some (recorded from
+    `hull.Node`'s `between` rows of the children it certifies), stays below every selection,
+    and closes on the best one within REL_TOL."""
+    info, weight, body, counts, conflict = _instance(seed, K=12)
+    K = len(body)
+    scores = {tuple(s): float(_value(info[s].sum(axis=0), weight[s].sum(axis=0)))
+              for s in _selections(K, k, body, counts, conflict)}
+    best = min(scores.values())
+    start = list(max(scores, key=scores.get))
+    rows = []
+    corrective = branch.corrective
+
+    def recording(*args, node=None, **kw):
+        if node is not None:
+            rows.extend(node.between)
+        return corrective(*args, node=node, **kw)
+    monkeypatch.setattr(branch, "corrective", recording)
+    tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts, start=start,
+                            conflicts=lambda j: conflict[j], branch_s=60.0, groups=_families(K, 3))
+    assert any(hi < k and hi >= 1 or lo >= 2 for _, lo, hi in rows)       # a count above none / some
+    assert tree.value <= best * (1 + 1e-12)
+    assert tree.value == pytest.approx(best, rel=bound.REL_TOL)
+    assert scores[tuple(tree.found[0])] == pytest.approx(best)
+
+
+@pytest.mark.parametrize("t", [0, 1, 2])
+def test_a_split_on_a_class_partitions_the_nodes_selections(t):
+    """`branch._children` of a node that already holds rules (one candidate left out, at least
+    one of a group, one to three of another): every selection of 4 of 10 candidates that keeps
+    the node's rules keeps exactly one child's, the one its count in the class says."""
+    K, k = 10, 4
+    out = np.zeros(K, bool)
+    out[9] = True
+    node = hull.Node(out=out, into=(np.array([0, 5]),), between=((np.array([1, 2, 3, 6]), 1, 3),))
+    group = np.array([2, 3, 4, 7, 8])
+    low, high = branch._children(node, group, t, k, K)
+    kept = 0
+    for s in itertools.combinations(range(K), k):
+        if not node.keeps(s, k):
+            continue
+        kept += 1
+        held = np.isin(s, group).sum()
+        assert (low.keeps(s, k), high.keeps(s, k)) == (held <= t, held > t), s
+    assert kept > 20
+
+
+def test_the_split_family_is_the_untried_then_the_one_that_lifted_most():
+    """`branch._pick` on a mix of two selections of 2 of 8 candidates, {0, 4} and {1, 5}, each
+    at weight 1/2, with three families: halves (0-3 / 4-7, whose sums are whole), F1 ({0, 1},
+    {2, 3}, {4}, {5}, {6, 7}: {4} and {5} hold 1/2) and F2 ({0}, {1}, {2, 3, 4}, {5, 6, 7}: all
+    1/2). The family split on holds a fractional class: the first not split on yet, then the one
+    whose splits lifted fastest (the pseudo-costs `lifts`: lifts and seconds); with no fractional class,
+    the candidate weighted farthest from 0 and 1."""
+    K = 8
+    chosen = [np.array([0, 4]), np.array([1, 5])]
+    x = np.zeros(K)
+    x[[0, 1, 4, 5]] = 0.5
+    h = hull.Hull(best=1.0, best_x=x, bound=1.0, steps=1, chosen=chosen, lam=np.array([0.5, 0.5]), x=x)
+    fams = np.stack([np.arange(K) // 4, [0, 0, 1, 1, 2, 3, 4, 4], [0, 1, 2, 2, 2, 3, 3, 3]])
+    summed = lambda w: (np.asarray(w, float), None)        # noqa: E731
+    value = lambda w, _: float(w @ np.arange(K))           # noqa: E731
+    pick = lambda lifts: branch._pick(h, fams, hull.Node(), value, summed, 1e-9, np.array(lifts, float))  # noqa: E731
+    f, S, t = pick(np.zeros((3, 2)))
+    assert f == 1 and t == 0 and set(S) in ({4}, {5})      # halves are whole; F1 untried, first
+    assert pick([[0, 0], [0.01, 2], [0, 0]])[0] == 2       # F2 not split on yet
+    assert pick([[0, 0], [0.01, 2], [0.03, 1]])[0] == 2    # F2 lifted faster
+    assert pick([[0, 0], [0.01, 2], [0.03, 10]])[0] == 1   # ... and slower
+    assert pick([[0, 0], [0.05, 1], [0.03, 1]])[0] == 1
+    single = np.zeros(K)
+    single[0] = 0.7
+    alone = hull.Hull(best=1.0, best_x=single, bound=1.0, steps=1, chosen=chosen[:1], lam=np.ones(1), x=single)
+    f, S, t = branch._pick(alone, fams[1:2], hull.Node(), value, summed, 1e-9, np.zeros((1, 2)))
+    assert f == 0 and set(S) == {0, 1} and t == 0
+    single[1] = 0.3                                        # one class of all: its sum is whole
+    f, S, t = branch._pick(alone, np.zeros((1, K), int), hull.Node(), value, summed, 1e-9, np.zeros((1, 2)))
+    assert (f, list(S), t) == (-1, [0], 0)
+
+
+def test_classes_label_aim_mount_body_lens_and_spot():
+    """`classes`: five rows, coarse to fine; candidates share a class when they share every
+    attribute of its row, and each row refines the one before."""
+    target = np.array([0, 0, 0, 1, 1, 0])
+    mount = np.array(["a", "a", "b", "a", "a", "a"])
+    body = np.array([0, 1, 0, 0, 0, 0])
+    focal = np.array([0.008, 0.008, 0.008, 0.008, 0.035, 0.035])
+    pos = np.array([[0, 0, 1], [0, 0, 1], [1, 0, 1], [0, 0, 1], [0, 0, 1], [0, 0, 1.0004]], float)
+    c = branch.classes(target, mount, body, focal, pos)
+    assert c.shape == (5, 6)
+    same = lambda row, i, j: c[row, i] == c[row, j]  # noqa: E731
+    assert same(0, 0, 2) and not same(0, 0, 3)                   # aim point
+    assert same(1, 0, 1) and not same(1, 0, 2)                   # ... and mount
+    assert not same(2, 0, 1) and same(2, 0, 5)                   # ... and body
+    assert not same(3, 0, 5) and same(3, 3, 3)                   # ... and lens
+    assert same(4, 0, 3) and same(4, 0, 5) and not same(4, 0, 2)   # spot: the optical centre, to the mm
+    for row in range(1, 4):         # finer: one class of a row lies in one class of the row before
+        assert all(len(set(c[row - 1, c[row] == q])) == 1 for q in set(c[row]))
 
 
 def test_a_spot_holds_every_candidate_at_one_optical_centre():

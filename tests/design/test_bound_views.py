@@ -80,7 +80,7 @@ def test_the_linear_step_keeps_view_counts(seed):
     K, k = len(body), 3
     views = branch.Views(_term, info, weight, np.ones(K, bool))
     few, many = views.viewers(0), views.viewers(1)
-    node = hull.Node(views=((few, 0, 1), (many, 2, k)))
+    node = hull.Node(between=((few, 0, 1), (many, 2, k)))
     rules = hull.Rules(lambda j: conflict[j], k, np.ones(K, bool), body, counts)
     rules.hold([int(many[0])], np.inf)
     g = np.random.default_rng(seed + 30).normal(size=K)
@@ -90,7 +90,7 @@ def test_the_linear_step_keeps_view_counts(seed):
     assert s is not None and node.keeps(s, k) and not conflict[np.ix_(s, s)].any()
     assert g[s].sum() == pytest.approx(min(g[x].sum() for x in keeps), abs=1e-9)
     assert low <= g[s].sum() + 1e-9
-    never = hull.Node(views=((many, 0, 1), (many, 2, k)))
+    never = hull.Node(between=((many, 0, 1), (many, 2, k)))
     assert rules.vertex(g, 10.0, never) == (None, np.inf)
 
 
@@ -128,7 +128,7 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node_split_on_views
     tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts, start=start,
                             conflicts=lambda j: conflict[j], branch_s=60.0, branch_nodes=4, term=_term)
     incumbent = min(scores[tuple(s)] for s in tree.found)
-    assert any(node.views for node, _ in tree.leaves)
+    assert any(node.between for node, _ in tree.leaves)
     least = min([incumbent] + [b for _, b in tree.leaves])
     assert least * (1 - bound.REL_TOL) <= tree.value <= least
     for s, score in scores.items():

@@ -98,7 +98,8 @@ against 176 s without on the steel beam, 210 s against 153 s on the built-in (do
 
 Branching (`vdo.design.branch`) lifts the bound of the inventory's count further: what is left
 after the hull phase is the integrality gap of H itself, which splitting the selections into
-nodes (none / some of a spot's candidates; a sample's views) takes back in part.
+nodes (at most t / at least t + 1 cameras of a class of candidates: aim point, mount, body,
+lens, spot; a sample's views) takes back in part.
 
 The gap of a design with score s to the bound b is reported as 1 - b / s: no selection of that
 many cameras can lower the score by more than that fraction.
@@ -171,7 +172,8 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
     holding j (`vdo.design.feasibility.Feasibility.placement`), whose rules the bound then holds
     (`vdo.design.hull.Rules`; None: the pairwise rules dropped); time_limit in wall seconds. With conflicts and
     branch_s > 0, a branch and bound follows for branch_s wall seconds more (`vdo.design.branch.search`; groups
-    (K,) the sets it branches on first, default none: candidates alone; branch_nodes: at most
+    (K,) the classes of candidates it counts, or (F, K) F families of them
+    (`vdo.design.branch.classes`), default none: candidates alone; branch_nodes: at most
     that many nodes, else as many as the time allows; term: the score's logarithm per sample,
     value = exp(sum_n term_n) (`vdo.design.branch.Views`), with which it splits first on how many cameras see a
     sample). k is cut to `largest(...)` (no selection holds more)."""

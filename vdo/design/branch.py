@@ -11,16 +11,37 @@ lies in one of a node's two children (none of a set S of candidates / at least o
 the least bound over the open nodes, and over the best selection found (`found`: every
 selection the MILP returns keeps the rules, so f there bounds the minimum from above and
 closes the nodes whose bound reaches it), bounds every selection; a child's bound is at least
-its parent's. S is the spot (`spots`: every pose, body and lens at one optical centre) whose
-weights at the node's iterate sum farthest from a whole number, else the candidate weighted
-farthest from 0 and 1. Best first: the node of least bound is split, each child certified by
+its parent's. S is a class of candidates (below, "Branching on classes"), else the candidate
+weighted farthest from 0 and 1. Best first: the node of least bound is split, each child certified by
 the hull phase from the parent's selections that keep its rules (NODE_INNER_S of re-weighting
 at most), so the bound rises monotonically; it stops at its time, when the bound has risen by
-less than STALL in STALL_S, or when every node is closed (the best selection found is then the
+less than STALL in STALL_S and STALL_NODES nodes (a split on classes may take 20-50 s a node on
+the steel beam), or when every node is closed (the best selection found is then the
 best of all). Measured (2026-12-06, 2 cores shared with two other jobs): on the built-in (10
 cameras) 49 nodes in 260 s lifted 0.05142 to 0.05192, gap 5.8 -> 4.9 %; on the steel beam
 (4 cameras) 13 nodes in 240 s lifted 0.15559 to 0.15575: there each child moves the bound by
 0.01-0.05 %, the mix spreading over other spots at almost no cost.
+
+Branching on classes. A spot is one optical centre, and the mix moves to the next one at almost
+no cost; what separates its selections is coarser. On the steel beam the root's mix weighs
+selections that favour one end of the beam with their mirror images: cameras on the left
+aimed at the right end's centre, or at the left's, from one height or another. So the
+candidates are grouped in families of classes, coarse to fine (`classes`): by aim point; aim
+point and mount; those and body kind; those and lens; spot. A node whose iterate holds a
+fractional t + f (0 < f < 1) cameras of a class S splits into at most t cameras of S / at
+least t + 1 (t = 0: none / some, as before; `_children`; every selection keeps exactly one).
+Which family lifts most depends on the experiment, so the tree learns it as it goes
+(pseudo-costs, as MILP solvers rank their branching variables): each family is split on once,
+coarse to fine, and then the family whose splits lifted the least child's bound fastest (its
+relative lifts over the seconds its children took, the tree having a time limit). In that family, of its PICK_PER_FAMILY most fractional
+classes, the one that leaves the mix worst off: the larger of the node's function at the mix
+of its selections on each side (re-weighted to sum 1), the smaller side taken (`_pick`; the
+hull's certificate at the parent's iterate is the same for every split, so it cannot rank
+them). Measured on the steel beam's root (4 cameras, the hull at 0.15563, each child solved
+alone): a split on an aim point lifts the least child by 0.58 %, on aim point, mount and body
+by 1.41 %, against 0.01-0.1 % for a spot. On the built-in (10 cameras on rails) spots lift
+most: 300 s of branching from the same hull reached 0.05202 on spots alone and 0.05189 with
+the classes ranked by the mix alone, before the pseudo-costs.
 
 Branching on views. A camera measures a point in two directions of three, so a sample seen by
 one camera is unmeasured (the prior's sigma), by two or more measured. The hull's optimum mixes
@@ -41,13 +62,13 @@ selections, so the bound stays valid. The floor lifts child j's bound at once: o
 beam an unmeasured sample costs 1.2-1.3x the score, so child j is certified at the parent's
 iterate alone (`_once`: one gradient and one linear step), kept open without its own hull
 until it is the least open bound, and mostly closed by the incumbent. When no sample is mixed,
-the split falls back to spots, and once a split on views lifts its node's bound by less than
+the split falls back to classes, and once a split on views lifts its node's bound by less than
 VIEWS_LIFT (the mix found other selections that see those samples twice at little cost) the
-tree splits on spots alone. Measured on the steel beam (4 cameras, 2 loaded cores): two
+tree splits on classes alone. Measured on the steel beam (4 cameras, 2 loaded cores): two
 splits on views lift the hull's 0.15562 to 0.15710 (+0.95 %, against +0.1 % for the first four
-spot splits), after which the mix sees every sample twice and the splits go back to spots; what
-separates the bound from the designs there is then the Jensen gap of the measured samples'
-sigma (the target's term is quadratic in ln sigma), which no split on views removes. On random
+spot splits), after which the mix sees every sample twice; what is left is the Jensen gap of
+the measured samples' sigma (the target's term is quadratic in ln sigma, and the mix's
+selections each favour one end), which the splits on classes take back in part. On random
 instances where each view has rank two (tests/design/test_bound_views.py, seeds 0, 3, 5) three
 nodes split on views lift the hull's bound by 2.48, 2.55 and 0.64 against 0.09, 0.16 and 0.08
 for three split on candidates, and the tree closes on the best selection.
@@ -72,8 +93,10 @@ log = logging.getLogger(__name__)
 NODE_INNER_S = 1.0     # the branch and bound's nodes: one re-weighting of their selections at most this long
 STALL_S = 60.0         # the branch and bound stops when the bound rose by less than STALL (relative) in STALL_S
 STALL = 5e-4
+STALL_NODES = 8        # ... and in STALL_NODES nodes
 SPLIT_SAMPLES = 16     # a split on views names at most this many samples (`Views.split`)
-VIEWS_LIFT = 1e-3      # ... and the tree splits on candidates alone once one lifts its bound by less (relative)
+VIEWS_LIFT = 1e-3      # ... and the tree splits on classes alone once one lifts its bound by less (relative)
+PICK_PER_FAMILY = 3    # a split on classes weighs this many classes of each family (`_pick`)
 BRANCH_LOG_S = 30.0    # a progress line of the branch and bound at most this often
 
 
@@ -179,24 +202,84 @@ def spots(positions: np.ndarray, digits: int = 3) -> np.ndarray:
     return np.unique(np.round(np.asarray(positions, float), digits), axis=0, return_inverse=True)[1].ravel()
 
 
-def _fractional(x: np.ndarray, groups: np.ndarray, node: Node, tol: float):
-    """The branching set at the iterate x: the group whose weight sum lies farthest from a whole
-    number (beyond tol) among those the node has not branched on, else the candidate weighted
-    farthest from 0 and 1 (its own group); None when every weight is within tol of 0 or 1."""
-    done = {tuple(q) for q in node.into}
-    sums = np.bincount(groups, x, minlength=int(groups.max()) + 1)
-    off = np.abs(sums - np.round(sums))
-    for q in np.argsort(-off):
-        if off[q] <= tol:
-            break
-        members = np.flatnonzero(groups == q)
-        if node.out is not None:
-            members = members[~node.out[members]]
-        if tuple(members) not in done:
-            return members
-    off = np.minimum(x, 1.0 - x)
-    i = int(np.argmax(off))
-    return None if off[i] <= tol else np.array([i])
+def classes(target: np.ndarray, mount, body: np.ndarray, focal: np.ndarray,
+            positions: np.ndarray) -> np.ndarray:
+    """(5, K) the classes of candidates the branching counts (`search`, module docstring
+    "Branching on classes"), coarse to fine, one row of labels each: the aim point (`target`),
+    the aim point and the mount, those and the body kind, those and the lens (`focal`), and the
+    spot (`spots`)."""
+    label = lambda *cols: np.unique(np.stack([np.unique(np.asarray(c), return_inverse=True)[1].ravel()  # noqa: E731
+                                              for c in cols], axis=1), axis=0, return_inverse=True)[1].ravel()
+    return np.stack([label(target), label(target, mount), label(target, mount, body),
+                     label(target, mount, body, np.round(np.asarray(focal, float), 6)), spots(positions)])
+
+
+def _pick(h: Hull, families: np.ndarray, node: Node, value: Callable, summed, tol: float,
+          lifts: np.ndarray):
+    """The branching set at a node's hull h: (family, S, t), every selection holding at most t
+    cameras of S or at least t + 1 (module docstring, "Branching on classes"). Of each family of
+    classes (rows of `families`, labels), the PICK_PER_FAMILY classes whose weights at h's
+    iterate sum farthest from a whole number (beyond tol), t the sum rounded down. The family:
+    the first (coarse to fine) not split on yet, else the one whose splits lifted their node's
+    bound fastest (`lifts` (F, 2): the relative lifts of the least child's bound over the
+    node's, and the seconds their children took, each summed so far: a pseudo-cost per
+    second). In it, the class whose split leaves the mix worst off: the larger of the
+    node's function `value` at the mix of h's selections on each side (re-weighted to sum 1),
+    the smaller of the two sides taken. Else the candidate weighted farthest from 0 and 1
+    (family -1, t = 0); None when every weight is within tol of 0 or 1."""
+    x, K = h.x, len(h.x)
+    per, named = [], set()
+    for f, labels in enumerate(families):
+        ids, inv = np.unique(labels, return_inverse=True)
+        sums = np.bincount(inv, x, minlength=len(ids))
+        off = np.abs(sums - np.round(sums))
+        options = []
+        for q in np.argsort(-off)[:PICK_PER_FAMILY]:
+            if off[q] <= tol:
+                break
+            members = np.flatnonzero(inv == q)
+            if node.out is not None:
+                members = members[~node.out[members]]
+            if tuple(members) not in named:
+                named.add(tuple(members))
+                options.append((members, int(np.floor(sums[q] + tol))))
+        if options:
+            per.append((f, options))
+    if not per:
+        off = np.minimum(x, 1.0 - x)
+        i = int(np.argmax(off))
+        return None if off[i] <= tol else (-1, np.array([i]), 0)
+    untried = [p for p in per if lifts[p[0], 1] == 0]
+    f, options = untried[0] if untried else max(per, key=lambda p: lifts[p[0], 0] / lifts[p[0], 1])
+    if len(options) == 1 or len(h.chosen) < 2:
+        return (f, *options[0])
+
+    def side(keep):
+        lam = np.where(keep, h.lam, 0.0)
+        if lam.sum() <= 0:
+            return np.inf
+        mix = np.zeros(K)
+        for weight, v in zip(lam / lam.sum(), h.chosen):
+            mix[v] += weight
+        return float(value(*summed(mix)))
+
+    def worse_off(option):
+        members, t = option
+        held = np.array([np.isin(v, members).sum() for v in h.chosen])
+        return min(side(held <= t), side(held > t))
+    return (f, *max(options, key=worse_off))
+
+
+def _children(node: Node, group: np.ndarray, t: int, k: int, K: int) -> tuple[Node, Node]:
+    """A node's two children split on a class `group` (indices) at count t: at most t cameras of
+    it / at least t + 1 (t = 0: none of it, left out of the linear step / at least one), so that
+    each of the node's selections keeps the rules of exactly one."""
+    if t == 0:
+        out = np.zeros(K, bool) if node.out is None else node.out.copy()
+        out[group] = True
+        return replace(node, out=out), replace(node, into=node.into + (group,))
+    return (replace(node, between=node.between + ((group, 0, t),)),
+            replace(node, between=node.between + ((group, t + 1, k),)))
 
 
 def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.ndarray, incumbent: float,
@@ -204,14 +287,18 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             views: Views | None = None):
     """Branch and bound over the hull's selections (module docstring, "Branching"), best first:
     each open node's certificate bounds every selection keeping the rules and its branching
-    rules; the node of lowest bound is split on the set S of `_fractional` (none of S / at
-    least one of S: every selection lies in one child), each child certified by `corrective` from
+    rules; the node of lowest bound is split on a sample's views (`views`, `Views.split`) or on
+    the set S and count t of `_pick` among the classes `groups` ((K,) labels, or (F, K): F
+    families of them, `classes`): at most t cameras of S / at least t + 1 (t = 0: none of S / at
+    least one; every selection lies in one child), each child certified by `corrective` from
     its parent's selections that keep its rules, and a child whose bound reaches the incumbent
     (f at the best selection found, each a point of the hull) within rel_tol is closed. Returns
     (the least of the incumbent, the closed nodes' bounds and the open nodes' bounds: a lower
     bound on f over every selection keeping the rules; nodes made (at most max_nodes); the incumbent; the selections found, best first
     (at most 8); the open nodes as (Node, bound))."""
     K = len(root.x)
+    families = np.atleast_2d(np.asarray(groups))
+    lifts = np.zeros((len(families), 2))      # per family: its splits' relative lifts and their seconds, summed
     found: dict = {}
 
     def seen(h: Hull):
@@ -229,7 +316,7 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
     # certifies it (`_once`), then the parent's Hull)
     heap, order, nodes, closed = [(root.bound, 0, Node(), root, None)], 1, 1, np.inf
     shown = since = time.perf_counter()
-    risen = root.bound
+    risen, nodes_then = root.bound, nodes
     on_views = views is not None          # splits on views first (module docstring)
 
     def settle(child: Node, bound: float, c: Hull | None, parent: Hull | None):
@@ -261,14 +348,16 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             settle(node, max(c.bound, low), c, None)
             continue
         split = views.split(h, summed, _floor(node, views.samples)) if on_views else None
-        pick = None if split is not None else _fractional(h.x, groups, node, 1e-6)
+        pick = None if split is not None else _pick(
+            h, families, node, only if not node.floor else views.floored(_floor(node, views.samples))[1], summed,
+            1e-6, lifts)
         if split is None and pick is None:        # an integral iterate not certified: hull's steps ran out of time
             break
         now = time.perf_counter()
-        if now > since + STALL_S:           # stalled: the bound rose by less than STALL in STALL_S
-            if low < risen * (1 + STALL):
+        if now > since + STALL_S and nodes >= nodes_then + STALL_NODES:     # stalled: the bound rose
+            if low < risen * (1 + STALL):                                # by less than STALL in both
                 break
-            since, risen = now, low
+            since, risen, nodes_then = now, low, nodes
         heapq.heappop(heap)
         if now > shown + BRANCH_LOG_S:
             shown = now
@@ -281,23 +370,26 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             seers = [views.viewers(n) for n in split]
             many = tuple((q, 2, rules.k) for q in seers)
             for j, n in enumerate(split):
-                child = replace(node, views=node.views + many[:j] + ((seers[j], 0, 1),),
+                child = replace(node, between=node.between + many[:j] + ((seers[j], 0, 1),),
                                 floor=node.floor + ((n, views.alone(n)),))
                 once = _once(views.floored(_floor(child, views.samples)), summed, pullback, rules, h.x, child, inner_s)
                 nodes += 1
                 if np.isfinite(once):
                     settle(child, max(once, low), None, h)
-            child = replace(node, views=node.views + many)
+            child = replace(node, between=node.between + many)
             c = solve(child, h, low)
             settle(child, max(c.bound, low), c, None)
             if c.bound < low * (1 + VIEWS_LIFT):      # the mix moved at little cost: candidates from now on
                 on_views = False
             continue
-        out = np.zeros(K, bool) if node.out is None else node.out.copy()
-        out[pick] = True
-        for child in (replace(node, out=out), replace(node, into=node.into + (pick,))):
+        family, group, t = pick
+        least, began = np.inf, time.perf_counter()
+        for child in _children(node, group, t, rules.k, K):
             c = solve(child, h, low)
             settle(child, max(c.bound, low), c, None)
+            least = min(least, max(c.bound, low))
+        if family >= 0 and np.isfinite(least):
+            lifts[family] += (least / low - 1.0, time.perf_counter() - began)
     value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
     return value, nodes, incumbent, [np.array(v) for v in best], [(n[2], n[0]) for n in heap]

@@ -154,20 +154,21 @@ def cliques(adjacent: np.ndarray) -> list[np.ndarray]:
 class Node:
     """The branching rules of a node of the branch and bound (`vdo.design.branch.search`): `out` (K,) bool, the
     candidates none of its selections holds (None: none), `into` the groups (index arrays) in
-    each of which its selections hold at least one camera, `views` (group, lo, hi): between lo
-    and hi cameras of the group (the candidates that see one sample, `vdo.design.branch.Views`), and `floor`
-    (sample, value): that sample's term of the score is at least value in every selection of
-    the node (`vdo.design.branch.Views.alone`)."""
+    each of which its selections hold at least one camera, `between` (group, lo, hi): between lo
+    and hi cameras of the group (the candidates that see one sample, `vdo.design.branch.Views`;
+    a class of candidates, `vdo.design.branch.classes`), and `floor` (sample, value): that
+    sample's term of the score is at least value in every selection of the node
+    (`vdo.design.branch.Views.alone`)."""
 
     out: np.ndarray | None = None
     into: tuple = ()
-    views: tuple = ()
+    between: tuple = ()
     floor: tuple = ()
 
     def limits(self, k: int) -> list:
-        """Every group rule as (group, lo, hi): `into`'s as (group, 1, k), then `views`."""
+        """Every group rule as (group, lo, hi): `into`'s as (group, 1, k), then `between`."""
         return [(np.asarray(q, dtype=int), 1, k) for q in self.into] + \
-            [(np.asarray(q, dtype=int), lo, hi) for q, lo, hi in self.views]
+            [(np.asarray(q, dtype=int), lo, hi) for q, lo, hi in self.between]
 
     def keeps(self, selection, k: int) -> bool:
         """Whether a selection (indices) keeps the node's rules."""

@@ -32,8 +32,9 @@ and certifies a lower bound on the score of every selection of that many cameras
 relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
 candidates by decreasing weight while feasible, then the exchange and the polish): its selection
 replaces the count's when it scores lower ("rounded" in design.json's curve); so does, on the
-inventory's count, the best selection the branch and bound met when it scores lower than the
-count's before the exchange ("branched"). Then random restarts
+inventory's count, the best of the selections the branch and bound met (at most 8, the best
+first), each taken down by the exchange passes, when it scores lower than the count's
+("branched"). Then random restarts
 (`moves.restarts`, [design] restart_s seconds per count): starts drawn from the weights, a tenth of
 each draw spread over all candidates, each taken down by the exchange passes; the best (exchanged
 over all candidates, polished and judged as `_count` does) replaces the count's selection when it
@@ -442,10 +443,17 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     for c, b in zip(curve, relaxed):
         if b is None:
             continue
-        # more starts: the relaxation's weights rounded, and the best selection its branch and bound met
+        # more starts: the relaxation's weights rounded, and the best of the selections its
+        # branch and bound met, each taken down by the exchange passes first
         starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
-        if b.found and scorer.of(cand, b.found[0]) < c["score"] * (1 - ROUNDING_RTOL):
-            starts.append(("the branch and bound's best selection", "branched", list(b.found[0])))
+        met, met_score = None, math.inf
+        for v in b.found or []:
+            if _clock() + count_s + final_s > deadline:
+                break
+            chosen, score, _ = exchange(cand, scorer, feas, list(v))
+            met, met_score = (chosen, score) if score < met_score else (met, met_score)
+        if met is not None and met_score < c["score"] * (1 - ROUNDING_RTOL):
+            starts.append(("the best of the branch and bound's selections", "branched", met))
         for what, key, start in starts:
             if _clock() + count_s + final_s > deadline:
                 break
@@ -611,7 +619,8 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
     counts: each count's bound is the largest of its own and the plain bounds (pairwise rules
     dropped) of larger counts (while the relaxation's count grows). The largest count (the
     inventory's, the layout written) then gets `branch_seconds` of branch and bound over the
-    candidates' spots (`vdo.design.branch.spots`), which lifts its bound where the relaxation
+    candidates' classes (`vdo.design.branch.classes`: aim point, mount, body kind, lens, spot),
+    which lifts its bound where the relaxation
     mixes selections (docs/design.md, "The bound"). Logs each gap. Returns each count's
     `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
@@ -619,7 +628,8 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
             c.update(bound=None, gap=None, bound_converged=None)
         return [None] * len(curve)
     top = max(c["cameras"] for c in curve)
-    groups = branch.spots(cand.positions) if branch_seconds > 0 else None
+    groups = branch.classes(cand.target, cand.mount, cand.body, [c.focal_length for c in cand.cameras],
+                            cand.positions) if branch_seconds > 0 else None
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
                               feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds,
                               groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0,
