@@ -33,15 +33,16 @@ least t + 1 (t = 0: none / some, as before; `_children`; every selection keeps e
 Which family lifts most depends on the experiment, so the tree learns it as it goes
 (pseudo-costs, as MILP solvers rank their branching variables): each family is split on once,
 coarse to fine, and then the family whose splits lifted the least child's bound fastest (its
-relative lifts over the seconds its children took, the tree having a time limit). In that family, of its PICK_PER_FAMILY most fractional
-classes, the one that leaves the mix worst off: the larger of the node's function at the mix
-of its selections on each side (re-weighted to sum 1), the smaller side taken (`_pick`; the
-hull's certificate at the parent's iterate is the same for every split, so it cannot rank
-them). Measured on the steel beam's root (4 cameras, the hull at 0.15563, each child solved
-alone): a split on an aim point lifts the least child by 0.58 %, on aim point, mount and body
-by 1.41 %, against 0.01-0.1 % for a spot. On the built-in (10 cameras on rails) spots lift
-most: 300 s of branching from the same hull reached 0.05202 on spots alone and 0.05189 with
-the classes ranked by the mix alone, before the pseudo-costs.
+relative lifts over the seconds its children took, the tree having a time limit). In that
+family, of its PICK_PER_FAMILY most fractional classes, the one that leaves the mix worst off:
+the larger of the node's function at the mix of its selections on each side (re-weighted to
+sum 1), the smaller side taken (`_pick`; the hull's certificate at the parent's iterate is the
+same for every split, so it cannot rank them). Measured on the steel beam's root (4 cameras,
+the hull at 0.15563, each child solved alone): a split on an aim point lifts the least child by
+0.58 %, on aim point, mount and body by 1.41 %, against 0.01-0.1 % for a spot. 300 s of
+branching from the same hull (2 loaded cores): the steel beam 0.15777 on spots, 0.16097 on
+classes; the built-in (10 cameras on rails, where spots lift most) 0.05202 on spots, 0.05189
+on classes ranked by the mix alone, 0.05200 with the pseudo-costs.
 
 Branching on views. A camera measures a point in two directions of three, so a sample seen by
 one camera is unmeasured (the prior's sigma), by two or more measured. The hull's optimum mixes
@@ -208,10 +209,15 @@ def classes(target: np.ndarray, mount, body: np.ndarray, focal: np.ndarray,
     "Branching on classes"), coarse to fine, one row of labels each: the aim point (`target`),
     the aim point and the mount, those and the body kind, those and the lens (`focal`), and the
     spot (`spots`)."""
-    label = lambda *cols: np.unique(np.stack([np.unique(np.asarray(c), return_inverse=True)[1].ravel()  # noqa: E731
-                                              for c in cols], axis=1), axis=0, return_inverse=True)[1].ravel()
-    return np.stack([label(target), label(target, mount), label(target, mount, body),
-                     label(target, mount, body, np.round(np.asarray(focal, float), 6)), spots(positions)])
+    lens = np.round(np.asarray(focal, float), 6)
+    return np.stack([_label(target), _label(target, mount), _label(target, mount, body),
+                     _label(target, mount, body, lens), spots(positions)])
+
+
+def _label(*columns) -> np.ndarray:
+    """(K,) one label per distinct combination of the columns' values (each (K,))."""
+    codes = [np.unique(np.asarray(c), return_inverse=True)[1].ravel() for c in columns]
+    return np.unique(np.stack(codes, axis=1), axis=0, return_inverse=True)[1].ravel()
 
 
 def _pick(h: Hull, families: np.ndarray, node: Node, value: Callable, summed, tol: float,
