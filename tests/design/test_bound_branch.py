@@ -81,9 +81,17 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node(seed, k, famil
     tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts, start=start,
                             conflicts=lambda j: conflict[j], branch_s=60.0, branch_nodes=5,
                             groups=_families(K, families))
-    incumbent = min(scores[tuple(s)] for s in tree.found)
     assert tree.leaves
-    least = min([incumbent] + [b for _, b in tree.leaves])     # a closed node may lie REL_TOL under the incumbent
+    assert_open_nodes_hold(tree, scores, k)
+
+
+def assert_open_nodes_hold(tree, scores: dict, k: int) -> None:
+    """Every enumerated selection (`scores`: selection -> score) scoring below the incumbent
+    (the best of the tree's found selections) keeps the rules of an open node (`tree.leaves`)
+    whose bound is at most its score, and the bound reported is the least of those bounds and
+    the incumbent (a closed node's may lie REL_TOL under the incumbent)."""
+    incumbent = min(scores[tuple(s)] for s in tree.found)
+    least = min([incumbent] + [b for _, b in tree.leaves])
     assert least * (1 - bound.REL_TOL) <= tree.value <= least
     for s, score in scores.items():
         if score >= incumbent * (1 - bound.REL_TOL):

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from test_bound_branch import assert_open_nodes_hold
 from test_bound_conflicts import _selections
 
 from vdo.design import bound, hull, branch
@@ -127,12 +128,5 @@ def test_every_selection_below_the_incumbent_lies_in_an_open_node_split_on_views
     start = list(max(scores, key=scores.get))
     tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts, start=start,
                             conflicts=lambda j: conflict[j], branch_s=60.0, branch_nodes=4, term=_term)
-    incumbent = min(scores[tuple(s)] for s in tree.found)
     assert any(node.between for node, _ in tree.leaves)
-    least = min([incumbent] + [b for _, b in tree.leaves])
-    assert least * (1 - bound.REL_TOL) <= tree.value <= least
-    for s, score in scores.items():
-        if score >= incumbent * (1 - bound.REL_TOL):
-            continue
-        within = [b for node, b in tree.leaves if node.keeps(list(s), k)]
-        assert within and min(within) <= score * (1 + 1e-12), s
+    assert_open_nodes_hold(tree, scores, k)

@@ -451,7 +451,8 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
             if _clock() + count_s + final_s > deadline:
                 break
             chosen, score, _ = exchange(cand, scorer, feas, list(v))
-            met, met_score = (chosen, score) if score < met_score else (met, met_score)
+            if score < met_score:
+                met, met_score = chosen, score
         if met is not None and met_score < c["score"] * (1 - ROUNDING_RTOL):
             starts.append(("the best of the branch and bound's selections", "branched", met))
         for what, key, start in starts:
