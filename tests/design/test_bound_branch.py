@@ -215,3 +215,17 @@ def test_a_spot_holds_every_candidate_at_one_optical_centre():
     g = branch.spots(p)
     assert g[0] == g[1] and g[2] == g[4]
     assert len({g[0], g[2], g[3]}) == 3
+
+
+@pytest.mark.parametrize("columns", [0, 5, 64, 70])
+def test_rows_alike_share_a_label(columns):
+    """hull._alike (the linear step's groups of candidates that enter the same rows) against
+    numpy's unique rows: one label per distinct row, across a 64-bit word's edge too."""
+    rng = np.random.default_rng(columns)
+    base = rng.random((7, columns)) < 0.5
+    rows = base[rng.integers(0, 7, size=200)]
+    label = hull._alike(rows)
+    expect = np.unique(rows, axis=0, return_inverse=True)[1].ravel() if columns else np.zeros(200, int)
+    assert len(np.unique(label)) == len(np.unique(expect))
+    same = label[:, None] == label[None, :]
+    assert (same == (expect[:, None] == expect[None, :])).all()

@@ -237,14 +237,14 @@ class Rules:
             inside = np.zeros((len(rest), len(into)), bool)   # which groups each is in
             for q, group in enumerate(into):
                 inside[:, q] = np.isin(rest, group)
-            pattern = np.unique(inside, axis=0, return_inverse=True)[1].ravel() if len(rest) else rest
-            extra = []
-            for p in np.unique(pattern):        # the candidates that enter the same rows
-                for b, c in enumerate(counts):
-                    idx = rest[(pattern == p) & (body[rest] == b)]
-                    n = min(int(c), k, len(idx))
-                    extra.append(idx[np.argpartition(g[idx], n - 1)[:n]] if n else idx[:0])
-            V = np.concatenate([self.held, *extra]).astype(int)
+            # the candidates that enter the same rows (groups and body kind): the lowest-g
+            # min(count, k) of each
+            key = _alike(inside) * len(counts) + body[rest]
+            order = np.lexsort((g[rest], key))
+            first = np.r_[True, key[order][1:] != key[order][:-1]]
+            rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+            extra = rest[order[rank < np.minimum(np.asarray(counts)[body[rest[order]]], k)]]
+            V = np.concatenate([self.held, extra]).astype(int)
             rows = [np.arange(len(V))] + [np.flatnonzero(body[V] == b) for b in range(len(counts))] + \
                 self._cliques + [np.flatnonzero(np.isin(V, group)) for group in into]
             A = scipy.sparse.csr_matrix((np.ones(sum(len(r) for r in rows)),
@@ -270,6 +270,21 @@ class Rules:
             self.hold(new, deadline)
             if len(self.held) == held:
                 return None, low
+
+
+def _alike(inside: np.ndarray) -> np.ndarray:
+    """(R,) one label per distinct row of `inside` (R, Q) bool: the rows packed into 64-bit words
+    and sorted as integers (np.unique over bool rows compares them as bytes, 80 of the 220 ms
+    of a linear step of the steel beam's tree)."""
+    if inside.shape[1] == 0:
+        return np.zeros(len(inside), dtype=int)
+    packed = np.packbits(inside, axis=1)
+    words = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, -packed.shape[1] % 8)))).view(np.uint64)
+    order = np.lexsort(words.T[::-1])
+    step = np.r_[True, (words[order][1:] != words[order][:-1]).any(axis=1)]
+    label = np.empty(len(words), dtype=int)
+    label[order] = np.cumsum(step) - 1
+    return label
 
 
 def descend(both, only, summed, pullback, x, k, allowed, body, counts, deadline, rel_tol, max_iter):
