@@ -240,9 +240,9 @@ class Rules:
             # the candidates that enter the same rows (groups and body kind): the lowest-g
             # min(count, k) of each
             key = _alike(inside) * len(counts) + body[rest]
-            order = np.lexsort((g[rest], key))
-            first = np.r_[True, key[order][1:] != key[order][:-1]]
-            rank = np.arange(len(order)) - np.maximum.accumulate(np.where(first, np.arange(len(order)), 0))
+            order = np.lexsort((g[rest], key))            # by rows and body kind, then by g
+            ranked, place = key[order], np.arange(len(order))
+            rank = place - np.maximum.accumulate(np.where(np.r_[True, ranked[1:] != ranked[:-1]], place, 0))
             extra = rest[order[rank < np.minimum(np.asarray(counts)[body[rest[order]]], k)]]
             V = np.concatenate([self.held, extra]).astype(int)
             rows = [np.arange(len(V))] + [np.flatnonzero(body[V] == b) for b in range(len(counts))] + \
@@ -281,7 +281,8 @@ def _alike(inside: np.ndarray) -> np.ndarray:
     packed = np.packbits(inside, axis=1)
     words = np.ascontiguousarray(np.pad(packed, ((0, 0), (0, -packed.shape[1] % 8)))).view(np.uint64)
     order = np.lexsort(words.T[::-1])
-    step = np.r_[True, (words[order][1:] != words[order][:-1]).any(axis=1)]
+    ranked = words[order]
+    step = np.r_[True, (ranked[1:] != ranked[:-1]).any(axis=1)]
     label = np.empty(len(words), dtype=int)
     label[order] = np.cumsum(step) - 1
     return label
