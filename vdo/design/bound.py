@@ -136,7 +136,9 @@ class Bound:
     seconds: wall time; conflicted: the candidates whose pairwise rules the bound holds (0: none);
     with branching (`vdo.design.branch.search`), nodes made (0: none), value the least bound over the open nodes
     and the best selection found (it may then exceed relaxed), found those selections, best first,
-    and leaves the open nodes as (Node, bound)."""
+    and leaves the open nodes as (Node, bound); mix the selections of the hull phase's last
+    iterate (index arrays; empty without pairwise rules), whose planes shape the outer
+    approximation's model (`vdo.design.outer`)."""
 
     cameras: int
     value: float
@@ -150,6 +152,7 @@ class Bound:
     nodes: int = 0
     found: list = None
     leaves: list = None
+    mix: list = ()
 
     def gap(self, score: float) -> float:
         """1 - value / score: the largest fraction by which any selection of `cameras` cameras
@@ -191,7 +194,7 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
     first = t0 + time_limit * (1.0 if conflicts is None else PLAIN_SHARE)
     best, best_x, plain, it = descend(both, only, summed, pullback, x, k, allowed, body, counts, first,
                                        rel_tol, max_iter)
-    bound, held, nodes, found, leaves = plain, 0, 0, [], []
+    bound, held, nodes, found, leaves, mix = plain, 0, 0, [], [], []
     if conflicts is not None and time.perf_counter() < t0 + time_limit:
         rules = Rules(conflicts, k, allowed, body, counts)
         weighed = np.flatnonzero(best_x > SUPPORT)
@@ -199,7 +202,7 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
                                    weighed[np.argsort(-best_x[weighed])]]), t0 + time_limit)
         h = corrective(both, only, summed, pullback, rules, best_x, start, plain,
                   t0 + time_limit, INNER_SHARE * time_limit, rel_tol, max_iter)
-        bound, steps = h.bound, h.steps
+        bound, steps, mix = h.bound, h.steps, list(h.chosen)
         it, held = it + steps, len(rules.held)
         if h.best_x is not None:
             best, best_x = h.best, h.best_x
@@ -212,4 +215,5 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
             bound, held = max(bound, h.bound), len(rules.held)
     return Bound(cameras=k, value=float(bound), plain=float(plain), relaxed=float(best), weights=best_x,
                  iterations=it, converged=best - bound <= rel_tol * abs(bound),
-                 seconds=time.perf_counter() - t0, conflicted=held, nodes=nodes, found=found, leaves=leaves)
+                 seconds=time.perf_counter() - t0, conflicted=held, nodes=nodes, found=found, leaves=leaves,
+                 mix=mix)

@@ -286,6 +286,23 @@ class Feasibility:
     def conflicts(self, i: int, j: int) -> bool:
         return bool(self.row(j)[i])
 
+    def admits(self, selection) -> bool:
+        """Whether the cameras of `selection` can join one another in some order, each allowed
+        by those before it (`allowed`), as a design adds them. j's row forbids i after j, so i
+        must come before j; an order exists when each is allowed alone, the body counts hold and
+        those precedences have no cycle (taken apart camera by camera: the next one forbids none
+        of those left)."""
+        left = [int(i) for i in selection]
+        used = np.bincount(self.body[left], minlength=len(self.counts))
+        if not self.alone[left].all() or (used > self.counts).any():
+            return False
+        while left:
+            nxt = next((j for j in left if not self.row(j)[[i for i in left if i != j]].any()), None)
+            if nxt is None:
+                return False
+            left.remove(nxt)
+        return True
+
     def allowed(self, chosen) -> np.ndarray:
         """(K,) True for the candidates compatible with every camera in `chosen` and whose body
         kind is not used up by `chosen`."""

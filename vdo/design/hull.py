@@ -89,8 +89,9 @@ def linear_maps(info, weight):
     """(K, summed, pullback) for candidates given densely, info (K, N, 6) and weight (K, N), or
     stored sparsely (`info` a `vdo.design.candidates.Candidates`: indptr, index, entry_info,
     entry_weight; `weight` None): summed(w) = (sum_k w_k C_k (N, 6), sum_k w_k w_k,n (N,)) and its
-    adjoint pullback(gC, gc) = (sum_n C_k,n : gC_n + w_k,n gc_n)_k (K,). The sparse form costs
-    the stored entries, not K x N."""
+    adjoint pullback(gC, gc) = (sum_n C_k,n : gC_n + w_k,n gc_n)_k (K,); pullback(gC, gc, groups),
+    groups (N,) labels 0..G-1 of the samples, gives the adjoint of each group's samples apart, (K,
+    G), in one pass. The sparse form costs the stored entries, not K x N."""
     if weight is None:
         K, N = len(info.indptr) - 1, info.samples
         owner, idx, ei, ew = info.row, info.index, info.entry_info, info.entry_weight
@@ -109,14 +110,16 @@ def linear_maps(info, weight):
                 c += np.bincount(i, we * ew[part], minlength=N)
             return C, c
 
-        def pullback(gC, gc):
+        def pullback(gC, gc, groups=None):
             gC, gc = np.asarray(gC), np.asarray(gc)
-            out = np.zeros(K)
+            G = 1 if groups is None else int(np.max(groups)) + 1
+            out = np.zeros(K * G)
             for part in chunks:
                 i = idx[part]
-                out += np.bincount(owner[part], np.einsum("ec,ec->e", ei[part], gC[i]) + ew[part] * gc[i],
-                                   minlength=K)
-            return out
+                where = owner[part] if groups is None else owner[part] * G + groups[i]
+                out += np.bincount(where, np.einsum("ec,ec->e", ei[part], gC[i]) + ew[part] * gc[i],
+                                   minlength=K * G)
+            return out if groups is None else out.reshape(K, G)
         return K, summed, pullback
     weight = np.asarray(weight, dtype=float)
 
@@ -124,8 +127,11 @@ def linear_maps(info, weight):
         nz = np.flatnonzero(w)
         return np.tensordot(w[nz], info[nz], axes=1), w[nz] @ weight[nz]
 
-    def pullback(gC, gc):
-        return np.tensordot(info, np.asarray(gC), axes=([1, 2], [0, 1])) + weight @ np.asarray(gc)
+    def pullback(gC, gc, groups=None):
+        if groups is None:
+            return np.tensordot(info, np.asarray(gC), axes=([1, 2], [0, 1])) + weight @ np.asarray(gc)
+        return np.stack([pullback(np.asarray(gC) * (groups == b)[:, None], np.asarray(gc) * (groups == b))
+                         for b in range(int(np.max(groups)) + 1)], 1)
     return info.shape[0], summed, pullback
 
 
