@@ -31,10 +31,13 @@ and certifies a lower bound on the score of every selection of that many cameras
 1 - bound / score ([design] bound_s seconds per count). The
 relaxation's weights are also a second start for each count (`vdo.design.moves.rounded`: the
 candidates by decreasing weight while feasible, then the exchange and the polish): its selection
-replaces the count's when it scores lower ("rounded" in design.json's curve); so does, on the
-inventory's count, the best of the selections the branch and bound met (at most 8, the best
-first), each taken down by the exchange passes, when it scores lower than the count's
-("branched"). Then random restarts
+replaces the count's when it scores lower ("rounded" in design.json's curve); so does the best
+selection of the outer approximation (`vdo.design.outer`: a mixed-integer model of the score
+from its tangent planes at the relaxation's weights, its mix of selections, the count's
+selection and the tree's, over sample groups `outer.sample_groups`; on the inventory's count,
+OUTER_SHARE of the branch and bound's seconds) ("outer"), and, on the inventory's count, the
+best of the selections the branch and bound met (at most 8, the best first), each taken down by
+the exchange passes, when it scores lower than the count's ("branched"). Then random restarts
 (`moves.restarts`, [design] restart_s seconds per count): starts drawn from the weights, a tenth of
 each draw spread over all candidates, each taken down by the exchange passes; the best (exchanged
 over all candidates, polished and judged as `_count` does) replaces the count's selection when it
@@ -60,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vdo.design import bound, branch
+from vdo.design import bound, branch, outer
 from vdo.design.budget import Estimate, available_memory, estimate, peak_rss, refuse
 from vdo.design.candidates import BLIND, SPOT_M, Candidates, bodies, inventory, judge, judging, lenses
 from vdo.design.feasibility import Feasibility
@@ -90,6 +93,7 @@ POLISH_PASSES = 3           # most passes over the slots
 POLISH_RTOL = 1e-3          # a polish swap lowers the worst region's p95 by more than this (relative)
 POLISH_PERCENTILE = 95.0    # the curve's figure: each region's σ_max p95
 REFINE_MIN_S = 10.0         # --refine's optimize gets at least this long when the time limit is spent
+OUTER_SHARE = 0.25          # the outer approximation's seconds on the inventory's count, of [design] branch_s
 
 
 @dataclass(frozen=True)
@@ -446,6 +450,16 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
         # more starts: the relaxation's weights rounded, and the best of the selections its
         # branch and bound met, each taken down by the exchange passes first
         starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
+        if c is best and branch_s > 0 and _clock() + count_s + final_s < deadline:
+            # the outer approximation: the selection the score's tangent planes at the relaxation's
+            # weights, its mix, the count's selection and the tree's rate best (`vdo.design.outer`),
+            # on the inventory's count, a quarter of the branch and bound's time
+            o = outer.search(scorer.term, cand, None, c["cameras"], feas.alone, feas.body, feas.counts,
+                             feas.placement, feas.admits, outer.sample_groups(np.asarray(coarse.samples.points)),
+                             [b.weights, c["chosen"]] + list(b.mix) + list(b.found or []),
+                             min(branch_s * OUTER_SHARE, max(deadline - _clock() - count_s - final_s, 0.0)))
+            if o.chosen is not None:
+                starts.append(("the outer approximation", "outer", o.chosen))
         met, met_score = None, math.inf
         for v in b.found or []:
             if _clock() + count_s + final_s > deadline:
@@ -465,7 +479,7 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
                          100 * max(0.0, 1.0 - c["bound"] / again["score"]))
                 c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
                          bound_converged=c["bound_converged"], rounded=key == "rounded",
-                         branched=key == "branched")
+                         branched=key == "branched", outer=key == "outer")
     rng = np.random.default_rng(RESTART_SEED)
     for i, (c, b) in enumerate(zip(curve, relaxed)):     # random restarts, the bound's weights as a guide
         per_count = (deadline - _clock() - final_s) / (len(curve) - i)
