@@ -447,13 +447,14 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     for c, b in zip(curve, relaxed):
         if b is None:
             continue
-        # more starts: the relaxation's weights rounded, and the best of the selections its
-        # branch and bound met, each taken down by the exchange passes first
+        # more starts: the relaxation's weights rounded, the outer approximation's selection
+        # (below), and the best of the selections its branch and bound met, each taken down by
+        # the exchange passes first
         starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
         if c is best and branch_s > 0 and _clock() + count_s + final_s < deadline:
-            # the outer approximation: the selection the score's tangent planes at the relaxation's
-            # weights, its mix, the count's selection and the tree's rate best (`vdo.design.outer`),
-            # on the inventory's count, a quarter of the branch and bound's time
+            # the selection the score's tangent planes at the relaxation's weights, its mix, the
+            # count's selection and the tree's rate best (`vdo.design.outer`), on the inventory's
+            # count, OUTER_SHARE of the branch and bound's time
             o = outer.search(scorer.term, cand, None, c["cameras"], feas.alone, feas.body, feas.counts,
                              feas.placement, feas.admits, outer.sample_groups(np.asarray(coarse.samples.points)),
                              [b.weights, c["chosen"]] + list(b.mix) + list(b.found or []),
