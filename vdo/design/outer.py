@@ -19,7 +19,10 @@ under-estimates F at every selection of the pool, and its solution is the select
 rate best. Scoring that selection and adding its planes corrects the model where it was wrong
 (Kelley's cutting planes; the outer approximation of Duran and Grossmann for convex mixed-integer
 programs): a selection once met is never rated below its score again, and once the model's optimum
-(its dual bound) reaches the best score met, no selection of the pool scores lower. Unlike the
+(its dual bound) reaches the best score met, or its solution is a selection met before (the model
+then rates it at its score), no selection of the pool scores lower (within MODEL_GAP). A selection
+that breaks a rule the model does not hold (`search`'s `feasible`) is cut off by one row,
+sum_{i in S} x_i <= k - 1. Unlike the
 relaxation, whose optimum mixes selections that each see one part of the specimen well, the
 model's selections are selections: on the steel beam (4 cameras, 21,340 candidates, a pool of
 the relaxation's 33 weighed candidates and 150 of each body kind) its first solution is the best
@@ -87,9 +90,9 @@ def planes(term: Callable, summed, pullback, groups: np.ndarray, x0: np.ndarray)
     rhs (G,) = F_B(x0) - gamma_B . x0, F(x0))."""
     C, c = summed(x0)
     N = len(groups)
-    total = lambda C, c: jnp.sum(term(C, c, jnp.arange(N)))     # noqa: E731
-    T = np.asarray(term(jnp.asarray(C), jnp.asarray(c), jnp.arange(N)))
-    gC, gc = (np.asarray(a) for a in jax.grad(total, argnums=(0, 1))(jnp.asarray(C), jnp.asarray(c)))
+    T, back = jax.vjp(lambda C, c: term(C, c, jnp.arange(N)), jnp.asarray(C), jnp.asarray(c))
+    gC, gc = (np.asarray(a) for a in back(jnp.ones_like(T)))     # the gradient of sum_n term_n
+    T = np.asarray(T)
     gamma = pullback(gC, gc, groups)
     return gamma, np.bincount(groups, T, minlength=gamma.shape[1]) - gamma.T @ x0, float(T.sum())
 
@@ -117,8 +120,9 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
     whether a selection keeps every rule (the model holds the pairwise ones of the pool only);
     groups (N,) the samples' groups (`sample_groups`); points: (K,) weight vectors or index
     lists at which the first planes are laid, the first one the relaxation's weights (it sets
-    the pool). Stops after `seconds` wall seconds, max_solves MILPs, or when the model's dual
-    bound reaches the best feasible score met."""
+    the pool; the others are laid while `seconds` last). Stops after `seconds` wall seconds,
+    max_solves MILPs, when the model's dual bound reaches the best feasible score met, or when
+    its solution is a feasible selection met before; a selection `feasible` refuses is cut off."""
     deadline = time.perf_counter() + seconds
     K, summed, pullback = linear_maps(info, weight)
 
@@ -130,7 +134,11 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
         v[p.astype(int)] = 1.0
         return v
 
-    first = [planes(term, summed, pullback, groups, vector(p)) for p in points]
+    first = []          # the planes at the given points, the first one always, the others in time
+    for p in points:
+        if first and time.perf_counter() > deadline:
+            break
+        first.append(planes(term, summed, pullback, groups, vector(p)))
     chosen = pool(vector(points[0]), first[0][0], allowed, body, per_body)
     P, G = len(chosen), first[0][0].shape[1]
     among = np.array([np.asarray(conflicts(j), bool)[chosen] for j in chosen])
@@ -149,6 +157,7 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
     for gamma, rhs, _ in first:
         lay(gamma, rhs)
     best, best_score, model, solves = None, math.inf, -math.inf, 0
+    met = set()
     while solves < max_solves and time.perf_counter() < deadline:
         A = scipy.sparse.csr_matrix(np.vstack(cut_rows + fixed))
         lo = np.concatenate(cut_lo + [fixed_lo])
@@ -163,14 +172,24 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
             model = max(model, math.exp(low))
         if res.x is None:
             break
-        selection = np.sort(chosen[res.x[:P] > 0.5])
+        taken = res.x[:P] > 0.5
+        selection = np.sort(chosen[taken])
+        key = tuple(selection.tolist())
+        if not feasible(list(key)):     # a rule the model does not hold: that selection is cut off
+            fixed.append(np.r_[taken.astype(float), np.zeros(G)][None])
+            fixed_lo, fixed_hi = np.r_[fixed_lo, 0.0], np.r_[fixed_hi, k - 1]
+            log.debug("outer approximation: solve %d, selection %s breaks a rule: cut off", solves, list(key))
+            continue
+        if key in met:      # its planes are laid, so the model rates it at its score: nothing in
+            break           # the pool rates lower (within MODEL_GAP), and the next solve is this one
+        met.add(key)
         gamma, rhs, value = planes(term, summed, pullback, groups, vector(selection))
         lay(gamma, rhs)
         score = math.exp(value)
-        if score < best_score and feasible(selection.tolist()):
-            best, best_score = selection.tolist(), score
+        if score < best_score:
+            best, best_score = list(key), score
         log.debug("outer approximation: solve %d, model %.5g, selection %s scores %.5g", solves,
-                  math.exp(res.fun), selection.tolist(), score)
+                  math.exp(res.fun), list(key), score)
         if model >= best_score:
             break
     return Outcome(best, best_score, model, solves)
