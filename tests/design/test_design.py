@@ -24,8 +24,8 @@ from vdo.design.candidates import BLIND, judge, judging, lenses, spots
 from vdo.design.feasibility import STOP_MARGIN, Feasibility
 from vdo.design.score import Scorer
 from vdo.design.moves import exchange, greedy
-from vdo.design.select import (POLISH_RTOL, design_layout, figures, percentile_by_region, polish, problems,
-                               region_table)
+from vdo.design.polish import POLISH_RTOL, figures, percentile_by_region, polish, region_table
+from vdo.design.select import design_layout, problems
 from vdo.core.errors import ConfigError
 from vdo.geometry.keyframes import load_path_of
 from vdo.physics.lighting import illuminate

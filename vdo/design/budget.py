@@ -12,7 +12,7 @@ on their stored pairs; both scale to all K candidates:
     judging = (probe s per candidate) x K,  search = (score s per stored pair) x E x score passes,
 
 the score passes being greedy's n_max steps plus SEARCH_PASSES exchange passes and
-POLISH_PASSES polish passes (`vdo.design.select.polish`, which scores every feasible candidate
+POLISH_PASSES polish passes (`vdo.design.polish.polish`, which scores every feasible candidate
 per slot to pick its shortlist) of every count's cameras (`score_passes`). With `[design]
 score = "measured"` the probe is judged with its κ (`vdo.design.candidates.inflation`: one correlation model per new footprint), so the judging
 time includes it; scaled to K it is an upper bound, the candidates sharing models on the lattice
