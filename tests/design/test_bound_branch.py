@@ -6,6 +6,7 @@ hull's and, given the time, to the best selection's score."""
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -133,6 +134,26 @@ def test_branching_on_classes_closes_on_the_best_selection(seed, k, monkeypatch)
     assert tree.value <= best * (1 + 1e-12)
     assert tree.value == pytest.approx(best, rel=bound.REL_TOL)
     assert scores[tuple(tree.found[0])] == pytest.approx(best)
+
+
+def test_a_root_without_a_certificate_still_branches(monkeypatch):
+    """On a loaded machine the relaxation's phases can end before any certificate (the bound then
+    reads 0, the score's trivial floor; seen in a reduced `vdo design` of the steel beam): the
+    tree starts from there, its pseudo-costs (lifts relative to the node's bound) pass over a
+    node of bound 0, and it still closes on the best selection."""
+    info, weight, body, counts, conflict = _instance(0, K=12)
+    K, k = len(body), 3
+    scores = {tuple(s): float(_value(info[s].sum(axis=0), weight[s].sum(axis=0)))
+              for s in _selections(K, k, body, counts, conflict)}
+    best = min(scores.values())
+    corrective = bound.corrective
+    monkeypatch.setattr(bound, "corrective", lambda *a, **kw: replace(corrective(*a, **kw), bound=0.0))
+    tree = bound.relaxation(_value, info, weight, k, np.ones(K, bool), body, counts,
+                            start=list(max(scores, key=scores.get)), conflicts=lambda j: conflict[j],
+                            branch_s=60.0, groups=_families(K, 3))
+    assert tree.nodes > 1
+    assert tree.value <= best * (1 + 1e-12)
+    assert tree.value == pytest.approx(best, rel=bound.REL_TOL)
 
 
 @pytest.mark.parametrize("t", [0, 1, 2])

@@ -394,7 +394,7 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             c = solve(child, h, low)
             settle(child, max(c.bound, low), c, None)
             least = min(least, max(c.bound, low))
-        if family >= 0 and np.isfinite(least):
+        if family >= 0 and np.isfinite(least) and low > 0:     # bound 0: no certificate yet, no relative lift
             lifts[family] += (least / low - 1.0, time.perf_counter() - began)
     value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
