@@ -14,7 +14,7 @@ demo: setup
 # on a cold cache this took the suite from 14 min 12 s to 12 min 27 s, warm it costs ~1 min
 # (benchmarks/README.md, "Test suite"); the numbers tested are the same at any optimisation level
 test: setup
-	XLA_FLAGS="$${XLA_FLAGS:-} --xla_backend_optimization_level=0" OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -q -n auto --maxprocesses=4 --dist loadfile
+	XLA_FLAGS="$${XLA_FLAGS:-} --xla_backend_optimization_level=0" OPENBLAS_NUM_THREADS=1 .venv/bin/python -m pytest -q -n auto --maxprocesses=4 --dist loadfile --no-loadscope-reorder
 
 bench: setup
 	.venv/bin/python benchmarks/visibility.py

@@ -251,3 +251,11 @@ def test_the_experiment_rule_sees_a_parameter():
              if isinstance(n, (ast.FunctionDef, ast.Lambda))]
     assert sorted(found) == [("<lambda>", ["exp"]), ("a", ["exp"]), ("b", ["e"]), ("c", ["e"]),
                              ("d", [])]
+
+
+def test_the_files_run_first_are_test_files():
+    """conftest's HEAVY_FIRST (the schedule's first files) names files that exist."""
+    from conftest import HEAVY_FIRST
+
+    root = Path(__file__).resolve().parents[1]
+    assert [name for name in HEAVY_FIRST if not (root / name).is_file()] == []
