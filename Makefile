@@ -8,6 +8,9 @@ demo: setup
 	.venv/bin/vdo demo
 
 # one worker per core (at most 4), a test file per worker: its tests share compiled programs;
+# the files in collection order, the slowest first (tests/conftest.py, HEAVY_FIRST), not xdist's
+# own order by test count, which handed a 2-minute file of 3 tests out last (749 -> 647 s warm
+# together with that file's cut);
 # one OpenBLAS thread per worker (its threads spin while they wait: with a worker per core, a
 # 220 x 220 product took 12.9 ms with two threads against 0.45 ms with one on this 2-core machine)
 # XLA's LLVM backend at -O0: the suite compiles ~7,700 programs and runs most of them a few times;
