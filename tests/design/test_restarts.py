@@ -83,7 +83,7 @@ def test_the_branch_and_bounds_best_selection_is_a_start_and_closes_the_gap(coar
     """With the restarts off, `vdo design` on the holed plate (design samples every
     TREE_SPACING_MM) still writes the best pair of the
     exhaustive search: its branch and bound closes on it (the bound is its score within
-    REL_TOL; about 15 s with XLA's optimisations off). With the outer approximation off,
+    REL_TOL; about 20 s with XLA's optimisations off). With the outer approximation off,
     the best selection the tree met replaces the count's (greedy, exchange and the rounding stop
     above it), said as "branched" in the curve; as shipped, the outer approximation's selection
     (`vdo.design.outer`) is that pair already ("outer")."""
