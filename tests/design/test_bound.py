@@ -213,7 +213,9 @@ def test_a_bound_for_more_cameras_bounds_fewer(plate):
 def test_sparse_and_dense_candidates_give_one_relaxation(plate, monkeypatch):
     """The relaxation's linear map on the stored entries (`linear_maps` of the sparse
     `Candidates`, in chunks of 37 entries, and over a vertex's few candidates alone) and its
-    adjoint equal those on the dense (K, N, 6) arrays, and so does the bound."""
+    adjoint equal those on the dense (K, N, 6) arrays, and so does the bound. The adjoint of a
+    part of the candidates (`rows`, from the sample-major copy) equals the dense one there and
+    is 0 elsewhere."""
     exp, geometry, cand, scorer, feas = plate
     monkeypatch.setattr(hull, "ENTRY_CHUNK", 37)
     K, summed, pullback = hull.linear_maps(cand, None)
@@ -227,6 +229,12 @@ def test_sparse_and_dense_candidates_give_one_relaxation(plate, monkeypatch):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
     gC, gc = rng.normal(size=(cand.samples, 6)), rng.normal(size=cand.samples)
     np.testing.assert_allclose(pullback(gC, gc), pullback_d(gC, gc), rtol=1e-9)
+    part = rng.random(K) < 0.5
+    assert 0 < part.sum() < K
+    _, _, pullback_part = hull.linear_maps(cand, None, rows=part)
+    dense = pullback_d(gC, gc)
+    np.testing.assert_allclose(pullback_part(gC, gc)[part], dense[part], rtol=1e-9, atol=1e-12 * np.abs(dense).max())
+    assert not pullback_part(gC, gc)[~part].any()
     sparse = bound.relaxation(scorer.value, cand, None, 2, feas.alone, feas.body, feas.counts)
     dense = bound.relaxation(scorer.value, cand.info, cand.weight, 2, feas.alone, feas.body, feas.counts)
     assert sparse.value == pytest.approx(dense.value, rel=1e-9)

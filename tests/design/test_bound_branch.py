@@ -43,6 +43,45 @@ def test_the_linear_step_keeps_a_nodes_rules(seed):
     assert rules.vertex(g, 10.0, empty) == (None, np.inf)
 
 
+def test_a_linear_step_reads_the_rules_held_when_it_began(monkeypatch):
+    """The branch and bound runs two nodes' linear steps side by side (`branch._beside`), so
+    another thread may hold more candidates while a step builds its rows. Here a hold of every
+    candidate lands in the middle of a step (from `hull._alike`, which runs between the step's
+    reading of the held candidates and its rows): the step's answer is still a selection with
+    no conflicting pair and the least g.s over them all (enumeration), as when nothing
+    intervenes; its rows and its candidates came from one state."""
+    info, _, body, counts, conflict = _instance(5, K=14, p=0.3)
+    K, k = len(body), 3
+    rules = hull.Rules(lambda j: conflict[j], k, np.ones(K, bool), body, counts)
+    rules.hold([0], np.inf)
+    alike, meddled = hull._alike, []
+
+    def meddle(inside):
+        if not meddled:
+            meddled.append(1)
+            rules.hold(np.arange(K), np.inf)      # "another thread"
+        return alike(inside)
+    monkeypatch.setattr(hull, "_alike", meddle)
+    every = list(_selections(K, k, body, counts, conflict))
+    for g in np.random.default_rng(7).normal(size=(4, K)):
+        meddled.clear()
+        rules._rows, rules._state = rules._rows[:1], (rules.held[:1], [])     # one held again
+        s, low = rules.vertex(g, 30.0)
+        best = min(g[x].sum() for x in every)
+        assert meddled and len(rules.held) == K
+        assert s is not None and not conflict[np.ix_(s, s)].any()
+        assert g[s].sum() == pytest.approx(best, abs=1e-9) and low <= best + 1e-9
+
+
+def test_a_side_thread_hands_back_its_result_and_its_error():
+    assert branch._beside(lambda a, b: a + b, 2, 3)() == 5
+
+    def fails():
+        raise ValueError("in the side thread")
+    with pytest.raises(ValueError, match="side thread"):
+        branch._beside(fails)()
+
+
 @pytest.mark.parametrize("seed, k", [(0, 3), (2, 3), (3, 4)])
 def test_branching_lifts_the_bound_to_the_best_selection(seed, k):
     """Random instances where the hull's bound lies well below the best selection (the

@@ -182,7 +182,7 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
     sample). k is cut to `largest(...)` (no selection holds more)."""
     t0 = time.perf_counter()
     k = min(int(k), largest(allowed, body, counts))
-    K, summed, pullback = linear_maps(info, weight)
+    K, summed, pullback = linear_maps(info, weight, rows=allowed if weight is None else None)
     both = jax.jit(jax.value_and_grad(value, argnums=(0, 1)))
     only = jax.jit(value)
 

@@ -15,12 +15,25 @@ its parent's. S is a class of candidates (below, "Branching on classes"), else t
 weighted farthest from 0 and 1. Best first: the node of least bound is split, each child certified by
 the hull phase from the parent's selections that keep its rules (NODE_INNER_S of re-weighting
 at most), so the bound rises monotonically; it stops at its time, when the bound has risen by
-less than STALL in STALL_S and STALL_NODES nodes (a split on classes may take 20-50 s a node on
+less than STALL in STALL_S and STALL_SPLITS splits (a split on classes may take 20-50 s a node on
 the steel beam), or when every node is closed (the best selection found is then the
-best of all). Measured (2026-12-06, 2 cores shared with two other jobs): on the built-in (10
+best of all). A split's two children (on views: the child solved now and the others' one-step
+certificates) are worked on side by side in two threads (`_beside`; HiGHS and NumPy's kernels
+release the GIL, `Rules` hands each linear step a matching pair of held candidates and cliques):
+on the steel beam's first 40 nodes 142.6 -> 105.2 s, the same bound (0.16049), 2 cores.
+Measured (2026-12-06, 2 cores shared with two other jobs): on the built-in (10
 cameras) 49 nodes in 260 s lifted 0.05142 to 0.05192, gap 5.8 -> 4.9 %; on the steel beam
 (4 cameras) 13 nodes in 240 s lifted 0.15559 to 0.15575: there each child moves the bound by
 0.01-0.05 %, the mix spreading over other spots at almost no cost.
+
+Tightening on demand. The bound is the least over the open nodes, so a node's hull needs to
+be certified only as far as that least bound can rise before the node is split: a node's
+hull (`corrective`) stops once its bound is AHEAD above the least other open bound (`Hull.above`),
+and when it becomes the least itself it is tightened from where it stopped, before it is split
+(its selections, weights and iterate kept); two such nodes are tightened side by side. The
+bound over the open nodes stays valid at every step (each certificate holds for its node's
+selections, whatever its convergence); what is saved are the late Frank-Wolfe steps on nodes
+whose bounds stay above the tree's.
 
 Branching on classes. A spot is one optical centre, and the mix moves to the next one at almost
 no cost; what separates its selections is coarser. On the steel beam the root's mix weighs
@@ -79,6 +92,7 @@ from __future__ import annotations
 
 import heapq
 import logging
+import threading
 import time
 from dataclasses import replace
 from typing import Callable
@@ -94,9 +108,10 @@ log = logging.getLogger(__name__)
 NODE_INNER_S = 1.0     # the branch and bound's nodes: one re-weighting of their selections at most this long
 STALL_S = 60.0         # the branch and bound stops when the bound rose by less than STALL (relative) in STALL_S
 STALL = 5e-4
-STALL_NODES = 8        # ... and in STALL_NODES nodes
+STALL_SPLITS = 8       # ... and in STALL_SPLITS splits (not nodes: a split on views makes up to SPLIT_SAMPLES + 1)
 SPLIT_SAMPLES = 16     # a split on views names at most this many samples (`Views.split`)
 VIEWS_LIFT = 1e-3      # ... and the tree splits on classes alone once one lifts its bound by less (relative)
+AHEAD = 1e-3           # a node's hull stops once its bound is this far (relative) above the least other open one
 PICK_PER_FAMILY = 3    # a split on classes weighs this many classes of each family (`_pick`)
 BRANCH_LOG_S = 30.0    # a progress line of the branch and bound at most this often
 
@@ -318,11 +333,11 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
                 incumbent = min(incumbent, found[key])
 
     seen(root)
-    # an open node: (bound, order, Node, its Hull, or None while only its parent's iterate
-    # certifies it (`_once`), then the parent's Hull)
+    # an open node: (bound, order, Node, its Hull (`Hull.above`: to be tightened before it is
+    # split), or None while only its parent's iterate certifies it (`_once`), then the parent's Hull)
     heap, order, nodes, closed = [(root.bound, 0, Node(), root, None)], 1, 1, np.inf
     shown = since = time.perf_counter()
-    risen, nodes_then = root.bound, nodes
+    risen, splits, splits_then = root.bound, 0, 0
     on_views = views is not None          # splits on views first (module docstring)
 
     def settle(child: Node, bound: float, c: Hull | None, parent: Hull | None):
@@ -334,24 +349,57 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
         else:           # closed: its selections score at least this (within rel_tol of the incumbent)
             closed = min(closed, bound)
 
-    def solve(child: Node, parent: Hull, low: float) -> Hull:
-        nonlocal nodes
-        keep = [(v, w) for v, w in zip(parent.chosen, parent.lam) if child.keeps(v, rules.k)]
+    def ceiling() -> float:
+        """Where a node worked on now may stop (module docstring, "Tightening on demand"): a
+        little above the least other open bound, or at the incumbent."""
+        return min(incumbent, heap[0][0] * (1 + AHEAD)) if heap else incumbent
+
+    def solve(child: Node, point: np.ndarray, start: list, low: float, above: float) -> Hull:
+        """A node's hull from `point` and `start` ((selection, weight) pairs) until it converges
+        or its bound reaches `above` (in a worker thread: `Rules` and the jitted functions are
+        shared)."""
         fb, fo = (both, only) if not child.floor else views.floored(_floor(child, views.samples))
-        c = corrective(fb, fo, summed, pullback, rules, parent.x, keep or None, low, deadline,
-                  min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=incumbent)
+        return corrective(fb, fo, summed, pullback, rules, point, start or None, low, deadline,
+                          min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=above)
+
+    def child_of(child: Node, parent: Hull, low: float, above: float) -> Hull:
+        """A child's own hull, from its parent's iterate and the parent's selections it keeps."""
+        keep = [(v, w) for v, w in zip(parent.chosen, parent.lam) if child.keeps(v, rules.k)]
+        return solve(child, parent.x, keep, low, above)
+
+    def again(node: Node, h: Hull | None, parent: Hull | None, low: float, above: float) -> Hull:
+        """An open node's hull made (certified by its parent's iterate so far) or tightened."""
+        if h is None:
+            return child_of(node, parent, low, above)
+        return solve(node, h.x, list(zip(h.chosen, h.lam)), low, above)
+
+    def solved(c: Hull) -> Hull:
+        nonlocal nodes
         nodes += 1
         seen(c)
         return c
+
+    def waiting(entry) -> bool:
+        """An open node whose hull is still to be made or tightened before it can be split."""
+        return entry[3] is None or entry[3].above
 
     while heap and time.perf_counter() < deadline and (max_nodes is None or nodes < max_nodes):
         low, _, node, h, parent = heap[0]
         if low >= incumbent * (1 - rel_tol):
             break
-        if h is None:           # certified by its parent's iterate alone so far: its own hull now
-            heapq.heappop(heap)
-            c = solve(node, parent, low)
-            settle(node, max(c.bound, low), c, None)
+        if waiting(heap[0]):    # its own hull now, or tightened; the next one beside it when it waits too
+            work = [heapq.heappop(heap)]
+            if heap and waiting(heap[0]) and heap[0][0] < incumbent * (1 - rel_tol):
+                work.append(heapq.heappop(heap))
+            above = ceiling()
+            side = _beside(again, *work[1][2:], work[1][0], above) if len(work) > 1 else None
+            results = [again(*work[0][2:], work[0][0], above)] + ([side()] if side else [])
+            for (low, _, node, h, _), c in zip(work, results):
+                if h is None:
+                    solved(c)
+                else:
+                    seen(c)
+                settle(node, max(c.bound, low), c, None)
             continue
         split = views.split(h, summed, _floor(node, views.samples)) if on_views else None
         pick = None if split is not None else _pick(
@@ -360,11 +408,12 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
         if split is None and pick is None:        # an integral iterate not certified: hull's steps ran out of time
             break
         now = time.perf_counter()
-        if now > since + STALL_S and nodes >= nodes_then + STALL_NODES:     # stalled: the bound rose
+        if now > since + STALL_S and splits >= splits_then + STALL_SPLITS:     # stalled: the bound rose
             if low < risen * (1 + STALL):                                # by less than STALL in both
                 break
-            since, risen, nodes_then = now, low, nodes
+            since, risen, splits_then = now, low, splits
         heapq.heappop(heap)
+        splits += 1
         if now > shown + BRANCH_LOG_S:
             shown = now
             log.info("branch and bound: %d nodes, %d open, bound %.5g, best selection found %.5g", nodes,
@@ -375,6 +424,8 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             # `_once`, and solved only when it is the least open bound)
             seers = [views.viewers(n) for n in split]
             many = tuple((q, 2, rules.k) for q in seers)
+            child = replace(node, between=node.between + many)
+            hull_of = _beside(child_of, child, h, low, ceiling())     # its hull in a second thread, the others here
             for j, n in enumerate(split):
                 child = replace(node, between=node.between + many[:j] + ((seers[j], 0, 1),),
                                 floor=node.floor + ((n, views.alone(n)),))
@@ -383,15 +434,18 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
                 if np.isfinite(once):
                     settle(child, max(once, low), None, h)
             child = replace(node, between=node.between + many)
-            c = solve(child, h, low)
+            c = solved(hull_of())
             settle(child, max(c.bound, low), c, None)
             if c.bound < low * (1 + VIEWS_LIFT):      # the mix moved at little cost: candidates from now on
                 on_views = False
             continue
         family, group, t = pick
         least, began = np.inf, time.perf_counter()
-        for child in _children(node, group, t, rules.k, K):
-            c = solve(child, h, low)
+        first, second = _children(node, group, t, rules.k, K)
+        above = ceiling()
+        hull_of = _beside(child_of, second, h, low, above)        # the two children's hulls side by side
+        for child, c in ((first, child_of(first, h, low, above)), (second, hull_of())):
+            c = solved(c)
             settle(child, max(c.bound, low), c, None)
             least = min(least, max(c.bound, low))
         if family >= 0 and np.isfinite(least) and low > 0:     # bound 0: no certificate yet, no relative lift
@@ -399,6 +453,28 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
     value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
     return value, nodes, incumbent, [np.array(v) for v in best], [(n[2], n[0]) for n in heap]
+
+
+def _beside(fn: Callable, *args) -> Callable:
+    """Starts fn(*args) in a daemon thread (HiGHS and NumPy's kernels release the GIL, so two
+    nodes' hulls use two cores; a daemon thread does not hold up the process when it is
+    interrupted) and returns a function that waits for its result (raising its exception)."""
+    out: dict = {}
+
+    def run():
+        try:
+            out["value"] = fn(*args)
+        except BaseException as exc:      # handed to the waiting thread
+            out["error"] = exc
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+
+    def result():
+        thread.join()
+        if "error" in out:
+            raise out["error"]
+        return out["value"]
+    return result
 
 
 def _once(at, summed, pullback, rules: Rules, x: np.ndarray, node: Node, seconds: float) -> float:

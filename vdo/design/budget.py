@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from vdo.design.candidates import ENTRY_CHUNK, Block, Judging, block_size, collect, inventory, judge_block
+from vdo.design.hull import SAMPLE_MAJOR_BYTES
 from vdo.design.score import Scorer
 from vdo.config.experiment import Experiment
 from vdo.core.errors import ConfigError
@@ -42,12 +43,13 @@ PROBE_WARM = 8               # of them judged first, untimed: their block compil
 ENTRY_BYTES = 6 * 8 + 4 + 4  # one stored pair: 6 float64 information entries, float32 weight, int32 index
 STORE_COPIES = 1             # the stored pairs are held once: each block's own copy (a memory map,
 #                              `vdo.design.candidates.collect`) is unmapped as the whole takes it in
-SELECT_BYTES = 56            # bytes per stored pair that the selection adds after judging: the feasibility
-#                              rule's sight lines and seen matrix (8 + 8 per usable pair), the entries'
-#                              owners (4) and usable flags (1), chunked passes and the heap they leave
-#                              (measured: scale benchmark, 7,176 candidates x 9,000 samples, 0.98 GB over
-#                              the 0.68 GB probe peak for 8.8 M stored pairs, 112 bytes per pair with their
-#                              56; the steel beam at 48,600 candidates x 420 samples, 67 per pair in all)
+SELECT_BYTES = 56 + SAMPLE_MAJOR_BYTES   # bytes per stored pair that the selection adds after judging:
+#                              the feasibility rule's sight lines and seen matrix (8 + 8 per usable pair),
+#                              the entries' owners (4) and usable flags (1), chunked passes and the heap
+#                              they leave (56; measured: scale benchmark, 7,176 candidates x 9,000 samples,
+#                              0.98 GB over the 0.68 GB probe peak for 8.8 M stored pairs, 112 bytes per
+#                              pair with their 56; the steel beam at 48,600 candidates x 420 samples, 67 per
+#                              pair in all), and the bound's sample-major copy (`vdo.design.hull.linear_maps`)
 CAMERA_BYTES = 1024          # a candidate's Camera, metadata and per-region rows (+ 9 bytes per region)
 SEARCH_PASSES = 2            # exchange passes assumed per count: one that swaps, one that confirms
 POLISH_PASSES = 1            # polish passes assumed per count: the one that confirms

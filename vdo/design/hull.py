@@ -7,6 +7,7 @@ corrective Frank-Wolfe over their hull (`corrective`)."""
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -21,8 +22,10 @@ BISECTIONS = 60       # bisection steps of the projection's multipliers (to 2^-6
 ROUNDING = 1e-12      # relative rounding allowed in the backtracking test of the score
 DOUBLINGS = 60        # backtracking doublings of the Lipschitz estimate at most per step
 SHRINK = 0.9          # the Lipschitz estimate's shrink after an accepted step (backtracking doubles it)
+SAMPLE_MAJOR_BYTES = 6 * 8 + 4 + 4   # a stored pair's copy in `linear_maps`'s sample-major order (information, weight, owner)
 SPARSE_ROWS = 8       # sums over the weighted candidates' own entries when fewer than 1 / this of all
 INNER_TOL = 0.5       # ... and stops at INNER_TOL * rel_tol (of its own certificate)
+LINEAR_S = 30.0       # one linear step's MILP at most this long (its dual bound still certifies, its incumbent is the step)
 MIP_GAP = 1e-9        # HiGHS's relative gap in the selection oracle (the certificate takes its dual bound)
 
 
@@ -85,17 +88,31 @@ def project(v: np.ndarray, k: int, allowed: np.ndarray, body: np.ndarray,
     return w
 
 
-def linear_maps(info, weight):
+def linear_maps(info, weight, rows: np.ndarray | None = None):
     """(K, summed, pullback) for candidates given densely, info (K, N, 6) and weight (K, N), or
     stored sparsely (`info` a `vdo.design.candidates.Candidates`: indptr, index, entry_info,
     entry_weight; `weight` None): summed(w) = (sum_k w_k C_k (N, 6), sum_k w_k w_k,n (N,)) and its
     adjoint pullback(gC, gc) = (sum_n C_k,n : gC_n + w_k,n gc_n)_k (K,); pullback(gC, gc, groups),
     groups (N,) labels 0..G-1 of the samples, gives the adjoint of each group's samples apart, (K,
-    G), in one pass. The sparse form costs the stored entries, not K x N."""
+    G), in one pass. The sparse form costs the stored entries, not K x N. With `rows` (K,) bool
+    (sparse form), pullback(gC, gc) gives the adjoint of those candidates only (0 for the others:
+    the bound's linear steps never take a candidate that is not allowed) from a copy of their
+    stored pairs ordered by sample (SAMPLE_MAJOR_BYTES per pair, made here): per sample one
+    matrix-vector product over its contiguous pairs, then one sum per candidate, where the
+    candidate-major pass gathers gC at every pair (on the steel beam's 7.5 M pairs, 5.6 M of
+    allowed candidates: 190 -> 80 ms a call)."""
     if weight is None:
         K, N = len(info.indptr) - 1, info.samples
         owner, idx, ei, ew = info.row, info.index, info.entry_info, info.entry_weight
         chunks = [slice(lo, lo + ENTRY_CHUNK) for lo in range(0, len(idx), ENTRY_CHUNK)]
+        if rows is not None:
+            keep = np.flatnonzero(np.asarray(rows, bool)[owner])
+            by = keep[np.argsort(idx[keep], kind="stable")]
+            del keep
+            by_info, by_weight = np.take(ei, by, axis=0), np.take(ew, by)
+            by_owner = owner[by].astype(np.int32)
+            starts = np.searchsorted(idx[by], np.arange(N + 1))
+            del by
 
         def summed(w):
             w = np.asarray(w, float)
@@ -112,6 +129,13 @@ def linear_maps(info, weight):
 
         def pullback(gC, gc, groups=None):
             gC, gc = np.asarray(gC), np.asarray(gc)
+            if rows is not None and groups is None:
+                values = np.empty(len(by_owner))
+                for n in range(N):
+                    part = slice(starts[n], starts[n + 1])
+                    np.dot(by_info[part], gC[n], out=values[part])
+                    values[part] += by_weight[part] * gc[n]
+                return np.bincount(by_owner, values, minlength=K)
             G = 1 if groups is None else int(np.max(groups)) + 1
             out = np.zeros(K * G)
             for part in chunks:
@@ -193,29 +217,38 @@ class Rules:
     def __init__(self, conflicts: Callable, k: int, allowed: np.ndarray, body: np.ndarray,
                  counts: np.ndarray):
         self.conflicts, self.k, self.allowed, self.body, self.counts = conflicts, k, allowed, body, counts
-        self.held = np.zeros(0, dtype=int)
         self._rows: list[np.ndarray] = []
-        self._cliques: list[np.ndarray] = []
+        # (held candidates, the cliques among them as positions in that array), replaced whole so
+        # that a linear step in another thread (`vdo.design.branch.search`) reads a matching pair
+        self._state: tuple[np.ndarray, list[np.ndarray]] = (np.zeros(0, dtype=int), [])
+        self._lock = threading.Lock()
+
+    @property
+    def held(self) -> np.ndarray:
+        """The candidates whose rules are held, in the order they were added."""
+        return self._state[0]
 
     def hold(self, candidates, deadline: float) -> None:
         """Adds the rules of `candidates` (indices, in that order; those not allowed are left
-        out) until the deadline (time.perf_counter()) passes: holding fewer keeps the bound valid."""
-        held = set(self.held.tolist())
-        new = [j for j in dict.fromkeys(np.asarray(candidates, dtype=int).tolist())
-               if self.allowed[j] and j not in held]
-        rows = []
-        for j in new:
-            if time.perf_counter() > deadline:
-                break
-            rows.append(np.asarray(self.conflicts(j), dtype=bool))
-        if not rows:
-            return
-        self._rows += rows
-        self.held = np.concatenate([self.held, new[:len(rows)]]).astype(int)
-        among = np.array([r[self.held] for r in self._rows])
-        adjacent = among & among.T
-        np.fill_diagonal(adjacent, False)
-        self._cliques = cliques(adjacent)
+        out) until the deadline (time.perf_counter()) passes: holding fewer keeps the bound valid.
+        One thread at a time."""
+        with self._lock:
+            held = set(self.held.tolist())
+            new = [j for j in dict.fromkeys(np.asarray(candidates, dtype=int).tolist())
+                   if self.allowed[j] and j not in held]
+            rows = []
+            for j in new:
+                if time.perf_counter() > deadline:
+                    break
+                rows.append(np.asarray(self.conflicts(j), dtype=bool))
+            if not rows:
+                return
+            self._rows += rows
+            now = np.concatenate([self.held, new[:len(rows)]]).astype(int)
+            among = np.array([r[now] for r in self._rows])
+            adjacent = among & among.T
+            np.fill_diagonal(adjacent, False)
+            self._state = (now, cliques(adjacent))
 
     def vertex(self, g: np.ndarray, seconds: float, node: Node | None = None) -> tuple[np.ndarray | None, float]:
         """(s, low): low <= g.s for every 0/1 s of k allowed candidates within the body counts
@@ -234,11 +267,12 @@ class Rules:
         into = [q for q, _, _ in limits]
         deadline = time.perf_counter() + seconds
         while True:
+            held, clique = self._state
             free = self.allowed.copy()
             if node.out is not None:
                 free &= ~node.out
-            usable = free[self.held]          # held candidates a node's branching leaves out: 0
-            free[self.held] = False
+            usable = free[held]          # held candidates a node's branching leaves out: 0
+            free[held] = False
             rest = np.flatnonzero(free)
             inside = np.zeros((len(rest), len(into)), bool)   # which groups each is in
             for q, group in enumerate(into):
@@ -250,15 +284,15 @@ class Rules:
             ranked, place = key[order], np.arange(len(order))
             rank = place - np.maximum.accumulate(np.where(np.r_[True, ranked[1:] != ranked[:-1]], place, 0))
             extra = rest[order[rank < np.minimum(np.asarray(counts)[body[rest[order]]], k)]]
-            V = np.concatenate([self.held, extra]).astype(int)
+            V = np.concatenate([held, extra]).astype(int)
             rows = [np.arange(len(V))] + [np.flatnonzero(body[V] == b) for b in range(len(counts))] + \
-                self._cliques + [np.flatnonzero(np.isin(V, group)) for group in into]
+                clique + [np.flatnonzero(np.isin(V, group)) for group in into]
             A = scipy.sparse.csr_matrix((np.ones(sum(len(r) for r in rows)),
                                          (np.repeat(np.arange(len(rows)), [len(r) for r in rows]),
                                           np.concatenate(rows))), shape=(len(rows), len(V)))
-            top = np.concatenate([[k], counts, np.ones(len(self._cliques)), [hi for _, _, hi in limits]])
-            low_rows = np.concatenate([[k], np.zeros(len(counts) + len(self._cliques)), [lo for _, lo, _ in limits]])
-            upper = np.concatenate([usable, np.ones(len(V) - len(self.held), bool)]).astype(float)
+            top = np.concatenate([[k], counts, np.ones(len(clique)), [hi for _, _, hi in limits]])
+            low_rows = np.concatenate([[k], np.zeros(len(counts) + len(clique)), [lo for _, lo, _ in limits]])
+            upper = np.concatenate([usable, np.ones(len(V) - len(held), bool)]).astype(float)
             res = milp(g[V], constraints=LinearConstraint(A, low_rows, top), integrality=np.ones(len(V)),
                        bounds=Bounds(0, upper), options={"mip_rel_gap": MIP_GAP,
                                                          "time_limit": max(deadline - time.perf_counter(), 0.0)})
@@ -269,12 +303,11 @@ class Rules:
             if res.x is None:
                 return None, low
             taken = np.sort(V[res.x > 0.5])
-            new = np.setdiff1d(taken, self.held)
+            new = np.setdiff1d(taken, held)
             if not len(new):
                 return taken, low
-            held = len(self.held)
             self.hold(new, deadline)
-            if len(self.held) == held:
+            if not np.isin(new, self.held).any():     # the deadline passed before any was held
                 return None, low
 
 
@@ -335,7 +368,9 @@ class Hull:
     """The state of the fully corrective Frank-Wolfe over a hull (`corrective`): best: f at the best
     iterate in the hull (inf: none), best_x that iterate (None: none), bound the best
     certificate, steps made; chosen the selections of the last iterate and lam their weights
-    (summing to 1), x that iterate (K,)."""
+    (summing to 1), x that iterate (K,); above: it stopped because the bound reached
+    `stop_above` before the best iterate and the bound agreed (a branch and bound node's hull,
+    to be tightened later from this state, `vdo.design.branch.search`)."""
 
     best: float
     best_x: np.ndarray | None
@@ -344,6 +379,7 @@ class Hull:
     chosen: list
     lam: np.ndarray
     x: np.ndarray
+    above: bool = False
 
 
 def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, deadline, inner_s,
@@ -375,18 +411,20 @@ def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, 
     if lam.size:
         lam = lam / lam.sum()
     x, C, inside = point, summed(point), False
-    best, best_x, steps = np.inf, None, 0
+    best, best_x, steps, above = np.inf, None, 0, False
     while steps < max_iter:
         steps += 1
         fx, (gC, gc) = both(*C)
         fx = float(fx)
         g = pullback(gC, gc)
-        s, low = rules.vertex(g, max(deadline - time.perf_counter(), inner_s), node)
+        s, low = rules.vertex(g, min(max(deadline - time.perf_counter(), inner_s), LINEAR_S), node)
         bound = max(bound, fx + low - float(g @ x))
         if inside and fx < best:
             best, best_x = fx, x
-        if best - bound <= rel_tol * abs(bound) or bound >= stop_above or s is None \
-                or time.perf_counter() > deadline:
+        if best - bound <= rel_tol * abs(bound) or s is None or time.perf_counter() > deadline:
+            break
+        if bound >= stop_above:
+            above = True
             break
         if not any(np.array_equal(s, v) for v in chosen):
             lam = add(s, 0.0 if lam.size else 1.0)
@@ -401,4 +439,4 @@ def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, 
         for weight, v in zip(lam, chosen):
             x[v] += weight
         C, inside = tuple(sum(w * c[part] for w, c in zip(lam, sums)) for part in (0, 1)), True
-    return Hull(best, best_x, bound, steps, chosen, lam, x)
+    return Hull(best, best_x, bound, steps, chosen, lam, x, above)
