@@ -1,6 +1,7 @@
 """`vdo design`'s random restarts against exhaustive search: the shipped holed plate's design
 problem (215 candidates on a rail and tripods, two cameras), where greedy selection and exchange
-passes stop at a local minimum of single swaps."""
+passes stop at a local minimum of single swaps; and Ctrl-C in its branch and bound, which ends
+the search and still returns the best layout met."""
 
 from __future__ import annotations
 
@@ -102,3 +103,36 @@ def test_the_branch_and_bounds_best_selection_is_a_start_and_closes_the_gap(coar
     assert top["score"] == pytest.approx(best, rel=SAME_SCORE_RTOL)
     assert scorer.of(cand, top["chosen"]) == pytest.approx(best, rel=SAME_SCORE_RTOL)
     assert best * (1 - bound.REL_TOL) <= top["bound"] <= best * (1 + 1e-12)
+
+
+def test_ctrl_c_in_the_branch_and_bound_writes_the_best_layout_so_far(coarse_plate, monkeypatch):
+    """SIGINT while the branch and bound makes its first children (`vdo.design.branch.search`,
+    an hour of it would be lost otherwise): the tree ends after that split, the outer
+    approximation and the restarts (300 s asked) are not started, and `design_layout` still
+    judges and returns the best layout met (the rounding's and the tree's selections tried),
+    its bound still below the exhaustive best pair and the interruption named among its
+    problems."""
+    import os
+    import signal
+
+    from vdo.core.configure import configure
+    from vdo.design import branch
+    from vdo.design.select import design_layout
+    configure()
+    exp, cand, scorer, feas = coarse_plate
+    best, _ = exhaustive_best_pair(cand, scorer, feas)
+    real, sent = branch.corrective, []
+
+    def corrective(*args, **kwargs):
+        if not sent:
+            sent.append(time.perf_counter())
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(branch, "corrective", corrective)
+    result = design_layout(replace(exp, design=replace(exp.design, restart_seconds=300.0, branch_seconds=600.0)))
+    top = result.curve[-1]
+    assert sent and time.perf_counter() - sent[0] < 60
+    assert any("interrupted" in p for p in result.problems)
+    assert top["bound_nodes"] <= 1 + branch.SPLIT_SAMPLES + 1       # the root and one split's children
+    assert "restarts" not in top and not top.get("outer")
+    assert top["bound"] <= best * (1 + 1e-12) <= top["score"] * (1 + 1e-12)

@@ -164,7 +164,8 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
                body: np.ndarray, counts: np.ndarray, start=None, conflicts: Callable | None = None,
                rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, time_limit: float = 60.0,
                groups: np.ndarray | None = None, branch_s: float = 0.0,
-               branch_nodes: int | None = None, term: Callable | None = None) -> Bound:
+               branch_nodes: int | None = None, term: Callable | None = None,
+               stop: Callable[[], bool] | None = None) -> Bound:
     """The certified bound of the relaxation for k cameras (module docstring). value(C (N, 6),
     k (N,)) -> score: a JAX function convex in its arguments (`vdo.design.score.Scorer.value`);
     info (K, N, 6) float64 1/m^2 and weight (K, N) the candidates' information and soft weights
@@ -179,7 +180,8 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
     (`vdo.design.branch.classes`), default none: candidates alone; branch_nodes: at most
     that many nodes, else as many as the time allows; term: the score's logarithm per sample,
     value = exp(sum_n term_n) (`vdo.design.branch.Views`), with which it splits first on how many cameras see a
-    sample). k is cut to `largest(...)` (no selection holds more)."""
+    sample); stop: `stop()` True ends the branch and bound early (`vdo.search.anytime.Stop`: its
+    bound so far stands). k is cut to `largest(...)` (no selection holds more)."""
     t0 = time.perf_counter()
     k = min(int(k), largest(allowed, body, counts))
     K, summed, pullback = linear_maps(info, weight, rows=allowed if weight is None else None)
@@ -211,7 +213,8 @@ def relaxation(value: Callable, info, weight, k: int, allowed: np.ndarray,
             bound, nodes, _, found, leaves = search(
                 both, only, summed, pullback, rules, h, np.arange(K) if groups is None else np.asarray(groups),
                 incumbent, time.perf_counter() + branch_s, INNER_SHARE * time_limit, rel_tol, max_iter,
-                max_nodes=branch_nodes, views=None if term is None else Views(term, info, weight, allowed))
+                max_nodes=branch_nodes, views=None if term is None else Views(term, info, weight, allowed),
+                stop=stop)
             bound, held = max(bound, h.bound), len(rules.held)
     return Bound(cameras=k, value=float(bound), plain=float(plain), relaxed=float(best), weights=best_x,
                  iterations=it, converged=best - bound <= rel_tol * abs(bound),

@@ -305,7 +305,7 @@ def _children(node: Node, group: np.ndarray, t: int, k: int, K: int) -> tuple[No
 
 def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.ndarray, incumbent: float,
             deadline: float, inner_s: float, rel_tol: float, max_iter: int, max_nodes: int | None = None,
-            views: Views | None = None):
+            views: Views | None = None, stop: Callable[[], bool] | None = None):
     """Branch and bound over the hull's selections (module docstring, "Branching"), best first:
     each open node's certificate bounds every selection keeping the rules and its branching
     rules; the node of lowest bound is split on a sample's views (`views`, `Views.split`) or on
@@ -316,7 +316,8 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
     (f at the best selection found, each a point of the hull) within rel_tol is closed. Returns
     (the least of the incumbent, the closed nodes' bounds and the open nodes' bounds: a lower
     bound on f over every selection keeping the rules; nodes made (at most max_nodes); the incumbent; the selections found, best first
-    (at most 8); the open nodes as (Node, bound))."""
+    (at most 8); the open nodes as (Node, bound)). `stop()` True ends it as its time does (a
+    node's hull in the making stops at its next step; `vdo.search.anytime.Stop`)."""
     K = len(root.x)
     families = np.atleast_2d(np.asarray(groups))
     lifts = np.zeros((len(families), 2))      # per family: its splits' relative lifts and their seconds, summed
@@ -360,7 +361,8 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
         shared)."""
         fb, fo = (both, only) if not child.floor else views.floored(_floor(child, views.samples))
         return corrective(fb, fo, summed, pullback, rules, point, start or None, low, deadline,
-                          min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=above)
+                          min(inner_s, NODE_INNER_S), rel_tol, max_iter, node=child, stop_above=above,
+                          stop=stop)
 
     def child_of(child: Node, parent: Hull, low: float, above: float) -> Hull:
         """A child's own hull, from its parent's iterate and the parent's selections it keeps."""
@@ -383,7 +385,8 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
         """An open node whose hull is still to be made or tightened before it can be split."""
         return entry[3] is None or entry[3].above
 
-    while heap and time.perf_counter() < deadline and (max_nodes is None or nodes < max_nodes):
+    while heap and time.perf_counter() < deadline and (max_nodes is None or nodes < max_nodes) \
+            and not (stop is not None and stop()):
         low, _, node, h, parent = heap[0]
         if low >= incumbent * (1 - rel_tol):
             break

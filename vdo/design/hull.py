@@ -383,7 +383,8 @@ class Hull:
 
 
 def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, deadline, inner_s,
-          rel_tol, max_iter, node: Node | None = None, stop_above: float = np.inf) -> Hull:
+          rel_tol, max_iter, node: Node | None = None, stop_above: float = np.inf,
+               stop: Callable[[], bool] | None = None) -> Hull:
     """Fully corrective Frank-Wolfe over the hull of the selections that keep `rules` (and the
     `node`'s branching rules; module docstring): the certificate at `point` (the first phase's
     best iterate, of P, or a parent node's iterate), then at each iterate, a convex combination
@@ -392,8 +393,8 @@ def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, 
     new one (`descend` over their simplex, inner_s seconds at most); `bound` the certificate
     so far. Stops when the best iterate and the certificate agree to rel_tol, the certificate
     reaches `stop_above`, no selection keeps the rules (the certificate is then inf) or at the
-    deadline; the oracle may run inner_s past the deadline, so that the last iterate is
-    certified."""
+    deadline or once `stop()` is True; the oracle may run inner_s past the deadline, so that the
+    last iterate is certified."""
     K = len(point)
     chosen, sums, lam = [], [], np.zeros(0)
 
@@ -421,7 +422,8 @@ def corrective(both, only, summed, pullback, rules: Rules, point, start, bound, 
         bound = max(bound, fx + low - float(g @ x))
         if inside and fx < best:
             best, best_x = fx, x
-        if best - bound <= rel_tol * abs(bound) or s is None or time.perf_counter() > deadline:
+        if best - bound <= rel_tol * abs(bound) or s is None or time.perf_counter() > deadline \
+                or (stop is not None and stop()):
             break
         if bound >= stop_above:
             above = True

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -104,7 +105,8 @@ def rounded(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.nda
 
 
 def restarts(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.ndarray | None,
-             k: int, seconds: float, rng: np.random.Generator) -> tuple[list[int], float, int]:
+             k: int, seconds: float, rng: np.random.Generator,
+             stop: Callable[[], bool] | None = None) -> tuple[list[int], float, int]:
     """Random restarts for k cameras for about `seconds` (at least one start; fewer when
     RESTART_PATIENCE starts in a row find nothing better than the best so far): each start draws
     feasible candidates one at a time, candidate i (not yet drawn, feasible with those drawn)
@@ -112,14 +114,14 @@ def restarts(cand: Candidates, scorer: Scorer, feas: Feasibility, weights: np.nd
     (w: the relaxation's weights; uniform without them; K candidates), up to k (`greedy` fills
     the rest when the draws run out of feasible candidates), then `exchange` to a local minimum
     of single swaps among RESTART_POOL candidates drawn the same way (a pass over all of them
-    costs K / RESTART_POOL times as much). Returns the best (chosen, score) and the number of
-    starts; the caller exchanges the best over all candidates."""
+    costs K / RESTART_POOL times as much); no start after `stop()` is True. Returns the best
+    (chosen, score) and the number of starts; the caller exchanges the best over all candidates."""
     K = len(cand.cameras)
     w = np.zeros(K) if weights is None else np.clip(np.asarray(weights, dtype=float), 0.0, None)
     p = (1.0 - RESTART_SPREAD) * w / w.sum() + RESTART_SPREAD / K if w.sum() > 0 else np.full(K, 1.0 / K)
     best, best_score, starts, since = [], math.inf, 0, 0
-    stop = _clock() + seconds
-    while starts == 0 or (_clock() < stop and since < RESTART_PATIENCE):
+    until = _clock() + seconds
+    while starts == 0 or (_clock() < until and since < RESTART_PATIENCE and not (stop is not None and stop())):
         starts, since = starts + 1, since + 1
         chosen: list[int] = []
         while len(chosen) < k:

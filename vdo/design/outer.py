@@ -52,6 +52,7 @@ from scipy.cluster.vq import kmeans2
 from scipy.optimize import Bounds, LinearConstraint, milp
 
 from vdo.design.hull import cliques, linear_maps
+from vdo.search.anytime import Stop, until_stopped
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,8 @@ def pool(weights: np.ndarray, gamma: np.ndarray, allowed: np.ndarray, body: np.n
 
 def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.ndarray,
            counts: np.ndarray, conflicts: Callable, feasible: Callable, groups: np.ndarray,
-           points: list, seconds: float, per_body: int = POOL_PER_BODY, max_solves: int = 50) -> Outcome:
+           points: list, seconds: float, per_body: int = POOL_PER_BODY, max_solves: int = 50,
+           stop: Stop | None = None) -> Outcome:
     """The outer approximation's selections (module docstring) for k cameras. term(C (M, 6),
     cover (M,), sample (M,)) the score's logarithm per sample (JAX, convex); info, weight the
     candidates' information as `vdo.design.hull.linear_maps` takes it; allowed, body, counts as
@@ -122,7 +124,9 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
     lists at which the first planes are laid, the first one the relaxation's weights (it sets
     the pool; the others are laid while `seconds` last). Stops after `seconds` wall seconds,
     max_solves MILPs, when the model's dual bound reaches the best feasible score met, or when
-    its solution is a feasible selection met before; a selection `feasible` refuses is cut off."""
+    its solution is a feasible selection met before; a selection `feasible` refuses is cut off.
+    With `stop` (`vdo.search.anytime.Stop`), a MILP runs in a worker thread and the search ends
+    with what it met once a stop is requested (Ctrl-C), the MILP left to finish on its own."""
     deadline = time.perf_counter() + seconds
     K, summed, pullback = linear_maps(info, weight)
 
@@ -162,10 +166,14 @@ def search(term: Callable, info, weight, k: int, allowed: np.ndarray, body: np.n
         A = scipy.sparse.csr_matrix(np.vstack(cut_rows + fixed))
         lo = np.concatenate(cut_lo + [fixed_lo])
         hi = np.concatenate([np.full(sum(len(r) for r in cut_lo), np.inf), fixed_hi])
-        res = milp(np.r_[np.zeros(P), np.ones(G)], constraints=LinearConstraint(A, lo, hi),
-                   integrality=np.r_[np.ones(P), np.zeros(G)],
-                   bounds=Bounds(np.r_[np.zeros(P), np.full(G, -np.inf)], np.r_[np.ones(P), np.full(G, np.inf)]),
-                   options={"time_limit": max(deadline - time.perf_counter(), 1.0), "mip_rel_gap": MODEL_GAP})
+        def solve():
+            return milp(np.r_[np.zeros(P), np.ones(G)], constraints=LinearConstraint(A, lo, hi),
+                        integrality=np.r_[np.ones(P), np.zeros(G)],
+                        bounds=Bounds(np.r_[np.zeros(P), np.full(G, -np.inf)], np.r_[np.ones(P), np.full(G, np.inf)]),
+                        options={"time_limit": max(deadline - time.perf_counter(), 1.0), "mip_rel_gap": MODEL_GAP})
+        done, res = (True, solve()) if stop is None else until_stopped(stop, solve)
+        if not done:
+            break
         solves += 1
         low = getattr(res, "mip_dual_bound", None)
         if low is not None and np.isfinite(low) and res.status in (0, 1):

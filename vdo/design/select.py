@@ -58,6 +58,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from typing import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -80,6 +81,7 @@ from vdo.core.errors import ConfigError, check_time_limit
 from vdo.optimize import OptimizeResult, layout_checks, optimize_layout
 from vdo.core.progress import bar
 from vdo.scene import cameras_of
+from vdo.search.anytime import Stop, stop_on_signals
 from vdo.state import layout_state, prepare, with_exposure
 from vdo.core.tolerances import LIMIT_SLACK
 
@@ -348,68 +350,79 @@ def design_layout(exp: Experiment, refine: bool = False, memory_limit: float | N
     remaining = max(0.0, deadline - _clock() - final_s)     # before the final judgement
     branch_s = min(d.branch_seconds, remaining / 2)         # the inventory's count's branch and bound
     left = (remaining - branch_s) / len(curve)              # per count
-    relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch_s)
-    for c, b in zip(curve, relaxed):
-        if b is None:
-            continue
-        # more starts: the relaxation's weights rounded, the outer approximation's selection
-        # (below), and the best of the selections its branch and bound met, each taken down by
-        # the exchange passes first
-        starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
-        if c is best and branch_s > 0 and _clock() + count_s + final_s < deadline:
-            # the selection the score's tangent planes at the relaxation's weights, its mix, the
-            # count's selection and the tree's rate best (`vdo.design.outer`), on the inventory's
-            # count, OUTER_SHARE of the branch and bound's time
-            o = outer.search(scorer.term, cand, None, c["cameras"], feas.alone, feas.body, feas.counts,
-                             feas.placement, feas.admits, outer.sample_groups(np.asarray(coarse.samples.points)),
-                             [b.weights, c["chosen"]] + list(b.mix) + list(b.found or []),
-                             min(branch_s * OUTER_SHARE, max(deadline - _clock() - count_s - final_s, 0.0)))
-            if o.chosen is not None:
-                starts.append(("the outer approximation", "outer", o.chosen))
-        met, met_score = None, math.inf
-        for v in b.found or []:
-            if _clock() + count_s + final_s > deadline:
-                break
-            chosen, score, _ = exchange(cand, scorer, feas, list(v))
-            if score < met_score:
-                met, met_score = chosen, score
-        if met is not None and met_score < c["score"] * (1 - ROUNDING_RTOL):
-            starts.append(("the best of the branch and bound's selections", "branched", met))
-        for what, key, start in starts:
-            if _clock() + count_s + final_s > deadline:
-                break
-            again = _count(exp, cand, scorer, feas, coarse, can_measure, start)
-            if again["score"] < c["score"] * (1 - ROUNDING_RTOL):
-                log.info("%d cameras: %s scores %.4g against %.4g: gap %.1f -> %.1f %%", c["cameras"], what,
-                         again["score"], c["score"], 100 * c["gap"],
-                         100 * max(0.0, 1.0 - c["bound"] / again["score"]))
-                c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
-                         bound_converged=c["bound_converged"], rounded=key == "rounded",
-                         branched=key == "branched", outer=key == "outer")
-    rng = np.random.default_rng(RESTART_SEED)
-    for i, (c, b) in enumerate(zip(curve, relaxed)):     # random restarts, the bound's weights as a guide
-        per_count = (deadline - _clock() - final_s) / (len(curve) - i)
-        seconds = min(d.restart_seconds, per_count)
-        if d.restart_seconds <= 0 or seconds <= count_s:
-            continue
-        chosen, score, starts = restarts(cand, scorer, feas, None if b is None else b.weights,
-                                         c["cameras"], seconds - count_s, rng)
-        c["restarts"] = starts
-        again = None
-        if score < c["score"] * (1 - ROUNDING_RTOL):    # over all candidates, polished, judged
-            again = _count(exp, cand, scorer, feas, coarse, can_measure, chosen)
-        if again is not None and again["score"] < c["score"] * (1 - ROUNDING_RTOL):
-            key = sigma_key(exp)
-            gap = None if c["bound"] is None else max(0.0, 1.0 - c["bound"] / again["score"])
-            traded = "" if _reads_no_worse(again, c, key) else (
-                f" (the score trades: worst scored region's p95 {_um(again[key])} against "
-                f"{_um(c[key])} um, area seen by min_cameras {100 * again['coverage']:.1f} against "
-                f"{100 * c['coverage']:.1f} %)")
-            log.info("%d cameras: %d random restarts score %.4g against %.4g%s%s", c["cameras"], starts,
-                     again["score"], c["score"], "" if gap is None else
-                     f": gap {100 * c['gap']:.1f} -> {100 * gap:.1f} %", traded)
-            c.update(again, bound=c["bound"], gap=gap, bound_converged=c["bound_converged"],
-                     rounded=c.get("rounded", False), restarts=starts, restarted=True)
+    # the bounds, the further starts and the restarts: Ctrl-C or SIGTERM ends them early and the
+    # best layout so far is judged and written (a second Ctrl-C aborts without writing)
+    stop = Stop()
+    with stop_on_signals(stop):
+        relaxed = relax_curve(cand, scorer, feas, curve, min(d.bound_seconds, left), branch_seconds=branch_s,
+                              stop=stop)
+        for c, b in zip(curve, relaxed):
+            if b is None:
+                continue
+            # more starts: the relaxation's weights rounded, the outer approximation's selection
+            # (below), and the best of the selections its branch and bound met, each taken down by
+            # the exchange passes first (after Ctrl-C, all but the outer approximation: they take seconds)
+            starts = [("the relaxation's rounding", "rounded", rounded(cand, scorer, feas, b.weights, c["cameras"]))]
+            if c is best and branch_s > 0 and _clock() + count_s + final_s < deadline and not stop():
+                # the selection the score's tangent planes at the relaxation's weights, its mix, the
+                # count's selection and the tree's rate best (`vdo.design.outer`), on the inventory's
+                # count, OUTER_SHARE of the branch and bound's time
+                o = outer.search(scorer.term, cand, None, c["cameras"], feas.alone, feas.body, feas.counts,
+                                 feas.placement, feas.admits, outer.sample_groups(np.asarray(coarse.samples.points)),
+                                 [b.weights, c["chosen"]] + list(b.mix) + list(b.found or []),
+                                 min(branch_s * OUTER_SHARE, max(deadline - _clock() - count_s - final_s, 0.0)),
+                                 stop=stop)
+                if o.chosen is not None:
+                    starts.append(("the outer approximation", "outer", o.chosen))
+            met, met_score = None, math.inf
+            for v in b.found or []:
+                if _clock() + count_s + final_s > deadline:
+                    break
+                chosen, score, _ = exchange(cand, scorer, feas, list(v))
+                if score < met_score:
+                    met, met_score = chosen, score
+            if met is not None and met_score < c["score"] * (1 - ROUNDING_RTOL):
+                starts.append(("the best of the branch and bound's selections", "branched", met))
+            for what, key, start in starts:
+                if _clock() + count_s + final_s > deadline:
+                    break
+                again = _count(exp, cand, scorer, feas, coarse, can_measure, start)
+                if again["score"] < c["score"] * (1 - ROUNDING_RTOL):
+                    log.info("%d cameras: %s scores %.4g against %.4g: gap %.1f -> %.1f %%", c["cameras"], what,
+                             again["score"], c["score"], 100 * c["gap"],
+                             100 * max(0.0, 1.0 - c["bound"] / again["score"]))
+                    c.update(again, bound=c["bound"], gap=max(0.0, 1.0 - c["bound"] / again["score"]),
+                             bound_converged=c["bound_converged"], rounded=key == "rounded",
+                             branched=key == "branched", outer=key == "outer")
+        rng = np.random.default_rng(RESTART_SEED)
+        for i, (c, b) in enumerate(zip(curve, relaxed)):     # random restarts, the bound's weights as a guide
+            per_count = (deadline - _clock() - final_s) / (len(curve) - i)
+            seconds = min(d.restart_seconds, per_count)
+            if d.restart_seconds <= 0 or seconds <= count_s or stop():
+                continue
+            chosen, score, starts = restarts(cand, scorer, feas, None if b is None else b.weights,
+                                             c["cameras"], seconds - count_s, rng, stop=stop)
+            c["restarts"] = starts
+            again = None
+            if score < c["score"] * (1 - ROUNDING_RTOL):    # over all candidates, polished, judged
+                again = _count(exp, cand, scorer, feas, coarse, can_measure, chosen)
+            if again is not None and again["score"] < c["score"] * (1 - ROUNDING_RTOL):
+                key = sigma_key(exp)
+                gap = None if c["bound"] is None else max(0.0, 1.0 - c["bound"] / again["score"])
+                traded = "" if _reads_no_worse(again, c, key) else (
+                    f" (the score trades: worst scored region's p95 {_um(again[key])} against "
+                    f"{_um(c[key])} um, area seen by min_cameras {100 * again['coverage']:.1f} against "
+                    f"{100 * c['coverage']:.1f} %)")
+                log.info("%d cameras: %d random restarts score %.4g against %.4g%s%s", c["cameras"], starts,
+                         again["score"], c["score"], "" if gap is None else
+                         f": gap {100 * c['gap']:.1f} -> {100 * gap:.1f} %", traded)
+                c.update(again, bound=c["bound"], gap=gap, bound_converged=c["bound_converged"],
+                         rounded=c.get("rounded", False), restarts=starts, restarted=True)
+    if stop.reason == "interrupted":
+        issues.append("the search was interrupted (Ctrl-C or SIGTERM): the bounds and the branch and "
+                      "bound ended where they stood (the bound and gap written are theirs), the outer "
+                      "approximation and the restarts were not run; the best layout met is written")
+        log.warning(issues[-1])
     common_p95(exp, coarse.samples, curve)
     sharper = sharper_smaller_count(exp, curve, best)
     if sharper:
@@ -529,7 +542,8 @@ class DesignRecord:
 
 
 def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
-                seconds: float, branch_seconds: float = 0.0) -> list[bound.Bound | None]:
+                seconds: float, branch_seconds: float = 0.0,
+                stop: Callable[[], bool] | None = None) -> list[bound.Bound | None]:
     """Adds to each count of `curve` the certified lower bound on the score of any selection of
     that many cameras (`vdo.design.bound.relaxation`, body counts and obscuration kept, and the
     spot, axis-angle and tripod rules among the candidates the relaxation weighs,
@@ -542,7 +556,9 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
     inventory's, the layout written) then gets `branch_seconds` of branch and bound over the
     candidates' classes (`vdo.design.branch.classes`: aim point, mount, body kind, lens, spot),
     which lifts its bound where the relaxation
-    mixes selections (docs/design.md, "The bound"). Logs each gap. Returns each count's
+    mixes selections (docs/design.md, "The bound"). Once `stop()` is True (Ctrl-C,
+    `vdo.search.anytime.Stop`) the branch and bound ends and the counts left get one step of the
+    relaxation each (a weaker bound, still a bound). Logs each gap. Returns each count's
     `vdo.design.bound.Bound` (None where `seconds` is 0)."""
     if seconds <= 0:
         for c in curve:
@@ -551,10 +567,12 @@ def relax_curve(cand: Candidates, scorer: Scorer, feas: Feasibility, curve,
     top = max(c["cameras"] for c in curve)
     groups = branch.classes(cand.target, cand.mount, cand.body, [c.focal_length for c in cand.cameras],
                             cand.positions) if branch_seconds > 0 else None
+    stopped = stop if stop is not None else (lambda: False)
     found = [bound.relaxation(scorer.value, cand, None, c["cameras"], feas.alone, feas.body,
-                              feas.counts, start=c["chosen"], conflicts=feas.placement, time_limit=seconds,
-                              groups=groups, branch_s=branch_seconds if c["cameras"] == top else 0.0,
-                              term=scorer.term)
+                              feas.counts, start=c["chosen"], conflicts=feas.placement,
+                              time_limit=0.0 if stopped() else seconds, groups=groups,
+                              branch_s=branch_seconds if c["cameras"] == top and not stopped() else 0.0,
+                              term=scorer.term, stop=stop)
              for c in bar(log, iterable=curve, desc="bound", leave=False)]
     value, later = [b.value for b in found], 0.0
     for i in reversed(range(len(found))):
