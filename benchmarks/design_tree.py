@@ -41,10 +41,14 @@ from vdo.state import prepare
 ROOT_S = 60.0       # the root's time limit, as [design] bound_s's default
 
 
-def serial(fn, *args):
-    """`branch._beside` without the thread: fn(*args) now, its result when asked."""
-    value = fn(*args)
-    return lambda: value
+class Serial:
+    """`vdo.search.anytime.Beside` without the thread: fn(*args) now, its result when asked."""
+
+    def __init__(self, fn, *args):
+        self.value = fn(*args)
+
+    def result(self):
+        return self.value
 
 
 def timed(pullback, seconds: list):
@@ -94,11 +98,11 @@ def main() -> None:
     groups = branch.classes(cand.target, cand.mount, cand.body, [c.focal_length for c in cand.cameras],
                             cand.positions)
     views = branch.Views(scorer.term, cand, None, feas.alone)
-    ahead, beside = branch.AHEAD, branch._beside
+    ahead, beside = branch.AHEAD, branch.Beside
     for name, pullback, lazy, threads in (("before", every, False, False), ("now", allowed_only, True, True)):
         seconds: list = []
         branch.AHEAD = ahead if lazy else np.inf
-        branch._beside = beside if threads else serial
+        branch.Beside = beside if threads else Serial
         t = time.perf_counter()
         value, nodes, found, _, _ = branch.search(
             both, only, summed, timed(pullback, seconds), rules(), root, groups, incumbent,
@@ -106,7 +110,7 @@ def main() -> None:
             views=views)
         print(f"{name:>6}: bound {value:.5g} ({nodes} nodes, {time.perf_counter() - t:.0f} s; best selection met "
               f"{found:.5g}), adjoint {1e3 * np.median(seconds):.0f} ms a call ({len(seconds)} calls)")
-    branch.AHEAD, branch._beside = ahead, beside
+    branch.AHEAD, branch.Beside = ahead, beside
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ import pytest
 from test_bound_conflicts import _instance, _selections, _value
 
 from vdo.design import bound, hull, branch
+from vdo.search.anytime import Beside
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -44,7 +45,7 @@ def test_the_linear_step_keeps_a_nodes_rules(seed):
 
 
 def test_a_linear_step_reads_the_rules_held_when_it_began(monkeypatch):
-    """The branch and bound runs two nodes' linear steps side by side (`branch._beside`), so
+    """The branch and bound runs two nodes' linear steps side by side (`vdo.search.anytime.Beside`), so
     another thread may hold more candidates while a step builds its rows. Here a hold of every
     candidate lands in the middle of a step (from `hull._alike`, which runs between the step's
     reading of the held candidates and its rows): the step's answer is still a selection with
@@ -74,12 +75,12 @@ def test_a_linear_step_reads_the_rules_held_when_it_began(monkeypatch):
 
 
 def test_a_side_thread_hands_back_its_result_and_its_error():
-    assert branch._beside(lambda a, b: a + b, 2, 3)() == 5
+    assert Beside(lambda a, b: a + b, 2, 3).result() == 5
 
     def fails():
         raise ValueError("in the side thread")
     with pytest.raises(ValueError, match="side thread"):
-        branch._beside(fails)()
+        Beside(fails).result()
 
 
 @pytest.mark.parametrize("seed, k", [(0, 3), (2, 3), (3, 4)])

@@ -18,8 +18,9 @@ at most), so the bound rises monotonically; it stops at its time, when the bound
 less than STALL in STALL_S and STALL_SPLITS splits (a split on classes may take 20-50 s a node on
 the steel beam), or when every node is closed (the best selection found is then the
 best of all). A split's two children (on views: the child solved now and the others' one-step
-certificates) are worked on side by side in two threads (`_beside`; HiGHS and NumPy's kernels
-release the GIL, `Rules` hands each linear step a matching pair of held candidates and cliques):
+certificates) are worked on side by side in two threads (`vdo.search.anytime.Beside`; HiGHS
+and NumPy's kernels release the GIL, `Rules` hands each linear step a matching pair of held
+candidates and cliques):
 on the steel beam's first 40 nodes 142.6 -> 105.2 s, the same bound (0.16049), 2 cores.
 Measured (2026-12-06, 2 cores shared with two other jobs): on the built-in (10
 cameras) 49 nodes in 260 s lifted 0.05142 to 0.05192, gap 5.8 -> 4.9 %; on the steel beam
@@ -92,7 +93,6 @@ from __future__ import annotations
 
 import heapq
 import logging
-import threading
 import time
 from dataclasses import replace
 from typing import Callable
@@ -102,6 +102,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from vdo.design.hull import Hull, Node, Rules, corrective
+from vdo.search.anytime import Beside
 
 log = logging.getLogger(__name__)
 
@@ -395,7 +396,7 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             if heap and waiting(heap[0]) and heap[0][0] < incumbent * (1 - rel_tol):
                 work.append(heapq.heappop(heap))
             above = ceiling()
-            side = _beside(again, *work[1][2:], work[1][0], above) if len(work) > 1 else None
+            side = Beside(again, *work[1][2:], work[1][0], above).result if len(work) > 1 else None
             results = [again(*work[0][2:], work[0][0], above)] + ([side()] if side else [])
             for (low, _, node, h, _), c in zip(work, results):
                 if h is None:
@@ -428,7 +429,7 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
             seers = [views.viewers(n) for n in split]
             many = tuple((q, 2, rules.k) for q in seers)
             child = replace(node, between=node.between + many)
-            hull_of = _beside(child_of, child, h, low, ceiling())     # its hull in a second thread, the others here
+            hull_of = Beside(child_of, child, h, low, ceiling()).result     # its hull in a second thread, the others here
             for j, n in enumerate(split):
                 child = replace(node, between=node.between + many[:j] + ((seers[j], 0, 1),),
                                 floor=node.floor + ((n, views.alone(n)),))
@@ -446,7 +447,7 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
         least, began = np.inf, time.perf_counter()
         first, second = _children(node, group, t, rules.k, K)
         above = ceiling()
-        hull_of = _beside(child_of, second, h, low, above)        # the two children's hulls side by side
+        hull_of = Beside(child_of, second, h, low, above).result        # the two children's hulls side by side
         for child, c in ((first, child_of(first, h, low, above)), (second, hull_of())):
             c = solved(c)
             settle(child, max(c.bound, low), c, None)
@@ -456,28 +457,6 @@ def search(both, only, summed, pullback, rules: Rules, root: Hull, groups: np.nd
     value = min([incumbent, closed] + [n[0] for n in heap])
     best = sorted(found, key=found.get)[:8]
     return value, nodes, incumbent, [np.array(v) for v in best], [(n[2], n[0]) for n in heap]
-
-
-def _beside(fn: Callable, *args) -> Callable:
-    """Starts fn(*args) in a daemon thread (HiGHS and NumPy's kernels release the GIL, so two
-    nodes' hulls use two cores; a daemon thread does not hold up the process when it is
-    interrupted) and returns a function that waits for its result (raising its exception)."""
-    out: dict = {}
-
-    def run():
-        try:
-            out["value"] = fn(*args)
-        except BaseException as exc:      # handed to the waiting thread
-            out["error"] = exc
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-
-    def result():
-        thread.join()
-        if "error" in out:
-            raise out["error"]
-        return out["value"]
-    return result
 
 
 def _once(at, summed, pullback, rules: Rules, x: np.ndarray, node: Node, seconds: float) -> float:

@@ -10,7 +10,7 @@ import math
 import signal
 import threading
 import time
-from typing import Protocol
+from typing import Callable, Protocol
 
 from vdo.core.progress import PlainBar, bar
 
@@ -63,23 +63,37 @@ def until_stopped(stop: Stop, fn):
     from inside, a program's first call that compiles it: XLA's compilation is not cancellable,
     so the thread is left to finish on its own (a daemon: it does not hold the process at exit)
     and its result is dropped. An exception in fn is raised here."""
-    box: dict = {}
-
-    def work():
-        try:
-            box["value"] = fn()
-        except BaseException as exc:      # handed to the waiting thread
-            box["error"] = exc
-
-    worker = threading.Thread(target=work, name="vdo-compile", daemon=True)
-    worker.start()
-    while worker.is_alive():
-        worker.join(timeout=min(POLL_S, max(stop.left, 1e-3)))
-        if worker.is_alive() and stop():
+    job = Beside(fn, name="vdo-compile")
+    while job.thread.is_alive():
+        job.thread.join(timeout=min(POLL_S, max(stop.left, 1e-3)))
+        if job.thread.is_alive() and stop():
             return False, None
-    if "error" in box:
-        raise box["error"]
-    return True, box["value"]
+    return True, job.result()
+
+
+class Beside:
+    """fn(*args) run from now in a daemon thread beside the caller (native solvers, XLA's
+    compiler and NumPy's kernels release the GIL, so it can use another core; a daemon does not
+    hold up the process when it is interrupted). `result()` waits for it and returns its value,
+    or raises its exception."""
+
+    def __init__(self, fn: Callable, *args, name: str = "vdo-beside"):
+        self._box: dict = {}
+
+        def work():
+            try:
+                self._box["value"] = fn(*args)
+            except BaseException as exc:      # handed to the waiting thread
+                self._box["error"] = exc
+
+        self.thread = threading.Thread(target=work, name=name, daemon=True)
+        self.thread.start()
+
+    def result(self):
+        self.thread.join()
+        if "error" in self._box:
+            raise self._box["error"]
+        return self._box["value"]
 
 
 @contextlib.contextmanager
